@@ -1,0 +1,237 @@
+"""Exact collision tests and clearance between the arm's links and polygons.
+
+Links are line segments (zero width).  A link collides with a polygon when it
+crosses an edge or lies inside it; with a safety margin, when its distance to the
+polygon is at most the margin.  The clearance of a configuration is the smallest
+distance from any checked link to the spacecraft body or any obstacle (0 when they
+touch or overlap).
+
+The numba kernels work on packed polygons (see ``scene.pack_polygons``) and are
+shared with the C-space builder.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .scene import pack_polygons
+
+__all__ = ["clearance_m", "is_free", "CollisionChecker"]
+
+
+# ----------------------------------------------------------------- primitives
+@njit(cache=True, inline="always")
+def _orient(ax, ay, bx, by, cx, cy):
+    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+
+
+@njit(cache=True, inline="always")
+def _on_segment(ax, ay, bx, by, px, py):
+    return min(ax, bx) <= px <= max(ax, bx) and min(ay, by) <= py <= max(ay, by)
+
+
+@njit(cache=True)
+def segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
+    """True when segment AB and segment CD share at least one point."""
+    d1 = _orient(cx, cy, dx, dy, ax, ay)
+    d2 = _orient(cx, cy, dx, dy, bx, by)
+    d3 = _orient(ax, ay, bx, by, cx, cy)
+    d4 = _orient(ax, ay, bx, by, dx, dy)
+    if ((d1 > 0 and d2 < 0) or (d1 < 0 and d2 > 0)) and ((d3 > 0 and d4 < 0) or (d3 < 0 and d4 > 0)):
+        return True
+    if d1 == 0 and _on_segment(cx, cy, dx, dy, ax, ay):
+        return True
+    if d2 == 0 and _on_segment(cx, cy, dx, dy, bx, by):
+        return True
+    if d3 == 0 and _on_segment(ax, ay, bx, by, cx, cy):
+        return True
+    if d4 == 0 and _on_segment(ax, ay, bx, by, dx, dy):
+        return True
+    return False
+
+
+@njit(cache=True)
+def point_segment_distance(px, py, ax, ay, bx, by):
+    """Euclidean distance from point P to segment AB."""
+    ux, uy = bx - ax, by - ay
+    den = ux * ux + uy * uy
+    t = 0.0
+    if den > 0.0:
+        t = ((px - ax) * ux + (py - ay) * uy) / den
+        t = min(1.0, max(0.0, t))
+    ex, ey = ax + t * ux - px, ay + t * uy - py
+    return np.sqrt(ex * ex + ey * ey)
+
+
+@njit(cache=True)
+def segment_segment_distance(ax, ay, bx, by, cx, cy, dx, dy):
+    """Distance between segments AB and CD (0 when they intersect)."""
+    if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
+        return 0.0
+    return min(min(point_segment_distance(ax, ay, cx, cy, dx, dy),
+                   point_segment_distance(bx, by, cx, cy, dx, dy)),
+               min(point_segment_distance(cx, cy, ax, ay, bx, by),
+                   point_segment_distance(dx, dy, ax, ay, bx, by)))
+
+
+@njit(cache=True)
+def point_in_polygon(px, py, verts, start, stop):
+    """Even–odd ray test: True when P lies strictly inside polygon verts[start:stop]."""
+    inside = False
+    j = stop - 1
+    for i in range(start, stop):
+        xi, yi = verts[i, 0], verts[i, 1]
+        xj, yj = verts[j, 0], verts[j, 1]
+        if (yi > py) != (yj > py):
+            x_cross = xi + (py - yi) * (xj - xi) / (yj - yi)
+            if px < x_cross:
+                inside = not inside
+        j = i
+    return inside
+
+
+@njit(cache=True)
+def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
+    """Distance from segment AB to polygon verts[start:stop] (0 if touching or inside)."""
+    if point_in_polygon(ax, ay, verts, start, stop):
+        return 0.0
+    best = np.inf
+    j = stop - 1
+    for i in range(start, stop):
+        d = segment_segment_distance(ax, ay, bx, by, verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1])
+        if d < best:
+            best = d
+            if best == 0.0:
+                return 0.0
+        j = i
+    return best
+
+
+@njit(cache=True)
+def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
+    """True when segment AB comes within ``margin_m`` of the polygon (early exit)."""
+    if point_in_polygon(ax, ay, verts, start, stop):
+        return True
+    j = stop - 1
+    for i in range(start, stop):
+        if segment_segment_distance(ax, ay, bx, by, verts[j, 0], verts[j, 1],
+                                    verts[i, 0], verts[i, 1]) <= margin_m:
+            return True
+        j = i
+    return False
+
+
+# ------------------------------------------------------- per-configuration core
+@njit(cache=True)
+def _link_points(q_full, lengths, out):
+    """Fill out (n+1, 2) with the chain's joint points for one configuration."""
+    ang = 0.0
+    out[0, 0] = 0.0
+    out[0, 1] = 0.0
+    for k in range(q_full.shape[0]):
+        ang += q_full[k]
+        out[k + 1, 0] = out[k, 0] + lengths[k] * np.cos(ang)
+        out[k + 1, 1] = out[k, 1] + lengths[k] * np.sin(ang)
+
+
+@njit(cache=True)
+def _rotate_body(body, attitude, out):
+    c, s = np.cos(attitude), np.sin(attitude)
+    for i in range(body.shape[0]):
+        out[i, 0] = c * body[i, 0] - s * body[i, 1]
+        out[i, 1] = s * body[i, 0] + c * body[i, 1]
+
+
+@njit(cache=True)
+def config_collides(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres,
+                    obs_radii, margin_m, pts, body_w):
+    """True when a checked link comes within margin_m of the body or an obstacle.
+
+    ``pts`` ((n+1)×2) and ``body_w`` (k×2) are scratch arrays.
+    """
+    _link_points(q_full, lengths, pts)
+    _rotate_body(body, q_full[0], body_w)
+    nb = body.shape[0]
+    for c in range(checked.shape[0]):
+        k = checked[c]
+        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
+        if segment_polygon_within(ax, ay, bx, by, body_w, 0, nb, margin_m):
+            return True
+        for p in range(obs_radii.shape[0]):
+            # bounding-circle cull: the link is farther than radius + margin from the centre
+            if point_segment_distance(obs_centres[p, 0], obs_centres[p, 1], ax, ay, bx, by) \
+                    > obs_radii[p] + margin_m:
+                continue
+            if segment_polygon_within(ax, ay, bx, by, obs_verts, obs_starts[p], obs_starts[p + 1],
+                                      margin_m):
+                return True
+    return False
+
+
+@njit(cache=True)
+def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, pts, body_w):
+    """Smallest distance (m) from a checked link to the body or any obstacle."""
+    _link_points(q_full, lengths, pts)
+    _rotate_body(body, q_full[0], body_w)
+    nb = body.shape[0]
+    best = np.inf
+    for c in range(checked.shape[0]):
+        k = checked[c]
+        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
+        best = min(best, segment_polygon_distance(ax, ay, bx, by, body_w, 0, nb))
+        for p in range(obs_starts.shape[0] - 1):
+            best = min(best, segment_polygon_distance(ax, ay, bx, by, obs_verts,
+                                                      obs_starts[p], obs_starts[p + 1]))
+    return best
+
+
+@njit(cache=True)
+def _batch_clearance(q_full, lengths, checked, body, obs_verts, obs_starts):
+    n = q_full.shape[0]
+    out = np.empty(n)
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    for i in range(n):
+        out[i] = config_clearance(q_full[i], lengths, checked, body, obs_verts, obs_starts, pts, body_w)
+    return out
+
+
+# ------------------------------------------------------------------ public API
+class CollisionChecker:
+    """The validity checker: exact tests of planned configurations against a scene.
+
+    Build it once per (robot, scene); it packs the geometry for the kernels.
+    """
+
+    def __init__(self, robot, scene):
+        self.robot = robot
+        self.scene = scene
+        self.lengths = np.asarray(robot.link_lengths_m, dtype=float)
+        self.checked = np.asarray(robot.checked_links, dtype=np.int64)
+        self.body = np.ascontiguousarray(robot.body_polygon_m, dtype=float)
+        self.verts, self.starts, self.centres, self.radii = pack_polygons(scene.obstacle_polygons_m)
+        self.margin_m = float(scene.safety_margin_m)
+
+    def clearance_m(self, q) -> np.ndarray | float:
+        """Clearance (m) of planned configuration(s) q: (dof,) → float, (N, dof) → (N,)."""
+        q = np.asarray(q, dtype=float)
+        single = q.ndim == 1
+        q_full = np.ascontiguousarray(self.robot.full(np.atleast_2d(q)))
+        out = _batch_clearance(q_full, self.lengths, self.checked, self.body, self.verts, self.starts)
+        return float(out[0]) if single else out
+
+    def is_free(self, q) -> np.ndarray | bool:
+        """True where clearance > safety margin: (dof,) → bool, (N, dof) → (N,) bool."""
+        c = self.clearance_m(q)
+        return bool(c > self.margin_m) if np.ndim(c) == 0 else c > self.margin_m
+
+
+def clearance_m(robot, scene, q):
+    """Clearance (m) of planned configuration(s) ``q`` ((dof,) or (N, dof), rad)."""
+    return CollisionChecker(robot, scene).clearance_m(q)
+
+
+def is_free(robot, scene, q):
+    """Whether planned configuration(s) ``q`` keep more than the safety margin everywhere."""
+    return CollisionChecker(robot, scene).is_free(q)

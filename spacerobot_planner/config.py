@@ -1,0 +1,295 @@
+"""Scenario files and parameters: one schema for the YAML loader, the CLI and the node.
+
+Scenario files are ROS 2 parameter files (``--params-file``)::
+
+    spacerobot_planner:
+      ros__parameters:
+        robot:
+          joint_names: [attitude, shoulder, elbow]
+          ...
+
+Nested keys become dotted parameter names (``robot.joint_names``).  Angles are in
+degrees in files (people read them), radians everywhere inside.  ``PARAMETERS``
+lists every parameter with its type, default (the paper's 3-DOF scene), unit,
+range and whether a change needs a restart; the node declares exactly these.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import yaml
+
+from .cspace import GridSpec, grid_for_robot
+from .robot import PlanarArm, square_polygon
+from .scene import Scene, Target
+
+__all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file",
+           "scenario_from_params", "NODE_NAME"]
+
+NODE_NAME = "spacerobot_planner"
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: dotted name, ROS type, default, description, unit, range."""
+
+    name: str
+    type: str                      # double, integer, string, bool, *_array
+    default: object
+    description: str
+    read_only: bool = False        # a change needs a restart (robot geometry)
+    min_value: float | None = None
+    max_value: float | None = None
+    required_in_file: bool = False  # a scenario file must state it
+
+
+PARAMETERS = (
+    ParamSpec("planning_frame", "string", "world",
+              "Frame of target poses and markers; a target_pose in another frame is rejected.", True),
+    ParamSpec("robot.joint_names", "string_array", ["attitude", "shoulder", "elbow"],
+              "Joint names, base first: the attitude (virtual joint at the spacecraft CoM), then the arm.",
+              True, required_in_file=True),
+    ParamSpec("robot.link_lengths_m", "double_array", [1.4, 2.0, 2.0],
+              "Link lengths in metres (link 1: CoM to shoulder).", True, 1e-6, 100.0, True),
+    ParamSpec("robot.lower_deg", "double_array", [-180.0, -180.0, -180.0],
+              "Lower joint bounds, degrees.", True, -360.0, 360.0, True),
+    ParamSpec("robot.upper_deg", "double_array", [180.0, 180.0, 180.0],
+              "Upper joint bounds, degrees.", True, -360.0, 360.0, True),
+    ParamSpec("robot.periodic", "bool_array", [True, False, False],
+              "Per joint: wraps around (the attitude: -180 deg == +180 deg).", True, required_in_file=True),
+    ParamSpec("robot.body_side_m", "double", 1.8,
+              "Side of the square spacecraft body (link 1 points at a corner), metres.", True, 1e-3, 100.0, True),
+    ParamSpec("robot.planned_joints", "string_array", ["attitude", "shoulder", "elbow"],
+              "Joints the planner moves; the others stay at robot.locked_positions_deg.", True,
+              required_in_file=True),
+    ParamSpec("robot.locked_positions_deg", "double_array", [0.0, 0.0, 0.0],
+              "Full-length joint vector, degrees; used for the joints not planned.", True),
+    ParamSpec("target.center_m", "double_array", [-3.27, -2.60],
+              "Target body centre (x, y) in the planning frame, metres (target_pose overrides it).",
+              False, -1000.0, 1000.0),
+    ParamSpec("target.yaw_deg", "double", 0.0, "Target yaw, degrees (handle on the local +y face).",
+              False, -360.0, 360.0),
+    ParamSpec("target.body_side_m", "double", 1.0, "Target body side, metres.", False, 1e-3, 100.0),
+    ParamSpec("target.handle_side_m", "double", 0.1, "Grasp handle side, metres.", False, 1e-3, 10.0),
+    ParamSpec("obstacles.polygons_m", "string", "[]",
+              "Debris polygons in the planning frame as a list of [[x, y], ...] lists, metres "
+              "(a string, like Nav2's footprint).", False),
+    ParamSpec("safety_margin_m", "double", 0.02,
+              "Minimum distance kept between links 2-3 and any obstacle or the body, metres.",
+              False, 0.0, 1.0),
+    ParamSpec("grid.cells", "integer_array", [36, 36, 36],
+              "C-space cells per planned joint.", False, 2, 4096, True),
+    ParamSpec("scenario.start_deg", "double_array", [-90.0, 135.0, 90.0],
+              "Start posture of the planned joints, degrees (CLI and mock arm).", False),
+    ParamSpec("scenario.goal_deg", "double_array", [160.7, 32.8, 76.5],
+              "Goal posture of the planned joints, degrees (CLI; the node plans to the target).", False),
+    # ---- planner (field, path)
+    ParamSpec("planner.solver", "string", "log_harmonic",
+              "Field solver: log_harmonic (default), sor, gauss_seidel (the paper's).", False),
+    ParamSpec("planner.field_tolerance", "double", 1e-6,
+              "Field convergence tolerance (relative change per sweep).", False, 1e-14, 1e-1),
+    ParamSpec("planner.max_grid_nodes", "integer", 4_000_000,
+              "Refuse grids with more nodes than this (memory budget), before allocating.",
+              False, 4, 200_000_000),
+    # ---- trajectory (time parameterisation), per joint in robot.joint_names
+    ParamSpec("trajectory.max_velocity_deg_s", "double_array", [5.0, 15.0, 15.0],
+              "Per-joint velocity limits, deg/s.", False, 1e-3, 1e4),
+    ParamSpec("trajectory.max_acceleration_deg_s2", "double_array", [5.0, 20.0, 20.0],
+              "Per-joint acceleration limits, deg/s^2.", False, 1e-3, 1e5),
+)
+
+_SPECS = {p.name: p for p in PARAMETERS}
+
+
+# --------------------------------------------------------------- type checking
+def _check_scalar(name, kind, value):
+    if kind == "double":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{name}: expected a number, got {value!r} ({type(value).__name__})")
+        if not math.isfinite(float(value)):
+            raise ValueError(f"{name}: expected a finite number, got {value!r}")
+        return float(value)
+    if kind == "integer":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{name}: expected an integer, got {value!r} ({type(value).__name__})")
+        return int(value)
+    if kind == "string":
+        if not isinstance(value, str):
+            raise ValueError(f"{name}: expected a string, got {value!r} ({type(value).__name__})")
+        return value
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise ValueError(f"{name}: expected true or false, got {value!r}")
+        return value
+    raise AssertionError(kind)
+
+
+def check_value(name: str, value):
+    """Type- and range-check one parameter value; return it normalised (lists as lists)."""
+    spec = _SPECS.get(name)
+    if spec is None:
+        raise ValueError(f"unknown parameter '{name}'")
+    if spec.type.endswith("_array"):
+        if isinstance(value, (tuple, np.ndarray)):
+            value = list(value)
+        if not isinstance(value, list) or not value:
+            raise ValueError(f"{name}: expected a non-empty list, got {value!r}")
+        kind = spec.type[:-6]
+        out = [_check_scalar(f"{name}[{i}]", kind, v) for i, v in enumerate(value)]
+    else:
+        out = _check_scalar(name, spec.type, value)
+    values = out if isinstance(out, list) else [out]
+    for i, v in enumerate(values):
+        if spec.min_value is not None and v < spec.min_value:
+            raise ValueError(f"{name}: {v} is below the minimum {spec.min_value}")
+        if spec.max_value is not None and v > spec.max_value:
+            raise ValueError(f"{name}: {v} is above the maximum {spec.max_value}")
+    return out
+
+
+def _flatten(d, prefix=""):
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def load_params_file(path) -> dict:
+    """Read a ROS 2 parameter file; return the planner's parameters as a flat dotted dict.
+
+    Takes the ``spacerobot_planner`` section, else ``/**``, else the only node section.
+    Unknown parameters are kept (the node ignores them); known ones are type-checked.
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = yaml.safe_load(f)
+    except OSError as e:
+        raise ValueError(f"params file: cannot read {path}: {e.strerror}") from None
+    except yaml.YAMLError as e:
+        raise ValueError(f"params file: {path} is not valid YAML: {e}") from None
+    if not isinstance(doc, dict) or not doc:
+        raise ValueError(f"params file: {path} must map a node name to 'ros__parameters'")
+    section = doc.get(NODE_NAME, doc.get("/**"))
+    if section is None:
+        if len(doc) != 1:
+            raise ValueError(f"params file: no '{NODE_NAME}' or '/**' section in {path}")
+        section = next(iter(doc.values()))
+    if not isinstance(section, dict) or not isinstance(section.get("ros__parameters"), dict):
+        raise ValueError(f"params file: the node section in {path} has no 'ros__parameters' mapping")
+    flat = _flatten(section["ros__parameters"])
+    missing = [s.name for s in PARAMETERS if s.required_in_file and s.name not in flat]
+    if missing:
+        raise ValueError(f"params file {path}: missing required key(s): {', '.join(missing)}")
+    return {k: (check_value(k, v) if k in _SPECS else v) for k, v in flat.items()}
+
+
+# ------------------------------------------------------------------- scenario
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """Everything needed to plan: robot, scene, grid, and optionally start/goal.
+
+    ``start_rad`` and ``goal_rad`` cover the planned joints (None when not given).
+    ``params`` is the flat parameter dict it was built from.
+    """
+
+    robot: PlanarArm
+    scene: Scene
+    grid: GridSpec
+    start_rad: np.ndarray | None
+    goal_rad: np.ndarray | None
+    planning_frame: str = "world"
+    params: dict = field(default_factory=dict)
+
+    def grid_with_cells(self, cells) -> GridSpec:
+        return self.grid.with_cells(cells)
+
+    def with_scene(self, scene: Scene) -> "Scenario":
+        return replace(self, scene=scene)
+
+
+def parse_polygons(text: str, name: str = "obstacles.polygons_m") -> tuple:
+    """Parse ``"[[[x, y], ...], ...]"`` into a tuple of (k×2) arrays (metres)."""
+    try:
+        data = yaml.safe_load(text) if isinstance(text, str) else text
+    except yaml.YAMLError as e:
+        raise ValueError(f"{name}: not a list of polygons: {e}") from None
+    if data is None:
+        return ()
+    if not isinstance(data, list):
+        raise ValueError(f"{name}: expected a list of polygons, got {type(data).__name__}")
+    polys = []
+    for i, p in enumerate(data):
+        try:
+            arr = np.asarray(p, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}[{i}]: vertices must be [x, y] number pairs") from None
+        polys.append(arr)   # shape, count, NaN and area are checked by Scene
+    return tuple(polys)
+
+
+def _get(params, name):
+    if name in params:
+        return check_value(name, params[name])
+    return _SPECS[name].default
+
+
+def scenario_from_params(params: dict) -> Scenario:
+    """Build a Scenario from a flat dotted parameter dict (defaults fill the gaps)."""
+    names = _get(params, "robot.joint_names")
+    n = len(names)
+
+    def per_joint(key):
+        v = _get(params, key)
+        if len(v) != n:
+            raise ValueError(f"{key}: expected {n} values (one per joint in robot.joint_names), got {len(v)}")
+        return v
+
+    lengths = per_joint("robot.link_lengths_m")
+    lower = np.radians(per_joint("robot.lower_deg"))
+    upper = np.radians(per_joint("robot.upper_deg"))
+    periodic = per_joint("robot.periodic")
+    locked = np.radians(per_joint("robot.locked_positions_deg"))
+    planned_names = _get(params, "robot.planned_joints")
+    unknown = [j for j in planned_names if j not in names]
+    if unknown:
+        raise ValueError(f"robot.planned_joints: {unknown} not in robot.joint_names {list(names)}")
+    planned = tuple(names.index(j) for j in planned_names)
+    robot = PlanarArm(tuple(names), tuple(lengths), tuple(lower), tuple(upper), tuple(periodic),
+                      square_polygon(_get(params, "robot.body_side_m"), corner_first=True),
+                      planned_joints=planned, locked_rad=locked)
+    center = _get(params, "target.center_m")
+    if len(center) != 2:
+        raise ValueError(f"target.center_m: expected [x, y], got {len(center)} values")
+    target = Target(center_m=tuple(center), yaw_rad=math.radians(_get(params, "target.yaw_deg")),
+                    body_side_m=_get(params, "target.body_side_m"),
+                    handle_side_m=_get(params, "target.handle_side_m"))
+    scene = Scene(target=target, debris_m=parse_polygons(_get(params, "obstacles.polygons_m")),
+                  safety_margin_m=_get(params, "safety_margin_m"))
+    grid = grid_for_robot(robot, _get(params, "grid.cells"))
+
+    def posture(key):
+        if key not in params:
+            return None
+        v = check_value(key, params[key])
+        return robot.validate_q(np.radians(v), key)
+
+    return Scenario(robot=robot, scene=scene, grid=grid, start_rad=posture("scenario.start_deg"),
+                    goal_rad=posture("scenario.goal_deg"),
+                    planning_frame=_get(params, "planning_frame"), params=dict(params))
+
+
+def load_scenario(path) -> Scenario:
+    """Load a scenario from a ROS 2 parameter file (see ``config/paper_3dof.yaml``)."""
+    params = load_params_file(path)
+    try:
+        return scenario_from_params(params)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None

@@ -1,0 +1,171 @@
+"""Goal configurations from the target: inverse kinematics of the grasp pose.
+
+For the 3-joint chain (attitude, shoulder, elbow) the grasp pose fixes the tip
+position and the absolute angle of the last link, so the elbow point is known and
+the first two joints solve a two-link problem: two branches.  With locked joints
+(the 2-DOF case) only the tip position can be met: position-only IK of the two
+joints nearest the tip, again two branches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .collision import CollisionChecker
+from .robot import wrap_angle_rad
+
+__all__ = ["IKSolution", "grasp_ik", "capture_posture", "CapturePosture"]
+
+
+@dataclass(frozen=True)
+class IKSolution:
+    """One inverse-kinematics branch.
+
+    Attributes:
+        q: planned joints (rad), wrapped into the joint ranges.
+        q_full: all joints (rad).
+        manipulability: sqrt(det(J Jᵀ)), m².
+        clearance_m: exact clearance of the posture.
+        free: clearance > safety margin.
+    """
+
+    q: np.ndarray
+    q_full: np.ndarray
+    manipulability: float
+    clearance_m: float
+    free: bool
+
+
+def _two_link(base, target, l_a, l_b):
+    """Both solutions (absolute angle of link a, relative angle of link b) of a 2-link reach."""
+    d = np.asarray(target, dtype=float) - np.asarray(base, dtype=float)
+    r2 = float(d @ d)
+    cos_b = (r2 - l_a * l_a - l_b * l_b) / (2.0 * l_a * l_b)
+    if cos_b > 1.0 + 1e-12 or cos_b < -1.0 - 1e-12:
+        return []
+    cos_b = min(1.0, max(-1.0, cos_b))
+    sols = []
+    for sign in (1.0, -1.0):
+        rel_b = sign * np.arccos(cos_b)
+        abs_a = np.arctan2(d[1], d[0]) - np.arctan2(l_b * np.sin(rel_b), l_a + l_b * np.cos(rel_b))
+        sols.append((abs_a, rel_b))
+        if cos_b in (1.0, -1.0):
+            break
+    return sols
+
+
+def _fit_to_bounds(robot, q_full):
+    """Shift each joint by whole turns into [lower, upper]; None when one cannot fit."""
+    out = np.array(q_full, dtype=float)
+    for j in range(robot.n_joints):
+        lo, hi = robot.lower_rad[j], robot.upper_rad[j]
+        if robot.periodic[j]:
+            out[j] = lo + (out[j] - lo) % (2.0 * np.pi)
+            continue
+        fits = [v for v in out[j] + 2.0 * np.pi * np.arange(-2, 3) if lo - 1e-9 <= v <= hi + 1e-9]
+        if not fits:
+            return None
+        out[j] = min(fits, key=abs)
+    return out
+
+
+def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_only: bool = True):
+    """All IK branches reaching the grasp pose, best manipulability first.
+
+    Args:
+        grasp_point_m: (2,) tip position; defaults to the scene target's grasp point.
+        approach_angle_rad: absolute angle of the last link; defaults to the target's
+            perpendicular approach.  Ignored (position-only IK) when the attitude is
+            locked.
+        free_only: drop branches whose posture collides (clearance ≤ margin).
+    Returns:
+        list of IKSolution (possibly empty: the grasp pose is out of reach).
+    """
+    if grasp_point_m is None or approach_angle_rad is None:
+        if scene.target is None:
+            raise ValueError("grasp_ik: the scene has no target and no grasp pose was given")
+        grasp_point_m = scene.target.grasp_point_m if grasp_point_m is None else grasp_point_m
+        if approach_angle_rad is None:
+            approach_angle_rad = scene.target.approach_angle_rad
+    p = np.asarray(grasp_point_m, dtype=float)
+    if p.shape != (2,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"grasp point: expected two finite numbers, got {grasp_point_m!r}")
+    if robot.n_joints != 3:
+        raise ValueError("grasp_ik: implemented for the 3-joint chain (attitude, shoulder, elbow)")
+    l1, l2, l3 = (float(v) for v in robot.link_lengths_m)
+    candidates = []
+    if 0 in robot.planned_joints:
+        # full pose: the elbow point follows from the approach angle
+        psi = float(approach_angle_rad)
+        elbow = p - l3 * np.array([np.cos(psi), np.sin(psi)])
+        for th1, th2 in _two_link((0.0, 0.0), elbow, l1, l2):
+            candidates.append(np.array([th1, th2, psi - th1 - th2]))
+    else:
+        th1 = float(robot.locked_rad[0])
+        shoulder = l1 * np.array([np.cos(th1), np.sin(th1)])
+        for abs2, th3 in _two_link(shoulder, p, l2, l3):
+            candidates.append(np.array([th1, abs2 - th1, th3]))
+    checker = CollisionChecker(robot, scene)
+    sols = []
+    for q_full in candidates:
+        q_full = _fit_to_bounds(robot, wrap_angle_rad(q_full))
+        if q_full is None:
+            continue
+        q = q_full[list(robot.planned_joints)]
+        clr = float(checker.clearance_m(q))
+        sol = IKSolution(q=q, q_full=q_full, manipulability=float(robot.manipulability(q_full)),
+                         clearance_m=clr, free=clr > scene.safety_margin_m)
+        if sol.free or not free_only:
+            sols.append(sol)
+    sols.sort(key=lambda s: -s.manipulability)
+    return sols
+
+
+@dataclass(frozen=True)
+class CapturePosture:
+    """The paper's advice: the most manipulable capture posture and where the target must sit.
+
+    Attributes:
+        q_full: (θ1, θ2, θ3) rad, with θ1 chosen so the last link meets the approach angle.
+        manipulability: m².
+        tip_m: end-effector tip position, metres.
+        target_center_m: where the target's body centre must be for its grasp point to
+            coincide with the tip (for the given target yaw and size).
+    """
+
+    q_full: np.ndarray
+    manipulability: float
+    tip_m: np.ndarray
+    target_center_m: np.ndarray
+
+
+def capture_posture(robot, target) -> CapturePosture:
+    """Maximise manipulability over (θ2, θ3 > 0), then orient the chain for the target's approach.
+
+    The mirror posture (−θ2, −θ3) is as manipulable; the paper's branch is returned.
+    """
+    if robot.n_joints != 3:
+        raise ValueError("capture_posture: implemented for the 3-joint chain")
+
+    def neg_w(x):
+        return -float(robot.manipulability(np.array([0.0, x[0], x[1]])))
+
+    # w(θ2, θ3) = w(−θ2, −θ3): scan the paper's branch (elbow angle θ3 > 0) coarsely,
+    # then polish locally
+    g2 = np.radians(np.arange(-179.0, 180.0, 3.0))
+    g3 = np.radians(np.arange(1.0, 180.0, 3.0))
+    t2, t3 = np.meshgrid(g2, g3, indexing="ij")
+    w = robot.manipulability(np.stack([np.zeros_like(t2), t2, t3], axis=-1))
+    i, j = np.unravel_index(np.argmax(w), w.shape)
+    res = minimize(neg_w, x0=[t2[i, j], t3[i, j]], method="Nelder-Mead",
+                   options={"xatol": 1e-9, "fatol": 1e-12, "maxiter": 2000})
+    th2, th3 = res.x
+    th1 = float(wrap_angle_rad(target.approach_angle_rad - th2 - th3))
+    q_full = np.array([th1, float(wrap_angle_rad(th2)), float(wrap_angle_rad(th3))])
+    tip = robot.tip_position(q_full)
+    offset = target.grasp_point_m - np.asarray(target.center_m)
+    return CapturePosture(q_full=q_full, manipulability=-float(res.fun), tip_m=tip,
+                          target_center_m=tip - offset)
