@@ -1,0 +1,1 @@
+"""Benchmarks: `python -m spacerobot_planner.bench {cspace,field,plan,latency,all}`."""

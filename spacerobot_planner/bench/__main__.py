@@ -1,0 +1,39 @@
+"""Benchmarks: ``python -m spacerobot_planner.bench {cspace,field,plan,latency,all} [options]``.
+
+Every benchmark warms the JIT first, prints a readable table, and one JSON object per
+line (``stage``, ``grid``, ``solver``, ``seconds``, ...) so runs can be compared.
+Timings are never asserted in tests.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+BENCHES = ("cspace", "field", "plan", "latency")
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0 if argv else 1
+    name, rest = argv[0], argv[1:]
+    names = BENCHES if name == "all" else (name,)
+    for n in names:
+        if n not in BENCHES:
+            print(f"bench: unknown benchmark '{n}' (choose from {', '.join(BENCHES)}, all)", file=sys.stderr)
+            return 1
+        try:
+            mod = importlib.import_module(f"spacerobot_planner.bench.{n}")
+        except ImportError as e:
+            print(f"bench: '{n}' is not available: {e}", file=sys.stderr)
+            return 1
+        rc = mod.main(rest)
+        if rc:
+            return rc
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

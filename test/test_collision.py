@@ -1,0 +1,166 @@
+"""Exact collision tests and the C-space against an independent brute-force check."""
+
+import math
+
+import numpy as np
+import pytest
+
+from spacerobot_planner.collision import CollisionChecker
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.cspace import GridSpec, build_cspace
+from spacerobot_planner.scene import Scene
+
+D = np.radians
+
+
+# ---------------------------------------------------- independent reference
+# Written separately from the numba kernels: parametric intersection by Cramer's
+# rule, winding-number containment, projection distances, plain Python floats.
+def ref_point_seg(p, a, b):
+    ax, ay = a
+    dx, dy = b[0] - ax, b[1] - ay
+    L2 = dx * dx + dy * dy
+    t = 0.0 if L2 == 0 else max(0.0, min(1.0, ((p[0] - ax) * dx + (p[1] - ay) * dy) / L2))
+    return math.hypot(ax + t * dx - p[0], ay + t * dy - p[1])
+
+
+def ref_seg_seg_intersect(a, b, c, d):
+    r = (b[0] - a[0], b[1] - a[1])
+    s = (d[0] - c[0], d[1] - c[1])
+    den = r[0] * s[1] - r[1] * s[0]
+    qp = (c[0] - a[0], c[1] - a[1])
+    if abs(den) < 1e-15:
+        return False       # parallel: touching handled by the distance below
+    t = (qp[0] * s[1] - qp[1] * s[0]) / den
+    u = (qp[0] * r[1] - qp[1] * r[0]) / den
+    return 0.0 <= t <= 1.0 and 0.0 <= u <= 1.0
+
+
+def ref_winding_inside(p, poly):
+    angle = 0.0
+    n = len(poly)
+    for i in range(n):
+        a = (poly[i][0] - p[0], poly[i][1] - p[1])
+        b = (poly[(i + 1) % n][0] - p[0], poly[(i + 1) % n][1] - p[1])
+        angle += math.atan2(a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1])
+    return abs(angle) > math.pi
+
+
+def ref_seg_poly_distance(a, b, poly):
+    if ref_winding_inside(a, poly):
+        return 0.0
+    best = math.inf
+    n = len(poly)
+    for i in range(n):
+        c, d = poly[i], poly[(i + 1) % n]
+        if ref_seg_seg_intersect(a, b, c, d):
+            return 0.0
+        best = min(best, ref_point_seg(a, c, d), ref_point_seg(b, c, d),
+                   ref_point_seg(c, a, b), ref_point_seg(d, a, b))
+    return best
+
+
+def ref_clearance(robot, scene, q):
+    q_full = robot.full(q)
+    pts = robot.forward_kinematics(q_full).tolist()
+    polys = [robot.body_polygon_world(q_full[0]).tolist()] + [p.tolist() for p in scene.obstacle_polygons_m]
+    return min(ref_seg_poly_distance(pts[k], pts[k + 1], poly)
+               for k in robot.checked_links for poly in polys)
+
+
+# ------------------------------------------------------------------- scenes
+DEBRIS = (
+    [[-1.0, 2.2], [0.0, 2.0], [0.2, 2.8], [-0.8, 3.0]],                      # convex quad
+    [[2.0, -1.0], [3.2, -1.0], [3.2, 0.2], [2.6, -0.4], [2.0, 0.2]],         # non-convex (notch)
+    [[-4.5, 0.5], [-3.9, 0.5], [-4.2, 1.2]],                                  # triangle
+)
+
+
+@pytest.fixture(scope="module", params=["paper_2dof", "paper_3dof"])
+def scenario(request):
+    sc = load_scenario(f"config/{request.param}.yaml")
+    scene = Scene(target=sc.scene.target, debris_m=tuple(np.array(p) for p in DEBRIS), safety_margin_m=0.05)
+    return sc.with_scene(scene)
+
+
+def test_start_postures_clear_the_body_as_the_paper_draws_them():
+    for name in ("paper_2dof", "paper_3dof"):
+        sc = load_scenario(f"config/{name}.yaml")
+        chk = CollisionChecker(sc.robot, sc.scene)
+        c = chk.clearance_m(sc.start_rad)
+        assert 0.08 <= c <= 0.12, (name, c)
+        assert chk.is_free(sc.start_rad)
+        assert chk.is_free(sc.goal_rad), name
+
+
+def test_clearance_matches_reference_on_random_configurations(scenario):
+    rng = np.random.default_rng(1)
+    chk = CollisionChecker(scenario.robot, scenario.scene)
+    q = rng.uniform(scenario.robot.planned_lower_rad, scenario.robot.planned_upper_rad,
+                    size=(400, scenario.robot.dof))
+    got = chk.clearance_m(q)
+    want = np.array([ref_clearance(scenario.robot, scenario.scene, qi) for qi in q])
+    assert np.allclose(got, want, atol=1e-9)
+    # both kinds were exercised (clearance never exceeds 0.127 m: the shoulder sits that far
+    # beyond the body corner)
+    assert (want == 0).sum() > 20 and (want > 0.05).sum() > 20
+
+
+def test_cspace_occupancy_equals_brute_force(scenario):
+    grid = scenario.grid.with_cells(36 if scenario.robot.dof == 3 else 90)
+    cs = build_cspace(scenario.robot, scenario.scene, grid)
+    assert cs.occupied.shape == grid.shape
+    rng = np.random.default_rng(2)
+    nodes = np.stack([rng.integers(0, n, size=1500) for n in grid.shape], axis=1)
+    margin = scenario.scene.safety_margin_m
+    checked = 0
+    for node in nodes:
+        c = ref_clearance(scenario.robot, scenario.scene, grid.config_of(node))
+        if abs(c - margin) < 1e-9:
+            continue       # on the margin itself: either answer is exact to rounding
+        assert cs.occupied[tuple(node)] == (c <= margin), (node, c)
+        checked += 1
+    occ = cs.occupied[tuple(nodes.T)]
+    assert checked > 1400 and 0.05 < occ.mean() < 0.95
+
+
+def test_margin_grows_the_obstacles(scenario):
+    grid = scenario.grid.with_cells(36 if scenario.robot.dof == 3 else 90)
+    tight = build_cspace(scenario.robot, scenario.scene.with_margin(0.0), grid)
+    wide = build_cspace(scenario.robot, scenario.scene.with_margin(0.2), grid)
+    assert np.all(wide.occupied >= tight.occupied) and wide.occupied.sum() > tight.occupied.sum()
+
+
+def test_attitude_wraps_minus_180_is_plus_180():
+    sc = load_scenario("config/paper_3dof.yaml")
+    g = sc.grid
+    assert g.shape == (36, 37, 37)
+    assert g.node_of(D([-180.0, 0.0, 0.0])) == g.node_of(D([180.0, 0.0, 0.0])) == (0, 18, 18)
+    assert g.node_of(D([179.0, 0.0, 0.0]))[0] == 0           # nearer to +180 ≡ -180 than to 170
+    assert g.node_of(D([-176.0, 0.0, 0.0]))[0] == 0
+    assert g.node_of(D([174.0, 0.0, 0.0]))[0] == 35
+    cs = build_cspace(sc.robot, sc.scene, g)
+    # the occupancy at the -180 node is the occupancy of the +180 configuration
+    chk = CollisionChecker(sc.robot, sc.scene)
+    for j, k in [(18, 18), (30, 27), (5, 33), (20, 10)]:
+        q_plus = np.array([np.pi, *g.config_of((0, j, k))[1:]])
+        assert cs.occupied[0, j, k] == (not chk.is_free(q_plus))
+
+
+def test_node_of_rejects_out_of_bounds_and_nan():
+    g = GridSpec((10, 10), (0.0, -1.0), (1.0, 1.0), (False, False))
+    with pytest.raises(ValueError, match="axis 1"):
+        g.node_of(np.array([0.5, 1.2]))
+    with pytest.raises(ValueError, match="axis 0 is nan"):
+        g.node_of(np.array([np.nan, 0.0]))
+    assert g.node_of(np.array([1.0, 1.0])) == (10, 10)
+
+
+def test_touching_counts_as_collision_with_zero_margin():
+    sc = load_scenario("config/paper_2dof.yaml")
+    # a debris square whose edge passes exactly through the start posture's elbow
+    q = sc.start_rad
+    elbow = sc.robot.forward_kinematics(sc.robot.full(q))[2]
+    sq = np.array([[0, 0], [0.5, 0], [0.5, 0.5], [0, 0.5]]) + elbow
+    chk = CollisionChecker(sc.robot, Scene(sc.scene.target, (sq,), 0.0))
+    assert chk.clearance_m(q) == 0.0 and not chk.is_free(q)

@@ -1,0 +1,80 @@
+"""Scenario files: the paper's scenes load; bad files name the field that is wrong."""
+
+import numpy as np
+import pytest
+import yaml
+
+from spacerobot_planner.config import PARAMETERS, load_scenario, scenario_from_params
+
+
+def _write(tmp_path, params, node="spacerobot_planner"):
+    p = tmp_path / "scene.yaml"
+    p.write_text(yaml.safe_dump({node: {"ros__parameters": params}}))
+    return p
+
+
+def _paper_params():
+    with open("config/paper_3dof.yaml") as f:
+        return yaml.safe_load(f)["spacerobot_planner"]["ros__parameters"]
+
+
+def test_paper_scenes_load():
+    s2 = load_scenario("config/paper_2dof.yaml")
+    s3 = load_scenario("config/paper_3dof.yaml")
+    assert s2.grid.shape == (181, 181) and s2.robot.planned_names == ("shoulder", "elbow")
+    assert s3.grid.shape == (36, 37, 37) and s3.grid.periodic == (True, False, False)
+    assert np.allclose(np.degrees(s3.start_rad), [-90, 135, 90])
+    assert np.degrees(s2.robot.locked_rad[0]) == pytest.approx(160.7)
+
+
+def test_defaults_are_the_paper_3dof_scene():
+    sc = scenario_from_params({})
+    assert sc.grid.shape == (36, 37, 37)
+    assert sc.scene.target.grasp_point_m == pytest.approx([-3.27, -2.00])
+
+
+def test_wildcard_node_section_is_accepted(tmp_path):
+    sc = load_scenario(_write(tmp_path, _paper_params(), node="/**"))
+    assert sc.robot.dof == 3
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda p: p["robot"].pop("link_lengths_m"), "missing required key.*robot.link_lengths_m"),
+    (lambda p: p["robot"].update(link_lengths_m=[1.4, "two", 2.0]), r"robot.link_lengths_m\[1\]: expected a number"),
+    (lambda p: p["robot"].update(link_lengths_m=[1.4, 0.0, 2.0]), "robot.link_lengths_m: 0.0 is below"),
+    (lambda p: p["robot"].update(link_lengths_m=[1.4, 2.0]), "robot.link_lengths_m: expected 3 values"),
+    (lambda p: p["grid"].update(cells=[36, 0, 36]), "grid.cells: 0 is below the minimum"),
+    (lambda p: p["grid"].update(cells=[36, 36.5, 36]), r"grid.cells\[1\]: expected an integer"),
+    (lambda p: p["grid"].update(cells=[36, 36]), "grid.cells: expected 3 values"),
+    (lambda p: p.update(safety_margin_m="wide"), "safety_margin_m: expected a number"),
+    (lambda p: p["robot"].update(periodic=[1, 0, 0]), r"robot.periodic\[0\]: expected true or false"),
+    (lambda p: p["robot"].update(planned_joints=["attitude", "wrist"]), "robot.planned_joints:.*wrist"),
+    (lambda p: p["obstacles"].update(polygons_m="[[[0, 0], [1, 0]]]"), r"obstacles\[0\]: a polygon needs at least 3"),
+    (lambda p: p["obstacles"].update(polygons_m="[[[0, 0], [1, 0], [.nan, 1]]]"), r"obstacles\[0\]:.*NaN"),
+    (lambda p: p["scenario"].update(start_deg=[0.0, 200.0, 0.0]), "scenario.start_deg: joint 'shoulder'"),
+    (lambda p: p["target"].update(center_m=[1.0]), "target.center_m: expected"),
+])
+def test_bad_files_name_the_field(tmp_path, mutate, message):
+    params = _paper_params()
+    mutate(params)
+    with pytest.raises(ValueError, match=message):
+        load_scenario(_write(tmp_path, params))
+
+
+def test_unreadable_and_malformed_files(tmp_path):
+    with pytest.raises(ValueError, match="cannot read"):
+        load_scenario(tmp_path / "nope.yaml")
+    p = tmp_path / "bad.yaml"
+    p.write_text("spacerobot_planner: [1, 2\n")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_scenario(p)
+    p.write_text("spacerobot_planner: {params: {}}\n")
+    with pytest.raises(ValueError, match="ros__parameters"):
+        load_scenario(p)
+
+
+def test_every_parameter_has_a_description_and_a_valid_default():
+    from spacerobot_planner.config import check_value
+    for spec in PARAMETERS:
+        assert spec.description
+        check_value(spec.name, spec.default)
