@@ -108,15 +108,35 @@ def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
     return best
 
 
+@njit(cache=True, inline="always")
+def _point_segment_dist2(px, py, ax, ay, bx, by):
+    ux, uy = bx - ax, by - ay
+    den = ux * ux + uy * uy
+    t = 0.0
+    if den > 0.0:
+        t = min(1.0, max(0.0, ((px - ax) * ux + (py - ay) * uy) / den))
+    ex, ey = ax + t * ux - px, ay + t * uy - py
+    return ex * ex + ey * ey
+
+
 @njit(cache=True)
 def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
-    """True when segment AB comes within ``margin_m`` of the polygon (early exit)."""
+    """True when segment AB comes within ``margin_m`` of the polygon (early exit).
+
+    Compares squared distances (no square roots); touching counts at margin 0.
+    """
     if point_in_polygon(ax, ay, verts, start, stop):
         return True
+    m2 = margin_m * margin_m
     j = stop - 1
     for i in range(start, stop):
-        if segment_segment_distance(ax, ay, bx, by, verts[j, 0], verts[j, 1],
-                                    verts[i, 0], verts[i, 1]) <= margin_m:
+        cx, cy, dx, dy = verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1]
+        if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
+            return True
+        if margin_m > 0.0 and (_point_segment_dist2(ax, ay, cx, cy, dx, dy) <= m2
+                               or _point_segment_dist2(bx, by, cx, cy, dx, dy) <= m2
+                               or _point_segment_dist2(cx, cy, ax, ay, bx, by) <= m2
+                               or _point_segment_dist2(dx, dy, ax, ay, bx, by) <= m2):
             return True
         j = i
     return False
@@ -144,6 +164,34 @@ def _rotate_body(body, attitude, out):
 
 
 @njit(cache=True)
+def links_hit_polygons(pts, checked, verts, starts, centres, radii, margin_m):
+    """True when a checked link (pts: chain points) comes within margin_m of a polygon."""
+    for c in range(checked.shape[0]):
+        k = checked[c]
+        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
+        for p in range(radii.shape[0]):
+            # bounding-circle cull: the link is farther than radius + margin from the centre
+            r = radii[p] + margin_m
+            if _point_segment_dist2(centres[p, 0], centres[p, 1], ax, ay, bx, by) > r * r:
+                continue
+            if segment_polygon_within(ax, ay, bx, by, verts, starts[p], starts[p + 1], margin_m):
+                return True
+    return False
+
+
+@njit(cache=True)
+def links_hit_body(pts, checked, body_w, margin_m):
+    """True when a checked link comes within margin_m of the (posed) spacecraft body."""
+    nb = body_w.shape[0]
+    for c in range(checked.shape[0]):
+        k = checked[c]
+        if segment_polygon_within(pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1],
+                                  body_w, 0, nb, margin_m):
+            return True
+    return False
+
+
+@njit(cache=True)
 def config_collides(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres,
                     obs_radii, margin_m, pts, body_w):
     """True when a checked link comes within margin_m of the body or an obstacle.
@@ -152,21 +200,9 @@ def config_collides(q_full, lengths, checked, body, obs_verts, obs_starts, obs_c
     """
     _link_points(q_full, lengths, pts)
     _rotate_body(body, q_full[0], body_w)
-    nb = body.shape[0]
-    for c in range(checked.shape[0]):
-        k = checked[c]
-        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
-        if segment_polygon_within(ax, ay, bx, by, body_w, 0, nb, margin_m):
-            return True
-        for p in range(obs_radii.shape[0]):
-            # bounding-circle cull: the link is farther than radius + margin from the centre
-            if point_segment_distance(obs_centres[p, 0], obs_centres[p, 1], ax, ay, bx, by) \
-                    > obs_radii[p] + margin_m:
-                continue
-            if segment_polygon_within(ax, ay, bx, by, obs_verts, obs_starts[p], obs_starts[p + 1],
-                                      margin_m):
-                return True
-    return False
+    if links_hit_body(pts, checked, body_w, margin_m):
+        return True
+    return links_hit_polygons(pts, checked, obs_verts, obs_starts, obs_centres, obs_radii, margin_m)
 
 
 @njit(cache=True)

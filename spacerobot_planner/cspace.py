@@ -18,10 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from .collision import config_collides
+from .collision import _link_points, _rotate_body, links_hit_body, links_hit_polygons
 from .scene import pack_polygons
 
-__all__ = ["GridSpec", "CSpace", "build_cspace", "grid_for_robot"]
+__all__ = ["GridSpec", "CSpace", "build_cspace", "body_occupancy", "grid_for_robot"]
 
 
 @dataclass(frozen=True)
@@ -145,46 +145,94 @@ class CSpace:
 
 @njit(parallel=True, cache=True)
 def _occupancy_kernel(shape, lower, step, axis_joint, q_locked, lengths, checked, body,
-                      obs_verts, obs_starts, obs_centres, obs_radii, margin_m):
+                      obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
+                      known_hit):
+    """Occupancy (flat, C order) of every node.
+
+    ``known_hit`` (size K, may be empty): nodes with ``known_hit[flat % K]`` are
+    occupied without a test (the body table over the trailing axes).
+    """
     ndim = shape.shape[0]
     n_nodes = 1
     for d in range(ndim):
         n_nodes *= shape[d]
+    n_known = known_hit.shape[0]
     occ = np.zeros(n_nodes, dtype=np.bool_)
-    n_threads_chunks = 64
-    chunk = (n_nodes + n_threads_chunks - 1) // n_threads_chunks
-    for c in prange(n_threads_chunks):
+    n_chunks = 64
+    chunk = (n_nodes + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
         q_full = q_locked.copy()
         pts = np.empty((lengths.shape[0] + 1, 2))
         body_w = np.empty_like(body)
         for flat in range(c * chunk, min(n_nodes, (c + 1) * chunk)):
+            if n_known > 0 and known_hit[flat % n_known]:
+                occ[flat] = True
+                continue
             rem = flat
             for d in range(ndim - 1, -1, -1):
                 k = rem % shape[d]
                 rem //= shape[d]
                 q_full[axis_joint[d]] = lower[d] + k * step[d]
-            occ[flat] = config_collides(q_full, lengths, checked, body, obs_verts, obs_starts,
-                                        obs_centres, obs_radii, margin_m, pts, body_w)
+            _link_points(q_full, lengths, pts)
+            if check_body:
+                _rotate_body(body, q_full[0], body_w)
+                if links_hit_body(pts, checked, body_w, margin_m):
+                    occ[flat] = True
+                    continue
+            occ[flat] = links_hit_polygons(pts, checked, obs_verts, obs_starts, obs_centres,
+                                           obs_radii, margin_m)
     return occ
 
 
-def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0) -> CSpace:
+def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
+    """Collisions with the spacecraft body over the grid's trailing axes, or None.
+
+    The body turns with the attitude, so in the body frame its collisions depend on
+    the arm joints only: when the attitude is the grid's first axis, one table over
+    the other axes serves every attitude.  It does not depend on the target or the
+    debris, so a caller may keep it across target moves.  Shape ``grid.shape[1:]``.
+    """
+    if robot.planned_joints[0] != 0 or grid.ndim < 2:
+        return None
+    rest = GridSpec(grid.cells[1:], grid.lower_rad[1:], grid.upper_rad[1:], grid.periodic[1:])
+    q_locked = np.array(robot.locked_rad, dtype=float)
+    q_locked[0] = 0.0
+    none = np.zeros((0, 2))
+    occ = _occupancy_kernel(
+        np.asarray(rest.shape, dtype=np.int64), np.asarray(rest.lower_rad), np.asarray(rest.step_rad),
+        np.asarray(robot.planned_joints[1:], dtype=np.int64), q_locked,
+        np.asarray(robot.link_lengths_m, dtype=float), np.asarray(robot.checked_links, dtype=np.int64),
+        np.ascontiguousarray(robot.body_polygon_m), none, np.zeros(1, dtype=np.int64), none,
+        np.zeros(0), float(margin_m), True, np.zeros(0, dtype=np.bool_))
+    return occ.reshape(rest.shape)
+
+
+def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
+                 body_table: np.ndarray | None = None) -> CSpace:
     """Occupancy of every node of ``grid`` for ``robot`` among ``scene``'s obstacles.
 
     Args:
         extra_margin_m: added to the scene's safety margin for the grid only (a
             conservative grid keeps grid paths farther from obstacles).
+        body_table: a ``body_occupancy`` result for the same robot, grid and total
+            margin, to skip recomputing it (computed here when None).
     """
     if grid.ndim != robot.dof:
         raise ValueError(f"grid has {grid.ndim} axes but the robot plans {robot.dof} joints")
     margin = float(scene.safety_margin_m + extra_margin_m)
     verts, starts, centres, radii = pack_polygons(scene.obstacle_polygons_m)
     t0 = time.perf_counter()
+    if body_table is None:
+        body_table = body_occupancy(robot, grid, margin)
+    elif body_table.shape != grid.shape[1:]:
+        raise ValueError(f"body_table: shape {body_table.shape} does not match grid {grid.shape}")
+    known = (np.zeros(0, dtype=np.bool_) if body_table is None
+             else np.ascontiguousarray(body_table).reshape(-1))
     occ = _occupancy_kernel(
         np.asarray(grid.shape, dtype=np.int64), np.asarray(grid.lower_rad, dtype=float),
         np.asarray(grid.step_rad, dtype=float), np.asarray(robot.planned_joints, dtype=np.int64),
         np.asarray(robot.locked_rad, dtype=float), np.asarray(robot.link_lengths_m, dtype=float),
         np.asarray(robot.checked_links, dtype=np.int64), np.ascontiguousarray(robot.body_polygon_m),
-        verts, starts, centres, radii, margin)
+        verts, starts, centres, radii, margin, body_table is None, known)
     seconds = time.perf_counter() - t0
     return CSpace(grid=grid, occupied=occ.reshape(grid.shape), margin_m=margin, seconds=seconds)

@@ -164,3 +164,18 @@ def test_touching_counts_as_collision_with_zero_margin():
     sq = np.array([[0, 0], [0.5, 0], [0.5, 0.5], [0, 0.5]]) + elbow
     chk = CollisionChecker(sc.robot, Scene(sc.scene.target, (sq,), 0.0))
     assert chk.clearance_m(q) == 0.0 and not chk.is_free(q)
+
+
+def test_cached_body_table_gives_the_same_occupancy():
+    from spacerobot_planner.cspace import body_occupancy
+    from spacerobot_planner.scene import Target
+    sc = load_scenario("config/paper_3dof.yaml")
+    table = body_occupancy(sc.robot, sc.grid, sc.scene.safety_margin_m)
+    assert table.shape == sc.grid.shape[1:]
+    # the table serves another target pose unchanged (it only knows the body)
+    moved = sc.scene.with_target(Target(center_m=(-2.0, 3.0), yaw_rad=0.7))
+    fresh = build_cspace(sc.robot, moved, sc.grid)
+    reused = build_cspace(sc.robot, moved, sc.grid, body_table=table)
+    assert np.array_equal(fresh.occupied, reused.occupied)
+    with pytest.raises(ValueError, match="body_table"):
+        build_cspace(sc.robot, moved, sc.grid, body_table=table[:-1])
