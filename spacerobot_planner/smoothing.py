@@ -1,0 +1,322 @@
+"""From a grid path to a smooth, densely verified joint path.
+
+The grid path (descent nodes) is joined to the exact start and goal, unwrapped on
+periodic joints, and turned into a cubic spline as in the paper (knots at every
+second node).  The spline is checked on the *exact* geometry, not the grid: it is
+sampled so that consecutive samples are at most ``max_step_rad`` apart (Euclidean
+norm in joint space) and each interval between samples is re-checked at
+``verify_step_rad``; every check sample must have clearance above the scene's
+safety margin and lie within the bounds of the bounded joints.  Where the spline
+cuts a corner, knots are added in that stretch only (first the skipped nodes,
+then midpoints of the polyline) until it is clean.
+
+All configurations are planned-joint vectors in radians; paths are (M, dof)
+arrays.  Periodic joints are *unwrapped* (continuous, may leave [-π, π)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+__all__ = ["SmoothPath", "PathCheck", "unwrap_path", "path_length_rad", "densify_polyline",
+           "check_path", "first_bad_segment", "shortcut_indices", "spline_through",
+           "smooth_path", "DEFAULT_MAX_STEP_RAD", "DEFAULT_VERIFY_STEP_RAD"]
+
+DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
+DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.1))  # spacing of the collision checks
+
+
+@dataclass(frozen=True, eq=False)
+class PathCheck:
+    """Result of a dense check of a sampled path.
+
+    Attributes:
+        ok: every check sample is free and within bounds.
+        interval_ok: (M-1,) bool, per interval between consecutive path samples
+            (both ends and the points between them at ``verify_step_rad``).
+        min_clearance_m: smallest clearance over all check samples, metres.
+        n_checked: number of configurations tested.
+    """
+
+    ok: bool
+    interval_ok: np.ndarray
+    min_clearance_m: float
+    n_checked: int
+
+
+@dataclass(frozen=True, eq=False)
+class SmoothPath:
+    """A verified dense path.
+
+    Attributes:
+        path_rad: (M, dof) samples ≤ max_step_rad apart, exact start first and the
+            exact goal last (periodic joints unwrapped, so the goal up to 2π·k).
+        knots_rad: (k, dof) the spline's knots (the polyline vertices for "polyline").
+        method: "shortcut_spline", "spline" (the paper's) or "polyline".
+        min_clearance_m: smallest clearance over the dense check, metres.
+        length_rad: joint-space length (Euclidean), rad.
+        refinements: knot-refinement rounds used.
+        n_checked: configurations tested by the final check.
+    """
+
+    path_rad: np.ndarray
+    knots_rad: np.ndarray
+    method: str
+    min_clearance_m: float
+    length_rad: float
+    refinements: int
+    n_checked: int
+
+
+# --------------------------------------------------------------------- helpers
+def unwrap_path(q_rad, periodic) -> np.ndarray:
+    """Unwrap the periodic columns of an (M, dof) path so it has no 2π jumps.
+
+    The first row is kept exactly; non-periodic columns are untouched.
+    """
+    q = np.array(q_rad, dtype=float, copy=True)
+    for a, p in enumerate(periodic):
+        if p and len(q) > 1:
+            step = np.diff(q[:, a])
+            step = (step + np.pi) % (2.0 * np.pi) - np.pi
+            q[1:, a] = q[0, a] + np.cumsum(step)
+    return q
+
+
+def path_length_rad(path_rad) -> float:
+    """Euclidean joint-space length of an (M, dof) path, rad."""
+    p = np.asarray(path_rad, dtype=float)
+    if len(p) < 2:
+        return 0.0
+    return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+
+
+def densify_polyline(points_rad, max_step_rad: float) -> np.ndarray:
+    """Linear interpolation of an (m, dof) polyline: consecutive rows ≤ max_step_rad apart.
+
+    Every input vertex is kept exactly.
+    """
+    pts = np.asarray(points_rad, dtype=float)
+    if len(pts) < 2:
+        return pts.copy()
+    seg = np.diff(pts, axis=0)
+    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / max_step_rad - 1e-12).astype(np.int64))
+    idx = np.repeat(np.arange(len(seg)), n)
+    frac = np.concatenate([np.arange(k) / k for k in n])
+    out = pts[idx] + frac[:, None] * seg[idx]
+    return np.vstack([out, pts[-1:]])
+
+
+def _within_bounds(q, lower, upper, periodic):
+    ok = np.ones(len(q), dtype=bool)
+    for a, p in enumerate(periodic):
+        if not p:
+            ok &= (q[:, a] >= lower[a] - 1e-9) & (q[:, a] <= upper[a] + 1e-9)
+    return ok
+
+
+def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
+               verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> PathCheck:
+    """Dense check of a sampled path on the exact geometry.
+
+    Each interval between consecutive rows is split so check samples are at most
+    ``verify_step_rad`` apart; a sample passes when ``checker`` finds clearance
+    above the safety margin and bounded joints are within their bounds.
+    """
+    p = np.asarray(path_rad, dtype=float)
+    if len(p) == 1:
+        c = float(checker.clearance_m(p[0]))
+        ok = c > checker.margin_m and bool(_within_bounds(p, lower_rad, upper_rad, periodic)[0])
+        return PathCheck(ok, np.zeros(0, dtype=bool), c, 1)
+    seg = np.diff(p, axis=0)
+    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / verify_step_rad - 1e-12).astype(np.int64))
+    idx = np.repeat(np.arange(len(seg)), n)
+    frac = np.concatenate([np.arange(k) / k for k in n])
+    samples = np.vstack([p[idx] + frac[:, None] * seg[idx], p[-1:]])
+    clr = np.asarray(checker.clearance_m(samples))
+    good = (clr > checker.margin_m) & _within_bounds(samples, lower_rad, upper_rad, periodic)
+    # interval i owns its samples plus the next interval's first sample (its end)
+    owner_good = good[:-1]
+    interval_ok = np.logical_and.reduceat(owner_good, np.concatenate([[0], np.cumsum(n)[:-1]]))
+    interval_ok &= good[np.cumsum(n)]
+    return PathCheck(bool(good.all()), interval_ok, float(clr.min()), int(len(samples)))
+
+
+def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
+                      verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> int:
+    """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""
+    chk = check_path(checker, points_rad, lower_rad, upper_rad, periodic, verify_step_rad)
+    if chk.ok:
+        return -1
+    bad = np.flatnonzero(~chk.interval_ok)
+    return int(bad[0]) if len(bad) else len(points_rad) - 2
+
+
+def _segment_free(checker, a, b, lower, upper, periodic, verify_step_rad) -> bool:
+    return check_path(checker, np.vstack([a, b]), lower, upper, periodic, verify_step_rad).ok
+
+
+def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
+                     verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> np.ndarray:
+    """Greedy shortcut of a verified polyline: indices of the vertices kept.
+
+    From each kept vertex, binary-search the farthest later vertex joined by a
+    verified straight segment (the neighbouring vertex always is: the input
+    polyline must be verified).  Returns increasing indices, first and last kept.
+    """
+    pts = np.asarray(points_rad, dtype=float)
+    keep = [0]
+    i, last = 0, len(pts) - 1
+    while i < last:
+        if _segment_free(checker, pts[i], pts[last], lower_rad, upper_rad, periodic, verify_step_rad):
+            keep.append(last)
+            break
+        lo, hi = i + 1, last        # lo: known reachable, hi: known not
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if _segment_free(checker, pts[i], pts[mid], lower_rad, upper_rad, periodic, verify_step_rad):
+                lo = mid
+            else:
+                hi = mid
+        keep.append(lo)
+        i = lo
+    return np.asarray(keep, dtype=np.int64)
+
+
+# ---------------------------------------------------------------------- spline
+def _polyline_param(pts):
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+
+
+def _polyline_at(pts, t_pts, t):
+    """Points of the polyline (vertices pts at arc lengths t_pts) at arc lengths t."""
+    out = np.empty((len(t), pts.shape[1]))
+    for a in range(pts.shape[1]):
+        out[:, a] = np.interp(t, t_pts, pts[:, a])
+    return out
+
+
+def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
+    """Cubic spline (chord-length parameter, not-a-knot ends) through (k, dof) knots.
+
+    Returns (samples (M, dof), knot_param (k,), sample_param (M,)): samples ≤
+    max_step_rad apart, the first and last knot reproduced exactly.
+    """
+    k = np.asarray(knots_rad, dtype=float)
+    s = _polyline_param(k)
+    if len(k) == 2:
+        dense = densify_polyline(k, max_step_rad)
+        return dense, s, _polyline_param(dense)
+    spline = CubicSpline(s, k, axis=0, bc_type="not-a-knot")
+    n = max(2, int(np.ceil(s[-1] / max_step_rad)) + 1)
+    while True:
+        u = np.linspace(0.0, s[-1], n)
+        q = spline(u)
+        steps = np.linalg.norm(np.diff(q, axis=0), axis=1)
+        if steps.max() <= max_step_rad:
+            break
+        n = int(np.ceil(n * steps.max() / max_step_rad * 1.05)) + 1
+    q[0], q[-1] = k[0], k[-1]
+    return q, s, u
+
+
+def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad, verify_step_rad,
+                    max_rounds, cancel):
+    """Spline through polyline points at arc lengths t_knots, refined where it collides.
+
+    Returns (samples, knots, check, rounds) of the first clean spline, or None.
+    """
+    t_poly = _polyline_param(poly)
+    t_vertices = t_poly
+    t_knots = np.unique(t_knots)
+    for rounds in range(max_rounds + 1):
+        if cancel is not None and cancel.is_set():
+            return None
+        knots = _polyline_at(poly, t_poly, t_knots)
+        # vertices map exactly onto themselves (np.interp is exact at its nodes)
+        samples, s_knots, s_samples = spline_through(knots, max_step_rad)
+        chk = check_path(checker, samples, lower, upper, periodic, verify_step_rad)
+        if chk.ok:
+            return samples, knots, chk, rounds
+        bad = np.flatnonzero(~chk.interval_ok)
+        # knot intervals holding a bad sample interval (by the spline parameter)
+        bad_iv = np.unique(np.clip(np.searchsorted(s_knots, s_samples[bad], side="right") - 1,
+                                   0, len(s_knots) - 2))
+        new_t = []
+        for iv in bad_iv:
+            for j in (iv - 1, iv, iv + 1):        # the corner's neighbours bend it too
+                if not 0 <= j < len(t_knots) - 1:
+                    continue
+                ta, tb = t_knots[j], t_knots[j + 1]
+                inner = t_vertices[(t_vertices > ta + 1e-12) & (t_vertices < tb - 1e-12)]
+                if j == iv or len(inner):
+                    new_t.extend(inner if len(inner) else [0.5 * (ta + tb)])
+        if not new_t:
+            return None
+        t_knots = np.unique(np.concatenate([t_knots, new_t]))
+    return None
+
+
+def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
+                shortcut: bool = True, knot_stride: int = 2,
+                max_step_rad: float = DEFAULT_MAX_STEP_RAD,
+                verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
+                max_rounds: int = 12, cancel=None) -> SmoothPath | None:
+    """Smooth a verified polyline into a dense, verified path.
+
+    Args:
+        checker: a ``CollisionChecker`` (exact geometry, the scene's margin).
+        waypoints_rad: (m, dof) exact start, grid nodes, exact goal; unwrapped
+            (see :func:`unwrap_path`) and joined by verified straight segments.
+        lower_rad, upper_rad, periodic: joint bounds (bounded joints must stay in).
+        shortcut: first try a spline along the greedily shortcut polyline.
+        knot_stride: the paper's "every second node" (2).
+    Returns:
+        the first verified result of: spline along the shortcut polyline, spline
+        through every ``knot_stride``-th waypoint (the paper), the polyline itself;
+        None when even the polyline fails the check (or on cancel).
+    """
+    w = np.asarray(waypoints_rad, dtype=float)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(w, axis=0), axis=1) > 1e-12])
+    keep[-1] = True
+    w = w[keep] if len(w) > 1 else w
+    if len(w) >= 3 and np.linalg.norm(w[-1] - w[-2]) <= 1e-12:
+        w = np.delete(w, -2, axis=0)
+    args = (lower_rad, upper_rad, periodic)
+    if len(w) == 1:
+        chk = check_path(checker, w, *args, verify_step_rad)
+        return SmoothPath(w.copy(), w.copy(), "polyline", chk.min_clearance_m, 0.0, 0,
+                          chk.n_checked) if chk.ok else None
+    attempts = []
+    if shortcut and len(w) > 2:
+        keep_idx = shortcut_indices(checker, w, *args, verify_step_rad)
+        sc = w[keep_idx]
+        t_sc = _polyline_param(sc)
+        # knots: the shortcut vertices plus points about two grid steps apart on
+        # long straight stretches, so corners are rounded but not cut
+        spacing = knot_stride * np.median(np.linalg.norm(np.diff(w, axis=0), axis=1))
+        extra = [np.linspace(a, b, max(2, int(np.ceil((b - a) / max(spacing, 1e-9))) + 1))
+                 for a, b in zip(t_sc[:-1], t_sc[1:])]
+        attempts.append(("shortcut_spline", sc, np.concatenate(extra)))
+    t_w = _polyline_param(w)
+    stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
+    attempts.append(("spline", w, t_w[stride_idx]))
+    for method, poly, t_knots in attempts:
+        res = _refined_spline(checker, poly, t_knots, *args, max_step_rad, verify_step_rad,
+                              max_rounds, cancel)
+        if res is not None:
+            samples, knots, chk, rounds = res
+            samples[0], samples[-1] = w[0], w[-1]
+            return SmoothPath(samples, knots, method, chk.min_clearance_m, path_length_rad(samples),
+                              rounds, chk.n_checked)
+        if cancel is not None and cancel.is_set():
+            return None
+    dense = densify_polyline(w, max_step_rad)
+    chk = check_path(checker, dense, *args, verify_step_rad)
+    if not chk.ok:
+        return None
+    return SmoothPath(dense, w.copy(), "polyline", chk.min_clearance_m, path_length_rad(dense), 0,
+                      chk.n_checked)
