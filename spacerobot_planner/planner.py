@@ -157,6 +157,8 @@ class Planner:
         max_grid_nodes: refuse larger grids (before allocating).
         grid_extra_margin_m: added to the safety margin for the grid only.
         shortcut: try a shortcut spline before the paper's every-second-node spline.
+        shortcut_keep_clearance_m: shortcuts keep at least margin + this (or the
+            clearance of the stretch they replace, if smaller).
         max_step_rad: spacing of the returned samples (≤ 0.5°).
         verify_step_rad: spacing of the exact collision checks along the path.
         max_repairs: node-blocking re-solves allowed per plan.
@@ -164,12 +166,13 @@ class Planner:
 
     def __init__(self, scenario: Scenario, solver: str = DEFAULT_SOLVER, field_tolerance: float = 1e-6,
                  max_grid_nodes: int = 4_000_000, *, grid_extra_margin_m: float = 0.02,
-                 shortcut: bool = True, max_step_rad: float = DEFAULT_MAX_STEP_RAD,
+                 shortcut: bool = True, shortcut_keep_clearance_m: float = 0.05, max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                  verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD, max_repairs: int = 30):
         self.scenario = scenario
         self.max_grid_nodes = int(max_grid_nodes)
         self.grid_extra_margin_m = float(grid_extra_margin_m)
         self.shortcut = bool(shortcut)
+        self.shortcut_keep_clearance_m = float(shortcut_keep_clearance_m)
         self.max_step_rad = float(max_step_rad)
         self.verify_step_rad = float(verify_step_rad)
         self.max_repairs = int(max_repairs)
@@ -435,7 +438,8 @@ class _PlanRun:
         self.check_cancel()
         t = time.perf_counter()
         smooth = smooth_path(self.checker, waypoints, self.lower, self.upper, self.periodic,
-                             shortcut=p.shortcut, max_step_rad=p.max_step_rad,
+                             shortcut=p.shortcut, keep_clearance_m=p.shortcut_keep_clearance_m,
+                             max_step_rad=p.max_step_rad,
                              verify_step_rad=p.verify_step_rad, cancel=self.cancel)
         t_smooth = time.perf_counter() - t
         self.check_cancel()

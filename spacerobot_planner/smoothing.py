@@ -39,12 +39,14 @@ class PathCheck:
             (both ends and the points between them at ``verify_step_rad``).
         min_clearance_m: smallest clearance over all check samples, metres.
         n_checked: number of configurations tested.
+        interval_clearance_m: (M-1,) smallest clearance per interval, metres.
     """
 
     ok: bool
     interval_ok: np.ndarray
     min_clearance_m: float
     n_checked: int
+    interval_clearance_m: np.ndarray = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,12 +121,14 @@ def _within_bounds(q, lower, upper, periodic):
 
 
 def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
-               verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> PathCheck:
+               verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
+               required_clearance_m: float | None = None) -> PathCheck:
     """Dense check of a sampled path on the exact geometry.
 
     Each interval between consecutive rows is split so check samples are at most
     ``verify_step_rad`` apart; a sample passes when ``checker`` finds clearance
-    above the safety margin and bounded joints are within their bounds.
+    above the safety margin (and at least ``required_clearance_m`` if given) and
+    bounded joints are within their bounds.
     """
     p = np.asarray(path_rad, dtype=float)
     if len(p) == 1:
@@ -138,11 +142,14 @@ def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
     samples = np.vstack([p[idx] + frac[:, None] * seg[idx], p[-1:]])
     clr = np.asarray(checker.clearance_m(samples))
     good = (clr > checker.margin_m) & _within_bounds(samples, lower_rad, upper_rad, periodic)
+    if required_clearance_m is not None:
+        good &= clr >= required_clearance_m
     # interval i owns its samples plus the next interval's first sample (its end)
-    owner_good = good[:-1]
-    interval_ok = np.logical_and.reduceat(owner_good, np.concatenate([[0], np.cumsum(n)[:-1]]))
-    interval_ok &= good[np.cumsum(n)]
-    return PathCheck(bool(good.all()), interval_ok, float(clr.min()), int(len(samples)))
+    first = np.concatenate([[0], np.cumsum(n)[:-1]])
+    ends = np.cumsum(n)
+    interval_ok = np.logical_and.reduceat(good[:-1], first) & good[ends]
+    interval_clr = np.minimum(np.minimum.reduceat(clr[:-1], first), clr[ends])
+    return PathCheck(bool(good.all()), interval_ok, float(clr.min()), int(len(samples)), interval_clr)
 
 
 def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
@@ -155,29 +162,40 @@ def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
     return int(bad[0]) if len(bad) else len(points_rad) - 2
 
 
-def _segment_free(checker, a, b, lower, upper, periodic, verify_step_rad) -> bool:
-    return check_path(checker, np.vstack([a, b]), lower, upper, periodic, verify_step_rad).ok
-
-
 def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
-                     verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> np.ndarray:
-    """Greedy shortcut of a verified polyline: indices of the vertices kept.
+                     verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
+                     keep_clearance_m: float = 0.05) -> np.ndarray:
+    """Greedy, clearance-keeping shortcut of a verified polyline: indices of the vertices kept.
 
-    From each kept vertex, binary-search the farthest later vertex joined by a
-    verified straight segment (the neighbouring vertex always is: the input
-    polyline must be verified).  Returns increasing indices, first and last kept.
+    A straight segment from vertex i to vertex j may replace the polyline between
+    them when it is verified and its clearance never drops below the smaller of
+    the replaced stretch's own minimum clearance and ``margin + keep_clearance_m``
+    (so shortcuts do not trade the field's distance from obstacles for length).
+    From each kept vertex the farthest such j is found by binary search.  Returns
+    increasing indices, first and last kept.
     """
     pts = np.asarray(points_rad, dtype=float)
+    args = (lower_rad, upper_rad, periodic, verify_step_rad)
+    poly = check_path(checker, pts, *args)
+    iv_clr = poly.interval_clearance_m
+    cap = checker.margin_m + keep_clearance_m
+
+    def ok(i, j):
+        if j == i + 1:
+            return True
+        need = min(float(iv_clr[i:j].min()), cap)
+        return check_path(checker, pts[[i, j]], *args, required_clearance_m=need).ok
+
     keep = [0]
     i, last = 0, len(pts) - 1
     while i < last:
-        if _segment_free(checker, pts[i], pts[last], lower_rad, upper_rad, periodic, verify_step_rad):
+        if ok(i, last):
             keep.append(last)
             break
-        lo, hi = i + 1, last        # lo: known reachable, hi: known not
+        lo, hi = i + 1, last        # lo: accepted, hi: rejected
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            if _segment_free(checker, pts[i], pts[mid], lower_rad, upper_rad, periodic, verify_step_rad):
+            if ok(i, mid):
                 lo = mid
             else:
                 hi = mid
@@ -261,7 +279,7 @@ def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad
 
 
 def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
-                shortcut: bool = True, knot_stride: int = 2,
+                shortcut: bool = True, knot_stride: int = 2, keep_clearance_m: float = 0.05,
                 max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                 verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
                 max_rounds: int = 12, cancel=None) -> SmoothPath | None:
@@ -273,6 +291,8 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
             (see :func:`unwrap_path`) and joined by verified straight segments.
         lower_rad, upper_rad, periodic: joint bounds (bounded joints must stay in).
         shortcut: first try a spline along the greedily shortcut polyline.
+        keep_clearance_m: shortcuts keep at least margin + this (or the replaced
+            stretch's own clearance, if smaller), metres.
         knot_stride: the paper's "every second node" (2).
     Returns:
         the first verified result of: spline along the shortcut polyline, spline
@@ -292,7 +312,7 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
                           chk.n_checked) if chk.ok else None
     attempts = []
     if shortcut and len(w) > 2:
-        keep_idx = shortcut_indices(checker, w, *args, verify_step_rad)
+        keep_idx = shortcut_indices(checker, w, *args, verify_step_rad, keep_clearance_m)
         sc = w[keep_idx]
         t_sc = _polyline_param(sc)
         # knots: the shortcut vertices plus points about two grid steps apart on

@@ -1,0 +1,151 @@
+"""``spacerobot-plan``: plan one capture motion offline from a scenario file.
+
+    spacerobot-plan --params-file config/paper_3dof.yaml [--start-deg A B C]
+        [--goal-deg A B C] [--cells N] [--solver NAME] [--json PATH] [--plot PATH]
+
+Exit status: 0 a path was found, 2 there is none (the reason is printed and in the
+JSON), 1 bad input (a message naming the field on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .config import check_value, load_scenario
+from .field import SOLVERS
+
+__all__ = ["main", "build_parser"]
+
+
+class _ArgError(Exception):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):          # exit 1 (bad input), not argparse's 2 (= "no path")
+        raise _ArgError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="spacerobot-plan", description=__doc__.split("\n\n")[0],
+                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--params-file", required=True, help="ROS 2 parameter file (config/paper_3dof.yaml)")
+    ap.add_argument("--start-deg", type=float, nargs="+", metavar="DEG",
+                    help="start posture of the planned joints, degrees (default: scenario.start_deg)")
+    ap.add_argument("--goal-deg", type=float, nargs="+", metavar="DEG",
+                    help="goal posture, degrees (default: scenario.goal_deg, else the target's IK)")
+    ap.add_argument("--cells", type=int, nargs="+", metavar="N",
+                    help="grid cells per planned joint (one value for all, or one per joint)")
+    ap.add_argument("--solver", help=f"field solver: {', '.join(SOLVERS)}")
+    ap.add_argument("--tolerance", type=float, help="field tolerance (planner.field_tolerance)")
+    ap.add_argument("--json", metavar="PATH", help="write the result as JSON ('-' for stdout)")
+    ap.add_argument("--plot", metavar="PATH", help="write a PNG: C-space, potential, path, arm motion")
+    ap.add_argument("--quiet", action="store_true", help="no stage lines")
+    return ap
+
+
+def _fail_input(message: str) -> int:
+    print(f"spacerobot-plan: error: {message}", file=sys.stderr)
+    return 1
+
+
+def _summary(res, scenario) -> list:
+    deg = np.degrees
+    lines = []
+    t = res.timings_s
+    stages = ", ".join(f"{k} {'cached' if k in res.cached else f'{1e3 * t[k]:.1f} ms'}"
+                       for k in ("cspace", "field", "descent", "smoothing", "verify"))
+    lines.append(f"stages: {stages}; total {1e3 * t['total']:.1f} ms")
+    if res.ok:
+        lines.append(f"path: {len(res.path_rad)} samples ({res.smoothing}), {len(res.grid_path_rad)} grid nodes, "
+                     f"length {res.path_length_rad:.3f} rad ({deg(res.path_length_rad):.1f}°), "
+                     f"min clearance {res.min_clearance_m:.4f} m "
+                     f"(margin {scenario.scene.safety_margin_m} m)")
+        lines.append(f"start {np.round(deg(res.path_rad[0]), 2).tolist()}° → "
+                     f"goal {np.round(deg(res.goal_rad), 2).tolist()}°")
+    else:
+        lines.append(f"no path ({res.code}): {res.reason}")
+    return lines
+
+
+def main(argv=None) -> int:
+    ap = build_parser()
+    try:
+        args = ap.parse_args(argv)
+    except _ArgError as e:
+        return _fail_input(str(e))
+    except SystemExit as e:            # --help
+        return int(e.code or 0)
+    # ---- inputs (exit 1 on anything malformed, naming the field)
+    try:
+        scenario = load_scenario(args.params_file)
+        robot = scenario.robot
+        params = scenario.params
+        if args.cells is not None:
+            cells = args.cells * robot.dof if len(args.cells) == 1 else args.cells
+            check_value("grid.cells", cells)
+            if len(cells) != robot.dof:
+                raise ValueError(f"--cells: expected 1 or {robot.dof} values, got {len(args.cells)}")
+            from dataclasses import replace
+            scenario = replace(scenario, grid=scenario.grid_with_cells(cells))
+        solver = args.solver if args.solver is not None else params.get("planner.solver", "log_harmonic")
+        if solver not in SOLVERS:
+            raise ValueError(f"--solver: unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
+        tol = args.tolerance if args.tolerance is not None else params.get("planner.field_tolerance", 1e-6)
+        tol = check_value("planner.field_tolerance", float(tol))
+        budget = check_value("planner.max_grid_nodes", params.get("planner.max_grid_nodes", 4_000_000))
+
+        def posture(values, flag):
+            if len(values) != robot.dof:
+                raise ValueError(f"{flag}: expected {robot.dof} values "
+                                 f"({', '.join(robot.planned_names)}), got {len(values)}")
+            if not all(math.isfinite(v) for v in values):
+                raise ValueError(f"{flag}: values must be finite numbers")
+            return robot.validate_q(np.radians(values), flag)
+
+        if args.start_deg is not None:
+            start = posture(args.start_deg, "--start-deg")
+        elif scenario.start_rad is not None:
+            start = scenario.start_rad
+        else:
+            raise ValueError("--start-deg: no start given and the file has no scenario.start_deg")
+        goal = posture(args.goal_deg, "--goal-deg") if args.goal_deg is not None else scenario.goal_rad
+        from .planner import Planner
+        planner = Planner(scenario, solver=solver, field_tolerance=tol, max_grid_nodes=budget)
+    except ValueError as e:
+        return _fail_input(str(e))
+    # ---- plan
+    progress = None if args.quiet else (lambda line: print(f"  {line}", flush=True))
+    if not args.quiet:
+        print(f"planning {args.params_file}: joints {', '.join(robot.planned_names)}, "
+              f"grid {scenario.grid.label()}, solver {solver}")
+    res = planner.plan(start, goal, progress=progress)
+    if res.code == "invalid_input":
+        return _fail_input(res.reason)
+    for line in _summary(res, scenario):
+        print(line)
+    if args.json:
+        doc = res.to_json_dict()
+        text = json.dumps(doc, indent=None, allow_nan=False)
+        if args.json == "-":
+            print(text)
+        else:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(text + "\n", encoding="utf-8")
+            print(f"wrote {args.json}")
+    if args.plot:
+        from .plotting import plot_plan
+        Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
+        plot_plan(res, scenario, args.plot)
+        print(f"wrote {args.plot}")
+    return 0 if res.ok else 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

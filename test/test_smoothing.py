@@ -1,0 +1,176 @@
+"""Smoothing stage: unwrap, densify, dense check, shortcut, spline refinement, fallbacks."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spacerobot_planner.collision import CollisionChecker
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, check_path, densify_polyline,
+                                          path_length_rad, shortcut_indices, smooth_path,
+                                          spline_through, unwrap_path)
+
+CONFIG = Path(__file__).resolve().parent.parent / "config"
+
+
+@pytest.fixture(scope="module")
+def sc2():
+    return load_scenario(CONFIG / "paper_2dof.yaml")
+
+
+@pytest.fixture(scope="module")
+def chk2(sc2):
+    return CollisionChecker(sc2.robot, sc2.scene)
+
+
+def bounds(sc):
+    r = sc.robot
+    return r.planned_lower_rad, r.planned_upper_rad, r.planned_periodic
+
+
+def test_unwrap_path_crosses_seam_continuously():
+    q = np.radians([[170.0, 10.0], [178.0, 12.0], [-176.0, 14.0], [-170.0, 16.0]])
+    u = unwrap_path(q, (True, False))
+    assert np.array_equal(u[0], q[0])
+    assert np.allclose(np.degrees(u[:, 0]), [170.0, 178.0, 184.0, 190.0])
+    assert np.array_equal(u[:, 1], q[:, 1])
+    # a bounded joint is never unwrapped, whatever its jumps
+    jump = np.radians([[0.0, 170.0], [0.0, -170.0]])
+    assert np.array_equal(unwrap_path(jump, (True, False)), jump)
+
+
+def test_densify_keeps_vertices_and_step():
+    pts = np.radians([[0.0, 0.0], [10.0, 0.0], [10.0, 3.3], [-20.0, 7.0]])
+    d = densify_polyline(pts, DEFAULT_MAX_STEP_RAD)
+    assert np.max(np.linalg.norm(np.diff(d, axis=0), axis=1)) <= DEFAULT_MAX_STEP_RAD + 1e-15
+    for v in pts:
+        assert np.any(np.all(d == v, axis=1))
+    assert np.isclose(path_length_rad(d), path_length_rad(pts))
+
+
+def test_spline_reproduces_end_knots_exactly():
+    k = np.radians([[0.0, 0.0], [20.0, 10.0], [40.0, 5.0], [55.5, -3.3]])
+    q, s_knots, s_samples = spline_through(k)
+    assert np.array_equal(q[0], k[0]) and np.array_equal(q[-1], k[-1])
+    assert np.max(np.linalg.norm(np.diff(q, axis=0), axis=1)) <= DEFAULT_MAX_STEP_RAD
+    assert len(s_knots) == len(k) and s_samples[-1] == s_knots[-1]
+
+
+def _free_pair_with_colliding_middle(sc, chk):
+    """Two free configurations whose straight segment collides in between (through the
+    obstacle in the 2-DOF C-space)."""
+    a = np.radians([96.0, 0.0])
+    b = np.radians([30.0, 0.0])
+    mid = np.radians([76.0, 0.0])
+    assert chk.is_free(a) and chk.is_free(b) and not chk.is_free(mid)
+    return a, b
+
+
+def test_check_path_finds_collision_between_free_ends(sc2, chk2):
+    a, b = _free_pair_with_colliding_middle(sc2, chk2)
+    res = check_path(chk2, np.vstack([a, b]), *bounds(sc2))
+    assert not res.ok and not res.interval_ok[0] and res.min_clearance_m <= sc2.scene.safety_margin_m
+    # dense samples along a free stretch pass
+    c = np.radians([96.0, 40.0])
+    ok = check_path(chk2, densify_polyline(np.vstack([a, c]), DEFAULT_MAX_STEP_RAD), *bounds(sc2))
+    assert ok.ok and ok.interval_ok.all() and ok.min_clearance_m > sc2.scene.safety_margin_m
+
+
+def test_check_path_rejects_out_of_bounds(sc2, chk2):
+    p = np.radians([[0.0, 170.0], [0.0, 181.0]])
+    dense = densify_polyline(p, np.radians(0.1))
+    assert chk2.is_free(dense).all()          # free everywhere, but the elbow leaves its bounds
+    assert check_path(chk2, p[:1], *bounds(sc2)).ok
+    assert not check_path(chk2, p, *bounds(sc2)).ok
+
+
+def test_smooth_path_refuses_a_colliding_polyline(sc2, chk2):
+    a, b = _free_pair_with_colliding_middle(sc2, chk2)
+    assert smooth_path(chk2, np.vstack([a, b]), *bounds(sc2)) is None
+
+
+def _detour(sc2):
+    """A free staircase polyline around the obstacle tip (grid-like, 2° steps)."""
+    a = np.radians([96.0, 0.0])
+    b = np.radians([30.0, 0.0])
+    up = np.radians(np.column_stack([np.full(46, 96.0), np.arange(0, 92, 2.0)]))
+    over = np.radians(np.column_stack([np.arange(94, 28, -2.0), np.full(33, 90.0)]))
+    down = np.radians(np.column_stack([np.full(45, 30.0), np.arange(88, -2, -2.0)]))
+    w = np.vstack([up, over, down])
+    assert np.array_equal(w[0], a) and np.array_equal(w[-1], b)
+    return w
+
+
+@pytest.mark.parametrize("shortcut", [True, False])
+def test_smooth_path_is_verified_and_exact(sc2, chk2, shortcut):
+    w = _detour(sc2)
+    assert check_path(chk2, w, *bounds(sc2)).ok
+    sp = smooth_path(chk2, w, *bounds(sc2), shortcut=shortcut)
+    assert sp is not None
+    assert np.array_equal(sp.path_rad[0], w[0]) and np.array_equal(sp.path_rad[-1], w[-1])
+    assert np.max(np.linalg.norm(np.diff(sp.path_rad, axis=0), axis=1)) <= DEFAULT_MAX_STEP_RAD + 1e-12
+    fine = check_path(chk2, sp.path_rad, *bounds(sc2), verify_step_rad=np.radians(0.05))
+    assert fine.ok
+    assert sp.length_rad < path_length_rad(w)          # smoother is shorter than the staircase
+    assert sp.method == ("shortcut_spline" if shortcut else "spline")
+
+
+def test_shortcut_keeps_clearance(sc2, chk2):
+    w = _detour(sc2)
+    margin = sc2.scene.safety_margin_m
+    keep = shortcut_indices(chk2, w, *bounds(sc2), keep_clearance_m=0.05)
+    assert keep[0] == 0 and keep[-1] == len(w) - 1 and np.all(np.diff(keep) > 0)
+    assert len(keep) < len(w) // 4
+    poly = check_path(chk2, w, *bounds(sc2)).interval_clearance_m
+    for i, j in zip(keep[:-1], keep[1:]):
+        seg = check_path(chk2, w[[i, j]], *bounds(sc2))
+        need = min(poly[i:j].min(), margin + 0.05)
+        assert seg.ok and seg.min_clearance_m >= need - 1e-12
+    # without the clearance rule the shortcut may graze the margin: it keeps fewer vertices
+    greedy = shortcut_indices(chk2, w, *bounds(sc2), keep_clearance_m=0.0)
+    assert len(greedy) <= len(keep)
+
+
+def _hugging_path(sc2):
+    """Shortest 4-connected grid path (2° grid, BFS) from (96°, 0) to (30°, 0): it hugs
+    the obstacle, so coarse splines through it cut corners."""
+    from collections import deque
+
+    from spacerobot_planner.cspace import build_cspace
+    cs = build_cspace(sc2.robot, sc2.scene, sc2.grid, extra_margin_m=0.04)
+    occ = cs.occupied
+    start, goal = sc2.grid.node_of(np.radians([96.0, 0.0])), sc2.grid.node_of(np.radians([30.0, 0.0]))
+    prev = {start: None}
+    todo = deque([start])
+    while todo:
+        n = todo.popleft()
+        if n == goal:
+            break
+        for d in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            m = (n[0] + d[0], n[1] + d[1])
+            if 0 <= m[0] < occ.shape[0] and 0 <= m[1] < occ.shape[1] and not occ[m] and m not in prev:
+                prev[m] = n
+                todo.append(m)
+    nodes = [goal]
+    while prev[nodes[-1]] is not None:
+        nodes.append(prev[nodes[-1]])
+    return sc2.grid.config_of(np.array(nodes[::-1]))
+
+
+def test_spline_refines_where_it_cuts_a_corner(sc2, chk2):
+    """Through sparse knots the spline cuts the obstacle's corner; refinement adds knots
+    there until the dense check passes."""
+    w = _hugging_path(sc2)
+    assert check_path(chk2, w, *bounds(sc2)).ok
+    for stride in (8, 12, 16, 24, 32):
+        idx = np.unique(np.concatenate([np.arange(0, len(w), stride), [len(w) - 1]]))
+        coarse, _, _ = spline_through(w[idx])
+        if not check_path(chk2, coarse, *bounds(sc2)).ok:
+            break
+    else:
+        pytest.fail("no coarse spline cuts the corner: the test scene lost its point")
+    sp = smooth_path(chk2, w, *bounds(sc2), shortcut=False, knot_stride=stride)
+    assert sp is not None and sp.method == "spline" and sp.refinements >= 1
+    assert len(sp.knots_rad) > len(idx)
+    assert check_path(chk2, sp.path_rad, *bounds(sc2), verify_step_rad=np.radians(0.05)).ok
