@@ -100,6 +100,28 @@ PARAMETERS = (
               "Per-joint velocity limits, deg/s.", False, 1e-3, 1e4),
     ParamSpec("trajectory.max_acceleration_deg_s2", "double_array", [5.0, 20.0, 20.0],
               "Per-joint acceleration limits, deg/s^2.", False, 1e-3, 1e5),
+    # ---- node
+    ParamSpec("replan.target_tolerance_m", "double", 0.005,
+              "A target_pose closer than this (and within target_tolerance_deg) to the current "
+              "target does not trigger a replan, metres.", False, 0.0, 10.0),
+    ParamSpec("replan.target_tolerance_deg", "double", 0.5,
+              "Yaw tolerance for the same-target test, degrees.", False, 0.0, 180.0),
+    ParamSpec("potential_grid.use_current_attitude", "bool", True,
+              "With more than 2 planned joints, slice the published grids at the plan's start "
+              "(current) value of the joints other than the last two; else at "
+              "potential_grid.slice_attitude_deg.", False),
+    ParamSpec("potential_grid.slice_attitude_deg", "double", 0.0,
+              "Attitude of the published slice when use_current_attitude is false, degrees.",
+              False, -360.0, 360.0),
+    ParamSpec("diagnostics.period_s", "double", 1.0,
+              "Period of the /diagnostics heartbeat (changes are published at once), seconds.",
+              False, 0.01, 3600.0),
+    ParamSpec("planner.separate_process", "bool", True,
+              "Run the planning core in a child process driven by the worker thread (the numba "
+              "kernels hold the GIL; a process keeps the executor responsive and lets shutdown "
+              "stop a long solve).", True),
+    ParamSpec("mock_arm.rate_hz", "double", 50.0,
+              "mock_arm_node: joint_states publishing rate, Hz.", False, 0.1, 1000.0),
 )
 
 _SPECS = {p.name: p for p in PARAMETERS}

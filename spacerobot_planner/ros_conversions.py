@@ -1,0 +1,326 @@
+"""Messages ↔ core types: the only module besides the nodes that imports ROS messages.
+
+Every function is pure (no node, no graph) and raises ``ValueError`` with a reason
+a person can act on when a message is unusable.
+
+Decisions documented here (and in the README):
+- Target poses: the frame must equal the planning frame; position z is ignored
+  (the problem is planar); the orientation must be a rotation about +z (the target's
+  z axis within 1° of the planning frame's); a quaternion whose norm is within 1 %
+  of 1 is normalised (hand-typed values such as 0.707), any other norm (zero
+  included) is rejected; NaN/inf anywhere is rejected.
+- Joint states are matched by name: extra joints are ignored, a missing planned
+  joint, a name/position length mismatch or a non-finite position is an error.
+- Trajectories carry the planned joints only, with continuous (unwrapped) values
+  for periodic joints.
+- Grids: see :func:`potential_slice_values` and :func:`grid_slice_to_msg`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from builtin_interfaces.msg import Duration
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, PoseStamped
+from nav_msgs.msg import OccupancyGrid
+from sensor_msgs.msg import JointState
+from std_msgs.msg import ColorRGBA
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from visualization_msgs.msg import Marker, MarkerArray
+
+from .scene import Target
+from .trajectory import Trajectory
+
+__all__ = [
+    "pose_to_target", "quaternion_to_yaw", "yaw_to_quaternion", "target_to_pose",
+    "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
+    "duration_to_s", "s_to_duration", "potential_slice_values", "obstacle_slice_values",
+    "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array",
+    "OBSTACLE", "UNREACHABLE",
+]
+
+OBSTACLE = 100        # occupancy value of an obstacle node
+UNREACHABLE = 99      # free node not connected to the goal (u = 0, φ = +inf)
+_NORM_TOL = 0.01      # quaternion norms within 1 % of 1 are normalised
+_TILT_TOL_RAD = math.radians(1.0)
+
+
+# ------------------------------------------------------------------ time
+def duration_to_s(d) -> float:
+    return float(d.sec) + 1e-9 * float(d.nanosec)
+
+
+def s_to_duration(t_s: float) -> Duration:
+    ns = int(round(float(t_s) * 1e9))
+    return Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+# ------------------------------------------------------------------ poses
+def quaternion_to_yaw(x: float, y: float, z: float, w: float) -> float:
+    """Yaw (rad) of a rotation about +z; ValueError for NaN, a bad norm or a tilt."""
+    q = np.array([x, y, z, w], dtype=float)
+    if not np.all(np.isfinite(q)):
+        raise ValueError(f"orientation: quaternion has NaN or inf components ({x}, {y}, {z}, {w})")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > _NORM_TOL:
+        raise ValueError(f"orientation: not a unit quaternion (norm {norm:.4g}; "
+                         f"accepted within {_NORM_TOL:.0%} of 1 and normalised)")
+    x, y, z, w = q / norm
+    # z axis of the rotated frame: its z component is 1 - 2(x² + y²)
+    zz = 1.0 - 2.0 * (x * x + y * y)
+    if math.acos(max(-1.0, min(1.0, zz))) > _TILT_TOL_RAD:
+        raise ValueError("orientation: the target is tilted out of the plane (the pose must be "
+                         "a rotation about +z of the planning frame)")
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def yaw_to_quaternion(yaw_rad: float):
+    """(x, y, z, w) of a rotation by yaw about +z."""
+    return 0.0, 0.0, math.sin(0.5 * yaw_rad), math.cos(0.5 * yaw_rad)
+
+
+def pose_to_target(msg: PoseStamped, planning_frame: str, template: Target | None = None) -> Target:
+    """A PoseStamped (target body centre and yaw) → Target; sizes from ``template``.
+
+    Raises ValueError: wrong frame, NaN/inf, non-unit quaternion, tilted pose.
+    """
+    frame = msg.header.frame_id
+    if frame.lstrip("/") != planning_frame.lstrip("/"):
+        raise ValueError(f"target_pose: frame '{frame}' is not the planning frame "
+                         f"'{planning_frame}' (no TF lookup: publish it in '{planning_frame}')")
+    p, o = msg.pose.position, msg.pose.orientation
+    if not all(math.isfinite(v) for v in (p.x, p.y, p.z)):
+        raise ValueError(f"target_pose: position has NaN or inf ({p.x}, {p.y}, {p.z})")
+    try:
+        yaw = quaternion_to_yaw(o.x, o.y, o.z, o.w)
+    except ValueError as e:
+        raise ValueError(f"target_pose: {e}") from None
+    t = template if template is not None else Target()
+    return Target(center_m=(float(p.x), float(p.y)), yaw_rad=yaw,
+                  body_side_m=t.body_side_m, handle_side_m=t.handle_side_m)
+
+
+def target_to_pose(target: Target, frame: str, stamp=None) -> PoseStamped:
+    msg = PoseStamped()
+    msg.header.frame_id = frame
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.pose.position.x, msg.pose.position.y = (float(v) for v in target.center_m)
+    qx, qy, qz, qw = yaw_to_quaternion(target.yaw_rad)
+    msg.pose.orientation.x, msg.pose.orientation.y = qx, qy
+    msg.pose.orientation.z, msg.pose.orientation.w = qz, qw
+    return msg
+
+
+# ------------------------------------------------------------------ joints
+def joint_state_positions(msg: JointState, names, what: str = "joint_states") -> np.ndarray:
+    """Positions (rad) of the joints ``names`` (in that order) from a JointState.
+
+    Extra joints are ignored. Raises ValueError when the message's name and position
+    lists differ in length, a joint is missing or listed twice, or a value is not finite.
+    """
+    if len(msg.name) != len(msg.position):
+        raise ValueError(f"{what}: {len(msg.name)} names but {len(msg.position)} positions")
+    index = {}
+    for i, n in enumerate(msg.name):
+        if n in index:
+            raise ValueError(f"{what}: joint '{n}' is listed twice")
+        index[n] = i
+    missing = [n for n in names if n not in index]
+    if missing:
+        raise ValueError(f"{what}: missing joint(s) {', '.join(missing)} "
+                         f"(got {', '.join(msg.name) or 'none'})")
+    q = np.array([msg.position[index[n]] for n in names], dtype=float)
+    bad = [n for n, v in zip(names, q) if not math.isfinite(v)]
+    if bad:
+        raise ValueError(f"{what}: joint(s) {', '.join(bad)} not finite")
+    return q
+
+
+def joint_state_msg(names, positions, velocities=None, stamp=None) -> JointState:
+    msg = JointState()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.name = [str(n) for n in names]
+    msg.position = [float(v) for v in positions]
+    if velocities is not None:
+        msg.velocity = [float(v) for v in velocities]
+    return msg
+
+
+def trajectory_to_msg(traj: Trajectory, stamp=None, frame_id: str = "") -> JointTrajectory:
+    """Trajectory → JointTrajectory (positions, velocities, accelerations, time_from_start)."""
+    msg = JointTrajectory()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.joint_names = list(traj.joint_names)
+    pts = []
+    for t, q, v, a in zip(traj.times_s, traj.positions_rad, traj.velocities_rad_s,
+                          traj.accelerations_rad_s2):
+        pt = JointTrajectoryPoint()
+        pt.positions = q.tolist()
+        pt.velocities = v.tolist()
+        pt.accelerations = a.tolist()
+        pt.time_from_start = s_to_duration(t)
+        pts.append(pt)
+    msg.points = pts
+    return msg
+
+
+def msg_to_trajectory_arrays(msg: JointTrajectory):
+    """JointTrajectory → (names, times (M,), positions (M, n), velocities (M, n) or None).
+
+    Raises ValueError for an empty trajectory, ragged points, NaN, or times that do not
+    increase.
+    """
+    names = tuple(msg.joint_names)
+    if not names:
+        raise ValueError("joint_trajectory: no joint names")
+    if not msg.points:
+        raise ValueError("joint_trajectory: no points")
+    n = len(names)
+    t = np.array([duration_to_s(p.time_from_start) for p in msg.points])
+    if any(len(p.positions) != n for p in msg.points):
+        raise ValueError(f"joint_trajectory: every point needs {n} positions")
+    q = np.array([list(p.positions) for p in msg.points], dtype=float)
+    v = None
+    if all(len(p.velocities) == n for p in msg.points):
+        v = np.array([list(p.velocities) for p in msg.points], dtype=float)
+    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(t)):
+        raise ValueError("joint_trajectory: NaN or inf in positions or times")
+    if len(t) > 1 and np.any(np.diff(t) <= 0.0):
+        raise ValueError("joint_trajectory: time_from_start must increase strictly")
+    return names, t, q, v
+
+
+# ------------------------------------------------------------------ grids
+def _slice_index(grid, q_rad, slice_axes):
+    """Index tuple selecting the 2-D slice over ``slice_axes`` through the node nearest q."""
+    node = grid.node_of(np.asarray(q_rad, dtype=float))
+    return tuple(slice(None) if d in slice_axes else node[d] for d in range(grid.ndim))
+
+
+def grid_slice(grid, arr, q_rad, slice_axes=None):
+    """The 2-D slice of an array over the grid (indexed [x, y]) through the node
+    nearest ``q_rad``; ``slice_axes`` defaults to the last two planned axes."""
+    axes = tuple(slice_axes) if slice_axes is not None else (grid.ndim - 2, grid.ndim - 1)
+    out = np.asarray(arr)[_slice_index(grid, q_rad, axes)]
+    return out if axes[0] < axes[1] else out.T
+
+
+def potential_slice_values(log_u_slice, occupied_slice, phi_max: float) -> np.ndarray:
+    """Occupancy values (int8, same shape) of a potential slice.
+
+    Obstacles → 100; free nodes not connected to the goal (log u = -inf) → 99;
+    connected free nodes → round(98 · log(1 + φ) / log(1 + φ_max)) with φ = -log u
+    (goal 0, so the goal holds the minimum 0; φ_max = the largest finite φ of the
+    whole field, so every slice uses the same scale).
+    """
+    log_u = np.asarray(log_u_slice, dtype=float)
+    occ = np.asarray(occupied_slice, dtype=bool)
+    phi = -log_u
+    finite = np.isfinite(phi) & ~occ
+    scale = math.log1p(phi_max) if phi_max > 0 else 1.0
+    vals = np.full(log_u.shape, UNREACHABLE, dtype=np.int16)
+    vals[finite] = np.clip(np.rint(98.0 * np.log1p(np.maximum(phi[finite], 0.0)) / scale), 0, 98)
+    vals[occ] = OBSTACLE
+    return vals.astype(np.int8)
+
+
+def obstacle_slice_values(occupied_slice) -> np.ndarray:
+    return np.where(np.asarray(occupied_slice, dtype=bool), OBSTACLE, 0).astype(np.int8)
+
+
+def grid_slice_to_msg(values_xy, grid, slice_axes, frame_id: str, stamp=None) -> OccupancyGrid:
+    """A 2-D slice (indexed [x, y]) → OccupancyGrid.
+
+    x = grid axis ``slice_axes[0]`` (columns), y = ``slice_axes[1]`` (rows);
+    info.resolution = the x axis step (rad per cell); origin = (lower_x, lower_y) rad;
+    width/height = nodes along x/y; data row-major from (lower_x, lower_y).
+    """
+    vals = np.asarray(values_xy)
+    ax, ay = slice_axes
+    msg = OccupancyGrid()
+    msg.header.frame_id = frame_id
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.info.resolution = float(grid.step_rad[ax])
+    msg.info.width = int(vals.shape[0])
+    msg.info.height = int(vals.shape[1])
+    msg.info.origin.position.x = float(grid.lower_rad[ax])
+    msg.info.origin.position.y = float(grid.lower_rad[ay])
+    msg.info.origin.orientation.w = 1.0
+    msg.data = np.ascontiguousarray(vals.T).reshape(-1).astype(np.int8).tolist()
+    return msg
+
+
+# ------------------------------------------------------------------ markers
+def _rgba(r, g, b, a=1.0):
+    return ColorRGBA(r=float(r), g=float(g), b=float(b), a=float(a))
+
+
+def _strip(mid, ns, pts, color, frame, stamp, width=0.03, closed=False):
+    m = Marker()
+    m.header.frame_id = frame
+    if stamp is not None:
+        m.header.stamp = stamp
+    m.ns, m.id, m.type, m.action = ns, mid, Marker.LINE_STRIP, Marker.ADD
+    m.pose.orientation.w = 1.0
+    m.scale.x = width
+    m.color = color
+    pts = np.asarray(pts, dtype=float)
+    if closed:
+        pts = np.vstack([pts, pts[:1]])
+    m.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in pts]
+    return m
+
+
+def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int = 8) -> MarkerArray:
+    """Arm postures along a path (one LINE_STRIP each, start blue → goal green),
+    the spacecraft body at the start and the goal, the target body and handle, debris."""
+    arr = MarkerArray()
+    clear = Marker()
+    clear.header.frame_id = frame
+    clear.action = Marker.DELETEALL
+    arr.markers.append(clear)
+    path = np.atleast_2d(np.asarray(path_rad, dtype=float))
+    idx = np.unique(np.linspace(0, len(path) - 1, min(n_postures, len(path))).round().astype(int))
+    pts = robot.forward_kinematics(robot.full(path[idx]))
+    for i, (k, p) in enumerate(zip(idx, pts)):
+        f = k / max(1, len(path) - 1)
+        arr.markers.append(_strip(i, "arm", p, _rgba(0.1, 0.3 + 0.6 * f, 1.0 - 0.8 * f, 0.4 + 0.6 * (i in (0, len(idx) - 1))),
+                                  frame, stamp))
+    for i, k in enumerate((0, len(path) - 1)):
+        att = robot.full(path[k])[0]
+        arr.markers.append(_strip(i, "spacecraft", robot.body_polygon_world(att),
+                                  _rgba(0.7, 0.7, 0.7), frame, stamp, 0.04, True))
+    if scene.target is not None:
+        arr.markers.append(_strip(0, "target", scene.target.body_polygon_m, _rgba(1.0, 0.5, 0.0),
+                                  frame, stamp, 0.04, True))
+        arr.markers.append(_strip(0, "handle", scene.target.handle_polygon_m, _rgba(1.0, 0.1, 0.1),
+                                  frame, stamp, 0.02, True))
+    for i, poly in enumerate(scene.debris_m):
+        arr.markers.append(_strip(i, "debris", poly, _rgba(0.8, 0.1, 0.1), frame, stamp, 0.04, True))
+    return arr
+
+
+# ------------------------------------------------------------------ diagnostics
+def diagnostic_array(name: str, level: int, message: str, values: dict, stamp=None,
+                     hardware_id: str = "") -> DiagnosticArray:
+    """One DiagnosticStatus in a DiagnosticArray; ``level`` is DiagnosticStatus.OK/WARN/ERROR."""
+    arr = DiagnosticArray()
+    if stamp is not None:
+        arr.header.stamp = stamp
+    st = DiagnosticStatus()
+    st.level = level if isinstance(level, bytes) else bytes([int(level)])
+    st.name = name
+    st.message = message
+    st.hardware_id = hardware_id
+    st.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+    arr.status = [st]
+    return arr
+
+

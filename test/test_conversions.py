@@ -1,0 +1,122 @@
+"""ros_conversions: messages ↔ core types, without a running graph."""
+
+import math
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import JointState
+
+from spacerobot_planner import ros_conversions as conv
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.cspace import GridSpec
+from spacerobot_planner.scene import Target
+from spacerobot_planner.trajectory import time_parameterize
+
+
+def _pose(x=-3.27, y=-2.6, yaw=0.0, frame="world", quat=None):
+    m = PoseStamped()
+    m.header.frame_id = frame
+    m.pose.position.x, m.pose.position.y = x, y
+    q = quat if quat is not None else conv.yaw_to_quaternion(yaw)
+    (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w) = q
+    return m
+
+
+def test_pose_to_target_roundtrip():
+    t = conv.pose_to_target(_pose(1.0, 2.0, 0.7), "world", Target(body_side_m=2.0))
+    assert t.center_m == (1.0, 2.0) and math.isclose(t.yaw_rad, 0.7)
+    assert t.body_side_m == 2.0
+    back = conv.target_to_pose(t, "world")
+    assert math.isclose(conv.pose_to_target(back, "world").yaw_rad, 0.7)
+
+
+def test_slightly_non_unit_quaternion_is_normalised():
+    q = np.array(conv.yaw_to_quaternion(0.5)) * 1.005
+    assert math.isclose(conv.pose_to_target(_pose(quat=q), "world").yaw_rad, 0.5)
+
+
+@pytest.mark.parametrize("pose, match", [
+    (_pose(frame="map"), "frame 'map'"),
+    (_pose(x=math.nan), "NaN"),
+    (_pose(y=math.inf), "NaN or inf"),
+    (_pose(quat=(0.0, 0.0, 0.0, 0.0)), "unit quaternion"),
+    (_pose(quat=(0.0, 0.0, 0.0, 2.0)), "unit quaternion"),
+    (_pose(quat=(0.0, 0.0, math.nan, 1.0)), "NaN"),
+    (_pose(quat=(math.sin(0.2), 0.0, 0.0, math.cos(0.2))), "tilted"),
+])
+def test_bad_poses_are_rejected_with_a_reason(pose, match):
+    with pytest.raises(ValueError, match=match):
+        conv.pose_to_target(pose, "world")
+
+
+def _js(names, pos):
+    m = JointState()
+    m.name, m.position = list(names), [float(v) for v in pos]
+    return m
+
+
+def test_joint_state_matched_by_name_extra_ignored():
+    q = conv.joint_state_positions(_js(["elbow", "x", "shoulder"], [1, 2, 3]), ("shoulder", "elbow"))
+    np.testing.assert_array_equal(q, [3.0, 1.0])
+
+
+@pytest.mark.parametrize("msg, match", [
+    (_js(["shoulder"], [1.0]), "missing joint"),
+    (_js(["shoulder", "elbow"], [1.0]), "2 names but 1 positions"),
+    (_js(["shoulder", "elbow"], [1.0, math.nan]), "not finite"),
+    (_js(["shoulder", "shoulder"], [1.0, 2.0]), "twice"),
+])
+def test_bad_joint_states(msg, match):
+    with pytest.raises(ValueError, match=match):
+        conv.joint_state_positions(msg, ("shoulder", "elbow"))
+
+
+def test_trajectory_roundtrip():
+    traj = time_parameterize(np.array([[0.0, 0.0], [0.3, -0.2]]), [1.0, 1.0], [2.0, 2.0], ("a", "b"))
+    msg = conv.trajectory_to_msg(traj)
+    assert msg.joint_names == ["a", "b"] and len(msg.points) == len(traj)
+    names, t, q, v = conv.msg_to_trajectory_arrays(msg)
+    assert names == ("a", "b")
+    np.testing.assert_allclose(t, traj.times_s, atol=1e-9)
+    np.testing.assert_array_equal(q, traj.positions_rad)
+    np.testing.assert_array_equal(v, traj.velocities_rad_s)
+
+
+def test_potential_values_and_grid_layout():
+    grid = GridSpec((4, 3), (-1.0, -2.0), (1.0, 1.0), (False, False))   # shape (5, 4)
+    log_u = -np.arange(20, dtype=float).reshape(5, 4)
+    occ = np.zeros((5, 4), bool)
+    occ[2, 1] = True
+    log_u[2, 1] = -np.inf
+    log_u[4, 3] = -np.inf                              # free but unreachable
+    vals = conv.potential_slice_values(log_u, occ, phi_max=18.0)
+    assert vals[0, 0] == 0 and vals.min() == 0
+    assert vals[2, 1] == conv.OBSTACLE and vals[4, 3] == conv.UNREACHABLE
+    assert np.all(vals[~occ & np.isfinite(log_u)] <= 98)
+    msg = conv.grid_slice_to_msg(vals, grid, (0, 1), "world")
+    assert (msg.info.width, msg.info.height) == (5, 4)
+    assert math.isclose(msg.info.resolution, 0.5, rel_tol=1e-6)
+    assert (msg.info.origin.position.x, msg.info.origin.position.y) == (-1.0, -2.0)
+    data = np.array(msg.data).reshape(msg.info.height, msg.info.width)
+    assert data[1, 2] == conv.OBSTACLE                   # row = y index, column = x index
+
+
+def test_grid_slice_3d_takes_last_two_axes_at_the_nearest_node():
+    grid = GridSpec((4, 4, 4), (-math.pi,) * 3, (math.pi,) * 3, (True, False, False))
+    arr = np.arange(np.prod(grid.shape)).reshape(grid.shape)
+    s = conv.grid_slice(grid, arr, np.array([-math.pi / 2, 0.0, 0.0]))
+    np.testing.assert_array_equal(s, arr[1])
+
+
+def test_markers_and_diagnostics():
+    sc = load_scenario("config/paper_3dof.yaml")
+    path = np.linspace(sc.start_rad, sc.goal_rad, 20)
+    arr = conv.path_markers(sc.robot, sc.scene, path, "world", n_postures=5)
+    ns = [m.ns for m in arr.markers[1:]]
+    assert ns.count("arm") == 5 and "target" in ns and "handle" in ns and "spacecraft" in ns
+    assert all(m.header.frame_id == "world" for m in arr.markers)
+    d = conv.diagnostic_array("p", DiagnosticStatus.ERROR, "failed: x", {"state": "failed"})
+    assert d.status[0].level == DiagnosticStatus.ERROR
+    assert d.status[0].values[0].key == "state"
