@@ -1,0 +1,157 @@
+"""Property tests on generated scenes: the planner's guarantees, not two paper scenes.
+
+For every generated case (random debris, target pose, margin, start; 2-DOF and 3-DOF;
+coarse to fine grids):
+- a returned path starts exactly at the start and ends exactly at the goal, stays in
+  the joint bounds, and is collision-free under a dense exact check (≤ 0.25°) with the
+  scene's margin;
+- "no path" is claimed as "disconnected" only when an independent flood fill of the
+  grid's free space finds start and goal in separate components;
+- the same input gives the same path;
+- no exception escapes: every failure is a code and a reason.
+
+`pytest --hypothesis-profile=long test/test_properties.py` runs thousands of cases.
+"""
+
+from collections import deque
+
+import numpy as np
+import pytest
+from hypothesis import given, note, strategies as st
+
+from spacerobot_planner.collision import CollisionChecker
+from spacerobot_planner.planner import CODES, Planner
+
+from strategies import random_configuration, scenarios
+
+DENSE_STEP_RAD = np.radians(0.25)
+
+
+def dense_samples(path_rad: np.ndarray, step_rad: float = DENSE_STEP_RAD) -> np.ndarray:
+    """Linear interpolation of the path's rows, no two samples farther apart than step_rad."""
+    out = [path_rad[:1]]
+    for a, b in zip(path_rad[:-1], path_rad[1:]):
+        n = max(1, int(np.ceil(np.max(np.abs(b - a)) / step_rad)))
+        t = np.linspace(0.0, 1.0, n + 1)[1:, None]
+        out.append(a + t * (b - a))
+    return np.concatenate(out)
+
+
+def flood_fill(occupied: np.ndarray, periodic, start) -> np.ndarray:
+    """Free nodes reachable from ``start`` over face neighbours (plain BFS, wrap on periodic axes)."""
+    seen = np.zeros(occupied.shape, dtype=bool)
+    if occupied[start]:
+        return seen
+    seen[start] = True
+    queue = deque([start])
+    shape = occupied.shape
+    while queue:
+        node = queue.popleft()
+        for axis in range(len(shape)):
+            for step in (-1, 1):
+                k = node[axis] + step
+                if periodic[axis]:
+                    k %= shape[axis]
+                elif not 0 <= k < shape[axis]:
+                    continue
+                nb = node[:axis] + (k,) + node[axis + 1:]
+                if not seen[nb] and not occupied[nb]:
+                    seen[nb] = True
+                    queue.append(nb)
+    return seen
+
+
+def wrap_diff(a, b):
+    return (np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi
+
+
+def check_result(sc, start, goal, res):
+    """The properties every PlanResult must have."""
+    assert res.code in CODES
+    note(f"code={res.code} reason={res.reason}")
+    if not res.ok:
+        assert res.reason, "every failure carries a reason"
+        assert len(res.path_rad) == 0
+        return
+    robot = sc.robot
+    path = res.path_rad
+    assert path.ndim == 2 and path.shape[1] == robot.dof and len(path) >= 2
+    assert np.all(np.isfinite(path))
+    # exact ends (periodic joints are unwrapped: the goal up to whole turns)
+    assert np.array_equal(path[0], res.start_rad)
+    assert np.allclose(wrap_diff(res.start_rad, start), 0.0, atol=1e-12)
+    if goal is not None:
+        assert np.allclose(wrap_diff(res.goal_rad, goal), 0.0, atol=1e-12)
+    assert np.allclose(wrap_diff(path[-1], res.goal_rad), 0.0, atol=1e-12)
+    bounded = [k for k, p in enumerate(robot.planned_periodic) if not p]
+    assert np.array_equal(path[-1, bounded], res.goal_rad[bounded])
+    # joint bounds on the bounded joints
+    lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
+    assert np.all(path[:, bounded] >= lo[bounded] - 1e-12) and np.all(path[:, bounded] <= hi[bounded] + 1e-12)
+    # dense exact check with the margin
+    dense = dense_samples(path)
+    clearance = CollisionChecker(robot, sc.scene).clearance_m(dense)
+    worst = int(np.argmin(clearance))
+    assert clearance[worst] > sc.scene.safety_margin_m, (
+        f"collision at sample {worst}: {np.degrees(dense[worst])} deg, clearance {clearance[worst]:.4f} m")
+    assert res.min_clearance_m <= clearance.min() + 1e-3   # the report is not optimistic
+
+
+def check_no_path_claim(sc, start, goal, res):
+    """'disconnected' must agree with an independent flood fill of the grid."""
+    if res.code != "disconnected" or res.cspace is None:
+        return
+    grid, occ = res.cspace.grid, res.cspace.occupied
+    s_node, g_node = grid.node_of(sc.robot.validate_q(start)), grid.node_of(res.goal_rad)
+    if occ[s_node] or occ[g_node]:
+        return     # the nearest node itself is blocked: the planner looked at neighbours
+    assert not flood_fill(occ, grid.periodic, s_node)[g_node], (
+        "planner said 'disconnected' but the grid's free space joins start and goal")
+
+
+@given(case=scenarios(), goal_seed=st.integers(0, 2**31 - 1), use_target=st.booleans())
+def test_plans_are_exact_verified_and_honest(case, goal_seed, use_target):
+    sc, start = case
+    goal = None if use_target else random_configuration(sc, goal_seed)
+    note(f"dof={sc.robot.dof} grid={sc.grid.label()} margin={sc.scene.safety_margin_m} "
+         f"debris={len(sc.scene.debris_m)} start={np.degrees(start)} goal={goal if goal is None else np.degrees(goal)}")
+    res = Planner(sc).plan(start, goal)      # must not raise
+    check_result(sc, start, goal, res)
+    check_no_path_claim(sc, start, goal, res)
+
+
+@given(case=scenarios(), goal_seed=st.integers(0, 2**31 - 1))
+def test_same_input_same_path(case, goal_seed):
+    sc, start = case
+    goal = random_configuration(sc, goal_seed)
+    a = Planner(sc).plan(start, goal)
+    b = Planner(sc).plan(start, goal)
+    assert (a.ok, a.code, a.reason) == (b.ok, b.code, b.reason)
+    assert np.array_equal(a.path_rad, b.path_rad)
+    assert np.array_equal(a.grid_path_rad, b.grid_path_rad)
+
+
+@given(case=scenarios(dof=2))
+def test_connected_grid_means_a_path(case):
+    """Where the grid joins the start's and the goal's nodes, the planner must not give up."""
+    sc, start = case
+    goal = random_configuration(sc, 12345)
+    res = Planner(sc).plan(start, goal)
+    if res.cspace is None or res.code in ("start_in_collision", "goal_in_collision"):
+        return
+    grid, occ = res.cspace.grid, res.cspace.occupied
+    s_node, g_node = grid.node_of(res.start_rad), grid.node_of(res.goal_rad)
+    if occ[s_node] or occ[g_node]:
+        return
+    if flood_fill(occ, grid.periodic, s_node)[g_node]:
+        assert res.ok or res.code == "path_invalid", res.reason
+        note(f"code={res.code}")
+
+
+@pytest.mark.parametrize("bad", [
+    np.array([np.nan, 0.1]), np.array([0.1, np.inf]), np.array([0.1]), np.array([0.1, 4.0]),
+])
+def test_bad_start_is_a_reason_not_an_exception(bad):
+    from strategies import PAPER
+    res = Planner(PAPER[2]).plan(bad, PAPER[2].goal_rad)
+    assert not res.ok and res.code == "invalid_input" and "start" in res.reason
