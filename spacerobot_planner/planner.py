@@ -160,7 +160,7 @@ class Planner:
         shortcut_keep_clearance_m: shortcuts keep at least margin + this (or the
             clearance of the stretch they replace, if smaller).
         max_step_rad: spacing of the returned samples (≤ 0.5°).
-        verify_step_rad: spacing of the exact collision checks along the path.
+        verify_step_rad: largest spacing of the certified collision checks along the path.
         max_repairs: node-blocking re-solves allowed per plan.
     """
 

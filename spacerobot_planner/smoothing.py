@@ -4,9 +4,11 @@ The grid path (descent nodes) is joined to the exact start and goal, unwrapped o
 periodic joints, and turned into a cubic spline as in the paper (knots at every
 second node).  The spline is checked on the *exact* geometry, not the grid: it is
 sampled so that consecutive samples are at most ``max_step_rad`` apart (Euclidean
-norm in joint space) and each interval between samples is re-checked at
-``verify_step_rad``; every check sample must have clearance above the scene's
-safety margin and lie within the bounds of the bounded joints.  Where the spline
+norm in joint space) and the piecewise-linear path through the samples is
+*certified*: checks go at most ``verify_step_rad`` apart and, near obstacles,
+closer, so that the clearance balls of consecutive checks overlap (a Lipschitz
+bound on link motion per radian): the whole path, not only the samples, keeps
+clearance above the scene's safety margin.  Bounded joints stay within bounds.  Where the spline
 cuts a corner, knots are added in that stretch only (first the skipped nodes,
 then midpoints of the polyline) until it is clean.
 
@@ -19,14 +21,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.interpolate import CubicSpline
+
+from .collision import config_clearance
 
 __all__ = ["SmoothPath", "PathCheck", "unwrap_path", "path_length_rad", "densify_polyline",
            "check_path", "first_bad_segment", "shortcut_indices", "spline_through",
            "smooth_path", "DEFAULT_MAX_STEP_RAD", "DEFAULT_VERIFY_STEP_RAD"]
 
 DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
-DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.1))  # spacing of the collision checks
+DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the (certified) checks
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,7 +41,7 @@ class PathCheck:
     Attributes:
         ok: every check sample is free and within bounds.
         interval_ok: (M-1,) bool, per interval between consecutive path samples
-            (both ends and the points between them at ``verify_step_rad``).
+            (the whole straight interval, certified; see :func:`check_path`).
         min_clearance_m: smallest clearance over all check samples, metres.
         n_checked: number of configurations tested.
         interval_clearance_m: (M-1,) smallest clearance per interval, metres.
@@ -120,36 +125,101 @@ def _within_bounds(q, lower, upper, periodic):
     return ok
 
 
+@njit(cache=True)
+def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, starts,
+                    threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
+                    interval_ok, interval_clr):
+    """Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
+
+    At a sample with clearance c the open ball of radius (c - threshold)/L in joint
+    space is free (no point of a checked link moves faster than L m/rad), so the
+    next sample goes at most that far (and at most max_step_rad).  An interval
+    fails where c ≤ threshold or the certified step falls below min_step_rad.
+    Returns the number of clearance evaluations.
+    """
+    dof = points.shape[1]
+    q_full = q_template.copy()
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    n_eval = 0
+    for i in range(points.shape[0] - 1):
+        seg_len = 0.0
+        for a in range(dof):
+            d = points[i + 1, a] - points[i, a]
+            seg_len += d * d
+        seg_len = np.sqrt(seg_len)
+        t = 0.0
+        ok = True
+        best = np.inf
+        while True:
+            f = t / seg_len if seg_len > 0.0 else 0.0
+            for a in range(dof):
+                q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+            n_eval += 1
+            if c < best:
+                best = c
+            if not c > threshold_m:
+                ok = False
+                break
+            if t >= seg_len:
+                break
+            step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad
+            if step < min_step_rad:
+                ok = False
+                break
+            t = min(seg_len, t + min(step, max_step_rad))
+        interval_ok[i] = ok
+        interval_clr[i] = best
+    return n_eval
+
+
+def lipschitz_m_per_rad(robot) -> float:
+    """Bound L on how fast any point of a checked link moves relative to the obstacles
+    and the body per radian of planned-joint motion (Euclidean norm): sqrt(Σ r_j²), r_j
+    the length of the chain beyond planned joint j."""
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
+    reach = np.array([lengths[j:].sum() for j in robot.planned_joints])
+    return float(np.sqrt(np.sum(reach ** 2)))
+
+
 def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
                verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
-               required_clearance_m: float | None = None) -> PathCheck:
-    """Dense check of a sampled path on the exact geometry.
+               required_clearance_m: float | None = None,
+               min_step_rad: float = 1e-6) -> PathCheck:
+    """Certified check of the piecewise-linear path through the rows of ``path_rad``.
 
-    Each interval between consecutive rows is split so check samples are at most
-    ``verify_step_rad`` apart; a sample passes when ``checker`` finds clearance
-    above the safety margin (and at least ``required_clearance_m`` if given) and
-    bounded joints are within their bounds.
+    Along every interval, samples are at most ``verify_step_rad`` apart and close
+    enough that their clearance balls overlap (Lipschitz bound of the arm), so the
+    *whole* interval, not only the samples, keeps clearance above the safety
+    margin (and at least ``required_clearance_m`` if given).  Bounded joints must
+    stay within bounds at the rows (then also between them).
     """
-    p = np.asarray(path_rad, dtype=float)
+    p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
+    robot = checker.robot
+    threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
+                                                                          required_clearance_m)
+    in_bounds = _within_bounds(p, lower_rad, upper_rad, periodic)
     if len(p) == 1:
         c = float(checker.clearance_m(p[0]))
-        ok = c > checker.margin_m and bool(_within_bounds(p, lower_rad, upper_rad, periodic)[0])
-        return PathCheck(ok, np.zeros(0, dtype=bool), c, 1)
-    seg = np.diff(p, axis=0)
-    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / verify_step_rad - 1e-12).astype(np.int64))
-    idx = np.repeat(np.arange(len(seg)), n)
-    frac = np.concatenate([np.arange(k) / k for k in n])
-    samples = np.vstack([p[idx] + frac[:, None] * seg[idx], p[-1:]])
-    clr = np.asarray(checker.clearance_m(samples))
-    good = (clr > checker.margin_m) & _within_bounds(samples, lower_rad, upper_rad, periodic)
-    if required_clearance_m is not None:
-        good &= clr >= required_clearance_m
-    # interval i owns its samples plus the next interval's first sample (its end)
-    first = np.concatenate([[0], np.cumsum(n)[:-1]])
-    ends = np.cumsum(n)
-    interval_ok = np.logical_and.reduceat(good[:-1], first) & good[ends]
-    interval_clr = np.minimum(np.minimum.reduceat(clr[:-1], first), clr[ends])
-    return PathCheck(bool(good.all()), interval_ok, float(clr.min()), int(len(samples)), interval_clr)
+        return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
+                         np.zeros(0))
+    m = len(p) - 1
+    interval_ok = np.zeros(m, dtype=np.bool_)
+    interval_clr = np.zeros(m)
+    key = "_lipschitz_m_per_rad"
+    lip = getattr(checker, key, None)
+    if lip is None:
+        lip = lipschitz_m_per_rad(robot)
+        setattr(checker, key, lip)
+    n = _certify_kernel(p, np.asarray(robot.locked_rad, dtype=float),
+                        np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
+                        checker.checked, checker.body, checker.verts, checker.starts,
+                        float(threshold), lip, float(verify_step_rad), float(min_step_rad),
+                        interval_ok, interval_clr)
+    interval_ok &= in_bounds[:-1] & in_bounds[1:]
+    return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
+                     interval_clr)
 
 
 def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,

@@ -70,7 +70,8 @@ def _free_pair_with_colliding_middle(sc, chk):
 def test_check_path_finds_collision_between_free_ends(sc2, chk2):
     a, b = _free_pair_with_colliding_middle(sc2, chk2)
     res = check_path(chk2, np.vstack([a, b]), *bounds(sc2))
-    assert not res.ok and not res.interval_ok[0] and res.min_clearance_m <= sc2.scene.safety_margin_m
+    # the certified walk stops where it can no longer prove clearance above the margin
+    assert not res.ok and not res.interval_ok[0] and res.min_clearance_m < sc2.scene.safety_margin_m + 1e-3
     # dense samples along a free stretch pass
     c = np.radians([96.0, 40.0])
     ok = check_path(chk2, densify_polyline(np.vstack([a, c]), DEFAULT_MAX_STEP_RAD), *bounds(sc2))
