@@ -1,0 +1,161 @@
+"""`mock_arm_node`: a kinematic arm that follows JointTrajectory messages.
+
+Publishes ``joint_states`` (every joint in ``robot.joint_names``) at
+``mock_arm.rate_hz``.  The initial posture is ``scenario.start_deg`` over the
+planned joints and ``robot.locked_positions_deg`` for the rest.  A trajectory on
+``joint_trajectory`` is followed by interpolating its points in time from the moment
+it arrives; a newer trajectory preempts the old one.  When the arm is not exactly
+at the new trajectory's first point (it moved while the planner worked), the
+difference is faded out linearly over ``blend_s`` (0.2 s), so the arm starts from
+where it is without a jump.
+
+Parameters: the planner's scenario parameters (only the robot.* and
+scenario.start_deg ones are used) and ``mock_arm.rate_hz``.  Run it with the
+planner's scenario file::
+
+    ros2 run spacerobot_planner mock_arm_node --ros-args -p scenario_file:=config/paper_3dof.yaml
+
+(``scenario_file`` seeds the defaults; explicit ``-p`` values win.)
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from . import ros_conversions as conv
+from .config import PARAMETERS, load_params_file, scenario_from_params
+
+__all__ = ["MockArmNode", "main"]
+
+_USED = ("robot.joint_names", "robot.link_lengths_m", "robot.lower_deg", "robot.upper_deg",
+         "robot.periodic", "robot.body_side_m", "robot.planned_joints", "robot.locked_positions_deg",
+         "scenario.start_deg", "mock_arm.rate_hz")
+_SPECS = {p.name: p for p in PARAMETERS}
+
+
+class MockArmNode(Node):
+    def __init__(self, *, context=None, parameter_overrides=None, node_name: str = "mock_arm",
+                 blend_s: float = 0.2, **kwargs):
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides, **kwargs)
+        from .planner_node import descriptor_for
+        scen_file = self.declare_parameter("scenario_file", "").value
+        seed = load_params_file(scen_file) if scen_file else {}
+        for name in _USED:
+            spec = _SPECS[name]
+            default = seed.get(name, spec.default)
+            if spec.type == "double_array":
+                default = [float(v) for v in default]
+            self.declare_parameter(name, default, descriptor_for(spec))
+        params = {n: self.get_parameter(n).value for n in _USED}
+        params = {k: (list(v) if isinstance(v, (tuple, np.ndarray)) else v) for k, v in params.items()}
+        params["grid.cells"] = [2] * len(params["robot.planned_joints"])   # unused here
+        sc = scenario_from_params(params)
+        self.robot = sc.robot
+        q_full = self.robot.full(sc.start_rad if sc.start_rad is not None else self.robot.locked_rad[
+            list(self.robot.planned_joints)])
+        self.names = tuple(self.robot.joint_names)
+        self.periodic = tuple(bool(p) for p in self.robot.periodic)
+        self._q = np.array(q_full, dtype=float)
+        self._v = np.zeros_like(self._q)
+        self._lock = threading.Lock()
+        self._traj = None            # (column indices, times, positions, velocities, t0, offset)
+        self.blend_s = float(blend_s)
+        self.trajectories_received = 0
+        self.executing = False
+        self.pub = self.create_publisher(JointState, "joint_states", 10)
+        self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10)
+        self._timer = self.create_timer(1.0 / float(params["mock_arm.rate_hz"]), self._tick)
+        self.get_logger().info(f"mock arm at {np.round(np.degrees(self._q), 2).tolist()}°, "
+                               f"publishing {', '.join(self.names)} at {params['mock_arm.rate_hz']} Hz")
+
+    @property
+    def positions(self) -> np.ndarray:
+        with self._lock:
+            return self._q.copy()
+
+    def _on_trajectory(self, msg: JointTrajectory):
+        try:
+            names, t, q, v = conv.msg_to_trajectory_arrays(msg)
+            unknown = [n for n in names if n not in self.names]
+            if unknown:
+                raise ValueError(f"joint_trajectory: unknown joint(s) {', '.join(unknown)}")
+        except ValueError as e:
+            self.get_logger().error(str(e))
+            return
+        cols = [self.names.index(n) for n in names]
+        with self._lock:
+            cur = self._q[cols]
+            off = cur - q[0]
+            for k, c in enumerate(cols):
+                if self.periodic[c]:
+                    off[k] = math.remainder(off[k], 2 * math.pi)
+            self._traj = (cols, t, q, v, time.monotonic(), off)
+            self.trajectories_received += 1
+            self.executing = True
+        self.get_logger().info(f"following a trajectory of {len(t)} points, {t[-1]:.2f} s "
+                               f"(start offset {np.round(np.degrees(np.abs(off).max()), 3)}°)")
+
+    def _advance(self, now):
+        with self._lock:
+            if self._traj is None:
+                self._v[:] = 0.0
+                return
+            cols, t, q, v, t0, off = self._traj
+            s = now - t0
+            if s >= t[-1] and s >= self.blend_s:
+                self._q[cols] = q[-1]
+                self._v[cols] = 0.0
+                self._traj = None
+                self.executing = False
+                return
+            k = int(np.clip(np.searchsorted(t, s, side="right") - 1, 0, len(t) - 1))
+            if k >= len(t) - 1:
+                pos, vel = q[-1].copy(), np.zeros(len(cols))
+            else:
+                f = (s - t[k]) / (t[k + 1] - t[k])
+                pos = q[k] + f * (q[k + 1] - q[k])
+                vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k]) if v is None else v[k] + f * (v[k + 1] - v[k])
+            fade = max(0.0, 1.0 - s / self.blend_s) if self.blend_s > 0 else 0.0
+            self._q[cols] = pos + fade * off
+            self._v[cols] = vel
+
+    def _tick(self):
+        self._advance(time.monotonic())
+        with self._lock:
+            q, v = self._q.copy(), self._v.copy()
+        self.pub.publish(conv.joint_state_msg(self.names, q, v, self.get_clock().now().to_msg()))
+
+
+def main(args=None) -> int:
+    """Entry point: ``ros2 run spacerobot_planner mock_arm_node``."""
+    try:
+        with rclpy.init(args=args):
+            try:
+                node = MockArmNode()
+            except ValueError as e:
+                print(f"mock_arm_node: {e}")
+                return 1
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            try:
+                executor.spin()
+            finally:
+                executor.shutdown()
+                node.destroy_node()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+

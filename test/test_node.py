@@ -1,0 +1,309 @@
+"""planner_node + mock_arm_node in-process: closed loop, preemption, grids, bad input,
+responsiveness.  Each test gets a private rclpy Context and a MultiThreadedExecutor
+spinning in a thread; no launch_testing."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import OccupancyGrid
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+from visualization_msgs.msg import MarkerArray
+
+from spacerobot_planner.collision import CollisionChecker
+from spacerobot_planner.config import load_params_file, scenario_from_params
+from spacerobot_planner.mock_arm_node import MockArmNode
+from spacerobot_planner.planner_node import GRID_QOS, PlannerNode, params_to_overrides
+from spacerobot_planner.ros_conversions import joint_state_msg
+
+FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
+        "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
+SCENES = {"2dof": ("config/paper_2dof.yaml", [180, 180]), "3dof": ("config/paper_3dof.yaml", [36, 36, 36])}
+
+
+def scene_params(name, cells=None, **extra):
+    path, default_cells = SCENES[name]
+    flat = load_params_file(path)
+    flat.update(FAST)
+    flat["grid.cells"] = list(cells or default_cells)
+    flat.update(extra)
+    return flat
+
+
+class Graph:
+    """A private context with the planner, optionally the mock arm, and a driver node
+    that publishes inputs and records every output."""
+
+    def __init__(self, flat, with_arm=True):
+        self.ctx = Context()
+        rclpy.init(context=self.ctx)
+        self.flat = flat
+        self.scenario = scenario_from_params(flat)
+        self.planner = PlannerNode(context=self.ctx, parameter_overrides=params_to_overrides(flat))
+        self.arm = None
+        self.ex = MultiThreadedExecutor(num_threads=4, context=self.ctx)
+        self.ex.add_node(self.planner)
+        if with_arm:
+            arm_params = {k: v for k, v in flat.items() if k.startswith(("robot.", "scenario."))}
+            self.arm = MockArmNode(context=self.ctx, parameter_overrides=params_to_overrides(arm_params))
+            self.ex.add_node(self.arm)
+        self.drv = rclpy.create_node("test_driver", context=self.ctx)
+        self.ex.add_node(self.drv)
+        self.lock = threading.Lock()
+        self.trajs, self.states, self.diags, self.markers = [], [], [], []
+        self.drv.create_subscription(JointTrajectory, "joint_trajectory", self._rec(self.trajs), 10)
+        self.drv.create_subscription(JointState, "joint_states", self._rec(self.states), 100)
+        self.drv.create_subscription(DiagnosticArray, "/diagnostics", self._rec(self.diags), 50)
+        self.drv.create_subscription(MarkerArray, "planned_path_markers", self._rec(self.markers), GRID_QOS)
+        self.pub_target = self.drv.create_publisher(PoseStamped, "target_pose", 10)
+        self.pub_js = self.drv.create_publisher(JointState, "joint_states", 10)
+        self.pub_goal = self.drv.create_publisher(JointState, "goal_joint_state", 10)
+        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
+        self.thread.start()
+        self.wait(lambda: self.pub_target.get_subscription_count() > 0, 10, "planner subscribed")
+
+    def _rec(self, store):
+        def cb(msg):
+            with self.lock:
+                store.append((time.monotonic(), msg))
+        return cb
+
+    def wait(self, cond, timeout, what):
+        t0 = time.monotonic()
+        while not cond():
+            if time.monotonic() - t0 > timeout:
+                raise AssertionError(f"timed out after {timeout} s waiting for: {what}")
+            time.sleep(0.01)
+
+    def send_target(self, x=-3.27, y=-2.60, yaw=0.0, frame="world", quat=None):
+        m = PoseStamped()
+        m.header.frame_id = frame
+        m.pose.position.x, m.pose.position.y = float(x), float(y)
+        q = quat or (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+        (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w) = q
+        self.pub_target.publish(m)
+
+    def errors(self):
+        with self.lock:
+            return [(t, d.status[0].message) for t, d in self.diags if d.status[0].level == DiagnosticStatus.ERROR]
+
+    def n_trajs(self):
+        with self.lock:
+            return len(self.trajs)
+
+    def close(self):
+        if self.ctx is None:
+            return
+        self.planner.shutdown_worker()
+        self.ex.shutdown()
+        for n in (self.planner, self.arm, self.drv):
+            if n is not None:
+                n.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+        self.thread.join(5)
+        self.ctx = None
+
+
+@pytest.fixture
+def graph():
+    made = []
+
+    def make(flat, with_arm=True):
+        g = Graph(flat, with_arm)
+        made.append(g)
+        return g
+
+    yield make
+    for g in made:
+        g.close()
+
+
+def angle_err_deg(robot, q_full, goal_planned):
+    idx = list(robot.planned_joints)
+    d = np.asarray(q_full)[idx] - goal_planned
+    for k, p in enumerate(robot.planned_periodic):
+        if p:
+            d[k] = math.remainder(d[k], 2 * math.pi)
+    return float(np.degrees(np.max(np.abs(d))))
+
+
+def wait_at_goal(g, timeout=30):
+    robot = g.scenario.robot
+    g.wait(lambda: g.planner.last_result is not None, timeout, "a plan")
+    goal = g.planner.last_result.goal_rad
+    g.wait(lambda: not g.arm.executing and g.arm.trajectories_received > 0
+           and angle_err_deg(robot, g.arm.positions, g.planner.last_result.goal_rad) < 0.5,
+           timeout, "the arm at the goal")
+    return goal
+
+
+def joint_states_free(g, since=0.0):
+    robot = g.scenario.robot
+    scene = g.scenario.scene.with_target(g.planner._target)      # the current target
+    checker = CollisionChecker(robot, scene)
+    with g.lock:
+        msgs = [m for t, m in g.states if t >= since]
+    q = np.array([[m.position[list(m.name).index(n)] for n in robot.planned_names] for m in msgs])
+    return len(q), checker.is_free(q)
+
+
+# ---------------------------------------------------------------------------- tests
+@pytest.mark.parametrize("name", ["2dof", "3dof"])
+def test_closed_loop_reaches_goal_collision_free(graph, name):
+    g = graph(scene_params(name))
+    g.send_target()
+    goal = wait_at_goal(g, 60)
+    assert g.n_trajs() == 1
+    traj = g.trajs[0][1]
+    robot = g.scenario.robot
+    assert traj.joint_names == list(robot.planned_names)
+    # first point = the arm's state when planning started (the scenario start)
+    np.testing.assert_allclose(traj.points[0].positions, g.scenario.start_rad, atol=1e-9)
+    n, free = joint_states_free(g)
+    assert n > 20 and np.all(free), f"{np.count_nonzero(~free)} of {n} joint states collide"
+    assert angle_err_deg(robot, g.arm.positions, goal) < 0.5
+    assert not g.errors()
+    st = g.diags[-1][1].status[0]
+    values = {kv.key: kv.value for kv in st.values}
+    assert st.level == DiagnosticStatus.OK and values["state"] == "idle"
+    assert "time_field_ms" in values and float(values["min_clearance_m"]) > 0.0
+    assert g.markers, "no path markers"
+
+
+def test_second_target_preempts(graph):
+    g = graph(scene_params("3dof"))
+    g.send_target()
+    g.wait(lambda: g.arm.executing, 30, "the first trajectory executing")
+    first_goal = g.planner.last_result.goal_rad.copy()
+    time.sleep(0.3)
+    t_switch = time.monotonic()
+    g.send_target(-3.0, -2.8)
+    g.wait(lambda: g.n_trajs() >= 2, 30, "a second trajectory")
+    second = g.trajs[1][1]
+    goal2 = g.planner.last_result.goal_rad
+    assert angle_err_deg(g.scenario.robot, g.scenario.robot.full(np.array(second.points[-1].positions)),
+                         goal2) < 1e-6
+    assert np.degrees(np.max(np.abs(goal2 - first_goal))) > 5.0
+    wait_at_goal(g, 30)
+    assert angle_err_deg(g.scenario.robot, g.arm.positions, goal2) < 0.5
+    n, free = joint_states_free(g, since=t_switch)
+    assert n > 5 and np.all(free)
+    assert g.n_trajs() == 2
+
+
+def test_potential_grid_late_subscriber(graph):
+    flat = scene_params("2dof")
+    g = graph(flat)
+    g.send_target()
+    g.wait(lambda: g.planner.last_result is not None, 60, "a plan")
+    time.sleep(0.3)
+    got = {}
+    for topic in ("potential_grid", "cspace_grid"):         # late subscribers
+        g.drv.create_subscription(OccupancyGrid, topic, lambda m, t=topic: got.__setitem__(t, m), GRID_QOS)
+    g.wait(lambda: len(got) == 2, 10, "both grids for a late subscriber")
+    pot, cs = got["potential_grid"], got["cspace_grid"]
+    grid = g.planner.last_result.cspace.grid
+    assert (pot.info.width, pot.info.height) == (181, 181) == grid.shape
+    assert math.isclose(pot.info.resolution, math.radians(2.0), rel_tol=1e-6)
+    assert math.isclose(pot.info.origin.position.x, -math.pi, rel_tol=1e-6)
+    p = np.array(pot.data).reshape(pot.info.height, pot.info.width)     # [y, x]
+    c = np.array(cs.data).reshape(cs.info.height, cs.info.width)
+    assert set(np.unique(c)) <= {0, 100}
+    np.testing.assert_array_equal(p == 100, c == 100)
+    np.testing.assert_array_equal(c.T == 100, g.planner.last_result.cspace.occupied)
+    ix, iy = grid.node_of(g.planner.last_result.goal_rad)
+    assert p[iy, ix] == p.min() == 0
+    assert p[c == 0].max() <= 99
+
+
+def test_bad_input_then_good_request(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+
+    def js(names=robot.joint_names, q=None):
+        q = robot.full(g.scenario.start_rad) if q is None else q
+        g.pub_js.publish(joint_state_msg(names, q))
+
+    js()
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+
+    def expect_error(action, fragment):
+        n0, e0 = g.n_trajs(), len(g.errors())
+        action()
+        g.wait(lambda: len(g.errors()) > e0, 15, f"a diagnostics error for {fragment}")
+        msg = g.errors()[-1][1]
+        assert fragment in msg, msg
+        time.sleep(0.2)
+        assert g.n_trajs() == n0
+
+    expect_error(lambda: g.send_target(math.nan, -2.6), "NaN")
+    expect_error(lambda: g.send_target(frame="map"), "frame 'map'")
+    expect_error(lambda: g.send_target(3.0, 2.5), "out of the arm's reach")
+    expect_error(lambda: js(names=("attitude", "shoulder"), q=[0.0, 0.0]), "missing joint")
+    js()
+
+    def bad_param():
+        res = g.planner.set_parameters([Parameter("safety_margin_m", value=-1.0)])[0]
+        assert not res.successful and "safety_margin_m" in res.reason
+    expect_error(bad_param, "safety_margin_m")
+
+    def bad_array():
+        res = g.planner.set_parameters([Parameter("grid.cells", value=[36, 36])])[0]
+        assert not res.successful and "grid.cells" in res.reason
+    expect_error(bad_array, "grid.cells")
+
+    # the node keeps serving: a good target plans
+    g.send_target()
+    g.wait(lambda: g.n_trajs() == 1, 30, "a trajectory for the good target")
+    g.wait(lambda: g.diags[-1][1].status[0].level == DiagnosticStatus.OK, 5, "diagnostics back to OK")
+    # a runtime parameter change validates and replans
+    res = g.planner.set_parameters([Parameter("safety_margin_m", value=0.03)])[0]
+    assert res.successful
+    g.wait(lambda: g.n_trajs() == 2, 30, "a trajectory after the parameter change")
+    # ~/replan from a new joint state (field cached)
+    cli = g.drv.create_client(Trigger, "/spacerobot_planner/replan")
+    assert cli.wait_for_service(5.0)
+    fut = cli.call_async(Trigger.Request())
+    g.wait(fut.done, 10, "~/replan response")
+    assert fut.result().success
+    g.wait(lambda: g.n_trajs() == 3, 30, "a trajectory after ~/replan")
+    assert "cspace" in g.planner.last_result.cached and "field" in g.planner.last_result.cached
+
+
+def test_joint_goal(graph):
+    g = graph(scene_params("2dof"))
+    goal = np.radians([32.8, 76.5])
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.pub_goal.publish(joint_state_msg(("shoulder", "elbow", "extra"), [*goal, 0.0]))
+    got = wait_at_goal(g, 60)
+    np.testing.assert_allclose(got, goal, atol=1e-9)
+
+
+def test_executor_responsive_during_slow_plan(graph):
+    g = graph(scene_params("3dof", cells=[120, 120, 120]))
+    g.send_target()
+    g.wait(lambda: g.planner.state == "planning", 10, "planning started")
+    with g.lock:
+        n0 = len(g.states)
+    t0 = time.monotonic()
+    time.sleep(1.5)
+    assert g.planner.state == "planning", "the 120³ plan finished too quickly to test anything"
+    with g.lock:
+        n = len(g.states) - n0
+    rate = n / (time.monotonic() - t0)
+    assert rate > 25.0, f"only {rate:.1f} joint_states/s reached the driver during the plan (50 Hz sent)"
+    t_close = time.monotonic()
+    g.close()
+    assert time.monotonic() - t_close < 8.0, "shutdown did not stop the long plan promptly"
