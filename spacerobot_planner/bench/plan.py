@@ -1,0 +1,158 @@
+"""Full offline plan, per stage, on the paper's scenes; the paper's Gauss–Seidel as baseline.
+
+    python -m spacerobot_planner.bench plan [--cases 2dof:180,3dof:36] [--repeats 3]
+        [--solver log_harmonic] [--baseline-max-sweeps N]
+
+Grids: 2-DOF 180² (181×181), 360², 720²; 3-DOF 36³, 72³, 120³.  Per case, after a
+JIT warm-up: C-space, field, descent, smoothing + verify and total of a fresh plan
+(no cache), the median over ``--repeats`` fresh planners; then a replan with only a
+new start (C-space and field from cache).  The baseline is the paper's plain
+Gauss–Seidel (Φ0 = 1, goal 0, stop at change < 1e-6) on the same occupancy and
+goal nodes, measured in the same run; on grids above 500 000 nodes its sweeps are
+capped (``--baseline-max-sweeps``, default 400) and the row says so: the ratio is
+then a lower bound.  Prints a table, then one JSON object per line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..collision import CollisionChecker
+from ..config import load_scenario
+from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
+from ..planner import Planner
+
+CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
+CASES = (("2dof", 180), ("2dof", 360), ("2dof", 720), ("3dof", 36), ("3dof", 72), ("3dof", 120))
+BIG_GRID_NODES = 500_000
+
+
+def _scenario(scene: str, cells: int):
+    sc = load_scenario(CONFIG / f"paper_{scene}.yaml")
+    return replace(sc, grid=sc.grid_with_cells(cells))
+
+
+def _new_start(sc, planner):
+    """A free start a few degrees from the scenario's, for the cached replan."""
+    chk = CollisionChecker(sc.robot, sc.scene)
+    for off in ([4.0, -3.0, 2.0], [-4.0, 3.0, -2.0], [8.0, 2.0, -3.0], [2.0, -6.0, 4.0]):
+        q = sc.start_rad + np.radians(off[:sc.robot.dof])
+        if chk.is_free(q):
+            return q
+    return sc.start_rad
+
+
+def warm_up(solver: str) -> None:
+    """Compile every kernel (2-D and 3-D) on small grids."""
+    for scene, cells in (("2dof", 30), ("3dof", 12)):
+        sc = _scenario(scene, cells)
+        pl = Planner(sc, solver=solver)
+        pl.plan(sc.start_rad, sc.goal_rad)
+        pl.plan(_new_start(sc, pl), sc.goal_rad)
+        res = Planner(sc, solver="gauss_seidel").plan(sc.start_rad, sc.goal_rad)
+        del res
+
+
+def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: int) -> list:
+    sc = _scenario(scene, cells)
+    grid = sc.grid
+    big = grid.n_nodes > BIG_GRID_NODES
+    runs = []
+    planner = None
+    for _ in range(1 if big else repeats):
+        planner = Planner(sc, solver=solver, max_grid_nodes=max(4_000_000, grid.n_nodes))
+        runs.append(planner.plan(sc.start_rad, sc.goal_rad))
+    res = runs[-1]
+    if not res.ok:
+        print(f"  {scene} {grid.label()}: no path ({res.code}): {res.reason}")
+
+    def med(stage):
+        return float(np.median([r.timings_s[stage] for r in runs]))
+
+    replans = [planner.plan(_new_start(sc, planner), sc.goal_rad) for _ in range(max(3, repeats))]
+    replan_s = float(np.median([r.timings_s["total"] for r in replans]))
+    assert all("field" in r.cached for r in replans if r.ok)
+    # the paper's Gauss–Seidel on the same problem
+    cap = baseline_cap if big else None
+    t0 = time.perf_counter()
+    base = solve_field(res.field.occupied, grid.periodic, res.field.goal_nodes, solver="gauss_seidel",
+                       tol=1e-6, max_sweeps=cap)
+    base_s = time.perf_counter() - t0
+    field_s = med("field")
+    label = grid.label()
+    common = {"grid": label, "scene": f"paper_{scene}", "solver": res.solver}
+    rows = [
+        {"stage": "cspace", **common, "seconds": med("cspace"), "baseline_seconds": None, "ratio": None},
+        {"stage": "field", **common, "seconds": field_s, "baseline_seconds": base_s,
+         "ratio": base_s / field_s if field_s > 0 else None,
+         "sweeps": res.solver_stats.get("sweeps"), "baseline_sweeps": int(base.sweeps),
+         "baseline_converged": bool(base.converged), "baseline_capped": cap is not None and not base.converged},
+        {"stage": "descent", **common, "seconds": med("descent"), "baseline_seconds": None, "ratio": None},
+        {"stage": "smoothing+verify", **common, "seconds": med("smoothing") + med("verify"),
+         "baseline_seconds": None, "ratio": None},
+        {"stage": "total", **common, "seconds": med("total"), "baseline_seconds": None, "ratio": None,
+         "ok": res.ok, "path_length_rad": res.path_length_rad if res.ok else None,
+         "min_clearance_m": res.min_clearance_m if res.ok else None, "smoothing": res.smoothing,
+         "repairs": res.solver_stats.get("repairs")},
+        {"stage": "replan_cached", **common, "seconds": replan_s, "baseline_seconds": None, "ratio": None},
+    ]
+    return rows
+
+
+def _parse_cases(text):
+    if not text:
+        return CASES
+    out = []
+    for item in text.split(","):
+        scene, _, cells = item.strip().partition(":")
+        if scene not in ("2dof", "3dof") or not cells.isdigit():
+            raise SystemExit(f"bench plan: --cases: expected items like 2dof:180 or 3dof:36, got {item!r}")
+        out.append((scene, int(cells)))
+    return tuple(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="bench plan", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", help="comma list like 2dof:180,3dof:36 (default: all six)")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--solver", default=DEFAULT_SOLVER, choices=SOLVERS)
+    ap.add_argument("--baseline-max-sweeps", type=int, default=400,
+                    help=f"cap of the Gauss–Seidel baseline on grids above {BIG_GRID_NODES:,} nodes")
+    args = ap.parse_args(argv)
+    cases = _parse_cases(args.cases)
+    t0 = time.perf_counter()
+    warm_up(args.solver)
+    print(f"bench plan: solver {args.solver}, JIT warm-up {time.perf_counter() - t0:.1f} s; "
+          f"median of {args.repeats} fresh plans (1 above {BIG_GRID_NODES:,} nodes)")
+    head = (f"{'scene':<6}{'grid':>12}{'cspace':>9}{'field':>10}{'descent':>9}{'smooth+ver':>11}"
+            f"{'total':>10}{'replan':>9}{'GS base':>10}{'ratio':>8}  path")
+    print(head + "\n" + "-" * len(head) + "   (times in ms)")
+    all_rows = []
+    for scene, cells in cases:
+        rows = bench_case(scene, cells, args.solver, args.repeats, args.baseline_max_sweeps)
+        all_rows += rows
+        r = {row["stage"]: row for row in rows}
+        f = r["field"]
+        capped = "*" if f["baseline_capped"] else " "
+        path = (f"{r['total']['path_length_rad']:.2f} rad, clr {r['total']['min_clearance_m']:.3f} m"
+                if r["total"]["ok"] else "no path")
+        print(f"{scene:<6}{f['grid']:>12}{1e3 * r['cspace']['seconds']:>9.1f}{1e3 * f['seconds']:>10.1f}"
+              f"{1e3 * r['descent']['seconds']:>9.2f}{1e3 * r['smoothing+verify']['seconds']:>11.1f}"
+              f"{1e3 * r['total']['seconds']:>10.1f}{1e3 * r['replan_cached']['seconds']:>9.2f}"
+              f"{1e3 * f['baseline_seconds']:>9.0f}{capped}{f['ratio']:>8.1f}  {path}", flush=True)
+    if any(row.get("baseline_capped") for row in all_rows):
+        print(f"* Gauss–Seidel baseline capped at {args.baseline_max_sweeps} sweeps (not converged): "
+              "its time and the ratio are lower bounds")
+    for row in all_rows:
+        print(json.dumps(row))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
