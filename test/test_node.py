@@ -108,6 +108,7 @@ class Graph:
             return
         self.planner.shutdown_worker()
         self.ex.shutdown()
+        self.thread.join(5)
         for n in (self.planner, self.arm, self.drv):
             if n is not None:
                 n.destroy_node()
