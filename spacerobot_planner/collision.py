@@ -21,17 +21,17 @@ __all__ = ["clearance_m", "is_free", "CollisionChecker"]
 
 
 # ----------------------------------------------------------------- primitives
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _orient(ax, ay, bx, by, cx, cy):
     return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _on_segment(ax, ay, bx, by, px, py):
     return min(ax, bx) <= px <= max(ax, bx) and min(ay, by) <= py <= max(ay, by)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
     """True when segment AB and segment CD share at least one point."""
     d1 = _orient(cx, cy, dx, dy, ax, ay)
@@ -51,7 +51,7 @@ def segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def point_segment_distance(px, py, ax, ay, bx, by):
     """Euclidean distance from point P to segment AB."""
     ux, uy = bx - ax, by - ay
@@ -64,7 +64,7 @@ def point_segment_distance(px, py, ax, ay, bx, by):
     return np.sqrt(ex * ex + ey * ey)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def segment_segment_distance(ax, ay, bx, by, cx, cy, dx, dy):
     """Distance between segments AB and CD (0 when they intersect)."""
     if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
@@ -75,7 +75,7 @@ def segment_segment_distance(ax, ay, bx, by, cx, cy, dx, dy):
                    point_segment_distance(dx, dy, ax, ay, bx, by)))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def point_in_polygon(px, py, verts, start, stop):
     """Even–odd ray test: True when P lies strictly inside polygon verts[start:stop]."""
     inside = False
@@ -91,7 +91,7 @@ def point_in_polygon(px, py, verts, start, stop):
     return inside
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
     """Distance from segment AB to polygon verts[start:stop] (0 if touching or inside)."""
     if point_in_polygon(ax, ay, verts, start, stop):
@@ -108,7 +108,7 @@ def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
     return best
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _point_segment_dist2(px, py, ax, ay, bx, by):
     ux, uy = bx - ax, by - ay
     den = ux * ux + uy * uy
@@ -119,7 +119,7 @@ def _point_segment_dist2(px, py, ax, ay, bx, by):
     return ex * ex + ey * ey
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
     """True when segment AB comes within ``margin_m`` of the polygon (early exit).
 
@@ -143,7 +143,7 @@ def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
 
 
 # ------------------------------------------------------- per-configuration core
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _link_points(q_full, lengths, out):
     """Fill out (n+1, 2) with the chain's joint points for one configuration."""
     ang = 0.0
@@ -155,7 +155,7 @@ def _link_points(q_full, lengths, out):
         out[k + 1, 1] = out[k, 1] + lengths[k] * np.sin(ang)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rotate_body(body, attitude, out):
     c, s = np.cos(attitude), np.sin(attitude)
     for i in range(body.shape[0]):
@@ -163,7 +163,7 @@ def _rotate_body(body, attitude, out):
         out[i, 1] = s * body[i, 0] + c * body[i, 1]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def links_hit_polygons(pts, checked, verts, starts, centres, radii, margin_m):
     """True when a checked link (pts: chain points) comes within margin_m of a polygon."""
     for c in range(checked.shape[0]):
@@ -179,7 +179,7 @@ def links_hit_polygons(pts, checked, verts, starts, centres, radii, margin_m):
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def links_hit_body(pts, checked, body_w, margin_m):
     """True when a checked link comes within margin_m of the (posed) spacecraft body."""
     nb = body_w.shape[0]
@@ -191,7 +191,7 @@ def links_hit_body(pts, checked, body_w, margin_m):
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def config_collides(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres,
                     obs_radii, margin_m, pts, body_w):
     """True when a checked link comes within margin_m of the body or an obstacle.
@@ -205,7 +205,7 @@ def config_collides(q_full, lengths, checked, body, obs_verts, obs_starts, obs_c
     return links_hit_polygons(pts, checked, obs_verts, obs_starts, obs_centres, obs_radii, margin_m)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, pts, body_w):
     """Smallest distance (m) from a checked link to the body or any obstacle."""
     _link_points(q_full, lengths, pts)
@@ -222,7 +222,7 @@ def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, pts,
     return best
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _batch_clearance(q_full, lengths, checked, body, obs_verts, obs_starts):
     n = q_full.shape[0]
     out = np.empty(n)

@@ -143,7 +143,7 @@ class CSpace:
         return float(1.0 - self.occupied.mean())
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _occupancy_kernel(shape, lower, step, axis_joint, q_locked, lengths, checked, body,
                       obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
                       known_hit):
