@@ -359,6 +359,10 @@ class _PlanRun:
         except _Fail as f:
             self.say(f"failed ({f.code}): {f.reason}")
             return self.result(False, f.code, f.reason, t0=t0)
+        except Exception as e:     # the contract: plan() never raises; say what broke
+            reason = f"internal error while planning: {type(e).__name__}: {e}"
+            self.say(reason)
+            return self.result(False, "path_invalid", reason, t0=t0)
 
     def _run(self, start_rad, goal_rad, t0):
         p, sc, robot = self.p, self.sc, self.robot
@@ -461,6 +465,28 @@ class _PlanRun:
         self.say(f"total {1e3 * res.timings_s['total']:.1f} ms")
         return res
 
+    def no_field_path_failure(self, f, entry):
+        """Why no start node has a field value: 'disconnected' only when the grid's own free
+        space (without nodes blocked by repairs) separates every free node near the start
+        from every free node near the goal."""
+        grid, occ = self.sc.grid, self.cs.occupied
+        goal_nodes = self.candidates(self.goal, grid, ~occ)
+        start_nodes = self.candidates(self.start, grid, ~occ)
+        if len(start_nodes) == 0:
+            return _Fail("path_invalid", f"every grid node near the start {_deg(self.start)} is an "
+                         f"obstacle on the grid {grid.label()}; try a finer grid")
+        dist = bfs_distance(occ, grid.periodic, goal_nodes)
+        if np.all(dist[tuple(start_nodes.T)] < 0):
+            return _Fail("disconnected", f"the start {_deg(self.start)} and the goal {_deg(self.goal)} "
+                         f"lie in separate free regions of the configuration space "
+                         f"(grid {grid.label()}): no collision-free motion joins them")
+        if entry.blocked:
+            return _Fail("path_invalid", f"start and goal are connected on the grid {grid.label()}, but "
+                         f"after blocking {len(entry.blocked)} node(s) whose straight joins collide no "
+                         "verified grid path remains; try a finer grid")
+        return _Fail("path_invalid", f"the field of solver '{f.solver}' is zero (flat in float64) at the "
+                     "start although the grid joins start and goal; use the log_harmonic solver")
+
     def descend_and_repair(self, entry, goal_nodes, key):
         """Descent from a start node, then block nodes until the polyline verifies.
 
@@ -479,14 +505,8 @@ class _PlanRun:
                             f"blocked (grid {grid.label()}, margin {self.cs.margin_m:.3f} m); try a finer grid")
             reach = f.reachable[tuple(starts.T)]
             if not reach.any():
-                dist = bfs_distance(f.occupied, f.periodic, f.goal_nodes)
                 self.timings["descent"] += time.perf_counter() - t
-                if np.all(dist[tuple(starts.T)] < 0):
-                    raise _Fail("disconnected", f"the start {_deg(self.start)} and the goal {_deg(self.goal)} "
-                                f"lie in separate free regions of the configuration space "
-                                f"(grid {grid.label()}): no collision-free motion joins them")
-                raise _Fail("path_invalid", f"the field of solver '{f.solver}' is flat (u = 0 in float64) "
-                            f"at the start; use the log_harmonic solver")
+                raise self.no_field_path_failure(f, entry)
             path = None
             reasons = []
             for node in starts[reach]:

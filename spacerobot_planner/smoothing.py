@@ -294,7 +294,16 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
     max_step_rad apart, the first and last knot reproduced exactly.
     """
     k = np.asarray(knots_rad, dtype=float)
+    if len(k) > 1:       # the chord-length parameter must increase strictly
+        step = np.linalg.norm(np.diff(k, axis=0), axis=1)
+        keep = np.concatenate([[True], step > 1e-12])
+        if not keep[-1]:
+            keep[np.flatnonzero(keep)[-1]] = False
+            keep[-1] = True
+        k = k[keep] if keep.sum() >= 2 else k[[0, -1]]
     s = _polyline_param(k)
+    if len(k) == 1 or s[-1] <= 1e-12:
+        return k[[0, -1]].copy(), s[[0, -1]], s[[0, -1]].copy()
     if len(k) == 2:
         dense = densify_polyline(k, max_step_rad)
         return dense, s, _polyline_param(dense)
@@ -370,15 +379,20 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
         None when even the polyline fails the check (or on cancel).
     """
     w = np.asarray(waypoints_rad, dtype=float)
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(w, axis=0), axis=1) > 1e-12])
-    keep[-1] = True
-    w = w[keep] if len(w) > 1 else w
-    if len(w) >= 3 and np.linalg.norm(w[-1] - w[-2]) <= 1e-12:
-        w = np.delete(w, -2, axis=0)
+    ends = w[[0, -1]].copy()
+    rows = [w[0]]                       # drop repeated rows, keep the exact ends
+    for r in w[1:-1]:
+        if np.linalg.norm(r - rows[-1]) > 1e-12:
+            rows.append(r)
+    if np.linalg.norm(w[-1] - rows[-1]) > 1e-12:
+        rows.append(w[-1])
+    elif len(rows) > 1:
+        rows[-1] = w[-1]
+    w = np.array(rows)
     args = (lower_rad, upper_rad, periodic)
-    if len(w) == 1:
-        chk = check_path(checker, w, *args, verify_step_rad)
-        return SmoothPath(w.copy(), w.copy(), "polyline", chk.min_clearance_m, 0.0, 0,
+    if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
+        chk = check_path(checker, ends, *args, verify_step_rad)
+        return SmoothPath(ends, ends.copy(), "polyline", chk.min_clearance_m, path_length_rad(ends), 0,
                           chk.n_checked) if chk.ok else None
     attempts = []
     if shortcut and len(w) > 2:
