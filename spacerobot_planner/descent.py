@@ -1,0 +1,259 @@
+"""Steepest descent of the potential phi = -log u over the grid's face neighbours.
+
+From the start node, repeatedly move to the face neighbour with the largest
+``log_u`` (wrap-around on periodic axes, walls beyond bounded axes) provided it
+is *strictly* larger than the current node's value; ties between neighbours go
+to the first in the fixed order ``(axis 0, -1), (axis 0, +1), (axis 1, -1),
+...``.  Stops at a goal node.  Since every step strictly increases log u, no
+node repeats and the walk ends after at most (number of nodes) steps.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from .field import Field, bfs_distance
+
+# status codes of the kernels
+_REACHED, _STUCK, _TOO_LONG = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class GridPath:
+    """A walk over grid nodes.
+
+    nodes : int64 array (m, ndim), start node first; the goal node last when
+        ``reached``, else the node where the walk stopped.
+    reached : whether the walk ended on a goal node.
+    steps : number of moves (m - 1).
+    reason : None when reached, else why not.
+    """
+
+    nodes: np.ndarray
+    reached: bool
+    steps: int
+    reason: str | None
+
+
+@nb.njit(cache=True)
+def _ascend_2d(log_u, is_goal, per0, per1, i, j, out):
+    n0, n1 = log_u.shape
+    m = 0
+    out[m, 0] = i
+    out[m, 1] = j
+    m += 1
+    while True:
+        if is_goal[i, j]:
+            return m, _REACHED
+        if m >= out.shape[0]:
+            return m, _TOO_LONG
+        best = log_u[i, j]
+        bi = -1
+        bj = -1
+        if i > 0 or per0:
+            ii = i - 1 if i > 0 else n0 - 1
+            if log_u[ii, j] > best:
+                best = log_u[ii, j]
+                bi = ii
+                bj = j
+        if i < n0 - 1 or per0:
+            ii = i + 1 if i < n0 - 1 else 0
+            if log_u[ii, j] > best:
+                best = log_u[ii, j]
+                bi = ii
+                bj = j
+        if j > 0 or per1:
+            jj = j - 1 if j > 0 else n1 - 1
+            if log_u[i, jj] > best:
+                best = log_u[i, jj]
+                bi = i
+                bj = jj
+        if j < n1 - 1 or per1:
+            jj = j + 1 if j < n1 - 1 else 0
+            if log_u[i, jj] > best:
+                best = log_u[i, jj]
+                bi = i
+                bj = jj
+        if bi < 0:
+            return m, _STUCK
+        i = bi
+        j = bj
+        out[m, 0] = i
+        out[m, 1] = j
+        m += 1
+
+
+@nb.njit(cache=True)
+def _ascend_3d(log_u, is_goal, per0, per1, per2, i, j, k, out):
+    n0, n1, n2 = log_u.shape
+    m = 0
+    out[m, 0] = i
+    out[m, 1] = j
+    out[m, 2] = k
+    m += 1
+    while True:
+        if is_goal[i, j, k]:
+            return m, _REACHED
+        if m >= out.shape[0]:
+            return m, _TOO_LONG
+        best = log_u[i, j, k]
+        bi = -1
+        bj = -1
+        bk = -1
+        if i > 0 or per0:
+            ii = i - 1 if i > 0 else n0 - 1
+            if log_u[ii, j, k] > best:
+                best = log_u[ii, j, k]
+                bi, bj, bk = ii, j, k
+        if i < n0 - 1 or per0:
+            ii = i + 1 if i < n0 - 1 else 0
+            if log_u[ii, j, k] > best:
+                best = log_u[ii, j, k]
+                bi, bj, bk = ii, j, k
+        if j > 0 or per1:
+            jj = j - 1 if j > 0 else n1 - 1
+            if log_u[i, jj, k] > best:
+                best = log_u[i, jj, k]
+                bi, bj, bk = i, jj, k
+        if j < n1 - 1 or per1:
+            jj = j + 1 if j < n1 - 1 else 0
+            if log_u[i, jj, k] > best:
+                best = log_u[i, jj, k]
+                bi, bj, bk = i, jj, k
+        if k > 0 or per2:
+            kk = k - 1 if k > 0 else n2 - 1
+            if log_u[i, j, kk] > best:
+                best = log_u[i, j, kk]
+                bi, bj, bk = i, j, kk
+        if k < n2 - 1 or per2:
+            kk = k + 1 if k < n2 - 1 else 0
+            if log_u[i, j, kk] > best:
+                best = log_u[i, j, kk]
+                bi, bj, bk = i, j, kk
+        if bi < 0:
+            return m, _STUCK
+        i, j, k = bi, bj, bk
+        out[m, 0] = i
+        out[m, 1] = j
+        out[m, 2] = k
+        m += 1
+
+
+def descend(field: Field, start_node) -> GridPath:
+    """Steepest descent of phi (ascent of ``field.log_u``) from ``start_node``.
+
+    start_node : int sequence of length ndim (grid node index).
+    Returns a :class:`GridPath`; ``reason`` says why the goal was not reached
+    ("start node is an obstacle", "start node not connected to the goal",
+    "stuck at node (i, j): no strictly higher neighbour").
+    Raises ValueError if ``start_node`` has the wrong length or lies outside
+    the grid.
+    """
+    log_u = np.ascontiguousarray(field.log_u, dtype=np.float64)
+    shape = log_u.shape
+    start = np.asarray(start_node)
+    if start.shape != (len(shape),):
+        raise ValueError(f"start_node: expected {len(shape)} indices, got {start.tolist()}")
+    if not np.issubdtype(start.dtype, np.integer):
+        if not np.all(start == np.round(start)):
+            raise ValueError(f"start_node: node indices must be integers, got {start.tolist()}")
+    start = start.astype(np.int64)
+    if np.any(start < 0) or np.any(start >= np.array(shape)):
+        raise ValueError(f"start_node: {tuple(start.tolist())} lies outside the grid {shape}")
+    node = tuple(int(s) for s in start)
+    if field.occupied[node]:
+        return GridPath(start.reshape(1, -1), False, 0, "start node is an obstacle")
+    is_goal = field.goal_mask
+    if not np.isfinite(log_u[node]) and not is_goal[node]:
+        dist = bfs_distance(field.occupied, field.periodic, field.goal_nodes)
+        if dist[node] < 0:
+            return GridPath(start.reshape(1, -1), False, 0, "start node not connected to the goal")
+        return GridPath(start.reshape(1, -1), False, 0,
+                        f"stuck at node {node}: flat field (u = 0 in float64), no strictly higher neighbour")
+    out = np.empty((log_u.size, len(shape)), np.int64)
+    per = field.periodic
+    if len(shape) == 2:
+        m, status = _ascend_2d(log_u, is_goal, per[0], per[1], node[0], node[1], out)
+    else:
+        m, status = _ascend_3d(log_u, is_goal, per[0], per[1], per[2], node[0], node[1], node[2], out)
+    nodes = out[:m].copy()
+    if status == _REACHED:
+        return GridPath(nodes, True, m - 1, None)
+    last = tuple(int(x) for x in nodes[-1])
+    if status == _STUCK:
+        return GridPath(nodes, False, m - 1, f"stuck at node {last}: no strictly higher neighbour")
+    return GridPath(nodes, False, m - 1, f"step limit {log_u.size} reached at node {last}")
+
+
+def descent_success(field: Field, start_nodes) -> np.ndarray:
+    """Bool per start node (array (k, ndim)): does :func:`descend` reach the goal?"""
+    return np.array([descend(field, s).reached for s in np.asarray(start_nodes)], dtype=bool)
+
+
+@nb.njit(cache=True)
+def _successors(log_u_flat, shape, periodic):
+    """Flat index of the steepest strictly-higher face neighbour of every node
+    (same rule and tie order as the walk), -1 where there is none."""
+    n = log_u_flat.size
+    ndim = shape.size
+    strides = np.ones(ndim, np.int64)
+    for a in range(ndim - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    succ = np.full(n, -1, np.int64)
+    for f in range(n):
+        best = log_u_flat[f]
+        if not best > -np.inf:
+            continue
+        for a in range(ndim):
+            c = (f // strides[a]) % shape[a]
+            for step in (-1, 1):
+                nc = c + step
+                if nc < 0:
+                    if not periodic[a]:
+                        continue
+                    nc = shape[a] - 1
+                elif nc >= shape[a]:
+                    if not periodic[a]:
+                        continue
+                    nc = 0
+                g = f + (nc - c) * strides[a]
+                if log_u_flat[g] > best:
+                    best = log_u_flat[g]
+                    succ[f] = g
+    return succ
+
+
+@nb.njit(cache=True)
+def _resolve(succ, goal_flat):
+    """1 where following ``succ`` ends on a goal node, else 0."""
+    n = succ.size
+    state = np.zeros(n, np.int8)          # 0 unknown, 1 reaches goal, 2 does not
+    for g in goal_flat:
+        state[g] = 1
+    chain = np.empty(n, np.int64)
+    for f in range(n):
+        m = 0
+        x = f
+        while state[x] == 0 and succ[x] >= 0:
+            chain[m] = x
+            m += 1
+            x = succ[x]
+        result = state[x] if state[x] != 0 else 2
+        if state[x] == 0:
+            state[x] = 2
+        for t in range(m):
+            state[chain[t]] = result
+    return state == 1
+
+
+def reaches_goal_mask(field: Field) -> np.ndarray:
+    """Bool array of the grid shape: True at every node from which
+    :func:`descend` reaches the goal (all nodes at once, linear time)."""
+    log_u = np.ascontiguousarray(field.log_u, dtype=np.float64)
+    succ = _successors(log_u.ravel(), np.array(log_u.shape, np.int64), np.array(field.periodic, np.bool_))
+    goal_flat = np.ravel_multi_index(tuple(field.goal_nodes.T), log_u.shape).astype(np.int64)
+    ok = _resolve(succ, goal_flat).reshape(log_u.shape)
+    ok[field.occupied] = False
+    return ok
