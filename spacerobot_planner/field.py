@@ -22,15 +22,16 @@ Solvers (``solve_field(..., solver=NAME)``)
                     with omega = 2 / (1 + sin(pi / N)), absolute-change stop.
 ``"log_harmonic"``  Planner default.  The same harmonic u, represented without
                     underflow as u_i = m_i * 2**e_i (float mantissa, int exponent
-                    per node), relaxed by symmetric SOR over the reachable nodes
-                    in breadth-first order from the goal, started from the
-                    subharmonic lower bound u0 = 2**(-b*d) (d = BFS distance,
-                    2**b >= 2n), converged on the *relative* change
-                    max |d log u|, finished with plain Gauss-Seidel passes and a
-                    check that every reachable non-goal node has a strictly
-                    higher neighbour (else it falls back to ``"log_gs"``).
-``"log_gs"``        As ``"log_harmonic"`` with omega = 1: plain symmetric
-                    Gauss-Seidel from the lower bound.  In exact arithmetic
+                    per node), relaxed by red-black SOR (2-D / 3-D grid kernels),
+                    started from the subharmonic lower bound u0 = 2**(-b*d)
+                    (d = BFS distance from the goal, 2**b >= 2n), converged on
+                    the *relative* change max |d log u|, finished with plain
+                    Gauss-Seidel sweeps and a check that every reachable
+                    non-goal node has a strictly higher neighbour (else it
+                    falls back to ``"log_gs"``).
+``"log_gs"``        Plain symmetric Gauss-Seidel (forward / backward passes in
+                    BFS order from the goal) on the same representation from
+                    the same lower bound.  In exact arithmetic
                     every iterate is subharmonic, so steepest ascent reaches the
                     goal on *any* iterate ("anytime" field; ``max_sweeps=0``
                     gives the BFS field itself).
@@ -53,9 +54,6 @@ DEFAULT_SOLVER = "log_harmonic"
 #: Default stopping tolerance per solver (absolute change for the linear
 #: forms, change of log u for the log forms).
 DEFAULT_TOL = {"gauss_seidel": 1e-6, "sor": 1e-6, "log_harmonic": 1e-4, "log_gs": 1e-4}
-#: Default over-relaxation of the log_harmonic passes (BFS order, symmetric):
-#: measured best near 1.9 on 181^2 (1.966 = red-black optimum is slower here).
-LOG_OMEGA = 1.9
 #: Default sweep cap per solver (one sweep = one pass over the grid).
 DEFAULT_MAX_SWEEPS = {"gauss_seidel": 200_000, "sor": 100_000, "log_harmonic": 100_000,
                       "log_gs": 1_000_000}
@@ -618,6 +616,165 @@ def _log_ssor(mant, expo, nbr, n_goal, lb_expo, omega, tol, max_passes, p2):
     return passes, change
 
 
+@nb.njit(cache=True, inline="always")
+def _log_update(nm, ne, cnt, deg, m_old, e_old, lb_e, omega, p2):
+    """One SOR update of a node from its ``cnt`` present neighbours
+    (mantissas ``nm[:cnt]``, exponents ``ne[:cnt]``; walls are absent and
+    count as u = 0 in the mean over ``deg`` = 2n).  Returns
+    ``(mant, expo, relative change)``; see :func:`_log_ssor`."""
+    big = ne[0]
+    for a in range(1, cnt):
+        if ne[a] > big:
+            big = ne[a]
+    s = 0.0
+    for a in range(cnt):
+        s += nm[a] * _p2(ne[a] - big, p2)
+    s /= deg
+    old = m_old * _p2(e_old - big, p2)
+    new = old + omega * (s - old)
+    if new > 0.0 and new >= _p2(lb_e - big, p2):
+        m, k = math.frexp(new)
+        return m, big + k, abs(new - old) / new
+    return 0.5, lb_e + 1, 1.0
+
+
+@nb.njit(cache=True, parallel=True)
+def _log_rb_2d(mant, expo, active, lb_expo, per0, per1, omega, tol, max_sweeps, p2):
+    """Red-black SOR on u = mant * 2**expo over a 2-D grid (parallel rows).
+
+    ``active`` marks the reachable non-goal nodes (the only ones updated);
+    obstacles hold mant 0 and a huge negative exponent, goals mant 1, expo 0.
+    Same colouring / odd-periodic handling as :func:`_rb_sor_2d`.  Returns
+    ``(sweeps, change)``, change = max relative change of u in the last sweep.
+    """
+    n0, n1 = mant.shape
+    split = n0 - 1 if (per0 and n0 % 2 == 1) else n0
+    rowmax = np.zeros(n0)
+    change = np.inf
+    sweeps = 0
+    while sweeps < max_sweeps:
+        for colour in range(2):
+            for part in range(2):
+                lo = 0 if part == 0 else split
+                hi = split if part == 0 else n0
+                for i in nb.prange(lo, hi):
+                    nm = np.empty(8)
+                    ne = np.empty(8, np.int64)
+                    if colour == 0:
+                        rowmax[i] = 0.0
+                    im = i - 1 if i > 0 else n0 - 1
+                    ip = i + 1 if i < n0 - 1 else 0
+                    has_im = i > 0 or per0
+                    has_ip = i < n0 - 1 or per0
+                    mx = rowmax[i]
+                    for j in range((i + colour) % 2, n1, 2):
+                        if not active[i, j]:
+                            continue
+                        c = 0
+                        if has_im:
+                            nm[c] = mant[im, j]
+                            ne[c] = expo[im, j]
+                            c += 1
+                        if has_ip:
+                            nm[c] = mant[ip, j]
+                            ne[c] = expo[ip, j]
+                            c += 1
+                        if j > 0 or per1:
+                            jj = j - 1 if j > 0 else n1 - 1
+                            nm[c] = mant[i, jj]
+                            ne[c] = expo[i, jj]
+                            c += 1
+                        if j < n1 - 1 or per1:
+                            jj = j + 1 if j < n1 - 1 else 0
+                            nm[c] = mant[i, jj]
+                            ne[c] = expo[i, jj]
+                            c += 1
+                        m, e, rel = _log_update(nm, ne, c, 4.0, mant[i, j], expo[i, j], lb_expo[i, j],
+                                                omega, p2)
+                        mant[i, j] = m
+                        expo[i, j] = e
+                        if rel > mx:
+                            mx = rel
+                    rowmax[i] = mx
+        sweeps += 1
+        change = rowmax.max()
+        if change < tol:
+            break
+    return sweeps, change
+
+
+@nb.njit(cache=True, parallel=True)
+def _log_rb_3d(mant, expo, active, lb_expo, per0, per1, per2, omega, tol, max_sweeps, p2):
+    """3-D version of :func:`_log_rb_2d` (parallel over axis-0 slabs)."""
+    n0, n1, n2 = mant.shape
+    split = n0 - 1 if (per0 and n0 % 2 == 1) else n0
+    rowmax = np.zeros(n0)
+    change = np.inf
+    sweeps = 0
+    while sweeps < max_sweeps:
+        for colour in range(2):
+            for part in range(2):
+                lo = 0 if part == 0 else split
+                hi = split if part == 0 else n0
+                for i in nb.prange(lo, hi):
+                    nm = np.empty(8)
+                    ne = np.empty(8, np.int64)
+                    if colour == 0:
+                        rowmax[i] = 0.0
+                    im = i - 1 if i > 0 else n0 - 1
+                    ip = i + 1 if i < n0 - 1 else 0
+                    has_im = i > 0 or per0
+                    has_ip = i < n0 - 1 or per0
+                    mx = rowmax[i]
+                    for j in range(n1):
+                        jm = j - 1 if j > 0 else n1 - 1
+                        jp = j + 1 if j < n1 - 1 else 0
+                        has_jm = j > 0 or per1
+                        has_jp = j < n1 - 1 or per1
+                        for k in range((i + j + colour) % 2, n2, 2):
+                            if not active[i, j, k]:
+                                continue
+                            c = 0
+                            if has_im:
+                                nm[c] = mant[im, j, k]
+                                ne[c] = expo[im, j, k]
+                                c += 1
+                            if has_ip:
+                                nm[c] = mant[ip, j, k]
+                                ne[c] = expo[ip, j, k]
+                                c += 1
+                            if has_jm:
+                                nm[c] = mant[i, jm, k]
+                                ne[c] = expo[i, jm, k]
+                                c += 1
+                            if has_jp:
+                                nm[c] = mant[i, jp, k]
+                                ne[c] = expo[i, jp, k]
+                                c += 1
+                            if k > 0 or per2:
+                                kk = k - 1 if k > 0 else n2 - 1
+                                nm[c] = mant[i, j, kk]
+                                ne[c] = expo[i, j, kk]
+                                c += 1
+                            if k < n2 - 1 or per2:
+                                kk = k + 1 if k < n2 - 1 else 0
+                                nm[c] = mant[i, j, kk]
+                                ne[c] = expo[i, j, kk]
+                                c += 1
+                            m, e, rel = _log_update(nm, ne, c, 6.0, mant[i, j, k], expo[i, j, k],
+                                                    lb_expo[i, j, k], omega, p2)
+                            mant[i, j, k] = m
+                            expo[i, j, k] = e
+                            if rel > mx:
+                                mx = rel
+                    rowmax[i] = mx
+        sweeps += 1
+        change = rowmax.max()
+        if change < tol:
+            break
+    return sweeps, change
+
+
 @nb.njit(cache=True)
 def _scatter_log(mant, expo, order, n_flat):
     out = np.full(n_flat, -np.inf)
@@ -627,7 +784,8 @@ def _scatter_log(mant, expo, order, n_flat):
     return out
 
 
-def _log_field(occ, per, goals, solver, omega, tol, max_sweeps, finish_passes):
+def _log_field(occ, per, goals, solver, omega, tol, max_sweeps):
+    """Symmetric SOR in BFS order on the node graph (omega = 1: log_gs)."""
     t0 = time.perf_counter()
     shape, strides, per_arr, goal_flat = _flat_problem(occ, per, goals)
     dist, order = _bfs(occ.ravel(), shape, strides, per_arr, goal_flat)
@@ -645,50 +803,63 @@ def _log_field(occ, per, goals, solver, omega, tol, max_sweeps, finish_passes):
                                int(max_sweeps), _P2)
     converged = change < tol
     log_u = _scatter_log(mant, expo, order, occ.size).reshape(occ.shape)
-    if omega != 1.0:
-        # finish with plain Gauss-Seidel passes, then verify the ascent property
-        more, _ = _log_ssor(mant, expo, nbr, n_goal, lb_expo, 1.0, 0.0, finish_passes, _P2)
-        passes += more
-        log_u = _scatter_log(mant, expo, order, occ.size).reshape(occ.shape)
-        goal_mask = np.zeros(occ.shape, np.bool_)
-        goal_mask[tuple(goals.T)] = True
-        if ascent_defects(log_u, goal_mask, per).shape[0] > 0:
-            # not expected on a converged field; fall back to the guaranteed
-            # monotone iteration (omega = 1 from the lower bound)
-            mant[:n] = 1.0
-            expo[:] = lb_expo
-            more, change = _log_ssor(mant, expo, nbr, n_goal, lb_expo, 1.0, float(tol),
-                                     int(max_sweeps), _P2)
-            passes += more
-            converged = change < tol
-            log_u = _scatter_log(mant, expo, order, occ.size).reshape(occ.shape)
-            solver = solver + "(fallback log_gs)"
     return Field(log_u, occ, per, goals, solver, int(passes), float(change), bool(converged),
                  time.perf_counter() - t0)
 
 
-def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, omega=None,
-                 finish_passes=2) -> Field:
+def log_harmonic(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=100_000, omega=None,
+                 finish_sweeps=2) -> Field:
     """Underflow-free harmonic field (planner default), see the module doc.
 
-    ``tol`` bounds the largest relative change of u (|d log u|) in a
-    forward + backward pass pair; ``omega`` defaults to ``LOG_OMEGA``; ``finish_passes`` plain Gauss-Seidel
-    passes follow, then every reachable non-goal node is checked to have a
-    strictly higher neighbour (falls back to ``log_gs`` if not).
+    Red-black SOR (2-D / 3-D grid kernels, parallel) on u = mant * 2**expo,
+    started from the BFS lower bound, until the largest relative change of u
+    in a sweep (|d log u|) is below ``tol``; ``omega`` defaults to
+    :func:`sor_omega` of the shape.  Then ``finish_sweeps`` plain
+    Gauss-Seidel sweeps, and a check that every reachable non-goal node has a
+    strictly higher neighbour; if any has none (over-relaxation may leave
+    one, e.g. when ``max_sweeps`` stops it early), the result is replaced by
+    ``log_gs`` with the same sweep budget, whose iterates are valid by
+    construction (``solver`` then reads ``"log_harmonic(fallback log_gs)"``).
     """
+    t0 = time.perf_counter()
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
     if omega is None:
-        omega = min(LOG_OMEGA, sor_omega(occ.shape))
+        omega = sor_omega(occ.shape)
     if not 0.0 < omega < 2.0:
         raise ValueError(f"omega: must lie in (0, 2), got {omega}")
-    return _log_field(occ, per, goals, "log_harmonic", float(omega), tol, max_sweeps, int(finish_passes))
+    shape, strides, per_arr, goal_flat = _flat_problem(occ, per, goals)
+    dist = _bfs(occ.ravel(), shape, strides, per_arr, goal_flat)[0].reshape(occ.shape)
+    bits = int(math.ceil(math.log2(2 * occ.ndim)))       # 2**bits >= 2n
+    reach = dist >= 0
+    lb_expo = np.where(reach, -bits * dist, -(1 << 40)).astype(np.int64)
+    mant = np.where(reach, 1.0, 0.0)
+    expo = lb_expo.copy()
+    active = reach.copy()
+    active[tuple(goals.T)] = False
+    args = (mant, expo, active, lb_expo) + per
+    kernel = _log_rb_2d if occ.ndim == 2 else _log_rb_3d
+    sweeps, change = kernel(*args, float(omega), float(tol), int(max_sweeps), _P2)
+    converged = change < tol
+    more, _ = kernel(*args, 1.0, 0.0, int(finish_sweeps), _P2)
+    sweeps += more
+    ln2 = math.log(2.0)
+    with np.errstate(divide="ignore"):
+        log_u = np.where(reach, np.log(mant) + expo * ln2, -np.inf)
+    goal_mask = np.zeros(occ.shape, np.bool_)
+    goal_mask[tuple(goals.T)] = True
+    if ascent_defects(log_u, goal_mask, per).shape[0] > 0:
+        fb = _log_field(occ, per, goals, "log_harmonic(fallback log_gs)", 1.0, tol, max_sweeps)
+        return Field(fb.log_u, occ, per, goals, fb.solver, sweeps + fb.sweeps, fb.residual, fb.converged,
+                     time.perf_counter() - t0)
+    return Field(log_u, occ, per, goals, "log_harmonic", int(sweeps), float(change), bool(converged),
+                 time.perf_counter() - t0)
 
 
-def log_gs(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=1_000_000) -> Field:
+def log_gs(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=1_000_000) -> Field:
     """Plain symmetric Gauss-Seidel on the underflow-free u from the BFS lower
     bound: every iterate is a valid ascent field (anytime)."""
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
-    return _log_field(occ, per, goals, "log_gs", 1.0, tol, max_sweeps, 0)
+    return _log_field(occ, per, goals, "log_gs", 1.0, tol, max_sweeps)
 
 
 # --------------------------------------------------------------------------

@@ -1,0 +1,161 @@
+"""Field benchmark: ``python -m spacerobot_planner.bench field [options]``.
+
+For each grid (2-D 181^2, 361^2, 721^2 of the paper's 2-DOF scene; 3-D
+36x37x37, 72x73x73, 120x121x121 of the 3-DOF scene, axis 0 periodic) it builds
+the C-space, then times every field solver after a JIT warm-up, with the
+paper's Gauss-Seidel (Phi0 = 1, stop at change < 1e-6) measured in the same
+run as the baseline.  On grids above ``--gs-cap-nodes`` nodes the baseline is
+capped at ``--gs-cap-sweeps`` sweeps (said in the output: its time is then a
+lower bound and so is every ratio).  ``descent_ok_fraction`` is the share of
+goal-connected free nodes from which steepest descent reaches the goal.
+
+Prints a table and one JSON object per line::
+
+    {"stage": "field", "grid": "181x181", "solver": ..., "seconds": ...,
+     "baseline_seconds": ..., "ratio": ..., "sweeps": ..., "descent_ok_fraction": ...}
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from .. import field as F
+from ..descent import descend, reaches_goal_mask
+
+GRIDS_2D = (180, 360, 720)           # cells; bounded axes give cells + 1 nodes
+GRIDS_3D = (36, 72, 120)
+
+
+def _scene_problem(scenario_path, cells):
+    """(occupied, periodic, goal_node, start_node, source) for a paper scene."""
+    from ..config import load_scenario
+    from ..cspace import build_cspace
+    sc = load_scenario(scenario_path)
+    cs = build_cspace(sc.robot, sc.scene, sc.grid_with_cells(cells))
+    goal = cs.grid.node_of(sc.goal_rad)
+    start = cs.grid.node_of(sc.start_rad)
+    return cs.occupied, tuple(cs.grid.periodic), goal, start, scenario_path
+
+
+def _runs(args, n_nodes):
+    """(label, solver, kwargs) per timed run."""
+    runs = [("gauss_seidel", "gauss_seidel", {})]
+    if n_nodes > args.gs_cap_nodes:
+        runs[0] = ("gauss_seidel", "gauss_seidel", {"max_sweeps": args.gs_cap_sweeps})
+    runs += [
+        ("sor", "sor", {}),
+        ("log_harmonic", "log_harmonic", {"max_sweeps": args.max_sweeps}),
+        ("log_gs", "log_gs", {"max_sweeps": args.max_sweeps}),
+        (f"log_gs@{args.anytime_passes}", "log_gs", {"max_sweeps": args.anytime_passes}),
+    ]
+    return runs
+
+
+def _time_solver(occ, per, goal, solver, kwargs, repeats):
+    best = None
+    for _ in range(repeats):
+        f = F.solve_field(occ, per, [goal], solver=solver, **kwargs)
+        if best is None or f.seconds < best.seconds:
+            best = f
+    return best
+
+
+def _warm_up():
+    occ = np.zeros((9, 10), dtype=bool)
+    occ[3:5, 3:6] = True
+    occ3 = np.zeros((6, 7, 7), dtype=bool)
+    for o, per, g in ((occ, (False, False), (8, 9)), (occ3, (True, False, False), (5, 6, 6))):
+        for s in F.SOLVERS:
+            f = F.solve_field(o, per, [g], solver=s)
+            reaches_goal_mask(f)
+            descend(f, (0,) * o.ndim)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m spacerobot_planner.bench field", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--grids", default="all", help="'all', '2d', '3d', 'small' (181^2 and 36x37x37) "
+                    "or a comma list of cells, e.g. '180,36'")
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per solver on grids up to 100k nodes "
+                    "(best kept); 1 above")
+    ap.add_argument("--gs-cap-nodes", type=int, default=400_000,
+                    help="cap the paper baseline on grids with more nodes than this")
+    ap.add_argument("--gs-cap-sweeps", type=int, default=3000, help="baseline sweep cap on those grids")
+    ap.add_argument("--max-sweeps", type=int, default=20_000, help="sweep cap of the log solvers")
+    ap.add_argument("--anytime-passes", type=int, default=4,
+                    help="passes of the 'anytime' log_gs run (a valid, unconverged field)")
+    args = ap.parse_args(argv)
+
+    choice = args.grids
+    if choice == "all":
+        cases = [("2d", c) for c in GRIDS_2D] + [("3d", c) for c in GRIDS_3D]
+    elif choice == "2d":
+        cases = [("2d", c) for c in GRIDS_2D]
+    elif choice == "3d":
+        cases = [("3d", c) for c in GRIDS_3D]
+    elif choice == "small":
+        cases = [("2d", 180), ("3d", 36)]
+    else:
+        cases = [("2d" if int(c) in GRIDS_2D else "3d", int(c)) for c in choice.split(",")]
+
+    t0 = time.perf_counter()
+    _warm_up()
+    print(f"# JIT warm-up {time.perf_counter() - t0:.1f} s")
+    header = (f"{'grid':>12} {'solver':>14} {'ms':>10} {'base ms':>10} {'ratio':>8} {'sweeps':>7} "
+              f"{'conv':>5} {'residual':>9} {'descent ok':>10}  note")
+    print(header)
+    records = []
+    for kind, cells in cases:
+        path = "config/paper_2dof.yaml" if kind == "2d" else "config/paper_3dof.yaml"
+        try:
+            occ, per, goal, start, source = _scene_problem(path, cells)
+        except (ImportError, OSError) as e:       # no C-space module / scenario: synthetic scene
+            import sys
+            import os
+            sys.path.insert(0, os.path.join(os.getcwd(), "test"))
+            import mazes
+            if kind == "2d":
+                occ, start, goal = mazes.blocks_2d(cells + 1)
+                per = (False, False)
+            else:
+                occ, per, start, goal = mazes.blocks_3d((cells, cells + 1, cells + 1))
+            source = f"synthetic ({e})"
+        grid = "x".join(str(n) for n in occ.shape)
+        connected = F.bfs_distance(occ, per, [goal]) >= 0
+        repeats = args.repeats if occ.size <= 100_000 else 1
+        baseline = None
+        for label, solver, kwargs in _runs(args, occ.size):
+            f = _time_solver(occ, per, goal, solver, kwargs, repeats)
+            ok = reaches_goal_mask(f)[connected].mean()
+            notes = []
+            if solver == "gauss_seidel":
+                baseline = f
+                if "max_sweeps" in kwargs and not f.converged:
+                    notes.append(f"CAPPED at {kwargs['max_sweeps']} sweeps: baseline time and ratios are "
+                                 "lower bounds")
+            if not f.converged and label.startswith("log_gs@"):
+                notes.append("anytime field (not converged, valid ascent)")
+            elif not f.converged and solver != "gauss_seidel":
+                notes.append("sweep cap reached")
+            if not descend(f, start).reached:
+                notes.append("descent from the scenario start FAILS")
+            rec = {"stage": "field", "grid": grid, "solver": label, "seconds": f.seconds,
+                   "baseline_seconds": baseline.seconds, "ratio": baseline.seconds / f.seconds,
+                   "sweeps": f.sweeps, "converged": bool(f.converged), "residual": f.residual,
+                   "descent_ok_fraction": float(ok), "scene": source}
+            if notes:
+                rec["note"] = "; ".join(notes)
+            records.append(rec)
+            print(f"{grid:>12} {label:>14} {1e3 * f.seconds:10.2f} {1e3 * baseline.seconds:10.1f} "
+                  f"{rec['ratio']:8.1f} {f.sweeps:7d} {str(f.converged):>5} {f.residual:9.1e} "
+                  f"{ok:10.4f}  {'; '.join(notes)}", flush=True)
+    for rec in records:
+        print(json.dumps(rec))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
