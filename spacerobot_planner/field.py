@@ -554,8 +554,8 @@ with np.errstate(over="ignore"):
 def _p2(k, p2):
     if k < -_P2_OFF:
         k = -_P2_OFF
-    elif k > _P2_OFF:
-        k = _P2_OFF
+    elif k > 1000:
+        k = 1000
     return p2[k + _P2_OFF]
 
 
@@ -632,9 +632,18 @@ def _log_update(nm, ne, cnt, deg, m_old, e_old, lb_e, omega, p2):
     s /= deg
     old = m_old * _p2(e_old - big, p2)
     new = old + omega * (s - old)
+    if omega > 1.0:
+        # over-relaxed: the linear iteration as it is, signs included (the
+        # final plain sweeps and the ascent check decide whether it is usable)
+        if new == 0.0:
+            return 0.0, big, 1.0
+        m, k = math.frexp(new)
+        return m, big + k, abs(new - old) / abs(new)
     if new > 0.0 and new >= _p2(lb_e - big, p2):
         m, k = math.frexp(new)
         return m, big + k, abs(new - old) / new
+    # plain Gauss-Seidel from a subharmonic start never gets here in exact
+    # arithmetic; clip to the lower bound the solution satisfies
     return 0.5, lb_e + 1, 1.0
 
 
@@ -808,13 +817,16 @@ def _log_field(occ, per, goals, solver, omega, tol, max_sweeps):
 
 
 def log_harmonic(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=100_000, omega=None,
-                 finish_sweeps=2) -> Field:
+                 finish_sweeps=2, sor_sweeps_factor=4.0) -> Field:
     """Underflow-free harmonic field (planner default), see the module doc.
 
     Red-black SOR (2-D / 3-D grid kernels, parallel) on u = mant * 2**expo,
     started from the BFS lower bound, until the largest relative change of u
-    in a sweep (|d log u|) is below ``tol``; ``omega`` defaults to
-    :func:`sor_omega` of the shape.  Then ``finish_sweeps`` plain
+    in a sweep (|d log u|) is below ``tol`` or for at most
+    ``sor_sweeps_factor * max(shape)`` sweeps; ``omega`` defaults to
+    :func:`sor_omega` of the shape.  If not yet converged, plain Gauss-Seidel
+    sweeps continue to ``tol`` (over-relaxation can keep tiny values in deep
+    pockets oscillating in sign).  Then ``finish_sweeps`` plain
     Gauss-Seidel sweeps, and a check that every reachable non-goal node has a
     strictly higher neighbour; if any has none (over-relaxation may leave
     one, e.g. when ``max_sweeps`` stops it early), the result is replaced by
@@ -838,16 +850,25 @@ def log_harmonic(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=100_000, o
     active[tuple(goals.T)] = False
     args = (mant, expo, active, lb_expo) + per
     kernel = _log_rb_2d if occ.ndim == 2 else _log_rb_3d
-    sweeps, change = kernel(*args, float(omega), float(tol), int(max_sweeps), _P2)
+    # phase 1: over-relaxed sweeps, about long enough for the SOR contraction
+    # (omega - 1)**k to reach 1e-11 on a domain of the grid's size
+    sor_cap = min(int(max_sweeps), int(sor_sweeps_factor * max(occ.shape)))
+    sweeps, change = kernel(*args, float(omega), float(tol), sor_cap, _P2)
+    # phase 2: plain Gauss-Seidel to the tolerance (tiny values in deep pockets
+    # converge in relative terms under omega = 1, not always under omega ~ 2)
+    if change >= tol and sweeps < max_sweeps:
+        more, change = kernel(*args, 1.0, float(tol), int(max_sweeps) - sweeps, _P2)
+        sweeps += more
     converged = change < tol
     more, _ = kernel(*args, 1.0, 0.0, int(finish_sweeps), _P2)
     sweeps += more
     ln2 = math.log(2.0)
-    with np.errstate(divide="ignore"):
-        log_u = np.where(reach, np.log(mant) + expo * ln2, -np.inf)
+    positive = bool(np.all(mant[reach] > 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_u = np.where(reach, np.log(np.maximum(mant, 0.0)) + expo * ln2, -np.inf)
     goal_mask = np.zeros(occ.shape, np.bool_)
     goal_mask[tuple(goals.T)] = True
-    if ascent_defects(log_u, goal_mask, per).shape[0] > 0:
+    if not positive or ascent_defects(log_u, goal_mask, per).shape[0] > 0:
         fb = _log_field(occ, per, goals, "log_harmonic(fallback log_gs)", 1.0, tol, max_sweeps)
         return Field(fb.log_u, occ, per, goals, fb.solver, sweeps + fb.sweeps, fb.residual, fb.converged,
                      time.perf_counter() - t0)

@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--gs-cap-nodes", type=int, default=400_000,
                     help="cap the paper baseline on grids with more nodes than this")
     ap.add_argument("--gs-cap-sweeps", type=int, default=3000, help="baseline sweep cap on those grids")
-    ap.add_argument("--max-sweeps", type=int, default=20_000, help="sweep cap of the log solvers")
+    ap.add_argument("--max-sweeps", type=int, default=5000, help="sweep cap of the log solvers")
     ap.add_argument("--anytime-passes", type=int, default=4,
                     help="passes of the 'anytime' log_gs run (a valid, unconverged field)")
     args = ap.parse_args(argv)
@@ -124,6 +124,11 @@ def main(argv=None) -> int:
                 occ, per, start, goal = mazes.blocks_3d((cells, cells + 1, cells + 1))
             source = f"synthetic ({e})"
         grid = "x".join(str(n) for n in occ.shape)
+        if occ[goal]:
+            print(f"{grid:>12}  skipped: the scenario goal {tuple(goal)} is an obstacle node at this resolution")
+            records.append({"stage": "field", "grid": grid, "solver": None,
+                            "note": f"skipped: goal node {tuple(int(g) for g in goal)} is an obstacle node"})
+            continue
         connected = F.bfs_distance(occ, per, [goal]) >= 0
         repeats = args.repeats if occ.size <= 100_000 else 1
         baseline = None
@@ -140,8 +145,10 @@ def main(argv=None) -> int:
                 notes.append("anytime field (not converged, valid ascent)")
             elif not f.converged and solver != "gauss_seidel":
                 notes.append("sweep cap reached")
-            if not descend(f, start).reached:
-                notes.append("descent from the scenario start FAILS")
+            walk = descend(f, start)
+            if not walk.reached:
+                notes.append(f"descent from the scenario start {tuple(int(x) for x in start)} fails: "
+                             f"{walk.reason}")
             rec = {"stage": "field", "grid": grid, "solver": label, "seconds": f.seconds,
                    "baseline_seconds": baseline.seconds, "ratio": baseline.seconds / f.seconds,
                    "sweeps": f.sweeps, "converged": bool(f.converged), "residual": f.residual,
