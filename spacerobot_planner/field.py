@@ -25,8 +25,10 @@ Solvers (``solve_field(..., solver=NAME)``)
                     per node), relaxed by red-black SOR (2-D / 3-D grid kernels),
                     started from the subharmonic lower bound u0 = 2**(-b*d)
                     (d = BFS distance from the goal, 2**b >= 2n), converged on
-                    the *relative* change max |d log u|, finished with plain
-                    Gauss-Seidel sweeps and a check that every reachable
+                    the *relative* change max |d log u| (at most ~4N
+                    over-relaxed sweeps, then plain Gauss-Seidel sweeps, which
+                    also settle the tiny values of deep pockets), finished
+                    with a check that every reachable
                     non-goal node has a strictly higher neighbour (else it
                     falls back to ``"log_gs"``).
 ``"log_gs"``        Plain symmetric Gauss-Seidel (forward / backward passes in
