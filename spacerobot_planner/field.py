@@ -20,17 +20,19 @@ Solvers (``solve_field(..., solver=NAME)``)
 ``"sor"``           The same linear problem in the flipped form u = 1 - Phi/Phi0
                     (goal 1, obstacles 0, free nodes start at 0), red-black SOR
                     with omega = 2 / (1 + sin(pi / N)), absolute-change stop.
-``"log_harmonic"``  Planner default.  The same harmonic u, represented without
-                    underflow as u_i = m_i * 2**e_i (float mantissa, int exponent
-                    per node), relaxed by red-black SOR (2-D / 3-D grid kernels),
-                    started from the subharmonic lower bound u0 = 2**(-b*d)
-                    (d = BFS distance from the goal, 2**b >= 2n), converged on
-                    the *relative* change max |d log u| (at most ~4N
-                    over-relaxed sweeps, then plain Gauss-Seidel sweeps, which
-                    also settle the tiny values of deep pockets), finished
-                    with a check that every reachable
-                    non-goal node has a strictly higher neighbour (else it
-                    falls back to ``"log_gs"``).
+``"log_harmonic"``  Planner default.  The same harmonic u without underflow:
+                    u_i = w_i * exp(s_i) with a per-node log scale s
+                    (``_scaled_field``), so SOR on u becomes multiply-adds with
+                    per-edge coefficients exp(s_j - s_i) / 2n (a diagonal
+                    similarity transform: the same iteration, no underflow).
+                    Started from the subharmonic lower bound u0 = (2n)**-d
+                    (d = BFS distance from the goal); red-black SOR until the
+                    absolute change < ``tol`` (the paper's rule), then plain
+                    Gauss-Seidel until the *relative* change |d log u| <
+                    ``rel_tol`` (settles the tiny values of deep pockets),
+                    then a check that every reachable non-goal node has a
+                    strictly higher neighbour (else it falls back to
+                    ``"log_gs"``).
 ``"log_gs"``        Plain symmetric Gauss-Seidel (forward / backward passes in
                     BFS order from the goal) on the same representation from
                     the same lower bound.  In exact arithmetic
@@ -50,12 +52,14 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from . import _scaled_field as _sf
+
 SOLVERS = ("log_harmonic", "log_gs", "sor", "gauss_seidel")
 DEFAULT_SOLVER = "log_harmonic"
 
-#: Default stopping tolerance per solver (absolute change for the linear
-#: forms, change of log u for the log forms).
-DEFAULT_TOL = {"gauss_seidel": 1e-6, "sor": 1e-6, "log_harmonic": 1e-4, "log_gs": 1e-4}
+#: Default stopping tolerance per solver (absolute change of the potential
+#: per sweep; for log_gs the change of log u).
+DEFAULT_TOL = {"gauss_seidel": 1e-6, "sor": 1e-6, "log_harmonic": 1e-6, "log_gs": 1e-4}
 #: Default sweep cap per solver (one sweep = one pass over the grid).
 DEFAULT_MAX_SWEEPS = {"gauss_seidel": 200_000, "sor": 100_000, "log_harmonic": 100_000,
                       "log_gs": 1_000_000}
@@ -458,32 +462,53 @@ def sor(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, omega=None
 # --------------------------------------------------------------------------
 # breadth-first search and the node graph of the reachable nodes
 # --------------------------------------------------------------------------
-@nb.njit(cache=True)
-def _neighbour_flat(f, a, step, shape, strides, periodic):
-    """Flat index of the neighbour of flat node ``f`` along axis ``a`` (step
-    -1 or +1), or -1 beyond a wall."""
-    c = (f // strides[a]) % shape[a]
-    nc = c + step
-    if nc < 0:
-        if not periodic[a]:
-            return -1
-        nc = shape[a] - 1
-    elif nc >= shape[a]:
-        if not periodic[a]:
-            return -1
-        nc = 0
-    return f + (nc - c) * strides[a]
+@nb.njit(cache=True, nogil=True)
+def _grid_neighbours(shape, periodic):
+    """Flat index of each node's 2n face neighbours, -1 beyond a wall.
+
+    int64 (N, 2n), column 2a + (0|1) = the (-|+) neighbour along axis a, wrapping
+    on periodic axes.  One odometer pass over the grid, no integer divisions.
+    """
+    ndim = shape.size
+    n = 1
+    for a in range(ndim):
+        n *= shape[a]
+    strides = np.ones(ndim, np.int64)
+    for a in range(ndim - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    out = np.empty((n, 2 * ndim), np.int64)
+    coord = np.zeros(ndim, np.int64)
+    for f in range(n):
+        for a in range(ndim):
+            c = coord[a]
+            span = (shape[a] - 1) * strides[a]
+            if c > 0:
+                out[f, 2 * a] = f - strides[a]
+            else:
+                out[f, 2 * a] = f + span if periodic[a] else -1
+            if c < shape[a] - 1:
+                out[f, 2 * a + 1] = f + strides[a]
+            else:
+                out[f, 2 * a + 1] = f - span if periodic[a] else -1
+        a = ndim - 1
+        while a >= 0:
+            coord[a] += 1
+            if coord[a] < shape[a]:
+                break
+            coord[a] = 0
+            a -= 1
+    return out
 
 
-@nb.njit(cache=True)
-def _bfs(occ_flat, shape, strides, periodic, goal_flat):
-    """BFS through free nodes from the goal nodes.
+@nb.njit(cache=True, nogil=True)
+def _bfs(occ_flat, gnbr, goal_flat):
+    """BFS through free nodes from the goal nodes over the grid neighbour table.
 
     Returns ``(dist, order)``: dist int64 per flat node (-1 = not reached),
     order = reached flat nodes in BFS order (goal nodes first).
     """
     n = occ_flat.size
-    ndim = shape.size
+    deg = gnbr.shape[1]
     dist = np.full(n, -1, np.int64)
     order = np.empty(n, np.int64)
     head = 0
@@ -496,51 +521,48 @@ def _bfs(occ_flat, shape, strides, periodic, goal_flat):
     while head < tail:
         f = order[head]
         head += 1
-        for a in range(ndim):
-            for step in (-1, 1):
-                g = _neighbour_flat(f, a, step, shape, strides, periodic)
-                if g < 0 or occ_flat[g] or dist[g] >= 0:
-                    continue
-                dist[g] = dist[f] + 1
-                order[tail] = g
-                tail += 1
+        for a in range(deg):
+            g = gnbr[f, a]
+            if g < 0 or occ_flat[g] or dist[g] >= 0:
+                continue
+            dist[g] = dist[f] + 1
+            order[tail] = g
+            tail += 1
     return dist, order[:tail]
 
 
-@nb.njit(cache=True)
-def _neighbour_table(order, n_flat, shape, strides, periodic):
-    """nbr[k, 2a + (0|1)] = BFS position of the (-|+) neighbour of node
+@nb.njit(cache=True, nogil=True)
+def _neighbour_table(order, gnbr):
+    """nbr[k, 2a + (0|1)] = position in ``order`` of the (-|+) neighbour of node
     ``order[k]`` along axis a, or ``len(order)`` (a dummy node with u = 0) for
-    walls and obstacles."""
+    walls, obstacles and nodes not in ``order``."""
     n = order.size
-    ndim = shape.size
-    pos = np.full(n_flat, n, np.int32)
+    deg = gnbr.shape[1]
+    pos = np.full(gnbr.shape[0], n, np.int32)
     for k in range(n):
         pos[order[k]] = k
-    nbr = np.empty((n, 2 * ndim), np.int32)
+    nbr = np.empty((n, deg), np.int32)
     for k in range(n):
         f = order[k]
-        for a in range(ndim):
-            for s in range(2):
-                g = _neighbour_flat(f, a, 2 * s - 1, shape, strides, periodic)
-                nbr[k, 2 * a + s] = n if g < 0 else pos[g]
+        for a in range(deg):
+            g = gnbr[f, a]
+            nbr[k, a] = n if g < 0 else pos[g]
     return nbr
+
+
+def _graph(occ, per, goals):
+    """(dist, order, gnbr, goal_flat) of a validated problem: BFS from the goal."""
+    gnbr = _grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
+    goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
+    dist, order = _bfs(occ.ravel(), gnbr, goal_flat)
+    return dist, order, gnbr, goal_flat
 
 
 def bfs_distance(occupied, periodic, goal_nodes) -> np.ndarray:
     """Graph distance (in face steps through free nodes) from the goal; -1 at
     obstacles and at free nodes not connected to the goal.  int64, grid shape."""
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
-    shape, strides, per_arr, goal_flat = _flat_problem(occ, per, goals)
-    dist, _ = _bfs(occ.ravel(), shape, strides, per_arr, goal_flat)
-    return dist.reshape(occ.shape)
-
-
-def _flat_problem(occ, per, goals):
-    shape = np.array(occ.shape, np.int64)
-    strides = np.array([int(np.prod(occ.shape[a + 1:])) for a in range(occ.ndim)], np.int64)
-    goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
-    return shape, strides, np.array(per, np.bool_), goal_flat
+    return _graph(occ, per, goals)[0].reshape(occ.shape)
 
 
 # --------------------------------------------------------------------------
@@ -618,174 +640,6 @@ def _log_ssor(mant, expo, nbr, n_goal, lb_expo, omega, tol, max_passes, p2):
     return passes, change
 
 
-@nb.njit(cache=True, inline="always")
-def _log_update(nm, ne, cnt, deg, m_old, e_old, lb_e, omega, p2):
-    """One SOR update of a node from its ``cnt`` present neighbours
-    (mantissas ``nm[:cnt]``, exponents ``ne[:cnt]``; walls are absent and
-    count as u = 0 in the mean over ``deg`` = 2n).  Returns
-    ``(mant, expo, relative change)``; see :func:`_log_ssor`."""
-    big = ne[0]
-    for a in range(1, cnt):
-        if ne[a] > big:
-            big = ne[a]
-    s = 0.0
-    for a in range(cnt):
-        s += nm[a] * _p2(ne[a] - big, p2)
-    s /= deg
-    old = m_old * _p2(e_old - big, p2)
-    new = old + omega * (s - old)
-    if omega > 1.0:
-        # over-relaxed: the linear iteration as it is, signs included (the
-        # final plain sweeps and the ascent check decide whether it is usable)
-        if new == 0.0:
-            return 0.0, big, 1.0
-        m, k = math.frexp(new)
-        return m, big + k, abs(new - old) / abs(new)
-    if new > 0.0 and new >= _p2(lb_e - big, p2):
-        m, k = math.frexp(new)
-        return m, big + k, abs(new - old) / new
-    # plain Gauss-Seidel from a subharmonic start never gets here in exact
-    # arithmetic; clip to the lower bound the solution satisfies
-    return 0.5, lb_e + 1, 1.0
-
-
-@nb.njit(cache=True, parallel=True)
-def _log_rb_2d(mant, expo, active, lb_expo, per0, per1, omega, tol, max_sweeps, p2):
-    """Red-black SOR on u = mant * 2**expo over a 2-D grid (parallel rows).
-
-    ``active`` marks the reachable non-goal nodes (the only ones updated);
-    obstacles hold mant 0 and a huge negative exponent, goals mant 1, expo 0.
-    Same colouring / odd-periodic handling as :func:`_rb_sor_2d`.  Returns
-    ``(sweeps, change)``, change = max relative change of u in the last sweep.
-    """
-    n0, n1 = mant.shape
-    split = n0 - 1 if (per0 and n0 % 2 == 1) else n0
-    rowmax = np.zeros(n0)
-    change = np.inf
-    sweeps = 0
-    while sweeps < max_sweeps:
-        for colour in range(2):
-            for part in range(2):
-                lo = 0 if part == 0 else split
-                hi = split if part == 0 else n0
-                for i in nb.prange(lo, hi):
-                    nm = np.empty(8)
-                    ne = np.empty(8, np.int64)
-                    if colour == 0:
-                        rowmax[i] = 0.0
-                    im = i - 1 if i > 0 else n0 - 1
-                    ip = i + 1 if i < n0 - 1 else 0
-                    has_im = i > 0 or per0
-                    has_ip = i < n0 - 1 or per0
-                    mx = rowmax[i]
-                    for j in range((i + colour) % 2, n1, 2):
-                        if not active[i, j]:
-                            continue
-                        c = 0
-                        if has_im:
-                            nm[c] = mant[im, j]
-                            ne[c] = expo[im, j]
-                            c += 1
-                        if has_ip:
-                            nm[c] = mant[ip, j]
-                            ne[c] = expo[ip, j]
-                            c += 1
-                        if j > 0 or per1:
-                            jj = j - 1 if j > 0 else n1 - 1
-                            nm[c] = mant[i, jj]
-                            ne[c] = expo[i, jj]
-                            c += 1
-                        if j < n1 - 1 or per1:
-                            jj = j + 1 if j < n1 - 1 else 0
-                            nm[c] = mant[i, jj]
-                            ne[c] = expo[i, jj]
-                            c += 1
-                        m, e, rel = _log_update(nm, ne, c, 4.0, mant[i, j], expo[i, j], lb_expo[i, j],
-                                                omega, p2)
-                        mant[i, j] = m
-                        expo[i, j] = e
-                        if rel > mx:
-                            mx = rel
-                    rowmax[i] = mx
-        sweeps += 1
-        change = rowmax.max()
-        if change < tol:
-            break
-    return sweeps, change
-
-
-@nb.njit(cache=True, parallel=True)
-def _log_rb_3d(mant, expo, active, lb_expo, per0, per1, per2, omega, tol, max_sweeps, p2):
-    """3-D version of :func:`_log_rb_2d` (parallel over axis-0 slabs)."""
-    n0, n1, n2 = mant.shape
-    split = n0 - 1 if (per0 and n0 % 2 == 1) else n0
-    rowmax = np.zeros(n0)
-    change = np.inf
-    sweeps = 0
-    while sweeps < max_sweeps:
-        for colour in range(2):
-            for part in range(2):
-                lo = 0 if part == 0 else split
-                hi = split if part == 0 else n0
-                for i in nb.prange(lo, hi):
-                    nm = np.empty(8)
-                    ne = np.empty(8, np.int64)
-                    if colour == 0:
-                        rowmax[i] = 0.0
-                    im = i - 1 if i > 0 else n0 - 1
-                    ip = i + 1 if i < n0 - 1 else 0
-                    has_im = i > 0 or per0
-                    has_ip = i < n0 - 1 or per0
-                    mx = rowmax[i]
-                    for j in range(n1):
-                        jm = j - 1 if j > 0 else n1 - 1
-                        jp = j + 1 if j < n1 - 1 else 0
-                        has_jm = j > 0 or per1
-                        has_jp = j < n1 - 1 or per1
-                        for k in range((i + j + colour) % 2, n2, 2):
-                            if not active[i, j, k]:
-                                continue
-                            c = 0
-                            if has_im:
-                                nm[c] = mant[im, j, k]
-                                ne[c] = expo[im, j, k]
-                                c += 1
-                            if has_ip:
-                                nm[c] = mant[ip, j, k]
-                                ne[c] = expo[ip, j, k]
-                                c += 1
-                            if has_jm:
-                                nm[c] = mant[i, jm, k]
-                                ne[c] = expo[i, jm, k]
-                                c += 1
-                            if has_jp:
-                                nm[c] = mant[i, jp, k]
-                                ne[c] = expo[i, jp, k]
-                                c += 1
-                            if k > 0 or per2:
-                                kk = k - 1 if k > 0 else n2 - 1
-                                nm[c] = mant[i, j, kk]
-                                ne[c] = expo[i, j, kk]
-                                c += 1
-                            if k < n2 - 1 or per2:
-                                kk = k + 1 if k < n2 - 1 else 0
-                                nm[c] = mant[i, j, kk]
-                                ne[c] = expo[i, j, kk]
-                                c += 1
-                            m, e, rel = _log_update(nm, ne, c, 6.0, mant[i, j, k], expo[i, j, k],
-                                                    lb_expo[i, j, k], omega, p2)
-                            mant[i, j, k] = m
-                            expo[i, j, k] = e
-                            if rel > mx:
-                                mx = rel
-                    rowmax[i] = mx
-        sweeps += 1
-        change = rowmax.max()
-        if change < tol:
-            break
-    return sweeps, change
-
-
 @nb.njit(cache=True)
 def _scatter_log(mant, expo, order, n_flat):
     out = np.full(n_flat, -np.inf)
@@ -798,11 +652,10 @@ def _scatter_log(mant, expo, order, n_flat):
 def _log_field(occ, per, goals, solver, omega, tol, max_sweeps):
     """Symmetric SOR in BFS order on the node graph (omega = 1: log_gs)."""
     t0 = time.perf_counter()
-    shape, strides, per_arr, goal_flat = _flat_problem(occ, per, goals)
-    dist, order = _bfs(occ.ravel(), shape, strides, per_arr, goal_flat)
-    nbr = _neighbour_table(order, occ.size, shape, strides, per_arr)
+    dist, order, gnbr, _ = _graph(occ, per, goals)
+    nbr = _neighbour_table(order, gnbr)
     n = order.size
-    n_goal = goals.shape[0]
+    n_goal = int(np.count_nonzero(dist[order] == 0))     # distinct goal nodes
     bits = int(math.ceil(math.log2(2 * occ.ndim)))       # 2**bits >= 2n
     lb_expo = np.empty(n + 1, np.int64)
     lb_expo[:n] = -bits * dist[order]
@@ -818,22 +671,22 @@ def _log_field(occ, per, goals, solver, omega, tol, max_sweeps):
                  time.perf_counter() - t0)
 
 
-def log_harmonic(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=100_000, omega=None,
-                 finish_sweeps=2, sor_sweeps_factor=4.0) -> Field:
+def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, omega=None,
+                 rel_tol=1e-4, finish_sweeps=2) -> Field:
     """Underflow-free harmonic field (planner default), see the module doc.
 
-    Red-black SOR (2-D / 3-D grid kernels, parallel) on u = mant * 2**expo,
-    started from the BFS lower bound, until the largest relative change of u
-    in a sweep (|d log u|) is below ``tol`` or for at most
-    ``sor_sweeps_factor * max(shape)`` sweeps; ``omega`` defaults to
-    :func:`sor_omega` of the shape.  If not yet converged, plain Gauss-Seidel
-    sweeps continue to ``tol`` (over-relaxation can keep tiny values in deep
-    pockets oscillating in sign).  Then ``finish_sweeps`` plain
-    Gauss-Seidel sweeps, and a check that every reachable non-goal node has a
-    strictly higher neighbour; if any has none (over-relaxation may leave
-    one, e.g. when ``max_sweeps`` stops it early), the result is replaced by
-    ``log_gs`` with the same sweep budget, whose iterates are valid by
-    construction (``solver`` then reads ``"log_harmonic(fallback log_gs)"``).
+    u = w · exp(s) per node (``_scaled_field``), started from the BFS lower bound.
+    Phase 1: red–black SOR (``omega`` defaults to :func:`sor_omega`) until the
+    largest change of u in a sweep is below ``tol`` (the paper's stopping rule,
+    absolute).  Phase 2: plain Gauss–Seidel sweeps until the largest relative
+    change (|Δ log u|) is below ``rel_tol``: over-relaxation settles the bulk of
+    the field fast but leaves tiny values in deep pockets wrong, plain sweeps fix
+    them locally.  Then ``finish_sweeps`` plain sweeps and a check that every
+    reachable non-goal node has a strictly higher neighbour; should any not (e.g.
+    ``max_sweeps`` stopped it early), the result is replaced by ``log_gs`` with the
+    same budget, valid by construction (``solver`` then reads
+    ``"log_harmonic(fallback log_gs)"``).  ``sweeps`` counts both phases;
+    ``residual`` is the last relative change.
     """
     t0 = time.perf_counter()
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
@@ -841,37 +694,31 @@ def log_harmonic(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=100_000, o
         omega = sor_omega(occ.shape)
     if not 0.0 < omega < 2.0:
         raise ValueError(f"omega: must lie in (0, 2), got {omega}")
-    shape, strides, per_arr, goal_flat = _flat_problem(occ, per, goals)
-    dist = _bfs(occ.ravel(), shape, strides, per_arr, goal_flat)[0].reshape(occ.shape)
-    bits = int(math.ceil(math.log2(2 * occ.ndim)))       # 2**bits >= 2n
-    reach = dist >= 0
-    lb_expo = np.where(reach, -bits * dist, -(1 << 40)).astype(np.int64)
-    mant = np.where(reach, 1.0, 0.0)
-    expo = lb_expo.copy()
-    active = reach.copy()
-    active[tuple(goals.T)] = False
-    args = (mant, expo, active, lb_expo) + per
-    kernel = _log_rb_2d if occ.ndim == 2 else _log_rb_3d
-    # phase 1: over-relaxed sweeps, about long enough for the SOR contraction
-    # (omega - 1)**k to reach 1e-11 on a domain of the grid's size
-    sor_cap = min(int(max_sweeps), int(sor_sweeps_factor * max(occ.shape)))
-    sweeps, change = kernel(*args, float(omega), float(tol), sor_cap, _P2)
-    # phase 2: plain Gauss-Seidel to the tolerance (tiny values in deep pockets
-    # converge in relative terms under omega = 1, not always under omega ~ 2)
-    if change >= tol and sweeps < max_sweeps:
-        more, change = kernel(*args, 1.0, float(tol), int(max_sweeps) - sweeps, _P2)
-        sweeps += more
-    converged = change < tol
-    more, _ = kernel(*args, 1.0, 0.0, int(finish_sweeps), _P2)
+    dist, order, gnbr, goal_flat = _graph(occ, per, goals)
+    # goal nodes first, then the other reachable nodes in grid order (memory locality)
+    n_goal = int(np.count_nonzero(dist[order] == 0))     # distinct goal nodes
+    order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
+    nbr = _neighbour_table(order, gnbr)
+    parity = (np.array(np.unravel_index(order, occ.shape)).sum(axis=0) % 2).astype(np.int64)
+    lb_s = -dist[order] * math.log(2 * occ.ndim)       # (2n)^-d, natural log
+    state = _sf.prepare(nbr, n_goal, lb_s, parity)
+    chunks = 16
+    sweeps, _, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], float(omega), float(tol), True,
+                                     int(max_sweeps), chunks)
+    more, change, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], 1.0, float(rel_tol), False,
+                                        max(0, int(max_sweeps) - sweeps), chunks)
     sweeps += more
-    ln2 = math.log(2.0)
-    positive = bool(np.all(mant[reach] > 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_u = np.where(reach, np.log(np.maximum(mant, 0.0)) + expo * ln2, -np.inf)
+    converged = change < rel_tol
+    more, _, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], 1.0, 0.0, False, int(finish_sweeps), chunks)
+    sweeps += more
+    w, s_log = state[0], state[1]
+    log_u = np.full(occ.size, -np.inf)
+    log_u[order] = s_log[:-1] + np.log(w[:-1])
+    log_u = log_u.reshape(occ.shape)
     goal_mask = np.zeros(occ.shape, np.bool_)
     goal_mask[tuple(goals.T)] = True
-    if not positive or ascent_defects(log_u, goal_mask, per).shape[0] > 0:
-        fb = _log_field(occ, per, goals, "log_harmonic(fallback log_gs)", 1.0, tol, max_sweeps)
+    if not np.all(np.isfinite(log_u.ravel()[order])) or ascent_defects(log_u, goal_mask, per).shape[0] > 0:
+        fb = _log_field(occ, per, goals, "log_harmonic(fallback log_gs)", 1.0, rel_tol, max_sweeps)
         return Field(fb.log_u, occ, per, goals, fb.solver, sweeps + fb.sweeps, fb.residual, fb.converged,
                      time.perf_counter() - t0)
     return Field(log_u, occ, per, goals, "log_harmonic", int(sweeps), float(change), bool(converged),

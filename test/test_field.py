@@ -31,7 +31,8 @@ def test_gauss_seidel_and_sor_agree_on_181():
     pocket = free & ~_reachable_free(occ, per, goal)
     assert pocket.any() and np.all(phi[pocket] == 1.0) and np.all(u[pocket] == 0.0)
     # the log form solves the same problem
-    lh = F.solve_field(occ, per, [goal], tol=1e-6)
+    # (tol is the absolute change per sweep, rel_tol the relative one of the tail)
+    lh = F.solve_field(occ, per, [goal], tol=1e-12, rel_tol=1e-8)
     big = u > 1e-6
     assert lh.converged and lh.solver == "log_harmonic"
     assert np.max(np.abs(lh.log_u[big] - np.log(u[big]))) < 1e-5
@@ -86,7 +87,7 @@ def test_log_gs_is_anytime(passes):
 
 def test_log_harmonic_matches_converged_log_gs():
     occ, per, start, goal = mazes.blocks_3d((36, 37, 37))
-    a = F.solve_field(occ, per, [goal], tol=1e-9)
+    a = F.solve_field(occ, per, [goal], tol=1e-12, rel_tol=1e-9)
     b = F.solve_field(occ, per, [goal], solver="log_gs", tol=1e-10)
     r = a.reachable
     assert np.array_equal(r, b.reachable)
@@ -178,7 +179,7 @@ def test_log_harmonic_converges_on_paper_2dof_scene():
     sc = load_scenario(os.path.join(root, "config", "paper_2dof.yaml"))
     cs = build_cspace(sc.robot, sc.scene, sc.grid_with_cells(180))
     goal, start = cs.grid.node_of(sc.goal_rad), cs.grid.node_of(sc.start_rad)
-    f = F.solve_field(cs.occupied, cs.grid.periodic, [goal], tol=1e-6)
+    f = F.solve_field(cs.occupied, cs.grid.periodic, [goal], tol=1e-12, rel_tol=1e-8)
     assert f.solver == "log_harmonic" and f.converged
     _assert_no_local_max(f)
     assert descend(f, start).reached
