@@ -121,8 +121,24 @@ def _within_bounds(q, lower, upper, periodic):
     ok = np.ones(len(q), dtype=bool)
     for a, p in enumerate(periodic):
         if not p:
-            ok &= (q[:, a] >= lower[a] - 1e-9) & (q[:, a] <= upper[a] + 1e-9)
+            ok &= (q[:, a] >= lower[a]) & (q[:, a] <= upper[a])
     return ok
+
+
+def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarray:
+    """Put rows that leave a bounded joint's range by at most ``tol_rad`` (rounding
+    in the spline or the interpolation along a bound) exactly on the bound.
+
+    Larger excursions are left as they are, so the bounds check rejects them.
+    (m, dof) → a new (m, dof) array.
+    """
+    q = np.array(q, dtype=float)
+    for a, p in enumerate(periodic):
+        if not p:
+            col = q[:, a]
+            col[(col < lower[a]) & (col >= lower[a] - tol_rad)] = lower[a]
+            col[(col > upper[a]) & (col <= upper[a] + tol_rad)] = upper[a]
+    return q
 
 
 @njit(cache=True)
@@ -335,6 +351,7 @@ def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad
         knots = _polyline_at(poly, t_poly, t_knots)
         # vertices map exactly onto themselves (np.interp is exact at its nodes)
         samples, s_knots, s_samples = spline_through(knots, max_step_rad)
+        samples = snap_to_bounds(samples, lower, upper, periodic)
         chk = check_path(checker, samples, lower, upper, periodic, verify_step_rad)
         if chk.ok:
             return samples, knots, chk, rounds
@@ -418,7 +435,7 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
                               rounds, chk.n_checked)
         if cancel is not None and cancel.is_set():
             return None
-    dense = densify_polyline(w, max_step_rad)
+    dense = snap_to_bounds(densify_polyline(w, max_step_rad), *args)
     chk = check_path(checker, dense, *args, verify_step_rad)
     if not chk.ok:
         return None
