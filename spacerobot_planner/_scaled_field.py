@@ -135,21 +135,24 @@ def scaled_sweeps(w, s, coef, lbw, scale, nbr, lb_s, members, starts, omega, tol
                     if new < floor:
                         new = floor
                     w[i] = new
-                    rel = abs(new - old) / new
-                    if rel > mx:
-                        mx = rel
-                    ab = abs(new - old) * scale[i]
-                    if ab > ax:
-                        ax = ab
-                    lg = abs(math.log(new)) if (new > 1e100 or new < 1e-100) else 0.0
-                    if lg > big:
-                        big = lg
+                    # only the measure this phase stops on; divide only when the max grows
+                    d = abs(new - old)
+                    if absolute:
+                        d *= scale[i]
+                        if d > ax:
+                            ax = d
+                    elif d > mx * new:
+                        mx = d / new
+                    if new > 1e100 or new < 1e-100:
+                        lg = abs(math.log(new))
+                        if lg > big:
+                            big = lg
                 cmax[ch] = mx
                 amax[ch] = ax
                 wmax[ch] = big
         sweeps += 1
-        change = cmax.max()
-        achange = amax.max()
+        change = cmax.max() if not absolute else np.inf
+        achange = amax.max() if absolute else np.inf
         if wmax.max() > _RENORM_LOG:
             _refresh(w, s, coef, lbw, scale, nbr, lb_s, inv_deg)
         if (achange if absolute else change) < tol:
