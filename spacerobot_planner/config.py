@@ -16,6 +16,7 @@ range and whether a change needs a restart; the node declares exactly these.
 
 from __future__ import annotations
 
+import array
 import json
 import math
 from dataclasses import dataclass, field, replace
@@ -156,7 +157,7 @@ def check_value(name: str, value):
     if spec is None:
         raise ValueError(f"unknown parameter '{name}'")
     if spec.type.endswith("_array"):
-        if isinstance(value, (tuple, np.ndarray)):
+        if isinstance(value, (tuple, np.ndarray, array.array)):    # array.array: from a ROS message
             value = list(value)
         if not isinstance(value, list) or not value:
             raise ValueError(f"{name}: expected a non-empty list, got {value!r}")

@@ -58,7 +58,7 @@ def _wrapped_err_deg(robot, q_full, goal):
 def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target_xy, yaw_deg) -> int:
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from trajectory_msgs.msg import JointTrajectory
 
     from .config import scenario_from_params
@@ -78,7 +78,7 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
             arm_params = {k: v for k, v in flat.items() if k.startswith(("robot.", "scenario."))}
             arm = MockArmNode(parameter_overrides=params_to_overrides(arm_params))
             driver = rclpy.create_node("demo_driver")
-            executor = MultiThreadedExecutor(num_threads=4)
+            executor = SingleThreadedExecutor()    # see planner_node: no busy loop
             for n in (planner, arm, driver):
                 executor.add_node(n)
             got = []

@@ -20,6 +20,7 @@ planner's scenario file::
 
 from __future__ import annotations
 
+import array
 import math
 import threading
 import time
@@ -56,7 +57,7 @@ class MockArmNode(Node):
                 default = [float(v) for v in default]
             self.declare_parameter(name, default, descriptor_for(spec))
         params = {n: self.get_parameter(n).value for n in _USED}
-        params = {k: (list(v) if isinstance(v, (tuple, np.ndarray)) else v) for k, v in params.items()}
+        params = {k: (list(v) if isinstance(v, (tuple, np.ndarray, array.array)) else v) for k, v in params.items()}
         params["grid.cells"] = [2] * len(params["robot.planned_joints"])   # unused here
         sc = scenario_from_params(params)
         self.robot = sc.robot

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import traceback as _traceback
 from dataclasses import dataclass, field as dc_field
 from typing import Callable
 
@@ -44,7 +45,7 @@ __all__ = ["PlanResult", "Planner", "STAGES", "CODES"]
 
 STAGES = ("cspace", "field", "descent", "smoothing", "verify", "total")
 CODES = ("ok", "invalid_input", "start_in_collision", "goal_in_collision", "goal_unreachable",
-         "disconnected", "path_invalid", "cancelled")
+         "disconnected", "path_invalid", "cancelled", "internal_error")
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,6 +71,8 @@ class PlanResult:
         cspace, field: the grid and the field used (None if not reached).
         smoothing: "shortcut_spline", "spline", "polyline" or "" without a path.
         path_length_rad: joint-space length of path_rad (nan without path).
+        traceback: the formatted traceback when ``code == "internal_error"`` (an
+            exception inside the pipeline, caught by ``plan``); "" otherwise.
     """
 
     ok: bool
@@ -89,6 +92,7 @@ class PlanResult:
     field: Field | None
     smoothing: str = ""
     path_length_rad: float = math.nan
+    traceback: str = ""
 
     def to_json_dict(self) -> dict:
         """Plain-JSON view (the CLI's output): lists and floats, NaN as null."""
@@ -303,7 +307,7 @@ class _PlanRun:
         if self.cancel is not None and self.cancel.is_set():
             raise _Cancelled()
 
-    def result(self, ok, code, reason, path=None, smooth=None, t0=0.0):
+    def result(self, ok, code, reason, path=None, smooth=None, t0=0.0, tb=""):
         self.timings["total"] = time.perf_counter() - t0
         dof = self.robot.dof
         start = self.start if self.start is not None else np.full(dof, np.nan)
@@ -316,7 +320,7 @@ class _PlanRun:
             min_clearance_m=smooth.min_clearance_m if smooth is not None else math.nan,
             cspace=self.cs, field=self.field,
             smoothing=smooth.method if smooth is not None else "",
-            path_length_rad=smooth.length_rad if smooth is not None else math.nan)
+            path_length_rad=smooth.length_rad if smooth is not None else math.nan, traceback=tb)
 
     def segment_ok(self, a, b) -> bool:
         seg = unwrap_path(np.vstack([a, b]), self.periodic)
@@ -362,7 +366,7 @@ class _PlanRun:
         except Exception as e:     # the contract: plan() never raises; say what broke
             reason = f"internal error while planning: {type(e).__name__}: {e}"
             self.say(reason)
-            return self.result(False, "path_invalid", reason, t0=t0)
+            return self.result(False, "internal_error", reason, t0=t0, tb=_traceback.format_exc())
 
     def _run(self, start_rad, goal_rad, t0):
         p, sc, robot = self.p, self.sc, self.robot

@@ -7,18 +7,29 @@ Subscribes ``target_pose`` (PoseStamped), ``joint_states`` (JointState) and
 (std_srvs/Trigger).  Parameters: ``config.PARAMETERS`` (load a scenario with
 ``--ros-args --params-file config/paper_3dof.yaml``).
 
-Threads: callbacks only record requests; ONE worker thread plans, latest request
-wins (a new request cancels the one being planned and replaces the queued one;
-results of superseded requests are dropped).  The worker drives the planning core
-in a child process by default (``planner.separate_process``): numba kernels hold
-the GIL for the whole solve, so in-thread planning would freeze the executor, and a
-process can be stopped at shutdown even in the middle of a long solve.  The child
-keeps the C-space and field caches between plans, so a replan from a new joint
-state costs milliseconds.
+Threads: callbacks only record requests and run in one SingleThreadedExecutor (they
+share the node's mutually exclusive callback group, so a MultiThreadedExecutor adds
+nothing but a busy loop: its idle threads spin on messages that wait for the group,
+and under a 200 Hz target_pose flood that loop took a whole core and starved the
+callbacks -- 6-21 % of the targets handled, joint_states gaps of 0.6-0.9 s).  ONE
+worker thread plans, latest request wins (a new request cancels the one being
+planned and replaces the queued one; results of superseded requests are dropped).
+The worker drives the planning core in a child process by default
+(``planner.separate_process``): numba kernels hold the GIL for the whole solve, so
+in-thread planning would freeze the executor, and a process can be stopped at
+shutdown even in the middle of a long solve.  The child keeps the C-space and field
+caches between plans, so a replan from a new joint state costs milliseconds.
+
+Faults: an exception inside the planning core or the backend is logged with its
+traceback (formatted where it happened, in the child process too) and reported on
+``/diagnostics`` as ``internal_error``; the worker goes on with the next request.  A
+planning process that died (killed, crashed) is reported the same way and a fresh
+one is started for the next request (its caches are lost).
 """
 
 from __future__ import annotations
 
+import array
 import math
 import threading
 import time
@@ -32,7 +43,7 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, HistoryPolicy
@@ -46,7 +57,7 @@ from .config import NODE_NAME, PARAMETERS, check_value, scenario_from_params
 from .scene import Target
 from .trajectory import time_parameterize
 
-__all__ = ["PlannerNode", "main", "params_to_overrides", "GRID_QOS"]
+__all__ = ["PlannerNode", "main", "spin_until_shutdown", "params_to_overrides", "GRID_QOS"]
 
 GRID_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -110,7 +121,10 @@ def _apply_settings(planner, job):
 
 
 def _run_job(planner, job, cancel):
-    """(kind, payload): ("result", PlanResult) or ("error", reason) for a goal failure."""
+    """(kind, payload): ("result", PlanResult) or ("error", (code, reason)) for a goal failure.
+
+    The backends turn an exception into ("crash", (what, traceback text)).
+    """
     _apply_settings(planner, job)
     goal = job.joint_goal
     if goal is None:
@@ -130,6 +144,11 @@ class _GenCancel:
 
     def is_set(self) -> bool:
         return self.cancelled_upto >= self.gen
+
+
+def _crash(e: BaseException):
+    """("crash", (what, traceback text)) for an exception caught by a backend."""
+    return "crash", (f"{type(e).__name__}: {e}", traceback.format_exc())
 
 
 def _child_main(fd: int) -> None:
@@ -175,7 +194,7 @@ def _child_main(fd: int) -> None:
         try:
             out = _run_job(planner, job, cancel)
         except Exception as e:     # noqa: BLE001 - report to the node, keep serving
-            out = ("error", ("invalid_input", f"{type(e).__name__}: {e}"))
+            out = _crash(e)
         try:
             conn.send((out[0], gen, out[1]))
         except (OSError, ValueError):
@@ -194,8 +213,8 @@ class _ThreadBackend:
         self._cancel.clear()
         try:
             return _run_job(self.planner, job, self._cancel)
-        except Exception as e:     # noqa: BLE001
-            return "error", ("invalid_input", f"{type(e).__name__}: {e}")
+        except Exception as e:     # noqa: BLE001 - report to the node, keep serving
+            return _crash(e)
 
     def cancel(self, gen):
         self._cancel.set()
@@ -208,10 +227,22 @@ class _ProcessBackend:
     """Plans in a child Python process; the worker thread waits on a socket (GIL free).
 
     A plain subprocess (not multiprocessing's spawn, which re-imports the caller's
-    ``__main__``) connected by a socketpair carrying pickled jobs and results.
+    ``__main__``) connected by a socketpair carrying pickled jobs and results.  A child
+    that died is replaced by a fresh one at the next :meth:`run`.
     """
 
-    def __init__(self, scenario):
+    #: seconds ``close`` lets an idle child exit on its own before terminating it
+    CLOSE_GRACE_S = 0.2
+
+    def __init__(self, scenario, log=None):
+        self._scenario = scenario
+        self._log = log
+        self._send_lock = threading.Lock()
+        self._proc_lock = threading.Lock()     # spawn vs close
+        self._closed = False
+        self._spawn()
+
+    def _spawn(self):
         import socket
         import subprocess
         import sys
@@ -225,10 +256,18 @@ class _ProcessBackend:
              "_child_main(int(sys.argv[1]))", str(fd)],
             pass_fds=(fd,), stdin=subprocess.DEVNULL)
         child.close()
-        self._send_lock = threading.Lock()
-        self.conn.send(scenario)
+        self.conn.send(self._scenario)
         self._ready = False
-        self._closed = False
+
+    def _respawn_if_dead(self):
+        with self._proc_lock:
+            if self._closed or self.proc.poll() is None:
+                return
+            code = self.proc.returncode
+            if self._log is not None:
+                self._log(f"planning process {self.proc.pid} had exited (code {code}): starting a new one")
+            self.conn.close()
+            self._spawn()
 
     def _recv(self):
         while not self._closed:
@@ -239,6 +278,7 @@ class _ProcessBackend:
         return None
 
     def run(self, gen, job):
+        self._respawn_if_dead()
         try:
             if not self._ready:
                 if self._recv() is None:
@@ -256,7 +296,14 @@ class _ProcessBackend:
         except (EOFError, OSError, RuntimeError) as e:
             if self._closed:
                 return None
-            return "error", ("invalid_input", f"planning process failed: {e}")
+            try:       # a dead child closes the socket just before its exit status exists
+                code = self.proc.wait(0.5)
+            except Exception:      # noqa: BLE001 - alive: the socket itself failed
+                code = None
+            what = f"planning process failed: {type(e).__name__}: {e}"
+            if code is not None and str(code) not in what:
+                what += f" (exit code {code})"
+            return "error", ("internal_error", what)
 
     def cancel(self, gen):
         try:
@@ -266,14 +313,17 @@ class _ProcessBackend:
             pass
 
     def close(self):
-        self._closed = True
+        """Stop the child: it exits at once when idle; in a solve it is terminated
+        (a numba kernel cannot be interrupted otherwise) after ``CLOSE_GRACE_S``."""
+        with self._proc_lock:
+            self._closed = True
         try:
             with self._send_lock:
                 self.conn.send(None)
         except (OSError, ValueError):
             pass
         try:
-            self.proc.wait(1.0)
+            self.proc.wait(self.CLOSE_GRACE_S)
         except Exception:          # noqa: BLE001 - a long solve: stop it
             self.proc.terminate()
             try:
@@ -317,7 +367,7 @@ class PlannerNode(Node):
         for spec in PARAMETERS:
             self.declare_parameter(spec.name, spec.default, descriptor_for(spec))
         self._params = {s.name: self.get_parameter(s.name).value for s in PARAMETERS}
-        self._params = {k: (list(v) if isinstance(v, (tuple, np.ndarray)) else v) for k, v in self._params.items()}
+        self._params = {k: (list(v) if isinstance(v, (tuple, np.ndarray, array.array)) else v) for k, v in self._params.items()}
         self._scenario = scenario_from_params(self._params)        # raises on a bad file: fail at start
         self._check_runtime(self._params, self._scenario)
         self._robot = self._scenario.robot
@@ -361,7 +411,7 @@ class PlannerNode(Node):
         self._diag_timer = self.create_timer(float(self._params["diagnostics.period_s"]), self._publish_diag)
 
         if self._params["planner.separate_process"]:
-            self._backend = _ProcessBackend(self._scenario)
+            self._backend = _ProcessBackend(self._scenario, log=self.get_logger().warning)
         else:
             self._backend = _ThreadBackend(self._scenario)
         self._worker = threading.Thread(target=self._worker_loop, name="spacerobot_planner-worker",
@@ -529,8 +579,8 @@ class PlannerNode(Node):
             try:
                 self._plan(req, start)
             except Exception as e:      # noqa: BLE001 - never let the worker die
-                self.get_logger().error(f"planning #{req.gen} crashed: {e}\n{traceback.format_exc()}")
-                self._fail("internal_error", f"planning crashed: {e}")
+                self._fail("internal_error", f"planning crashed: {type(e).__name__}: {e}", req,
+                           tb=traceback.format_exc())
             finally:
                 with self._lock:
                     self._active_gen = None
@@ -541,8 +591,9 @@ class PlannerNode(Node):
 
     def _plan(self, req: _Request, start_raw: np.ndarray):
         log = self.get_logger()
-        self.state = "planning"
-        self._publish_diag()
+        if self.state != "planning":       # state changes at once; a flood is not echoed
+            self.state = "planning"
+            self._publish_diag()
         sc = req.scenario
         log.info(f"planning #{req.gen} ({req.why}) from {np.round(np.degrees(start_raw), 2).tolist()}° "
                  f"on {sc.grid.label()}")
@@ -553,40 +604,40 @@ class PlannerNode(Node):
                    joint_goal=req.joint_goal)
         out = self._backend.run(req.gen, job)
         if out is None or self._superseded(req):
+            if out is not None and out[0] == "crash":      # still worth a traceback
+                log.error(f"plan #{req.gen} crashed: {out[1][0]}\n{out[1][1].rstrip()}")
             log.info(f"plan #{req.gen} superseded: result dropped")
             return
         kind, payload = out
+        if kind == "crash":
+            what, tb = payload
+            self._fail("internal_error", f"planning crashed: {what}", req, tb=tb)
+            return
         if kind == "error":
             code, reason = payload
-            self._fail(code, reason)
+            self._fail(code, reason, req)
             return
         res = payload
         if not res.ok:
             if res.code == "cancelled":
                 log.info(f"plan #{req.gen} cancelled")
                 return
-            self._last_timings = dict(res.timings_s)
-            self._fail(res.code, res.reason or res.code, res)
+            self._fail(res.code, res.reason or res.code, req, res, tb=res.traceback or None)
             return
         traj = self._time_parameterize(res, start_raw, p)
         if self._superseded(req):
             log.info(f"plan #{req.gen} superseded: result dropped")
             return
-        self.pub_traj.publish(conv.trajectory_to_msg(traj, self.get_clock().now().to_msg()))
+        msg = conv.trajectory_to_msg(traj, self.get_clock().now().to_msg())
         latency = time.perf_counter() - req.t_request
-        t = res.timings_s
-        log.info(f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
-                 f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
-                 f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
-                 f"{', '.join(res.cached) or 'none'}); clearance {res.min_clearance_m:.3f} m; "
-                 f"trajectory {len(traj)} points, {traj.duration_s:.2f} s; request→trajectory "
-                 f"{1e3 * latency:.1f} ms")
+        # the node's state first: whoever reacts to the trajectory sees this plan
         with self._lock:
             self.last_result = res
             self.last_trajectory = traj
             self.last_error = None
             self._last_timings = dict(res.timings_s)
             self._diag_values = {
+                **self._request_values(req),
                 "goal_deg": np.round(np.degrees(res.goal_rad), 3).tolist(),
                 "min_clearance_m": f"{res.min_clearance_m:.4f}",
                 "trajectory_duration_s": f"{traj.duration_s:.3f}",
@@ -596,6 +647,14 @@ class PlannerNode(Node):
                 "latency_s": f"{latency:.4f}",
             }
             self.state = "idle"
+        self.pub_traj.publish(msg)
+        t = res.timings_s
+        log.info(f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
+                 f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
+                 f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
+                 f"{', '.join(res.cached) or 'none'}); clearance {res.min_clearance_m:.3f} m; "
+                 f"trajectory {len(traj)} points, {traj.duration_s:.2f} s; request→trajectory "
+                 f"{1e3 * latency:.1f} ms")
         self._publish_visuals(res, sc, start_raw, p)
         self._publish_diag()
 
@@ -646,11 +705,37 @@ class PlannerNode(Node):
             vals = conv.potential_slice_values(log_u, focc, phi_max)
             self.pub_potential.publish(conv.grid_slice_to_msg(vals, grid, (ax, ay), self._frame, stamp))
 
-    def _fail(self, code: str, reason: str, res=None):
-        self.get_logger().error(f"{code}: {reason}")
+    @staticmethod
+    def _request_values(req: _Request) -> dict:
+        """Diagnostics values naming a request: its number and its goal (target or joints)."""
+        out = {"request": f"#{req.gen}", "request_reason": req.why}
+        if req.joint_goal is not None:
+            out["joint_goal_deg"] = np.round(np.degrees(req.joint_goal), 3).tolist()
+        elif req.scenario.scene.target is not None:
+            t = req.scenario.scene.target
+            out["target_m"] = [round(float(v), 4) for v in t.center_m]
+            out["target_yaw_deg"] = round(math.degrees(t.yaw_rad), 3)
+        return out
+
+    def _fail(self, code: str, reason: str, req: _Request | None = None, res=None, tb: str | None = None):
+        """Report a failure: log (with the traceback if any) and an ERROR on /diagnostics.
+
+        With ``req`` (a planning outcome) the diagnostics values describe that request
+        (the previous plan's goal, clearance and timings are dropped); without (bad
+        input, a rejected parameter) they keep describing the last plan.
+        """
+        log = self.get_logger()
+        where = f"plan #{req.gen}: " if req is not None else ""
+        log.error(f"{where}{code}: {reason}" + (f"\n{tb.rstrip()}" if tb else ""))
         with self._lock:
             self.last_error = (code, reason)
             self.state = "failed"
+            if req is not None:
+                values = self._request_values(req)
+                if res is not None and res.goal_rad is not None:
+                    values["goal_deg"] = np.round(np.degrees(res.goal_rad), 3).tolist()
+                self._diag_values = values
+                self._last_timings = dict(res.timings_s) if res is not None else {}
         self._publish_diag()
 
     def _publish_diag(self):
@@ -688,6 +773,23 @@ class PlannerNode(Node):
         self._worker.join(timeout_s)
 
 
+def spin_until_shutdown(node: PlannerNode, executor) -> None:
+    """Spin ``node`` until Ctrl-C or its context shuts down, then stop the worker and
+    the planning process (a plan in progress is abandoned) and destroy the node.
+
+    ``main`` in a function of its own, so tests can run the same shutdown path.
+    """
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.shutdown_worker()
+        executor.shutdown()
+        node.destroy_node()
+
+
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner planner_node --ros-args --params-file ...``."""
     try:
@@ -697,14 +799,7 @@ def main(args=None) -> int:
             except ValueError as e:
                 print(f"planner_node: {e}")
                 return 1
-            executor = MultiThreadedExecutor()
-            executor.add_node(node)
-            try:
-                executor.spin()
-            finally:
-                node.shutdown_worker()
-                executor.shutdown()
-                node.destroy_node()
+            spin_until_shutdown(node, SingleThreadedExecutor())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     return 0

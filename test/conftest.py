@@ -2,12 +2,14 @@
 
 Each run gets its own DDS domain and discovery stays on this host.  Property tests
 run a few dozen cases by default; ``pytest --hypothesis-profile=long`` (or
-``make test-long``) runs thousands.
+``make test-long``) runs thousands.  The ``graph`` fixture: in-process node graphs
+(test/node_helpers.py).
 """
 
 import os
 import random
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 # before rclpy is imported anywhere: 233 and up fail here with "port number is too high"
@@ -20,3 +22,20 @@ settings.register_profile("ci", max_examples=30, derandomize=True, deadline=None
                           suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("long", max_examples=3000, **_common)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
+
+
+@pytest.fixture
+def graph():
+    """graph(flat, with_arm=True) → a node_helpers.Graph (planner, mock arm, driver in a
+    private context), closed after the test."""
+    from node_helpers import Graph          # imports rclpy: after ROS_DOMAIN_ID is set
+    made = []
+
+    def make(flat, with_arm=True):
+        g = Graph(flat, with_arm)
+        made.append(g)
+        return g
+
+    yield make
+    for g in made:
+        g.close()

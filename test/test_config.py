@@ -78,3 +78,13 @@ def test_every_parameter_has_a_description_and_a_valid_default():
     for spec in PARAMETERS:
         assert spec.description
         check_value(spec.name, spec.default)
+
+
+def test_arrays_from_ros_messages_are_lists():
+    """`ros2 param set` / the parameter service deliver arrays as array.array: accepted."""
+    import array
+
+    from spacerobot_planner.config import check_value
+    assert check_value("grid.cells", array.array("q", [36, 37, 38])) == [36, 37, 38]
+    assert check_value("safety_margin_m", 0.03) == 0.03
+    assert check_value("trajectory.max_velocity_deg_s", array.array("d", [1.0, 2.0, 3.0])) == [1.0, 2.0, 3.0]

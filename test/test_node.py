@@ -1,163 +1,24 @@
 """planner_node + mock_arm_node in-process: closed loop, preemption, grids, bad input,
-responsiveness.  Each test gets a private rclpy Context and a MultiThreadedExecutor
-spinning in a thread; no launch_testing."""
+responsiveness.  Each test gets a private rclpy Context and a SingleThreadedExecutor
+spinning in a thread (test/node_helpers.py); no launch_testing.  Reliability under bad
+input, floods, faults and shutdown: test_reliability_node.py."""
 
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import numpy as np
 import pytest
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped
+from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import OccupancyGrid
-from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
-from trajectory_msgs.msg import JointTrajectory
-from visualization_msgs.msg import MarkerArray
 
-from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.config import load_params_file, scenario_from_params
-from spacerobot_planner.mock_arm_node import MockArmNode
-from spacerobot_planner.planner_node import GRID_QOS, PlannerNode, params_to_overrides
+from spacerobot_planner.planner_node import GRID_QOS
 from spacerobot_planner.ros_conversions import joint_state_msg
 
-FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
-        "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
-SCENES = {"2dof": ("config/paper_2dof.yaml", [180, 180]), "3dof": ("config/paper_3dof.yaml", [36, 36, 36])}
-
-
-def scene_params(name, cells=None, **extra):
-    path, default_cells = SCENES[name]
-    flat = load_params_file(path)
-    flat.update(FAST)
-    flat["grid.cells"] = list(cells or default_cells)
-    flat.update(extra)
-    return flat
-
-
-class Graph:
-    """A private context with the planner, optionally the mock arm, and a driver node
-    that publishes inputs and records every output."""
-
-    def __init__(self, flat, with_arm=True):
-        self.ctx = Context()
-        rclpy.init(context=self.ctx)
-        self.flat = flat
-        self.scenario = scenario_from_params(flat)
-        self.planner = PlannerNode(context=self.ctx, parameter_overrides=params_to_overrides(flat))
-        self.arm = None
-        self.ex = MultiThreadedExecutor(num_threads=4, context=self.ctx)
-        self.ex.add_node(self.planner)
-        if with_arm:
-            arm_params = {k: v for k, v in flat.items() if k.startswith(("robot.", "scenario."))}
-            self.arm = MockArmNode(context=self.ctx, parameter_overrides=params_to_overrides(arm_params))
-            self.ex.add_node(self.arm)
-        self.drv = rclpy.create_node("test_driver", context=self.ctx)
-        self.ex.add_node(self.drv)
-        self.lock = threading.Lock()
-        self.trajs, self.states, self.diags, self.markers = [], [], [], []
-        self.drv.create_subscription(JointTrajectory, "joint_trajectory", self._rec(self.trajs), 10)
-        self.drv.create_subscription(JointState, "joint_states", self._rec(self.states), 100)
-        self.drv.create_subscription(DiagnosticArray, "/diagnostics", self._rec(self.diags), 50)
-        self.drv.create_subscription(MarkerArray, "planned_path_markers", self._rec(self.markers), GRID_QOS)
-        self.pub_target = self.drv.create_publisher(PoseStamped, "target_pose", 10)
-        self.pub_js = self.drv.create_publisher(JointState, "joint_states", 10)
-        self.pub_goal = self.drv.create_publisher(JointState, "goal_joint_state", 10)
-        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
-        self.thread.start()
-        self.wait(lambda: self.pub_target.get_subscription_count() > 0, 10, "planner subscribed")
-
-    def _rec(self, store):
-        def cb(msg):
-            with self.lock:
-                store.append((time.monotonic(), msg))
-        return cb
-
-    def wait(self, cond, timeout, what):
-        t0 = time.monotonic()
-        while not cond():
-            if time.monotonic() - t0 > timeout:
-                raise AssertionError(f"timed out after {timeout} s waiting for: {what}")
-            time.sleep(0.01)
-
-    def send_target(self, x=-3.27, y=-2.60, yaw=0.0, frame="world", quat=None):
-        m = PoseStamped()
-        m.header.frame_id = frame
-        m.pose.position.x, m.pose.position.y = float(x), float(y)
-        q = quat or (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
-        (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w) = q
-        self.pub_target.publish(m)
-
-    def errors(self):
-        with self.lock:
-            return [(t, d.status[0].message) for t, d in self.diags if d.status[0].level == DiagnosticStatus.ERROR]
-
-    def n_trajs(self):
-        with self.lock:
-            return len(self.trajs)
-
-    def close(self):
-        if self.ctx is None:
-            return
-        self.planner.shutdown_worker()
-        self.ex.shutdown()
-        self.thread.join(5)
-        for n in (self.planner, self.arm, self.drv):
-            if n is not None:
-                n.destroy_node()
-        rclpy.shutdown(context=self.ctx)
-        self.thread.join(5)
-        self.ctx = None
-
-
-@pytest.fixture
-def graph():
-    made = []
-
-    def make(flat, with_arm=True):
-        g = Graph(flat, with_arm)
-        made.append(g)
-        return g
-
-    yield make
-    for g in made:
-        g.close()
-
-
-def angle_err_deg(robot, q_full, goal_planned):
-    idx = list(robot.planned_joints)
-    d = np.asarray(q_full)[idx] - goal_planned
-    for k, p in enumerate(robot.planned_periodic):
-        if p:
-            d[k] = math.remainder(d[k], 2 * math.pi)
-    return float(np.degrees(np.max(np.abs(d))))
-
-
-def wait_at_goal(g, timeout=30):
-    robot = g.scenario.robot
-    g.wait(lambda: g.planner.last_result is not None, timeout, "a plan")
-    goal = g.planner.last_result.goal_rad
-    g.wait(lambda: not g.arm.executing and g.arm.trajectories_received > 0
-           and angle_err_deg(robot, g.arm.positions, g.planner.last_result.goal_rad) < 0.5,
-           timeout, "the arm at the goal")
-    return goal
-
-
-def joint_states_free(g, since=0.0):
-    robot = g.scenario.robot
-    scene = g.scenario.scene.with_target(g.planner._target)      # the current target
-    checker = CollisionChecker(robot, scene)
-    with g.lock:
-        msgs = [m for t, m in g.states if t >= since]
-    q = np.array([[m.position[list(m.name).index(n)] for n in robot.planned_names] for m in msgs])
-    return len(q), checker.is_free(q)
+from node_helpers import angle_err_deg, joint_states_free, scene_params, wait_at_goal
 
 
 # ---------------------------------------------------------------------------- tests

@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.context import Context
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectory
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     rclpy.init(context=ctx)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat))
     drv = rclpy.create_node("latency_driver", context=ctx)
-    ex = MultiThreadedExecutor(num_threads=4, context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)     # as planner_node.main
     ex.add_node(node)
     ex.add_node(drv)
     got = []
