@@ -41,7 +41,7 @@ from .scene import Scene
 from .smoothing import (DEFAULT_MAX_STEP_RAD, DEFAULT_VERIFY_STEP_RAD, check_path,
                         first_bad_segment, smooth_path, unwrap_path)
 
-__all__ = ["PlanResult", "Planner", "STAGES", "CODES"]
+__all__ = ["PlanResult", "Planner", "STAGES", "CODES", "warm_up"]
 
 STAGES = ("cspace", "field", "descent", "smoothing", "verify", "total")
 CODES = ("ok", "invalid_input", "start_in_collision", "goal_in_collision", "goal_unreachable",
@@ -557,3 +557,25 @@ class _PlanRun:
             if "field" in self.cached:
                 self.cached.remove("field")
         raise AssertionError("unreachable")
+
+
+def warm_up(scenario: Scenario, cells: int = 6) -> float:
+    """Compile (or load from numba's cache) every kernel a plan uses; return the seconds.
+
+    Plans on a coarse copy of the scenario's grid from random free postures, so the
+    first real plan's stage timings are the planner's, not the JIT's.
+    """
+    from dataclasses import replace
+    t0 = time.perf_counter()
+    coarse = replace(scenario, grid=scenario.grid.with_cells(cells))
+    planner = Planner(coarse)
+    rng = np.random.default_rng(0)
+    lo, hi = coarse.robot.planned_lower_rad, coarse.robot.planned_upper_rad
+    q = rng.uniform(lo, hi, size=(64, coarse.robot.dof))
+    free = q[CollisionChecker(coarse.robot, coarse.scene).is_free(q)]
+    if len(free) < 2:
+        free = q
+    for start, goal in zip(free[:-1:2], free[1::2]):
+        if planner.plan(start, goal).ok:
+            break
+    return time.perf_counter() - t0

@@ -135,6 +135,27 @@ def _run_job(planner, job, cancel):
     return "result", planner.plan(job.start_rad, goal, cancel=cancel)
 
 
+def _strip_sent(res, sent: dict):
+    """(result, names left out): drop the C-space and field the parent already holds.
+
+    A replan from cache would otherwise pickle them again (~0.5 MB at 36³).  ``sent``
+    keeps the objects last sent (references, so an id is never reused).
+    """
+    from dataclasses import replace
+    left_out = []
+    for name in ("cspace", "field"):
+        obj = getattr(res, name)
+        if obj is None:
+            continue
+        if sent.get(name) is obj:
+            left_out.append(name)
+        else:
+            sent[name] = obj
+    if left_out:
+        res = replace(res, **{name: None for name in left_out})
+    return res, tuple(left_out)
+
+
 class _GenCancel:
     """Cancel flag of the child: job ``gen`` is cancelled once a cancel for it arrived."""
 
@@ -161,10 +182,12 @@ def _child_main(fd: int) -> None:
     import signal
     from multiprocessing.connection import Connection
 
-    from .planner import Planner
+    from .planner import Planner, warm_up
     signal.signal(signal.SIGINT, signal.SIG_IGN)        # the parent decides when to stop
     conn = Connection(fd)
-    planner = Planner(conn.recv())
+    scenario = conn.recv()
+    warm_up(scenario)          # compile / load the kernels before saying "ready"
+    planner = Planner(scenario)
     jobs: queue.Queue = queue.Queue()
     cancel = _GenCancel()
 
@@ -184,6 +207,7 @@ def _child_main(fd: int) -> None:
                 jobs.put(msg)
 
     threading.Thread(target=reader, daemon=True).start()
+    sent = {}                  # ids of the C-space / field the node already holds
     conn.send(("ready", None, None))
     while True:
         msg = jobs.get()
@@ -195,6 +219,8 @@ def _child_main(fd: int) -> None:
             out = _run_job(planner, job, cancel)
         except Exception as e:     # noqa: BLE001 - report to the node, keep serving
             out = _crash(e)
+        if out[0] == "result":
+            out = ("packed", _strip_sent(out[1], sent))
         try:
             conn.send((out[0], gen, out[1]))
         except (OSError, ValueError):
@@ -258,6 +284,7 @@ class _ProcessBackend:
         child.close()
         self.conn.send(self._scenario)
         self._ready = False
+        self._held = {}          # C-space / field this child sent last (see _unpack)
 
     def _respawn_if_dead(self):
         with self._proc_lock:
@@ -277,6 +304,16 @@ class _ProcessBackend:
                 raise RuntimeError(f"planning process exited (code {self.proc.returncode})")
         return None
 
+    def _unpack(self, res, left_out):
+        """Put back the C-space / field the child left out (the ones it sent before)."""
+        from dataclasses import replace
+        if left_out:
+            res = replace(res, **{name: self._held[name] for name in left_out})
+        for name in ("cspace", "field"):
+            if getattr(res, name) is not None:
+                self._held[name] = getattr(res, name)
+        return res
+
     def run(self, gen, job):
         self._respawn_if_dead()
         try:
@@ -291,6 +328,8 @@ class _ProcessBackend:
                 if msg is None:
                     return None
                 kind, g, payload = msg
+                if kind == "packed":            # see _strip_sent
+                    kind, payload = "result", self._unpack(*payload)
                 if g == gen:
                     return kind, payload
         except (EOFError, OSError, RuntimeError) as e:
