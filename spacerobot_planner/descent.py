@@ -37,7 +37,7 @@ class GridPath:
     reason: str | None
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _ascend_2d(log_u, is_goal, per0, per1, i, j, out):
     n0, n1 = log_u.shape
     m = 0
@@ -85,7 +85,7 @@ def _ascend_2d(log_u, is_goal, per0, per1, i, j, out):
         m += 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _ascend_3d(log_u, is_goal, per0, per1, per2, i, j, k, out):
     n0, n1, n2 = log_u.shape
     m = 0
@@ -192,7 +192,7 @@ def descent_success(field: Field, start_nodes) -> np.ndarray:
     return np.array([descend(field, s).reached for s in np.asarray(start_nodes)], dtype=bool)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _successors(log_u_flat, shape, periodic):
     """Flat index of the steepest strictly-higher face neighbour of every node
     (same rule and tie order as the walk), -1 where there is none."""
@@ -225,7 +225,7 @@ def _successors(log_u_flat, shape, periodic):
     return succ
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _resolve(succ, goal_flat):
     """1 where following ``succ`` ends on a goal node, else 0."""
     n = succ.size

@@ -153,7 +153,7 @@ def validate_problem(occupied, periodic, goal_nodes):
 # --------------------------------------------------------------------------
 # the paper's Gauss-Seidel (reference)
 # --------------------------------------------------------------------------
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _gs_paper_2d(phi, fixed, per0, per1, phi0, tol, max_sweeps):
     n0, n1 = phi.shape
     change = np.inf
@@ -199,7 +199,7 @@ def _gs_paper_2d(phi, fixed, per0, per1, phi0, tol, max_sweeps):
     return sweeps, change
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _gs_paper_3d(phi, fixed, per0, per1, per2, phi0, tol, max_sweeps):
     n0, n1, n2 = phi.shape
     change = np.inf
@@ -303,7 +303,7 @@ def gauss_seidel(occupied, periodic, goal_nodes, phi0=1.0, tol=1e-6, max_sweeps=
 # --------------------------------------------------------------------------
 # red-black SOR on the flipped linear form u (goal 1, obstacles 0)
 # --------------------------------------------------------------------------
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _rb_sor_2d(u, active, per0, per1, omega, tol, max_sweeps):
     """Red-black SOR; ``active`` = free non-goal nodes, others keep their u.
 
@@ -359,7 +359,7 @@ def _rb_sor_2d(u, active, per0, per1, omega, tol, max_sweeps):
     return sweeps, change
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, nogil=True)
 def _rb_sor_3d(u, active, per0, per1, per2, omega, tol, max_sweeps):
     """3-D red-black SOR, parallel over axis-0 slabs (see :func:`_rb_sor_2d`)."""
     n0, n1, n2 = u.shape
@@ -574,7 +574,7 @@ with np.errstate(over="ignore"):
     _P2 = np.ldexp(1.0, np.arange(-_P2_OFF, _P2_OFF + 1))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _p2(k, p2):
     if k < -_P2_OFF:
         k = -_P2_OFF
@@ -583,7 +583,7 @@ def _p2(k, p2):
     return p2[k + _P2_OFF]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _log_ssor(mant, expo, nbr, n_goal, lb_expo, omega, tol, max_passes, p2):
     """Symmetric SOR on u_i = mant_i * 2**expo_i over the node graph.
 
@@ -640,7 +640,7 @@ def _log_ssor(mant, expo, nbr, n_goal, lb_expo, omega, tol, max_passes, p2):
     return passes, change
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _scatter_log(mant, expo, order, n_flat):
     out = np.full(n_flat, -np.inf)
     ln2 = math.log(2.0)
@@ -735,7 +735,7 @@ def log_gs(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=1_000_000) -> Fi
 # --------------------------------------------------------------------------
 # ascent check
 # --------------------------------------------------------------------------
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _defects_2d(log_u, is_goal, per0, per1):
     n0, n1 = log_u.shape
     out = np.empty((0, 2), np.int64)
@@ -765,7 +765,7 @@ def _defects_2d(log_u, is_goal, per0, per1):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _defects_3d(log_u, is_goal, per0, per1, per2):
     n0, n1, n2 = log_u.shape
     bad = []

@@ -141,7 +141,7 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
     return q
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, starts,
                     threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
                     interval_ok, interval_clr):

@@ -416,8 +416,8 @@ def test_destroy_node_during_long_plan_child_process(graph, record_property):
 
 
 def test_destroy_node_during_long_plan_in_thread(graph, record_property):
-    """In-thread mode (planner.separate_process:=false): the field kernel cannot be
-    interrupted (and holds the GIL), so shutdown waits for the running stage -- NOT
+    """In-thread mode (planner.separate_process:=false): a running numba kernel cannot be
+    interrupted (it releases the GIL, though), so shutdown waits for the running stage -- NOT
     within 1 s; documented in the README.  Asserted: the plan is abandoned (nothing
     published), the worker ends, and no thread is left."""
     before = _threads()
