@@ -160,12 +160,13 @@ def scaled_sweeps(w, s, coef, lbw, scale, nbr, lb_s, members, starts, omega, tol
     return sweeps, change, achange
 
 
-def prepare(nbr, n_goal, lb_s, parity):
-    """Initial state from the lower bound: s = lb_s, w = 1; coefficients; colours."""
+def prepare(nbr, n_goal, lb_s, parity, s0=None):
+    """Initial state: s = s0 (default: the lower bound lb_s), w = 1; the
+    coefficients; the colour classes.  ``s0`` must be >= ``lb_s``."""
     n = nbr.shape[0]
     deg = nbr.shape[1]
     s = np.empty(n + 1)
-    s[:n] = lb_s
+    s[:n] = lb_s if s0 is None else s0
     s[n] = 0.0
     w = np.ones(n + 1)
     w[n] = 0.0
@@ -180,3 +181,15 @@ def prepare(nbr, n_goal, lb_s, parity):
     s[n] = 0.0
     members, starts = colour_classes(nbr, n_goal, parity)
     return w, s, coef, lbw, scale, lb_full, members, starts
+
+
+def restrict_classes(members, starts, keep):
+    """The colour classes limited to the nodes where ``keep`` (bool, one per
+    node) is True, in the same order: sweeping them relaxes only those nodes
+    and holds every other node fixed.  Returns (members, starts)."""
+    sel = keep[members]
+    kept = members[sel]
+    counts = np.array([np.count_nonzero(sel[starts[c]:starts[c + 1]]) for c in range(starts.size - 1)])
+    new_starts = np.zeros(starts.size, np.int64)
+    new_starts[1:] = np.cumsum(counts)
+    return np.ascontiguousarray(kept), new_starts

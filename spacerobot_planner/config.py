@@ -90,7 +90,7 @@ PARAMETERS = (
               "Goal posture of the planned joints, degrees (CLI; the node plans to the target).", False),
     # ---- planner (field, path)
     ParamSpec("planner.solver", "string", "log_harmonic",
-              "Field solver: log_harmonic (default), sor, gauss_seidel (the paper's).", False),
+              "Field solver: log_harmonic (default), log_gs, multigrid, sor, gauss_seidel (the paper's).", False),
     ParamSpec("planner.field_tolerance", "double", 1e-6,
               "Field convergence tolerance (relative change per sweep).", False, 1e-14, 1e-1),
     ParamSpec("planner.max_grid_nodes", "integer", 4_000_000,

@@ -20,19 +20,25 @@ Solvers (``solve_field(..., solver=NAME)``)
 ``"sor"``           The same linear problem in the flipped form u = 1 - Phi/Phi0
                     (goal 1, obstacles 0, free nodes start at 0), red-black SOR
                     with omega = 2 / (1 + sin(pi / N)), absolute-change stop.
+``"multigrid"``     The flipped linear form solved by conjugate gradients
+                    preconditioned with an aggregation multigrid V-cycle
+                    (``_multigrid``), stop on the residual.  Accurate to an
+                    absolute tolerance only, like ``sor``.
 ``"log_harmonic"``  Planner default.  The same harmonic u without underflow:
                     u_i = w_i * exp(s_i) with a per-node log scale s
                     (``_scaled_field``), so SOR on u becomes multiply-adds with
                     per-edge coefficients exp(s_j - s_i) / 2n (a diagonal
-                    similarity transform: the same iteration, no underflow).
-                    Started from the subharmonic lower bound u0 = (2n)**-d
-                    (d = BFS distance from the goal); red-black SOR until the
-                    absolute change < ``tol`` (the paper's rule), then plain
-                    Gauss-Seidel until the *relative* change |d log u| <
-                    ``rel_tol`` (settles the tiny values of deep pockets),
-                    then a check that every reachable non-goal node has a
-                    strictly higher neighbour (else it falls back to
-                    ``"log_gs"``).
+                    similarity transform: the same iteration, no underflow),
+                    never below the subharmonic lower bound u0 = (2n)**-d
+                    (d = BFS distance from the goal).  Phase 1 settles the
+                    bulk: on 2-D grids the multigrid solve to a residual of
+                    1e-12, on 3-D grids red-black SOR from u0 until the
+                    absolute change < ``tol`` (the paper's rule); phase 2,
+                    plain Gauss-Seidel until the *relative* change |d log u| <
+                    ``rel_tol``, settles the tiny values of deep pockets (after
+                    multigrid only the nodes with u < 1e-5 need it); then a
+                    check that every reachable non-goal node has a strictly
+                    higher neighbour (else it falls back to ``"log_gs"``).
 ``"log_gs"``        Plain symmetric Gauss-Seidel (forward / backward passes in
                     BFS order from the goal) on the same representation from
                     the same lower bound.  In exact arithmetic
@@ -52,17 +58,20 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from . import _multigrid as _mg
 from . import _scaled_field as _sf
 
-SOLVERS = ("log_harmonic", "log_gs", "sor", "gauss_seidel")
+SOLVERS = ("log_harmonic", "log_gs", "multigrid", "sor", "gauss_seidel")
 DEFAULT_SOLVER = "log_harmonic"
 
 #: Default stopping tolerance per solver (absolute change of the potential
-#: per sweep; for log_gs the change of log u).
-DEFAULT_TOL = {"gauss_seidel": 1e-6, "sor": 1e-6, "log_harmonic": 1e-6, "log_gs": 1e-4}
-#: Default sweep cap per solver (one sweep = one pass over the grid).
+#: per sweep; for log_gs the change of log u; for multigrid the residual).
+DEFAULT_TOL = {"gauss_seidel": 1e-6, "sor": 1e-6, "log_harmonic": 1e-6, "log_gs": 1e-4,
+               "multigrid": 1e-12}
+#: Default sweep cap per solver (one sweep = one pass over the grid; for
+#: multigrid one CG iteration).
 DEFAULT_MAX_SWEEPS = {"gauss_seidel": 200_000, "sor": 100_000, "log_harmonic": 100_000,
-                      "log_gs": 1_000_000}
+                      "log_gs": 1_000_000, "multigrid": 500}
 
 
 @dataclass(frozen=True)
@@ -459,6 +468,40 @@ def sor(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, omega=None
     return Field(log_u, occ, per, goals, "sor", sweeps, change, change < tol, time.perf_counter() - t0)
 
 
+def multigrid_u(occupied, periodic, goal_nodes, tol=1e-12, max_iter=500):
+    """The flipped linear form solved by multigrid-preconditioned CG (``_multigrid``).
+
+    Same problem and result as :func:`sor_u` (u = 1 at goal nodes, 0 at
+    obstacles, walls and nodes not connected to the goal); stops when the
+    largest residual ``2n u_i - sum_j u_j`` is below ``tol``.  Returns ``(u,
+    iterations, residual)``; u float64 array of the grid shape.
+    """
+    occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
+    dist, order, gnbr, _ = _graph(occ, per, goals)
+    n_goal = int(np.count_nonzero(dist[order] == 0))
+    order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
+    coords = np.stack(np.unravel_index(order, occ.shape), axis=1)
+    u_nodes, its, res, _ = _mg.solve(_neighbour_table(order, gnbr), n_goal, coords, occ.shape,
+                                     tol=tol, max_iter=max_iter)
+    u = np.zeros(occ.size)
+    u[order] = u_nodes
+    return u.reshape(occ.shape), int(its), float(res)
+
+
+def multigrid(occupied, periodic, goal_nodes, tol=1e-12, max_sweeps=500) -> Field:
+    """Multigrid-preconditioned CG on the flipped linear form (see
+    :func:`multigrid_u`) as a Field; ``sweeps`` counts CG iterations.  Like
+    ``sor`` it is exact to an absolute tolerance only: where u is below it
+    (deep pockets on large grids) log u is noise."""
+    t0 = time.perf_counter()
+    occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
+    u, its, res = multigrid_u(occ, per, goals, tol, max_sweeps)
+    with np.errstate(divide="ignore"):
+        log_u = np.log(np.maximum(u, 0.0))
+    log_u[occ] = -np.inf
+    return Field(log_u, occ, per, goals, "multigrid", its, res, res < tol, time.perf_counter() - t0)
+
+
 # --------------------------------------------------------------------------
 # breadth-first search and the node graph of the reachable nodes
 # --------------------------------------------------------------------------
@@ -671,57 +714,118 @@ def _log_field(occ, per, goals, solver, omega, tol, max_sweeps):
                  time.perf_counter() - t0)
 
 
+#: Linear solve of the multigrid phase: stop when the largest residual is below this.
+MG_RESIDUAL_TOL = 1e-12
+#: After the multigrid phase, nodes with u below this are settled in log space
+#: (where the linear solve's absolute error is not small relative to u).
+MG_SETTLE_BELOW = 1e-5
+#: ... within this many sweeps per node of the longest grid axis, else the SOR route.
+MG_SETTLE_SWEEPS_PER_NODE = 1
+PHASE1_CHOICES = ("auto", "multigrid", "sor")
+
+
 def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, omega=None,
-                 rel_tol=1e-4, finish_sweeps=2) -> Field:
+                 rel_tol=1e-4, finish_sweeps=2, phase1="auto") -> Field:
     """Underflow-free harmonic field (planner default), see the module doc.
 
-    u = w · exp(s) per node (``_scaled_field``), started from the BFS lower bound.
-    Phase 1: red–black SOR (``omega`` defaults to :func:`sor_omega`) until the
-    largest change of u in a sweep is below ``tol`` (the paper's stopping rule,
-    absolute).  Phase 2: plain Gauss–Seidel sweeps until the largest relative
-    change (|Δ log u|) is below ``rel_tol``: over-relaxation settles the bulk of
-    the field fast but leaves tiny values in deep pockets wrong, plain sweeps fix
-    them locally.  Then ``finish_sweeps`` plain sweeps and a check that every
+    u = w · exp(s) per node (``_scaled_field``), never below the BFS lower bound.
+    Phase 1 settles the bulk of the field in the linear form, by one of
+
+    * ``"multigrid"``: conjugate gradients preconditioned by an aggregation
+      V-cycle (``_multigrid``) to a residual below ``MG_RESIDUAL_TOL`` (far below
+      the paper's 1e-6 change), started at 0; the values become the initial
+      scales s = log max(u, lower bound).  Phase 2 then relaxes only the nodes
+      with u < ``MG_SETTLE_BELOW``, where that absolute accuracy is not a
+      relative one, within ``MG_SETTLE_SWEEPS_PER_NODE`` sweeps per node of the
+      longest axis.  Where that does not settle, or the result fails the ascent
+      check (deep maze-like regions, whose values the linear solve cannot see),
+      the SOR route runs from the start.
+    * ``"sor"``: red–black SOR (``omega`` defaults to :func:`sor_omega`) from the
+      lower bound until the largest change of u in a sweep is below ``tol`` (the
+      paper's stopping rule, absolute); phase 2 relaxes every node.
+    * ``"auto"`` (default): multigrid on 2-D grids, SOR on 3-D grids, the faster
+      of the two on the paper's scenes (``python -m spacerobot_planner.bench field``).
+
+    Phase 2: plain Gauss–Seidel sweeps until the largest relative change (|Δ log
+    u|) is below ``rel_tol``: the linear phase gets the bulk of the field right
+    but leaves tiny values in deep pockets wrong, plain sweeps fix them locally.
+    Then ``finish_sweeps`` plain sweeps over every node and a check that every
     reachable non-goal node has a strictly higher neighbour; should any not (e.g.
     ``max_sweeps`` stopped it early), the result is replaced by ``log_gs`` with the
     same budget, valid by construction (``solver`` then reads
-    ``"log_harmonic(fallback log_gs)"``).  ``sweeps`` counts both phases;
-    ``residual`` is the last relative change.
+    ``"log_harmonic(fallback log_gs)"``).  ``sweeps`` counts the passes of all
+    phases (a multigrid iteration counts as one); ``residual`` is the last
+    relative change.
     """
     t0 = time.perf_counter()
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
+    if phase1 not in PHASE1_CHOICES:
+        raise ValueError(f"phase1: expected one of {PHASE1_CHOICES}, got {phase1!r}")
     if omega is None:
         omega = sor_omega(occ.shape)
     if not 0.0 < omega < 2.0:
         raise ValueError(f"omega: must lie in (0, 2), got {omega}")
+    use_mg = phase1 == "multigrid" or (phase1 == "auto" and occ.ndim == 2)
     dist, order, gnbr, goal_flat = _graph(occ, per, goals)
     # goal nodes first, then the other reachable nodes in grid order (memory locality)
     n_goal = int(np.count_nonzero(dist[order] == 0))     # distinct goal nodes
     order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
     nbr = _neighbour_table(order, gnbr)
-    parity = (np.array(np.unravel_index(order, occ.shape)).sum(axis=0) % 2).astype(np.int64)
+    coords = np.stack(np.unravel_index(order, occ.shape), axis=1)
+    parity = (coords.sum(axis=1) % 2).astype(np.int64)
     lb_s = -dist[order] * math.log(2 * occ.ndim)       # (2n)^-d, natural log
-    state = _sf.prepare(nbr, n_goal, lb_s, parity)
     chunks = 16
-    sweeps, _, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], float(omega), float(tol), True,
-                                     int(max_sweeps), chunks)
+    goal_mask = np.zeros(occ.shape, np.bool_)
+    goal_mask[tuple(goals.T)] = True
+
+    def finish(state, change):
+        """Finishing sweeps, log u on the grid, and whether it is a valid ascent field."""
+        more, _, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], 1.0, 0.0, False, int(finish_sweeps),
+                                       chunks)
+        w, s_log = state[0], state[1]
+        log_u = np.full(occ.size, -np.inf)
+        log_u[order] = s_log[:-1] + np.log(w[:-1])
+        log_u = log_u.reshape(occ.shape)
+        valid = np.all(np.isfinite(log_u.ravel()[order])) and \
+            ascent_defects(log_u, goal_mask, per).shape[0] == 0
+        return log_u, more, valid
+
+    sweeps = 0
+    if use_mg:
+        u, sweeps, _, _ = _mg.solve(nbr, n_goal, coords, occ.shape, tol=min(MG_RESIDUAL_TOL, tol),
+                                    max_iter=max_sweeps)
+        with np.errstate(divide="ignore"):
+            s0 = np.maximum(np.log(np.maximum(u, 0.0)), lb_s)
+        state = _sf.prepare(nbr, n_goal, lb_s, parity, s0=s0)
+        members, starts = _sf.restrict_classes(state[6], state[7], u < MG_SETTLE_BELOW)
+        # Pockets next to the solved bulk settle in a few sweeps; a deep region (a
+        # maze: u down to 1e-8000, far below what the linear solve resolves) starts
+        # from its lower bound and would take very long: past the budget, or if the
+        # result is not a valid ascent field, take the SOR route from the start.
+        budget = min(MG_SETTLE_SWEEPS_PER_NODE * max(occ.shape), max(0, int(max_sweeps) - sweeps))
+        more, change, _ = _sf.scaled_sweeps(*state[:5], nbr, state[5], members, starts, 1.0,
+                                            float(rel_tol), False, budget, chunks)
+        sweeps += more
+        if change < rel_tol:
+            log_u, more, valid = finish(state, change)
+            sweeps += more
+            if valid:
+                return Field(log_u, occ, per, goals, "log_harmonic", int(sweeps), float(change), True,
+                             time.perf_counter() - t0)
+    state = _sf.prepare(nbr, n_goal, lb_s, parity)
+    more, _, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], float(omega), float(tol), True,
+                                   max(0, int(max_sweeps) - sweeps), chunks)
+    sweeps += more
     more, change, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], 1.0, float(rel_tol), False,
                                         max(0, int(max_sweeps) - sweeps), chunks)
     sweeps += more
-    converged = change < rel_tol
-    more, _, _ = _sf.scaled_sweeps(*state[:5], nbr, *state[5:], 1.0, 0.0, False, int(finish_sweeps), chunks)
+    log_u, more, valid = finish(state, change)
     sweeps += more
-    w, s_log = state[0], state[1]
-    log_u = np.full(occ.size, -np.inf)
-    log_u[order] = s_log[:-1] + np.log(w[:-1])
-    log_u = log_u.reshape(occ.shape)
-    goal_mask = np.zeros(occ.shape, np.bool_)
-    goal_mask[tuple(goals.T)] = True
-    if not np.all(np.isfinite(log_u.ravel()[order])) or ascent_defects(log_u, goal_mask, per).shape[0] > 0:
+    if not valid:
         fb = _log_field(occ, per, goals, "log_harmonic(fallback log_gs)", 1.0, rel_tol, max_sweeps)
         return Field(fb.log_u, occ, per, goals, fb.solver, sweeps + fb.sweeps, fb.residual, fb.converged,
                      time.perf_counter() - t0)
-    return Field(log_u, occ, per, goals, "log_harmonic", int(sweeps), float(change), bool(converged),
+    return Field(log_u, occ, per, goals, "log_harmonic", int(sweeps), float(change), bool(change < rel_tol),
                  time.perf_counter() - t0)
 
 
@@ -811,6 +915,23 @@ def ascent_defects(log_u, goal_mask, periodic) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------
+# JIT warm-up
+# --------------------------------------------------------------------------
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every solver kernel, 2-D and 3-D, on
+    grids just large enough to build multigrid levels (a few hundred ms cold)."""
+    occ2 = np.zeros((40, 41), dtype=bool)
+    occ2[10:20, 5:30] = True
+    occ3 = np.zeros((12, 13, 13), dtype=bool)
+    occ3[3:6, 2:10, 2:10] = True
+    for occ, per, goal in ((occ2, (False, False), (39, 40)), (occ3, (True, False, False), (11, 12, 12))):
+        for solver in SOLVERS:
+            solve_field(occ, per, [goal], solver=solver, max_sweeps=50)
+        for phase1 in ("multigrid", "sor"):
+            log_harmonic(occ, per, [goal], phase1=phase1)
+
+
+# --------------------------------------------------------------------------
 # dispatcher
 # --------------------------------------------------------------------------
 _SOLVER_FUNCS = {
@@ -818,6 +939,7 @@ _SOLVER_FUNCS = {
     "sor": sor,
     "log_harmonic": log_harmonic,
     "log_gs": log_gs,
+    "multigrid": multigrid,
 }
 
 

@@ -36,6 +36,7 @@ from .config import Scenario
 from .cspace import CSpace, GridSpec, build_cspace
 from .descent import descend
 from .field import DEFAULT_SOLVER, SOLVERS, Field, bfs_distance, solve_field
+from .field import warm_up as field_warm_up
 from .ik import grasp_ik
 from .scene import Scene
 from .smoothing import (DEFAULT_MAX_STEP_RAD, DEFAULT_VERIFY_STEP_RAD, check_path,
@@ -578,4 +579,5 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
     for start, goal in zip(free[:-1:2], free[1::2]):
         if planner.plan(start, goal).ok:
             break
+    field_warm_up()             # the solver kernels a coarse grid does not reach
     return time.perf_counter() - t0

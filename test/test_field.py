@@ -186,3 +186,50 @@ def test_log_harmonic_converges_on_paper_2dof_scene():
     u, _, _ = F.sor_u(cs.occupied, cs.grid.periodic, [goal], tol=1e-14)
     big = u > 1e-8
     assert np.max(np.abs(f.log_u[big] - np.log(u[big]))) < 1e-5
+
+
+@pytest.mark.parametrize("case", ["2d", "3d_odd_periodic", "3d_blocks"])
+def test_multigrid_linear_solve_matches_sor(case):
+    """The aggregation-multigrid CG solve gives the linear form's solution."""
+    if case == "2d":
+        occ, start, goal = mazes.blocks_2d(181)
+        per = (False, False)
+    elif case == "3d_odd_periodic":
+        occ = np.zeros((35, 15, 13), dtype=bool)
+        occ[10:20, 3:12, 2:11] = True
+        per = (True, False, False)
+        goal = (30, 7, 6)
+    else:
+        occ, per, start, goal = mazes.blocks_3d((36, 37, 37))
+    ref, _, _ = F.sor_u(occ, per, [goal], tol=1e-14)
+    u, its, res = F.multigrid_u(occ, per, [goal], tol=1e-13)
+    assert res < 1e-13 and its < 100
+    assert np.max(np.abs(u - ref)) < 1e-9
+    assert u[goal] == 1.0 and np.all(u[occ] == 0.0)
+    assert np.all(u[~_reachable_free(occ, per, goal)] == 0.0)
+    u2, _, _ = F.multigrid_u(occ, per, [goal], tol=1e-13)
+    assert np.array_equal(u, u2)
+
+
+@pytest.mark.parametrize("dims", [2, 3])
+def test_log_harmonic_phase1_multigrid_and_sor_agree(dims):
+    """Both first phases lead to the same field, valid for descent everywhere."""
+    if dims == 2:
+        occ, start, goal = mazes.blocks_2d(181)
+        per = (False, False)
+    else:
+        occ, per, start, goal = mazes.blocks_3d((36, 37, 37))
+    a = F.solve_field(occ, per, [goal], phase1="multigrid", rel_tol=1e-8)
+    b = F.solve_field(occ, per, [goal], phase1="sor", tol=1e-12, rel_tol=1e-8)
+    for f in (a, b):
+        assert f.solver == "log_harmonic" and f.converged
+        _assert_no_local_max(f)
+    r = a.reachable
+    assert np.array_equal(r, b.reachable)
+    assert np.max(np.abs(a.log_u[r] - b.log_u[r])) < 1e-4
+
+
+def test_log_harmonic_rejects_unknown_phase1():
+    occ, start, goal = mazes.blocks_2d(41)
+    with pytest.raises(ValueError, match="phase1"):
+        F.solve_field(occ, (False, False), [goal], phase1="jacobi")

@@ -53,14 +53,18 @@ def _scene_problem(scenario_path, cells):
     return cs.occupied, tuple(cs.grid.periodic), goal, start, scenario_path
 
 
-def _runs(args, n_nodes):
+def _runs(args, n_nodes, ndim):
     """(label, solver, kwargs) per timed run."""
     runs = [("gauss_seidel", "gauss_seidel", {})]
     if n_nodes > args.gs_cap_nodes:
         runs[0] = ("gauss_seidel", "gauss_seidel", {"max_sweeps": args.gs_cap_sweeps})
     runs += [
         ("sor", "sor", {}),
+        ("multigrid", "multigrid", {}),
         ("log_harmonic", "log_harmonic", {"max_sweeps": args.max_sweeps}),
+        # the other first phase than the default picks for this grid (see field.log_harmonic)
+        (f"lh[{'sor' if ndim == 2 else 'multigrid'}]", "log_harmonic",
+         {"max_sweeps": args.max_sweeps, "phase1": "sor" if ndim == 2 else "multigrid"}),
         ("log_gs", "log_gs", {"max_sweeps": args.max_sweeps}),
         (f"log_gs@{args.anytime_passes}", "log_gs", {"max_sweeps": args.anytime_passes}),
     ]
@@ -77,14 +81,12 @@ def _time_solver(occ, per, goal, solver, kwargs, repeats):
 
 
 def _warm_up():
+    F.warm_up()
     occ = np.zeros((9, 10), dtype=bool)
     occ[3:5, 3:6] = True
-    occ3 = np.zeros((6, 7, 7), dtype=bool)
-    for o, per, g in ((occ, (False, False), (8, 9)), (occ3, (True, False, False), (5, 6, 6))):
-        for s in F.SOLVERS:
-            f = F.solve_field(o, per, [g], solver=s)
-            reaches_goal_mask(f)
-            descend(f, (0,) * o.ndim)
+    f = F.solve_field(occ, (False, False), [(8, 9)])
+    reaches_goal_mask(f)
+    descend(f, (0, 0))
 
 
 def main(argv=None) -> int:
@@ -128,7 +130,7 @@ def main(argv=None) -> int:
         connected = F.bfs_distance(occ, per, [goal]) >= 0
         repeats = args.repeats if occ.size <= 100_000 else 1
         baseline = None
-        for label, solver, kwargs in _runs(args, occ.size):
+        for label, solver, kwargs in _runs(args, occ.size, occ.ndim):
             f = _time_solver(occ, per, goal, solver, kwargs, repeats)
             ok = reaches_goal_mask(f)[connected].mean()
             notes = []
