@@ -278,7 +278,7 @@ def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, 
     return it, res
 
 
-def solve(nbr, n_goal, coords, shape, tol=1e-12, max_iter=500, sweeps=1, boost=1.0):
+def solve(nbr, n_goal, coords, shape, tol=1e-12, max_iter=500, sweeps=1, boost=1.8):
     """Solve the flipped harmonic problem on the node graph of reachable nodes.
 
     nbr int (N, deg): positions of each reachable node's face neighbours in the

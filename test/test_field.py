@@ -233,3 +233,19 @@ def test_log_harmonic_rejects_unknown_phase1():
     occ, start, goal = mazes.blocks_2d(41)
     with pytest.raises(ValueError, match="phase1"):
         F.solve_field(occ, (False, False), [goal], phase1="jacobi")
+
+
+def test_log_harmonic_multigrid_route_on_a_maze_gives_the_sor_route_field():
+    """A maze's u falls to 1e-561, far below what the linear solve resolves: the
+    multigrid route must still end in the converged, valid field (via the SOR route)."""
+    occ, start, goal = mazes.maze((181, 181), pitch=4, seed=3)
+    per = (False, False)
+    a = F.solve_field(occ, per, [goal], phase1="multigrid")
+    b = F.solve_field(occ, per, [goal], phase1="sor")
+    assert a.solver == "log_harmonic" and a.converged
+    _assert_no_local_max(a)
+    r = b.reachable
+    assert np.array_equal(a.reachable, r)
+    assert a.log_u[r].min() < math.log(1e-300)                 # the deep part exists
+    assert np.max(np.abs(a.log_u[r] - b.log_u[r]) / np.maximum(1.0, np.abs(b.log_u[r]))) < 1e-3
+    assert descend(a, start).reached
