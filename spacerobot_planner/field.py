@@ -722,10 +722,52 @@ MG_RESIDUAL_TOL = 1e-12
 MG_SETTLE_BELOW = 1e-5
 #: ... within this many sweeps per node of the longest grid axis, else the SOR route.
 MG_SETTLE_SWEEPS_PER_NODE = 1
+#: Multigrid values above this are taken as resolved; the others start from a
+#: breadth-first extension of them (a factor 1/2n per step, never below the lower bound).
+MG_RESOLVED_ABOVE = 1e-11
 #: "auto" takes the multigrid route on every 2-D grid and on 3-D grids from this
 #: many nodes (measured: SOR first at 36x37x37, multigrid first at 72x73x73).
 MG_MIN_NODES_3D = 100_000
 PHASE1_CHOICES = ("auto", "multigrid", "sor")
+
+
+@nb.njit(cache=True, nogil=True)
+def _extend_log_start(u, nbr, n_goal, lb_s, resolved_above, log_deg):
+    """Initial log scales for the multigrid route, float64 (N,).
+
+    Nodes with u > ``resolved_above`` start at log u; every other node at the
+    value of its nearest resolved node (graph steps) less ``log_deg`` per step,
+    but never below its lower bound ``lb_s``: a start on the scale of its
+    neighbours, so the coefficients exp(s_j - s_i) stay moderate.
+    """
+    n = nbr.shape[0]
+    deg = nbr.shape[1]
+    s0 = np.empty(n)
+    seen = np.zeros(n, np.bool_)
+    queue = np.empty(n, np.int64)
+    tail = 0
+    for i in range(n):
+        if i < n_goal or u[i] > resolved_above:
+            s0[i] = 0.0 if i < n_goal else math.log(u[i])
+            seen[i] = True
+            queue[tail] = i
+            tail += 1
+    head = 0
+    while head < tail:
+        i = queue[head]
+        head += 1
+        for a in range(deg):
+            j = nbr[i, a]
+            if j >= n or seen[j]:
+                continue
+            seen[j] = True
+            s0[j] = max(s0[i] - log_deg, lb_s[j])
+            queue[tail] = j
+            tail += 1
+    for i in range(n):
+        if not seen[i]:
+            s0[i] = lb_s[i]
+    return s0
 
 
 def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, omega=None,
@@ -799,8 +841,7 @@ def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, o
     if use_mg:
         u, sweeps, _, _ = _mg.solve(nbr, n_goal, coords, occ.shape, tol=min(MG_RESIDUAL_TOL, tol),
                                     max_iter=max_sweeps)
-        with np.errstate(divide="ignore"):
-            s0 = np.maximum(np.log(np.maximum(u, 0.0)), lb_s)
+        s0 = _extend_log_start(u, nbr, n_goal, lb_s, MG_RESOLVED_ABOVE, math.log(2 * occ.ndim))
         state = _sf.prepare(nbr, n_goal, lb_s, parity, s0=s0)
         members, starts = _sf.restrict_classes(state[6], state[7], u < MG_SETTLE_BELOW)
         # Pockets next to the solved bulk settle in a few sweeps; a deep region (a
