@@ -15,10 +15,13 @@ level (at most ``COARSEST_NODES`` unknowns) is solved by a dense Cholesky
 factor.
 
 One preconditioner application is a symmetric V-cycle (forward Gauss–Seidel
-before the coarse correction, backward after), used inside conjugate
+before the coarse correction, backward after; the correction scaled by
+``boost`` = 1.8, as plain aggregation under-corrects), used inside conjugate
 gradients: robust on any obstacle layout (the V-cycle alone converges slowly
-with plain aggregation; as a CG preconditioner it needs a handful of
-iterations per decade of residual at every grid size).
+with plain aggregation; as a CG preconditioner it needs about two iterations
+per decade of residual on the paper's scenes: 24 at 181², 34 at 721² for 12
+decades).  Each level is renumbered red nodes first, then black, so a sweep
+has no chain of dependent updates.
 
 Levels are packed into flat arrays: level l owns rows ``off[l] .. off[l] +
 size[l]`` plus one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that
@@ -134,7 +137,6 @@ class Hierarchy:
         self.off = off
         self.nbr = np.zeros((total, deg), np.int64)
         self.wt = np.zeros((total, deg))
-        self.inv_diag = np.ones(total)
         self.diag = np.ones(total)
         self.agg = np.zeros(total, np.int64)
         for lv in range(self.levels):
@@ -147,13 +149,11 @@ class Hierarchy:
                 self.agg[a:b] = aggs[lv]
         self.inv_diag = 1.0 / self.diag
         m = int(sizes[-1])
-        dense = np.zeros((m, m))
         cn, cw, cd = nbrs[-1], wts[-1], diags[-1]
-        for i in range(m):
-            dense[i, i] += cd[i]
-            for d in range(deg):
-                if cn[i, d] < m:
-                    dense[i, cn[i, d]] -= cw[i, d]
+        dense = np.diag(cd)
+        rows, dirs = np.nonzero(cn < m)
+        np.add.at(dense, (rows, cn[rows, dirs]), -cw[rows, dirs])
+        # SPD: every unknown is connected to the goal, a Dirichlet node
         self.chol = np.linalg.cholesky(dense)
 
 
