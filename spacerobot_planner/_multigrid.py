@@ -88,19 +88,43 @@ def _coarsen(nbr, wt, diag, coords, cshape):
     return agg, cnbr, cwt, cdiag, ccoords
 
 
+@nb.njit(cache=True, nogil=True)
 def _by_parity(nbr, wt, diag, coords):
     """Renumber a level red nodes first, then black (parity of the coordinate
-    sum): a Gauss–Seidel sweep in that order has no chain of dependent updates
-    (neighbours have the other colour, except across odd periodic seams, where
-    the serial sweep is still a valid Gauss–Seidel order).  Returns the
-    renumbered arrays and ``new_of_old`` (n,)."""
-    n = nbr.shape[0]
-    old_of_new = np.argsort(coords.sum(axis=1) % 2, kind="stable")
+    sum), each in its previous order: a Gauss–Seidel sweep in that order has no
+    chain of dependent updates (neighbours have the other colour, except across
+    odd periodic seams, where the serial sweep is still a valid Gauss–Seidel
+    order).  Returns the renumbered arrays and ``new_of_old`` (n,)."""
+    n, deg = nbr.shape
+    ndim = coords.shape[1]
+    red = 0
+    for i in range(n):
+        if coords[i].sum() % 2 == 0:
+            red += 1
     new_of_old = np.empty(n + 1, np.int64)
-    new_of_old[old_of_new] = np.arange(n)
     new_of_old[n] = n
-    return (new_of_old[nbr[old_of_new]], wt[old_of_new], diag[old_of_new], coords[old_of_new],
-            new_of_old[:n])
+    k_red = 0
+    k_black = red
+    for i in range(n):
+        if coords[i].sum() % 2 == 0:
+            new_of_old[i] = k_red
+            k_red += 1
+        else:
+            new_of_old[i] = k_black
+            k_black += 1
+    nbr2 = np.empty_like(nbr)
+    wt2 = np.empty_like(wt)
+    diag2 = np.empty_like(diag)
+    coords2 = np.empty_like(coords)
+    for i in range(n):
+        j = new_of_old[i]
+        for d in range(deg):
+            nbr2[j, d] = new_of_old[nbr[i, d]]
+            wt2[j, d] = wt[i, d]
+        diag2[j] = diag[i]
+        for a in range(ndim):
+            coords2[j, a] = coords[i, a]
+    return nbr2, wt2, diag2, coords2, new_of_old[:n].copy()
 
 
 class Hierarchy:
