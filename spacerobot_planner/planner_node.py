@@ -186,7 +186,9 @@ def _child_main(fd: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)        # the parent decides when to stop
     conn = Connection(fd)
     scenario = conn.recv()
+    t_warm = time.perf_counter()
     warm_up(scenario)          # compile / load the kernels before saying "ready"
+    t_warm = time.perf_counter() - t_warm
     planner = Planner(scenario)
     jobs: queue.Queue = queue.Queue()
     cancel = _GenCancel()
@@ -208,7 +210,7 @@ def _child_main(fd: int) -> None:
 
     threading.Thread(target=reader, daemon=True).start()
     sent = {}                  # ids of the C-space / field the node already holds
-    conn.send(("ready", None, None))
+    conn.send(("ready", t_warm, None))
     while True:
         msg = jobs.get()
         if msg is None:
@@ -260,9 +262,11 @@ class _ProcessBackend:
     #: seconds ``close`` lets an idle child exit on its own before terminating it
     CLOSE_GRACE_S = 0.2
 
-    def __init__(self, scenario, log=None):
+    def __init__(self, scenario, log=None, info=None):
+        """log: callable for warnings (a child that died); info: for progress (warm-up)."""
         self._scenario = scenario
         self._log = log
+        self._info = info
         self._send_lock = threading.Lock()
         self._proc_lock = threading.Lock()     # spawn vs close
         self._closed = False
@@ -318,9 +322,14 @@ class _ProcessBackend:
         self._respawn_if_dead()
         try:
             if not self._ready:
-                if self._recv() is None:
+                t_wait = time.perf_counter()
+                ready = self._recv()
+                if ready is None:
                     return None
                 self._ready = True
+                if self._info is not None:
+                    self._info(f"planning process {self.proc.pid} ready: JIT warm-up {ready[1]:.2f} s "
+                               f"(this request waited {time.perf_counter() - t_wait:.2f} s for it)")
             with self._send_lock:
                 self.conn.send(("job", gen, job))
             while True:
@@ -450,7 +459,8 @@ class PlannerNode(Node):
         self._diag_timer = self.create_timer(float(self._params["diagnostics.period_s"]), self._publish_diag)
 
         if self._params["planner.separate_process"]:
-            self._backend = _ProcessBackend(self._scenario, log=self.get_logger().warning)
+            self._backend = _ProcessBackend(self._scenario, log=self.get_logger().warning,
+                                            info=self.get_logger().info)
         else:
             self._backend = _ThreadBackend(self._scenario)
         self._worker = threading.Thread(target=self._worker_loop, name="spacerobot_planner-worker",
@@ -459,7 +469,7 @@ class PlannerNode(Node):
         self.get_logger().info(
             f"ready: planning {', '.join(self._robot.planned_names)} on a "
             f"{self._scenario.grid.label()} grid in frame '{self._frame}' "
-            f"({'child process' if self._params['planner.separate_process'] else 'worker thread'}); "
+            f"({'child process, warming up' if self._params['planner.separate_process'] else 'worker thread'}); "
             f"waiting for target_pose / goal_joint_state and joint_states")
         self._publish_diag()
 
