@@ -21,13 +21,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from scipy.interpolate import CubicSpline
 
 from .collision import config_clearance
-
-#: Chunks of intervals the certified check walks in parallel.
-_CERTIFY_CHUNKS = 8
 
 __all__ = ["SmoothPath", "PathCheck", "unwrap_path", "path_length_rad", "densify_polyline",
            "check_path", "first_bad_segment", "shortcut_indices", "spline_through",
@@ -144,7 +141,7 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
     return q
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True)
 def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, starts,
                     threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
                     interval_ok, interval_clr):
@@ -154,52 +151,43 @@ def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, 
     space is free (no point of a checked link moves faster than L m/rad), so the
     next sample goes at most that far (and at most max_step_rad).  An interval
     fails where c ≤ threshold or the certified step falls below min_step_rad.
-    Intervals are independent: contiguous chunks of them run in parallel, each
-    with its own scratch arrays (same samples, same results as a serial walk).
     Returns the number of clearance evaluations.
     """
     dof = points.shape[1]
-    n_int = points.shape[0] - 1
-    n_chunks = min(n_int, _CERTIFY_CHUNKS)
-    evals = np.zeros(max(n_chunks, 1), np.int64)
-    for ch in prange(n_chunks):
-        lo = ch * n_int // n_chunks
-        hi = (ch + 1) * n_int // n_chunks
-        q_full = q_template.copy()
-        pts = np.empty((lengths.shape[0] + 1, 2))
-        body_w = np.empty_like(body)
-        n_eval = 0
-        for i in range(lo, hi):
-            seg_len = 0.0
+    q_full = q_template.copy()
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    n_eval = 0
+    for i in range(points.shape[0] - 1):
+        seg_len = 0.0
+        for a in range(dof):
+            d = points[i + 1, a] - points[i, a]
+            seg_len += d * d
+        seg_len = np.sqrt(seg_len)
+        t = 0.0
+        ok = True
+        best = np.inf
+        while True:
+            f = t / seg_len if seg_len > 0.0 else 0.0
             for a in range(dof):
-                d = points[i + 1, a] - points[i, a]
-                seg_len += d * d
-            seg_len = np.sqrt(seg_len)
-            t = 0.0
-            ok = True
-            best = np.inf
-            while True:
-                f = t / seg_len if seg_len > 0.0 else 0.0
-                for a in range(dof):
-                    q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
-                c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
-                n_eval += 1
-                if c < best:
-                    best = c
-                if not c > threshold_m:
-                    ok = False
-                    break
-                if t >= seg_len:
-                    break
-                step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad
-                if step < min_step_rad:
-                    ok = False
-                    break
-                t = min(seg_len, t + min(step, max_step_rad))
-            interval_ok[i] = ok
-            interval_clr[i] = best
-        evals[ch] = n_eval
-    return evals.sum()
+                q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+            n_eval += 1
+            if c < best:
+                best = c
+            if not c > threshold_m:
+                ok = False
+                break
+            if t >= seg_len:
+                break
+            step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad
+            if step < min_step_rad:
+                ok = False
+                break
+            t = min(seg_len, t + min(step, max_step_rad))
+        interval_ok[i] = ok
+        interval_clr[i] = best
+    return n_eval
 
 
 def lipschitz_m_per_rad(robot) -> float:
