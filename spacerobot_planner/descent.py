@@ -37,107 +37,56 @@ class GridPath:
     reason: str | None
 
 
-@nb.njit(cache=True, nogil=True)
-def _ascend_2d(log_u, is_goal, per0, per1, i, j, out):
-    n0, n1 = log_u.shape
-    m = 0
-    out[m, 0] = i
-    out[m, 1] = j
-    m += 1
-    while True:
-        if is_goal[i, j]:
-            return m, _REACHED
-        if m >= out.shape[0]:
-            return m, _TOO_LONG
-        best = log_u[i, j]
-        bi = -1
-        bj = -1
-        if i > 0 or per0:
-            ii = i - 1 if i > 0 else n0 - 1
-            if log_u[ii, j] > best:
-                best = log_u[ii, j]
-                bi = ii
-                bj = j
-        if i < n0 - 1 or per0:
-            ii = i + 1 if i < n0 - 1 else 0
-            if log_u[ii, j] > best:
-                best = log_u[ii, j]
-                bi = ii
-                bj = j
-        if j > 0 or per1:
-            jj = j - 1 if j > 0 else n1 - 1
-            if log_u[i, jj] > best:
-                best = log_u[i, jj]
-                bi = i
-                bj = jj
-        if j < n1 - 1 or per1:
-            jj = j + 1 if j < n1 - 1 else 0
-            if log_u[i, jj] > best:
-                best = log_u[i, jj]
-                bi = i
-                bj = jj
-        if bi < 0:
-            return m, _STUCK
-        i = bi
-        j = bj
-        out[m, 0] = i
-        out[m, 1] = j
-        m += 1
+@nb.njit(cache=True, nogil=True, inline="always")
+def _steepest_neighbour(log_u_flat, f, shape, strides, periodic):
+    """Flat index of the face neighbour of node ``f`` with the largest log u, if it
+    is strictly larger than log u at ``f`` (ties: first in the fixed order), else -1."""
+    best = log_u_flat[f]
+    out = -1
+    for a in range(shape.size):
+        c = (f // strides[a]) % shape[a]
+        for step in (-1, 1):
+            nc = c + step
+            if nc < 0:
+                if not periodic[a]:
+                    continue
+                nc = shape[a] - 1
+            elif nc >= shape[a]:
+                if not periodic[a]:
+                    continue
+                nc = 0
+            g = f + (nc - c) * strides[a]
+            if log_u_flat[g] > best:
+                best = log_u_flat[g]
+                out = g
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
-def _ascend_3d(log_u, is_goal, per0, per1, per2, i, j, k, out):
-    n0, n1, n2 = log_u.shape
+def _strides(shape):
+    strides = np.ones(shape.size, np.int64)
+    for a in range(shape.size - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    return strides
+
+
+@nb.njit(cache=True, nogil=True)
+def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
+    """The walk from flat node ``f``; ``out`` receives the flat nodes visited.
+    Returns (number of nodes, status)."""
+    strides = _strides(shape)
     m = 0
-    out[m, 0] = i
-    out[m, 1] = j
-    out[m, 2] = k
+    out[m] = f
     m += 1
     while True:
-        if is_goal[i, j, k]:
+        if is_goal_flat[f]:
             return m, _REACHED
-        if m >= out.shape[0]:
+        if m >= out.size:
             return m, _TOO_LONG
-        best = log_u[i, j, k]
-        bi = -1
-        bj = -1
-        bk = -1
-        if i > 0 or per0:
-            ii = i - 1 if i > 0 else n0 - 1
-            if log_u[ii, j, k] > best:
-                best = log_u[ii, j, k]
-                bi, bj, bk = ii, j, k
-        if i < n0 - 1 or per0:
-            ii = i + 1 if i < n0 - 1 else 0
-            if log_u[ii, j, k] > best:
-                best = log_u[ii, j, k]
-                bi, bj, bk = ii, j, k
-        if j > 0 or per1:
-            jj = j - 1 if j > 0 else n1 - 1
-            if log_u[i, jj, k] > best:
-                best = log_u[i, jj, k]
-                bi, bj, bk = i, jj, k
-        if j < n1 - 1 or per1:
-            jj = j + 1 if j < n1 - 1 else 0
-            if log_u[i, jj, k] > best:
-                best = log_u[i, jj, k]
-                bi, bj, bk = i, jj, k
-        if k > 0 or per2:
-            kk = k - 1 if k > 0 else n2 - 1
-            if log_u[i, j, kk] > best:
-                best = log_u[i, j, kk]
-                bi, bj, bk = i, j, kk
-        if k < n2 - 1 or per2:
-            kk = k + 1 if k < n2 - 1 else 0
-            if log_u[i, j, kk] > best:
-                best = log_u[i, j, kk]
-                bi, bj, bk = i, j, kk
-        if bi < 0:
+        f = _steepest_neighbour(log_u_flat, f, shape, strides, periodic)
+        if f < 0:
             return m, _STUCK
-        i, j, k = bi, bj, bk
-        out[m, 0] = i
-        out[m, 1] = j
-        out[m, 2] = k
+        out[m] = f
         m += 1
 
 
@@ -172,13 +121,10 @@ def descend(field: Field, start_node) -> GridPath:
             return GridPath(start.reshape(1, -1), False, 0, "start node not connected to the goal")
         return GridPath(start.reshape(1, -1), False, 0,
                         f"stuck at node {node}: flat field (u = 0 in float64), no strictly higher neighbour")
-    out = np.empty((log_u.size, len(shape)), np.int64)
-    per = field.periodic
-    if len(shape) == 2:
-        m, status = _ascend_2d(log_u, is_goal, per[0], per[1], node[0], node[1], out)
-    else:
-        m, status = _ascend_3d(log_u, is_goal, per[0], per[1], per[2], node[0], node[1], node[2], out)
-    nodes = out[:m].copy()
+    out = np.empty(log_u.size, np.int64)
+    m, status = _ascend(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
+                        np.array(field.periodic, np.bool_), int(np.ravel_multi_index(node, shape)), out)
+    nodes = np.stack(np.unravel_index(out[:m], shape), axis=1).astype(np.int64)
     if status == _REACHED:
         return GridPath(nodes, True, m - 1, None)
     last = tuple(int(x) for x in nodes[-1])
@@ -195,33 +141,12 @@ def descent_success(field: Field, start_nodes) -> np.ndarray:
 @nb.njit(cache=True, nogil=True)
 def _successors(log_u_flat, shape, periodic):
     """Flat index of the steepest strictly-higher face neighbour of every node
-    (same rule and tie order as the walk), -1 where there is none."""
-    n = log_u_flat.size
-    ndim = shape.size
-    strides = np.ones(ndim, np.int64)
-    for a in range(ndim - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
-    succ = np.full(n, -1, np.int64)
-    for f in range(n):
-        best = log_u_flat[f]
-        if not best > -np.inf:
-            continue
-        for a in range(ndim):
-            c = (f // strides[a]) % shape[a]
-            for step in (-1, 1):
-                nc = c + step
-                if nc < 0:
-                    if not periodic[a]:
-                        continue
-                    nc = shape[a] - 1
-                elif nc >= shape[a]:
-                    if not periodic[a]:
-                        continue
-                    nc = 0
-                g = f + (nc - c) * strides[a]
-                if log_u_flat[g] > best:
-                    best = log_u_flat[g]
-                    succ[f] = g
+    (the walk's rule and tie order), -1 where there is none."""
+    strides = _strides(shape)
+    succ = np.full(log_u_flat.size, -1, np.int64)
+    for f in range(log_u_flat.size):
+        if log_u_flat[f] > -np.inf:
+            succ[f] = _steepest_neighbour(log_u_flat, f, shape, strides, periodic)
     return succ
 
 
