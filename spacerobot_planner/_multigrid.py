@@ -29,7 +29,6 @@ stands for "no neighbour".  Neighbour indices are level-local.
 """
 from __future__ import annotations
 
-import math
 
 import numba as nb
 import numpy as np

@@ -26,12 +26,11 @@ import threading
 import time
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
+from . import node_main
 from . import ros_conversions as conv
 from .config import PARAMETERS, load_params_file, scenario_from_params
 
@@ -138,23 +137,7 @@ class MockArmNode(Node):
 
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner mock_arm_node``."""
-    try:
-        with rclpy.init(args=args):
-            try:
-                node = MockArmNode()
-            except ValueError as e:
-                print(f"mock_arm_node: {e}")
-                return 1
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            try:
-                executor.spin()
-            finally:
-                executor.shutdown()
-                node.destroy_node()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    return 0
+    return node_main.run_node(MockArmNode, "mock_arm_node", args)
 
 
 if __name__ == "__main__":

@@ -37,13 +37,11 @@ import traceback
 from dataclasses import dataclass, replace
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, HistoryPolicy
@@ -52,6 +50,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
+from . import node_main
 from . import ros_conversions as conv
 from .config import NODE_NAME, PARAMETERS, check_value, scenario_from_params
 from .scene import Target
@@ -826,32 +825,14 @@ def spin_until_shutdown(node: PlannerNode, executor) -> None:
     """Spin ``node`` until Ctrl-C or its context shuts down, then stop the worker and
     the planning process (a plan in progress is abandoned) and destroy the node.
 
-    ``main`` in a function of its own, so tests can run the same shutdown path.
+    ``main``'s own shutdown path, in a function of its own so tests can run it.
     """
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.shutdown_worker()
-        executor.shutdown()
-        node.destroy_node()
+    node_main.spin_until_shutdown(node, executor, node.shutdown_worker)
 
 
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner planner_node --ros-args --params-file ...``."""
-    try:
-        with rclpy.init(args=args):
-            try:
-                node = PlannerNode()
-            except ValueError as e:
-                print(f"planner_node: {e}")
-                return 1
-            spin_until_shutdown(node, SingleThreadedExecutor())
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    return 0
+    return node_main.run_node(PlannerNode, "planner_node", args, PlannerNode.shutdown_worker)
 
 
 if __name__ == "__main__":
