@@ -1,4 +1,5 @@
 """Tests of spacerobot_planner.field (harmonic field solvers)."""
+import dataclasses
 import math
 import os
 import sys
@@ -10,6 +11,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 import mazes  # noqa: E402
 
 from spacerobot_planner import field as F  # noqa: E402
+from spacerobot_planner.config import load_scenario  # noqa: E402
+from spacerobot_planner.cspace import build_cspace  # noqa: E402
 from spacerobot_planner.descent import descend, reaches_goal_mask  # noqa: E402
 
 
@@ -126,7 +129,6 @@ def test_maze_721_log_harmonic_reaches_goal_where_paper_form_is_flat():
     # paper's Phi form is exactly flat there at any number of sweeps
     assert f.log_u[start] < math.log(2.0 ** -53)
     paper = F.solve_field(occ, per, [goal], solver="gauss_seidel", max_sweeps=300)
-    assert F.gauss_seidel_phi is not None
     assert paper.potential()[start] == np.inf          # Phi == Phi0 exactly
     bad = descend(paper, start)
     assert not bad.reached and "flat" in bad.reason
@@ -163,18 +165,13 @@ def test_every_solver_returns_consistent_field(solver):
     assert f.log_u[goal] == 0.0 and np.all(f.log_u[occ] == -np.inf)
     assert np.all(f.potential()[occ] == np.inf) and f.potential()[goal] == 0.0
     assert f.sweeps > 0 and f.seconds > 0 and f.converged
-    with pytest.raises(Exception):
-        f.sweeps = 3                                   # frozen
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        f.sweeps = 3
 
 
 def test_log_harmonic_converges_on_paper_2dof_scene():
     """The paper's 2-DOF C-space has pockets with u ~ 1e-17..1e-20 where
     over-relaxation alone keeps oscillating; the GS phase must converge them."""
-    try:
-        from spacerobot_planner.config import load_scenario
-        from spacerobot_planner.cspace import build_cspace
-    except ImportError as e:  # pragma: no cover - the C-space module is written next door
-        pytest.skip(f"no C-space module: {e}")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     sc = load_scenario(os.path.join(root, "config", "paper_2dof.yaml"))
     cs = build_cspace(sc.robot, sc.scene, sc.grid_with_cells(180))
@@ -246,6 +243,6 @@ def test_log_harmonic_multigrid_route_on_a_maze_gives_the_sor_route_field():
     _assert_no_local_max(a)
     r = b.reachable
     assert np.array_equal(a.reachable, r)
-    assert a.log_u[r].min() < math.log(1e-300)                 # the deep part exists
+    assert a.log_u[r].min() < math.log(10.0) * -500           # the deep part: u ~ 1e-561
     assert np.max(np.abs(a.log_u[r] - b.log_u[r]) / np.maximum(1.0, np.abs(b.log_u[r]))) < 1e-3
     assert descend(a, start).reached

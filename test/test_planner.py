@@ -131,8 +131,8 @@ def test_replan_with_new_start_reuses_cache(planner3, plan3, sc3):
     assert_valid_path(res, sc3)
     assert "field" in res.cached and "cspace" in res.cached
     assert res.cspace is plan3.cspace
-    assert res.timings_s["cspace"] == 0.0
-    assert res.timings_s["total"] < 0.5 * plan3.timings_s["total"] + 0.05
+    assert res.timings_s["cspace"] == 0.0 and res.timings_s["field"] == 0.0
+    assert res.field is plan3.field
 
 
 def test_set_scene_keeps_cache_only_for_same_geometry(sc3):
@@ -224,7 +224,7 @@ def test_grid_budget_refused_before_allocating(sc3):
     big = replace(sc3, grid=sc3.grid_with_cells(400))          # 400 × 401 × 401 nodes
     res = Planner(big, max_grid_nodes=4_000_000).plan(sc3.start_rad, sc3.goal_rad)
     assert res.code == "invalid_input" and "grid.cells" in res.reason and "4,000,000" in res.reason
-    assert res.cspace is None and res.timings_s["total"] < 0.5
+    assert res.cspace is None and res.timings_s["cspace"] == 0.0
 
 
 # ------------------------------------------------------------------- cancel
@@ -255,7 +255,7 @@ def test_random_starts_always_verified(planner3, sc3):
     rng = np.random.default_rng(7)
     chk = CollisionChecker(sc3.robot, sc3.scene)
     lo, hi = sc3.robot.planned_lower_rad, sc3.robot.planned_upper_rad
-    done = 0
+    done = ok = 0
     while done < 12:
         q = rng.uniform(lo, hi)
         if not chk.is_free(q):
@@ -264,7 +264,9 @@ def test_random_starts_always_verified(planner3, sc3):
         assert res.code in ("ok", "disconnected", "path_invalid"), res.reason
         if res.ok:
             assert_valid_path(res, sc3)
+            ok += 1
         done += 1
+    assert ok >= 6                          # the check above really ran
 
 
 def test_repair_without_grid_margin(sc3):
@@ -287,5 +289,8 @@ def test_repair_without_grid_margin(sc3):
     assert max(r.solver_stats.get("repairs", 0) for r in results) > 0     # repair was exercised
 
 
-def test_codes_are_documented(plan3):
-    assert plan3.code in CODES
+@pytest.mark.parametrize("code", CODES)
+def test_codes_are_documented(code):
+    readme = (CONFIG.parent / "README.md").read_text()
+    assert f"`{code}`" in readme, f"README does not explain the result code {code!r}"
+

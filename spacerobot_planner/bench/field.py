@@ -150,7 +150,11 @@ def main(argv=None) -> int:
             rec = {"stage": "field", "grid": grid, "solver": label, "seconds": f.seconds,
                    "baseline_seconds": baseline.seconds, "ratio": baseline.seconds / f.seconds,
                    "sweeps": f.sweeps, "converged": bool(f.converged), "residual": f.residual,
-                   "descent_ok_fraction": float(ok), "scene": source}
+                   "descent_ok_fraction": float(ok),
+                   # share of goal-connected nodes with u < 1e-5: those log_harmonic settles
+                   # in log space after its multigrid phase
+                   "tiny_u_fraction": float((f.log_u[connected] < np.log(F.MG_SETTLE_BELOW)).mean()),
+                   "scene": source}
             if notes:
                 rec["note"] = "; ".join(notes)
             records.append(rec)
