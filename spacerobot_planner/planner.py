@@ -33,7 +33,7 @@ import numpy as np
 
 from .collision import CollisionChecker
 from .config import Scenario
-from .cspace import CSpace, GridSpec, build_cspace
+from .cspace import CSpace, GridSpec, body_occupancy, build_cspace
 from .descent import descend
 from .field import DEFAULT_SOLVER, SOLVERS, Field, bfs_distance, solve_field
 from .field import warm_up as field_warm_up
@@ -152,8 +152,9 @@ def _deg(q) -> str:
 class Planner:
     """Harmonic-potential planner with cached C-space and field.
 
-    Caches: C-space keyed on (robot, scene geometry + margin, grid); field keyed on
-    (C-space, goal nodes, solver, tolerance).
+    Caches: C-space keyed on (scene geometry + margin, grid); field keyed on (that
+    C-space key, goal nodes, solver, tolerance), evicted with its C-space; the
+    spacecraft-body table keyed on (grid, margin), kept across target moves.
 
     Args:
         scenario: robot, scene and grid (``config.Scenario``).
@@ -182,8 +183,9 @@ class Planner:
         self.verify_step_rad = float(verify_step_rad)
         self.max_repairs = int(max_repairs)
         self._lock = threading.Lock()
-        self._cspaces: dict = {}
-        self._fields: dict = {}
+        self._cspaces: dict = {}         # (scene geometry, grid, extra margin) -> CSpace
+        self._fields: dict = {}          # (C-space key, goal nodes, solver, tol) -> _FieldEntry
+        self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self.set_solver(solver, field_tolerance)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
 
@@ -243,19 +245,34 @@ class Planner:
 
     # ------------------------------------------------------------------ caches
     def _cspace(self, grid: GridSpec):
+        """(C-space, its cache key, cache hit) for the current scene on ``grid``.
+
+        The spacecraft-body table (``cspace.body_occupancy``) depends on the grid and
+        the margin only, so it is kept across target and debris moves as well.
+        """
         sc = self.scenario
-        key = (id(sc.robot), _scene_geometry_key(sc.scene), grid, self.grid_extra_margin_m)
+        margin = float(sc.scene.safety_margin_m + self.grid_extra_margin_m)
+        key = (_scene_geometry_key(sc.scene), grid, self.grid_extra_margin_m)
         cs = self._cspaces.get(key)
         if cs is not None:
-            return cs, True
-        cs = build_cspace(sc.robot, sc.scene, grid, extra_margin_m=self.grid_extra_margin_m)
+            return cs, key, True
+        body_key = (grid, margin)
+        if body_key not in self._body_tables:
+            if len(self._body_tables) >= 4:
+                self._body_tables.pop(next(iter(self._body_tables)))
+            self._body_tables[body_key] = body_occupancy(sc.robot, grid, margin)
+        cs = build_cspace(sc.robot, sc.scene, grid, extra_margin_m=self.grid_extra_margin_m,
+                          body_table=self._body_tables[body_key])
         if len(self._cspaces) >= 4:
-            self._cspaces.pop(next(iter(self._cspaces)))
+            evicted = next(iter(self._cspaces))
+            del self._cspaces[evicted]
+            for k in [k for k in self._fields if k[0] == evicted]:     # its fields go with it
+                del self._fields[k]
         self._cspaces[key] = cs
-        return cs, False
+        return cs, key, False
 
-    def _field_key(self, cs, goal_nodes):
-        return (id(cs), tuple(map(tuple, goal_nodes)), self.solver, self.field_tolerance)
+    def _field_key(self, cspace_key, goal_nodes):
+        return (cspace_key, tuple(map(tuple, goal_nodes)), self.solver, self.field_tolerance)
 
     def _solve(self, cs, goal_nodes, blocked):
         occ = cs.occupied
@@ -403,7 +420,7 @@ class _PlanRun:
         self.check_cancel()
         # ---- C-space
         t = time.perf_counter()
-        self.cs, hit = p._cspace(grid)
+        self.cs, cs_key, hit = p._cspace(grid)
         if hit:
             self.cached.append("cspace")
         else:
@@ -421,7 +438,7 @@ class _PlanRun:
                         "try a finer grid")
         goal_nodes = np.array(goal_nodes[:4])
         # ---- field (cached per goal nodes) + descent + repair
-        key = p._field_key(self.cs, goal_nodes)
+        key = p._field_key(cs_key, goal_nodes)
         entry = p._fields.get(key)
         if entry is not None:
             self.cached.append("field")

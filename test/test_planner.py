@@ -9,6 +9,7 @@ import pytest
 
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
+from spacerobot_planner.cspace import build_cspace
 from spacerobot_planner.planner import CODES, STAGES, Planner
 from spacerobot_planner.scene import Target
 
@@ -144,6 +145,27 @@ def test_set_scene_keeps_cache_only_for_same_geometry(sc3):
     pl.set_scene(sc3.scene.with_margin(0.03))
     moved = pl.plan(sc3.start_rad, sc3.goal_rad)
     assert moved.cspace is not first.cspace and "cspace" not in moved.cached
+
+
+def test_target_move_rebuilds_cspace_on_the_kept_body_table(sc3):
+    """A moved target rebuilds the C-space, reusing the spacecraft-body table, and the
+    result equals a build from scratch; fields go with their evicted C-space."""
+    pl = Planner(sc3)
+    pl.plan(sc3.start_rad, sc3.goal_rad)
+    tables = dict(pl._body_tables)
+    moved_scene = sc3.scene.with_target(Target(center_m=(-3.22, -2.65)))
+    pl.set_scene(moved_scene)
+    res = pl.plan(sc3.start_rad, None)
+    assert res.ok and "cspace" not in res.cached
+    assert pl._body_tables.keys() == tables.keys()
+    assert all(pl._body_tables[k] is tables[k] for k in tables)
+    fresh = build_cspace(sc3.robot, moved_scene, sc3.grid, extra_margin_m=pl.grid_extra_margin_m)
+    assert np.array_equal(res.cspace.occupied, fresh.occupied)
+    for cells in (12, 14, 16, 18, 20):                      # five more grids: evictions
+        pl.set_grid(sc3.grid_with_cells(cells))
+        pl.plan(sc3.start_rad, sc3.goal_rad)
+    assert len(pl._cspaces) == 4
+    assert {k[0] for k in pl._fields} <= set(pl._cspaces)
 
 
 def test_set_solver_rejects_unknown(planner3):
