@@ -311,7 +311,7 @@ def solve(nbr, n_goal, coords, shape, tol=1e-12, max_iter=500, sweeps=1, boost=1
     ``sweeps`` Gauss-Seidel sweeps before and after each coarse correction,
     scaled by ``boost``.
 
-    Returns ``(u, iterations, residual, levels)``: u float64 (N,) with 1 at the
+    Returns ``(u, iterations, residual)``: u float64 (N,) with 1 at the
     goal nodes (values of the linear solve: may be ~tol-sized negatives where
     the true potential is tinier than that).
     """
@@ -319,7 +319,7 @@ def solve(nbr, n_goal, coords, shape, tol=1e-12, max_iter=500, sweeps=1, boost=1
     n_all, deg = nbr.shape
     n = n_all - n_goal
     if n == 0:
-        return np.ones(n_all), 0, 0.0, 0
+        return np.ones(n_all), 0, 0.0
     fine = nbr[n_goal:].astype(np.int64) - n_goal
     is_goal = fine < 0
     fine[is_goal | (fine >= n)] = n
@@ -331,4 +331,4 @@ def solve(nbr, n_goal, coords, shape, tol=1e-12, max_iter=500, sweeps=1, boost=1
                    float(tol), int(max_iter), int(sweeps), float(boost))
     out = np.ones(n_all)
     out[n_goal:] = u[h.fine_of_input]
-    return out, int(it), float(res), h.levels
+    return out, int(it), float(res)

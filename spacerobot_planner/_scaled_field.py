@@ -176,9 +176,7 @@ def prepare(nbr, n_goal, lb_s, parity, s0=None):
     lb_full = np.empty(n + 1)
     lb_full[:n] = lb_s
     lb_full[n] = 0.0
-    w_dummy_fix = w.copy()
-    _refresh(w_dummy_fix, s, coef, lbw, scale, nbr, lb_full, 1.0 / deg)
-    s[n] = 0.0
+    _refresh(w, s, coef, lbw, scale, nbr, lb_full, 1.0 / deg)    # w = 1: sets coef, lbw, scale
     members, starts = colour_classes(nbr, n_goal, parity)
     return w, s, coef, lbw, scale, lb_full, members, starts
 

@@ -192,20 +192,6 @@ def links_hit_body(pts, checked, body_w, margin_m):
 
 
 @njit(cache=True, nogil=True)
-def config_collides(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres,
-                    obs_radii, margin_m, pts, body_w):
-    """True when a checked link comes within margin_m of the body or an obstacle.
-
-    ``pts`` ((n+1)×2) and ``body_w`` (k×2) are scratch arrays.
-    """
-    _link_points(q_full, lengths, pts)
-    _rotate_body(body, q_full[0], body_w)
-    if links_hit_body(pts, checked, body_w, margin_m):
-        return True
-    return links_hit_polygons(pts, checked, obs_verts, obs_starts, obs_centres, obs_radii, margin_m)
-
-
-@njit(cache=True, nogil=True)
 def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, pts, body_w):
     """Smallest distance (m) from a checked link to the body or any obstacle."""
     _link_points(q_full, lengths, pts)

@@ -133,11 +133,6 @@ def descend(field: Field, start_node) -> GridPath:
     return GridPath(nodes, False, m - 1, f"step limit {log_u.size} reached at node {last}")
 
 
-def descent_success(field: Field, start_nodes) -> np.ndarray:
-    """Bool per start node (array (k, ndim)): does :func:`descend` reach the goal?"""
-    return np.array([descend(field, s).reached for s in np.asarray(start_nodes)], dtype=bool)
-
-
 @nb.njit(cache=True, nogil=True)
 def _successors(log_u_flat, shape, periodic):
     """Flat index of the steepest strictly-higher face neighbour of every node

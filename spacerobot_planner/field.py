@@ -303,11 +303,16 @@ def gauss_seidel(occupied, periodic, goal_nodes, phi0=1.0, tol=1e-6, max_sweeps=
     t0 = time.perf_counter()
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
     phi, sweeps, change = gauss_seidel_phi(occ, per, goals, phi0, tol, max_sweeps)
+    return _linear_field(1.0 - phi / float(phi0), occ, per, goals, "gauss_seidel", sweeps, change,
+                         change < tol, t0)
+
+
+def _linear_field(u, occ, per, goals, solver, sweeps, residual, converged, t0) -> Field:
+    """A Field from the flipped linear potential u (log u; -inf where u <= 0 and at obstacles)."""
     with np.errstate(divide="ignore"):
-        log_u = np.log(np.maximum(1.0 - phi / float(phi0), 0.0))
+        log_u = np.log(np.maximum(u, 0.0))
     log_u[occ] = -np.inf
-    return Field(log_u, occ, per, goals, "gauss_seidel", sweeps, change, change < tol,
-                 time.perf_counter() - t0)
+    return Field(log_u, occ, per, goals, solver, sweeps, residual, bool(converged), time.perf_counter() - t0)
 
 
 # --------------------------------------------------------------------------
@@ -463,10 +468,7 @@ def sor(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, omega=None
     t0 = time.perf_counter()
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
     u, sweeps, change = sor_u(occ, per, goals, tol, max_sweeps, omega)
-    with np.errstate(divide="ignore"):
-        log_u = np.log(np.maximum(u, 0.0))
-    log_u[occ] = -np.inf
-    return Field(log_u, occ, per, goals, "sor", sweeps, change, change < tol, time.perf_counter() - t0)
+    return _linear_field(u, occ, per, goals, "sor", sweeps, change, change < tol, t0)
 
 
 def multigrid_u(occupied, periodic, goal_nodes, tol=1e-12, max_iter=500):
@@ -478,12 +480,8 @@ def multigrid_u(occupied, periodic, goal_nodes, tol=1e-12, max_iter=500):
     iterations, residual)``; u float64 array of the grid shape.
     """
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
-    dist, order, gnbr, _ = _graph(occ, per, goals)
-    n_goal = int(np.count_nonzero(dist[order] == 0))
-    order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
-    coords = np.stack(np.unravel_index(order, occ.shape), axis=1)
-    u_nodes, its, res, _ = _mg.solve(_neighbour_table(order, gnbr), n_goal, coords, occ.shape,
-                                     tol=tol, max_iter=max_iter)
+    order, nbr, coords, _ = _grid_ordered_graph(occ, per, goals)
+    u_nodes, its, res = _mg.solve(nbr, len(goals), coords, occ.shape, tol=tol, max_iter=max_iter)
     u = np.zeros(occ.size)
     u[order] = u_nodes
     return u.reshape(occ.shape), int(its), float(res)
@@ -497,10 +495,7 @@ def multigrid(occupied, periodic, goal_nodes, tol=1e-12, max_sweeps=500) -> Fiel
     t0 = time.perf_counter()
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
     u, its, res = multigrid_u(occ, per, goals, tol, max_sweeps)
-    with np.errstate(divide="ignore"):
-        log_u = np.log(np.maximum(u, 0.0))
-    log_u[occ] = -np.inf
-    return Field(log_u, occ, per, goals, "multigrid", its, res, res < tol, time.perf_counter() - t0)
+    return _linear_field(u, occ, per, goals, "multigrid", its, res, res < tol, t0)
 
 
 # --------------------------------------------------------------------------
@@ -595,11 +590,23 @@ def _neighbour_table(order, gnbr):
 
 
 def _graph(occ, per, goals):
-    """(dist, order, gnbr, goal_flat) of a validated problem: BFS from the goal."""
+    """(dist, order, gnbr) of a validated problem: BFS from the goal nodes (which
+    come first in ``order``; ``validate_problem`` made them distinct and free)."""
     gnbr = _grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
     dist, order = _bfs(occ.ravel(), gnbr, goal_flat)
-    return dist, order, gnbr, goal_flat
+    return dist, order, gnbr
+
+
+def _grid_ordered_graph(occ, per, goals):
+    """The reachable nodes, goal nodes first, then the others in grid order (memory
+    locality): ``(order, nbr, coords, dist)`` with ``nbr`` from :func:`_neighbour_table`,
+    ``coords`` int (N, ndim) and ``dist`` the BFS distance of each, in that order."""
+    dist, order, gnbr = _graph(occ, per, goals)
+    n_goal = len(goals)
+    order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
+    coords = np.stack(np.unravel_index(order, occ.shape), axis=1)
+    return order, _neighbour_table(order, gnbr), coords, dist[order]
 
 
 def bfs_distance(occupied, periodic, goal_nodes) -> np.ndarray:
@@ -628,13 +635,13 @@ def _p2(k, p2):
 
 
 @nb.njit(cache=True, nogil=True)
-def _log_ssor(mant, expo, nbr, n_goal, lb_expo, omega, tol, max_passes, p2):
-    """Symmetric SOR on u_i = mant_i * 2**expo_i over the node graph.
+def _log_sgs(mant, expo, nbr, n_goal, lb_expo, tol, max_passes, p2):
+    """Symmetric Gauss-Seidel on u_i = mant_i * 2**expo_i over the node graph.
 
     Nodes ``0..n_goal-1`` are goal nodes (u = 1, fixed), ``n_goal..n-1`` the
     other reachable nodes in BFS order, node ``n`` a dummy (u = 0) standing
     for walls and obstacles.  Passes alternate forward / backward.  Each
-    update is the plain SOR update of u, evaluated in the scale 2**E of the
+    update sets u to the mean of its neighbours, evaluated in the scale 2**E of the
     largest neighbour so nothing over- or underflows; the result is clipped
     from below by the subharmonic lower bound 2**lb_expo (which the solution
     satisfies) and stored normalised (mantissa in [0.5, 1)).
@@ -665,14 +672,14 @@ def _log_ssor(mant, expo, nbr, n_goal, lb_expo, omega, tol, max_passes, p2):
                 s += mant[j] * _p2(expo[j] - big, p2)
             s *= inv_deg
             old = mant[i] * _p2(expo[i] - big, p2)
-            new = old + omega * (s - old)
+            new = s
             if new > 0.0 and new >= _p2(lb_expo[i] - big, p2):
                 rel = abs(new - old) / new
                 m, k = math.frexp(new)
                 mant[i] = m
                 expo[i] = big + k
             else:
-                # overshoot below the known lower bound: clip to it
+                # rounding below the known lower bound: clip to it
                 rel = 1.0
                 mant[i] = 0.5
                 expo[i] = lb_expo[i] + 1
@@ -693,13 +700,13 @@ def _scatter_log(mant, expo, order, n_flat):
     return out
 
 
-def _log_field(occ, per, goals, solver, omega, tol, max_sweeps):
-    """Symmetric SOR in BFS order on the node graph (omega = 1: log_gs)."""
+def _log_field(occ, per, goals, solver, tol, max_sweeps):
+    """Symmetric Gauss-Seidel in BFS order on the node graph (log_gs)."""
     t0 = time.perf_counter()
-    dist, order, gnbr, _ = _graph(occ, per, goals)
+    dist, order, gnbr = _graph(occ, per, goals)
     nbr = _neighbour_table(order, gnbr)
     n = order.size
-    n_goal = int(np.count_nonzero(dist[order] == 0))     # distinct goal nodes
+    n_goal = len(goals)
     bits = int(math.ceil(math.log2(2 * occ.ndim)))       # 2**bits >= 2n
     lb_expo = np.empty(n + 1, np.int64)
     lb_expo[:n] = -bits * dist[order]
@@ -707,7 +714,7 @@ def _log_field(occ, per, goals, solver, omega, tol, max_sweeps):
     mant = np.ones(n + 1)
     mant[n] = 0.0
     expo = lb_expo.copy()
-    passes, change = _log_ssor(mant, expo, nbr, n_goal, lb_expo, float(omega), float(tol),
+    passes, change = _log_sgs(mant, expo, nbr, n_goal, lb_expo, float(tol),
                                int(max_sweeps), _P2)
     converged = change < tol
     log_u = _scatter_log(mant, expo, order, occ.size).reshape(occ.shape)
@@ -813,14 +820,10 @@ def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, o
     if not 0.0 < omega < 2.0:
         raise ValueError(f"omega: must lie in (0, 2), got {omega}")
     use_mg = phase1 == "multigrid" or (phase1 == "auto" and (occ.ndim == 2 or occ.size >= MG_MIN_NODES_3D))
-    dist, order, gnbr, goal_flat = _graph(occ, per, goals)
-    # goal nodes first, then the other reachable nodes in grid order (memory locality)
-    n_goal = int(np.count_nonzero(dist[order] == 0))     # distinct goal nodes
-    order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
-    nbr = _neighbour_table(order, gnbr)
-    coords = np.stack(np.unravel_index(order, occ.shape), axis=1)
+    order, nbr, coords, dist = _grid_ordered_graph(occ, per, goals)
+    n_goal = len(goals)
     parity = (coords.sum(axis=1) % 2).astype(np.int64)
-    lb_s = -dist[order] * math.log(2 * occ.ndim)       # (2n)^-d, natural log
+    lb_s = -dist * math.log(2 * occ.ndim)              # (2n)^-d, natural log
     chunks = 16
     goal_mask = np.zeros(occ.shape, np.bool_)
     goal_mask[tuple(goals.T)] = True
@@ -839,7 +842,7 @@ def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, o
 
     sweeps = 0
     if use_mg:
-        u, sweeps, _, _ = _mg.solve(nbr, n_goal, coords, occ.shape, tol=min(MG_RESIDUAL_TOL, tol),
+        u, sweeps, _ = _mg.solve(nbr, n_goal, coords, occ.shape, tol=min(MG_RESIDUAL_TOL, tol),
                                     max_iter=max_sweeps)
         s0 = _extend_log_start(u, nbr, n_goal, lb_s, MG_RESOLVED_ABOVE, math.log(2 * occ.ndim))
         state = _sf.prepare(nbr, n_goal, lb_s, parity, s0=s0)
@@ -868,7 +871,7 @@ def log_harmonic(occupied, periodic, goal_nodes, tol=1e-6, max_sweeps=100_000, o
     log_u, more, valid = finish(state, change)
     sweeps += more
     if not valid:
-        fb = _log_field(occ, per, goals, "log_harmonic(fallback log_gs)", 1.0, rel_tol, max_sweeps)
+        fb = _log_field(occ, per, goals, "log_harmonic(fallback log_gs)", rel_tol, max_sweeps)
         return Field(fb.log_u, occ, per, goals, fb.solver, sweeps + fb.sweeps, fb.residual, fb.converged,
                      time.perf_counter() - t0)
     return Field(log_u, occ, per, goals, "log_harmonic", int(sweeps), float(change), bool(change < rel_tol),
@@ -879,7 +882,7 @@ def log_gs(occupied, periodic, goal_nodes, tol=1e-4, max_sweeps=1_000_000) -> Fi
     """Plain symmetric Gauss-Seidel on the underflow-free u from the BFS lower
     bound: every iterate is a valid ascent field (anytime)."""
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
-    return _log_field(occ, per, goals, "log_gs", 1.0, tol, max_sweeps)
+    return _log_field(occ, per, goals, "log_gs", tol, max_sweeps)
 
 
 # --------------------------------------------------------------------------
