@@ -51,17 +51,22 @@ def segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
     return False
 
 
-@njit(cache=True, nogil=True)
-def point_segment_distance(px, py, ax, ay, bx, by):
-    """Euclidean distance from point P to segment AB."""
+@njit(cache=True, nogil=True, inline="always")
+def _point_segment_dist2(px, py, ax, ay, bx, by):
+    """Squared distance from point P to segment AB."""
     ux, uy = bx - ax, by - ay
     den = ux * ux + uy * uy
     t = 0.0
     if den > 0.0:
-        t = ((px - ax) * ux + (py - ay) * uy) / den
-        t = min(1.0, max(0.0, t))
+        t = min(1.0, max(0.0, ((px - ax) * ux + (py - ay) * uy) / den))
     ex, ey = ax + t * ux - px, ay + t * uy - py
-    return np.sqrt(ex * ex + ey * ey)
+    return ex * ex + ey * ey
+
+
+@njit(cache=True, nogil=True)
+def point_segment_distance(px, py, ax, ay, bx, by):
+    """Euclidean distance from point P to segment AB."""
+    return np.sqrt(_point_segment_dist2(px, py, ax, ay, bx, by))
 
 
 @njit(cache=True, nogil=True)
@@ -69,10 +74,10 @@ def segment_segment_distance(ax, ay, bx, by, cx, cy, dx, dy):
     """Distance between segments AB and CD (0 when they intersect)."""
     if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
         return 0.0
-    return min(min(point_segment_distance(ax, ay, cx, cy, dx, dy),
-                   point_segment_distance(bx, by, cx, cy, dx, dy)),
-               min(point_segment_distance(cx, cy, ax, ay, bx, by),
-                   point_segment_distance(dx, dy, ax, ay, bx, by)))
+    return np.sqrt(min(min(_point_segment_dist2(ax, ay, cx, cy, dx, dy),
+                           _point_segment_dist2(bx, by, cx, cy, dx, dy)),
+                       min(_point_segment_dist2(cx, cy, ax, ay, bx, by),
+                           _point_segment_dist2(dx, dy, ax, ay, bx, by))))
 
 
 @njit(cache=True, nogil=True)
@@ -107,16 +112,6 @@ def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
         j = i
     return best
 
-
-@njit(cache=True, nogil=True, inline="always")
-def _point_segment_dist2(px, py, ax, ay, bx, by):
-    ux, uy = bx - ax, by - ay
-    den = ux * ux + uy * uy
-    t = 0.0
-    if den > 0.0:
-        t = min(1.0, max(0.0, ((px - ax) * ux + (py - ay) * uy) / den))
-    ex, ey = ax + t * ux - px, ay + t * uy - py
-    return ex * ex + ey * ey
 
 
 @njit(cache=True, nogil=True)

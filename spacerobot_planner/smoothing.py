@@ -223,11 +223,7 @@ def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
     m = len(p) - 1
     interval_ok = np.zeros(m, dtype=np.bool_)
     interval_clr = np.zeros(m)
-    key = "_lipschitz_m_per_rad"
-    lip = getattr(checker, key, None)
-    if lip is None:
-        lip = lipschitz_m_per_rad(robot)
-        setattr(checker, key, lip)
+    lip = lipschitz_m_per_rad(robot)
     n = _certify_kernel(p, np.asarray(robot.locked_rad, dtype=float),
                         np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
                         checker.checked, checker.body, checker.verts, checker.starts,
