@@ -43,7 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--cells", type=int, nargs="+", metavar="N",
                     help="grid cells per planned joint (one value for all, or one per joint)")
     ap.add_argument("--solver", help=f"field solver: {', '.join(SOLVERS)}")
-    ap.add_argument("--tolerance", type=float, help="field tolerance (planner.field_tolerance)")
+    ap.add_argument("--tolerance", type=float, help="gauss_seidel's tolerance (planner.field_tolerance)")
+    ap.add_argument("--field-budget", type=float, help="field budget, seconds (planner.field_budget_s)")
     ap.add_argument("--json", metavar="PATH", help="write the result as JSON ('-' for stdout)")
     ap.add_argument("--plot", metavar="PATH", help="write a PNG: C-space, potential, path, arm motion")
     ap.add_argument("--quiet", action="store_true", help="no stage lines")
@@ -100,6 +101,9 @@ def main(argv=None) -> int:
         tol = args.tolerance if args.tolerance is not None else params.get("planner.field_tolerance", 1e-6)
         tol = check_value("planner.field_tolerance", float(tol))
         budget = check_value("planner.max_grid_nodes", params.get("planner.max_grid_nodes", 4_000_000))
+        field_budget = args.field_budget if args.field_budget is not None else \
+            params.get("planner.field_budget_s", 2.0)
+        field_budget = check_value("planner.field_budget_s", float(field_budget))
 
         def posture(values, flag):
             if len(values) != robot.dof:
@@ -117,7 +121,8 @@ def main(argv=None) -> int:
             raise ValueError("--start-deg: no start given and the file has no scenario.start_deg")
         goal = posture(args.goal_deg, "--goal-deg") if args.goal_deg is not None else scenario.goal_rad
         from .planner import Planner
-        planner = Planner(scenario, solver=solver, field_tolerance=tol, max_grid_nodes=budget)
+        planner = Planner(scenario, solver=solver, field_tolerance=tol, max_grid_nodes=budget,
+                          field_budget_s=field_budget)
     except ValueError as e:
         return _fail_input(str(e))
     # ---- plan

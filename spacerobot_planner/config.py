@@ -90,9 +90,16 @@ PARAMETERS = (
               "Goal posture of the planned joints, degrees (CLI; the node plans to the target).", False),
     # ---- planner (field, path)
     ParamSpec("planner.solver", "string", "log_harmonic",
-              "Field solver: log_harmonic (default), log_gs, multigrid, sor, gauss_seidel (the paper's).", False),
+              "Field solver: log_harmonic (default; relative precision, no flat field) or "
+              "gauss_seidel (the paper's, for comparison).", False),
     ParamSpec("planner.field_tolerance", "double", 1e-6,
-              "Field convergence tolerance (relative change per sweep).", False, 1e-14, 1e-1),
+              "Stop of the gauss_seidel solver: largest change of the potential per sweep (the "
+              "paper's 1e-6). The log_harmonic route's precision is fixed (see spacerobot_planner.field).",
+              False, 1e-14, 1e-1),
+    ParamSpec("planner.field_budget_s", "double", 2.0,
+              "Wall-time budget of one field solve, seconds. When it ends first the field is still a "
+              "valid ascent field, less accurate where unsolved, and the result says converged: false.",
+              False, 1e-3, 600.0),
     ParamSpec("planner.max_grid_nodes", "integer", 4_000_000,
               "Refuse grids with more nodes than this (memory budget), before allocating.",
               False, 4, 200_000_000),

@@ -35,7 +35,7 @@ from .collision import CollisionChecker
 from .config import Scenario
 from .cspace import CSpace, GridSpec, body_occupancy, build_cspace
 from .descent import descend
-from .field import DEFAULT_SOLVER, SOLVERS, Field, bfs_distance, solve_field
+from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS, Field, bfs_distance, solve_field
 from .field import warm_up as field_warm_up
 from .ik import grasp_ik
 from .scene import Scene
@@ -159,7 +159,8 @@ class Planner:
     Args:
         scenario: robot, scene and grid (``config.Scenario``).
         solver: field solver name (``field.SOLVERS``).
-        field_tolerance: the solver's stopping tolerance.
+        field_tolerance: gauss_seidel's stopping tolerance (largest change per sweep).
+        field_budget_s: wall-time budget of one field solve (log_harmonic), seconds.
         max_grid_nodes: refuse larger grids (before allocating).
         grid_extra_margin_m: added to the safety margin for the grid only.
         shortcut: try a shortcut spline before the paper's every-second-node spline.
@@ -171,7 +172,8 @@ class Planner:
     """
 
     def __init__(self, scenario: Scenario, solver: str = DEFAULT_SOLVER, field_tolerance: float = 1e-6,
-                 max_grid_nodes: int = 4_000_000, *, grid_extra_margin_m: float = 0.02,
+                 max_grid_nodes: int = 4_000_000, *, field_budget_s: float = DEFAULT_BUDGET_S,
+                 grid_extra_margin_m: float = 0.02,
                  shortcut: bool = True, shortcut_keep_clearance_m: float = 0.05, max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                  verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD, max_repairs: int = 30):
         self.scenario = scenario
@@ -186,7 +188,7 @@ class Planner:
         self._cspaces: dict = {}         # (scene geometry, grid, extra margin) -> CSpace
         self._fields: dict = {}          # (C-space key, goal nodes, solver, tol) -> _FieldEntry
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
-        self.set_solver(solver, field_tolerance)
+        self.set_solver(solver, field_tolerance, field_budget_s)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
 
     # --------------------------------------------------------------- settings
@@ -208,13 +210,22 @@ class Planner:
             from dataclasses import replace
             self.scenario = replace(self.scenario, grid=grid)
 
-    def set_solver(self, solver: str, field_tolerance: float) -> None:
-        """Choose the field solver; ValueError for unknown names or a bad tolerance."""
-        if solver not in SOLVERS:
+    def set_solver(self, solver: str, field_tolerance: float, field_budget_s: float | None = None) -> None:
+        """Choose the field solver; ValueError for unknown names, a bad tolerance or budget.
+
+        ``field_budget_s`` None keeps the current budget.
+        """
+        if solver not in SOLVERS + INTERNAL_SOLVERS:
             raise ValueError(f"planner.solver: unknown solver {solver!r}; expected one of {list(SOLVERS)}")
         tol = float(field_tolerance)
         if not (math.isfinite(tol) and tol > 0.0):
             raise ValueError(f"planner.field_tolerance: must be a positive number, got {field_tolerance!r}")
+        if field_budget_s is not None:
+            budget = float(field_budget_s)
+            if not (math.isfinite(budget) and budget > 0.0):
+                raise ValueError(f"planner.field_budget_s: must be a positive number of seconds, "
+                                 f"got {field_budget_s!r}")
+            self.field_budget_s = budget
         self.solver = solver
         self.field_tolerance = tol
 
@@ -272,7 +283,8 @@ class Planner:
         return cs, key, False
 
     def _field_key(self, cspace_key, goal_nodes):
-        return (cspace_key, tuple(map(tuple, goal_nodes)), self.solver, self.field_tolerance)
+        return (cspace_key, tuple(map(tuple, goal_nodes)), self.solver, self.field_tolerance,
+                self.field_budget_s)
 
     def _solve(self, cs, goal_nodes, blocked):
         occ = cs.occupied
@@ -280,7 +292,7 @@ class Planner:
             occ = occ.copy()
             occ[tuple(np.array(sorted(blocked)).T)] = True
         return solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=self.solver,
-                           tol=self.field_tolerance)
+                           tol=self.field_tolerance, budget_s=self.field_budget_s)
 
     # ------------------------------------------------------------------- plan
     def plan(self, start_rad, goal_rad=None, cancel: threading.Event | None = None,
@@ -451,15 +463,17 @@ class _PlanRun:
             if len(p._fields) >= 8:
                 p._fields.pop(next(iter(p._fields)))
             p._fields[key] = entry
-            self.say(f"field ({entry.field.solver}): {1e3 * self.timings['field']:.1f} ms, "
-                     f"{entry.field.sweeps} sweeps, residual {entry.field.residual:.2e}")
+            fld = entry.field
+            self.say(f"field ({fld.solver}): {1e3 * self.timings['field']:.1f} ms, {fld.sweeps} "
+                     f"{'sweeps' if fld.solver == 'gauss_seidel' else 'iterations'}, residual "
+                     f"{fld.residual:.2e}" + ("" if fld.converged else f"; NOT converged: {fld.left}"))
         self.field = entry.field
         waypoints = self.descend_and_repair(entry, goal_nodes, key)
         self.field = entry.field
         f = entry.field
         self.stats = {"sweeps": int(f.sweeps), "residual": float(f.residual),
-                      "converged": bool(f.converged), "repairs": int(entry.repairs),
-                      "blocked_nodes": len(entry.blocked)}
+                      "converged": bool(f.converged), "left": f.left, **f.stats,
+                      "repairs": int(entry.repairs), "blocked_nodes": len(entry.blocked)}
         # ---- smoothing + verify
         self.check_cancel()
         t = time.perf_counter()

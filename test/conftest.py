@@ -39,3 +39,18 @@ def graph():
     yield make
     for g in made:
         g.close()
+
+
+#: The repository's config/ folder (tests never depend on the working directory).
+CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config")
+
+
+@pytest.fixture(scope="session")
+def paper_scenario():
+    """paper_scenario(dof) → the paper's 2-DOF or 3-DOF ``Scenario`` (config/paper_<dof>dof.yaml)."""
+    from spacerobot_planner.config import load_scenario
+
+    def get(dof: int):
+        return load_scenario(os.path.join(CONFIG_DIR, f"paper_{dof}dof.yaml"))
+
+    return get

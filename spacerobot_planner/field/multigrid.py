@@ -1,40 +1,35 @@
-"""Aggregation multigrid for the flipped harmonic potential u on the node graph.
+"""Aggregation multigrid for one Dirichlet problem of the harmonic field, on its node graph.
 
-The linear problem is the one ``sor`` solves: on the reachable non-goal nodes
-(the unknowns), ``2n u_i - sum_j u_j = (number of goal neighbours of i)``, with
-obstacles, walls and unreachable nodes at u = 0 and goal nodes at u = 1.  The
-matrix A (diagonal 2n, -1 per unknown neighbour) is symmetric positive definite.
+The linear problem: on n unknowns (graph nodes), ``deg·x_i − Σ_j x_j = b_i`` where the sum
+runs over the unknown face neighbours of i (deg = 2·ndim) and ``b_i`` holds the known
+neighbour values (the goal, or nodes solved before); walls, obstacles and unreachable
+nodes are 0.  The matrix is symmetric positive definite (every unknown connects to a
+known node).
 
-Coarse levels aggregate the unknowns by index blocks: node (i, j[, k]) joins
-the aggregate (i // 2, j // 2[, k // 2]) of the next level.  With piecewise
-constant prolongation P, the coarse operator Pᵀ A P is again a face-neighbour
-operator (one weight per direction, plus a diagonal), so every level is stored
-like the fine one: a neighbour table, weights, a diagonal.  Blocks follow the
-grid's periodic wrap, so the attitude seam needs nothing special.  The coarsest
-level (at most ``COARSEST_NODES`` unknowns) is solved by a dense Cholesky
-factor.
+Coarse levels aggregate the unknowns by index blocks: node (i, j, …) joins aggregate
+(i // 2, j // 2, …) of the next level, in any dimension.  With piecewise constant
+prolongation P the coarse operator Pᵀ A P is again a face-neighbour operator (a weight per
+direction and a diagonal), so every level is stored like the fine one.  Blocks follow the
+grid's periodic wrap, so the attitude seam needs nothing special.  The coarsest level (at
+most ``COARSEST_NODES`` unknowns) is solved by a dense Cholesky factor.
 
-One preconditioner application is a symmetric V-cycle (forward Gauss–Seidel
-before the coarse correction, backward after; the correction scaled by
-``boost`` = 1.8, as plain aggregation under-corrects), used inside conjugate
-gradients: robust on any obstacle layout (the V-cycle alone converges slowly
-with plain aggregation; as a CG preconditioner it needs about two iterations
-per decade of residual on the paper's scenes: 24 at 181², 34 at 721² for 12
-decades).  Each level is renumbered red nodes first, then black, so a sweep
-has no chain of dependent updates.
+One preconditioner application is a symmetric V-cycle (forward Gauss–Seidel before the
+coarse correction, backward after; the correction scaled by ``boost`` = 1.8, as plain
+aggregation under-corrects) inside conjugate gradients: about two iterations per decade
+of residual on the paper's scenes.  Each level is renumbered red nodes first, then black.
 
-Levels are packed into flat arrays: level l owns rows ``off[l] .. off[l] +
-size[l]`` plus one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that
-stands for "no neighbour".  Neighbour indices are level-local.
+Levels are packed into flat arrays: level l owns rows ``off[l] .. off[l] + size[l]`` plus
+one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that stands for "no neighbour".
 """
 from __future__ import annotations
 
+import time
 
 import numba as nb
 import numpy as np
 
 #: Stop coarsening at this many unknowns and solve that level directly.
-COARSEST_NODES = 300
+COARSEST_NODES = 100
 
 
 # --------------------------------------------------------------------------
@@ -238,8 +233,15 @@ def _vcycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps, boo
                 x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
 
 
+@nb.njit(cache=True)
+def _now():
+    with nb.objmode(t="float64"):
+        t = time.perf_counter()
+    return t
+
+
 @nb.njit(cache=True, nogil=True)
-def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost):
+def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
     """Preconditioned CG on the finest level, from the initial guess ``u``.
 
     rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
@@ -272,6 +274,8 @@ def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, 
         rz += r[i] * xs[i]
     it = 0
     while it < max_iter:
+        if deadline > 0.0 and _now() > deadline:
+            break
         it += 1
         pq = 0.0
         for i in range(n):
@@ -301,34 +305,25 @@ def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, 
     return it, res
 
 
-def solve(nbr, n_goal, coords, shape, tol=1e-12, max_iter=500, sweeps=1, boost=1.8):
-    """Solve the flipped harmonic problem on the node graph of reachable nodes.
+def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8):
+    """Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
-    nbr int (N, deg): positions of each reachable node's face neighbours in the
-    node order (goal nodes first, ``n_goal`` of them), N = none; coords int
-    (N, ndim): grid coordinates of the nodes; shape: grid shape.  ``tol`` is
-    the stop on the largest residual of ``2n u_i - sum u_j - (goal terms)``;
-    ``sweeps`` Gauss-Seidel sweeps before and after each coarse correction,
-    scaled by ``boost``.
+    nbr int (n, deg): each unknown's face neighbours among the unknowns, n = none (a wall,
+    an obstacle or a known node, whose value is in ``rhs``); coords int (n, ndim) grid
+    coordinates; shape: the grid shape; rhs float (n,).  Stops when the largest residual
+    is below ``tol``, after ``max_iter`` iterations or at ``deadline``
+    (``time.perf_counter()`` seconds, 0 = none).
 
-    Returns ``(u, iterations, residual)``: u float64 (N,) with 1 at the
-    goal nodes (values of the linear solve: may be ~tol-sized negatives where
-    the true potential is tinier than that).
+    Returns ``(x float64 (n,), iterations, largest residual)``.
     """
     nbr = np.asarray(nbr)
-    n_all, deg = nbr.shape
-    n = n_all - n_goal
+    n = nbr.shape[0]
     if n == 0:
-        return np.ones(n_all), 0, 0.0
-    fine = nbr[n_goal:].astype(np.int64) - n_goal
-    is_goal = fine < 0
-    fine[is_goal | (fine >= n)] = n
-    h = Hierarchy(fine, coords[n_goal:], shape)
-    rhs = np.zeros(n + 1)
-    rhs[h.fine_of_input] = is_goal.sum(axis=1)
-    u = np.zeros(n + 1)
-    it, res = _pcg(h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, rhs, u,
-                   float(tol), int(max_iter), int(sweeps), float(boost))
-    out = np.ones(n_all)
-    out[n_goal:] = u[h.fine_of_input]
-    return out, int(it), float(res)
+        return np.zeros(0), 0, 0.0
+    h = Hierarchy(nbr, coords, shape)
+    b = np.zeros(n + 1)
+    b[h.fine_of_input] = rhs
+    x = np.zeros(n + 1)
+    it, res = _pcg(h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
+                   float(tol), int(max_iter), int(sweeps), float(boost), float(deadline))
+    return x[h.fine_of_input], int(it), float(res)

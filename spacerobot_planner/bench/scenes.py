@@ -1,0 +1,172 @@
+"""Random scenes: ``python -m spacerobot_planner.bench scenes [--count N] [--seed S]``.
+
+Draws seeded random scenes of the property tests' family on the paper's robot: 0–6
+debris polygons (convex and star-shaped non-convex, 0.1–1.5 m across, centres 1.6–6 m
+from the spacecraft centre), a target satellite at a random pose within reach, a safety
+margin of 0, 0.02 or 0.05 m and a random collision-free start; 2-DOF at 181² with a
+random locked attitude, and 3-DOF at 36³.  The goal is the planner's own (the best free
+capture posture of the target), so some scenes end before the field (``goal_unreachable``,
+``goal_in_collision``): the code counts say how many.
+
+Each scene is planned once by a fresh planner after a JIT warm-up.  Prints per stage the
+median, p90, p99 and max over the scenes that ran the stage, max/median, the counts of
+result codes, and, on a subset of the planned scenes (``--oracle N``), the path length
+and clearance against the same pipeline on the oracle field (``field.oracle_field``:
+relative precision 1e-6 everywhere).  One JSON object per line::
+
+    {"stage": "field", "grid": "181x181", "dof": 2, "median_s": ..., "p90_s": ...,
+     "p99_s": ..., "max_s": ..., "max_over_median": ..., "count": ...}
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..collision import CollisionChecker
+from ..config import load_scenario
+from ..planner import STAGES, Planner
+from ..robot import PlanarArm
+from ..scene import Scene, Target
+
+CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
+CELLS = {2: 180, 3: 36}
+MARGINS_M = (0.0, 0.02, 0.05)
+
+
+def random_polygon(rng) -> np.ndarray:
+    """One debris polygon (k×2, metres): convex, or star-shaped and non-convex."""
+    size = rng.uniform(0.1, 1.5)
+    k = int(rng.integers(3, 9))
+    convex = bool(rng.integers(0, 2)) or k < 5
+    angles = np.sort(rng.uniform(0.0, 2 * math.pi, k))
+    if np.min(np.diff(np.r_[angles, angles[0] + 2 * math.pi])) < 0.05:
+        angles = np.linspace(0.0, 2 * math.pi, k, endpoint=False) + angles[0]
+    radius = 0.5 * size * (np.ones(k) if convex
+                           else np.where(np.arange(k) % 2 == 0, 1.0, rng.uniform(0.3, 0.7)))
+    r_c, a_c = rng.uniform(1.6, 6.0), rng.uniform(-math.pi, math.pi)
+    centre = r_c * np.array([math.cos(a_c), math.sin(a_c)])
+    return centre + np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
+
+
+def random_scenario(rng, dof: int):
+    """(scenario, start_rad or None): a random scene of the family above.
+
+    2-DOF: the paper's 2-DOF robot with the attitude locked at a uniform random angle.
+    The start is the first collision-free of 200 uniform samples (None if none is).
+    """
+    base = load_scenario(CONFIG / f"paper_{dof}dof.yaml")
+    robot = base.robot
+    if dof == 2:
+        locked = np.array(robot.locked_rad, dtype=float)
+        locked[0] = rng.uniform(-math.pi, math.pi)
+        robot = replace(robot, locked_rad=locked)
+    r, a, yaw = rng.uniform(2.5, 5.2), rng.uniform(-math.pi, math.pi), rng.uniform(-math.pi, math.pi)
+    scene = Scene(target=Target(center_m=(r * math.cos(a), r * math.sin(a)), yaw_rad=yaw),
+                  debris_m=tuple(random_polygon(rng) for _ in range(int(rng.integers(0, 7)))),
+                  safety_margin_m=float(rng.choice(MARGINS_M)))
+    sc = replace(base, robot=robot, scene=scene)
+    sc = replace(sc, grid=sc.grid_with_cells(CELLS[dof]))
+    q = rng.uniform(robot.planned_lower_rad, robot.planned_upper_rad, size=(200, dof))
+    ok = CollisionChecker(robot, scene).is_free(q)
+    return sc, (q[int(np.argmax(ok))] if ok.any() else None)
+
+
+def _stats(values_s) -> dict:
+    v = np.asarray(values_s, dtype=float)
+    med = float(np.median(v))
+    return {"count": int(v.size), "median_s": med, "p90_s": float(np.percentile(v, 90)),
+            "p99_s": float(np.percentile(v, 99)), "max_s": float(v.max()),
+            "max_over_median": float(v.max() / med) if med > 0 else math.nan}
+
+
+def _warm_up(dof: int) -> None:
+    sc = load_scenario(CONFIG / f"paper_{dof}dof.yaml")
+    sc = replace(sc, grid=sc.grid_with_cells(12 if dof == 3 else 30))
+    Planner(sc).plan(sc.start_rad, sc.goal_rad)
+
+
+def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict) -> list:
+    """Plan ``count`` random scenes; return the JSON rows (and print the table)."""
+    _warm_up(dof)
+    rng = np.random.default_rng([seed, dof])
+    per_stage = {k: [] for k in STAGES}
+    codes = Counter()
+    planned = []
+    grid_label = ""
+    for i in range(count):
+        sc, start = random_scenario(rng, dof)
+        grid_label = sc.grid.label()
+        if start is None:
+            codes["no_free_start"] += 1
+            continue
+        res = Planner(sc, **solver_kw).plan(start)
+        codes[res.code] += 1
+        for k in STAGES:
+            if res.timings_s.get(k, 0.0) > 0.0 or k == "total":
+                per_stage[k].append(res.timings_s[k])
+        if res.ok:
+            planned.append((i, sc, start, res))
+    rows = []
+    print(f"\nbench scenes: {dof}-DOF at {grid_label}, {count} scenes (seed {seed}); times in ms")
+    print(f"{'stage':>10} {'n':>5} {'median':>8} {'p90':>8} {'p99':>8} {'max':>8} {'max/med':>8}")
+    for k in STAGES:
+        if not per_stage[k]:
+            continue
+        st = _stats(per_stage[k])
+        print(f"{k:>10} {st['count']:>5} {1e3 * st['median_s']:8.2f} {1e3 * st['p90_s']:8.2f} "
+              f"{1e3 * st['p99_s']:8.2f} {1e3 * st['max_s']:8.2f} {st['max_over_median']:8.1f}")
+        rows.append({"stage": k, "grid": grid_label, "dof": dof, "seed": seed, **st})
+    print("codes: " + ", ".join(f"{c} {n}" for c, n in codes.most_common()))
+    rows.append({"stage": "codes", "grid": grid_label, "dof": dof, "seed": seed, "codes": dict(codes)})
+    rows += _oracle_rows(planned[:n_oracle], grid_label, dof, seed)
+    return rows
+
+
+def _oracle_rows(planned, grid_label, dof, seed) -> list:
+    """Path length and clearance of the planner against the same pipeline on the oracle field."""
+    if not planned:
+        return []
+    try:
+        from ..field import oracle_field   # noqa: F401  (the slow reference solve)
+    except ImportError:
+        return []
+    d_len, d_clr = [], []
+    for _, sc, start, res in planned:
+        ref = Planner(sc, solver="oracle").plan(start)
+        if not ref.ok:
+            continue
+        d_len.append(res.path_length_rad / ref.path_length_rad - 1.0)
+        d_clr.append(res.min_clearance_m / ref.min_clearance_m - 1.0 if ref.min_clearance_m > 0 else 0.0)
+    if not d_len:
+        return []
+    dl, dc = np.asarray(d_len), np.asarray(d_clr)
+    print(f"oracle ({len(dl)} scenes): path length ratio - 1: median {np.median(dl):+.4f}, "
+          f"max |.| {np.max(np.abs(dl)):.4f}; clearance ratio - 1: median {np.median(dc):+.4f}, "
+          f"max |.| {np.max(np.abs(dc)):.4f}")
+    return [{"stage": "oracle", "grid": grid_label, "dof": dof, "seed": seed, "count": int(dl.size),
+             "length_rel_median": float(np.median(dl)), "length_rel_max_abs": float(np.max(np.abs(dl))),
+             "clearance_rel_median": float(np.median(dc)),
+             "clearance_rel_max_abs": float(np.max(np.abs(dc)))}]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="bench scenes", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--count", type=int, default=200, help="scenes per DOF (default 200)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--dof", default="2,3", help="comma list of 2 and/or 3")
+    ap.add_argument("--oracle", type=int, default=20, help="planned scenes compared with the oracle field")
+    ap.add_argument("--solver", default=None, help="field solver (default: the planner's)")
+    args = ap.parse_args(argv)
+    kw = {} if args.solver is None else {"solver": args.solver}
+    rows = []
+    for dof in (int(d) for d in args.dof.split(",")):
+        rows += run(dof, args.count, args.seed, args.oracle, kw)
+    for r in rows:
+        print(json.dumps(r))
+    return 0

@@ -1,0 +1,182 @@
+"""The harmonic potential on a C-space grid: the field that steepest descent follows.
+
+What the field is
+-----------------
+The paper's Laplace potential on the grid of joint angles: on the free nodes connected to
+the goal, each value is the mean of its 2n face neighbours (the discrete Laplace
+equation); goal nodes are fixed, obstacles and the faces of bounded joints are walls,
+periodic joints (the attitude) wrap.  We solve it in the flipped form the paper's Φ maps
+to, u = 1 − Φ/Φ0: goal 1, walls 0, so 0 < u < 1 on every goal-connected node, and store
+``log_u`` (0 at the goal, −inf at obstacles and unreachable nodes).  The published
+potential is φ = −log u.  A harmonic u has no interior local maximum, so steepest ascent
+of u (descent of φ) reaches the goal from every goal-connected node.
+
+Why not the paper's Gauss–Seidel, and how this avoids the flat field
+--------------------------------------------------------------------
+u decays geometrically into narrow passages and pockets: 1e-30 is common, a maze reaches
+1e-561.  In the paper's form Φ0 − Φ then falls below what a double holds next to Φ0 and
+the field is exactly flat, so descent stalls; any solver that is accurate only to an
+absolute tolerance (SOR, multigrid to 1e-12) stalls the same way one level deeper.  The
+route here (``"log_harmonic"``, :mod:`.harmonic`) is accurate *relative* to each value,
+band by band of scale:
+
+1. Band 1: the whole Dirichlet problem (goal = 1) by conjugate gradients preconditioned
+   by an aggregation-multigrid V-cycle (:mod:`.multigrid`), to a largest residual of
+   1e-12.  Values ≥ 1e-6 are then right to about 1e-4 relative and are kept.
+2. Band k + 1: the nodes still without a value, as a Dirichlet problem of their own whose
+   known neighbours are the kept values, divided by the largest of them, so the band's
+   values are again of order one; solved and kept the same way.  Every band keeps at
+   least the neighbours of its largest known value (a harmonic value is ≥ 1/2n of its
+   largest neighbour), so the bands end; a typical scene needs one to three, a maze one
+   per six decades.
+3. A check that every non-goal node has a strictly higher face neighbour.  Where rounding
+   made two neighbours equal, a repair lowers the later one by 1e-9 in log u (in
+   decreasing order of value from the goal, so every node ends strictly below the
+   neighbour it follows); ``repaired_nodes`` counts them.
+
+When it stops
+-------------
+When every node has a value (``converged``), or when the budget (``budget_s``, wall
+time; the planner's ``planner.field_budget_s``) or a cancel ends the bands first.  Then
+the nodes without a value are filled breadth-first from the solved ones, each 1/2n of
+the node it was reached from (the subharmonic lower bound's rule), the check and repair
+run as above, and the result is still a valid ascent field: descent reaches the goal
+from every goal-connected node, on a less accurate field there.  ``converged`` is then
+false and ``left`` says what is left.
+
+Solvers (``solve_field(..., solver=NAME)``)
+-------------------------------------------
+``"log_harmonic"``  the planner's route above (default).
+``"gauss_seidel"``  the paper's method, literally (:mod:`.paper`): reference and the
+                    baseline of every benchmark ratio; ``tol`` is its largest change per
+                    sweep (the paper's 1e-6).
+Internal, not a planner choice: ``"oracle"`` (:mod:`.oracle`), a sparse direct solve
+band by band, seconds at 36³: the slow reference of the tests and of ``bench scenes``.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+
+from . import harmonic, oracle, paper
+from .graph import NodeGraph, bfs_distance, node_graph, validate_problem
+
+__all__ = ["Field", "SOLVERS", "DEFAULT_SOLVER", "DEFAULT_BUDGET_S", "solve_field",
+           "bfs_distance", "node_graph", "validate_problem", "NodeGraph", "warm_up"]
+
+SOLVERS = ("log_harmonic", "gauss_seidel")
+DEFAULT_SOLVER = "log_harmonic"
+INTERNAL_SOLVERS = ("oracle",)
+#: Default wall-time budget of one field solve, seconds.
+DEFAULT_BUDGET_S = 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class Field:
+    """A solved potential field on an occupancy grid.
+
+    Attributes:
+        log_u: float64, grid shape: log of the flipped potential u (0 at goal nodes,
+            -inf at obstacles and nodes not connected to the goal; for the paper's
+            solver also where Φ is flat at Φ0 in float64).
+        occupied, periodic, goal_nodes: the problem it was solved for.
+        solver: the solver's name.
+        sweeps: relaxation sweeps (gauss_seidel) or CG iterations over all bands.
+        residual: gauss_seidel: the last largest change per sweep; log_harmonic: the
+            largest final residual of a band, relative to the band's scale.
+        converged: the solve ran to its precision (see the package doc).
+        seconds: wall time of the solve, graph set-up included.
+        left: what is left when not converged ("" otherwise), for people.
+        stats: solver details (log_harmonic: bands, unsolved_nodes, repaired_nodes).
+    """
+
+    log_u: np.ndarray
+    occupied: np.ndarray
+    periodic: tuple
+    goal_nodes: np.ndarray
+    solver: str
+    sweeps: int
+    residual: float
+    converged: bool
+    seconds: float
+    left: str = ""
+    stats: dict = dc_field(default_factory=dict)
+
+    def potential(self) -> np.ndarray:
+        """φ = −log u: 0 at the goal, +inf at obstacles (plot it on a log scale)."""
+        return -self.log_u
+
+    @property
+    def reachable(self) -> np.ndarray:
+        """Bool mask of the nodes with u > 0 (finite log u)."""
+        return np.isfinite(self.log_u)
+
+    @property
+    def goal_mask(self) -> np.ndarray:
+        """Bool mask of the goal nodes."""
+        mask = np.zeros(self.occupied.shape, dtype=np.bool_)
+        mask[tuple(self.goal_nodes.T)] = True
+        return mask
+
+
+def _paper(occ, per, goals, tol, max_sweeps, t0):
+    tol = 1e-6 if tol is None else float(tol)
+    max_sweeps = 200_000 if max_sweeps is None else int(max_sweeps)
+    phi, sweeps, change = paper.gauss_seidel_phi(occ, per, goals, 1.0, tol, max_sweeps)
+    with np.errstate(divide="ignore"):
+        log_u = np.log(np.clip(1.0 - phi, 0.0, None))
+    log_u[occ] = -np.inf
+    converged = change < tol
+    left = "" if converged else f"stopped after {sweeps} sweeps at a change of {change:.2e} > {tol:g}"
+    return Field(log_u, occ, per, goals, "gauss_seidel", sweeps, change, converged,
+                 time.perf_counter() - t0, left)
+
+
+def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *, tol=None,
+                max_sweeps=None, budget_s=None, cancel=None) -> Field:
+    """Solve the harmonic field (see the package doc).
+
+    Args:
+        occupied: bool array, any number of axes (each ≥ 2 nodes), True = obstacle.
+        periodic: one bool per axis.
+        goal_nodes: int (k, ndim) goal node indices (free).
+        solver: ``"log_harmonic"`` (default) or ``"gauss_seidel"`` (``SOLVERS``).
+        tol, max_sweeps: gauss_seidel's stop (largest change per sweep, sweep cap).
+        budget_s: log_harmonic's wall-time budget, seconds (default ``DEFAULT_BUDGET_S``).
+        cancel: optional callable; log_harmonic stops between bands once it returns true.
+    Raises ValueError naming a malformed argument or an unknown solver.
+    """
+    t0 = time.perf_counter()
+    if solver not in SOLVERS + INTERNAL_SOLVERS:
+        raise ValueError(f"solver: unknown solver {solver!r}; expected one of {list(SOLVERS)}")
+    occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
+    if solver == "gauss_seidel":
+        return _paper(occ, per, goals, tol, max_sweeps, t0)
+    budget = DEFAULT_BUDGET_S if budget_s is None else float(budget_s)
+    if not (math.isfinite(budget) and budget > 0.0):
+        raise ValueError(f"budget_s: must be a positive number of seconds, got {budget_s!r}")
+    graph = node_graph(occ, per, goals)
+    if solver == "oracle":
+        log_u = oracle.oracle_log_u(graph)
+        stats = {"bands": 0}
+        return Field(graph.scatter(log_u[:-1]), occ, per, goals, "oracle", 0, 0.0, True,
+                     time.perf_counter() - t0, "", stats)
+    log_u, stats = harmonic.solve(graph, budget, cancel=cancel)
+    left = stats.pop("left")
+    return Field(graph.scatter(log_u[:-1]), occ, per, goals, "log_harmonic",
+                 int(stats.pop("iterations")), float(stats.pop("residual")),
+                 bool(stats.pop("converged")), time.perf_counter() - t0, left, stats)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the field kernels on small 2-D and 3-D grids."""
+    occ2 = np.zeros((40, 41), dtype=bool)
+    occ2[10:20, 5:30] = True
+    occ3 = np.zeros((12, 13, 13), dtype=bool)
+    occ3[3:6, 2:10, 2:10] = True
+    for occ, per, goal in ((occ2, (False, False), (39, 40)), (occ3, (True, False, False), (11, 12, 12))):
+        solve_field(occ, per, [goal])
+        solve_field(occ, per, [goal], solver="gauss_seidel", max_sweeps=5)

@@ -1,0 +1,210 @@
+"""The node graph of a field problem: the goal-connected free nodes of an occupancy grid.
+
+Every kernel of the field works on this graph, whatever the grid's dimension: node ``k``
+of the graph has ``2n`` face neighbours ``nbr[k, 2a + (0|1)]`` (the −/+ neighbour along
+axis ``a``, wrapping on periodic axes); a neighbour that is a wall, an obstacle or a node
+not connected to the goal reads ``N`` (one dummy node past the end, value 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+
+@nb.njit(cache=True, nogil=True)
+def grid_neighbours(shape, periodic):
+    """Flat index of each grid node's 2n face neighbours, -1 beyond a wall.
+
+    shape int64 (ndim,), periodic bool (ndim,).  Returns int64 (prod(shape), 2 ndim):
+    column 2a + (0|1) = the (-|+) neighbour along axis a, wrapping on periodic axes.
+    One odometer pass over the grid, no integer divisions.
+    """
+    ndim = shape.size
+    n = 1
+    for a in range(ndim):
+        n *= shape[a]
+    strides = np.ones(ndim, np.int64)
+    for a in range(ndim - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    out = np.empty((n, 2 * ndim), np.int64)
+    coord = np.zeros(ndim, np.int64)
+    for f in range(n):
+        for a in range(ndim):
+            c = coord[a]
+            span = (shape[a] - 1) * strides[a]
+            if c > 0:
+                out[f, 2 * a] = f - strides[a]
+            else:
+                out[f, 2 * a] = f + span if periodic[a] else -1
+            if c < shape[a] - 1:
+                out[f, 2 * a + 1] = f + strides[a]
+            else:
+                out[f, 2 * a + 1] = f - span if periodic[a] else -1
+        a = ndim - 1
+        while a >= 0:
+            coord[a] += 1
+            if coord[a] < shape[a]:
+                break
+            coord[a] = 0
+            a -= 1
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _bfs(occ_flat, gnbr, goal_flat):
+    """BFS through free nodes from the goal nodes: ``(dist, order)``, dist int64 per
+    flat node (-1 = not reached), order = reached flat nodes in BFS order."""
+    n = occ_flat.size
+    deg = gnbr.shape[1]
+    dist = np.full(n, -1, np.int64)
+    order = np.empty(n, np.int64)
+    head = 0
+    tail = 0
+    for g in goal_flat:
+        if dist[g] < 0:
+            dist[g] = 0
+            order[tail] = g
+            tail += 1
+    while head < tail:
+        f = order[head]
+        head += 1
+        for a in range(deg):
+            g = gnbr[f, a]
+            if g < 0 or occ_flat[g] or dist[g] >= 0:
+                continue
+            dist[g] = dist[f] + 1
+            order[tail] = g
+            tail += 1
+    return dist, order[:tail]
+
+
+@nb.njit(cache=True, nogil=True)
+def _neighbour_table(order, gnbr):
+    """nbr int32 (N, 2n): position in ``order`` of each node's face neighbours, N for
+    walls, obstacles and nodes not in ``order``."""
+    n = order.size
+    deg = gnbr.shape[1]
+    pos = np.full(gnbr.shape[0], n, np.int32)
+    for k in range(n):
+        pos[order[k]] = k
+    nbr = np.empty((n, deg), np.int32)
+    for k in range(n):
+        f = order[k]
+        for a in range(deg):
+            g = gnbr[f, a]
+            nbr[k, a] = n if g < 0 else pos[g]
+    return nbr
+
+
+def validate_problem(occupied, periodic, goal_nodes):
+    """Check and normalise a field problem.
+
+    Returns ``(occupied bool array, periodic tuple of bools, goal_nodes int64 array
+    (k, ndim), distinct)``.  Raises ValueError naming the offending argument.
+    """
+    occ = np.asarray(occupied)
+    if occ.ndim < 1:
+        raise ValueError(f"occupied: expected a grid with at least one axis, got shape {occ.shape}")
+    if occ.dtype != np.bool_:
+        raise ValueError(f"occupied: expected a bool array, got dtype {occ.dtype}")
+    if min(occ.shape) < 2:
+        raise ValueError(f"occupied: every axis needs at least 2 nodes, got shape {occ.shape}")
+    per = tuple(bool(p) for p in periodic)
+    if len(per) != occ.ndim:
+        raise ValueError(f"periodic: expected {occ.ndim} flags for grid shape {occ.shape}, got {len(per)}")
+    goals = np.asarray(goal_nodes)
+    if goals.ndim == 1:
+        goals = goals.reshape(1, -1)
+    if goals.ndim != 2 or goals.shape[1] != occ.ndim or goals.shape[0] == 0:
+        raise ValueError(f"goal_nodes: expected an int array (k, {occ.ndim}) with k >= 1, got shape {goals.shape}")
+    if not np.issubdtype(goals.dtype, np.integer):
+        if not np.all(goals == np.round(goals)):
+            raise ValueError("goal_nodes: node indices must be integers")
+    goals = goals.astype(np.int64)
+    if np.any(goals < 0) or np.any(goals >= np.array(occ.shape)):
+        raise ValueError(f"goal_nodes: index out of the grid {occ.shape}: {goals.tolist()}")
+    hit = occ[tuple(goals.T)]
+    if np.any(hit):
+        raise ValueError(f"goal_nodes: goal node {tuple(goals[np.argmax(hit)])} lies in an obstacle")
+    return np.ascontiguousarray(occ), per, np.unique(goals, axis=0)
+
+
+@dataclass(frozen=True, eq=False)
+class NodeGraph:
+    """The goal-connected free nodes of a validated problem.
+
+    order: int64 (N,) flat grid index of each graph node: the goal nodes first (``n_goal``
+        of them), then the others in grid order (memory locality).
+    nbr: int32 (N, 2 ndim) neighbour positions in ``order``; N = none (see module doc).
+    coords: int64 (N, ndim) grid coordinates.
+    dist: int64 (N,) BFS distance (face steps through free nodes) from the goal.
+    shape, periodic: the grid's.
+    """
+
+    order: np.ndarray
+    nbr: np.ndarray
+    coords: np.ndarray
+    dist: np.ndarray
+    n_goal: int
+    shape: tuple
+    periodic: tuple
+
+    @property
+    def size(self) -> int:
+        return int(self.order.size)
+
+    def scatter(self, values, fill=-np.inf) -> np.ndarray:
+        """Graph values (N,) onto the grid (``shape``), ``fill`` elsewhere."""
+        out = np.full(int(np.prod(self.shape)), fill, dtype=float)
+        out[self.order] = values
+        return out.reshape(self.shape)
+
+
+def bfs(occ, per, goals):
+    """(dist int64 grid-flat, BFS order, grid neighbour table) of a validated problem."""
+    gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
+    goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
+    dist, order = _bfs(occ.ravel(), gnbr, goal_flat)
+    return dist, order, gnbr
+
+
+def node_graph(occ, per, goals) -> NodeGraph:
+    """The :class:`NodeGraph` of a validated problem (``validate_problem``)."""
+    dist, order, gnbr = bfs(occ, per, goals)
+    n_goal = len(goals)
+    order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
+    coords = np.stack(np.unravel_index(order, occ.shape), axis=1).astype(np.int64)
+    return NodeGraph(order, _neighbour_table(order, gnbr), coords, dist[order], n_goal,
+                     tuple(occ.shape), tuple(per))
+
+
+def bfs_distance(occupied, periodic, goal_nodes) -> np.ndarray:
+    """Graph distance (face steps through free nodes) from the goal; -1 at obstacles and
+    at free nodes not connected to the goal.  int64, grid shape."""
+    occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
+    return bfs(occ, per, goals)[0].reshape(occ.shape)
+
+
+@nb.njit(cache=True, nogil=True)
+def ascent_defects(log_u, nbr, n_goal):
+    """Graph nodes (not goal) with no strictly higher face neighbour, int64 (m,).
+
+    log_u float64 (N + 1,) with the dummy last (-inf).  Where steepest ascent would stop.
+    """
+    n, deg = nbr.shape
+    bad = []
+    for i in range(n_goal, n):
+        v = log_u[i]
+        up = False
+        for a in range(deg):
+            if log_u[nbr[i, a]] > v:
+                up = True
+                break
+        if not up:
+            bad.append(i)
+    out = np.empty(len(bad), np.int64)
+    for t in range(len(bad)):
+        out[t] = bad[t]
+    return out

@@ -1,0 +1,280 @@
+"""The planner's field: the harmonic potential to relative precision, by bands of scale.
+
+See :mod:`spacerobot_planner.field` for what the field is and why it is solved this way;
+this module holds the route's steps.  All arrays are over the node graph
+(:class:`~spacerobot_planner.field.graph.NodeGraph`), so any grid dimension works.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numba as nb
+import numpy as np
+
+from . import multigrid
+from .graph import NodeGraph, ascent_defects
+
+#: Each band's linear solve stops at this largest residual (its known values are ≤ 1).
+RESIDUAL_TOL = 1e-12
+#: A band keeps the values at or above this (relative to its largest known value); the
+#: nodes below it make up the next band, solved on their own scale.
+BAND_FLOOR = 1e-6
+#: Bands after the first solve a window of their nodes: those within this many face steps
+#: of a known node at first (doubled while the window's outer layers are not negligible).
+WINDOW_STEPS = 32
+#: ... negligible: below BAND_FLOOR times this.
+WINDOW_NEGLIGIBLE = 1e-4
+#: The ascent repair lowers a node to this much (in log u) below the neighbour it follows.
+REPAIR_STEP = 1e-9
+
+
+@nb.njit(cache=True, nogil=True)
+def _band_problem(nbr, active, known, log_u):
+    """The Dirichlet problem on the ``active`` nodes, with the ``known`` ones fixed.
+
+    Returns ``(sub_nbr int64 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
+    (m = none), and the known neighbour values divided by the largest of them,
+    ``exp(log_scale)``.
+    """
+    n, deg = nbr.shape
+    m = active.size
+    local = np.full(n + 1, m, np.int64)
+    for k in range(m):
+        local[active[k]] = k
+    log_scale = -np.inf
+    for k in range(m):
+        for a in range(deg):
+            j = nbr[active[k], a]
+            if j < n and known[j] and log_u[j] > log_scale:
+                log_scale = log_u[j]
+    sub = np.empty((m, deg), np.int64)
+    rhs = np.zeros(m)
+    for k in range(m):
+        for a in range(deg):
+            j = nbr[active[k], a]
+            if j < n and known[j]:
+                rhs[k] += math.exp(log_u[j] - log_scale)
+                sub[k, a] = m
+            else:
+                sub[k, a] = local[j]
+    return sub, rhs, log_scale
+
+
+@nb.njit(cache=True, nogil=True)
+def _steps_from_known(nbr, active, known, local, max_steps):
+    """Face steps from each ``active`` node to the nearest known node through active
+    nodes, int64 (m,): 1 next to a known node, up to ``max_steps`` (0 = no limit);
+    ``max_steps + 1`` for the nodes farther away.  ``local`` int64 (N + 1,) scratch, all
+    -1 on entry and on return."""
+    n, deg = nbr.shape
+    m = active.size
+    far = (1 << 40) if max_steps == 0 else max_steps + 1
+    for k in range(m):
+        local[active[k]] = k
+    steps = np.full(m, far, np.int64)
+    queue = np.empty(m, np.int64)
+    tail = 0
+    for k in range(m):
+        for a in range(deg):
+            j = nbr[active[k], a]
+            if j < n and known[j]:
+                steps[k] = 1
+                queue[tail] = k
+                tail += 1
+                break
+    head = 0
+    while head < tail:
+        k = queue[head]
+        head += 1
+        if steps[k] + 1 >= far:
+            continue
+        for a in range(deg):
+            l = local[nbr[active[k], a]]
+            if l >= 0 and steps[l] > steps[k] + 1:
+                steps[l] = steps[k] + 1
+                queue[tail] = l
+                tail += 1
+    for k in range(m):
+        local[active[k]] = -1
+    return steps
+
+
+@nb.njit(cache=True, nogil=True)
+def _extend_below(log_u, known, nbr, n_goal, log_deg):
+    """Values for the nodes no band reached (the budget ran out): breadth-first from the
+    known nodes, each ``log_deg`` (= log 2n) below the node it was reached from — the
+    subharmonic lower bound's rule, so each has a strictly higher neighbour."""
+    n, deg = nbr.shape
+    queue = np.empty(n, np.int64)
+    seen = known.copy()
+    tail = 0
+    for i in range(n):
+        if known[i]:
+            queue[tail] = i
+            tail += 1
+    head = 0
+    while head < tail:
+        i = queue[head]
+        head += 1
+        for a in range(deg):
+            j = nbr[i, a]
+            if j < n and not seen[j]:
+                seen[j] = True
+                log_u[j] = log_u[i] - log_deg
+                queue[tail] = j
+                tail += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def _repair_ascent(log_u, nbr, n_goal, step):
+    """Make every non-goal node strictly lower than some neighbour, changing only nodes
+    that are not already.
+
+    Nodes are settled in decreasing order of value from the goal (a max-heap): a node is
+    reached from its highest settled neighbour and keeps its value if that is lower by at
+    least ``step``, else takes that neighbour's value less ``step``.  Returns the number of
+    nodes changed.  log_u (N + 1,) float64, updated in place (dummy last).
+    """
+    n, deg = nbr.shape
+    key = np.full(n, -np.inf)
+    done = np.zeros(n, np.bool_)
+    queued = np.zeros(n, np.bool_)
+    heap_k = np.empty(n + 1)
+    heap_i = np.empty(n + 1, np.int64)
+    size = 0
+    for g in range(n_goal):
+        key[g] = log_u[g]
+        heap_k[size] = -key[g]
+        heap_i[size] = g
+        size += 1
+        queued[g] = True
+    # heapify (min-heap on -key)
+    for s in range(size // 2 - 1, -1, -1):
+        p = s
+        while True:
+            c = 2 * p + 1
+            if c >= size:
+                break
+            if c + 1 < size and heap_k[c + 1] < heap_k[c]:
+                c += 1
+            if heap_k[c] < heap_k[p]:
+                heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
+                heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
+                p = c
+            else:
+                break
+    changed = 0
+    while size > 0:
+        i = heap_i[0]
+        size -= 1
+        heap_k[0] = heap_k[size]
+        heap_i[0] = heap_i[size]
+        p = 0
+        while True:
+            c = 2 * p + 1
+            if c >= size:
+                break
+            if c + 1 < size and heap_k[c + 1] < heap_k[c]:
+                c += 1
+            if heap_k[c] < heap_k[p]:
+                heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
+                heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
+                p = c
+            else:
+                break
+        if done[i]:
+            continue
+        done[i] = True
+        if key[i] != log_u[i]:
+            log_u[i] = key[i]
+            changed += 1
+        for a in range(deg):
+            j = nbr[i, a]
+            if j >= n or queued[j]:
+                continue
+            queued[j] = True
+            key[j] = min(log_u[j], log_u[i] - step)
+            c = size
+            heap_k[c] = -key[j]
+            heap_i[c] = j
+            size += 1
+            while c > 0:
+                p = (c - 1) // 2
+                if heap_k[c] < heap_k[p]:
+                    heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
+                    heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
+                    c = p
+                else:
+                    break
+    return changed
+
+
+def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
+          band_floor: float = BAND_FLOOR, cancel=None):
+    """log u over the graph, float64 (N + 1,) with the dummy last (-inf), and the stats.
+
+    Band after band (see the package doc) until every node has a value, the budget
+    (seconds of wall time from the call) ends, or ``cancel()`` returns true; then the
+    ascent check and, where it fails, the repair.  Returns ``(log_u, stats)`` with stats
+    a dict: ``bands``, ``iterations`` (CG iterations, all bands), ``residual`` (the
+    largest final residual of a band, relative to its scale), ``converged``,
+    ``unsolved_nodes`` (left to the breadth-first extension when the budget or a cancel
+    stopped the bands), ``repaired_nodes``, ``left`` (what is left, for people; "" when
+    converged).
+    """
+    t0 = time.perf_counter()
+    deadline = t0 + float(budget_s)
+    n, n_goal = graph.size, graph.n_goal
+    nbr = graph.nbr
+    log_u = np.full(n + 1, -np.inf)
+    log_u[:n_goal] = 0.0
+    known = np.zeros(n, np.bool_)
+    known[:n_goal] = True
+    active = np.arange(n_goal, n, dtype=np.int64)
+    bands = iterations = 0
+    worst = 0.0
+    converged = True
+    left = ""
+    window_steps = 0                 # 0: the whole band (the first one)
+    scratch = np.full(n + 1, -1, np.int64)
+    while active.size:
+        if time.perf_counter() > deadline or (cancel is not None and cancel()):
+            converged = False
+            left = (f"the field budget of {budget_s:g} s ended after {bands} band(s) with "
+                    f"{active.size} of {n - n_goal} nodes unsolved")
+            break
+        steps = _steps_from_known(nbr, active, known, scratch, window_steps)
+        whole = window_steps == 0 or steps.max() <= window_steps
+        inside = np.ones(active.size, np.bool_) if whole else steps <= window_steps
+        window = active[inside]
+        sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
+        x, its, res = multigrid.solve(sub, graph.coords[window], graph.shape, rhs,
+                                      tol=residual_tol, deadline=deadline)
+        bands += 1
+        iterations += its
+        worst = max(worst, res)
+        if not whole and np.max(x[steps[inside] >= window_steps - 1]) > band_floor * WINDOW_NEGLIGIBLE:
+            window_steps *= 2        # the cut is felt: a wider window
+            continue
+        keep = x >= band_floor
+        if res > residual_tol:       # stopped by the deadline: keep what is already sure
+            converged = False
+            keep &= x >= 1e6 * res
+        if not keep.any():
+            continue                 # only when the deadline stopped the band: caught above
+        log_u[window[keep]] = np.log(x[keep]) + log_scale
+        known[window[keep]] = True
+        window_steps = max(WINDOW_STEPS, 2 * int(steps[inside][keep].max()))
+        rest = np.ones(active.size, np.bool_)
+        rest[np.flatnonzero(inside)[keep]] = False
+        active = active[rest]
+    unsolved = int(active.size)
+    if unsolved:
+        _extend_below(log_u, known, nbr, n_goal, math.log(2 * graph.coords.shape[1]))
+    repaired = 0
+    if ascent_defects(log_u, nbr, n_goal).size:
+        repaired = int(_repair_ascent(log_u, nbr, n_goal, REPAIR_STEP))
+    return log_u, {"bands": bands, "iterations": iterations, "residual": worst,
+                   "converged": converged, "unsolved_nodes": unsolved,
+                   "repaired_nodes": repaired, "left": left}
