@@ -8,6 +8,16 @@ periodic axis there are ``cells`` nodes and the upper end *is* the lower one
 A node is an obstacle when, at that configuration, a checked link comes within the
 safety margin of the spacecraft body or of an obstacle (the exact test of
 ``collision``).
+
+Rows along the last axis.  When the grid's last axis is the chain's last joint, only
+the last link moves along a row: it turns about the fixed elbow point E.  The absolute
+link angles at which a segment of length L from E comes within the margin m of a
+polygon are a union of intervals in closed form (for each edge: the two edges offset by
+±m and the disks of radius m at its vertices), so the row is filled from intervals: a
+node farther than ``ROW_EPS_RAD`` inside an interval is occupied, one farther outside
+all of them is free of the last link, and the few nodes within ``ROW_EPS_RAD`` of an
+interval's end get the exact segment test.  The links before it are tested once per
+row.  Same occupancy as the node-by-node test, far fewer tests.
 """
 
 from __future__ import annotations
@@ -18,7 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from .collision import _link_points, _rotate_body, links_hit_body, links_hit_polygons
+import math
+
+from .collision import (_link_points, _point_segment_dist2, _rotate_body, links_hit_body,
+                        links_hit_polygons, point_in_polygon, segment_polygon_within)
 from .scene import pack_polygons
 
 __all__ = ["GridSpec", "CSpace", "build_cspace", "body_occupancy", "grid_for_robot"]
@@ -184,6 +197,232 @@ def _occupancy_kernel(shape, lower, step, axis_joint, q_locked, lengths, checked
     return occ
 
 
+#: Nodes closer than this (rad) to the end of a collision interval get the exact test.
+ROW_EPS_RAD = 1e-7
+_TWO_PI = 2.0 * math.pi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push(ivals, n, centre, half):
+    ivals[n, 0] = centre
+    ivals[n, 1] = half
+    return n + 1
+
+
+@njit(cache=True, nogil=True)
+def _disk_interval(ex, ey, cx, cy, r, length, ivals, n):
+    """Directions from E in which a segment of ``length`` meets the disk (C, r): appended
+    as (centre angle, half-width); the caller has checked that E lies outside the disk."""
+    dx, dy = cx - ex, cy - ey
+    d2 = dx * dx + dy * dy
+    d = math.sqrt(d2)
+    if d - r > length:
+        return n
+    if length * length >= d2 - r * r:
+        half = math.asin(min(1.0, r / d))
+    else:
+        c = (d2 + length * length - r * r) / (2.0 * d * length)
+        half = math.acos(max(-1.0, min(1.0, c)))
+    return _push(ivals, n, math.atan2(dy, dx), half)
+
+
+@njit(cache=True, nogil=True)
+def _segment_interval(ex, ey, ax, ay, bx, by, length, ivals, n):
+    """Directions from E in which a segment of ``length`` meets segment AB (E not on it)."""
+    ux, uy = bx - ax, by - ay
+    fx, fy = ax - ex, ay - ey
+    a = ux * ux + uy * uy
+    b = 2.0 * (fx * ux + fy * uy)
+    c = fx * fx + fy * fy - length * length
+    if a == 0.0:
+        t0, t1 = 0.0, 0.0
+        if c > 0.0:
+            return n
+    else:
+        disc = b * b - 4.0 * a * c
+        if disc < 0.0:
+            return n
+        sq = math.sqrt(disc)
+        t0 = max(0.0, (-b - sq) / (2.0 * a))
+        t1 = min(1.0, (-b + sq) / (2.0 * a))
+        if t0 > t1:
+            return n
+    p0 = math.atan2(fy + t0 * uy, fx + t0 * ux)
+    p1 = math.atan2(fy + t1 * uy, fx + t1 * ux)
+    dlt = (p1 - p0 + math.pi) % _TWO_PI - math.pi
+    return _push(ivals, n, p0 + 0.5 * dlt, 0.5 * abs(dlt))
+
+
+@njit(cache=True, nogil=True)
+def _polygon_intervals(ex, ey, length, verts, start, stop, margin_m, ivals, n):
+    """Append the directions in which a segment of ``length`` from E comes within
+    ``margin_m`` of polygon verts[start:stop]; -1 when E itself does (every direction)."""
+    m2 = margin_m * margin_m
+    if point_in_polygon(ex, ey, verts, start, stop):
+        return -1
+    j = stop - 1
+    for i in range(start, stop):
+        if _point_segment_dist2(ex, ey, verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1]) <= m2:
+            return -1
+        j = i
+    j = stop - 1
+    for i in range(start, stop):
+        cx, cy, dx, dy = verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1]
+        if margin_m > 0.0:
+            ux, uy = dx - cx, dy - cy
+            norm = math.sqrt(ux * ux + uy * uy)
+            ox, oy = -uy / norm * margin_m, ux / norm * margin_m
+            n = _segment_interval(ex, ey, cx + ox, cy + oy, dx + ox, dy + oy, length, ivals, n)
+            n = _segment_interval(ex, ey, cx - ox, cy - oy, dx - ox, dy - oy, length, ivals, n)
+            n = _disk_interval(ex, ey, cx, cy, margin_m, length, ivals, n)
+        else:
+            n = _segment_interval(ex, ey, cx, cy, dx, dy, length, ivals, n)
+        j = i
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _link_hits(ax, ay, bx, by, verts, starts, centres, radii, body_w, check_body, margin_m):
+    """The exact test of one link against the body (if ``check_body``) and the polygons."""
+    if check_body and segment_polygon_within(ax, ay, bx, by, body_w, 0, body_w.shape[0], margin_m):
+        return True
+    for p in range(radii.shape[0]):
+        r = radii[p] + margin_m
+        if _point_segment_dist2(centres[p, 0], centres[p, 1], ax, ay, bx, by) > r * r:
+            continue
+        if segment_polygon_within(ax, ay, bx, by, verts, starts[p], starts[p + 1], margin_m):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locked, lengths, checked,
+               body, obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
+               known_hit, eps_rad):
+    """Occupancy of the rows ``row_start .. row_stop`` (flat, C order, into ``occ``) along
+    the last axis, which must be the chain's last joint (see the module doc).  Arguments
+    as for ``_occupancy_kernel``."""
+    ndim = shape.shape[0]
+    row_len = shape[ndim - 1]
+    n_rows = 1
+    for d in range(ndim - 1):
+        n_rows *= shape[d]
+    n_known = known_hit.shape[0]
+    last = lengths.shape[0] - 1
+    last_checked = False
+    for c in range(checked.shape[0]):
+        if checked[c] == last:
+            last_checked = True
+    length = lengths[last]
+    n_poly = obs_radii.shape[0]
+    max_iv = 4 * (obs_verts.shape[0] + body.shape[0]) + 1
+    lo = lower[ndim - 1]
+    st = step[ndim - 1]
+    e = eps_rad / st
+    if True:
+        q_full = q_locked.copy()
+        pts = np.empty((lengths.shape[0] + 1, 2))
+        body_w = np.empty_like(body)
+        ivals = np.empty((max_iv, 2))
+        unsure = np.zeros(row_len, np.bool_)
+        for row in range(row_start, row_stop):
+            base_flat = row * row_len
+            rem = row
+            for d in range(ndim - 2, -1, -1):
+                k = rem % shape[d]
+                rem //= shape[d]
+                q_full[axis_joint[d]] = lower[d] + k * step[d]
+            q_full[last] = 0.0
+            _link_points(q_full, lengths, pts)
+            _rotate_body(body, q_full[0], body_w)
+            hit = False
+            for c in range(checked.shape[0]):
+                k = checked[c]
+                if k != last and _link_hits(pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1], obs_verts,
+                                            obs_starts, obs_centres, obs_radii, body_w, check_body, margin_m):
+                    hit = True
+                    break
+            if hit:
+                for t in range(row_len):
+                    occ[base_flat + t] = True
+                continue
+            if last_checked:
+                ex, ey = pts[last, 0], pts[last, 1]
+                n = 0
+                if check_body:
+                    n = _polygon_intervals(ex, ey, length, body_w, 0, body_w.shape[0], margin_m, ivals, n)
+                for p in range(n_poly):
+                    if n < 0:
+                        break
+                    r = obs_radii[p] + margin_m + length
+                    dx, dy = obs_centres[p, 0] - ex, obs_centres[p, 1] - ey
+                    if dx * dx + dy * dy > r * r:
+                        continue
+                    n = _polygon_intervals(ex, ey, length, obs_verts, obs_starts[p], obs_starts[p + 1],
+                                           margin_m, ivals, n)
+                if n < 0:
+                    for t in range(row_len):
+                        occ[base_flat + t] = True
+                    continue
+                base = 0.0
+                for j in range(last):
+                    base += q_full[j]
+                for t in range(row_len):
+                    unsure[t] = False
+                for v in range(n):
+                    half = ivals[v, 1]
+                    a = (ivals[v, 0] - half - base - lo) % _TWO_PI       # interval start, rad from lo
+                    for turn in range(2):
+                        x0 = (a - turn * _TWO_PI) / st
+                        x1 = x0 + 2.0 * half / st
+                        k0 = max(0, int(math.ceil(x0 + e)))
+                        k1 = min(row_len - 1, int(math.floor(x1 - e)))
+                        for t in range(k0, k1 + 1):
+                            occ[base_flat + t] = True
+                        for x in (x0, x1):
+                            for t in range(max(0, int(math.ceil(x - e))), min(row_len - 1, int(math.floor(x + e))) + 1):
+                                unsure[t] = True
+                for t in range(row_len):
+                    if unsure[t] and not occ[base_flat + t]:
+                        ang = base + lo + t * st
+                        bx = ex + length * math.cos(ang)
+                        by = ey + length * math.sin(ang)
+                        occ[base_flat + t] = _link_hits(ex, ey, bx, by, obs_verts, obs_starts, obs_centres,
+                                                        obs_radii, body_w, check_body, margin_m)
+            if n_known > 0:
+                for t in range(row_len):
+                    if known_hit[(base_flat + t) % n_known]:
+                        occ[base_flat + t] = True
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _fill_rows_parallel(occ, n_rows, *args):
+    n_chunks = 64
+    chunk = (n_rows + n_chunks - 1) // n_chunks
+    for ch in prange(n_chunks):
+        _fill_rows(occ, ch * chunk, min(n_rows, (ch + 1) * chunk), *args)
+
+
+#: Grids with fewer nodes are filled by one thread (a parallel launch costs more there).
+ROWS_PARALLEL_NODES = 300_000
+
+
+def _occupancy(shape, lower, step, axis_joint, *rest):
+    """The row kernel where the last axis is the chain's last joint, else node by node."""
+    q_locked = rest[0]
+    if axis_joint[-1] != q_locked.shape[0] - 1:
+        return _occupancy_kernel(shape, lower, step, axis_joint, *rest)
+    n_nodes = int(np.prod(shape))
+    occ = np.zeros(n_nodes, dtype=np.bool_)
+    n_rows = n_nodes // int(shape[-1])
+    args = (shape, lower, step, axis_joint, *rest, ROW_EPS_RAD)
+    if n_nodes >= ROWS_PARALLEL_NODES:
+        _fill_rows_parallel(occ, n_rows, *args)
+    else:
+        _fill_rows(occ, 0, n_rows, *args)
+    return occ
+
+
 def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
     """Collisions with the spacecraft body over the grid's trailing axes, or None.
 
@@ -198,7 +437,7 @@ def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
     q_locked = np.array(robot.locked_rad, dtype=float)
     q_locked[0] = 0.0
     none = np.zeros((0, 2))
-    occ = _occupancy_kernel(
+    occ = _occupancy(
         np.asarray(rest.shape, dtype=np.int64), np.asarray(rest.lower_rad), np.asarray(rest.step_rad),
         np.asarray(robot.planned_joints[1:], dtype=np.int64), q_locked,
         np.asarray(robot.link_lengths_m, dtype=float), np.asarray(robot.checked_links, dtype=np.int64),
@@ -228,7 +467,7 @@ def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
         raise ValueError(f"body_table: shape {body_table.shape} does not match grid {grid.shape}")
     known = (np.zeros(0, dtype=np.bool_) if body_table is None
              else np.ascontiguousarray(body_table).reshape(-1))
-    occ = _occupancy_kernel(
+    occ = _occupancy(
         np.asarray(grid.shape, dtype=np.int64), np.asarray(grid.lower_rad, dtype=float),
         np.asarray(grid.step_rad, dtype=float), np.asarray(robot.planned_joints, dtype=np.int64),
         np.asarray(robot.locked_rad, dtype=float), np.asarray(robot.link_lengths_m, dtype=float),

@@ -179,3 +179,32 @@ def test_cached_body_table_gives_the_same_occupancy():
     assert np.array_equal(fresh.occupied, reused.occupied)
     with pytest.raises(ValueError, match="body_table"):
         build_cspace(sc.robot, moved, sc.grid, body_table=table[:-1])
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("locked_elbow", [False, True])
+def test_cspace_rows_and_node_fallback_equal_brute_force_on_random_scenes(seed, locked_elbow):
+    """Random debris and margins; the row-interval fill (last axis = the last joint) and,
+    with the elbow locked, the node-by-node fill, both against the reference clearance."""
+    from dataclasses import replace
+
+    from spacerobot_planner.bench.scenes import random_scenario
+    rng = np.random.default_rng(100 + seed)
+    sc, _ = random_scenario(rng, 2 + seed % 2)
+    robot = sc.robot
+    if locked_elbow:
+        locked = np.array(robot.locked_rad)
+        locked[2] = D(40.0)
+        robot = replace(robot, planned_joints=tuple(j for j in robot.planned_joints if j != 2),
+                        locked_rad=locked)
+    from spacerobot_planner.cspace import grid_for_robot
+    grid = grid_for_robot(robot, [24] * robot.dof if robot.dof == 3 else [60] * robot.dof)
+    for margin in (0.0, 0.05):
+        scene = sc.scene.with_margin(margin)
+        cs = build_cspace(robot, scene, grid)
+        nodes = np.stack([rng.integers(0, n, size=600) for n in grid.shape], axis=1)
+        for node in nodes:
+            c = ref_clearance(robot, scene, grid.config_of(node))
+            if abs(c - margin) < 1e-9:
+                continue
+            assert cs.occupied[tuple(node)] == (c <= margin), (node, c, margin)

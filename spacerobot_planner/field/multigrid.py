@@ -30,6 +30,8 @@ import numpy as np
 
 #: Stop coarsening at this many unknowns and solve that level directly.
 COARSEST_NODES = 100
+#: Gauss–Seidel sweeps before and after the coarse correction on the coarse levels.
+COARSE_SWEEPS = 2
 
 
 # --------------------------------------------------------------------------
@@ -166,6 +168,8 @@ class Hierarchy:
             if lv < len(aggs):
                 self.agg[a:b] = aggs[lv]
         self.inv_diag = 1.0 / self.diag
+        # the fine level on its own: unit weights, diagonal deg, int32 neighbours
+        self.nb0 = nbrs[0].astype(np.int32)
         m = int(sizes[-1])
         cn, cw, cd = nbrs[-1], wts[-1], diags[-1]
         dense = np.diag(cd)
@@ -187,24 +191,49 @@ def _row(nbr, wt, x, i, base, deg):
     return s
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _row0(nb0, x, i, deg):
+    """sum_d x[nb0[i, d]] on the fine level (unit weights)."""
+    s = 0.0
+    for d in range(deg):
+        s += x[nb0[i, d]]
+    return s
+
+
 @nb.njit(cache=True, nogil=True)
-def _vcycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps, boost):
+def _vcycle(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps, boost):
     """x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the
     coarser levels and r are scratch).  Symmetric: forward Gauss-Seidel sweeps
-    before the coarse correction (scaled by ``boost``), backward ones after."""
+    before the coarse correction (scaled by ``boost``), backward ones after.  The
+    fine level (unit weights, diagonal deg) reads ``nb0``."""
     deg = nbr.shape[1]
+    fdeg = float(deg)
+    inv_deg = 1.0 / deg
     nlev = sizes.size
+    n0 = sizes[0]
     for lv in range(nlev - 1):
         base = off[lv]
         n = sizes[lv]
-        for i in range(n + 1):
-            x[base + i] = 0.0
-        for _ in range(sweeps):
-            for i in range(n):
-                x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
         cb = off[lv + 1]
         for i in range(sizes[lv + 1] + 1):
             b[cb + i] = 0.0
+        if lv == 0:
+            for i in range(n0):
+                x[i] = 0.0
+            x[n0] = 0.0
+            for i in range(n0):
+                x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+            for _ in range(sweeps - 1):
+                for i in range(n0):
+                    x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+            for i in range(n0):
+                b[cb + agg[i]] += b[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
+            continue
+        for i in range(n + 1):
+            x[base + i] = 0.0
+        for _ in range(COARSE_SWEEPS):
+            for i in range(n):
+                x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
         for i in range(n):
             ri = b[base + i] - diag[base + i] * x[base + i] + _row(nbr, wt, x, i, base, deg)
             b[cb + agg[base + i]] += ri
@@ -222,15 +251,23 @@ def _vcycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps, boo
             s -= chol[k, i] * x[base + k]
         x[base + i] = s / chol[i, i]
     x[base + m] = 0.0
-    for lv in range(nlev - 2, -1, -1):
+    for lv in range(nlev - 2, 0, -1):
         base = off[lv]
         cb = off[lv + 1]
         n = sizes[lv]
         for i in range(n):
             x[base + i] += boost * x[cb + agg[base + i]]
-        for _ in range(sweeps):
+        for _ in range(COARSE_SWEEPS):
             for i in range(n - 1, -1, -1):
                 x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
+    if nlev == 1:
+        return
+    cb = off[1]
+    for i in range(n0):
+        x[i] += boost * x[cb + agg[i]]
+    for _ in range(sweeps):
+        for i in range(n0 - 1, -1, -1):
+            x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
 
 
 @nb.njit(cache=True)
@@ -241,7 +278,7 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
+def _pcg(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
     """Preconditioned CG on the finest level, from the initial guess ``u``.
 
     rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
@@ -259,15 +296,16 @@ def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, 
     q = np.zeros(n + 1)
     u[n] = 0.0
     res = 0.0
+    fdeg = float(deg)
     for i in range(n):
-        r[i] = rhs[i] - diag[i] * u[i] + _row(nbr, wt, u, i, 0, deg)
+        r[i] = rhs[i] - fdeg * u[i] + _row0(nb0, u, i, deg)
         if abs(r[i]) > res:
             res = abs(r[i])
     if res < tol:
         return 0, res
     for i in range(n):
         bs[i] = r[i]
-    _vcycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
+    _vcycle(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
     rz = 0.0
     for i in range(n):
         p[i] = xs[i]
@@ -279,7 +317,7 @@ def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, 
         it += 1
         pq = 0.0
         for i in range(n):
-            q[i] = diag[i] * p[i] - _row(nbr, wt, p, i, 0, deg)
+            q[i] = fdeg * p[i] - _row0(nb0, p, i, deg)
             pq += p[i] * q[i]
         if not pq > 0.0:
             break
@@ -294,7 +332,7 @@ def _pcg(nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, 
             break
         for i in range(n):
             bs[i] = r[i]
-        _vcycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
+        _vcycle(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
         rz_new = 0.0
         for i in range(n):
             rz_new += r[i] * xs[i]
@@ -324,6 +362,6 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     b = np.zeros(n + 1)
     b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
-    it, res = _pcg(h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
+    it, res = _pcg(h.nb0, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
                    float(tol), int(max_iter), int(sweeps), float(boost), float(deadline))
     return x[h.fine_of_input], int(it), float(res)
