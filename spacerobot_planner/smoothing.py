@@ -18,6 +18,7 @@ arrays.  Periodic joints are *unwrapped* (continuous, may leave [-π, π)).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,7 @@ __all__ = ["SmoothPath", "PathCheck", "unwrap_path", "path_length_rad", "densify
 
 DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
 DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the (certified) checks
+QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of candidates
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,14 +146,15 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
 @njit(cache=True, nogil=True)
 def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, starts,
                     threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
-                    interval_ok, interval_clr):
+                    interval_ok, interval_clr, certified):
     """Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
 
     At a sample with clearance c the open ball of radius (c - threshold)/L in joint
     space is free (no point of a checked link moves faster than L m/rad), so the
     next sample goes at most that far (and at most max_step_rad).  An interval
     fails where c ≤ threshold or the certified step falls below min_step_rad.
-    Returns the number of clearance evaluations.
+    With ``certified`` false the samples go ``max_step_rad`` apart whatever the
+    clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
     """
     dof = points.shape[1]
     q_full = q_template.copy()
@@ -180,7 +183,7 @@ def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, 
                 break
             if t >= seg_len:
                 break
-            step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad
+            step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad if certified else max_step_rad
             if step < min_step_rad:
                 ok = False
                 break
@@ -190,6 +193,7 @@ def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, 
     return n_eval
 
 
+@functools.lru_cache(maxsize=64)
 def lipschitz_m_per_rad(robot) -> float:
     """Bound L on how fast any point of a checked link moves relative to the obstacles
     and the body per radian of planned-joint motion (Euclidean norm): sqrt(Σ r_j²), r_j
@@ -202,14 +206,16 @@ def lipschitz_m_per_rad(robot) -> float:
 def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
                verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
                required_clearance_m: float | None = None,
-               min_step_rad: float = 1e-6) -> PathCheck:
+               min_step_rad: float = 1e-6, certified: bool = True) -> PathCheck:
     """Certified check of the piecewise-linear path through the rows of ``path_rad``.
 
     Along every interval, samples are at most ``verify_step_rad`` apart and close
     enough that their clearance balls overlap (Lipschitz bound of the arm), so the
     *whole* interval, not only the samples, keeps clearance above the safety
     margin (and at least ``required_clearance_m`` if given).  Bounded joints must
-    stay within bounds at the rows (then also between them).
+    stay within bounds at the rows (then also between them).  ``certified=False``:
+    a quick test at samples ``verify_step_rad`` apart only (for candidates; never for
+    what is returned).
     """
     p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
     robot = checker.robot
@@ -228,7 +234,7 @@ def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
                         np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
                         checker.checked, checker.body, checker.verts, checker.starts,
                         float(threshold), lip, float(verify_step_rad), float(min_step_rad),
-                        interval_ok, interval_clr)
+                        interval_ok, interval_clr, bool(certified))
     interval_ok &= in_bounds[:-1] & in_bounds[1:]
     return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
                      interval_clr)
@@ -246,7 +252,7 @@ def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
 
 def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
                      verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
-                     keep_clearance_m: float = 0.05) -> np.ndarray:
+                     keep_clearance_m: float = 0.05, certified: bool = True) -> np.ndarray:
     """Greedy, clearance-keeping shortcut of a verified polyline: indices of the vertices kept.
 
     A straight segment from vertex i to vertex j may replace the polyline between
@@ -256,34 +262,59 @@ def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
     From each kept vertex the farthest such j is found by binary search.  Returns
     increasing indices, first and last kept.
     """
-    pts = np.asarray(points_rad, dtype=float)
-    args = (lower_rad, upper_rad, periodic, verify_step_rad)
-    poly = check_path(checker, pts, *args)
-    iv_clr = poly.interval_clearance_m
-    cap = checker.margin_m + keep_clearance_m
+    pts = np.ascontiguousarray(np.asarray(points_rad, dtype=float))
+    poly = check_path(checker, pts, lower_rad, upper_rad, periodic, verify_step_rad, certified=certified)
+    robot = checker.robot
+    # a segment between two in-bounds points stays in bounds (the bounds are a box)
+    return _shortcut_kernel(pts, poly.interval_clearance_m, checker.margin_m + keep_clearance_m,
+                            np.asarray(robot.locked_rad, dtype=float),
+                            np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
+                            checker.checked, checker.body, checker.verts, checker.starts,
+                            checker.margin_m, lipschitz_m_per_rad(robot), float(verify_step_rad),
+                            bool(certified))
 
-    def ok(i, j):
-        if j == i + 1:
-            return True
-        need = min(float(iv_clr[i:j].min()), cap)
-        return check_path(checker, pts[[i, j]], *args, required_clearance_m=need).ok
 
-    keep = [0]
-    i, last = 0, len(pts) - 1
+@njit(cache=True, nogil=True)
+def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts,
+                     margin_m, lip, step_rad, certified):
+    """The greedy binary search of :func:`shortcut_indices` (see there), in one kernel."""
+    m = pts.shape[0]
+    keep = np.empty(m, np.int64)
+    seg = np.empty((2, pts.shape[1]))
+    ok_iv = np.zeros(1, np.bool_)
+    clr_iv = np.zeros(1)
+    n_keep = 1
+    keep[0] = 0
+    i = 0
+    last = m - 1
     while i < last:
-        if ok(i, last):
-            keep.append(last)
-            break
-        lo, hi = i + 1, last        # lo: accepted, hi: rejected
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if ok(i, mid):
-                lo = mid
+        lo = i + 1
+        hi = last + 1                 # hi: rejected (last + 1 = none yet); lo: accepted
+        j = last
+        while True:
+            if j == i + 1:
+                good = True
             else:
-                hi = mid
-        keep.append(lo)
+                need = cap
+                for k in range(i, j):
+                    if iv_clr[k] < need:
+                        need = iv_clr[k]
+                seg[0] = pts[i]
+                seg[1] = pts[j]
+                _certify_kernel(seg, q_template, planned, lengths, checked, body, verts, starts,
+                                max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified)
+                good = ok_iv[0]
+            if good:
+                lo = j
+            else:
+                hi = j
+            if hi - lo <= 1:
+                break
+            j = (lo + hi) // 2
+        keep[n_keep] = lo
+        n_keep += 1
         i = lo
-    return np.asarray(keep, dtype=np.int64)
+    return keep[:n_keep].copy()
 
 
 # ---------------------------------------------------------------------- spline
@@ -333,7 +364,7 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
 
 
 def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad, verify_step_rad,
-                    max_rounds, cancel):
+                    max_rounds, cancel, certified):
     """Spline through polyline points at arc lengths t_knots, refined where it collides.
 
     Returns (samples, knots, check, rounds) of the first clean spline, or None.
@@ -348,7 +379,8 @@ def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad
         # vertices map exactly onto themselves (np.interp is exact at its nodes)
         samples, s_knots, s_samples = spline_through(knots, max_step_rad)
         samples = snap_to_bounds(samples, lower, upper, periodic)
-        chk = check_path(checker, samples, lower, upper, periodic, verify_step_rad)
+        chk = check_path(checker, samples, lower, upper, periodic, verify_step_rad,
+                         certified=certified)
         if chk.ok:
             return samples, knots, chk, rounds
         bad = np.flatnonzero(~chk.interval_ok)
@@ -374,23 +406,55 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
                 shortcut: bool = True, knot_stride: int = 2, keep_clearance_m: float = 0.05,
                 max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                 verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
+                quick_step_rad: float = QUICK_STEP_RAD,
                 max_rounds: int = 12, cancel=None) -> SmoothPath | None:
-    """Smooth a verified polyline into a dense, verified path.
+    """Smooth a polyline into a dense path whose certified check passed.
 
     Args:
         checker: a ``CollisionChecker`` (exact geometry, the scene's margin).
         waypoints_rad: (m, dof) exact start, grid nodes, exact goal; unwrapped
-            (see :func:`unwrap_path`) and joined by verified straight segments.
+            (see :func:`unwrap_path`) and joined by straight segments.
         lower_rad, upper_rad, periodic: joint bounds (bounded joints must stay in).
         shortcut: first try a spline along the greedily shortcut polyline.
         keep_clearance_m: shortcuts keep at least margin + this (or the replaced
             stretch's own clearance, if smaller), metres.
         knot_stride: the paper's "every second node" (2).
+        quick_step_rad: spacing of the quick test of candidates.
     Returns:
-        the first verified result of: spline along the shortcut polyline, spline
-        through every ``knot_stride``-th waypoint (the paper), the polyline itself;
-        None when even the polyline fails the check (or on cancel).
+        the first result of: spline along the shortcut polyline, spline through every
+        ``knot_stride``-th waypoint (the paper), the polyline itself; None when even the
+        polyline fails (or on cancel).  Candidates (shortcuts, spline refinements) are
+        chosen by the quick test at ``quick_step_rad``; the chosen path alone is then
+        certified (``check_path``), and only if that fails is the choice made again with
+        certified tests throughout.  ``n_checked`` and ``min_clearance_m`` are the
+        certified check's.
     """
+    first = _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
+                    keep_clearance_m, max_step_rad, quick_step_rad, max_rounds, cancel, False)
+    if first is not None:
+        path, knots, method, rounds = first
+        chk = check_path(checker, path, lower_rad, upper_rad, periodic, verify_step_rad)
+        if chk.ok:
+            return SmoothPath(path, knots, method, chk.min_clearance_m, path_length_rad(path),
+                              rounds, chk.n_checked)
+    if cancel is not None and cancel.is_set():
+        return None
+    again = _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
+                    keep_clearance_m, max_step_rad, verify_step_rad, max_rounds, cancel, True)
+    if again is None:
+        return None
+    path, knots, method, rounds = again
+    chk = check_path(checker, path, lower_rad, upper_rad, periodic, verify_step_rad)
+    if not chk.ok:          # the choice was certified piece by piece: not expected
+        return None
+    return SmoothPath(path, knots, method, chk.min_clearance_m, path_length_rad(path), rounds,
+                      chk.n_checked)
+
+
+def _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
+            keep_clearance_m, max_step_rad, step_rad, max_rounds, cancel, certified):
+    """(path, knots, method, rounds) chosen with tests at ``step_rad`` (certified or
+    quick), or None; see :func:`smooth_path`."""
     w = np.asarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
     rows = [w[0]]                       # drop repeated rows, keep the exact ends
@@ -404,12 +468,10 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
     w = np.array(rows)
     args = (lower_rad, upper_rad, periodic)
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
-        chk = check_path(checker, ends, *args, verify_step_rad)
-        return SmoothPath(ends, ends.copy(), "polyline", chk.min_clearance_m, path_length_rad(ends), 0,
-                          chk.n_checked) if chk.ok else None
+        return ends, ends.copy(), "polyline", 0
     attempts = []
     if shortcut and len(w) > 2:
-        keep_idx = shortcut_indices(checker, w, *args, verify_step_rad, keep_clearance_m)
+        keep_idx = shortcut_indices(checker, w, *args, step_rad, keep_clearance_m, certified)
         sc = w[keep_idx]
         t_sc = _polyline_param(sc)
         # knots: the shortcut vertices plus points about two grid steps apart on
@@ -422,18 +484,15 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
     stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
     attempts.append(("spline", w, t_w[stride_idx]))
     for method, poly, t_knots in attempts:
-        res = _refined_spline(checker, poly, t_knots, *args, max_step_rad, verify_step_rad,
-                              max_rounds, cancel)
+        res = _refined_spline(checker, poly, t_knots, *args, max_step_rad, step_rad,
+                              max_rounds, cancel, certified)
         if res is not None:
             samples, knots, chk, rounds = res
             samples[0], samples[-1] = w[0], w[-1]
-            return SmoothPath(samples, knots, method, chk.min_clearance_m, path_length_rad(samples),
-                              rounds, chk.n_checked)
+            return samples, knots, method, rounds
         if cancel is not None and cancel.is_set():
             return None
     dense = snap_to_bounds(densify_polyline(w, max_step_rad), *args)
-    chk = check_path(checker, dense, *args, verify_step_rad)
-    if not chk.ok:
+    if not check_path(checker, dense, *args, step_rad, certified=certified).ok:
         return None
-    return SmoothPath(dense, w.copy(), "polyline", chk.min_clearance_m, path_length_rad(dense), 0,
-                      chk.n_checked)
+    return dense, w.copy(), "polyline", 0
