@@ -15,9 +15,10 @@ import numba as nb
 import numpy as np
 
 from .field import Field, bfs_distance
+from .motion import segment_free
 
 # status codes of the kernels
-_REACHED, _STUCK, _TOO_LONG = 0, 1, 2
+_REACHED, _STUCK, _TOO_LONG, _BLOCKED = 0, 1, 2, 3
 
 
 @dataclass(frozen=True)
@@ -29,12 +30,15 @@ class GridPath:
     reached : whether the walk ended on a goal node.
     steps : number of moves (m - 1).
     reason : None when reached, else why not.
+    blocked : the walk stopped at a node whose strictly higher neighbours all fail the
+        motion test (only with a ``motions`` test; see :func:`descend`).
     """
 
     nodes: np.ndarray
     reached: bool
     steps: int
     reason: str | None
+    blocked: bool = False
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -90,10 +94,158 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
         m += 1
 
 
-def descend(field: Field, start_node) -> GridPath:
+@nb.njit(cache=True, nogil=True)
+def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, q_template, planned,
+                  lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+    """The walk of :func:`_ascend`, but each step to the steepest strictly higher neighbour
+    whose straight segment passes ``motion.segment_free`` (next steepest if not).
+    Returns (number of nodes, status)."""
+    strides = _strides(shape)
+    ndim = shape.size
+    q_full = q_template.copy()
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    qa = np.empty(ndim)
+    qb = np.empty(ndim)
+    coord = np.empty(ndim, np.int64)
+    cand_f = np.empty(2 * ndim, np.int64)
+    cand_v = np.empty(2 * ndim)
+    cand_a = np.empty(2 * ndim, np.int64)
+    cand_d = np.empty(2 * ndim, np.int64)
+    m = 0
+    out[m] = f
+    m += 1
+    while True:
+        if is_goal_flat[f]:
+            return m, _REACHED
+        if m >= out.size:
+            return m, _TOO_LONG
+        here = log_u_flat[f]
+        k = 0
+        for a in range(ndim):
+            coord[a] = (f // strides[a]) % shape[a]
+            qa[a] = lower[a] + coord[a] * step[a]
+        for a in range(ndim):
+            c = coord[a]
+            for d in (-1, 1):
+                nc = c + d
+                if nc < 0:
+                    if not periodic[a]:
+                        continue
+                    nc = shape[a] - 1
+                elif nc >= shape[a]:
+                    if not periodic[a]:
+                        continue
+                    nc = 0
+                g = f + (nc - c) * strides[a]
+                v = log_u_flat[g]
+                if not v > here:
+                    continue
+                t = k                    # insertion by value, ties keep the fixed order
+                while t > 0 and cand_v[t - 1] < v:
+                    cand_f[t], cand_v[t], cand_a[t], cand_d[t] = cand_f[t - 1], cand_v[t - 1], cand_a[t - 1], cand_d[t - 1]
+                    t -= 1
+                cand_f[t], cand_v[t], cand_a[t], cand_d[t] = g, v, a, d
+                k += 1
+        if k == 0:
+            return m, _STUCK
+        moved = False
+        for t in range(k):
+            for a in range(ndim):
+                qb[a] = qa[a]
+            qb[cand_a[t]] += cand_d[t] * step[cand_a[t]]      # the short way across a seam
+            if segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
+                            threshold_m, seg_step_rad, q_full, pts, body_w):
+                f = cand_f[t]
+                out[m] = f
+                m += 1
+                moved = True
+                break
+        if not moved:
+            return m, _BLOCKED
+
+
+@nb.njit(cache=True, nogil=True)
+def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_template, planned,
+                     lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+    """Edges (flat node pairs) between free nodes within ``radius`` index steps of flat node
+    ``centre`` whose straight segment fails ``motion.segment_free``, int64 (k, 2)."""
+    strides = _strides(shape)
+    ndim = shape.size
+    q_full = q_template.copy()
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    qa = np.empty(ndim)
+    qb = np.empty(ndim)
+    c0 = np.empty(ndim, np.int64)
+    for a in range(ndim):
+        c0[a] = (centre // strides[a]) % shape[a]
+    side = 2 * radius + 1
+    total = 1
+    for a in range(ndim):
+        total *= side
+    off = np.empty(ndim, np.int64)
+    c = np.empty(ndim, np.int64)
+    found = []
+    for t in range(total):
+        rem = t
+        inside = True
+        f = 0
+        for a in range(ndim - 1, -1, -1):
+            off[a] = rem % side - radius
+            rem //= side
+        for a in range(ndim):
+            k = c0[a] + off[a]
+            if periodic[a]:
+                k %= shape[a]
+            elif k < 0 or k >= shape[a]:
+                inside = False
+            c[a] = k
+            f += k * strides[a]
+        if not inside or occ_flat[f]:
+            continue
+        for a in range(ndim):
+            qa[a] = lower[a] + c[a] * step[a]
+        for a in range(ndim):
+            k = c[a] + 1
+            if k >= shape[a]:
+                if not periodic[a]:
+                    continue
+                k = 0
+            g = f + (k - c[a]) * strides[a]
+            if occ_flat[g]:
+                continue
+            for b in range(ndim):
+                qb[b] = qa[b]
+            qb[a] += step[a]
+            if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
+                                threshold_m, seg_step_rad, q_full, pts, body_w):
+                found.append((min(f, g), max(f, g)))
+    out = np.empty((len(found), 2), np.int64)
+    for t in range(len(found)):
+        out[t, 0] = found[t][0]
+        out[t, 1] = found[t][1]
+    return out
+
+
+def colliding_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: int = 1) -> np.ndarray:
+    """Grid edges near ``node`` (within ``radius`` index steps per axis) whose straight
+    segment between two free nodes fails the motion test: int64 (k, 2) flat node pairs."""
+    occ = np.ascontiguousarray(occupied)
+    return _colliding_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array(periodic, np.bool_),
+                            int(np.ravel_multi_index(tuple(node), occ.shape)), int(radius),
+                            np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
+                            *motions.arrays())
+
+
+def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=None) -> GridPath:
     """Steepest descent of phi (ascent of ``field.log_u``) from ``start_node``.
 
     start_node : int sequence of length ndim (grid node index).
+    motions : optional ``motion.SegmentTest``; then each step goes to the steepest strictly
+        higher neighbour whose straight segment passes it (the next steepest otherwise),
+        with nodes at ``lower_rad + index * step_rad`` (per axis, rad).  Without it, or
+        when every step passes, the walk is plain steepest descent.
     Returns a :class:`GridPath`; ``reason`` says why the goal was not reached
     ("start node is an obstacle", "start node not connected to the goal",
     "stuck at node (i, j): no strictly higher neighbour").
@@ -122,14 +274,24 @@ def descend(field: Field, start_node) -> GridPath:
         return GridPath(start.reshape(1, -1), False, 0,
                         f"stuck at node {node}: flat field (u = 0 in float64), no strictly higher neighbour")
     out = np.empty(log_u.size, np.int64)
-    m, status = _ascend(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
-                        np.array(field.periodic, np.bool_), int(np.ravel_multi_index(node, shape)), out)
+    flat0 = int(np.ravel_multi_index(node, shape))
+    if motions is None:
+        m, status = _ascend(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
+                            np.array(field.periodic, np.bool_), flat0, out)
+    else:
+        m, status = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
+                                  np.array(field.periodic, np.bool_), flat0, out,
+                                  np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
+                                  *motions.arrays())
     nodes = np.stack(np.unravel_index(out[:m], shape), axis=1).astype(np.int64)
     if status == _REACHED:
         return GridPath(nodes, True, m - 1, None)
     last = tuple(int(x) for x in nodes[-1])
     if status == _STUCK:
         return GridPath(nodes, False, m - 1, f"stuck at node {last}: no strictly higher neighbour")
+    if status == _BLOCKED:
+        return GridPath(nodes, False, m - 1, f"blocked at node {last}: the straight segment to every "
+                        "strictly higher neighbour collides", blocked=True)
     return GridPath(nodes, False, m - 1, f"step limit {log_u.size} reached at node {last}")
 
 

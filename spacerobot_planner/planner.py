@@ -34,16 +34,18 @@ import numpy as np
 from .collision import CollisionChecker
 from .config import Scenario
 from .cspace import CSpace, GridSpec, body_occupancy, build_cspace
-from .descent import descend
+from .descent import colliding_edges, descend
 from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS, Field, bfs_distance, solve_field
 from .field import warm_up as field_warm_up
 from .ik import grasp_ik
 from .scene import Scene
-from .smoothing import (DEFAULT_MAX_STEP_RAD, DEFAULT_VERIFY_STEP_RAD, check_path,
-                        first_bad_segment, smooth_path, unwrap_path)
+from .motion import DEFAULT_VERIFY_STEP_RAD, SegmentTest, check_path, first_bad_segment
+from .smoothing import DEFAULT_MAX_STEP_RAD, smooth_path, unwrap_path
 
 __all__ = ["PlanResult", "Planner", "STAGES", "CODES", "warm_up"]
 
+#: A repair cuts the colliding grid edges within this many index steps of the blocked node.
+REPAIR_RADIUS = 2
 STAGES = ("cspace", "field", "descent", "smoothing", "verify", "total")
 CODES = ("ok", "invalid_input", "start_in_collision", "goal_in_collision", "goal_unreachable",
          "disconnected", "path_invalid", "cancelled", "internal_error")
@@ -136,7 +138,8 @@ class _Fail(Exception):
 @dataclass
 class _FieldEntry:
     field: Field
-    blocked: set = dc_field(default_factory=set)
+    blocked: set = dc_field(default_factory=set)        # grid nodes taken out
+    cut_edges: set = dc_field(default_factory=set)      # grid edges (flat pairs) taken out
     repairs: int = 0
 
 
@@ -290,13 +293,15 @@ class Planner:
         return (cspace_key, tuple(map(tuple, goal_nodes)), self.solver, self.field_tolerance,
                 self.field_budget_s)
 
-    def _solve(self, cs, goal_nodes, blocked):
+    def _solve(self, cs, goal_nodes, blocked=(), cut_edges=()):
         occ = cs.occupied
         if blocked:
             occ = occ.copy()
             occ[tuple(np.array(sorted(blocked)).T)] = True
+        edges = np.array(sorted(cut_edges), dtype=np.int64).reshape(-1, 2)
         return solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=self.solver,
-                           tol=self.field_tolerance, budget_s=self.field_budget_s)
+                           tol=self.field_tolerance, budget_s=self.field_budget_s,
+                           cut_edges=edges if len(edges) else None)
 
     # ------------------------------------------------------------------- plan
     def plan(self, start_rad, goal_rad=None, cancel: threading.Event | None = None,
@@ -318,6 +323,7 @@ class _PlanRun:
         self.sc = planner.scenario
         self.robot = self.sc.robot
         self.checker = planner._checker
+        self.motions = SegmentTest.of(self.checker)
         self.cancel = cancel
         self.progress = progress
         self.timings = {k: 0.0 for k in STAGES}
@@ -468,7 +474,7 @@ class _PlanRun:
         else:
             self.check_cancel()
             t = time.perf_counter()
-            entry = _FieldEntry(p._solve(self.cs, goal_nodes, set()))
+            entry = _FieldEntry(p._solve(self.cs, goal_nodes))
             self.timings["field"] += time.perf_counter() - t
             if len(p._fields) >= 8:
                 p._fields.pop(next(iter(p._fields)))
@@ -483,7 +489,8 @@ class _PlanRun:
         f = entry.field
         self.stats = {"sweeps": int(f.sweeps), "residual": float(f.residual),
                       "converged": bool(f.converged), "left": f.left, **f.stats,
-                      "repairs": int(entry.repairs), "blocked_nodes": len(entry.blocked)}
+                      "repairs": int(entry.repairs), "blocked_nodes": len(entry.blocked),
+                      "cut_edges": len(entry.cut_edges)}
         # ---- smoothing + verify
         self.check_cancel()
         t = time.perf_counter()
@@ -547,18 +554,27 @@ class _PlanRun:
                 self.timings["descent"] += time.perf_counter() - t
                 raise self.no_field_path_failure(f, entry)
             path = None
+            blocked = None
             reasons = []
             for node in starts[reach]:
                 if not self.segment_ok(self.start, grid.config_of(node)):
                     reasons.append(f"segment to node {tuple(node)} collides")
                     continue
                 t1 = time.perf_counter()
-                gp = descend(f, node)
+                gp = descend(f, node, self.motions, grid.lower_rad, grid.step_rad)
                 self.timings["descent"] += time.perf_counter() - t1
                 if gp.reached:
                     path = gp
                     break
+                if gp.blocked and blocked is None:
+                    blocked = gp
                 reasons.append(gp.reason)
+            if path is None and blocked is not None and attempt < p.max_repairs:
+                # every way up from that node collides: cut the colliding grid edges around
+                # it (the node itself when there are none to cut) and re-solve
+                self.cut_and_resolve(entry, goal_nodes, tuple(int(v) for v in blocked.nodes[-1]),
+                                     blocked.reason)
+                continue
             if path is None:
                 raise _Fail("path_invalid", "no grid path from the start: " + "; ".join(reasons[:3]))
             nodes_rad = grid.config_of(path.nodes)
@@ -582,16 +598,41 @@ class _PlanRun:
                             f"could not be repaired ({entry.repairs} repairs); try a finer grid")
             clr = [self.checker.clearance_m(nodes_rad[c]) for c in cand]
             block = tuple(int(v) for v in path.nodes[cand[int(np.argmin(clr))]])
-            entry.blocked.add(block)
-            entry.repairs += 1
-            self.say(f"repair: segment {_deg(wp[bad])} → {_deg(wp[bad + 1])} collides; "
-                     f"blocking node {block} and re-solving the field")
-            t = time.perf_counter()
-            entry.field = self.p._solve(self.cs, goal_nodes, entry.blocked)
-            self.timings["field"] += time.perf_counter() - t
-            if "field" in self.cached:
-                self.cached.remove("field")
+            self.block_and_resolve(entry, goal_nodes, block, f"segment {_deg(wp[bad])} → "
+                                   f"{_deg(wp[bad + 1])} collides")
         raise AssertionError("unreachable")
+
+    def cut_and_resolve(self, entry, goal_nodes, node, why):
+        """Repair of a blocked walk: cut the grid edges near ``node`` whose motions collide
+        (both ends free), or block the node when all of those are cut already; re-solve."""
+        grid = self.sc.grid
+        t = time.perf_counter()
+        edges = colliding_edges(entry.field.occupied, grid.periodic, node, self.motions,
+                                grid.lower_rad, grid.step_rad, radius=REPAIR_RADIUS)
+        self.timings["descent"] += time.perf_counter() - t
+        new = {(int(a), int(b)) for a, b in edges} - entry.cut_edges
+        if not new:
+            self.block_and_resolve(entry, goal_nodes, node, why)
+            return
+        entry.cut_edges |= new
+        entry.repairs += 1
+        self.say(f"repair: {why}; cutting {len(new)} colliding grid edge(s) around it and "
+                 "re-solving the field")
+        self.resolve(entry, goal_nodes)
+
+    def block_and_resolve(self, entry, goal_nodes, node, why):
+        """Repair: take grid ``node`` out of the field's free space and solve the field again."""
+        entry.blocked.add(node)
+        entry.repairs += 1
+        self.say(f"repair: {why}; blocking node {node} and re-solving the field")
+        self.resolve(entry, goal_nodes)
+
+    def resolve(self, entry, goal_nodes):
+        t = time.perf_counter()
+        entry.field = self.p._solve(self.cs, goal_nodes, entry.blocked, entry.cut_edges)
+        self.timings["field"] += time.perf_counter() - t
+        if "field" in self.cached:
+            self.cached.remove("field")
 
 
 def warm_up(scenario: Scenario, cells: int = 6) -> float:

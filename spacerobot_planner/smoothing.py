@@ -5,10 +5,8 @@ periodic joints, and turned into a cubic spline as in the paper (knots at every
 second node).  The spline is checked on the *exact* geometry, not the grid: it is
 sampled so that consecutive samples are at most ``max_step_rad`` apart (Euclidean
 norm in joint space) and the piecewise-linear path through the samples is
-*certified*: checks go at most ``verify_step_rad`` apart and, near obstacles,
-closer, so that the clearance balls of consecutive checks overlap (a Lipschitz
-bound on link motion per radian): the whole path, not only the samples, keeps
-clearance above the scene's safety margin.  Bounded joints stay within bounds.  Where the spline
+*certified* by the motion validator (``motion.check_path``): the whole path, not only
+the samples, keeps clearance above the scene's safety margin.  Bounded joints stay within bounds.  Where the spline
 cuts a corner, knots are added in that stretch only (first the skipped nodes,
 then midpoints of the polyline) until it is clean.
 
@@ -18,42 +16,19 @@ arrays.  Periodic joints are *unwrapped* (continuous, may leave [-π, π)).
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 from scipy.interpolate import CubicSpline
 
-from .collision import config_clearance
+from .motion import (DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, PathCheck, certify_segments, check_path,
+                     lipschitz_m_per_rad)
 
-__all__ = ["SmoothPath", "PathCheck", "unwrap_path", "path_length_rad", "densify_polyline",
-           "check_path", "first_bad_segment", "shortcut_indices", "spline_through",
-           "smooth_path", "DEFAULT_MAX_STEP_RAD", "DEFAULT_VERIFY_STEP_RAD"]
+__all__ = ["SmoothPath", "unwrap_path", "path_length_rad", "densify_polyline", "shortcut_indices",
+           "spline_through", "smooth_path", "DEFAULT_MAX_STEP_RAD"]
 
 DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
-DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the (certified) checks
-QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of candidates
-
-
-@dataclass(frozen=True, eq=False)
-class PathCheck:
-    """Result of a dense check of a sampled path.
-
-    Attributes:
-        ok: every check sample is free and within bounds.
-        interval_ok: (M-1,) bool, per interval between consecutive path samples
-            (the whole straight interval, certified; see :func:`check_path`).
-        min_clearance_m: smallest clearance over all check samples, metres.
-        n_checked: number of configurations tested.
-        interval_clearance_m: (M-1,) smallest clearance per interval, metres.
-    """
-
-    ok: bool
-    interval_ok: np.ndarray
-    min_clearance_m: float
-    n_checked: int
-    interval_clearance_m: np.ndarray = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,14 +94,6 @@ def densify_polyline(points_rad, max_step_rad: float) -> np.ndarray:
     return np.vstack([out, pts[-1:]])
 
 
-def _within_bounds(q, lower, upper, periodic):
-    ok = np.ones(len(q), dtype=bool)
-    for a, p in enumerate(periodic):
-        if not p:
-            ok &= (q[:, a] >= lower[a]) & (q[:, a] <= upper[a])
-    return ok
-
-
 def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarray:
     """Put rows that leave a bounded joint's range by at most ``tol_rad`` (rounding
     in the spline or the interpolation along a bound) exactly on the bound.
@@ -141,113 +108,6 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
             col[(col < lower[a]) & (col >= lower[a] - tol_rad)] = lower[a]
             col[(col > upper[a]) & (col <= upper[a] + tol_rad)] = upper[a]
     return q
-
-
-@njit(cache=True, nogil=True)
-def _certify_kernel(points, q_template, planned, lengths, checked, body, verts, starts,
-                    threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
-                    interval_ok, interval_clr, certified):
-    """Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
-
-    At a sample with clearance c the open ball of radius (c - threshold)/L in joint
-    space is free (no point of a checked link moves faster than L m/rad), so the
-    next sample goes at most that far (and at most max_step_rad).  An interval
-    fails where c ≤ threshold or the certified step falls below min_step_rad.
-    With ``certified`` false the samples go ``max_step_rad`` apart whatever the
-    clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
-    """
-    dof = points.shape[1]
-    q_full = q_template.copy()
-    pts = np.empty((lengths.shape[0] + 1, 2))
-    body_w = np.empty_like(body)
-    n_eval = 0
-    for i in range(points.shape[0] - 1):
-        seg_len = 0.0
-        for a in range(dof):
-            d = points[i + 1, a] - points[i, a]
-            seg_len += d * d
-        seg_len = np.sqrt(seg_len)
-        t = 0.0
-        ok = True
-        best = np.inf
-        while True:
-            f = t / seg_len if seg_len > 0.0 else 0.0
-            for a in range(dof):
-                q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
-            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
-            n_eval += 1
-            if c < best:
-                best = c
-            if not c > threshold_m:
-                ok = False
-                break
-            if t >= seg_len:
-                break
-            step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad if certified else max_step_rad
-            if step < min_step_rad:
-                ok = False
-                break
-            t = min(seg_len, t + min(step, max_step_rad))
-        interval_ok[i] = ok
-        interval_clr[i] = best
-    return n_eval
-
-
-@functools.lru_cache(maxsize=64)
-def lipschitz_m_per_rad(robot) -> float:
-    """Bound L on how fast any point of a checked link moves relative to the obstacles
-    and the body per radian of planned-joint motion (Euclidean norm): sqrt(Σ r_j²), r_j
-    the length of the chain beyond planned joint j."""
-    lengths = np.asarray(robot.link_lengths_m, dtype=float)
-    reach = np.array([lengths[j:].sum() for j in robot.planned_joints])
-    return float(np.sqrt(np.sum(reach ** 2)))
-
-
-def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
-               verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
-               required_clearance_m: float | None = None,
-               min_step_rad: float = 1e-6, certified: bool = True) -> PathCheck:
-    """Certified check of the piecewise-linear path through the rows of ``path_rad``.
-
-    Along every interval, samples are at most ``verify_step_rad`` apart and close
-    enough that their clearance balls overlap (Lipschitz bound of the arm), so the
-    *whole* interval, not only the samples, keeps clearance above the safety
-    margin (and at least ``required_clearance_m`` if given).  Bounded joints must
-    stay within bounds at the rows (then also between them).  ``certified=False``:
-    a quick test at samples ``verify_step_rad`` apart only (for candidates; never for
-    what is returned).
-    """
-    p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
-    robot = checker.robot
-    threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
-                                                                          required_clearance_m)
-    in_bounds = _within_bounds(p, lower_rad, upper_rad, periodic)
-    if len(p) == 1:
-        c = float(checker.clearance_m(p[0]))
-        return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
-                         np.zeros(0))
-    m = len(p) - 1
-    interval_ok = np.zeros(m, dtype=np.bool_)
-    interval_clr = np.zeros(m)
-    lip = lipschitz_m_per_rad(robot)
-    n = _certify_kernel(p, np.asarray(robot.locked_rad, dtype=float),
-                        np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                        checker.checked, checker.body, checker.verts, checker.starts,
-                        float(threshold), lip, float(verify_step_rad), float(min_step_rad),
-                        interval_ok, interval_clr, bool(certified))
-    interval_ok &= in_bounds[:-1] & in_bounds[1:]
-    return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
-                     interval_clr)
-
-
-def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
-                      verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> int:
-    """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""
-    chk = check_path(checker, points_rad, lower_rad, upper_rad, periodic, verify_step_rad)
-    if chk.ok:
-        return -1
-    bad = np.flatnonzero(~chk.interval_ok)
-    return int(bad[0]) if len(bad) else len(points_rad) - 2
 
 
 def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
@@ -301,7 +161,7 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                         need = iv_clr[k]
                 seg[0] = pts[i]
                 seg[1] = pts[j]
-                _certify_kernel(seg, q_template, planned, lengths, checked, body, verts, starts,
+                certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts,
                                 max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified)
                 good = ok_iv[0]
             if good:

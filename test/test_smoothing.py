@@ -7,7 +7,8 @@ import pytest
 
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
-from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, check_path, densify_polyline,
+from spacerobot_planner.motion import check_path
+from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, densify_polyline,
                                           path_length_rad, shortcut_indices, smooth_path,
                                           spline_through, unwrap_path)
 

@@ -136,7 +136,7 @@ def _paper(occ, per, goals, tol, max_sweeps, t0):
 
 
 def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *, tol=None,
-                max_sweeps=None, budget_s=None, cancel=None) -> Field:
+                max_sweeps=None, budget_s=None, cancel=None, cut_edges=None) -> Field:
     """Solve the harmonic field (see the package doc).
 
     Args:
@@ -147,6 +147,8 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         tol, max_sweeps: gauss_seidel's stop (largest change per sweep, sweep cap).
         budget_s: log_harmonic's wall-time budget, seconds (default ``DEFAULT_BUDGET_S``).
         cancel: optional callable; log_harmonic stops between bands once it returns true.
+        cut_edges: optional int (k, 2) flat index pairs of face-neighbour nodes whose edge
+            is removed (a wall between them: the planner's repair of motions that collide).
     Raises ValueError naming a malformed argument or an unknown solver.
     """
     t0 = time.perf_counter()
@@ -154,11 +156,13 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         raise ValueError(f"solver: unknown solver {solver!r}; expected one of {list(SOLVERS)}")
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
     if solver == "gauss_seidel":
+        if cut_edges is not None and len(cut_edges):
+            raise ValueError("cut_edges: the paper's gauss_seidel works on the full grid, without cut edges")
         return _paper(occ, per, goals, tol, max_sweeps, t0)
     budget = DEFAULT_BUDGET_S if budget_s is None else float(budget_s)
     if not (math.isfinite(budget) and budget > 0.0):
         raise ValueError(f"budget_s: must be a positive number of seconds, got {budget_s!r}")
-    graph = node_graph(occ, per, goals)
+    graph = node_graph(occ, per, goals, cut_edges)
     if solver == "oracle":
         log_u = oracle.oracle_log_u(graph)
         stats = {"bands": 0}

@@ -162,17 +162,35 @@ class NodeGraph:
         return out.reshape(self.shape)
 
 
-def bfs(occ, per, goals):
-    """(dist int64 grid-flat, BFS order, grid neighbour table) of a validated problem."""
+@nb.njit(cache=True, nogil=True)
+def _cut_edges(gnbr, edges):
+    """Remove the grid edges ``edges`` int64 (k, 2) (flat node pairs, face neighbours) from
+    the neighbour table: each end then sees a wall there."""
+    deg = gnbr.shape[1]
+    for e in range(edges.shape[0]):
+        a, b = edges[e, 0], edges[e, 1]
+        for d in range(deg):
+            if gnbr[a, d] == b:
+                gnbr[a, d] = -1
+            if gnbr[b, d] == a:
+                gnbr[b, d] = -1
+
+
+def bfs(occ, per, goals, cut_edges=None):
+    """(dist int64 grid-flat, BFS order, grid neighbour table) of a validated problem,
+    without the grid edges ``cut_edges`` (int (k, 2) flat node pairs) if given."""
     gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
+    if cut_edges is not None and len(cut_edges):
+        _cut_edges(gnbr, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
     dist, order = _bfs(occ.ravel(), gnbr, goal_flat)
     return dist, order, gnbr
 
 
-def node_graph(occ, per, goals) -> NodeGraph:
-    """The :class:`NodeGraph` of a validated problem (``validate_problem``)."""
-    dist, order, gnbr = bfs(occ, per, goals)
+def node_graph(occ, per, goals, cut_edges=None) -> NodeGraph:
+    """The :class:`NodeGraph` of a validated problem (``validate_problem``), without the
+    grid edges ``cut_edges`` (int (k, 2) flat node pairs: a wall between the two)."""
+    dist, order, gnbr = bfs(occ, per, goals, cut_edges)
     n_goal = len(goals)
     order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
     coords = np.stack(np.unravel_index(order, occ.shape), axis=1).astype(np.int64)

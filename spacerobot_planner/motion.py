@@ -1,0 +1,217 @@
+"""Motion validity: straight joint-space segments checked on the exact geometry.
+
+OMPL splits validity in two: the state validity checker (``collision.CollisionChecker``:
+is one configuration free, and by how much) and the motion validator (this module: is
+every configuration on the straight segment between two configurations free).  Every
+stage that accepts a motion (the joins to the exact start and goal, the grid path,
+shortcuts, the spline, the trajectory's points) asks this module.
+
+The certified check: along a segment, configurations are tested at most ``step`` apart
+and, near obstacles, closer, so that consecutive clearance balls overlap (a Lipschitz
+bound on how fast a checked link moves per radian of joint motion): the *whole*
+segment, not only the samples, keeps clearance above the threshold.  The quick test
+(``certified=False``) samples at a fixed step only: for choosing among candidates,
+never for what is returned.
+
+All configurations are planned-joint vectors in radians; paths are (M, dof) arrays,
+periodic joints unwrapped (continuous).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .collision import config_clearance
+
+__all__ = ["PathCheck", "check_path", "first_bad_segment", "lipschitz_m_per_rad", "certify_segments",
+           "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD"]
+
+DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the certified checks
+QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of candidates
+
+
+@dataclass(frozen=True, eq=False)
+class PathCheck:
+    """Result of a dense check of a sampled path.
+
+    Attributes:
+        ok: every check sample is free and within bounds.
+        interval_ok: (M-1,) bool, per interval between consecutive path samples
+            (the whole straight interval, certified; see :func:`check_path`).
+        min_clearance_m: smallest clearance over all check samples, metres.
+        n_checked: number of configurations tested.
+        interval_clearance_m: (M-1,) smallest clearance per interval, metres.
+    """
+
+    ok: bool
+    interval_ok: np.ndarray
+    min_clearance_m: float
+    n_checked: int
+    interval_clearance_m: np.ndarray = None
+
+
+def _within_bounds(q, lower, upper, periodic):
+    ok = np.ones(len(q), dtype=bool)
+    for a, p in enumerate(periodic):
+        if not p:
+            ok &= (q[:, a] >= lower[a]) & (q[:, a] <= upper[a])
+    return ok
+
+
+@njit(cache=True, nogil=True)
+def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts,
+                     threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
+                     interval_ok, interval_clr, certified):
+    """Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
+
+    At a sample with clearance c the open ball of radius (c - threshold)/L in joint
+    space is free (no point of a checked link moves faster than L m/rad), so the
+    next sample goes at most that far (and at most max_step_rad).  An interval
+    fails where c ≤ threshold or the certified step falls below min_step_rad.
+    With ``certified`` false the samples go ``max_step_rad`` apart whatever the
+    clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
+    """
+    dof = points.shape[1]
+    q_full = q_template.copy()
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    n_eval = 0
+    for i in range(points.shape[0] - 1):
+        seg_len = 0.0
+        for a in range(dof):
+            d = points[i + 1, a] - points[i, a]
+            seg_len += d * d
+        seg_len = np.sqrt(seg_len)
+        t = 0.0
+        ok = True
+        best = np.inf
+        while True:
+            f = t / seg_len if seg_len > 0.0 else 0.0
+            for a in range(dof):
+                q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+            n_eval += 1
+            if c < best:
+                best = c
+            if not c > threshold_m:
+                ok = False
+                break
+            if t >= seg_len:
+                break
+            step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad if certified else max_step_rad
+            if step < min_step_rad:
+                ok = False
+                break
+            t = min(seg_len, t + min(step, max_step_rad))
+        interval_ok[i] = ok
+        interval_clr[i] = best
+    return n_eval
+
+
+@functools.lru_cache(maxsize=64)
+def lipschitz_m_per_rad(robot) -> float:
+    """Bound L on how fast any point of a checked link moves relative to the obstacles
+    and the body per radian of planned-joint motion (Euclidean norm): sqrt(Σ r_j²), r_j
+    the length of the chain beyond planned joint j."""
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
+    reach = np.array([lengths[j:].sum() for j in robot.planned_joints])
+    return float(np.sqrt(np.sum(reach ** 2)))
+
+
+def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
+               verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
+               required_clearance_m: float | None = None,
+               min_step_rad: float = 1e-6, certified: bool = True) -> PathCheck:
+    """Certified check of the piecewise-linear path through the rows of ``path_rad``.
+
+    Along every interval, samples are at most ``verify_step_rad`` apart and close
+    enough that their clearance balls overlap (Lipschitz bound of the arm), so the
+    *whole* interval, not only the samples, keeps clearance above the safety
+    margin (and at least ``required_clearance_m`` if given).  Bounded joints must
+    stay within bounds at the rows (then also between them).  ``certified=False``:
+    a quick test at samples ``verify_step_rad`` apart only (for candidates; never for
+    what is returned).
+    """
+    p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
+    robot = checker.robot
+    threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
+                                                                          required_clearance_m)
+    in_bounds = _within_bounds(p, lower_rad, upper_rad, periodic)
+    if len(p) == 1:
+        c = float(checker.clearance_m(p[0]))
+        return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
+                         np.zeros(0))
+    m = len(p) - 1
+    interval_ok = np.zeros(m, dtype=np.bool_)
+    interval_clr = np.zeros(m)
+    lip = lipschitz_m_per_rad(robot)
+    n = certify_segments(p, np.asarray(robot.locked_rad, dtype=float),
+                        np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
+                        checker.checked, checker.body, checker.verts, checker.starts,
+                        float(threshold), lip, float(verify_step_rad), float(min_step_rad),
+                        interval_ok, interval_clr, bool(certified))
+    interval_ok &= in_bounds[:-1] & in_bounds[1:]
+    return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
+                     interval_clr)
+
+
+def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
+                      verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> int:
+    """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""
+    chk = check_path(checker, points_rad, lower_rad, upper_rad, periodic, verify_step_rad)
+    if chk.ok:
+        return -1
+    bad = np.flatnonzero(~chk.interval_ok)
+    return int(bad[0]) if len(bad) else len(points_rad) - 2
+
+
+
+
+@njit(cache=True, nogil=True)
+def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, threshold_m,
+                 step_rad, q_full, pts, body_w):
+    """Quick test of the straight segment qa → qb (planned joints, rad): clearance above
+    ``threshold_m`` at samples at most ``step_rad`` apart, both ends included.  Scratch:
+    q_full (n_joints,) starting as ``q_template``, pts (n_links + 1, 2), body_w like body."""
+    dof = qa.shape[0]
+    d2 = 0.0
+    for a in range(dof):
+        d2 += (qb[a] - qa[a]) ** 2
+    n = max(1, int(np.ceil(np.sqrt(d2) / step_rad)))
+    for k in range(n + 1):
+        f = k / n
+        for a in range(dof):
+            q_full[planned[a]] = qa[a] + f * (qb[a] - qa[a])
+        if not config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w) > threshold_m:
+            return False
+    return True
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentTest:
+    """What a numba kernel needs to run :func:`segment_free` for one robot and scene."""
+
+    q_template: np.ndarray
+    planned: np.ndarray
+    lengths: np.ndarray
+    checked: np.ndarray
+    body: np.ndarray
+    verts: np.ndarray
+    starts: np.ndarray
+    threshold_m: float
+    step_rad: float
+
+    @classmethod
+    def of(cls, checker, step_rad: float = QUICK_STEP_RAD) -> "SegmentTest":
+        robot = checker.robot
+        return cls(np.asarray(robot.locked_rad, dtype=float), np.asarray(robot.planned_joints, dtype=np.int64),
+                   checker.lengths, checker.checked, checker.body, checker.verts, checker.starts,
+                   float(checker.margin_m), float(step_rad))
+
+    def arrays(self) -> tuple:
+        return (self.q_template, self.planned, self.lengths, self.checked, self.body, self.verts,
+                self.starts, self.threshold_m, self.step_rad)
