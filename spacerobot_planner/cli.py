@@ -61,7 +61,7 @@ def _summary(res, scenario) -> list:
     lines = []
     t = res.timings_s
     stages = ", ".join(f"{k} {'cached' if k in res.cached else f'{1e3 * t[k]:.1f} ms'}"
-                       for k in ("cspace", "field", "descent", "smoothing", "verify"))
+                       for k in ("cspace", "field", "descent", "repair", "smoothing", "verify"))
     lines.append(f"stages: {stages}; total {1e3 * t['total']:.1f} ms")
     if res.ok:
         lines.append(f"path: {len(res.path_rad)} samples ({res.smoothing}), {len(res.grid_path_rad)} grid nodes, "

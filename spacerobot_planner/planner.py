@@ -46,7 +46,7 @@ __all__ = ["PlanResult", "Planner", "STAGES", "CODES", "warm_up"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node.
 REPAIR_RADIUS = 2
-STAGES = ("cspace", "field", "descent", "smoothing", "verify", "total")
+STAGES = ("cspace", "field", "descent", "repair", "smoothing", "verify", "total")
 CODES = ("ok", "invalid_input", "start_in_collision", "goal_in_collision", "goal_unreachable",
          "disconnected", "path_invalid", "cancelled", "internal_error")
 
@@ -69,7 +69,8 @@ class PlanResult:
         timings_s: seconds per stage (``STAGES``); a cached stage reports 0.0.
         cached: the stages served from cache.
         solver: field solver name.
-        solver_stats: sweeps, residual, converged, repairs (re-solves after blocking nodes).
+        solver_stats: sweeps, residual, converged, left, bands, repairs (re-solves after cutting
+            grid edges or blocking nodes whose motions collide), cut_edges, blocked_nodes.
         min_clearance_m: minimum clearance over the dense check (nan without path).
         cspace, field: the grid and the field used (None if not reached).
         smoothing: "shortcut_spline", "spline", "polyline" or "" without a path.
@@ -609,7 +610,7 @@ class _PlanRun:
         t = time.perf_counter()
         edges = colliding_edges(entry.field.occupied, grid.periodic, node, self.motions,
                                 grid.lower_rad, grid.step_rad, radius=REPAIR_RADIUS)
-        self.timings["descent"] += time.perf_counter() - t
+        self.timings["repair"] += time.perf_counter() - t
         new = {(int(a), int(b)) for a, b in edges} - entry.cut_edges
         if not new:
             self.block_and_resolve(entry, goal_nodes, node, why)
@@ -630,7 +631,7 @@ class _PlanRun:
     def resolve(self, entry, goal_nodes):
         t = time.perf_counter()
         entry.field = self.p._solve(self.cs, goal_nodes, entry.blocked, entry.cut_edges)
-        self.timings["field"] += time.perf_counter() - t
+        self.timings["repair"] += time.perf_counter() - t
         if "field" in self.cached:
             self.cached.remove("field")
 
