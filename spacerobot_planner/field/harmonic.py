@@ -16,7 +16,7 @@ from . import multigrid
 from .graph import NodeGraph, ascent_defects
 
 #: Each band's linear solve stops at this largest residual (its known values are ≤ 1).
-RESIDUAL_TOL = 1e-12
+RESIDUAL_TOL = 1e-10
 #: A band keeps the values at or above this (relative to its largest known value); the
 #: nodes below it make up the next band, solved on their own scale.
 BAND_FLOOR = 1e-6

@@ -136,6 +136,7 @@ class Hierarchy:
         coords = np.ascontiguousarray(coords, dtype=np.int64)
         nbr, wt, diag, coords, self.fine_of_input = _by_parity(
             nbr, np.where(nbr < n, 1.0, 0.0), np.full(n, float(deg)), coords)
+        fine_coords = coords
         nbrs, wts, diags, aggs = [nbr], [wt], [diag], []
         shape = np.asarray(shape, np.int64)
         while nbrs[-1].shape[0] > COARSEST_NODES and np.any(shape > 1):
@@ -170,6 +171,12 @@ class Hierarchy:
         self.inv_diag = 1.0 / self.diag
         # the fine level on its own: unit weights, diagonal deg, int32 neighbours
         self.nb0 = nbrs[0].astype(np.int32)
+        # after a sweep (red nodes first, then black) the black residuals are zero unless two
+        # black nodes are neighbours (across an odd periodic seam): restrict the red ones only
+        n0 = int(sizes[0])
+        red = int(np.count_nonzero(fine_coords.sum(axis=1) % 2 == 0))
+        black_nbrs = self.nb0[red:]
+        self.restrict0 = n0 if np.any((black_nbrs >= red) & (black_nbrs < n0)) else red
         m = int(sizes[-1])
         cn, cw, cd = nbrs[-1], wts[-1], diags[-1]
         dense = np.diag(cd)
@@ -201,7 +208,7 @@ def _row0(nb0, x, i, deg):
 
 
 @nb.njit(cache=True, nogil=True)
-def _vcycle(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps, boost):
+def _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps, boost):
     """x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the
     coarser levels and r are scratch).  Symmetric: forward Gauss-Seidel sweeps
     before the coarse correction (scaled by ``boost``), backward ones after.  The
@@ -226,7 +233,7 @@ def _vcycle(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps
             for _ in range(sweeps - 1):
                 for i in range(n0):
                     x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
-            for i in range(n0):
+            for i in range(restrict0):
                 b[cb + agg[i]] += b[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
             continue
         for i in range(n + 1):
@@ -278,7 +285,7 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
+def _pcg(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
     """Preconditioned CG on the finest level, from the initial guess ``u``.
 
     rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
@@ -305,7 +312,7 @@ def _pcg(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_i
         return 0, res
     for i in range(n):
         bs[i] = r[i]
-    _vcycle(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
+    _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
     rz = 0.0
     for i in range(n):
         p[i] = xs[i]
@@ -332,7 +339,7 @@ def _pcg(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_i
             break
         for i in range(n):
             bs[i] = r[i]
-        _vcycle(nb0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
+        _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
         rz_new = 0.0
         for i in range(n):
             rz_new += r[i] * xs[i]
@@ -362,6 +369,6 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     b = np.zeros(n + 1)
     b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
-    it, res = _pcg(h.nb0, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
+    it, res = _pcg(h.nb0, h.restrict0, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
                    float(tol), int(max_iter), int(sweeps), float(boost), float(deadline))
     return x[h.fine_of_input], int(it), float(res)
