@@ -36,9 +36,10 @@ from numba import njit
 
 from .collision import CollisionChecker, config_clearance
 
-__all__ = ["MassProperties", "WheelModel", "FreeFloatingResponse", "DriftCheck", "ReactionReport",
+__all__ = ["MassProperties", "AcsSettings", "WheelModel", "FreeFloatingResponse", "DriftCheck", "ReactionReport",
            "ACS_MODES", "system_com_m", "angular_momentum_Nms", "momentum_rate_Nm", "momentum_map",
-           "wheel_load", "free_floating_response", "check_drifted", "reaction_report"]
+           "wheel_load", "free_floating_response", "check_drifted", "reaction_report", "Motion", "plan_motion",
+           "scenario_joint_limits"]
 
 ACS_MODES = ("held", "free_floating")
 
@@ -86,6 +87,26 @@ class MassProperties:
     @property
     def total_mass_kg(self) -> float:
         return self.body_mass_kg + sum(self.link_masses_kg)
+
+
+@dataclass(frozen=True)
+class AcsSettings:
+    """Attitude control during the arm motion (``acs.*``, ``grasp.position_tolerance_m``).
+
+    Attributes:
+        mode: "held" (reaction wheels hold or command the attitude) or "free_floating".
+        max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits, 0 = no limit.
+        position_tolerance_m: free floating: largest acceptable tip miss, metres.
+    """
+
+    mode: str = "held"
+    max_wheel_momentum_Nms: float = 0.0
+    max_wheel_torque_Nm: float = 0.0
+    position_tolerance_m: float = 0.02
+
+    @property
+    def has_wheel_limits(self) -> bool:
+        return self.max_wheel_momentum_Nms > 0.0 or self.max_wheel_torque_Nm > 0.0
 
 
 # ------------------------------------------------------------------ kinematics
@@ -383,8 +404,9 @@ class ReactionReport:
             (the CoM stays put either way), and held_tip_miss_m: the tip's miss that causes
             (vs the grasp point, else vs the planned tip).
         position_tolerance_m: grasp.position_tolerance_m.
-        times_s, wheel_momentum_Nms, wheel_torque_Nm, free_floating_attitude_rad: (M,)
-            series for plots (None without a trajectory; attitude per path sample).
+        times_s, wheel_momentum_Nms, wheel_torque_Nm, free_floating_attitude_rad,
+        planned_attitude_rad: (M,) series for plots (None without a trajectory; the
+            attitudes per sample of the trajectory, else of the path).
     """
 
     acs_mode: str
@@ -406,6 +428,7 @@ class ReactionReport:
     wheel_momentum_Nms: np.ndarray | None = None
     wheel_torque_Nm: np.ndarray | None = None
     free_floating_attitude_rad: np.ndarray | None = None
+    planned_attitude_rad: np.ndarray | None = None
 
     def to_json_dict(self) -> dict:
         """Scalars only (plain JSON; None where not known)."""
@@ -489,4 +512,78 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
     return ReactionReport(acs_mode, reason is None, reason, peak_h, peak_tau, wheel.max_momentum_Nms,
                           wheel.max_torque_Nm, resp.attitude_change_deg, resp.body_displacement_m,
                           resp.tip_miss_m, drift.min_clearance_m, not drift.ok, held_disp, held_miss,
-                          float(position_tolerance_m), times, h_w, tau_w, resp.q_full_rad[:, 0])
+                          float(position_tolerance_m), times, h_w, tau_w, resp.q_full_rad[:, 0],
+                          resp.planned_q_full_rad[:, 0])
+
+
+# ------------------------------------------------------------- scenario level
+@dataclass(frozen=True, eq=False)
+class Motion:
+    """A planned path in time and the spacecraft's reaction to it.
+
+    Attributes:
+        trajectory: ``trajectory.Trajectory`` over the planned joints.
+        reaction: ReactionReport (``reaction.ok`` False: refuse the plan, ``reaction.reason``).
+    """
+
+    trajectory: object
+    reaction: ReactionReport
+
+    def to_json_dict(self) -> dict:
+        return {"trajectory": self.trajectory.to_json_dict(), "reaction": self.reaction.to_json_dict()}
+
+
+def scenario_joint_limits(scenario):
+    """(max velocity (dof,) rad/s, max acceleration (dof,) rad/s², velocity scaling,
+    acceleration scaling) of the planned joints from the scenario's ``trajectory.*``."""
+    from .config import check_value, spec_default
+    robot = scenario.robot
+    params = scenario.params
+    idx = list(robot.planned_joints)
+
+    def get(key):
+        return check_value(key, params[key]) if key in params else spec_default(key)
+
+    out = []
+    for key in ("trajectory.max_velocity_deg_s", "trajectory.max_acceleration_deg_s2"):
+        v = get(key)
+        if len(v) != robot.n_joints:
+            raise ValueError(f"{key}: expected {robot.n_joints} values (one per joint in robot.joint_names), "
+                             f"got {len(v)}")
+        out.append(np.radians(np.asarray(v, dtype=float))[idx])
+    return (out[0], out[1], get("trajectory.max_velocity_scaling_factor"),
+            get("trajectory.max_acceleration_scaling_factor"))
+
+
+def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None) -> Motion:
+    """Time-parameterise a planned path with the scenario's limits and report the reaction.
+
+    The joint limits and scaling factors come from ``trajectory.*``; with ``acs.mode``
+    held and a wheel limit set (``acs.max_wheel_*``), the wheel momentum and torque
+    enter the time-optimal parameterisation.  The reaction report then says whether
+    the plan is acceptable (free floating: the drifted arm is checked against the
+    inertial scene and the tip miss against ``grasp.position_tolerance_m``).
+
+    Args:
+        scenario: ``config.Scenario`` (robot, scene, masses, acs, params).
+        path_rad: (M, dof) the planned path (unwrapped, exact ends).
+        start_velocity_rad_s, start_path_speed: a moving start (see
+            ``trajectory.time_parameterize``); default at rest.
+    Returns:
+        Motion(trajectory, reaction).
+    Raises:
+        ValueError: bad limits or a start velocity the path cannot be followed with.
+    """
+    from .trajectory import time_parameterize
+    robot, acs = scenario.robot, scenario.acs
+    vmax, amax, vs, as_ = scenario_joint_limits(scenario)
+    limits = (acs.max_wheel_momentum_Nms, acs.max_wheel_torque_Nm) if acs.mode == "held" else (None, None)
+    wheel = WheelModel(robot, scenario.masses, *limits)
+    traj = time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
+                             acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
+                             start_path_speed=start_path_speed, wheel=wheel)
+    report = reaction_report(robot, scenario.masses, scenario.scene, path_rad, traj, acs_mode=acs.mode,
+                             max_wheel_momentum_Nms=acs.max_wheel_momentum_Nms,
+                             max_wheel_torque_Nm=acs.max_wheel_torque_Nm,
+                             position_tolerance_m=acs.position_tolerance_m)
+    return Motion(traj, report)
