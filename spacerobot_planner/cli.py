@@ -151,6 +151,17 @@ def main(argv=None) -> int:
     res = planner.plan(start, goal, progress=progress)
     if res.code == "invalid_input":
         return _fail_input(res.reason)
+    if res.ok and scenario.acs.mode == "free_floating" and scenario.acs.compensate_drift:
+        from .dynamics import plan_free_floating
+        try:
+            comp = plan_free_floating(scenario, start, goal)
+        except ValueError as e:
+            return _fail_input(str(e))
+        print(f"drift compensation: {len(comp.history)} plans, tip miss "
+              f"{' → '.join(f'{h[0]:.4f}' for h in comp.history)} m; goal "
+              f"{np.round(np.degrees(comp.goal_rad), 2).tolist()}°")
+        if comp.plan.ok:
+            res = comp.plan
     for line in _summary(res, scenario):
         print(line)
     motion = resampled = None

@@ -129,6 +129,9 @@ PARAMETERS = (
     ParamSpec("acs.max_wheel_torque_Nm", "double", 0.0,
               "Largest reaction-wheel torque the trajectory may need, N m (0: no limit).",
               False, 0.0, 1e9),
+    ParamSpec("acs.compensate_drift", "bool", False,
+              "Free floating (CLI): plan the arm for the predicted drift (goal corrected and replanned "
+              "until the drifted tip reaches the grasp; 2-DOF, attitude not planned).", False),
     ParamSpec("grasp.position_tolerance_m", "double", 0.02,
               "Free floating: largest acceptable distance of the drifted tip from the grasp point, m.",
               False, 0.0, 10.0),
@@ -357,7 +360,7 @@ def scenario_from_params(params: dict) -> Scenario:
     if mode not in ACS_MODES:
         raise ValueError(f"acs.mode: expected one of {', '.join(ACS_MODES)}, got {mode!r}")
     acs = AcsSettings(mode, _get(params, "acs.max_wheel_momentum_Nms"), _get(params, "acs.max_wheel_torque_Nm"),
-                      _get(params, "grasp.position_tolerance_m"))
+                      _get(params, "grasp.position_tolerance_m"), _get(params, "acs.compensate_drift"))
     return Scenario(robot=robot, scene=scene, grid=grid, start_rad=posture("scenario.start_deg"),
                     goal_rad=posture("scenario.goal_deg"),
                     planning_frame=_get(params, "planning_frame"), params=dict(params),

@@ -97,12 +97,14 @@ class AcsSettings:
         mode: "held" (reaction wheels hold or command the attitude) or "free_floating".
         max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits, 0 = no limit.
         position_tolerance_m: free floating: largest acceptable tip miss, metres.
+        compensate_drift: free floating: plan for the predicted drift (:func:`plan_free_floating`).
     """
 
     mode: str = "held"
     max_wheel_momentum_Nms: float = 0.0
     max_wheel_torque_Nm: float = 0.0
     position_tolerance_m: float = 0.02
+    compensate_drift: bool = False
 
     @property
     def has_wheel_limits(self) -> bool:

@@ -229,3 +229,13 @@ def test_bad_reaction_parameters_exit_1(tmp_path, capsys, section, field):
     f = _variant(tmp_path, S3, "bad", **section)
     rc, out, err = run(["--params-file", f], capsys)
     assert rc == 1 and field in err
+
+
+def test_free_floating_with_drift_compensation_is_accepted(tmp_path, capsys):
+    f = _variant(tmp_path, P2, "comp", acs={"mode": "free_floating", "compensate_drift": True})
+    js = tmp_path / "c.json"
+    rc, out, err = run(["--params-file", f, "--json", str(js), "--quiet"], capsys)
+    assert rc == 0, err
+    d = json.loads(js.read_text())
+    assert d["reaction"]["free_floating_tip_miss_m"] < 0.02 and not d["reaction"]["free_floating_collides"]
+    assert abs(d["reaction"]["free_floating_attitude_change_deg"]) > 10.0 and "drift compensation" in out
