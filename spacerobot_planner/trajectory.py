@@ -10,29 +10,33 @@ the reaction-wheel momentum (N·m·s) and torque (N·m) stay within their limits
 arm starts at rest or moving along the path's tangent (``start_path_speed`` or
 ``start_velocity_rad_s``) and ends at rest.
 
-Method (reachability analysis, Pham & Pham's TOPP-RA, on the path samples):
+Method (reachability analysis, Pham & Pham's TOPP-RA):
 
-1. The path samples are the grid ``s_0 … s_N`` (joint-space chord length, rad).  A
-   cubic spline through them (not-a-knot, parameter s) gives the tangent ``q'`` and
-   curvature ``q''`` at every sample; the positions stay the given samples.
-2. On each segment ``[s_i, s_{i+1}]`` the path acceleration ``u_i = s̈`` is constant,
+1. A cubic spline through the path samples (not-a-knot, parameter s = joint-space chord
+   length, rad) gives q', q'' and the (piecewise constant) q''' on a grid
+   ``grid_refinement`` (4) times finer than the samples; the trajectory keeps one point
+   per sample, at exactly the given positions.
+2. On each grid segment ``[s_i, s_{i+1}]`` the path acceleration ``u_i = s̈`` is constant,
    so ``x = ṡ²`` is linear: ``x_{i+1} = x_i + 2 Δ_i u_i``.  Every constraint is written
    at *both* ends of the segment with the segment's ``u_i`` ("first-order
    interpolation"):
 
-   - velocity type, ``x_i ≤ xv_i``: ``|q'_j| ṡ ≤ v_j`` with the spline tangent and with
-     the chords of both neighbouring segments (so the finite-difference velocity
-     ``Δq/Δt`` obeys the limit too), and ``|H·q'| ṡ ≤ h_max`` for the wheel momentum;
-   - acceleration type, ``|A u + B x| ≤ C``: ``|q'_j u + q''_j x| ≤ a_j`` per joint and
+   - velocity type, ``x_i ≤ xv_i``: ``|q'_j| ṡ ≤ v_j``, with |q'_j| raised by
+     ``|q'''| Δ²/8``, the most it can grow inside the segment, and ``|H·q'| ṡ ≤ h_max``
+     for the wheel momentum;
+   - acceleration type, ``|A u + B x| + κ|u| ≤ C``: ``|q'_j u + q''_j x| ≤ a_j`` per
+     joint, with κ = 2.5 |q'''| Δ²/4 the most the (quadratic in s) joint acceleration
+     can exceed its end values inside the segment, and
      ``|(H·q') u + (d(H·q')/ds) x| ≤ τ_max`` for the wheel torque.
 
-   In the variables ``(x_i, x_{i+1})`` all of them are half-planes.
+   In the variables ``(x_i, x_{i+1})`` all of them are half-planes.  So the joint
+   velocity and acceleration stay within the limits everywhere along the spline, and
+   so does every finite difference of the positions (a weighted mean of the
+   acceleration over the neighbouring intervals), for the dense points and any subset.
 3. A backward pass computes the controllable sets ``K_i = [0, k_i]`` (the speeds²
    from which the goal can still be reached at rest); a forward pass from the start
    speed² picks at each step the largest ``x_{i+1} ∈ K_{i+1}`` the constraints admit.
-   Both passes use the same feasibility test, so the chosen profile satisfies every
-   constraint at every sample, with the acceleration of *either* neighbouring
-   segment: no uniform slow-down is applied or needed.
+   Both passes use the same feasibility test: no uniform slow-down is applied or needed.
 4. ``Δt_i = 2 Δ_i / (ṡ_i + ṡ_{i+1})``.  Published velocities ``q' ṡ``; accelerations
    ``q' ū + q'' x`` with ``ū`` the Δt-weighted mean of the two neighbouring segments'
    ``u`` (a convex combination, so still within the limits; it is what the finite
@@ -41,9 +45,8 @@ Method (reachability analysis, Pham & Pham's TOPP-RA, on the path samples):
 Finite differences (``finite_differences``): segment velocity
 ``w_k = (q_{k+1} - q_k) / (t_{k+1} - t_k)``; acceleration at an interior point
 ``(w_k - w_{k-1}) / ((Δt_{k-1} + Δt_k) / 2)``, at the first point
-``(w_0 - v_0) / (Δt_0 / 2)`` and at the last ``-w_{M-2} / (Δt_{M-2} / 2)``.  The
-velocities obey the limits exactly; the accelerations approach the published
-ones to second order in the sample spacing (they are not what is constrained).
+``(w_0 - v_0) / (Δt_0 / 2)`` and at the last ``-w_{M-2} / (Δt_{M-2} / 2)``; both obey
+the limits (see 2.) and approach the published values as the samples get closer.
 
 Resampling (``resample``) keeps a subset of the points (exact start and goal, at
 most ``time_step_s`` apart and/or within ``path_tolerance_rad`` of the dense path)
@@ -63,8 +66,6 @@ from scipy.interpolate import CubicSpline
 
 __all__ = ["Trajectory", "Resampled", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity"]
-
-_EPS = 1e-12
 
 
 @dataclass(frozen=True, eq=False)
