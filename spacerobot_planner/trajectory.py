@@ -64,8 +64,8 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import CubicSpline
 
-__all__ = ["Trajectory", "Resampled", "time_parameterize", "finite_differences", "sample",
-           "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity"]
+__all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
+           "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -345,7 +345,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                       velocity_scaling: float = 1.0, acceleration_scaling: float = 1.0,
                       start_path_speed: float | None = None, start_velocity_rad_s=None,
                       wheel=None, max_step_rad: float = np.radians(0.5),
-                      grid_refinement: int = 4) -> Trajectory:
+                      grid_refinement: int = 4, start_speed_tolerance: float = 1e-3) -> Trajectory:
     """Time-optimal parameterisation of a joint path within joint (and wheel) limits.
 
     Args:
@@ -367,6 +367,9 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         max_step_rad: the path is subdivided so no joint moves more than this per point.
         grid_refinement: grid points per path segment for the reachability passes
             (the trajectory has one point per path sample).
+        start_speed_tolerance: a start speed above the largest admissible one by at most
+            this fraction is lowered to it (a path re-fitted through the same samples moves
+            the velocity bound by a hair); more is refused.
     Returns:
         Trajectory, ending at rest; a one-point trajectory (t = 0) when start == goal.
     Raises:
@@ -439,7 +442,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
 
     k = _backward(a_row, b_row, c_row, kappa, xv, ds, 0.0)
     x0 = sd0 * sd0
-    if x0 > k[0] * (1.0 + 1e-9):
+    if sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance):
         raise ValueError(f"start_path_speed: {sd0:.6g} rad/s along the path is faster than the limits "
                          f"allow from the start (at most {np.sqrt(k[0]):.6g} rad/s there, to stay within "
                          f"the velocity and acceleration limits and stop at the goal)")
@@ -637,3 +640,63 @@ def sample(traj: Trajectory, t_s: float):
     q = traj.positions_rad[k] + f * (traj.positions_rad[k + 1] - traj.positions_rad[k])
     v = traj.velocities_rad_s[k] + f * (traj.velocities_rad_s[k + 1] - traj.velocities_rad_s[k])
     return q, v
+
+
+@dataclass(frozen=True, eq=False)
+class Continuation:
+    """Where a replacement trajectory joins an executing one (see :func:`continuation`).
+
+    Attributes:
+        index: the executing trajectory's point where the new one starts.
+        join_time_s: that point's time in the executing trajectory (the new
+            trajectory's time 0 is this instant).
+        prefix_rad: (P, n) the executing path from that point to the horizon point
+            (P ≥ 1; its last row is where the new plan must start).
+        start_path_speed: ṡ at the join, for ``time_parameterize(start_path_speed=...)``.
+        start_velocity_rad_s: (n,) the joint velocity at the join.
+    """
+
+    index: int
+    join_time_s: float
+    prefix_rad: np.ndarray
+    start_path_speed: float
+    start_velocity_rad_s: np.ndarray
+
+    def join(self, new_path_rad) -> np.ndarray:
+        """The path to time-parameterise: the prefix, then ``new_path_rad`` (which must
+        start at ``prefix_rad[-1]``, the horizon point), (P + K - 1, n)."""
+        new = np.asarray(new_path_rad, dtype=float)
+        if new.ndim != 2 or new.shape[1] != self.prefix_rad.shape[1]:
+            raise ValueError(f"new_path_rad: expected (K, {self.prefix_rad.shape[1]}) rows, got {new.shape}")
+        if np.max(np.abs(new[0] - self.prefix_rad[-1])) > 1e-9:
+            raise ValueError("new_path_rad: must start at the continuation's horizon point prefix_rad[-1]")
+        return np.vstack([self.prefix_rad, new[1:]])
+
+
+def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0) -> Continuation:
+    """Replanning from a moving arm: keep the executing trajectory to a horizon, join there.
+
+    The new trajectory starts at the first point of ``traj`` at or after ``t_s`` (the
+    join, an exact state: position, velocity, path speed) and follows ``traj``'s path to
+    the point ``horizon_s`` later, where the new plan starts.  Time-parameterising
+    ``c.join(new_path)`` with ``start_path_speed=c.start_path_speed`` gives a trajectory
+    continuous in position and velocity at the join (the velocity up to the projection on
+    the re-fitted tangent, a relative change of the order of the squared sample spacing),
+    within the limits; it raises ``ValueError`` when the new path turns too sharply after
+    the horizon to be entered at that speed (take a longer horizon).
+
+    Args:
+        traj: the executing trajectory.
+        t_s: the current time in it (s from its start).
+        horizon_s: how far ahead (s) the new plan starts, ≥ 0.
+    Returns:
+        Continuation; at or beyond the end of ``traj`` it is the goal at rest.
+    """
+    if not (np.isfinite(t_s) and np.isfinite(horizon_s) and horizon_s >= 0.0):
+        raise ValueError(f"horizon_s: must be a finite number ≥ 0 (t_s finite), got {horizon_s}, {t_s}")
+    t = traj.times_s
+    k = min(int(np.searchsorted(t, t_s, side="left")), len(t) - 1)
+    h = min(int(np.searchsorted(t, t[k] + horizon_s, side="left")), len(t) - 1)
+    speed = 0.0 if traj.path_speed is None else float(traj.path_speed[k])
+    return Continuation(k, float(t[k]), traj.positions_rad[k:h + 1].copy(), speed,
+                        traj.velocities_rad_s[k].copy())

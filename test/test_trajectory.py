@@ -253,3 +253,31 @@ def test_resampling_adds_points_back_where_the_chord_collides():
         resample(traj, checker, time_step_s=0.0)
     with pytest.raises(ValueError, match="time_step_s"):
         resample(traj, checker, time_step_s=None, path_tolerance_rad=None)
+
+
+def test_replanning_from_a_moving_arm_joins_continuously():
+    """Keep the executing trajectory to a 1 s horizon, plan a different path from there
+    (here: a spline to another goal), join and re-parameterise from the join's speed:
+    same position, same velocity (to 1e-4 of the limits) at the join, limits held."""
+    from spacerobot_planner.trajectory import continuation
+    sc, path = scene("paper_3dof")
+    vmax, amax = joint_limits(sc)
+    first = time_parameterize(path, vmax, amax)
+    for frac in (0.1, 0.4, 0.8):
+        c = continuation(first, frac * first.duration_s, horizon_s=1.0)
+        assert c.join_time_s >= frac * first.duration_s and len(c.prefix_rad) > 1
+        a = c.prefix_rad[-1]
+        goal = a + np.radians([20.0, -15.0, 10.0])
+        knots = np.vstack([a, a + 0.5 * (goal - a) + np.radians([5.0, 5.0, -5.0]), goal])
+        new = CubicSpline([0.0, 0.5, 1.0], knots)(np.linspace(0.0, 1.0, 200))
+        new[0] = a
+        joined = c.join(new)
+        nxt = time_parameterize(joined, vmax, amax, start_path_speed=c.start_path_speed)
+        np.testing.assert_array_equal(nxt.positions_rad[0], first.positions_rad[c.index])
+        assert np.all(np.abs(nxt.velocities_rad_s[0] - c.start_velocity_rad_s) <= 1e-4 * vmax)
+        assert np.linalg.norm(c.start_velocity_rad_s) > 0.01
+        _check(nxt, joined, vmax, amax, v0=nxt.velocities_rad_s[0])
+    end = continuation(first, 2 * first.duration_s)
+    assert end.start_path_speed == 0.0 and np.all(end.start_velocity_rad_s == 0.0)
+    with pytest.raises(ValueError, match="new_path_rad"):
+        c.join(new + 1.0)
