@@ -3,8 +3,9 @@
     spacerobot-plan --params-file config/paper_3dof.yaml [--start-deg A B C]
         [--goal-deg A B C] [--cells N] [--solver NAME] [--json PATH] [--plot PATH]
 
-Exit status: 0 a path was found, 2 there is none (the reason is printed and in the
-JSON), 1 bad input (a message naming the field on stderr).
+Exit status: 0 a path was found, 2 there is none or the spacecraft's reaction refuses
+it (``acs.mode: free_floating`` and the drifted arm collides or misses the grasp; the
+reason is printed and in the JSON), 1 bad input (a message naming the field on stderr).
 """
 
 from __future__ import annotations
@@ -75,6 +76,28 @@ def _summary(res, scenario) -> list:
     return lines
 
 
+def _motion_summary(motion, resampled) -> list:
+    traj, r = motion.trajectory, motion.reaction
+    labels, counts = np.unique(traj.active_limit, return_counts=True)
+    active = ", ".join(f"{lab} {100 * c / len(traj):.0f} %" for lab, c in
+                       sorted(zip(labels, counts), key=lambda lc: -lc[1]))
+    chk = resampled.check
+    lines = [f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points (resampled: {len(resampled.trajectory)}, "
+             f"{'certified' if resampled.ok else 'NOT certified'}, clearance {chk.min_clearance_m:.4f} m); "
+             f"active limits: {active}"]
+
+    def lim(v, unit):
+        return "no limit" if v is None else f"limit {v:g} {unit}"
+
+    lines.append(f"reaction ({r.acs_mode}): wheel momentum peak {r.peak_wheel_momentum_Nms:.2f} N·m·s "
+                 f"({lim(r.max_wheel_momentum_Nms, 'N·m·s')}), torque peak {r.peak_wheel_torque_Nm:.3f} N·m "
+                 f"({lim(r.max_wheel_torque_Nm, 'N·m')}); free floating: attitude change "
+                 f"{r.free_floating_attitude_change_deg:.2f}°, body displacement "
+                 f"{r.free_floating_body_displacement_m:.3f} m, tip miss {r.free_floating_tip_miss_m:.3f} m"
+                 f"{', drifted arm collides' if r.free_floating_collides else ''}")
+    return lines
+
+
 def main(argv=None) -> int:
     ap = build_parser()
     try:
@@ -133,10 +156,41 @@ def main(argv=None) -> int:
     res = planner.plan(start, goal, progress=progress)
     if res.code == "invalid_input":
         return _fail_input(res.reason)
+    if res.ok and scenario.acs.mode == "free_floating" and scenario.acs.compensate_drift:
+        from .dynamics import plan_free_floating
+        try:
+            comp = plan_free_floating(scenario, start, goal)
+        except ValueError as e:
+            return _fail_input(str(e))
+        print(f"drift compensation: {len(comp.history)} plans, tip miss "
+              f"{' → '.join(f'{h[0]:.4f}' for h in comp.history)} m; goal "
+              f"{np.round(np.degrees(comp.goal_rad), 2).tolist()}°")
+        if comp.plan.ok:
+            res = comp.plan
     for line in _summary(res, scenario):
         print(line)
+    motion = resampled = None
+    if res.ok:
+        from .collision import CollisionChecker
+        from .dynamics import plan_motion
+        from .trajectory import resample
+        try:
+            motion = plan_motion(scenario, res.path_rad)
+        except ValueError as e:
+            return _fail_input(str(e))
+        resampled = resample(motion.trajectory, CollisionChecker(robot, scenario.scene))
+        for line in _motion_summary(motion, resampled):
+            print(line)
+        if not motion.reaction.ok:
+            print(f"spacerobot-plan: refused: {motion.reaction.reason}", file=sys.stderr)
     if args.json:
         doc = res.to_json_dict()
+        if motion is not None:
+            doc.update(motion.to_json_dict())
+            doc["trajectory_resampled"] = dict(resampled.trajectory.to_json_dict(), certified=resampled.ok,
+                                               min_clearance_m=float(resampled.check.min_clearance_m))
+            if not motion.reaction.ok:
+                doc.update(ok=False, code="reaction_refused", error=motion.reaction.reason)
         text = json.dumps(doc, indent=None, allow_nan=False)
         if args.json == "-":
             print(text)
@@ -149,7 +203,12 @@ def main(argv=None) -> int:
         Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
         plot_plan(res, scenario, args.plot)
         print(f"wrote {args.plot}")
-    return 0 if res.ok else 2
+        if motion is not None:
+            from .plotting import plot_reaction
+            rpath = Path(args.plot).with_name(Path(args.plot).stem + "_reaction.png")
+            plot_reaction(motion, rpath)
+            print(f"wrote {rpath}")
+    return 0 if res.ok and motion.reaction.ok else 2
 
 
 if __name__ == "__main__":

@@ -25,11 +25,12 @@ import numpy as np
 import yaml
 
 from .cspace import GridSpec, grid_for_robot
+from .dynamics import ACS_MODES, AcsSettings, MassProperties
 from .robot import PlanarArm, square_polygon
 from .scene import Scene, Target
 
 __all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file",
-           "scenario_from_params", "NODE_NAME"]
+           "scenario_from_params", "spec_default", "NODE_NAME"]
 
 NODE_NAME = "spacerobot_planner"
 
@@ -108,6 +109,39 @@ PARAMETERS = (
               "Per-joint velocity limits, deg/s.", False, 1e-3, 1e4),
     ParamSpec("trajectory.max_acceleration_deg_s2", "double_array", [5.0, 20.0, 20.0],
               "Per-joint acceleration limits, deg/s^2.", False, 1e-3, 1e5),
+    ParamSpec("trajectory.max_velocity_scaling_factor", "double", 1.0,
+              "Factor in (0, 1] on every joint velocity limit (MoveIt's max_velocity_scaling_factor).",
+              False, 1e-6, 1.0),
+    ParamSpec("trajectory.max_acceleration_scaling_factor", "double", 1.0,
+              "Factor in (0, 1] on every joint acceleration limit (MoveIt's "
+              "max_acceleration_scaling_factor).", False, 1e-6, 1.0),
+    # ---- the spacecraft's reaction (dynamics.py; shared/reference/free-floating.md)
+    ParamSpec("dynamics.body_mass_kg", "double", 2000.0,
+              "Spacecraft body mass (with the massless link 1), kg.", False, 1e-6, 1e12),
+    ParamSpec("dynamics.body_inertia_kgm2", "double", 1080.0,
+              "Spacecraft body inertia about its centre (the chain's origin), kg m^2.", False, 0.0, 1e15),
+    ParamSpec("dynamics.link_masses_kg", "double_array", [0.0, 30.0, 30.0],
+              "Per link (link 1 first; its mass belongs to the body: 0), kg; centre at mid-link. "
+              "Default for other chains: 0 for link 1, 30 for the others.", False, 0.0, 1e9),
+    ParamSpec("dynamics.link_inertias_kgm2", "double_array", [0.0, 10.0, 10.0],
+              "Per link, about its centre, kg m^2. Default for other chains: 0 for link 1, 10 for "
+              "the others.", False, 0.0, 1e12),
+    ParamSpec("acs.mode", "string", "held",
+              "Attitude control during the arm motion: held (reaction wheels hold or command the "
+              "attitude) or free_floating (off: the spacecraft turns and moves; the plan is refused "
+              "when the drifted arm collides or misses the grasp).", False),
+    ParamSpec("acs.max_wheel_momentum_Nms", "double", 0.0,
+              "Largest reaction-wheel momentum the trajectory may need, N m s (0: no limit).",
+              False, 0.0, 1e9),
+    ParamSpec("acs.max_wheel_torque_Nm", "double", 0.0,
+              "Largest reaction-wheel torque the trajectory may need, N m (0: no limit).",
+              False, 0.0, 1e9),
+    ParamSpec("acs.compensate_drift", "bool", False,
+              "Free floating (CLI): plan the arm for the predicted drift (goal corrected and replanned "
+              "until the drifted tip reaches the grasp; 2-DOF, attitude not planned).", False),
+    ParamSpec("grasp.position_tolerance_m", "double", 0.02,
+              "Free floating: largest acceptable distance of the drifted tip from the grasp point, m.",
+              False, 0.0, 10.0),
     # ---- node
     ParamSpec("replan.target_tolerance_m", "double", 0.005,
               "A target_pose closer than this (and within target_tolerance_deg) to the current "
@@ -227,7 +261,9 @@ class Scenario:
     """Everything needed to plan: robot, scene, grid, and optionally start/goal.
 
     ``start_rad`` and ``goal_rad`` cover the planned joints (None when not given).
-    ``params`` is the flat parameter dict it was built from.
+    ``params`` is the flat parameter dict it was built from; ``masses`` and ``acs``
+    the spacecraft's mass properties and attitude-control settings (``dynamics.*``,
+    ``acs.*``, ``grasp.position_tolerance_m``).
     """
 
     robot: PlanarArm
@@ -237,6 +273,8 @@ class Scenario:
     goal_rad: np.ndarray | None
     planning_frame: str = "world"
     params: dict = field(default_factory=dict)
+    masses: MassProperties = field(default_factory=MassProperties)
+    acs: AcsSettings = field(default_factory=AcsSettings)
 
     def grid_with_cells(self, cells) -> GridSpec:
         return self.grid.with_cells(cells)
@@ -263,6 +301,12 @@ def parse_polygons(text: str, name: str = "obstacles.polygons_m") -> tuple:
             raise ValueError(f"{name}[{i}]: vertices must be [x, y] number pairs") from None
         polys.append(arr)   # shape, count, NaN and area are checked by Scene
     return tuple(polys)
+
+
+def spec_default(name: str):
+    """The default of a parameter in ``PARAMETERS`` (a copy for lists)."""
+    d = _SPECS[name].default
+    return list(d) if isinstance(d, list) else d
 
 
 def _get(params, name):
@@ -311,9 +355,23 @@ def scenario_from_params(params: dict) -> Scenario:
         v = check_value(key, params[key])
         return robot.validate_q(np.radians(v), key)
 
+    def per_link(key, default_other):
+        if key not in params:
+            return [0.0] + [default_other] * (n - 1)
+        return per_joint(key)
+
+    masses = MassProperties(_get(params, "dynamics.body_mass_kg"), _get(params, "dynamics.body_inertia_kgm2"),
+                            tuple(per_link("dynamics.link_masses_kg", 30.0)),
+                            tuple(per_link("dynamics.link_inertias_kgm2", 10.0)))
+    mode = _get(params, "acs.mode")
+    if mode not in ACS_MODES:
+        raise ValueError(f"acs.mode: expected one of {', '.join(ACS_MODES)}, got {mode!r}")
+    acs = AcsSettings(mode, _get(params, "acs.max_wheel_momentum_Nms"), _get(params, "acs.max_wheel_torque_Nm"),
+                      _get(params, "grasp.position_tolerance_m"), _get(params, "acs.compensate_drift"))
     return Scenario(robot=robot, scene=scene, grid=grid, start_rad=posture("scenario.start_deg"),
                     goal_rad=posture("scenario.goal_deg"),
-                    planning_frame=_get(params, "planning_frame"), params=dict(params))
+                    planning_frame=_get(params, "planning_frame"), params=dict(params),
+                    masses=masses, acs=acs)
 
 
 def load_scenario(path) -> Scenario:

@@ -19,7 +19,7 @@ from matplotlib.patches import Polygon  # noqa: E402
 
 from .cspace import build_cspace  # noqa: E402
 
-__all__ = ["plot_plan", "wrap_for_plot"]
+__all__ = ["plot_plan", "plot_reaction", "wrap_for_plot"]
 
 _START, _GOAL, _PATH, _GRID = "#1f77b4", "#d62728", "#ff7f0e", "#2ca02c"
 
@@ -246,6 +246,42 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
             ax.set_xlabel(f"{names[1]} [deg]")
             ax.set_ylabel(f"{names[2]} [deg]")
     fig.suptitle(_title(res, scenario), fontsize=12)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
+def plot_reaction(motion, path, dpi: int = 110) -> None:
+    """Write a PNG of a ``dynamics.Motion``: wheel momentum and torque against time with
+    their limits (attitude held/commanded), and the free-floating attitude against time."""
+    traj, r = motion.trajectory, motion.reaction
+    t = traj.times_s
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.6))
+    for ax, series, limit, label in ((axes[0], r.wheel_momentum_Nms, r.max_wheel_momentum_Nms,
+                                      "wheel momentum [N·m·s]"),
+                                     (axes[1], r.wheel_torque_Nm, r.max_wheel_torque_Nm, "wheel torque [N·m]")):
+        ax.plot(t, series, color=_PATH, lw=1.8)
+        if limit is not None:
+            for sign in (1, -1):
+                ax.axhline(sign * limit, color=_GOAL, ls="--", lw=1.2, label="limit" if sign > 0 else None)
+            ax.legend(loc="upper right", fontsize=8)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel(label)
+        ax.set_title(f"{label.split(' [')[0]} (attitude {'held' if r.acs_mode == 'held' else 'if held'}), "
+                     f"peak {np.max(np.abs(series)):.3g}", fontsize=10)
+        ax.grid(alpha=0.3)
+    ax = axes[2]
+    att = np.degrees(r.free_floating_attitude_rad)
+    ax.plot(t, att, color=_START, lw=1.8, label="free floating")
+    ax.plot(t, np.degrees(r.planned_attitude_rad), color=_GRID, lw=1.2, ls="--", label="planned")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("attitude [deg]")
+    ax.set_title(f"free-floating attitude: change {r.free_floating_attitude_change_deg:.2f}°, tip miss "
+                 f"{r.free_floating_tip_miss_m:.3f} m", fontsize=10)
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.suptitle(f"spacecraft reaction ({r.acs_mode}): trajectory {traj.duration_s:.1f} s"
+                 + ("" if r.ok else f" — refused: {r.reason}"), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     plt.close(fig)

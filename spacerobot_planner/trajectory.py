@@ -1,47 +1,71 @@
-"""Time parameterisation of a geometric joint path under per-joint limits.
+"""Time-optimal time parameterisation of a geometric joint path (TOPP-RA style).
 
 The last stage of the chain (MoveIt's "time parameterisation adapter"): it takes the
 planner's dense path (M×n joint positions, rad, start first, goal last, periodic
 joints unwrapped) and returns the times at which to pass every point, with joint
 velocities and accelerations, so that no joint exceeds its velocity limit (rad/s)
-or its acceleration limit (rad/s²).  The arm starts and ends at rest.
+or its acceleration limit (rad/s²), scaled by MoveIt's ``velocity_scaling`` /
+``acceleration_scaling`` factors, and, given a wheel model (``dynamics.WheelModel``),
+the reaction-wheel momentum (N·m·s) and torque (N·m) stay within their limits.  The
+arm starts at rest or moving along the path's tangent (``start_path_speed`` or
+``start_velocity_rad_s``) and ends at rest.
 
-Method (time-optimal path parameterisation on the discretised path):
+Method (reachability analysis, Pham & Pham's TOPP-RA):
 
-1. The path is parameterised by its joint-space arc length ``s`` (rad); the
-   tangent ``q'(s)`` and curvature ``q''(s)`` come from finite differences.
-2. At each point, the velocity limits and the condition that some path
-   acceleration ``s̈`` keeps every ``|q'_j s̈ + q''_j ṡ²| ≤ a_j`` give the maximum
-   velocity curve (an upper bound on ``ṡ²``).
-3. A forward pass (accelerate as hard as allowed from rest) and a backward pass
-   (decelerate as hard as allowed into the goal) under that curve give ``ṡ`` at
-   every point; each segment then takes ``Δt = 2 Δs / (ṡ_k + ṡ_{k+1})``.
-4. Safety net: the published velocities/accelerations *and* the finite
-   differences of the positions are checked against the limits; if the
-   discretisation left any excess, the whole trajectory is slowed uniformly
-   (time × c scales velocities by 1/c and accelerations by 1/c²), so the limits
-   hold by construction.
+1. A cubic spline through the path samples (not-a-knot, parameter s = joint-space chord
+   length, rad) gives q', q'' and the (piecewise constant) q''' on a grid
+   ``grid_refinement`` (4) times finer than the samples; the trajectory keeps one point
+   per sample, at exactly the given positions.
+2. On each grid segment ``[s_i, s_{i+1}]`` the path acceleration ``u_i = s̈`` is constant,
+   so ``x = ṡ²`` is linear: ``x_{i+1} = x_i + 2 Δ_i u_i``.  Every constraint is written
+   at *both* ends of the segment with the segment's ``u_i`` ("first-order
+   interpolation"):
 
-Finite differences, as used by the check (and by the tests): segment velocity
+   - velocity type, ``x_i ≤ xv_i``: ``|q'_j| ṡ ≤ v_j``, with |q'_j| raised by
+     ``|q'''| Δ²/8``, the most it can grow inside the segment, and ``|H·q'| ṡ ≤ h_max``
+     for the wheel momentum;
+   - acceleration type, ``|A u + B x| + κ|u| ≤ C``: ``|q'_j u + q''_j x| ≤ a_j`` per
+     joint, with κ = 2.5 |q'''| Δ²/4 the most the (quadratic in s) joint acceleration
+     can exceed its end values inside the segment, and
+     ``|(H·q') u + (d(H·q')/ds) x| ≤ τ_max`` for the wheel torque.
+
+   In the variables ``(x_i, x_{i+1})`` all of them are half-planes.  So the joint
+   velocity and acceleration stay within the limits everywhere along the spline, and
+   so does every finite difference of the positions (a weighted mean of the
+   acceleration over the neighbouring intervals), for the dense points and any subset.
+3. A backward pass computes the controllable sets ``K_i = [0, k_i]`` (the speeds²
+   from which the goal can still be reached at rest); a forward pass from the start
+   speed² picks at each step the largest ``x_{i+1} ∈ K_{i+1}`` the constraints admit.
+   Both passes use the same feasibility test: no uniform slow-down is applied or needed.
+4. ``Δt_i = 2 Δ_i / (ṡ_i + ṡ_{i+1})``.  Published velocities ``q' ṡ``; accelerations
+   ``q' ū + q'' x`` with ``ū`` the Δt-weighted mean of the two neighbouring segments'
+   ``u`` (a convex combination, so still within the limits; it is what the finite
+   differences of the positions approach).
+
+Finite differences (``finite_differences``): segment velocity
 ``w_k = (q_{k+1} - q_k) / (t_{k+1} - t_k)``; acceleration at an interior point
-``(w_k - w_{k-1}) / ((Δt_{k-1} + Δt_k) / 2)``, at the first point ``w_0 / (Δt_0 / 2)``
-and at the last ``-w_{M-2} / (Δt_{M-2} / 2)`` (rest at both ends: exact for a
-constant acceleration from/to rest).
+``(w_k - w_{k-1}) / ((Δt_{k-1} + Δt_k) / 2)``, at the first point
+``(w_0 - v_0) / (Δt_0 / 2)`` and at the last ``-w_{M-2} / (Δt_{M-2} / 2)``; both obey
+the limits (see 2.) and approach the published values as the samples get closer.
 
-No ROS imports here: plain NumPy (numba for the two passes).
+Resampling (``resample``) keeps a subset of the points (exact start and goal, at
+most ``time_step_s`` apart and/or within ``path_tolerance_rad`` of the dense path)
+and certifies the polyline through them on the exact geometry
+(``motion.check_path``), adding points back where it fails.
+
+No ROS imports here: NumPy/SciPy, numba for the two passes.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
+from scipy.interpolate import CubicSpline
 
-__all__ = ["Trajectory", "time_parameterize", "finite_differences", "sample",
-           "densify_path", "limit_ratios"]
-
-_EPS = 1e-12
+__all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
+           "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,10 +76,18 @@ class Trajectory:
         joint_names: one name per column.
         times_s: (M,) strictly increasing, 0 first.
         positions_rad: (M, n); first row the start, last row the goal (exact).
-        velocities_rad_s: (M, n); zero at both ends.
+        velocities_rad_s: (M, n); the start velocity first (zero when starting at
+            rest), zero at the end.
         accelerations_rad_s2: (M, n).
-        max_velocity_rad_s, max_acceleration_rad_s2: (n,) the limits it obeys.
-        time_scale: the uniform slow-down the safety net applied (1 = none).
+        max_velocity_rad_s, max_acceleration_rad_s2: (n,) the (scaled) joint limits it obeys.
+        path_speed: (M,) ṡ, joint-space chord length per second (rad/s).
+        active_limit: (M,) str, the constraint closest to its limit at each point:
+            ``"velocity:<joint>"``, ``"acceleration:<joint>"``, ``"wheel_momentum"``,
+            ``"wheel_torque"`` (``limit_ratio`` says how close).
+        limit_ratio: (M,) |value| / limit of that constraint (≤ 1).
+        wheel_momentum_Nms, wheel_torque_Nm: (M,) h_wheel = −H·q̇ and its time
+            derivative when a wheel model was given, else None.
+        max_wheel_momentum_Nms, max_wheel_torque_Nm: the wheel limits obeyed (None: none).
     """
 
     joint_names: tuple
@@ -65,7 +97,13 @@ class Trajectory:
     accelerations_rad_s2: np.ndarray
     max_velocity_rad_s: np.ndarray
     max_acceleration_rad_s2: np.ndarray
-    time_scale: float = 1.0
+    path_speed: np.ndarray = None
+    active_limit: np.ndarray = None
+    limit_ratio: np.ndarray = None
+    wheel_momentum_Nms: np.ndarray = None
+    wheel_torque_Nm: np.ndarray = None
+    max_wheel_momentum_Nms: float | None = None
+    max_wheel_torque_Nm: float | None = None
 
     @property
     def duration_s(self) -> float:
@@ -73,6 +111,32 @@ class Trajectory:
 
     def __len__(self) -> int:
         return len(self.times_s)
+
+    def subset(self, indices) -> "Trajectory":
+        """The trajectory at the points ``indices`` (sorted, first and last included)."""
+        idx = np.asarray(indices, dtype=np.int64)
+
+        def pick(a):
+            return None if a is None else a[idx]
+
+        return replace(self, times_s=self.times_s[idx], positions_rad=self.positions_rad[idx],
+                       velocities_rad_s=self.velocities_rad_s[idx],
+                       accelerations_rad_s2=self.accelerations_rad_s2[idx],
+                       path_speed=pick(self.path_speed), active_limit=pick(self.active_limit),
+                       limit_ratio=pick(self.limit_ratio),
+                       wheel_momentum_Nms=pick(self.wheel_momentum_Nms),
+                       wheel_torque_Nm=pick(self.wheel_torque_Nm))
+
+    def to_json_dict(self) -> dict:
+        """Plain-JSON view: joint_names, times_s, positions_rad, velocities_rad_s,
+        accelerations_rad_s2 (lists), plus the active limit per point."""
+        return {"joint_names": list(self.joint_names),
+                "times_s": self.times_s.tolist(),
+                "positions_rad": self.positions_rad.tolist(),
+                "velocities_rad_s": self.velocities_rad_s.tolist(),
+                "accelerations_rad_s2": self.accelerations_rad_s2.tolist(),
+                "duration_s": self.duration_s,
+                "active_limit": None if self.active_limit is None else [str(a) for a in self.active_limit]}
 
 
 def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: int = 3) -> np.ndarray:
@@ -118,108 +182,327 @@ def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: in
     return np.concatenate([p[:1], out])
 
 
-def _path_derivatives(p):
-    """Arc length s (M,), tangent q'(s) (M, n), curvature q''(s) (M, n)."""
+def _path_model(p, refine: int):
+    """The cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
+
+    Returns (s, idx, q, d1, d2, d3): grid chord lengths s (G,), the grid indices of the
+    samples idx (M,), the spline's q, q', q'' at the grid points (G, n) (q[idx] == p
+    exactly) and its q''' per grid segment (G-1, n) (constant on each spline piece).
+    """
     ds = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(ds)])
+    s_knots = np.concatenate([[0.0], np.cumsum(ds)])
+    frac = np.arange(refine) / refine
+    s = np.concatenate([(s_knots[:-1, None] + ds[:, None] * frac[None, :]).reshape(-1), s_knots[-1:]])
+    idx = np.arange(len(p)) * refine
+    s[idx] = s_knots
     if len(p) >= 3:
-        d1 = np.gradient(p, s, axis=0, edge_order=2)
-        d2 = np.gradient(d1, s, axis=0, edge_order=2)
-    else:
-        d1 = np.repeat((np.diff(p, axis=0) / ds[:, None]), 2, axis=0)
-        d2 = np.zeros_like(p)
-    return s, ds, d1, d2
+        cs = CubicSpline(s_knots, p, axis=0, bc_type="not-a-knot")
+        q, d1, d2 = cs(s), cs(s, 1), cs(s, 2)
+        d3 = np.repeat(cs(0.5 * (s_knots[:-1] + s_knots[1:]), 3), refine, axis=0)
+    else:                                   # a straight segment
+        chord = (p[1] - p[0]) / ds[0]
+        q = p[0] + s[:, None] * chord
+        d1 = np.repeat(chord[None, :], len(s), axis=0)
+        d2 = np.zeros_like(q)
+        d3 = np.zeros((len(s) - 1, p.shape[1]))
+    q[idx] = p
+    return s, idx, q, d1, d2, d3
 
 
-@njit(cache=True)
-def _accel_bounds(x, d1, d2, amax):
-    """Admissible path acceleration [lo, hi] at one point for ṡ² = x."""
-    lo = -1e300
-    hi = 1e300
-    for j in range(d1.shape[0]):
-        a = d1[j]
-        b = d2[j] * x
-        if abs(a) > 1e-9:
-            l = (-amax[j] - b) / a
-            h = (amax[j] - b) / a
-            if a < 0.0:
-                l, h = h, l
-            if l > lo:
-                lo = l
-            if h < hi:
-                hi = h
-        elif abs(b) > amax[j]:
-            return 1.0, -1.0        # infeasible
+@njit(cache=True, nogil=True)
+def _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
+    """Admissible x_{i+1} from x_i = x on segment i: the interval [lo, hi] (lo > hi: none).
+
+    Constraints (rows r, at both ends p = i, i+1 of the segment, u = (x_{i+1} - x_i)/(2Δ_i)):
+    |a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]; 0 ≤ x_p ≤ xv[p]; x_{i+1} ≤ k_next.
+    (|f| + κ|u| ≤ c is |f + κu| ≤ c and |f − κu| ≤ c.)
+    """
+    if x > xv[i] or x < 0.0:
+        return 1.0, -1.0
+    inv = 0.5 / delta[i]
+    lo = 0.0
+    hi = min(xv[i + 1], k_next)
+    for end in range(2):
+        p = i + end
+        for r in range(a_row.shape[1]):
+            c = c_row[p, r]
+            if not c < np.inf:
+                continue
+            b = b_row[p, r]
+            n_var = 2 if kappa[i, r] > 0.0 else 1
+            for var in range(n_var):
+                a = a_row[p, r] + (kappa[i, r] if var == 0 else -kappa[i, r])
+                if end == 0:
+                    beta = a * inv
+                    rest = (b - a * inv) * x
+                else:
+                    beta = a * inv + b
+                    rest = -a * inv * x
+                if beta > 0.0:
+                    hi = min(hi, (c - rest) / beta)
+                    lo = max(lo, (-c - rest) / beta)
+                elif beta < 0.0:
+                    hi = min(hi, (-c - rest) / beta)
+                    lo = max(lo, (c - rest) / beta)
+                elif abs(rest) > c:
+                    return 1.0, -1.0
     return lo, hi
 
 
-@njit(cache=True)
-def _mvc(d1, d2, vmax, amax):
-    """Maximum velocity curve: the largest ṡ² per point (velocity limits and
-    existence of an admissible path acceleration)."""
-    m, n = d1.shape
-    out = np.empty(m)
-    for k in range(m):
-        xv = 1e300
-        for j in range(n):
-            if abs(d1[k, j]) > 1e-12:
-                v = vmax[j] / abs(d1[k, j])
-                if v * v < xv:
-                    xv = v * v
-        lo, hi = _accel_bounds(xv, d1[k], d2[k], amax)
+@njit(cache=True, nogil=True)
+def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
+    """Controllable sets K_i = [0, k_i]: the x_i from which x_N = x_end is reachable."""
+    m = xv.shape[0]
+    k = np.empty(m)
+    k[m - 1] = min(x_end, xv[m - 1])
+    for i in range(m - 2, -1, -1):
+        lo, hi = _next_range(i, xv[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
         if lo <= hi:
-            out[k] = xv
+            k[i] = xv[i]
             continue
-        a, b = 0.0, xv              # feasible set in x is an interval [0, x*]
-        for _ in range(60):
+        a, b = 0.0, xv[i]           # the feasible x_i form an interval [0, k_i]
+        for _ in range(200):
             mid = 0.5 * (a + b)
-            lo, hi = _accel_bounds(mid, d1[k], d2[k], amax)
+            if mid <= a or mid >= b:
+                break
+            lo, hi = _next_range(i, mid, a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
             if lo <= hi:
                 a = mid
             else:
                 b = mid
-        out[k] = a
-    return out
+        k[i] = a
+    return k
 
 
-@njit(cache=True)
-def _passes(ds, d1, d2, mvc, amax):
-    m = mvc.shape[0]
-    x = mvc.copy()
-    x[0] = 0.0
-    x[m - 1] = 0.0
-    for _ in range(50):
-        before = x.copy()
-        _one_pass(x, ds, d1, d2, amax)
-        if np.max(np.abs(x - before)) <= 1e-12 * (1.0 + np.max(x)):
-            break
+@njit(cache=True, nogil=True)
+def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
+    """Greedy forward pass: the largest admissible x_{i+1} ∈ K_{i+1} at every step."""
+    m = xv.shape[0]
+    x = np.empty(m)
+    x[0] = x0
+    for i in range(m - 1):
+        lo, hi = _next_range(i, x[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
+        x[i + 1] = max(hi, 0.0)     # lo ≤ hi up to rounding: x_i ∈ K_i
     return x
 
 
-@njit(cache=True)
-def _one_pass(x, ds, d1, d2, amax):
-    m = x.shape[0]
-    for k in range(m - 1):                       # forward: accelerate
-        lo, hi = _accel_bounds(x[k], d1[k], d2[k], amax)
-        nxt = max(0.0, x[k] + 2.0 * hi * ds[k]) if lo <= hi else x[k]
-        if nxt < x[k + 1]:
-            x[k + 1] = nxt
-    for k in range(m - 2, -1, -1):               # backward: decelerate
-        lo, hi = _accel_bounds(x[k + 1], d1[k + 1], d2[k + 1], amax)
-        prv = max(0.0, x[k + 1] - 2.0 * lo * ds[k]) if lo <= hi else x[k + 1]
-        if prv < x[k]:
-            x[k] = prv
+def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: float = 1e-3) -> float:
+    """Path speed ṡ (rad/s, chord length) that reproduces a start joint velocity along the
+    path's initial tangent (its projection on the tangent).
+
+    Args:
+        path_rad: (M, n) the path (its first rows give the tangent).
+        start_velocity_rad_s: (n,) joint velocity at the start.
+        tolerance: largest allowed part of the velocity across the tangent, relative to
+            its norm (plus 1e-9 rad/s).
+    Raises:
+        ValueError (``start_velocity_rad_s``) when the velocity is not along the path's
+        start tangent (within ``tolerance``) or points backwards along it.
+    """
+    p = densify_path(path_rad)
+    v0 = np.asarray(start_velocity_rad_s, dtype=float).reshape(-1)
+    if v0.shape != (p.shape[1],) or not np.all(np.isfinite(v0)):
+        raise ValueError(f"start_velocity_rad_s: expected {p.shape[1]} finite values, got {v0.tolist()}")
+    speed = float(np.linalg.norm(v0))
+    if speed == 0.0:
+        return 0.0
+    if len(p) < 2:
+        raise ValueError("start_velocity_rad_s: the path has no length, the arm cannot keep moving")
+    _, _, _, d1, _, _ = _path_model(p, 1)
+    t0 = d1[0] / np.linalg.norm(d1[0])
+    sd = float(v0 @ t0)
+    across = float(np.linalg.norm(v0 - sd * t0))
+    if across > tolerance * speed + 1e-9 or sd < 0.0:
+        ang = np.degrees(np.arctan2(across, sd))
+        raise ValueError(f"start_velocity_rad_s: {np.round(v0, 6).tolist()} rad/s is {ang:.2f}° off the "
+                         f"path's start tangent {np.round(t0, 4).tolist()} (allowed "
+                         f"{np.degrees(np.arctan(tolerance)):.3f}°): the arm cannot follow this path "
+                         f"without a velocity jump")
+    return sd / float(np.linalg.norm(d1[0]))
 
 
-def finite_differences(times_s, positions_rad):
-    """Finite-difference velocities (M-1, n) per segment and accelerations (M, n)
-    per point, rest at both ends (see the module docstring)."""
+def _check_limits(name, lim, n):
+    lim = np.asarray(lim, dtype=float).reshape(-1)
+    if lim.shape != (n,):
+        raise ValueError(f"{name}: expected {n} values (one per joint), got {lim.shape[0]}")
+    if not np.all(np.isfinite(lim)) or np.any(lim <= 0.0):
+        raise ValueError(f"{name}: every limit must be a finite number > 0, got {list(lim)}")
+    return lim
+
+
+def _check_factor(name, f):
+    f = float(f)
+    if not (0.0 < f <= 1.0):
+        raise ValueError(f"{name}: must be in (0, 1], got {f}")
+    return f
+
+
+def _limit_or_inf(v):
+    return np.inf if v is None or not v > 0.0 else float(v)
+
+
+def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joint_names=None, *,
+                      velocity_scaling: float = 1.0, acceleration_scaling: float = 1.0,
+                      start_path_speed: float | None = None, start_velocity_rad_s=None,
+                      wheel=None, max_step_rad: float = np.radians(0.5),
+                      grid_refinement: int = 4, start_speed_tolerance: float = 1e-3) -> Trajectory:
+    """Time-optimal parameterisation of a joint path within joint (and wheel) limits.
+
+    Args:
+        path_rad: (M, n) joint positions, rad; start first, goal last (kept exactly).
+            Periodic joints must be unwrapped (continuous): the path is followed as given.
+        max_velocity_rad_s, max_acceleration_rad_s2: (n,) positive joint limits.
+        joint_names: names for the columns (default j0, j1, ...).
+        velocity_scaling, acceleration_scaling: factors in (0, 1] on the joint limits
+            (MoveIt's max_velocity_scaling_factor / max_acceleration_scaling_factor).
+        start_path_speed: ṡ at the start, rad/s of joint-space chord length (default 0:
+            at rest); the start velocity is then ``q'(0) · start_path_speed``.
+        start_velocity_rad_s: (n,) instead of ``start_path_speed``: a start joint
+            velocity, projected on the path's start tangent (it must lie along it, see
+            :func:`start_path_speed_from_velocity`).
+        wheel: optional ``dynamics.WheelModel``; adds the wheel momentum
+            (``|H·q'| ṡ ≤ max_momentum_Nms``) and torque
+            (``|d(H·q')/ds ṡ² + H·q' s̈| ≤ max_torque_Nm``) constraints (a None or 0
+            limit: not enforced, only reported).
+        max_step_rad: the path is subdivided so no joint moves more than this per point.
+        grid_refinement: grid points per path segment for the reachability passes
+            (the trajectory has one point per path sample).
+        start_speed_tolerance: a start speed above the largest admissible one by at most
+            this fraction is lowered to it (a path re-fitted through the same samples moves
+            the velocity bound by a hair); more is refused.
+    Returns:
+        Trajectory, ending at rest; a one-point trajectory (t = 0) when start == goal.
+    Raises:
+        ValueError: bad shapes, NaN, non-positive limits, a scaling factor outside
+            (0, 1], or a start velocity the path cannot be followed with (across the
+            tangent, backwards, or too fast to stay within the limits and stop at the goal).
+    """
+    p = densify_path(path_rad, max_step_rad)
+    n = p.shape[1]
+    vmax = _check_limits("max_velocity", max_velocity_rad_s, n)
+    amax = _check_limits("max_acceleration", max_acceleration_rad_s2, n)
+    vmax = vmax * _check_factor("velocity_scaling", velocity_scaling)
+    amax = amax * _check_factor("acceleration_scaling", acceleration_scaling)
+    names = tuple(joint_names) if joint_names is not None else tuple(f"j{i}" for i in range(n))
+    if len(names) != n:
+        raise ValueError(f"joint_names: expected {n} names, got {len(names)}")
+    if start_path_speed is not None and start_velocity_rad_s is not None:
+        raise ValueError("start_path_speed: give either start_path_speed or start_velocity_rad_s, not both")
+    if start_velocity_rad_s is not None:
+        sd0 = start_path_speed_from_velocity(p, start_velocity_rad_s)
+    else:
+        sd0 = 0.0 if start_path_speed is None else float(start_path_speed)
+        if not (np.isfinite(sd0) and sd0 >= 0.0):
+            raise ValueError(f"start_path_speed: must be a finite number ≥ 0, got {start_path_speed}")
+    h_max = _limit_or_inf(getattr(wheel, "max_momentum_Nms", None))
+    tau_max = _limit_or_inf(getattr(wheel, "max_torque_Nm", None))
+    if len(p) == 1:
+        if sd0 > 0.0:
+            raise ValueError("start_path_speed: the path has no length, the arm cannot keep moving")
+        z = np.zeros_like(p)
+        zero = np.zeros(1)
+        return Trajectory(names, zero, p, z, z.copy(), vmax, amax, zero.copy(), np.array(["none"]),
+                          zero.copy(), zero.copy() if wheel is not None else None,
+                          zero.copy() if wheel is not None else None,
+                          None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
+
+    s, idx, qg, d1, d2, d3 = _path_model(p, int(grid_refinement))
+    ds = np.diff(s)
+    g_n = len(s)
+    # ---- velocity type, x = ṡ² ≤ xv: on a grid segment |q'_j| exceeds its larger end
+    # value by at most |q'''| Δ²/8 and ṡ stays below the larger end value, so
+    # bounding both ends with that margin bounds the velocity everywhere on the spline
+    tang = np.abs(d1)
+    dev = np.abs(d3) * (ds ** 2 / 8.0)[:, None]
+    seg_tang = np.maximum(tang[:-1], tang[1:]) + dev
+    tang_b = tang.copy()
+    tang_b[:-1] = np.maximum(tang_b[:-1], seg_tang)
+    tang_b[1:] = np.maximum(tang_b[1:], seg_tang)
+    with np.errstate(divide="ignore"):
+        xv = np.min((vmax[None, :] / tang_b) ** 2, axis=1)
+    # ---- acceleration type, |a u + b x| + κ|u| ≤ c: inside a segment q' u + q'' x is
+    # quadratic in s with leading coefficient 2.5 q''' u, so it exceeds the larger end
+    # value by at most 2.5 |q'''| |u| Δ²/4 (κ): the bound holds everywhere on the spline
+    kappas = [2.5 * np.abs(d3) * (ds ** 2 / 4.0)[:, None]]
+    a_rows, b_rows, c_rows = [d1], [d2], [np.broadcast_to(amax, (g_n, n))]
+    g = gp = None
+    if wheel is not None:
+        g, gp = wheel.path_terms(qg, d1, d2)
+        with np.errstate(divide="ignore"):
+            xv = np.minimum(xv, (h_max / np.abs(g)) ** 2)
+        a_rows.append(g[:, None])
+        b_rows.append(gp[:, None])
+        c_rows.append(np.full((g_n, 1), tau_max))
+        kappas.append(np.zeros((g_n - 1, 1)))
+    a_row = np.ascontiguousarray(np.hstack(a_rows))
+    b_row = np.ascontiguousarray(np.hstack(b_rows))
+    c_row = np.ascontiguousarray(np.hstack(c_rows))
+    kappa = np.ascontiguousarray(np.hstack(kappas))
+    xv = np.ascontiguousarray(np.minimum(xv, 1e300))
+
+    k = _backward(a_row, b_row, c_row, kappa, xv, ds, 0.0)
+    x0 = sd0 * sd0
+    if sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance):
+        raise ValueError(f"start_path_speed: {sd0:.6g} rad/s along the path is faster than the limits "
+                         f"allow from the start (at most {np.sqrt(k[0]):.6g} rad/s there, to stay within "
+                         f"the velocity and acceleration limits and stop at the goal)")
+    x = _forward(a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
+    x[-1] = 0.0
+    sdg = np.sqrt(x)
+    den = sdg[:-1] + sdg[1:]
+    if np.any(den <= 0.0):
+        raise ValueError("path: a stretch cannot be followed at any speed within the limits")
+    dt = 2.0 * ds / den
+    tg = np.concatenate([[0.0], np.cumsum(dt)])
+    u_seg = (x[1:] - x[:-1]) / (2.0 * ds)
+    # ---- the samples: u before/after each sample (its neighbouring grid segments)
+    u_before = np.concatenate([[u_seg[0]], u_seg])[idx]
+    u_after = np.concatenate([u_seg, [u_seg[-1]]])[idx]
+    dt_before = np.concatenate([[0.0], dt])[idx]
+    dt_after = np.concatenate([dt, [0.0]])[idx]
+    u = (dt_before * u_before + dt_after * u_after) / (dt_before + dt_after)
+    xs, sd = x[idx], sdg[idx]
+    t = tg[idx]
+    t[0] = 0.0
+    q1, q2 = d1[idx], d2[idx]
+    vel = q1 * sd[:, None]
+    acc = q1 * u[:, None] + q2 * xs[:, None]
+    vel[-1] = 0.0
+
+    # ---- which constraint is closest to its limit at each sample (both segments' u)
+    ratios = [tang[idx] * sd[:, None] / vmax]
+    labels = [f"velocity:{nm}" for nm in names]
+    ratios.append(np.maximum(np.abs(q1 * u_before[:, None] + q2 * xs[:, None]),
+                             np.abs(q1 * u_after[:, None] + q2 * xs[:, None])) / amax)
+    labels += [f"acceleration:{nm}" for nm in names]
+    h_w = tau_w = None
+    if wheel is not None:
+        gs, gps = g[idx], gp[idx]
+        h_w = -gs * sd
+        tau_w = -(gps * xs + gs * u)
+        ratios.append((np.abs(gs) * sd / h_max)[:, None])
+        ratios.append((np.maximum(np.abs(gps * xs + gs * u_before), np.abs(gps * xs + gs * u_after))
+                       / tau_max)[:, None])
+        labels += ["wheel_momentum", "wheel_torque"]
+    r = np.hstack(ratios)
+    best = np.argmax(r, axis=1)
+    m = len(p)
+    return Trajectory(names, t, p, vel, acc, vmax, amax, sd, np.array(labels)[best],
+                      r[np.arange(m), best], h_w, tau_w,
+                      None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
+
+
+def finite_differences(times_s, positions_rad, start_velocity_rad_s=None):
+    """Finite-difference velocities (M-1, n) per segment and accelerations (M, n) per
+    point, at rest at the end and at ``start_velocity_rad_s`` (default rest) at the start
+    (see the module docstring)."""
     t = np.asarray(times_s, dtype=float)
     q = np.asarray(positions_rad, dtype=float)
+    v0 = np.zeros(q.shape[1]) if start_velocity_rad_s is None else np.asarray(start_velocity_rad_s, float)
     dt = np.diff(t)
     w = np.diff(q, axis=0) / dt[:, None]
     acc = np.empty_like(q)
-    acc[0] = w[0] / (0.5 * dt[0])
+    acc[0] = (w[0] - v0) / (0.5 * dt[0])
     acc[-1] = -w[-1] / (0.5 * dt[-1])
     if len(q) > 2:
         acc[1:-1] = np.diff(w, axis=0) / (0.5 * (dt[:-1] + dt[1:]))[:, None]
@@ -227,78 +510,120 @@ def finite_differences(times_s, positions_rad):
 
 
 def limit_ratios(times_s, positions_rad, velocities, accelerations, vmax, amax):
-    """Largest |value| / limit over the published values and the finite differences:
-    (velocity ratio, acceleration ratio); ≤ 1 means within the limits."""
-    w, fa = finite_differences(times_s, positions_rad)
+    """Largest |value| / limit over the published values and the finite-difference
+    velocities, and over the published accelerations: (velocity ratio, acceleration
+    ratio); ≤ 1 means within the limits."""
+    w = np.diff(positions_rad, axis=0) / np.diff(times_s)[:, None]
     rv = max(np.max(np.abs(w) / vmax), np.max(np.abs(velocities) / vmax))
-    ra = max(np.max(np.abs(fa) / amax), np.max(np.abs(accelerations) / amax))
+    ra = np.max(np.abs(accelerations) / amax)
     return float(rv), float(ra)
 
 
-def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joint_names=None,
-                      max_step_rad: float = np.radians(0.5), margin: float = 0.98) -> Trajectory:
-    """Time-parameterise a joint path, rest to rest, within per-joint limits.
+@dataclass(frozen=True, eq=False)
+class Resampled:
+    """A resampled trajectory and the certification of the polyline through its points.
+
+    Attributes:
+        trajectory: the kept points (a subset of the dense trajectory's: exact states).
+        indices: (K,) their indices in the dense trajectory (0 and M-1 included).
+        check: ``smoothing.PathCheck`` of the polyline through ``trajectory.positions_rad``
+            on the exact geometry (None when no checker was given).
+        refinements: rounds in which points were added back where the check failed.
+    """
+
+    trajectory: Trajectory
+    indices: np.ndarray
+    check: object
+    refinements: int
+
+    @property
+    def ok(self) -> bool:
+        """Certified collision-free (True when not checked)."""
+        return self.check is None or bool(self.check.ok)
+
+
+def _chord_deviation(q, i, j):
+    """Largest Euclidean distance (rad) of q[i..j] from the segment q[i] → q[j]."""
+    a, b = q[i], q[j]
+    d = b - a
+    den = float(d @ d)
+    pts = q[i:j + 1] - a
+    f = np.clip(pts @ d / den, 0.0, 1.0) if den > 0.0 else np.zeros(len(pts))
+    return float(np.max(np.linalg.norm(pts - f[:, None] * d, axis=1)))
+
+
+def _select(t, q, time_step_s, path_tolerance_rad):
+    """Greedy: from each kept point, go on while the next point still meets both criteria."""
+    m = len(t)
+    keep = [0]
+    i, j = 0, 1
+    while j < m - 1:
+        if _ok(t, q, i, j + 1, time_step_s, path_tolerance_rad):
+            j += 1
+        else:
+            keep.append(j)
+            i, j = j, j + 1
+    keep.append(m - 1)
+    return np.array(keep, dtype=np.int64)
+
+
+def _ok(t, q, i, j, time_step_s, path_tolerance_rad):
+    if j == i + 1:
+        return True
+    if time_step_s is not None and t[j] - t[i] > time_step_s:
+        return False
+    return path_tolerance_rad is None or _chord_deviation(q, i, j) <= path_tolerance_rad
+
+
+def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None,
+             path_tolerance_rad: float | None = np.radians(0.1), max_rounds: int = 30) -> Resampled:
+    """Fewer points, same guarantee: keep a subset of the trajectory's points.
+
+    The kept points are exact points of ``traj`` (times, positions, velocities,
+    accelerations unchanged), start and goal included.  Consecutive kept points are at
+    most ``time_step_s`` apart (when given) and the dense path between them stays within
+    ``path_tolerance_rad`` (Euclidean, joint space) of the straight segment joining them
+    (when given).  With a ``checker`` (``collision.CollisionChecker``) the polyline through
+    the kept points is certified on the exact geometry with ``motion.check_path``
+    (bounds of ``checker.robot``); where an interval fails, the dense point in its
+    middle is added back, until it passes or only dense intervals fail.
 
     Args:
-        path_rad: (M, n) joint positions, rad; start first, goal last (kept exactly).
-            Periodic joints must be unwrapped (continuous): the path is followed as given.
-        max_velocity_rad_s, max_acceleration_rad_s2: (n,) positive limits.
-        joint_names: names for the columns (default j0, j1, ...).
-        max_step_rad: the path is subdivided so no joint moves more than this per point.
-        margin: the profile is planned at ``margin ×`` the limits (the safety net
-            then guarantees the limits themselves).
+        traj: a dense trajectory from :func:`time_parameterize`.
+        checker: optional CollisionChecker of the scene the path was planned in.
+        time_step_s: largest time between kept points, s (> 0) or None.
+        path_tolerance_rad: largest deviation from the dense path, rad (> 0) or None.
     Returns:
-        Trajectory; a one-point trajectory (t = 0) when start == goal.
+        Resampled (``.trajectory``, ``.indices``, ``.check``; ``.ok`` is the verdict).
     Raises:
-        ValueError: bad shapes, NaN, non-positive limits.
+        ValueError: a non-positive ``time_step_s`` / ``path_tolerance_rad``, or neither given.
     """
-    p = densify_path(path_rad, max_step_rad)
-    n = p.shape[1]
-    vmax = np.asarray(max_velocity_rad_s, dtype=float).reshape(-1)
-    amax = np.asarray(max_acceleration_rad_s2, dtype=float).reshape(-1)
-    for name, lim in (("max_velocity", vmax), ("max_acceleration", amax)):
-        if lim.shape != (n,):
-            raise ValueError(f"{name}: expected {n} values (one per joint), got {lim.shape[0]}")
-        if not np.all(np.isfinite(lim)) or np.any(lim <= 0.0):
-            raise ValueError(f"{name}: every limit must be a finite number > 0, got {list(lim)}")
-    names = tuple(joint_names) if joint_names is not None else tuple(f"j{i}" for i in range(n))
-    if len(names) != n:
-        raise ValueError(f"joint_names: expected {n} names, got {len(names)}")
-    if len(p) == 1:
-        z = np.zeros_like(p)
-        return Trajectory(names, np.zeros(1), p, z, z.copy(), vmax, amax)
-
-    s, ds, d1, d2 = _path_derivatives(p)
-    vplan, aplan = vmax * margin, amax * margin
-    mvc = _mvc(np.ascontiguousarray(d1), np.ascontiguousarray(d2), vplan, aplan)
-    x = np.maximum(_passes(ds, np.ascontiguousarray(d1), np.ascontiguousarray(d2), mvc, aplan), 0.0)
-    sd = np.sqrt(x)
-
-    # segment durations: constant path acceleration per segment
-    den = sd[:-1] + sd[1:]
-    dirs = np.diff(p, axis=0) / ds[:, None]
-    a_seg = np.min(aplan[None, :] / np.maximum(np.abs(dirs), _EPS), axis=1)
-    dt = np.where(den > 1e-9, 2.0 * ds / np.maximum(den, 1e-300), 2.0 * np.sqrt(ds / a_seg))
-    dt = np.maximum(dt, 1e-6)
-    t = np.concatenate([[0.0], np.cumsum(dt)])
-
-    sdd_seg = (sd[1:] - sd[:-1]) / dt
-    sdd = np.empty(len(p))
-    sdd[0], sdd[-1] = sdd_seg[0], sdd_seg[-1]
-    sdd[1:-1] = 0.5 * (sdd_seg[:-1] + sdd_seg[1:])
-    vel = d1 * sd[:, None]
-    acc = d1 * sdd[:, None] + d2 * x[:, None]
-    vel[0] = 0.0
-    vel[-1] = 0.0
-
-    # safety net: uniform slow-down until both the published values and the
-    # finite differences are within the limits
-    rv, ra = limit_ratios(t, p, vel, acc, vmax, amax)
-    c = max(1.0, rv, np.sqrt(ra))
-    if c > 1.0:
-        c *= 1.0 + 1e-9
-        t, vel, acc = t * c, vel / c, acc / (c * c)
-    return Trajectory(names, t, p, vel, acc, vmax, amax, float(c))
+    for name, v in (("time_step_s", time_step_s), ("path_tolerance_rad", path_tolerance_rad)):
+        if v is not None and not (np.isfinite(v) and v > 0.0):
+            raise ValueError(f"{name}: must be a finite number > 0, got {v}")
+    if time_step_s is None and path_tolerance_rad is None:
+        raise ValueError("time_step_s: give time_step_s and/or path_tolerance_rad")
+    t, q = traj.times_s, traj.positions_rad
+    if len(t) <= 2:
+        idx = np.arange(len(t))
+    else:
+        idx = _select(t, q, time_step_s, path_tolerance_rad)
+    check, rounds = None, 0
+    if checker is not None:
+        from .motion import check_path
+        robot = checker.robot
+        bounds = (robot.planned_lower_rad, robot.planned_upper_rad, robot.planned_periodic)
+        while True:
+            check = check_path(checker, q[idx], *bounds)
+            if check.ok or rounds >= max_rounds:
+                break
+            bad = np.flatnonzero(~check.interval_ok)
+            mids = [(idx[b] + idx[b + 1]) // 2 for b in bad if idx[b + 1] - idx[b] > 1]
+            if not mids:
+                break
+            idx = np.unique(np.concatenate([idx, mids]))
+            rounds += 1
+    return Resampled(traj.subset(idx), idx, check, rounds)
 
 
 def sample(traj: Trajectory, t_s: float):
@@ -315,3 +640,63 @@ def sample(traj: Trajectory, t_s: float):
     q = traj.positions_rad[k] + f * (traj.positions_rad[k + 1] - traj.positions_rad[k])
     v = traj.velocities_rad_s[k] + f * (traj.velocities_rad_s[k + 1] - traj.velocities_rad_s[k])
     return q, v
+
+
+@dataclass(frozen=True, eq=False)
+class Continuation:
+    """Where a replacement trajectory joins an executing one (see :func:`continuation`).
+
+    Attributes:
+        index: the executing trajectory's point where the new one starts.
+        join_time_s: that point's time in the executing trajectory (the new
+            trajectory's time 0 is this instant).
+        prefix_rad: (P, n) the executing path from that point to the horizon point
+            (P ≥ 1; its last row is where the new plan must start).
+        start_path_speed: ṡ at the join, for ``time_parameterize(start_path_speed=...)``.
+        start_velocity_rad_s: (n,) the joint velocity at the join.
+    """
+
+    index: int
+    join_time_s: float
+    prefix_rad: np.ndarray
+    start_path_speed: float
+    start_velocity_rad_s: np.ndarray
+
+    def join(self, new_path_rad) -> np.ndarray:
+        """The path to time-parameterise: the prefix, then ``new_path_rad`` (which must
+        start at ``prefix_rad[-1]``, the horizon point), (P + K - 1, n)."""
+        new = np.asarray(new_path_rad, dtype=float)
+        if new.ndim != 2 or new.shape[1] != self.prefix_rad.shape[1]:
+            raise ValueError(f"new_path_rad: expected (K, {self.prefix_rad.shape[1]}) rows, got {new.shape}")
+        if np.max(np.abs(new[0] - self.prefix_rad[-1])) > 1e-9:
+            raise ValueError("new_path_rad: must start at the continuation's horizon point prefix_rad[-1]")
+        return np.vstack([self.prefix_rad, new[1:]])
+
+
+def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0) -> Continuation:
+    """Replanning from a moving arm: keep the executing trajectory to a horizon, join there.
+
+    The new trajectory starts at the first point of ``traj`` at or after ``t_s`` (the
+    join, an exact state: position, velocity, path speed) and follows ``traj``'s path to
+    the point ``horizon_s`` later, where the new plan starts.  Time-parameterising
+    ``c.join(new_path)`` with ``start_path_speed=c.start_path_speed`` gives a trajectory
+    continuous in position and velocity at the join (the velocity up to the projection on
+    the re-fitted tangent, a relative change of the order of the squared sample spacing),
+    within the limits; it raises ``ValueError`` when the new path turns too sharply after
+    the horizon to be entered at that speed (take a longer horizon).
+
+    Args:
+        traj: the executing trajectory.
+        t_s: the current time in it (s from its start).
+        horizon_s: how far ahead (s) the new plan starts, ≥ 0.
+    Returns:
+        Continuation; at or beyond the end of ``traj`` it is the goal at rest.
+    """
+    if not (np.isfinite(t_s) and np.isfinite(horizon_s) and horizon_s >= 0.0):
+        raise ValueError(f"horizon_s: must be a finite number ≥ 0 (t_s finite), got {horizon_s}, {t_s}")
+    t = traj.times_s
+    k = min(int(np.searchsorted(t, t_s, side="left")), len(t) - 1)
+    h = min(int(np.searchsorted(t, t[k] + horizon_s, side="left")), len(t) - 1)
+    speed = 0.0 if traj.path_speed is None else float(traj.path_speed[k])
+    return Continuation(k, float(t[k]), traj.positions_rad[k:h + 1].copy(), speed,
+                        traj.velocities_rad_s[k].copy())

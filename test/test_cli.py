@@ -152,3 +152,90 @@ def test_console_script_subprocess(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1
     assert "--start-deg" in proc.stderr and "Traceback" not in proc.stderr
+
+
+S3 = str(ROOT / "config" / "servicer_3dof.yaml")
+
+
+def _variant(tmp_path, base, name, **sections):
+    doc = yaml.safe_load(Path(base).read_text())
+    params = doc["spacerobot_planner"]["ros__parameters"]
+    for section, values in sections.items():
+        params.setdefault(section, {}).update(values)
+    f = tmp_path / f"{name}.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    return str(f)
+
+
+def test_servicer_json_has_trajectory_and_reaction(tmp_path, capsys):
+    js = tmp_path / "s.json"
+    rc, out, err = run(["--params-file", S3, "--json", str(js), "--quiet"], capsys)
+    assert rc == 0, err
+    d = json.loads(js.read_text())
+    tr, re = d["trajectory"], d["reaction"]
+    assert tr["joint_names"] == ["attitude", "shoulder", "elbow"]
+    t = np.array(tr["times_s"])
+    for key in ("positions_rad", "velocities_rad_s", "accelerations_rad_s2"):
+        assert np.array(tr[key]).shape == (len(t), 3)
+    np.testing.assert_array_equal(np.array(tr["positions_rad"])[[0, -1]], np.array(d["path_rad"])[[0, -1]])
+    assert re["max_wheel_momentum_Nms"] == 50.0 and re["max_wheel_torque_Nm"] == 0.5
+    assert re["peak_wheel_momentum_Nms"] <= 50.0 * (1 + 1e-6)
+    assert re["peak_wheel_torque_Nm"] <= 0.5 * (1 + 1e-6)
+    for key in ("free_floating_attitude_change_deg", "free_floating_body_displacement_m",
+                "free_floating_tip_miss_m"):
+        assert isinstance(re[key], float)
+    assert d["trajectory_resampled"]["certified"] is True
+    assert len(d["trajectory_resampled"]["times_s"]) <= 200
+    assert "trajectory:" in out and "reaction (held)" in out
+    # the paper's config keeps the paper's assumption: no wheel limits, a faster motion
+    js2 = tmp_path / "p.json"
+    assert run(["--params-file", P3, "--json", str(js2), "--quiet"], capsys)[0] == 0
+    d2 = json.loads(js2.read_text())
+    assert d2["reaction"]["max_wheel_momentum_Nms"] is None
+    assert d2["trajectory"]["times_s"][-1] < t[-1]
+
+
+def test_free_floating_refuses_with_the_tip_miss_and_accepts_a_heavy_spacecraft(tmp_path, capsys):
+    ff = _variant(tmp_path, P2, "ff", acs={"mode": "free_floating"})
+    js = tmp_path / "ff.json"
+    rc, out, err = run(["--params-file", ff, "--json", str(js), "--quiet"], capsys)
+    assert rc == 2
+    d = json.loads(js.read_text())
+    miss = d["reaction"]["free_floating_tip_miss_m"]
+    assert d["ok"] is False and d["code"] == "reaction_refused" and miss > 0.1
+    assert "free floating" in err and f"{miss:.3f} m" in err and d["error"] == d["reaction"]["reason"]
+    heavy = _variant(tmp_path, P2, "heavy", acs={"mode": "free_floating"},
+                     dynamics={"body_mass_kg": 2.0e7, "body_inertia_kgm2": 1.08e7})
+    rc, out, err = run(["--params-file", heavy, "--json", str(js), "--quiet"], capsys)
+    assert rc == 0, err
+    assert json.loads(js.read_text())["reaction"]["free_floating_tip_miss_m"] < 0.02
+
+
+def test_reaction_plot(tmp_path, capsys):
+    png = tmp_path / "s.png"
+    rc, out, err = run(["--params-file", S3, "--plot", str(png), "--quiet"], capsys)
+    assert rc == 0, err
+    assert png.stat().st_size > 10_000 and (tmp_path / "s_reaction.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("section,field", [
+    ({"acs": {"mode": "off"}}, "acs.mode"),
+    ({"dynamics": {"link_masses_kg": [0.0, 30.0]}}, "dynamics.link_masses_kg"),
+    ({"dynamics": {"body_mass_kg": -1.0}}, "dynamics.body_mass_kg"),
+    ({"trajectory": {"max_velocity_scaling_factor": 1.5}}, "trajectory.max_velocity_scaling_factor"),
+    ({"acs": {"max_wheel_torque_Nm": -0.5}}, "acs.max_wheel_torque_Nm"),
+])
+def test_bad_reaction_parameters_exit_1(tmp_path, capsys, section, field):
+    f = _variant(tmp_path, S3, "bad", **section)
+    rc, out, err = run(["--params-file", f], capsys)
+    assert rc == 1 and field in err
+
+
+def test_free_floating_with_drift_compensation_is_accepted(tmp_path, capsys):
+    f = _variant(tmp_path, P2, "comp", acs={"mode": "free_floating", "compensate_drift": True})
+    js = tmp_path / "c.json"
+    rc, out, err = run(["--params-file", f, "--json", str(js), "--quiet"], capsys)
+    assert rc == 0, err
+    d = json.loads(js.read_text())
+    assert d["reaction"]["free_floating_tip_miss_m"] < 0.02 and not d["reaction"]["free_floating_collides"]
+    assert abs(d["reaction"]["free_floating_attitude_change_deg"]) > 10.0 and "drift compensation" in out

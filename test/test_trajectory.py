@@ -1,30 +1,56 @@
-"""trajectory.py: limits hold (published values and finite differences), exact ends, time increases."""
+"""trajectory.py: limits hold at every point (published values and finite differences of
+the positions, computed here), exact ends, time increases; durations against TOPP-RA
+(toppra); scaling factors; a moving start; resampling and its certification."""
 
 import numpy as np
 import pytest
+import toppra
+import toppra.algorithm
+import toppra.constraint
 from hypothesis import given, settings, strategies as st
 from scipy.interpolate import CubicSpline
 
-from spacerobot_planner.trajectory import (densify_path, finite_differences, sample,
-                                           time_parameterize)
+from paper_paths import joint_limits, scene
+from spacerobot_planner.collision import CollisionChecker
+from spacerobot_planner.trajectory import densify_path, resample, sample, time_parameterize
 
 VMAX = np.radians([5.0, 15.0, 15.0])
 AMAX = np.radians([5.0, 20.0, 20.0])
 TOL = 1e-9
 
 
-def _check(traj, path, vmax, amax):
+def _own_differences(t, q, v0):
+    """Segment velocities Δq/Δt and point accelerations (centred on each point: the change
+    of segment velocity over half the neighbouring durations; rest at the end)."""
+    dt = t[1:] - t[:-1]
+    w = (q[1:] - q[:-1]) / dt[:, None]
+    before = np.vstack([v0[None, :], w])
+    after = np.vstack([w, np.zeros((1, q.shape[1]))])
+    half = np.concatenate([[0.0], dt / 2]) + np.concatenate([dt / 2, [0.0]])
+    return w, (after - before) / half[:, None]
+
+
+def _check(traj, path, vmax, amax, v0=None, dense=True, consistency=None):
     t, q = traj.times_s, traj.positions_rad
+    v0 = np.zeros(q.shape[1]) if v0 is None else np.asarray(v0)
     assert t[0] == 0.0 and np.all(np.diff(t) > 0.0)
     np.testing.assert_array_equal(q[0], np.asarray(path)[0])
     np.testing.assert_array_equal(q[-1], np.asarray(path)[-1])
-    assert np.all(traj.velocities_rad_s[[0, -1]] == 0.0)
+    np.testing.assert_allclose(traj.velocities_rad_s[0], v0, atol=1e-12)
+    assert np.all(traj.velocities_rad_s[-1] == 0.0)
     assert np.all(np.abs(traj.velocities_rad_s) <= vmax * (1 + TOL))
     assert np.all(np.abs(traj.accelerations_rad_s2) <= amax * (1 + TOL))
-    w, a = finite_differences(t, q)
+    w, a = _own_differences(t, q, v0)
     assert np.all(np.abs(w) <= vmax * (1 + TOL))
     assert np.all(np.abs(a) <= amax * (1 + TOL))
-    assert np.max(np.abs(np.diff(q, axis=0))) <= np.radians(0.5) + 1e-12
+    if consistency is not None:
+        # the published values belong to the positions: mean of the ends ≈ segment velocity,
+        # published acceleration ≈ the finite difference (smooth paths, dense points)
+        mean_v = 0.5 * (traj.velocities_rad_s[1:] + traj.velocities_rad_s[:-1])
+        assert np.all(np.abs(mean_v - w) <= consistency * vmax)
+        assert np.median(np.abs(traj.accelerations_rad_s2 - a) / amax) <= consistency
+    if dense:
+        assert np.max(np.abs(np.diff(q, axis=0))) <= np.radians(0.5) + 1e-12
 
 
 def _spline_path(rng, n_knots=6, dof=3, scale=1.0):
@@ -95,3 +121,163 @@ def test_bad_limits_raise():
         time_parameterize(np.zeros((2, 2)) + [[0, 0], [1, 1]], [1.0, 0.0], [1.0, 1.0])
     with pytest.raises(ValueError, match="max_acceleration"):
         time_parameterize(np.zeros((2, 2)) + [[0, 0], [1, 1]], [1.0, 1.0], [1.0])
+
+
+# ------------------------------------------------------------------ TOPP-RA oracle
+def _toppra_duration_s(path, vmax, amax):
+    """TOPP-RA on a cubic spline through the same samples (chord-length parameter), on a
+    grid 16 times finer than the samples."""
+    toppra.setup_logging("WARNING")
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    spline = toppra.SplineInterpolator(s, path)
+    cons = [toppra.constraint.JointVelocityConstraint(np.stack([-vmax, vmax], axis=1)),
+            toppra.constraint.JointAccelerationConstraint(
+                np.stack([-amax, amax], axis=1),
+                discretization_scheme=toppra.constraint.DiscretizationType.Interpolation)]
+    algo = toppra.algorithm.TOPPRA(cons, spline, gridpoints=np.linspace(0.0, s[-1], 16 * len(path) + 1),
+                                   parametrizer="ParametrizeConstAccel")
+    return algo.compute_trajectory(0.0, 0.0).duration
+
+
+@pytest.mark.parametrize("name", ["paper_2dof", "paper_3dof"])
+def test_durations_within_one_percent_of_toppra_and_limits_hold(name):
+    sc, path = scene(name)
+    vmax, amax = joint_limits(sc)
+    traj = time_parameterize(path, vmax, amax, sc.robot.planned_names)
+    _check(traj, path, vmax, amax, consistency=0.02)
+    ref = _toppra_duration_s(path, vmax, amax)
+    assert 0.99 * ref <= traj.duration_s <= 1.01 * ref, (traj.duration_s, ref)
+    assert set(traj.active_limit) <= {f"{k}:{j}" for k in ("velocity", "acceleration")
+                                      for j in sc.robot.planned_names}
+    assert np.all(traj.limit_ratio <= 1 + 1e-9) and np.median(traj.limit_ratio) > 0.999
+
+
+def test_scaling_factors_scale_time_exactly():
+    """Velocities × k and accelerations × k² make the same profile 1/k slower."""
+    sc, path = scene("paper_3dof")
+    vmax, amax = joint_limits(sc)
+    base = time_parameterize(path, vmax, amax)
+    slow = time_parameterize(path, vmax, amax, velocity_scaling=0.5, acceleration_scaling=0.25)
+    np.testing.assert_allclose(slow.times_s, 2.0 * base.times_s, rtol=1e-9)
+    _check(slow, path, 0.5 * vmax, 0.25 * amax)
+    only_v = time_parameterize(path, vmax, amax, velocity_scaling=0.3)
+    _check(only_v, path, 0.3 * vmax, amax)
+    assert only_v.duration_s > 2.5 * base.duration_s
+    for bad in (0.0, 1.5, -0.1):
+        with pytest.raises(ValueError, match="velocity_scaling"):
+            time_parameterize(path, vmax, amax, velocity_scaling=bad)
+        with pytest.raises(ValueError, match="acceleration_scaling"):
+            time_parameterize(path, vmax, amax, acceleration_scaling=bad)
+
+
+def test_moving_start_continues_an_executing_trajectory():
+    """Cut a trajectory at a point where the arm moves, re-parameterise the rest from that
+    velocity: continuous velocity at the switch, limits held (finite differences from the
+    start velocity), never slower than starting the rest from rest."""
+    sc, path = scene("paper_3dof")
+    vmax, amax = joint_limits(sc)
+    first = time_parameterize(path, vmax, amax)
+    k = int(np.searchsorted(first.times_s, 0.4 * first.duration_s))
+    v_switch = first.velocities_rad_s[k]
+    assert np.linalg.norm(v_switch) > 0.05
+    rest = first.positions_rad[k:]
+    second = time_parameterize(rest, vmax, amax, start_velocity_rad_s=v_switch)
+    np.testing.assert_allclose(second.velocities_rad_s[0], v_switch, rtol=1e-3, atol=1e-6)
+    _check(second, rest, vmax, amax, v0=second.velocities_rad_s[0], consistency=0.02)
+    from_rest = time_parameterize(rest, vmax, amax)
+    assert second.duration_s < from_rest.duration_s
+    assert abs(second.duration_s - (first.duration_s - first.times_s[k])) < 0.01 * first.duration_s
+    by_speed = time_parameterize(rest, vmax, amax, start_path_speed=second.path_speed[0])
+    np.testing.assert_allclose(by_speed.times_s, second.times_s, rtol=1e-12)
+
+
+def test_start_velocities_that_cannot_be_followed_are_refused():
+    path = np.array([[0.0, 0.0], [1.0, 0.0]])
+    vmax, amax = np.array([1.0, 1.0]), np.array([1.0, 1.0])
+    with pytest.raises(ValueError, match="start_velocity_rad_s.*tangent"):
+        time_parameterize(path, vmax, amax, start_velocity_rad_s=[0.1, 0.1])
+    with pytest.raises(ValueError, match="start_velocity_rad_s"):
+        time_parameterize(path, vmax, amax, start_velocity_rad_s=[-0.1, 0.0])
+    with pytest.raises(ValueError, match="start_path_speed.*faster"):
+        time_parameterize(path, vmax, amax, start_path_speed=1.5)      # above the velocity limit
+    # 1 rad to stop in: from 0.9 rad/s at 1 rad/s² that needs 0.405 rad
+    ok = time_parameterize(path, vmax, amax, start_path_speed=0.9)
+    _check(ok, path, vmax, amax, v0=[0.9, 0.0])
+    short = np.array([[0.0, 0.0], [0.05, 0.0]])
+    with pytest.raises(ValueError, match="start_path_speed"):
+        time_parameterize(short, vmax, amax, start_path_speed=0.9)    # cannot stop within 0.05 rad
+
+
+@pytest.mark.parametrize("name", ["paper_2dof", "paper_3dof"])
+def test_resampled_trajectory_is_short_exact_and_certified(name):
+    sc, path = scene(name)
+    vmax, amax = joint_limits(sc)
+    traj = time_parameterize(path, vmax, amax)
+    checker = CollisionChecker(sc.robot, sc.scene)
+    for kw in ({}, {"time_step_s": 0.25, "path_tolerance_rad": None},
+               {"time_step_s": 1.0, "path_tolerance_rad": np.radians(0.05)}):
+        res = resample(traj, checker, **kw)
+        sub = res.trajectory
+        assert res.ok and res.check.ok
+        assert 5 <= len(sub) <= 200 and len(sub) < len(traj) / 4
+        np.testing.assert_array_equal(sub.positions_rad[[0, -1]], traj.positions_rad[[0, -1]])
+        np.testing.assert_array_equal(sub.times_s, traj.times_s[res.indices])
+        _check(sub, path, vmax, amax, dense=False)          # the limits hold between kept points too
+        if kw.get("time_step_s"):
+            assert np.max(np.diff(sub.times_s)) <= kw["time_step_s"] + 1e-12
+        # oracle: the polyline through the kept points, sampled at 0.1°, clears the margin
+        fine = np.vstack([np.linspace(a, b, int(np.ceil(np.max(np.abs(b - a)) / np.radians(0.1))) + 1)
+                          for a, b in zip(sub.positions_rad[:-1], sub.positions_rad[1:])])
+        assert np.all(checker.clearance_m(fine) > sc.scene.safety_margin_m)
+    if name == "paper_3dof":
+        traj_s = time_parameterize(path, vmax, amax)
+        assert 10 <= len(resample(traj_s, checker).trajectory) <= 200 and traj_s.duration_s > 20.0
+
+
+def test_resampling_adds_points_back_where_the_chord_collides():
+    """A tolerance so loose that chords cut through the spacecraft body: the certification
+    fails there and points are added back until it passes."""
+    sc, path = scene("paper_3dof")
+    vmax, amax = joint_limits(sc)
+    traj = time_parameterize(path, vmax, amax)
+    checker = CollisionChecker(sc.robot, sc.scene)
+    loose = resample(traj, None, path_tolerance_rad=2.0)
+    assert len(loose.trajectory) == 2 and loose.check is None
+    from spacerobot_planner.motion import check_path
+    r = sc.robot
+    assert not check_path(checker, loose.trajectory.positions_rad, r.planned_lower_rad, r.planned_upper_rad,
+                          r.planned_periodic).ok
+    fixed = resample(traj, checker, path_tolerance_rad=2.0)
+    assert fixed.ok and fixed.refinements > 0 and len(fixed.trajectory) > 2
+    with pytest.raises(ValueError, match="time_step_s"):
+        resample(traj, checker, time_step_s=0.0)
+    with pytest.raises(ValueError, match="time_step_s"):
+        resample(traj, checker, time_step_s=None, path_tolerance_rad=None)
+
+
+def test_replanning_from_a_moving_arm_joins_continuously():
+    """Keep the executing trajectory to a 1 s horizon, plan a different path from there
+    (here: a spline to another goal), join and re-parameterise from the join's speed:
+    same position, same velocity (to 1e-4 of the limits) at the join, limits held."""
+    from spacerobot_planner.trajectory import continuation
+    sc, path = scene("paper_3dof")
+    vmax, amax = joint_limits(sc)
+    first = time_parameterize(path, vmax, amax)
+    for frac in (0.1, 0.4, 0.8):
+        c = continuation(first, frac * first.duration_s, horizon_s=1.0)
+        assert c.join_time_s >= frac * first.duration_s and len(c.prefix_rad) > 1
+        a = c.prefix_rad[-1]
+        goal = a + np.radians([20.0, -15.0, 10.0])
+        knots = np.vstack([a, a + 0.5 * (goal - a) + np.radians([5.0, 5.0, -5.0]), goal])
+        new = CubicSpline([0.0, 0.5, 1.0], knots)(np.linspace(0.0, 1.0, 200))
+        new[0] = a
+        joined = c.join(new)
+        nxt = time_parameterize(joined, vmax, amax, start_path_speed=c.start_path_speed)
+        np.testing.assert_array_equal(nxt.positions_rad[0], first.positions_rad[c.index])
+        assert np.all(np.abs(nxt.velocities_rad_s[0] - c.start_velocity_rad_s) <= 1e-4 * vmax)
+        assert np.linalg.norm(c.start_velocity_rad_s) > 0.01
+        _check(nxt, joined, vmax, amax, v0=nxt.velocities_rad_s[0])
+    end = continuation(first, 2 * first.duration_s)
+    assert end.start_path_speed == 0.0 and np.all(end.start_velocity_rad_s == 0.0)
+    with pytest.raises(ValueError, match="new_path_rad"):
+        c.join(new + 1.0)
