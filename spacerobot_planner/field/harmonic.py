@@ -244,8 +244,11 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             left = (f"the field budget of {budget_s:g} s ended after {bands} band(s) with "
                     f"{active.size} of {n - n_goal} nodes unsolved")
             break
-        steps = _steps_from_known(nbr, active, known, scratch, window_steps)
-        whole = window_steps == 0 or steps.max() <= window_steps
+        if window_steps == 0:        # the first band: every node
+            whole, steps = True, None
+        else:
+            steps = _steps_from_known(nbr, active, known, scratch, window_steps)
+            whole = steps.max() <= window_steps
         inside = np.ones(active.size, np.bool_) if whole else steps <= window_steps
         window = active[inside]
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
@@ -265,7 +268,7 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             continue                 # only when the deadline stopped the band: caught above
         log_u[window[keep]] = np.log(x[keep]) + log_scale
         known[window[keep]] = True
-        window_steps = max(WINDOW_STEPS, 2 * int(steps[inside][keep].max()))
+        window_steps = WINDOW_STEPS if steps is None else max(WINDOW_STEPS, 2 * int(steps[inside][keep].max()))
         rest = np.ones(active.size, np.bool_)
         rest[np.flatnonzero(inside)[keep]] = False
         active = active[rest]
