@@ -19,6 +19,8 @@ from .motion import segment_free
 
 # status codes of the kernels
 _REACHED, _STUCK, _TOO_LONG, _BLOCKED = 0, 1, 2, 3
+#: A blocked walk looks for a detour within this many index steps per axis.
+DETOUR_STEPS = 1
 
 
 @dataclass(frozen=True)
@@ -95,10 +97,91 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, q_template, planned,
-                  lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_template, planned, lengths,
+            checked, body, verts, starts, threshold_m, seg_step_rad, q_full, pts, body_w, path):
+    """Breadth-first over motions that pass, within ``radius`` index steps of node ``f``
+    per axis, to the nearest node whose log u is strictly above f's.  Writes the nodes
+    after f up to it into ``path`` and returns their count (0: none)."""
+    ndim = shape.size
+    side = 2 * radius + 1
+    box = 1
+    for a in range(ndim):
+        box *= side
+    parent = np.full(box, -2, np.int64)       # -2 unseen; box index of the parent
+    flat_of = np.empty(box, np.int64)
+    queue = np.empty(box, np.int64)
+    off = np.zeros(ndim, np.int64)
+    c0 = np.empty(ndim, np.int64)
+    for a in range(ndim):
+        c0[a] = (f // strides[a]) % shape[a]
+    centre = 0
+    for a in range(ndim):
+        centre = centre * side + radius
+    parent[centre] = -1
+    flat_of[centre] = f
+    queue[0] = centre
+    head, tail = 0, 1
+    qa = np.empty(ndim)
+    qb = np.empty(ndim)
+    here = log_u_flat[f]
+    while head < tail:
+        bi = queue[head]
+        head += 1
+        rem = bi
+        for a in range(ndim - 1, -1, -1):
+            off[a] = rem % side - radius
+            rem //= side
+        g = flat_of[bi]
+        for a in range(ndim):
+            qa[a] = lower[a] + ((c0[a] + off[a]) % shape[a] if periodic[a] else c0[a] + off[a]) * step[a]
+        for a in range(ndim):
+            for d in (-1, 1):
+                o = off[a] + d
+                if o < -radius or o > radius:
+                    continue
+                k = c0[a] + o
+                if periodic[a]:
+                    k %= shape[a]
+                elif k < 0 or k >= shape[a]:
+                    continue
+                nb_box = bi + d * side ** (ndim - 1 - a)
+                if parent[nb_box] != -2:
+                    continue
+                kc = (g // strides[a]) % shape[a]
+                h = g + (k - kc) * strides[a]
+                if not log_u_flat[h] > -np.inf:
+                    continue
+                for b in range(ndim):
+                    qb[b] = qa[b]
+                qb[a] += d * step[a]
+                if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
+                                    threshold_m, seg_step_rad, q_full, pts, body_w):
+                    continue
+                parent[nb_box] = bi
+                flat_of[nb_box] = h
+                if log_u_flat[h] > here:
+                    n = 0
+                    t = nb_box
+                    while t != centre:
+                        n += 1
+                        t = parent[t]
+                    t = nb_box
+                    for i in range(n - 1, -1, -1):
+                        path[i] = flat_of[t]
+                        t = parent[t]
+                    return n
+                queue[tail] = nb_box
+                tail += 1
+    return 0
+
+
+@nb.njit(cache=True, nogil=True)
+def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
+                  planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
     """The walk of :func:`_ascend`, but each step to the steepest strictly higher neighbour
-    whose straight segment passes ``motion.segment_free`` (next steepest if not).
+    whose straight segment passes ``motion.segment_free`` (next steepest if not); where
+    none passes, a detour over passing motions within ``detour_steps`` to the nearest
+    strictly higher node (log u rises from detour to detour, so the walk ends).
     Returns (number of nodes, status)."""
     strides = _strides(shape)
     ndim = shape.size
@@ -112,6 +195,7 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     cand_v = np.empty(2 * ndim)
     cand_a = np.empty(2 * ndim, np.int64)
     cand_d = np.empty(2 * ndim, np.int64)
+    detour = np.empty((2 * detour_steps + 1) ** ndim, np.int64)
     m = 0
     out[m] = f
     m += 1
@@ -162,7 +246,16 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
                 moved = True
                 break
         if not moved:
-            return m, _BLOCKED
+            n = 0 if detour_steps == 0 else _detour(
+                log_u_flat, shape, periodic, strides, f, detour_steps, lower, step, q_template,
+                        planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad,
+                        q_full, pts, body_w, detour)
+            if n == 0 or m + n > out.size:
+                return m, _BLOCKED
+            for i in range(n):
+                out[m] = detour[i]
+                m += 1
+            f = detour[n - 1]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -238,14 +331,17 @@ def colliding_edges(occupied, periodic, node, motions, lower_rad, step_rad, radi
                             *motions.arrays())
 
 
-def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=None) -> GridPath:
+def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=None,
+            detour_steps: int = DETOUR_STEPS) -> GridPath:
     """Steepest descent of phi (ascent of ``field.log_u``) from ``start_node``.
 
     start_node : int sequence of length ndim (grid node index).
     motions : optional ``motion.SegmentTest``; then each step goes to the steepest strictly
         higher neighbour whose straight segment passes it (the next steepest otherwise),
         with nodes at ``lower_rad + index * step_rad`` (per axis, rad).  Without it, or
-        when every step passes, the walk is plain steepest descent.
+        when every step passes, the walk is plain steepest descent.  Where no higher
+        neighbour's motion passes, the walk looks for a detour over passing motions within
+        ``detour_steps`` index steps to the nearest strictly higher node (0: none).
     Returns a :class:`GridPath`; ``reason`` says why the goal was not reached
     ("start node is an obstacle", "start node not connected to the goal",
     "stuck at node (i, j): no strictly higher neighbour").
@@ -282,7 +378,7 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
         m, status = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
                                   np.array(field.periodic, np.bool_), flat0, out,
                                   np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
-                                  *motions.arrays())
+                                  int(detour_steps), *motions.arrays())
     nodes = np.stack(np.unravel_index(out[:m], shape), axis=1).astype(np.int64)
     if status == _REACHED:
         return GridPath(nodes, True, m - 1, None)

@@ -44,7 +44,8 @@ from .smoothing import DEFAULT_MAX_STEP_RAD, smooth_path, unwrap_path
 
 __all__ = ["PlanResult", "Planner", "STAGES", "CODES", "warm_up"]
 
-#: A repair cuts the colliding grid edges within this many index steps of the blocked node.
+#: A repair cuts the colliding grid edges within this many index steps of the blocked node
+#: (one more with each repair of the same plan, up to three more).
 REPAIR_RADIUS = 2
 STAGES = ("cspace", "field", "descent", "repair", "smoothing", "verify", "total")
 CODES = ("ok", "invalid_input", "start_in_collision", "goal_in_collision", "goal_unreachable",
@@ -608,8 +609,9 @@ class _PlanRun:
         (both ends free), or block the node when all of those are cut already; re-solve."""
         grid = self.sc.grid
         t = time.perf_counter()
+        radius = REPAIR_RADIUS + min(entry.repairs, 3)     # a wider look each time
         edges = colliding_edges(entry.field.occupied, grid.periodic, node, self.motions,
-                                grid.lower_rad, grid.step_rad, radius=REPAIR_RADIUS)
+                                grid.lower_rad, grid.step_rad, radius=radius)
         self.timings["repair"] += time.perf_counter() - t
         new = {(int(a), int(b)) for a, b in edges} - entry.cut_edges
         if not new:
