@@ -44,6 +44,17 @@ class GridPath:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _along(c, d, n, periodic):
+    """Index c + d along an axis of n nodes: wrapped on a periodic axis, -1 beyond a wall."""
+    k = c + d
+    if k < 0 or k >= n:
+        if not periodic:
+            return -1
+        k %= n
+    return k
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _steepest_neighbour(log_u_flat, f, shape, strides, periodic):
     """Flat index of the face neighbour of node ``f`` with the largest log u, if it
     is strictly larger than log u at ``f`` (ties: first in the fixed order), else -1."""
@@ -52,15 +63,9 @@ def _steepest_neighbour(log_u_flat, f, shape, strides, periodic):
     for a in range(shape.size):
         c = (f // strides[a]) % shape[a]
         for step in (-1, 1):
-            nc = c + step
+            nc = _along(c, step, shape[a], periodic[a])
             if nc < 0:
-                if not periodic[a]:
-                    continue
-                nc = shape[a] - 1
-            elif nc >= shape[a]:
-                if not periodic[a]:
-                    continue
-                nc = 0
+                continue
             g = f + (nc - c) * strides[a]
             if log_u_flat[g] > best:
                 best = log_u_flat[g]
@@ -139,10 +144,8 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
                 o = off[a] + d
                 if o < -radius or o > radius:
                     continue
-                k = c0[a] + o
-                if periodic[a]:
-                    k %= shape[a]
-                elif k < 0 or k >= shape[a]:
+                k = _along(c0[a], o, shape[a], periodic[a])
+                if k < 0:
                     continue
                 nb_box = bi + d * side ** (ndim - 1 - a)
                 if parent[nb_box] != -2:
@@ -212,15 +215,9 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
         for a in range(ndim):
             c = coord[a]
             for d in (-1, 1):
-                nc = c + d
+                nc = _along(c, d, shape[a], periodic[a])
                 if nc < 0:
-                    if not periodic[a]:
-                        continue
-                    nc = shape[a] - 1
-                elif nc >= shape[a]:
-                    if not periodic[a]:
-                        continue
-                    nc = 0
+                    continue
                 g = f + (nc - c) * strides[a]
                 v = log_u_flat[g]
                 if not v > here:
@@ -288,10 +285,8 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
             off[a] = rem % side - radius
             rem //= side
         for a in range(ndim):
-            k = c0[a] + off[a]
-            if periodic[a]:
-                k %= shape[a]
-            elif k < 0 or k >= shape[a]:
+            k = _along(c0[a], off[a], shape[a], periodic[a])
+            if k < 0:
                 inside = False
             c[a] = k
             f += k * strides[a]
@@ -300,11 +295,9 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
         for a in range(ndim):
             qa[a] = lower[a] + c[a] * step[a]
         for a in range(ndim):
-            k = c[a] + 1
-            if k >= shape[a]:
-                if not periodic[a]:
-                    continue
-                k = 0
+            k = _along(c[a], 1, shape[a], periodic[a])
+            if k < 0:
+                continue
             g = f + (k - c[a]) * strides[a]
             if occ_flat[g]:
                 continue

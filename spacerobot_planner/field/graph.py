@@ -13,6 +13,18 @@ import numba as nb
 import numpy as np
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _next_coord(coord, shape):
+    """Advance the grid coordinate ``coord`` to the next node in C order (an odometer)."""
+    a = coord.size - 1
+    while a >= 0:
+        coord[a] += 1
+        if coord[a] < shape[a]:
+            break
+        coord[a] = 0
+        a -= 1
+
+
 @nb.njit(cache=True, nogil=True)
 def grid_neighbours(shape, periodic):
     """Flat index of each grid node's 2n face neighbours, -1 beyond a wall.
@@ -42,13 +54,7 @@ def grid_neighbours(shape, periodic):
                 out[f, 2 * a + 1] = f + strides[a]
             else:
                 out[f, 2 * a + 1] = f - span if periodic[a] else -1
-        a = ndim - 1
-        while a >= 0:
-            coord[a] += 1
-            if coord[a] < shape[a]:
-                break
-            coord[a] = 0
-            a -= 1
+        _next_coord(coord, shape)
     return out
 
 
@@ -103,13 +109,7 @@ def _red_black_order(dist, goal_flat, shape):
             n_all += 1
             if par % 2 == 0:
                 n_red += 1
-        a = ndim - 1
-        while a >= 0:
-            coord[a] += 1
-            if coord[a] < shape[a]:
-                break
-            coord[a] = 0
-            a -= 1
+        _next_coord(coord, shape)
     order = np.empty(n_all, np.int64)
     order[:n_goal] = goal_flat
     k_red = n_goal

@@ -126,6 +126,23 @@ def _extend_below(log_u, known, nbr, n_goal, log_deg):
                 tail += 1
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _sift_down(heap_k, heap_i, size, p):
+    """Restore the min-heap (keys heap_k, items heap_i) below position p."""
+    while True:
+        c = 2 * p + 1
+        if c >= size:
+            break
+        if c + 1 < size and heap_k[c + 1] < heap_k[c]:
+            c += 1
+        if heap_k[c] < heap_k[p]:
+            heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
+            heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
+            p = c
+        else:
+            break
+
+
 @nb.njit(cache=True, nogil=True)
 def _repair_ascent(log_u, nbr, n_goal, step):
     """Make every non-goal node strictly lower than some neighbour, changing only nodes
@@ -151,38 +168,14 @@ def _repair_ascent(log_u, nbr, n_goal, step):
         queued[g] = True
     # heapify (min-heap on -key)
     for s in range(size // 2 - 1, -1, -1):
-        p = s
-        while True:
-            c = 2 * p + 1
-            if c >= size:
-                break
-            if c + 1 < size and heap_k[c + 1] < heap_k[c]:
-                c += 1
-            if heap_k[c] < heap_k[p]:
-                heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
-                heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
-                p = c
-            else:
-                break
+        _sift_down(heap_k, heap_i, size, s)
     changed = 0
     while size > 0:
         i = heap_i[0]
         size -= 1
         heap_k[0] = heap_k[size]
         heap_i[0] = heap_i[size]
-        p = 0
-        while True:
-            c = 2 * p + 1
-            if c >= size:
-                break
-            if c + 1 < size and heap_k[c + 1] < heap_k[c]:
-                c += 1
-            if heap_k[c] < heap_k[p]:
-                heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
-                heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
-                p = c
-            else:
-                break
+        _sift_down(heap_k, heap_i, size, 0)
         if done[i]:
             continue
         done[i] = True

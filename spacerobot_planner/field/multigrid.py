@@ -370,6 +370,20 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
+def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
+                  sweeps, boost, par):
+    """xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
+    for i in range(n):
+        bs[i] = r[i]
+    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
+            boost, par)
+    rz = 0.0
+    for i in range(n):
+        rz += r[i] * xs[i]
+    return rz
+
+
+@nb.njit(cache=True, nogil=True)
 def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
     """Preconditioned CG on the finest level, from the initial guess ``u``.
 
@@ -396,14 +410,10 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
             res = abs(r[i])
     if res < tol:
         return 0, res
-    for i in range(n):
-        bs[i] = r[i]
-    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
-                boost, par)
-    rz = 0.0
+    rz = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
+                       r0, r, n, sweeps, boost, par)
     for i in range(n):
         p[i] = xs[i]
-        rz += r[i] * xs[i]
     it = 0
     while it < max_iter:
         if deadline > 0.0 and _now() > deadline:
@@ -427,13 +437,8 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
                 res = abs(r[i])
         if res < tol:
             break
-        for i in range(n):
-            bs[i] = r[i]
-        _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
-                boost, par)
-        rz_new = 0.0
-        for i in range(n):
-            rz_new += r[i] * xs[i]
+        rz_new = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
+                               ws, r0, r, n, sweeps, boost, par)
         beta = rz_new / rz
         rz = rz_new
         for i in range(n):
