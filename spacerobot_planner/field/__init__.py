@@ -72,7 +72,7 @@ SOLVERS = ("log_harmonic", "gauss_seidel")
 DEFAULT_SOLVER = "log_harmonic"
 INTERNAL_SOLVERS = ("oracle",)
 #: Default wall-time budget of one field solve, seconds.
-DEFAULT_BUDGET_S = 2.0
+DEFAULT_BUDGET_S = 5.0
 
 
 @dataclass(frozen=True, eq=False)
