@@ -24,8 +24,8 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "planner_node = spacerobot_planner.planner_node:main",
-            "mock_arm_node = spacerobot_planner.mock_arm_node:main",
+            "planner_node = spacerobot_planner.ros.planner_node:main",
+            "mock_arm_node = spacerobot_planner.ros.mock_arm_node:main",
             "spacerobot-plan = spacerobot_planner.cli:main",
             "spacerobot-demo = spacerobot_planner.demo:main",
         ],

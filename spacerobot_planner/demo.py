@@ -62,8 +62,8 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
     from trajectory_msgs.msg import JointTrajectory
 
     from .config import scenario_from_params
-    from .mock_arm_node import MockArmNode
-    from .planner_node import PlannerNode, params_to_overrides
+    from .ros.mock_arm_node import MockArmNode
+    from .ros.planner_node import PlannerNode, params_to_overrides
 
     flat = load_params_file(params_file)
     for key, power in (("trajectory.max_velocity_deg_s", 1), ("trajectory.max_acceleration_deg_s2", 2)):

@@ -24,8 +24,9 @@ from visualization_msgs.msg import MarkerArray
 
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_params_file, scenario_from_params
-from spacerobot_planner.mock_arm_node import MockArmNode
-from spacerobot_planner.planner_node import GRID_QOS, PlannerNode, params_to_overrides
+from spacerobot_planner.ros.mock_arm_node import MockArmNode
+from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
+from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
 
 FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
         "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
@@ -58,8 +59,8 @@ class Graph:
         self.ex = SingleThreadedExecutor(context=self.ctx)     # as planner_node.main
         self.ex.add_node(self.planner)
         if with_arm:
-            arm_params = {k: v for k, v in flat.items() if k.startswith(("robot.", "scenario."))}
-            self.arm = MockArmNode(context=self.ctx, parameter_overrides=params_to_overrides(arm_params))
+            self.arm = MockArmNode(context=self.ctx,
+                                   parameter_overrides=params_to_overrides(flat, MOCK_ARM_PARAMETERS))
             self.ex.add_node(self.arm)
         self.drv = rclpy.create_node("test_driver", context=self.ctx)
         self.ex.add_node(self.drv)
@@ -111,13 +112,51 @@ class Graph:
         self.pub_target.publish(m)
 
     def errors(self):
-        with self.lock:
-            return [(t, d.status[0].message) for t, d in self.diags if d.status[0].level == DiagnosticStatus.ERROR]
+        """[(arrival time, message)] of every ERROR status received (planner or input)."""
+        return [(t, st.message) for t, st in self.error_diags()]
 
     def error_diags(self):
-        """[(arrival time, DiagnosticStatus)] of every ERROR received."""
+        """[(arrival time, DiagnosticStatus)] of every ERROR status received."""
         with self.lock:
-            return [(t, d.status[0]) for t, d in self.diags if d.status[0].level == DiagnosticStatus.ERROR]
+            return [(t, st) for t, d in self.diags for st in d.status if st.level == DiagnosticStatus.ERROR]
+
+    def status(self, which, index=-1):
+        """The ``which`` ("planner" or "input") DiagnosticStatus of the diagnostics
+        message ``index`` (default: the latest)."""
+        with self.lock:
+            d = self.diags[index][1]
+        return next(st for st in d.status if st.name.endswith(f": {which}"))
+
+    def all_ok(self):
+        """The latest diagnostics message has only OK statuses."""
+        with self.lock:
+            return bool(self.diags) and all(st.level == DiagnosticStatus.OK for st in self.diags[-1][1].status)
+
+    # ---------------------------------------------------------------- action client
+    def action_client(self):
+        from rclpy.action import ActionClient
+        from spacerobot_planner_interfaces.action import PlanCapture
+        if getattr(self, "_action_client", None) is None:
+            self._action_client = ActionClient(self.drv, PlanCapture, "plan_capture")
+            assert self._action_client.wait_for_server(10.0), "no plan_capture action server"
+        return self._action_client
+
+    def send_goal(self, goal, feedback=None):
+        """Send a PlanCapture goal; returns the accepted ClientGoalHandle (asserts acceptance)."""
+        fut = self.action_client().send_goal_async(goal, feedback_callback=feedback)
+        self.wait(fut.done, 10, "the goal response")
+        handle = fut.result()
+        assert handle.accepted, "goal rejected"
+        return handle
+
+    def goal_result(self, handle, timeout=60):
+        """(status, PlanCapture.Result, arrival monotonic time) of a goal."""
+        fut = handle.get_result_async()
+        got = {}
+        fut.add_done_callback(lambda f: got.setdefault("t", time.monotonic()))
+        self.wait(fut.done, timeout, "the goal result")
+        r = fut.result()
+        return r.status, r.result, got.get("t", time.monotonic())
 
     def n_trajs(self):
         with self.lock:

@@ -1,11 +1,17 @@
 """The executables' shared main: create a node, spin it, shut down cleanly on Ctrl-C.
 
-In rclpy 9 (Kilted) Ctrl-C makes ``spin`` raise ``ExternalShutdownException`` as well
-as ``KeyboardInterrupt``; both end the spin quietly (no traceback under ``ros2 run``).
+rclpy's own SIGINT handler shuts the context down at once, so whatever the node logs
+while it stops (a plan being cancelled) fails to reach rosout and rcl prints "Failed to
+publish log message to rosout".  So ``run_node`` installs none: Ctrl-C (and SIGTERM)
+raise KeyboardInterrupt in ``spin``, the node shuts down while the context still
+works, then the context goes.  A context shut down from elsewhere makes ``spin`` raise
+``ExternalShutdownException``; both end the spin quietly (no traceback under ``ros2 run``).
 """
 from __future__ import annotations
 
 from typing import Callable
+
+import signal
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -31,14 +37,18 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
              on_shutdown: Callable[[Node], None] | None = None) -> int:
     """``rclpy.init``, ``make_node()``, spin in a SingleThreadedExecutor until Ctrl-C.
 
-    A ValueError from ``make_node`` (bad parameters) is printed as
-    ``<exe_name>: <reason>`` and gives exit code 1; otherwise 0.
+    A ValueError or RuntimeError from ``make_node`` (bad parameters, a failed
+    autostart) is printed as ``<exe_name>: <reason>`` and gives exit code 1; otherwise 0.
     """
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
     try:
-        with rclpy.init(args=args):
+        with rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO):
             try:
                 node = make_node()
-            except ValueError as e:
+            except (ValueError, RuntimeError) as e:
                 print(f"{exe_name}: {e}")
                 return 1
             spin_until_shutdown(node, SingleThreadedExecutor(),
