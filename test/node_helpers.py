@@ -48,7 +48,7 @@ class Graph:
     """A private context with the planner, optionally the mock arm, and a driver node
     that publishes inputs and records every output (with its arrival time)."""
 
-    def __init__(self, flat, with_arm=True):
+    def __init__(self, flat, with_arm=True, wait_subscribed=True):
         self.ctx = Context()
         rclpy.init(context=self.ctx)
         self.flat = flat
@@ -76,7 +76,8 @@ class Graph:
         self._stop_spin = threading.Event()
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
-        self.wait(lambda: self.pub_target.get_subscription_count() > 0, 10, "planner subscribed")
+        if wait_subscribed:
+            self.wait(lambda: self.pub_target.get_subscription_count() > 0, 10, "planner subscribed")
 
     def _spin(self):
         # not ex.spin(): Executor.shutdown() from another thread destroys its guard
@@ -124,8 +125,15 @@ class Graph:
         """The ``which`` ("planner" or "input") DiagnosticStatus of the diagnostics
         message ``index`` (default: the latest)."""
         with self.lock:
+            if not self.diags:
+                return None
             d = self.diags[index][1]
         return next(st for st in d.status if st.name.endswith(f": {which}"))
+
+    def level(self, which):
+        """The latest level of the ``which`` status (None before any diagnostics)."""
+        st = self.status(which)
+        return None if st is None else st.level
 
     def all_ok(self):
         """The latest diagnostics message has only OK statuses."""

@@ -146,7 +146,7 @@ def test_bad_goal_is_aborted_with_the_reason_and_the_node_serves_on(graph, make_
     for frag in fragments:
         assert frag in res.reason, (frag, res.reason)
     assert g.n_trajs() == 0
-    g.wait(lambda: g.status("input").level == b"\x02", 5, "the input status ERROR")
+    g.wait(lambda: g.level("input") == b"\x02", 5, "the input status ERROR")
     status, res, _ = g.goal_result(g.send_goal(_target_goal()))
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
 

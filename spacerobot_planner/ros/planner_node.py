@@ -182,6 +182,22 @@ class PlannerNode(LifecycleNode):
                     return inner(req, resp)
                 srv.callback = callback
 
+    def trigger_configure(self):
+        self.transition_refusal(Transition.TRANSITION_CONFIGURE)
+        return super().trigger_configure()
+
+    def trigger_activate(self):
+        self.transition_refusal(Transition.TRANSITION_ACTIVATE)
+        return super().trigger_activate()
+
+    def trigger_deactivate(self):
+        self.transition_refusal(Transition.TRANSITION_DEACTIVATE)
+        return super().trigger_deactivate()
+
+    def trigger_cleanup(self):
+        self.transition_refusal(Transition.TRANSITION_CLEANUP)
+        return super().trigger_cleanup()
+
     def transition_refusal(self, transition_id: int = 0, label: str = "") -> str | None:
         """The reason a transition would be refused now (and log it), or None if possible."""
         current = self._state_machine.current_state
