@@ -16,6 +16,8 @@ setup(
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
     ],
     install_requires=["setuptools"],
+    # colcon runs `colcon test` with pytest only when pytest is a declared test dependency
+    extras_require={"test": ["pytest", "hypothesis"]},
     zip_safe=True,
     maintainer="spacerobot_planner maintainers",
     maintainer_email="maintainers@spacerobot-planner.invalid",

@@ -23,7 +23,6 @@ range and whether a change needs a restart; the node declares exactly these.
 from __future__ import annotations
 
 import array
-import json
 import math
 from dataclasses import dataclass, field, replace
 

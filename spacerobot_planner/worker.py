@@ -1,9 +1,9 @@
 """The planning worker: runs the planning core for the node, in a child process by default.
 
 No rclpy here, and the planning process imports none of it: it is started as
-``python -c "...; from spacerobot_planner.worker import child_main; child_main(fd)"`` (a
-plain subprocess, not multiprocessing's spawn, which would re-import the caller's ``__main__``), so it loads the planning core
-(numpy, numba, the pipeline) and nothing else.
+``python -c "...; from spacerobot_planner.worker import child_main; child_main(fd)"``
+(a plain subprocess, not multiprocessing's spawn, which would re-import the caller's
+``__main__``), so it loads the planning core (numpy, numba, the pipeline) and nothing else.
 
 Messages are small dataclasses, pickled over a socketpair:
 

@@ -1,7 +1,8 @@
 """Shared helpers of the in-process node tests (test_node.py, test_reliability_node.py).
 
-The ``graph`` fixture (conftest.py) makes them.  Each graph gets a private rclpy Context and a SingleThreadedExecutor (what
-planner_node's main uses) spinning in a thread; no launch_testing.
+The ``graph`` fixture (conftest.py) makes them.  Each graph gets a private rclpy Context
+and a SingleThreadedExecutor (what planner_node's main uses) spinning in a thread; no
+launch_testing.
 """
 
 from __future__ import annotations

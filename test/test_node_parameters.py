@@ -93,7 +93,8 @@ def test_both_nodes_from_one_params_file(tmp_path):
         assert arm.get_parameter("rate_hz").value == 20.0
         assert list(arm.get_parameter("scenario.start_deg").value) == shared["scenario"]["start_deg"]
         assert list(arm.get_parameter("robot.planned_joints").value) == shared["robot"]["planned_joints"]
-        assert list(planner.get_parameter("grid.cells").value) == doc["spacerobot_planner"]["ros__parameters"]["grid"]["cells"]
+        own = doc["spacerobot_planner"]["ros__parameters"]
+        assert list(planner.get_parameter("grid.cells").value) == own["grid"]["cells"]
         assert list(planner.get_parameter("robot.planned_joints").value) == ["shoulder", "elbow"]
         assert planner.state == "unconfigured"                  # autostart: false from its section
         planner.destroy_node()

@@ -291,7 +291,8 @@ def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int
     pts = robot.forward_kinematics(robot.full(path[idx]))
     for i, (k, p) in enumerate(zip(idx, pts)):
         f = k / max(1, len(path) - 1)
-        arr.markers.append(_strip(i, "arm", p, _rgba(0.1, 0.3 + 0.6 * f, 1.0 - 0.8 * f, 0.4 + 0.6 * (i in (0, len(idx) - 1))),
+        alpha = 0.4 + 0.6 * (i in (0, len(idx) - 1))
+        arr.markers.append(_strip(i, "arm", p, _rgba(0.1, 0.3 + 0.6 * f, 1.0 - 0.8 * f, alpha),
                                   frame, stamp))
     for i, k in enumerate((0, len(path) - 1)):
         att = robot.full(path[k])[0]

@@ -130,4 +130,3 @@ def main(args=None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
-

@@ -56,7 +56,8 @@ def descriptor_for(spec, name: str | None = None) -> ParameterDescriptor:
     name = name or spec.name
     rng = ""
     if spec.min_value is not None or spec.max_value is not None:
-        rng = f" Range [{spec.min_value}, {spec.max_value}]" + (" per element." if spec.type.endswith("_array") else ".")
+        per = " per element." if spec.type.endswith("_array") else "."
+        rng = f" Range [{spec.min_value}, {spec.max_value}]{per}"
     d = ParameterDescriptor(name=name, type=_PTYPE[spec.type], description=spec.description + rng,
                             read_only=spec.read_only)
     if spec.name in CHOICES:

@@ -243,9 +243,10 @@ class PlannerNode(LifecycleNode):
         self._worker = threading.Thread(target=self._worker_loop, name="spacerobot_planner-worker", daemon=True)
         self._worker.start()
         self.state = "inactive"
+        where = "planning process" if self._params["planner.separate_process"] else "worker thread"
         log.info(f"configured in {time.perf_counter() - t0:.2f} s: planning "
                  f"{', '.join(self._robot.planned_names)} on a {self._scenario.grid.label()} grid in frame "
-                 f"'{self._frame}' ({'planning process' if self._params['planner.separate_process'] else 'worker thread'}"
+                 f"'{self._frame}' ({where}"
                  f" warmed up)")
         self._publish_diag()
         return TransitionCallbackReturn.SUCCESS
