@@ -27,6 +27,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml $(IFACE)/CMakeLists.tx
 	$(MAKE) interfaces
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	$(PY) -m spacerobot_planner.ament_install --prefix $(VENV)
+	$(PY) -m spacerobot_planner.worker --warm-cache config/paper_3dof.yaml config/paper_2dof.yaml
 	touch $(STAMP)
 
 interfaces:

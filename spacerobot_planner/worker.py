@@ -176,6 +176,47 @@ class _GenCancel:
         return self.cancelled_upto >= self.gen
 
 
+# ================================================================== warm-up
+#: the warm-up also plans the configured target on the configured grid up to this size
+WARM_FULL_GRID_MAX_NODES = 250_000
+WARM_CELLS = 6
+
+
+def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FULL_GRID_MAX_NODES) -> dict:
+    """Compile (or load from numba's cache) the kernels of the default route only.
+
+    Plans on a ``cells``-per-joint copy of the planner's scenario with its solver (from
+    seeded random postures until one plan succeeds), then, when the configured grid has
+    at most ``full_grid_max_nodes`` nodes, plans the configured target once on it with
+    ``planner`` itself: the route a grid of that size takes (e.g. multigrid in 2-D) is
+    compiled, and its C-space and field stay in ``planner``'s caches.  Kernels of other
+    solvers are compiled when first used.  Returns seconds per phase.
+    """
+    from .planner import Planner
+    t0 = time.perf_counter()
+    sc = planner.scenario
+    coarse = Planner(replace(sc, grid=sc.grid.with_cells(cells)), solver=planner.solver,
+                     field_tolerance=planner.field_tolerance)
+    rng = np.random.default_rng(0)
+    lo, hi = sc.robot.planned_lower_rad, sc.robot.planned_upper_rad
+    start = None
+    for _ in range(32):
+        a, b = rng.uniform(lo, hi, size=(2, sc.robot.dof))
+        if coarse.plan(a, b).ok:
+            start = a
+            break
+    out = {"coarse_s": time.perf_counter() - t0}
+    if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:
+        t1 = time.perf_counter()
+        try:
+            planner.plan(start, planner.goal_from_target())
+        except ValueError:          # no capture posture for the configured target: nothing to warm
+            pass
+        out["full_grid_s"] = time.perf_counter() - t1
+    out["total_s"] = time.perf_counter() - t0
+    return out
+
+
 # ================================================================== the planning process
 def child_main(fd: int) -> None:
     """The planning process: one Planner (caches kept between jobs), jobs over a socket.
@@ -185,14 +226,12 @@ def child_main(fd: int) -> None:
     import signal
     from multiprocessing.connection import Connection
 
-    from .planner import Planner, warm_up
+    from .planner import Planner
     signal.signal(signal.SIGINT, signal.SIG_IGN)        # the node decides when to stop
     conn = Connection(fd)
-    scenario = conn.recv()
-    t_warm = time.perf_counter()
-    warm_up(scenario)          # compile / load the kernels before saying "ready"
-    t_warm = time.perf_counter() - t_warm
-    planner = Planner(scenario)
+    scenario, solver, field_tolerance = conn.recv()
+    planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance)
+    t_warm = warm_up(planner)["total_s"]      # compile / load the kernels before saying "ready"
     jobs: queue.Queue = queue.Queue()
     cancel = _GenCancel()
     send_lock = threading.Lock()
@@ -246,9 +285,10 @@ class ThreadBackend:
     A running numba kernel cannot be stopped: cancel and shutdown wait for the stage.
     """
 
-    def __init__(self, scenario, log=None, info=None):
+    def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
+        from .field import DEFAULT_SOLVER
         from .planner import Planner
-        self.planner = Planner(scenario)
+        self.planner = Planner(scenario, solver=solver or DEFAULT_SOLVER, field_tolerance=field_tolerance)
         self._cancel = threading.Event()
         self.pid = None
 
@@ -279,9 +319,12 @@ class ProcessBackend:
     CLOSE_GRACE_S = 0.2         # close(): an idle child exits by itself within this
     CANCEL_GRACE_S = 0.5        # cancel(): then the child is terminated
 
-    def __init__(self, scenario, log=None, info=None):
-        """log: callable for warnings (a child that died); info: for progress (warm-up)."""
+    def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
+        """log: callable for warnings (a child that died); info: for progress (warm-up);
+        solver, field_tolerance: what the warm-up compiles (default: the core's default)."""
+        from .field import DEFAULT_SOLVER
         self._scenario = scenario
+        self._solver = (solver or DEFAULT_SOLVER, float(field_tolerance))
         self._log = log
         self._info = info
         self._send_lock = threading.Lock()
@@ -311,7 +354,7 @@ class ProcessBackend:
             [sys.executable, "-c", "import sys; from spacerobot_planner.worker import child_main; "
              "child_main(int(sys.argv[1]))", str(fd)], pass_fds=(fd,), stdin=subprocess.DEVNULL)
         child.close()
-        self.conn.send(self._scenario)
+        self.conn.send((self._scenario, *self._solver))
         self._ready = None          # Ready once received
         self._held = {}             # C-space / field this child sent last
 
@@ -452,6 +495,30 @@ def _cancelled_done(job: PlanJob) -> PlanError:
                      f"stage did not return within {ProcessBackend.CANCEL_GRACE_S} s)")
 
 
-def make_backend(scenario, separate_process: bool, log=None, info=None):
+def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=1e-6):
     """ProcessBackend (default) or ThreadBackend."""
-    return (ProcessBackend if separate_process else ThreadBackend)(scenario, log=log, info=info)
+    return (ProcessBackend if separate_process else ThreadBackend)(scenario, log=log, info=info, solver=solver,
+                                                                   field_tolerance=field_tolerance)
+
+
+def main(argv=None) -> int:
+    """``python -m spacerobot_planner.worker --warm-cache FILE...``: fill numba's cache
+    with the default route of each scenario file (``make`` runs it after installing)."""
+    import argparse
+    from .config import load_params_file, scenario_from_params
+    from .planner import Planner
+    ap = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    ap.add_argument("--warm-cache", nargs="+", metavar="FILE", required=True)
+    args = ap.parse_args(argv)
+    for path in args.warm_cache:
+        params = load_params_file(path)
+        sc = scenario_from_params(params)
+        planner = Planner(sc, solver=params.get("planner.solver", "log_harmonic"),
+                          field_tolerance=float(params.get("planner.field_tolerance", 1e-6)))
+        t = warm_up(planner, full_grid_max_nodes=10 ** 9)
+        print(f"warm-cache {path}: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

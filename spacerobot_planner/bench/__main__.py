@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m spacerobot_planner.bench {cspace,field,plan,latency,all} [options]``.
+"""Benchmarks: ``python -m spacerobot_planner.bench {cspace,field,plan,latency,startup,all} [options]``.
 
 Every benchmark warms the JIT first, prints a readable table, and one JSON object per
 line (``stage``, ``grid``, ``solver``, ``seconds``, ...) so runs can be compared.
@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("cspace", "field", "plan", "latency")
+BENCHES = ("cspace", "field", "plan", "latency", "startup")
 
 
 def main(argv=None) -> int:

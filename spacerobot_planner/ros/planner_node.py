@@ -218,7 +218,9 @@ class PlannerNode(LifecycleNode):
         t0 = time.perf_counter()
         try:
             self._backend = make_backend(self._scenario, self._params["planner.separate_process"],
-                                         log=log.warning, info=log.info)
+                                         log=log.warning, info=log.info, solver=self._params["planner.solver"],
+                                         field_tolerance=self._params["planner.field_tolerance"])
+            self._warm_time_parameterization()     # this process's kernels, while the child warms up
             warm = self._backend.wait_ready(WARM_UP_TIMEOUT_S)
             if warm is None:
                 raise RuntimeError(f"no warm-up within {WARM_UP_TIMEOUT_S} s")
@@ -250,6 +252,17 @@ class PlannerNode(LifecycleNode):
                  f" warmed up)")
         self._publish_diag()
         return TransitionCallbackReturn.SUCCESS
+
+    def _warm_time_parameterization(self):
+        """Compile (or load) the time parameterisation's kernels in this process: they
+        run here, not in the planning process, on the first trajectory otherwise."""
+        robot = self._robot
+        lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
+        path = np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8)
+        vmax = np.radians(np.asarray(self._params["trajectory.max_velocity_deg_s"], dtype=float))
+        amax = np.radians(np.asarray(self._params["trajectory.max_acceleration_deg_s2"], dtype=float))
+        idx = list(robot.planned_joints)
+        time_parameterize(path, vmax[idx], amax[idx], robot.planned_names)
 
     def on_activate(self, state):
         ret = super().on_activate(state)          # enables the lifecycle publishers
