@@ -134,3 +134,29 @@ def test_goals_are_rejected_while_inactive(manual):
     g.wait(fut.done, 10, "goal response")
     assert not fut.result().accepted
     assert State.PRIMARY_STATE_INACTIVE == g.planner._state_machine.current_state[0]
+
+
+def test_lifecycle_shutdown_during_a_long_plan(graph, capfd, record_property):
+    """`ros2 lifecycle set /spacerobot_planner shutdown` while a (stalled) plan runs: the
+    transition ends within the bound, the plan is logged as cancelled, nothing is left."""
+    before = _threads()
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
+    g.pub_js.publish(_js(g))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_target()
+    g.wait(lambda: g.planner.state == "planning", 10, "planning started")
+    time.sleep(0.5)
+    kids = [p for p in child_pids() if pid_alive(p)]
+    t0 = time.monotonic()
+    assert _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    dt = time.monotonic() - t0
+    print(f"\nlifecycle shutdown during a stalled plan: {dt:.3f} s")
+    record_property("lifecycle_shutdown_s", round(dt, 3))
+    assert dt < 1.0
+    assert _state(g) == "finalized" and not any(pid_alive(p) for p in kids)
+    assert g.n_trajs() == 0
+    g.close()
+    assert [t.name for t in _threads() - before] == []
+    err = capfd.readouterr().err
+    assert "shutdown: the plan in progress is cancelled" in err
+    assert "Failed to publish log message to rosout" not in err
