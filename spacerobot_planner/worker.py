@@ -108,8 +108,6 @@ def _progress_of(text: str):
     for prefix, nxt in done.items():
         if text.startswith(prefix):
             return nxt, STAGE_ORDER.index(nxt) / len(STAGE_ORDER)
-    if text.startswith("total"):
-        return "trajectory", STAGE_ORDER.index("trajectory") / len(STAGE_ORDER)
     return None
 
 

@@ -62,12 +62,13 @@ def test_rejected_values_name_the_parameter(graph):
     res = g.planner.set_parameters([Parameter("planner.solver", value="bogus")])[0]
     assert not res.successful and "planner.solver: 'bogus' is not one of" in res.reason, res.reason
     assert all(s in res.reason for s in SOLVERS)
-    # a wrong type: rclpy answers the service itself; the node's own reason goes to /diagnostics
+    # a wrong type through the service (`ros2 param set`): the node's reason, not rclpy's enum numbers
     req = SetParameters.Request(parameters=[Parameter("safety_margin_m", value="wide").to_parameter_msg()])
     r = _call(g, "spacerobot_planner", SetParameters, "set_parameters", req).results[0]
-    assert not r.successful
+    assert not r.successful and r.reason == "safety_margin_m: expected a number, got 'wide' (str)", r.reason
     g.wait(lambda: g.level("input") == b"\x02", 5, "the input status ERROR")
     assert "safety_margin_m: expected a number, got 'wide'" in g.status("input").message
+    assert g.planner.get_parameter("safety_margin_m").value == 0.02
 
 
 def test_both_nodes_from_one_params_file(tmp_path):

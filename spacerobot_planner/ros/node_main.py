@@ -18,12 +18,21 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 
+#: the longest the main thread waits in rcl before Python can see a Ctrl-C, seconds
+SPIN_WAKE_S = 0.1
+
+
 def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | None = None) -> None:
     """Spin ``node`` on ``executor`` until Ctrl-C or its context shuts down; then call
     ``on_shutdown`` (if given), shut the executor down and destroy the node."""
     executor.add_node(node)
     try:
-        executor.spin()
+        # not executor.spin(): a Python signal handler runs only between bytecodes, and
+        # spin() can wait in rcl for as long as nothing happens (up to the diagnostics
+        # period), so Ctrl-C would wait that long; this wakes every SPIN_WAKE_S
+        ctx = executor.context
+        while ctx.ok():
+            executor.spin_once(timeout_sec=SPIN_WAKE_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -361,6 +361,29 @@ class PlannerNode(LifecycleNode):
         self._check_runtime(merged, scenario)
         return merged, scenario
 
+    def _precheck(self, parameters) -> SetParametersResult | None:
+        """The node's own reason for values it refuses (a wrong type included), before
+        rclpy's descriptor checks answer with enum numbers; None when they pass."""
+        try:
+            self._validate(parameters)
+        except ValueError as e:
+            self._reject("parameters", "invalid_parameter", f"parameter rejected: {e}")
+            return SetParametersResult(successful=False, reason=str(e))
+        return None
+
+    def set_parameters_atomically(self, parameter_list):
+        """As rclpy's (the ``~/set_parameters`` service calls it), with :meth:`_precheck` first."""
+        refused = self._precheck(parameter_list)
+        return refused if refused is not None else super().set_parameters_atomically(parameter_list)
+
+    def set_parameters(self, parameter_list):
+        """As rclpy's, with :meth:`_precheck` first for each parameter."""
+        out = []
+        for p in parameter_list:
+            refused = self._precheck([p])
+            out.extend([refused] if refused is not None else super().set_parameters([p]))
+        return out
+
     def _pre_set_params(self, parameters):
         # runs before rclpy's own descriptor checks (whose type errors are enum numbers):
         # the node's own reason goes to the log and /diagnostics
