@@ -274,3 +274,55 @@ def joint_states_free(g, since=0.0):
         msgs = [m for t, m in g.states if t >= since]
     q = np.array([[m.position[list(m.name).index(n)] for n in robot.planned_names] for m in msgs])
     return len(q), checker.is_free(q)
+
+
+# ---------------------------------------------------------------- controller rules
+def controller_rule_violations(msg, known_joints, received_at_ros_s=None, current_state=None):
+    """What ros2_control's joint_trajectory_controller would refuse in a JointTrajectory
+    (its rules, written here from its documentation, sharing no code with the node):
+
+    - joint names non-empty, known to the controller and unique;
+    - every point has one position per joint; velocities / accelerations empty or one per joint;
+    - time_from_start strictly increasing; the first > 0 unless that point is the current state;
+    - a header stamp of zero means "start now"; a non-zero stamp plus the last
+      time_from_start must not lie in the past (``received_at_ros_s``: the ROS time it arrived);
+    - the last point has zero velocities (the arm stops there).
+
+    Returns a list of sentences (empty when the trajectory is accepted).
+    """
+    out = []
+    names = list(msg.joint_names)
+    if not names:
+        out.append("no joint names")
+    unknown = [n for n in names if n not in known_joints]
+    if unknown:
+        out.append(f"unknown joints {unknown}")
+    if len(set(names)) != len(names):
+        out.append(f"duplicate joint names {names}")
+    pts = list(msg.points)
+    if not pts:
+        out.append("no points")
+        return out
+    n = len(names)
+    times = []
+    for i, p in enumerate(pts):
+        if len(p.positions) != n:
+            out.append(f"point {i}: {len(p.positions)} positions for {n} joints")
+        for field in ("velocities", "accelerations"):
+            k = len(getattr(p, field))
+            if k not in (0, n):
+                out.append(f"point {i}: {k} {field} for {n} joints")
+        times.append(p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec)
+    if any(b <= a for a, b in zip(times, times[1:])):
+        out.append("time_from_start does not increase strictly")
+    if times[0] <= 0.0:
+        at_current = current_state is not None and len(current_state) == n and all(
+            abs(a - b) < 1e-9 for a, b in zip(pts[0].positions, current_state))
+        if not at_current:
+            out.append("the first point is at time 0 but is not the current state")
+    stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+    if stamp_s != 0.0 and received_at_ros_s is not None and stamp_s + times[-1] < received_at_ros_s:
+        out.append(f"ends in the past (stamp + duration {stamp_s + times[-1]:.3f} < now {received_at_ros_s:.3f})")
+    if len(pts[-1].velocities) == n and any(abs(v) > 1e-9 for v in pts[-1].velocities):
+        out.append(f"non-zero velocities at the end {list(pts[-1].velocities)}")
+    return out

@@ -63,7 +63,8 @@ def main(argv=None) -> int:
     cmd = [sys.executable, "-c", "import sys; from spacerobot_planner.ros.planner_node import main; sys.exit(main())",
            "--ros-args", "--params-file", args.params_file, "--log-level", os.environ.get("STARTUP_LOG", "warn")]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=None if "STARTUP_LOG" in os.environ else subprocess.DEVNULL)
+    log = None if "STARTUP_LOG" in os.environ else subprocess.DEVNULL    # STARTUP_LOG=info: the node's log
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log)
     try:
         while pub_t.get_subscription_count() == 0 or pub_j.get_subscription_count() == 0:
             ex.spin_once(timeout_sec=0.01)
