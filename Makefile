@@ -9,17 +9,34 @@ OUT    ?= out
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: all venv test test-long demo plan bench clean
+IFACE  := interfaces/spacerobot_planner_interfaces
+IFACE_BUILD := build/interfaces
+VENV_ABS := $(abspath $(VENV))
+
+.PHONY: all venv interfaces test test-long demo plan bench clean
 
 all: test
 
-$(STAMP): requirements.txt setup.py setup.cfg package.xml
+# 1. the wheels; 2. the interface package (CMake, into the venv prefix, as colcon would);
+# 3. this package (editable) and its ament layout; 4. numba's cache of the default route
+$(STAMP): requirements.txt setup.py setup.cfg package.xml $(IFACE)/CMakeLists.txt $(IFACE)/package.xml \
+		$(wildcard $(IFACE)/action/*.action)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements.txt
+	$(MAKE) interfaces
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	$(PY) -m spacerobot_planner.ament_install --prefix $(VENV)
+	$(PY) -m spacerobot_planner.worker --warm-cache config/paper_3dof.yaml config/paper_2dof.yaml
 	touch $(STAMP)
+
+interfaces:
+	mkdir -p $(IFACE_BUILD)
+	PATH="$(VENV_ABS)/bin:$$PATH" cmake -S $(IFACE) -B $(IFACE_BUILD) -DBUILD_TESTING=OFF \
+		-DCMAKE_PREFIX_PATH=$(VENV_ABS) -DCMAKE_INSTALL_PREFIX=$(VENV_ABS) \
+		-DPython3_EXECUTABLE=$(VENV_ABS)/bin/python > $(IFACE_BUILD).log 2>&1 || (cat $(IFACE_BUILD).log; exit 1)
+	cmake --build $(IFACE_BUILD) -j2 >> $(IFACE_BUILD).log 2>&1 || (tail -50 $(IFACE_BUILD).log; exit 1)
+	cmake --install $(IFACE_BUILD) >> $(IFACE_BUILD).log 2>&1 || (tail -50 $(IFACE_BUILD).log; exit 1)
 
 venv: $(STAMP)
 

@@ -16,6 +16,8 @@ setup(
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
     ],
     install_requires=["setuptools"],
+    # colcon runs `colcon test` with pytest only when pytest is a declared test dependency
+    extras_require={"test": ["pytest", "hypothesis"]},
     zip_safe=True,
     maintainer="spacerobot_planner maintainers",
     maintainer_email="maintainers@spacerobot-planner.invalid",
@@ -24,8 +26,8 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "planner_node = spacerobot_planner.planner_node:main",
-            "mock_arm_node = spacerobot_planner.mock_arm_node:main",
+            "planner_node = spacerobot_planner.ros.planner_node:main",
+            "mock_arm_node = spacerobot_planner.ros.mock_arm_node:main",
             "spacerobot-plan = spacerobot_planner.cli:main",
             "spacerobot-demo = spacerobot_planner.demo:main",
         ],

@@ -113,7 +113,6 @@ def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
     return best
 
 
-
 @njit(cache=True, nogil=True)
 def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
     """True when segment AB comes within ``margin_m`` of the polygon (early exit).

@@ -1,12 +1,18 @@
 """Scenario files and parameters: one schema for the YAML loader, the CLI and the node.
 
-Scenario files are ROS 2 parameter files (``--params-file``)::
+Scenario files are ROS 2 parameter files (``--params-file``): a shared ``/**``
+section (robot, scene, start: what more than one node reads) and a section per node
+(``spacerobot_planner``: grid, planner, trajectory, node settings; ``mock_arm``)::
 
-    spacerobot_planner:
+    /**:
       ros__parameters:
         robot:
           joint_names: [attitude, shoulder, elbow]
           ...
+    spacerobot_planner:
+      ros__parameters:
+        grid:
+          cells: [36, 36, 36]
 
 Nested keys become dotted parameter names (``robot.joint_names``).  Angles are in
 degrees in files (people read them), radians everywhere inside.  ``PARAMETERS``
@@ -17,7 +23,6 @@ range and whether a change needs a restart; the node declares exactly these.
 from __future__ import annotations
 
 import array
-import json
 import math
 from dataclasses import dataclass, field, replace
 
@@ -163,7 +168,17 @@ PARAMETERS = (
               "kernels hold the GIL; a process keeps the executor responsive and lets shutdown "
               "stop a long solve).", True),
     ParamSpec("mock_arm.rate_hz", "double", 50.0,
-              "mock_arm_node: joint_states publishing rate, Hz.", False, 0.1, 1000.0),
+              "mock_arm_node: joint_states publishing rate, Hz (its parameter 'rate_hz').", False, 0.1, 1000.0),
+    # ---- planner node (ROS side)
+    ParamSpec("autostart", "bool", True,
+              "Configure and activate the lifecycle node at start (off: wait for `ros2 lifecycle set`).",
+              True),
+    ParamSpec("grid_frame", "string", "cspace",
+              "Frame of potential_grid / cspace_grid: joint space (x, y in radians), not the "
+              "planning frame, so RViz does not lay them over the workspace.", False),
+    ParamSpec("planner.test_stall_s", "double", 0.0,
+              "Testing aid: the planning process stalls this long before every plan (a long, "
+              "uninterruptible stage without a large grid); 0 in normal use, seconds.", False, 0.0, 600.0),
 )
 
 _SPECS = {p.name: p for p in PARAMETERS}
@@ -226,11 +241,23 @@ def _flatten(d, prefix=""):
     return out
 
 
-def load_params_file(path) -> dict:
-    """Read a ROS 2 parameter file; return the planner's parameters as a flat dotted dict.
+def _section_params(doc, key, path):
+    """The flat ``ros__parameters`` of section ``key`` (None when absent)."""
+    section = doc.get(key, doc.get("/" + key.lstrip("/")))
+    if section is None:
+        return None
+    if not isinstance(section, dict) or not isinstance(section.get("ros__parameters"), dict):
+        raise ValueError(f"params file: the '{key}' section in {path} has no 'ros__parameters' mapping")
+    return _flatten(section["ros__parameters"])
 
-    Takes the ``spacerobot_planner`` section, else ``/**``, else the only node section.
-    Unknown parameters are kept (the node ignores them); known ones are type-checked.
+
+def load_params_file(path, node: str = NODE_NAME) -> dict:
+    """Read a ROS 2 parameter file; return one node's parameters as a flat dotted dict.
+
+    As ``--params-file`` does for that node: the shared ``/**`` section, then the
+    node's own section (``node`` or ``/node``) on top.  A file with one section of
+    another name is taken whole (older single-section files).  Unknown parameters are
+    kept (the nodes ignore them); known ones are type-checked.
     """
     try:
         with open(path, encoding="utf-8") as f:
@@ -241,17 +268,17 @@ def load_params_file(path) -> dict:
         raise ValueError(f"params file: {path} is not valid YAML: {e}") from None
     if not isinstance(doc, dict) or not doc:
         raise ValueError(f"params file: {path} must map a node name to 'ros__parameters'")
-    section = doc.get(NODE_NAME, doc.get("/**"))
-    if section is None:
+    shared = _section_params(doc, "/**", path)
+    own = _section_params(doc, node, path)
+    if shared is None and own is None:
         if len(doc) != 1:
-            raise ValueError(f"params file: no '{NODE_NAME}' or '/**' section in {path}")
-        section = next(iter(doc.values()))
-    if not isinstance(section, dict) or not isinstance(section.get("ros__parameters"), dict):
-        raise ValueError(f"params file: the node section in {path} has no 'ros__parameters' mapping")
-    flat = _flatten(section["ros__parameters"])
-    missing = [s.name for s in PARAMETERS if s.required_in_file and s.name not in flat]
-    if missing:
-        raise ValueError(f"params file {path}: missing required key(s): {', '.join(missing)}")
+            raise ValueError(f"params file: no '{node}' or '/**' section in {path}")
+        own = _section_params(doc, next(iter(doc)), path)
+    flat = {**(shared or {}), **(own or {})}
+    if node == NODE_NAME:
+        missing = [s.name for s in PARAMETERS if s.required_in_file and s.name not in flat]
+        if missing:
+            raise ValueError(f"params file {path}: missing required key(s): {', '.join(missing)}")
     return {k: (check_value(k, v) if k in _SPECS else v) for k, v in flat.items()}
 
 

@@ -62,8 +62,9 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
     from trajectory_msgs.msg import JointTrajectory
 
     from .config import scenario_from_params
-    from .mock_arm_node import MockArmNode
-    from .planner_node import PlannerNode, params_to_overrides
+    from .ros.mock_arm_node import MockArmNode
+    from .ros.parameters import MOCK_ARM_PARAMETERS
+    from .ros.planner_node import PlannerNode, params_to_overrides
 
     flat = load_params_file(params_file)
     for key, power in (("trajectory.max_velocity_deg_s", 1), ("trajectory.max_acceleration_deg_s2", 2)):
@@ -75,8 +76,8 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
     try:
         with rclpy.init():
             planner = PlannerNode(parameter_overrides=params_to_overrides(flat))
-            arm_params = {k: v for k, v in flat.items() if k.startswith(("robot.", "scenario."))}
-            arm = MockArmNode(parameter_overrides=params_to_overrides(arm_params))
+            arm = MockArmNode(parameter_overrides=params_to_overrides(
+                {**load_params_file(params_file, node="mock_arm"), **flat}, MOCK_ARM_PARAMETERS))
             driver = rclpy.create_node("demo_driver")
             executor = SingleThreadedExecutor()    # see planner_node: no busy loop
             for n in (planner, arm, driver):
@@ -101,8 +102,9 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
                 phase = "planning"
                 while time.monotonic() - t_start < timeout_s:
                     time.sleep(0.05)
-                    if planner.state == "failed" and planner.last_error is not None:
-                        reason = f"planning failed: {planner.last_error[1]}"
+                    last = planner.last_outcome
+                    if last is not None and not last.ok and last.code != "cancelled":
+                        reason = f"planning failed ({last.code}): {last.reason}"
                         break
                     res = planner.last_result
                     if phase == "planning" and res is not None and got:

@@ -224,7 +224,8 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
                     continue
                 t = k                    # insertion by value, ties keep the fixed order
                 while t > 0 and cand_v[t - 1] < v:
-                    cand_f[t], cand_v[t], cand_a[t], cand_d[t] = cand_f[t - 1], cand_v[t - 1], cand_a[t - 1], cand_d[t - 1]
+                    cand_f[t], cand_v[t] = cand_f[t - 1], cand_v[t - 1]
+                    cand_a[t], cand_d[t] = cand_a[t - 1], cand_d[t - 1]
                     t -= 1
                 cand_f[t], cand_v[t], cand_a[t], cand_d[t] = g, v, a, d
                 k += 1
@@ -245,8 +246,8 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
         if not moved:
             n = 0 if detour_steps == 0 else _detour(
                 log_u_flat, shape, periodic, strides, f, detour_steps, lower, step, q_template,
-                        planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad,
-                        q_full, pts, body_w, detour)
+                planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad,
+                q_full, pts, body_w, detour)
             if n == 0 or m + n > out.size:
                 return m, _BLOCKED
             for i in range(n):

@@ -150,10 +150,10 @@ def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
     interval_clr = np.zeros(m)
     lip = lipschitz_m_per_rad(robot)
     n = certify_segments(p, np.asarray(robot.locked_rad, dtype=float),
-                        np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                        checker.checked, checker.body, checker.verts, checker.starts,
-                        float(threshold), lip, float(verify_step_rad), float(min_step_rad),
-                        interval_ok, interval_clr, bool(certified))
+                         np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
+                         checker.checked, checker.body, checker.verts, checker.starts,
+                         float(threshold), lip, float(verify_step_rad), float(min_step_rad),
+                         interval_ok, interval_clr, bool(certified))
     interval_ok &= in_bounds[:-1] & in_bounds[1:]
     return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
                      interval_clr)
@@ -167,8 +167,6 @@ def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
         return -1
     bad = np.flatnonzero(~chk.interval_ok)
     return int(bad[0]) if len(bad) else len(points_rad) - 2
-
-
 
 
 @njit(cache=True, nogil=True)

@@ -179,7 +179,8 @@ class Planner:
     def __init__(self, scenario: Scenario, solver: str = DEFAULT_SOLVER, field_tolerance: float = 1e-6,
                  max_grid_nodes: int = 4_000_000, *, field_budget_s: float = DEFAULT_BUDGET_S,
                  grid_extra_margin_m: float = 0.02,
-                 shortcut: bool = True, shortcut_keep_clearance_m: float = 0.05, max_step_rad: float = DEFAULT_MAX_STEP_RAD,
+                 shortcut: bool = True, shortcut_keep_clearance_m: float = 0.05,
+                 max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                  verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD, max_repairs: int = 30):
         self.scenario = scenario
         self.max_grid_nodes = int(max_grid_nodes)

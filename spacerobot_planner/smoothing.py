@@ -22,7 +22,7 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import CubicSpline
 
-from .motion import (DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, PathCheck, certify_segments, check_path,
+from .motion import (DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, certify_segments, check_path,
                      lipschitz_m_per_rad)
 
 __all__ = ["SmoothPath", "unwrap_path", "path_length_rad", "densify_polyline", "shortcut_indices",
@@ -162,7 +162,7 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                 seg[0] = pts[i]
                 seg[1] = pts[j]
                 certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts,
-                                max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified)
+                                 max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified)
                 good = ok_iv[0]
             if good:
                 lo = j

@@ -31,8 +31,8 @@ def graph():
     from node_helpers import Graph          # imports rclpy: after ROS_DOMAIN_ID is set
     made = []
 
-    def make(flat, with_arm=True):
-        g = Graph(flat, with_arm)
+    def make(flat, with_arm=True, **kw):
+        g = Graph(flat, with_arm, **kw)
         made.append(g)
         return g
 

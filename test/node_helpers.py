@@ -1,7 +1,8 @@
 """Shared helpers of the in-process node tests (test_node.py, test_reliability_node.py).
 
-The ``graph`` fixture (conftest.py) makes them.  Each graph gets a private rclpy Context and a SingleThreadedExecutor (what
-planner_node's main uses) spinning in a thread; no launch_testing.
+The ``graph`` fixture (conftest.py) makes them.  Each graph gets a private rclpy Context
+and a SingleThreadedExecutor (what planner_node's main uses) spinning in a thread; no
+launch_testing.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from visualization_msgs.msg import MarkerArray
 
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_params_file, scenario_from_params
-from spacerobot_planner.mock_arm_node import MockArmNode
-from spacerobot_planner.planner_node import GRID_QOS, PlannerNode, params_to_overrides
+from spacerobot_planner.ros.mock_arm_node import MockArmNode
+from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
+from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
 
 FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
         "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
@@ -47,7 +49,7 @@ class Graph:
     """A private context with the planner, optionally the mock arm, and a driver node
     that publishes inputs and records every output (with its arrival time)."""
 
-    def __init__(self, flat, with_arm=True):
+    def __init__(self, flat, with_arm=True, wait_subscribed=True):
         self.ctx = Context()
         rclpy.init(context=self.ctx)
         self.flat = flat
@@ -58,8 +60,8 @@ class Graph:
         self.ex = SingleThreadedExecutor(context=self.ctx)     # as planner_node.main
         self.ex.add_node(self.planner)
         if with_arm:
-            arm_params = {k: v for k, v in flat.items() if k.startswith(("robot.", "scenario."))}
-            self.arm = MockArmNode(context=self.ctx, parameter_overrides=params_to_overrides(arm_params))
+            self.arm = MockArmNode(context=self.ctx,
+                                   parameter_overrides=params_to_overrides(flat, MOCK_ARM_PARAMETERS))
             self.ex.add_node(self.arm)
         self.drv = rclpy.create_node("test_driver", context=self.ctx)
         self.ex.add_node(self.drv)
@@ -75,7 +77,8 @@ class Graph:
         self._stop_spin = threading.Event()
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
-        self.wait(lambda: self.pub_target.get_subscription_count() > 0, 10, "planner subscribed")
+        if wait_subscribed:
+            self.wait(lambda: self.pub_target.get_subscription_count() > 0, 10, "planner subscribed")
 
     def _spin(self):
         # not ex.spin(): Executor.shutdown() from another thread destroys its guard
@@ -111,13 +114,58 @@ class Graph:
         self.pub_target.publish(m)
 
     def errors(self):
-        with self.lock:
-            return [(t, d.status[0].message) for t, d in self.diags if d.status[0].level == DiagnosticStatus.ERROR]
+        """[(arrival time, message)] of every ERROR status received (planner or input)."""
+        return [(t, st.message) for t, st in self.error_diags()]
 
     def error_diags(self):
-        """[(arrival time, DiagnosticStatus)] of every ERROR received."""
+        """[(arrival time, DiagnosticStatus)] of every ERROR status received."""
         with self.lock:
-            return [(t, d.status[0]) for t, d in self.diags if d.status[0].level == DiagnosticStatus.ERROR]
+            return [(t, st) for t, d in self.diags for st in d.status if st.level == DiagnosticStatus.ERROR]
+
+    def status(self, which, index=-1):
+        """The ``which`` ("planner" or "input") DiagnosticStatus of the diagnostics
+        message ``index`` (default: the latest)."""
+        with self.lock:
+            if not self.diags:
+                return None
+            d = self.diags[index][1]
+        return next(st for st in d.status if st.name.endswith(f": {which}"))
+
+    def level(self, which):
+        """The latest level of the ``which`` status (None before any diagnostics)."""
+        st = self.status(which)
+        return None if st is None else st.level
+
+    def all_ok(self):
+        """The latest diagnostics message has only OK statuses."""
+        with self.lock:
+            return bool(self.diags) and all(st.level == DiagnosticStatus.OK for st in self.diags[-1][1].status)
+
+    # ---------------------------------------------------------------- action client
+    def action_client(self):
+        from rclpy.action import ActionClient
+        from spacerobot_planner_interfaces.action import PlanCapture
+        if getattr(self, "_action_client", None) is None:
+            self._action_client = ActionClient(self.drv, PlanCapture, "plan_capture")
+            assert self._action_client.wait_for_server(10.0), "no plan_capture action server"
+        return self._action_client
+
+    def send_goal(self, goal, feedback=None):
+        """Send a PlanCapture goal; returns the accepted ClientGoalHandle (asserts acceptance)."""
+        fut = self.action_client().send_goal_async(goal, feedback_callback=feedback)
+        self.wait(fut.done, 10, "the goal response")
+        handle = fut.result()
+        assert handle.accepted, "goal rejected"
+        return handle
+
+    def goal_result(self, handle, timeout=60):
+        """(status, PlanCapture.Result, arrival monotonic time) of a goal."""
+        fut = handle.get_result_async()
+        got = {}
+        fut.add_done_callback(lambda f: got.setdefault("t", time.monotonic()))
+        self.wait(fut.done, timeout, "the goal result")
+        r = fut.result()
+        return r.status, r.result, got.get("t", time.monotonic())
 
     def n_trajs(self):
         with self.lock:
@@ -226,3 +274,55 @@ def joint_states_free(g, since=0.0):
         msgs = [m for t, m in g.states if t >= since]
     q = np.array([[m.position[list(m.name).index(n)] for n in robot.planned_names] for m in msgs])
     return len(q), checker.is_free(q)
+
+
+# ---------------------------------------------------------------- controller rules
+def controller_rule_violations(msg, known_joints, received_at_ros_s=None, current_state=None):
+    """What ros2_control's joint_trajectory_controller would refuse in a JointTrajectory
+    (its rules, written here from its documentation, sharing no code with the node):
+
+    - joint names non-empty, known to the controller and unique;
+    - every point has one position per joint; velocities / accelerations empty or one per joint;
+    - time_from_start strictly increasing; the first > 0 unless that point is the current state;
+    - a header stamp of zero means "start now"; a non-zero stamp plus the last
+      time_from_start must not lie in the past (``received_at_ros_s``: the ROS time it arrived);
+    - the last point has zero velocities (the arm stops there).
+
+    Returns a list of sentences (empty when the trajectory is accepted).
+    """
+    out = []
+    names = list(msg.joint_names)
+    if not names:
+        out.append("no joint names")
+    unknown = [n for n in names if n not in known_joints]
+    if unknown:
+        out.append(f"unknown joints {unknown}")
+    if len(set(names)) != len(names):
+        out.append(f"duplicate joint names {names}")
+    pts = list(msg.points)
+    if not pts:
+        out.append("no points")
+        return out
+    n = len(names)
+    times = []
+    for i, p in enumerate(pts):
+        if len(p.positions) != n:
+            out.append(f"point {i}: {len(p.positions)} positions for {n} joints")
+        for field in ("velocities", "accelerations"):
+            k = len(getattr(p, field))
+            if k not in (0, n):
+                out.append(f"point {i}: {k} {field} for {n} joints")
+        times.append(p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec)
+    if any(b <= a for a, b in zip(times, times[1:])):
+        out.append("time_from_start does not increase strictly")
+    if times[0] <= 0.0:
+        at_current = current_state is not None and len(current_state) == n and all(
+            abs(a - b) < 1e-9 for a, b in zip(pts[0].positions, current_state))
+        if not at_current:
+            out.append("the first point is at time 0 but is not the current state")
+    stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+    if stamp_s != 0.0 and received_at_ros_s is not None and stamp_s + times[-1] < received_at_ros_s:
+        out.append(f"ends in the past (stamp + duration {stamp_s + times[-1]:.3f} < now {received_at_ros_s:.3f})")
+    if len(pts[-1].velocities) == n and any(abs(v) > 1e-9 for v in pts[-1].velocities):
+        out.append(f"non-zero velocities at the end {list(pts[-1].velocities)}")
+    return out

@@ -61,7 +61,7 @@ def test_start_and_goal_flags(tmp_path, capsys):
 
 def test_goal_defaults_to_target_ik(tmp_path, capsys):
     doc = yaml.safe_load(Path(P3).read_text())
-    del doc["spacerobot_planner"]["ros__parameters"]["scenario"]["goal_deg"]
+    del doc["/**"]["ros__parameters"]["scenario"]["goal_deg"]
     f = tmp_path / "no_goal.yaml"
     f.write_text(yaml.safe_dump(doc))
     js = tmp_path / "p.json"
@@ -86,7 +86,7 @@ def test_no_path_exit_2(tmp_path, capsys, extra, code):
 
 def test_unreachable_target_exit_2(tmp_path, capsys):
     doc = yaml.safe_load(Path(P3).read_text())
-    params = doc["spacerobot_planner"]["ros__parameters"]
+    params = doc["/**"]["ros__parameters"]
     del params["scenario"]["goal_deg"]
     params["target"]["center_m"] = [9.0, 9.0]
     f = tmp_path / "far.yaml"

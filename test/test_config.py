@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import yaml
 
-from spacerobot_planner.config import PARAMETERS, load_scenario, scenario_from_params
+from spacerobot_planner.config import PARAMETERS, load_params_file, load_scenario, scenario_from_params
 
 
 def _write(tmp_path, params, node="spacerobot_planner"):
@@ -14,8 +14,23 @@ def _write(tmp_path, params, node="spacerobot_planner"):
 
 
 def _paper_params():
+    """The planner's view of the paper file as one nested section: /** and its own merged."""
     with open("config/paper_3dof.yaml") as f:
-        return yaml.safe_load(f)["spacerobot_planner"]["ros__parameters"]
+        doc = yaml.safe_load(f)
+    return {**doc["/**"]["ros__parameters"], **doc["spacerobot_planner"]["ros__parameters"]}
+
+
+def test_shared_and_node_sections_merge(tmp_path):
+    """/** first, then the node's own section on top (as --params-file does)."""
+    p = tmp_path / "two.yaml"
+    shared = _paper_params()
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {**shared, "safety_margin_m": 0.05}},
+                                 "/spacerobot_planner": {"ros__parameters": {"safety_margin_m": 0.07}},
+                                 "mock_arm": {"ros__parameters": {"rate_hz": 20.0}}}))
+    flat = load_params_file(p)
+    assert flat["safety_margin_m"] == 0.07 and "rate_hz" not in flat
+    arm = load_params_file(p, node="mock_arm")
+    assert arm["safety_margin_m"] == 0.05 and arm["rate_hz"] == 20.0
 
 
 def test_paper_scenes_load():

@@ -8,7 +8,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import JointState
 
-from spacerobot_planner import ros_conversions as conv
+from spacerobot_planner.ros import conversions as conv
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.cspace import GridSpec
 from spacerobot_planner.scene import Target
@@ -117,6 +117,23 @@ def test_markers_and_diagnostics():
     ns = [m.ns for m in arr.markers[1:]]
     assert ns.count("arm") == 5 and "target" in ns and "handle" in ns and "spacecraft" in ns
     assert all(m.header.frame_id == "world" for m in arr.markers)
-    d = conv.diagnostic_array("p", DiagnosticStatus.ERROR, "failed: x", {"state": "failed"})
-    assert d.status[0].level == DiagnosticStatus.ERROR
-    assert d.status[0].values[0].key == "state"
+    long_reason = "x" * 5000
+    d = conv.diagnostic_array([("p", DiagnosticStatus.ERROR, f"failed: {long_reason}", {"reason": long_reason}),
+                               ("i", DiagnosticStatus.OK, "inputs ok", {})])
+    assert [s.level for s in d.status] == [DiagnosticStatus.ERROR, DiagnosticStatus.OK]
+    assert d.status[0].values[0].key == "reason"
+    assert d.status[0].values[0].value == long_reason and d.status[0].message.endswith(long_reason)
+
+
+def test_plan_result_codes_mirror_the_planner_codes():
+    """Every planner code has its PlanCapture constant, and the values follow CODES' order."""
+    from spacerobot_planner.planner import CODES
+    from spacerobot_planner_interfaces.action import PlanCapture
+    for i, code in enumerate(CODES):
+        assert getattr(PlanCapture.Result, code.upper()) == i
+        r = conv.plan_result(PlanCapture.Result, code, "why")
+        assert r.error_code == i and r.error_name == code and r.reason == "why"
+        assert len(r.trajectory.points) == 0 and math.isnan(r.min_clearance_m)
+    assert conv.plan_result(PlanCapture.Result, "superseded").error_code == PlanCapture.Result.SUPERSEDED
+    with pytest.raises(ValueError, match="no PlanCapture result code"):
+        conv.plan_result(PlanCapture.Result, "bogus")

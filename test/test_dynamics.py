@@ -190,7 +190,7 @@ def test_free_floating_refuses_the_paper_2dof_motion_and_accepts_a_heavy_spacecr
     # the oracle agrees that the drifted arm hits the target
     resp = free_floating_response(robot, REF, traj.positions_rad, sc.scene.target.grasp_point_m)
     assert rep.free_floating_collides and _inside_target_or_margin(robot, sc, resp.q_full_rad,
-                                                                    resp.body_position_m).any()
+                                                                   resp.body_position_m).any()
     grasp = sc.scene.target.grasp_point_m
     assert np.isclose(np.linalg.norm(resp.tip_m - grasp), rep.free_floating_tip_miss_m)
     # a very heavy spacecraft barely moves: accepted

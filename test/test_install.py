@@ -33,4 +33,4 @@ def test_ament_install_into_a_temp_prefix(tmp_path):
     assert r.returncode == 0, r.stderr
     _check_prefix(tmp_path)
     launcher = (tmp_path / "lib" / PKG / "planner_node").read_text()
-    assert "spacerobot_planner.planner_node" in launcher and "main" in launcher
+    assert "spacerobot_planner.ros.planner_node" in launcher and "main" in launcher

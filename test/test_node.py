@@ -5,6 +5,7 @@ input, floods, faults and shutdown: test_reliability_node.py."""
 
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -15,8 +16,8 @@ from nav_msgs.msg import OccupancyGrid
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
-from spacerobot_planner.planner_node import GRID_QOS
-from spacerobot_planner.ros_conversions import joint_state_msg
+from spacerobot_planner.ros.planner_node import GRID_QOS
+from spacerobot_planner.ros.conversions import joint_state_msg
 
 from node_helpers import angle_err_deg, joint_states_free, scene_params, wait_at_goal
 
@@ -129,7 +130,7 @@ def test_bad_input_then_good_request(graph):
     # the node keeps serving: a good target plans
     g.send_target()
     g.wait(lambda: g.n_trajs() == 1, 30, "a trajectory for the good target")
-    g.wait(lambda: g.diags[-1][1].status[0].level == DiagnosticStatus.OK, 5, "diagnostics back to OK")
+    g.wait(g.all_ok, 5, "diagnostics back to OK")
     # a runtime parameter change validates and replans
     res = g.planner.set_parameters([Parameter("safety_margin_m", value=0.03)])[0]
     assert res.successful
@@ -154,14 +155,14 @@ def test_joint_goal(graph):
 
 
 def test_executor_responsive_during_slow_plan(graph):
-    g = graph(scene_params("3dof", cells=[120, 120, 120]))
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}))   # a long plan (stalled)
     g.send_target()
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
     with g.lock:
         n0 = len(g.states)
     t0 = time.monotonic()
     time.sleep(1.5)
-    assert g.planner.state == "planning", "the 120³ plan finished too quickly to test anything"
+    assert g.planner.state == "planning", "the stalled plan finished too quickly to test anything"
     with g.lock:
         n = len(g.states) - n0
     rate = n / (time.monotonic() - t0)
@@ -169,3 +170,56 @@ def test_executor_responsive_during_slow_plan(graph):
     t_close = time.monotonic()
     g.close()
     assert time.monotonic() - t_close < 8.0, "shutdown did not stop the long plan promptly"
+
+
+def test_diagnostics_describe_only_the_last_finished_request(graph):
+    """A failed request, then rejected input, then a good target: the input status is OK
+    again and the planner status carries the good request's keys only; reasons whole."""
+    from node_helpers import diag_values
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    # 1. a request that fails: its planner status names the reason, whole
+    g.send_target(3.0, 2.5)
+    g.wait(lambda: g.level("planner") == DiagnosticStatus.ERROR, 15, "the failed request")
+    failed = g.status("planner")
+    fv = diag_values(failed)
+    assert fv["code"] == "goal_unreachable"
+    assert fv["reason"].endswith("(no inverse-kinematics solution within the joint bounds)"), fv["reason"]
+    assert failed.message.endswith(fv["reason"]) and "..." not in failed.message
+    assert g.level("input") == DiagnosticStatus.OK
+    # 2. rejected input: the input status, with its age; the planner status is unchanged
+    g.send_target(frame="map")
+    g.wait(lambda: g.level("input") == DiagnosticStatus.ERROR, 10, "the input status ERROR")
+    iv = diag_values(g.status("input"))
+    assert iv["source"] == "target_pose" and "frame 'map'" in iv["reason"] and float(iv["age_s"]) >= 0.0
+    assert diag_values(g.status("planner"))["request"] == fv["request"]
+    # 3. a good target: input OK, planner status = that request's keys only
+    g.send_target()
+    g.wait(lambda: g.n_trajs() == 1, 30, "a trajectory for the good target")
+    g.wait(g.all_ok, 5, "every status OK")
+    pv = diag_values(g.status("planner"))
+    iv = diag_values(g.status("input"))
+    assert set(iv) == {"rejected_total"} and iv["rejected_total"] == "1"
+    assert pv["request"] != fv["request"] and pv["code"] == "ok"
+    ok_keys = {"state", "request", "request_reason", "target_m", "target_yaw_deg", "code", "goal_deg",
+               "min_clearance_m", "trajectory_duration_s", "trajectory_points", "cached", "solver", "latency_s"}
+    timing_keys = {k for k in pv if k.startswith("time_") and k.endswith("_ms")}
+    assert timing_keys and set(pv) == ok_keys | timing_keys, set(pv) ^ (ok_keys | timing_keys)
+    assert json.loads(pv["target_m"]) == [-3.27, -2.6]
+
+
+def test_grids_are_in_the_grid_frame(graph):
+    g = graph(scene_params("2dof", **{"grid_frame": "joint_space"}), with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.send_target()
+    g.wait(lambda: g.planner.last_result is not None, 60, "a plan")
+    got = {}
+    for topic in ("potential_grid", "cspace_grid"):
+        g.drv.create_subscription(OccupancyGrid, topic, lambda m, t=topic: got.__setitem__(t, m), GRID_QOS)
+    g.wait(lambda: len(got) == 2, 10, "both grids")
+    assert {m.header.frame_id for m in got.values()} == {"joint_space"}
+    g.wait(lambda: g.markers, 5, "markers")
+    assert all(m.header.frame_id == "world" for m in g.markers[-1][1].markers)   # workspace things stay

@@ -357,7 +357,6 @@ def test_codes_are_documented(code):
     assert f"`{code}`" in readme, f"README does not explain the result code {code!r}"
 
 
-
 def test_path_as_good_as_on_the_fully_converged_field(paper_scenario):
     """Same pipeline on the oracle field (a direct solve to relative precision everywhere):
     path length and minimum clearance within 1 % on both paper scenes."""

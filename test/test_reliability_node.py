@@ -37,9 +37,10 @@ from sensor_msgs.msg import JointState
 
 from spacerobot_planner import planner as planner_mod
 from spacerobot_planner.ik import grasp_ik
+from spacerobot_planner.config import scenario_from_params
 from spacerobot_planner.planner import Planner
-from spacerobot_planner.planner_node import PlannerNode, params_to_overrides, spin_until_shutdown
-from spacerobot_planner.ros_conversions import joint_state_msg
+from spacerobot_planner.ros.planner_node import PlannerNode, params_to_overrides, spin_until_shutdown
+from spacerobot_planner.ros.conversions import joint_state_msg
 from spacerobot_planner.scene import Target
 
 from node_helpers import Graph, child_pids, diag_list, diag_values, pid_alive, rss_mb, scene_params
@@ -47,7 +48,7 @@ from node_helpers import Graph, child_pids, diag_list, diag_values, pid_alive, r
 FLOOD_S = 10.0            # the issue's 10 s
 FLOOD_HZ = 200.0
 GOOD_TARGETS = [(-3.27, -2.60, 0.0), (-3.0, -2.8, 0.0)]   # alternated: each is a new target
-LONG_CELLS = [120, 120, 120]                               # a 3-DOF plan of several seconds
+LONG = {"planner.test_stall_s": 30.0}   # a long plan: the planning process stalls (uninterruptible) 30 s
 SHUTDOWN_BOUND_S = 1.0
 
 
@@ -162,7 +163,7 @@ class TestBadInput:
         g.good_js()
         g.next_good_target()
         g.wait(lambda: g.n_trajs() == n0 + 1, 30, "a trajectory for the next good target")
-        g.wait(lambda: g.diags[-1][1].status[0].level == DiagnosticStatus.OK, 5, "diagnostics back to OK")
+        g.wait(g.all_ok, 5, "diagnostics back to OK")
 
     @pytest.mark.parametrize("scale, tilt_deg, yaw_deg", [(1.005, 0.0, -3.0), (0.995, 0.5, -6.0)],
                              ids=["norm_1.005", "norm_0.995_tilt_0.5deg"])
@@ -329,7 +330,7 @@ def _expect_fault_then_recovery(g, capfd, fragments, log_fragments):
     # the next request plans normally
     g.send_target(*GOOD_TARGETS[1][:2])
     g.wait(lambda: g.n_trajs() == 1, 60, "a trajectory after the fault")
-    g.wait(lambda: g.diags[-1][1].status[0].level == DiagnosticStatus.OK, 5, "diagnostics back to OK")
+    g.wait(g.all_ok, 5, "diagnostics back to OK")
 
 
 @pytest.mark.parametrize("where", ["Planner.plan", "pipeline_stage"])
@@ -338,7 +339,7 @@ def test_exception_in_worker_thread_is_logged_reported_and_survived(graph, monke
     inside a pipeline stage (caught by plan's own net) both log a traceback."""
     if where == "Planner.plan":
         monkeypatch.setattr(Planner, "plan", _raise_once(Planner.plan, "injected fault"))
-        log_fragments = ["RuntimeError: injected fault", "_run_job"]
+        log_fragments = ["RuntimeError: injected fault", "run_job"]
     else:
         monkeypatch.setattr(planner_mod, "descend", _raise_once(planner_mod.descend, "injected fault"))
         log_fragments = ["RuntimeError: injected fault", "descend_and_repair"]
@@ -352,22 +353,22 @@ def test_exception_in_planning_process_is_logged_reported_and_survived(graph, ca
     g = graph(scene_params("3dof"))
     backend = g.planner._backend
     backend.run = _bad_first_job(backend.run)
-    _expect_fault_then_recovery(g, capfd, ["ValueError", "injected_fault"], ["set_solver", "_child_main"])
+    _expect_fault_then_recovery(g, capfd, ["ValueError", "injected_fault"], ["set_solver", "child_main"])
 
 
 def _bad_first_job(real):
     state = {"armed": True}
 
-    def run(gen, job):
+    def run(job, progress=None):
         if state["armed"]:
             state["armed"] = False
             job = dataclasses.replace(job, solver="injected_fault")
-        return real(gen, job)
+        return real(job, progress)
     return run
 
 
 def test_planning_process_killed_mid_plan_is_reported_and_replaced(graph):
-    g = graph(scene_params("3dof", cells=LONG_CELLS), with_arm=False)
+    g = graph(scene_params("3dof", **LONG), with_arm=False)
     robot = g.scenario.robot
     g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
@@ -381,8 +382,9 @@ def test_planning_process_killed_mid_plan_is_reported_and_replaced(graph):
     st = g.error_diags()[-1][1]
     assert diag_values(st)["code"] == "internal_error" and "planning process" in st.message, st.message
     assert "-9" in st.message
-    # a smaller grid: the parameter change replans, in a fresh planning process
-    res = g.planner.set_parameters([Parameter("grid.cells", value=[36, 36, 36])])[0]
+    # no stall and a parameter change that replans, in a fresh planning process
+    res = g.planner.set_parameters([Parameter("planner.test_stall_s", value=0.0),
+                                    Parameter("safety_margin_m", value=0.021)])[0]
     assert res.successful, res.reason
     g.wait(lambda: g.n_trajs() == 1, 60, "a trajectory from the new planning process")
     new = g.planner._backend.proc.pid
@@ -402,12 +404,12 @@ def _start_long_plan(g):
 
 def test_destroy_node_during_long_plan_child_process(graph, record_property):
     before = _threads()
-    g = graph(scene_params("3dof", cells=LONG_CELLS), with_arm=False)
+    g = graph(scene_params("3dof", **LONG), with_arm=False)
     _start_long_plan(g)
     child = g.planner._backend.proc.pid
     worker = g.planner._worker
     dt = g.destroy_planner()
-    print(f"\ndestroy_node during a {LONG_CELLS} plan (child process): {dt:.3f} s")
+    print(f"\ndestroy_node during a stalled plan (child process): {dt:.3f} s")
     record_property("shutdown_destroy_child_process_s", round(dt, 3))
     assert dt < SHUTDOWN_BOUND_S, f"destroy_node took {dt:.2f} s"
     assert not worker.is_alive() and not pid_alive(child)
@@ -421,7 +423,8 @@ def test_destroy_node_during_long_plan_in_thread(graph, record_property):
     within 1 s; documented in the README.  Asserted: the plan is abandoned (nothing
     published), the worker ends, and no thread is left."""
     before = _threads()
-    g = graph(scene_params("3dof", cells=LONG_CELLS, **{"planner.separate_process": False}), with_arm=False)
+    g = graph(scene_params("3dof", **{"planner.separate_process": False, "planner.test_stall_s": 3.0}),
+              with_arm=False)
     robot = g.scenario.robot
     g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
@@ -433,7 +436,7 @@ def test_destroy_node_during_long_plan_in_thread(graph, record_property):
     g.destroy_planner()
     worker.join(60)
     dt = time.monotonic() - t_want
-    print(f"\nshutdown during a {LONG_CELLS} plan (in-thread): {dt:.3f} s after it was due")
+    print(f"\nshutdown during a 3 s stalled plan (in-thread): {dt:.3f} s after it was due")
     record_property("shutdown_destroy_in_thread_s", round(dt, 3))
     assert not worker.is_alive()
     assert g.planner.last_result is None and g.n_trajs() == 0, "the plan finished before the shutdown"
@@ -447,7 +450,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
     before = _threads()
     ctx = Context()
     rclpy.init(context=ctx)
-    flat = scene_params("3dof", cells=LONG_CELLS)
+    flat = scene_params("3dof", **LONG)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat))
     drv = rclpy.create_node("test_driver", context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
@@ -461,7 +464,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
             assert time.monotonic() - t0 < 10, "planner not subscribed"
             time.sleep(0.01)
         robot = node._robot
-        pub_j.publish(joint_state_msg(robot.joint_names, robot.full(node._scenario.start_rad)))
+        pub_j.publish(joint_state_msg(robot.joint_names, robot.full(scenario_from_params(flat).start_rad)))
         while node._joint_q is None:
             assert time.monotonic() - t0 < 10
             time.sleep(0.01)
@@ -484,7 +487,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
         if rclpy.ok(context=ctx):
             rclpy.shutdown(context=ctx)
         spinner.join(10)
-    print(f"\ncontext shutdown (Ctrl-C path) during a {LONG_CELLS} plan: {dt:.3f} s")
+    print(f"\ncontext shutdown (Ctrl-C path) during a stalled plan: {dt:.3f} s")
     record_property("shutdown_ctrl_c_path_s", round(dt, 3))
     assert not spinner.is_alive()
     assert dt < SHUTDOWN_BOUND_S, f"shutdown took {dt:.2f} s"
@@ -496,9 +499,9 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
     """A real Ctrl-C: SIGINT to the process group of `planner_node` (its planning child
     ignores SIGINT; the node stops it).  The process exits within the bound, child included."""
     log = tmp_path / "planner_node.log"
-    cmd = [sys.executable, "-c", "import sys; from spacerobot_planner.planner_node import main; sys.exit(main())",
+    cmd = [sys.executable, "-c", "import sys; from spacerobot_planner.ros.planner_node import main; sys.exit(main())",
            "--ros-args", "--params-file", "config/paper_3dof.yaml",
-           "-p", "grid.cells:=[120, 120, 120]", "-p", "diagnostics.period_s:=0.2"]
+           "-p", "planner.test_stall_s:=30.0"]
     with open(log, "wb") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     ctx = Context()
@@ -538,9 +541,11 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
         drv.destroy_node()
         rclpy.shutdown(context=ctx)
     text = log.read_text()
-    print(f"\nSIGINT to planner_node during a 120³ plan: exit {rc} after {dt:.3f} s")
+    print(f"\nSIGINT to planner_node during a stalled plan: exit {rc} after {dt:.3f} s")
     record_property("shutdown_sigint_process_s", round(dt, 3))
     assert rc == 0, text
     assert "Traceback" not in text, text
+    assert "Failed to publish log message to rosout" not in text, text
+    assert "shutdown: the plan in progress is cancelled" in text, text[-2000:]
     assert not pid_alive(kids[0]), "the planning process outlived the node"
     assert dt < SHUTDOWN_BOUND_S, f"the node took {dt:.2f} s to exit after SIGINT\n{text[-2000:]}"

@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,all} [options]``.
+"""Benchmarks: ``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,startup,all} [options]``.
 
 Every benchmark warms the JIT first, prints a readable table, and one JSON object per
 line (``stage``, ``grid``, ``solver``, ``seconds``, ...) so runs can be compared.
@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction")
+BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction", "startup")
 
 
 def main(argv=None) -> int:

@@ -43,8 +43,8 @@ def main(argv=None) -> int:
     from trajectory_msgs.msg import JointTrajectory
 
     from ..config import load_params_file, scenario_from_params
-    from ..planner_node import PlannerNode, params_to_overrides
-    from ..ros_conversions import joint_state_msg
+    from ..ros.planner_node import PlannerNode, params_to_overrides
+    from ..ros.conversions import joint_state_msg
 
     flat = load_params_file(args.params_file)
     flat["grid.cells"] = [args.cells] * len(flat.get("robot.planned_joints", [0, 0, 0]))

@@ -33,7 +33,6 @@ import numpy as np
 from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..planner import STAGES, Planner
-from ..robot import PlanarArm
 from ..scene import Scene, Target
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"

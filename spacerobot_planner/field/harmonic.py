@@ -90,10 +90,10 @@ def _steps_from_known(nbr, active, known, local, max_steps):
         if steps[k] + 1 >= far:
             continue
         for a in range(deg):
-            l = local[nbr[active[k], a]]
-            if l >= 0 and steps[l] > steps[k] + 1:
-                steps[l] = steps[k] + 1
-                queue[tail] = l
+            j = local[nbr[active[k], a]]
+            if j >= 0 and steps[j] > steps[k] + 1:
+                steps[j] = steps[k] + 1
+                queue[tail] = j
                 tail += 1
     for k in range(m):
         local[active[k]] = -1

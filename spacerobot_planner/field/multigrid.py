@@ -286,7 +286,6 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
     colour's rows are updated in any order (two threads with ``par``), else one by one
     in order.  r0 (n0,) scratch."""
     deg = nbr.shape[1]
-    fdeg = float(deg)
     inv_deg = 1.0 / deg
     nlev = sizes.size
     n0 = sizes[0]
@@ -384,7 +383,8 @@ def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
+def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
+         sweeps, boost, deadline):
     """Preconditioned CG on the finest level, from the initial guess ``u``.
 
     rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
@@ -466,6 +466,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
     par = n >= PARALLEL_NODES and h.restrict0 == h.red0
-    it, res = _pcg(h.nb0, h.red0, h.restrict0, par, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
+    it, res = _pcg(h.nb0, h.red0, h.restrict0, par, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
+                   h.chol, b, x,
                    float(tol), int(max_iter), int(sweeps), float(boost), float(deadline))
     return x[h.fine_of_input], int(it), float(res)

@@ -30,14 +30,14 @@ from std_msgs.msg import ColorRGBA
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from .scene import Target
-from .trajectory import Trajectory
+from ..scene import Target
+from ..trajectory import Trajectory
 
 __all__ = [
     "pose_to_target", "quaternion_to_yaw", "yaw_to_quaternion", "target_to_pose",
     "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
     "duration_to_s", "s_to_duration", "potential_slice_values", "obstacle_slice_values",
-    "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array",
+    "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result",
     "OBSTACLE", "UNREACHABLE",
 ]
 
@@ -291,7 +291,8 @@ def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int
     pts = robot.forward_kinematics(robot.full(path[idx]))
     for i, (k, p) in enumerate(zip(idx, pts)):
         f = k / max(1, len(path) - 1)
-        arr.markers.append(_strip(i, "arm", p, _rgba(0.1, 0.3 + 0.6 * f, 1.0 - 0.8 * f, 0.4 + 0.6 * (i in (0, len(idx) - 1))),
+        alpha = 0.4 + 0.6 * (i in (0, len(idx) - 1))
+        arr.markers.append(_strip(i, "arm", p, _rgba(0.1, 0.3 + 0.6 * f, 1.0 - 0.8 * f, alpha),
                                   frame, stamp))
     for i, k in enumerate((0, len(path) - 1)):
         att = robot.full(path[k])[0]
@@ -308,19 +309,41 @@ def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int
 
 
 # ------------------------------------------------------------------ diagnostics
-def diagnostic_array(name: str, level: int, message: str, values: dict, stamp=None,
-                     hardware_id: str = "") -> DiagnosticArray:
-    """One DiagnosticStatus in a DiagnosticArray; ``level`` is DiagnosticStatus.OK/WARN/ERROR."""
+def diagnostic_array(statuses, stamp=None, hardware_id: str = "") -> DiagnosticArray:
+    """DiagnosticArray of ``[(name, level, message, values dict)]``; ``level`` is
+    DiagnosticStatus.OK/WARN/ERROR.  Messages and values are sent whole (never cut)."""
     arr = DiagnosticArray()
     if stamp is not None:
         arr.header.stamp = stamp
-    st = DiagnosticStatus()
-    st.level = level if isinstance(level, bytes) else bytes([int(level)])
-    st.name = name
-    st.message = message
-    st.hardware_id = hardware_id
-    st.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
-    arr.status = [st]
+    for name, level, message, values in statuses:
+        st = DiagnosticStatus()
+        st.level = level if isinstance(level, bytes) else bytes([int(level)])
+        st.name = name
+        st.message = message
+        st.hardware_id = hardware_id
+        st.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+        arr.status.append(st)
     return arr
 
 
+# ------------------------------------------------------------------ action
+def plan_result(result_type, code: str, reason: str = "", trajectory=None, plan=None):
+    """A PlanCapture.Result: ``code`` (a planner code or "superseded") → its constant,
+    the trajectory message (empty unless ok), the stage times and the clearance of
+    ``plan`` (a PlanResult) when there is one."""
+    res = result_type()
+    const = code.upper()
+    if not hasattr(result_type, const):
+        raise ValueError(f"no PlanCapture result code for {code!r}")
+    res.error_code = int(getattr(result_type, const))
+    res.error_name = code
+    res.reason = reason or ""
+    if trajectory is not None:
+        res.trajectory = trajectory
+    res.min_clearance_m = math.nan
+    if plan is not None:
+        res.stage_names = [str(k) for k in plan.timings_s]
+        res.stage_times_s = [float(v) for v in plan.timings_s.values()]
+        if plan.min_clearance_m is not None and math.isfinite(plan.min_clearance_m):
+            res.min_clearance_m = float(plan.min_clearance_m)
+    return res

@@ -9,13 +9,11 @@ at the new trajectory's first point (it moved while the planner worked), the
 difference is faded out linearly over ``blend_s`` (0.2 s), so the arm starts from
 where it is without a jump.
 
-Parameters: the planner's scenario parameters (only the robot.* and
-scenario.start_deg ones are used) and ``mock_arm.rate_hz``.  Run it with the
-planner's scenario file::
+Parameters: ``robot.*`` and ``scenario.start_deg`` (the shared ``/**`` section of a
+scenario file) and ``rate_hz`` (its own ``mock_arm`` section).  Run it with the same
+file as the planner::
 
-    ros2 run spacerobot_planner mock_arm_node --ros-args -p scenario_file:=config/paper_3dof.yaml
-
-(``scenario_file`` seeds the defaults; explicit ``-p`` values win.)
+    ros2 run spacerobot_planner mock_arm_node --ros-args --params-file config/paper_3dof.yaml
 """
 
 from __future__ import annotations
@@ -30,33 +28,23 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
+from ..config import scenario_from_params
+from . import conversions as conv
 from . import node_main
-from . import ros_conversions as conv
-from .config import PARAMETERS, load_params_file, scenario_from_params
+from .parameters import MOCK_ARM_PARAMETERS, SPECS, descriptor_for
 
 __all__ = ["MockArmNode", "main"]
-
-_USED = ("robot.joint_names", "robot.link_lengths_m", "robot.lower_deg", "robot.upper_deg",
-         "robot.periodic", "robot.body_side_m", "robot.planned_joints", "robot.locked_positions_deg",
-         "scenario.start_deg", "mock_arm.rate_hz")
-_SPECS = {p.name: p for p in PARAMETERS}
 
 
 class MockArmNode(Node):
     def __init__(self, *, context=None, parameter_overrides=None, node_name: str = "mock_arm",
                  blend_s: float = 0.2, **kwargs):
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides, **kwargs)
-        from .planner_node import descriptor_for
-        scen_file = self.declare_parameter("scenario_file", "").value
-        seed = load_params_file(scen_file) if scen_file else {}
-        for name in _USED:
-            spec = _SPECS[name]
-            default = seed.get(name, spec.default)
-            if spec.type == "double_array":
-                default = [float(v) for v in default]
-            self.declare_parameter(name, default, descriptor_for(spec))
-        params = {n: self.get_parameter(n).value for n in _USED}
-        params = {k: (list(v) if isinstance(v, (tuple, np.ndarray, array.array)) else v) for k, v in params.items()}
+        params = {}
+        for name, schema in MOCK_ARM_PARAMETERS.items():
+            spec = SPECS[schema]
+            value = self.declare_parameter(name, spec.default, descriptor_for(spec, name)).value
+            params[schema] = list(value) if isinstance(value, (tuple, np.ndarray, array.array)) else value
         params["grid.cells"] = [2] * len(params["robot.planned_joints"])   # unused here
         sc = scenario_from_params(params)
         self.robot = sc.robot
@@ -142,4 +130,3 @@ def main(args=None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
-

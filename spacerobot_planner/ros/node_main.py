@@ -1,0 +1,67 @@
+"""The executables' shared main: create a node, spin it, shut down cleanly on Ctrl-C.
+
+rclpy's own SIGINT handler shuts the context down at once, so whatever the node logs
+while it stops (a plan being cancelled) fails to reach rosout and rcl prints "Failed to
+publish log message to rosout".  So ``run_node`` installs none: Ctrl-C (and SIGTERM)
+raise KeyboardInterrupt in ``spin``, the node shuts down while the context still
+works, then the context goes.  A context shut down from elsewhere makes ``spin`` raise
+``ExternalShutdownException``; both end the spin quietly (no traceback under ``ros2 run``).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import signal
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+
+
+#: the longest the main thread waits in rcl before Python can see a Ctrl-C, seconds
+SPIN_WAKE_S = 0.1
+
+
+def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | None = None) -> None:
+    """Spin ``node`` on ``executor`` until Ctrl-C or its context shuts down; then call
+    ``on_shutdown`` (if given), shut the executor down and destroy the node."""
+    executor.add_node(node)
+    try:
+        # not executor.spin(): a Python signal handler runs only between bytecodes, and
+        # spin() can wait in rcl for as long as nothing happens (up to the diagnostics
+        # period), so Ctrl-C would wait that long; this wakes every SPIN_WAKE_S
+        ctx = executor.context
+        while ctx.ok():
+            executor.spin_once(timeout_sec=SPIN_WAKE_S)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if on_shutdown is not None:
+            on_shutdown()
+        executor.shutdown()
+        node.destroy_node()
+
+
+def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
+             on_shutdown: Callable[[Node], None] | None = None) -> int:
+    """``rclpy.init``, ``make_node()``, spin in a SingleThreadedExecutor until Ctrl-C.
+
+    A ValueError or RuntimeError from ``make_node`` (bad parameters, a failed
+    autostart) is printed as ``<exe_name>: <reason>`` and gives exit code 1; otherwise 0.
+    """
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+    try:
+        with rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO):
+            try:
+                node = make_node()
+            except (ValueError, RuntimeError) as e:
+                print(f"{exe_name}: {e}")
+                return 1
+            spin_until_shutdown(node, SingleThreadedExecutor(),
+                                None if on_shutdown is None else (lambda: on_shutdown(node)))
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    return 0

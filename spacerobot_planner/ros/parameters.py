@@ -1,0 +1,98 @@
+"""Which node declares which parameter, and their ROS descriptors.
+
+The schema (type, default, unit, range) is ``config.PARAMETERS``; here: the planner
+declares everything it reads (``PLANNER_PARAMETERS``: not the CLI's ``scenario.*`` nor
+the mock arm's), the mock arm the robot, its start posture and ``rate_hz``.  Strings
+with a fixed set of values carry them in the descriptor's ``additional_constraints``
+(rclpy has no field for them) and are checked by the node's own callback.
+"""
+
+from __future__ import annotations
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.parameter import Parameter
+
+from ..config import PARAMETERS, check_value
+
+__all__ = ["PLANNER_PARAMETERS", "MOCK_ARM_PARAMETERS", "descriptor_for", "params_to_overrides",
+           "check_choice", "CHOICES"]
+
+_PTYPE = {
+    "double": ParameterType.PARAMETER_DOUBLE, "integer": ParameterType.PARAMETER_INTEGER,
+    "string": ParameterType.PARAMETER_STRING, "bool": ParameterType.PARAMETER_BOOL,
+    "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY,
+    "integer_array": ParameterType.PARAMETER_INTEGER_ARRAY,
+    "string_array": ParameterType.PARAMETER_STRING_ARRAY,
+    "bool_array": ParameterType.PARAMETER_BOOL_ARRAY,
+}
+SPECS = {p.name: p for p in PARAMETERS}
+
+#: the planner node's parameters (names as declared)
+PLANNER_PARAMETERS = tuple(p.name for p in PARAMETERS
+                           if not p.name.startswith(("scenario.", "mock_arm.")))
+#: the mock arm's: declared name -> config.PARAMETERS name
+MOCK_ARM_PARAMETERS = {**{p.name: p.name for p in PARAMETERS if p.name.startswith("robot.")},
+                       "scenario.start_deg": "scenario.start_deg", "rate_hz": "mock_arm.rate_hz"}
+
+
+def _solvers():
+    from ..field import SOLVERS
+    return tuple(SOLVERS)
+
+
+#: string parameters with a fixed set of values: name -> callable returning them
+CHOICES = {"planner.solver": _solvers}
+
+
+def check_choice(name: str, value) -> None:
+    """ValueError naming the parameter and the allowed values when ``value`` is not one."""
+    allowed = CHOICES.get(name)
+    if allowed is not None and value not in allowed():
+        raise ValueError(f"{name}: {value!r} is not one of {', '.join(allowed())}")
+
+
+def descriptor_for(spec, name: str | None = None) -> ParameterDescriptor:
+    """ParameterDescriptor of one ParamSpec: type, description, range, allowed values, read-only."""
+    name = name or spec.name
+    rng = ""
+    if spec.min_value is not None or spec.max_value is not None:
+        per = " per element." if spec.type.endswith("_array") else "."
+        rng = f" Range [{spec.min_value}, {spec.max_value}]{per}"
+    d = ParameterDescriptor(name=name, type=_PTYPE[spec.type], description=spec.description + rng,
+                            read_only=spec.read_only)
+    if spec.name in CHOICES:
+        d.additional_constraints = "one of: " + ", ".join(CHOICES[spec.name]())
+    elif spec.type.endswith("_array") and rng:
+        d.additional_constraints = rng.strip()        # rclpy ranges apply to scalars only
+    if spec.min_value is not None and spec.max_value is not None:
+        if spec.type == "double":
+            d.floating_point_range = [FloatingPointRange(from_value=float(spec.min_value),
+                                                         to_value=float(spec.max_value), step=0.0)]
+        elif spec.type == "integer":
+            d.integer_range = [IntegerRange(from_value=int(spec.min_value), to_value=int(spec.max_value),
+                                            step=0)]
+    return d
+
+
+def params_to_overrides(flat: dict, names: dict | None = None) -> list:
+    """A flat dotted dict (e.g. from ``config.load_params_file``) → rclpy Parameter list.
+
+    ``names``: declared name -> schema name (e.g. ``MOCK_ARM_PARAMETERS``); by default
+    every key is passed under its own name.  Values are type-checked and normalised.
+    """
+    out = []
+    if names is None:
+        items = [(k, k, v) for k, v in flat.items()]
+    else:
+        items = [(decl, schema, flat[schema] if schema in flat else flat[decl])
+                 for decl, schema in names.items() if schema in flat or decl in flat]
+    for decl, schema, v in items:
+        spec = SPECS.get(schema)
+        if spec is not None:
+            v = check_value(schema, v)
+            if spec.type == "double_array":
+                v = [float(x) for x in v]
+            elif spec.type == "double":
+                v = float(v)
+        out.append(Parameter(decl, value=v))
+    return out

@@ -1,0 +1,522 @@
+"""The planning worker: runs the planning core for the node, in a child process by default.
+
+No rclpy here, and the planning process imports none of it: it is started as
+``python -c "...; from spacerobot_planner.worker import child_main; child_main(fd)"``
+(a plain subprocess, not multiprocessing's spawn, which would re-import the caller's
+``__main__``), so it loads the planning core (numpy, numba, the pipeline) and nothing else.
+
+Messages are small dataclasses, pickled over a socketpair:
+
+- node → process: a :class:`PlanJob`, :class:`Cancel` (a job number), ``None`` (quit);
+- process → node: :class:`Ready` (once, after the JIT warm-up), :class:`Progress`
+  (stage and fraction while a job runs) and one outcome per job: :class:`PlanDone`
+  (a ``PlanResult``, ok or not), :class:`PlanError` (no plan was attempted: e.g. the
+  target has no capture posture) or :class:`PlanCrash` (an exception, with its traceback).
+
+Cancel: the core checks a cancel flag between stages.  A stage that does not return
+within ``CANCEL_GRACE_S`` of the cancel (a long field solve inside a numba kernel,
+which cannot be interrupted) has its process terminated; a fresh process is started
+(caches lost) and the job reports ``cancelled``.  So a cancel ends a plan within about
+``CANCEL_GRACE_S`` + the termination, whatever the stage.
+
+Test aid: ``PlanJob.stall_s`` makes the process sleep that long before planning, in
+its main thread (uninterruptible, like a numba kernel): a long plan without a large grid.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+import traceback
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
+           "ProcessBackend", "ThreadBackend", "make_backend", "STAGE_ORDER"]
+
+#: the stages reported as Progress, in order (the core's stage names, then the node's)
+STAGE_ORDER = ("queued", "cspace", "field", "descent", "smoothing", "verify", "trajectory")
+
+
+# ================================================================== messages
+@dataclass(frozen=True, eq=False)
+class PlanJob:
+    """One request for the planning core (picklable).
+
+    scene, grid: ``scene.Scene`` and ``cspace.GridSpec``; start_rad: (dof,) planned
+    joints, rad; joint_goal: (dof,) rad or None (then the goal is the target's IK);
+    stall_s: test aid (see the module docstring), seconds.
+    """
+
+    gen: int
+    scene: object
+    grid: object
+    solver: str
+    field_tolerance: float
+    max_grid_nodes: int
+    start_rad: np.ndarray
+    joint_goal: np.ndarray | None
+    stall_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Cancel:
+    gen: int                    # cancel this job (and every older one)
+
+
+@dataclass(frozen=True)
+class Ready:
+    warm_up_s: float            # JIT warm-up (compile or cache load) of the process
+    modules: tuple = ()         # top-level names in the process's sys.modules (what it loaded)
+
+
+@dataclass(frozen=True)
+class Progress:
+    gen: int
+    stage: str                  # one of STAGE_ORDER
+    fraction: float             # 0..1, the share of the stages done
+
+
+@dataclass(frozen=True, eq=False)
+class PlanDone:
+    gen: int
+    result: object              # planner.PlanResult (ok or a failure code)
+    left_out: tuple = ()        # "cspace"/"field": the same objects as last sent (see _strip_sent)
+
+
+@dataclass(frozen=True)
+class PlanError:
+    gen: int
+    code: str                   # a planner code (planner.CODES)
+    reason: str
+
+
+@dataclass(frozen=True)
+class PlanCrash:
+    gen: int
+    what: str                   # "ExceptionType: message"
+    traceback: str              # formatted where it happened
+
+
+# ================================================================== running one job
+def _progress_of(text: str):
+    """(stage now running, fraction) from one of the core's progress lines, or None."""
+    done = {"goal": "cspace", "cspace": "field", "field": "descent", "smoothing": "verify"}
+    for prefix, nxt in done.items():
+        if text.startswith(prefix):
+            return nxt, STAGE_ORDER.index(nxt) / len(STAGE_ORDER)
+    return None
+
+
+def _apply_settings(planner, job: PlanJob) -> None:
+    planner.set_scene(job.scene)
+    if planner.scenario.grid != job.grid:
+        planner.set_grid(job.grid)
+    if (planner.solver, planner.field_tolerance) != (job.solver, job.field_tolerance):
+        planner.set_solver(job.solver, job.field_tolerance)
+    planner.max_grid_nodes = job.max_grid_nodes
+
+
+def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] | None = None):
+    """PlanDone or PlanError for one job (exceptions propagate: the backends catch them)."""
+    def say(text):
+        p = _progress_of(text)
+        if p is not None and progress is not None:
+            progress(Progress(job.gen, *p))
+
+    if progress is not None:
+        progress(Progress(job.gen, "cspace", STAGE_ORDER.index("cspace") / len(STAGE_ORDER)))
+    if job.stall_s > 0:
+        time.sleep(job.stall_s)         # uninterruptible on purpose (see the module docstring)
+    _apply_settings(planner, job)
+    goal = job.joint_goal
+    if goal is None:
+        try:
+            goal = planner.goal_from_target()
+        except ValueError as e:
+            return PlanError(job.gen, "goal_unreachable", f"target: {e}")
+    return PlanDone(job.gen, planner.plan(job.start_rad, goal, cancel=cancel, progress=say))
+
+
+def _crash(gen: int, e: BaseException) -> PlanCrash:
+    return PlanCrash(gen, f"{type(e).__name__}: {e}", traceback.format_exc())
+
+
+def _strip_sent(done: PlanDone, sent: dict) -> PlanDone:
+    """Leave out the C-space and field the node already holds (the objects last sent):
+    a replan from cache would otherwise pickle them again (~0.5 MB at 36³)."""
+    res = done.result
+    left_out = []
+    for name in ("cspace", "field"):
+        obj = getattr(res, name, None)
+        if obj is None:
+            continue
+        if sent.get(name) is obj:
+            left_out.append(name)
+        else:
+            sent[name] = obj
+    if not left_out:
+        return done
+    return PlanDone(done.gen, replace(res, **{n: None for n in left_out}), tuple(left_out))
+
+
+class _GenCancel:
+    """The process's cancel flag: job ``gen`` is cancelled once a Cancel for it arrived."""
+
+    def __init__(self):
+        self.cancelled_upto = 0
+        self.gen = 0
+
+    def is_set(self) -> bool:
+        return self.cancelled_upto >= self.gen
+
+
+# ================================================================== warm-up
+#: the warm-up also plans the configured target on the configured grid up to this size
+WARM_FULL_GRID_MAX_NODES = 250_000
+WARM_CELLS = 6
+
+
+def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FULL_GRID_MAX_NODES) -> dict:
+    """Compile (or load from numba's cache) the kernels of the default route only.
+
+    Plans on a ``cells``-per-joint copy of the planner's scenario with its solver (from
+    seeded random postures until one plan succeeds), then, when the configured grid has
+    at most ``full_grid_max_nodes`` nodes, plans the configured target once on it with
+    ``planner`` itself: the route a grid of that size takes (e.g. multigrid in 2-D) is
+    compiled, and its C-space and field stay in ``planner``'s caches.  Kernels of other
+    solvers are compiled when first used.  Returns seconds per phase.
+    """
+    from .planner import Planner
+    t0 = time.perf_counter()
+    sc = planner.scenario
+    coarse = Planner(replace(sc, grid=sc.grid.with_cells(cells)), solver=planner.solver,
+                     field_tolerance=planner.field_tolerance)
+    rng = np.random.default_rng(0)
+    lo, hi = sc.robot.planned_lower_rad, sc.robot.planned_upper_rad
+    start = None
+    for _ in range(32):
+        a, b = rng.uniform(lo, hi, size=(2, sc.robot.dof))
+        if coarse.plan(a, b).ok:
+            start = a
+            break
+    out = {"coarse_s": time.perf_counter() - t0}
+    if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:
+        t1 = time.perf_counter()
+        try:
+            planner.plan(start, planner.goal_from_target())
+        except ValueError:          # no capture posture for the configured target: nothing to warm
+            pass
+        out["full_grid_s"] = time.perf_counter() - t1
+    out["total_s"] = time.perf_counter() - t0
+    return out
+
+
+# ================================================================== the planning process
+def child_main(fd: int) -> None:
+    """The planning process: one Planner (caches kept between jobs), jobs over a socket.
+
+    A reader thread takes jobs, cancels and ``None`` (quit); the main thread plans.
+    """
+    import signal
+    from multiprocessing.connection import Connection
+
+    from .planner import Planner
+    signal.signal(signal.SIGINT, signal.SIG_IGN)        # the node decides when to stop
+    conn = Connection(fd)
+    scenario, solver, field_tolerance = conn.recv()
+    planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance)
+    t_warm = warm_up(planner)["total_s"]      # compile / load the kernels before saying "ready"
+    jobs: queue.Queue = queue.Queue()
+    cancel = _GenCancel()
+    send_lock = threading.Lock()
+
+    def send(msg) -> bool:
+        try:
+            with send_lock:
+                conn.send(msg)
+            return True
+        except (OSError, ValueError):
+            return False
+
+    def reader():
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                msg = None
+            if msg is None:
+                cancel.cancelled_upto = 1 << 62
+                jobs.put(None)
+                return
+            if isinstance(msg, Cancel):
+                cancel.cancelled_upto = max(cancel.cancelled_upto, msg.gen)
+            else:
+                jobs.put(msg)
+
+    threading.Thread(target=reader, daemon=True).start()
+    sent: dict = {}
+    import sys
+    send(Ready(t_warm, tuple(sorted({m.split(".")[0] for m in sys.modules}))))
+    while True:
+        job = jobs.get()
+        if job is None:
+            return
+        cancel.gen = job.gen
+        try:
+            out = run_job(planner, job, cancel, send)
+        except Exception as e:     # noqa: BLE001 - report to the node, keep serving
+            out = _crash(job.gen, e)
+        if isinstance(out, PlanDone):
+            out = _strip_sent(out, sent)
+        if not send(out):
+            return
+
+
+# ================================================================== backends (node side)
+class ThreadBackend:
+    """Plans in the calling (worker) thread: no process (``planner.separate_process:=false``).
+
+    A running numba kernel cannot be stopped: cancel and shutdown wait for the stage.
+    """
+
+    def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
+        from .field import DEFAULT_SOLVER
+        from .planner import Planner
+        self.planner = Planner(scenario, solver=solver or DEFAULT_SOLVER, field_tolerance=field_tolerance)
+        self._cancel = threading.Event()
+        self.pid = None
+
+    def wait_ready(self, timeout_s: float | None = None) -> float | None:
+        return 0.0
+
+    def run(self, job: PlanJob, progress=None):
+        self._cancel.clear()
+        try:
+            return run_job(self.planner, job, self._cancel, progress)
+        except Exception as e:     # noqa: BLE001 - report to the node, keep serving
+            return _crash(job.gen, e)
+
+    def cancel(self, gen: int) -> None:
+        self._cancel.set()
+
+    def close(self) -> None:
+        self._cancel.set()
+
+
+class ProcessBackend:
+    """Plans in a child process; the calling thread waits on a socket (GIL free).
+
+    A child that died is replaced by a fresh one at the next :meth:`run`; one that does
+    not honour a cancel within ``CANCEL_GRACE_S`` is terminated and replaced.
+    """
+
+    CLOSE_GRACE_S = 0.2         # close(): an idle child exits by itself within this
+    CANCEL_GRACE_S = 0.5        # cancel(): then the child is terminated
+
+    def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
+        """log: callable for warnings (a child that died); info: for progress (warm-up);
+        solver, field_tolerance: what the warm-up compiles (default: the core's default)."""
+        from .field import DEFAULT_SOLVER
+        self._scenario = scenario
+        self._solver = (solver or DEFAULT_SOLVER, float(field_tolerance))
+        self._log = log
+        self._info = info
+        self._send_lock = threading.Lock()
+        self._proc_lock = threading.Lock()
+        self._closed = False
+        self._cancel_at = {}        # gen -> monotonic time of its cancel
+        self._spawn()
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    @property
+    def ready(self) -> Ready | None:
+        """The current process's Ready message (None before its warm-up ended)."""
+        return self._ready
+
+    def _spawn(self):
+        import socket
+        import subprocess
+        import sys
+        from multiprocessing.connection import Connection
+        parent, child = socket.socketpair()
+        self.conn = Connection(parent.detach())
+        fd = child.fileno()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", "import sys; from spacerobot_planner.worker import child_main; "
+             "child_main(int(sys.argv[1]))", str(fd)], pass_fds=(fd,), stdin=subprocess.DEVNULL)
+        child.close()
+        self.conn.send((self._scenario, *self._solver))
+        self._ready = None          # Ready once received
+        self._held = {}             # C-space / field this child sent last
+
+    def _respawn(self, why: str | None):
+        with self._proc_lock:
+            if self._closed:
+                return
+            if why is not None and self._log is not None:
+                self._log(f"planning process {self.proc.pid} {why}: starting a new one")
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+            self.conn.close()
+            self._spawn()
+
+    def _recv(self, gen: int | None = None):
+        """The next message; None when closed; raises RuntimeError if the child died.
+        With ``gen``: returns PlanDone(cancelled) once its cancel is overdue."""
+        while not self._closed:
+            if self.conn.poll(0.02):
+                return self.conn.recv()
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"planning process exited (code {self.proc.returncode})")
+            t = self._cancel_at.get(gen)
+            if t is not None and time.monotonic() - t > self.CANCEL_GRACE_S:
+                self._respawn(f"did not stop within {self.CANCEL_GRACE_S} s of a cancel")
+                return _Overdue()
+        return None
+
+    def wait_ready(self, timeout_s: float | None = None) -> float | None:
+        """Block until the child has warmed up; the warm-up seconds (None: closed or timeout)."""
+        if self._ready is not None:
+            return self._ready.warm_up_s
+        t0 = time.monotonic()
+        while not self._closed:
+            if self.conn.poll(0.05):
+                msg = self.conn.recv()
+                if isinstance(msg, Ready):
+                    self._ready = msg
+                    if self._info is not None:
+                        self._info(f"planning process {self.proc.pid} ready: JIT warm-up {msg.warm_up_s:.2f} s")
+                    return msg.warm_up_s
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"planning process exited during warm-up (code {self.proc.returncode})")
+            if timeout_s is not None and time.monotonic() - t0 > timeout_s:
+                return None
+        return None
+
+    def _unpack(self, done: PlanDone) -> PlanDone:
+        res = done.result
+        if done.left_out:
+            res = replace(res, **{name: self._held[name] for name in done.left_out})
+        for name in ("cspace", "field"):
+            if getattr(res, name, None) is not None:
+                self._held[name] = getattr(res, name)
+        return PlanDone(done.gen, res)
+
+    def run(self, job: PlanJob, progress=None):
+        """The outcome of ``job`` (PlanDone/PlanError/PlanCrash), or None when closed.
+
+        ``progress`` gets the child's Progress messages for this job."""
+        with self._proc_lock:
+            dead = not self._closed and self.proc.poll() is not None
+        if dead:
+            self._respawn(f"had exited (code {self.proc.returncode})")
+        try:
+            if self._ready is None and self.wait_ready() is None:
+                return None
+            with self._send_lock:
+                self.conn.send(job)
+            while True:
+                msg = self._recv(job.gen)
+                if msg is None:
+                    return None
+                if isinstance(msg, _Overdue):
+                    return _cancelled_done(job)
+                if isinstance(msg, Progress):
+                    if msg.gen == job.gen and progress is not None:
+                        progress(msg)
+                    continue
+                if isinstance(msg, PlanDone):
+                    msg = self._unpack(msg)
+                if getattr(msg, "gen", None) == job.gen:
+                    return msg
+        except (EOFError, OSError, RuntimeError) as e:
+            if self._closed:
+                return None
+            try:       # a dead child closes the socket just before its exit status exists
+                code = self.proc.wait(0.5)
+            except Exception:      # noqa: BLE001 - alive: the socket itself failed
+                code = None
+            what = f"planning process failed: {type(e).__name__}: {e}"
+            if code is not None and str(code) not in what:
+                what += f" (exit code {code})"
+            return PlanError(job.gen, "internal_error", what)
+        finally:
+            self._cancel_at.pop(job.gen, None)
+
+    def cancel(self, gen: int) -> None:
+        self._cancel_at.setdefault(gen, time.monotonic())
+        try:
+            with self._send_lock:
+                self.conn.send(Cancel(gen))
+        except (OSError, ValueError):
+            pass
+
+    def close(self) -> None:
+        """Stop the child: it exits at once when idle; in a stage it is terminated after
+        ``CLOSE_GRACE_S`` (a numba kernel cannot be interrupted otherwise)."""
+        with self._proc_lock:
+            if self._closed:
+                return
+            self._closed = True
+        try:
+            with self._send_lock:
+                self.conn.send(None)
+        except (OSError, ValueError):
+            pass
+        try:
+            self.proc.wait(self.CLOSE_GRACE_S)
+        except Exception:          # noqa: BLE001 - in a stage: stop it
+            self.proc.terminate()
+            try:
+                self.proc.wait(2.0)
+            except Exception:      # noqa: BLE001
+                self.proc.kill()
+                self.proc.wait()
+        self.conn.close()
+
+
+class _Overdue:
+    """Internal: the running job's cancel is overdue and its process was replaced."""
+
+
+def _cancelled_done(job: PlanJob) -> PlanError:
+    return PlanError(job.gen, "cancelled",
+                     f"planning was cancelled (the planning process was stopped: the running "
+                     f"stage did not return within {ProcessBackend.CANCEL_GRACE_S} s)")
+
+
+def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=1e-6):
+    """ProcessBackend (default) or ThreadBackend."""
+    return (ProcessBackend if separate_process else ThreadBackend)(scenario, log=log, info=info, solver=solver,
+                                                                   field_tolerance=field_tolerance)
+
+
+def main(argv=None) -> int:
+    """``python -m spacerobot_planner.worker --warm-cache FILE...``: fill numba's cache
+    with the default route of each scenario file (``make`` runs it after installing)."""
+    import argparse
+    from .config import load_params_file, scenario_from_params
+    from .planner import Planner
+    ap = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    ap.add_argument("--warm-cache", nargs="+", metavar="FILE", required=True)
+    args = ap.parse_args(argv)
+    for path in args.warm_cache:
+        params = load_params_file(path)
+        sc = scenario_from_params(params)
+        planner = Planner(sc, solver=params.get("planner.solver", "log_harmonic"),
+                          field_tolerance=float(params.get("planner.field_tolerance", 1e-6)))
+        t = warm_up(planner, full_grid_max_nodes=10 ** 9)
+        print(f"warm-cache {path}: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,164 @@
+"""The plan_capture action (Nav2's ComputePathToPose pattern), with an in-process client.
+
+Oracles: the trajectory published on joint_trajectory (the same message must come back
+as the result), forward kinematics written here (the last point grasps the target),
+the goal statuses of the action protocol itself.  Long plans are made long by the
+``planner.test_stall_s`` stall (uninterruptible, like a numba kernel), not by a big grid.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from action_msgs.msg import GoalStatus
+from sensor_msgs.msg import JointState
+from spacerobot_planner_interfaces.action import PlanCapture
+
+from spacerobot_planner.ros.conversions import duration_to_s, joint_state_msg
+
+from node_helpers import scene_params
+
+CANCEL_BOUND_S = 1.0
+R = PlanCapture.Result
+
+
+def _tip_m(link_lengths_m, q_full):
+    """Planar chain: link k points along the sum of the first k+1 joint angles."""
+    c = np.cumsum(q_full)
+    L = np.asarray(link_lengths_m)
+    return np.array([(L * np.cos(c)).sum(), (L * np.sin(c)).sum()])
+
+
+def _target_goal(x=-3.27, y=-2.60, yaw=0.0, frame="world"):
+    g = PlanCapture.Goal()
+    g.target_pose.header.frame_id = frame
+    g.target_pose.pose.position.x, g.target_pose.pose.position.y = float(x), float(y)
+    g.target_pose.pose.orientation.z, g.target_pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    return g
+
+
+def _joint_goal(names, q):
+    g = PlanCapture.Goal()
+    g.use_joint_goal = True
+    g.joint_goal = joint_state_msg(names, q)
+    return g
+
+
+def _start(g):
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+
+
+def test_goal_plans_returns_the_published_trajectory_with_feedback(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    _start(g)
+    feedback = []
+    handle = g.send_goal(_target_goal(), feedback=lambda m: feedback.append(m.feedback))
+    status, res, _ = g.goal_result(handle)
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    assert res.error_code == R.OK and res.error_name == "ok" and res.reason == ""
+    g.wait(lambda: g.n_trajs() == 1, 5, "the trajectory on joint_trajectory")
+    pub = g.trajs[0][1]
+    assert list(res.trajectory.joint_names) == list(pub.joint_names)
+    assert len(res.trajectory.points) == len(pub.points) > 2
+    for a, b in zip(res.trajectory.points, pub.points):
+        assert list(a.positions) == list(b.positions)
+        assert duration_to_s(a.time_from_start) == duration_to_s(b.time_from_start)
+    # the last point grasps the target (forward kinematics written above)
+    robot = g.scenario.robot
+    tip = _tip_m(robot.link_lengths_m, robot.full(np.array(res.trajectory.points[-1].positions)))
+    grasp = np.array(g.scenario.scene.target.grasp_point_m)
+    assert np.linalg.norm(tip - grasp) < 1e-6
+    assert res.min_clearance_m > 0.0
+    assert "total" in res.stage_names and len(res.stage_times_s) == len(res.stage_names)
+    assert all(t >= 0.0 for t in res.stage_times_s)
+    stages = [f.stage for f in feedback]
+    assert stages and stages[0] == "cspace" and "trajectory" in stages, stages
+    assert [f.progress for f in feedback] == sorted(f.progress for f in feedback)
+
+
+def test_newer_goal_aborts_the_older_with_a_reason(graph):
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 2.0}), with_arm=False)
+    _start(g)
+    first = g.send_goal(_target_goal())
+    g.wait(lambda: g.planner.state == "planning", 10, "the first goal planning")
+    second = g.send_goal(_target_goal(-3.0, -2.8))
+    status1, res1, _ = g.goal_result(first)
+    assert status1 == GoalStatus.STATUS_ABORTED
+    assert res1.error_code == R.SUPERSEDED and "superseded by request" in res1.reason, res1.reason
+    assert "plan_capture goal" in res1.reason          # names the newer request
+    assert len(res1.trajectory.points) == 0
+    status2, res2, _ = g.goal_result(second)
+    assert status2 == GoalStatus.STATUS_SUCCEEDED and res2.error_code == R.OK, res2.reason
+
+
+def test_topic_target_supersedes_a_goal(graph):
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 2.0}), with_arm=False)
+    _start(g)
+    handle = g.send_goal(_target_goal())
+    g.wait(lambda: g.planner.state == "planning", 10, "the goal planning")
+    g.send_target(-3.0, -2.8)
+    status, res, _ = g.goal_result(handle)
+    assert status == GoalStatus.STATUS_ABORTED and res.error_code == R.SUPERSEDED
+    assert "new target (-3.000, -2.800)" in res.reason, res.reason
+
+
+def test_cancel_mid_plan_ends_within_a_second(graph, record_property):
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
+    _start(g)
+    handle = g.send_goal(_target_goal())
+    g.wait(lambda: g.planner.state == "planning", 10, "the goal planning")
+    time.sleep(0.5)                                  # inside the stall
+    t0 = time.monotonic()
+    fut = handle.cancel_goal_async()
+    g.wait(fut.done, 5, "the cancel response")
+    assert len(fut.result().goals_canceling) == 1
+    status, res, t_result = g.goal_result(handle, timeout=10)
+    dt = t_result - t0
+    print(f"\ncancel during a stalled plan: result after {dt:.3f} s")
+    record_property("action_cancel_s", round(dt, 3))
+    assert status == GoalStatus.STATUS_CANCELED and res.error_code == R.CANCELLED, res.reason
+    assert dt < CANCEL_BOUND_S
+    assert g.n_trajs() == 0
+    # the node goes on: the next goal plans (without the stall)
+    from rclpy.parameter import Parameter
+    assert g.planner.set_parameters([Parameter("planner.test_stall_s", value=0.0)])[0].successful
+    status, res, _ = g.goal_result(g.send_goal(_target_goal()))
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+
+
+@pytest.mark.parametrize("make_goal, fragments", [
+    (lambda: _target_goal(math.nan, -2.6), ["goal.target_pose", "NaN"]),
+    (lambda: _target_goal(frame="map"), ["goal.target_pose", "frame 'map'", "'world'"]),
+    (lambda: _joint_goal(("attitude", "shoulder", "elbow"), np.radians([0.0, 200.0, 30.0])),
+     ["goal.joint_goal", "shoulder", "outside its bounds"]),
+    (lambda: _joint_goal(("attitude", "shoulder"), [0.0, 0.0]), ["goal.joint_goal", "missing joint", "elbow"]),
+], ids=["nan_pose", "wrong_frame", "joint_goal_out_of_bounds", "joint_goal_missing_joint"])
+def test_bad_goal_is_aborted_with_the_reason_and_the_node_serves_on(graph, make_goal, fragments):
+    g = graph(scene_params("3dof"), with_arm=False)
+    _start(g)
+    status, res, _ = g.goal_result(g.send_goal(make_goal()))
+    assert status == GoalStatus.STATUS_ABORTED and res.error_code == R.INVALID_INPUT
+    for frag in fragments:
+        assert frag in res.reason, (frag, res.reason)
+    assert g.n_trajs() == 0
+    g.wait(lambda: g.level("input") == b"\x02", 5, "the input status ERROR")
+    status, res, _ = g.goal_result(g.send_goal(_target_goal()))
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+
+
+def test_goal_with_its_own_start(graph):
+    """An explicit start plans from there (not from joint_states)."""
+    g = graph(scene_params("2dof"), with_arm=False)
+    _start(g)
+    goal = _joint_goal(("shoulder", "elbow"), np.radians([32.8, 76.5]))
+    start = np.radians([120.0, 80.0])
+    goal.start = JointState(name=["shoulder", "elbow"], position=[float(v) for v in start])
+    status, res, _ = g.goal_result(g.send_goal(goal))
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    np.testing.assert_allclose(res.trajectory.points[0].positions, start, atol=1e-9)
+    np.testing.assert_allclose(res.trajectory.points[-1].positions, np.radians([32.8, 76.5]), atol=1e-9)

@@ -1,0 +1,162 @@
+"""The planner as a lifecycle node, driven through its ~/change_state service (what
+`ros2 lifecycle set` calls).  Oracles: the lifecycle protocol's own GetState, the
+graph (who subscribes / publishes), /proc (the planning process), threading.enumerate."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from lifecycle_msgs.msg import State, Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.lifecycle import TransitionCallbackReturn
+
+from node_helpers import child_pids, pid_alive, scene_params
+
+
+def _call(g, srv_type, name, request):
+    cli = g.drv.create_client(srv_type, f"/spacerobot_planner/{name}")
+    assert cli.wait_for_service(5.0), name
+    fut = cli.call_async(request)
+    g.wait(fut.done, 120, f"{name} response")       # configure waits for the warm-up
+    g.drv.destroy_client(cli)
+    return fut.result()
+
+
+def _change(g, transition_id):
+    return _call(g, ChangeState, "change_state",
+                 ChangeState.Request(transition=Transition(id=transition_id))).success
+
+
+def _state(g):
+    return _call(g, GetState, "get_state", GetState.Request()).current_state.label
+
+
+def _subscribed(g):
+    return g.pub_target.get_subscription_count() > 0
+
+
+def _threads():
+    return {t for t in threading.enumerate() if t.is_alive()}
+
+
+@pytest.fixture
+def manual(graph):
+    """A planner with autostart off (unconfigured), a driver and no arm."""
+    g = graph(scene_params("3dof", autostart=False), with_arm=False, wait_subscribed=False)
+    return g
+
+
+def test_transitions_in_order_then_shutdown_leaves_nothing(manual, capfd):
+    before = _threads()
+    g = manual
+    assert _state(g) == "unconfigured"
+    assert child_pids() == [] or all(not pid_alive(p) for p in child_pids())
+    assert not _subscribed(g)
+
+    assert _change(g, Transition.TRANSITION_CONFIGURE)
+    assert _state(g) == "inactive"
+    kids = [p for p in child_pids() if pid_alive(p)]
+    assert len(kids) == 1, kids                     # the planning process, warmed up
+    time.sleep(0.3)
+    assert not _subscribed(g), "an inactive node subscribes target_pose"
+
+    assert _change(g, Transition.TRANSITION_ACTIVATE)
+    assert _state(g) == "active"
+    g.wait(lambda: _subscribed(g), 5, "target_pose subscribed when active")
+    g.pub_js.publish(_js(g))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_target()
+    g.wait(lambda: g.n_trajs() == 1, 30, "a trajectory when active")
+
+    assert _change(g, Transition.TRANSITION_DEACTIVATE)
+    assert _state(g) == "inactive"
+    g.wait(lambda: not _subscribed(g), 5, "target_pose unsubscribed when inactive")
+    assert pid_alive(kids[0]), "deactivate stopped the planning process"
+
+    assert _change(g, Transition.TRANSITION_CLEANUP)
+    assert _state(g) == "unconfigured"
+    g.wait(lambda: not pid_alive(kids[0]), 5, "the planning process gone after cleanup")
+
+    # configure again (a fresh planning process), activate, then shut down from active
+    assert _change(g, Transition.TRANSITION_CONFIGURE) and _change(g, Transition.TRANSITION_ACTIVATE)
+    kids2 = [p for p in child_pids() if pid_alive(p)]
+    assert len(kids2) == 1 and kids2 != kids
+    assert _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    assert _state(g) == "finalized"
+    assert not any(pid_alive(p) for p in kids2)
+    g.close()
+    assert [t.name for t in _threads() - before] == []
+    assert "finalized" in capfd.readouterr().err
+
+
+def _js(g):
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    robot = g.scenario.robot
+    return joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad))
+
+
+@pytest.mark.parametrize("path, refused, fragment", [
+    ([], Transition.TRANSITION_ACTIVATE, "'activate' refused: the node is 'unconfigured'; possible now: configure"),
+    ([], Transition.TRANSITION_DEACTIVATE, "'deactivate' refused: the node is 'unconfigured'"),
+    ([Transition.TRANSITION_CONFIGURE], Transition.TRANSITION_CONFIGURE,
+     "'configure' refused: the node is 'inactive'; possible now: cleanup, activate, shutdown"),
+    ([Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE], Transition.TRANSITION_CLEANUP,
+     "'cleanup' refused: the node is 'active'; possible now: deactivate, shutdown"),
+], ids=["activate_unconfigured", "deactivate_unconfigured", "configure_twice", "cleanup_active"])
+def test_out_of_order_transition_is_refused_with_a_reason(manual, capfd, path, refused, fragment):
+    g = manual
+    for t in path:
+        assert _change(g, t)
+    state = _state(g)
+    assert not _change(g, refused)
+    assert _state(g) == state                        # nothing changed
+    err = capfd.readouterr().err
+    assert fragment in err, err[-2000:]
+
+
+def test_autostart_is_active_at_once(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    assert _state(g) == "active"
+    assert g.planner.trigger_configure() == TransitionCallbackReturn.ERROR    # refused, state kept
+    assert _state(g) == "active"
+
+
+def test_goals_are_rejected_while_inactive(manual):
+    from rclpy.action import ActionClient
+    from spacerobot_planner_interfaces.action import PlanCapture
+    g = manual
+    assert _change(g, Transition.TRANSITION_CONFIGURE)
+    client = ActionClient(g.drv, PlanCapture, "plan_capture")
+    assert client.wait_for_server(5.0)
+    fut = client.send_goal_async(PlanCapture.Goal())
+    g.wait(fut.done, 10, "goal response")
+    assert not fut.result().accepted
+    assert State.PRIMARY_STATE_INACTIVE == g.planner._state_machine.current_state[0]
+
+
+def test_lifecycle_shutdown_during_a_long_plan(graph, capfd, record_property):
+    """`ros2 lifecycle set /spacerobot_planner shutdown` while a (stalled) plan runs: the
+    transition ends within the bound, the plan is logged as cancelled, nothing is left."""
+    before = _threads()
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
+    g.pub_js.publish(_js(g))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_target()
+    g.wait(lambda: g.planner.state == "planning", 10, "planning started")
+    time.sleep(0.5)
+    kids = [p for p in child_pids() if pid_alive(p)]
+    t0 = time.monotonic()
+    assert _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    dt = time.monotonic() - t0
+    print(f"\nlifecycle shutdown during a stalled plan: {dt:.3f} s")
+    record_property("lifecycle_shutdown_s", round(dt, 3))
+    assert dt < 1.0
+    assert _state(g) == "finalized" and not any(pid_alive(p) for p in kids)
+    assert g.n_trajs() == 0
+    g.close()
+    assert [t.name for t in _threads() - before] == []
+    err = capfd.readouterr().err
+    assert "shutdown: the plan in progress is cancelled" in err
+    assert "Failed to publish log message to rosout" not in err

@@ -1,0 +1,104 @@
+"""Parameters per node: each declares what it reads, with descriptors; both nodes take
+their parameters from one --params-file (/** + their own section).  Oracles: the
+parameter services a `ros2 param` user calls, and the YAML file read here directly."""
+
+from __future__ import annotations
+
+import yaml
+from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.srv import DescribeParameters, ListParameters, SetParameters
+from rclpy.parameter import Parameter
+
+from spacerobot_planner.field import SOLVERS
+
+from node_helpers import scene_params
+
+
+def _call(g, node, srv_type, name, request):
+    cli = g.drv.create_client(srv_type, f"/{node}/{name}")
+    assert cli.wait_for_service(5.0), name
+    fut = cli.call_async(request)
+    g.wait(fut.done, 10, f"{name} response")
+    g.drv.destroy_client(cli)
+    return fut.result()
+
+
+def _names(g, node):
+    return set(_call(g, node, ListParameters, "list_parameters", ListParameters.Request()).result.names)
+
+
+def _describe(g, node, names):
+    res = _call(g, node, DescribeParameters, "describe_parameters", DescribeParameters.Request(names=names))
+    return {d.name: d for d in res.descriptors}
+
+
+def test_each_node_declares_only_what_it_reads(graph):
+    g = graph(scene_params("3dof"))
+    planner = _names(g, "spacerobot_planner") - {"use_sim_time", "start_type_description_service"}
+    arm = _names(g, "mock_arm") - {"use_sim_time", "start_type_description_service"}
+    assert not any(n.startswith(("scenario.", "mock_arm.")) for n in planner), planner
+    assert {"robot.joint_names", "grid.cells", "planner.solver", "autostart", "grid_frame"} <= planner
+    assert arm == {"robot.joint_names", "robot.link_lengths_m", "robot.lower_deg", "robot.upper_deg",
+                   "robot.periodic", "robot.body_side_m", "robot.planned_joints", "robot.locked_positions_deg",
+                   "scenario.start_deg", "rate_hz"}, arm
+
+
+def test_descriptors_carry_ranges_and_allowed_values(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    d = _describe(g, "spacerobot_planner", ["safety_margin_m", "planner.solver", "grid.cells", "robot.link_lengths_m",
+                                            "planner.max_grid_nodes"])
+    fr = d["safety_margin_m"].floating_point_range[0]
+    assert (fr.from_value, fr.to_value) == (0.0, 1.0) and d["safety_margin_m"].type == ParameterType.PARAMETER_DOUBLE
+    ir = d["planner.max_grid_nodes"].integer_range[0]
+    assert (ir.from_value, ir.to_value) == (4, 200_000_000)
+    allowed = d["planner.solver"].additional_constraints
+    assert allowed.startswith("one of:") and all(s in allowed for s in SOLVERS)
+    assert "Range [2, 4096]" in d["grid.cells"].additional_constraints
+    assert d["robot.link_lengths_m"].read_only
+
+
+def test_rejected_values_name_the_parameter(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    res = g.planner.set_parameters([Parameter("planner.solver", value="bogus")])[0]
+    assert not res.successful and "planner.solver: 'bogus' is not one of" in res.reason, res.reason
+    assert all(s in res.reason for s in SOLVERS)
+    # a wrong type through the service (`ros2 param set`): the node's reason, not rclpy's enum numbers
+    req = SetParameters.Request(parameters=[Parameter("safety_margin_m", value="wide").to_parameter_msg()])
+    r = _call(g, "spacerobot_planner", SetParameters, "set_parameters", req).results[0]
+    assert not r.successful and r.reason == "safety_margin_m: expected a number, got 'wide' (str)", r.reason
+    g.wait(lambda: g.level("input") == b"\x02", 5, "the input status ERROR")
+    assert "safety_margin_m: expected a number, got 'wide'" in g.status("input").message
+    assert g.planner.get_parameter("safety_margin_m").value == 0.02
+
+
+def test_both_nodes_from_one_params_file(tmp_path):
+    """`--params-file` with /** + a section per node: each node gets /** and its own
+    section, nothing of the other's (as rcl resolves it)."""
+    import rclpy
+    from rclpy.context import Context
+
+    from spacerobot_planner.ros.mock_arm_node import MockArmNode
+    with open("config/paper_2dof.yaml") as f:
+        doc = yaml.safe_load(f)
+    doc["mock_arm"]["ros__parameters"]["rate_hz"] = 20.0
+    doc["spacerobot_planner"]["ros__parameters"]["autostart"] = False
+    path = tmp_path / "two.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    ctx = Context()
+    rclpy.init(context=ctx, args=["--ros-args", "--params-file", str(path)])
+    try:
+        from spacerobot_planner.ros.planner_node import PlannerNode
+        arm = MockArmNode(context=ctx)
+        planner = PlannerNode(context=ctx)
+        shared = doc["/**"]["ros__parameters"]
+        assert arm.get_parameter("rate_hz").value == 20.0
+        assert list(arm.get_parameter("scenario.start_deg").value) == shared["scenario"]["start_deg"]
+        assert list(arm.get_parameter("robot.planned_joints").value) == shared["robot"]["planned_joints"]
+        own = doc["spacerobot_planner"]["ros__parameters"]
+        assert list(planner.get_parameter("grid.cells").value) == own["grid"]["cells"]
+        assert list(planner.get_parameter("robot.planned_joints").value) == ["shoulder", "elbow"]
+        assert planner.state == "unconfigured"                  # autostart: false from its section
+        planner.destroy_node()
+        arm.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
