@@ -7,6 +7,7 @@ import pytest
 
 ament_flake8 = pytest.importorskip("ament_flake8.main")
 
+
 @pytest.mark.flake8
 @pytest.mark.linter
 def test_flake8():
