@@ -1,5 +1,8 @@
 """Scenario files and parameters: one schema for the YAML loader, the CLI and the node.
 
+The problem type itself (``Scenario``) lives in ``problem.py`` (no YAML there); it is
+re-exported here.
+
 Scenario files are ROS 2 parameter files (``--params-file``)::
 
     spacerobot_planner:
@@ -19,13 +22,14 @@ from __future__ import annotations
 import array
 import json
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 import yaml
 
 from .cspace import GridSpec, grid_for_robot
 from .dynamics import ACS_MODES, AcsSettings, MassProperties
+from .problem import Scenario
 from .robot import PlanarArm, square_polygon
 from .scene import Scene, Target
 
@@ -253,34 +257,6 @@ def load_params_file(path) -> dict:
     if missing:
         raise ValueError(f"params file {path}: missing required key(s): {', '.join(missing)}")
     return {k: (check_value(k, v) if k in _SPECS else v) for k, v in flat.items()}
-
-
-# ------------------------------------------------------------------- scenario
-@dataclass(frozen=True, eq=False)
-class Scenario:
-    """Everything needed to plan: robot, scene, grid, and optionally start/goal.
-
-    ``start_rad`` and ``goal_rad`` cover the planned joints (None when not given).
-    ``params`` is the flat parameter dict it was built from; ``masses`` and ``acs``
-    the spacecraft's mass properties and attitude-control settings (``dynamics.*``,
-    ``acs.*``, ``grasp.position_tolerance_m``).
-    """
-
-    robot: PlanarArm
-    scene: Scene
-    grid: GridSpec
-    start_rad: np.ndarray | None
-    goal_rad: np.ndarray | None
-    planning_frame: str = "world"
-    params: dict = field(default_factory=dict)
-    masses: MassProperties = field(default_factory=MassProperties)
-    acs: AcsSettings = field(default_factory=AcsSettings)
-
-    def grid_with_cells(self, cells) -> GridSpec:
-        return self.grid.with_cells(cells)
-
-    def with_scene(self, scene: Scene) -> "Scenario":
-        return replace(self, scene=scene)
 
 
 def parse_polygons(text: str, name: str = "obstacles.polygons_m") -> tuple:

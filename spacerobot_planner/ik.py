@@ -15,7 +15,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .collision import CollisionChecker
-from .robot import wrap_angle_rad
+from .joint_space import TWO_PI, wrap_angle_rad, wrap_rad
 
 __all__ = ["IKSolution", "grasp_ik", "capture_posture", "CapturePosture"]
 
@@ -59,13 +59,12 @@ def _two_link(base, target, l_a, l_b):
 
 def _fit_to_bounds(robot, q_full):
     """Shift each joint by whole turns into [lower, upper]; None when one cannot fit."""
-    out = np.array(q_full, dtype=float)
+    out = wrap_rad(q_full, robot.periodic, robot.lower_rad)
     for j in range(robot.n_joints):
         lo, hi = robot.lower_rad[j], robot.upper_rad[j]
         if robot.periodic[j]:
-            out[j] = lo + (out[j] - lo) % (2.0 * np.pi)
             continue
-        fits = [v for v in out[j] + 2.0 * np.pi * np.arange(-2, 3) if lo - 1e-9 <= v <= hi + 1e-9]
+        fits = [v for v in out[j] + TWO_PI * np.arange(-2, 3) if lo - 1e-9 <= v <= hi + 1e-9]
         if not fits:
             return None
         out[j] = min(fits, key=abs)
