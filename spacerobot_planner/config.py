@@ -108,6 +108,15 @@ PARAMETERS = (
     ParamSpec("planner.max_grid_nodes", "integer", 4_000_000,
               "Refuse grids with more nodes than this (memory budget), before allocating.",
               False, 4, 200_000_000),
+    ParamSpec("planner.max_start_penetration_m", "double", 0.05,
+              "A start posture whose links reach at most this deep into an obstacle (e.g. holding the "
+              "grasp after the target moved) is first walked out along increasing clearance (reported, "
+              "not certified); deeper: start_in_collision. 0: always start_in_collision, metres.",
+              False, 0.0, 1.0),
+    ParamSpec("grasp.max_approach_error_deg", "double", 5.0,
+              "Largest angle between link 3 and the handle's inward normal accepted for a goal from the "
+              "target (the attitude locked: position-only IK); above it goal_unreachable, degrees.",
+              False, 0.0, 180.0),
     # ---- trajectory (time parameterisation), per joint in robot.joint_names
     ParamSpec("trajectory.max_velocity_deg_s", "double_array", [5.0, 15.0, 15.0],
               "Per-joint velocity limits, deg/s.", False, 1e-3, 1e4),

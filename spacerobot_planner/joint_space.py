@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["TWO_PI", "wrap_angle_rad", "wrap_rad", "difference_rad", "distance_rad", "interpolate_rad",
-           "unwrap_path", "nearest_turn_rad", "align_to_state", "within_bounds"]
+           "unwrap_path", "nearest_turn_rad", "align_to_state", "within_bounds", "deg_text"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -140,3 +140,8 @@ def within_bounds(q_rad, lower_rad, upper_rad, periodic, tol_rad: float = 0.0) -
     hi = np.asarray(upper_rad, dtype=float) + tol_rad
     inside = (q >= lo) & (q <= hi)
     return np.all(inside | per, axis=-1)
+
+
+def deg_text(q_rad) -> str:
+    """A configuration for people: ``(160.7, 32.8, 76.5)°``."""
+    return "(" + ", ".join(f"{v:.1f}" for v in np.degrees(np.asarray(q_rad, dtype=float))) + ")°"
