@@ -1,9 +1,11 @@
 """Exact collision tests and the C-space against an independent brute-force check."""
 
 import math
+import os
 
 import numpy as np
 import pytest
+from conftest import CONFIG_DIR
 
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
@@ -78,14 +80,14 @@ DEBRIS = (
 
 @pytest.fixture(scope="module", params=["paper_2dof", "paper_3dof"])
 def scenario(request):
-    sc = load_scenario(f"config/{request.param}.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, f"{request.param}.yaml"))
     scene = Scene(target=sc.scene.target, debris_m=tuple(np.array(p) for p in DEBRIS), safety_margin_m=0.05)
     return sc.with_scene(scene)
 
 
 def test_start_postures_clear_the_body_as_the_paper_draws_them():
     for name in ("paper_2dof", "paper_3dof"):
-        sc = load_scenario(f"config/{name}.yaml")
+        sc = load_scenario(os.path.join(CONFIG_DIR, f"{name}.yaml"))
         chk = CollisionChecker(sc.robot, sc.scene)
         c = chk.clearance_m(sc.start_rad)
         assert 0.08 <= c <= 0.12, (name, c)
@@ -104,6 +106,45 @@ def test_clearance_matches_reference_on_random_configurations(scenario):
     # both kinds were exercised (clearance never exceeds 0.127 m: the shoulder sits that far
     # beyond the body corner)
     assert (want == 0).sum() > 20 and (want > 0.05).sum() > 20
+
+
+def shapely_clearance(robot, scene, q):
+    """Oracle from shapely (GEOS): distance from the link segments to the posed body and the
+    obstacles; shares nothing with the kernels or the reference above."""
+    from shapely.geometry import LineString, Polygon
+    q_full = robot.full(q)
+    pts = robot.forward_kinematics(q_full)
+    polys = [Polygon(robot.body_polygon_world(q_full[0]))] + [Polygon(p) for p in scene.obstacle_polygons_m]
+    return min(LineString([pts[k], pts[k + 1]]).distance(poly) for k in robot.checked_links for poly in polys)
+
+
+def test_clearance_and_freedom_match_shapely(scenario):
+    rng = np.random.default_rng(5)
+    chk = CollisionChecker(scenario.robot, scenario.scene)
+    q = rng.uniform(scenario.robot.planned_lower_rad, scenario.robot.planned_upper_rad,
+                    size=(300, scenario.robot.dof))
+    want = np.array([shapely_clearance(scenario.robot, scenario.scene, qi) for qi in q])
+    assert np.allclose(chk.clearance_m(q), want, atol=1e-9)
+    margin = scenario.scene.safety_margin_m
+    away = np.abs(want - margin) > 1e-9
+    assert np.array_equal(chk.is_free(q)[away], want[away] > margin)
+    assert (want == 0).sum() > 20 and (want > margin).sum() > 20
+
+
+def test_cspace_occupancy_equals_shapely(scenario):
+    grid = scenario.grid.with_cells(24 if scenario.robot.dof == 3 else 60)
+    cs = build_cspace(scenario.robot, scenario.scene, grid)
+    rng = np.random.default_rng(6)
+    nodes = np.stack([rng.integers(0, n, size=600) for n in grid.shape], axis=1)
+    margin = scenario.scene.safety_margin_m
+    checked = 0
+    for node in nodes:
+        c = shapely_clearance(scenario.robot, scenario.scene, grid.config_of(node))
+        if abs(c - margin) < 1e-9:
+            continue
+        assert cs.occupied[tuple(node)] == (c <= margin), (node, c)
+        checked += 1
+    assert checked > 550
 
 
 def test_cspace_occupancy_equals_brute_force(scenario):
@@ -132,7 +173,7 @@ def test_margin_grows_the_obstacles(scenario):
 
 
 def test_attitude_wraps_minus_180_is_plus_180():
-    sc = load_scenario("config/paper_3dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     g = sc.grid
     assert g.shape == (36, 37, 37)
     assert g.node_of(D([-180.0, 0.0, 0.0])) == g.node_of(D([180.0, 0.0, 0.0])) == (0, 18, 18)
@@ -157,7 +198,7 @@ def test_node_of_rejects_out_of_bounds_and_nan():
 
 
 def test_touching_counts_as_collision_with_zero_margin():
-    sc = load_scenario("config/paper_2dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
     # a debris square whose edge passes exactly through the start posture's elbow
     q = sc.start_rad
     elbow = sc.robot.forward_kinematics(sc.robot.full(q))[2]
@@ -169,7 +210,7 @@ def test_touching_counts_as_collision_with_zero_margin():
 def test_cached_body_table_gives_the_same_occupancy():
     from spacerobot_planner.cspace import body_occupancy
     from spacerobot_planner.scene import Target
-    sc = load_scenario("config/paper_3dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     table = body_occupancy(sc.robot, sc.grid, sc.scene.safety_margin_m)
     assert table.shape == sc.grid.shape[1:]
     # the table serves another target pose unchanged (it only knows the body)

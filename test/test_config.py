@@ -1,5 +1,8 @@
 """Scenario files: the paper's scenes load; bad files name the field that is wrong."""
 
+import os
+
+from conftest import CONFIG_DIR
 import numpy as np
 import pytest
 import yaml
@@ -14,13 +17,13 @@ def _write(tmp_path, params, node="spacerobot_planner"):
 
 
 def _paper_params():
-    with open("config/paper_3dof.yaml") as f:
+    with open(os.path.join(CONFIG_DIR, "paper_3dof.yaml")) as f:
         return yaml.safe_load(f)["spacerobot_planner"]["ros__parameters"]
 
 
 def test_paper_scenes_load():
-    s2 = load_scenario("config/paper_2dof.yaml")
-    s3 = load_scenario("config/paper_3dof.yaml")
+    s2 = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
+    s3 = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     assert s2.grid.shape == (181, 181) and s2.robot.planned_names == ("shoulder", "elbow")
     assert s3.grid.shape == (36, 37, 37) and s3.grid.periodic == (True, False, False)
     assert np.allclose(np.degrees(s3.start_rad), [-90, 135, 90])
