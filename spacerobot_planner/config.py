@@ -20,14 +20,13 @@ range and whether a change needs a restart; the node declares exactly these.
 from __future__ import annotations
 
 import array
-import json
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import yaml
 
-from .cspace import GridSpec, grid_for_robot
+from .cspace import grid_for_robot
 from .dynamics import ACS_MODES, AcsSettings, MassProperties
 from .problem import Scenario
 from .robot import PlanarArm, square_polygon

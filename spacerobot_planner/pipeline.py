@@ -23,7 +23,6 @@ import numpy as np
 from .contact import leave_contact
 from .descent import colliding_edges, descend
 from .field import bfs_distance
-from .ik import approach_error_rad
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import SegmentTest, check_path, first_bad_segment
 from .results import STAGES, Code, PlanResult

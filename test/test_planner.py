@@ -509,7 +509,7 @@ def _captured_then_moved(sc, d_m):
 
 def _shapely_depth(robot, scene, q):
     """Oracle: the deepest point of links 2-3 inside an obstacle (shapely), metres."""
-    from shapely.geometry import LineString, Point, Polygon
+    from shapely.geometry import LineString, Polygon
     pts = robot.forward_kinematics(robot.full(q))
     polys = [Polygon(p) for p in scene.obstacle_polygons_m]
     best = 0.0
