@@ -178,29 +178,14 @@ class Planner:
             self.settings = new
         return new
 
-    @property
-    def solver(self) -> str:
-        return self.settings.solver
-
-    @property
-    def field_tolerance(self) -> float:
-        return self.settings.field_tolerance
-
-    @property
-    def field_budget_s(self) -> float:
-        return self.settings.field_budget_s
-
-    @property
-    def grid_extra_margin_m(self) -> float:
-        return self.settings.grid_extra_margin_m
-
-    @property
-    def max_grid_nodes(self) -> int:
-        return self.settings.max_grid_nodes
-
-    @max_grid_nodes.setter
-    def max_grid_nodes(self, value: int) -> None:
-        self.configure(max_grid_nodes=value)
+    # read-only views of the settings (the node reads them); max_grid_nodes may be assigned
+    solver = property(lambda self: self.settings.solver)
+    field_tolerance = property(lambda self: self.settings.field_tolerance)
+    field_budget_s = property(lambda self: self.settings.field_budget_s)
+    grid_extra_margin_m = property(lambda self: self.settings.grid_extra_margin_m)
+    max_grid_nodes = property(lambda self: self.settings.max_grid_nodes,
+                              lambda self, value: self.configure(max_grid_nodes=value),
+                              doc="Refuse larger grids; assigning it replaces the settings.")
 
     def set_solver(self, solver: str, field_tolerance: float, field_budget_s: float | None = None) -> None:
         """Choose the field solver; ValueError for unknown names, a bad tolerance or budget.

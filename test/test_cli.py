@@ -59,11 +59,17 @@ def test_start_and_goal_flags(tmp_path, capsys):
     assert np.allclose(wrap(np.array(d["path_rad"][-1]) - np.radians([150, 40, 70])), 0, atol=1e-12)
 
 
-def test_goal_defaults_to_target_ik(tmp_path, capsys):
-    doc = yaml.safe_load(Path(P3).read_text())
+def _without_goal(tmp_path, params_file):
+    """A copy of the scenario file without scenario.goal_deg (the goal comes from the target)."""
+    doc = yaml.safe_load(Path(params_file).read_text())
     del doc["spacerobot_planner"]["ros__parameters"]["scenario"]["goal_deg"]
-    f = tmp_path / "no_goal.yaml"
+    f = tmp_path / f"no_goal_{Path(params_file).stem}.yaml"
     f.write_text(yaml.safe_dump(doc))
+    return f
+
+
+def test_goal_defaults_to_target_ik(tmp_path, capsys):
+    f = _without_goal(tmp_path, P3)
     js = tmp_path / "p.json"
     rc, out, err = run(["--params-file", str(f), "--json", str(js)], capsys)
     assert rc == 0, err
@@ -259,10 +265,7 @@ def test_json_trajectory_object_follows_the_path(tmp_path, capsys):
 
 
 def test_json_reports_the_grasp_approach_error(tmp_path, capsys):
-    doc = yaml.safe_load(Path(P2).read_text())
-    del doc["spacerobot_planner"]["ros__parameters"]["scenario"]["goal_deg"]
-    f = tmp_path / "to_target.yaml"
-    f.write_text(yaml.safe_dump(doc))
+    f = _without_goal(tmp_path, P2)
     js = tmp_path / "g.json"
     rc, out, err = run(["--params-file", str(f), "--json", str(js), "--quiet"], capsys)
     assert rc == 0, err

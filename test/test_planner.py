@@ -314,13 +314,12 @@ def test_repair_without_grid_margin(sc3):
     assert sum(r.ok for r in results) >= 5
 
 
-def test_repairs_on_random_scenes_keep_paths_valid():
-    """Random 3-DOF scenes at 36³ where grid walks meet colliding motions (repairs: cut
-    grid edges, re-solved fields): every returned path passes the independent check."""
+def _random_target_plans(n_scenes: int = 200):
+    """(scenario, start, goal, planner, result) of plans to the target on random 3-DOF scenes
+    at 36³ (the benchmark's scene family), in a fixed order."""
     from spacerobot_planner.bench.scenes import random_scenario
     rng = np.random.default_rng([0, 3])
-    repaired = checked = 0
-    for _ in range(200):
+    for _ in range(n_scenes):
         sc, start = random_scenario(rng, 3)
         if start is None:
             continue
@@ -329,7 +328,14 @@ def test_repairs_on_random_scenes_keep_paths_valid():
             goal = pl.goal_from_target()
         except ValueError:
             continue
-        res = pl.plan(start, goal)
+        yield sc, start, goal, pl, pl.plan(start, goal)
+
+
+def test_repairs_on_random_scenes_keep_paths_valid():
+    """Random 3-DOF scenes at 36³ where grid walks meet colliding motions (repairs: cut
+    grid edges, re-solved fields): every returned path passes the independent check."""
+    repaired = checked = 0
+    for sc, start, goal, pl, res in _random_target_plans():
         checked += 1
         if res.ok:
             assert_valid_path(res, sc)
@@ -389,18 +395,7 @@ def test_plan_a_b_a_gives_a_bit_for_bit(sc3):
 def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
     """A scene whose plan cuts grid edges / blocks nodes: planning another start in between
     (which repairs the field too) does not change the repaired plan."""
-    from spacerobot_planner.bench.scenes import random_scenario
-    rng = np.random.default_rng([0, 3])
-    for _ in range(200):
-        sc, start = random_scenario(rng, 3)
-        if start is None:
-            continue
-        pl = Planner(sc)
-        try:
-            goal = pl.goal_from_target()
-        except ValueError:
-            continue
-        a1 = pl.plan(start, goal)
+    for sc, start, goal, pl, a1 in _random_target_plans():
         if a1.solver_stats.get("repairs", 0) > 0:
             break
     else:
