@@ -21,7 +21,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from .contact import leave_contact
-from .descent import colliding_edges, descend
+from .descent import colliding_edges
 from .field import bfs_distance
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import SegmentTest, check_path, first_bad_segment
@@ -341,7 +341,7 @@ class PlanRun:
                     reasons.append(f"segment to node {tuple(node)} collides")
                     continue
                 with self.stage("descent"):
-                    gp = descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
+                    gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
                 if gp.reached:
                     path = gp
                     break

@@ -35,6 +35,7 @@ import numpy as np
 
 from .collision import CollisionChecker
 from .cspace import GridSpec, body_occupancy, build_cspace
+from .descent import descend
 from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS, solve_field
 from .field import warm_up as field_warm_up
 from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
@@ -331,6 +332,12 @@ class Planner:
                           cut_edges=edges if len(edges) else None)
         self._remember(self._fields, key, fld, 16)
         return fld
+
+    @staticmethod
+    def _descend(field, node, motions, lower_rad, step_rad):
+        """The descent stage (``descent.descend``), looked up in this module: the node's tests
+        inject a fault by patching ``planner.descend``."""
+        return descend(field, node, motions, lower_rad, step_rad)
 
     # ------------------------------------------------------------------- plan
     def plan(self, start_rad, goal_rad=None, cancel: threading.Event | None = None,
