@@ -126,7 +126,7 @@ def main(argv=None) -> int:
         tol = check_value("planner.field_tolerance", float(tol))
         budget = check_value("planner.max_grid_nodes", params.get("planner.max_grid_nodes", 4_000_000))
         field_budget = args.field_budget if args.field_budget is not None else \
-            params.get("planner.field_budget_s", 2.0)
+            params.get("planner.field_budget_s", 5.0)
         field_budget = check_value("planner.field_budget_s", float(field_budget))
 
         def posture(values, flag):

@@ -52,7 +52,7 @@ def segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _point_segment_dist2(px, py, ax, ay, bx, by):
+def point_segment_dist2(px, py, ax, ay, bx, by):
     """Squared distance from point P to segment AB."""
     ux, uy = bx - ax, by - ay
     den = ux * ux + uy * uy
@@ -68,10 +68,10 @@ def segment_segment_distance(ax, ay, bx, by, cx, cy, dx, dy):
     """Distance between segments AB and CD (0 when they intersect)."""
     if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
         return 0.0
-    return np.sqrt(min(min(_point_segment_dist2(ax, ay, cx, cy, dx, dy),
-                           _point_segment_dist2(bx, by, cx, cy, dx, dy)),
-                       min(_point_segment_dist2(cx, cy, ax, ay, bx, by),
-                           _point_segment_dist2(dx, dy, ax, ay, bx, by))))
+    return np.sqrt(min(min(point_segment_dist2(ax, ay, cx, cy, dx, dy),
+                           point_segment_dist2(bx, by, cx, cy, dx, dy)),
+                       min(point_segment_dist2(cx, cy, ax, ay, bx, by),
+                           point_segment_dist2(dx, dy, ax, ay, bx, by))))
 
 
 @njit(cache=True, nogil=True)
@@ -122,10 +122,10 @@ def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
         cx, cy, dx, dy = verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1]
         if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
             return True
-        if margin_m > 0.0 and (_point_segment_dist2(ax, ay, cx, cy, dx, dy) <= m2
-                               or _point_segment_dist2(bx, by, cx, cy, dx, dy) <= m2
-                               or _point_segment_dist2(cx, cy, ax, ay, bx, by) <= m2
-                               or _point_segment_dist2(dx, dy, ax, ay, bx, by) <= m2):
+        if margin_m > 0.0 and (point_segment_dist2(ax, ay, cx, cy, dx, dy) <= m2
+                               or point_segment_dist2(bx, by, cx, cy, dx, dy) <= m2
+                               or point_segment_dist2(cx, cy, ax, ay, bx, by) <= m2
+                               or point_segment_dist2(dx, dy, ax, ay, bx, by) <= m2):
             return True
         j = i
     return False
@@ -133,7 +133,7 @@ def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
 
 # ------------------------------------------------------- per-configuration core
 @njit(cache=True, nogil=True)
-def _link_points(q_full, lengths, out):
+def link_points(q_full, lengths, out):
     """Fill out (n+1, 2) with the chain's joint points for one configuration."""
     ang = 0.0
     out[0, 0] = 0.0
@@ -145,7 +145,7 @@ def _link_points(q_full, lengths, out):
 
 
 @njit(cache=True, nogil=True)
-def _rotate_body(body, attitude, out):
+def rotate_body(body, attitude, out):
     c, s = np.cos(attitude), np.sin(attitude)
     for i in range(body.shape[0]):
         out[i, 0] = c * body[i, 0] - s * body[i, 1]
@@ -153,18 +153,26 @@ def _rotate_body(body, attitude, out):
 
 
 @njit(cache=True, nogil=True)
+def segment_hits_polygons(ax, ay, bx, by, verts, starts, centres, radii, margin_m):
+    """True when segment AB comes within margin_m of one of the packed polygons."""
+    for p in range(radii.shape[0]):
+        # bounding-circle cull: the segment is farther than radius + margin from the centre
+        r = radii[p] + margin_m
+        if point_segment_dist2(centres[p, 0], centres[p, 1], ax, ay, bx, by) > r * r:
+            continue
+        if segment_polygon_within(ax, ay, bx, by, verts, starts[p], starts[p + 1], margin_m):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def links_hit_polygons(pts, checked, verts, starts, centres, radii, margin_m):
     """True when a checked link (pts: chain points) comes within margin_m of a polygon."""
     for c in range(checked.shape[0]):
         k = checked[c]
-        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
-        for p in range(radii.shape[0]):
-            # bounding-circle cull: the link is farther than radius + margin from the centre
-            r = radii[p] + margin_m
-            if _point_segment_dist2(centres[p, 0], centres[p, 1], ax, ay, bx, by) > r * r:
-                continue
-            if segment_polygon_within(ax, ay, bx, by, verts, starts[p], starts[p + 1], margin_m):
-                return True
+        if segment_hits_polygons(pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1], verts, starts,
+                                 centres, radii, margin_m):
+            return True
     return False
 
 
@@ -183,8 +191,8 @@ def links_hit_body(pts, checked, body_w, margin_m):
 @njit(cache=True, nogil=True)
 def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, pts, body_w):
     """Smallest distance (m) from a checked link to the body or any obstacle."""
-    _link_points(q_full, lengths, pts)
-    _rotate_body(body, q_full[0], body_w)
+    link_points(q_full, lengths, pts)
+    rotate_body(body, q_full[0], body_w)
     nb = body.shape[0]
     best = np.inf
     for c in range(checked.shape[0]):

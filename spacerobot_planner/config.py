@@ -100,7 +100,7 @@ PARAMETERS = (
               "Stop of the gauss_seidel solver: largest change of the potential per sweep (the "
               "paper's 1e-6). The log_harmonic route's precision is fixed (see spacerobot_planner.field).",
               False, 1e-14, 1e-1),
-    ParamSpec("planner.field_budget_s", "double", 2.0,
+    ParamSpec("planner.field_budget_s", "double", 5.0,
               "Wall-time budget of one field solve, seconds. When it ends first the field is still a "
               "valid ascent field, less accurate where unsolved, and the result says converged: false.",
               False, 1e-3, 600.0),

@@ -30,8 +30,9 @@ from numba import njit, prange
 
 import math
 
-from .collision import (_link_points, _point_segment_dist2, _rotate_body, links_hit_body,
-                        links_hit_polygons, point_in_polygon, segment_polygon_within)
+from .collision import (link_points, point_segment_dist2, rotate_body, links_hit_body,
+                        links_hit_polygons, point_in_polygon, segment_hits_polygons,
+                        segment_polygon_within)
 from .scene import pack_polygons
 
 __all__ = ["GridSpec", "CSpace", "build_cspace", "body_occupancy", "grid_for_robot"]
@@ -186,9 +187,9 @@ def _occupancy_kernel(shape, lower, step, axis_joint, q_locked, lengths, checked
                 k = rem % shape[d]
                 rem //= shape[d]
                 q_full[axis_joint[d]] = lower[d] + k * step[d]
-            _link_points(q_full, lengths, pts)
+            link_points(q_full, lengths, pts)
             if check_body:
-                _rotate_body(body, q_full[0], body_w)
+                rotate_body(body, q_full[0], body_w)
                 if links_hit_body(pts, checked, body_w, margin_m):
                     occ[flat] = True
                     continue
@@ -262,7 +263,7 @@ def _polygon_intervals(ex, ey, length, verts, start, stop, margin_m, ivals, n):
         return -1
     j = stop - 1
     for i in range(start, stop):
-        if _point_segment_dist2(ex, ey, verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1]) <= m2:
+        if point_segment_dist2(ex, ey, verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1]) <= m2:
             return -1
         j = i
     j = stop - 1
@@ -286,13 +287,7 @@ def _link_hits(ax, ay, bx, by, verts, starts, centres, radii, body_w, check_body
     """The exact test of one link against the body (if ``check_body``) and the polygons."""
     if check_body and segment_polygon_within(ax, ay, bx, by, body_w, 0, body_w.shape[0], margin_m):
         return True
-    for p in range(radii.shape[0]):
-        r = radii[p] + margin_m
-        if _point_segment_dist2(centres[p, 0], centres[p, 1], ax, ay, bx, by) > r * r:
-            continue
-        if segment_polygon_within(ax, ay, bx, by, verts, starts[p], starts[p + 1], margin_m):
-            return True
-    return False
+    return segment_hits_polygons(ax, ay, bx, by, verts, starts, centres, radii, margin_m)
 
 
 @njit(cache=True, nogil=True)
@@ -333,8 +328,8 @@ def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locke
                 rem //= shape[d]
                 q_full[axis_joint[d]] = lower[d] + k * step[d]
             q_full[last] = 0.0
-            _link_points(q_full, lengths, pts)
-            _rotate_body(body, q_full[0], body_w)
+            link_points(q_full, lengths, pts)
+            rotate_body(body, q_full[0], body_w)
             hit = False
             for c in range(checked.shape[0]):
                 k = checked[c]

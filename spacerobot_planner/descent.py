@@ -19,6 +19,8 @@ from .motion import segment_free
 
 # status codes of the kernels
 _REACHED, _STUCK, _TOO_LONG, _BLOCKED = 0, 1, 2, 3
+#: A blocked walk looks for a detour within this many index steps per axis.
+DETOUR_STEPS = 1
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,17 @@ class GridPath:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _along(c, d, n, periodic):
+    """Index c + d along an axis of n nodes: wrapped on a periodic axis, -1 beyond a wall."""
+    k = c + d
+    if k < 0 or k >= n:
+        if not periodic:
+            return -1
+        k %= n
+    return k
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _steepest_neighbour(log_u_flat, f, shape, strides, periodic):
     """Flat index of the face neighbour of node ``f`` with the largest log u, if it
     is strictly larger than log u at ``f`` (ties: first in the fixed order), else -1."""
@@ -50,15 +63,9 @@ def _steepest_neighbour(log_u_flat, f, shape, strides, periodic):
     for a in range(shape.size):
         c = (f // strides[a]) % shape[a]
         for step in (-1, 1):
-            nc = c + step
+            nc = _along(c, step, shape[a], periodic[a])
             if nc < 0:
-                if not periodic[a]:
-                    continue
-                nc = shape[a] - 1
-            elif nc >= shape[a]:
-                if not periodic[a]:
-                    continue
-                nc = 0
+                continue
             g = f + (nc - c) * strides[a]
             if log_u_flat[g] > best:
                 best = log_u_flat[g]
@@ -95,10 +102,89 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, q_template, planned,
-                  lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_template, planned, lengths,
+            checked, body, verts, starts, threshold_m, seg_step_rad, q_full, pts, body_w, path):
+    """Breadth-first over motions that pass, within ``radius`` index steps of node ``f``
+    per axis, to the nearest node whose log u is strictly above f's.  Writes the nodes
+    after f up to it into ``path`` and returns their count (0: none)."""
+    ndim = shape.size
+    side = 2 * radius + 1
+    box = 1
+    for a in range(ndim):
+        box *= side
+    parent = np.full(box, -2, np.int64)       # -2 unseen; box index of the parent
+    flat_of = np.empty(box, np.int64)
+    queue = np.empty(box, np.int64)
+    off = np.zeros(ndim, np.int64)
+    c0 = np.empty(ndim, np.int64)
+    for a in range(ndim):
+        c0[a] = (f // strides[a]) % shape[a]
+    centre = 0
+    for a in range(ndim):
+        centre = centre * side + radius
+    parent[centre] = -1
+    flat_of[centre] = f
+    queue[0] = centre
+    head, tail = 0, 1
+    qa = np.empty(ndim)
+    qb = np.empty(ndim)
+    here = log_u_flat[f]
+    while head < tail:
+        bi = queue[head]
+        head += 1
+        rem = bi
+        for a in range(ndim - 1, -1, -1):
+            off[a] = rem % side - radius
+            rem //= side
+        g = flat_of[bi]
+        for a in range(ndim):
+            qa[a] = lower[a] + ((c0[a] + off[a]) % shape[a] if periodic[a] else c0[a] + off[a]) * step[a]
+        for a in range(ndim):
+            for d in (-1, 1):
+                o = off[a] + d
+                if o < -radius or o > radius:
+                    continue
+                k = _along(c0[a], o, shape[a], periodic[a])
+                if k < 0:
+                    continue
+                nb_box = bi + d * side ** (ndim - 1 - a)
+                if parent[nb_box] != -2:
+                    continue
+                kc = (g // strides[a]) % shape[a]
+                h = g + (k - kc) * strides[a]
+                if not log_u_flat[h] > -np.inf:
+                    continue
+                for b in range(ndim):
+                    qb[b] = qa[b]
+                qb[a] += d * step[a]
+                if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
+                                    threshold_m, seg_step_rad, q_full, pts, body_w):
+                    continue
+                parent[nb_box] = bi
+                flat_of[nb_box] = h
+                if log_u_flat[h] > here:
+                    n = 0
+                    t = nb_box
+                    while t != centre:
+                        n += 1
+                        t = parent[t]
+                    t = nb_box
+                    for i in range(n - 1, -1, -1):
+                        path[i] = flat_of[t]
+                        t = parent[t]
+                    return n
+                queue[tail] = nb_box
+                tail += 1
+    return 0
+
+
+@nb.njit(cache=True, nogil=True)
+def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
+                  planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
     """The walk of :func:`_ascend`, but each step to the steepest strictly higher neighbour
-    whose straight segment passes ``motion.segment_free`` (next steepest if not).
+    whose straight segment passes ``motion.segment_free`` (next steepest if not); where
+    none passes, a detour over passing motions within ``detour_steps`` to the nearest
+    strictly higher node (log u rises from detour to detour, so the walk ends).
     Returns (number of nodes, status)."""
     strides = _strides(shape)
     ndim = shape.size
@@ -112,6 +198,7 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     cand_v = np.empty(2 * ndim)
     cand_a = np.empty(2 * ndim, np.int64)
     cand_d = np.empty(2 * ndim, np.int64)
+    detour = np.empty((2 * detour_steps + 1) ** ndim, np.int64)
     m = 0
     out[m] = f
     m += 1
@@ -128,15 +215,9 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
         for a in range(ndim):
             c = coord[a]
             for d in (-1, 1):
-                nc = c + d
+                nc = _along(c, d, shape[a], periodic[a])
                 if nc < 0:
-                    if not periodic[a]:
-                        continue
-                    nc = shape[a] - 1
-                elif nc >= shape[a]:
-                    if not periodic[a]:
-                        continue
-                    nc = 0
+                    continue
                 g = f + (nc - c) * strides[a]
                 v = log_u_flat[g]
                 if not v > here:
@@ -162,7 +243,16 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
                 moved = True
                 break
         if not moved:
-            return m, _BLOCKED
+            n = 0 if detour_steps == 0 else _detour(
+                log_u_flat, shape, periodic, strides, f, detour_steps, lower, step, q_template,
+                        planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad,
+                        q_full, pts, body_w, detour)
+            if n == 0 or m + n > out.size:
+                return m, _BLOCKED
+            for i in range(n):
+                out[m] = detour[i]
+                m += 1
+            f = detour[n - 1]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -195,10 +285,8 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
             off[a] = rem % side - radius
             rem //= side
         for a in range(ndim):
-            k = c0[a] + off[a]
-            if periodic[a]:
-                k %= shape[a]
-            elif k < 0 or k >= shape[a]:
+            k = _along(c0[a], off[a], shape[a], periodic[a])
+            if k < 0:
                 inside = False
             c[a] = k
             f += k * strides[a]
@@ -207,11 +295,9 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
         for a in range(ndim):
             qa[a] = lower[a] + c[a] * step[a]
         for a in range(ndim):
-            k = c[a] + 1
-            if k >= shape[a]:
-                if not periodic[a]:
-                    continue
-                k = 0
+            k = _along(c[a], 1, shape[a], periodic[a])
+            if k < 0:
+                continue
             g = f + (k - c[a]) * strides[a]
             if occ_flat[g]:
                 continue
@@ -238,14 +324,17 @@ def colliding_edges(occupied, periodic, node, motions, lower_rad, step_rad, radi
                             *motions.arrays())
 
 
-def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=None) -> GridPath:
+def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=None,
+            detour_steps: int = DETOUR_STEPS) -> GridPath:
     """Steepest descent of phi (ascent of ``field.log_u``) from ``start_node``.
 
     start_node : int sequence of length ndim (grid node index).
     motions : optional ``motion.SegmentTest``; then each step goes to the steepest strictly
         higher neighbour whose straight segment passes it (the next steepest otherwise),
         with nodes at ``lower_rad + index * step_rad`` (per axis, rad).  Without it, or
-        when every step passes, the walk is plain steepest descent.
+        when every step passes, the walk is plain steepest descent.  Where no higher
+        neighbour's motion passes, the walk looks for a detour over passing motions within
+        ``detour_steps`` index steps to the nearest strictly higher node (0: none).
     Returns a :class:`GridPath`; ``reason`` says why the goal was not reached
     ("start node is an obstacle", "start node not connected to the goal",
     "stuck at node (i, j): no strictly higher neighbour").
@@ -282,7 +371,7 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
         m, status = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
                                   np.array(field.periodic, np.bool_), flat0, out,
                                   np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
-                                  *motions.arrays())
+                                  int(detour_steps), *motions.arrays())
     nodes = np.stack(np.unravel_index(out[:m], shape), axis=1).astype(np.int64)
     if status == _REACHED:
         return GridPath(nodes, True, m - 1, None)

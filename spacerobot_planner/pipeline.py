@@ -30,7 +30,8 @@ from .smoothing import smooth_path
 
 __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
 
-#: A repair cuts the colliding grid edges within this many index steps of the blocked node.
+#: A repair cuts the colliding grid edges within this many index steps of the blocked node
+#: (one more with each repair of the same plan, up to three more).
 REPAIR_RADIUS = 2
 
 
@@ -354,7 +355,8 @@ class PlanRun:
                 node = tuple(int(v) for v in stuck.nodes[-1])
                 with self.stage("repair"):
                     edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions,
-                                            grid.lower_rad, grid.step_rad, radius=REPAIR_RADIUS)
+                                            grid.lower_rad, grid.step_rad,
+                                            radius=REPAIR_RADIUS + min(repairs, 3))   # wider each time
                 new = {(int(a), int(b)) for a, b in edges} - cut
                 if new:
                     cut = cut | new

@@ -13,6 +13,18 @@ import numba as nb
 import numpy as np
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _next_coord(coord, shape):
+    """Advance the grid coordinate ``coord`` to the next node in C order (an odometer)."""
+    a = coord.size - 1
+    while a >= 0:
+        coord[a] += 1
+        if coord[a] < shape[a]:
+            break
+        coord[a] = 0
+        a -= 1
+
+
 @nb.njit(cache=True, nogil=True)
 def grid_neighbours(shape, periodic):
     """Flat index of each grid node's 2n face neighbours, -1 beyond a wall.
@@ -42,13 +54,7 @@ def grid_neighbours(shape, periodic):
                 out[f, 2 * a + 1] = f + strides[a]
             else:
                 out[f, 2 * a + 1] = f - span if periodic[a] else -1
-        a = ndim - 1
-        while a >= 0:
-            coord[a] += 1
-            if coord[a] < shape[a]:
-                break
-            coord[a] = 0
-            a -= 1
+        _next_coord(coord, shape)
     return out
 
 
@@ -78,6 +84,52 @@ def _bfs(occ_flat, gnbr, goal_flat):
             order[tail] = g
             tail += 1
     return dist, order[:tail]
+
+
+@nb.njit(cache=True, nogil=True)
+def _red_black_order(dist, goal_flat, shape):
+    """(order, coords): the goal nodes, then the reached nodes (dist ≥ 0) with an even
+    coordinate sum, then the odd ones, each in grid order; coords int64 (N, ndim)."""
+    ndim = shape.size
+    n_grid = dist.size
+    n_goal = goal_flat.size
+    is_goal = np.zeros(n_grid, np.bool_)
+    for g in goal_flat:
+        is_goal[g] = True
+    n_red = 0
+    n_all = n_goal
+    coord = np.zeros(ndim, np.int64)
+    parity = np.zeros(n_grid, np.int8)
+    for f in range(n_grid):                  # odometer over the grid: coordinate sums
+        par = 0
+        for a in range(ndim):
+            par += coord[a]
+        parity[f] = par % 2
+        if dist[f] >= 0 and not is_goal[f]:
+            n_all += 1
+            if par % 2 == 0:
+                n_red += 1
+        _next_coord(coord, shape)
+    order = np.empty(n_all, np.int64)
+    order[:n_goal] = goal_flat
+    k_red = n_goal
+    k_black = n_goal + n_red
+    for f in range(n_grid):
+        if dist[f] >= 0 and not is_goal[f]:
+            if parity[f] == 0:
+                order[k_red] = f
+                k_red += 1
+            else:
+                order[k_black] = f
+                k_black += 1
+    strides = np.ones(ndim, np.int64)
+    for a in range(ndim - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    coords = np.empty((n_all, ndim), np.int64)
+    for k in range(n_all):
+        for a in range(ndim):
+            coords[k, a] = (order[k] // strides[a]) % shape[a]
+    return order, coords
 
 
 @nb.njit(cache=True, nogil=True)
@@ -136,7 +188,8 @@ class NodeGraph:
     """The goal-connected free nodes of a validated problem.
 
     order: int64 (N,) flat grid index of each graph node: the goal nodes first (``n_goal``
-        of them), then the others in grid order (memory locality).
+        of them), then the others with an even coordinate sum ("red"), then the odd ones
+        ("black"), each in grid order (memory locality; the multigrid smoother's order).
     nbr: int32 (N, 2 ndim) neighbour positions in ``order``; N = none (see module doc).
     coords: int64 (N, ndim) grid coordinates.
     dist: int64 (N,) BFS distance (face steps through free nodes) from the goal.
@@ -192,8 +245,7 @@ def node_graph(occ, per, goals, cut_edges=None) -> NodeGraph:
     grid edges ``cut_edges`` (int (k, 2) flat node pairs: a wall between the two)."""
     dist, order, gnbr = bfs(occ, per, goals, cut_edges)
     n_goal = len(goals)
-    order = np.concatenate([order[:n_goal], np.sort(order[n_goal:])])
-    coords = np.stack(np.unravel_index(order, occ.shape), axis=1).astype(np.int64)
+    order, coords = _red_black_order(dist, order[:n_goal], np.array(occ.shape, np.int64))
     return NodeGraph(order, _neighbour_table(order, gnbr), coords, dist[order], n_goal,
                      tuple(occ.shape), tuple(per))
 

@@ -126,6 +126,23 @@ def _extend_below(log_u, known, nbr, n_goal, log_deg):
                 tail += 1
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _sift_down(heap_k, heap_i, size, p):
+    """Restore the min-heap (keys heap_k, items heap_i) below position p."""
+    while True:
+        c = 2 * p + 1
+        if c >= size:
+            break
+        if c + 1 < size and heap_k[c + 1] < heap_k[c]:
+            c += 1
+        if heap_k[c] < heap_k[p]:
+            heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
+            heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
+            p = c
+        else:
+            break
+
+
 @nb.njit(cache=True, nogil=True)
 def _repair_ascent(log_u, nbr, n_goal, step):
     """Make every non-goal node strictly lower than some neighbour, changing only nodes
@@ -151,38 +168,14 @@ def _repair_ascent(log_u, nbr, n_goal, step):
         queued[g] = True
     # heapify (min-heap on -key)
     for s in range(size // 2 - 1, -1, -1):
-        p = s
-        while True:
-            c = 2 * p + 1
-            if c >= size:
-                break
-            if c + 1 < size and heap_k[c + 1] < heap_k[c]:
-                c += 1
-            if heap_k[c] < heap_k[p]:
-                heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
-                heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
-                p = c
-            else:
-                break
+        _sift_down(heap_k, heap_i, size, s)
     changed = 0
     while size > 0:
         i = heap_i[0]
         size -= 1
         heap_k[0] = heap_k[size]
         heap_i[0] = heap_i[size]
-        p = 0
-        while True:
-            c = 2 * p + 1
-            if c >= size:
-                break
-            if c + 1 < size and heap_k[c + 1] < heap_k[c]:
-                c += 1
-            if heap_k[c] < heap_k[p]:
-                heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
-                heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
-                p = c
-            else:
-                break
+        _sift_down(heap_k, heap_i, size, 0)
         if done[i]:
             continue
         done[i] = True
@@ -244,8 +237,11 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             left = (f"the field budget of {budget_s:g} s ended after {bands} band(s) with "
                     f"{active.size} of {n - n_goal} nodes unsolved")
             break
-        steps = _steps_from_known(nbr, active, known, scratch, window_steps)
-        whole = window_steps == 0 or steps.max() <= window_steps
+        if window_steps == 0:        # the first band: every node
+            whole, steps = True, None
+        else:
+            steps = _steps_from_known(nbr, active, known, scratch, window_steps)
+            whole = steps.max() <= window_steps
         inside = np.ones(active.size, np.bool_) if whole else steps <= window_steps
         window = active[inside]
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
@@ -265,7 +261,7 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             continue                 # only when the deadline stopped the band: caught above
         log_u[window[keep]] = np.log(x[keep]) + log_scale
         known[window[keep]] = True
-        window_steps = max(WINDOW_STEPS, 2 * int(steps[inside][keep].max()))
+        window_steps = WINDOW_STEPS if steps is None else max(WINDOW_STEPS, 2 * int(steps[inside][keep].max()))
         rest = np.ones(active.size, np.bool_)
         rest[np.flatnonzero(inside)[keep]] = False
         active = active[rest]

@@ -30,6 +30,8 @@ import numpy as np
 
 #: Stop coarsening at this many unknowns and solve that level directly.
 COARSEST_NODES = 100
+#: From this many unknowns the fine level's sweeps and products run on two threads.
+PARALLEL_NODES = 100_000
 #: Gauss–Seidel sweeps before and after the coarse correction on the coarse levels.
 COARSE_SWEEPS = 2
 
@@ -38,10 +40,11 @@ COARSE_SWEEPS = 2
 # set-up
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _coarsen(nbr, wt, diag, coords, cshape):
+def _coarsen(nbr, wt, diag, coords, cshape, unit):
     """One aggregation step.
 
-    nbr int64 (n, deg) level-local (n = no neighbour), wt / diag float64,
+    nbr int (n, deg) level-local (n = no neighbour), wt / diag float64 (with ``unit``:
+    the fine level, weight 1 to every neighbour, diagonal deg; wt and diag unused),
     coords int64 (n, ndim) node coordinates on a grid of shape ``2 * cshape``
     (roughly).  Returns ``(agg, cnbr, cwt, cdiag, ccoords)``: the aggregate
     of every node and the coarse level's arrays.
@@ -70,17 +73,18 @@ def _coarsen(nbr, wt, diag, coords, cshape):
         c = agg[i]
         for a in range(ndim):
             ccoords[c, a] = coords[i, a] // 2
-        cdiag[c] += diag[i]
+        cdiag[c] += deg if unit else diag[i]
         for d in range(deg):
             j = nbr[i, d]
             if j >= n:
                 continue
             cj = agg[j]
+            w = 1.0 if unit else wt[i, d]
             if cj == c:
-                cdiag[c] -= wt[i, d]
+                cdiag[c] -= w
             else:
                 cnbr[c, d] = cj
-                cwt[c, d] += wt[i, d]
+                cwt[c, d] += w
     return agg, cnbr, cwt, cdiag, ccoords
 
 
@@ -132,16 +136,28 @@ class Hierarchy:
         shape: the fine grid shape.  ``fine_of_input`` maps an input node to
         its row on the (renumbered) fine level."""
         n, deg = nbr.shape
-        nbr = np.ascontiguousarray(nbr, dtype=np.int64)
         coords = np.ascontiguousarray(coords, dtype=np.int64)
-        nbr, wt, diag, coords, self.fine_of_input = _by_parity(
-            nbr, np.where(nbr < n, 1.0, 0.0), np.full(n, float(deg)), coords)
-        fine_coords = coords
-        nbrs, wts, diags, aggs = [nbr], [wt], [diag], []
+        parity = coords.sum(axis=1) % 2
+        red = int(n - np.count_nonzero(parity))
+        if np.all(parity[:red] == 0):           # already red rows first (the node graph's order)
+            nb0 = np.ascontiguousarray(nbr, dtype=np.int32)
+            self.fine_of_input = np.arange(n)
+        else:
+            nb0, _, _, coords, self.fine_of_input = _by_parity(
+                np.ascontiguousarray(nbr, dtype=np.int64), np.zeros((n, deg)), np.zeros(n), coords)
+            nb0 = nb0.astype(np.int32)
+        # the fine level on its own: unit weights, diagonal deg, int32 neighbours
+        self.nb0 = nb0
+        self.red0 = red
+        # after a sweep (red rows first, then black) the black residuals are zero unless two
+        # black rows are neighbours (across an odd periodic seam): restrict the red ones only
+        black_nbrs = nb0[red:]
+        self.restrict0 = n if np.any((black_nbrs >= red) & (black_nbrs < n)) else red
+        nbrs, wts, diags, aggs = [nb0], [np.zeros((0, deg))], [np.zeros(0)], []
         shape = np.asarray(shape, np.int64)
         while nbrs[-1].shape[0] > COARSEST_NODES and np.any(shape > 1):
             shape = (shape + 1) // 2
-            agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape)
+            agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape, len(nbrs) == 1)
             if cn.shape[0] == nbrs[-1].shape[0]:
                 break
             cn, cw, cd, coords, new_of_old = _by_parity(cn, cw, cd, coords)
@@ -162,23 +178,19 @@ class Hierarchy:
         self.agg = np.zeros(total, np.int64)
         for lv in range(self.levels):
             a, b = off[lv], off[lv] + sizes[lv]
+            if lv < len(aggs):
+                self.agg[a:b] = aggs[lv]
+            if lv == 0:
+                continue             # the fine level reads nb0 (unit weights, diagonal deg)
             self.nbr[a:b] = nbrs[lv]
             self.nbr[b] = sizes[lv]
             self.wt[a:b] = wts[lv]
             self.diag[a:b] = diags[lv]
-            if lv < len(aggs):
-                self.agg[a:b] = aggs[lv]
         self.inv_diag = 1.0 / self.diag
-        # the fine level on its own: unit weights, diagonal deg, int32 neighbours
-        self.nb0 = nbrs[0].astype(np.int32)
-        # after a sweep (red nodes first, then black) the black residuals are zero unless two
-        # black nodes are neighbours (across an odd periodic seam): restrict the red ones only
-        n0 = int(sizes[0])
-        red = int(np.count_nonzero(fine_coords.sum(axis=1) % 2 == 0))
-        black_nbrs = self.nb0[red:]
-        self.restrict0 = n0 if np.any((black_nbrs >= red) & (black_nbrs < n0)) else red
         m = int(sizes[-1])
         cn, cw, cd = nbrs[-1], wts[-1], diags[-1]
+        if self.levels == 1:
+            cw, cd = np.where(cn < m, 1.0, 0.0), np.full(m, float(deg))
         dense = np.diag(cd)
         rows, dirs = np.nonzero(cn < m)
         np.add.at(dense, (rows, cn[rows, dirs]), -cw[rows, dirs])
@@ -207,12 +219,72 @@ def _row0(nb0, x, i, deg):
     return s
 
 
+# --------------------------------------------------------------------------
+# fine-level kernels: a range of rows, serial, and the same over two threads
+# (rows of one colour do not depend on each other: the same result either way)
+# --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, sweeps, boost):
+def _gs0(nb0, x, b, lo, hi, deg, inv_deg):
+    for i in range(lo, hi):
+        x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _gs0_par(nb0, x, b, lo, hi, deg, inv_deg):
+    chunks = 16
+    size = (hi - lo + chunks - 1) // chunks
+    for c in nb.prange(chunks):
+        _gs0(nb0, x, b, lo + c * size, min(hi, lo + (c + 1) * size), deg, inv_deg)
+
+
+@nb.njit(cache=True, nogil=True)
+def _residual0(nb0, x, b, r, lo, hi, deg):
+    fdeg = float(deg)
+    for i in range(lo, hi):
+        r[i] = b[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _residual0_par(nb0, x, b, r, lo, hi, deg):
+    chunks = 16
+    size = (hi - lo + chunks - 1) // chunks
+    for c in nb.prange(chunks):
+        _residual0(nb0, x, b, r, lo + c * size, min(hi, lo + (c + 1) * size), deg)
+
+
+@nb.njit(cache=True, nogil=True)
+def _matvec0(nb0, p, q, lo, hi, deg):
+    fdeg = float(deg)
+    for i in range(lo, hi):
+        q[i] = fdeg * p[i] - _row0(nb0, p, i, deg)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _matvec0_par(nb0, p, q, lo, hi, deg):
+    chunks = 16
+    size = (hi - lo + chunks - 1) // chunks
+    for c in nb.prange(chunks):
+        _matvec0(nb0, p, q, lo + c * size, min(hi, lo + (c + 1) * size), deg)
+
+
+@nb.njit(cache=True, nogil=True)
+def _sweep0(nb0, x, b, lo, hi, deg, inv_deg, par):
+    if par:
+        _gs0_par(nb0, x, b, lo, hi, deg, inv_deg)
+    else:
+        _gs0(nb0, x, b, lo, hi, deg, inv_deg)
+
+
+@nb.njit(cache=True, nogil=True)
+def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
+            boost, par):
     """x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the
     coarser levels and r are scratch).  Symmetric: forward Gauss-Seidel sweeps
     before the coarse correction (scaled by ``boost``), backward ones after.  The
-    fine level (unit weights, diagonal deg) reads ``nb0``."""
+    fine level (unit weights, diagonal deg) reads ``nb0``; its first ``red0`` rows are
+    red.  When ``restrict0 == red0`` (no two rows of one colour are neighbours) a
+    colour's rows are updated in any order (two threads with ``par``), else one by one
+    in order.  r0 (n0,) scratch."""
     deg = nbr.shape[1]
     fdeg = float(deg)
     inv_deg = 1.0 / deg
@@ -225,16 +297,25 @@ def _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b
         for i in range(sizes[lv + 1] + 1):
             b[cb + i] = 0.0
         if lv == 0:
-            for i in range(n0):
+            clean = restrict0 == red0
+            for i in range(red0 if clean else 0, n0 + 1):
                 x[i] = 0.0
-            x[n0] = 0.0
-            for i in range(n0):
-                x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
-            for _ in range(sweeps - 1):
-                for i in range(n0):
-                    x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+            if clean:            # first sweep from 0: a red row sees only black zeros
+                for i in range(red0):
+                    x[i] = b[i] * inv_deg
+                _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
+                for _ in range(sweeps - 1):
+                    _sweep0(nb0, x, b, 0, red0, deg, inv_deg, par)
+                    _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
+            else:
+                for _ in range(sweeps):
+                    _gs0(nb0, x, b, 0, n0, deg, inv_deg)
+            if par:
+                _residual0_par(nb0, x, b, r0, 0, restrict0, deg)
+            else:
+                _residual0(nb0, x, b, r0, 0, restrict0, deg)
             for i in range(restrict0):
-                b[cb + agg[i]] += b[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
+                b[cb + agg[i]] += r0[i]
             continue
         for i in range(n + 1):
             x[base + i] = 0.0
@@ -273,8 +354,12 @@ def _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b
     for i in range(n0):
         x[i] += boost * x[cb + agg[i]]
     for _ in range(sweeps):
-        for i in range(n0 - 1, -1, -1):
-            x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+        if restrict0 == red0:        # black rows, then red (the backward order by colour)
+            _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
+            _sweep0(nb0, x, b, 0, red0, deg, inv_deg, par)
+        else:
+            for i in range(n0 - 1, -1, -1):
+                x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
 
 
 @nb.njit(cache=True)
@@ -285,7 +370,21 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
+def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
+                  sweeps, boost, par):
+    """xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
+    for i in range(n):
+        bs[i] = r[i]
+    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
+            boost, par)
+    rz = 0.0
+    for i in range(n):
+        rz += r[i] * xs[i]
+    return rz
+
+
+@nb.njit(cache=True, nogil=True)
+def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, deadline):
     """Preconditioned CG on the finest level, from the initial guess ``u``.
 
     rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
@@ -301,6 +400,7 @@ def _pcg(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u,
     r = np.zeros(n + 1)
     p = np.zeros(n + 1)
     q = np.zeros(n + 1)
+    r0 = np.zeros(n + 1)
     u[n] = 0.0
     res = 0.0
     fdeg = float(deg)
@@ -310,21 +410,21 @@ def _pcg(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u,
             res = abs(r[i])
     if res < tol:
         return 0, res
-    for i in range(n):
-        bs[i] = r[i]
-    _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
-    rz = 0.0
+    rz = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
+                       r0, r, n, sweeps, boost, par)
     for i in range(n):
         p[i] = xs[i]
-        rz += r[i] * xs[i]
     it = 0
     while it < max_iter:
         if deadline > 0.0 and _now() > deadline:
             break
         it += 1
+        if par:
+            _matvec0_par(nb0, p, q, 0, n, deg)
+        else:
+            _matvec0(nb0, p, q, 0, n, deg)
         pq = 0.0
         for i in range(n):
-            q[i] = fdeg * p[i] - _row0(nb0, p, i, deg)
             pq += p[i] * q[i]
         if not pq > 0.0:
             break
@@ -337,12 +437,8 @@ def _pcg(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u,
                 res = abs(r[i])
         if res < tol:
             break
-        for i in range(n):
-            bs[i] = r[i]
-        _vcycle(nb0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, sweeps, boost)
-        rz_new = 0.0
-        for i in range(n):
-            rz_new += r[i] * xs[i]
+        rz_new = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
+                               ws, r0, r, n, sweeps, boost, par)
         beta = rz_new / rz
         rz = rz_new
         for i in range(n):
@@ -369,6 +465,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     b = np.zeros(n + 1)
     b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
-    it, res = _pcg(h.nb0, h.restrict0, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
+    par = n >= PARALLEL_NODES and h.restrict0 == h.red0
+    it, res = _pcg(h.nb0, h.red0, h.restrict0, par, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes, h.chol, b, x,
                    float(tol), int(max_iter), int(sweeps), float(boost), float(deadline))
     return x[h.fine_of_input], int(it), float(res)
