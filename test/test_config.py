@@ -91,3 +91,24 @@ def test_arrays_from_ros_messages_are_lists():
     assert check_value("grid.cells", array.array("q", [36, 37, 38])) == [36, 37, 38]
     assert check_value("safety_margin_m", 0.03) == 0.03
     assert check_value("trajectory.max_velocity_deg_s", array.array("d", [1.0, 2.0, 3.0])) == [1.0, 2.0, 3.0]
+
+
+def test_planner_settings_come_from_the_parameters_and_name_bad_values(paper_scenario):
+    from dataclasses import replace
+
+    from spacerobot_planner.planner import Planner, settings_from_params
+    sc = paper_scenario(2)
+    params = dict(sc.params, **{"planner.max_start_penetration_m": 0.0, "grasp.max_approach_error_deg": 2.5})
+    pl = Planner(replace(sc, params=params))
+    assert pl.settings.max_start_penetration_m == 0.0 and pl.settings.max_approach_error_deg == 2.5
+    assert Planner(replace(sc, params=params), max_start_penetration_m=0.01).settings.max_start_penetration_m == 0.01
+    for key, bad in (("planner.max_start_penetration_m", -0.1), ("grasp.max_approach_error_deg", 200.0),
+                     ("planner.solver", "magic")):
+        with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+            settings_from_params({key: bad})
+    with pytest.raises(ValueError, match="max_approach_error_deg"):
+        Planner(sc, max_approach_error_deg=float("nan"))
+    # the setters replace the settings (a new, equal-but-for-the-change object)
+    before = pl.settings
+    pl.max_grid_nodes = 1000
+    assert pl.settings is not before and pl.settings.max_grid_nodes == 1000 and before.max_grid_nodes != 1000
