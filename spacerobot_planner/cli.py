@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -76,8 +77,7 @@ def _summary(res, scenario) -> list:
     return lines
 
 
-def _motion_summary(motion, resampled) -> list:
-    traj, r = motion.trajectory, motion.reaction
+def _motion_summary(traj, r, resampled) -> list:
     labels, counts = np.unique(traj.active_limit, return_counts=True)
     active = ", ".join(f"{lab} {100 * c / len(traj):.0f} %" for lab, c in
                        sorted(zip(labels, counts), key=lambda lc: -lc[1]))
@@ -89,6 +89,8 @@ def _motion_summary(motion, resampled) -> list:
     def lim(v, unit):
         return "no limit" if v is None else f"limit {v:g} {unit}"
 
+    if r is None:
+        return lines
     lines.append(f"reaction ({r.acs_mode}): wheel momentum peak {r.peak_wheel_momentum_Nms:.2f} N·m·s "
                  f"({lim(r.max_wheel_momentum_Nms, 'N·m·s')}), torque peak {r.peak_wheel_torque_Nm:.3f} N·m "
                  f"({lim(r.max_wheel_torque_Nm, 'N·m')}); free floating: attitude change "
@@ -116,8 +118,7 @@ def main(argv=None) -> int:
             check_value("grid.cells", cells)
             if len(cells) != robot.dof:
                 raise ValueError(f"--cells: expected 1 or {robot.dof} values, got {len(args.cells)}")
-            from dataclasses import replace
-            scenario = replace(scenario, grid=scenario.grid_with_cells(cells))
+            scenario = scenario.with_grid(scenario.grid_with_cells(cells))
         solver = args.solver if args.solver is not None else params.get("planner.solver", "log_harmonic")
         if solver not in SOLVERS:
             raise ValueError(f"--solver: unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
@@ -143,9 +144,10 @@ def main(argv=None) -> int:
         else:
             raise ValueError("--start-deg: no start given and the file has no scenario.start_deg")
         goal = posture(args.goal_deg, "--goal-deg") if args.goal_deg is not None else scenario.goal_rad
-        from .planner import Planner
-        planner = Planner(scenario, solver=solver, field_tolerance=tol, max_grid_nodes=budget,
-                          field_budget_s=field_budget)
+        from .planner import Planner, settings_from_params
+        settings = settings_from_params(params, solver=solver, field_tolerance=tol, max_grid_nodes=budget,
+                                        field_budget_s=field_budget, reaction=True)
+        planner = Planner(scenario, settings=settings)
     except ValueError as e:
         return _fail_input(str(e))
     # ---- plan
@@ -156,41 +158,37 @@ def main(argv=None) -> int:
     res = planner.plan(start, goal, progress=progress)
     if res.code == "invalid_input":
         return _fail_input(res.reason)
-    if res.ok and scenario.acs.mode == "free_floating" and scenario.acs.compensate_drift:
+    if res.code in ("ok", "reaction_refused") and scenario.acs.mode == "free_floating" \
+            and scenario.acs.compensate_drift:
         from .dynamics import plan_free_floating
+        # the compensation plans geometry only; the trajectory stage follows on its result
+        geometric = replace(scenario, params={k: v for k, v in params.items()
+                                              if not k.startswith("trajectory.")})
         try:
-            comp = plan_free_floating(scenario, start, goal)
+            comp = plan_free_floating(geometric, start, goal)
         except ValueError as e:
             return _fail_input(str(e))
         print(f"drift compensation: {len(comp.history)} plans, tip miss "
               f"{' → '.join(f'{h[0]:.4f}' for h in comp.history)} m; goal "
               f"{np.round(np.degrees(comp.goal_rad), 2).tolist()}°")
         if comp.plan.ok:
-            res = comp.plan
+            res = planner.add_trajectory(comp.plan, start)
     for line in _summary(res, scenario):
         print(line)
-    motion = resampled = None
-    if res.ok:
+    resampled = None
+    if res.trajectory is not None:
         from .collision import CollisionChecker
-        from .dynamics import plan_motion
         from .trajectory import resample
-        try:
-            motion = plan_motion(scenario, res.path_rad)
-        except ValueError as e:
-            return _fail_input(str(e))
-        resampled = resample(motion.trajectory, CollisionChecker(robot, scenario.scene))
-        for line in _motion_summary(motion, resampled):
+        resampled = resample(res.trajectory, CollisionChecker(robot, scenario.scene))
+        for line in _motion_summary(res.trajectory, res.reaction, resampled):
             print(line)
-        if not motion.reaction.ok:
-            print(f"spacerobot-plan: refused: {motion.reaction.reason}", file=sys.stderr)
+        if res.code == "reaction_refused":
+            print(f"spacerobot-plan: refused: {res.reason}", file=sys.stderr)
     if args.json:
         doc = res.to_json_dict()
-        if motion is not None:
-            doc.update(motion.to_json_dict())
+        if resampled is not None:
             doc["trajectory_resampled"] = dict(resampled.trajectory.to_json_dict(), certified=resampled.ok,
                                                min_clearance_m=float(resampled.check.min_clearance_m))
-            if not motion.reaction.ok:
-                doc.update(ok=False, code="reaction_refused", error=motion.reaction.reason)
         text = json.dumps(doc, indent=None, allow_nan=False)
         if args.json == "-":
             print(text)
@@ -203,12 +201,13 @@ def main(argv=None) -> int:
         Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
         plot_plan(res, scenario, args.plot)
         print(f"wrote {args.plot}")
-        if motion is not None:
+        if res.reaction is not None:
+            from .dynamics import Motion
             from .plotting import plot_reaction
             rpath = Path(args.plot).with_name(Path(args.plot).stem + "_reaction.png")
-            plot_reaction(motion, rpath)
+            plot_reaction(Motion(res.trajectory, res.reaction), rpath)
             print(f"wrote {rpath}")
-    return 0 if res.ok and motion.reaction.ok else 2
+    return 0 if res.ok else 2
 
 
 if __name__ == "__main__":

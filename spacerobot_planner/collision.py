@@ -17,7 +17,7 @@ from numba import njit
 
 from .scene import pack_polygons
 
-__all__ = ["clearance_m", "is_free", "CollisionChecker"]
+__all__ = ["CollisionChecker"]
 
 
 # ----------------------------------------------------------------- primitives
@@ -61,12 +61,6 @@ def point_segment_dist2(px, py, ax, ay, bx, by):
         t = min(1.0, max(0.0, ((px - ax) * ux + (py - ay) * uy) / den))
     ex, ey = ax + t * ux - px, ay + t * uy - py
     return ex * ex + ey * ey
-
-
-@njit(cache=True, nogil=True)
-def point_segment_distance(px, py, ax, ay, bx, by):
-    """Euclidean distance from point P to segment AB."""
-    return np.sqrt(point_segment_dist2(px, py, ax, ay, bx, by))
 
 
 @njit(cache=True, nogil=True)
@@ -249,13 +243,3 @@ class CollisionChecker:
         """True where clearance > safety margin: (dof,) → bool, (N, dof) → (N,) bool."""
         c = self.clearance_m(q)
         return bool(c > self.margin_m) if np.ndim(c) == 0 else c > self.margin_m
-
-
-def clearance_m(robot, scene, q):
-    """Clearance (m) of planned configuration(s) ``q`` ((dof,) or (N, dof), rad)."""
-    return CollisionChecker(robot, scene).clearance_m(q)
-
-
-def is_free(robot, scene, q):
-    """Whether planned configuration(s) ``q`` keep more than the safety margin everywhere."""
-    return CollisionChecker(robot, scene).is_free(q)

@@ -1,5 +1,8 @@
 """Scenario files and parameters: one schema for the YAML loader, the CLI and the node.
 
+The problem type itself (``Scenario``) lives in ``problem.py`` (no YAML there); it is
+re-exported here.
+
 Scenario files are ROS 2 parameter files (``--params-file``): a shared ``/**``
 section (robot, scene, start: what more than one node reads) and a section per node
 (``spacerobot_planner``: grid, planner, trajectory, node settings; ``mock_arm``)::
@@ -24,13 +27,14 @@ from __future__ import annotations
 
 import array
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 import yaml
 
-from .cspace import GridSpec, grid_for_robot
+from .cspace import grid_for_robot
 from .dynamics import ACS_MODES, AcsSettings, MassProperties
+from .problem import Scenario
 from .robot import PlanarArm, square_polygon
 from .scene import Scene, Target
 
@@ -109,6 +113,15 @@ PARAMETERS = (
     ParamSpec("planner.max_grid_nodes", "integer", 4_000_000,
               "Refuse grids with more nodes than this (memory budget), before allocating.",
               False, 4, 200_000_000),
+    ParamSpec("planner.max_start_penetration_m", "double", 0.05,
+              "A start posture whose links reach at most this deep into an obstacle (e.g. holding the "
+              "grasp after the target moved) is first walked out along increasing clearance (reported, "
+              "not certified); deeper: start_in_collision. 0: always start_in_collision, metres.",
+              False, 0.0, 1.0),
+    ParamSpec("grasp.max_approach_error_deg", "double", 5.0,
+              "Largest angle between link 3 and the handle's inward normal accepted for a goal from the "
+              "target (the attitude locked: position-only IK); above it goal_unreachable, degrees.",
+              False, 0.0, 180.0),
     # ---- trajectory (time parameterisation), per joint in robot.joint_names
     ParamSpec("trajectory.max_velocity_deg_s", "double_array", [5.0, 15.0, 15.0],
               "Per-joint velocity limits, deg/s.", False, 1e-3, 1e4),
@@ -280,34 +293,6 @@ def load_params_file(path, node: str = NODE_NAME) -> dict:
         if missing:
             raise ValueError(f"params file {path}: missing required key(s): {', '.join(missing)}")
     return {k: (check_value(k, v) if k in _SPECS else v) for k, v in flat.items()}
-
-
-# ------------------------------------------------------------------- scenario
-@dataclass(frozen=True, eq=False)
-class Scenario:
-    """Everything needed to plan: robot, scene, grid, and optionally start/goal.
-
-    ``start_rad`` and ``goal_rad`` cover the planned joints (None when not given).
-    ``params`` is the flat parameter dict it was built from; ``masses`` and ``acs``
-    the spacecraft's mass properties and attitude-control settings (``dynamics.*``,
-    ``acs.*``, ``grasp.position_tolerance_m``).
-    """
-
-    robot: PlanarArm
-    scene: Scene
-    grid: GridSpec
-    start_rad: np.ndarray | None
-    goal_rad: np.ndarray | None
-    planning_frame: str = "world"
-    params: dict = field(default_factory=dict)
-    masses: MassProperties = field(default_factory=MassProperties)
-    acs: AcsSettings = field(default_factory=AcsSettings)
-
-    def grid_with_cells(self, cells) -> GridSpec:
-        return self.grid.with_cells(cells)
-
-    def with_scene(self, scene: Scene) -> "Scenario":
-        return replace(self, scene=scene)
 
 
 def parse_polygons(text: str, name: str = "obstacles.polygons_m") -> tuple:

@@ -9,15 +9,16 @@ joints nearest the tip, again two branches.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import minimize
 
 from .collision import CollisionChecker
-from .robot import wrap_angle_rad
+from .joint_space import TWO_PI, wrap_angle_rad, wrap_rad
 
-__all__ = ["IKSolution", "grasp_ik", "capture_posture", "CapturePosture"]
+__all__ = ["IKSolution", "grasp_ik", "capture_posture", "CapturePosture", "approach_error_rad",
+           "perpendicular_attitudes"]
 
 
 @dataclass(frozen=True)
@@ -59,13 +60,12 @@ def _two_link(base, target, l_a, l_b):
 
 def _fit_to_bounds(robot, q_full):
     """Shift each joint by whole turns into [lower, upper]; None when one cannot fit."""
-    out = np.array(q_full, dtype=float)
+    out = wrap_rad(q_full, robot.periodic, robot.lower_rad)
     for j in range(robot.n_joints):
         lo, hi = robot.lower_rad[j], robot.upper_rad[j]
         if robot.periodic[j]:
-            out[j] = lo + (out[j] - lo) % (2.0 * np.pi)
             continue
-        fits = [v for v in out[j] + 2.0 * np.pi * np.arange(-2, 3) if lo - 1e-9 <= v <= hi + 1e-9]
+        fits = [v for v in out[j] + TWO_PI * np.arange(-2, 3) if lo - 1e-9 <= v <= hi + 1e-9]
         if not fits:
             return None
         out[j] = min(fits, key=abs)
@@ -122,6 +122,23 @@ def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_onl
             sols.append(sol)
     sols.sort(key=lambda s: -s.manipulability)
     return sols
+
+
+def approach_error_rad(robot, target, q_full) -> float:
+    """Angle between the last link and the handle's inward normal (the perpendicular
+    approach ``target.approach_angle_rad``) at full configuration ``q_full``, in [0, π]."""
+    last = float(np.sum(np.asarray(q_full, dtype=float)))
+    return abs(float(wrap_angle_rad(last - target.approach_angle_rad)))
+
+
+def perpendicular_attitudes(robot, scene) -> list:
+    """Attitudes (joint 1, rad) at which the arm grasps the scene's target perpendicularly:
+    the full-pose IK of the 3-joint chain with the attitude free.  Returns
+    [(attitude_rad, free)] per branch, collision-free branches first; empty when the grasp
+    pose is out of reach."""
+    free_robot = replace(robot, planned_joints=tuple(range(robot.n_joints)))
+    sols = grasp_ik(free_robot, scene, free_only=False)
+    return sorted(((float(s.q_full[0]), bool(s.free)) for s in sols), key=lambda a: not a[1])
 
 
 @dataclass(frozen=True)

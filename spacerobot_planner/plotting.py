@@ -18,6 +18,7 @@ from matplotlib.colors import ListedColormap, LogNorm  # noqa: E402
 from matplotlib.patches import Polygon  # noqa: E402
 
 from .cspace import build_cspace  # noqa: E402
+from .joint_space import wrap_angle_rad, wrap_rad  # noqa: E402
 
 __all__ = ["plot_plan", "plot_reaction", "wrap_for_plot"]
 
@@ -29,9 +30,7 @@ def wrap_for_plot(path_rad, lower_rad, periodic) -> np.ndarray:
     p = np.array(path_rad, dtype=float)
     if len(p) == 0:
         return p
-    for a, per in enumerate(periodic):
-        if per:
-            p[:, a] = lower_rad[a] + (p[:, a] - lower_rad[a]) % (2.0 * np.pi)
+    p = wrap_rad(p, periodic, lower_rad)
     jumps = np.zeros(len(p) - 1, dtype=bool)
     for a, per in enumerate(periodic):
         if per:
@@ -233,7 +232,7 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
             thk = grid.axis_values_rad(0)[k]
             if len(res.path_rad):
                 p = wrap_for_plot(res.path_rad, lo, per)
-                near = np.abs((p[:, 0] - thk + np.pi) % (2 * np.pi) - np.pi) <= grid.step_rad[0] / 2
+                near = np.abs(wrap_angle_rad(p[:, 0] - thk)) <= grid.step_rad[0] / 2
                 pp = np.where(near[:, None], np.degrees(p), np.nan)
                 ax.plot(np.degrees(p[:, 1]), np.degrees(p[:, 2]), "-", color=_PATH, lw=0.8, alpha=0.35)
                 ax.plot(pp[:, 1], pp[:, 2], "-", color=_PATH, lw=3)

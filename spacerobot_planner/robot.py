@@ -13,16 +13,13 @@ in the paper's 2-DOF case) keep the value in ``locked_rad``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PlanarArm", "square_polygon", "wrap_angle_rad"]
+from .joint_space import TWO_PI, wrap_rad
 
-
-def wrap_angle_rad(angle_rad):
-    """Wrap angles to [-π, π).  Works on scalars and arrays."""
-    return (np.asarray(angle_rad, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
+__all__ = ["PlanarArm", "square_polygon", "validate_polygon"]
 
 
 def square_polygon(side_m: float, center_m=(0.0, 0.0), yaw_rad: float = 0.0,
@@ -70,7 +67,6 @@ class PlanarArm:
     planned_joints: tuple = None
     locked_rad: np.ndarray = None
     checked_links: tuple = (1, 2)
-    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
         n = len(self.joint_names)
@@ -92,7 +88,7 @@ class PlanarArm:
         if np.any(hi <= lo):
             raise ValueError("joint bounds: every upper bound must exceed its lower bound")
         for i, p in enumerate(self.periodic):
-            if p and not np.isclose(hi[i] - lo[i], 2.0 * np.pi):
+            if p and not np.isclose(hi[i] - lo[i], TWO_PI):
                 raise ValueError(f"periodic: joint '{self.joint_names[i]}' is periodic, so its "
                                  f"bounds must span exactly 360°")
         body = np.asarray(self.body_polygon_m, dtype=float)
@@ -155,18 +151,15 @@ class PlanarArm:
         if q.shape != (self.dof,):
             raise ValueError(f"{name}: expected {self.dof} joint values "
                              f"({', '.join(self.planned_names)}), got shape {q.shape}")
-        out = q.copy()
         lo, hi = self.planned_lower_rad, self.planned_upper_rad
         for k, j in enumerate(self.planned_joints):
             jn = self.joint_names[j]
             if not np.isfinite(q[k]):
                 raise ValueError(f"{name}: joint '{jn}' is {q[k]} (not a finite number)")
-            if self.periodic[j]:
-                out[k] = lo[k] + (q[k] - lo[k]) % (2.0 * np.pi)
-            elif not (lo[k] - 1e-9 <= q[k] <= hi[k] + 1e-9):
+            if not self.periodic[j] and not (lo[k] - 1e-9 <= q[k] <= hi[k] + 1e-9):
                 raise ValueError(f"{name}: joint '{jn}' = {np.degrees(q[k]):.3f}° is outside its "
                                  f"bounds [{np.degrees(lo[k]):.1f}°, {np.degrees(hi[k]):.1f}°]")
-        return out
+        return wrap_rad(q, self.planned_periodic, lo)
 
     # -------------------------------------------------------------- kinematics
     def forward_kinematics(self, q_full) -> np.ndarray:

@@ -25,7 +25,7 @@ from scipy.interpolate import CubicSpline
 from .motion import (DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, certify_segments, check_path,
                      lipschitz_m_per_rad)
 
-__all__ = ["SmoothPath", "unwrap_path", "path_length_rad", "densify_polyline", "shortcut_indices",
+__all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
            "spline_through", "smooth_path", "DEFAULT_MAX_STEP_RAD"]
 
 DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
@@ -56,20 +56,6 @@ class SmoothPath:
 
 
 # --------------------------------------------------------------------- helpers
-def unwrap_path(q_rad, periodic) -> np.ndarray:
-    """Unwrap the periodic columns of an (M, dof) path so it has no 2π jumps.
-
-    The first row is kept exactly; non-periodic columns are untouched.
-    """
-    q = np.array(q_rad, dtype=float, copy=True)
-    for a, p in enumerate(periodic):
-        if p and len(q) > 1:
-            step = np.diff(q[:, a])
-            step = (step + np.pi) % (2.0 * np.pi) - np.pi
-            q[1:, a] = q[0, a] + np.cumsum(step)
-    return q
-
-
 def path_length_rad(path_rad) -> float:
     """Euclidean joint-space length of an (M, dof) path, rad."""
     p = np.asarray(path_rad, dtype=float)
@@ -273,7 +259,7 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
     Args:
         checker: a ``CollisionChecker`` (exact geometry, the scene's margin).
         waypoints_rad: (m, dof) exact start, grid nodes, exact goal; unwrapped
-            (see :func:`unwrap_path`) and joined by straight segments.
+            (see ``joint_space.unwrap_path``) and joined by straight segments.
         lower_rad, upper_rad, periodic: joint bounds (bounded joints must stay in).
         shortcut: first try a spline along the greedily shortcut polyline.
         keep_clearance_m: shortcuts keep at least margin + this (or the replaced

@@ -6,6 +6,9 @@ safety margin, random start postures; 2-DOF (attitude locked) and 3-DOF; grids f
 coarse to fine.
 """
 
+import os
+
+from conftest import CONFIG_DIR
 import math
 
 import numpy as np
@@ -14,7 +17,7 @@ from hypothesis import strategies as st
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.scene import Scene, Target
 
-PAPER = {2: load_scenario("config/paper_2dof.yaml"), 3: load_scenario("config/paper_3dof.yaml")}
+PAPER = {dof: load_scenario(os.path.join(CONFIG_DIR, f"paper_{dof}dof.yaml")) for dof in (2, 3)}
 CELLS = {2: (60, 90, 120, 180), 3: (18, 24, 36)}
 
 

@@ -59,11 +59,18 @@ def test_start_and_goal_flags(tmp_path, capsys):
     assert np.allclose(wrap(np.array(d["path_rad"][-1]) - np.radians([150, 40, 70])), 0, atol=1e-12)
 
 
-def test_goal_defaults_to_target_ik(tmp_path, capsys):
-    doc = yaml.safe_load(Path(P3).read_text())
-    del doc["/**"]["ros__parameters"]["scenario"]["goal_deg"]
-    f = tmp_path / "no_goal.yaml"
+def _without_goal(tmp_path, params_file):
+    """A copy of the scenario file without scenario.goal_deg (the goal comes from the target)."""
+    doc = yaml.safe_load(Path(params_file).read_text())
+    for section in doc.values():
+        section.get("ros__parameters", {}).get("scenario", {}).pop("goal_deg", None)
+    f = tmp_path / f"no_goal_{Path(params_file).stem}.yaml"
     f.write_text(yaml.safe_dump(doc))
+    return f
+
+
+def test_goal_defaults_to_target_ik(tmp_path, capsys):
+    f = _without_goal(tmp_path, P3)
     js = tmp_path / "p.json"
     rc, out, err = run(["--params-file", str(f), "--json", str(js)], capsys)
     assert rc == 0, err
@@ -239,3 +246,41 @@ def test_free_floating_with_drift_compensation_is_accepted(tmp_path, capsys):
     d = json.loads(js.read_text())
     assert d["reaction"]["free_floating_tip_miss_m"] < 0.02 and not d["reaction"]["free_floating_collides"]
     assert abs(d["reaction"]["free_floating_attitude_change_deg"]) > 10.0 and "drift compensation" in out
+
+
+def test_json_trajectory_object_follows_the_path(tmp_path, capsys):
+    js = tmp_path / "t.json"
+    rc, out, err = run(["--params-file", P2, "--json", str(js), "--quiet"], capsys)
+    assert rc == 0, err
+    d = json.loads(js.read_text())
+    tr = d["trajectory"]
+    assert tr["joint_names"] == ["shoulder", "elbow"]
+    t, q = np.array(tr["times_s"]), np.array(tr["positions_rad"])
+    v, a = np.array(tr["velocities_rad_s"]), np.array(tr["accelerations_rad_s2"])
+    assert q.shape == v.shape == a.shape == (len(t), 2) and t[0] == 0.0 and np.all(np.diff(t) > 0)
+    assert np.array_equal(q, np.array(d["path_rad"]))          # the path in time, point for point
+    assert np.all(v[0] == 0.0) and np.all(v[-1] == 0.0)
+    # joint limits of the file (deg/s): shoulder 15, elbow 15, by finite differences
+    w = np.diff(q, axis=0) / np.diff(t)[:, None]
+    assert np.all(np.abs(w) <= np.radians(15.0) * 1.001)
+
+
+def test_json_reports_the_grasp_approach_error(tmp_path, capsys):
+    f = _without_goal(tmp_path, P2)
+    js = tmp_path / "g.json"
+    rc, out, err = run(["--params-file", str(f), "--json", str(js), "--quiet"], capsys)
+    assert rc == 0, err
+    d = json.loads(js.read_text())
+    assert 0.0 <= d["approach_error_deg"] <= 5.0
+
+
+def test_importing_the_core_loads_no_rclpy():
+    code = ("import sys\n"
+            "import spacerobot_planner.planner, spacerobot_planner.field, spacerobot_planner.trajectory\n"
+            "import spacerobot_planner.dynamics, spacerobot_planner.cli, spacerobot_planner.pipeline\n"
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rcl_interfaces', "
+            "'sensor_msgs', 'trajectory_msgs'))\n"
+            "print(bad)\n"
+            "sys.exit(1 if bad else 0)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(ROOT.parent))
+    assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -1,9 +1,11 @@
 """Exact collision tests and the C-space against an independent brute-force check."""
 
 import math
+import os
 
 import numpy as np
 import pytest
+from conftest import CONFIG_DIR
 
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
@@ -78,14 +80,14 @@ DEBRIS = (
 
 @pytest.fixture(scope="module", params=["paper_2dof", "paper_3dof"])
 def scenario(request):
-    sc = load_scenario(f"config/{request.param}.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, f"{request.param}.yaml"))
     scene = Scene(target=sc.scene.target, debris_m=tuple(np.array(p) for p in DEBRIS), safety_margin_m=0.05)
     return sc.with_scene(scene)
 
 
 def test_start_postures_clear_the_body_as_the_paper_draws_them():
     for name in ("paper_2dof", "paper_3dof"):
-        sc = load_scenario(f"config/{name}.yaml")
+        sc = load_scenario(os.path.join(CONFIG_DIR, f"{name}.yaml"))
         chk = CollisionChecker(sc.robot, sc.scene)
         c = chk.clearance_m(sc.start_rad)
         assert 0.08 <= c <= 0.12, (name, c)
@@ -106,22 +108,48 @@ def test_clearance_matches_reference_on_random_configurations(scenario):
     assert (want == 0).sum() > 20 and (want > 0.05).sum() > 20
 
 
-def test_cspace_occupancy_equals_brute_force(scenario):
-    grid = scenario.grid.with_cells(36 if scenario.robot.dof == 3 else 90)
+def shapely_clearance(robot, scene, q):
+    """Oracle from shapely (GEOS): distance from the link segments to the posed body and the
+    obstacles; shares nothing with the kernels or the reference above."""
+    from shapely.geometry import LineString, Polygon
+    q_full = robot.full(q)
+    pts = robot.forward_kinematics(q_full)
+    polys = [Polygon(robot.body_polygon_world(q_full[0]))] + [Polygon(p) for p in scene.obstacle_polygons_m]
+    return min(LineString([pts[k], pts[k + 1]]).distance(poly) for k in robot.checked_links for poly in polys)
+
+
+def test_clearance_and_freedom_match_shapely(scenario):
+    rng = np.random.default_rng(5)
+    chk = CollisionChecker(scenario.robot, scenario.scene)
+    q = rng.uniform(scenario.robot.planned_lower_rad, scenario.robot.planned_upper_rad,
+                    size=(300, scenario.robot.dof))
+    want = np.array([shapely_clearance(scenario.robot, scenario.scene, qi) for qi in q])
+    assert np.allclose(chk.clearance_m(q), want, atol=1e-9)
+    margin = scenario.scene.safety_margin_m
+    away = np.abs(want - margin) > 1e-9
+    assert np.array_equal(chk.is_free(q)[away], want[away] > margin)
+    assert (want == 0).sum() > 20 and (want > margin).sum() > 20
+
+
+@pytest.mark.parametrize("oracle, cells, n_nodes, seed", [
+    (ref_clearance, (36, 90), 1500, 2), (shapely_clearance, (24, 60), 600, 6)])
+def test_cspace_occupancy_equals_brute_force(scenario, oracle, cells, n_nodes, seed):
+    """Random grid nodes: occupied exactly when the oracle's clearance is within the margin."""
+    grid = scenario.grid.with_cells(cells[0] if scenario.robot.dof == 3 else cells[1])
     cs = build_cspace(scenario.robot, scenario.scene, grid)
     assert cs.occupied.shape == grid.shape
-    rng = np.random.default_rng(2)
-    nodes = np.stack([rng.integers(0, n, size=1500) for n in grid.shape], axis=1)
+    rng = np.random.default_rng(seed)
+    nodes = np.stack([rng.integers(0, n, size=n_nodes) for n in grid.shape], axis=1)
     margin = scenario.scene.safety_margin_m
     checked = 0
     for node in nodes:
-        c = ref_clearance(scenario.robot, scenario.scene, grid.config_of(node))
+        c = oracle(scenario.robot, scenario.scene, grid.config_of(node))
         if abs(c - margin) < 1e-9:
             continue       # on the margin itself: either answer is exact to rounding
         assert cs.occupied[tuple(node)] == (c <= margin), (node, c)
         checked += 1
     occ = cs.occupied[tuple(nodes.T)]
-    assert checked > 1400 and 0.05 < occ.mean() < 0.95
+    assert checked > 0.93 * n_nodes and 0.05 < occ.mean() < 0.95
 
 
 def test_margin_grows_the_obstacles(scenario):
@@ -132,7 +160,7 @@ def test_margin_grows_the_obstacles(scenario):
 
 
 def test_attitude_wraps_minus_180_is_plus_180():
-    sc = load_scenario("config/paper_3dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     g = sc.grid
     assert g.shape == (36, 37, 37)
     assert g.node_of(D([-180.0, 0.0, 0.0])) == g.node_of(D([180.0, 0.0, 0.0])) == (0, 18, 18)
@@ -157,7 +185,7 @@ def test_node_of_rejects_out_of_bounds_and_nan():
 
 
 def test_touching_counts_as_collision_with_zero_margin():
-    sc = load_scenario("config/paper_2dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
     # a debris square whose edge passes exactly through the start posture's elbow
     q = sc.start_rad
     elbow = sc.robot.forward_kinematics(sc.robot.full(q))[2]
@@ -169,7 +197,7 @@ def test_touching_counts_as_collision_with_zero_margin():
 def test_cached_body_table_gives_the_same_occupancy():
     from spacerobot_planner.cspace import body_occupancy
     from spacerobot_planner.scene import Target
-    sc = load_scenario("config/paper_3dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     table = body_occupancy(sc.robot, sc.grid, sc.scene.safety_margin_m)
     assert table.shape == sc.grid.shape[1:]
     # the table serves another target pose unchanged (it only knows the body)

@@ -1,5 +1,8 @@
 """Scenario files: the paper's scenes load; bad files name the field that is wrong."""
 
+import os
+
+from conftest import CONFIG_DIR
 import numpy as np
 import pytest
 import yaml
@@ -15,7 +18,7 @@ def _write(tmp_path, params, node="spacerobot_planner"):
 
 def _paper_params():
     """The planner's view of the paper file as one nested section: /** and its own merged."""
-    with open("config/paper_3dof.yaml") as f:
+    with open(os.path.join(CONFIG_DIR, "paper_3dof.yaml")) as f:
         doc = yaml.safe_load(f)
     return {**doc["/**"]["ros__parameters"], **doc["spacerobot_planner"]["ros__parameters"]}
 
@@ -34,8 +37,8 @@ def test_shared_and_node_sections_merge(tmp_path):
 
 
 def test_paper_scenes_load():
-    s2 = load_scenario("config/paper_2dof.yaml")
-    s3 = load_scenario("config/paper_3dof.yaml")
+    s2 = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
+    s3 = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     assert s2.grid.shape == (181, 181) and s2.robot.planned_names == ("shoulder", "elbow")
     assert s3.grid.shape == (36, 37, 37) and s3.grid.periodic == (True, False, False)
     assert np.allclose(np.degrees(s3.start_rad), [-90, 135, 90])
@@ -103,3 +106,24 @@ def test_arrays_from_ros_messages_are_lists():
     assert check_value("grid.cells", array.array("q", [36, 37, 38])) == [36, 37, 38]
     assert check_value("safety_margin_m", 0.03) == 0.03
     assert check_value("trajectory.max_velocity_deg_s", array.array("d", [1.0, 2.0, 3.0])) == [1.0, 2.0, 3.0]
+
+
+def test_planner_settings_come_from_the_parameters_and_name_bad_values(paper_scenario):
+    from dataclasses import replace
+
+    from spacerobot_planner.planner import Planner, settings_from_params
+    sc = paper_scenario(2)
+    params = dict(sc.params, **{"planner.max_start_penetration_m": 0.0, "grasp.max_approach_error_deg": 2.5})
+    pl = Planner(replace(sc, params=params))
+    assert pl.settings.max_start_penetration_m == 0.0 and pl.settings.max_approach_error_deg == 2.5
+    assert Planner(replace(sc, params=params), max_start_penetration_m=0.01).settings.max_start_penetration_m == 0.01
+    for key, bad in (("planner.max_start_penetration_m", -0.1), ("grasp.max_approach_error_deg", 200.0),
+                     ("planner.solver", "magic")):
+        with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+            settings_from_params({key: bad})
+    with pytest.raises(ValueError, match="max_approach_error_deg"):
+        Planner(sc, max_approach_error_deg=float("nan"))
+    # the setters replace the settings (a new, equal-but-for-the-change object)
+    before = pl.settings
+    pl.max_grid_nodes = 1000
+    assert pl.settings is not before and pl.settings.max_grid_nodes == 1000 and before.max_grid_nodes != 1000

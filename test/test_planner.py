@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.config import load_scenario
 from spacerobot_planner.cspace import build_cspace
 from spacerobot_planner.planner import CODES, STAGES, Planner
 from spacerobot_planner.scene import Target
@@ -63,13 +62,13 @@ def assert_valid_path(res, sc):
 
 
 @pytest.fixture(scope="module")
-def sc3():
-    return load_scenario(CONFIG / "paper_3dof.yaml")
+def sc3(paper_scenario):
+    return paper_scenario(3)
 
 
 @pytest.fixture(scope="module")
-def sc2():
-    return load_scenario(CONFIG / "paper_2dof.yaml")
+def sc2(paper_scenario):
+    return paper_scenario(2)
 
 
 @pytest.fixture(scope="module")
@@ -317,13 +316,12 @@ def test_repair_without_grid_margin(sc3):
     assert sum(r.ok for r in results) >= 5
 
 
-def test_repairs_on_random_scenes_keep_paths_valid():
-    """Random 3-DOF scenes at 36³ where grid walks meet colliding motions (repairs: cut
-    grid edges, re-solved fields): every returned path passes the independent check."""
+def _random_target_plans(n_scenes: int = 200):
+    """(scenario, start, goal, planner, result) of plans to the target on random 3-DOF scenes
+    at 36³ (the benchmark's scene family), in a fixed order."""
     from spacerobot_planner.bench.scenes import random_scenario
     rng = np.random.default_rng([0, 3])
-    repaired = checked = 0
-    for _ in range(200):
+    for _ in range(n_scenes):
         sc, start = random_scenario(rng, 3)
         if start is None:
             continue
@@ -332,7 +330,14 @@ def test_repairs_on_random_scenes_keep_paths_valid():
             goal = pl.goal_from_target()
         except ValueError:
             continue
-        res = pl.plan(start, goal)
+        yield sc, start, goal, pl, pl.plan(start, goal)
+
+
+def test_repairs_on_random_scenes_keep_paths_valid():
+    """Random 3-DOF scenes at 36³ where grid walks meet colliding motions (repairs: cut
+    grid edges, re-solved fields): every returned path passes the independent check."""
+    repaired = checked = 0
+    for sc, start, goal, pl, res in _random_target_plans():
         checked += 1
         if res.ok:
             assert_valid_path(res, sc)
@@ -367,3 +372,216 @@ def test_path_as_good_as_on_the_fully_converged_field(paper_scenario):
         assert res.ok and ref.ok
         assert abs(res.path_length_rad / ref.path_length_rad - 1.0) < 0.01
         assert abs(res.min_clearance_m / ref.min_clearance_m - 1.0) < 0.01
+
+
+# ------------------------------------------------------- caches never change a plan
+def _same(a, b):
+    assert a.code == b.code
+    assert np.array_equal(a.path_rad, b.path_rad) and np.array_equal(a.grid_path_rad, b.grid_path_rad)
+    assert {k: v for k, v in a.solver_stats.items()} == {k: v for k, v in b.solver_stats.items()}
+
+
+def test_plan_a_b_a_gives_a_bit_for_bit(sc3):
+    pl = Planner(sc3)
+    other = sc3.start_rad + np.radians([40.0, -20.0, 10.0])
+    assert CollisionChecker(sc3.robot, sc3.scene).is_free(other)
+    a1 = pl.plan(sc3.start_rad, sc3.goal_rad)
+    b = pl.plan(other, sc3.goal_rad)
+    a2 = pl.plan(sc3.start_rad, sc3.goal_rad)
+    assert a1.ok and b.ok and not np.array_equal(a1.path_rad, b.path_rad)
+    _same(a1, a2)
+    _same(a1, Planner(sc3).plan(sc3.start_rad, sc3.goal_rad))       # a fresh planner agrees
+
+
+def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
+    """A scene whose plan cuts grid edges / blocks nodes: planning another start in between
+    (which repairs the field too) does not change the repaired plan."""
+    for sc, start, goal, pl, a1 in _random_target_plans():
+        if a1.solver_stats.get("repairs", 0) > 0:
+            break
+    else:
+        pytest.fail("no scene needing repairs")
+    chk = CollisionChecker(sc.robot, sc.scene)
+    others = [q for q in np.random.default_rng(1).uniform(sc.robot.planned_lower_rad, sc.robot.planned_upper_rad,
+                                                          size=(40, 3)) if chk.is_free(q)][:4]
+    for q in others:
+        pl.plan(q, goal)
+    a2 = pl.plan(start, goal)
+    _same(a1, a2)
+    _same(a1, Planner(sc).plan(start, goal))
+
+
+# ---------------------------------------------------- honest "disconnected"
+def test_passage_between_margin_and_grid_margin_is_found(sc2):
+    """The only way past a block leaves link 2 6 mm more than the safety margin from it: less
+    than the grid's extra margin (20 mm).  The planner used to answer 'disconnected' at any
+    grid size; now it tries again without the extra margin and finds the path."""
+    from spacerobot_planner.scene import Scene
+    m = sc2.scene.safety_margin_m
+    att = sc2.robot.locked_rad[0]
+    shoulder = 1.4 * np.array([np.cos(att), np.sin(att)])
+    u = np.array([np.cos(np.radians(245.0)), np.sin(np.radians(245.0))])
+    n = np.array([-u[1], u[0]])
+    c = shoulder + (2.0 + m + 0.006 + 0.15) * u                  # a face 2.026 m from the shoulder
+    block = np.array([c + 0.15 * (a * u + b * n) for a, b in [(-1, -1), (1, -1), (1, 1), (-1, 1)]])
+    scene = Scene(target=sc2.scene.target, debris_m=(block,), safety_margin_m=m)
+    for cells in (90, 180):
+        sc = sc2.with_scene(scene).with_grid(sc2.grid_with_cells(cells))
+        res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+        assert_valid_path(res, sc)
+        assert res.solver_stats["grid_extra_margin_m"] == 0.0
+        # it went through the passage: the independent check sees the tight clearance
+        assert dense_check(sc.robot, scene, res.path_rad)[1] < m + Planner(sc).grid_extra_margin_m
+
+
+# ------------------------------------------------------------- grasp approach
+def _link3_and_normal_deg(robot, target, q_full):
+    """Oracle: angle between link 3 (from hand-written forward kinematics) and the handle's
+    inward normal (from the target's yaw: the handle sits on the local +y face)."""
+    l1, l2, l3 = robot.link_lengths_m
+    t1, t2, t3 = q_full
+    elbow = (l1 * np.array([np.cos(t1), np.sin(t1)]) + l2 * np.array([np.cos(t1 + t2), np.sin(t1 + t2)]))
+    tip = elbow + l3 * np.array([np.cos(t1 + t2 + t3), np.sin(t1 + t2 + t3)])
+    link = (tip - elbow) / np.linalg.norm(tip - elbow)
+    inward = np.array([np.sin(target.yaw_rad), -np.cos(target.yaw_rad)])
+    return float(np.degrees(np.arccos(np.clip(link @ inward, -1.0, 1.0))))
+
+
+def test_paper_2dof_grasp_is_near_perpendicular(sc2):
+    pl = Planner(sc2)
+    goal = pl.goal_from_target()
+    err = _link3_and_normal_deg(sc2.robot, sc2.scene.target, sc2.robot.full(goal))
+    assert err <= 5.0
+    res = pl.plan(sc2.start_rad)
+    assert res.ok and abs(res.approach_error_deg - err) < 1e-6
+    assert res.to_json_dict()["approach_error_deg"] == pytest.approx(err)
+
+
+def test_random_targets_under_locked_attitude_grasp_perpendicular_or_say_which_attitude(sc2):
+    """Random targets, attitude locked: a goal from the target meets the handle within 5° of its
+    normal, or the answer is goal_unreachable naming an attitude at which locking the arm
+    gives a perpendicular grasp (checked by planning a goal there), or saying none does."""
+    import re
+    rng = np.random.default_rng(11)
+    accepted = refused = advised = 0
+    for _ in range(60):
+        r, a, yaw = rng.uniform(2.5, 5.2), rng.uniform(-np.pi, np.pi), rng.uniform(-np.pi, np.pi)
+        target = Target(center_m=(r * np.cos(a), r * np.sin(a)), yaw_rad=yaw)
+        sc = sc2.with_scene(sc2.scene.with_target(target))
+        pl = Planner(sc)
+        try:
+            goal = pl.goal_from_target()
+        except ValueError as e:
+            msg = str(e)
+            if "perpendicular" not in msg:
+                continue                      # out of reach or every posture collides
+            refused += 1
+            res = pl.plan(sc.start_rad)
+            assert res.code == "goal_unreachable" and "grasp.max_approach_error_deg" in res.reason
+            m = re.search(r"an attitude of (-?[\d.]+)°", msg)
+            if m is None:
+                assert "attitude" in msg
+                continue
+            advised += 1
+            robot = replace(sc.robot, locked_rad=np.array([np.radians(float(m.group(1))), 0.0, 0.0]))
+            relocked = replace(sc, robot=robot)
+            q = Planner(relocked).goal_from_target()
+            assert _link3_and_normal_deg(robot, target, robot.full(q)) < 0.2    # the printed 0.1° rounding
+            continue
+        accepted += 1
+        assert _link3_and_normal_deg(sc.robot, target, sc.robot.full(goal)) <= 5.0 + 1e-9
+    assert accepted >= 1 and refused >= 5 and advised >= 1, (accepted, refused, advised)
+
+
+# ---------------------------------------------------------------- leaving a contact
+def _captured_then_moved(sc, d_m):
+    """The capture posture of sc's target, and sc with the target moved d_m towards the arm."""
+    q_cap = Planner(sc).goal_from_target()
+    t = sc.scene.target
+    a = t.approach_angle_rad
+    centre = np.asarray(t.center_m) - d_m * np.array([np.cos(a), np.sin(a)])
+    return q_cap, sc.with_scene(sc.scene.with_target(Target(center_m=tuple(centre), yaw_rad=t.yaw_rad)))
+
+
+def _shapely_depth(robot, scene, q):
+    """Oracle: the deepest point of links 2-3 inside an obstacle (shapely), metres."""
+    from shapely.geometry import LineString, Polygon
+    pts = robot.forward_kinematics(robot.full(q))
+    polys = [Polygon(p) for p in scene.obstacle_polygons_m]
+    best = 0.0
+    for k in robot.checked_links:
+        line = LineString([pts[k], pts[k + 1]])
+        for poly in polys:
+            inside = line.intersection(poly)
+            if inside.is_empty:
+                continue
+            for s in np.linspace(0.0, inside.length, 400):
+                best = max(best, poly.exterior.distance(inside.interpolate(s)))
+    return best
+
+
+@pytest.mark.parametrize("dof, d_m", [(3, 0.10), (3, 0.13), (2, 0.10)])
+def test_target_moved_into_the_captured_posture_is_left(paper_scenario, dof, d_m):
+    sc0 = paper_scenario(dof)
+    q_cap, sc = _captured_then_moved(sc0, d_m)
+    chk = CollisionChecker(sc.robot, sc.scene)
+    assert not chk.is_free(q_cap)
+    res = Planner(sc).plan(q_cap, sc0.start_rad)
+    assert res.ok, res.reason
+    ex = res.exit_path_rad
+    assert len(ex) >= 2 and np.array_equal(ex[0], res.start_rad)
+    assert abs(res.start_penetration_m - _shapely_depth(sc.robot, sc.scene, q_cap)) < 1.5e-3
+    # the exit stretch is the start of the path, in ≤ 0.5° steps, bounded, ending free
+    assert np.array_equal(res.path_rad[:len(ex)], ex)
+    assert np.max(np.linalg.norm(np.diff(ex, axis=0), axis=1)) <= HALF_DEG + 1e-12
+    assert np.sum(np.linalg.norm(np.diff(ex, axis=0), axis=1)) <= np.radians(30.0)
+    assert chk.clearance_m(ex[-1]) > sc.scene.safety_margin_m
+    # everything after it passes the independent dense check
+    rest = res.path_rad[len(ex) - 1:]
+    free, clr = dense_check(sc.robot, sc.scene, rest)
+    assert free and clr > sc.scene.safety_margin_m
+    assert np.allclose(wrap(rest[-1] - sc0.start_rad), 0.0, atol=1e-12)
+    assert res.to_json_dict()["exit"]["certified"] is False
+
+
+def test_deep_start_collision_still_refused(paper_scenario):
+    sc0 = paper_scenario(3)
+    q_cap, sc = _captured_then_moved(sc0, 0.20)             # link 3 10 cm inside the body
+    res = Planner(sc).plan(q_cap, sc0.start_rad)
+    assert res.code == "start_in_collision" and "planner.max_start_penetration_m" in res.reason
+    off = Planner(sc, max_start_penetration_m=0.0).plan(Planner(sc0).goal_from_target(), sc0.start_rad)
+    assert off.code == "start_in_collision"
+    _, touching = _captured_then_moved(sc0, 0.10)
+    assert Planner(touching, max_start_penetration_m=0.0).plan(q_cap, sc0.start_rad).code == "start_in_collision"
+
+
+# ------------------------------------------------------------------ trajectory stage
+def test_result_carries_a_trajectory_aligned_to_the_raw_state(planner3, sc3):
+    raw = sc3.start_rad + np.array([4 * np.pi, 0.0, 0.0])       # joint_states: two turns on
+    res = planner3.plan(raw, sc3.goal_rad)
+    assert res.ok and res.trajectory is not None
+    tr = res.trajectory
+    assert np.array_equal(tr.positions_rad[0], raw)
+    assert np.allclose(tr.positions_rad - 4 * np.pi * np.array([1, 0, 0]), res.path_rad, atol=1e-9)
+    # limits from the scenario file, checked by finite differences written here
+    vmax = np.radians([5.0, 15.0, 15.0])
+    dt = np.diff(tr.times_s)
+    v = np.diff(tr.positions_rad, axis=0) / dt[:, None]
+    assert tr.times_s[0] == 0.0 and np.all(dt > 0) and np.all(np.abs(v) <= vmax * 1.001)
+    d = res.to_json_dict()["trajectory"]
+    for key in ("joint_names", "times_s", "positions_rad", "velocities_rad_s", "accelerations_rad_s2"):
+        assert key in d
+    assert res.reaction is None                  # held attitude, no wheel limits: no reaction stage
+
+
+def test_no_trajectory_without_limits(sc3):
+    res = Planner(replace(sc3, params={})).plan(sc3.start_rad, sc3.goal_rad)
+    assert res.ok and res.trajectory is None and "trajectory" not in res.to_json_dict()
+
+
+def test_codes_are_strings_on_the_wire(plan3):
+    from spacerobot_planner.planner import Code
+    assert plan3.code is Code.OK and plan3.code == "ok" and f"{plan3.code}" == "ok"
+    import json
+    assert json.loads(json.dumps(plan3.to_json_dict()))["code"] == "ok"
+    assert CODES == tuple(c.value for c in Code)

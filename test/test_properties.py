@@ -87,6 +87,13 @@ def check_result(sc, start, goal, res):
     # joint bounds on the bounded joints
     lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
     assert np.all(path[:, bounded] >= lo[bounded] - 1e-12) and np.all(path[:, bounded] <= hi[bounded] + 1e-12)
+    # a start touching an obstacle: the reported exit stretch first, then the certified path
+    k = max(len(res.exit_path_rad) - 1, 0)
+    if k:
+        assert not CollisionChecker(robot, sc.scene).is_free(start)
+        assert np.array_equal(path[:k + 1], res.exit_path_rad)
+        assert np.max(np.linalg.norm(np.diff(path[:k + 1], axis=0), axis=1)) <= np.radians(0.5) + 1e-12
+        path = path[k:]
     # dense exact check with the margin
     dense = dense_samples(path)
     clearance = CollisionChecker(robot, sc.scene).clearance_m(dense)
@@ -111,6 +118,8 @@ def check_no_path_claim(sc, start, goal, res):
         return     # the nearest node itself is blocked: the planner looked at neighbours
     assert not flood_fill(occ, grid.periodic, s_node)[g_node], (
         "planner said 'disconnected' but the grid's free space joins start and goal")
+    # and only on the grid at the scene's own margin (not the extra grid margin)
+    assert res.cspace.margin_m == sc.scene.safety_margin_m
 
 
 @given(case=scenarios(), goal_seed=st.integers(0, 2**31 - 1), use_target=st.booleans())
@@ -126,13 +135,19 @@ def test_plans_are_exact_verified_and_honest(case, goal_seed, use_target):
 
 @given(case=scenarios(), goal_seed=st.integers(0, 2**31 - 1))
 def test_same_input_same_path(case, goal_seed):
+    """Two fresh planners agree bit for bit, and one planner agrees with itself after planning
+    something else in between (caches never change a plan)."""
     sc, start = case
     goal = random_configuration(sc, goal_seed)
-    a = Planner(sc).plan(start, goal)
+    pl = Planner(sc)
+    a = pl.plan(start, goal)
     b = Planner(sc).plan(start, goal)
-    assert (a.ok, a.code, a.reason) == (b.ok, b.code, b.reason)
-    assert np.array_equal(a.path_rad, b.path_rad)
-    assert np.array_equal(a.grid_path_rad, b.grid_path_rad)
+    pl.plan(goal, start)                                                    # another plan between ...
+    c = pl.plan(start, goal)                                                # ... changes nothing
+    for other in (b, c):
+        assert (a.ok, a.code, a.reason) == (other.ok, other.code, other.reason)
+        assert np.array_equal(a.path_rad, other.path_rad)
+        assert np.array_equal(a.grid_path_rad, other.grid_path_rad)
 
 
 @given(case=scenarios(dof=2))

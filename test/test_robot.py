@@ -1,5 +1,8 @@
 """Kinematics of the paper's robot: FK, Jacobian, manipulability, input checks."""
 
+import os
+
+from conftest import CONFIG_DIR
 import numpy as np
 import pytest
 
@@ -11,12 +14,12 @@ D = np.radians
 
 @pytest.fixture(scope="module")
 def sc3():
-    return load_scenario("config/paper_3dof.yaml")
+    return load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
 
 
 @pytest.fixture(scope="module")
 def sc2():
-    return load_scenario("config/paper_2dof.yaml")
+    return load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
 
 
 def test_fk_of_paper_goal_reaches_grasp_point(sc3):

@@ -10,7 +10,8 @@ from spacerobot_planner.config import load_scenario
 from spacerobot_planner.motion import check_path
 from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, densify_polyline,
                                           path_length_rad, shortcut_indices, smooth_path,
-                                          spline_through, unwrap_path)
+                                          spline_through)
+from spacerobot_planner.joint_space import unwrap_path
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"
 

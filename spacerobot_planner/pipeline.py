@@ -1,0 +1,489 @@
+"""One plan, stage by stage: :func:`run_pipeline` reads top to bottom.
+
+    inputs → exit (leave a contact) → C-space → goal nodes → field → descent/repair
+           → smoothing → trajectory
+
+Each stage is a method of :class:`PlanRun` (one call of ``Planner.plan``) that calls
+the stage's own module, is timed by :meth:`PlanRun.stage` and fails by raising
+:class:`Fail` with a :class:`~spacerobot_planner.results.Code`.  The run reads the
+planner's caches and adds entries to them, but never changes an entry: a repaired field
+is a new field, cached under a key that names its cut edges and blocked nodes, so the
+same input gives the same path whatever the planner planned before.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import traceback as _traceback
+from contextlib import contextmanager
+
+import numpy as np
+
+from .contact import leave_contact
+from .descent import colliding_edges
+from .field import bfs_distance
+from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
+from .motion import SegmentTest, check_path, first_bad_segment
+from .results import STAGES, Code, PlanResult
+from .smoothing import smooth_path
+
+__all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
+
+#: A repair cuts the colliding grid edges within this many index steps of the blocked node
+#: (one more with each repair of the same plan, up to three more).
+REPAIR_RADIUS = 2
+
+
+class Fail(Exception):
+    """A stage's answer that there is no (acceptable) plan: a code and a reason."""
+
+    def __init__(self, code: Code, reason: str):
+        super().__init__(reason)
+        self.code, self.reason = code, reason
+
+
+class Cancelled(Exception):
+    pass
+
+
+def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
+    """The stages in order; see the module docstring.  Raises Fail or Cancelled."""
+    run.check_inputs(start_rad, goal_rad)            # invalid_input, goal_unreachable, *_in_collision
+    run.leave_contact()                              # a start touching an obstacle: the exit stretch
+    for extra_m in run.grid_margins():               # the grid's extra margin, then none
+        try:
+            cs, cs_key = run.cspace(extra_m)
+            goal_nodes = run.goal_nodes(cs, cs_key)
+            field, field_key = run.field(cs, cs_key, goal_nodes)
+            waypoints = run.descend_and_repair(cs, field, field_key, goal_nodes)
+            break
+        except Fail as f:                            # the extra margin may close a passage
+            if not (extra_m > 0.0 and f.code in (Code.DISCONNECTED, Code.PATH_INVALID)):
+                raise
+            run.say(f"{f.code} with the grid's extra margin {extra_m} m; trying again without it")
+    smooth = run.smooth(waypoints)
+    return run.time_parameterize(smooth)
+
+
+def trajectory_limits_known(scenario) -> bool:
+    """The scenario states joint velocity and acceleration limits (``trajectory.*``)."""
+    return ("trajectory.max_velocity_deg_s" in scenario.params
+            and "trajectory.max_acceleration_deg_s2" in scenario.params)
+
+
+def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None):
+    """The last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
+
+    Args:
+        scenario: ``problem.Scenario`` (limits from ``trajectory.*``, ACS from ``acs.*``).
+        path_rad: (M, dof) the planned path (unwrapped, exact ends).
+        state_rad: (dof,) the arm's current joint positions (any number of turns on
+            periodic joints); the path is first shifted by whole turns to start there
+            (``joint_space.align_to_state``).  Default: the path's first row.
+        reaction: also report the spacecraft's reaction (``dynamics.plan_motion``);
+            None: when the scenario has ACS or wheel settings (free floating, wheel
+            limits), where the reaction shapes or refuses the trajectory.
+    Returns:
+        (trajectory.Trajectory, dynamics.ReactionReport or None).
+    Raises:
+        ValueError: bad limits (naming the parameter).
+    """
+    from .dynamics import plan_motion, scenario_joint_limits
+    from .trajectory import time_parameterize
+    robot = scenario.robot
+    path = np.asarray(path_rad, dtype=float)
+    if state_rad is not None:
+        path = align_to_state(path, state_rad, robot.planned_periodic)
+    if reaction is None:
+        reaction = scenario.acs.mode != "held" or scenario.acs.has_wheel_limits
+    if reaction:
+        motion = plan_motion(scenario, path)
+        return motion.trajectory, motion.reaction
+    vmax, amax, vs, as_ = scenario_joint_limits(scenario)
+    return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
+                             acceleration_scaling=as_), None
+
+
+class PlanRun:
+    """One call of ``Planner.plan``: the stages' state, timings and cache look-ups.
+
+    Args:
+        planner: the ``Planner`` (its caches and checker).
+        settings: the ``PlannerSettings`` of this plan (a snapshot).
+        cancel: an object with ``is_set()`` or None; progress: a callable(str) or None.
+    """
+
+    def __init__(self, planner, settings, cancel, progress):
+        self.p = planner
+        self.s = settings
+        self.sc = planner.scenario
+        self.robot = self.sc.robot
+        self.checker = planner._checker
+        self.motions = SegmentTest.of(self.checker)
+        self.cancel = cancel
+        self.progress = progress
+        self.timings = {k: 0.0 for k in STAGES}
+        self.cached = []
+        self.stats = {}
+        self.cs = self.fld = None
+        self.start = self.goal = self.start_given = None
+        self.plan_start = None                   # the start of the certified plan (after an exit)
+        self.exit_path = np.zeros((0, self.robot.dof))
+        self.penetration_m = 0.0
+        self.approach_error_deg = math.nan
+        self.grid_path = np.zeros((0, self.robot.dof))
+        self.lower = self.robot.planned_lower_rad
+        self.upper = self.robot.planned_upper_rad
+        self.periodic = self.robot.planned_periodic
+        self.t0 = time.perf_counter()
+
+    # ---------------------------------------------------------------- helpers
+    @contextmanager
+    def stage(self, name: str):
+        """Add the time spent in the ``with`` block to ``timings_s[name]``."""
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] += time.perf_counter() - t
+
+    def say(self, text: str) -> None:
+        if self.progress is not None:
+            self.progress(text)
+
+    def check_cancel(self) -> None:
+        if self.cancel is not None and self.cancel.is_set():
+            raise Cancelled()
+
+    def result(self, code: Code, reason: str | None, smooth=None, path=None, tb: str = "",
+               trajectory=None, reaction=None) -> PlanResult:
+        self.timings["total"] = time.perf_counter() - self.t0
+        dof = self.robot.dof
+        ok = code == Code.OK
+        return PlanResult(
+            ok=ok, reason=reason, code=code, joint_names=self.robot.planned_names,
+            start_rad=self.start if self.start is not None else np.full(dof, np.nan),
+            goal_rad=self.goal, path_rad=path if path is not None else np.zeros((0, dof)),
+            grid_path_rad=self.grid_path, timings_s=dict(self.timings), cached=tuple(self.cached),
+            solver=self.s.solver, solver_stats=dict(self.stats),
+            min_clearance_m=smooth.min_clearance_m if smooth is not None else math.nan,
+            cspace=self.cs, field=self.fld, smoothing=smooth.method if smooth is not None else "",
+            path_length_rad=(float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+                             if path is not None else math.nan),
+            traceback=tb, trajectory=trajectory, reaction=reaction,
+            approach_error_deg=self.approach_error_deg, exit_path_rad=self.exit_path,
+            start_penetration_m=self.penetration_m)
+
+    def segment_ok(self, a, b) -> bool:
+        """The certified motion check of the straight (shortest) segment a → b."""
+        seg = unwrap_path(np.vstack([a, b]), self.periodic)
+        with self.stage("verify"):
+            return check_path(self.checker, seg, self.lower, self.upper, self.periodic,
+                              self.s.verify_step_rad).ok
+
+    def candidates(self, q, grid, free_mask, max_count: int = 8) -> np.ndarray:
+        """Free grid nodes near q (within 2 steps per axis), nearest first: (k, dof) int."""
+        base = np.floor((q - np.asarray(grid.lower_rad)) / grid.step_rad).astype(np.int64)
+        offs = np.stack(np.meshgrid(*[np.arange(-1, 3)] * grid.ndim, indexing="ij"), -1).reshape(-1, grid.ndim)
+        nodes = base + offs
+        shape = np.asarray(grid.shape)
+        keep = np.ones(len(nodes), dtype=bool)
+        for a, p in enumerate(grid.periodic):
+            if p:
+                nodes[:, a] %= shape[a]
+            else:
+                keep &= (nodes[:, a] >= 0) & (nodes[:, a] < shape[a])
+        nodes = np.unique(nodes[keep], axis=0)
+        d = difference_rad(q, grid.config_of(nodes), grid.periodic)
+        nodes = nodes[np.argsort(np.linalg.norm(d, axis=1), kind="stable")]
+        nodes = nodes[free_mask[tuple(nodes.T)]]
+        return nodes[:max_count]
+
+    # ----------------------------------------------------------------- stages
+    def check_inputs(self, start_rad, goal_rad) -> None:
+        """Start and goal valid and in bounds; the goal from the target when none is given;
+        the goal free; the start free or (see :meth:`leave_contact`) touching only."""
+        robot, margin = self.robot, self.sc.scene.safety_margin_m
+        try:
+            self.start_given = np.asarray(start_rad, dtype=float)
+            self.start = robot.validate_q(self.start_given, "start")
+        except (ValueError, TypeError) as e:
+            raise Fail(Code.INVALID_INPUT, str(e)) from None
+        clr_s = self.checker.clearance_m(self.start)
+        if not clr_s > margin and not self.s.max_start_penetration_m > 0.0:
+            raise Fail(Code.START_IN_COLLISION, f"the start {deg_text(self.start)} is in collision: "
+                       f"clearance {clr_s:.3f} m, the safety margin is {margin} m")
+        grid = self.sc.grid
+        if grid.n_nodes > self.s.max_grid_nodes:
+            raise Fail(Code.INVALID_INPUT, f"grid.cells {list(grid.cells)} gives {grid.n_nodes:,} nodes, "
+                       f"above the budget planner.max_grid_nodes = {self.s.max_grid_nodes:,}")
+        if goal_rad is None:
+            try:
+                self.goal = self.p.goal_from_target()
+            except ValueError as e:
+                raise Fail(Code.GOAL_UNREACHABLE, str(e)) from None
+            self.say(f"goal from the target's IK: {deg_text(self.goal)}")
+        else:
+            try:
+                self.goal = robot.validate_q(np.asarray(goal_rad, dtype=float), "goal")
+            except (ValueError, TypeError) as e:
+                raise Fail(Code.INVALID_INPUT, str(e)) from None
+        self.approach_error_deg = self.p.approach_error_deg(self.goal)
+        clr_g = self.checker.clearance_m(self.goal)
+        if not clr_g > margin:
+            raise Fail(Code.GOAL_IN_COLLISION, f"the goal {deg_text(self.goal)} is in collision: clearance "
+                       f"{clr_g:.3f} m, the safety margin is {margin} m")
+        self.plan_start = self.start
+        self.check_cancel()
+
+    def leave_contact(self) -> None:
+        """A start within the margin of an obstacle: walk out (``contact.leave_contact``) when
+        its links reach at most ``max_start_penetration_m`` into it, else start_in_collision."""
+        margin = self.sc.scene.safety_margin_m
+        clr_s = self.checker.clearance_m(self.start)
+        if clr_s > margin:
+            return
+        refusal = (f"the start {deg_text(self.start)} is in collision: clearance {clr_s:.3f} m, the "
+                   f"safety margin is {margin} m")
+        with self.stage("exit"):
+            ex = leave_contact(self.checker, self.start, self.lower, self.upper, self.periodic,
+                               max_penetration_m=self.s.max_start_penetration_m)
+        self.penetration_m = ex.start_penetration_m
+        if not ex.ok:
+            raise Fail(Code.START_IN_COLLISION, f"{refusal}; no way out: {ex.reason}")
+        self.exit_path = ex.path_rad
+        self.plan_start = self.robot.validate_q(ex.path_rad[-1], "exit")
+        self.say(f"exit: the start touches an obstacle ({ex.start_penetration_m:.3f} m deep); "
+                 f"{len(ex.path_rad) - 1} steps out to {deg_text(ex.path_rad[-1])}, clearance "
+                 f"{ex.signed_distance_m[-1]:.3f} m (not certified)")
+
+    def grid_margins(self) -> tuple:
+        """The grid's extra margins to try: the configured one, then 0 (a grid with the extra
+        margin can close a passage that the safety margin leaves open)."""
+        extra = self.s.grid_extra_margin_m
+        return (extra, 0.0) if extra > 0.0 else (0.0,)
+
+    def cspace(self, extra_m: float):
+        """(C-space, its cache key) of the current scene on the scenario's grid."""
+        self.cached = []
+        before = self.timings["cspace"]
+        with self.stage("cspace"):
+            cs, key, hit = self.p._cspace(self.sc.grid, extra_m)
+        if hit:
+            self.timings["cspace"] = before           # a cached stage costs nothing
+            self.cached.append("cspace")
+        self.cs = cs
+        ms = "cached" if hit else f"{1e3 * self.timings['cspace']:.1f} ms"
+        self.say(f"cspace {self.sc.grid.label()} (grid margin {cs.margin_m:.3f} m): {ms}, "
+                 f"{100 * cs.free_fraction:.1f} % free")
+        self.check_cancel()
+        return cs, key
+
+    def goal_nodes(self, cs, cs_key) -> np.ndarray:
+        """Free grid nodes near the goal joined to it by a certified segment (≤ 4), cached."""
+        key = (cs_key, self.goal.tobytes(), self.s.verify_step_rad)
+        nodes = self.p._goal_nodes.get(key)
+        if nodes is None:
+            nodes = [n for n in self.candidates(self.goal, cs.grid, ~cs.occupied)
+                     if self.segment_ok(cs.grid.config_of(n), self.goal)][:4]
+            self.p._remember(self.p._goal_nodes, key, nodes, 16)
+        if not nodes:
+            raise Fail(Code.PATH_INVALID, f"no free grid node near the goal {deg_text(self.goal)} can be "
+                       f"joined to it by a collision-free straight segment (grid {cs.grid.label()}); "
+                       "try a finer grid")
+        return np.array(nodes)
+
+    def field(self, cs, cs_key, goal_nodes):
+        """(field, its key) on the C-space's free nodes towards the goal nodes, cached."""
+        self.check_cancel()
+        key = self.p._field_key(cs_key, goal_nodes, self.s)
+        hit = key in self.p._fields
+        before = self.timings["field"]
+        with self.stage("field"):
+            fld = self.p._solve(cs, key, goal_nodes, self.s)
+        if hit:
+            self.timings["field"] = before
+            self.cached.append("field")
+            self.say(f"field: cached ({fld.solver})")
+        else:
+            self.say(f"field ({fld.solver}): {1e3 * self.timings['field']:.1f} ms, {fld.sweeps} "
+                     f"{'sweeps' if fld.solver == 'gauss_seidel' else 'iterations'}, residual "
+                     f"{fld.residual:.2e}" + ("" if fld.converged else f"; NOT converged: {fld.left}"))
+        self.fld = fld
+        return fld, key
+
+    def descend_and_repair(self, cs, fld, key, goal_nodes) -> np.ndarray:
+        """Descent from a start node; where a walk is blocked or its polyline does not verify,
+        cut grid edges or block nodes (a plan-local field, cached under its own key) and
+        descend again.  Returns the unwrapped waypoints: exact start, grid nodes, exact goal."""
+        grid, s = cs.grid, self.s
+        blocked, cut = frozenset(), frozenset()
+        repairs = 0
+        start = self.plan_start
+        for attempt in range(s.max_repairs + 1):
+            self.check_cancel()
+            self.fld = fld
+            self.stats = {"sweeps": int(fld.sweeps), "residual": float(fld.residual),
+                          "converged": bool(fld.converged), "left": fld.left, **fld.stats,
+                          "repairs": repairs, "blocked_nodes": len(blocked), "cut_edges": len(cut),
+                          "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m)}
+            with self.stage("descent"):
+                starts = self.candidates(start, grid, ~fld.occupied)
+            if len(starts) == 0:
+                raise Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is "
+                           f"blocked (grid {grid.label()}, margin {cs.margin_m:.3f} m); try a finer grid")
+            reach = fld.reachable[tuple(starts.T)]
+            if not reach.any():
+                raise self.no_field_path_failure(cs, fld, blocked)
+            path, stuck, reasons = None, None, []
+            for node in starts[reach]:
+                if not self.segment_ok(start, grid.config_of(node)):
+                    reasons.append(f"segment to node {tuple(node)} collides")
+                    continue
+                with self.stage("descent"):
+                    gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
+                if gp.reached:
+                    path = gp
+                    break
+                if gp.blocked and stuck is None:
+                    stuck = gp
+                reasons.append(gp.reason)
+            if path is None and stuck is not None and attempt < s.max_repairs:
+                # every way up from that node collides: cut the colliding grid edges around it
+                # (the node itself when they are cut already) and re-solve
+                node = tuple(int(v) for v in stuck.nodes[-1])
+                with self.stage("repair"):
+                    edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions,
+                                            grid.lower_rad, grid.step_rad,
+                                            radius=REPAIR_RADIUS + min(repairs, 3))   # wider each time
+                new = {(int(a), int(b)) for a, b in edges} - cut
+                if new:
+                    cut = cut | new
+                    self.say(f"repair: {stuck.reason}; cutting {len(new)} colliding grid edge(s) "
+                             "around it and re-solving the field")
+                else:
+                    blocked = blocked | {node}
+                    self.say(f"repair: {stuck.reason}; blocking node {node} and re-solving the field")
+                repairs += 1
+                fld = self.resolve(cs, key, goal_nodes, blocked, cut)
+                continue
+            if path is None:
+                raise Fail(Code.PATH_INVALID, "no grid path from the start: " + "; ".join(reasons[:3]))
+            nodes_rad = grid.config_of(path.nodes)
+            self.grid_path = nodes_rad
+            wp = unwrap_path(np.vstack([start, nodes_rad, self.goal]), self.periodic)
+            wp[-1] = nearest_turn_rad(self.goal, wp[-1], self.periodic)   # exactly the goal (mod 2π)
+            with self.stage("verify"):
+                bad = first_bad_segment(self.checker, wp, self.lower, self.upper, self.periodic,
+                                        s.verify_step_rad)
+            if bad < 0:
+                return wp
+            # segment bad joins waypoint bad and bad+1; waypoint k ≥ 1 is path node k-1
+            cand = [k - 1 for k in (bad, bad + 1) if 1 <= k <= len(path.nodes)]
+            goal_set = {tuple(g) for g in goal_nodes}
+            cand = [c for c in cand if tuple(path.nodes[c]) not in goal_set]
+            if not cand or attempt == s.max_repairs:
+                raise Fail(Code.PATH_INVALID, f"the straight segment between grid nodes "
+                           f"{deg_text(wp[bad])} and {deg_text(wp[bad + 1])} collides and the grid "
+                           f"path could not be repaired ({repairs} repairs); try a finer grid")
+            clr = [self.checker.clearance_m(nodes_rad[c]) for c in cand]
+            node = tuple(int(v) for v in path.nodes[cand[int(np.argmin(clr))]])
+            blocked = blocked | {node}
+            repairs += 1
+            self.say(f"repair: segment {deg_text(wp[bad])} → {deg_text(wp[bad + 1])} collides; "
+                     f"blocking node {node} and re-solving the field")
+            fld = self.resolve(cs, key, goal_nodes, blocked, cut)
+        raise AssertionError("unreachable")
+
+    def resolve(self, cs, key, goal_nodes, blocked, cut):
+        """The field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
+        rkey = key + (tuple(sorted(blocked)), tuple(sorted(cut)))
+        hit = rkey in self.p._fields
+        with self.stage("repair"):
+            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut)
+        if not hit and "field" in self.cached:
+            self.cached.remove("field")
+        return fld
+
+    def no_field_path_failure(self, cs, fld, blocked) -> Fail:
+        """Why no start node has a field value: 'disconnected' only when the grid's own free
+        space (without nodes blocked by repairs) separates every free node near the start
+        from every free node near the goal."""
+        grid, occ = cs.grid, cs.occupied
+        start = self.plan_start
+        goal_nodes = self.candidates(self.goal, grid, ~occ)
+        start_nodes = self.candidates(start, grid, ~occ)
+        if len(start_nodes) == 0:
+            return Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is an "
+                        f"obstacle on the grid {grid.label()}; try a finer grid")
+        dist = bfs_distance(occ, grid.periodic, goal_nodes)
+        if np.all(dist[tuple(start_nodes.T)] < 0):
+            return Fail(Code.DISCONNECTED, f"the start {deg_text(start)} and the goal {deg_text(self.goal)} "
+                        f"lie in separate free regions of the configuration space (grid {grid.label()}, "
+                        f"grid margin {cs.margin_m:.3f} m): no collision-free motion joins them")
+        if blocked:
+            return Fail(Code.PATH_INVALID, f"start and goal are connected on the grid {grid.label()}, but "
+                        f"after blocking {len(blocked)} node(s) whose straight joins collide no "
+                        "verified grid path remains; try a finer grid")
+        return Fail(Code.PATH_INVALID, f"the field of solver '{fld.solver}' is zero (flat in float64) at "
+                    "the start although the grid joins start and goal; use the log_harmonic solver")
+
+    def smooth(self, waypoints) -> object:
+        """Spline through the waypoints, certified on the exact geometry (``smoothing``)."""
+        self.check_cancel()
+        s = self.s
+        with self.stage("smoothing"):
+            sm = smooth_path(self.checker, waypoints, self.lower, self.upper, self.periodic,
+                             shortcut=s.shortcut, keep_clearance_m=s.shortcut_keep_clearance_m,
+                             max_step_rad=s.max_step_rad, verify_step_rad=s.verify_step_rad,
+                             cancel=self.cancel)
+        self.check_cancel()
+        if sm is None:
+            raise Fail(Code.PATH_INVALID, "no smoothed path passed the dense collision check")
+        self.say(f"smoothing ({sm.method}, {sm.refinements} refinements): "
+                 f"{1e3 * self.timings['smoothing']:.1f} ms; {len(sm.path_rad)} samples, length "
+                 f"{sm.length_rad:.3f} rad, min clearance {sm.min_clearance_m:.4f} m")
+        return sm
+
+    def full_path(self, smooth) -> np.ndarray:
+        """The exit stretch (if any) followed by the certified path, continuous."""
+        if len(self.exit_path) == 0:
+            return smooth.path_rad
+        rest = align_to_state(smooth.path_rad, self.exit_path[-1], self.periodic)
+        return np.vstack([self.exit_path[:-1], rest])
+
+    def time_parameterize(self, smooth) -> PlanResult:
+        """The ok result, with the trajectory (and reaction) when the limits are known."""
+        path = self.full_path(smooth)
+        traj = reaction = None
+        if self.s.trajectory and trajectory_limits_known(self.sc):
+            self.check_cancel()
+            try:
+                with self.stage("trajectory"):
+                    traj, reaction = timed_motion(self.sc, path, self.start_given, self.s.reaction)
+            except ValueError as e:
+                raise Fail(Code.INVALID_INPUT, str(e)) from None
+            self.say(f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points "
+                     f"({1e3 * self.timings['trajectory']:.1f} ms)")
+            if reaction is not None and not reaction.ok:
+                return self.result(Code.REACTION_REFUSED, reaction.reason, smooth=smooth, path=path,
+                                   trajectory=traj, reaction=reaction)
+        res = self.result(Code.OK, None, smooth=smooth, path=path, trajectory=traj, reaction=reaction)
+        self.say(f"total {1e3 * res.timings_s['total']:.1f} ms")
+        return res
+
+    def run(self, start_rad, goal_rad) -> PlanResult:
+        """:func:`run_pipeline`, with its failures turned into results (never raises)."""
+        try:
+            return run_pipeline(self, start_rad, goal_rad)
+        except Cancelled:
+            self.say("cancelled")
+            return self.result(Code.CANCELLED, "planning was cancelled")
+        except Fail as f:
+            self.say(f"failed ({f.code}): {f.reason}")
+            return self.result(f.code, f.reason)
+        except Exception as e:     # the contract: plan() never raises; say what broke
+            reason = f"internal error while planning: {type(e).__name__}: {e}"
+            self.say(reason)
+            return self.result(Code.INTERNAL_ERROR, reason, tb=_traceback.format_exc())
