@@ -97,6 +97,7 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
         {"stage": "descent", **common, "seconds": med("descent"), "baseline_seconds": None, "ratio": None},
         {"stage": "smoothing+verify", **common, "seconds": med("smoothing") + med("verify"),
          "baseline_seconds": None, "ratio": None},
+        {"stage": "trajectory", **common, "seconds": med("trajectory"), "baseline_seconds": None, "ratio": None},
         {"stage": "total", **common, "seconds": med("total"), "baseline_seconds": None, "ratio": None,
          "ok": res.ok, "path_length_rad": res.path_length_rad if res.ok else None,
          "min_clearance_m": res.min_clearance_m if res.ok else None, "smoothing": res.smoothing,
@@ -132,7 +133,7 @@ def main(argv=None) -> int:
     print(f"bench plan: solver {args.solver}, JIT warm-up {time.perf_counter() - t0:.1f} s; "
           f"median of {args.repeats} fresh plans (1 above {BIG_GRID_NODES:,} nodes)")
     head = (f"{'scene':<6}{'grid':>12}{'cspace':>9}{'field':>10}{'descent':>9}{'smooth+ver':>11}"
-            f"{'total':>10}{'replan':>9}{'GS base':>10}{'ratio':>8}  path")
+            f"{'traj':>7}{'total':>10}{'replan':>9}{'GS base':>10}{'ratio':>8}  path")
     print(head + "\n" + "-" * len(head) + "   (times in ms)")
     all_rows = []
     for scene, cells in cases:
@@ -145,6 +146,7 @@ def main(argv=None) -> int:
                 if r["total"]["ok"] else "no path")
         print(f"{scene:<6}{f['grid']:>12}{1e3 * r['cspace']['seconds']:>9.1f}{1e3 * f['seconds']:>10.1f}"
               f"{1e3 * r['descent']['seconds']:>9.2f}{1e3 * r['smoothing+verify']['seconds']:>11.1f}"
+              f"{1e3 * r['trajectory']['seconds']:>7.1f}"
               f"{1e3 * r['total']['seconds']:>10.1f}{1e3 * r['replan_cached']['seconds']:>9.2f}"
               f"{1e3 * f['baseline_seconds']:>9.0f}{capped}{f['ratio']:>8.1f}  {path}", flush=True)
     if any(row.get("baseline_capped") for row in all_rows):
