@@ -172,10 +172,10 @@ class Hierarchy:
         self.levels = int(sizes.size)
         self.sizes = sizes
         self.off = off
-        self.nbr = np.zeros((total, deg), np.int64)
+        self.nbr = np.zeros((total, deg), np.int32)
         self.wt = np.zeros((total, deg))
         self.diag = np.ones(total)
-        self.agg = np.zeros(total, np.int64)
+        self.agg = np.zeros(total, np.int32)
         for lv in range(self.levels):
             a, b = off[lv], off[lv] + sizes[lv]
             if lv < len(aggs):
@@ -203,16 +203,33 @@ class Hierarchy:
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True, inline="always")
 def _row(nbr, wt, x, i, base, deg):
-    """sum_d wt[i, d] * x[nbr[i, d]] on the level whose rows start at ``base``."""
+    """sum_d wt[i, d] * x[nbr[i, d]] on the level whose rows start at ``base`` (the usual
+    degrees spelled out, as in :func:`_row0`)."""
+    r = base + i
+    if deg == 4:
+        return (wt[r, 0] * x[base + nbr[r, 0]] + wt[r, 1] * x[base + nbr[r, 1]]
+                + wt[r, 2] * x[base + nbr[r, 2]] + wt[r, 3] * x[base + nbr[r, 3]])
+    if deg == 6:
+        return (wt[r, 0] * x[base + nbr[r, 0]] + wt[r, 1] * x[base + nbr[r, 1]]
+                + wt[r, 2] * x[base + nbr[r, 2]] + wt[r, 3] * x[base + nbr[r, 3]]
+                + wt[r, 4] * x[base + nbr[r, 4]] + wt[r, 5] * x[base + nbr[r, 5]])
     s = 0.0
     for d in range(deg):
-        s += wt[base + i, d] * x[base + nbr[base + i, d]]
+        s += wt[r, d] * x[base + nbr[r, d]]
     return s
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _row0(nb0, x, i, deg):
-    """sum_d x[nb0[i, d]] on the fine level (unit weights)."""
+    """sum_d x[nb0[i, d]] on the fine level (unit weights).  The usual degrees are spelled
+    out (the same sum in the same order, 1.5x faster than the loop)."""
+    if deg == 4:
+        return x[nb0[i, 0]] + x[nb0[i, 1]] + x[nb0[i, 2]] + x[nb0[i, 3]]
+    if deg == 6:
+        return x[nb0[i, 0]] + x[nb0[i, 1]] + x[nb0[i, 2]] + x[nb0[i, 3]] + x[nb0[i, 4]] + x[nb0[i, 5]]
+    if deg == 8:
+        return (x[nb0[i, 0]] + x[nb0[i, 1]] + x[nb0[i, 2]] + x[nb0[i, 3]] + x[nb0[i, 4]]
+                + x[nb0[i, 5]] + x[nb0[i, 6]] + x[nb0[i, 7]])
     s = 0.0
     for d in range(deg):
         s += x[nb0[i, d]]
