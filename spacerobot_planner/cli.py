@@ -14,7 +14,6 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -162,10 +161,8 @@ def main(argv=None) -> int:
             and scenario.acs.compensate_drift:
         from .dynamics import plan_free_floating
         # the compensation plans geometry only; the trajectory stage follows on its result
-        geometric = replace(scenario, params={k: v for k, v in params.items()
-                                              if not k.startswith("trajectory.")})
         try:
-            comp = plan_free_floating(geometric, start, goal)
+            comp = plan_free_floating(scenario, start, goal)
         except ValueError as e:
             return _fail_input(str(e))
         print(f"drift compensation: {len(comp.history)} plans, tip miss "

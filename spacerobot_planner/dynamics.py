@@ -672,7 +672,9 @@ def plan_free_floating(scenario, start_rad, goal_rad=None, *, masses: MassProper
     masses = scenario.masses if masses is None else masses
     tol = scenario.acs.position_tolerance_m if position_tolerance_m is None else float(position_tolerance_m)
     grasp = scene.target.grasp_point_m
-    res = Planner(scenario).plan(start_rad, goal_rad)
+    # geometry only: the core refuses free-floating trajectories on their reaction
+    # (reaction_refused); the caller adds the trajectory to the compensated plan
+    res = Planner(scenario, trajectory=False).plan(start_rad, goal_rad)
     history = []
     resp = drift = None
     for _ in range(max_iterations + 1):
@@ -691,7 +693,7 @@ def plan_free_floating(scenario, start_rad, goal_rad=None, *, masses: MassProper
             return CompensatedPlan(False, "no collision-free grasp posture for the drifted target", res, goal,
                                    resp, drift, tuple(history))
         goal = min(sols, key=lambda sol: float(np.linalg.norm(sol.q - goal))).q
-        res = Planner(scenario.with_scene(apparent)).plan(start_rad, goal)
+        res = Planner(scenario.with_scene(apparent), trajectory=False).plan(start_rad, goal)
     ok = drift.ok and resp.tip_miss_m <= tol
     reason = None if ok else (
         f"free floating, compensated: after {len(history)} plans the drifted tip misses the grasp by "

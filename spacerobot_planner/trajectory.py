@@ -37,10 +37,16 @@ Method (reachability analysis, Pham & Pham's TOPP-RA):
    from which the goal can still be reached at rest); a forward pass from the start
    speed² picks at each step the largest ``x_{i+1} ∈ K_{i+1}`` the constraints admit.
    Both passes use the same feasibility test: no uniform slow-down is applied or needed.
-4. ``Δt_i = 2 Δ_i / (ṡ_i + ṡ_{i+1})``.  Published velocities ``q' ṡ``; accelerations
-   ``q' ū + q'' x`` with ``ū`` the Δt-weighted mean of the two neighbouring segments'
-   ``u`` (a convex combination, so still within the limits; it is what the finite
-   differences of the positions approach).
+   The published times are float64 and the finite differences amplify their rounding
+   (by about |w| ulp(t) / Δt², which matters where samples are close in time, e.g.
+   6·10⁻⁵ s apart at t = 1.65 s: 10⁻⁷ of the limit).  A bound on that rounding
+   (``_rounding_margins``) is taken off the limits locally, where it exceeds 10⁻¹⁰ of
+   them, and the passes rerun until the bound of the new solution fits (one rerun in
+   practice; elsewhere nothing changes).
+4. ``Δt_i = 2 Δ_i / (ṡ_i + ṡ_{i+1})``, summed per sample interval, then accumulated.
+   Published velocities ``q' ṡ``; accelerations ``q' ū + q'' x`` with ``ū`` the
+   Δt-weighted mean of the two neighbouring segments' ``u`` (a convex combination, so
+   still within the limits; it is what the finite differences of the positions approach).
 
 Finite differences (``finite_differences``): segment velocity
 ``w_k = (q_{k+1} - q_k) / (t_{k+1} - t_k)``; acceleration at an interior point
@@ -321,6 +327,76 @@ def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: fl
     return sd / float(np.linalg.norm(d1[0]))
 
 
+#: rounding effects on the finite differences up to this fraction of a limit are not
+#: given a margin (the test tolerance and every consumer are far coarser)
+_ROUNDING_SLACK = 1e-10
+#: rounds of margins and passes at most (one or two suffice: the margins only grow)
+_ROUNDING_ROUNDS = 8
+_EPS = float(np.finfo(float).eps)
+
+
+def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0):
+    """Forward pass from x0 (clipped to K_0) to rest: (x (G,), grid durations dt (G-1,) s)."""
+    x = _forward(a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
+    x[-1] = 0.0
+    sdg = np.sqrt(x)
+    den = sdg[:-1] + sdg[1:]
+    if np.any(den <= 0.0):
+        raise ValueError("path: a stretch cannot be followed at any speed within the limits")
+    return x, 2.0 * ds / den
+
+
+def _sample_times(dt, refine):
+    """Sample times (M,) s, 0 first, and the sample intervals (M-1,) s: the grid durations
+    dt (G-1,) summed per sample interval (``refine`` grid segments), then accumulated (so
+    each published interval is its sum up to half an ulp of the time)."""
+    per = dt.reshape(-1, refine).sum(axis=1)
+    return np.concatenate([[0.0], np.cumsum(per)]), per
+
+
+def _rounding_margins(t, dt, p, v0, amax, refine):
+    """Bounds on how far float rounding can move the finite differences of the published
+    samples away from the exact motion's (which obey the limits).
+
+    Args:
+        t: (M,) published sample times, s; dt: (M-1,) sample intervals, s; p: (M, n)
+        positions, rad; v0: (n,) |start velocity|, rad/s; amax: (n,) rad/s²;
+        refine: grid segments per sample interval.
+    Returns:
+        (acc (G, n) rad/s²: per grid point, the most rounding can add to a finite-difference
+        acceleration whose interval covers it; vel (G,): the most it can add to a segment
+        velocity, as a fraction of it).  Both carry a factor 2 for second-order terms.
+    """
+    m, n = p.shape
+    # |published Δt_k − exact Δt_k|: the sum of `refine` durations (relative eps each, plus
+    # those of the durations themselves) and, after the first, the time's rounding
+    err_t = (refine + 6) * _EPS * dt
+    err_t[1:] += 0.5 * np.spacing(t[2:])
+    rel = err_t / dt + 2.0 * _EPS                       # of Δt_k, and of the quotient
+    w = np.abs(np.diff(p, axis=0)) / dt[:, None]        # (M-1, n) segment speeds
+    e = w * rel[:, None]                                # their errors
+    zero = np.zeros((1, n))
+    e_b, e_a = np.vstack([2.0 * _EPS * v0[None, :], e]), np.vstack([e, zero])
+    w_b, w_a = np.vstack([v0[None, :], w]), np.vstack([w, zero])
+    t_b, t_a = np.concatenate([[0.0], err_t]), np.concatenate([err_t, [0.0]])
+    half = 0.5 * (np.concatenate([[0.0], dt]) + np.concatenate([dt, [0.0]]))
+    # (w_after − w_before) / half: the velocities' errors, the difference's own rounding,
+    # and the relative error of `half` times the (bounded) value
+    fd = 2.0 * ((e_b + e_a + _EPS * (w_b + w_a)) / half[:, None]
+                + amax[None, :] * ((t_b + t_a) / (2.0 * half))[:, None])
+    # the finite difference at sample k averages the motion over intervals k-1 and k
+    per_int = np.maximum(fd[:-1], fd[1:])               # (M-1, n)
+    acc = np.empty(((m - 1) * refine + 1, n))
+    acc[:-1] = np.repeat(per_int, refine, axis=0)
+    acc[-1] = per_int[-1]
+    acc[refine:-1:refine] = np.maximum(per_int[:-1], per_int[1:])
+    vel = np.empty(len(acc))
+    vel[:-1] = np.repeat(2.0 * rel, refine)
+    vel[-1] = 2.0 * rel[-1]
+    vel[refine:-1:refine] = 2.0 * np.maximum(rel[:-1], rel[1:])
+    return acc, vel
+
+
 def _check_limits(name, lim, n):
     lim = np.asarray(lim, dtype=float).reshape(-1)
     if lim.shape != (n,):
@@ -446,14 +522,28 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         raise ValueError(f"start_path_speed: {sd0:.6g} rad/s along the path is faster than the limits "
                          f"allow from the start (at most {np.sqrt(k[0]):.6g} rad/s there, to stay within "
                          f"the velocity and acceleration limits and stop at the goal)")
-    x = _forward(a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
-    x[-1] = 0.0
+    # ---- the published times are float64: their rounding moves the finite differences
+    # of the positions (by up to |w| ulp(t) / Δt² where samples are close in time).  Where
+    # that could exceed _ROUNDING_SLACK of a limit, the limits there are lowered by a bound
+    # on it and the passes rerun, until the bound from the new solution fits the margin.
+    refine = int(grid_refinement)
+    c_used, xv_used = c_row, xv
+    m_acc, m_vel = np.zeros((g_n, n)), np.zeros(g_n)
+    for _ in range(_ROUNDING_ROUNDS):
+        x, dt = _solve(a_row, b_row, c_used, kappa, xv_used, ds, k, x0)
+        t, dt_samples = _sample_times(dt, refine)
+        acc_m, vel_m = _rounding_margins(t, dt_samples, p, np.abs(d1[0]) * np.sqrt(x[0]), amax, refine)
+        acc_m[acc_m <= _ROUNDING_SLACK * amax] = 0.0
+        vel_m[vel_m <= _ROUNDING_SLACK] = 0.0
+        if np.all(acc_m <= m_acc) and np.all(vel_m <= m_vel):
+            break
+        m_acc = np.maximum(m_acc, np.minimum(2.0 * acc_m, 0.9 * amax))
+        m_vel = np.maximum(m_vel, np.minimum(2.0 * vel_m, 0.9))
+        c_used = c_row.copy()
+        c_used[:, :n] = amax - m_acc
+        xv_used = np.ascontiguousarray(xv * (1.0 - m_vel) ** 2)
+        k = _backward(a_row, b_row, c_used, kappa, xv_used, ds, 0.0)
     sdg = np.sqrt(x)
-    den = sdg[:-1] + sdg[1:]
-    if np.any(den <= 0.0):
-        raise ValueError("path: a stretch cannot be followed at any speed within the limits")
-    dt = 2.0 * ds / den
-    tg = np.concatenate([[0.0], np.cumsum(dt)])
     u_seg = (x[1:] - x[:-1]) / (2.0 * ds)
     # ---- the samples: u before/after each sample (its neighbouring grid segments)
     u_before = np.concatenate([[u_seg[0]], u_seg])[idx]
@@ -462,8 +552,6 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     dt_after = np.concatenate([dt, [0.0]])[idx]
     u = (dt_before * u_before + dt_after * u_after) / (dt_before + dt_after)
     xs, sd = x[idx], sdg[idx]
-    t = tg[idx]
-    t[0] = 0.0
     q1, q2 = d1[idx], d2[idx]
     vel = q1 * sd[:, None]
     acc = q1 * u[:, None] + q2 * xs[:, None]

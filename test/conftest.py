@@ -1,4 +1,4 @@
-"""Test isolation and hypothesis profiles.
+"""Test isolation, hypothesis profiles and the paper's scenarios and paths.
 
 Each run gets its own DDS domain and discovery stays on this host.  Property tests
 run a few dozen cases by default; ``pytest --hypothesis-profile=long`` (or
@@ -52,5 +52,27 @@ def paper_scenario():
 
     def get(dof: int):
         return load_scenario(os.path.join(CONFIG_DIR, f"paper_{dof}dof.yaml"))
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def paper_path(paper_scenario):
+    """paper_path(dof) → the planner's path for the paper's 2-DOF or 3-DOF scene, (M, dof)
+    rad, read-only; planned once per test session (from ``paper_scenario(dof)``'s start
+    to its goal)."""
+    import numpy as np
+    from spacerobot_planner.planner import Planner
+    planned = {}
+
+    def get(dof: int):
+        if dof not in planned:
+            sc = paper_scenario(dof)
+            res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+            assert res.ok, res.reason
+            path = np.array(res.path_rad)
+            path.setflags(write=False)
+            planned[dof] = path
+        return planned[dof]
 
     return get

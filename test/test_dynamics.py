@@ -5,7 +5,7 @@ inertial-frame point test of the drifted arm."""
 import numpy as np
 import pytest
 
-from paper_paths import joint_limits, scene
+from paper_paths import joint_limits
 from spacerobot_planner.dynamics import (MassProperties, WheelModel, check_drifted,
                                          free_floating_response, reaction_report)
 from spacerobot_planner.robot import PlanarArm, square_polygon
@@ -121,9 +121,9 @@ def _load_oracle(robot, mp, q, qd, qdd, eps=1e-3):
     return -h, -dh
 
 
-@pytest.mark.parametrize("name", ["paper_2dof", "paper_3dof"])
-def test_wheel_limits_hold_on_the_trajectory(name):
-    sc, path = scene(name)
+@pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
+def test_wheel_limits_hold_on_the_trajectory(dof, paper_scenario, paper_path):
+    sc, path = paper_scenario(dof), paper_path(dof)
     robot = sc.robot
     vmax, amax = joint_limits(sc)
     h_max, tau_max = 50.0, 0.5
@@ -145,9 +145,9 @@ def test_wheel_limits_hold_on_the_trajectory(name):
     assert np.max(np.abs(tau_f)) > 10 * tau_max and free.duration_s < traj.duration_s
 
 
-@pytest.mark.parametrize("name", ["paper_2dof", "paper_3dof"])
-def test_without_wheel_limits_the_trajectory_is_the_joint_limited_one(name):
-    sc, path = scene(name)
+@pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
+def test_without_wheel_limits_the_trajectory_is_the_joint_limited_one(dof, paper_scenario, paper_path):
+    sc, path = paper_scenario(dof), paper_path(dof)
     vmax, amax = joint_limits(sc)
     plain = time_parameterize(path, vmax, amax)
     for wheel in (WheelModel(sc.robot, REF), WheelModel(sc.robot, REF, 0.0, 0.0)):
@@ -176,8 +176,8 @@ def _inside_target_or_margin(robot, sc, q_full, body_pos, n=200):
     return hit
 
 
-def test_free_floating_refuses_the_paper_2dof_motion_and_accepts_a_heavy_spacecraft():
-    sc, path = scene("paper_2dof")
+def test_free_floating_refuses_the_paper_2dof_motion_and_accepts_a_heavy_spacecraft(paper_scenario, paper_path):
+    sc, path = paper_scenario(2), paper_path(2)
     robot = sc.robot
     vmax, amax = joint_limits(sc)
     traj = time_parameterize(path, vmax, amax, robot.planned_names)
@@ -206,13 +206,13 @@ def test_free_floating_refuses_the_paper_2dof_motion_and_accepts_a_heavy_spacecr
     assert held.peak_wheel_momentum_Nms > 50.0
 
 
-def test_drift_check_certifies_a_clear_motion():
-    sc, path = scene("paper_3dof")
+def test_drift_check_certifies_a_clear_motion(paper_scenario, paper_path):
+    sc, path = paper_scenario(3), paper_path(3)
     chk = check_drifted(sc.robot, HEAVY, sc.scene, path)
     assert chk.ok and chk.min_clearance_m > sc.scene.safety_margin_m
 
 
-def test_bad_masses_and_modes_name_the_field():
+def test_bad_masses_and_modes_name_the_field(paper_scenario, paper_path):
     with pytest.raises(ValueError, match="dynamics.body_mass_kg"):
         MassProperties(body_mass_kg=0.0)
     with pytest.raises(ValueError, match=r"dynamics.link_masses_kg\[1\]"):
@@ -221,7 +221,7 @@ def test_bad_masses_and_modes_name_the_field():
         WheelModel(_arm(), MassProperties(link_masses_kg=(0.0, 30.0), link_inertias_kgm2=(0.0, 1.0)))
     with pytest.raises(ValueError, match="acs.max_wheel_torque_Nm"):
         WheelModel(_arm(), REF, 10.0, -1.0)
-    sc, path = scene("paper_3dof")
+    sc, path = paper_scenario(3), paper_path(3)
     with pytest.raises(ValueError, match="acs.mode"):
         reaction_report(sc.robot, REF, sc.scene, path, acs_mode="off")
 
@@ -267,11 +267,11 @@ def _simulate_free_floating(robot, mp, path, sub=4):
     return q[::sub], (com[0] - com)[::sub]
 
 
-def test_compensated_free_floating_plan_reaches_the_handle():
+def test_compensated_free_floating_plan_reaches_the_handle(paper_scenario, paper_path):
     """Stretch: the goal is corrected for the predicted drift and replanned until the
     free-floating arm reaches the grasp; checked with the test's own simulator."""
     from spacerobot_planner.dynamics import plan_free_floating
-    sc, path = scene("paper_2dof")
+    sc, path = paper_scenario(2), paper_path(2)
     robot, grasp = sc.robot, sc.scene.target.grasp_point_m
     # the oracle first agrees that the uncompensated plan misses
     q0, b0 = _simulate_free_floating(robot, REF, path)
@@ -289,4 +289,4 @@ def test_compensated_free_floating_plan_reaches_the_handle():
     rep = reaction_report(robot, REF, sc.scene, cp.plan.path_rad, acs_mode="free_floating")
     assert rep.ok and not rep.free_floating_collides
     with pytest.raises(ValueError, match="robot.planned_joints"):
-        plan_free_floating(scene("paper_3dof")[0], scene("paper_3dof")[0].start_rad)
+        plan_free_floating(paper_scenario(3), paper_scenario(3).start_rad)

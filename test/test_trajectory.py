@@ -7,10 +7,10 @@ import pytest
 import toppra
 import toppra.algorithm
 import toppra.constraint
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from scipy.interpolate import CubicSpline
 
-from paper_paths import joint_limits, scene
+from paper_paths import joint_limits
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.trajectory import densify_path, resample, sample, time_parameterize
 
@@ -79,6 +79,7 @@ def test_curved_paths_obey_limits(seed):
 
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 10_000), st.floats(0.01, 2.0), st.floats(0.1, 100.0))
+@example(706, 1.0, 4.0)     # samples 6e-5 s apart at t = 1.65 s: the times' rounding exceeded amax by 1e-7
 def test_limits_hold_for_any_path_and_limits(seed, scale, speed):
     rng = np.random.default_rng(seed)
     path = _spline_path(rng, n_knots=int(rng.integers(2, 8)), dof=int(rng.integers(1, 4)), scale=scale)
@@ -139,9 +140,9 @@ def _toppra_duration_s(path, vmax, amax):
     return algo.compute_trajectory(0.0, 0.0).duration
 
 
-@pytest.mark.parametrize("name", ["paper_2dof", "paper_3dof"])
-def test_durations_within_one_percent_of_toppra_and_limits_hold(name):
-    sc, path = scene(name)
+@pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
+def test_durations_within_one_percent_of_toppra_and_limits_hold(dof, paper_scenario, paper_path):
+    sc, path = paper_scenario(dof), paper_path(dof)
     vmax, amax = joint_limits(sc)
     traj = time_parameterize(path, vmax, amax, sc.robot.planned_names)
     _check(traj, path, vmax, amax, consistency=0.02)
@@ -152,9 +153,9 @@ def test_durations_within_one_percent_of_toppra_and_limits_hold(name):
     assert np.all(traj.limit_ratio <= 1 + 1e-9) and np.median(traj.limit_ratio) > 0.999
 
 
-def test_scaling_factors_scale_time_exactly():
+def test_scaling_factors_scale_time_exactly(paper_scenario, paper_path):
     """Velocities × k and accelerations × k² make the same profile 1/k slower."""
-    sc, path = scene("paper_3dof")
+    sc, path = paper_scenario(3), paper_path(3)
     vmax, amax = joint_limits(sc)
     base = time_parameterize(path, vmax, amax)
     slow = time_parameterize(path, vmax, amax, velocity_scaling=0.5, acceleration_scaling=0.25)
@@ -170,11 +171,11 @@ def test_scaling_factors_scale_time_exactly():
             time_parameterize(path, vmax, amax, acceleration_scaling=bad)
 
 
-def test_moving_start_continues_an_executing_trajectory():
+def test_moving_start_continues_an_executing_trajectory(paper_scenario, paper_path):
     """Cut a trajectory at a point where the arm moves, re-parameterise the rest from that
     velocity: continuous velocity at the switch, limits held (finite differences from the
     start velocity), never slower than starting the rest from rest."""
-    sc, path = scene("paper_3dof")
+    sc, path = paper_scenario(3), paper_path(3)
     vmax, amax = joint_limits(sc)
     first = time_parameterize(path, vmax, amax)
     k = int(np.searchsorted(first.times_s, 0.4 * first.duration_s))
@@ -208,9 +209,9 @@ def test_start_velocities_that_cannot_be_followed_are_refused():
         time_parameterize(short, vmax, amax, start_path_speed=0.9)    # cannot stop within 0.05 rad
 
 
-@pytest.mark.parametrize("name", ["paper_2dof", "paper_3dof"])
-def test_resampled_trajectory_is_short_exact_and_certified(name):
-    sc, path = scene(name)
+@pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
+def test_resampled_trajectory_is_short_exact_and_certified(dof, paper_scenario, paper_path):
+    sc, path = paper_scenario(dof), paper_path(dof)
     vmax, amax = joint_limits(sc)
     traj = time_parameterize(path, vmax, amax)
     checker = CollisionChecker(sc.robot, sc.scene)
@@ -229,15 +230,15 @@ def test_resampled_trajectory_is_short_exact_and_certified(name):
         fine = np.vstack([np.linspace(a, b, int(np.ceil(np.max(np.abs(b - a)) / np.radians(0.1))) + 1)
                           for a, b in zip(sub.positions_rad[:-1], sub.positions_rad[1:])])
         assert np.all(checker.clearance_m(fine) > sc.scene.safety_margin_m)
-    if name == "paper_3dof":
+    if dof == 3:
         traj_s = time_parameterize(path, vmax, amax)
         assert 10 <= len(resample(traj_s, checker).trajectory) <= 200 and traj_s.duration_s > 20.0
 
 
-def test_resampling_adds_points_back_where_the_chord_collides():
+def test_resampling_adds_points_back_where_the_chord_collides(paper_scenario, paper_path):
     """A tolerance so loose that chords cut through the spacecraft body: the certification
     fails there and points are added back until it passes."""
-    sc, path = scene("paper_3dof")
+    sc, path = paper_scenario(3), paper_path(3)
     vmax, amax = joint_limits(sc)
     traj = time_parameterize(path, vmax, amax)
     checker = CollisionChecker(sc.robot, sc.scene)
@@ -255,12 +256,12 @@ def test_resampling_adds_points_back_where_the_chord_collides():
         resample(traj, checker, time_step_s=None, path_tolerance_rad=None)
 
 
-def test_replanning_from_a_moving_arm_joins_continuously():
+def test_replanning_from_a_moving_arm_joins_continuously(paper_scenario, paper_path):
     """Keep the executing trajectory to a 1 s horizon, plan a different path from there
     (here: a spline to another goal), join and re-parameterise from the join's speed:
     same position, same velocity (to 1e-4 of the limits) at the join, limits held."""
     from spacerobot_planner.trajectory import continuation
-    sc, path = scene("paper_3dof")
+    sc, path = paper_scenario(3), paper_path(3)
     vmax, amax = joint_limits(sc)
     first = time_parameterize(path, vmax, amax)
     for frac in (0.1, 0.4, 0.8):
