@@ -71,8 +71,8 @@ class Graph:
         self.checked = []         # (topic, msg, ROS time received, latest joint_states positions by name)
         # violations a test expects (and says why); every other one fails the test at close()
         self.known_violations = set()
-        self.drv.create_subscription(JointTrajectory, "joint_trajectory", self._rec_traj(self.trajs, "joint_trajectory"),
-                                     10)
+        self.drv.create_subscription(JointTrajectory, "joint_trajectory",
+                                     self._rec_traj(self.trajs, "joint_trajectory"), 10)
         self.drv.create_subscription(JointTrajectory, "attitude_trajectory",
                                      self._rec_traj(self.att_trajs, "attitude_trajectory"), 10)
         self.drv.create_subscription(JointState, "joint_states", self._rec(self.states), 100)

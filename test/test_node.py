@@ -255,8 +255,8 @@ def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, expect_som
     """Targets drifting 2 cm/s at 20 Hz while each plan takes 0.3 s (a stall): latest-wins
     alone publishes nothing; with replan.min_publish_period_s a plan is let finish once no
     trajectory went out for that long."""
-    g = graph(scene_params("3dof", **{"planner.test_stall_s": 0.3, "replan.min_publish_period_s": period_s,
-                                       "replan.target_tolerance_m": 0.0}))
+    params = {"planner.test_stall_s": 0.3, "replan.min_publish_period_s": period_s, "replan.target_tolerance_m": 0.0}
+    g = graph(scene_params("3dof", **params))
     g.known_violations.add("the first point is at time 0 but is not the current state")   # see above
     g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
     t0 = time.monotonic()
