@@ -88,11 +88,21 @@ class MockArmNode(Node):
             for k, c in enumerate(cols):
                 if self.periodic[c]:
                     off[k] = math.remainder(off[k], 2 * math.pi)
-            self._trajs[topic] = (cols, t, q, v, time.monotonic(), off)
+            self._trajs[topic] = (cols, t, q, v, self._start_time(msg), off)
             self.trajectories_received += 1
             self.executing = True
         self.get_logger().info(f"following a trajectory of {len(t)} points, {t[-1]:.2f} s "
                                f"(start offset {np.round(np.degrees(np.abs(off).max()), 3)}°)")
+
+    def _start_time(self, msg) -> float:
+        """Monotonic time at which ``msg`` starts: its header stamp (as a controller reads
+        it: the arm's and the attitude's parts of one plan start together), or now for a
+        zero stamp."""
+        now = time.monotonic()
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if stamp_ns == 0:
+            return now
+        return now - 1e-9 * (self.get_clock().now().nanoseconds - stamp_ns)
 
     def _advance(self, now):
         with self._lock:

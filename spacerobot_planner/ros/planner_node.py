@@ -723,8 +723,9 @@ class PlannerNode(LifecycleNode):
         if dropped is not None:
             self._log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
-        # stamp zero: "start now" for joint_trajectory_controller (never a start in the past)
-        msg, att_msg = self._split(conv.trajectory_to_msg(traj), traj)
+        # one stamp for both parts, now: the arm's and the attitude's controllers start together
+        # (a zero stamp would mean "on arrival", each its own); it ends traj.duration_s later
+        msg, att_msg = self._split(conv.trajectory_to_msg(traj, self.get_clock().now().to_msg()), traj)
         latency = time.perf_counter() - req.t_request
         values = {
             "goal_deg": np.round(np.degrees(res.goal_rad), 3).tolist(),
