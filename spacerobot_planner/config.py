@@ -189,6 +189,10 @@ PARAMETERS = (
     ParamSpec("grid_frame", "string", "cspace",
               "Frame of potential_grid / cspace_grid: joint space (x, y in radians), not the "
               "planning frame, so RViz does not lay them over the workspace.", False),
+    ParamSpec("replan.min_publish_period_s", "double", 1.0,
+              "Under a stream of targets (topics), a plan in progress is let finish and published "
+              "instead of being superseded once no trajectory was published for this long, so a "
+              "drifting target is followed; 0 = the latest request always wins, seconds.", False, 0.0, 3600.0),
     ParamSpec("planner.test_stall_s", "double", 0.0,
               "Testing aid: the planning process stalls this long before every plan (a long, "
               "uninterruptible stage without a large grid); 0 in normal use, seconds.", False, 0.0, 600.0),

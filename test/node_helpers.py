@@ -67,7 +67,14 @@ class Graph:
         self.ex.add_node(self.drv)
         self.lock = threading.Lock()
         self.trajs, self.states, self.diags, self.markers = [], [], [], []
-        self.drv.create_subscription(JointTrajectory, "joint_trajectory", self._rec(self.trajs), 10)
+        self.att_trajs = []
+        self.checked = []         # (topic, msg, ROS time received, latest joint_states positions by name)
+        # violations a test expects (and says why); every other one fails the test at close()
+        self.known_violations = set()
+        self.drv.create_subscription(JointTrajectory, "joint_trajectory",
+                                     self._rec_traj(self.trajs, "joint_trajectory"), 10)
+        self.drv.create_subscription(JointTrajectory, "attitude_trajectory",
+                                     self._rec_traj(self.att_trajs, "attitude_trajectory"), 10)
         self.drv.create_subscription(JointState, "joint_states", self._rec(self.states), 100)
         self.drv.create_subscription(DiagnosticArray, "/diagnostics", self._rec(self.diags), 50)
         self.drv.create_subscription(MarkerArray, "planned_path_markers", self._rec(self.markers), GRID_QOS)
@@ -91,6 +98,35 @@ class Graph:
     def stop_spinning(self):
         self._stop_spin.set()
         self.thread.join(5)
+
+    def _rec_traj(self, store, topic):
+        def cb(msg):
+            now = self.drv.get_clock().now().nanoseconds * 1e-9
+            with self.lock:
+                store.append((time.monotonic(), msg))
+                last = self.states[-1][1] if self.states else None
+                self.checked.append((topic, msg, now, None if last is None else dict(zip(last.name, last.position))))
+        return cb
+
+    def controller_violations(self, current_tol_rad=np.radians(1.0)):
+        """[(topic, index, violations)] for every trajectory received that
+        joint_trajectory_controller would refuse (see controller_rule_violations)."""
+        known = set(self.scenario.robot.joint_names)
+        out = []
+        with self.lock:
+            got = list(self.checked)
+        for i, (topic, msg, now, state) in enumerate(got):
+            current = None
+            if state is not None and all(n in state for n in msg.joint_names) and msg.points:
+                q = [state[n] for n in msg.joint_names]
+                first = list(msg.points[0].positions)
+                if len(first) == len(q) and all(abs(a - b) <= current_tol_rad for a, b in zip(first, q)):
+                    current = first          # the plan started from (about) this state
+            bad = [v for v in controller_rule_violations(msg, known, now, current)
+                   if v not in self.known_violations]
+            if bad:
+                out.append((topic, i, bad))
+        return out
 
     def _rec(self, store):
         def cb(msg):
@@ -185,6 +221,7 @@ class Graph:
     def close(self):
         if self.ctx is None:
             return
+        bad = self.controller_violations()
         if not self.planner_destroyed:
             self.planner.shutdown_worker()
         self.stop_spinning()
@@ -194,6 +231,7 @@ class Graph:
                 n.destroy_node()
         rclpy.shutdown(context=self.ctx)
         self.ctx = None
+        assert not bad, f"trajectories joint_trajectory_controller would refuse: {bad}"
 
 
 def diag_values(status) -> dict:
@@ -245,6 +283,16 @@ def pid_alive(pid: int) -> bool:
     except OSError:
         return False
     return stat[stat.rfind(")") + 2] != "Z"
+
+
+def planned_positions(robot, msgs, index=-1):
+    """(dof,) planned-joint positions of point ``index``, merged by name from the given
+    JointTrajectory messages (joint_trajectory and attitude_trajectory of one plan)."""
+    got = {}
+    for m in msgs:
+        if m is not None:
+            got.update(zip(m.joint_names, m.points[index].positions))
+    return np.array([got[n] for n in robot.planned_names])
 
 
 def angle_err_deg(robot, q_full, goal_planned):

@@ -19,7 +19,7 @@ from spacerobot_planner_interfaces.action import PlanCapture
 
 from spacerobot_planner.ros.conversions import duration_to_s, joint_state_msg
 
-from node_helpers import scene_params
+from node_helpers import planned_positions, scene_params
 
 CANCEL_BOUND_S = 1.0
 R = PlanCapture.Result
@@ -62,15 +62,19 @@ def test_goal_plans_returns_the_published_trajectory_with_feedback(graph):
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
     assert res.error_code == R.OK and res.error_name == "ok" and res.reason == ""
     g.wait(lambda: g.n_trajs() == 1, 5, "the trajectory on joint_trajectory")
-    pub = g.trajs[0][1]
-    assert list(res.trajectory.joint_names) == list(pub.joint_names)
-    assert len(res.trajectory.points) == len(pub.points) > 2
-    for a, b in zip(res.trajectory.points, pub.points):
-        assert list(a.positions) == list(b.positions)
-        assert duration_to_s(a.time_from_start) == duration_to_s(b.time_from_start)
+    g.wait(lambda: len(g.att_trajs) == 1, 5, "the attitude trajectory on attitude_trajectory")
+    for mine, pub in ((res.trajectory, g.trajs[0][1]), (res.attitude_trajectory, g.att_trajs[0][1])):
+        assert list(mine.joint_names) == list(pub.joint_names)
+        assert len(mine.points) == len(pub.points) > 2
+        for a, b in zip(mine.points, pub.points):
+            assert list(a.positions) == list(b.positions)
+            assert duration_to_s(a.time_from_start) == duration_to_s(b.time_from_start)
+    assert list(res.trajectory.joint_names) == ["shoulder", "elbow"]
+    assert list(res.attitude_trajectory.joint_names) == ["attitude"]
     # the last point grasps the target (forward kinematics written above)
     robot = g.scenario.robot
-    tip = _tip_m(robot.link_lengths_m, robot.full(np.array(res.trajectory.points[-1].positions)))
+    q_end = planned_positions(robot, [res.trajectory, res.attitude_trajectory])
+    tip = _tip_m(robot.link_lengths_m, robot.full(q_end))
     grasp = np.array(g.scenario.scene.target.grasp_point_m)
     assert np.linalg.norm(tip - grasp) < 1e-6
     assert res.min_clearance_m > 0.0
@@ -162,3 +166,5 @@ def test_goal_with_its_own_start(graph):
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
     np.testing.assert_allclose(res.trajectory.points[0].positions, start, atol=1e-9)
     np.testing.assert_allclose(res.trajectory.points[-1].positions, np.radians([32.8, 76.5]), atol=1e-9)
+    time.sleep(0.3)
+    assert g.n_trajs() == 0, "a plan from another start was sent to the controller"

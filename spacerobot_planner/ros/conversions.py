@@ -38,6 +38,7 @@ __all__ = [
     "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
     "duration_to_s", "s_to_duration", "potential_slice_values", "obstacle_slice_values",
     "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result",
+    "split_trajectory_msg",
     "OBSTACLE", "UNREACHABLE",
 ]
 
@@ -168,6 +169,34 @@ def trajectory_to_msg(traj: Trajectory, stamp=None, frame_id: str = "") -> Joint
         pts.append(pt)
     msg.points = pts
     return msg
+
+
+def split_trajectory_msg(msg: JointTrajectory, joints) -> tuple:
+    """(the trajectory of ``joints``, the trajectory of the others): the same points and
+    times, columns picked by name; either is None when it would have no joints."""
+    names = list(msg.joint_names)
+
+    def pick(cols):
+        if not cols:
+            return None
+        out = JointTrajectory()
+        out.header = msg.header
+        out.joint_names = [names[c] for c in cols]
+        pts = []
+        for p in msg.points:
+            q = JointTrajectoryPoint()
+            q.positions = [p.positions[c] for c in cols]
+            if len(p.velocities):
+                q.velocities = [p.velocities[c] for c in cols]
+            if len(p.accelerations):
+                q.accelerations = [p.accelerations[c] for c in cols]
+            q.time_from_start = p.time_from_start
+            pts.append(q)
+        out.points = pts
+        return out
+
+    inside = [i for i, n in enumerate(names) if n in joints]
+    return pick(inside), pick([i for i in range(len(names)) if i not in inside])
 
 
 def msg_to_trajectory_arrays(msg: JointTrajectory):
@@ -327,7 +356,7 @@ def diagnostic_array(statuses, stamp=None, hardware_id: str = "") -> DiagnosticA
 
 
 # ------------------------------------------------------------------ action
-def plan_result(result_type, code: str, reason: str = "", trajectory=None, plan=None):
+def plan_result(result_type, code: str, reason: str = "", trajectory=None, plan=None, attitude_trajectory=None):
     """A PlanCapture.Result: ``code`` (a planner code or "superseded") → its constant,
     the trajectory message (empty unless ok), the stage times and the clearance of
     ``plan`` (a PlanResult) when there is one."""
@@ -340,6 +369,8 @@ def plan_result(result_type, code: str, reason: str = "", trajectory=None, plan=
     res.reason = reason or ""
     if trajectory is not None:
         res.trajectory = trajectory
+    if attitude_trajectory is not None:
+        res.attitude_trajectory = attitude_trajectory
     res.min_clearance_m = math.nan
     if plan is not None:
         res.stage_names = [str(k) for k in plan.timings_s]

@@ -3,8 +3,9 @@
 Publishes ``joint_states`` (every joint in ``robot.joint_names``) at
 ``mock_arm.rate_hz``.  The initial posture is ``scenario.start_deg`` over the
 planned joints and ``robot.locked_positions_deg`` for the rest.  A trajectory on
-``joint_trajectory`` is followed by interpolating its points in time from the moment
-it arrives; a newer trajectory preempts the old one.  When the arm is not exactly
+``joint_trajectory`` (the arm) or ``attitude_trajectory`` (the spacecraft's attitude, as
+an attitude control system would) is followed by interpolating its points in time from
+the moment it arrives; a newer trajectory on the same topic preempts the old one.  When the arm is not exactly
 at the new trajectory's first point (it moved while the planner worked), the
 difference is faded out linearly over ``blend_s`` (0.2 s), so the arm starts from
 where it is without a jump.
@@ -55,12 +56,13 @@ class MockArmNode(Node):
         self._q = np.array(q_full, dtype=float)
         self._v = np.zeros_like(self._q)
         self._lock = threading.Lock()
-        self._traj = None            # (column indices, times, positions, velocities, t0, offset)
+        self._trajs = {}             # topic -> (column indices, times, positions, velocities, t0, offset)
         self.blend_s = float(blend_s)
         self.trajectories_received = 0
         self.executing = False
         self.pub = self.create_publisher(JointState, "joint_states", 10)
-        self.create_subscription(JointTrajectory, "joint_trajectory", self._on_trajectory, 10)
+        for topic in ("joint_trajectory", "attitude_trajectory"):      # the arm's and the attitude's
+            self.create_subscription(JointTrajectory, topic, lambda m, t=topic: self._on_trajectory(m, t), 10)
         self._timer = self.create_timer(1.0 / float(params["mock_arm.rate_hz"]), self._tick)
         self.get_logger().info(f"mock arm at {np.round(np.degrees(self._q), 2).tolist()}°, "
                                f"publishing {', '.join(self.names)} at {params['mock_arm.rate_hz']} Hz")
@@ -70,7 +72,7 @@ class MockArmNode(Node):
         with self._lock:
             return self._q.copy()
 
-    def _on_trajectory(self, msg: JointTrajectory):
+    def _on_trajectory(self, msg: JointTrajectory, topic: str = "joint_trajectory"):
         try:
             names, t, q, v = conv.msg_to_trajectory_arrays(msg)
             unknown = [n for n in names if n not in self.names]
@@ -86,35 +88,48 @@ class MockArmNode(Node):
             for k, c in enumerate(cols):
                 if self.periodic[c]:
                     off[k] = math.remainder(off[k], 2 * math.pi)
-            self._traj = (cols, t, q, v, time.monotonic(), off)
+            self._trajs[topic] = (cols, t, q, v, self._start_time(msg), off)
             self.trajectories_received += 1
             self.executing = True
         self.get_logger().info(f"following a trajectory of {len(t)} points, {t[-1]:.2f} s "
                                f"(start offset {np.round(np.degrees(np.abs(off).max()), 3)}°)")
 
+    def _start_time(self, msg) -> float:
+        """Monotonic time at which ``msg`` starts: its header stamp (as a controller reads
+        it: the arm's and the attitude's parts of one plan start together), or now for a
+        zero stamp."""
+        now = time.monotonic()
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if stamp_ns == 0:
+            return now
+        return now - 1e-9 * (self.get_clock().now().nanoseconds - stamp_ns)
+
     def _advance(self, now):
         with self._lock:
-            if self._traj is None:
-                self._v[:] = 0.0
-                return
-            cols, t, q, v, t0, off = self._traj
-            s = now - t0
-            if s >= t[-1] and s >= self.blend_s:
-                self._q[cols] = q[-1]
-                self._v[cols] = 0.0
-                self._traj = None
-                self.executing = False
-                return
-            k = int(np.clip(np.searchsorted(t, s, side="right") - 1, 0, len(t) - 1))
-            if k >= len(t) - 1:
-                pos, vel = q[-1].copy(), np.zeros(len(cols))
-            else:
-                f = (s - t[k]) / (t[k + 1] - t[k])
-                pos = q[k] + f * (q[k + 1] - q[k])
-                vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k]) if v is None else v[k] + f * (v[k + 1] - v[k])
-            fade = max(0.0, 1.0 - s / self.blend_s) if self.blend_s > 0 else 0.0
-            self._q[cols] = pos + fade * off
-            self._v[cols] = vel
+            self._v[:] = 0.0
+            for topic in list(self._trajs):
+                self._advance_one(topic, now)
+            self.executing = bool(self._trajs)
+
+    def _advance_one(self, topic, now):
+        """(lock held) one topic's trajectory at time ``now``."""
+        cols, t, q, v, t0, off = self._trajs[topic]
+        s = now - t0
+        if s >= t[-1] and s >= self.blend_s:
+            self._q[cols] = q[-1]
+            self._v[cols] = 0.0
+            del self._trajs[topic]
+            return
+        k = int(np.clip(np.searchsorted(t, s, side="right") - 1, 0, len(t) - 1))
+        if k >= len(t) - 1:
+            pos, vel = q[-1].copy(), np.zeros(len(cols))
+        else:
+            f = (s - t[k]) / (t[k + 1] - t[k])
+            pos = q[k] + f * (q[k + 1] - q[k])
+            vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k]) if v is None else v[k] + f * (v[k + 1] - v[k])
+        fade = max(0.0, 1.0 - s / self.blend_s) if self.blend_s > 0 else 0.0
+        self._q[cols] = pos + fade * off
+        self._v[cols] = vel
 
     def _tick(self):
         self._advance(time.monotonic())

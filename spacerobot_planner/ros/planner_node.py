@@ -72,9 +72,12 @@ GRID_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
 
 # changes of these only affect publishing, not the plan
 _NO_REPLAN = {"replan.target_tolerance_m", "replan.target_tolerance_deg", "diagnostics.period_s",
+              "replan.min_publish_period_s",
               "potential_grid.use_current_attitude", "potential_grid.slice_attitude_deg", "grid_frame",
               "planner.test_stall_s"}
 WARM_UP_TIMEOUT_S = 300.0
+#: a joint group that moves less than this is at the goal: no trajectory for it, rad
+AT_GOAL_TOL_RAD = 1e-4
 
 
 @dataclass(eq=False)
@@ -89,6 +92,7 @@ class _Request:
     on_done: Callable | None = None              # called once with the Outcome
     on_progress: Callable | None = None          # worker.Progress while planning
     cancelled: str | None = None                 # reason, once cancelled
+    keep: bool = False                           # finish and publish although superseded (a stream)
 
 
 @dataclass(eq=False)
@@ -100,8 +104,9 @@ class Outcome:
     reason: str = ""
     result: object = None
     trajectory: object = None
-    msg: JointTrajectory | None = None
+    msg: JointTrajectory | None = None           # as published on joint_trajectory (arm joints)
     values: dict = field(default_factory=dict)
+    attitude_msg: JointTrajectory | None = None  # as published on attitude_trajectory
 
     @property
     def ok(self) -> bool:
@@ -230,6 +235,7 @@ class PlannerNode(LifecycleNode):
             return TransitionCallbackReturn.FAILURE
         self._pubs = {
             "traj": self.create_lifecycle_publisher(JointTrajectory, "joint_trajectory", 10),
+            "attitude": self.create_lifecycle_publisher(JointTrajectory, "attitude_trajectory", 10),
             "potential": self.create_lifecycle_publisher(OccupancyGrid, "potential_grid", GRID_QOS),
             "cspace": self.create_lifecycle_publisher(OccupancyGrid, "cspace_grid", GRID_QOS),
             "markers": self.create_lifecycle_publisher(MarkerArray, "planned_path_markers", GRID_QOS),
@@ -275,6 +281,7 @@ class PlannerNode(LifecycleNode):
         with self._lock:
             self._accepting = True
             self.state = "idle"
+            self._last_publish_t = time.monotonic()
         self.get_logger().info("active: waiting for target_pose / goal_joint_state / plan_capture goals "
                                "and joint_states")
         self._publish_diag()
@@ -507,7 +514,8 @@ class PlannerNode(LifecycleNode):
             outcome = await done
         finally:
             self._goals.pop(key, None)
-        result = conv.plan_result(PlanCapture.Result, outcome.code, outcome.reason, outcome.msg, outcome.result)
+        result = conv.plan_result(PlanCapture.Result, outcome.code, outcome.reason, outcome.msg, outcome.result,
+                                  outcome.attitude_msg)
         try:
             if outcome.ok:
                 goal_handle.succeed()
@@ -589,8 +597,14 @@ class PlannerNode(LifecycleNode):
             else:
                 self._replace_pending(req)
             self._latest = req
-            if self._active is not None:
-                self._backend.cancel(self._active.gen)   # supersede the plan in progress
+            active = self._active
+            if active is not None:
+                period = float(self._params["replan.min_publish_period_s"])
+                starving = period > 0 and time.monotonic() - self._last_publish_t >= period
+                if starving and active.on_done is None and req.on_done is None:
+                    active.keep = True          # a stream of targets: let this one be published
+                else:
+                    self._backend.cancel(active.gen)   # supersede the plan in progress
             self._lock.notify_all()
             return req.gen
 
@@ -665,7 +679,7 @@ class PlannerNode(LifecycleNode):
                 return Outcome("cancelled", req.cancelled)
             if self._stop:
                 return Outcome("cancelled", "the node is shutting down")
-            if req.gen != self._gen:
+            if req.gen != self._gen and not req.keep:
                 return _superseded(self._latest)
         return None
 
@@ -709,7 +723,9 @@ class PlannerNode(LifecycleNode):
         if dropped is not None:
             self._log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
-        msg = conv.trajectory_to_msg(traj, self.get_clock().now().to_msg())
+        # one stamp for both parts, now: the arm's and the attitude's controllers start together
+        # (a zero stamp would mean "on arrival", each its own); it ends traj.duration_s later
+        msg, att_msg = self._split(conv.trajectory_to_msg(traj, self.get_clock().now().to_msg()), traj)
         latency = time.perf_counter() - req.t_request
         values = {
             "goal_deg": np.round(np.degrees(res.goal_rad), 3).tolist(),
@@ -720,14 +736,31 @@ class PlannerNode(LifecycleNode):
             "solver": res.solver,
             "latency_s": f"{latency:.4f}",
         }
-        outcome = Outcome("ok", "", res, traj, msg, values)
+        at_goal = msg is None and att_msg is None
+        if at_goal:
+            values["at_goal"] = "true"
+        outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
+                          msg, values, att_msg)
         with self._lock:           # the node's state first: whoever reacts to the trajectory sees it
             self.last_result = res
             self.last_trajectory = traj
             if self._pending is None:
                 self.state = "idle"
         self._record(req, outcome)
-        self._pubs["traj"].publish(msg)
+        # a goal with its own start is planned, not executed: the controller's arm is elsewhere
+        execute = req.start_rad is None
+        if msg is not None and execute:
+            self._pubs["traj"].publish(msg)
+        if att_msg is not None and execute:
+            self._pubs["attitude"].publish(att_msg)
+        if not execute:
+            self._log("info", f"plan #{req.gen}: planned from the goal's own start: returned, not published")
+        elif not at_goal:
+            with self._lock:
+                self._last_publish_t = time.monotonic()
+        else:
+            self._log("info", f"plan #{req.gen}: already at the goal (within {AT_GOAL_TOL_RAD:g} rad): "
+                      "no trajectory published")
         t = res.timings_s
         self._log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
                   f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
@@ -737,6 +770,19 @@ class PlannerNode(LifecycleNode):
                   f"{1e3 * latency:.1f} ms")
         self._publish_visuals(res, sc, start_raw, p)
         return outcome
+
+    def _split(self, full: JointTrajectory, traj):
+        """(arm joints' message, attitude's message): the attitude (the robot's first joint,
+        the spacecraft's) goes to the attitude control system, the arm joints to the arm's
+        controller (None for a group that is not planned).  Both None when nothing moves
+        more than AT_GOAL_TOL_RAD: at the goal.  A group that does not move while the other
+        does still gets its (holding) trajectory, which replaces an older one still running."""
+        attitude = self._robot.joint_names[0]
+        att, arm = conv.split_trajectory_msg(full, [attitude])
+        q = np.asarray(traj.positions_rad)
+        if float(np.max(np.abs(q[-1] - q[0]))) <= AT_GOAL_TOL_RAD:
+            return None, None
+        return arm, att
 
     def _failure(self, req, code, reason, res=None, tb=None) -> Outcome:
         self._log("error", f"plan #{req.gen}: {code}: {reason}" + (f"\n{tb.rstrip()}" if tb else ""))
