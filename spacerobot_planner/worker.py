@@ -60,6 +60,7 @@ class PlanJob:
     start_rad: np.ndarray
     joint_goal: np.ndarray | None
     stall_s: float = 0.0
+    field_budget_s: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -115,8 +116,9 @@ def _apply_settings(planner, job: PlanJob) -> None:
     planner.set_scene(job.scene)
     if planner.scenario.grid != job.grid:
         planner.set_grid(job.grid)
-    if (planner.solver, planner.field_tolerance) != (job.solver, job.field_tolerance):
-        planner.set_solver(job.solver, job.field_tolerance)
+    if (planner.solver, planner.field_tolerance, planner.settings.field_budget_s) != \
+            (job.solver, job.field_tolerance, job.field_budget_s):
+        planner.set_solver(job.solver, job.field_tolerance, job.field_budget_s)
     planner.max_grid_nodes = job.max_grid_nodes
 
 
@@ -228,7 +230,7 @@ def child_main(fd: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)        # the node decides when to stop
     conn = Connection(fd)
     scenario, solver, field_tolerance = conn.recv()
-    planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance)
+    planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)
     t_warm = warm_up(planner)["total_s"]      # compile / load the kernels before saying "ready"
     jobs: queue.Queue = queue.Queue()
     cancel = _GenCancel()
@@ -286,7 +288,8 @@ class ThreadBackend:
     def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
         from .field import DEFAULT_SOLVER
         from .planner import Planner
-        self.planner = Planner(scenario, solver=solver or DEFAULT_SOLVER, field_tolerance=field_tolerance)
+        self.planner = Planner(scenario, solver=solver or DEFAULT_SOLVER, field_tolerance=field_tolerance,
+                               trajectory=False)
         self._cancel = threading.Event()
         self.pid = None
 

@@ -31,7 +31,10 @@ from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to
 
 FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
         "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
-SCENES = {"2dof": ("config/paper_2dof.yaml", [180, 180]), "3dof": ("config/paper_3dof.yaml", [36, 36, 36])}
+_CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config")
+SCENES = {"2dof": (os.path.join(_CONFIG, "paper_2dof.yaml"), [180, 180]),
+          "3dof": (os.path.join(_CONFIG, "paper_3dof.yaml"), [36, 36, 36]),
+          "servicer": (os.path.join(_CONFIG, "servicer_3dof.yaml"), [36, 36, 36])}
 
 
 def scene_params(name, cells=None, **extra):

@@ -211,10 +211,12 @@ def test_diagnostics_describe_only_the_last_finished_request(graph):
     assert set(iv) == {"rejected_total"} and iv["rejected_total"] == "1"
     assert pv["request"] != fv["request"] and pv["code"] == "ok"
     ok_keys = {"state", "request", "request_reason", "target_m", "target_yaw_deg", "code", "goal_deg",
-               "min_clearance_m", "trajectory_duration_s", "trajectory_points", "cached", "solver", "latency_s"}
+               "min_clearance_m", "trajectory_duration_s", "trajectory_points", "cached", "solver", "latency_s",
+               "field_converged", "field_bands", "repairs", "approach_error_deg"}
     timing_keys = {k for k in pv if k.startswith("time_") and k.endswith("_ms")}
     assert timing_keys and set(pv) == ok_keys | timing_keys, set(pv) ^ (ok_keys | timing_keys)
     assert json.loads(pv["target_m"]) == [-3.27, -2.6]
+    assert pv["field_converged"] == "true" and float(pv["approach_error_deg"]) < 5.0
 
 
 def test_grids_are_in_the_grid_frame(graph):
@@ -272,3 +274,27 @@ def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, expect_som
     else:
         assert n_stream == 0
     g.wait(lambda: g.n_trajs() > n_stream, 10, "the last target's trajectory after the stream")
+
+
+def test_servicer_trajectory_keeps_the_wheel_limits(graph):
+    """config/servicer_3dof.yaml through the node: the wheel momentum and torque of the planned
+    trajectory, recomputed in the test from forward kinematics (test_dynamics' momentum sum),
+    stay within the file's limits, and /diagnostics reports the reaction."""
+    from node_helpers import diag_values
+    from test_dynamics import _load_oracle
+    from spacerobot_planner.dynamics import MassProperties
+    g = graph(scene_params("servicer"), with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.send_target()
+    g.wait(lambda: g.planner.last_trajectory is not None, 60, "a trajectory")
+    traj = g.planner.last_trajectory
+    q = robot.full(traj.positions_rad)
+    qd, qdd = np.zeros_like(q), np.zeros_like(q)
+    idx = list(robot.planned_joints)
+    qd[:, idx], qdd[:, idx] = traj.velocities_rad_s, traj.accelerations_rad_s2
+    h, tau = _load_oracle(robot, MassProperties(), q, qd, qdd)
+    assert np.max(np.abs(h)) <= 50.0 * (1 + 1e-6) and np.max(np.abs(tau)) <= 0.5 * (1 + 1e-6)
+    g.wait(lambda: "peak_wheel_momentum_Nms" in diag_values(g.status("planner")), 10, "the reaction")
+    pv = diag_values(g.status("planner"))
+    assert float(pv["peak_wheel_torque_Nm"]) <= 0.5 + 1e-9 and pv["acs_mode"] == "held"

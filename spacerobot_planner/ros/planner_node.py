@@ -58,6 +58,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ..config import NODE_NAME, check_value, scenario_from_params
 from ..scene import Target
+from ..pipeline import timed_motion
 from ..trajectory import time_parameterize
 from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, make_backend
 from . import conversions as conv
@@ -694,7 +695,8 @@ class PlannerNode(LifecycleNode):
         job = PlanJob(gen=req.gen, scene=sc.scene, grid=sc.grid, solver=p["planner.solver"],
                       field_tolerance=float(p["planner.field_tolerance"]),
                       max_grid_nodes=int(p["planner.max_grid_nodes"]), start_rad=start_raw,
-                      joint_goal=req.joint_goal, stall_s=float(p["planner.test_stall_s"]))
+                      joint_goal=req.joint_goal, stall_s=float(p["planner.test_stall_s"]),
+                      field_budget_s=float(p["planner.field_budget_s"]))
         out = self._backend.run(job, progress=req.on_progress)
         dropped = self._superseded_by(req)
         if out is None or dropped is not None:
@@ -718,7 +720,12 @@ class PlannerNode(LifecycleNode):
             return self._failure(req, res.code, res.reason or res.code, res, tb=res.traceback or None)
         if req.on_progress is not None:
             req.on_progress(_progress("trajectory"))
-        traj = self._time_parameterize(res, start_raw, p)
+        try:
+            traj, reaction = timed_motion(req.scenario, res.path_rad, start_raw)
+        except ValueError as e:
+            return self._failure(req, "invalid_input", f"time parameterisation: {e}", res)
+        if reaction is not None and not reaction.ok:
+            return self._failure(req, "reaction_refused", reaction.reason, res)
         dropped = self._superseded_by(req)
         if dropped is not None:
             self._log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
@@ -735,6 +742,7 @@ class PlannerNode(LifecycleNode):
             "cached": ",".join(res.cached) or "none",
             "solver": res.solver,
             "latency_s": f"{latency:.4f}",
+            **_result_values(res, reaction),
         }
         at_goal = msg is None and att_msg is None
         if at_goal:
@@ -791,21 +799,6 @@ class PlannerNode(LifecycleNode):
             values["goal_deg"] = np.round(np.degrees(res.goal_rad), 3).tolist()
         return Outcome(code, reason, res, values=values)
 
-    def _time_parameterize(self, res, start_raw, p):
-        robot = self._robot
-        idx = list(robot.planned_joints)
-        path = np.array(res.path_rad, dtype=float)
-        # continuous values from where the arm is: shift periodic columns by whole turns so
-        # the first point equals the joint_states value
-        for k, periodic in enumerate(robot.planned_periodic):
-            if periodic:
-                path[:, k] += 2 * math.pi * round((start_raw[k] - path[0, k]) / (2 * math.pi))
-        path[0] = start_raw
-        vmax = np.radians(np.asarray(p["trajectory.max_velocity_deg_s"], dtype=float))[idx]
-        amax = np.radians(np.asarray(p["trajectory.max_acceleration_deg_s2"], dtype=float))[idx]
-        return time_parameterize(path, vmax, amax, robot.planned_names)
-
-    # ------------------------------------------------------------------ outputs
     def slice_axes_and_point(self, res, start_raw, params):
         """(x axis, y axis, q at which to slice) for the published grids."""
         dof = self._robot.dof
@@ -958,6 +951,26 @@ class PlannerNode(LifecycleNode):
         if self._backend is not None:
             self._backend.close()
             self._backend = None
+
+
+def _result_values(res, reaction) -> dict:
+    """/diagnostics keys of a plan beyond the basics: the field's convergence and repairs, the
+    grasp's approach error, the spacecraft's reaction."""
+    st = res.solver_stats
+    out = {"field_converged": str(bool(st.get("converged", True))).lower(),
+           "field_bands": st.get("bands", ""), "repairs": st.get("repairs", 0)}
+    if st.get("left"):
+        out["field_left"] = st["left"]
+    approach = getattr(res, "approach_error_deg", float("nan"))
+    if approach == approach:
+        out["approach_error_deg"] = f"{approach:.2f}"
+    if reaction is not None:
+        for key in ("acs_mode", "peak_wheel_momentum_Nms", "peak_wheel_torque_Nm",
+                    "free_floating_attitude_change_deg", "free_floating_tip_miss_m"):
+            value = getattr(reaction, key, None)
+            if value is not None:
+                out[key] = f"{value:.4f}" if isinstance(value, float) else str(value)
+    return out
 
 
 def _superseded(newer: _Request) -> Outcome:
