@@ -26,7 +26,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml $(IFACE)/CMakeLists.tx
 	$(PY) -m pip install --quiet -r requirements.txt
 	$(MAKE) interfaces
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
-	$(PY) -m spacerobot_planner.ament_install --prefix $(VENV)
+	$(PY) -m spacerobot_planner.tools.ament_install --prefix $(VENV)
 	$(PY) -m spacerobot_planner.worker --warm-cache config/paper_3dof.yaml config/paper_2dof.yaml
 	touch $(STAMP)
 
@@ -47,7 +47,7 @@ test-long: venv
 	$(PY) -m pytest -q --hypothesis-profile=long
 
 demo: venv
-	$(PY) -m spacerobot_planner.demo --out $(OUT)
+	$(PY) -m spacerobot_planner.tools.demo --out $(OUT)
 
 plan: venv
 	$(VENV)/bin/spacerobot-plan --params-file config/paper_3dof.yaml --plot $(OUT)/paper_3dof.png

@@ -9,7 +9,7 @@ setup(
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
     # colcon installs these; a pip (editable) install gets them from
-    # `python -m spacerobot_planner.ament_install --prefix <venv>`
+    # `python -m spacerobot_planner.tools.ament_install --prefix <venv>`
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -28,8 +28,8 @@ setup(
         "console_scripts": [
             "planner_node = spacerobot_planner.ros.planner_node:main",
             "mock_arm_node = spacerobot_planner.ros.mock_arm_node:main",
-            "spacerobot-plan = spacerobot_planner.cli:main",
-            "spacerobot-demo = spacerobot_planner.demo:main",
+            "spacerobot-plan = spacerobot_planner.tools.cli:main",
+            "spacerobot-demo = spacerobot_planner.tools.demo:main",
         ],
     },
 )

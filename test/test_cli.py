@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from spacerobot_planner.cli import main
+from spacerobot_planner.tools.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 P3 = str(ROOT / "config" / "paper_3dof.yaml")
@@ -154,7 +154,7 @@ def test_plot_without_path(tmp_path, capsys):
 def test_console_script_subprocess(tmp_path):
     """The real process: exit status 1 and a one-line message on bad input, no traceback."""
     exe = Path(sys.executable).parent / "spacerobot-plan"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "spacerobot_planner.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "spacerobot_planner.tools.cli"]
     proc = subprocess.run(cmd + ["--params-file", P3, "--start-deg", "1", "2"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1
@@ -277,7 +277,7 @@ def test_json_reports_the_grasp_approach_error(tmp_path, capsys):
 def test_importing_the_core_loads_no_rclpy():
     code = ("import sys\n"
             "import spacerobot_planner.planner, spacerobot_planner.field, spacerobot_planner.trajectory\n"
-            "import spacerobot_planner.dynamics, spacerobot_planner.cli, spacerobot_planner.pipeline\n"
+            "import spacerobot_planner.dynamics, spacerobot_planner.tools.cli, spacerobot_planner.pipeline\n"
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rcl_interfaces', "
             "'sensor_msgs', 'trajectory_msgs'))\n"
             "print(bad)\n"

@@ -28,7 +28,7 @@ def test_venv_has_the_ament_layout():
 
 
 def test_ament_install_into_a_temp_prefix(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "spacerobot_planner.ament_install", "--prefix", str(tmp_path)],
+    r = subprocess.run([sys.executable, "-m", "spacerobot_planner.tools.ament_install", "--prefix", str(tmp_path)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     _check_prefix(tmp_path)

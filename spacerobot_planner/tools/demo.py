@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .collision import CollisionChecker
-from .config import load_params_file, load_scenario
-from .cspace import build_cspace
-from .ik import capture_posture, grasp_ik
+from ..collision import CollisionChecker
+from ..config import load_params_file, load_scenario
+from ..cspace import build_cspace
+from ..ik import capture_posture, grasp_ik
 
-_DEFAULT_PARAMS = Path(__file__).resolve().parent.parent / "config" / "paper_3dof.yaml"
+_DEFAULT_PARAMS = Path(__file__).resolve().parents[2] / "config" / "paper_3dof.yaml"
 
 
 def offline_facts(params_file) -> None:
@@ -61,10 +61,10 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from trajectory_msgs.msg import JointTrajectory
 
-    from .config import scenario_from_params
-    from .ros.mock_arm_node import MockArmNode
-    from .ros.parameters import MOCK_ARM_PARAMETERS
-    from .ros.planner_node import PlannerNode, params_to_overrides
+    from ..config import scenario_from_params
+    from ..ros.mock_arm_node import MockArmNode
+    from ..ros.parameters import MOCK_ARM_PARAMETERS
+    from ..ros.planner_node import PlannerNode, params_to_overrides
 
     flat = load_params_file(params_file)
     for key, power in (("trajectory.max_velocity_deg_s", 1), ("trajectory.max_acceleration_deg_s2", 2)):
@@ -141,7 +141,7 @@ def _plot(res, scenario, out: Path) -> None:
     try:
         from .plotting import plot_plan
     except ImportError:
-        print("[demo] spacerobot_planner.plotting not available: no figure")
+        print("[demo] spacerobot_planner.tools.plotting not available: no figure")
         return
     out.mkdir(parents=True, exist_ok=True)
     path = out / "demo_paper_3dof.png"

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import check_value, load_scenario
-from .field import SOLVERS
+from ..config import check_value, load_scenario
+from ..field import SOLVERS
 
 __all__ = ["main", "build_parser"]
 
@@ -143,7 +143,7 @@ def main(argv=None) -> int:
         else:
             raise ValueError("--start-deg: no start given and the file has no scenario.start_deg")
         goal = posture(args.goal_deg, "--goal-deg") if args.goal_deg is not None else scenario.goal_rad
-        from .planner import Planner, settings_from_params
+        from ..planner import Planner, settings_from_params
         settings = settings_from_params(params, solver=solver, field_tolerance=tol, max_grid_nodes=budget,
                                         field_budget_s=field_budget, reaction=True)
         planner = Planner(scenario, settings=settings)
@@ -159,7 +159,7 @@ def main(argv=None) -> int:
         return _fail_input(res.reason)
     if res.code in ("ok", "reaction_refused") and scenario.acs.mode == "free_floating" \
             and scenario.acs.compensate_drift:
-        from .dynamics import plan_free_floating
+        from ..dynamics import plan_free_floating
         # the compensation plans geometry only; the trajectory stage follows on its result
         try:
             comp = plan_free_floating(scenario, start, goal)
@@ -174,8 +174,8 @@ def main(argv=None) -> int:
         print(line)
     resampled = None
     if res.trajectory is not None:
-        from .collision import CollisionChecker
-        from .trajectory import resample
+        from ..collision import CollisionChecker
+        from ..trajectory import resample
         resampled = resample(res.trajectory, CollisionChecker(robot, scenario.scene))
         for line in _motion_summary(res.trajectory, res.reaction, resampled):
             print(line)
@@ -199,7 +199,7 @@ def main(argv=None) -> int:
         plot_plan(res, scenario, args.plot)
         print(f"wrote {args.plot}")
         if res.reaction is not None:
-            from .dynamics import Motion
+            from ..dynamics import Motion
             from .plotting import plot_reaction
             rpath = Path(args.plot).with_name(Path(args.plot).stem + "_reaction.png")
             plot_reaction(Motion(res.trajectory, res.reaction), rpath)

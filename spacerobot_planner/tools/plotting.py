@@ -17,8 +17,8 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap, LogNorm  # noqa: E402
 from matplotlib.patches import Polygon  # noqa: E402
 
-from .cspace import build_cspace  # noqa: E402
-from .joint_space import wrap_angle_rad, wrap_rad  # noqa: E402
+from ..cspace import build_cspace  # noqa: E402
+from ..joint_space import wrap_angle_rad, wrap_rad  # noqa: E402
 
 __all__ = ["plot_plan", "plot_reaction", "wrap_for_plot"]
 
