@@ -1,5 +1,6 @@
 """ros_conversions: messages ↔ core types, without a running graph."""
 
+import os
 import math
 
 import numpy as np
@@ -13,6 +14,7 @@ from spacerobot_planner.config import load_scenario
 from spacerobot_planner.cspace import GridSpec
 from spacerobot_planner.scene import Target
 from spacerobot_planner.trajectory import time_parameterize
+from conftest import CONFIG_DIR
 
 
 def _pose(x=-3.27, y=-2.6, yaw=0.0, frame="world", quat=None):
@@ -111,7 +113,7 @@ def test_grid_slice_3d_takes_last_two_axes_at_the_nearest_node():
 
 
 def test_markers_and_diagnostics():
-    sc = load_scenario("config/paper_3dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     path = np.linspace(sc.start_rad, sc.goal_rad, 20)
     arr = conv.path_markers(sc.robot, sc.scene, path, "world", n_postures=5)
     ns = [m.ns for m in arr.markers[1:]]

@@ -4,6 +4,7 @@ parameter services a `ros2 param` user calls, and the YAML file read here direct
 
 from __future__ import annotations
 
+import os
 import yaml
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import DescribeParameters, ListParameters, SetParameters
@@ -12,6 +13,7 @@ from rclpy.parameter import Parameter
 from spacerobot_planner.field import SOLVERS
 
 from node_helpers import scene_params
+from conftest import CONFIG_DIR
 
 
 def _call(g, node, srv_type, name, request):
@@ -78,7 +80,7 @@ def test_both_nodes_from_one_params_file(tmp_path):
     from rclpy.context import Context
 
     from spacerobot_planner.ros.mock_arm_node import MockArmNode
-    with open("config/paper_2dof.yaml") as f:
+    with open(os.path.join(CONFIG_DIR, "paper_2dof.yaml")) as f:
         doc = yaml.safe_load(f)
     doc["mock_arm"]["ros__parameters"]["rate_hz"] = 20.0
     doc["spacerobot_planner"]["ros__parameters"]["autostart"] = False

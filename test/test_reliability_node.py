@@ -45,6 +45,7 @@ from spacerobot_planner.scene import Target
 
 from node_helpers import (Graph, child_pids, diag_list, diag_values, pid_alive, planned_positions, rss_mb,
                           scene_params)
+from conftest import CONFIG_DIR
 
 FLOOD_S = 10.0            # the issue's 10 s
 FLOOD_HZ = 200.0
@@ -503,7 +504,7 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
     ignores SIGINT; the node stops it).  The process exits within the bound, child included."""
     log = tmp_path / "planner_node.log"
     cmd = [sys.executable, "-c", "import sys; from spacerobot_planner.ros.planner_node import main; sys.exit(main())",
-           "--ros-args", "--params-file", "config/paper_3dof.yaml",
+           "--ros-args", "--params-file", os.path.join(CONFIG_DIR, "paper_3dof.yaml"),
            "-p", "planner.test_stall_s:=30.0"]
     with open(log, "wb") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)

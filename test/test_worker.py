@@ -3,6 +3,7 @@ ends even an uninterruptible stage (an injected stall) by replacing the process.
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.worker import PlanDone, PlanError, PlanJob, ProcessBackend, ThreadBackend
+from conftest import CONFIG_DIR
 
 CANCEL_BOUND_S = 1.0          # the bound for a cancel
 
@@ -26,7 +28,7 @@ def _mapped_libraries(pid):
 
 @pytest.fixture(scope="module")
 def backend():
-    sc = load_scenario("config/paper_3dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     b = ProcessBackend(sc)
     assert b.wait_ready(300) is not None
     yield sc, b
@@ -97,7 +99,7 @@ def test_cancel_ends_an_uninterruptible_stage_and_a_fresh_process_plans(backend,
 
 
 def test_thread_backend_plans_the_same_job():
-    sc = load_scenario("config/paper_2dof.yaml")
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
     out = ThreadBackend(sc).run(_job(sc, 1, joint_goal=sc.goal_rad))
     assert isinstance(out, PlanDone) and out.result.ok
     np.testing.assert_allclose(out.result.path_rad[-1], sc.goal_rad, atol=1e-9)
