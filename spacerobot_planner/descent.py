@@ -15,7 +15,7 @@ import numba as nb
 import numpy as np
 
 from .field import Field, bfs_distance
-from .motion import segment_free
+from .motion import motion_scratch, segment_free
 
 # status codes of the kernels
 _REACHED, _STUCK, _TOO_LONG, _BLOCKED = 0, 1, 2, 3
@@ -188,9 +188,7 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     Returns (number of nodes, status)."""
     strides = _strides(shape)
     ndim = shape.size
-    q_full = q_template.copy()
-    pts = np.empty((lengths.shape[0] + 1, 2))
-    body_w = np.empty_like(body)
+    q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     qa = np.empty(ndim)
     qb = np.empty(ndim)
     coord = np.empty(ndim, np.int64)
@@ -263,9 +261,7 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
     ``centre`` whose straight segment fails ``motion.segment_free``, int64 (k, 2)."""
     strides = _strides(shape)
     ndim = shape.size
-    q_full = q_template.copy()
-    pts = np.empty((lengths.shape[0] + 1, 2))
-    body_w = np.empty_like(body)
+    q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     qa = np.empty(ndim)
     qb = np.empty(ndim)
     c0 = np.empty(ndim, np.int64)

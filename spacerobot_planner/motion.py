@@ -76,9 +76,7 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
     """
     dof = points.shape[1]
-    q_full = q_template.copy()
-    pts = np.empty((lengths.shape[0] + 1, 2))
-    body_w = np.empty_like(body)
+    q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     n_eval = 0
     for i in range(points.shape[0] - 1):
         seg_len = 0.0
@@ -167,6 +165,13 @@ def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
         return -1
     bad = np.flatnonzero(~chk.interval_ok)
     return int(bad[0]) if len(bad) else len(points_rad) - 2
+
+
+@njit(cache=True, nogil=True)
+def motion_scratch(q_template, lengths, body):
+    """(q_full, pts, body_w): the scratch arrays of :func:`segment_free` and the clearance
+    kernel (a full configuration from ``q_template``, the chain's points, the posed body)."""
+    return q_template.copy(), np.empty((lengths.shape[0] + 1, 2)), np.empty_like(body)
 
 
 @njit(cache=True, nogil=True)
