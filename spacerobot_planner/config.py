@@ -193,6 +193,15 @@ PARAMETERS = (
               "Under a stream of targets (topics), a plan in progress is let finish and published "
               "instead of being superseded once no trajectory was published for this long, so a "
               "drifting target is followed; 0 = the latest request always wins, seconds.", False, 0.0, 3600.0),
+    ParamSpec("replan.horizon_s", "double", 1.0,
+              "A replan while the node's last trajectory is executing starts this far ahead along it "
+              "and the new trajectory is joined to it there (same position and velocity at the switch; "
+              "doubled for a retry when a plan takes longer); 0 = plan from the measured state at "
+              "rest, seconds.", False, 0.0, 60.0),
+    ParamSpec("replan.follow_tolerance_deg", "double", 2.0,
+              "The join needs the arm to follow the executing trajectory: the measured joint_states "
+              "within this of it (per joint), else the replan starts from the measured state at "
+              "rest, degrees.", False, 0.0, 360.0),
     ParamSpec("planner.test_stall_s", "double", 0.0,
               "Testing aid: the planning process stalls this long before every plan (a long, "
               "uninterruptible stage without a large grid); 0 in normal use, seconds.", False, 0.0, 600.0),

@@ -72,7 +72,7 @@ def trajectory_limits_known(scenario) -> bool:
             and "trajectory.max_acceleration_deg_s2" in scenario.params)
 
 
-def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None):
+def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0):
     """The last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
 
     Args:
@@ -84,10 +84,13 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
         reaction: also report the spacecraft's reaction (``dynamics.plan_motion``);
             None: when the scenario has ACS or wheel settings (free floating, wheel
             limits), where the reaction shapes or refuses the trajectory.
+        start_path_speed: the arm's speed along the path at its start (rad/s of joint-space
+            chord length; a replan joined to a moving arm, see ``trajectory.continuation``).
     Returns:
         (trajectory.Trajectory, dynamics.ReactionReport or None).
     Raises:
-        ValueError: bad limits (naming the parameter).
+        ValueError: bad limits (naming the parameter), or a start speed the path cannot be
+            followed with (``trajectory.time_parameterize``).
     """
     from .dynamics import plan_motion, scenario_joint_limits
     from .trajectory import time_parameterize
@@ -98,11 +101,11 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
     if reaction is None:
         reaction = scenario.acs.mode != "held" or scenario.acs.has_wheel_limits
     if reaction:
-        motion = plan_motion(scenario, path)
+        motion = plan_motion(scenario, path, start_path_speed=start_path_speed)
         return motion.trajectory, motion.reaction
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
-                             acceleration_scaling=as_), None
+                             acceleration_scaling=as_, start_path_speed=start_path_speed), None
 
 
 class PlanRun:

@@ -71,7 +71,8 @@ from numba import njit
 from scipy.interpolate import CubicSpline
 
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
-           "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation"]
+           "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
+           "horizon_index", "HorizonPassed"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +133,36 @@ class Trajectory:
                        limit_ratio=pick(self.limit_ratio),
                        wheel_momentum_Nms=pick(self.wheel_momentum_Nms),
                        wheel_torque_Nm=pick(self.wheel_torque_Nm))
+
+    def then(self, other: "Trajectory") -> "Trajectory":
+        """This trajectory, then ``other`` from where it ends at rest: ``other``'s times
+        shifted by this one's duration, the shared point once (with ``other``'s
+        acceleration, the one that follows).
+
+        Raises:
+            ValueError: ``other`` does not start where this one ends, or either is not at
+                rest there, or the joints differ.
+        """
+        if tuple(other.joint_names) != tuple(self.joint_names):
+            raise ValueError(f"then: joints {other.joint_names} after {self.joint_names}")
+        if np.max(np.abs(other.positions_rad[0] - self.positions_rad[-1])) > 1e-9:
+            raise ValueError("then: the second trajectory does not start where the first ends")
+        if np.any(self.velocities_rad_s[-1] != 0.0) or np.any(other.velocities_rad_s[0] != 0.0):
+            raise ValueError("then: the trajectories must meet at rest")
+        head = self.subset(np.arange(len(self) - 1))
+
+        def cat(a, b):
+            return None if a is None or b is None else np.concatenate([a, b])
+
+        return replace(self, times_s=np.concatenate([head.times_s, other.times_s + self.duration_s]),
+                       positions_rad=cat(head.positions_rad, other.positions_rad),
+                       velocities_rad_s=cat(head.velocities_rad_s, other.velocities_rad_s),
+                       accelerations_rad_s2=cat(head.accelerations_rad_s2, other.accelerations_rad_s2),
+                       path_speed=cat(head.path_speed, other.path_speed),
+                       active_limit=cat(head.active_limit, other.active_limit),
+                       limit_ratio=cat(head.limit_ratio, other.limit_ratio),
+                       wheel_momentum_Nms=cat(head.wheel_momentum_Nms, other.wheel_momentum_Nms),
+                       wheel_torque_Nm=cat(head.wheel_torque_Nm, other.wheel_torque_Nm))
 
     def to_json_dict(self) -> dict:
         """Plain-JSON view: joint_names, times_s, positions_rad, velocities_rad_s,
@@ -761,7 +792,20 @@ class Continuation:
         return np.vstack([self.prefix_rad, new[1:]])
 
 
-def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0) -> Continuation:
+class HorizonPassed(ValueError):
+    """The executing trajectory is already past the point where the new plan starts."""
+
+
+def horizon_index(traj: Trajectory, t_s: float, horizon_s: float) -> int:
+    """The index of the first point of ``traj`` at or after ``t_s + horizon_s`` (s from its
+    start; the last point when that is beyond its end): where a replacement plan starts."""
+    if not (np.isfinite(t_s) and np.isfinite(horizon_s) and horizon_s >= 0.0):
+        raise ValueError(f"horizon_s: must be a finite number ≥ 0 (t_s finite), got {horizon_s}, {t_s}")
+    return min(int(np.searchsorted(traj.times_s, t_s + horizon_s, side="left")), len(traj.times_s) - 1)
+
+
+def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizon_at: int | None = None,
+                 join_indices=None) -> Continuation:
     """Replanning from a moving arm: keep the executing trajectory to a horizon, join there.
 
     The new trajectory starts at the first point of ``traj`` at or after ``t_s`` (the
@@ -774,17 +818,29 @@ def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0) -> Contin
     the horizon to be entered at that speed (take a longer horizon).
 
     Args:
-        traj: the executing trajectory.
+        traj: the executing trajectory (dense: its polyline is the certified path).
         t_s: the current time in it (s from its start).
-        horizon_s: how far ahead (s) the new plan starts, ≥ 0.
+        horizon_s: how far ahead (s) the new plan starts, ≥ 0 (see :func:`horizon_index`).
+        horizon_at: instead of ``horizon_s``, the index where the new plan starts (it was
+            chosen when the plan began; the join is now, later).
+        join_indices: the indices of ``traj`` the join may be at (default: any point).
+            A controller given a subset of the points (``resample``) interpolates the
+            velocity between them: joining at one of them keeps the velocity exact.
     Returns:
         Continuation; at or beyond the end of ``traj`` it is the goal at rest.
+    Raises:
+        HorizonPassed: the join would lie beyond ``horizon_at`` (the plan took too long).
     """
-    if not (np.isfinite(t_s) and np.isfinite(horizon_s) and horizon_s >= 0.0):
-        raise ValueError(f"horizon_s: must be a finite number ≥ 0 (t_s finite), got {horizon_s}, {t_s}")
     t = traj.times_s
-    k = min(int(np.searchsorted(t, t_s, side="left")), len(t) - 1)
-    h = min(int(np.searchsorted(t, t[k] + horizon_s, side="left")), len(t) - 1)
+    h = horizon_index(traj, t_s, horizon_s) if horizon_at is None else int(horizon_at)
+    if not 0 <= h < len(t):
+        raise ValueError(f"horizon_at: {h} is not an index of the trajectory's {len(t)} points")
+    cand = np.arange(len(t)) if join_indices is None else np.unique(np.append(np.asarray(join_indices), len(t) - 1))
+    j = int(np.searchsorted(t[cand], t_s, side="left"))
+    k = int(cand[min(j, len(cand) - 1)])
+    if k > h:
+        raise HorizonPassed(f"horizon_at: the join (t = {t[k]:.3f} s) is past the horizon point "
+                            f"(t = {t[h]:.3f} s): the new plan starts behind the arm")
     speed = 0.0 if traj.path_speed is None else float(traj.path_speed[k])
     return Continuation(k, float(t[k]), traj.positions_rad[k:h + 1].copy(), speed,
                         traj.velocities_rad_s[k].copy())

@@ -111,20 +111,43 @@ class Graph:
                 self.checked.append((topic, msg, now, None if last is None else dict(zip(last.name, last.position))))
         return cb
 
+    def state_at(self, names, ros_s):
+        """The recorded joint_states positions of ``names`` at ROS time ``ros_s``,
+        interpolated between the two stamped messages around it (None when the record
+        does not bracket it)."""
+        with self.lock:
+            msgs = [m for _, m in self.states if m.header.stamp.sec or m.header.stamp.nanosec]
+        ts = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs])
+        if len(ts) < 2 or not ts[0] <= ros_s <= ts[-1] or any(n not in msgs[0].name for n in names):
+            return None
+        k = min(int(np.searchsorted(ts, ros_s, side="right")) - 1, len(ts) - 2)
+        a, b = msgs[k], msgs[k + 1]
+        qa = np.array([a.position[list(a.name).index(n)] for n in names])
+        qb = np.array([b.position[list(b.name).index(n)] for n in names])
+        f = 0.0 if ts[k + 1] == ts[k] else (ros_s - ts[k]) / (ts[k + 1] - ts[k])
+        return qa + f * (qb - qa)
+
     def controller_violations(self, current_tol_rad=np.radians(1.0)):
         """[(topic, index, violations)] for every trajectory received that
-        joint_trajectory_controller would refuse (see controller_rule_violations)."""
+        joint_trajectory_controller would refuse (see controller_rule_violations).  "The
+        current state" of a first point at time 0 is the arm's recorded state at the
+        trajectory's stamp (at its arrival for a zero stamp, or when the record does not
+        reach the stamp)."""
         known = set(self.scenario.robot.joint_names)
         out = []
         with self.lock:
             got = list(self.checked)
         for i, (topic, msg, now, state) in enumerate(got):
             current = None
-            if state is not None and all(n in state for n in msg.joint_names) and msg.points:
-                q = [state[n] for n in msg.joint_names]
-                first = list(msg.points[0].positions)
-                if len(first) == len(q) and all(abs(a - b) <= current_tol_rad for a, b in zip(first, q)):
-                    current = first          # the plan started from (about) this state
+            if msg.points:
+                names, first = list(msg.joint_names), list(msg.points[0].positions)
+                stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+                q = self.state_at(names, stamp_s) if stamp_s else None
+                if q is None and state is not None and all(n in state for n in names):
+                    q = [state[n] for n in names]
+                if q is not None and len(first) == len(q) and all(
+                        abs(a - b) <= current_tol_rad for a, b in zip(first, q)):
+                    current = first          # the trajectory starts at (about) the arm's state
             bad = [v for v in controller_rule_violations(msg, known, now, current)
                    if v not in self.known_violations]
             if bad:

@@ -208,7 +208,6 @@ def _random_graspable_target(rng, scenario):
 
 def test_target_pose_flood(graph, record_property):
     g = graph(scene_params("3dof"))            # with the mock arm at 50 Hz
-    g.known_violations.add("the first point is at time 0 but is not the current state")   # see test_node
     robot = g.scenario.robot
     g.send_target()                            # warm-up: the child imports, numba loads
     g.wait(lambda: g.n_trajs() >= 1, 60, "the warm-up trajectory")

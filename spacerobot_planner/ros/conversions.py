@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from builtin_interfaces.msg import Duration
+from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import OccupancyGrid
@@ -36,7 +36,7 @@ from ..trajectory import Trajectory
 __all__ = [
     "pose_to_target", "quaternion_to_yaw", "yaw_to_quaternion", "target_to_pose",
     "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
-    "duration_to_s", "s_to_duration", "potential_slice_values", "obstacle_slice_values",
+    "duration_to_s", "s_to_duration", "ns_to_time", "time_to_ns", "potential_slice_values", "obstacle_slice_values",
     "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result",
     "split_trajectory_msg",
     "OBSTACLE", "UNREACHABLE",
@@ -56,6 +56,17 @@ def duration_to_s(d) -> float:
 def s_to_duration(t_s: float) -> Duration:
     ns = int(round(float(t_s) * 1e9))
     return Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def ns_to_time(ns: int) -> Time:
+    """A ROS time in integer nanoseconds → builtin_interfaces/Time (a header stamp)."""
+    ns = int(ns)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def time_to_ns(stamp) -> int:
+    """builtin_interfaces/Time → integer nanoseconds (0 for a zero stamp)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 # ------------------------------------------------------------------ poses

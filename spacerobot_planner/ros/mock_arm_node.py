@@ -5,10 +5,13 @@ Publishes ``joint_states`` (every joint in ``robot.joint_names``) at
 planned joints and ``robot.locked_positions_deg`` for the rest.  A trajectory on
 ``joint_trajectory`` (the arm) or ``attitude_trajectory`` (the spacecraft's attitude, as
 an attitude control system would) is followed by interpolating its points in time from
-the moment it arrives; a newer trajectory on the same topic preempts the old one.  When the arm is not exactly
-at the new trajectory's first point (it moved while the planner worked), the
-difference is faded out linearly over ``blend_s`` (0.2 s), so the arm starts from
-where it is without a jump.
+its header stamp (a zero stamp: from the moment it arrives).  A newer trajectory on the
+same topic replaces the old one at its stamp: until then the arm goes on following the
+old one (or holds still), as a controller does with a trajectory that starts in the
+future.  When the arm is not exactly where the new trajectory is at that moment (it moved
+while the planner worked), the difference is faded out linearly over ``blend_s`` (0.2 s),
+so the arm starts from where it is without a jump.  The published velocities are the
+trajectory's, interpolated in time like the positions.
 
 Parameters: ``robot.*`` and ``scenario.start_deg`` (the shared ``/**`` section of a
 scenario file) and ``rate_hz`` (its own ``mock_arm`` section).  Run it with the same
@@ -56,7 +59,8 @@ class MockArmNode(Node):
         self._q = np.array(q_full, dtype=float)
         self._v = np.zeros_like(self._q)
         self._lock = threading.Lock()
-        self._trajs = {}             # topic -> (column indices, times, positions, velocities, t0, offset)
+        self._trajs = {}             # topic -> (column indices, times, positions, velocities, t0, offset, s_switch)
+        self._next = {}              # topic -> (column indices, times, positions, velocities, t0): not started
         self.blend_s = float(blend_s)
         self.trajectories_received = 0
         self.executing = False
@@ -82,17 +86,14 @@ class MockArmNode(Node):
             self.get_logger().error(str(e))
             return
         cols = [self.names.index(n) for n in names]
+        t0 = self._start_time(msg)
         with self._lock:
-            cur = self._q[cols]
-            off = cur - q[0]
-            for k, c in enumerate(cols):
-                if self.periodic[c]:
-                    off[k] = math.remainder(off[k], 2 * math.pi)
-            self._trajs[topic] = (cols, t, q, v, self._start_time(msg), off)
+            self._next[topic] = (cols, t, q, v, t0)
             self.trajectories_received += 1
             self.executing = True
-        self.get_logger().info(f"following a trajectory of {len(t)} points, {t[-1]:.2f} s "
-                               f"(start offset {np.round(np.degrees(np.abs(off).max()), 3)}°)")
+        ahead = t0 - time.monotonic()
+        self.get_logger().info(f"received a trajectory of {len(t)} points, {t[-1]:.2f} s, starting "
+                               + (f"in {ahead:.3f} s" if ahead > 0 else f"{-ahead:.3f} s ago"))
 
     def _start_time(self, msg) -> float:
         """Monotonic time at which ``msg`` starts: its header stamp (as a controller reads
@@ -109,25 +110,36 @@ class MockArmNode(Node):
             self._v[:] = 0.0
             for topic in list(self._trajs):
                 self._advance_one(topic, now)
-            self.executing = bool(self._trajs)
+            for topic in list(self._next):
+                if now >= self._next[topic][4]:
+                    self._switch(topic, now)
+                    self._advance_one(topic, now)
+            self.executing = bool(self._trajs or self._next)
+
+    def _switch(self, topic, now):
+        """(lock held) the waiting trajectory of ``topic`` takes over at ``now``: the arm's
+        offset from it there is faded out over blend_s."""
+        cols, t, q, v, t0 = self._next.pop(topic)
+        s = now - t0
+        pos, _ = _interpolate(t, q, v, s)
+        off = self._q[cols] - pos
+        for k, c in enumerate(cols):
+            if self.periodic[c]:
+                off[k] = math.remainder(off[k], 2 * math.pi)
+        self._trajs[topic] = (cols, t, q, v, t0, off, s)
 
     def _advance_one(self, topic, now):
         """(lock held) one topic's trajectory at time ``now``."""
-        cols, t, q, v, t0, off = self._trajs[topic]
+        cols, t, q, v, t0, off, s_switch = self._trajs[topic]
         s = now - t0
-        if s >= t[-1] and s >= self.blend_s:
+        since = s - s_switch
+        if s >= t[-1] and since >= self.blend_s:
             self._q[cols] = q[-1]
             self._v[cols] = 0.0
             del self._trajs[topic]
             return
-        k = int(np.clip(np.searchsorted(t, s, side="right") - 1, 0, len(t) - 1))
-        if k >= len(t) - 1:
-            pos, vel = q[-1].copy(), np.zeros(len(cols))
-        else:
-            f = (s - t[k]) / (t[k + 1] - t[k])
-            pos = q[k] + f * (q[k + 1] - q[k])
-            vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k]) if v is None else v[k] + f * (v[k + 1] - v[k])
-        fade = max(0.0, 1.0 - s / self.blend_s) if self.blend_s > 0 else 0.0
+        pos, vel = _interpolate(t, q, v, s)
+        fade = max(0.0, 1.0 - since / self.blend_s) if self.blend_s > 0 else 0.0
         self._q[cols] = pos + fade * off
         self._v[cols] = vel
 
@@ -136,6 +148,21 @@ class MockArmNode(Node):
         with self._lock:
             q, v = self._q.copy(), self._v.copy()
         self.pub.publish(conv.joint_state_msg(self.names, q, v, self.get_clock().now().to_msg()))
+
+
+def _interpolate(t, q, v, s):
+    """(positions, velocities) of a trajectory's points (times t (M,), positions q (M, n),
+    velocities v (M, n) or None) at time s: linear in time, clamped to its ends (at rest
+    after the last point)."""
+    if s <= t[0]:
+        return q[0].copy(), (np.zeros(q.shape[1]) if v is None or len(t) == 1 else v[0].copy())
+    k = int(np.searchsorted(t, s, side="right") - 1)
+    if k >= len(t) - 1:
+        return q[-1].copy(), np.zeros(q.shape[1])
+    f = (s - t[k]) / (t[k + 1] - t[k])
+    pos = q[k] + f * (q[k + 1] - q[k])
+    vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k]) if v is None else v[k] + f * (v[k + 1] - v[k])
+    return pos, vel
 
 
 def main(args=None) -> int:

@@ -60,7 +60,8 @@ from ..config import NODE_NAME, check_value, scenario_from_params
 from ..scene import Target
 from ..collision import CollisionChecker
 from ..pipeline import timed_motion
-from ..trajectory import resample, time_parameterize
+from ..replanning import Executing, joined_motion, plan_start
+from ..trajectory import HorizonPassed, resample, time_parameterize
 from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, make_backend
 from . import conversions as conv
 from . import node_main
@@ -74,7 +75,7 @@ GRID_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
 
 # changes of these only affect publishing, not the plan
 _NO_REPLAN = {"replan.target_tolerance_m", "replan.target_tolerance_deg", "diagnostics.period_s",
-              "replan.min_publish_period_s",
+              "replan.min_publish_period_s", "replan.horizon_s", "replan.follow_tolerance_deg",
               "potential_grid.use_current_attitude", "potential_grid.slice_attitude_deg", "grid_frame",
               "planner.test_stall_s"}
 WARM_UP_TIMEOUT_S = 300.0
@@ -97,6 +98,7 @@ class _Request:
     on_progress: Callable | None = None          # worker.Progress while planning
     cancelled: str | None = None                 # reason, once cancelled
     keep: bool = False                           # finish and publish although superseded (a stream)
+    attempt: int = 0                             # planned again after a join failed (see _start_of)
 
 
 @dataclass(eq=False)
@@ -148,6 +150,8 @@ class PlannerNode(LifecycleNode):
         self._closing = False            # shutdown_worker runs: no diagnostics, worker logs to stderr
         self._accepting = False          # requests are taken only while active
         self._joint_q = None             # latest planned-joint positions (raw, unwrapped), rad
+        self._joint_ns = 0               # ROS time of that measurement (its stamp, else arrival), ns
+        self._executing = None           # replanning.Executing: the trajectory last sent to the arm
         self._bad_joint_reason = None
 
         self.state = "unconfigured"
@@ -470,8 +474,10 @@ class PlannerNode(LifecycleNode):
                 self._reject("joint_states", "invalid_input", str(e))
             return
         self._bad_joint_reason = None
+        stamp_ns = conv.time_to_ns(msg.header.stamp)
         with self._lock:
             self._joint_q = q
+            self._joint_ns = stamp_ns or self.get_clock().now().nanoseconds
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self._replace_pending(waiting)
@@ -662,12 +668,17 @@ class PlannerNode(LifecycleNode):
                     return
                 req, self._pending = self._pending, None
                 self._active = req
-                start = req.start_rad if req.start_rad is not None else self._joint_q.copy()
-            try:
-                outcome = self._plan(req, start)
-            except Exception as e:      # noqa: BLE001 - never let the worker die
-                outcome = self._failure(req, "internal_error", f"planning crashed: {type(e).__name__}: {e}",
-                                        tb=traceback.format_exc())
+            while True:
+                try:
+                    outcome = self._plan(req, *self._start_of(req))
+                except Exception as e:      # noqa: BLE001 - never let the worker die
+                    outcome = self._failure(req, "internal_error", f"planning crashed: {type(e).__name__}: "
+                                            f"{e}", tb=traceback.format_exc())
+                if outcome.code != "retry":
+                    break
+                req.attempt += 1
+                self._log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
+                          + _RETRY[min(req.attempt, len(_RETRY) - 1)])
             with self._lock:
                 self._active = None
                 if self.state == "planning" and self._pending is None:
@@ -676,6 +687,30 @@ class PlannerNode(LifecycleNode):
                 self._record(req, outcome)
             with self._lock:
                 self._finish(req, outcome)
+
+    def _start_of(self, req: _Request):
+        """(start_raw, replanning.Join or None) of a request: its own start, or the arm's
+        state, or (the arm moving on the node's last trajectory) the point
+        ``replan.horizon_s`` ahead on it.  When the join fails (``_plan``: the plan took
+        longer than the horizon, or the new path cannot be entered at the arm's speed)
+        the next attempt doubles the horizon, the one after starts at the executing
+        trajectory's end (its goal, at rest: always joinable), the last at the measured
+        state (_RETRY)."""
+        with self._lock:
+            if req.start_rad is not None:
+                return req.start_rad, None
+            q, q_ns, ex = self._joint_q.copy(), self._joint_ns, self._executing
+        horizon_s = float(req.params["replan.horizon_s"]) * (2.0 if req.attempt == 1 else 1.0)
+        if req.attempt == 2 and ex is not None and horizon_s > 0.0:
+            horizon_s = max(horizon_s, ex.trajectory.duration_s - ex.time_s(self.get_clock().now().nanoseconds))
+        if req.attempt >= 3:
+            horizon_s = 0.0
+        start, join, why = plan_start(ex, self.get_clock().now().nanoseconds, q, q_ns, horizon_s,
+                                      math.radians(float(req.params["replan.follow_tolerance_deg"])),
+                                      self._robot.planned_periodic)
+        if why is not None:
+            self._log("warning", f"plan #{req.gen}: {why}")
+        return start, join
 
     def _superseded_by(self, req) -> Outcome | None:
         with self._lock:
@@ -687,13 +722,14 @@ class PlannerNode(LifecycleNode):
                 return _superseded(self._latest)
         return None
 
-    def _plan(self, req: _Request, start_raw: np.ndarray) -> Outcome:
+    def _plan(self, req: _Request, start_raw: np.ndarray, join=None) -> Outcome:
         if self.state != "planning":       # state changes at once; a flood is not echoed
             self.state = "planning"
             self._publish_diag()
         sc = req.scenario
-        self._log("info", f"planning #{req.gen} ({req.why}) from {np.round(np.degrees(start_raw), 2).tolist()}° "
-                  f"on {sc.grid.label()}")
+        where = "" if join is None else f" ({join.horizon_s:g} s ahead on the executing trajectory)"
+        self._log("info", f"planning #{req.gen} ({req.why}) from {np.round(np.degrees(start_raw), 2).tolist()}°"
+                  f"{where} on {sc.grid.label()}")
         p = req.params
         job = PlanJob(gen=req.gen, scene=sc.scene, grid=sc.grid, solver=p["planner.solver"],
                       field_tolerance=float(p["planner.field_tolerance"]),
@@ -723,25 +759,41 @@ class PlannerNode(LifecycleNode):
             return self._failure(req, res.code, res.reason or res.code, res, tb=res.traceback or None)
         if req.on_progress is not None:
             req.on_progress(_progress("trajectory"))
+        stamp_ns, joined = None, "no (the arm at rest)"
         try:
-            traj, reaction = timed_motion(req.scenario, res.path_rad, start_raw)
+            if join is None:
+                traj, reaction = timed_motion(req.scenario, res.path_rad, start_raw)
+            else:
+                traj, reaction, stamp_ns, c = joined_motion(req.scenario, join, res.path_rad,
+                                                            self.get_clock().now().nanoseconds)
+                joined = (f"yes, {c.join_time_s:.3f} s into the executing trajectory at "
+                          f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s")
+        except HorizonPassed:
+            return Outcome("retry", f"the plan took longer than the {join.horizon_s:g} s horizon")
         except ValueError as e:
+            if join is not None:
+                return Outcome("retry", f"the new path cannot be joined at the arm's speed ({e})")
             return self._failure(req, "invalid_input", f"time parameterisation: {e}", res)
         if reaction is not None and not reaction.ok:
             return self._failure(req, "reaction_refused", reaction.reason, res)
         dense_points = len(traj)
         # fewer points, same guarantee: a subset of the points within 0.1° of the dense path
         # and at most RESAMPLE_STEP_S apart, its polyline certified on the exact geometry
+        dense, published = traj, np.arange(len(traj))
         rs = resample(traj, CollisionChecker(sc.robot, sc.scene), time_step_s=RESAMPLE_STEP_S)
         if rs.ok:
-            traj = rs.trajectory
+            traj, published = rs.trajectory, rs.indices
         dropped = self._superseded_by(req)
         if dropped is not None:
             self._log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
-        # one stamp for both parts, now: the arm's and the attitude's controllers start together
-        # (a zero stamp would mean "on arrival", each its own); it ends traj.duration_s later
-        msg, att_msg = self._split(conv.trajectory_to_msg(traj, self.get_clock().now().to_msg()), traj)
+        # one stamp for both parts: the arm's and the attitude's controllers start together (a
+        # zero stamp would mean "on arrival", each its own): now, or the join's time (a moment
+        # ahead: the controller follows the trajectory it has until then)
+        if stamp_ns is None:
+            stamp_ns = self.get_clock().now().nanoseconds
+        stamp = conv.ns_to_time(stamp_ns)
+        msg, att_msg = self._split(conv.trajectory_to_msg(traj, stamp), traj)
         latency = time.perf_counter() - req.t_request
         values = {
             "goal_deg": np.round(np.degrees(res.goal_rad), 3).tolist(),
@@ -749,6 +801,7 @@ class PlannerNode(LifecycleNode):
             "trajectory_duration_s": f"{traj.duration_s:.3f}",
             "trajectory_points": len(traj),
             "trajectory_dense_points": dense_points,
+            "joined_moving_arm": joined,
             "cached": ",".join(res.cached) or "none",
             "solver": res.solver,
             "latency_s": f"{latency:.4f}",
@@ -776,6 +829,8 @@ class PlannerNode(LifecycleNode):
         elif not at_goal:
             with self._lock:
                 self._last_publish_t = time.monotonic()
+                self._executing = (Executing(dense, published, stamp_ns) if join is None
+                                   else join.executing.joined_by(dense, published, stamp_ns))
         else:
             self._log("info", f"plan #{req.gen}: already at the goal (within {AT_GOAL_TOL_RAD:g} rad): "
                       "no trajectory published")
@@ -784,7 +839,8 @@ class PlannerNode(LifecycleNode):
                   f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
                   f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
                   f"{', '.join(res.cached) or 'none'}); clearance {res.min_clearance_m:.3f} m; "
-                  f"trajectory {len(traj)} points, {traj.duration_s:.2f} s; request→trajectory "
+                  f"trajectory {len(traj)} points, {traj.duration_s:.2f} s, joined to the moving arm: "
+                  f"{joined}; request→trajectory "
                   f"{1e3 * latency:.1f} ms")
         self._publish_visuals(res, sc, start_raw, p)
         return outcome
@@ -981,6 +1037,10 @@ def _result_values(res, reaction) -> dict:
             if value is not None:
                 out[key] = f"{value:.4f}" if isinstance(value, float) else str(value)
     return out
+
+
+#: what a further attempt does after a join failed (index = the attempt)
+_RETRY = ("", "with twice the horizon", "from the end of the executing trajectory", "from the measured state, at rest")
 
 
 def _superseded(newer: _Request) -> Outcome:

@@ -1,0 +1,189 @@
+"""Replanning from a moving arm: where a new plan starts, and how its trajectory joins.
+
+A new target (or a replan) while the node's last trajectory executes must not start the
+arm from rest where it happens to be: the velocity would jump at the switch.  Instead
+(MoveIt's hybrid planning and Nav2's controller do the same in spirit):
+
+1. When the plan begins (:func:`plan_start`), the new plan starts at the executing
+   trajectory's point ``horizon_s`` ahead (the *horizon point*): the arm will get there
+   on the trajectory it already follows while the plan is computed.  This needs the arm
+   to follow that trajectory: a measured joint state at most ``MAX_STATE_AGE_S`` old,
+   taken after the trajectory started, must lie within ``follow_tolerance_rad`` of where the trajectory (or the one it
+   joined, before its start) had the arm at the measurement's time; otherwise (no recent
+   joint_states, a controller that stopped, an arm pushed away) the plan starts from the
+   measured state, at rest, as for an arm standing still.
+2. When the plan is done (:func:`joined_motion`), the published trajectory starts at the
+   executing one's next published point (the *join*: an exact state of the executing
+   trajectory, position and velocity, that the controller has been sent) and follows
+   its certified path to the horizon point, then the new path; the time-optimal
+   parameterisation starts at the join's path speed, so position and velocity are
+   continuous at the switch and the limits hold throughout.  Its stamp is the join's
+   time: the controller keeps following the old trajectory until then.  A plan that took
+   longer than the horizon (the join would be past the horizon point) raises
+   ``trajectory.HorizonPassed``: plan again with a longer horizon.  Where the new path
+   leaves the horizon point in another direction the arm must (nearly) stop there, and
+   the re-fitted spline through that corner may not allow the arm's speed at the join;
+   with the horizon at the executing trajectory's end (its goal, at rest) the published
+   trajectory is then that trajectory's own remainder followed by the new one from rest
+   (``Trajectory.then``), which is always possible.
+
+Times are ROS times in integer nanoseconds (the stamps of the messages); no rclpy here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .joint_space import align_to_state, difference_rad
+from dataclasses import replace
+
+from .trajectory import Trajectory, continuation, horizon_index, sample
+
+__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S"]
+
+#: a joint state older than this (s) does not show that the arm follows its trajectory
+MAX_STATE_AGE_S = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Executing:
+    """A trajectory the controller was sent.
+
+    Attributes:
+        trajectory: the dense trajectory (planned joints, unwrapped, rad), whose polyline
+            was certified collision-free.
+        published: (K,) indices of the points sent (``trajectory.resample``'s), 0 and the
+            last included.
+        start_ns: the ROS time of its time 0 (the message's stamp), ns.
+        previous: the trajectory it was joined to (what the arm follows before
+            ``start_ns``), or None.
+    """
+
+    trajectory: Trajectory
+    published: np.ndarray
+    start_ns: int
+    previous: "Executing | None" = None
+
+    def time_s(self, ros_ns: int) -> float:
+        """Seconds into the trajectory at ROS time ``ros_ns``."""
+        return 1e-9 * (int(ros_ns) - self.start_ns)
+
+    def running_at(self, ros_ns: int) -> bool:
+        """The arm is still moving on it at ``ros_ns``."""
+        return self.time_s(ros_ns) < self.trajectory.duration_s
+
+    def first_start_ns(self) -> int:
+        """The start of the oldest trajectory kept in the chain (ROS time, ns)."""
+        return self.start_ns if self.previous is None else self.previous.first_start_ns()
+
+    def expected_at(self, ros_ns: int) -> np.ndarray:
+        """(n,) where the arm following it is at ROS time ``ros_ns``, rad: on the previous
+        trajectory before this one starts (at this one's start with none)."""
+        if ros_ns < self.start_ns and self.previous is not None:
+            return self.previous.expected_at(ros_ns)
+        return sample(self.trajectory, self.time_s(ros_ns))[0]
+
+    def joined_by(self, trajectory: Trajectory, published, start_ns: int) -> "Executing":
+        """The record of a trajectory joined to this one at ``start_ns`` (one trajectory
+        back is kept: a recent joint state lies on it or on this one)."""
+        return Executing(trajectory, np.asarray(published), int(start_ns),
+                         Executing(self.trajectory, self.published, self.start_ns))
+
+
+@dataclass(frozen=True, eq=False)
+class Join:
+    """A plan that starts on an executing trajectory (see :func:`plan_start`).
+
+    Attributes:
+        executing: the trajectory the arm follows.
+        horizon_index: its point where the new plan starts.
+        horizon_s: the horizon it was chosen with, s.
+    """
+
+    executing: Executing
+    horizon_index: int
+    horizon_s: float
+
+    @property
+    def start_rad(self) -> np.ndarray:
+        """(n,) the new plan's start (unwrapped as on the executing trajectory), rad."""
+        return self.executing.trajectory.positions_rad[self.horizon_index].copy()
+
+
+def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_ns: int, horizon_s: float,
+               follow_tolerance_rad: float, periodic):
+    """Where a plan beginning at ``now_ns`` starts.
+
+    Args:
+        executing: the trajectory the controller was last sent, or None.
+        now_ns: ROS time now, ns.
+        measured_rad: (n,) the arm's latest measured joint positions, rad.
+        measured_ns: the ROS time of that measurement (its message's stamp), ns.
+        horizon_s: how far ahead along the executing trajectory the plan starts, s
+            (0: never join).
+        follow_tolerance_rad: largest per-joint difference between the measurement and
+            the executing trajectory at the measurement's time for the arm to count as
+            following it, rad.
+        periodic: (n,) flags of the periodic joints.
+    Returns:
+        (start_rad (n,), Join or None, why): ``why`` says in words why the plan does not
+        join (None when it joins, or when there is nothing to join).
+    """
+    q = np.asarray(measured_rad, dtype=float).copy()
+    if executing is None or horizon_s <= 0.0 or not executing.running_at(now_ns):
+        return q, None, None
+    traj = executing.trajectory
+    age_s = 1e-9 * (int(now_ns) - int(measured_ns))
+    if age_s > MAX_STATE_AGE_S:
+        return q, None, (f"the last joint_states is {age_s:.2f} s old (no sign that the arm follows its "
+                         f"trajectory): planned from it, at rest")
+    if measured_ns < executing.first_start_ns():
+        return q, None, ("no joint_states since the trajectory started (no sign that the arm follows it): "
+                         "planned from the last one, at rest")
+    off = np.abs(difference_rad(q, executing.expected_at(measured_ns), periodic))
+    if float(off.max()) > follow_tolerance_rad:
+        j = int(np.argmax(off))
+        return q, None, (f"the arm does not follow its trajectory ({traj.joint_names[j]} "
+                         f"{np.degrees(off[j]):.2f}° from it): planned from the measured state, at rest")
+    h = horizon_index(traj, executing.time_s(now_ns), horizon_s)
+    join = Join(executing, h, float(horizon_s))
+    return join.start_rad, join, None
+
+
+def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0.02):
+    """The trajectory to publish for a plan that started at ``join.start_rad``.
+
+    Args:
+        scenario: ``problem.Scenario`` (limits, reaction settings).
+        join: from :func:`plan_start`.
+        path_rad: (M, n) the new plan's path, from the horizon point.
+        now_ns: ROS time now, ns.
+        lead_s: the join is at least this far in the future (the message's transit), s.
+    Returns:
+        (trajectory.Trajectory, dynamics.ReactionReport or None, stamp_ns, Continuation):
+        the trajectory from the join (time 0) through the horizon point to the new goal,
+        to be stamped ``stamp_ns``.  (For a remainder followed by a new motion from rest,
+        the reaction report covers the new motion: the remainder's was reported before.)
+    Raises:
+        trajectory.HorizonPassed: the arm is already past the horizon point.
+        ValueError: the new path cannot be entered at the arm's speed.
+    """
+    from .pipeline import timed_motion
+    ex = join.executing
+    c = continuation(ex.trajectory, ex.time_s(now_ns) + lead_s, horizon_at=join.horizon_index,
+                     join_indices=ex.published)
+    new = align_to_state(np.asarray(path_rad, dtype=float), c.prefix_rad[-1], scenario.robot.planned_periodic)
+    stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
+    try:
+        traj, reaction = timed_motion(scenario, c.join(new), start_path_speed=c.start_path_speed)
+    except ValueError:
+        last = len(ex.trajectory) - 1
+        if join.horizon_index != last:
+            raise
+        rest = ex.trajectory.subset(np.arange(c.index, last + 1))
+        rest = replace(rest, times_s=rest.times_s - rest.times_s[0])
+        after, reaction = timed_motion(scenario, new)
+        traj = rest.then(after)
+    return traj, reaction, stamp_ns, c

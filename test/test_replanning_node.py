@@ -1,0 +1,124 @@
+"""Replanning while the arm moves, closed loop (planner + mock arm in one process).
+
+The oracle is the arm's own record: the mock arm's joint_states (stamped positions and
+velocities, 50 Hz).  Accelerations are the test's finite differences of the recorded
+velocities; the tip is the test's forward kinematics (test_action._tip_m); the grasp
+point is the target's geometry.  Nothing here shares code with the time
+parameterisation or the join.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from node_helpers import angle_err_deg, diag_values, scene_params, wait_at_goal
+from test_action import _tip_m
+
+from spacerobot_planner.scene import Target
+
+VMAX_DEG_S = [30.0, 60.0, 60.0]
+AMAX_DEG_S2 = [60.0, 120.0, 120.0]
+#: stated tolerance on the recorded accelerations: 50 Hz finite differences of
+#: velocities interpolated between the published points, stamp rounding
+ACC_TOL = 0.10
+
+
+def _moderate(**extra):
+    return scene_params("3dof", **{"trajectory.max_velocity_deg_s": VMAX_DEG_S,
+                                   "trajectory.max_acceleration_deg_s2": AMAX_DEG_S2, **extra})
+
+
+def _record(g, names, since_ros_s=0.0):
+    """(stamps (K,), positions (K, n), velocities (K, n)) of the mock arm's joint_states."""
+    with g.lock:
+        msgs = [m for _, m in g.states if m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec >= since_ros_s
+                and len(m.velocity) == len(m.name)]
+    t = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs])
+    idx = [list(msgs[0].name).index(n) for n in names]
+    q = np.array([[m.position[i] for i in idx] for m in msgs])
+    v = np.array([[m.velocity[i] for i in idx] for m in msgs])
+    return t, q, v
+
+
+def _accelerations(t, v):
+    """(K-1, n) finite-difference accelerations of the recorded velocities."""
+    dt = np.diff(t)
+    keep = dt > 1e-4
+    return np.diff(v, axis=0)[keep] / dt[keep, None]
+
+
+def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph):
+    g = graph(_moderate())
+    robot = g.scenario.robot
+    names = list(robot.planned_names)
+    amax = np.radians(AMAX_DEG_S2)
+    t_ros0 = g.drv.get_clock().now().nanoseconds * 1e-9
+    g.send_target()
+    g.wait(lambda: g.arm.executing and g.n_trajs() >= 1, 30, "the first trajectory executing")
+    time.sleep(1.0)                       # well into the motion (about 4 s long)
+    g.send_target(-3.0, -2.8)
+    g.wait(lambda: g.n_trajs() >= 2, 30, "the second trajectory")
+    with g.lock:
+        second = g.trajs[1][1]
+    goal2 = g.planner.last_result.goal_rad.copy()
+    assert diag_values(g.status("planner"))["joined_moving_arm"].startswith("yes"), \
+        diag_values(g.status("planner"))["joined_moving_arm"]
+    wait_at_goal(g, 30)
+    assert angle_err_deg(robot, g.arm.positions, goal2) < 0.5
+
+    t, q, v = _record(g, names, t_ros0)
+    stamp = second.header.stamp.sec + 1e-9 * second.header.stamp.nanosec
+    k = int(np.searchsorted(t, stamp))
+    speed_at_switch = float(np.degrees(np.max(np.abs(v[max(k - 1, 0)]))))
+    assert speed_at_switch > 5.0, f"the arm was not moving at the switch ({speed_at_switch:.2f}°/s): nothing tested"
+    acc = _accelerations(t, v)
+    ratio = np.max(np.abs(acc) / amax, axis=0)
+    print(f"\nswitch at {speed_at_switch:.1f}°/s; largest recorded |acceleration| / limit per joint: "
+          f"{np.round(ratio, 3).tolist()} over {len(t)} joint states")
+    assert np.all(ratio <= 1.0 + ACC_TOL), f"acceleration above the limits: {ratio}"
+    # no position jump either: no step faster than the velocity limits
+    step = np.abs(np.diff(q, axis=0)) / np.diff(t)[:, None]
+    assert np.all(step <= np.radians(VMAX_DEG_S) * (1.0 + ACC_TOL)), np.degrees(step.max(axis=0))
+
+
+def test_a_drifting_target_is_followed_to_the_grasp(graph):
+    """A target drifting 2 cm/s and 1°/s, published at 10 Hz for 20 s: trajectories keep
+    coming (at least one per replan.min_publish_period_s of 1 s, give or take a plan), and
+    once it stops the arm ends within 1 cm of its grasp point."""
+    g = graph(scene_params("3dof"))       # the default replan settings
+    robot = g.scenario.robot
+    g.send_target()
+    g.wait(lambda: g.n_trajs() >= 1, 30, "the first trajectory")
+    rate_hz, duration_s = 10.0, 20.0
+    vel_m_s = np.array([-0.014, -0.014])   # 2 cm/s, away from the spacecraft
+    yaw_rate = math.radians(-1.0)
+    x0, y0 = -3.27, -2.60
+    arrivals = []
+    t0 = time.monotonic()
+    n = int(rate_hz * duration_s)
+    for i in range(n + 1):
+        s = i / rate_hz
+        g.send_target(x0 + vel_m_s[0] * s, y0 + vel_m_s[1] * s, yaw_rate * s)
+        time.sleep(max(0.0, t0 + (i + 1) / rate_hz - time.monotonic()))
+    t_end = time.monotonic()
+    with g.lock:
+        arrivals = [t for t, _ in g.trajs if t0 <= t <= t_end]
+    gaps = np.diff(np.concatenate([[t0], arrivals, [t_end]]))
+    last = Target(center_m=(x0 + vel_m_s[0] * duration_s, y0 + vel_m_s[1] * duration_s),
+                  yaw_rad=yaw_rate * duration_s)
+    # the node replans when the target moved more than replan.target_tolerance_m (5 mm)
+    g.wait(lambda: g.planner._requested_target is not None
+           and np.allclose(g.planner._requested_target.center_m, last.center_m, atol=0.005), 10,
+           "a target near the last one taken")
+    wait_at_goal(g, 30)
+    time.sleep(0.5)
+    tip = _tip_m(robot.link_lengths_m, g.arm.positions)
+    miss = float(np.linalg.norm(tip - np.asarray(last.grasp_point_m)))
+    joined = sum(1 for _, d in g.diags for st in d.status
+                 if any(kv.key == "joined_moving_arm" and kv.value.startswith("yes") for kv in st.values))
+    print(f"\ndrift: {len(arrivals)} trajectories in {t_end - t0:.1f} s (largest gap {gaps.max():.2f} s), "
+          f"{joined} diagnostics reports of a join; tip {1e3 * miss:.2f} mm from the last grasp point")
+    assert len(arrivals) >= 10 and gaps.max() < 2.5, gaps
+    assert miss < 0.01
