@@ -25,6 +25,7 @@ its main thread (uninterruptible, like a numba kernel): a long plan without a la
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 import time
@@ -36,6 +37,9 @@ import numpy as np
 
 __all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
            "ProcessBackend", "ThreadBackend", "make_backend", "STAGE_ORDER"]
+
+#: the folder holding the ``spacerobot_planner`` package this module belongs to
+_PACKAGE_PARENT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 #: the stages reported as Progress, in order (the core's stage names, then the node's)
 STAGE_ORDER = ("queued", "cspace", "field", "descent", "smoothing", "verify", "trajectory")
@@ -351,9 +355,12 @@ class ProcessBackend:
         parent, child = socket.socketpair()
         self.conn = Connection(parent.detach())
         fd = child.fileno()
+        # the child imports this very copy of the package (first on its sys.path), not one
+        # that `python -c` would find in the working directory (e.g. a source tree)
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", "import sys; from spacerobot_planner.worker import child_main; "
-             "child_main(int(sys.argv[1]))", str(fd)], pass_fds=(fd,), stdin=subprocess.DEVNULL)
+            [sys.executable, "-c", f"import sys; sys.path.insert(0, {_PACKAGE_PARENT!r}); "
+             "from spacerobot_planner.worker import child_main; child_main(int(sys.argv[1]))", str(fd)],
+            pass_fds=(fd,), stdin=subprocess.DEVNULL)
         child.close()
         self.conn.send((self._scenario, *self._solver))
         self._ready = None          # Ready once received

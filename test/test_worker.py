@@ -103,3 +103,20 @@ def test_thread_backend_plans_the_same_job():
     out = ThreadBackend(sc).run(_job(sc, 1, joint_goal=sc.goal_rad))
     assert isinstance(out, PlanDone) and out.result.ok
     np.testing.assert_allclose(out.result.path_rad[-1], sc.goal_rad, atol=1e-9)
+
+
+def test_planning_process_imports_the_callers_package_not_the_working_directorys(tmp_path, monkeypatch):
+    """Started from a folder holding another ``spacerobot_planner`` (a source tree next to
+    an install), the planning process still imports the node's copy."""
+    decoy = tmp_path / "spacerobot_planner"
+    decoy.mkdir()
+    (decoy / "__init__.py").write_text('raise ImportError("the decoy package in the working directory")\n')
+    monkeypatch.chdir(tmp_path)
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
+    b = ProcessBackend(sc)
+    try:
+        assert b.wait_ready(300) is not None
+        out = b.run(_job(sc, 1, joint_goal=sc.goal_rad))
+        assert isinstance(out, PlanDone) and out.result.ok
+    finally:
+        b.close()
