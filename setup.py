@@ -1,4 +1,5 @@
-"""Packaging of spacerobot_planner (ament_python: colcon and pip).
+"""
+Packaging of spacerobot_planner (ament_python: colcon and pip).
 
 ``setup.py install`` (what ``colcon build`` runs) ends with ``warm_numba_cache``: it runs
 ``python -m spacerobot_planner.worker --warm-cache`` on the paper scenes in the installed
@@ -25,7 +26,8 @@ _COLCON_ONLY = ("prefix_override", "colcon_distutils_commands")
 
 
 class warm_numba_cache(Command):
-    """Fill numba's cache of the installed package (the last step of ``install``).
+    """
+    Fill numba's cache of the installed package (the last step of ``install``).
 
     numba keys its cache on the source file's path (the index sits in the source's
     ``__pycache__``) and its mtime and size, so a cache built in the source tree is

@@ -1,4 +1,5 @@
-"""Exact collision tests and clearance between the arm's links and polygons.
+"""
+Exact collision tests and clearance between the arm's links and polygons.
 
 Links are line segments (zero width).  A link collides with a polygon when it
 crosses an edge or lies inside it; with a safety margin, when its distance to the
@@ -33,7 +34,7 @@ def _on_segment(ax, ay, bx, by, px, py):
 
 @njit(cache=True, nogil=True)
 def segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
-    """True when segment AB and segment CD share at least one point."""
+    """Return True when segment AB and segment CD share at least one point."""
     d1 = _orient(cx, cy, dx, dy, ax, ay)
     d2 = _orient(cx, cy, dx, dy, bx, by)
     d3 = _orient(ax, ay, bx, by, cx, cy)
@@ -109,7 +110,8 @@ def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
 
 @njit(cache=True, nogil=True)
 def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
-    """True when segment AB comes within ``margin_m`` of the polygon (early exit).
+    """
+    Return True when segment AB comes within ``margin_m`` of the polygon (early exit).
 
     Compares squared distances (no square roots); touching counts at margin 0.
     """
@@ -153,7 +155,7 @@ def rotate_body(body, attitude, out):
 
 @njit(cache=True, nogil=True)
 def segment_hits_polygons(ax, ay, bx, by, verts, starts, centres, radii, margin_m):
-    """True when segment AB comes within margin_m of one of the packed polygons."""
+    """Return True when segment AB comes within margin_m of one of the packed polygons."""
     for p in range(radii.shape[0]):
         # bounding-circle cull: the segment is farther than radius + margin from the centre
         r = radii[p] + margin_m
@@ -166,7 +168,7 @@ def segment_hits_polygons(ax, ay, bx, by, verts, starts, centres, radii, margin_
 
 @njit(cache=True, nogil=True)
 def links_hit_polygons(pts, checked, verts, starts, centres, radii, margin_m):
-    """True when a checked link (pts: chain points) comes within margin_m of a polygon."""
+    """Return True when a checked link (pts: chain points) comes within margin_m of a polygon."""
     for c in range(checked.shape[0]):
         k = checked[c]
         if segment_hits_polygons(pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1], verts, starts,
@@ -177,7 +179,7 @@ def links_hit_polygons(pts, checked, verts, starts, centres, radii, margin_m):
 
 @njit(cache=True, nogil=True)
 def links_hit_body(pts, checked, body_w, margin_m):
-    """True when a checked link comes within margin_m of the (posed) spacecraft body."""
+    """Return True when a checked link comes within margin_m of the (posed) spacecraft body."""
     nb = body_w.shape[0]
     for c in range(checked.shape[0]):
         k = checked[c]
@@ -217,7 +219,8 @@ def _batch_clearance(q_full, lengths, checked, body, obs_verts, obs_starts):
 
 # ------------------------------------------------------------------ public API
 class CollisionChecker:
-    """The validity checker: exact tests of planned configurations against a scene.
+    """
+    The validity checker: exact tests of planned configurations against a scene.
 
     Build it once per (robot, scene); it packs the geometry for the kernels.
     """
@@ -240,6 +243,6 @@ class CollisionChecker:
         return float(out[0]) if single else out
 
     def is_free(self, q) -> np.ndarray | bool:
-        """True where clearance > safety margin: (dof,) → bool, (N, dof) → (N,) bool."""
+        """Return True where clearance > safety margin: (dof,) → bool, (N, dof) → (N,) bool."""
         c = self.clearance_m(q)
         return bool(c > self.margin_m) if np.ndim(c) == 0 else c > self.margin_m

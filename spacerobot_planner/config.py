@@ -1,4 +1,5 @@
-"""Scenario files and parameters: one schema for the YAML loader, the CLI and the node.
+"""
+Scenario files and parameters: one schema for the YAML loader, the CLI and the node.
 
 The problem type itself (``Scenario``) lives in ``problem.py`` (no YAML there); it is
 re-exported here.
@@ -268,7 +269,7 @@ def _flatten(d, prefix=""):
 
 
 def _section_params(doc, key, path):
-    """The flat ``ros__parameters`` of section ``key`` (None when absent)."""
+    """Return the flat ``ros__parameters`` of section ``key`` (None when absent)."""
     section = doc.get(key, doc.get("/" + key.lstrip("/")))
     if section is None:
         return None
@@ -278,7 +279,8 @@ def _section_params(doc, key, path):
 
 
 def load_params_file(path, node: str = NODE_NAME) -> dict:
-    """Read a ROS 2 parameter file; return one node's parameters as a flat dotted dict.
+    """
+    Read a ROS 2 parameter file; return one node's parameters as a flat dotted dict.
 
     As ``--params-file`` does for that node: the shared ``/**`` section, then the
     node's own section (``node`` or ``/node``) on top.  A file with one section of
@@ -329,7 +331,7 @@ def parse_polygons(text: str, name: str = "obstacles.polygons_m") -> tuple:
 
 
 def spec_default(name: str):
-    """The default of a parameter in ``PARAMETERS`` (a copy for lists)."""
+    """Return the default of a parameter in ``PARAMETERS`` (a copy for lists)."""
     d = _SPECS[name].default
     return list(d) if isinstance(d, list) else d
 

@@ -1,4 +1,5 @@
-"""Leaving a contact: from a start that touches an obstacle to the nearest free posture.
+"""
+Leaving a contact: from a start that touches an obstacle to the nearest free posture.
 
 After a capture the arm holds the handle; when the target then moves a little, the
 current posture overlaps it and no certified motion starts there.  This stage walks out
@@ -48,9 +49,12 @@ def _boundary_distance(points, poly) -> np.ndarray:
 
 
 def penetration_depth_m(checker, q) -> float:
-    """How deep the checked links of planned configuration ``q`` (dof,) reach into the
-    spacecraft body or an obstacle: the largest distance from a link point inside a
-    polygon to that polygon's boundary, metres (0 when no link point is inside).
+    """
+    Return how deep the checked links of ``q`` reach into the body or an obstacle, metres.
+
+    How deep the checked links of planned configuration ``q`` (dof,) reach into the spacecraft body
+    or an obstacle: the largest distance from a link point inside a polygon to that polygon's
+    boundary, metres (0 when no link point is inside).
 
     Links are sampled every 2 mm, so the depth is exact to within 1 mm.
     """
@@ -84,15 +88,18 @@ def signed_distance_m(checker, q) -> float:
 
 @dataclass(frozen=True, eq=False)
 class Exit:
-    """The way out of a contact.
+    """
+    The way out of a contact.
 
-    Attributes:
+    Attributes
+    ----------
         ok: a free posture was reached within the bounds.
         path_rad: (K, dof) from the start (first row, exact) to the free posture (last
             row), consecutive rows ``step_rad`` apart, signed distance increasing.
         start_penetration_m: the start's penetration depth, metres.
         signed_distance_m: (K,) signed distance along ``path_rad``.
         reason: why not (None when ok).
+
     """
 
     ok: bool
@@ -105,7 +112,8 @@ class Exit:
 def leave_contact(checker, start_rad, lower_rad, upper_rad, periodic, *, max_penetration_m: float,
                   room_m: float = 0.01, step_rad: float = math.radians(0.25),
                   max_length_rad: float = math.radians(30.0)) -> Exit:
-    """Walk from a colliding ``start_rad`` to a posture with clearance ≥ margin + ``room_m``.
+    """
+    Walk from a colliding ``start_rad`` to a posture with clearance ≥ margin + ``room_m``.
 
     Each step moves ``step_rad`` (joint-space norm) towards the neighbour, among the
     3^dof − 1 directions of the joint-space grid, with the largest signed distance, and

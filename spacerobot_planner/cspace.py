@@ -1,4 +1,5 @@
-"""The configuration-space grid and its occupancy.
+"""
+The configuration-space grid and its occupancy.
 
 A grid covers the planned joints.  Along a bounded axis with ``cells`` cells the
 nodes sit at ``lower + k·step`` for k = 0…cells (both ends are nodes); along a
@@ -40,12 +41,15 @@ __all__ = ["GridSpec", "CSpace", "build_cspace", "body_occupancy", "grid_for_rob
 
 @dataclass(frozen=True)
 class GridSpec:
-    """A regular grid over the planned joints.
+    """
+    A regular grid over the planned joints.
 
-    Attributes:
+    Attributes
+    ----------
         cells: cells per axis (≥ 2 each).
         lower_rad, upper_rad: axis bounds, rad.
         periodic: per axis, whether the axis wraps.
+
     """
 
     cells: tuple
@@ -93,12 +97,13 @@ class GridSpec:
         return self.lower_rad[axis] + np.arange(self.shape[axis]) * self.step_rad[axis]
 
     def config_of(self, node) -> np.ndarray:
-        """Configuration(s) (rad) of node index/indices: (ndim,) → (ndim,), (N, ndim) → (N, ndim)."""
+        """Return the configuration(s) (rad) of node index/indices: (ndim,) → (ndim,), (N, ndim) → (N, ndim)."""
         node = np.asarray(node)
         return np.asarray(self.lower_rad) + node * self.step_rad
 
     def node_of(self, q) -> tuple:
-        """Nearest node to configuration ``q`` (rad), wrapping periodic axes.
+        """
+        Nearest node to configuration ``q`` (rad), wrapping periodic axes.
 
         Raises ValueError when q is not finite or lies outside a bounded axis.
         """
@@ -119,7 +124,7 @@ class GridSpec:
         return tuple(idx)
 
     def with_cells(self, cells) -> "GridSpec":
-        """The same grid with another resolution (an int for every axis, or one per axis)."""
+        """Return the same grid with another resolution (an int for every axis, or one per axis)."""
         cells = (cells,) * self.ndim if np.isscalar(cells) else tuple(cells)
         return GridSpec(cells, self.lower_rad, self.upper_rad, self.periodic)
 
@@ -128,7 +133,7 @@ class GridSpec:
 
 
 def grid_for_robot(robot, cells) -> GridSpec:
-    """The grid over a robot's planned joints and their bounds."""
+    """Return the grid over a robot's planned joints and their bounds."""
     cells = (cells,) * robot.dof if np.isscalar(cells) else tuple(cells)
     if len(cells) != robot.dof:
         raise ValueError(f"grid.cells: expected {robot.dof} values (one per planned joint), got {len(cells)}")
@@ -138,13 +143,16 @@ def grid_for_robot(robot, cells) -> GridSpec:
 
 @dataclass(frozen=True, eq=False)
 class CSpace:
-    """Occupancy of every grid node.
+    """
+    Occupancy of every grid node.
 
-    Attributes:
+    Attributes
+    ----------
         grid: the grid.
         occupied: bool array of shape ``grid.shape``; True = obstacle.
         margin_m: the safety margin the occupancy was built with, metres.
         seconds: build time.
+
     """
 
     grid: GridSpec
@@ -161,7 +169,8 @@ class CSpace:
 def _occupancy_kernel(shape, lower, step, axis_joint, q_locked, lengths, checked, body,
                       obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
                       known_hit):
-    """Occupancy (flat, C order) of every node.
+    """
+    Occupancy (flat, C order) of every node.
 
     ``known_hit`` (size K, may be empty): nodes with ``known_hit[flat % K]`` are
     occupied without a test (the body table over the trailing axes).
@@ -212,8 +221,11 @@ def _push(ivals, n, centre, half):
 
 @njit(cache=True, nogil=True)
 def _disk_interval(ex, ey, cx, cy, r, length, ivals, n):
-    """Directions from E in which a segment of ``length`` meets the disk (C, r): appended
-    as (centre angle, half-width); the caller has checked that E lies outside the disk."""
+    """
+    Directions from E in which a segment of ``length`` meets the disk (C, r).
+
+    Appended as (centre angle, half-width); the caller has checked that E lies outside the disk.
+    """
     dx, dy = cx - ex, cy - ey
     d2 = dx * dx + dy * dy
     d = math.sqrt(d2)
@@ -256,8 +268,12 @@ def _segment_interval(ex, ey, ax, ay, bx, by, length, ivals, n):
 
 @njit(cache=True, nogil=True)
 def _polygon_intervals(ex, ey, length, verts, start, stop, margin_m, ivals, n):
-    """Append the directions in which a segment of ``length`` from E comes within
-    ``margin_m`` of polygon verts[start:stop]; -1 when E itself does (every direction)."""
+    """
+    Append the directions in which a segment from E comes near a polygon.
+
+    Append the directions in which a segment of ``length`` from E comes within ``margin_m`` of
+    polygon verts[start:stop]; -1 when E itself does (every direction).
+    """
     m2 = margin_m * margin_m
     if point_in_polygon(ex, ey, verts, start, stop):
         return -1
@@ -284,7 +300,7 @@ def _polygon_intervals(ex, ey, length, verts, start, stop, margin_m, ivals, n):
 
 @njit(cache=True, nogil=True)
 def _link_hits(ax, ay, bx, by, verts, starts, centres, radii, body_w, check_body, margin_m):
-    """The exact test of one link against the body (if ``check_body``) and the polygons."""
+    """Run the exact test of one link against the body (if ``check_body``) and the polygons."""
     if check_body and segment_polygon_within(ax, ay, bx, by, body_w, 0, body_w.shape[0], margin_m):
         return True
     return segment_hits_polygons(ax, ay, bx, by, verts, starts, centres, radii, margin_m)
@@ -294,9 +310,12 @@ def _link_hits(ax, ay, bx, by, verts, starts, centres, radii, body_w, check_body
 def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locked, lengths, checked,
                body, obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
                known_hit, eps_rad):
-    """Occupancy of the rows ``row_start .. row_stop`` (flat, C order, into ``occ``) along
-    the last axis, which must be the chain's last joint (see the module doc).  Arguments
-    as for ``_occupancy_kernel``."""
+    """
+    Fill the occupancy of the rows ``row_start .. row_stop`` (flat, C order, into ``occ``).
+
+    Along the last axis, which must be the chain's last joint (see the module doc).
+    Arguments as for ``_occupancy_kernel``.
+    """
     ndim = shape.shape[0]
     row_len = shape[ndim - 1]
     n_rows = 1
@@ -403,7 +422,7 @@ ROWS_PARALLEL_NODES = 300_000
 
 
 def _occupancy(shape, lower, step, axis_joint, *rest):
-    """The row kernel where the last axis is the chain's last joint, else node by node."""
+    """Use the row kernel where the last axis is the chain's last joint, else node by node."""
     q_locked = rest[0]
     if axis_joint[-1] != q_locked.shape[0] - 1:
         return _occupancy_kernel(shape, lower, step, axis_joint, *rest)
@@ -419,7 +438,8 @@ def _occupancy(shape, lower, step, axis_joint, *rest):
 
 
 def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
-    """Collisions with the spacecraft body over the grid's trailing axes, or None.
+    """
+    Collisions with the spacecraft body over the grid's trailing axes, or None.
 
     The body turns with the attitude, so in the body frame its collisions depend on
     the arm joints only: when the attitude is the grid's first axis, one table over
@@ -443,13 +463,20 @@ def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
 
 def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
                  body_table: np.ndarray | None = None) -> CSpace:
-    """Occupancy of every node of ``grid`` for ``robot`` among ``scene``'s obstacles.
+    """
+    Occupancy of every node of ``grid`` for ``robot`` among ``scene``'s obstacles.
 
-    Args:
-        extra_margin_m: added to the scene's safety margin for the grid only (a
-            conservative grid keeps grid paths farther from obstacles).
-        body_table: a ``body_occupancy`` result for the same robot, grid and total
-            margin, to skip recomputing it (computed here when None).
+    Parameters
+    ----------
+    grid, robot, scene
+        The ``GridSpec``, the ``Robot`` and the ``Scene``.
+    extra_margin_m
+        Added to the scene's safety margin for the grid only (a conservative grid keeps
+        grid paths farther from obstacles).
+    body_table
+        A ``body_occupancy`` result for the same robot, grid and total margin, to skip
+        recomputing it (computed here when None).
+
     """
     if grid.ndim != robot.dof:
         raise ValueError(f"grid has {grid.ndim} axes but the robot plans {robot.dof} joints")

@@ -1,4 +1,5 @@
-"""Steepest descent of the potential phi = -log u over the grid's face neighbours.
+"""
+Steepest descent of the potential phi = -log u over the grid's face neighbours.
 
 From the start node, repeatedly move to the face neighbour with the largest
 ``log_u`` (wrap-around on periodic axes, walls beyond bounded axes) provided it
@@ -25,7 +26,8 @@ DETOUR_STEPS = 1
 
 @dataclass(frozen=True)
 class GridPath:
-    """A walk over grid nodes.
+    """
+    A walk over grid nodes.
 
     nodes : int64 array (m, ndim), start node first; the goal node last when
         ``reached``, else the node where the walk stopped.
@@ -56,8 +58,12 @@ def _along(c, d, n, periodic):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _steepest_neighbour(log_u_flat, f, shape, strides, periodic):
-    """Flat index of the face neighbour of node ``f`` with the largest log u, if it
-    is strictly larger than log u at ``f`` (ties: first in the fixed order), else -1."""
+    """
+    Return the steepest strictly higher face neighbour of ``f``, else -1.
+
+    Flat index of the face neighbour of node ``f`` with the largest log u, if it is strictly larger
+    than log u at ``f`` (ties: first in the fixed order), else -1.
+    """
     best = log_u_flat[f]
     out = -1
     for a in range(shape.size):
@@ -83,8 +89,11 @@ def _strides(shape):
 
 @nb.njit(cache=True, nogil=True)
 def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
-    """The walk from flat node ``f``; ``out`` receives the flat nodes visited.
-    Returns (number of nodes, status)."""
+    """
+    Walk from flat node ``f``; ``out`` receives the flat nodes visited.
+
+    Returns (number of nodes, status).
+    """
     strides = _strides(shape)
     m = 0
     out[m] = f
@@ -104,9 +113,14 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
 @nb.njit(cache=True, nogil=True)
 def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_template, planned, lengths,
             checked, body, verts, starts, threshold_m, seg_step_rad, q_full, pts, body_w, path):
-    """Breadth-first over motions that pass, within ``radius`` index steps of node ``f``
-    per axis, to the nearest node whose log u is strictly above f's.  Writes the nodes
-    after f up to it into ``path`` and returns their count (0: none)."""
+    """
+    Search breadth-first for a detour to a higher node.
+
+    Breadth-first over motions that pass, within ``radius`` index steps of node ``f`` per axis, to
+    the nearest node whose log u is strictly above f's.
+
+    Writes the nodes after f up to it into ``path`` and returns their count (0: none).
+    """
     ndim = shape.size
     side = 2 * radius + 1
     box = 1
@@ -181,11 +195,16 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
 @nb.njit(cache=True, nogil=True)
 def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
                   planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
-    """The walk of :func:`_ascend`, but each step to the steepest strictly higher neighbour
-    whose straight segment passes ``motion.segment_free`` (next steepest if not); where
-    none passes, a detour over passing motions within ``detour_steps`` to the nearest
-    strictly higher node (log u rises from detour to detour, so the walk ends).
-    Returns (number of nodes, status)."""
+    """
+    Walk as :func:`_ascend` does, but only along motions that pass the motion test.
+
+    The walk of :func:`_ascend`, but each step to the steepest strictly higher neighbour whose
+    straight segment passes ``motion.segment_free`` (next steepest if not); where none passes, a
+    detour over passing motions within ``detour_steps`` to the nearest strictly higher node (log u
+    rises from detour to detour, so the walk ends).
+
+    Returns (number of nodes, status).
+    """
     strides = _strides(shape)
     ndim = shape.size
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
@@ -257,8 +276,12 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
 @nb.njit(cache=True, nogil=True)
 def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_template, planned,
                      lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
-    """Edges (flat node pairs) between free nodes within ``radius`` index steps of flat node
-    ``centre`` whose straight segment fails ``motion.segment_free``, int64 (k, 2)."""
+    """
+    Return the colliding edges between free nodes near ``centre``, int64 (k, 2).
+
+    Edges (flat node pairs) between free nodes within ``radius`` index steps of flat node ``centre``
+    whose straight segment fails ``motion.segment_free``, int64 (k, 2).
+    """
     strides = _strides(shape)
     ndim = shape.size
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
@@ -312,8 +335,12 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
 
 
 def colliding_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: int = 1) -> np.ndarray:
-    """Grid edges near ``node`` (within ``radius`` index steps per axis) whose straight
-    segment between two free nodes fails the motion test: int64 (k, 2) flat node pairs."""
+    """
+    Return the grid edges near ``node`` that fail the motion test.
+
+    Grid edges near ``node`` (within ``radius`` index steps per axis) whose straight segment between
+    two free nodes fails the motion test: int64 (k, 2) flat node pairs.
+    """
     occ = np.ascontiguousarray(occupied)
     return _colliding_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array(periodic, np.bool_),
                             int(np.ravel_multi_index(tuple(node), occ.shape)), int(radius),
@@ -323,7 +350,8 @@ def colliding_edges(occupied, periodic, node, motions, lower_rad, step_rad, radi
 
 def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=None,
             detour_steps: int = DETOUR_STEPS) -> GridPath:
-    """Steepest descent of phi (ascent of ``field.log_u``) from ``start_node``.
+    """
+    Steepest descent of phi (ascent of ``field.log_u``) from ``start_node``.
 
     start_node : int sequence of length ndim (grid node index).
     motions : optional ``motion.SegmentTest``; then each step goes to the steepest strictly
@@ -383,8 +411,12 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
 
 @nb.njit(cache=True, nogil=True)
 def _successors(log_u_flat, shape, periodic):
-    """Flat index of the steepest strictly-higher face neighbour of every node
-    (the walk's rule and tie order), -1 where there is none."""
+    """
+    Return every node's steepest strictly-higher face neighbour, -1 where none.
+
+    Flat index of the steepest strictly-higher face neighbour of every node (the walk's rule and tie
+    order), -1 where there is none.
+    """
     strides = _strides(shape)
     succ = np.full(log_u_flat.size, -1, np.int64)
     for f in range(log_u_flat.size):
@@ -417,8 +449,11 @@ def _resolve(succ, goal_flat):
 
 
 def reaches_goal_mask(field: Field) -> np.ndarray:
-    """Bool array of the grid shape: True at every node from which
-    :func:`descend` reaches the goal (all nodes at once, linear time)."""
+    """
+    Return where descent reaches the goal, a bool array of the grid shape.
+
+    True at every node from which :func:`descend` reaches the goal (all nodes at once, linear time).
+    """
     log_u = np.ascontiguousarray(field.log_u, dtype=np.float64)
     succ = _successors(log_u.ravel(), np.array(log_u.shape, np.int64), np.array(field.periodic, np.bool_))
     goal_flat = np.ravel_multi_index(tuple(field.goal_nodes.T), log_u.shape).astype(np.int64)

@@ -1,4 +1,5 @@
-"""What the arm's motion does to the spacecraft: momentum map, wheel load, free floating.
+"""
+What the arm's motion does to the spacecraft: momentum map, wheel load, free floating.
 
 The planar chain of ``robot.py`` (joint 1 = the spacecraft attitude θ1, link 1 a rigid,
 massless offset fixed in the body, links 2… the arm) is given masses: the spacecraft
@@ -46,14 +47,17 @@ ACS_MODES = ("held", "free_floating")
 
 @dataclass(frozen=True)
 class MassProperties:
-    """Masses and inertias of the spacecraft body and the links (planar, about the z axis).
+    """
+    Masses and inertias of the spacecraft body and the links (planar, about the z axis).
 
-    Attributes:
+    Attributes
+    ----------
         body_mass_kg: spacecraft body (with the massless link 1), > 0.
         body_inertia_kgm2: its inertia about its centre (the chain's origin), ≥ 0.
         link_masses_kg: one per link (link 1 first, usually 0: it is part of the body), ≥ 0.
         link_inertias_kgm2: one per link, about the link's centre (mid-link), ≥ 0.
     Defaults: the reference servicer (2000 kg, 1080 kg·m²; links 2, 3: 30 kg, 10 kg·m²).
+
     """
 
     body_mass_kg: float = 2000.0
@@ -91,13 +95,16 @@ class MassProperties:
 
 @dataclass(frozen=True)
 class AcsSettings:
-    """Attitude control during the arm motion (``acs.*``, ``grasp.position_tolerance_m``).
+    """
+    Attitude control during the arm motion (``acs.*``, ``grasp.position_tolerance_m``).
 
-    Attributes:
+    Attributes
+    ----------
         mode: "held" (reaction wheels hold or command the attitude) or "free_floating".
         max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits, 0 = no limit.
         position_tolerance_m: free floating: largest acceptable tip miss, metres.
         compensate_drift: free floating: plan for the predicted drift (:func:`plan_free_floating`).
+
     """
 
     mode: str = "held"
@@ -127,8 +134,12 @@ def _cross(a, b):
 
 
 def _bodies(robot, masses, q_full, qd_full=None, qdd_full=None):
-    """Centres (..., n+1, 2) of the body (row 0, at the origin) and the links, their
-    velocities and accelerations, and the bodies' absolute angles, rates, accelerations."""
+    """
+    Return the centres, velocities and accelerations of the body and the links.
+
+    Centres (..., n+1, 2) of the body (row 0, at the origin) and the links, their velocities and
+    accelerations, and the bodies' absolute angles, rates, accelerations.
+    """
     cl, m, inertia = _tables(robot, masses)
     q = np.asarray(q_full, dtype=float)
     phi = np.cumsum(q, axis=-1)
@@ -155,12 +166,13 @@ def _bodies(robot, masses, q_full, qd_full=None, qdd_full=None):
 
 
 def _about_com(x, m):
-    """x (..., nb, 2) minus its mass-weighted mean."""
+    """Return x (..., nb, 2) minus its mass-weighted mean."""
     return x - np.einsum("b,...bd->...d", m, x)[..., None, :] / m.sum()
 
 
 def system_com_m(robot, masses: MassProperties, q_full) -> np.ndarray:
-    """System centre of mass relative to the spacecraft body centre, inertial axes.
+    """
+    System centre of mass relative to the spacecraft body centre, inertial axes.
 
     q_full: (n,) or (N, n) rad → (2,) or (N, 2) m.
     """
@@ -169,7 +181,7 @@ def system_com_m(robot, masses: MassProperties, q_full) -> np.ndarray:
 
 
 def angular_momentum_Nms(robot, masses: MassProperties, q_full, qd_full) -> np.ndarray:
-    """h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇ about the system CoM: (...,) N·m·s."""
+    """Return h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇ about the system CoM: (...,) N·m·s."""
     b = _bodies(robot, masses, q_full, qd_full)
     m = b["m"]
     return (np.einsum("b,...b->...", m, _cross(_about_com(b["r"], m), _about_com(b["v"], m)))
@@ -185,7 +197,7 @@ def momentum_rate_Nm(robot, masses: MassProperties, q_full, qd_full, qdd_full) -
 
 
 def momentum_map(robot, masses: MassProperties, q_full) -> np.ndarray:
-    """The row H(q) with h = H · q̇: (n,) or (N, n), N·m·s per rad/s (kg·m²)."""
+    """Return the row H(q) with h = H · q̇: (n,) or (N, n), N·m·s per rad/s (kg·m²)."""
     q = np.asarray(q_full, dtype=float)
     n = q.shape[-1]
     eye = np.eye(n)
@@ -203,8 +215,11 @@ def _planned_rates(robot, d_planned):
 
 @dataclass(frozen=True, eq=False)
 class WheelModel:
-    """Reaction-wheel load of a trajectory with the attitude held (locked joint) or
-    commanded (planned joint), and the wheels' limits (None: no limit).
+    """
+    Reaction-wheel load of a trajectory, and the wheels' limits.
+
+    Reaction-wheel load of a trajectory with the attitude held (locked joint) or commanded (planned
+    joint), and the wheels' limits (None: no limit).
 
     ``trajectory.time_parameterize(..., wheel=WheelModel(...))`` uses :meth:`path_terms`.
     """
@@ -224,8 +239,11 @@ class WheelModel:
             object.__setattr__(self, name, None if v is None or v == 0.0 else float(v))
 
     def path_terms(self, q_rad, dq_ds, d2q_ds2):
-        """Along a path q(s) of the planned joints ((G, dof) each): g = H·q′ (G,) and
-        g′ = d(H·q′)/ds (G,), so h_wheel = −g ṡ and τ_wheel = −(g′ ṡ² + g s̈)."""
+        """
+        Return the wheel terms along a path q(s) of the planned joints ((G, dof) each).
+
+        G = H·q′ (G,) and g′ = d(H·q′)/ds (G,), so h_wheel = −g ṡ and τ_wheel = −(g′ ṡ² + g s̈).
+        """
         qf = self.robot.full(q_rad)
         d1 = _planned_rates(self.robot, dq_ds)
         d2 = _planned_rates(self.robot, d2q_ds2)
@@ -235,8 +253,12 @@ class WheelModel:
 
 
 def wheel_load(robot, masses: MassProperties, positions_rad, velocities_rad_s, accelerations_rad_s2):
-    """Wheel momentum h_wheel = −H·q̇ (M,) N·m·s and torque dh_wheel/dt (M,) N·m at the
-    points of a trajectory over the planned joints ((M, dof) each; locked joints at rest)."""
+    """
+    Return the wheel momentum and torque at the points of a trajectory.
+
+    Wheel momentum h_wheel = −H·q̇ (M,) N·m·s and torque dh_wheel/dt (M,) N·m at the points of a
+    trajectory over the planned joints ((M, dof) each; locked joints at rest).
+    """
     qf = robot.full(positions_rad)
     qd = _planned_rates(robot, velocities_rad_s)
     qdd = _planned_rates(robot, accelerations_rad_s2)
@@ -247,9 +269,11 @@ def wheel_load(robot, masses: MassProperties, positions_rad, velocities_rad_s, a
 # ----------------------------------------------------------------- free floating
 @dataclass(frozen=True, eq=False)
 class FreeFloatingResponse:
-    """The spacecraft's free-floating response along a joint path.
+    """
+    The spacecraft's free-floating response along a joint path.
 
-    Attributes:
+    Attributes
+    ----------
         q_full_rad: (K, n) the configurations that happen: arm joints as planned, the
             attitude (joint 1) drifting (its planned motion, if any, is not executed).
         planned_q_full_rad: (K, n) the configurations as planned.
@@ -261,6 +285,7 @@ class FreeFloatingResponse:
             plan puts it (body fixed, attitude as planned).
         tip_miss_m: |tip_m − grasp point| when a grasp point was given, else
             |tip_m − planned_tip_m|, metres.
+
     """
 
     q_full_rad: np.ndarray
@@ -285,15 +310,19 @@ def _attitude_rate_integrand(robot, masses, q_full, dq_full):
 
 
 def free_floating_response(robot, masses: MassProperties, path_rad, grasp_point_m=None) -> FreeFloatingResponse:
-    """Integrate the free-floating attitude and body translation along a planned path.
+    """
+    Integrate the free-floating attitude and body translation along a planned path.
 
     Args:
         robot: the PlanarArm (joint 1 = attitude).
         masses: MassProperties for its links.
         path_rad: (K, dof) planned joints, unwrapped, start first; straight between rows.
         grasp_point_m: optional (2,) inertial grasp point for ``tip_miss_m``.
-    Returns:
+
+    Returns
+    -------
         FreeFloatingResponse.
+
     """
     masses.check_robot(robot)
     planned = robot.full(np.atleast_2d(np.asarray(path_rad, dtype=float)))
@@ -315,8 +344,12 @@ def free_floating_response(robot, masses: MassProperties, path_rad, grasp_point_
 
 @njit(cache=True, nogil=True)
 def _drifted_clearance(q_full, body_pos, lengths, checked, body, verts, starts):
-    """Clearance of each configuration with the obstacles shifted by −body position
-    (the inertial scene seen from the translated spacecraft body), (K,) m."""
+    """
+    Return the clearance of each configuration in the drifted scene, (K,) m.
+
+    Clearance of each configuration with the obstacles shifted by −body position (the inertial scene
+    seen from the translated spacecraft body), (K,) m.
+    """
     k_n = q_full.shape[0]
     out = np.empty(k_n)
     pts = np.empty((lengths.shape[0] + 1, 2))
@@ -332,15 +365,18 @@ def _drifted_clearance(q_full, body_pos, lengths, checked, body, verts, starts):
 
 @dataclass(frozen=True, eq=False)
 class DriftCheck:
-    """Inertial-frame check of the free-floating arm motion.
+    """
+    Inertial-frame check of the free-floating arm motion.
 
-    Attributes:
+    Attributes
+    ----------
         ok: the whole drifted motion keeps clearance > the scene's margin (certified
             between samples, see :func:`check_drifted`).
         min_clearance_m: smallest clearance at the samples, metres.
         first_collision_fraction: path fraction (0…1, by sample) of the first sample
             within the margin, None when none is.
         n_checked: configurations evaluated.
+
     """
 
     ok: bool
@@ -350,7 +386,8 @@ class DriftCheck:
 
 
 def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: int = 12) -> DriftCheck:
-    """Check the free-floating motion along ``path_rad`` against the inertially fixed scene.
+    """
+    Check the free-floating motion along ``path_rad`` against the inertially fixed scene.
 
     The spacecraft turns and translates (:func:`free_floating_response`), the target and
     debris do not; clearance is the exact segment–polygon distance of links 2… to the
@@ -389,9 +426,11 @@ def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: in
 # ---------------------------------------------------------------------- report
 @dataclass(frozen=True, eq=False)
 class ReactionReport:
-    """The spacecraft's reaction to a planned motion (the CLI's ``reaction`` object).
+    """
+    The spacecraft's reaction to a planned motion (the CLI's ``reaction`` object).
 
-    Attributes:
+    Attributes
+    ----------
         acs_mode: "held" (wheels hold/command the attitude) or "free_floating".
         ok: False when the plan must be refused (free floating: the drifted arm
             collides or the tip misses by more than the tolerance; held: the wheel load
@@ -409,6 +448,7 @@ class ReactionReport:
         times_s, wheel_momentum_Nms, wheel_torque_Nm, free_floating_attitude_rad,
         planned_attitude_rad: (M,) series for plots (None without a trajectory; the
             attitudes per sample of the trajectory, else of the path).
+
     """
 
     acs_mode: str
@@ -452,8 +492,11 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
                     acs_mode: str = "held", max_wheel_momentum_Nms: float | None = None,
                     max_wheel_torque_Nm: float | None = None, grasp_point_m=None,
                     position_tolerance_m: float = 0.02) -> ReactionReport:
-    """Wheel load (attitude held) and free-floating response of a planned motion, and
-    whether it is acceptable in the given ACS mode.
+    """
+    Report the wheel load and free-floating response of a planned motion.
+
+    Wheel load (attitude held) and free-floating response of a planned motion, and whether it is
+    acceptable in the given ACS mode.
 
     Args:
         robot, masses, scene: the PlanarArm, its MassProperties, the Scene planned in.
@@ -465,10 +508,15 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
         max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits (None or 0: none).
         grasp_point_m: (2,) the inertial grasp point (default: the scene target's, if any).
         position_tolerance_m: largest acceptable free-floating tip miss, metres.
-    Returns:
+
+    Returns
+    -------
         ReactionReport.
-    Raises:
+
+    Raises
+    ------
         ValueError: an unknown ``acs_mode`` (named ``acs.mode``), bad limits or masses.
+
     """
     if acs_mode not in ACS_MODES:
         raise ValueError(f"acs.mode: expected one of {', '.join(ACS_MODES)}, got {acs_mode!r}")
@@ -521,11 +569,14 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
 # ------------------------------------------------------------- scenario level
 @dataclass(frozen=True, eq=False)
 class Motion:
-    """A planned path in time and the spacecraft's reaction to it.
+    """
+    A planned path in time and the spacecraft's reaction to it.
 
-    Attributes:
+    Attributes
+    ----------
         trajectory: ``trajectory.Trajectory`` over the planned joints.
         reaction: ReactionReport (``reaction.ok`` False: refuse the plan, ``reaction.reason``).
+
     """
 
     trajectory: object
@@ -536,8 +587,12 @@ class Motion:
 
 
 def scenario_joint_limits(scenario):
-    """(max velocity (dof,) rad/s, max acceleration (dof,) rad/s², velocity scaling,
-    acceleration scaling) of the planned joints from the scenario's ``trajectory.*``."""
+    """
+    Return the planned joints' limits and scalings from ``trajectory.*``.
+
+    (max velocity (dof,) rad/s, max acceleration (dof,) rad/s², velocity scaling, acceleration
+    scaling) of the planned joints from the scenario's ``trajectory.*``.
+    """
     from .config import check_value, spec_default
     robot = scenario.robot
     params = scenario.params
@@ -558,7 +613,8 @@ def scenario_joint_limits(scenario):
 
 
 def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None) -> Motion:
-    """Time-parameterise a planned path with the scenario's limits and report the reaction.
+    """
+    Time-parameterise a planned path with the scenario's limits and report the reaction.
 
     The joint limits and scaling factors come from ``trajectory.*``; with ``acs.mode``
     held and a wheel limit set (``acs.max_wheel_*``), the wheel momentum and torque
@@ -571,10 +627,15 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
         path_rad: (M, dof) the planned path (unwrapped, exact ends).
         start_velocity_rad_s, start_path_speed: a moving start (see
             ``trajectory.time_parameterize``); default at rest.
-    Returns:
+
+    Returns
+    -------
         Motion(trajectory, reaction).
-    Raises:
+
+    Raises
+    ------
         ValueError: bad limits or a start velocity the path cannot be followed with.
+
     """
     from .trajectory import time_parameterize
     robot, acs = scenario.robot, scenario.acs
@@ -594,9 +655,11 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
 # ------------------------------------------------ free floating, compensated (stretch)
 @dataclass(frozen=True, eq=False)
 class CompensatedPlan:
-    """A plan whose free-floating execution reaches the grasp (see :func:`plan_free_floating`).
+    """
+    A plan whose free-floating execution reaches the grasp (see :func:`plan_free_floating`).
 
-    Attributes:
+    Attributes
+    ----------
         ok: the drifted tip ends within the tolerance of the grasp point and the drifted
             motion is certified collision-free in the inertial frame.
         reason: why not (None when ok).
@@ -605,6 +668,7 @@ class CompensatedPlan:
         response: FreeFloatingResponse of that plan in the real (inertial) scene.
         drift: DriftCheck of that plan in the real scene.
         history: per iteration (tip miss m, attitude change deg, drift certified).
+
     """
 
     ok: bool
@@ -617,8 +681,11 @@ class CompensatedPlan:
 
 
 def _apparent_scene(scene, attitude_change_rad, body_position_m):
-    """The inertial scene as the body sees it at the end of a free-floating motion:
-    turned by −Δθ1 about the body centre after the body moved by b."""
+    """
+    Return the inertial scene as the body sees it at the end of a free-floating motion.
+
+    Turned by −Δθ1 about the body centre after the body moved by b.
+    """
     from .scene import Scene, Target
     c, s = math.cos(-attitude_change_rad), math.sin(-attitude_change_rad)
     rot = np.array([[c, -s], [s, c]])
@@ -638,7 +705,8 @@ def _apparent_scene(scene, attitude_change_rad, body_position_m):
 
 def plan_free_floating(scenario, start_rad, goal_rad=None, *, masses: MassProperties | None = None,
                        position_tolerance_m: float | None = None, max_iterations: int = 12) -> CompensatedPlan:
-    """Plan the arm so that, free floating, it still reaches the handle (the target's grasp).
+    """
+    Plan the arm so that, free floating, it still reaches the handle (the target's grasp).
 
     Plan once in the real scene; then, repeatedly, predict the drift of that plan
     (attitude change Δθ1 and body displacement b at its end), move the scene to where
@@ -656,10 +724,15 @@ def plan_free_floating(scenario, start_rad, goal_rad=None, *, masses: MassProper
         goal_rad: first goal (default: the target's IK).
         masses: default ``scenario.masses``; position_tolerance_m: default
             ``scenario.acs.position_tolerance_m``.
-    Returns:
+
+    Returns
+    -------
         CompensatedPlan (``ok`` False with a reason when it did not converge).
-    Raises:
+
+    Raises
+    ------
         ValueError: no target, or the attitude is a planned joint.
+
     """
     from .ik import grasp_ik
     from .planner import Planner

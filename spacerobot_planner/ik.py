@@ -1,4 +1,5 @@
-"""Goal configurations from the target: inverse kinematics of the grasp pose.
+"""
+Goal configurations from the target: inverse kinematics of the grasp pose.
 
 For the 3-joint chain (attitude, shoulder, elbow) the grasp pose fixes the tip
 position and the absolute angle of the last link, so the elbow point is known and
@@ -23,14 +24,17 @@ __all__ = ["IKSolution", "grasp_ik", "capture_posture", "CapturePosture", "appro
 
 @dataclass(frozen=True)
 class IKSolution:
-    """One inverse-kinematics branch.
+    """
+    One inverse-kinematics branch.
 
-    Attributes:
+    Attributes
+    ----------
         q: planned joints (rad), wrapped into the joint ranges.
         q_full: all joints (rad).
         manipulability: sqrt(det(J Jᵀ)), m².
         clearance_m: exact clearance of the posture.
         free: clearance > safety margin.
+
     """
 
     q: np.ndarray
@@ -73,7 +77,8 @@ def _fit_to_bounds(robot, q_full):
 
 
 def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_only: bool = True):
-    """All IK branches reaching the grasp pose, best manipulability first.
+    """
+    All IK branches reaching the grasp pose, best manipulability first.
 
     Args:
         grasp_point_m: (2,) tip position; defaults to the scene target's grasp point.
@@ -81,8 +86,11 @@ def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_onl
             perpendicular approach.  Ignored (position-only IK) when the attitude is
             locked.
         free_only: drop branches whose posture collides (clearance ≤ margin).
-    Returns:
+
+    Returns
+    -------
         list of IKSolution (possibly empty: the grasp pose is out of reach).
+
     """
     if grasp_point_m is None or approach_angle_rad is None:
         if scene.target is None:
@@ -125,17 +133,25 @@ def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_onl
 
 
 def approach_error_rad(robot, target, q_full) -> float:
-    """Angle between the last link and the handle's inward normal (the perpendicular
-    approach ``target.approach_angle_rad``) at full configuration ``q_full``, in [0, π]."""
+    """
+    Return the approach error at full configuration ``q_full``, rad in [0, π].
+
+    Angle between the last link and the handle's inward normal (the perpendicular approach
+    ``target.approach_angle_rad``) at full configuration ``q_full``, in [0, π].
+    """
     last = float(np.sum(np.asarray(q_full, dtype=float)))
     return abs(float(wrap_angle_rad(last - target.approach_angle_rad)))
 
 
 def perpendicular_attitudes(robot, scene) -> list:
-    """Attitudes (joint 1, rad) at which the arm grasps the scene's target perpendicularly:
-    the full-pose IK of the 3-joint chain with the attitude free.  Returns
-    [(attitude_rad, free)] per branch, collision-free branches first; empty when the grasp
-    pose is out of reach."""
+    """
+    Attitudes (joint 1, rad) at which the arm grasps the scene's target perpendicularly.
+
+    The full-pose IK of the 3-joint chain with the attitude free.
+
+    Returns [(attitude_rad, free)] per branch, collision-free branches first; empty when
+    the grasp pose is out of reach.
+    """
     free_robot = replace(robot, planned_joints=tuple(range(robot.n_joints)))
     sols = grasp_ik(free_robot, scene, free_only=False)
     return sorted(((float(s.q_full[0]), bool(s.free)) for s in sols), key=lambda a: not a[1])
@@ -143,14 +159,17 @@ def perpendicular_attitudes(robot, scene) -> list:
 
 @dataclass(frozen=True)
 class CapturePosture:
-    """The paper's advice: the most manipulable capture posture and where the target must sit.
+    """
+    The paper's advice: the most manipulable capture posture and where the target must sit.
 
-    Attributes:
+    Attributes
+    ----------
         q_full: (θ1, θ2, θ3) rad, with θ1 chosen so the last link meets the approach angle.
         manipulability: m².
         tip_m: end-effector tip position, metres.
         target_center_m: where the target's body centre must be for its grasp point to
             coincide with the tip (for the given target yaw and size).
+
     """
 
     q_full: np.ndarray
@@ -160,7 +179,8 @@ class CapturePosture:
 
 
 def capture_posture(robot, target) -> CapturePosture:
-    """Maximise manipulability over (θ2, θ3 > 0), then orient the chain for the target's approach.
+    """
+    Maximise manipulability over (θ2, θ3 > 0), then orient the chain for the target's approach.
 
     The mirror posture (−θ2, −θ3) is as manipulable; the paper's branch is returned.
     """

@@ -1,4 +1,5 @@
-"""The joint space: the rules for bounded and periodic joints, in one place.
+"""
+The joint space: the rules for bounded and periodic joints, in one place.
 
 OMPL's state-space role.  A configuration is a vector of joint angles in radians
 (one entry per planned joint); a path is an (M, n) array.  A *periodic* joint (the
@@ -40,8 +41,11 @@ def _mask(periodic, n: int) -> np.ndarray:
 
 
 def wrap_rad(q_rad, periodic, lower_rad) -> np.ndarray:
-    """Periodic columns of ``q_rad`` (..., n) wrapped into [lower, lower + 2π); the others
-    unchanged.  Returns a new array."""
+    """
+    Periodic columns of ``q_rad`` (..., n) wrapped into [lower, lower + 2π); the others unchanged.
+
+    Returns a new array.
+    """
     q = np.array(q_rad, dtype=float, copy=True)
     per = _mask(periodic, q.shape[-1])
     lo = np.broadcast_to(np.asarray(lower_rad, dtype=float), (q.shape[-1],))
@@ -50,7 +54,7 @@ def wrap_rad(q_rad, periodic, lower_rad) -> np.ndarray:
 
 
 def difference_rad(a_rad, b_rad, periodic) -> np.ndarray:
-    """b − a per joint, the short way round on periodic joints (in [-π, π)): (..., n)."""
+    """Return b − a per joint, the short way round on periodic joints (in [-π, π)): (..., n)."""
     d = np.asarray(b_rad, dtype=float) - np.asarray(a_rad, dtype=float)
     d = np.array(d, dtype=float, copy=True)
     per = _mask(periodic, d.shape[-1])
@@ -65,7 +69,8 @@ def distance_rad(a_rad, b_rad, periodic) -> np.ndarray | float:
 
 
 def interpolate_rad(a_rad, b_rad, t, periodic) -> np.ndarray:
-    """a + t·(b − a) along the shortest difference; t scalar or (k,) → (n,) or (k, n).
+    """
+    Return a + t·(b − a) along the shortest difference; t scalar or (k,) → (n,) or (k, n).
 
     The result is continuous from ``a`` (unwrapped): wrap it with :func:`wrap_rad`
     for a value in range.
@@ -77,7 +82,8 @@ def interpolate_rad(a_rad, b_rad, t, periodic) -> np.ndarray:
 
 
 def unwrap_path(path_rad, periodic) -> np.ndarray:
-    """The periodic columns of an (M, n) path made continuous (no 2π jumps between rows).
+    """
+    Return the periodic columns of an (M, n) path made continuous (no 2π jumps between rows).
 
     The first row is kept exactly; bounded columns are untouched.  Returns a new array.
     """
@@ -90,8 +96,13 @@ def unwrap_path(path_rad, periodic) -> np.ndarray:
 
 
 def nearest_turn_rad(value_rad, reference_rad, periodic) -> np.ndarray:
-    """``value`` shifted by whole turns on periodic joints to lie nearest ``reference``
-    (within π of it); bounded joints keep ``value``.  (n,) → (n,)."""
+    """
+    ``value`` shifted by whole turns on periodic joints to lie nearest ``reference`` (within π of it).
+
+    Bounded joints keep ``value``.
+
+    (n,) → (n,).
+    """
     v = np.array(value_rad, dtype=float, copy=True)
     per = _mask(periodic, v.shape[-1])
     ref = np.asarray(reference_rad, dtype=float)
@@ -101,19 +112,26 @@ def nearest_turn_rad(value_rad, reference_rad, periodic) -> np.ndarray:
 
 
 def align_to_state(path_rad, state_rad, periodic, tol_rad: float = 1e-6) -> np.ndarray:
-    """The path as the arm will follow it from where it is: periodic columns shifted by
-    whole turns so the first row equals the joint state (e.g. an unwrapped
-    ``joint_states`` attitude of 370°), then the first row set to the state exactly.
+    """
+    Return the path as the arm will follow it from where it is.
+
+    Periodic columns shifted by whole turns so the first row equals the joint state (e.g. an
+    unwrapped ``joint_states`` attitude of 370°), then the first row set to the state exactly.
 
     Args:
         path_rad: (M, n) continuous path (unwrapped), first row the start posture.
         state_rad: (n,) the current joint positions (any number of turns).
         periodic: (n,) flags.
         tol_rad: largest allowed gap between the shifted first row and the state.
-    Returns:
+
+    Returns
+    -------
         a new (M, n) array.
-    Raises:
+
+    Raises
+    ------
         ValueError: the path does not start at the state (up to whole turns).
+
     """
     p = np.array(path_rad, dtype=float, copy=True)
     s = np.asarray(state_rad, dtype=float)
@@ -143,5 +161,5 @@ def within_bounds(q_rad, lower_rad, upper_rad, periodic, tol_rad: float = 0.0) -
 
 
 def deg_text(q_rad) -> str:
-    """A configuration for people: ``(160.7, 32.8, 76.5)°``."""
+    """Return a configuration for people: ``(160.7, 32.8, 76.5)°``."""
     return "(" + ", ".join(f"{v:.1f}" for v in np.degrees(np.asarray(q_rad, dtype=float))) + ")°"

@@ -1,4 +1,5 @@
-"""Motion validity: straight joint-space segments checked on the exact geometry.
+"""
+Motion validity: straight joint-space segments checked on the exact geometry.
 
 OMPL splits validity in two: the state validity checker (``collision.CollisionChecker``:
 is one configuration free, and by how much) and the motion validator (this module: is
@@ -36,15 +37,18 @@ QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of
 
 @dataclass(frozen=True, eq=False)
 class PathCheck:
-    """Result of a dense check of a sampled path.
+    """
+    Result of a dense check of a sampled path.
 
-    Attributes:
+    Attributes
+    ----------
         ok: every check sample is free and within bounds.
         interval_ok: (M-1,) bool, per interval between consecutive path samples
             (the whole straight interval, certified; see :func:`check_path`).
         min_clearance_m: smallest clearance over all check samples, metres.
         n_checked: number of configurations tested.
         interval_clearance_m: (M-1,) smallest clearance per interval, metres.
+
     """
 
     ok: bool
@@ -66,7 +70,8 @@ def _within_bounds(q, lower, upper, periodic):
 def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts,
                      threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
                      interval_ok, interval_clr, certified):
-    """Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
+    """
+    Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
 
     At a sample with clearance c the open ball of radius (c - threshold)/L in joint
     space is free (no point of a checked link moves faster than L m/rad), so the
@@ -112,9 +117,13 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
 
 @functools.lru_cache(maxsize=64)
 def lipschitz_m_per_rad(robot) -> float:
-    """Bound L on how fast any point of a checked link moves relative to the obstacles
-    and the body per radian of planned-joint motion (Euclidean norm): sqrt(Σ r_j²), r_j
-    the length of the chain beyond planned joint j."""
+    """
+    Return the Lipschitz bound L of the checked links, m per rad.
+
+    Bound L on how fast any point of a checked link moves relative to the obstacles and the body per
+    radian of planned-joint motion (Euclidean norm): sqrt(Σ r_j²), r_j the length of the chain
+    beyond planned joint j.
+    """
     lengths = np.asarray(robot.link_lengths_m, dtype=float)
     reach = np.array([lengths[j:].sum() for j in robot.planned_joints])
     return float(np.sqrt(np.sum(reach ** 2)))
@@ -124,7 +133,8 @@ def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
                verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
                required_clearance_m: float | None = None,
                min_step_rad: float = 1e-6, certified: bool = True) -> PathCheck:
-    """Certified check of the piecewise-linear path through the rows of ``path_rad``.
+    """
+    Certified check of the piecewise-linear path through the rows of ``path_rad``.
 
     Along every interval, samples are at most ``verify_step_rad`` apart and close
     enough that their clearance balls overlap (Lipschitz bound of the arm), so the
@@ -169,17 +179,26 @@ def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
 
 @njit(cache=True, nogil=True)
 def motion_scratch(q_template, lengths, body):
-    """(q_full, pts, body_w): the scratch arrays of :func:`segment_free` and the clearance
-    kernel (a full configuration from ``q_template``, the chain's points, the posed body)."""
+    """
+    Return the scratch arrays (q_full, pts, body_w).
+
+    The scratch arrays of :func:`segment_free` and the clearance kernel (a full configuration from
+    ``q_template``, the chain's points, the posed body).
+    """
     return q_template.copy(), np.empty((lengths.shape[0] + 1, 2)), np.empty_like(body)
 
 
 @njit(cache=True, nogil=True)
 def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, threshold_m,
                  step_rad, q_full, pts, body_w):
-    """Quick test of the straight segment qa → qb (planned joints, rad): clearance above
-    ``threshold_m`` at samples at most ``step_rad`` apart, both ends included.  Scratch:
-    q_full (n_joints,) starting as ``q_template``, pts (n_links + 1, 2), body_w like body."""
+    """
+    Quick test of the straight segment qa → qb (planned joints, rad).
+
+    Clearance above ``threshold_m`` at samples at most ``step_rad`` apart, both ends included.
+
+    Scratch: q_full (n_joints,) starting as ``q_template``, pts (n_links + 1, 2), body_w
+    like body.
+    """
     dof = qa.shape[0]
     d2 = 0.0
     for a in range(dof):

@@ -1,4 +1,5 @@
-"""One plan, stage by stage: :func:`run_pipeline` reads top to bottom.
+"""
+One plan, stage by stage: :func:`run_pipeline` reads top to bottom.
 
     inputs → exit (leave a contact) → C-space → goal nodes → field → descent/repair
            → smoothing → trajectory
@@ -48,7 +49,7 @@ class Cancelled(Exception):
 
 
 def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
-    """The stages in order; see the module docstring.  Raises Fail or Cancelled."""
+    """Run the stages in order; see the module docstring.  Raises Fail or Cancelled."""
     run.check_inputs(start_rad, goal_rad)            # invalid_input, goal_unreachable, *_in_collision
     run.leave_contact()                              # a start touching an obstacle: the exit stretch
     for extra_m in run.grid_margins():               # the grid's extra margin, then none
@@ -67,13 +68,14 @@ def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
 
 
 def trajectory_limits_known(scenario) -> bool:
-    """The scenario states joint velocity and acceleration limits (``trajectory.*``)."""
+    """Tell whether the scenario states joint velocity and acceleration limits (``trajectory.*``)."""
     return ("trajectory.max_velocity_deg_s" in scenario.params
             and "trajectory.max_acceleration_deg_s2" in scenario.params)
 
 
 def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0):
-    """The last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
+    """
+    Run the last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
 
     Args:
         scenario: ``problem.Scenario`` (limits from ``trajectory.*``, ACS from ``acs.*``).
@@ -86,11 +88,16 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
             limits), where the reaction shapes or refuses the trajectory.
         start_path_speed: the arm's speed along the path at its start (rad/s of joint-space
             chord length; a replan joined to a moving arm, see ``trajectory.continuation``).
-    Returns:
+
+    Returns
+    -------
         (trajectory.Trajectory, dynamics.ReactionReport or None).
-    Raises:
+
+    Raises
+    ------
         ValueError: bad limits (naming the parameter), or a start speed the path cannot be
             followed with (``trajectory.time_parameterize``).
+
     """
     from .dynamics import plan_motion, scenario_joint_limits
     from .trajectory import time_parameterize
@@ -109,12 +116,15 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
 
 
 class PlanRun:
-    """One call of ``Planner.plan``: the stages' state, timings and cache look-ups.
+    """
+    One call of ``Planner.plan``: the stages' state, timings and cache look-ups.
 
-    Args:
+    Parameters
+    ----------
         planner: the ``Planner`` (its caches and checker).
         settings: the ``PlannerSettings`` of this plan (a snapshot).
         cancel: an object with ``is_set()`` or None; progress: a callable(str) or None.
+
     """
 
     def __init__(self, planner, settings, cancel, progress):
@@ -179,7 +189,7 @@ class PlanRun:
             start_penetration_m=self.penetration_m)
 
     def segment_ok(self, a, b) -> bool:
-        """The certified motion check of the straight (shortest) segment a → b."""
+        """Run the certified motion check of the straight (shortest) segment a → b."""
         seg = unwrap_path(np.vstack([a, b]), self.periodic)
         with self.stage("verify"):
             return check_path(self.checker, seg, self.lower, self.upper, self.periodic,
@@ -205,8 +215,12 @@ class PlanRun:
 
     # ----------------------------------------------------------------- stages
     def check_inputs(self, start_rad, goal_rad) -> None:
-        """Start and goal valid and in bounds; the goal from the target when none is given;
-        the goal free; the start free or (see :meth:`leave_contact`) touching only."""
+        """
+        Start and goal valid and in bounds.
+
+        The goal from the target when none is given; the goal free; the start free or (see
+        :meth:`leave_contact`) touching only.
+        """
         robot, margin = self.robot, self.sc.scene.safety_margin_m
         try:
             self.start_given = np.asarray(start_rad, dtype=float)
@@ -241,8 +255,12 @@ class PlanRun:
         self.check_cancel()
 
     def leave_contact(self) -> None:
-        """A start within the margin of an obstacle: walk out (``contact.leave_contact``) when
-        its links reach at most ``max_start_penetration_m`` into it, else start_in_collision."""
+        """
+        Handle a start within the margin of an obstacle.
+
+        Walk out (``contact.leave_contact``) when its links reach at most
+        ``max_start_penetration_m`` into it, else start_in_collision.
+        """
         margin = self.sc.scene.safety_margin_m
         clr_s = self.checker.clearance_m(self.start)
         if clr_s > margin:
@@ -262,8 +280,12 @@ class PlanRun:
                  f"{ex.signed_distance_m[-1]:.3f} m (not certified)")
 
     def grid_margins(self) -> tuple:
-        """The grid's extra margins to try: the configured one, then 0 (a grid with the extra
-        margin can close a passage that the safety margin leaves open)."""
+        """
+        Return the grid's extra margins to try.
+
+        The configured one, then 0 (a grid with the extra margin can close a passage that the safety
+        margin leaves open).
+        """
         extra = self.s.grid_extra_margin_m
         return (extra, 0.0) if extra > 0.0 else (0.0,)
 
@@ -317,9 +339,14 @@ class PlanRun:
         return fld, key
 
     def descend_and_repair(self, cs, fld, key, goal_nodes) -> np.ndarray:
-        """Descent from a start node; where a walk is blocked or its polyline does not verify,
-        cut grid edges or block nodes (a plan-local field, cached under its own key) and
-        descend again.  Returns the unwrapped waypoints: exact start, grid nodes, exact goal."""
+        """
+        Descent from a start node.
+
+        Where a walk is blocked or its polyline does not verify, cut grid edges or block nodes (a
+        plan-local field, cached under its own key) and descend again.
+
+        Returns the unwrapped waypoints: exact start, grid nodes, exact goal.
+        """
         grid, s = cs.grid, self.s
         blocked, cut = frozenset(), frozenset()
         repairs = 0
@@ -400,7 +427,7 @@ class PlanRun:
         raise AssertionError("unreachable")
 
     def resolve(self, cs, key, goal_nodes, blocked, cut):
-        """The field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
+        """Return the field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
         rkey = key + (tuple(sorted(blocked)), tuple(sorted(cut)))
         hit = rkey in self.p._fields
         with self.stage("repair"):
@@ -410,9 +437,12 @@ class PlanRun:
         return fld
 
     def no_field_path_failure(self, cs, fld, blocked) -> Fail:
-        """Why no start node has a field value: 'disconnected' only when the grid's own free
-        space (without nodes blocked by repairs) separates every free node near the start
-        from every free node near the goal."""
+        """
+        Why no start node has a field value.
+
+        'disconnected' only when the grid's own free space (without nodes blocked by repairs)
+        separates every free node near the start from every free node near the goal.
+        """
         grid, occ = cs.grid, cs.occupied
         start = self.plan_start
         goal_nodes = self.candidates(self.goal, grid, ~occ)
@@ -450,14 +480,14 @@ class PlanRun:
         return sm
 
     def full_path(self, smooth) -> np.ndarray:
-        """The exit stretch (if any) followed by the certified path, continuous."""
+        """Return the exit stretch (if any) followed by the certified path, continuous."""
         if len(self.exit_path) == 0:
             return smooth.path_rad
         rest = align_to_state(smooth.path_rad, self.exit_path[-1], self.periodic)
         return np.vstack([self.exit_path[:-1], rest])
 
     def time_parameterize(self, smooth) -> PlanResult:
-        """The ok result, with the trajectory (and reaction) when the limits are known."""
+        """Return the ok result, with the trajectory (and reaction) when the limits are known."""
         path = self.full_path(smooth)
         traj = reaction = None
         if self.s.trajectory and trajectory_limits_known(self.sc):

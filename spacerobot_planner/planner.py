@@ -1,4 +1,5 @@
-"""The offline planner: scene → C-space → field → descent → certified smooth path → trajectory.
+"""
+The offline planner: scene → C-space → field → descent → certified smooth path → trajectory.
 
 ``Planner.plan`` runs ``pipeline.run_pipeline`` (the stages in order, one module each)
 with the planner's :class:`PlannerSettings` (immutable; the setters replace it) and
@@ -60,9 +61,11 @@ def _positive(name, value, allow_zero=False) -> float:
 
 @dataclass(frozen=True)
 class PlannerSettings:
-    """How the planner plans (immutable; ``Planner.configure`` makes a new one).
+    """
+    How the planner plans (immutable; ``Planner.configure`` makes a new one).
 
-    Attributes:
+    Attributes
+    ----------
         solver: field solver name (``field.SOLVERS``).
         field_tolerance: gauss_seidel's stopping tolerance (largest change per sweep).
         field_budget_s: wall-time budget of one field solve (log_harmonic), seconds.
@@ -82,6 +85,7 @@ class PlannerSettings:
         trajectory: run the trajectory stage when the scenario states joint limits.
         reaction: report the spacecraft's reaction with the trajectory (None: when the
             scenario has ACS or wheel settings).
+
     """
 
     solver: str = DEFAULT_SOLVER
@@ -126,7 +130,7 @@ _PARAM_SETTINGS = {"planner.solver": "solver", "planner.field_tolerance": "field
 
 
 def settings_from_params(params: dict, **overrides) -> PlannerSettings:
-    """PlannerSettings from a scenario's flat parameters (defaults for what is absent)."""
+    """Return PlannerSettings from a scenario's flat parameters (defaults for what is absent)."""
     from .config import check_value
     kw = {f: check_value(k, params[k]) for k, f in _PARAM_SETTINGS.items() if k in params}
     kw.update(overrides)
@@ -139,18 +143,21 @@ def _scene_geometry_key(scene: Scene) -> tuple:
 
 
 class Planner:
-    """Harmonic-potential planner with cached C-space and fields.
+    """
+    Harmonic-potential planner with cached C-space and fields.
 
     Caches: C-space keyed on (scene geometry + margin, grid, extra margin); field keyed
     on (that C-space key, goal nodes, solver settings[, blocked nodes, cut edges]),
     evicted with its C-space; the spacecraft-body table keyed on (grid, margin), kept
     across target moves.  Entries are never modified after they are stored.
 
-    Args:
+    Parameters
+    ----------
         scenario: robot, scene and grid (``problem.Scenario``).
         solver, field_tolerance, max_grid_nodes, field_budget_s, and any other
             :class:`PlannerSettings` field as a keyword, over ``settings`` (default: from
             the scenario's parameters, :func:`settings_from_params`).
+
     """
 
     def __init__(self, scenario: Scenario, solver: str | None = None, field_tolerance: float | None = None,
@@ -189,7 +196,8 @@ class Planner:
                               doc="Refuse larger grids; assigning it replaces the settings.")
 
     def set_solver(self, solver: str, field_tolerance: float, field_budget_s: float | None = None) -> None:
-        """Choose the field solver; ValueError for unknown names, a bad tolerance or budget.
+        """
+        Choose the field solver; ValueError for unknown names, a bad tolerance or budget.
 
         ``field_budget_s`` None keeps the current budget.
         """
@@ -218,8 +226,12 @@ class Planner:
 
     # ------------------------------------------------------------------- goal
     def approach_error_deg(self, goal_rad) -> float:
-        """Approach error (degrees) of a goal that grasps the scene's target (its tip within
-        ``grasp.position_tolerance_m`` of the grasp point); nan for any other goal."""
+        """
+        Return the approach error (degrees) of a goal that grasps the target.
+
+        Approach error (degrees) of a goal that grasps the scene's target (its tip within
+        ``grasp.position_tolerance_m`` of the grasp point); nan for any other goal.
+        """
         sc = self.scenario
         target = sc.scene.target
         if target is None:
@@ -230,8 +242,11 @@ class Planner:
         return math.degrees(approach_error_rad(sc.robot, target, q_full)) if miss <= tol else math.nan
 
     def goal_from_target(self) -> np.ndarray:
-        """Best free IK branch (highest manipulability) of the scene's target, (dof,) rad,
-        among those whose approach error is within ``max_approach_error_deg``.
+        """
+        Return the best free IK branch of the scene's target, (dof,) rad.
+
+        Best free IK branch (highest manipulability) of the scene's target, (dof,) rad, among those
+        whose approach error is within ``max_approach_error_deg``.
 
         Raises ValueError with a reason when there is no target, the grasp pose is out of
         reach, every branch collides, or no branch meets the handle near perpendicular
@@ -286,7 +301,8 @@ class Planner:
         cache[key] = value
 
     def _cspace(self, grid: GridSpec, extra_m: float):
-        """(C-space, its cache key, cache hit) of the current scene on ``grid``.
+        """
+        (C-space, its cache key, cache hit) of the current scene on ``grid``.
 
         The spacecraft-body table (``cspace.body_occupancy``) depends on the grid and the
         margin only, so it is kept across target and debris moves as well.
@@ -317,8 +333,11 @@ class Planner:
                 settings.field_tolerance, settings.field_budget_s)
 
     def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=()):
-        """The field under ``key`` (solved and stored when absent): the C-space's free nodes
-        less ``blocked``, its grid edges less ``cut_edges``."""
+        """
+        Return the field under ``key`` (solved and stored when absent).
+
+        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``.
+        """
         fld = self._fields.get(key)
         if fld is not None:
             return fld
@@ -335,14 +354,18 @@ class Planner:
 
     @staticmethod
     def _descend(field, node, motions, lower_rad, step_rad):
-        """The descent stage (``descent.descend``), looked up in this module: the node's tests
-        inject a fault by patching ``planner.descend``."""
+        """
+        Run the descent stage (``descent.descend``), looked up in this module.
+
+        The node's tests inject a fault by patching ``planner.descend``.
+        """
         return descend(field, node, motions, lower_rad, step_rad)
 
     # ------------------------------------------------------------------- plan
     def plan(self, start_rad, goal_rad=None, cancel: threading.Event | None = None,
              progress: Callable[[str], None] | None = None) -> PlanResult:
-        """Plan from ``start_rad`` to ``goal_rad`` (default: :meth:`goal_from_target`).
+        """
+        Plan from ``start_rad`` to ``goal_rad`` (default: :meth:`goal_from_target`).
 
         ``start_rad`` is the arm's state (periodic joints may be unwrapped: the trajectory
         starts there).  Never raises for bad input or when there is no path: returns
@@ -352,7 +375,7 @@ class Planner:
             return PlanRun(self, self.settings, cancel, progress).run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:
-        """The trajectory stage on an existing ok result (e.g. a drift-compensated plan)."""
+        """Run the trajectory stage on an existing ok result (e.g. a drift-compensated plan)."""
         if not result.ok or not trajectory_limits_known(self.scenario):
             return result
         t = time.perf_counter()
@@ -365,7 +388,8 @@ class Planner:
 
 
 def warm_up(scenario: Scenario, cells: int = 6) -> float:
-    """Compile (or load from numba's cache) every kernel a plan uses; return the seconds.
+    """
+    Compile (or load from numba's cache) every kernel a plan uses; return the seconds.
 
     Plans on a coarse copy of the scenario's grid from random free postures, so the
     first real plan's stage timings are the planner's, not the JIT's.

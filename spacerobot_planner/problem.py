@@ -1,4 +1,5 @@
-"""The planning problem: robot, scene, grid and the spacecraft's settings (no file format here).
+"""
+The planning problem: robot, scene, grid and the spacecraft's settings (no file format here).
 
 ``config.py`` builds one from a parameter file; tests and tools build one directly.
 """
@@ -19,9 +20,11 @@ __all__ = ["Scenario"]
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """Everything needed to plan: robot, scene, grid, and optionally start/goal.
+    """
+    Everything needed to plan: robot, scene, grid, and optionally start/goal.
 
-    Attributes:
+    Attributes
+    ----------
         robot: the arm (``robot.PlanarArm``).
         scene: target, debris and safety margin (``scene.Scene``).
         grid: the C-space grid over the planned joints (``cspace.GridSpec``).
@@ -31,6 +34,7 @@ class Scenario:
             names; the trajectory limits and planner options are read from it).
         masses: the spacecraft's mass properties (``dynamics.*``).
         acs: attitude-control settings (``acs.*``, ``grasp.position_tolerance_m``).
+
     """
 
     robot: PlanarArm
@@ -44,13 +48,13 @@ class Scenario:
     acs: AcsSettings = field(default_factory=AcsSettings)
 
     def grid_with_cells(self, cells) -> GridSpec:
-        """The same grid bounds with ``cells`` cells per planned joint."""
+        """Return the same grid bounds with ``cells`` cells per planned joint."""
         return self.grid.with_cells(cells)
 
     def with_scene(self, scene: Scene) -> "Scenario":
-        """A copy with another scene."""
+        """Return a copy with another scene."""
         return replace(self, scene=scene)
 
     def with_grid(self, grid: GridSpec) -> "Scenario":
-        """A copy with another grid."""
+        """Return a copy with another grid."""
         return replace(self, grid=grid)

@@ -1,4 +1,5 @@
-"""What a plan returns: the result codes, the stage names and ``PlanResult``.
+"""
+What a plan returns: the result codes, the stage names and ``PlanResult``.
 
 The codes are a ``str`` enum: ``Code.OK == "ok"``, and ``str()``, f-strings and JSON
 give the plain value, so the strings on the wire stay as they were.
@@ -46,9 +47,11 @@ STAGES = ("exit", "cspace", "field", "descent", "repair", "smoothing", "verify",
 
 @dataclass(frozen=True, eq=False)
 class PlanResult:
-    """What a plan produced (or why not).
+    """
+    What a plan produced (or why not).
 
-    Attributes:
+    Attributes
+    ----------
         ok: a verified path was found (and, with a trajectory stage, the spacecraft's
             reaction accepts it).
         reason: a sentence for people; None when ok.
@@ -89,6 +92,7 @@ class PlanResult:
             the start was free.
         start_penetration_m: how deep the start's links were inside an obstacle (0 when
             they were not), metres.
+
     """
 
     ok: bool
@@ -116,7 +120,8 @@ class PlanResult:
     start_penetration_m: float = 0.0
 
     def to_json_dict(self) -> dict:
-        """Plain-JSON view (the CLI's output): lists and floats, NaN as null.
+        """
+        Plain-JSON view (the CLI's output): lists and floats, NaN as null.
 
         ``trajectory`` (joint_names, times_s, positions_rad, velocities_rad_s,
         accelerations_rad_s2, duration_s, active_limit) and ``reaction`` only when

@@ -1,4 +1,5 @@
-"""The space robot: a planar serial chain whose first joint is the spacecraft attitude.
+"""
+The space robot: a planar serial chain whose first joint is the spacecraft attitude.
 
 Conventions (see ``shared/reference/paper-scenarios.md``): planar world (x, y) in
 metres with the origin at the spacecraft centre of mass; joint angles in radians,
@@ -24,7 +25,8 @@ __all__ = ["PlanarArm", "square_polygon", "validate_polygon"]
 
 def square_polygon(side_m: float, center_m=(0.0, 0.0), yaw_rad: float = 0.0,
                    corner_first: bool = False) -> np.ndarray:
-    """Vertices (4×2, metres, counter-clockwise) of a square.
+    """
+    Vertices (4×2, metres, counter-clockwise) of a square.
 
     With ``corner_first`` the first vertex lies on the local +x axis (the square is
     turned 45°), which is how the spacecraft body sits: link 1 points at a corner.
@@ -42,9 +44,11 @@ def square_polygon(side_m: float, center_m=(0.0, 0.0), yaw_rad: float = 0.0,
 
 @dataclass(frozen=True, eq=False)
 class PlanarArm:
-    """A planar serial arm mounted on a spacecraft body that turns with joint 1.
+    """
+    A planar serial arm mounted on a spacecraft body that turns with joint 1.
 
-    Attributes:
+    Attributes
+    ----------
         joint_names: one name per joint, e.g. ``("attitude", "shoulder", "elbow")``.
         link_lengths_m: length of each link (> 0), link 1 first.
         lower_rad, upper_rad: joint bounds (``upper > lower``); a periodic joint
@@ -56,6 +60,7 @@ class PlanarArm:
         locked_rad: full-length vector; entries of joints not planned are held there.
         checked_links: indices of the links tested for collision (links 2 and 3:
             ``(1, 2)``); link 1 is inside the spacecraft structure.
+
     """
 
     joint_names: tuple
@@ -115,7 +120,7 @@ class PlanarArm:
 
     @property
     def dof(self) -> int:
-        """Number of planned joints (the C-space dimension)."""
+        """Return the number of planned joints (the C-space dimension)."""
         return len(self.planned_joints)
 
     @property
@@ -142,7 +147,8 @@ class PlanarArm:
         return out
 
     def validate_q(self, q, name: str = "configuration") -> np.ndarray:
-        """Check a planned configuration: right length, finite, within bounds.
+        """
+        Check a planned configuration: right length, finite, within bounds.
 
         Periodic joints are wrapped into their range (that is the same posture, not a
         clamp); any other violation raises ``ValueError`` naming the joint.
@@ -163,13 +169,17 @@ class PlanarArm:
 
     # -------------------------------------------------------------- kinematics
     def forward_kinematics(self, q_full) -> np.ndarray:
-        """Joint positions for full configuration(s).
+        """
+        Joint positions for full configuration(s).
 
         Args:
             q_full: (n_joints,) or (N, n_joints) joint angles, rad.
-        Returns:
+
+        Returns
+        -------
             (n_joints+1, 2) or (N, n_joints+1, 2) points, metres: the origin, then
             the end of each link (the last one is the end-effector tip).
+
         """
         q_full = np.asarray(q_full, dtype=float)
         abs_angles = np.cumsum(q_full, axis=-1)

@@ -1,4 +1,5 @@
-"""The world around the arm: the target satellite, debris, and the safety margin.
+"""
+The world around the arm: the target satellite, debris, and the safety margin.
 
 All positions are in the planning frame (metres, origin at the spacecraft centre of
 mass); angles in radians.  The spacecraft body belongs to the robot (it turns with
@@ -18,18 +19,21 @@ __all__ = ["Target", "Scene", "pack_polygons"]
 
 @dataclass(frozen=True)
 class Target:
-    """The target satellite: a square body with a square grasp handle on one face.
+    """
+    The target satellite: a square body with a square grasp handle on one face.
 
     In the target's own frame the body is centred at the origin and the handle sits
     at the centre of the +y face, outside the body.  The grasp point is the centre
     of the handle's outer face; the end-effector approaches it along −y (into the
     target), so the capture posture has absolute link-3 angle ``yaw + 270°``.
 
-    Attributes:
+    Attributes
+    ----------
         center_m: (x, y) of the body centre, metres.
         yaw_rad: rotation of the target frame, rad.
         body_side_m: side of the square body (paper: 1.0 m).
         handle_side_m: side of the square handle (paper: 0.1 m).
+
     """
 
     center_m: tuple = (-3.27, -2.60)
@@ -78,14 +82,17 @@ class Target:
 
 @dataclass(frozen=True, eq=False)
 class Scene:
-    """What the arm must not touch, besides its own spacecraft body.
+    """
+    What the arm must not touch, besides its own spacecraft body.
 
-    Attributes:
+    Attributes
+    ----------
         target: the target satellite, or None (joint-space goals only).
         debris_m: extra obstacles, a tuple of (k×2) polygons in metres (convex or not).
         safety_margin_m: minimum allowed distance from a checked link to any
             obstacle, metres (≥ 0); a configuration is free when its clearance is
             strictly greater than this margin.
+
     """
 
     target: Target | None = Target()
@@ -112,12 +119,15 @@ class Scene:
 
 
 def pack_polygons(polygons) -> tuple:
-    """Flatten polygons for the numba kernels.
+    """
+    Flatten polygons for the numba kernels.
 
-    Returns:
+    Returns
+    -------
         (verts, starts, centres, radii): verts (V×2) all vertices; starts (P+1,)
         offsets so polygon p is verts[starts[p]:starts[p+1]]; centres (P×2) and
         radii (P,) of a bounding circle of each polygon (for cheap culling).
+
     """
     polygons = [np.asarray(p, dtype=float) for p in polygons]
     starts = np.zeros(len(polygons) + 1, dtype=np.int64)

@@ -1,4 +1,5 @@
-"""From a grid path to a smooth, densely verified joint path.
+"""
+From a grid path to a smooth, densely verified joint path.
 
 The grid path (descent nodes) is joined to the exact start and goal, unwrapped on
 periodic joints, and turned into a cubic spline as in the paper (knots at every
@@ -33,9 +34,11 @@ DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samp
 
 @dataclass(frozen=True, eq=False)
 class SmoothPath:
-    """A verified dense path.
+    """
+    A verified dense path.
 
-    Attributes:
+    Attributes
+    ----------
         path_rad: (M, dof) samples ≤ max_step_rad apart, exact start first and the
             exact goal last (periodic joints unwrapped, so the goal up to 2π·k).
         knots_rad: (k, dof) the spline's knots (the polyline vertices for "polyline").
@@ -44,6 +47,7 @@ class SmoothPath:
         length_rad: joint-space length (Euclidean), rad.
         refinements: knot-refinement rounds used.
         n_checked: configurations tested by the final check.
+
     """
 
     path_rad: np.ndarray
@@ -65,7 +69,8 @@ def path_length_rad(path_rad) -> float:
 
 
 def densify_polyline(points_rad, max_step_rad: float) -> np.ndarray:
-    """Linear interpolation of an (m, dof) polyline: consecutive rows ≤ max_step_rad apart.
+    """
+    Linear interpolation of an (m, dof) polyline: consecutive rows ≤ max_step_rad apart.
 
     Every input vertex is kept exactly.
     """
@@ -81,8 +86,11 @@ def densify_polyline(points_rad, max_step_rad: float) -> np.ndarray:
 
 
 def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarray:
-    """Put rows that leave a bounded joint's range by at most ``tol_rad`` (rounding
-    in the spline or the interpolation along a bound) exactly on the bound.
+    """
+    Put rows barely outside a bounded joint's range exactly on the bound.
+
+    Put rows that leave a bounded joint's range by at most ``tol_rad`` (rounding in the spline or
+    the interpolation along a bound) exactly on the bound.
 
     Larger excursions are left as they are, so the bounds check rejects them.
     (m, dof) → a new (m, dof) array.
@@ -99,7 +107,8 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
 def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
                      verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
                      keep_clearance_m: float = 0.05, certified: bool = True) -> np.ndarray:
-    """Greedy, clearance-keeping shortcut of a verified polyline: indices of the vertices kept.
+    """
+    Greedy, clearance-keeping shortcut of a verified polyline: indices of the vertices kept.
 
     A straight segment from vertex i to vertex j may replace the polyline between
     them when it is verified and its clearance never drops below the smaller of
@@ -123,7 +132,7 @@ def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
 @njit(cache=True, nogil=True)
 def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts,
                      margin_m, lip, step_rad, certified):
-    """The greedy binary search of :func:`shortcut_indices` (see there), in one kernel."""
+    """Run the greedy binary search of :func:`shortcut_indices` (see there), in one kernel."""
     m = pts.shape[0]
     keep = np.empty(m, np.int64)
     seg = np.empty((2, pts.shape[1]))
@@ -177,7 +186,8 @@ def _polyline_at(pts, t_pts, t):
 
 
 def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
-    """Cubic spline (chord-length parameter, not-a-knot ends) through (k, dof) knots.
+    """
+    Cubic spline (chord-length parameter, not-a-knot ends) through (k, dof) knots.
 
     Returns (samples (M, dof), knot_param (k,), sample_param (M,)): samples ≤
     max_step_rad apart, the first and last knot reproduced exactly.
@@ -211,7 +221,8 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
 
 def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad, verify_step_rad,
                     max_rounds, cancel, certified):
-    """Spline through polyline points at arc lengths t_knots, refined where it collides.
+    """
+    Spline through polyline points at arc lengths t_knots, refined where it collides.
 
     Returns (samples, knots, check, rounds) of the first clean spline, or None.
     """
@@ -254,7 +265,8 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
                 verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
                 quick_step_rad: float = QUICK_STEP_RAD,
                 max_rounds: int = 12, cancel=None) -> SmoothPath | None:
-    """Smooth a polyline into a dense path whose certified check passed.
+    """
+    Smooth a polyline into a dense path whose certified check passed.
 
     Args:
         checker: a ``CollisionChecker`` (exact geometry, the scene's margin).
@@ -266,7 +278,9 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
             stretch's own clearance, if smaller), metres.
         knot_stride: the paper's "every second node" (2).
         quick_step_rad: spacing of the quick test of candidates.
-    Returns:
+
+    Returns
+    -------
         the first result of: spline along the shortcut polyline, spline through every
         ``knot_stride``-th waypoint (the paper), the polyline itself; None when even the
         polyline fails (or on cancel).  Candidates (shortcuts, spline refinements) are
@@ -274,6 +288,7 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
         certified (``check_path``), and only if that fails is the choice made again with
         certified tests throughout.  ``n_checked`` and ``min_clearance_m`` are the
         certified check's.
+
     """
     first = _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
                     keep_clearance_m, max_step_rad, quick_step_rad, max_rounds, cancel, False)
@@ -299,8 +314,11 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
 
 def _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
             keep_clearance_m, max_step_rad, step_rad, max_rounds, cancel, certified):
-    """(path, knots, method, rounds) chosen with tests at ``step_rad`` (certified or
-    quick), or None; see :func:`smooth_path`."""
+    """
+    (path, knots, method, rounds) chosen with tests at ``step_rad`` (certified or quick), or None.
+
+    See :func:`smooth_path`.
+    """
     w = np.asarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
     rows = [w[0]]                       # drop repeated rows, keep the exact ends

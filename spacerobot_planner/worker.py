@@ -1,4 +1,5 @@
-"""The planning worker: runs the planning core for the node, in a child process by default.
+"""
+The planning worker: runs the planning core for the node, in a child process by default.
 
 No rclpy here, and the planning process imports none of it: it is started as
 ``python -c "...; from spacerobot_planner.worker import child_main; child_main(fd)"``
@@ -48,7 +49,8 @@ STAGE_ORDER = ("queued", "cspace", "field", "descent", "smoothing", "verify", "t
 # ================================================================== messages
 @dataclass(frozen=True, eq=False)
 class PlanJob:
-    """One request for the planning core (picklable).
+    """
+    One request for the planning core (picklable).
 
     scene, grid: ``scene.Scene`` and ``cspace.GridSpec``; start_rad: (dof,) planned
     joints, rad; joint_goal: (dof,) rad or None (then the goal is the target's IK);
@@ -127,7 +129,7 @@ def _apply_settings(planner, job: PlanJob) -> None:
 
 
 def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] | None = None):
-    """PlanDone or PlanError for one job (exceptions propagate: the backends catch them)."""
+    """Return PlanDone or PlanError for one job (exceptions propagate: the backends catch them)."""
     def say(text):
         p = _progress_of(text)
         if p is not None and progress is not None:
@@ -152,8 +154,11 @@ def _crash(gen: int, e: BaseException) -> PlanCrash:
 
 
 def _strip_sent(done: PlanDone, sent: dict) -> PlanDone:
-    """Leave out the C-space and field the node already holds (the objects last sent):
-    a replan from cache would otherwise pickle them again (~0.5 MB at 36³)."""
+    """
+    Leave out the C-space and field the node already holds (the objects last sent).
+
+    A replan from cache would otherwise pickle them again (~0.5 MB at 36³).
+    """
     res = done.result
     left_out = []
     for name in ("cspace", "field"):
@@ -187,7 +192,8 @@ WARM_CELLS = 6
 
 
 def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FULL_GRID_MAX_NODES) -> dict:
-    """Compile (or load from numba's cache) the kernels of the default route only.
+    """
+    Compile (or load from numba's cache) the kernels of the default route only.
 
     Plans on a ``cells``-per-joint copy of the planner's scenario with its solver (from
     seeded random postures until one plan succeeds), then, when the configured grid has
@@ -223,7 +229,8 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
 
 # ================================================================== the planning process
 def child_main(fd: int) -> None:
-    """The planning process: one Planner (caches kept between jobs), jobs over a socket.
+    """
+    Run the planning process: one Planner (caches kept between jobs), jobs over a socket.
 
     A reader thread takes jobs, cancels and ``None`` (quit); the main thread plans.
     """
@@ -284,7 +291,8 @@ def child_main(fd: int) -> None:
 
 # ================================================================== backends (node side)
 class ThreadBackend:
-    """Plans in the calling (worker) thread: no process (``planner.separate_process:=false``).
+    """
+    Plans in the calling (worker) thread: no process (``planner.separate_process:=false``).
 
     A running numba kernel cannot be stopped: cancel and shutdown wait for the stage.
     """
@@ -315,7 +323,8 @@ class ThreadBackend:
 
 
 class ProcessBackend:
-    """Plans in a child process; the calling thread waits on a socket (GIL free).
+    """
+    Plans in a child process; the calling thread waits on a socket (GIL free).
 
     A child that died is replaced by a fresh one at the next :meth:`run`; one that does
     not honour a cancel within ``CANCEL_GRACE_S`` is terminated and replaced.
@@ -325,8 +334,12 @@ class ProcessBackend:
     CANCEL_GRACE_S = 0.5        # cancel(): then the child is terminated
 
     def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
-        """log: callable for warnings (a child that died); info: for progress (warm-up);
-        solver, field_tolerance: what the warm-up compiles (default: the core's default)."""
+        """
+        Start the planning process for ``scenario`` (it warms up meanwhile: see :meth:`wait_ready`).
+
+        log: callable for warnings (a child that died); info: for progress (warm-up); solver,
+        field_tolerance: what the warm-up compiles (default: the core's default).
+        """
         from .field import DEFAULT_SOLVER
         self._scenario = scenario
         self._solver = (solver or DEFAULT_SOLVER, float(field_tolerance))
@@ -344,7 +357,7 @@ class ProcessBackend:
 
     @property
     def ready(self) -> Ready | None:
-        """The current process's Ready message (None before its warm-up ended)."""
+        """Return the current process's Ready message (None before its warm-up ended)."""
         return self._ready
 
     def _spawn(self):
@@ -379,8 +392,11 @@ class ProcessBackend:
             self._spawn()
 
     def _recv(self, gen: int | None = None):
-        """The next message; None when closed; raises RuntimeError if the child died.
-        With ``gen``: returns PlanDone(cancelled) once its cancel is overdue."""
+        """
+        Return the next message; None when closed; raises RuntimeError if the child died.
+
+        With ``gen``: returns PlanDone(cancelled) once its cancel is overdue.
+        """
         while not self._closed:
             if self.conn.poll(0.02):
                 return self.conn.recv()
@@ -421,9 +437,11 @@ class ProcessBackend:
         return PlanDone(done.gen, res)
 
     def run(self, job: PlanJob, progress=None):
-        """The outcome of ``job`` (PlanDone/PlanError/PlanCrash), or None when closed.
+        """
+        Return the outcome of ``job`` (PlanDone/PlanError/PlanCrash), or None when closed.
 
-        ``progress`` gets the child's Progress messages for this job."""
+        ``progress`` gets the child's Progress messages for this job.
+        """
         with self._proc_lock:
             dead = not self._closed and self.proc.poll() is not None
         if dead:
@@ -470,8 +488,12 @@ class ProcessBackend:
             pass
 
     def close(self) -> None:
-        """Stop the child: it exits at once when idle; in a stage it is terminated after
-        ``CLOSE_GRACE_S`` (a numba kernel cannot be interrupted otherwise)."""
+        """
+        Stop the child.
+
+        It exits at once when idle; in a stage it is terminated after ``CLOSE_GRACE_S`` (a numba
+        kernel cannot be interrupted otherwise).
+        """
         with self._proc_lock:
             if self._closed:
                 return
@@ -504,18 +526,22 @@ def _cancelled_done(job: PlanJob) -> PlanError:
 
 
 def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=1e-6):
-    """ProcessBackend (default) or ThreadBackend."""
+    """Make a ProcessBackend (default) or ThreadBackend."""
     return (ProcessBackend if separate_process else ThreadBackend)(scenario, log=log, info=info, solver=solver,
                                                                    field_tolerance=field_tolerance)
 
 
 def main(argv=None) -> int:
-    """``python -m spacerobot_planner.worker --warm-cache FILE...``: fill numba's cache
-    with the default route of each scenario file (``make`` runs it after installing)."""
+    """
+    Fill numba's cache with the default route of each scenario file.
+
+    ``python -m spacerobot_planner.worker --warm-cache FILE...`` (``make`` runs it after
+    installing; so does ``setup.py install``, in the installed tree).
+    """
     import argparse
     from .config import load_params_file, scenario_from_params
     from .planner import Planner
-    ap = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=main.__doc__.strip().splitlines()[0])
     ap.add_argument("--warm-cache", nargs="+", metavar="FILE", required=True)
     args = ap.parse_args(argv)
     for path in args.warm_cache:

@@ -1,4 +1,5 @@
-"""Test isolation, hypothesis profiles and the paper's scenarios and paths.
+"""
+Test isolation, hypothesis profiles and the paper's scenarios and paths.
 
 Each run gets its own DDS domain and discovery stays on this host.  Property tests
 run a few dozen cases by default; ``pytest --hypothesis-profile=long`` (or
@@ -26,8 +27,12 @@ settings.load_profile("ci" if os.environ.get("CI") else "default")
 
 @pytest.fixture
 def graph():
-    """graph(flat, with_arm=True) → a node_helpers.Graph (planner, mock arm, driver in a
-    private context), closed after the test."""
+    """
+    Make in-process node graphs, closed after the test.
+
+    ``graph(flat, with_arm=True)`` → a node_helpers.Graph (planner, mock arm, driver in a
+    private context).
+    """
     from node_helpers import Graph          # imports rclpy: after ROS_DOMAIN_ID is set
     made = []
 
@@ -47,7 +52,11 @@ CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file
 
 @pytest.fixture(scope="session")
 def paper_scenario():
-    """paper_scenario(dof) → the paper's 2-DOF or 3-DOF ``Scenario`` (config/paper_<dof>dof.yaml)."""
+    """
+    Load the paper's scenarios.
+
+    ``paper_scenario(dof)`` → the paper's 2-DOF or 3-DOF ``Scenario`` (config/paper_<dof>dof.yaml).
+    """
     from spacerobot_planner.config import load_scenario
 
     def get(dof: int):
@@ -58,9 +67,12 @@ def paper_scenario():
 
 @pytest.fixture(scope="session")
 def paper_path(paper_scenario):
-    """paper_path(dof) → the planner's path for the paper's 2-DOF or 3-DOF scene, (M, dof)
-    rad, read-only; planned once per test session (from ``paper_scenario(dof)``'s start
-    to its goal)."""
+    """
+    Plan the paper's paths, once per test session.
+
+    ``paper_path(dof)`` → the planner's path for the paper's 2-DOF or 3-DOF scene, (M, dof) rad,
+    read-only (from ``paper_scenario(dof)``'s start to its goal).
+    """
     import numpy as np
     from spacerobot_planner.planner import Planner
     planned = {}

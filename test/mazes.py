@@ -1,4 +1,5 @@
-"""Deterministic synthetic occupancy grids for the field / descent tests.
+"""
+Deterministic synthetic occupancy grids for the field / descent tests.
 
 ``maze(shape, pitch, seed)``: a perfect maze (randomised depth-first search,
 seeded) carved into an all-obstacle grid: corridors ``pitch - 1`` nodes wide,
@@ -14,7 +15,8 @@ import numpy as np
 
 
 def maze(shape, pitch=4, seed=0):
-    """Maze occupancy of 2-D ``shape`` (bounded axes).
+    """
+    Maze occupancy of 2-D ``shape`` (bounded axes).
 
     Cells sit at nodes ``1 + pitch * c`` .. ``pitch * (c + 1) - 1`` on each axis
     (``pitch - 1`` nodes wide); the outermost nodes and any remainder beyond
@@ -61,9 +63,13 @@ def maze(shape, pitch=4, seed=0):
 
 
 def blocks_2d(n=181):
-    """Paper-like 2-DOF scene on an n x n bounded grid: a big central block,
-    a side block and a small disconnected pocket.  Returns ``(occupied, start,
-    goal)``."""
+    """
+    Paper-like 2-DOF scene on an n x n bounded grid.
+
+    A big central block, a side block and a small disconnected pocket.
+
+    Returns ``(occupied, start, goal)``.
+    """
     occ = np.zeros((n, n), dtype=bool)
     f = n / 181.0
     occ[int(50 * f):int(130 * f), int(60 * f):int(125 * f)] = True   # central body
@@ -77,10 +83,13 @@ def blocks_2d(n=181):
 
 
 def seam_scene_2d(n0=36, n1=37):
-    """Axis 0 periodic (n0 nodes), axis 1 bounded.  A wall across axis 0 at
-    rows n0/2 - 1 .. n0/2 + 1 (full width) separates start and goal inside the
-    grid, so the only route crosses the seam row n0 - 1 <-> 0.  Returns
-    ``(occupied, periodic, start, goal)``."""
+    """
+    Axis 0 periodic (n0 nodes), axis 1 bounded.
+
+    A wall across axis 0 at rows n0/2 - 1 .. n0/2 + 1 (full width) separates
+    start and goal inside the grid, so the only route crosses the seam row n0 -
+    1 <-> 0.  Returns ``(occupied, periodic, start, goal)``.
+    """
     occ = np.zeros((n0, n1), dtype=bool)
     mid = n0 // 2
     occ[mid - 1: mid + 2, :] = True
@@ -90,8 +99,7 @@ def seam_scene_2d(n0=36, n1=37):
 
 
 def seam_scene_3d(n0=36, n1=21, n2=21):
-    """3-D version of :func:`seam_scene_2d` (axis 0 periodic), plus a pillar so
-    the field is not trivially symmetric."""
+    """3-D version of :func:`seam_scene_2d` (axis 0 periodic), plus a pillar so the field is not trivially symmetric."""
     occ = np.zeros((n0, n1, n2), dtype=bool)
     mid = n0 // 2
     occ[mid - 1: mid + 2, :, :] = True
@@ -102,8 +110,11 @@ def seam_scene_3d(n0=36, n1=21, n2=21):
 
 
 def blocks_3d(shape=(36, 37, 37)):
-    """Paper-like 3-DOF scene: axis 0 periodic; a slab-shaped body with a gap
-    and a central block.  Returns ``(occupied, periodic, start, goal)``."""
+    """
+    Paper-like 3-DOF scene: axis 0 periodic; a slab-shaped body with a gap and a central block.
+
+    Returns ``(occupied, periodic, start, goal)``.
+    """
     n0, n1, n2 = shape
     occ = np.zeros(shape, dtype=bool)
     f0, f1, f2 = n0 / 36.0, n1 / 37.0, n2 / 37.0

@@ -1,4 +1,5 @@
-"""Hypothesis strategies for random planning scenes (issue: reliability).
+"""
+Hypothesis strategies for random planning scenes (issue: reliability).
 
 Scenes: 0–6 debris polygons (convex and star-shaped non-convex, 0.1–1.5 m across)
 scattered around the robot, a target satellite at a random pose within reach, a random
@@ -67,8 +68,11 @@ def scenarios(draw, dof=None):
 
 
 def random_configuration(sc, seed: int, free: bool = True, tries: int = 200) -> np.ndarray:
-    """A uniform random planned configuration (rad); with ``free``, the first of
-    ``tries`` samples that is collision-free (else the last sample)."""
+    """
+    Return a uniform random planned configuration (rad).
+
+    With ``free``, the first of ``tries`` samples that is collision-free (else the last sample).
+    """
     from spacerobot_planner.collision import CollisionChecker
     rng = np.random.default_rng(seed)
     lo, hi = sc.robot.planned_lower_rad, sc.robot.planned_upper_rad

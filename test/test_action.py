@@ -1,4 +1,5 @@
-"""The plan_capture action (Nav2's ComputePathToPose pattern), with an in-process client.
+"""
+The plan_capture action (Nav2's ComputePathToPose pattern), with an in-process client.
 
 Oracles: the trajectory published on joint_trajectory (the same message must come back
 as the result), forward kinematics written here (the last point grasps the target),

@@ -60,7 +60,7 @@ def test_start_and_goal_flags(tmp_path, capsys):
 
 
 def _without_goal(tmp_path, params_file):
-    """A copy of the scenario file without scenario.goal_deg (the goal comes from the target)."""
+    """Return a copy of the scenario file without scenario.goal_deg (the goal comes from the target)."""
     doc = yaml.safe_load(Path(params_file).read_text())
     for section in doc.values():
         section.get("ros__parameters", {}).get("scenario", {}).pop("goal_deg", None)

@@ -109,8 +109,12 @@ def test_clearance_matches_reference_on_random_configurations(scenario):
 
 
 def shapely_clearance(robot, scene, q):
-    """Oracle from shapely (GEOS): distance from the link segments to the posed body and the
-    obstacles; shares nothing with the kernels or the reference above."""
+    """
+    Oracle from shapely (GEOS).
+
+    Distance from the link segments to the posed body and the obstacles; shares nothing with the
+    kernels or the reference above.
+    """
     from shapely.geometry import LineString, Polygon
     q_full = robot.full(q)
     pts = robot.forward_kinematics(q_full)
@@ -212,8 +216,12 @@ def test_cached_body_table_gives_the_same_occupancy():
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("locked_elbow", [False, True])
 def test_cspace_rows_and_node_fallback_equal_brute_force_on_random_scenes(seed, locked_elbow):
-    """Random debris and margins; the row-interval fill (last axis = the last joint) and,
-    with the elbow locked, the node-by-node fill, both against the reference clearance."""
+    """
+    Random debris and margins.
+
+    The row-interval fill (last axis = the last joint) and, with the elbow locked, the node-by-node
+    fill, both against the reference clearance.
+    """
     from dataclasses import replace
 
     from spacerobot_planner.bench.scenes import random_scenario

@@ -17,7 +17,7 @@ def _write(tmp_path, params, node="spacerobot_planner"):
 
 
 def _paper_params():
-    """The planner's view of the paper file as one nested section: /** and its own merged."""
+    """Return the planner's view of the paper file as one nested section: /** and its own merged."""
     with open(os.path.join(CONFIG_DIR, "paper_3dof.yaml")) as f:
         doc = yaml.safe_load(f)
     return {**doc["/**"]["ros__parameters"], **doc["spacerobot_planner"]["ros__parameters"]}

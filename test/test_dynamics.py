@@ -1,6 +1,9 @@
-"""dynamics.py against oracles written here: momentum sums from finite differences of
-forward kinematics (m r × v + I ω about the system CoM), a two-body known answer, an
-inertial-frame point test of the drifted arm."""
+"""
+dynamics.py against oracles written here.
+
+Momentum sums from finite differences of forward kinematics (m r × v + I ω about the system CoM), a
+two-body known answer, an inertial-frame point test of the drifted arm.
+"""
 
 import numpy as np
 import pytest
@@ -37,7 +40,7 @@ def _mass_table(mp):
 
 
 def _momentum_fd(robot, mp, q_full, body_pos, dt):
-    """h about the CoM at the interior samples by central differences, and the CoM (K, 2)."""
+    """Return h about the CoM at the interior samples by central differences, and the CoM (K, 2)."""
     m, inertia = _mass_table(mp)
     c, ang = _bodies_world(robot, q_full, body_pos)
     com = np.einsum("b,kbd->kd", m, c) / m.sum()
@@ -76,9 +79,12 @@ def test_free_floating_motion_conserves_momentum_and_keeps_the_com(planned):
 
 
 def test_known_answer_a_rotor_on_a_rigid_body():
-    """Link 3 massless with inertia I3 (a rotor) turns by Δ while the shoulder is locked:
-    body + link 2 form one rigid body A, and 0 = I_A θ̇1 + I3 (θ̇1 + θ̇3) about the common
-    CoM, so Δθ1 = −I3 Δ / (I_A + I3) with I_A = I0 + I2 + m0 |c|² + m2 |r2 − c|²."""
+    """
+    Link 3 massless with inertia I3 (a rotor) turns by Δ while the shoulder is locked.
+
+    Body + link 2 form one rigid body A, and 0 = I_A θ̇1 + I3 (θ̇1 + θ̇3) about the common CoM, so
+    Δθ1 = −I3 Δ / (I_A + I3) with I_A = I0 + I2 + m0 |c|² + m2 |r2 − c|².
+    """
     m0, i0, m2, i2, i3 = 2000.0, 1080.0, 30.0, 10.0, 40.0
     mp = MassProperties(m0, i0, (0.0, m2, 0.0), (0.0, i2, i3))
     theta2 = np.radians(50.0)
@@ -161,8 +167,12 @@ def test_without_wheel_limits_the_trajectory_is_the_joint_limited_one(dof, paper
 
 
 def _inside_target_or_margin(robot, sc, q_full, body_pos, n=200):
-    """Oracle: any point of links 2-3 (n per link) within the margin of the target's
-    axis-aligned square body (inertial frame)."""
+    """
+    Oracle.
+
+    Any point of links 2-3 (n per link) within the margin of the target's axis-aligned square body
+    (inertial frame).
+    """
     pts = robot.forward_kinematics(q_full) + body_pos[:, None, :]
     cx, cy = sc.scene.target.center_m
     half = 0.5 * sc.scene.target.body_side_m
@@ -227,10 +237,15 @@ def test_bad_masses_and_modes_name_the_field(paper_scenario, paper_path):
 
 
 def _simulate_free_floating(robot, mp, path, sub=4):
-    """Own simulator: step the arm along the path; at each step find the attitude
-    increment that makes the step's angular momentum about the CoM zero (momentum from
-    FK positions, midpoint rule, secant solve); the body moves so the CoM stays put.
-    Returns the full configurations (K, 3) and the body positions (K, 2)."""
+    """
+    Own simulator.
+
+    Step the arm along the path; at each step find the attitude increment that makes the step's
+    angular momentum about the CoM zero (momentum from FK positions, midpoint rule, secant solve);
+    the body moves so the CoM stays put.
+
+    Returns the full configurations (K, 3) and the body positions (K, 2).
+    """
     m, inertia = _mass_table(mp)
 
     def rel_centres(qf):
@@ -268,8 +283,12 @@ def _simulate_free_floating(robot, mp, path, sub=4):
 
 
 def test_compensated_free_floating_plan_reaches_the_handle(paper_scenario, paper_path):
-    """Stretch: the goal is corrected for the predicted drift and replanned until the
-    free-floating arm reaches the grasp; checked with the test's own simulator."""
+    """
+    Stretch goal: a drift-compensated plan reaches the handle.
+
+    The goal is corrected for the predicted drift and replanned until the free-floating arm reaches
+    the grasp; checked with the test's own simulator.
+    """
     from spacerobot_planner.dynamics import plan_free_floating
     sc, path = paper_scenario(2), paper_path(2)
     robot, grasp = sc.robot, sc.scene.target.grasp_point_m

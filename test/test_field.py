@@ -1,4 +1,5 @@
-"""Tests of spacerobot_planner.field: the planner's harmonic field and the paper's solver.
+"""
+Tests of spacerobot_planner.field: the planner's harmonic field and the paper's solver.
 
 The oracles are written here, sharing no code with the solvers:
 - ``_goal_connected`` a breadth-first flood fill in plain Python (periodic wrap included);
@@ -67,8 +68,12 @@ def _neighbour_max(log_u, per):
 
 
 def _assert_valid_ascent(f, occ, per, goals):
-    """Finite exactly on the goal-connected free nodes; every such non-goal node has a
-    strictly higher face neighbour (so steepest ascent from it reaches the goal)."""
+    """
+    Finite exactly on the goal-connected free nodes.
+
+    Every such non-goal node has a strictly higher face neighbour (so steepest ascent from it
+    reaches the goal).
+    """
     conn = _goal_connected(occ, per, goals)
     assert np.array_equal(np.isfinite(f.log_u), conn)
     goal_mask = np.zeros(occ.shape, bool)

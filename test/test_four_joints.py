@@ -1,5 +1,7 @@
-"""A 4-joint planar chain (attitude, shoulder, elbow, wrist) planned end to end on a 4-D
-grid: C-space, field, descent, smoothing and the certified check are dimension-generic.
+"""
+A 4-joint planar chain (attitude, shoulder, elbow, wrist) planned end to end on a 4-D grid.
+
+C-space, field, descent, smoothing and the certified check are dimension-generic.
 
 Checked with the independent geometry of ``test_collision`` (plain-Python segment and
 polygon distances), not the planner's checker.

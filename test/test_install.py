@@ -65,8 +65,12 @@ print(json.dumps({"file": spacerobot_planner.__file__, "ok": res.ok, "has_trajec
 
 @pytest.mark.slow
 def test_setup_py_install_leaves_a_valid_numba_cache_in_the_installed_tree(tmp_path):
-    """`setup.py install` as colcon runs it, then a fresh process importing the installed copy
-    plans the paper's 3-DOF target with every kernel loaded from numba's cache."""
+    """
+    The numba cache that `setup.py install` leaves is valid.
+
+    `setup.py install` as colcon runs it, then a fresh process importing the installed copy plans
+    the paper's 3-DOF target with every kernel loaded from numba's cache.
+    """
     build, prefix = tmp_path / "build", tmp_path / "prefix"
     build.mkdir()
     env = dict(os.environ)

@@ -1,5 +1,9 @@
-"""joint_space: wrap, shortest difference, interpolation, unwrapping and alignment for bounded
-and periodic joints, against independent oracles (math.remainder, complex rotations)."""
+"""
+Tests of joint_space.
+
+Wrap, shortest difference, interpolation, unwrapping and alignment for bounded and periodic joints,
+against independent oracles (math.remainder, complex rotations).
+"""
 
 import cmath
 import math

@@ -1,6 +1,9 @@
-"""The planner as a lifecycle node, driven through its ~/change_state service (what
-`ros2 lifecycle set` calls).  Oracles: the lifecycle protocol's own GetState, the
-graph (who subscribes / publishes), /proc (the planning process), threading.enumerate."""
+"""
+The planner as a lifecycle node, driven through its ~/change_state service (what `ros2 lifecycle set` calls).
+
+Oracles: the lifecycle protocol's own GetState, the graph (who subscribes /
+publishes), /proc (the planning process), threading.enumerate.
+"""
 
 from __future__ import annotations
 
@@ -43,7 +46,7 @@ def _threads():
 
 @pytest.fixture
 def manual(graph):
-    """A planner with autostart off (unconfigured), a driver and no arm."""
+    """Return a planner with autostart off (unconfigured), a driver and no arm."""
     g = graph(scene_params("3dof", autostart=False), with_arm=False, wait_subscribed=False)
     return g
 
@@ -137,8 +140,11 @@ def test_goals_are_rejected_while_inactive(manual):
 
 
 def test_lifecycle_shutdown_during_a_long_plan(graph, capfd, record_property):
-    """`ros2 lifecycle set /spacerobot_planner shutdown` while a (stalled) plan runs: the
-    transition ends within the bound, the plan is logged as cancelled, nothing is left."""
+    """
+    `ros2 lifecycle set /spacerobot_planner shutdown` while a (stalled) plan runs.
+
+    The transition ends within the bound, the plan is logged as cancelled, nothing is left.
+    """
     before = _threads()
     g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
     g.pub_js.publish(_js(g))

@@ -1,7 +1,10 @@
-"""planner_node + mock_arm_node in-process: closed loop, preemption, grids, bad input,
-responsiveness.  Each test gets a private rclpy Context and a SingleThreadedExecutor
-spinning in a thread (test/node_helpers.py); no launch_testing.  Reliability under bad
-input, floods, faults and shutdown: test_reliability_node.py."""
+"""
+planner_node + mock_arm_node in-process: closed loop, preemption, grids, bad input, responsiveness.
+
+Each test gets a private rclpy Context and a SingleThreadedExecutor spinning in a
+thread (test/node_helpers.py); no launch_testing.  Reliability under bad input,
+floods, faults and shutdown: test_reliability_node.py.
+"""
 
 from __future__ import annotations
 
@@ -176,8 +179,12 @@ def test_executor_responsive_during_slow_plan(graph):
 
 
 def test_diagnostics_describe_only_the_last_finished_request(graph):
-    """A failed request, then rejected input, then a good target: the input status is OK
-    again and the planner status carries the good request's keys only; reasons whole."""
+    """
+    A failed request, then rejected input, then a good target.
+
+    The input status is OK again and the planner status carries the good request's keys only;
+    reasons whole.
+    """
     from node_helpers import diag_values
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
@@ -252,9 +259,12 @@ def test_at_the_goal_no_trajectory_and_it_says_so(graph, capfd):
 
 @pytest.mark.parametrize("period_s, expect_some", [(0.5, True), (0.0, False)], ids=["min_period_0.5s", "latest_wins"])
 def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, expect_some):
-    """Targets drifting 2 cm/s at 20 Hz while each plan takes 0.3 s (a stall): latest-wins
-    alone publishes nothing; with replan.min_publish_period_s a plan is let finish once no
-    trajectory went out for that long."""
+    """
+    Targets drifting 2 cm/s at 20 Hz while each plan takes 0.3 s (a stall).
+
+    Latest-wins alone publishes nothing; with replan.min_publish_period_s a plan is let finish once
+    no trajectory went out for that long.
+    """
     params = {"planner.test_stall_s": 0.3, "replan.min_publish_period_s": period_s, "replan.target_tolerance_m": 0.0}
     g = graph(scene_params("3dof", **params))
     g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
@@ -274,9 +284,13 @@ def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, expect_som
 
 
 def test_servicer_trajectory_keeps_the_wheel_limits(graph):
-    """config/servicer_3dof.yaml through the node: the wheel momentum and torque of the planned
-    trajectory, recomputed in the test from forward kinematics (test_dynamics' momentum sum),
-    stay within the file's limits, and /diagnostics reports the reaction."""
+    """
+    config/servicer_3dof.yaml through the node.
+
+    The wheel momentum and torque of the planned trajectory, recomputed in the test from forward
+    kinematics (test_dynamics' momentum sum), stay within the file's limits, and /diagnostics
+    reports the reaction.
+    """
     from node_helpers import diag_values
     from test_dynamics import _load_oracle
     from spacerobot_planner.dynamics import MassProperties

@@ -1,6 +1,12 @@
-"""Parameters per node: each declares what it reads, with descriptors; both nodes take
-their parameters from one --params-file (/** + their own section).  Oracles: the
-parameter services a `ros2 param` user calls, and the YAML file read here directly."""
+"""
+Parameters per node.
+
+Each declares what it reads, with descriptors; both nodes take their parameters from one
+--params-file (/** + their own section).
+
+Oracles: the parameter services a `ros2 param` user calls, and the YAML file read
+here directly.
+"""
 
 from __future__ import annotations
 
@@ -74,8 +80,11 @@ def test_rejected_values_name_the_parameter(graph):
 
 
 def test_both_nodes_from_one_params_file(tmp_path):
-    """`--params-file` with /** + a section per node: each node gets /** and its own
-    section, nothing of the other's (as rcl resolves it)."""
+    """
+    `--params-file` with /** + a section per node.
+
+    Each node gets /** and its own section, nothing of the other's (as rcl resolves it).
+    """
     import rclpy
     from rclpy.context import Context
 

@@ -21,8 +21,14 @@ def wrap(a):
 
 
 def dense_check(robot, scene, path, step_rad=np.radians(0.25)):
-    """Independent check: linear interpolation at ≤ step_rad, CollisionChecker with the margin,
-    bounded joints within bounds.  Returns (all free, min clearance)."""
+    """
+    Independent check.
+
+    Linear interpolation at ≤ step_rad, CollisionChecker with the margin, bounded joints within
+    bounds.
+
+    Returns (all free, min clearance).
+    """
     chk = CollisionChecker(robot, scene)
     samples = [path[:1]]
     for a, b in zip(path[:-1], path[1:]):
@@ -149,8 +155,12 @@ def test_set_scene_keeps_cache_only_for_same_geometry(sc3):
 
 
 def test_target_move_rebuilds_cspace_on_the_kept_body_table(sc3):
-    """A moved target rebuilds the C-space, reusing the spacecraft-body table, and the
-    result equals a build from scratch; fields go with their evicted C-space."""
+    """
+    A moved target rebuilds the C-space on the kept body table.
+
+    A moved target rebuilds the C-space, reusing the spacecraft-body table, and the result equals a
+    build from scratch; fields go with their evicted C-space.
+    """
     pl = Planner(sc3)
     pl.plan(sc3.start_rad, sc3.goal_rad)
     tables = dict(pl._body_tables)
@@ -293,9 +303,14 @@ def test_random_starts_always_verified(planner3, sc3):
 
 
 def test_repair_without_grid_margin(sc3):
-    """With no extra grid margin, adjacent free nodes can be joined by a colliding segment:
-    the planner must still only return verified paths.  Its grid walk takes only motions
-    that pass (the steepest valid neighbour, cutting colliding grid edges when none does)."""
+    """
+    With no extra grid margin, adjacent free nodes can be joined by a colliding segment.
+
+    The planner must still only return verified paths.
+
+    Its grid walk takes only motions that pass (the steepest valid neighbour, cutting
+    colliding grid edges when none does).
+    """
     sc = replace(sc3, grid=sc3.grid_with_cells(24))       # 15° steps: corners get cut
     pl = Planner(sc, grid_extra_margin_m=0.0)
     chk = CollisionChecker(sc.robot, sc.scene)
@@ -317,8 +332,12 @@ def test_repair_without_grid_margin(sc3):
 
 
 def _random_target_plans(n_scenes: int = 200):
-    """(scenario, start, goal, planner, result) of plans to the target on random 3-DOF scenes
-    at 36³ (the benchmark's scene family), in a fixed order."""
+    """
+    Plan to the target on random 3-DOF scenes at 36³.
+
+    (scenario, start, goal, planner, result) of plans to the target on random 3-DOF scenes at 36³
+    (the benchmark's scene family), in a fixed order.
+    """
     from spacerobot_planner.bench.scenes import random_scenario
     rng = np.random.default_rng([0, 3])
     for _ in range(n_scenes):
@@ -334,8 +353,12 @@ def _random_target_plans(n_scenes: int = 200):
 
 
 def test_repairs_on_random_scenes_keep_paths_valid():
-    """Random 3-DOF scenes at 36³ where grid walks meet colliding motions (repairs: cut
-    grid edges, re-solved fields): every returned path passes the independent check."""
+    """
+    Every repaired path on random 3-DOF scenes passes the independent check.
+
+    Random 3-DOF scenes at 36³ where grid walks meet colliding motions (repairs: cut grid edges,
+    re-solved fields): every returned path passes the independent check.
+    """
     repaired = checked = 0
     for sc, start, goal, pl, res in _random_target_plans():
         checked += 1
@@ -363,8 +386,11 @@ def test_codes_are_documented(code):
 
 
 def test_path_as_good_as_on_the_fully_converged_field(paper_scenario):
-    """Same pipeline on the oracle field (a direct solve to relative precision everywhere):
-    path length and minimum clearance within 1 % on both paper scenes."""
+    """
+    Same pipeline on the oracle field (a direct solve to relative precision everywhere).
+
+    Path length and minimum clearance within 1 % on both paper scenes.
+    """
     for dof in (2, 3):
         sc = paper_scenario(dof)
         res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
@@ -394,8 +420,12 @@ def test_plan_a_b_a_gives_a_bit_for_bit(sc3):
 
 
 def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
-    """A scene whose plan cuts grid edges / blocks nodes: planning another start in between
-    (which repairs the field too) does not change the repaired plan."""
+    """
+    A scene whose plan cuts grid edges / blocks nodes.
+
+    Planning another start in between (which repairs the field too) does not change the repaired
+    plan.
+    """
     for sc, start, goal, pl, a1 in _random_target_plans():
         if a1.solver_stats.get("repairs", 0) > 0:
             break
@@ -413,9 +443,14 @@ def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
 
 # ---------------------------------------------------- honest "disconnected"
 def test_passage_between_margin_and_grid_margin_is_found(sc2):
-    """The only way past a block leaves link 2 6 mm more than the safety margin from it: less
-    than the grid's extra margin (20 mm).  The planner used to answer 'disconnected' at any
-    grid size; now it tries again without the extra margin and finds the path."""
+    """
+    The only way past a block leaves link 2 6 mm more than the safety margin from it.
+
+    Less than the grid's extra margin (20 mm).
+
+    The planner used to answer 'disconnected' at any grid size; now it tries again without
+    the extra margin and finds the path.
+    """
     from spacerobot_planner.scene import Scene
     m = sc2.scene.safety_margin_m
     att = sc2.robot.locked_rad[0]
@@ -436,8 +471,12 @@ def test_passage_between_margin_and_grid_margin_is_found(sc2):
 
 # ------------------------------------------------------------- grasp approach
 def _link3_and_normal_deg(robot, target, q_full):
-    """Oracle: angle between link 3 (from hand-written forward kinematics) and the handle's
-    inward normal (from the target's yaw: the handle sits on the local +y face)."""
+    """
+    Oracle.
+
+    Angle between link 3 (from hand-written forward kinematics) and the handle's inward normal (from
+    the target's yaw: the handle sits on the local +y face).
+    """
     l1, l2, l3 = robot.link_lengths_m
     t1, t2, t3 = q_full
     elbow = (l1 * np.array([np.cos(t1), np.sin(t1)]) + l2 * np.array([np.cos(t1 + t2), np.sin(t1 + t2)]))
@@ -458,9 +497,13 @@ def test_paper_2dof_grasp_is_near_perpendicular(sc2):
 
 
 def test_random_targets_under_locked_attitude_grasp_perpendicular_or_say_which_attitude(sc2):
-    """Random targets, attitude locked: a goal from the target meets the handle within 5° of its
-    normal, or the answer is goal_unreachable naming an attitude at which locking the arm
-    gives a perpendicular grasp (checked by planning a goal there), or saying none does."""
+    """
+    Random targets, attitude locked.
+
+    A goal from the target meets the handle within 5° of its normal, or the answer is
+    goal_unreachable naming an attitude at which locking the arm gives a perpendicular grasp
+    (checked by planning a goal there), or saying none does.
+    """
     import re
     rng = np.random.default_rng(11)
     accepted = refused = advised = 0
@@ -495,7 +538,7 @@ def test_random_targets_under_locked_attitude_grasp_perpendicular_or_say_which_a
 
 # ---------------------------------------------------------------- leaving a contact
 def _captured_then_moved(sc, d_m):
-    """The capture posture of sc's target, and sc with the target moved d_m towards the arm."""
+    """Return the capture posture of sc's target, and sc with the target moved d_m towards the arm."""
     q_cap = Planner(sc).goal_from_target()
     t = sc.scene.target
     a = t.approach_angle_rad

@@ -1,4 +1,5 @@
-"""Property tests on generated scenes: the planner's guarantees, not two paper scenes.
+"""
+Property tests on generated scenes: the planner's guarantees, not two paper scenes.
 
 For every generated case (random debris, target pose, margin, start; 2-DOF and 3-DOF;
 coarse to fine grids):
@@ -66,7 +67,7 @@ def wrap_diff(a, b):
 
 
 def check_result(sc, start, goal, res):
-    """The properties every PlanResult must have."""
+    """Check the properties every PlanResult must have."""
     assert res.code in CODES, res.code
     if not res.ok:
         assert res.reason, f"every failure carries a reason ({res.code})"
@@ -135,8 +136,12 @@ def test_plans_are_exact_verified_and_honest(case, goal_seed, use_target):
 
 @given(case=scenarios(), goal_seed=st.integers(0, 2**31 - 1))
 def test_same_input_same_path(case, goal_seed):
-    """Two fresh planners agree bit for bit, and one planner agrees with itself after planning
-    something else in between (caches never change a plan)."""
+    """
+    Caches never change a plan.
+
+    Two fresh planners agree bit for bit, and one planner agrees with itself after planning
+    something else in between (caches never change a plan).
+    """
     sc, start = case
     goal = random_configuration(sc, goal_seed)
     pl = Planner(sc)
@@ -177,8 +182,13 @@ def test_bad_start_is_a_reason_not_an_exception(bad):
 
 
 def test_path_along_a_joint_bound_stays_inside_it():
-    """Found by the long profile: a path running along the elbow's +180° bound came out
-    5e-10 rad beyond it (spline rounding).  Bounded joints must stay inside, exactly."""
+    """
+    Found by the long profile.
+
+    A path running along the elbow's +180° bound came out 5e-10 rad beyond it (spline rounding).
+
+    Bounded joints must stay inside, exactly.
+    """
     from dataclasses import replace
 
     from spacerobot_planner.scene import Scene, Target

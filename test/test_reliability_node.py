@@ -1,5 +1,8 @@
-"""Issue 5, node side: bad input at every entrance, a target_pose flood, faults inside
-the worker, shutdown during a long plan.
+"""
+Issue 5, node side.
+
+Bad input at every entrance, a target_pose flood, faults inside the worker, shutdown during a long
+plan.
 
 test_node.py already covers a NaN position, a wrong frame, an unreachable target, a
 missing joint and rejected parameters; this file adds the rest of the table and the
@@ -197,8 +200,12 @@ def _random_target(rng):
 
 
 def _random_graspable_target(rng, scenario):
-    """A random target whose grasp point has a collision-free IK posture (it can still
-    fail to plan, e.g. when the arm's current posture collides with it)."""
+    """
+    Draw a random target with a collision-free grasp posture.
+
+    A random target whose grasp point has a collision-free IK posture (it can still fail to plan,
+    e.g. when the arm's current posture collides with it).
+    """
     while True:
         x, y, yaw = _random_target(rng)
         scene = scenario.scene.with_target(Target(center_m=(x, y), yaw_rad=yaw))
@@ -338,8 +345,12 @@ def _expect_fault_then_recovery(g, capfd, fragments, log_fragments):
 
 @pytest.mark.parametrize("where", ["Planner.plan", "pipeline_stage"])
 def test_exception_in_worker_thread_is_logged_reported_and_survived(graph, monkeypatch, capfd, where):
-    """In-thread mode: an exception escaping Planner.plan (caught by the backend) and one
-    inside a pipeline stage (caught by plan's own net) both log a traceback."""
+    """
+    In-thread mode.
+
+    An exception escaping Planner.plan (caught by the backend) and one inside a pipeline stage
+    (caught by plan's own net) both log a traceback.
+    """
     if where == "Planner.plan":
         monkeypatch.setattr(Planner, "plan", _raise_once(Planner.plan, "injected fault"))
         log_fragments = ["RuntimeError: injected fault", "run_job"]
@@ -351,8 +362,12 @@ def test_exception_in_worker_thread_is_logged_reported_and_survived(graph, monke
 
 
 def test_exception_in_planning_process_is_logged_reported_and_survived(graph, capfd):
-    """Child-process mode, no test hook: the first job carries a solver name the child's
-    Planner refuses with an exception; its traceback (formatted in the child) is logged."""
+    """
+    Child-process mode, no test hook.
+
+    The first job carries a solver name the child's Planner refuses with an exception; its traceback
+    (formatted in the child) is logged.
+    """
     g = graph(scene_params("3dof"))
     backend = g.planner._backend
     backend.run = _bad_first_job(backend.run)
@@ -421,10 +436,15 @@ def test_destroy_node_during_long_plan_child_process(graph, record_property):
 
 
 def test_destroy_node_during_long_plan_in_thread(graph, record_property):
-    """In-thread mode (planner.separate_process:=false): a running numba kernel cannot be
-    interrupted (it releases the GIL, though), so shutdown waits for the running stage -- NOT
-    within 1 s; documented in the README.  Asserted: the plan is abandoned (nothing
-    published), the worker ends, and no thread is left."""
+    """
+    In-thread mode (planner.separate_process:=false).
+
+    A running numba kernel cannot be interrupted (it releases the GIL, though), so shutdown waits
+    for the running stage -- NOT within 1 s; documented in the README.
+
+    Asserted: the plan is abandoned (nothing published), the worker ends, and no thread is
+    left.
+    """
     before = _threads()
     g = graph(scene_params("3dof", **{"planner.separate_process": False, "planner.test_stall_s": 3.0}),
               with_arm=False)
@@ -448,8 +468,12 @@ def test_destroy_node_during_long_plan_in_thread(graph, record_property):
 
 
 def test_context_shutdown_during_long_plan_main_path(record_property):
-    """Ctrl-C in `main`: rclpy's SIGINT handler shuts the context down and
-    `spin_until_shutdown` (main's own code) stops the worker and the child."""
+    """
+    Ctrl-C in `main`.
+
+    Rclpy's SIGINT handler shuts the context down and `spin_until_shutdown` (main's own code) stops
+    the worker and the child.
+    """
     before = _threads()
     ctx = Context()
     rclpy.init(context=ctx)
@@ -499,8 +523,14 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
 
 
 def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
-    """A real Ctrl-C: SIGINT to the process group of `planner_node` (its planning child
-    ignores SIGINT; the node stops it).  The process exits within the bound, child included."""
+    """
+    A real Ctrl-C.
+
+    SIGINT to the process group of `planner_node` (its planning child ignores SIGINT; the node stops
+    it).
+
+    The process exits within the bound, child included.
+    """
     log = tmp_path / "planner_node.log"
     cmd = [sys.executable, "-c", "import sys; from spacerobot_planner.ros.planner_node import main; sys.exit(main())",
            "--ros-args", "--params-file", os.path.join(CONFIG_DIR, "paper_3dof.yaml"),

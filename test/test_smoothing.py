@@ -60,8 +60,12 @@ def test_spline_reproduces_end_knots_exactly():
 
 
 def _free_pair_with_colliding_middle(sc, chk):
-    """Two free configurations whose straight segment collides in between (through the
-    obstacle in the 2-DOF C-space)."""
+    """
+    Return two free configurations whose straight segment collides.
+
+    Two free configurations whose straight segment collides in between (through the obstacle in the
+    2-DOF C-space).
+    """
     a = np.radians([96.0, 0.0])
     b = np.radians([30.0, 0.0])
     mid = np.radians([76.0, 0.0])
@@ -94,7 +98,7 @@ def test_smooth_path_refuses_a_colliding_polyline(sc2, chk2):
 
 
 def _detour(sc2):
-    """A free staircase polyline around the obstacle tip (grid-like, 2° steps)."""
+    """Return a free staircase polyline around the obstacle tip (grid-like, 2° steps)."""
     a = np.radians([96.0, 0.0])
     b = np.radians([30.0, 0.0])
     up = np.radians(np.column_stack([np.full(46, 96.0), np.arange(0, 92, 2.0)]))
@@ -140,8 +144,11 @@ def test_shortcut_keeps_clearance(sc2, chk2):
 
 
 def _hugging_path(sc2):
-    """Shortest 4-connected grid path (2° grid, BFS) from (96°, 0) to (30°, 0): it hugs
-    the obstacle, so coarse splines through it cut corners."""
+    """
+    Shortest 4-connected grid path (2° grid, BFS) from (96°, 0) to (30°, 0).
+
+    It hugs the obstacle, so coarse splines through it cut corners.
+    """
     from collections import deque
 
     from spacerobot_planner.cspace import build_cspace
@@ -166,8 +173,11 @@ def _hugging_path(sc2):
 
 
 def test_spline_refines_where_it_cuts_a_corner(sc2, chk2):
-    """Through sparse knots the spline cuts the obstacle's corner; refinement adds knots
-    there until the dense check passes."""
+    """
+    Through sparse knots the spline cuts the obstacle's corner.
+
+    Refinement adds knots there until the dense check passes.
+    """
     w = _hugging_path(sc2)
     assert check_path(chk2, w, *bounds(sc2)).ok
     for stride in (8, 12, 16, 24, 32):

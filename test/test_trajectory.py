@@ -1,6 +1,10 @@
-"""trajectory.py: limits hold at every point (published values and finite differences of
-the positions, computed here), exact ends, time increases; durations against TOPP-RA
-(toppra); scaling factors; a moving start; resampling and its certification."""
+"""
+Tests of trajectory.py.
+
+Limits hold at every point (published values and finite differences of the positions, computed
+here), exact ends, time increases; durations against TOPP-RA (toppra); scaling factors; a moving
+start; resampling and its certification.
+"""
 
 import numpy as np
 import pytest
@@ -20,8 +24,12 @@ TOL = 1e-9
 
 
 def _own_differences(t, q, v0):
-    """Segment velocities Δq/Δt and point accelerations (centred on each point: the change
-    of segment velocity over half the neighbouring durations; rest at the end)."""
+    """
+    Return segment velocities and point accelerations, computed here.
+
+    Segment velocities Δq/Δt and point accelerations (centred on each point: the change of
+    segment velocity over half the neighbouring durations; rest at the end).
+    """
     dt = t[1:] - t[:-1]
     w = (q[1:] - q[:-1]) / dt[:, None]
     before = np.vstack([v0[None, :], w])
@@ -126,8 +134,12 @@ def test_bad_limits_raise():
 
 # ------------------------------------------------------------------ TOPP-RA oracle
 def _toppra_duration_s(path, vmax, amax):
-    """TOPP-RA on a cubic spline through the same samples (chord-length parameter), on a
-    grid 16 times finer than the samples."""
+    """
+    Return the TOPP-RA duration of the same samples, s.
+
+    TOPP-RA on a cubic spline through the same samples (chord-length parameter), on a grid 16 times
+    finer than the samples.
+    """
     toppra.setup_logging("WARNING")
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
     spline = toppra.SplineInterpolator(s, path)
@@ -172,9 +184,12 @@ def test_scaling_factors_scale_time_exactly(paper_scenario, paper_path):
 
 
 def test_moving_start_continues_an_executing_trajectory(paper_scenario, paper_path):
-    """Cut a trajectory at a point where the arm moves, re-parameterise the rest from that
-    velocity: continuous velocity at the switch, limits held (finite differences from the
-    start velocity), never slower than starting the rest from rest."""
+    """
+    Cut a trajectory at a point where the arm moves, re-parameterise the rest from that velocity.
+
+    Continuous velocity at the switch, limits held (finite differences from the start velocity),
+    never slower than starting the rest from rest.
+    """
     sc, path = paper_scenario(3), paper_path(3)
     vmax, amax = joint_limits(sc)
     first = time_parameterize(path, vmax, amax)
@@ -236,8 +251,11 @@ def test_resampled_trajectory_is_short_exact_and_certified(dof, paper_scenario, 
 
 
 def test_resampling_adds_points_back_where_the_chord_collides(paper_scenario, paper_path):
-    """A tolerance so loose that chords cut through the spacecraft body: the certification
-    fails there and points are added back until it passes."""
+    """
+    A tolerance so loose that chords cut through the spacecraft body.
+
+    The certification fails there and points are added back until it passes.
+    """
     sc, path = paper_scenario(3), paper_path(3)
     vmax, amax = joint_limits(sc)
     traj = time_parameterize(path, vmax, amax)
@@ -257,9 +275,13 @@ def test_resampling_adds_points_back_where_the_chord_collides(paper_scenario, pa
 
 
 def test_replanning_from_a_moving_arm_joins_continuously(paper_scenario, paper_path):
-    """Keep the executing trajectory to a 1 s horizon, plan a different path from there
-    (here: a spline to another goal), join and re-parameterise from the join's speed:
-    same position, same velocity (to 1e-4 of the limits) at the join, limits held."""
+    """
+    A replan from a moving arm joins the executing trajectory continuously.
+
+    Keep the executing trajectory to a 1 s horizon, plan a different path from there (here: a
+    spline to another goal), join and re-parameterise from the join's speed: same position, same
+    velocity (to 1e-4 of the limits) at the join, limits held.
+    """
     from spacerobot_planner.trajectory import continuation
     sc, path = paper_scenario(3), paper_path(3)
     vmax, amax = joint_limits(sc)

@@ -1,5 +1,9 @@
-"""The planning worker without ROS: the process loads no rclpy, plans, and a cancel
-ends even an uninterruptible stage (an injected stall) by replacing the process."""
+"""
+The planning worker without ROS.
+
+The process loads no rclpy, plans, and a cancel ends even an uninterruptible stage (an injected
+stall) by replacing the process.
+"""
 
 from __future__ import annotations
 
@@ -106,8 +110,12 @@ def test_thread_backend_plans_the_same_job():
 
 
 def test_planning_process_imports_the_callers_package_not_the_working_directorys(tmp_path, monkeypatch):
-    """Started from a folder holding another ``spacerobot_planner`` (a source tree next to
-    an install), the planning process still imports the node's copy."""
+    """
+    The planning process imports the node's copy of the package.
+
+    Started from a folder holding another ``spacerobot_planner`` (a source tree next to an install),
+    the planning process still imports the node's copy.
+    """
     decoy = tmp_path / "spacerobot_planner"
     decoy.mkdir()
     (decoy / "__init__.py").write_text('raise ImportError("the decoy package in the working directory")\n')

@@ -1,4 +1,8 @@
-"""Benchmarks: ``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,startup,all} [options]``.
+"""
+Benchmarks.
+
+``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,startup,all}
+[options]``.
 
 Every benchmark warms the JIT first, prints a readable table, and one JSON object per
 line (``stage``, ``grid``, ``solver``, ``seconds``, ...) so runs can be compared.

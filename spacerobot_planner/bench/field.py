@@ -1,4 +1,5 @@
-"""Field benchmark: ``python -m spacerobot_planner.bench field [options]``.
+"""
+Field benchmark: ``python -m spacerobot_planner.bench field [options]``.
 
 For each grid (2-D 181^2, 361^2, 721^2 of the paper's 2-DOF scene; 3-D
 36x37x37, 72x73x73, 120x121x121 of the 3-DOF scene, axis 0 periodic) it builds
@@ -31,7 +32,7 @@ GRIDS_3D = (36, 72, 120)
 
 
 def _nearest_free(occupied, node):
-    """The free node nearest (in index steps) to ``node``: the node itself when free."""
+    """Return the free node nearest (in index steps) to ``node``: the node itself when free."""
     if not occupied[node]:
         return tuple(int(k) for k in node)
     free = np.argwhere(~occupied)
@@ -39,7 +40,8 @@ def _nearest_free(occupied, node):
 
 
 def _scene_problem(scenario_path, cells):
-    """(occupied, periodic, goal_node, start_node, source) for a paper scene.
+    """
+    (occupied, periodic, goal_node, start_node, source) for a paper scene.
 
     Where the scenario's goal or start falls on an obstacle node at this resolution
     (the goal at 120³, the 3-DOF start at 36³), the nearest free node stands in, as

@@ -1,4 +1,5 @@
-"""Latency of planner_node: message in → joint_trajectory out, in one process.
+"""
+Latency of planner_node: message in → joint_trajectory out, in one process.
 
 - ``latency_target``: a new ``target_pose`` (each repeat a new pose, so the C-space and
   the field are rebuilt) → the ``joint_trajectory`` message (aim < 150 ms at 36³);
@@ -24,7 +25,7 @@ _PARAMS = Path(__file__).resolve().parent.parent.parent / "config" / "paper_3dof
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument("--params-file", default=str(_PARAMS))
     ap.add_argument("--cells", type=int, default=36)
     ap.add_argument("--repeats", type=int, default=7)

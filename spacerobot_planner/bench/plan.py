@@ -1,4 +1,5 @@
-"""Full offline plan, per stage, on the paper's scenes; the paper's Gauss–Seidel as baseline.
+"""
+Full offline plan, per stage, on the paper's scenes; the paper's Gauss–Seidel as baseline.
 
     python -m spacerobot_planner.bench plan [--cases 2dof:180,3dof:36] [--repeats 3]
         [--solver log_harmonic] [--baseline-max-sweeps N]
@@ -39,7 +40,7 @@ def _scenario(scene: str, cells: int):
 
 
 def _new_start(sc, planner):
-    """A free start a few degrees from the scenario's, for the cached replan."""
+    """Return a free start a few degrees from the scenario's, for the cached replan."""
     chk = CollisionChecker(sc.robot, sc.scene)
     for off in ([4.0, -3.0, 2.0], [-4.0, 3.0, -2.0], [8.0, 2.0, -3.0], [2.0, -6.0, 4.0]):
         q = sc.start_rad + np.radians(off[:sc.robot.dof])
@@ -120,7 +121,7 @@ def _parse_cases(text):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="bench plan", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="bench plan", description=__doc__.strip().split("\n\n")[0])
     ap.add_argument("--cases", help="comma list like 2dof:180,3dof:36 (default: all six)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--solver", default=DEFAULT_SOLVER, choices=SOLVERS)

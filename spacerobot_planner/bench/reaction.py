@@ -1,4 +1,5 @@
-"""Trajectory and spacecraft reaction on the paper's scenes, with the reference masses.
+"""
+Trajectory and spacecraft reaction on the paper's scenes, with the reference masses.
 
     python -m spacerobot_planner.bench reaction [--wheel 50 0.5] [--repeats 5]
 

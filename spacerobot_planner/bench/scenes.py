@@ -1,4 +1,5 @@
-"""Random scenes: ``python -m spacerobot_planner.bench scenes [--count N] [--seed S]``.
+"""
+Random scenes: ``python -m spacerobot_planner.bench scenes [--count N] [--seed S]``.
 
 Draws seeded random scenes of the property tests' family on the paper's robot: 0–6
 debris polygons (convex and star-shaped non-convex, 0.1–1.5 m across, centres 1.6–6 m
@@ -56,7 +57,8 @@ def random_polygon(rng) -> np.ndarray:
 
 
 def random_scenario(rng, dof: int):
-    """(scenario, start_rad or None): a random scene of the family above.
+    """
+    (scenario, start_rad or None): a random scene of the family above.
 
     2-DOF: the paper's 2-DOF robot with the attitude locked at a uniform random angle.
     The start is the first collision-free of 200 uniform samples (None if none is).
@@ -162,7 +164,7 @@ def _oracle_rows(planned, grid_label, dof, seed) -> list:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="bench scenes", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="bench scenes", description=__doc__.strip().split("\n\n")[0])
     ap.add_argument("--count", type=int, default=200, help="scenes per DOF (default 200)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--dof", default="2,3", help="comma list of 2 and/or 3")

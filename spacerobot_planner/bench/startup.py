@@ -1,5 +1,5 @@
-"""Start-up of planner_node as a user starts it: process start → ``active`` → the paper
-target's trajectory.
+"""
+Start-up of planner_node as a user starts it: process start → ``active`` → the paper target's trajectory.
 
 Starts ``planner_node --ros-args --params-file FILE`` as a subprocess, and, once it
 subscribes, publishes the scene's start as ``joint_states`` and its target as
@@ -33,7 +33,7 @@ def clear_numba_cache(root: Path = _PKG) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument("--params-file", default=str(_PARAMS))
     ap.add_argument("--cold", action="store_true", help="delete numba's cache first")
     ap.add_argument("--timeout", type=float, default=120.0)

@@ -1,4 +1,5 @@
-"""The harmonic potential on a C-space grid: the field that steepest descent follows.
+"""
+The harmonic potential on a C-space grid: the field that steepest descent follows.
 
 What the field is
 -----------------
@@ -77,9 +78,11 @@ DEFAULT_BUDGET_S = 5.0
 
 @dataclass(frozen=True, eq=False)
 class Field:
-    """A solved potential field on an occupancy grid.
+    """
+    A solved potential field on an occupancy grid.
 
-    Attributes:
+    Attributes
+    ----------
         log_u: float64, grid shape: log of the flipped potential u (0 at goal nodes,
             -inf at obstacles and nodes not connected to the goal; for the paper's
             solver also where Φ is flat at Φ0 in float64).
@@ -92,6 +95,7 @@ class Field:
         seconds: wall time of the solve, graph set-up included.
         left: what is left when not converged ("" otherwise), for people.
         stats: solver details (log_harmonic: bands, unsolved_nodes, repaired_nodes).
+
     """
 
     log_u: np.ndarray
@@ -138,19 +142,31 @@ def _paper(occ, per, goals, tol, max_sweeps, t0):
 
 def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *, tol=None,
                 max_sweeps=None, budget_s=None, cancel=None, cut_edges=None) -> Field:
-    """Solve the harmonic field (see the package doc).
+    """
+    Solve the harmonic field (see the package doc).
 
-    Args:
-        occupied: bool array, any number of axes (each ≥ 2 nodes), True = obstacle.
-        periodic: one bool per axis.
-        goal_nodes: int (k, ndim) goal node indices (free).
-        solver: ``"log_harmonic"`` (default) or ``"gauss_seidel"`` (``SOLVERS``).
-        tol, max_sweeps: gauss_seidel's stop (largest change per sweep, sweep cap).
-        budget_s: log_harmonic's wall-time budget, seconds (default ``DEFAULT_BUDGET_S``).
-        cancel: optional callable; log_harmonic stops between bands once it returns true.
-        cut_edges: optional int (k, 2) flat index pairs of face-neighbour nodes whose edge
-            is removed (a wall between them: the planner's repair of motions that collide).
+    Parameters
+    ----------
+    occupied
+        Bool array, any number of axes (each ≥ 2 nodes), True = obstacle.
+    periodic
+        One bool per axis.
+    goal_nodes
+        Int (k, ndim) goal node indices (free).
+    solver
+        ``"log_harmonic"`` (default) or ``"gauss_seidel"`` (``SOLVERS``).
+    tol, max_sweeps
+        gauss_seidel's stop (largest change per sweep, sweep cap).
+    budget_s
+        log_harmonic's wall-time budget, seconds (default ``DEFAULT_BUDGET_S``).
+    cancel
+        Optional callable; log_harmonic stops between bands once it returns true.
+    cut_edges
+        Optional int (k, 2) flat index pairs of face-neighbour nodes whose edge is removed
+        (a wall between them: the planner's repair of motions that collide).
+
     Raises ValueError naming a malformed argument or an unknown solver.
+
     """
     if solver == "log_harmonic":
         _compile_once()          # the budget is the solve's: a first call's JIT compile is not
@@ -182,8 +198,12 @@ _COMPILED = False
 
 
 def _compile_once() -> None:
-    """Compile (or load from numba's cache) the route's kernels once per process, on a tiny
-    grid, so that no budget pays for it."""
+    """
+    Compile (or load) the route's kernels once per process.
+
+    Compile (or load from numba's cache) the route's kernels once per process, on a tiny grid, so
+    that no budget pays for it.
+    """
     global _COMPILED
     if not _COMPILED:
         _COMPILED = True

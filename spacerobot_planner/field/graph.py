@@ -1,4 +1,5 @@
-"""The node graph of a field problem: the goal-connected free nodes of an occupancy grid.
+"""
+The node graph of a field problem: the goal-connected free nodes of an occupancy grid.
 
 Every kernel of the field works on this graph, whatever the grid's dimension: node ``k``
 of the graph has ``2n`` face neighbours ``nbr[k, 2a + (0|1)]`` (the −/+ neighbour along
@@ -27,7 +28,8 @@ def _next_coord(coord, shape):
 
 @nb.njit(cache=True, nogil=True)
 def grid_neighbours(shape, periodic):
-    """Flat index of each grid node's 2n face neighbours, -1 beyond a wall.
+    """
+    Flat index of each grid node's 2n face neighbours, -1 beyond a wall.
 
     shape int64 (ndim,), periodic bool (ndim,).  Returns int64 (prod(shape), 2 ndim):
     column 2a + (0|1) = the (-|+) neighbour along axis a, wrapping on periodic axes.
@@ -60,8 +62,12 @@ def grid_neighbours(shape, periodic):
 
 @nb.njit(cache=True, nogil=True)
 def _bfs(occ_flat, gnbr, goal_flat):
-    """BFS through free nodes from the goal nodes: ``(dist, order)``, dist int64 per
-    flat node (-1 = not reached), order = reached flat nodes in BFS order."""
+    """
+    BFS through free nodes from the goal nodes.
+
+    ``(dist, order)``, dist int64 per flat node (-1 = not reached), order = reached flat nodes in
+    BFS order.
+    """
     n = occ_flat.size
     deg = gnbr.shape[1]
     dist = np.full(n, -1, np.int64)
@@ -88,8 +94,12 @@ def _bfs(occ_flat, gnbr, goal_flat):
 
 @nb.njit(cache=True, nogil=True)
 def _red_black_order(dist, goal_flat, shape):
-    """(order, coords): the goal nodes, then the reached nodes (dist ≥ 0) with an even
-    coordinate sum, then the odd ones, each in grid order; coords int64 (N, ndim)."""
+    """
+    Return (order, coords) of the reached nodes, red-black ordered.
+
+    The goal nodes, then the reached nodes (dist ≥ 0) with an even coordinate sum, then the odd
+    ones, each in grid order; coords int64 (N, ndim).
+    """
     ndim = shape.size
     n_grid = dist.size
     n_goal = goal_flat.size
@@ -134,8 +144,12 @@ def _red_black_order(dist, goal_flat, shape):
 
 @nb.njit(cache=True, nogil=True)
 def _neighbour_table(order, gnbr):
-    """nbr int32 (N, 2n): position in ``order`` of each node's face neighbours, N for
-    walls, obstacles and nodes not in ``order``."""
+    """
+    Return nbr int32 (N, 2n).
+
+    Position in ``order`` of each node's face neighbours, N for walls, obstacles and nodes not in
+    ``order``.
+    """
     n = order.size
     deg = gnbr.shape[1]
     pos = np.full(gnbr.shape[0], n, np.int32)
@@ -151,7 +165,8 @@ def _neighbour_table(order, gnbr):
 
 
 def validate_problem(occupied, periodic, goal_nodes):
-    """Check and normalise a field problem.
+    """
+    Check and normalise a field problem.
 
     Returns ``(occupied bool array, periodic tuple of bools, goal_nodes int64 array
     (k, ndim), distinct)``.  Raises ValueError naming the offending argument.
@@ -185,7 +200,8 @@ def validate_problem(occupied, periodic, goal_nodes):
 
 @dataclass(frozen=True, eq=False)
 class NodeGraph:
-    """The goal-connected free nodes of a validated problem.
+    """
+    The goal-connected free nodes of a validated problem.
 
     order: int64 (N,) flat grid index of each graph node: the goal nodes first (``n_goal``
         of them), then the others with an even coordinate sum ("red"), then the odd ones
@@ -217,8 +233,12 @@ class NodeGraph:
 
 @nb.njit(cache=True, nogil=True)
 def _cut_edges(gnbr, edges):
-    """Remove the grid edges ``edges`` int64 (k, 2) (flat node pairs, face neighbours) from
-    the neighbour table: each end then sees a wall there."""
+    """
+    Remove the grid edges ``edges`` from the neighbour table.
+
+    Remove the grid edges ``edges`` int64 (k, 2) (flat node pairs, face neighbours) from the
+    neighbour table: each end then sees a wall there.
+    """
     deg = gnbr.shape[1]
     for e in range(edges.shape[0]):
         a, b = edges[e, 0], edges[e, 1]
@@ -230,8 +250,12 @@ def _cut_edges(gnbr, edges):
 
 
 def bfs(occ, per, goals, cut_edges=None):
-    """(dist int64 grid-flat, BFS order, grid neighbour table) of a validated problem,
-    without the grid edges ``cut_edges`` (int (k, 2) flat node pairs) if given."""
+    """
+    Return (dist, BFS order, grid neighbour table) of a validated problem.
+
+    (dist int64 grid-flat, BFS order, grid neighbour table) of a validated problem, without the grid
+    edges ``cut_edges`` (int (k, 2) flat node pairs) if given.
+    """
     gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
     if cut_edges is not None and len(cut_edges):
         _cut_edges(gnbr, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
@@ -241,8 +265,12 @@ def bfs(occ, per, goals, cut_edges=None):
 
 
 def node_graph(occ, per, goals, cut_edges=None) -> NodeGraph:
-    """The :class:`NodeGraph` of a validated problem (``validate_problem``), without the
-    grid edges ``cut_edges`` (int (k, 2) flat node pairs: a wall between the two)."""
+    """
+    Return the :class:`NodeGraph` of a validated problem.
+
+    The :class:`NodeGraph` of a validated problem (``validate_problem``), without the grid edges
+    ``cut_edges`` (int (k, 2) flat node pairs: a wall between the two).
+    """
     dist, order, gnbr = bfs(occ, per, goals, cut_edges)
     n_goal = len(goals)
     order, coords = _red_black_order(dist, order[:n_goal], np.array(occ.shape, np.int64))
@@ -251,15 +279,21 @@ def node_graph(occ, per, goals, cut_edges=None) -> NodeGraph:
 
 
 def bfs_distance(occupied, periodic, goal_nodes) -> np.ndarray:
-    """Graph distance (face steps through free nodes) from the goal; -1 at obstacles and
-    at free nodes not connected to the goal.  int64, grid shape."""
+    """
+    Graph distance (face steps through free nodes) from the goal.
+
+    -1 at obstacles and at free nodes not connected to the goal.
+
+    int64, grid shape.
+    """
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
     return bfs(occ, per, goals)[0].reshape(occ.shape)
 
 
 @nb.njit(cache=True, nogil=True)
 def ascent_defects(log_u, nbr, n_goal):
-    """Graph nodes (not goal) with no strictly higher face neighbour, int64 (m,).
+    """
+    Graph nodes (not goal) with no strictly higher face neighbour, int64 (m,).
 
     log_u float64 (N + 1,) with the dummy last (-inf).  Where steepest ascent would stop.
     """

@@ -1,4 +1,5 @@
-"""The planner's field: the harmonic potential to relative precision, by bands of scale.
+"""
+The planner's field: the harmonic potential to relative precision, by bands of scale.
 
 See :mod:`spacerobot_planner.field` for what the field is and why it is solved this way;
 this module holds the route's steps.  All arrays are over the node graph
@@ -31,7 +32,8 @@ REPAIR_STEP = 1e-9
 
 @nb.njit(cache=True, nogil=True)
 def _band_problem(nbr, active, known, log_u):
-    """The Dirichlet problem on the ``active`` nodes, with the ``known`` ones fixed.
+    """
+    Return the Dirichlet problem on the ``active`` nodes, with the ``known`` ones fixed.
 
     Returns ``(sub_nbr int64 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
     (m = none), and the known neighbour values divided by the largest of them,
@@ -63,10 +65,13 @@ def _band_problem(nbr, active, known, log_u):
 
 @nb.njit(cache=True, nogil=True)
 def _steps_from_known(nbr, active, known, local, max_steps):
-    """Face steps from each ``active`` node to the nearest known node through active
-    nodes, int64 (m,): 1 next to a known node, up to ``max_steps`` (0 = no limit);
-    ``max_steps + 1`` for the nodes farther away.  ``local`` int64 (N + 1,) scratch, all
-    -1 on entry and on return."""
+    """
+    Count the face steps from each ``active`` node to the nearest known node.
+
+    Face steps through active nodes, int64 (m,): 1 next to a known node, up to
+    ``max_steps`` (0 = no limit); ``max_steps + 1`` for the nodes farther away.
+    ``local`` int64 (N + 1,) scratch, all -1 on entry and on return.
+    """
     n, deg = nbr.shape
     m = active.size
     far = (1 << 40) if max_steps == 0 else max_steps + 1
@@ -102,9 +107,12 @@ def _steps_from_known(nbr, active, known, local, max_steps):
 
 @nb.njit(cache=True, nogil=True)
 def _extend_below(log_u, known, nbr, n_goal, log_deg):
-    """Values for the nodes no band reached (the budget ran out): breadth-first from the
-    known nodes, each ``log_deg`` (= log 2n) below the node it was reached from — the
-    subharmonic lower bound's rule, so each has a strictly higher neighbour."""
+    """
+    Values for the nodes no band reached (the budget ran out).
+
+    Breadth-first from the known nodes, each ``log_deg`` (= log 2n) below the node it was reached
+    from — the subharmonic lower bound's rule, so each has a strictly higher neighbour.
+    """
     n, deg = nbr.shape
     queue = np.empty(n, np.int64)
     seen = known.copy()
@@ -145,8 +153,8 @@ def _sift_down(heap_k, heap_i, size, p):
 
 @nb.njit(cache=True, nogil=True)
 def _repair_ascent(log_u, nbr, n_goal, step):
-    """Make every non-goal node strictly lower than some neighbour, changing only nodes
-    that are not already.
+    """
+    Make every non-goal node strictly lower than some neighbour, changing only nodes that are not already.
 
     Nodes are settled in decreasing order of value from the goal (a max-heap): a node is
     reached from its highest settled neighbour and keeps its value if that is lower by at
@@ -205,7 +213,8 @@ def _repair_ascent(log_u, nbr, n_goal, step):
 
 def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
           band_floor: float = BAND_FLOOR, cancel=None):
-    """log u over the graph, float64 (N + 1,) with the dummy last (-inf), and the stats.
+    """
+    Return log u over the graph, float64 (N + 1,) with the dummy last (-inf), and the stats.
 
     Band after band (see the package doc) until every node has a value, the budget
     (seconds of wall time from the call) ends, or ``cancel()`` returns true; then the

@@ -1,4 +1,5 @@
-"""Aggregation multigrid for one Dirichlet problem of the harmonic field, on its node graph.
+"""
+Aggregation multigrid for one Dirichlet problem of the harmonic field, on its node graph.
 
 The linear problem: on n unknowns (graph nodes), ``deg·x_i − Σ_j x_j = b_i`` where the sum
 runs over the unknown face neighbours of i (deg = 2·ndim) and ``b_i`` holds the known
@@ -41,7 +42,8 @@ COARSE_SWEEPS = 2
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
 def _coarsen(nbr, wt, diag, coords, cshape, unit):
-    """One aggregation step.
+    """
+    One aggregation step.
 
     nbr int (n, deg) level-local (n = no neighbour), wt / diag float64 (with ``unit``:
     the fine level, weight 1 to every neighbour, diagonal deg; wt and diag unused),
@@ -90,11 +92,15 @@ def _coarsen(nbr, wt, diag, coords, cshape, unit):
 
 @nb.njit(cache=True, nogil=True)
 def _by_parity(nbr, wt, diag, coords):
-    """Renumber a level red nodes first, then black (parity of the coordinate
-    sum), each in its previous order: a Gauss–Seidel sweep in that order has no
-    chain of dependent updates (neighbours have the other colour, except across
-    odd periodic seams, where the serial sweep is still a valid Gauss–Seidel
-    order).  Returns the renumbered arrays and ``new_of_old`` (n,)."""
+    """
+    Renumber a level red nodes first, then black (parity of the coordinate sum), each in its previous order.
+
+    A Gauss–Seidel sweep in that order has no chain of dependent updates (neighbours have the other
+    colour, except across odd periodic seams, where the serial sweep is still a valid Gauss–Seidel
+    order).
+
+    Returns the renumbered arrays and ``new_of_old`` (n,).
+    """
     n, deg = nbr.shape
     ndim = coords.shape[1]
     red = 0
@@ -131,10 +137,13 @@ class Hierarchy:
     """The packed levels of one problem (see the module docstring)."""
 
     def __init__(self, nbr, coords, shape):
-        """nbr int (n, deg): fine neighbours, index n = none (already mapped so
-        that goal nodes, walls and obstacles all read n); coords int (n, ndim);
-        shape: the fine grid shape.  ``fine_of_input`` maps an input node to
-        its row on the (renumbered) fine level."""
+        """
+        Set up the levels from the fine grid.
+
+        nbr int (n, deg): fine neighbours, index n = none (already mapped so that goal nodes,
+        walls and obstacles all read n); coords int (n, ndim); shape: the fine grid shape.
+        ``fine_of_input`` maps an input node to its row on the (renumbered) fine level.
+        """
         n, deg = nbr.shape
         coords = np.ascontiguousarray(coords, dtype=np.int64)
         parity = coords.sum(axis=1) % 2
@@ -203,8 +212,12 @@ class Hierarchy:
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True, inline="always")
 def _row(nbr, wt, x, i, base, deg):
-    """sum_d wt[i, d] * x[nbr[i, d]] on the level whose rows start at ``base`` (the usual
-    degrees spelled out, as in :func:`_row0`)."""
+    """
+    Return one row's neighbour sum on the level starting at ``base``.
+
+    sum_d wt[i, d] * x[nbr[i, d]] on the level whose rows start at ``base`` (the usual degrees
+    spelled out, as in :func:`_row0`).
+    """
     r = base + i
     if deg == 4:
         return (wt[r, 0] * x[base + nbr[r, 0]] + wt[r, 1] * x[base + nbr[r, 1]]
@@ -221,8 +234,12 @@ def _row(nbr, wt, x, i, base, deg):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _row0(nb0, x, i, deg):
-    """sum_d x[nb0[i, d]] on the fine level (unit weights).  The usual degrees are spelled
-    out (the same sum in the same order, 1.5x faster than the loop)."""
+    """
+    sum_d x[nb0[i, d]] on the fine level (unit weights).
+
+    The usual degrees are spelled out (the same sum in the same order, 1.5x faster than
+    the loop).
+    """
     if deg == 4:
         return x[nb0[i, 0]] + x[nb0[i, 1]] + x[nb0[i, 2]] + x[nb0[i, 3]]
     if deg == 6:
@@ -295,13 +312,15 @@ def _sweep0(nb0, x, b, lo, hi, deg, inv_deg, par):
 @nb.njit(cache=True, nogil=True)
 def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
             boost, par):
-    """x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the
-    coarser levels and r are scratch).  Symmetric: forward Gauss-Seidel sweeps
-    before the coarse correction (scaled by ``boost``), backward ones after.  The
-    fine level (unit weights, diagonal deg) reads ``nb0``; its first ``red0`` rows are
-    red.  When ``restrict0 == red0`` (no two rows of one colour are neighbours) a
-    colour's rows are updated in any order (two threads with ``par``), else one by one
-    in order.  r0 (n0,) scratch."""
+    """
+    Compute x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
+
+    Symmetric: forward Gauss-Seidel sweeps before the coarse correction (scaled by
+    ``boost``), backward ones after.  The fine level (unit weights, diagonal deg)
+    reads ``nb0``; its first ``red0`` rows are red.  When ``restrict0 == red0`` (no
+    two rows of one colour are neighbours) a colour's rows are updated in any order
+    (two threads with ``par``), else one by one in order.  r0 (n0,) scratch.
+    """
     deg = nbr.shape[1]
     inv_deg = 1.0 / deg
     nlev = sizes.size
@@ -388,7 +407,7 @@ def _now():
 @nb.njit(cache=True, nogil=True)
 def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
                   sweeps, boost, par):
-    """xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
+    """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
     for i in range(n):
         bs[i] = r[i]
     _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
@@ -402,7 +421,8 @@ def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes
 @nb.njit(cache=True, nogil=True)
 def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
          sweeps, boost, deadline):
-    """Preconditioned CG on the finest level, from the initial guess ``u``.
+    """
+    Preconditioned CG on the finest level, from the initial guess ``u``.
 
     rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
     largest residual |b - A u| falls below ``tol``.  Returns (iterations,
@@ -464,7 +484,8 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
 
 
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8):
-    """Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
+    """
+    Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
     nbr int (n, deg): each unknown's face neighbours among the unknowns, n = none (a wall,
     an obstacle or a known node, whose value is in ``rhs``); coords int (n, ndim) grid

@@ -1,4 +1,5 @@
-"""A slow reference field for tests and benchmarks (not a planner choice).
+"""
+A slow reference field for tests and benchmarks (not a planner choice).
 
 The same Dirichlet problem as the planner's route, solved by a sparse direct
 factorisation (SciPy's SuperLU, diagonal pivots: on this M-matrix the elimination adds
@@ -16,7 +17,7 @@ FLOOR = 1e-200
 
 
 def oracle_log_u(graph) -> np.ndarray:
-    """log u over ``graph`` (N + 1,), dummy last, by direct solves."""
+    """Return log u over ``graph`` (N + 1,), dummy last, by direct solves."""
     n, n_goal = graph.size, graph.n_goal
     nbr = graph.nbr.astype(np.int64)
     deg = nbr.shape[1]

@@ -1,4 +1,5 @@
-"""The paper's Gauss–Seidel, literally: the reference solver and every benchmark's baseline.
+"""
+The paper's Gauss–Seidel, literally: the reference solver and every benchmark's baseline.
 
 Potential Φ with obstacles and the walls beyond bounded axes at Φ0, the goal at 0, free
 nodes starting at Φ0; lexicographic in-place sweeps of Φ_i = mean of the 2n face

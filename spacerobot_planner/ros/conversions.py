@@ -1,4 +1,5 @@
-"""Messages ↔ core types: the only module besides the nodes that imports ROS messages.
+"""
+Messages ↔ core types: the only module besides the nodes that imports ROS messages.
 
 Every function is pure (no node, no graph) and raises ``ValueError`` with a reason
 a person can act on when a message is unusable.
@@ -59,7 +60,7 @@ def s_to_duration(t_s: float) -> Duration:
 
 
 def ns_to_time(ns: int) -> Time:
-    """A ROS time in integer nanoseconds → builtin_interfaces/Time (a header stamp)."""
+    """Convert a ROS time in integer nanoseconds → builtin_interfaces/Time (a header stamp)."""
     ns = int(ns)
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
@@ -94,7 +95,8 @@ def yaw_to_quaternion(yaw_rad: float):
 
 
 def pose_to_target(msg: PoseStamped, planning_frame: str, template: Target | None = None) -> Target:
-    """A PoseStamped (target body centre and yaw) → Target; sizes from ``template``.
+    """
+    Convert a PoseStamped (target body centre and yaw) → Target; sizes from ``template``.
 
     Raises ValueError: wrong frame, NaN/inf, non-unit quaternion, tilted pose.
     """
@@ -128,7 +130,8 @@ def target_to_pose(target: Target, frame: str, stamp=None) -> PoseStamped:
 
 # ------------------------------------------------------------------ joints
 def joint_state_positions(msg: JointState, names, what: str = "joint_states") -> np.ndarray:
-    """Positions (rad) of the joints ``names`` (in that order) from a JointState.
+    """
+    Positions (rad) of the joints ``names`` (in that order) from a JointState.
 
     Extra joints are ignored. Raises ValueError when the message's name and position
     lists differ in length, a joint is missing or listed twice, or a value is not finite.
@@ -183,8 +186,11 @@ def trajectory_to_msg(traj: Trajectory, stamp=None, frame_id: str = "") -> Joint
 
 
 def split_trajectory_msg(msg: JointTrajectory, joints) -> tuple:
-    """(the trajectory of ``joints``, the trajectory of the others): the same points and
-    times, columns picked by name; either is None when it would have no joints."""
+    """
+    Return (the trajectory of ``joints``, the trajectory of the others).
+
+    The same points and times, columns picked by name; either is None when it would have no joints.
+    """
     names = list(msg.joint_names)
 
     def pick(cols):
@@ -211,7 +217,8 @@ def split_trajectory_msg(msg: JointTrajectory, joints) -> tuple:
 
 
 def msg_to_trajectory_arrays(msg: JointTrajectory):
-    """JointTrajectory → (names, times (M,), positions (M, n), velocities (M, n) or None).
+    """
+    Convert a JointTrajectory → (names, times (M,), positions (M, n), velocities (M, n) or None).
 
     Raises ValueError for an empty trajectory, ragged points, NaN, or times that do not
     increase.
@@ -244,15 +251,19 @@ def _slice_index(grid, q_rad, slice_axes):
 
 
 def grid_slice(grid, arr, q_rad, slice_axes=None):
-    """The 2-D slice of an array over the grid (indexed [x, y]) through the node
-    nearest ``q_rad``; ``slice_axes`` defaults to the last two planned axes."""
+    """
+    Return the 2-D slice of an array over the grid (indexed [x, y]) through the node nearest ``q_rad``.
+
+    ``slice_axes`` defaults to the last two planned axes.
+    """
     axes = tuple(slice_axes) if slice_axes is not None else (grid.ndim - 2, grid.ndim - 1)
     out = np.asarray(arr)[_slice_index(grid, q_rad, axes)]
     return out if axes[0] < axes[1] else out.T
 
 
 def potential_slice_values(log_u_slice, occupied_slice, phi_max: float) -> np.ndarray:
-    """Occupancy values (int8, same shape) of a potential slice.
+    """
+    Occupancy values (int8, same shape) of a potential slice.
 
     Obstacles → 100; free nodes not connected to the goal (log u = -inf) → 99;
     connected free nodes → round(98 · log(1 + φ) / log(1 + φ_max)) with φ = -log u
@@ -275,7 +286,8 @@ def obstacle_slice_values(occupied_slice) -> np.ndarray:
 
 
 def grid_slice_to_msg(values_xy, grid, slice_axes, frame_id: str, stamp=None) -> OccupancyGrid:
-    """A 2-D slice (indexed [x, y]) → OccupancyGrid.
+    """
+    Convert a 2-D slice (indexed [x, y]) → OccupancyGrid.
 
     x = grid axis ``slice_axes[0]`` (columns), y = ``slice_axes[1]`` (rows);
     info.resolution = the x axis step (rad per cell); origin = (lower_x, lower_y) rad;
@@ -319,8 +331,12 @@ def _strip(mid, ns, pts, color, frame, stamp, width=0.03, closed=False):
 
 
 def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int = 8) -> MarkerArray:
-    """Arm postures along a path (one LINE_STRIP each, start blue → goal green),
-    the spacecraft body at the start and the goal, the target body and handle, debris."""
+    """
+    Build the markers of a planned path and its scene.
+
+    Arm postures along a path (one LINE_STRIP each, start blue → goal green), the spacecraft body at
+    the start and the goal, the target body and handle, debris.
+    """
     arr = MarkerArray()
     clear = Marker()
     clear.header.frame_id = frame
@@ -350,8 +366,11 @@ def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int
 
 # ------------------------------------------------------------------ diagnostics
 def diagnostic_array(statuses, stamp=None, hardware_id: str = "") -> DiagnosticArray:
-    """DiagnosticArray of ``[(name, level, message, values dict)]``; ``level`` is
-    DiagnosticStatus.OK/WARN/ERROR.  Messages and values are sent whole (never cut)."""
+    """
+    Build a DiagnosticArray of ``[(name, level, message, values dict)]``; ``level`` is DiagnosticStatus.OK/WARN/ERROR.
+
+    Messages and values are sent whole (never cut).
+    """
     arr = DiagnosticArray()
     if stamp is not None:
         arr.header.stamp = stamp
@@ -368,9 +387,12 @@ def diagnostic_array(statuses, stamp=None, hardware_id: str = "") -> DiagnosticA
 
 # ------------------------------------------------------------------ action
 def plan_result(result_type, code: str, reason: str = "", trajectory=None, plan=None, attitude_trajectory=None):
-    """A PlanCapture.Result: ``code`` (a planner code or "superseded") → its constant,
-    the trajectory message (empty unless ok), the stage times and the clearance of
-    ``plan`` (a PlanResult) when there is one."""
+    """
+    Build a PlanCapture.Result.
+
+    ``code`` (a planner code or "superseded") → its constant, the trajectory message (empty unless
+    ok), the stage times and the clearance of ``plan`` (a PlanResult) when there is one.
+    """
     res = result_type()
     const = code.upper()
     if not hasattr(result_type, const):

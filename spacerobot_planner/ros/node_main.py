@@ -1,4 +1,5 @@
-"""The executables' shared main: create a node, spin it, shut down cleanly on Ctrl-C.
+"""
+The executables' shared main: create a node, spin it, shut down cleanly on Ctrl-C.
 
 rclpy's own SIGINT handler shuts the context down at once, so whatever the node logs
 while it stops (a plan being cancelled) fails to reach rosout and rcl prints "Failed to
@@ -23,8 +24,11 @@ SPIN_WAKE_S = 0.1
 
 
 def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | None = None) -> None:
-    """Spin ``node`` on ``executor`` until Ctrl-C or its context shuts down; then call
-    ``on_shutdown`` (if given), shut the executor down and destroy the node."""
+    """
+    Spin ``node`` on ``executor`` until Ctrl-C or its context shuts down.
+
+    Then call ``on_shutdown`` (if given), shut the executor down and destroy the node.
+    """
     executor.add_node(node)
     try:
         # not executor.spin(): a Python signal handler runs only between bytecodes, and
@@ -44,7 +48,8 @@ def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | 
 
 def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
              on_shutdown: Callable[[Node], None] | None = None) -> int:
-    """``rclpy.init``, ``make_node()``, spin in a SingleThreadedExecutor until Ctrl-C.
+    """
+    ``rclpy.init``, ``make_node()``, spin in a SingleThreadedExecutor until Ctrl-C.
 
     A ValueError or RuntimeError from ``make_node`` (bad parameters, a failed
     autostart) is printed as ``<exe_name>: <reason>`` and gives exit code 1; otherwise 0.

@@ -1,4 +1,5 @@
-"""Which node declares which parameter, and their ROS descriptors.
+"""
+Which node declares which parameter, and their ROS descriptors.
 
 The schema (type, default, unit, range) is ``config.PARAMETERS``; here: the planner
 declares everything it reads (``PLANNER_PARAMETERS``: not the CLI's ``scenario.*`` nor
@@ -45,14 +46,14 @@ CHOICES = {"planner.solver": _solvers}
 
 
 def check_choice(name: str, value) -> None:
-    """ValueError naming the parameter and the allowed values when ``value`` is not one."""
+    """Raise ValueError naming the parameter and the allowed values when ``value`` is not one."""
     allowed = CHOICES.get(name)
     if allowed is not None and value not in allowed():
         raise ValueError(f"{name}: {value!r} is not one of {', '.join(allowed())}")
 
 
 def descriptor_for(spec, name: str | None = None) -> ParameterDescriptor:
-    """ParameterDescriptor of one ParamSpec: type, description, range, allowed values, read-only."""
+    """Build the ParameterDescriptor of one ParamSpec: type, description, range, allowed values, read-only."""
     name = name or spec.name
     rng = ""
     if spec.min_value is not None or spec.max_value is not None:
@@ -75,7 +76,8 @@ def descriptor_for(spec, name: str | None = None) -> ParameterDescriptor:
 
 
 def params_to_overrides(flat: dict, names: dict | None = None) -> list:
-    """A flat dotted dict (e.g. from ``config.load_params_file``) → rclpy Parameter list.
+    """
+    Convert a flat dotted dict (e.g. from ``config.load_params_file``) → rclpy Parameter list.
 
     ``names``: declared name -> schema name (e.g. ``MOCK_ARM_PARAMETERS``); by default
     every key is passed under its own name.  Values are type-checked and normalised.

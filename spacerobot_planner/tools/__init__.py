@@ -1,2 +1,6 @@
-"""Tools around the planning core: the offline CLI (``spacerobot-plan``), the closed-loop demo,
-the plots, and the helper that lays out the ROS 2 install tree of a virtualenv."""
+"""
+Tools around the planning core.
+
+The offline CLI (``spacerobot-plan``), the closed-loop demo, the plots, and the helper that lays out
+the ROS 2 install tree of a virtualenv.
+"""

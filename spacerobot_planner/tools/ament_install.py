@@ -1,4 +1,5 @@
-"""Lay out the ROS 2 install files in a prefix after a pip install.
+"""
+Lay out the ROS 2 install files in a prefix after a pip install.
 
 colcon installs the ament index marker, ``share/spacerobot_planner/`` and the
 executables in ``lib/spacerobot_planner/`` (setup.py's data_files, setup.cfg's
@@ -34,7 +35,7 @@ if __name__ == "__main__":
 
 
 def source_dir() -> Path:
-    """The source tree holding package.xml (the editable checkout)."""
+    """Return the source tree holding package.xml (the editable checkout)."""
     here = Path(__file__).resolve().parents[2]
     if not (here / "package.xml").is_file():
         raise FileNotFoundError(f"package.xml not found next to {here}; pass --source")
@@ -42,7 +43,7 @@ def source_dir() -> Path:
 
 
 def console_scripts() -> dict:
-    """name → 'module:function' of this distribution's console scripts."""
+    """Return name → 'module:function' of this distribution's console scripts."""
     eps = metadata.distribution(PACKAGE).entry_points
     return {ep.name: ep.value for ep in eps if ep.group == "console_scripts"}
 
@@ -74,7 +75,7 @@ def install(prefix: Path, source: Path, python: str = sys.executable) -> list:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument("--prefix", default=sys.prefix, help="install prefix (default: this venv)")
     ap.add_argument("--source", default=None, help="source tree with package.xml and config/")
     args = ap.parse_args(argv)

@@ -1,4 +1,5 @@
-"""``spacerobot-plan``: plan one capture motion offline from a scenario file.
+"""
+``spacerobot-plan``: plan one capture motion offline from a scenario file.
 
     spacerobot-plan --params-file config/paper_3dof.yaml [--start-deg A B C]
         [--goal-deg A B C] [--cells N] [--solver NAME] [--json PATH] [--plot PATH]
@@ -34,7 +35,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog="spacerobot-plan", description=__doc__.split("\n\n")[0],
+    ap = _Parser(prog="spacerobot-plan", description=__doc__.strip().split("\n\n")[0],
                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params-file", required=True, help="ROS 2 parameter file (config/paper_3dof.yaml)")
     ap.add_argument("--start-deg", type=float, nargs="+", metavar="DEG",

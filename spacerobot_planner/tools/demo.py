@@ -1,4 +1,5 @@
-"""`make demo`: the closed loop on the paper's 3-DOF scene, in one process.
+"""
+`make demo`: the closed loop on the paper's 3-DOF scene, in one process.
 
 planner_node + mock_arm_node + a small driver node that publishes the paper's target
 pose (frame ``world``, (-3.27, -2.60), yaw 0) once the planner is up.  Prints the
@@ -28,7 +29,7 @@ _DEFAULT_PARAMS = Path(__file__).resolve().parents[2] / "config" / "paper_3dof.y
 
 
 def offline_facts(params_file) -> None:
-    """What the old offline demo printed: robot, start clearance, IK, C-space."""
+    """Return what the old offline demo printed: robot, start clearance, IK, C-space."""
     sc = load_scenario(params_file)
     deg = np.degrees
     print(f"scene: {params_file}")
@@ -154,7 +155,7 @@ def _plot(res, scenario, out: Path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument("--params-file", default=str(_DEFAULT_PARAMS))
     ap.add_argument("--out", default="out", help="folder for figures")
     ap.add_argument("--speedup", type=float, default=10.0,

@@ -1,4 +1,5 @@
-"""Figures of a plan, as in the paper's figures 3–5 and 7–10 (matplotlib, Agg).
+"""
+Figures of a plan, as in the paper's figures 3–5 and 7–10 (matplotlib, Agg).
 
 One PNG with several panels: the C-space (2-DOF image; 3-DOF boundary voxels and
 θ1 slices), the potential φ = -log u on a log colour scale (3-DOF: the slice
@@ -251,8 +252,12 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
 
 
 def plot_reaction(motion, path, dpi: int = 110) -> None:
-    """Write a PNG of a ``dynamics.Motion``: wheel momentum and torque against time with
-    their limits (attitude held/commanded), and the free-floating attitude against time."""
+    """
+    Write a PNG of a ``dynamics.Motion``.
+
+    Wheel momentum and torque against time with their limits (attitude held/commanded), and the
+    free-floating attitude against time.
+    """
     traj, r = motion.trajectory, motion.reaction
     t = traj.times_s
     fig, axes = plt.subplots(1, 3, figsize=(17, 4.6))
