@@ -242,7 +242,7 @@ class WheelModel:
         """
         Return the wheel terms along a path q(s) of the planned joints ((G, dof) each).
 
-        G = H·q′ (G,) and g′ = d(H·q′)/ds (G,), so h_wheel = −g ṡ and τ_wheel = −(g′ ṡ² + g s̈).
+        g = H·q′ (G,) and g′ = d(H·q′)/ds (G,), so h_wheel = −g ṡ and τ_wheel = −(g′ ṡ² + g s̈).
         """
         qf = self.robot.full(q_rad)
         d1 = _planned_rates(self.robot, dq_ds)

@@ -471,7 +471,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
     """
     Ctrl-C in `main`.
 
-    Rclpy's SIGINT handler shuts the context down and `spin_until_shutdown` (main's own code) stops
+    rclpy's SIGINT handler shuts the context down and `spin_until_shutdown` (main's own code) stops
     the worker and the child.
     """
     before = _threads()
