@@ -8,10 +8,13 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    trajectory's point ``horizon_s`` ahead (the *horizon point*): the arm will get there
    on the trajectory it already follows while the plan is computed.  This needs the arm
    to follow that trajectory: a measured joint state at most ``MAX_STATE_AGE_S`` old,
-   taken after the trajectory started, must lie within ``follow_tolerance_rad`` of where the trajectory (or the one it
-   joined, before its start) had the arm at the measurement's time; otherwise (no recent
-   joint_states, a controller that stopped, an arm pushed away) the plan starts from the
-   measured state, at rest, as for an arm standing still.
+   taken after the trajectory started, must lie within ``follow_tolerance_rad`` of where
+   the trajectory (or the one it joined, before its start) had the arm at the
+   measurement's time, interpolated as a spline (the dense trajectory) or linearly
+   between the published points; otherwise (no recent joint_states, a controller that
+   stopped, an arm pushed away) the plan starts from the measured state, at rest, as for
+   an arm standing still.  (A still arm is told from a following one only once the
+   trajectory has moved by more than the tolerance: just after it started, it joins.)
 2. When the plan is done (:func:`joined_motion`), the published trajectory starts at the
    executing one's next published point (the *join*: an exact state of the executing
    trajectory, position and velocity, that the controller has been sent) and follows
@@ -78,18 +81,33 @@ class Executing:
         """The start of the oldest trajectory kept in the chain (ROS time, ns)."""
         return self.start_ns if self.previous is None else self.previous.first_start_ns()
 
-    def expected_at(self, ros_ns: int) -> np.ndarray:
+    def expected_at(self, ros_ns: int, published_only: bool = False) -> np.ndarray:
         """(n,) where the arm following it is at ROS time ``ros_ns``, rad: on the previous
-        trajectory before this one starts (at this one's start with none)."""
+        trajectory before this one starts (at this one's start with none).  A controller
+        interpolating the published points with their velocities (splines, as
+        joint_trajectory_controller) follows the dense trajectory; one interpolating the
+        positions linearly in time (``published_only``) runs ahead of it between points
+        where the arm speeds up (up to a few degrees at high accelerations)."""
         if ros_ns < self.start_ns and self.previous is not None:
-            return self.previous.expected_at(ros_ns)
-        return sample(self.trajectory, self.time_s(ros_ns))[0]
+            return self.previous.expected_at(ros_ns, published_only)
+        traj = self.trajectory.subset(self.published) if published_only else self.trajectory
+        return sample(traj, self.time_s(ros_ns))[0]
 
     def joined_by(self, trajectory: Trajectory, published, start_ns: int) -> "Executing":
-        """The record of a trajectory joined to this one at ``start_ns`` (one trajectory
-        back is kept: a recent joint state lies on it or on this one)."""
-        return Executing(trajectory, np.asarray(published), int(start_ns),
-                         Executing(self.trajectory, self.published, self.start_ns))
+        """The record of a trajectory joined to this one at ``start_ns``.  The chain of the
+        trajectories it replaced is kept back to the one on which any joint state that
+        can still count (``MAX_STATE_AGE_S``, and a join is at most a published points'
+        spacing ahead) was taken: links whose successor started over 2 s before are cut."""
+        keep, link = [], self
+        horizon_ns = int(start_ns) - 2 * 1_000_000_000
+        successor_start = int(start_ns)
+        while link is not None and successor_start >= horizon_ns:
+            keep.append(link)
+            successor_start, link = link.start_ns, link.previous
+        prev = None
+        for e in reversed(keep):
+            prev = Executing(e.trajectory, e.published, e.start_ns, prev)
+        return Executing(trajectory, np.asarray(published), int(start_ns), prev)
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,7 +160,8 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     if measured_ns < executing.first_start_ns():
         return q, None, ("no joint_states since the trajectory started (no sign that the arm follows it): "
                          "planned from the last one, at rest")
-    off = np.abs(difference_rad(q, executing.expected_at(measured_ns), periodic))
+    off = min((np.abs(difference_rad(q, executing.expected_at(measured_ns, lin), periodic)) for lin in (False, True)),
+              key=lambda d: float(d.max()))
     if float(off.max()) > follow_tolerance_rad:
         j = int(np.argmax(off))
         return q, None, (f"the arm does not follow its trajectory ({traj.joint_names[j]} "
