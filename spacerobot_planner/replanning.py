@@ -23,12 +23,17 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    continuous at the switch and the limits hold throughout.  Its stamp is the join's
    time: the controller keeps following the old trajectory until then.  A plan that took
    longer than the horizon (the join would be past the horizon point) raises
-   ``trajectory.HorizonPassed``: plan again with a longer horizon.  Where the new path
-   leaves the horizon point in another direction the arm must (nearly) stop there, and
-   the re-fitted spline through that corner may not allow the arm's speed at the join;
-   with the horizon at the executing trajectory's end (its goal, at rest) the published
-   trajectory is then that trajectory's own remainder followed by the new one from rest
-   (``Trajectory.then``), which is always possible.
+   ``trajectory.HorizonPassed``: plan again with a longer horizon.  The new path is
+   planned from a point, not a state: it may leave the horizon point in another
+   direction than the arm's, a corner the arm would have to slow down for.  So the
+   corner is also replaced by cubic (Hermite) blends, tangent to both paths, over
+   ``BLEND_SAMPLES`` samples on either side; each blend is certified on the exact
+   geometry (``motion.check_path``) and the fastest certified candidate (the corner
+   itself included) is published.  Where none can be entered at the arm's speed (the
+   re-fitted spline through a sharp corner asks for a slower arm than the join's) it
+   raises ``ValueError``; with the horizon at the executing trajectory's end (its goal,
+   at rest) the published trajectory is then that trajectory's own remainder followed
+   by the new one from rest (``Trajectory.then``), which is always possible.
 
 Times are ROS times in integer nanoseconds (the stamps of the messages); no rclpy here.
 """
@@ -44,7 +49,10 @@ from dataclasses import replace
 
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
-__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S"]
+__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES"]
+
+#: half-widths (path samples on either side of the horizon point) of the corner blends tried
+BLEND_SAMPLES = (8, 24)
 
 #: a joint state older than this (s) does not show that the arm follows its trajectory
 MAX_STATE_AGE_S = 0.5
@@ -171,7 +179,30 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     return join.start_rad, join, None
 
 
-def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0.02):
+def _corner_blends(path, corner, first, step_rad):
+    """Candidate paths: rows ``a = corner - m`` to ``b = corner + m`` of ``path`` (M, n)
+    replaced by a cubic Hermite curve with the path's directions at a and b (tangents
+    scaled to the chord), samples ≤ ``step_rad`` apart; rows before ``first`` are kept.
+    Yields (a, b, candidate path)."""
+    for m in BLEND_SAMPLES:
+        a, b = max(first, corner - m), min(len(path) - 2, corner + m)
+        if a >= corner or b <= corner or a < 1:
+            continue
+        p0, p1 = path[a], path[b]
+        d0, d1 = path[a] - path[a - 1], path[b + 1] - path[b]
+        n0, n1, chord = np.linalg.norm(d0), np.linalg.norm(d1), np.linalg.norm(p1 - p0)
+        if n0 <= 1e-12 or n1 <= 1e-12 or chord <= 1e-12:
+            continue
+        t0, t1 = d0 * (chord / n0), d1 * (chord / n1)
+        k = max(2, int(np.ceil(1.5 * chord / step_rad)))
+        u = np.linspace(0.0, 1.0, k + 1)[:, None]
+        curve = ((2 * u ** 3 - 3 * u ** 2 + 1) * p0 + (u ** 3 - 2 * u ** 2 + u) * t0
+                 + (-2 * u ** 3 + 3 * u ** 2) * p1 + (u ** 3 - u ** 2) * t1)
+        curve[0], curve[-1] = p0, p1
+        yield a, b, np.vstack([path[:a], curve, path[b + 1:]])
+
+
+def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0.02, checker=None):
     """The trajectory to publish for a plan that started at ``join.start_rad``.
 
     Args:
@@ -180,6 +211,8 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
         path_rad: (M, n) the new plan's path, from the horizon point.
         now_ns: ROS time now, ns.
         lead_s: the join is at least this far in the future (the message's transit), s.
+        checker: ``collision.CollisionChecker`` of the scenario's scene (made when None),
+            to certify the corner blends.
     Returns:
         (trajectory.Trajectory, dynamics.ReactionReport or None, stamp_ns, Continuation):
         the trajectory from the join (time 0) through the horizon point to the new goal,
@@ -196,7 +229,7 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
     new = align_to_state(np.asarray(path_rad, dtype=float), c.prefix_rad[-1], scenario.robot.planned_periodic)
     stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
     try:
-        traj, reaction = timed_motion(scenario, c.join(new), start_path_speed=c.start_path_speed)
+        traj, reaction = _fastest_through_corner(scenario, c, new, checker)
     except ValueError:
         last = len(ex.trajectory) - 1
         if join.horizon_index != last:
@@ -206,3 +239,36 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
         after, reaction = timed_motion(scenario, new)
         traj = rest.then(after)
     return traj, reaction, stamp_ns, c
+
+
+def _fastest_through_corner(scenario, c, new, checker):
+    """(trajectory, reaction) of the fastest of: the joined path with its corner at the
+    horizon point, and its certified corner blends; ValueError when none can be entered
+    at the join's speed."""
+    from .collision import CollisionChecker
+    from .motion import check_path
+    from .pipeline import timed_motion
+    from .trajectory import densify_path
+    robot = scenario.robot
+    path = densify_path(c.join(new))
+    corner = len(densify_path(c.prefix_rad)) - 1
+    best, err = None, None
+    candidates = [path]
+    if 0 < corner < len(path) - 1:
+        checker = checker or CollisionChecker(robot, scenario.scene)
+        bounds = (robot.planned_lower_rad, robot.planned_upper_rad, robot.planned_periodic)
+        for a, b, cand in _corner_blends(path, corner, 1, np.radians(0.5)):
+            piece = cand[a - 1:len(cand) - (len(path) - b) + 2]
+            if check_path(checker, piece, *bounds).ok:
+                candidates.append(cand)
+    for cand in candidates:
+        try:
+            got = timed_motion(scenario, cand, start_path_speed=c.start_path_speed)
+        except ValueError as e:
+            err = err or e
+            continue
+        if best is None or got[0].duration_s < best[0].duration_s:
+            best = got
+    if best is None:
+        raise err
+    return best

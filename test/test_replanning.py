@@ -7,10 +7,11 @@ import pytest
 from scipy.interpolate import CubicSpline
 
 from paper_paths import joint_limits
+from test_collision import shapely_clearance
 from test_trajectory import _check
 
 from spacerobot_planner.pipeline import timed_motion
-from spacerobot_planner.replanning import Executing, joined_motion, plan_start
+from spacerobot_planner.replanning import BLEND_SAMPLES, Executing, joined_motion, plan_start
 from spacerobot_planner.trajectory import HorizonPassed, resample
 
 PERIODIC = (True, False, False)
@@ -104,11 +105,41 @@ def test_the_joined_trajectory_continues_the_executing_one(executing, frac):
     v_old = old.velocities_rad_s[c.index]
     assert np.linalg.norm(v_old) > np.radians(0.5)
     assert np.all(np.abs(traj.velocities_rad_s[0] - v_old) <= 1e-3 * vmax)
-    # the certified path to the horizon point, then the new path, in that order
-    m = join.horizon_index - c.index + 1
-    np.testing.assert_array_equal(traj.positions_rad[:m], old.positions_rad[c.index:join.horizon_index + 1])
+    # the executing path towards the horizon point (up to where a corner blend may begin),
+    # then the new path to its goal; collision-free by shapely at every point
+    m = max(1, join.horizon_index - c.index + 1 - max(BLEND_SAMPLES))
+    np.testing.assert_array_equal(traj.positions_rad[:m], old.positions_rad[c.index:c.index + m])
     np.testing.assert_array_equal(traj.positions_rad[-1], new[-1])
     _check(traj, np.vstack([traj.positions_rad[0], new[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+    assert min(shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad[::3]) > sc.scene.safety_margin_m
+
+
+def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing):
+    """The planner's path from the horizon point to a target 10 cm away leaves it in
+    another direction; the arm keeps most of its speed through that corner (the blend),
+    and the joined motion stays collision-free (shapely) and within the limits."""
+    from spacerobot_planner.planner import Planner
+    from spacerobot_planner.scene import Target
+    sc, ex = executing
+    old = ex.trajectory
+    vmax, amax = joint_limits(sc)
+    t = 0.5 * old.duration_s
+    now = ex.start_ns + int(t * S)
+    start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, t)], now, 1.0,
+                                np.radians(2.0), PERIODIC)
+    moved = sc.with_scene(sc.scene.with_target(Target(center_m=(-3.17, -2.60), yaw_rad=0.0)))
+    res = Planner(moved).plan(start)
+    assert res.ok
+    traj, _, _, c = joined_motion(moved, join, res.path_rad, now + S // 20)
+    speed_then = float(np.linalg.norm(old.velocities_rad_s[join.horizon_index]))
+    near = np.abs(traj.times_s - (old.times_s[join.horizon_index] - c.join_time_s)) < 1.5
+    slowest = float(np.min(np.linalg.norm(traj.velocities_rad_s[near], axis=1)))
+    print(f"\narm speed at the horizon point {np.degrees(speed_then):.2f}°/s; slowest within 1.5 s of it "
+          f"{np.degrees(slowest):.2f}°/s")
+    assert slowest >= 0.75 * speed_then
+    _check(traj, np.vstack([traj.positions_rad[0], res.path_rad[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+    clr = min(shapely_clearance(sc.robot, moved.scene, q) for q in traj.positions_rad)
+    assert clr > moved.scene.safety_margin_m
 
 
 def test_a_plan_that_took_longer_than_the_horizon_is_refused(executing):
