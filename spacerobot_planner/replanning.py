@@ -53,6 +53,8 @@ __all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S"
 
 #: half-widths (path samples on either side of the horizon point) of the corner blends tried
 BLEND_SAMPLES = (8, 24)
+#: a turn at the horizon point smaller than this (rad) is left as it is
+MIN_CORNER_RAD = float(np.radians(1.0))
 
 #: a joint state older than this (s) does not show that the arm follows its trajectory
 MAX_STATE_AGE_S = 0.5
@@ -179,6 +181,13 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     return join.start_rad, join, None
 
 
+def _turn_rad(path, i):
+    """Angle between the path's directions into and out of row ``i``, rad."""
+    d0, d1 = path[i] - path[i - 1], path[i + 1] - path[i]
+    n = np.linalg.norm(d0) * np.linalg.norm(d1)
+    return 0.0 if n <= 0.0 else float(np.arccos(np.clip(d0 @ d1 / n, -1.0, 1.0)))
+
+
 def _corner_blends(path, corner, first, step_rad):
     """Candidate paths: rows ``a = corner - m`` to ``b = corner + m`` of ``path`` (M, n)
     replaced by a cubic Hermite curve with the path's directions at a and b (tangents
@@ -254,7 +263,7 @@ def _fastest_through_corner(scenario, c, new, checker):
     corner = len(densify_path(c.prefix_rad)) - 1
     best, err = None, None
     candidates = [path]
-    if 0 < corner < len(path) - 1:
+    if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:
         checker = checker or CollisionChecker(robot, scenario.scene)
         bounds = (robot.planned_lower_rad, robot.planned_upper_rad, robot.planned_periodic)
         for a, b, cand in _corner_blends(path, corner, 1, np.radians(0.5)):
