@@ -65,15 +65,8 @@ def main(argv=None) -> int:
     ex = SingleThreadedExecutor(context=ctx)     # as planner_node.main
     ex.add_node(node)
     ex.add_node(drv)
-    got = []
-    cond = threading.Condition()
-
-    def on_traj(msg):
-        with cond:
-            got.append(time.perf_counter())
-            cond.notify_all()
-
-    drv.create_subscription(JointTrajectory, "joint_trajectory", on_traj, 10)
+    got = _Arrivals(node)
+    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
     pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
     pub_js = drv.create_publisher(JointState, "joint_states", 10)
     cli = drv.create_client(Trigger, "/spacerobot_planner/replan")
@@ -84,14 +77,6 @@ def main(argv=None) -> int:
         while pub_t.get_subscription_count() == 0 or pub_js.get_subscription_count() == 0:
             time.sleep(0.02)
         cli.wait_for_service(10.0)
-
-        def wait_traj(n, timeout=120.0):
-            with cond:
-                ok = cond.wait_for(lambda: len(got) >= n, timeout)
-            if not ok:
-                raise RuntimeError(f"no trajectory within {timeout} s (state {node.state}, "
-                                   f"error {node.last_error})")
-            return got[n - 1]
 
         q_full = robot.full(sc.start_rad)
         pub_js.publish(joint_state_msg(robot.joint_names, q_full))
@@ -105,13 +90,13 @@ def main(argv=None) -> int:
             return m
 
         pub_t.publish(target(0))                                  # warm-up (process start, JIT cache)
-        wait_traj(1)
+        got.wait(1)
         lat_t = []
         for i in range(1, args.repeats + 1):
             n = len(got)
             t0 = time.perf_counter()
             pub_t.publish(target(i))
-            lat_t.append(wait_traj(n + 1) - t0)
+            lat_t.append(got.wait(n + 1) - t0)
             time.sleep(0.05)
         lat_j = []
         rng = np.random.default_rng(0)
@@ -125,7 +110,7 @@ def main(argv=None) -> int:
             while node._joint_q is None or not np.allclose(node._joint_q, q[list(robot.planned_joints)]):
                 time.sleep(0.0005)
             cli.call_async(Trigger.Request())
-            lat_j.append(wait_traj(n + 1) - t0)
+            lat_j.append(got.wait(n + 1) - t0)
             time.sleep(0.05)
         cached = node.last_result.cached
         grid = sc.grid.label()
@@ -158,6 +143,31 @@ def main(argv=None) -> int:
     for r in rows:
         print(json.dumps(r))
     return 0
+
+
+class _Arrivals:
+    """A joint_trajectory subscriber's callback: arrival times (perf_counter, s)."""
+
+    def __init__(self, node):
+        self.node = node
+        self.times = []
+        self.cond = threading.Condition()
+
+    def __call__(self, msg):
+        with self.cond:
+            self.times.append(time.perf_counter())
+            self.cond.notify_all()
+
+    def __len__(self):
+        with self.cond:
+            return len(self.times)
+
+    def wait(self, n, timeout=120.0) -> float:
+        """The arrival time of the n-th trajectory (waits for it)."""
+        with self.cond:
+            if not self.cond.wait_for(lambda: len(self.times) >= n, timeout):
+                raise RuntimeError(f"no trajectory within {timeout} s (state {self.node.state})")
+            return self.times[n - 1]
 
 
 def _stats(vals) -> dict:
@@ -212,15 +222,8 @@ def _moving(args, flat) -> dict:
     ex = SingleThreadedExecutor(context=ctx)
     for n in (node, arm, drv):
         ex.add_node(n)
-    got, states = [], []
-    cond = threading.Condition()
-
-    def on_traj(msg):
-        with cond:
-            got.append(time.perf_counter())
-            cond.notify_all()
-
-    drv.create_subscription(JointTrajectory, "joint_trajectory", on_traj, 10)
+    got, states = _Arrivals(node), []
+    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
     drv.create_subscription(JointState, "joint_states", states.append, 100)
     pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
     spin = threading.Thread(target=ex.spin, daemon=True)
@@ -233,24 +236,18 @@ def _moving(args, flat) -> dict:
         m.pose.orientation.w = 1.0
         return m
 
-    def wait_traj(n, timeout=120.0):
-        with cond:
-            if not cond.wait_for(lambda: len(got) >= n, timeout):
-                raise RuntimeError(f"no trajectory within {timeout} s (state {node.state})")
-            return got[n - 1]
-
     lat, joined = [], 0
     try:
         while pub_t.get_subscription_count() == 0:
             time.sleep(0.02)
         pub_t.publish(target(0.0))
-        wait_traj(1)
+        got.wait(1)
         time.sleep(2.0)                          # the arm under way
         for i in range(args.repeats):
             n = len(got)
             t0 = time.perf_counter()
             pub_t.publish(target(0.01 * ((i % 2) + 1)))
-            lat.append(wait_traj(n + 1) - t0)
+            lat.append(got.wait(n + 1) - t0)
             time.sleep(0.05)
             if str(node.last_outcome.values.get("joined_moving_arm", "no")).startswith("yes"):
                 joined += 1
