@@ -8,10 +8,13 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    trajectory's point ``horizon_s`` ahead (the *horizon point*): the arm will get there
    on the trajectory it already follows while the plan is computed.  This needs the arm
    to follow that trajectory: a measured joint state at most ``MAX_STATE_AGE_S`` old,
-   taken after the trajectory started, must lie within ``follow_tolerance_rad`` of where the trajectory (or the one it
-   joined, before its start) had the arm at the measurement's time; otherwise (no recent
-   joint_states, a controller that stopped, an arm pushed away) the plan starts from the
-   measured state, at rest, as for an arm standing still.
+   taken after the trajectory started, must lie within ``follow_tolerance_rad`` of where
+   the trajectory (or the one it joined, before its start) had the arm at the
+   measurement's time, interpolated as a spline (the dense trajectory) or linearly
+   between the published points; otherwise (no recent joint_states, a controller that
+   stopped, an arm pushed away) the plan starts from the measured state, at rest, as for
+   an arm standing still.  (A still arm is told from a following one only once the
+   trajectory has moved by more than the tolerance: just after it started, it joins.)
 2. When the plan is done (:func:`joined_motion`), the published trajectory starts at the
    executing one's next published point (the *join*: an exact state of the executing
    trajectory, position and velocity, that the controller has been sent) and follows
@@ -20,12 +23,17 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    continuous at the switch and the limits hold throughout.  Its stamp is the join's
    time: the controller keeps following the old trajectory until then.  A plan that took
    longer than the horizon (the join would be past the horizon point) raises
-   ``trajectory.HorizonPassed``: plan again with a longer horizon.  Where the new path
-   leaves the horizon point in another direction the arm must (nearly) stop there, and
-   the re-fitted spline through that corner may not allow the arm's speed at the join;
-   with the horizon at the executing trajectory's end (its goal, at rest) the published
-   trajectory is then that trajectory's own remainder followed by the new one from rest
-   (``Trajectory.then``), which is always possible.
+   ``trajectory.HorizonPassed``: plan again with a longer horizon.  The new path is
+   planned from a point, not a state: it may leave the horizon point in another
+   direction than the arm's, a corner the arm would have to slow down for.  So the
+   corner is also replaced by cubic (Hermite) blends, tangent to both paths, over
+   ``BLEND_SAMPLES`` samples on either side; each blend is certified on the exact
+   geometry (``motion.check_path``) and the fastest certified candidate (the corner
+   itself included) is published.  Where none can be entered at the arm's speed (the
+   re-fitted spline through a sharp corner asks for a slower arm than the join's) it
+   raises ``ValueError``; with the horizon at the executing trajectory's end (its goal,
+   at rest) the published trajectory is then that trajectory's own remainder followed
+   by the new one from rest (``Trajectory.then``), which is always possible.
 
 Times are ROS times in integer nanoseconds (the stamps of the messages); no rclpy here.
 """
@@ -41,7 +49,12 @@ from dataclasses import replace
 
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
-__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S"]
+__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES"]
+
+#: half-widths (path samples on either side of the horizon point) of the corner blends tried
+BLEND_SAMPLES = (8, 24)
+#: a turn at the horizon point smaller than this (rad) is left as it is
+MIN_CORNER_RAD = float(np.radians(1.0))
 
 #: a joint state older than this (s) does not show that the arm follows its trajectory
 MAX_STATE_AGE_S = 0.5
@@ -78,18 +91,33 @@ class Executing:
         """The start of the oldest trajectory kept in the chain (ROS time, ns)."""
         return self.start_ns if self.previous is None else self.previous.first_start_ns()
 
-    def expected_at(self, ros_ns: int) -> np.ndarray:
+    def expected_at(self, ros_ns: int, published_only: bool = False) -> np.ndarray:
         """(n,) where the arm following it is at ROS time ``ros_ns``, rad: on the previous
-        trajectory before this one starts (at this one's start with none)."""
+        trajectory before this one starts (at this one's start with none).  A controller
+        interpolating the published points with their velocities (splines, as
+        joint_trajectory_controller) follows the dense trajectory; one interpolating the
+        positions linearly in time (``published_only``) runs ahead of it between points
+        where the arm speeds up (up to a few degrees at high accelerations)."""
         if ros_ns < self.start_ns and self.previous is not None:
-            return self.previous.expected_at(ros_ns)
-        return sample(self.trajectory, self.time_s(ros_ns))[0]
+            return self.previous.expected_at(ros_ns, published_only)
+        traj = self.trajectory.subset(self.published) if published_only else self.trajectory
+        return sample(traj, self.time_s(ros_ns))[0]
 
     def joined_by(self, trajectory: Trajectory, published, start_ns: int) -> "Executing":
-        """The record of a trajectory joined to this one at ``start_ns`` (one trajectory
-        back is kept: a recent joint state lies on it or on this one)."""
-        return Executing(trajectory, np.asarray(published), int(start_ns),
-                         Executing(self.trajectory, self.published, self.start_ns))
+        """The record of a trajectory joined to this one at ``start_ns``.  The chain of the
+        trajectories it replaced is kept back to the one on which any joint state that
+        can still count (``MAX_STATE_AGE_S``, and a join is at most a published points'
+        spacing ahead) was taken: links whose successor started over 2 s before are cut."""
+        keep, link = [], self
+        horizon_ns = int(start_ns) - 2 * 1_000_000_000
+        successor_start = int(start_ns)
+        while link is not None and successor_start >= horizon_ns:
+            keep.append(link)
+            successor_start, link = link.start_ns, link.previous
+        prev = None
+        for e in reversed(keep):
+            prev = Executing(e.trajectory, e.published, e.start_ns, prev)
+        return Executing(trajectory, np.asarray(published), int(start_ns), prev)
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,7 +170,8 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     if measured_ns < executing.first_start_ns():
         return q, None, ("no joint_states since the trajectory started (no sign that the arm follows it): "
                          "planned from the last one, at rest")
-    off = np.abs(difference_rad(q, executing.expected_at(measured_ns), periodic))
+    off = min((np.abs(difference_rad(q, executing.expected_at(measured_ns, lin), periodic)) for lin in (False, True)),
+              key=lambda d: float(d.max()))
     if float(off.max()) > follow_tolerance_rad:
         j = int(np.argmax(off))
         return q, None, (f"the arm does not follow its trajectory ({traj.joint_names[j]} "
@@ -152,7 +181,37 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     return join.start_rad, join, None
 
 
-def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0.02):
+def _turn_rad(path, i):
+    """Angle between the path's directions into and out of row ``i``, rad."""
+    d0, d1 = path[i] - path[i - 1], path[i + 1] - path[i]
+    n = np.linalg.norm(d0) * np.linalg.norm(d1)
+    return 0.0 if n <= 0.0 else float(np.arccos(np.clip(d0 @ d1 / n, -1.0, 1.0)))
+
+
+def _corner_blends(path, corner, first, step_rad):
+    """Candidate paths: rows ``a = corner - m`` to ``b = corner + m`` of ``path`` (M, n)
+    replaced by a cubic Hermite curve with the path's directions at a and b (tangents
+    scaled to the chord), samples ≤ ``step_rad`` apart; rows before ``first`` are kept.
+    Yields (a, b, candidate path)."""
+    for m in BLEND_SAMPLES:
+        a, b = max(first, corner - m), min(len(path) - 2, corner + m)
+        if a >= corner or b <= corner or a < 1:
+            continue
+        p0, p1 = path[a], path[b]
+        d0, d1 = path[a] - path[a - 1], path[b + 1] - path[b]
+        n0, n1, chord = np.linalg.norm(d0), np.linalg.norm(d1), np.linalg.norm(p1 - p0)
+        if n0 <= 1e-12 or n1 <= 1e-12 or chord <= 1e-12:
+            continue
+        t0, t1 = d0 * (chord / n0), d1 * (chord / n1)
+        k = max(2, int(np.ceil(1.5 * chord / step_rad)))
+        u = np.linspace(0.0, 1.0, k + 1)[:, None]
+        curve = ((2 * u ** 3 - 3 * u ** 2 + 1) * p0 + (u ** 3 - 2 * u ** 2 + u) * t0
+                 + (-2 * u ** 3 + 3 * u ** 2) * p1 + (u ** 3 - u ** 2) * t1)
+        curve[0], curve[-1] = p0, p1
+        yield a, b, np.vstack([path[:a], curve, path[b + 1:]])
+
+
+def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0.02, checker=None):
     """The trajectory to publish for a plan that started at ``join.start_rad``.
 
     Args:
@@ -161,6 +220,8 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
         path_rad: (M, n) the new plan's path, from the horizon point.
         now_ns: ROS time now, ns.
         lead_s: the join is at least this far in the future (the message's transit), s.
+        checker: ``collision.CollisionChecker`` of the scenario's scene (made when None),
+            to certify the corner blends.
     Returns:
         (trajectory.Trajectory, dynamics.ReactionReport or None, stamp_ns, Continuation):
         the trajectory from the join (time 0) through the horizon point to the new goal,
@@ -177,7 +238,7 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
     new = align_to_state(np.asarray(path_rad, dtype=float), c.prefix_rad[-1], scenario.robot.planned_periodic)
     stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
     try:
-        traj, reaction = timed_motion(scenario, c.join(new), start_path_speed=c.start_path_speed)
+        traj, reaction = _fastest_through_corner(scenario, c, new, checker)
     except ValueError:
         last = len(ex.trajectory) - 1
         if join.horizon_index != last:
@@ -187,3 +248,36 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
         after, reaction = timed_motion(scenario, new)
         traj = rest.then(after)
     return traj, reaction, stamp_ns, c
+
+
+def _fastest_through_corner(scenario, c, new, checker):
+    """(trajectory, reaction) of the fastest of: the joined path with its corner at the
+    horizon point, and its certified corner blends; ValueError when none can be entered
+    at the join's speed."""
+    from .collision import CollisionChecker
+    from .motion import check_path
+    from .pipeline import timed_motion
+    from .trajectory import densify_path
+    robot = scenario.robot
+    path = densify_path(c.join(new))
+    corner = len(densify_path(c.prefix_rad)) - 1
+    best, err = None, None
+    candidates = [path]
+    if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:
+        checker = checker or CollisionChecker(robot, scenario.scene)
+        bounds = (robot.planned_lower_rad, robot.planned_upper_rad, robot.planned_periodic)
+        for a, b, cand in _corner_blends(path, corner, 1, np.radians(0.5)):
+            piece = cand[a - 1:len(cand) - (len(path) - b) + 2]
+            if check_path(checker, piece, *bounds).ok:
+                candidates.append(cand)
+    for cand in candidates:
+        try:
+            got = timed_motion(scenario, cand, start_path_speed=c.start_path_speed)
+        except ValueError as e:
+            err = err or e
+            continue
+        if best is None or got[0].duration_s < best[0].duration_s:
+            best = got
+    if best is None:
+        raise err
+    return best

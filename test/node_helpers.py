@@ -53,6 +53,11 @@ class Graph:
     that publishes inputs and records every output (with its arrival time)."""
 
     def __init__(self, flat, with_arm=True, wait_subscribed=True):
+        if not with_arm:
+            # nothing follows the trajectories: a replan starts at the published joint state.
+            # (The node cannot tell a still arm from one that follows a trajectory that has just
+            # begun; it would join that trajectory, as for an arm following it.)
+            flat = {"replan.horizon_s": 0.0, **flat}
         self.ctx = Context()
         rclpy.init(context=self.ctx)
         self.flat = flat

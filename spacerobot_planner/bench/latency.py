@@ -4,17 +4,23 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
 - ``latency_target``: a new ``target_pose`` (each repeat a new pose, so the C-space and
   the field are rebuilt) → the ``joint_trajectory`` message (aim < 150 ms at 36³);
 - ``latency_joint_state``: a new ``joint_states`` + ``~/replan`` (C-space and field
-  cached) → the ``joint_trajectory`` message (aim < 20 ms).
+  cached) → the ``joint_trajectory`` message (aim < 20 ms);
+- ``latency_moving``: with the mock arm moving on the node's trajectory (the file's
+  limits), a new target (1 cm away) → the ``joint_trajectory`` message; the table also
+  gives how many replans were joined to the moving arm and the largest velocity step
+  the mock arm recorded at a switch (between two joint_states, deg/s, less what the
+  acceleration limits allow in that time);
+- ``message``: building the published messages (resample + certify + JointTrajectory)
+  for the last trajectory, and the message of the dense trajectory for comparison.
 
-Median of ``--repeats`` after one warm-up plan.  Prints a table and one JSON object
-per line.  ``python -m spacerobot_planner.bench latency [--cells 36] [--repeats 7]``
+Median, p90 and max of ``--repeats`` after one warm-up plan.  Prints a table and one JSON
+object per line.  ``python -m spacerobot_planner.bench latency [--cells 36] [--repeats 7]``
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import threading
 import time
 from pathlib import Path
@@ -31,6 +37,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--in-process", action="store_true",
                     help="plan in the worker thread instead of the child process")
+    ap.add_argument("--no-moving", action="store_true", help="skip the latency_moving stage (mock arm)")
     args = ap.parse_args(argv)
 
     import os
@@ -59,15 +66,8 @@ def main(argv=None) -> int:
     ex = SingleThreadedExecutor(context=ctx)     # as planner_node.main
     ex.add_node(node)
     ex.add_node(drv)
-    got = []
-    cond = threading.Condition()
-
-    def on_traj(msg):
-        with cond:
-            got.append(time.perf_counter())
-            cond.notify_all()
-
-    drv.create_subscription(JointTrajectory, "joint_trajectory", on_traj, 10)
+    got = _Arrivals(node)
+    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
     pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
     pub_js = drv.create_publisher(JointState, "joint_states", 10)
     cli = drv.create_client(Trigger, "/spacerobot_planner/replan")
@@ -78,14 +78,6 @@ def main(argv=None) -> int:
         while pub_t.get_subscription_count() == 0 or pub_js.get_subscription_count() == 0:
             time.sleep(0.02)
         cli.wait_for_service(10.0)
-
-        def wait_traj(n, timeout=120.0):
-            with cond:
-                ok = cond.wait_for(lambda: len(got) >= n, timeout)
-            if not ok:
-                raise RuntimeError(f"no trajectory within {timeout} s (state {node.state}, "
-                                   f"error {node.last_error})")
-            return got[n - 1]
 
         q_full = robot.full(sc.start_rad)
         pub_js.publish(joint_state_msg(robot.joint_names, q_full))
@@ -99,13 +91,13 @@ def main(argv=None) -> int:
             return m
 
         pub_t.publish(target(0))                                  # warm-up (process start, JIT cache)
-        wait_traj(1)
+        got.wait(1)
         lat_t = []
         for i in range(1, args.repeats + 1):
             n = len(got)
             t0 = time.perf_counter()
             pub_t.publish(target(i))
-            lat_t.append(wait_traj(n + 1) - t0)
+            lat_t.append(got.wait(n + 1) - t0)
             time.sleep(0.05)
         lat_j = []
         rng = np.random.default_rng(0)
@@ -119,13 +111,15 @@ def main(argv=None) -> int:
             while node._joint_q is None or not np.allclose(node._joint_q, q[list(robot.planned_joints)]):
                 time.sleep(0.0005)
             cli.call_async(Trigger.Request())
-            lat_j.append(wait_traj(n + 1) - t0)
+            lat_j.append(got.wait(n + 1) - t0)
             time.sleep(0.05)
         cached = node.last_result.cached
         grid = sc.grid.label()
-        for stage, vals, aim in (("latency_target", lat_t, 0.150), ("latency_joint_state", lat_j, 0.020)):
-            rows.append({"stage": stage, "grid": grid, "seconds": statistics.median(vals),
-                         "min_s": min(vals), "max_s": max(vals), "repeats": len(vals), "aim_s": aim,
+        msg_s = _message_times(node, sc, args.repeats)
+        stages = [("latency_target", lat_t, 0.150), ("latency_joint_state", lat_j, 0.020),
+                  ("message_published", msg_s[0], None), ("message_dense", msg_s[1], None)]
+        for stage, vals, aim in stages:
+            rows.append({"stage": stage, "grid": grid, **_stats(vals), "aim_s": aim,
                          "backend": "thread" if args.in_process else "process",
                          **({"cached": list(cached)} if stage == "latency_joint_state" else {})})
     finally:
@@ -135,13 +129,147 @@ def main(argv=None) -> int:
         node.destroy_node()
         drv.destroy_node()
         rclpy.shutdown(context=ctx)
-    print(f"{'stage':<22}{'grid':<12}{'median ms':>10}{'min ms':>9}{'max ms':>9}{'aim ms':>8}")
+    if not args.no_moving:
+        rows.append(_moving(args, flat))
+    print(f"{'stage':<22}{'grid':<12}{'median ms':>10}{'p90 ms':>9}{'max ms':>9}{'aim ms':>8}")
     for r in rows:
-        print(f"{r['stage']:<22}{r['grid']:<12}{1e3 * r['seconds']:>10.1f}{1e3 * r['min_s']:>9.1f}"
-              f"{1e3 * r['max_s']:>9.1f}{1e3 * r['aim_s']:>8.0f}")
+        aim = "" if r["aim_s"] is None else f"{1e3 * r['aim_s']:.0f}"
+        print(f"{r['stage']:<22}{r['grid']:<12}{1e3 * r['seconds']:>10.1f}{1e3 * r['p90_s']:>9.1f}"
+              f"{1e3 * r['max_s']:>9.1f}{aim:>8}")
+    for r in rows:
+        if "joined" in r:
+            print(f"latency_moving: {r['joined']} of {r['repeats']} replans joined to the moving arm; "
+                  f"largest velocity step at a switch {r['velocity_step_deg_s']:.3f}°/s beyond the "
+                  f"acceleration limits (arm at up to {r['arm_speed_deg_s']:.2f}°/s)")
     for r in rows:
         print(json.dumps(r))
     return 0
+
+
+class _Arrivals:
+    """A joint_trajectory subscriber's callback: arrival times (perf_counter, s)."""
+
+    def __init__(self, node):
+        self.node = node
+        self.times = []
+        self.cond = threading.Condition()
+
+    def __call__(self, msg):
+        with self.cond:
+            self.times.append(time.perf_counter())
+            self.cond.notify_all()
+
+    def __len__(self):
+        with self.cond:
+            return len(self.times)
+
+    def wait(self, n, timeout=120.0) -> float:
+        """The arrival time of the n-th trajectory (waits for it)."""
+        with self.cond:
+            if not self.cond.wait_for(lambda: len(self.times) >= n, timeout):
+                raise RuntimeError(f"no trajectory within {timeout} s (state {self.node.state})")
+            return self.times[n - 1]
+
+
+def _stats(vals) -> dict:
+    v = np.asarray(vals, dtype=float)
+    return {"seconds": float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "min_s": float(v.min()),
+            "max_s": float(v.max()), "repeats": int(len(v))}
+
+
+def _message_times(node, sc, repeats):
+    """(seconds to resample + certify + build the published messages, seconds to build the
+    dense trajectory's message), ``repeats`` each, for the node's last plan."""
+    from ..collision import CollisionChecker
+    from ..pipeline import timed_motion
+    from ..ros import conversions as conv
+    from ..trajectory import resample
+    dense, _ = timed_motion(sc, node.last_result.path_rad)
+    checker = CollisionChecker(sc.robot, node._scenario.scene if node._target is None
+                               else node._scenario.scene.with_target(node._target))
+    pub, full = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        rs = resample(dense, checker, time_step_s=0.25)
+        node._split(conv.trajectory_to_msg(rs.trajectory), rs.trajectory)
+        pub.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        node._split(conv.trajectory_to_msg(dense), dense)
+        full.append(time.perf_counter() - t0)
+    return pub, full
+
+
+def _moving(args, flat) -> dict:
+    """The latency_moving row: planner + mock arm; the arm moving, new targets."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory
+
+    from ..config import scenario_from_params
+    from ..ros.mock_arm_node import MockArmNode
+    from ..ros.parameters import MOCK_ARM_PARAMETERS
+    from ..ros.planner_node import PlannerNode, params_to_overrides
+
+    sc = scenario_from_params(flat)
+    amax = np.radians(np.asarray(flat.get("trajectory.max_acceleration_deg_s2", [5.0, 20.0, 20.0])))
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat))
+    arm = MockArmNode(context=ctx, parameter_overrides=params_to_overrides(flat, MOCK_ARM_PARAMETERS))
+    drv = rclpy.create_node("latency_moving_driver", context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    for n in (node, arm, drv):
+        ex.add_node(n)
+    got, states = _Arrivals(node), []
+    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
+    drv.create_subscription(JointState, "joint_states", states.append, 100)
+    pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
+    spin = threading.Thread(target=ex.spin, daemon=True)
+    spin.start()
+
+    def target(dx):
+        m = PoseStamped()
+        m.header.frame_id = sc.planning_frame
+        m.pose.position.x, m.pose.position.y = -3.27 + dx, -2.60
+        m.pose.orientation.w = 1.0
+        return m
+
+    lat, joined = [], 0
+    try:
+        while pub_t.get_subscription_count() == 0:
+            time.sleep(0.02)
+        pub_t.publish(target(0.0))
+        got.wait(1)
+        time.sleep(2.0)                          # the arm under way
+        for i in range(args.repeats):
+            n = len(got)
+            t0 = time.perf_counter()
+            pub_t.publish(target(0.01 * ((i % 2) + 1)))
+            lat.append(got.wait(n + 1) - t0)
+            time.sleep(0.05)
+            if str(node.last_outcome.values.get("joined_moving_arm", "no")).startswith("yes"):
+                joined += 1
+            time.sleep(1.2)                      # the switch happens, the arm goes on
+        msgs = [m for m in states if len(m.velocity) == len(m.name)]
+    finally:
+        node.shutdown_worker()
+        ex.shutdown()
+        spin.join(5.0)
+        for n in (node, arm, drv):
+            n.destroy_node()
+        rclpy.shutdown(context=ctx)
+    idx = [list(msgs[0].name).index(j) for j in sc.robot.planned_names]
+    t = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs])
+    v = np.array([[m.velocity[i] for i in idx] for m in msgs])
+    dt = np.diff(t)
+    step = np.abs(np.diff(v, axis=0)) - amax[None, :] * dt[:, None]
+    return {"stage": "latency_moving", "grid": sc.grid.label(), **_stats(lat), "aim_s": None,
+            "joined": joined, "velocity_step_deg_s": float(np.degrees(max(0.0, step.max()))),
+            "arm_speed_deg_s": float(np.degrees(np.abs(v).max())),
+            "backend": "thread" if args.in_process else "process"}
 
 
 if __name__ == "__main__":

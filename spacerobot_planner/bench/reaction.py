@@ -8,7 +8,11 @@ when ``toppra`` is installed (a test dependency), TOPP-RA's on the same samples 
 finer); the wheel momentum and torque peaks with the attitude held; durations with the
 momentum limit, the torque limit and both; the free-floating attitude change, body
 displacement and tip miss; resampled point counts; the median time of
-``time_parameterize`` and ``reaction_report``.  Prints a table, then one JSON object per line.
+``time_parameterize`` and ``reaction_report``; and the largest joint acceleration (and
+velocity) over the limit *between* the points when a controller interpolates them as
+ros2_control's joint_trajectory_controller does (cubic from positions and velocities,
+quintic with the accelerations too), for the dense trajectory and the one the node
+publishes (resampled at 0.25 s).  Prints a table, then one JSON object per line.
 """
 
 from __future__ import annotations
@@ -46,6 +50,34 @@ def _toppra_s(path, vmax, amax):
                                    gridpoints=np.linspace(0.0, s[-1], 16 * len(path) + 1),
                                    parametrizer="ParametrizeConstAccel")
     return float(algo.compute_trajectory(0.0, 0.0).duration)
+
+
+def interpolated_ratios(traj, quintic: bool, samples: int = 40):
+    """(largest |acceleration| / limit, largest |velocity| / limit) over the joints and
+    over ``samples`` instants per interval, when the points are interpolated by cubic
+    (positions, velocities) or quintic (…, accelerations) polynomials in time."""
+    t, q, v, a = traj.times_s, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2
+    T = np.diff(t)[:, None]
+    p0, p1, v0, v1, a0, a1 = q[:-1], q[1:], v[:-1], v[1:], a[:-1], a[1:]
+    if not quintic:
+        a0 = a1 = np.zeros_like(p0)
+    if quintic:
+        c3 = (-20 * p0 + 20 * p1 - 3 * a0 * T ** 2 + a1 * T ** 2 - 12 * v0 * T - 8 * v1 * T) / (2 * T ** 3)
+        c4 = (30 * p0 - 30 * p1 + 3 * a0 * T ** 2 - 2 * a1 * T ** 2 + 16 * v0 * T + 14 * v1 * T) / (2 * T ** 4)
+        c5 = (-12 * p0 + 12 * p1 - a0 * T ** 2 + a1 * T ** 2 - 6 * v0 * T - 6 * v1 * T) / (2 * T ** 5)
+        c2 = 0.5 * a0
+    else:
+        c2 = (-3 * p0 + 3 * p1 - 2 * v0 * T - v1 * T) / T ** 2
+        c3 = (2 * p0 - 2 * p1 + v0 * T + v1 * T) / T ** 3
+        c4 = c5 = np.zeros_like(p0)
+    worst_a, worst_v = 0.0, 0.0
+    for f in np.linspace(0.0, 1.0, samples):
+        x = f * T
+        acc = 2 * c2 + 6 * c3 * x + 12 * c4 * x ** 2 + 20 * c5 * x ** 3
+        vel = v0 + 2 * c2 * x + 3 * c3 * x ** 2 + 4 * c4 * x ** 3 + 5 * c5 * x ** 4
+        worst_a = max(worst_a, float(np.max(np.abs(acc) / traj.max_acceleration_rad_s2)))
+        worst_v = max(worst_v, float(np.max(np.abs(vel) / traj.max_velocity_rad_s)))
+    return worst_a, worst_v
 
 
 def _median_s(fn, repeats):
@@ -89,6 +121,11 @@ def main(argv=None) -> int:
                    held_tip_miss_m=rep.held_tip_miss_m)
         checker = CollisionChecker(robot, sc.scene)
         row["resampled_points"] = len(resample(traj, checker).trajectory)
+        published = resample(traj, checker, time_step_s=0.25).trajectory
+        for label, tr in (("dense", traj), ("published", published)):
+            for kind in ("cubic", "quintic"):
+                ra, rv = interpolated_ratios(tr, kind == "quintic")
+                row[f"{kind}_{label}_max_acc_ratio"], row[f"{kind}_{label}_max_vel_ratio"] = ra, rv
         row["seconds"] = _median_s(lambda: time_parameterize(path, vmax, amax), args.repeats)
         row["seconds_with_wheel"] = _median_s(
             lambda: time_parameterize(path, vmax, amax, wheel=WheelModel(robot, masses, *args.wheel)), args.repeats)
@@ -104,6 +141,12 @@ def main(argv=None) -> int:
               f"{r['duration_torque_limit_s']:.2f}/{r['duration_both_limit_s']:.2f} "
               f"{r['ff_attitude_change_deg']:6.2f}° {r['ff_tip_miss_m']:7.3f}m "
               f"{r['points']:4d}→{r['resampled_points']:<4d} {1e3 * r['seconds']:6.1f}")
+    print("between the points, interpolated as joint_trajectory_controller does (largest |a| / limit, "
+          "|v| / limit):")
+    for r in rows:
+        print(f"  {r['grid']:12} " + "; ".join(
+            f"{kind} {label} {r[f'{kind}_{label}_max_acc_ratio']:.3f} / {r[f'{kind}_{label}_max_vel_ratio']:.3f}"
+            for label in ("dense", "published") for kind in ("cubic", "quintic")))
     for r in rows:
         print(json.dumps(r))
     return 0

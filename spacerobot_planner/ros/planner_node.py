@@ -760,12 +760,13 @@ class PlannerNode(LifecycleNode):
         if req.on_progress is not None:
             req.on_progress(_progress("trajectory"))
         stamp_ns, joined = None, "no (the arm at rest)"
+        checker = CollisionChecker(sc.robot, sc.scene)
         try:
             if join is None:
                 traj, reaction = timed_motion(req.scenario, res.path_rad, start_raw)
             else:
                 traj, reaction, stamp_ns, c = joined_motion(req.scenario, join, res.path_rad,
-                                                            self.get_clock().now().nanoseconds)
+                                                            self.get_clock().now().nanoseconds, checker=checker)
                 joined = (f"yes, {c.join_time_s:.3f} s into the executing trajectory at "
                           f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s")
         except HorizonPassed:
@@ -780,7 +781,7 @@ class PlannerNode(LifecycleNode):
         # fewer points, same guarantee: a subset of the points within 0.1° of the dense path
         # and at most RESAMPLE_STEP_S apart, its polyline certified on the exact geometry
         dense, published = traj, np.arange(len(traj))
-        rs = resample(traj, CollisionChecker(sc.robot, sc.scene), time_step_s=RESAMPLE_STEP_S)
+        rs = resample(traj, checker, time_step_s=RESAMPLE_STEP_S)
         if rs.ok:
             traj, published = rs.trajectory, rs.indices
         dropped = self._superseded_by(req)

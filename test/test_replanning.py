@@ -1,0 +1,172 @@
+"""replanning.py: where a replan starts (the arm following its trajectory or not) and the
+joined trajectory (exact state of the executing trajectory at the join, its certified
+points to the horizon, limits by the test's own finite differences)."""
+
+import numpy as np
+import pytest
+from scipy.interpolate import CubicSpline
+
+from paper_paths import joint_limits
+from test_collision import shapely_clearance
+from test_trajectory import _check
+
+from spacerobot_planner.pipeline import timed_motion
+from spacerobot_planner.replanning import BLEND_SAMPLES, Executing, joined_motion, plan_start
+from spacerobot_planner.trajectory import HorizonPassed, resample
+
+PERIODIC = (True, False, False)
+S = 1_000_000_000          # ns per s
+
+
+@pytest.fixture(scope="module")
+def executing(paper_scenario, paper_path):
+    sc = paper_scenario(3)
+    first, _ = timed_motion(sc, paper_path(3))
+    rs = resample(first, None, time_step_s=0.25)
+    return sc, Executing(first, rs.indices, 100 * S)
+
+
+def _new_path(a, turn_deg=(20.0, -15.0, 10.0)):
+    """A smooth path from ``a`` to another goal (rad), 200 points."""
+    goal = a + np.radians(turn_deg)
+    knots = np.vstack([a, a + 0.5 * (goal - a) + np.radians([5.0, 5.0, -5.0]), goal])
+    new = CubicSpline([0.0, 0.5, 1.0], knots)(np.linspace(0.0, 1.0, 200))
+    new[0] = a
+    return new
+
+
+def test_a_following_arm_starts_the_plan_on_its_trajectory(executing):
+    _, ex = executing
+    traj = ex.trajectory
+    t_now = 0.3 * traj.duration_s
+    now = ex.start_ns + int(t_now * S)
+    measured = traj.positions_rad[np.searchsorted(traj.times_s, t_now - 0.01)]
+    start, join, why = plan_start(ex, now, measured + np.radians(0.5), now - S // 100, 1.0, np.radians(2.0),
+                                  PERIODIC)
+    assert why is None and join is not None
+    assert traj.times_s[join.horizon_index] >= t_now + 1.0 > traj.times_s[join.horizon_index - 1]
+    np.testing.assert_array_equal(start, traj.positions_rad[join.horizon_index])
+
+
+@pytest.mark.parametrize("case", ["pushed_away", "stale", "before_start", "finished", "no_horizon"])
+def test_otherwise_the_plan_starts_at_the_measured_state(executing, case):
+    _, ex = executing
+    traj = ex.trajectory
+    now = ex.start_ns + int(0.3 * traj.duration_s * S)
+    q = traj.positions_rad[np.searchsorted(traj.times_s, 0.3 * traj.duration_s)].copy()
+    measured_ns, horizon = now - S // 100, 1.0
+    if case == "pushed_away":
+        q[2] += np.radians(3.0)
+    elif case == "stale":
+        measured_ns = now - S
+    elif case == "before_start":                      # the trajectory began 0.05 s ago
+        now, measured_ns = ex.start_ns + S // 20, ex.start_ns - S // 10
+    elif case == "finished":
+        now = ex.start_ns + int((traj.duration_s + 1.0) * S)
+        measured_ns = now - S // 100
+    else:
+        horizon = 0.0
+    start, join, why = plan_start(ex, now, q, measured_ns, horizon, np.radians(2.0), PERIODIC)
+    assert join is None
+    np.testing.assert_array_equal(start, q)
+    expect = {"pushed_away": "elbow 3.00°", "stale": "1.00 s old", "before_start": "since the trajectory started",
+              "finished": None, "no_horizon": None}[case]
+    assert (why is None) if expect is None else (expect in why), why
+
+
+def test_a_periodic_attitude_a_turn_away_still_follows(executing):
+    _, ex = executing
+    traj = ex.trajectory
+    now = ex.start_ns + int(0.3 * traj.duration_s * S)
+    q = traj.positions_rad[np.searchsorted(traj.times_s, 0.3 * traj.duration_s)] + np.array([2 * np.pi, 0, 0])
+    _, join, why = plan_start(ex, now, q, now, 1.0, np.radians(2.0), PERIODIC)
+    assert join is not None and why is None
+
+
+@pytest.mark.parametrize("frac", [0.1, 0.5, 0.85])
+def test_the_joined_trajectory_continues_the_executing_one(executing, frac):
+    sc, ex = executing
+    old = ex.trajectory
+    vmax, amax = joint_limits(sc)
+    now = ex.start_ns + int(frac * old.duration_s * S)
+    start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, frac * old.duration_s)],
+                                now, 1.0, np.radians(2.0), PERIODIC)
+    new = _new_path(start)
+    later = now + S // 5                              # the plan took 0.2 s
+    lead_s = 0.02
+    traj, _, stamp_ns, c = joined_motion(sc, join, new, later, lead_s=lead_s)
+    # the join: the first published point of the executing trajectory lead_s after "later"
+    assert c.index in set(ex.published.tolist())
+    assert stamp_ns == ex.start_ns + int(round(old.times_s[c.index] * S)) and stamp_ns >= later + lead_s * S
+    pub_times = old.times_s[ex.published]
+    assert not np.any((pub_times >= 1e-9 * (later - ex.start_ns) + lead_s)
+                      & (pub_times < old.times_s[c.index] - 1e-12))
+    np.testing.assert_array_equal(traj.positions_rad[0], old.positions_rad[c.index])
+    v_old = old.velocities_rad_s[c.index]
+    assert np.linalg.norm(v_old) > np.radians(0.5)
+    assert np.all(np.abs(traj.velocities_rad_s[0] - v_old) <= 1e-3 * vmax)
+    # the executing path towards the horizon point (up to where a corner blend may begin),
+    # then the new path to its goal; collision-free by shapely at every point
+    m = max(1, join.horizon_index - c.index + 1 - max(BLEND_SAMPLES))
+    np.testing.assert_array_equal(traj.positions_rad[:m], old.positions_rad[c.index:c.index + m])
+    np.testing.assert_array_equal(traj.positions_rad[-1], new[-1])
+    _check(traj, np.vstack([traj.positions_rad[0], new[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+    assert min(shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad[::3]) > sc.scene.safety_margin_m
+
+
+def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing):
+    """The planner's path from the horizon point to a target 10 cm away leaves it in
+    another direction; the arm keeps most of its speed through that corner (the blend),
+    and the joined motion stays collision-free (shapely) and within the limits."""
+    from spacerobot_planner.planner import Planner
+    from spacerobot_planner.scene import Target
+    sc, ex = executing
+    old = ex.trajectory
+    vmax, amax = joint_limits(sc)
+    t = 0.5 * old.duration_s
+    now = ex.start_ns + int(t * S)
+    start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, t)], now, 1.0,
+                                np.radians(2.0), PERIODIC)
+    moved = sc.with_scene(sc.scene.with_target(Target(center_m=(-3.17, -2.60), yaw_rad=0.0)))
+    res = Planner(moved).plan(start)
+    assert res.ok
+    traj, _, _, c = joined_motion(moved, join, res.path_rad, now + S // 20)
+    speed_then = float(np.linalg.norm(old.velocities_rad_s[join.horizon_index]))
+    near = np.abs(traj.times_s - (old.times_s[join.horizon_index] - c.join_time_s)) < 1.5
+    slowest = float(np.min(np.linalg.norm(traj.velocities_rad_s[near], axis=1)))
+    print(f"\narm speed at the horizon point {np.degrees(speed_then):.2f}°/s; slowest within 1.5 s of it "
+          f"{np.degrees(slowest):.2f}°/s")
+    assert slowest >= 0.75 * speed_then
+    _check(traj, np.vstack([traj.positions_rad[0], res.path_rad[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+    clr = min(shapely_clearance(sc.robot, moved.scene, q) for q in traj.positions_rad)
+    assert clr > moved.scene.safety_margin_m
+
+
+def test_a_plan_that_took_longer_than_the_horizon_is_refused(executing):
+    sc, ex = executing
+    old = ex.trajectory
+    now = ex.start_ns + int(0.3 * old.duration_s * S)
+    start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, 0.3 * old.duration_s)],
+                                now, 1.0, np.radians(2.0), PERIODIC)
+    with pytest.raises(HorizonPassed, match="behind the arm"):
+        joined_motion(sc, join, _new_path(start), now + 2 * S)
+
+
+def test_at_the_horizon_of_the_end_a_remainder_then_the_new_motion(executing):
+    """The horizon at the executing trajectory's goal: whatever the new path does there
+    (here it turns straight back), the published motion continues the old one and ends
+    at the new goal, within the limits."""
+    sc, ex = executing
+    old = ex.trajectory
+    vmax, amax = joint_limits(sc)
+    t = old.duration_s - 0.8
+    now = ex.start_ns + int(t * S)
+    start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, t)], now, 5.0,
+                                np.radians(2.0), PERIODIC)
+    assert join.horizon_index == len(old) - 1
+    back = old.positions_rad[::-1][:60]                 # straight back along the old path
+    traj, _, _, c = joined_motion(sc, join, back, now)
+    np.testing.assert_array_equal(traj.positions_rad[0], old.positions_rad[c.index])
+    assert np.all(np.abs(traj.velocities_rad_s[0] - old.velocities_rad_s[c.index]) <= 1e-3 * vmax)
+    np.testing.assert_array_equal(traj.positions_rad[-1], back[-1])
+    _check(traj, np.vstack([traj.positions_rad[0], back[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
