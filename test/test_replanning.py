@@ -1,6 +1,10 @@
-"""replanning.py: where a replan starts (the arm following its trajectory or not) and the
-joined trajectory (exact state of the executing trajectory at the join, its certified
-points to the horizon, limits by the test's own finite differences)."""
+"""
+Tests of replanning.py.
+
+Where a replan starts (the arm following its trajectory or not) and the joined trajectory (exact
+state of the executing trajectory at the join, its certified points to the horizon, limits by the
+test's own finite differences).
+"""
 
 import numpy as np
 import pytest
@@ -27,7 +31,7 @@ def executing(paper_scenario, paper_path):
 
 
 def _new_path(a, turn_deg=(20.0, -15.0, 10.0)):
-    """A smooth path from ``a`` to another goal (rad), 200 points."""
+    """Return a smooth path from ``a`` to another goal (rad), 200 points."""
     goal = a + np.radians(turn_deg)
     knots = np.vstack([a, a + 0.5 * (goal - a) + np.radians([5.0, 5.0, -5.0]), goal])
     new = CubicSpline([0.0, 0.5, 1.0], knots)(np.linspace(0.0, 1.0, 200))
@@ -115,9 +119,12 @@ def test_the_joined_trajectory_continues_the_executing_one(executing, frac):
 
 
 def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing):
-    """The planner's path from the horizon point to a target 10 cm away leaves it in
-    another direction; the arm keeps most of its speed through that corner (the blend),
-    and the joined motion stays collision-free (shapely) and within the limits."""
+    """
+    The planner's path from the horizon point to a target 10 cm away leaves it in another direction.
+
+    The arm keeps most of its speed through that corner (the blend), and the joined motion stays
+    collision-free (shapely) and within the limits.
+    """
     from spacerobot_planner.planner import Planner
     from spacerobot_planner.scene import Target
     sc, ex = executing
@@ -153,9 +160,12 @@ def test_a_plan_that_took_longer_than_the_horizon_is_refused(executing):
 
 
 def test_at_the_horizon_of_the_end_a_remainder_then_the_new_motion(executing):
-    """The horizon at the executing trajectory's goal: whatever the new path does there
-    (here it turns straight back), the published motion continues the old one and ends
-    at the new goal, within the limits."""
+    """
+    The horizon at the executing trajectory's goal.
+
+    Whatever the new path does there (here it turns straight back), the published motion continues
+    the old one and ends at the new goal, within the limits.
+    """
     sc, ex = executing
     old = ex.trajectory
     vmax, amax = joint_limits(sc)

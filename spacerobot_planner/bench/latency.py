@@ -164,7 +164,7 @@ class _Arrivals:
             return len(self.times)
 
     def wait(self, n, timeout=120.0) -> float:
-        """The arrival time of the n-th trajectory (waits for it)."""
+        """Return the arrival time of the n-th trajectory (waits for it)."""
         with self.cond:
             if not self.cond.wait_for(lambda: len(self.times) >= n, timeout):
                 raise RuntimeError(f"no trajectory within {timeout} s (state {self.node.state})")
@@ -178,8 +178,12 @@ def _stats(vals) -> dict:
 
 
 def _message_times(node, sc, repeats):
-    """(seconds to resample + certify + build the published messages, seconds to build the
-    dense trajectory's message), ``repeats`` each, for the node's last plan."""
+    """
+    Time the building of the published and the dense messages for the node's last plan.
+
+    (seconds to resample + certify + build the published messages, seconds to build the dense
+    trajectory's message), ``repeats`` each, for the node's last plan.
+    """
     from ..collision import CollisionChecker
     from ..pipeline import timed_motion
     from ..ros import conversions as conv
@@ -200,7 +204,7 @@ def _message_times(node, sc, repeats):
 
 
 def _moving(args, flat) -> dict:
-    """The latency_moving row: planner + mock arm; the arm moving, new targets."""
+    """Measure the latency_moving row: planner + mock arm; the arm moving, new targets."""
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.context import Context

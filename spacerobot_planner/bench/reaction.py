@@ -53,9 +53,13 @@ def _toppra_s(path, vmax, amax):
 
 
 def interpolated_ratios(traj, quintic: bool, samples: int = 40):
-    """(largest |acceleration| / limit, largest |velocity| / limit) over the joints and
-    over ``samples`` instants per interval, when the points are interpolated by cubic
-    (positions, velocities) or quintic (…, accelerations) polynomials in time."""
+    """
+    Return the largest acceleration and velocity ratios to the limits between the points.
+
+    (largest |acceleration| / limit, largest |velocity| / limit) over the joints and over
+    ``samples`` instants per interval, when the points are interpolated by cubic (positions,
+    velocities) or quintic (…, accelerations) polynomials in time.
+    """
     t, q, v, a = traj.times_s, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2
     T = np.diff(t)[:, None]
     p0, p1, v0, v1, a0, a1 = q[:-1], q[1:], v[:-1], v[1:], a[:-1], a[1:]
