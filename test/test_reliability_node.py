@@ -532,9 +532,9 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
     The process exits within the bound, child included.
     """
     log = tmp_path / "planner_node.log"
-    # SIGINT as in a terminal even when this test process ignores it by now (seen under `colcon test`:
-    # SIGHUP, SIGINT and SIGQUIT ignored after the earlier tests), since an ignored signal stays
-    # ignored across exec
+    # SIGINT as in a terminal even when the test run was started with SIGINT ignored (e.g. `make test &`
+    # or `nohup colcon test &` from a script: a background job of a non-interactive shell ignores
+    # SIGINT and SIGQUIT), since an ignored signal stays ignored across exec
     cmd = [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
            "from spacerobot_planner.ros.planner_node import main; sys.exit(main())",
            "--ros-args", "--params-file", os.path.join(CONFIG_DIR, "paper_3dof.yaml"),
