@@ -1,4 +1,5 @@
-"""Replanning from a moving arm: where a new plan starts, and how its trajectory joins.
+"""
+Replanning from a moving arm: where a new plan starts, and how its trajectory joins.
 
 A new target (or a replan) while the node's last trajectory executes must not start the
 arm from rest where it happens to be: the velocity would jump at the switch.  Instead
@@ -62,9 +63,11 @@ MAX_STATE_AGE_S = 0.5
 
 @dataclass(frozen=True, eq=False)
 class Executing:
-    """A trajectory the controller was sent.
+    """
+    A trajectory the controller was sent.
 
-    Attributes:
+    Attributes
+    ----------
         trajectory: the dense trajectory (planned joints, unwrapped, rad), whose polyline
             was certified collision-free.
         published: (K,) indices of the points sent (``trajectory.resample``'s), 0 and the
@@ -72,6 +75,7 @@ class Executing:
         start_ns: the ROS time of its time 0 (the message's stamp), ns.
         previous: the trajectory it was joined to (what the arm follows before
             ``start_ns``), or None.
+
     """
 
     trajectory: Trajectory
@@ -84,30 +88,38 @@ class Executing:
         return 1e-9 * (int(ros_ns) - self.start_ns)
 
     def running_at(self, ros_ns: int) -> bool:
-        """The arm is still moving on it at ``ros_ns``."""
+        """Tell whether the arm is still moving on it at ``ros_ns``."""
         return self.time_s(ros_ns) < self.trajectory.duration_s
 
     def first_start_ns(self) -> int:
-        """The start of the oldest trajectory kept in the chain (ROS time, ns)."""
+        """Return the start of the oldest trajectory kept in the chain (ROS time, ns)."""
         return self.start_ns if self.previous is None else self.previous.first_start_ns()
 
     def expected_at(self, ros_ns: int, published_only: bool = False) -> np.ndarray:
-        """(n,) where the arm following it is at ROS time ``ros_ns``, rad: on the previous
-        trajectory before this one starts (at this one's start with none).  A controller
-        interpolating the published points with their velocities (splines, as
-        joint_trajectory_controller) follows the dense trajectory; one interpolating the
-        positions linearly in time (``published_only``) runs ahead of it between points
-        where the arm speeds up (up to a few degrees at high accelerations)."""
+        """
+        (n,) where the arm following it is at ROS time ``ros_ns``, rad.
+
+        On the previous trajectory before this one starts (at this one's start with none).
+
+        A controller interpolating the published points with their velocities (splines,
+        as joint_trajectory_controller) follows the dense trajectory; one interpolating
+        the positions linearly in time (``published_only``) runs ahead of it between
+        points where the arm speeds up (up to a few degrees at high accelerations).
+        """
         if ros_ns < self.start_ns and self.previous is not None:
             return self.previous.expected_at(ros_ns, published_only)
         traj = self.trajectory.subset(self.published) if published_only else self.trajectory
         return sample(traj, self.time_s(ros_ns))[0]
 
     def joined_by(self, trajectory: Trajectory, published, start_ns: int) -> "Executing":
-        """The record of a trajectory joined to this one at ``start_ns``.  The chain of the
-        trajectories it replaced is kept back to the one on which any joint state that
-        can still count (``MAX_STATE_AGE_S``, and a join is at most a published points'
-        spacing ahead) was taken: links whose successor started over 2 s before are cut."""
+        """
+        Record a trajectory joined to this one at ``start_ns``.
+
+        The chain of the trajectories it replaced is kept back to the one on which any
+        joint state that can still count (``MAX_STATE_AGE_S``, and a join is at most a
+        published points' spacing ahead) was taken: links whose successor started over
+        2 s before are cut.
+        """
         keep, link = [], self
         horizon_ns = int(start_ns) - 2 * 1_000_000_000
         successor_start = int(start_ns)
@@ -122,12 +134,15 @@ class Executing:
 
 @dataclass(frozen=True, eq=False)
 class Join:
-    """A plan that starts on an executing trajectory (see :func:`plan_start`).
+    """
+    A plan that starts on an executing trajectory (see :func:`plan_start`).
 
-    Attributes:
+    Attributes
+    ----------
         executing: the trajectory the arm follows.
         horizon_index: its point where the new plan starts.
         horizon_s: the horizon it was chosen with, s.
+
     """
 
     executing: Executing
@@ -142,7 +157,8 @@ class Join:
 
 def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_ns: int, horizon_s: float,
                follow_tolerance_rad: float, periodic):
-    """Where a plan beginning at ``now_ns`` starts.
+    """
+    Where a plan beginning at ``now_ns`` starts.
 
     Args:
         executing: the trajectory the controller was last sent, or None.
@@ -155,9 +171,12 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
             the executing trajectory at the measurement's time for the arm to count as
             following it, rad.
         periodic: (n,) flags of the periodic joints.
-    Returns:
+
+    Returns
+    -------
         (start_rad (n,), Join or None, why): ``why`` says in words why the plan does not
         join (None when it joins, or when there is nothing to join).
+
     """
     q = np.asarray(measured_rad, dtype=float).copy()
     if executing is None or horizon_s <= 0.0 or not executing.running_at(now_ns):
@@ -189,10 +208,15 @@ def _turn_rad(path, i):
 
 
 def _corner_blends(path, corner, first, step_rad):
-    """Candidate paths: rows ``a = corner - m`` to ``b = corner + m`` of ``path`` (M, n)
-    replaced by a cubic Hermite curve with the path's directions at a and b (tangents
-    scaled to the chord), samples ≤ ``step_rad`` apart; rows before ``first`` are kept.
-    Yields (a, b, candidate path)."""
+    """
+    Candidate paths.
+
+    Rows ``a = corner - m`` to ``b = corner + m`` of ``path`` (M, n) replaced by a cubic Hermite
+    curve with the path's directions at a and b (tangents scaled to the chord), samples ≤
+    ``step_rad`` apart; rows before ``first`` are kept.
+
+    Yields (a, b, candidate path).
+    """
     for m in BLEND_SAMPLES:
         a, b = max(first, corner - m), min(len(path) - 2, corner + m)
         if a >= corner or b <= corner or a < 1:
@@ -212,7 +236,8 @@ def _corner_blends(path, corner, first, step_rad):
 
 
 def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0.02, checker=None):
-    """The trajectory to publish for a plan that started at ``join.start_rad``.
+    """
+    Build the trajectory to publish for a plan that started at ``join.start_rad``.
 
     Args:
         scenario: ``problem.Scenario`` (limits, reaction settings).
@@ -222,14 +247,19 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
         lead_s: the join is at least this far in the future (the message's transit), s.
         checker: ``collision.CollisionChecker`` of the scenario's scene (made when None),
             to certify the corner blends.
-    Returns:
+
+    Returns
+    -------
         (trajectory.Trajectory, dynamics.ReactionReport or None, stamp_ns, Continuation):
         the trajectory from the join (time 0) through the horizon point to the new goal,
         to be stamped ``stamp_ns``.  (For a remainder followed by a new motion from rest,
         the reaction report covers the new motion: the remainder's was reported before.)
-    Raises:
+
+    Raises
+    ------
         trajectory.HorizonPassed: the arm is already past the horizon point.
         ValueError: the new path cannot be entered at the arm's speed.
+
     """
     from .pipeline import timed_motion
     ex = join.executing
@@ -251,9 +281,12 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
 
 
 def _fastest_through_corner(scenario, c, new, checker):
-    """(trajectory, reaction) of the fastest of: the joined path with its corner at the
-    horizon point, and its certified corner blends; ValueError when none can be entered
-    at the join's speed."""
+    """
+    (trajectory, reaction) of the fastest of.
+
+    The joined path with its corner at the horizon point, and its certified corner blends;
+    ValueError when none can be entered at the join's speed.
+    """
     from .collision import CollisionChecker
     from .motion import check_path
     from .pipeline import timed_motion

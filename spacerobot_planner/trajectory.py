@@ -1,4 +1,5 @@
-"""Time-optimal time parameterisation of a geometric joint path (TOPP-RA style).
+"""
+Time-optimal time parameterisation of a geometric joint path (TOPP-RA style).
 
 The last stage of the chain (MoveIt's "time parameterisation adapter"): it takes the
 planner's dense path (M×n joint positions, rad, start first, goal last, periodic
@@ -77,9 +78,11 @@ __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "fini
 
 @dataclass(frozen=True, eq=False)
 class Trajectory:
-    """A time-parameterised joint path.
+    """
+    A time-parameterised joint path.
 
-    Attributes:
+    Attributes
+    ----------
         joint_names: one name per column.
         times_s: (M,) strictly increasing, 0 first.
         positions_rad: (M, n); first row the start, last row the goal (exact).
@@ -95,6 +98,7 @@ class Trajectory:
         wheel_momentum_Nms, wheel_torque_Nm: (M,) h_wheel = −H·q̇ and its time
             derivative when a wheel model was given, else None.
         max_wheel_momentum_Nms, max_wheel_torque_Nm: the wheel limits obeyed (None: none).
+
     """
 
     joint_names: tuple
@@ -120,7 +124,7 @@ class Trajectory:
         return len(self.times_s)
 
     def subset(self, indices) -> "Trajectory":
-        """The trajectory at the points ``indices`` (sorted, first and last included)."""
+        """Return the trajectory at the points ``indices`` (sorted, first and last included)."""
         idx = np.asarray(indices, dtype=np.int64)
 
         def pick(a):
@@ -135,13 +139,17 @@ class Trajectory:
                        wheel_torque_Nm=pick(self.wheel_torque_Nm))
 
     def then(self, other: "Trajectory") -> "Trajectory":
-        """This trajectory, then ``other`` from where it ends at rest: ``other``'s times
-        shifted by this one's duration, the shared point once (with ``other``'s
-        acceleration, the one that follows).
+        """
+        Append ``other``, which starts where this trajectory ends at rest.
 
-        Raises:
+        ``other``'s times are shifted by this one's duration; the shared point appears once
+        (with ``other``'s acceleration, the one that follows).
+
+        Raises
+        ------
             ValueError: ``other`` does not start where this one ends, or either is not at
                 rest there, or the joints differ.
+
         """
         if tuple(other.joint_names) != tuple(self.joint_names):
             raise ValueError(f"then: joints {other.joint_names} after {self.joint_names}")
@@ -165,8 +173,12 @@ class Trajectory:
                        wheel_torque_Nm=cat(head.wheel_torque_Nm, other.wheel_torque_Nm))
 
     def to_json_dict(self) -> dict:
-        """Plain-JSON view: joint_names, times_s, positions_rad, velocities_rad_s,
-        accelerations_rad_s2 (lists), plus the active limit per point."""
+        """
+        Return a plain-JSON view.
+
+        joint_names, times_s, positions_rad, velocities_rad_s, accelerations_rad_s2 (lists),
+        plus the active limit per point.
+        """
         return {"joint_names": list(self.joint_names),
                 "times_s": self.times_s.tolist(),
                 "positions_rad": self.positions_rad.tolist(),
@@ -177,10 +189,11 @@ class Trajectory:
 
 
 def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: int = 3) -> np.ndarray:
-    """Drop repeated points and subdivide so consecutive points are ≤ max_step_rad apart
-    (in every joint) and there are at least ``min_points`` (when start ≠ goal).
+    """
+    Drop repeated points and subdivide the path.
 
-    The first and last points are kept exactly.
+    Consecutive points end ≤ max_step_rad apart (in every joint), and there are at least
+    ``min_points`` (when start ≠ goal).  The first and last points are kept exactly.
     """
     p = np.asarray(path_rad, dtype=float)
     if p.ndim != 2 or p.shape[0] < 1:
@@ -220,7 +233,8 @@ def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: in
 
 
 def _path_model(p, refine: int):
-    """The cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
+    """
+    Fit the cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
 
     Returns (s, idx, q, d1, d2, d3): grid chord lengths s (G,), the grid indices of the
     samples idx (M,), the spline's q, q', q'' at the grid points (G, n) (q[idx] == p
@@ -248,7 +262,8 @@ def _path_model(p, refine: int):
 
 @njit(cache=True, nogil=True)
 def _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
-    """Admissible x_{i+1} from x_i = x on segment i: the interval [lo, hi] (lo > hi: none).
+    """
+    Admissible x_{i+1} from x_i = x on segment i: the interval [lo, hi] (lo > hi: none).
 
     Constraints (rows r, at both ends p = i, i+1 of the segment, u = (x_{i+1} - x_i)/(2Δ_i)):
     |a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]; 0 ≤ x_p ≤ xv[p]; x_{i+1} ≤ k_next.
@@ -288,7 +303,7 @@ def _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
 
 @njit(cache=True, nogil=True)
 def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
-    """Controllable sets K_i = [0, k_i]: the x_i from which x_N = x_end is reachable."""
+    """Compute the controllable sets K_i = [0, k_i]: the x_i from which x_N = x_end is reachable."""
     m = xv.shape[0]
     k = np.empty(m)
     k[m - 1] = min(x_end, xv[m - 1])
@@ -324,17 +339,22 @@ def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
 
 
 def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: float = 1e-3) -> float:
-    """Path speed ṡ (rad/s, chord length) that reproduces a start joint velocity along the
-    path's initial tangent (its projection on the tangent).
+    """
+    Return the path speed ṡ that reproduces a start joint velocity along the path.
+
+    ṡ in rad/s of chord length: the velocity's projection on the path's initial tangent.
 
     Args:
         path_rad: (M, n) the path (its first rows give the tangent).
         start_velocity_rad_s: (n,) joint velocity at the start.
         tolerance: largest allowed part of the velocity across the tangent, relative to
             its norm (plus 1e-9 rad/s).
-    Raises:
+
+    Raises
+    ------
         ValueError (``start_velocity_rad_s``) when the velocity is not along the path's
         start tangent (within ``tolerance``) or points backwards along it.
+
     """
     p = densify_path(path_rad)
     v0 = np.asarray(start_velocity_rad_s, dtype=float).reshape(-1)
@@ -378,25 +398,33 @@ def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0):
 
 
 def _sample_times(dt, refine):
-    """Sample times (M,) s, 0 first, and the sample intervals (M-1,) s: the grid durations
-    dt (G-1,) summed per sample interval (``refine`` grid segments), then accumulated (so
-    each published interval is its sum up to half an ulp of the time)."""
+    """
+    Sample times (M,) s, 0 first, and the sample intervals (M-1,) s.
+
+    The grid durations dt (G-1,) summed per sample interval (``refine`` grid segments), then
+    accumulated (so each published interval is its sum up to half an ulp of the time).
+    """
     per = dt.reshape(-1, refine).sum(axis=1)
     return np.concatenate([[0.0], np.cumsum(per)]), per
 
 
 def _rounding_margins(t, dt, p, v0, amax, refine):
-    """Bounds on how far float rounding can move the finite differences of the published
-    samples away from the exact motion's (which obey the limits).
+    """
+    Bound the effect of float rounding on the published samples' finite differences.
+
+    How far rounding can move them away from the exact motion's (which obey the limits).
 
     Args:
         t: (M,) published sample times, s; dt: (M-1,) sample intervals, s; p: (M, n)
         positions, rad; v0: (n,) |start velocity|, rad/s; amax: (n,) rad/s²;
         refine: grid segments per sample interval.
-    Returns:
+
+    Returns
+    -------
         (acc (G, n) rad/s²: per grid point, the most rounding can add to a finite-difference
         acceleration whose interval covers it; vel (G,): the most it can add to a segment
         velocity, as a fraction of it).  Both carry a factor 2 for second-order terms.
+
     """
     m, n = p.shape
     # |published Δt_k − exact Δt_k|: the sum of `refine` durations (relative eps each, plus
@@ -453,7 +481,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                       start_path_speed: float | None = None, start_velocity_rad_s=None,
                       wheel=None, max_step_rad: float = np.radians(0.5),
                       grid_refinement: int = 4, start_speed_tolerance: float = 1e-3) -> Trajectory:
-    """Time-optimal parameterisation of a joint path within joint (and wheel) limits.
+    """
+    Time-optimal parameterisation of a joint path within joint (and wheel) limits.
 
     Args:
         path_rad: (M, n) joint positions, rad; start first, goal last (kept exactly).
@@ -477,12 +506,17 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         start_speed_tolerance: a start speed above the largest admissible one by at most
             this fraction is lowered to it (a path re-fitted through the same samples moves
             the velocity bound by a hair); more is refused.
-    Returns:
+
+    Returns
+    -------
         Trajectory, ending at rest; a one-point trajectory (t = 0) when start == goal.
-    Raises:
+
+    Raises
+    ------
         ValueError: bad shapes, NaN, non-positive limits, a scaling factor outside
             (0, 1], or a start velocity the path cannot be followed with (across the
             tangent, backwards, or too fast to stay within the limits and stop at the goal).
+
     """
     p = densify_path(path_rad, max_step_rad)
     n = p.shape[1]
@@ -612,9 +646,12 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
 
 
 def finite_differences(times_s, positions_rad, start_velocity_rad_s=None):
-    """Finite-difference velocities (M-1, n) per segment and accelerations (M, n) per
-    point, at rest at the end and at ``start_velocity_rad_s`` (default rest) at the start
-    (see the module docstring)."""
+    """
+    Return finite-difference velocities (M-1, n) and accelerations (M, n).
+
+    Velocities per segment, accelerations per point, at rest at the end and at
+    ``start_velocity_rad_s`` (default rest) at the start (see the module docstring).
+    """
     t = np.asarray(times_s, dtype=float)
     q = np.asarray(positions_rad, dtype=float)
     v0 = np.zeros(q.shape[1]) if start_velocity_rad_s is None else np.asarray(start_velocity_rad_s, float)
@@ -629,9 +666,12 @@ def finite_differences(times_s, positions_rad, start_velocity_rad_s=None):
 
 
 def limit_ratios(times_s, positions_rad, velocities, accelerations, vmax, amax):
-    """Largest |value| / limit over the published values and the finite-difference
-    velocities, and over the published accelerations: (velocity ratio, acceleration
-    ratio); ≤ 1 means within the limits."""
+    """
+    Return (velocity ratio, acceleration ratio): the largest |value| / limit.
+
+    Over the published values and the finite-difference velocities, and over the published
+    accelerations; ≤ 1 means within the limits.
+    """
     w = np.diff(positions_rad, axis=0) / np.diff(times_s)[:, None]
     rv = max(np.max(np.abs(w) / vmax), np.max(np.abs(velocities) / vmax))
     ra = np.max(np.abs(accelerations) / amax)
@@ -640,14 +680,17 @@ def limit_ratios(times_s, positions_rad, velocities, accelerations, vmax, amax):
 
 @dataclass(frozen=True, eq=False)
 class Resampled:
-    """A resampled trajectory and the certification of the polyline through its points.
+    """
+    A resampled trajectory and the certification of the polyline through its points.
 
-    Attributes:
+    Attributes
+    ----------
         trajectory: the kept points (a subset of the dense trajectory's: exact states).
         indices: (K,) their indices in the dense trajectory (0 and M-1 included).
         check: ``smoothing.PathCheck`` of the polyline through ``trajectory.positions_rad``
             on the exact geometry (None when no checker was given).
         refinements: rounds in which points were added back where the check failed.
+
     """
 
     trajectory: Trajectory
@@ -696,7 +739,8 @@ def _ok(t, q, i, j, time_step_s, path_tolerance_rad):
 
 def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None,
              path_tolerance_rad: float | None = np.radians(0.1), max_rounds: int = 30) -> Resampled:
-    """Fewer points, same guarantee: keep a subset of the trajectory's points.
+    """
+    Fewer points, same guarantee: keep a subset of the trajectory's points.
 
     The kept points are exact points of ``traj`` (times, positions, velocities,
     accelerations unchanged), start and goal included.  Consecutive kept points are at
@@ -712,10 +756,15 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
         checker: optional CollisionChecker of the scene the path was planned in.
         time_step_s: largest time between kept points, s (> 0) or None.
         path_tolerance_rad: largest deviation from the dense path, rad (> 0) or None.
-    Returns:
+
+    Returns
+    -------
         Resampled (``.trajectory``, ``.indices``, ``.check``; ``.ok`` is the verdict).
-    Raises:
+
+    Raises
+    ------
         ValueError: a non-positive ``time_step_s`` / ``path_tolerance_rad``, or neither given.
+
     """
     for name, v in (("time_step_s", time_step_s), ("path_tolerance_rad", path_tolerance_rad)):
         if v is not None and not (np.isfinite(v) and v > 0.0):
@@ -746,9 +795,12 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
 
 
 def sample(traj: Trajectory, t_s: float):
-    """Position and velocity at time ``t_s`` (clamped to [0, duration]): linear
-    interpolation of the positions between points (the arm stays on the dense,
-    collision-checked polyline) and of the velocities."""
+    """
+    Position and velocity at time ``t_s`` (clamped to [0, duration]).
+
+    Linear interpolation of the positions between points (the arm stays on the dense,
+    collision-checked polyline) and of the velocities.
+    """
     t = traj.times_s
     if len(t) == 1 or t_s <= 0.0:
         return traj.positions_rad[0].copy(), traj.velocities_rad_s[0].copy()
@@ -763,9 +815,11 @@ def sample(traj: Trajectory, t_s: float):
 
 @dataclass(frozen=True, eq=False)
 class Continuation:
-    """Where a replacement trajectory joins an executing one (see :func:`continuation`).
+    """
+    Where a replacement trajectory joins an executing one (see :func:`continuation`).
 
-    Attributes:
+    Attributes
+    ----------
         index: the executing trajectory's point where the new one starts.
         join_time_s: that point's time in the executing trajectory (the new
             trajectory's time 0 is this instant).
@@ -773,6 +827,7 @@ class Continuation:
             (P ≥ 1; its last row is where the new plan must start).
         start_path_speed: ṡ at the join, for ``time_parameterize(start_path_speed=...)``.
         start_velocity_rad_s: (n,) the joint velocity at the join.
+
     """
 
     index: int
@@ -782,8 +837,12 @@ class Continuation:
     start_velocity_rad_s: np.ndarray
 
     def join(self, new_path_rad) -> np.ndarray:
-        """The path to time-parameterise: the prefix, then ``new_path_rad`` (which must
-        start at ``prefix_rad[-1]``, the horizon point), (P + K - 1, n)."""
+        """
+        Return the path to time-parameterise, (P + K - 1, n).
+
+        The prefix, then ``new_path_rad`` (which must start at ``prefix_rad[-1]``, the
+        horizon point).
+        """
         new = np.asarray(new_path_rad, dtype=float)
         if new.ndim != 2 or new.shape[1] != self.prefix_rad.shape[1]:
             raise ValueError(f"new_path_rad: expected (K, {self.prefix_rad.shape[1]}) rows, got {new.shape}")
@@ -797,8 +856,12 @@ class HorizonPassed(ValueError):
 
 
 def horizon_index(traj: Trajectory, t_s: float, horizon_s: float) -> int:
-    """The index of the first point of ``traj`` at or after ``t_s + horizon_s`` (s from its
-    start; the last point when that is beyond its end): where a replacement plan starts."""
+    """
+    Return where a replacement plan starts: an index of ``traj``.
+
+    The first point at or after ``t_s + horizon_s`` (s from its start), the last point when
+    that is beyond its end.
+    """
     if not (np.isfinite(t_s) and np.isfinite(horizon_s) and horizon_s >= 0.0):
         raise ValueError(f"horizon_s: must be a finite number ≥ 0 (t_s finite), got {horizon_s}, {t_s}")
     return min(int(np.searchsorted(traj.times_s, t_s + horizon_s, side="left")), len(traj.times_s) - 1)
@@ -806,7 +869,8 @@ def horizon_index(traj: Trajectory, t_s: float, horizon_s: float) -> int:
 
 def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizon_at: int | None = None,
                  join_indices=None) -> Continuation:
-    """Replanning from a moving arm: keep the executing trajectory to a horizon, join there.
+    """
+    Replanning from a moving arm: keep the executing trajectory to a horizon, join there.
 
     The new trajectory starts at the first point of ``traj`` at or after ``t_s`` (the
     join, an exact state: position, velocity, path speed) and follows ``traj``'s path to
@@ -826,10 +890,15 @@ def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizo
         join_indices: the indices of ``traj`` the join may be at (default: any point).
             A controller given a subset of the points (``resample``) interpolates the
             velocity between them: joining at one of them keeps the velocity exact.
-    Returns:
+
+    Returns
+    -------
         Continuation; at or beyond the end of ``traj`` it is the goal at rest.
-    Raises:
+
+    Raises
+    ------
         HorizonPassed: the join would lie beyond ``horizon_at`` (the plan took too long).
+
     """
     t = traj.times_s
     h = horizon_index(traj, t_s, horizon_s) if horizon_at is None else int(horizon_at)

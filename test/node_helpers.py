@@ -1,4 +1,5 @@
-"""Shared helpers of the in-process node tests (test_node.py, test_reliability_node.py).
+"""
+Shared helpers of the in-process node tests (test_node.py, test_reliability_node.py).
 
 The ``graph`` fixture (conftest.py) makes them.  Each graph gets a private rclpy Context
 and a SingleThreadedExecutor (what planner_node's main uses) spinning in a thread; no
@@ -38,8 +39,11 @@ SCENES = {"2dof": (os.path.join(_CONFIG, "paper_2dof.yaml"), [180, 180]),
 
 
 def scene_params(name, cells=None, **extra):
-    """The scene's parameter file with fast trajectory limits, ``cells`` and ``extra``
-    (dotted names: pass them as ``**{"planner.separate_process": False}``)."""
+    """
+    Return the scene's parameter file with fast limits, ``cells`` and ``extra``.
+
+    ``extra`` takes dotted names: pass them as ``**{"planner.separate_process": False}``.
+    """
     path, default_cells = SCENES[name]
     flat = load_params_file(path)
     flat.update(FAST)
@@ -49,8 +53,11 @@ def scene_params(name, cells=None, **extra):
 
 
 class Graph:
-    """A private context with the planner, optionally the mock arm, and a driver node
-    that publishes inputs and records every output (with its arrival time)."""
+    """
+    A private context with the planner, the mock arm (optional) and a driver node.
+
+    The driver publishes inputs and records every output (with its arrival time).
+    """
 
     def __init__(self, flat, with_arm=True, wait_subscribed=True):
         if not with_arm:
@@ -117,9 +124,12 @@ class Graph:
         return cb
 
     def state_at(self, names, ros_s):
-        """The recorded joint_states positions of ``names`` at ROS time ``ros_s``,
-        interpolated between the two stamped messages around it (None when the record
-        does not bracket it)."""
+        """
+        Return the recorded joint_states positions of ``names`` at ROS time ``ros_s``.
+
+        Interpolated between the two stamped messages around it; None when the record does not
+        bracket it.
+        """
         with self.lock:
             msgs = [m for _, m in self.states if m.header.stamp.sec or m.header.stamp.nanosec]
         ts = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs])
@@ -133,11 +143,14 @@ class Graph:
         return qa + f * (qb - qa)
 
     def controller_violations(self, current_tol_rad=np.radians(1.0)):
-        """[(topic, index, violations)] for every trajectory received that
-        joint_trajectory_controller would refuse (see controller_rule_violations).  "The
-        current state" of a first point at time 0 is the arm's recorded state at the
-        trajectory's stamp (at its arrival for a zero stamp, or when the record does not
-        reach the stamp)."""
+        """
+        List the trajectories joint_trajectory_controller would refuse.
+
+        [(topic, index, violations)] for every trajectory received (see
+        controller_rule_violations).  "The current state" of a first point at time 0 is the
+        arm's recorded state at the trajectory's stamp (at its arrival for a zero stamp, or when
+        the record does not reach the stamp).
+        """
         known = set(self.scenario.robot.joint_names)
         out = []
         with self.lock:
@@ -190,8 +203,11 @@ class Graph:
             return [(t, st) for t, d in self.diags for st in d.status if st.level == DiagnosticStatus.ERROR]
 
     def status(self, which, index=-1):
-        """The ``which`` ("planner" or "input") DiagnosticStatus of the diagnostics
-        message ``index`` (default: the latest)."""
+        """
+        Return the ``which`` ("planner" or "input") DiagnosticStatus.
+
+        Of the diagnostics message ``index`` (default: the latest).
+        """
         with self.lock:
             if not self.diags:
                 return None
@@ -199,12 +215,12 @@ class Graph:
         return next(st for st in d.status if st.name.endswith(f": {which}"))
 
     def level(self, which):
-        """The latest level of the ``which`` status (None before any diagnostics)."""
+        """Return the latest level of the ``which`` status (None before any diagnostics)."""
         st = self.status(which)
         return None if st is None else st.level
 
     def all_ok(self):
-        """The latest diagnostics message has only OK statuses."""
+        """Tell whether the latest diagnostics message has only OK statuses."""
         with self.lock:
             return bool(self.diags) and all(st.level == DiagnosticStatus.OK for st in self.diags[-1][1].status)
 
@@ -239,10 +255,14 @@ class Graph:
             return len(self.trajs)
 
     def destroy_planner(self):
-        """Stop spinning and destroy the planner node (as a launch file's shutdown or
-        planner_node's main do); returns the seconds destroy_node took.  Spinning stops
-        first: destroying a node while an executor waits on its entities races in rclpy
-        (InvalidHandle in the spinning thread)."""
+        """
+        Stop spinning and destroy the planner node (as a launch file's shutdown or planner_node's main do).
+
+        Returns the seconds destroy_node took.
+
+        Spinning stops first: destroying a node while an executor waits on its entities
+        races in rclpy (InvalidHandle in the spinning thread).
+        """
         self.stop_spinning()
         t0 = time.monotonic()
         self.planner.destroy_node()
@@ -266,12 +286,12 @@ class Graph:
 
 
 def diag_values(status) -> dict:
-    """A DiagnosticStatus's key/values as a dict of strings."""
+    """Return a DiagnosticStatus's key/values as a dict of strings."""
     return {kv.key: kv.value for kv in status.values}
 
 
 def diag_list(status, key):
-    """A list-valued diagnostics entry (e.g. ``target_m``) parsed, or None."""
+    """Parse a list-valued diagnostics entry (e.g. ``target_m``), or None."""
     v = diag_values(status).get(key)
     return None if v is None else json.loads(v)
 
@@ -307,7 +327,7 @@ def child_pids(pid=None) -> list:
 
 
 def pid_alive(pid: int) -> bool:
-    """True while the process exists and is not a zombie."""
+    """Tell whether the process exists and is not a zombie."""
     try:
         with open(f"/proc/{pid}/stat") as f:
             stat = f.read()
@@ -317,8 +337,12 @@ def pid_alive(pid: int) -> bool:
 
 
 def planned_positions(robot, msgs, index=-1):
-    """(dof,) planned-joint positions of point ``index``, merged by name from the given
-    JointTrajectory messages (joint_trajectory and attitude_trajectory of one plan)."""
+    """
+    Return the (dof,) planned-joint positions of point ``index``.
+
+    Merged by name from the given JointTrajectory messages (joint_trajectory and
+    attitude_trajectory of one plan).
+    """
     got = {}
     for m in msgs:
         if m is not None:
@@ -357,8 +381,10 @@ def joint_states_free(g, since=0.0):
 
 # ---------------------------------------------------------------- controller rules
 def controller_rule_violations(msg, known_joints, received_at_ros_s=None, current_state=None):
-    """What ros2_control's joint_trajectory_controller would refuse in a JointTrajectory
-    (its rules, written here from its documentation, sharing no code with the node):
+    """
+    List what ros2_control's joint_trajectory_controller would refuse in a JointTrajectory.
+
+    Its rules, written here from its documentation, sharing no code with the node:
 
     - joint names non-empty, known to the controller and unique;
     - every point has one position per joint; velocities / accelerations empty or one per joint;

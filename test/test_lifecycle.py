@@ -20,7 +20,7 @@ from node_helpers import child_pids, pid_alive, scene_params
 
 def _call(g, srv_type, name, request):
     cli = g.drv.create_client(srv_type, f"/spacerobot_planner/{name}")
-    assert cli.wait_for_service(5.0), name
+    assert cli.wait_for_service(30.0), name      # discovery of a new client: slow under load
     fut = cli.call_async(request)
     g.wait(fut.done, 120, f"{name} response")       # configure waits for the warm-up
     g.drv.destroy_client(cli)

@@ -1,4 +1,5 @@
-"""Replanning while the arm moves, closed loop (planner + mock arm in one process).
+"""
+Replanning while the arm moves, closed loop (planner + mock arm in one process).
 
 The oracle is the arm's own record: the mock arm's joint_states (stamped positions and
 velocities, 50 Hz).  Accelerations are the test's finite differences of the recorded
@@ -84,9 +85,12 @@ def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph):
 
 
 def test_a_drifting_target_is_followed_to_the_grasp(graph):
-    """A target drifting 2 cm/s and 1°/s, published at 10 Hz for 20 s: trajectories keep
-    coming (at least one per replan.min_publish_period_s of 1 s, give or take a plan), and
-    once it stops the arm ends within 1 cm of its grasp point."""
+    """
+    A target drifting 2 cm/s and 1°/s, published at 10 Hz for 20 s.
+
+    Trajectories keep coming (at least one per replan.min_publish_period_s of 1 s, give or take a
+    plan), and once it stops the arm ends within 1 cm of its grasp point.
+    """
     g = graph(scene_params("3dof"))       # the default replan settings
     robot = g.scenario.robot
     g.send_target()

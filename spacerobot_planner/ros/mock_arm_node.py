@@ -1,4 +1,5 @@
-"""`mock_arm_node`: a kinematic arm that follows JointTrajectory messages.
+"""
+`mock_arm_node`: a kinematic arm that follows JointTrajectory messages.
 
 Publishes ``joint_states`` (every joint in ``robot.joint_names``) at
 ``mock_arm.rate_hz``.  The initial posture is ``scenario.start_deg`` over the
@@ -96,9 +97,12 @@ class MockArmNode(Node):
                                + (f"in {ahead:.3f} s" if ahead > 0 else f"{-ahead:.3f} s ago"))
 
     def _start_time(self, msg) -> float:
-        """Monotonic time at which ``msg`` starts: its header stamp (as a controller reads
-        it: the arm's and the attitude's parts of one plan start together), or now for a
-        zero stamp."""
+        """
+        Monotonic time at which ``msg`` starts.
+
+        Its header stamp (as a controller reads it: the arm's and the attitude's parts of one plan
+        start together), or now for a zero stamp.
+        """
         now = time.monotonic()
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if stamp_ns == 0:
@@ -117,8 +121,11 @@ class MockArmNode(Node):
             self.executing = bool(self._trajs or self._next)
 
     def _switch(self, topic, now):
-        """(lock held) the waiting trajectory of ``topic`` takes over at ``now``: the arm's
-        offset from it there is faded out over blend_s."""
+        """
+        (lock held) the waiting trajectory of ``topic`` takes over at ``now``.
+
+        The arm's offset from it there is faded out over blend_s.
+        """
         cols, t, q, v, t0 = self._next.pop(topic)
         s = now - t0
         pos, _ = _interpolate(t, q, v, s)
@@ -151,9 +158,12 @@ class MockArmNode(Node):
 
 
 def _interpolate(t, q, v, s):
-    """(positions, velocities) of a trajectory's points (times t (M,), positions q (M, n),
-    velocities v (M, n) or None) at time s: linear in time, clamped to its ends (at rest
-    after the last point)."""
+    """
+    Interpolate a trajectory's points at time ``s``: (positions, velocities).
+
+    The points: times ``t`` (M,), positions ``q`` (M, n), velocities ``v`` (M, n) or None;
+    linear in time, clamped to its ends (at rest after the last point).
+    """
     if s <= t[0]:
         return q[0].copy(), (np.zeros(q.shape[1]) if v is None or len(t) == 1 else v[0].copy())
     k = int(np.searchsorted(t, s, side="right") - 1)

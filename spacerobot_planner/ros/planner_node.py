@@ -1,4 +1,5 @@
-"""`planner_node`: the ROS 2 shell around the planning core, a lifecycle node.
+"""
+`planner_node`: the ROS 2 shell around the planning core, a lifecycle node.
 
 Lifecycle (``rclpy.lifecycle``, as Nav2's planner server): ``configure`` starts the
 planning process and waits for its JIT warm-up, creates the publishers and the worker
@@ -103,8 +104,12 @@ class _Request:
 
 @dataclass(eq=False)
 class Outcome:
-    """How a request ended: code (a planner code or "superseded"), reason, and on
-    success the PlanResult, the Trajectory and the published message."""
+    """
+    How a request ended.
+
+    Code (a planner code or "superseded"), reason, and on success the PlanResult, the Trajectory and
+    the published message.
+    """
 
     code: str
     reason: str = ""
@@ -120,8 +125,12 @@ class Outcome:
 
 
 class PlannerNode(LifecycleNode):
-    """See the module docstring.  ``parameter_overrides`` as for rclpy.Node (see
-    :func:`params_to_overrides` for a flat dict from a scenario file)."""
+    """
+    See the module docstring.
+
+    ``parameter_overrides`` as for rclpy.Node (see :func:`params_to_overrides`
+    for a flat dict from a scenario file).
+    """
 
     def __init__(self, *, context=None, parameter_overrides=None, node_name: str = NODE_NAME, **kwargs):
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides, **kwargs)
@@ -183,9 +192,12 @@ class PlannerNode(LifecycleNode):
 
     # ------------------------------------------------------------------ lifecycle
     def _explain_refused_transitions(self):
-        """rclpy refuses an impossible transition with transition and state numbers only;
-        log which state the node is in and what it can do instead (the service reply
-        has no text field)."""
+        """
+        Explain refused lifecycle transitions in the log.
+
+        rclpy refuses an impossible transition with transition and state numbers only: log which
+        state the node is in and what it can do instead (the service reply has no text field).
+        """
         for srv in self.services:
             if srv.srv_name.endswith("/change_state"):
                 inner = srv.callback
@@ -212,7 +224,7 @@ class PlannerNode(LifecycleNode):
         return super().trigger_cleanup()
 
     def transition_refusal(self, transition_id: int = 0, label: str = "") -> str | None:
-        """The reason a transition would be refused now (and log it), or None if possible."""
+        """Return the reason a transition would be refused now (and log it), or None if possible."""
         current = self._state_machine.current_state
         available = {t[1]: t[0] for t in self._state_machine.available_transitions}
         names = {v: k for k, v in available.items()}
@@ -268,8 +280,11 @@ class PlannerNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def _warm_time_parameterization(self):
-        """Compile (or load) the time parameterisation's kernels in this process: they
-        run here, not in the planning process, on the first trajectory otherwise."""
+        """
+        Compile (or load) the time parameterisation's kernels in this process.
+
+        They run here, not in the planning process, on the first trajectory otherwise.
+        """
         robot = self._robot
         lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
         path = np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8)
@@ -364,7 +379,7 @@ class PlannerNode(LifecycleNode):
                              f"planner.max_grid_nodes = {params['planner.max_grid_nodes']}")
 
     def _validate(self, parameters):
-        """(merged params, scenario) or raise ValueError naming the field."""
+        """Merge the parameters and build the scenario: (merged params, scenario); ValueError names the field."""
         merged = dict(self._params)
         for p in parameters:
             if p.name not in self._params:
@@ -377,8 +392,12 @@ class PlannerNode(LifecycleNode):
         return merged, scenario
 
     def _precheck(self, parameters) -> SetParametersResult | None:
-        """The node's own reason for values it refuses (a wrong type included), before
-        rclpy's descriptor checks answer with enum numbers; None when they pass."""
+        """
+        Give the node's own reason for values it refuses (a wrong type included).
+
+        It answers before rclpy's descriptor checks, which answer with enum numbers; None when
+        the values pass.
+        """
         try:
             self._validate(parameters)
         except ValueError as e:
@@ -538,7 +557,7 @@ class PlannerNode(LifecycleNode):
         return result
 
     def _request_from_goal(self, goal) -> _Request:
-        """A request for an action goal (not yet submitted); ValueError names the field."""
+        """Make the request of an action goal (not yet submitted); ValueError names the field."""
         start = None
         if len(goal.start.name) or len(goal.start.position):
             start = conv.joint_state_positions(goal.start, self._robot.planned_names, "goal.start")
@@ -584,7 +603,7 @@ class PlannerNode(LifecycleNode):
                             time.perf_counter(), start_rad=start)
 
     def _submit(self, why: str) -> int:
-        """A request for the current target / joint goal (the topics' and ~/replan's)."""
+        """Submit a request for the current target / joint goal (the topics' and ~/replan's)."""
         with self._lock:
             req = self._make_request(why, self._joint_goal, None if self._joint_goal is not None else self._target)
             if self._joint_goal is None:
@@ -689,13 +708,17 @@ class PlannerNode(LifecycleNode):
                 self._finish(req, outcome)
 
     def _start_of(self, req: _Request):
-        """(start_raw, replanning.Join or None) of a request: its own start, or the arm's
-        state, or (the arm moving on the node's last trajectory) the point
-        ``replan.horizon_s`` ahead on it.  When the join fails (``_plan``: the plan took
-        longer than the horizon, or the new path cannot be entered at the arm's speed)
-        the next attempt doubles the horizon, the one after starts at the executing
-        trajectory's end (its goal, at rest: always joinable), the last at the measured
-        state (_RETRY)."""
+        """
+        (start_raw, replanning.Join or None) of a request.
+
+        Its own start, or the arm's state, or (the arm moving on the node's last trajectory) the
+        point ``replan.horizon_s`` ahead on it.
+
+        When the join fails (``_plan``: the plan took longer than the horizon, or the
+        new path cannot be entered at the arm's speed) the next attempt doubles the
+        horizon, the one after starts at the executing trajectory's end (its goal, at
+        rest: always joinable), the last at the measured state (_RETRY).
+        """
         with self._lock:
             if req.start_rad is not None:
                 return req.start_rad, None
@@ -847,11 +870,16 @@ class PlannerNode(LifecycleNode):
         return outcome
 
     def _split(self, full: JointTrajectory, traj):
-        """(arm joints' message, attitude's message): the attitude (the robot's first joint,
-        the spacecraft's) goes to the attitude control system, the arm joints to the arm's
-        controller (None for a group that is not planned).  Both None when nothing moves
-        more than AT_GOAL_TOL_RAD: at the goal.  A group that does not move while the other
-        does still gets its (holding) trajectory, which replaces an older one still running."""
+        """
+        (arm joints' message, attitude's message).
+
+        The attitude (the robot's first joint, the spacecraft's) goes to the attitude control
+        system, the arm joints to the arm's controller (None for a group that is not planned).
+
+        Both None when nothing moves more than AT_GOAL_TOL_RAD: at the goal.  A group that
+        does not move while the other does still gets its (holding) trajectory, which
+        replaces an older one still running.
+        """
         attitude = self._robot.joint_names[0]
         att, arm = conv.split_trajectory_msg(full, [attitude])
         q = np.asarray(traj.positions_rad)
@@ -913,7 +941,7 @@ class PlannerNode(LifecycleNode):
         return out
 
     def _record(self, req, outcome: Outcome):
-        """The planner status describes this (finished) request from now on, and only it."""
+        """Make the planner status describe this (finished) request from now on, and only it."""
         with self._lock:
             self.last_outcome = outcome
             self._last_req = req
@@ -972,11 +1000,13 @@ class PlannerNode(LifecycleNode):
             pass
 
     def _log(self, level: str, text: str):
-        """Log through rosout while the context lives, else to stderr (no rcl error line).
+        """
+        Log through rosout while the context lives, else to stderr (no rcl error line).
 
         The worker thread never asks the context while the node shuts down: rclpy's
         context shutdown destroys the nodes holding the context's lock, which ``ok()``
-        needs (the worker would wait for the thread that waits for it)."""
+        needs (the worker would wait for the thread that waits for it).
+        """
         in_worker = threading.current_thread() is self._worker
         if not (in_worker and self._closing) and self.context.ok():
             log = self.get_logger()     # one call site per severity (rclpy requires it)
@@ -1021,8 +1051,11 @@ class PlannerNode(LifecycleNode):
 
 
 def _result_values(res, reaction) -> dict:
-    """/diagnostics keys of a plan beyond the basics: the field's convergence and repairs, the
-    grasp's approach error, the spacecraft's reaction."""
+    """
+    /diagnostics keys of a plan beyond the basics.
+
+    The field's convergence and repairs, the grasp's approach error, the spacecraft's reaction.
+    """
     st = res.solver_stats
     out = {"field_converged": str(bool(st.get("converged", True))).lower(),
            "field_bands": st.get("bands", ""), "repairs": st.get("repairs", 0)}
@@ -1059,8 +1092,12 @@ def _target_why(target: Target) -> str:
 
 
 def spin_until_shutdown(node: PlannerNode, executor) -> None:
-    """Spin ``node`` until Ctrl-C or its context shuts down, then stop the worker and
-    the planning process (a plan in progress is cancelled) and destroy the node."""
+    """
+    Spin ``node`` until Ctrl-C or its context shuts down.
+
+    Then stop the worker and the planning process (a plan in progress is cancelled) and
+    destroy the node.
+    """
     node_main.spin_until_shutdown(node, executor, node.shutdown_worker)
 
 
