@@ -50,8 +50,10 @@ from dataclasses import replace
 
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
-__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES"]
+__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES", "JOIN_LEAD_S"]
 
+#: the join is at least this far ahead of the publishing time (the messages' transit), s
+JOIN_LEAD_S = 0.1
 #: half-widths (path samples on either side of the horizon point) of the corner blends tried
 BLEND_SAMPLES = (8, 24)
 #: a turn at the horizon point smaller than this (rad) is left as it is
@@ -235,7 +237,7 @@ def _corner_blends(path, corner, first, step_rad):
         yield a, b, np.vstack([path[:a], curve, path[b + 1:]])
 
 
-def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0.02, checker=None):
+def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = JOIN_LEAD_S, checker=None):
     """
     Build the trajectory to publish for a plan that started at ``join.start_rad``.
 
@@ -244,7 +246,9 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = 0
         join: from :func:`plan_start`.
         path_rad: (M, n) the new plan's path, from the horizon point.
         now_ns: ROS time now, ns.
-        lead_s: the join is at least this far in the future (the message's transit), s.
+        lead_s: the join is at least this far in the future, s: the message must reach the
+            controller before it (a controller that gets it late switches there with the
+            difference of the two accelerations times the delay as a velocity step).
         checker: ``collision.CollisionChecker`` of the scenario's scene (made when None),
             to certify the corner blends.
 

@@ -18,18 +18,23 @@ from rclpy.lifecycle import TransitionCallbackReturn
 from node_helpers import child_pids, pid_alive, scene_params
 
 
-def _call(g, srv_type, name, request):
+def _client(g, srv_type, name):
     cli = g.drv.create_client(srv_type, f"/spacerobot_planner/{name}")
     assert cli.wait_for_service(30.0), name      # discovery of a new client: slow under load
+    return cli
+
+
+def _call(g, srv_type, name, request, cli=None):
+    cli = cli or _client(g, srv_type, name)
     fut = cli.call_async(request)
     g.wait(fut.done, 120, f"{name} response")       # configure waits for the warm-up
     g.drv.destroy_client(cli)
     return fut.result()
 
 
-def _change(g, transition_id):
+def _change(g, transition_id, cli=None):
     return _call(g, ChangeState, "change_state",
-                 ChangeState.Request(transition=Transition(id=transition_id))).success
+                 ChangeState.Request(transition=Transition(id=transition_id)), cli).success
 
 
 def _state(g):
@@ -153,8 +158,9 @@ def test_lifecycle_shutdown_during_a_long_plan(graph, capfd, record_property):
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
     time.sleep(0.5)
     kids = [p for p in child_pids() if pid_alive(p)]
+    cli = _client(g, ChangeState, "change_state")      # discovered before the clock starts
     t0 = time.monotonic()
-    assert _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    assert _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN, cli)
     dt = time.monotonic() - t0
     print(f"\nlifecycle shutdown during a stalled plan: {dt:.3f} s")
     record_property("lifecycle_shutdown_s", round(dt, 3))

@@ -26,7 +26,6 @@ from __future__ import annotations
 import array
 import math
 import threading
-import time
 
 import numpy as np
 from rclpy.node import Node
@@ -92,22 +91,23 @@ class MockArmNode(Node):
             self._next[topic] = (cols, t, q, v, t0)
             self.trajectories_received += 1
             self.executing = True
-        ahead = t0 - time.monotonic()
+        ahead = t0 - self._now_s()
         self.get_logger().info(f"received a trajectory of {len(t)} points, {t[-1]:.2f} s, starting "
                                + (f"in {ahead:.3f} s" if ahead > 0 else f"{-ahead:.3f} s ago"))
 
+    def _now_s(self) -> float:
+        """Return the node's clock (ROS time), s: the time base of the motion and of the stamps."""
+        return 1e-9 * self.get_clock().now().nanoseconds
+
     def _start_time(self, msg) -> float:
         """
-        Monotonic time at which ``msg`` starts.
+        Return the ROS time (s) at which ``msg`` starts.
 
         Its header stamp (as a controller reads it: the arm's and the attitude's parts of one plan
         start together), or now for a zero stamp.
         """
-        now = time.monotonic()
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if stamp_ns == 0:
-            return now
-        return now - 1e-9 * (self.get_clock().now().nanoseconds - stamp_ns)
+        return self._now_s() if stamp_ns == 0 else 1e-9 * stamp_ns
 
     def _advance(self, now):
         with self._lock:
@@ -151,10 +151,12 @@ class MockArmNode(Node):
         self._v[cols] = vel
 
     def _tick(self):
-        self._advance(time.monotonic())
+        # one instant for the state and its stamp (the state is computed at the stamp's time)
+        now_ns = self.get_clock().now().nanoseconds
+        self._advance(1e-9 * now_ns)
         with self._lock:
             q, v = self._q.copy(), self._v.copy()
-        self.pub.publish(conv.joint_state_msg(self.names, q, v, self.get_clock().now().to_msg()))
+        self.pub.publish(conv.joint_state_msg(self.names, q, v, conv.ns_to_time(now_ns)))
 
 
 def _interpolate(t, q, v, s):
