@@ -294,10 +294,9 @@ def _fastest_through_corner(scenario, c, new, checker):
     from .collision import CollisionChecker
     from .motion import check_path
     from .pipeline import timed_motion
-    from .trajectory import densify_path
     robot = scenario.robot
-    path = densify_path(c.join(new))
-    corner = len(densify_path(c.prefix_rad)) - 1
+    path = c.join(new)                      # the prefix's rows, then the new path's
+    corner = len(c.prefix_rad) - 1          # the horizon point's row
     best, err = None, None
     candidates = [path]
     if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:

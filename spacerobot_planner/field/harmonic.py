@@ -151,6 +151,19 @@ def _sift_down(heap_k, heap_i, size, p):
             break
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _sift_up(heap_k, heap_i, c):
+    """Restore the min-heap (keys heap_k, items heap_i) above position c."""
+    while c > 0:
+        p = (c - 1) // 2
+        if heap_k[c] < heap_k[p]:
+            heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
+            heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
+            c = p
+        else:
+            break
+
+
 @nb.njit(cache=True, nogil=True)
 def _repair_ascent(log_u, nbr, n_goal, step):
     """
@@ -163,7 +176,6 @@ def _repair_ascent(log_u, nbr, n_goal, step):
     """
     n, deg = nbr.shape
     key = np.full(n, -np.inf)
-    done = np.zeros(n, np.bool_)
     queued = np.zeros(n, np.bool_)
     heap_k = np.empty(n + 1)
     heap_i = np.empty(n + 1, np.int64)
@@ -184,9 +196,6 @@ def _repair_ascent(log_u, nbr, n_goal, step):
         heap_k[0] = heap_k[size]
         heap_i[0] = heap_i[size]
         _sift_down(heap_k, heap_i, size, 0)
-        if done[i]:
-            continue
-        done[i] = True
         if key[i] != log_u[i]:
             log_u[i] = key[i]
             changed += 1
@@ -194,20 +203,12 @@ def _repair_ascent(log_u, nbr, n_goal, step):
             j = nbr[i, a]
             if j >= n or queued[j]:
                 continue
-            queued[j] = True
+            queued[j] = True              # pushed once: popped once, keyed by its first settler
             key[j] = min(log_u[j], log_u[i] - step)
-            c = size
-            heap_k[c] = -key[j]
-            heap_i[c] = j
+            heap_k[size] = -key[j]
+            heap_i[size] = j
+            _sift_up(heap_k, heap_i, size)
             size += 1
-            while c > 0:
-                p = (c - 1) // 2
-                if heap_k[c] < heap_k[p]:
-                    heap_k[c], heap_k[p] = heap_k[p], heap_k[c]
-                    heap_i[c], heap_i[p] = heap_i[p], heap_i[c]
-                    c = p
-                else:
-                    break
     return changed
 
 
