@@ -127,8 +127,10 @@ class Graph:
         """
         Return the recorded joint_states positions of ``names`` at ROS time ``ros_s``.
 
-        Interpolated between the two stamped messages around it; None when the record does not
-        bracket it.
+        Interpolated between the two stamped messages around it: cubic (Hermite) from their
+        positions and velocities when both have velocities (exact for a constant acceleration,
+        so a gap in the record under load costs little), else linear; None when the record
+        does not bracket it.
         """
         with self.lock:
             msgs = [m for _, m in self.states if m.header.stamp.sec or m.header.stamp.nanosec]
@@ -139,8 +141,15 @@ class Graph:
         a, b = msgs[k], msgs[k + 1]
         qa = np.array([a.position[list(a.name).index(n)] for n in names])
         qb = np.array([b.position[list(b.name).index(n)] for n in names])
-        f = 0.0 if ts[k + 1] == ts[k] else (ros_s - ts[k]) / (ts[k + 1] - ts[k])
-        return qa + f * (qb - qa)
+        dt = ts[k + 1] - ts[k]
+        f = 0.0 if dt == 0.0 else (ros_s - ts[k]) / dt
+        if len(a.velocity) != len(a.name) or len(b.velocity) != len(b.name):
+            return qa + f * (qb - qa)
+        va = np.array([a.velocity[list(a.name).index(n)] for n in names])
+        vb = np.array([b.velocity[list(b.name).index(n)] for n in names])
+        h00, h10 = 2 * f ** 3 - 3 * f ** 2 + 1, f ** 3 - 2 * f ** 2 + f
+        h01, h11 = -2 * f ** 3 + 3 * f ** 2, f ** 3 - f ** 2
+        return h00 * qa + h10 * dt * va + h01 * qb + h11 * dt * vb
 
     def controller_violations(self, current_tol_rad=np.radians(1.0)):
         """
