@@ -50,10 +50,11 @@ from dataclasses import replace
 
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
-__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES", "JOIN_LEAD_S"]
+__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
-#: the join is at least this far ahead of the publishing time (the messages' transit), s
-JOIN_LEAD_S = 0.1
+#: every published trajectory starts at least this long after it is published (the messages'
+#: transit: a controller that gets one after its start catches up with a velocity step), s
+START_LEAD_S = 0.1
 #: half-widths (path samples on either side of the horizon point) of the corner blends tried
 BLEND_SAMPLES = (8, 24)
 #: a turn at the horizon point smaller than this (rad) is left as it is
@@ -237,7 +238,7 @@ def _corner_blends(path, corner, first, step_rad):
         yield a, b, np.vstack([path[:a], curve, path[b + 1:]])
 
 
-def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = JOIN_LEAD_S, checker=None):
+def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = START_LEAD_S, checker=None):
     """
     Build the trajectory to publish for a plan that started at ``join.start_rad``.
 

@@ -61,7 +61,7 @@ from ..config import NODE_NAME, check_value, scenario_from_params
 from ..scene import Target
 from ..collision import CollisionChecker
 from ..pipeline import timed_motion
-from ..replanning import Executing, joined_motion, plan_start
+from ..replanning import START_LEAD_S, Executing, joined_motion, plan_start
 from ..trajectory import HorizonPassed, resample, time_parameterize
 from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, make_backend
 from . import conversions as conv
@@ -812,10 +812,11 @@ class PlannerNode(LifecycleNode):
             self._log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
         # one stamp for both parts: the arm's and the attitude's controllers start together (a
-        # zero stamp would mean "on arrival", each its own): now, or the join's time (a moment
-        # ahead: the controller follows the trajectory it has until then)
-        if stamp_ns is None:
-            stamp_ns = self.get_clock().now().nanoseconds
+        # zero stamp would mean "on arrival", each its own), a moment ahead so that it arrives
+        # first: START_LEAD_S from now, or the join's time (the controller follows the
+        # trajectory it has until then)
+        if stamp_ns is None:      # from rest: the arm holds its state until then
+            stamp_ns = self.get_clock().now().nanoseconds + int(START_LEAD_S * 1e9)
         stamp = conv.ns_to_time(stamp_ns)
         msg, att_msg = self._split(conv.trajectory_to_msg(traj, stamp), traj)
         latency = time.perf_counter() - req.t_request
