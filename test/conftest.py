@@ -7,14 +7,52 @@ run a few dozen cases by default; ``pytest --hypothesis-profile=long`` (or
 (test/node_helpers.py).
 """
 
+import fcntl
 import os
-import random
+import tempfile
 
 import pytest
 from hypothesis import HealthCheck, settings
 
-# before rclpy is imported anywhere: 233 and up fail here with "port number is too high"
-os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 232))
+#: the ROS domains a test run may claim: 233 and up fail with "port number is too high"
+ROS_DOMAINS = range(1, 233)
+#: one lock file per domain; a run holds its domain's lock until its process ends
+DOMAIN_LOCK_DIR = os.path.join(tempfile.gettempdir(), "spacerobot_planner-test-ros-domains")
+
+
+def claim_ros_domain(lock_dir: str = DOMAIN_LOCK_DIR, domains=ROS_DOMAINS):
+    """
+    Claim a ROS domain that no concurrent test run on this machine holds.
+
+    Each domain has a lock file in ``lock_dir``; the first domain whose lock this process
+    gets (``flock``, non-blocking) is claimed and held until the returned file is closed or
+    the process ends (the kernel drops the lock then, so a crashed run never leaks one).
+    The search starts at a point derived from the process id, so concurrent runs rarely
+    contend for the same file.  Returns (domain id, open lock file).
+    """
+    os.makedirs(lock_dir, exist_ok=True)
+    domains = list(domains)
+    first = os.getpid() % len(domains)
+    for k in range(len(domains)):
+        domain = domains[(first + k) % len(domains)]
+        f = open(os.path.join(lock_dir, f"{domain}.lock"), "w")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.close()
+            continue
+        f.write(f"{os.getpid()}\n")
+        f.flush()
+        return domain, f
+    raise RuntimeError(f"every ROS domain in {domains[0]}..{domains[-1]} is held by a test run ({lock_dir})")
+
+
+# before rclpy is imported anywhere; the processes the tests start inherit it.  Claimed once
+# per process (the key names the process that holds the lock).
+_CLAIMED_BY = "SPACEROBOT_PLANNER_TEST_DOMAIN_PID"
+if os.environ.get(_CLAIMED_BY) != str(os.getpid()):
+    _domain, _DOMAIN_LOCK = claim_ros_domain()
+    os.environ["ROS_DOMAIN_ID"], os.environ[_CLAIMED_BY] = str(_domain), str(os.getpid())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 _common = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=False)

@@ -30,6 +30,10 @@ from spacerobot_planner.ros.mock_arm_node import MockArmNode
 from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
 from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
 
+#: The node's promises about time (a cancel within 0.5 s, a shutdown within 1 s) are measured by
+#: ``python -m spacerobot_planner.bench promptness``; a test checks only that the work ends far
+#: sooner than the injected stall (30 s) would, a bound a loaded machine keeps.
+PROMPT_BOUND_S = 10.0
 FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
         "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
 _CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config")
@@ -100,7 +104,35 @@ class Graph:
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
         if wait_subscribed:
-            self.wait(lambda: self.pub_target.get_subscription_count() > 0, 10, "planner subscribed")
+            self.wait_connected()
+
+    def nodes(self):
+        return [n for n in (None if self.planner_destroyed else self.planner, self.arm, self.drv) if n is not None]
+
+    def unmatched(self):
+        """
+        List the endpoints of the graph's nodes not yet matched with all their peers in the graph.
+
+        A publisher's matched-subscription count (and a subscription's matched-publisher count) is
+        DDS's own: a message sent before its endpoints match is lost (volatile QoS), which is what
+        a test that publishes or subscribes "at once" would otherwise race.
+        """
+        pubs = [p for n in self.nodes() for p in n.publishers]
+        subs = [s for n in self.nodes() for s in n.subscriptions]
+        out = []
+        for p in pubs:
+            want = sum(s.topic_name == p.topic_name for s in subs)
+            if p.get_subscription_count() < want:
+                out.append(f"publisher {p.topic_name} {p.get_subscription_count()}/{want}")
+        for s in subs:
+            want = sum(p.topic_name == s.topic_name for p in pubs)
+            if s.get_publisher_count() < want:
+                out.append(f"subscription {s.topic_name} {s.get_publisher_count()}/{want}")
+        return out
+
+    def wait_connected(self, timeout=60):
+        """Wait until every publisher and subscription in the graph has matched its peers (DDS discovery)."""
+        self.wait(lambda: not self.unmatched(), timeout, lambda: f"the graph connected: {self.unmatched()}")
 
     def _spin(self):
         # not ex.spin(): Executor.shutdown() from another thread destroys its guard
@@ -188,10 +220,11 @@ class Graph:
         return cb
 
     def wait(self, cond, timeout, what):
+        """Poll ``cond`` until true; AssertionError after ``timeout`` s (``what``: a text, or a callable giving one)."""
         t0 = time.monotonic()
         while not cond():
             if time.monotonic() - t0 > timeout:
-                raise AssertionError(f"timed out after {timeout} s waiting for: {what}")
+                raise AssertionError(f"timed out after {timeout} s waiting for: {what() if callable(what) else what}")
             time.sleep(0.01)
 
     def send_target(self, x=-3.27, y=-2.60, yaw=0.0, frame="world", quat=None):
@@ -239,7 +272,7 @@ class Graph:
         from spacerobot_planner_interfaces.action import PlanCapture
         if getattr(self, "_action_client", None) is None:
             self._action_client = ActionClient(self.drv, PlanCapture, "plan_capture")
-            assert self._action_client.wait_for_server(10.0), "no plan_capture action server"
+            self.wait(self._action_client.server_is_ready, 60, "the plan_capture action server discovered")
         return self._action_client
 
     def send_goal(self, goal, feedback=None):
