@@ -473,3 +473,35 @@ def controller_rule_violations(msg, known_joints, received_at_ros_s=None, curren
     if len(pts[-1].velocities) == n and any(abs(v) > 1e-9 for v in pts[-1].velocities):
         out.append(f"non-zero velocities at the end {list(pts[-1].velocities)}")
     return out
+
+
+def next_plan(g, n_traj, n_att=0, timeout=30):
+    """
+    Wait for the first plan published after the driver had ``n_traj`` joint and ``n_att`` attitude trajectories.
+
+    Returns its (dof,) planned-joint end (rad) and its first point (rad).  One publisher's
+    messages arrive in order, so this is the plan published next, whatever came before it:
+    a test that sends a good request after a bad one checks with it that nothing went out for the
+    bad one (the good one's plan comes first), with no sleep.
+    """
+    robot = g.scenario.robot
+    has_att = "attitude" in robot.planned_names
+
+    def arrived():
+        with g.lock:
+            return len(g.trajs) > n_traj and (not has_att or len(g.att_trajs) > n_att)
+    g.wait(arrived, timeout, f"a trajectory after the first {n_traj}")
+    with g.lock:
+        msgs = [g.trajs[n_traj][1], g.att_trajs[n_att][1] if has_att else None]
+    return planned_positions(robot, msgs, -1), planned_positions(robot, msgs, 0)
+
+
+def assert_next_plan_grasps(g, n_traj, n_att, x_m, y_m, yaw_rad=0.0, timeout=30, tol_m=1e-3):
+    """Assert the next plan published (see next_plan) ends with the tip at the grasp point of the target (x, y, yaw)."""
+    import dataclasses
+    end, _ = next_plan(g, n_traj, n_att, timeout)
+    robot = g.scenario.robot
+    tip = robot.tip_position(robot.full(end))
+    grasp = dataclasses.replace(g.scenario.scene.target, center_m=(x_m, y_m), yaw_rad=yaw_rad).grasp_point_m
+    miss = float(np.linalg.norm(tip - grasp))
+    assert miss < tol_m, f"the next trajectory ends {miss:.4f} m from the grasp of ({x_m}, {y_m}): another plan went out first"

@@ -46,15 +46,14 @@ from spacerobot_planner.ros.planner_node import PlannerNode, params_to_overrides
 from spacerobot_planner.ros.conversions import joint_state_msg
 from spacerobot_planner.scene import Target
 
-from node_helpers import (Graph, child_pids, diag_list, diag_values, pid_alive, planned_positions, rss_mb,
-                          scene_params)
+from node_helpers import (PROMPT_BOUND_S, Graph, assert_next_plan_grasps, child_pids, diag_list, diag_values, pid_alive,
+                          planned_positions, rss_mb, scene_params)
 from conftest import CONFIG_DIR
 
 FLOOD_S = 10.0            # the 10 s
 FLOOD_HZ = 200.0
 GOOD_TARGETS = [(-3.27, -2.60, 0.0), (-3.0, -2.8, 0.0)]   # alternated: each is a new target
 LONG = {"planner.test_stall_s": 30.0}   # a long plan: the planning process stalls (uninterruptible) 30 s
-SHUTDOWN_BOUND_S = 1.0
 
 
 def _threads():
@@ -154,7 +153,7 @@ class TestBadInput:
     def test_bad_input_is_an_error_then_the_next_good_target_plans(self, table, action, fragments):
         g = table
         g.good_js()
-        n0, e0 = g.n_trajs(), len(g.errors())
+        n0, na0, e0 = g.n_trajs(), len(g.att_trajs), len(g.errors())
         action(g)
         g.wait(lambda: len(g.errors()) > e0, 15, f"a diagnostics ERROR with {fragments}")
         msg = g.errors()[-1][1]
@@ -162,12 +161,11 @@ class TestBadInput:
             assert frag in msg, f"{frag!r} not in {msg!r}"
         st = g.error_diags()[-1][1]
         assert diag_values(st)["code"] in ("invalid_input", "invalid_parameter")
-        time.sleep(0.3)
-        assert g.n_trajs() == n0, "a trajectory was published for bad input"
-        # the node keeps serving
+        # the node keeps serving: the next good target's plan is the first published since
+        # (nothing went out for the bad input)
         g.good_js()
-        g.next_good_target()
-        g.wait(lambda: g.n_trajs() == n0 + 1, 30, "a trajectory for the next good target")
+        x, y = g.next_good_target()
+        assert_next_plan_grasps(g, n0, na0, x, y)
         g.wait(g.all_ok, 5, "diagnostics back to OK")
 
     @pytest.mark.parametrize("scale, tilt_deg, yaw_deg", [(1.005, 0.0, -3.0), (0.995, 0.5, -6.0)],
@@ -330,17 +328,15 @@ def _expect_fault_then_recovery(g, capfd, fragments, log_fragments):
     for frag in fragments:
         assert frag in st.message, st.message
     assert diag_list(st, "target_m") == list(GOOD_TARGETS[0][:2])
-    time.sleep(0.2)
-    out = capfd.readouterr()
+    # the next request plans normally, and its plan is the first published (none for the fault)
+    g.send_target(*GOOD_TARGETS[1][:2])
+    assert_next_plan_grasps(g, 0, 0, *GOOD_TARGETS[1][:2], timeout=60)
+    g.wait(g.all_ok, 5, "diagnostics back to OK")
+    out = capfd.readouterr()                   # the fault's log lines came before the good plan
     log = out.err + out.out
     assert "Traceback (most recent call last)" in log, log[-3000:]
     for frag in log_fragments:
         assert frag in log, f"{frag!r} not in the log"
-    assert g.n_trajs() == 0
-    # the next request plans normally
-    g.send_target(*GOOD_TARGETS[1][:2])
-    g.wait(lambda: g.n_trajs() == 1, 60, "a trajectory after the fault")
-    g.wait(g.all_ok, 5, "diagnostics back to OK")
 
 
 @pytest.mark.parametrize("where", ["Planner.plan", "pipeline_stage"])
@@ -429,7 +425,7 @@ def test_destroy_node_during_long_plan_child_process(graph, record_property):
     dt = g.destroy_planner()
     print(f"\ndestroy_node during a stalled plan (child process): {dt:.3f} s")
     record_property("shutdown_destroy_child_process_s", round(dt, 3))
-    assert dt < SHUTDOWN_BOUND_S, f"destroy_node took {dt:.2f} s"
+    assert dt < PROMPT_BOUND_S, f"destroy_node took {dt:.2f} s"
     assert not worker.is_alive() and not pid_alive(child)
     g.close()
     assert _leftover_threads(before) == []
@@ -488,7 +484,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
         pub_j = drv.create_publisher(JointState, "joint_states", 10)
         t0 = time.monotonic()
         while pub_t.get_subscription_count() == 0 or pub_j.get_subscription_count() == 0:
-            assert time.monotonic() - t0 < 10, "planner not subscribed"
+            assert time.monotonic() - t0 < 60, "planner not subscribed"
             time.sleep(0.01)
         robot = node._robot
         pub_j.publish(joint_state_msg(robot.joint_names, robot.full(scenario_from_params(flat).start_rad)))
@@ -508,7 +504,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
         drv.destroy_node()
         t1 = time.monotonic()
         rclpy.shutdown(context=ctx)
-        spinner.join(5.0)
+        spinner.join(PROMPT_BOUND_S)
         dt = time.monotonic() - t1
     finally:
         if rclpy.ok(context=ctx):
@@ -517,7 +513,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
     print(f"\ncontext shutdown (Ctrl-C path) during a stalled plan: {dt:.3f} s")
     record_property("shutdown_ctrl_c_path_s", round(dt, 3))
     assert not spinner.is_alive()
-    assert dt < SHUTDOWN_BOUND_S, f"shutdown took {dt:.2f} s"
+    assert dt < PROMPT_BOUND_S, f"shutdown took {dt:.2f} s"
     assert not worker.is_alive() and not pid_alive(child)
     assert _leftover_threads(before) == []
 
@@ -566,7 +562,7 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
         t1 = time.monotonic()
         os.killpg(proc.pid, signal.SIGINT)
         try:
-            rc = proc.wait(10)
+            rc = proc.wait(PROMPT_BOUND_S)
         except subprocess.TimeoutExpired:
             proc.kill()
             raise
@@ -585,4 +581,4 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
     assert "Failed to publish log message to rosout" not in text, text
     assert "shutdown: the plan in progress is cancelled" in text, text[-2000:]
     assert not pid_alive(kids[0]), "the planning process outlived the node"
-    assert dt < SHUTDOWN_BOUND_S, f"the node took {dt:.2f} s to exit after SIGINT\n{text[-2000:]}"
+    assert dt < PROMPT_BOUND_S, f"the node took {dt:.2f} s to exit after SIGINT\n{text[-2000:]}"
