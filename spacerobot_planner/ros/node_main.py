@@ -13,8 +13,10 @@ from __future__ import annotations
 from typing import Callable
 
 import signal
+import sys
 
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
@@ -51,8 +53,10 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
     """
     ``rclpy.init``, ``make_node()``, spin in a SingleThreadedExecutor until Ctrl-C.
 
-    A ValueError or RuntimeError from ``make_node`` (bad parameters, a failed
-    autostart) is printed as ``<exe_name>: <reason>`` and gives exit code 1; otherwise 0.
+    A refused start (a ValueError or RuntimeError from ``make_node``: bad parameters, a
+    failed autostart; or rclpy's own parameter exceptions) is printed as one line
+    ``<exe_name>: <reason>`` on stderr, without a traceback, and gives exit code 1;
+    otherwise 0.
     """
     def interrupt(signum, frame):
         raise KeyboardInterrupt
@@ -62,8 +66,8 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
         with rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO):
             try:
                 node = make_node()
-            except (ValueError, RuntimeError) as e:
-                print(f"{exe_name}: {e}")
+            except (ValueError, RuntimeError, ParameterException) as e:
+                print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
                 return 1
             spin_until_shutdown(node, SingleThreadedExecutor(),
                                 None if on_shutdown is None else (lambda: on_shutdown(node)))

@@ -16,7 +16,7 @@ from rclpy.parameter import Parameter
 from ..config import PARAMETERS, check_value
 
 __all__ = ["PLANNER_PARAMETERS", "MOCK_ARM_PARAMETERS", "descriptor_for", "params_to_overrides",
-           "check_choice", "CHOICES"]
+           "check_choice", "CHOICES", "declare_checked", "ROS_PARAMETERS"]
 
 _PTYPE = {
     "double": ParameterType.PARAMETER_DOUBLE, "integer": ParameterType.PARAMETER_INTEGER,
@@ -73,6 +73,52 @@ def descriptor_for(spec, name: str | None = None) -> ParameterDescriptor:
             d.integer_range = [IntegerRange(from_value=int(spec.min_value), to_value=int(spec.max_value),
                                             step=0)]
     return d
+
+
+#: parameters rclpy itself declares (or reads) on every node: never the package's, never unknown
+ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+_ROS_PREFIXES = ("qos_overrides.",)
+
+
+def _normalise(spec, value):
+    """Return a checked value in the type rclpy declares (an integer given for a double: a float)."""
+    value = check_value(spec.name, value)
+    if spec.type == "double_array":
+        return [float(x) for x in value]
+    if spec.type == "double":
+        return float(value)
+    return value
+
+
+def declare_checked(node, names, specs: dict | None = None) -> dict:
+    """
+    Declare ``names`` on ``node`` with their descriptors; check start values first.
+
+    The node must be made with ``automatically_declare_parameters_from_overrides=True``:
+    what a parameter file, ``-p`` or ``parameter_overrides`` gave is then declared (without
+    descriptor), read here, undeclared, checked with :func:`config.check_value` (a
+    ValueError names the parameter and says why, before rclpy's descriptor checks, whose
+    messages are about types and ranges only) and declared again with its descriptor.
+    ``names``: declared name -> schema name (or an iterable of schema names).  Returns the
+    values given at start that are not among ``names``, by name (another node's, or
+    unknown); they are undeclared.
+    """
+    names = dict(names) if isinstance(names, dict) else {n: n for n in names}
+    specs = SPECS if specs is None else specs
+    given = {}
+    for name in node.list_parameters([], 0).names:
+        if name in ROS_PARAMETERS or name.startswith(_ROS_PREFIXES):
+            continue
+        given[name] = node.get_parameter(name).value
+        node.undeclare_parameter(name)
+    for decl, schema in names.items():
+        spec = specs[schema]
+        value = spec.default
+        if decl in given:
+            value = _normalise(spec, given.pop(decl))
+            check_choice(schema, value)
+        node.declare_parameter(decl, value, descriptor_for(spec, decl), ignore_override=True)
+    return given
 
 
 def params_to_overrides(flat: dict, names: dict | None = None) -> list:

@@ -66,7 +66,7 @@ from ..trajectory import HorizonPassed, resample, time_parameterize
 from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, make_backend
 from . import conversions as conv
 from . import node_main
-from .parameters import PLANNER_PARAMETERS, SPECS, check_choice, descriptor_for, params_to_overrides
+from .parameters import PLANNER_PARAMETERS, SPECS, check_choice, declare_checked, params_to_overrides
 
 __all__ = ["PlannerNode", "main", "spin_until_shutdown", "params_to_overrides", "GRID_QOS", "Outcome"]
 
@@ -132,12 +132,14 @@ class PlannerNode(LifecycleNode):
     for a flat dict from a scenario file).
     """
 
+    #: every attribute exists (a refused start ends in ``__init__``; rclpy destroys the node later)
+    _started = False
+
     def __init__(self, *, context=None, parameter_overrides=None, node_name: str = NODE_NAME, **kwargs):
-        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides, **kwargs)
+        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides,
+                         automatically_declare_parameters_from_overrides=True, **kwargs)
         self._log_name = node_name
-        for name in PLANNER_PARAMETERS:
-            spec = SPECS[name]
-            self.declare_parameter(name, spec.default, descriptor_for(spec))
+        declare_checked(self, PLANNER_PARAMETERS)      # ValueError: the parameter and why
         params = {n: self.get_parameter(n).value for n in PLANNER_PARAMETERS}
         self._params = {k: (list(v) if isinstance(v, (tuple, np.ndarray, array.array)) else v)
                         for k, v in params.items()}
@@ -184,6 +186,7 @@ class PlannerNode(LifecycleNode):
         self.add_on_set_parameters_callback(self._on_set_params)
         self.add_post_set_parameters_callback(self._post_set_params)
         self._explain_refused_transitions()
+        self._started = True
         if self._params["autostart"]:
             if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
                 raise RuntimeError("autostart: configure failed (see the log)")
@@ -1022,7 +1025,7 @@ class PlannerNode(LifecycleNode):
 
     # ------------------------------------------------------------------ shutdown
     def destroy_node(self):
-        if self._state_machine.current_state[1] != "finalized":
+        if self._started and self._state_machine.current_state[1] != "finalized":
             self._shutdown_all("destroy_node")
         return super().destroy_node()
 
