@@ -6,14 +6,17 @@ re-exported here.
 
 Scenario files are ROS 2 parameter files (``--params-file``): a shared ``/**``
 section (robot, scene, start: what more than one node reads) and a section per node
-(``spacerobot_planner``: grid, planner, trajectory, node settings; ``mock_arm``)::
+(``/**/spacerobot_planner``: grid, planner, trajectory, node settings;
+``/**/mock_arm``), named with a wildcard namespace so that they apply to a node
+started in any namespace (``-r __ns:=/robot2``; a plain ``spacerobot_planner`` section
+applies to ``/spacerobot_planner`` only)::
 
     /**:
       ros__parameters:
         robot:
           joint_names: [attitude, shoulder, elbow]
           ...
-    spacerobot_planner:
+    /**/spacerobot_planner:
       ros__parameters:
         grid:
           cells: [36, 36, 36]
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import array
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +43,7 @@ from .problem import Scenario
 from .robot import PlanarArm, square_polygon
 from .scene import Scene, Target
 
-__all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file",
+__all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file", "matching_sections",
            "scenario_from_params", "spec_default", "NODE_NAME"]
 
 NODE_NAME = "spacerobot_planner"
@@ -269,23 +273,42 @@ def _flatten(d, prefix=""):
 
 
 def _section_params(doc, key, path):
-    """Return the flat ``ros__parameters`` of section ``key`` (None when absent)."""
-    section = doc.get(key, doc.get("/" + key.lstrip("/")))
-    if section is None:
-        return None
+    """Return the flat ``ros__parameters`` of section ``key``."""
+    section = doc[key]
     if not isinstance(section, dict) or not isinstance(section.get("ros__parameters"), dict):
         raise ValueError(f"params file: the '{key}' section in {path} has no 'ros__parameters' mapping")
     return _flatten(section["ros__parameters"])
 
 
-def load_params_file(path, node: str = NODE_NAME) -> dict:
+def _section_regex(key: str) -> re.Pattern:
+    """
+    Return the regex of a section's node name, with rcl's wildcards.
+
+    ``/**`` stands for any number of namespace tokens (none included), ``/*`` for one, as
+    rcl matches a node's fully qualified name; a name without a leading slash gets one.
+    """
+    key = "/" + key.lstrip("/")
+    out = []
+    for token in key.split("/")[1:]:
+        out.append("(/[^/]+)*" if token == "**" else "/[^/]+" if token == "*" else "/" + re.escape(token))
+    return re.compile("".join(out))
+
+
+def matching_sections(doc: dict, node: str, namespace: str = "/") -> list:
+    """Return the keys of the sections of a parameter file that apply to ``namespace/node``, in file order."""
+    fqn = namespace.rstrip("/") + "/" + node.strip("/")
+    return [k for k in doc if isinstance(k, str) and _section_regex(k).fullmatch(fqn)]
+
+
+def load_params_file(path, node: str = NODE_NAME, namespace: str = "/") -> dict:
     """
     Read a ROS 2 parameter file; return one node's parameters as a flat dotted dict.
 
-    As ``--params-file`` does for that node: the shared ``/**`` section, then the
-    node's own section (``node`` or ``/node``) on top.  A file with one section of
-    another name is taken whole (older single-section files).  Unknown parameters are
-    kept (the nodes ignore them); known ones are type-checked.
+    As ``--params-file`` does for the node ``namespace/node``: every section whose name
+    matches it (``/**``, ``/**/node``, ``node``, ``/node``, ``/ns/node``; rcl's wildcards),
+    in file order, a later one on top.  A file with one section of another name is taken
+    whole (older single-section files).  Unknown parameters are kept (the nodes ignore
+    them); known ones are type-checked.
     """
     try:
         with open(path, encoding="utf-8") as f:
@@ -296,13 +319,14 @@ def load_params_file(path, node: str = NODE_NAME) -> dict:
         raise ValueError(f"params file: {path} is not valid YAML: {e}") from None
     if not isinstance(doc, dict) or not doc:
         raise ValueError(f"params file: {path} must map a node name to 'ros__parameters'")
-    shared = _section_params(doc, "/**", path)
-    own = _section_params(doc, node, path)
-    if shared is None and own is None:
+    keys = matching_sections(doc, node, namespace)
+    if not keys:
         if len(doc) != 1:
-            raise ValueError(f"params file: no '{node}' or '/**' section in {path}")
-        own = _section_params(doc, next(iter(doc)), path)
-    flat = {**(shared or {}), **(own or {})}
+            raise ValueError(f"params file: no '/**/{node}', '{node}' or '/**' section in {path}")
+        keys = [next(iter(doc))]
+    flat = {}
+    for key in keys:
+        flat.update(_section_params(doc, key, path))
     if node == NODE_NAME:
         missing = [s.name for s in PARAMETERS if s.required_in_file and s.name not in flat]
         if missing:

@@ -126,7 +126,7 @@ def test_bad_params_file_exit_1(tmp_path, capsys):
     rc, out, err = run(["--params-file", str(tmp_path / "missing.yaml")], capsys)
     assert rc == 1 and "params file" in err
     doc = yaml.safe_load(Path(P3).read_text())
-    doc["spacerobot_planner"]["ros__parameters"]["safety_margin_m"] = "wide"
+    doc["/**/spacerobot_planner"]["ros__parameters"]["safety_margin_m"] = "wide"
     f = tmp_path / "bad.yaml"
     f.write_text(yaml.safe_dump(doc))
     rc, out, err = run(["--params-file", str(f)], capsys)
@@ -166,7 +166,7 @@ S3 = str(ROOT / "config" / "servicer_3dof.yaml")
 
 def _variant(tmp_path, base, name, **sections):
     doc = yaml.safe_load(Path(base).read_text())
-    params = doc["spacerobot_planner"]["ros__parameters"]
+    params = doc["/**/spacerobot_planner"]["ros__parameters"]
     for section, values in sections.items():
         params.setdefault(section, {}).update(values)
     f = tmp_path / f"{name}.yaml"

@@ -20,7 +20,7 @@ def _paper_params():
     """Return the planner's view of the paper file as one nested section: /** and its own merged."""
     with open(os.path.join(CONFIG_DIR, "paper_3dof.yaml")) as f:
         doc = yaml.safe_load(f)
-    return {**doc["/**"]["ros__parameters"], **doc["spacerobot_planner"]["ros__parameters"]}
+    return {**doc["/**"]["ros__parameters"], **doc["/**/spacerobot_planner"]["ros__parameters"]}
 
 
 def test_shared_and_node_sections_merge(tmp_path):

@@ -20,6 +20,8 @@ import rclpy
 from rclpy.context import Context
 from rclpy.parameter import Parameter
 
+from conftest import CONFIG_DIR
+
 
 #: generous: a loaded 2-core machine imports rclpy and numba slowly
 START_TIMEOUT_S = 120
@@ -67,3 +69,40 @@ def test_refused_override_raises_value_error_and_the_context_shuts_down_cleanly(
             PlannerNode(context=ctx, parameter_overrides=[Parameter("safety_margin_m", value=-1.0)])
     finally:
         rclpy.shutdown(context=ctx)       # destroys the half-made node: no AttributeError
+
+
+# ================================================================== 2. namespaces
+@pytest.mark.parametrize("ns", ["/robot2", "/fleet/robot2"])
+def test_shipped_file_configures_a_node_in_a_namespace(ns):
+    """`--params-file config/paper_2dof.yaml -r __ns:=/robot2`: the file's node section applies."""
+    from spacerobot_planner.ros.mock_arm_node import MockArmNode
+    from spacerobot_planner.ros.planner_node import PlannerNode
+    path = os.path.join(CONFIG_DIR, "paper_2dof.yaml")
+    ctx = Context()
+    rclpy.init(context=ctx, args=["planner_node", "--ros-args", "--params-file", path, "-r", f"__ns:={ns}",
+                                  "-p", "autostart:=false"])
+    try:
+        node = PlannerNode(context=ctx)
+        arm = MockArmNode(context=ctx)
+        assert node.get_fully_qualified_name() == f"{ns}/spacerobot_planner"
+        assert list(node.get_parameter("grid.cells").value) == [180, 180]      # its own section
+        assert list(node.get_parameter("robot.planned_joints").value) == ["shoulder", "elbow"]   # /**
+        assert node._scenario.grid.shape == (181, 181)
+        assert list(arm.get_parameter("robot.planned_joints").value) == ["shoulder", "elbow"]
+        node.destroy_node()
+        arm.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+@pytest.mark.parametrize("name", ["paper_2dof", "paper_3dof", "servicer_3dof"])
+def test_shipped_files_have_only_namespace_independent_sections(name):
+    """Every section of a shipped file matches its node under any namespace."""
+    import yaml
+    from spacerobot_planner.config import load_params_file
+    with open(os.path.join(CONFIG_DIR, f"{name}.yaml")) as f:
+        doc = yaml.safe_load(f)
+    assert all(key.startswith("/**") for key in doc), list(doc)
+    flat = load_params_file(os.path.join(CONFIG_DIR, f"{name}.yaml"))
+    assert "grid.cells" in flat and "robot.joint_names" in flat
+    assert load_params_file(os.path.join(CONFIG_DIR, f"{name}.yaml"), node="mock_arm").get("rate_hz", 50.0) == 50.0

@@ -91,8 +91,8 @@ def test_both_nodes_from_one_params_file(tmp_path):
     from spacerobot_planner.ros.mock_arm_node import MockArmNode
     with open(os.path.join(CONFIG_DIR, "paper_2dof.yaml")) as f:
         doc = yaml.safe_load(f)
-    doc["mock_arm"]["ros__parameters"]["rate_hz"] = 20.0
-    doc["spacerobot_planner"]["ros__parameters"]["autostart"] = False
+    doc["/**/mock_arm"]["ros__parameters"]["rate_hz"] = 20.0
+    doc["/**/spacerobot_planner"]["ros__parameters"]["autostart"] = False
     path = tmp_path / "two.yaml"
     path.write_text(yaml.safe_dump(doc))
     ctx = Context()
@@ -105,7 +105,7 @@ def test_both_nodes_from_one_params_file(tmp_path):
         assert arm.get_parameter("rate_hz").value == 20.0
         assert list(arm.get_parameter("scenario.start_deg").value) == shared["scenario"]["start_deg"]
         assert list(arm.get_parameter("robot.planned_joints").value) == shared["robot"]["planned_joints"]
-        own = doc["spacerobot_planner"]["ros__parameters"]
+        own = doc["/**/spacerobot_planner"]["ros__parameters"]
         assert list(planner.get_parameter("grid.cells").value) == own["grid"]["cells"]
         assert list(planner.get_parameter("robot.planned_joints").value) == ["shoulder", "elbow"]
         assert planner.state == "unconfigured"                  # autostart: false from its section
