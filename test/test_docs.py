@@ -250,6 +250,14 @@ def test_commands_shown_exist():
     assert checked >= 10, f"only {checked} commands checked: is the bash-block parsing broken?"
 
 
+def test_every_benchmark_is_documented():
+    from spacerobot_planner.bench.__main__ import BENCHES
+
+    shown = {words[3] for words in _commands(DOCS / "benchmarks.md")
+             if words[1:3] == ["-m", "spacerobot_planner.bench"]}
+    assert shown == set(BENCHES), f"docs/benchmarks.md shows {sorted(shown)}, the package has {sorted(BENCHES)}"
+
+
 def _fill(msg, data: dict, where: str):
     """Set a message's fields from a ros2-CLI YAML mapping; fail on an unknown field."""
     fields = msg.get_fields_and_field_types()
