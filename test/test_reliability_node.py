@@ -266,7 +266,9 @@ def test_target_pose_flood(graph, record_property):
         return ds and diag_values(ds[-1]).get("state") in ("idle", "failed") and names_last(ds[-1])
 
     g.wait(settled, 30, "the outcome of the last target on /diagnostics")
-    time.sleep(1.2)                            # one more heartbeat: nothing newer comes
+    with g.lock:
+        n_diags = len(g.diags)
+    g.wait(lambda: len(g.diags) >= n_diags + 2, 30, "two more diagnostics heartbeats")
     assert settled(), "a later outcome replaced the last target's"
     with g.lock:
         final = g.diags[-1][1].status[0]
