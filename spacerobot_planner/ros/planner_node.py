@@ -17,7 +17,9 @@ Interfaces (when active):
   ``ComputePathToPose`` pattern: a newer goal (or a topic request) aborts the older one
   with code SUPERSEDED and a reason; a cancel ends a plan within about 1 s; feedback
   carries the stage and a progress fraction; bad goals abort with INVALID_INPUT and
-  the reason;
+  the reason; every accepted goal ends with a result: deactivate, shutdown, cleanup,
+  destroy_node and Ctrl-C abort the goals in flight with code CANCELLED and the reason
+  before the action server goes;
 - publishes ``joint_trajectory``, ``potential_grid`` / ``cspace_grid`` (OccupancyGrid in
   frame ``grid_frame``, x/y in radians, transient-local), ``planned_path_markers`` and
   ``/diagnostics`` (two statuses: ``planner`` = state + outcome of the last finished
@@ -84,6 +86,10 @@ WARM_UP_TIMEOUT_S = 300.0
 AT_GOAL_TOL_RAD = 1e-4
 #: Published trajectories keep a point at least this often (plus where the path bends).
 RESAMPLE_STEP_S = 0.25
+#: at shutdown, the longest the goals in flight are given to return their results, s
+GOAL_DRAIN_S = 2.0
+#: the executor sends a goal's result in a task after the goal's own: spun this long more, s
+RESULT_FLUSH_S = 0.2
 
 
 @dataclass(eq=False)
@@ -181,6 +187,10 @@ class PlannerNode(LifecycleNode):
         self._active_entities = []       # subscriptions, service (destroyed on deactivate)
         self._action = None
         self._goals = {}                 # goal id bytes -> _Request of an action goal
+        self._goal_thread = None         # the thread that runs the goals' coroutines (the executor's)
+        self._retired = []               # action servers left until their goals have sent results
+        self._retire_timer = None
+        self._retire_idle = False
         self._wake = self.create_guard_condition(lambda: None)   # resumes awaiting goals
         self.add_pre_set_parameters_callback(self._pre_set_params)
         self.add_on_set_parameters_callback(self._on_set_params)
@@ -337,11 +347,16 @@ class PlannerNode(LifecycleNode):
         self.get_logger().info("cleaned up: planning process stopped")
         return TransitionCallbackReturn.SUCCESS
 
-    def _cleanup(self):
-        self.shutdown_worker()
-        if self._action is not None:
-            self._action.destroy()
-            self._action = None
+    def _cleanup(self, finish_goals: bool = False):
+        """
+        Stop the worker and remove what configure made.
+
+        In a transition (a callback of the executor) the goals in flight return their results
+        after it, so their action server is destroyed later (:meth:`_retire_action`);
+        ``finish_goals`` (not in a callback: destroy_node) lets them return their results first.
+        """
+        self.shutdown_worker(finish_goals=finish_goals)
+        self._retire_action()
         for pub in self._pubs.values():
             self.destroy_lifecycle_publisher(pub)
         self._pubs = {}
@@ -364,7 +379,7 @@ class PlannerNode(LifecycleNode):
     def _shutdown_all(self, why):
         if self._accepting:
             self._deactivate(f"the node is shutting down ({why})")
-        self._cleanup()
+        self._cleanup(finish_goals=why == "destroy_node")
         self.state = "finalized"
         self._log("info", f"{why}: finalized")
 
@@ -518,6 +533,7 @@ class PlannerNode(LifecycleNode):
     # ------------------------------------------------------------------ action
     async def _execute_goal(self, goal_handle):
         """One plan_capture goal: validate, hand to the worker, await its outcome."""
+        self._goal_thread = threading.current_thread()
         goal = goal_handle.request
         done = Future()
         try:
@@ -594,6 +610,61 @@ class PlannerNode(LifecycleNode):
             self._wake.trigger()
         except Exception:          # noqa: BLE001 - context already shut down
             pass
+
+    def _drain_goals(self, timeout_s: float = GOAL_DRAIN_S):
+        """
+        Let the goals in flight (their requests finished) return their results to their clients.
+
+        Spins the node's executor when no other thread does (the thread that ran the goals
+        is this one or has ended: planner_node's main after Ctrl-C, destroy_node after the
+        spinning stopped); otherwise waits for that thread.  Bounded by ``timeout_s``.
+        """
+        if not self._goals:
+            return
+        ex, runner = self.executor, self._goal_thread
+        spin = ex is not None and (runner is None or runner is threading.current_thread() or not runner.is_alive())
+        deadline = time.monotonic() + timeout_s
+        flushed = None                # the results are sent by tasks after the goals' own
+        while self.context.ok():
+            now = time.monotonic()
+            if now >= deadline or (flushed is not None and now >= flushed):
+                break
+            if not self._goals and flushed is None:
+                flushed = now + RESULT_FLUSH_S
+            if spin:
+                try:
+                    ex.spin_once(timeout_sec=0.02)
+                except Exception:      # noqa: BLE001 - the executor or context is going away
+                    break
+            else:
+                time.sleep(0.02)
+        if self._goals:
+            self._log("warning", f"plan_capture: {len(self._goals)} goal(s) did not return a result in "
+                      f"{timeout_s:g} s")
+
+    def _retire_action(self):
+        """Destroy the action server now, or once its goals in flight have returned their results."""
+        action, self._action = self._action, None
+        if action is None:
+            return
+        if not self._goals:
+            action.destroy()
+            return
+        self._retired.append(action)
+        if self._retire_timer is None:
+            self._retire_timer = self.create_timer(RESULT_FLUSH_S, self._reap_retired)
+
+    def _reap_retired(self, now: bool = False):
+        """Timer: destroy the retired action servers a whole period after their last goal ended (or ``now``)."""
+        idle, self._retire_idle = self._retire_idle, not self._goals
+        if not now and not (idle and self._retire_idle):
+            return
+        done, self._retired = self._retired, []
+        for action in done:
+            action.destroy()
+        if self._retire_timer is not None:
+            self.destroy_timer(self._retire_timer)
+            self._retire_timer = None
 
     # ------------------------------------------------------------------ requests
     def _make_request(self, why, joint_goal, target, start=None) -> _Request:
@@ -1027,10 +1098,24 @@ class PlannerNode(LifecycleNode):
     def destroy_node(self):
         if self._started and self._state_machine.current_state[1] != "finalized":
             self._shutdown_all("destroy_node")
+        if self._started:
+            self._drain_goals()
+            self._reap_retired(now=True)
         return super().destroy_node()
 
-    def shutdown_worker(self, timeout_s: float = 5.0):
-        """Stop the worker (cancelling a plan in progress) and the planning process."""
+    def shutdown_worker(self, timeout_s: float = 5.0, finish_goals: bool = False):
+        """
+        Stop the worker (cancelling a plan in progress) and the planning process.
+
+        Every request ends (cancelled: the node is shutting down); ``finish_goals`` then lets
+        the plan_capture goals in flight send their results (see :meth:`_drain_goals`; not
+        from a callback of the node's executor).
+        """
+        self._stop_worker(timeout_s)
+        if finish_goals:
+            self._drain_goals()
+
+    def _stop_worker(self, timeout_s):
         with self._lock:
             if self._stop and self._worker is None and self._backend is None:
                 return
@@ -1102,12 +1187,12 @@ def spin_until_shutdown(node: PlannerNode, executor) -> None:
     Then stop the worker and the planning process (a plan in progress is cancelled) and
     destroy the node.
     """
-    node_main.spin_until_shutdown(node, executor, node.shutdown_worker)
+    node_main.spin_until_shutdown(node, executor, lambda: node.shutdown_worker(finish_goals=True))
 
 
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner planner_node --ros-args --params-file ...``."""
-    return node_main.run_node(PlannerNode, "planner_node", args, PlannerNode.shutdown_worker)
+    return node_main.run_node(PlannerNode, "planner_node", args, lambda node: node.shutdown_worker(finish_goals=True))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,175 @@
+"""
+What a request means and how it ends (issue 17).
+
+Every accepted plan_capture goal ends with a result, also when the node goes away; the
+latest accepted request from any channel is the goal that a replan or a parameter
+change plans to; ~/replan answers with the plan's outcome.  Oracles: the action protocol
+(statuses and results an action client receives), the trajectories on joint_trajectory,
+the service's response.  Long plans are made long by ``planner.test_stall_s``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from action_msgs.msg import GoalStatus
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
+from rclpy.action import ActionClient
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import JointState
+from spacerobot_planner_interfaces.action import PlanCapture
+
+from spacerobot_planner.ros.conversions import joint_state_msg
+
+from conftest import CONFIG_DIR
+from node_helpers import scene_params
+
+R = PlanCapture.Result
+ENDED = (GoalStatus.STATUS_ABORTED, GoalStatus.STATUS_CANCELED)
+
+
+def _target_goal(x=-3.27, y=-2.60, yaw=0.0, frame="world"):
+    g = PlanCapture.Goal()
+    g.target_pose.header.frame_id = frame
+    g.target_pose.pose.position.x, g.target_pose.pose.position.y = float(x), float(y)
+    g.target_pose.pose.orientation.z, g.target_pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    return g
+
+
+def _start(g):
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+
+
+class _Client:
+    """An action client on a node and an executor of its own (it keeps spinning when the planner's stops)."""
+
+    def __init__(self, ctx):
+        self.node = rclpy.create_node("goal_client", context=ctx)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self.action = ActionClient(self.node, PlanCapture, "plan_capture")
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+        assert self.action.wait_for_server(30.0), "no plan_capture server"
+
+    def _spin(self):
+        while not self._stop.is_set() and self.ex.context.ok():
+            self.ex.spin_once(timeout_sec=0.05)
+
+    def send(self, goal, timeout=30):
+        """Send a goal, ask for its result at once (as clients do); return the result future."""
+        fut = self.action.send_goal_async(goal)
+        _wait(fut.done, timeout, "the goal response")
+        handle = fut.result()
+        assert handle.accepted, "goal rejected"
+        return handle.get_result_async()
+
+    def close(self):
+        self._stop.set()
+        self.thread.join(5)
+        self.action.destroy()
+        self.ex.shutdown()
+        self.node.destroy_node()
+
+
+def _wait(cond, timeout, what):
+    t0 = time.monotonic()
+    while not cond():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout} s waiting for: {what}")
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def stalled(graph):
+    """
+    Make a planner plan a stalled (30 s) goal for a client of its own.
+
+    Yields the graph, the client and the goal's result future.
+    """
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
+    _start(g)
+    client = _Client(g.ctx)
+    result = client.send(_target_goal())
+    g.wait(lambda: g.planner.state == "planning", 10, "the goal planning")
+    yield g, client, result
+    client.close()
+
+
+def _assert_ended_with_a_reason(result, fragment):
+    _wait(result.done, 30, "the goal's result")
+    r = result.result()
+    assert r.status in ENDED, r.status
+    assert r.result.error_code == R.CANCELLED and fragment in r.result.reason, r.result.reason
+
+
+# ================================================================== 3. every accepted goal ends with a result
+@pytest.mark.parametrize("transition, fragment", [
+    (Transition.TRANSITION_ACTIVE_SHUTDOWN, "shutting down"),
+    (Transition.TRANSITION_DEACTIVATE, "deactivated"),
+], ids=["shutdown", "deactivate"])
+def test_goal_in_flight_gets_a_result_on_a_lifecycle_transition(stalled, transition, fragment):
+    g, client, result = stalled
+    cli = g.drv.create_client(ChangeState, "/spacerobot_planner/change_state")
+    assert cli.wait_for_service(30.0)
+    fut = cli.call_async(ChangeState.Request(transition=Transition(id=transition)))
+    g.wait(fut.done, 60, "the transition")
+    assert fut.result().success
+    _assert_ended_with_a_reason(result, fragment)
+
+
+def test_goal_in_flight_gets_a_result_when_the_node_is_destroyed(stalled):
+    g, client, result = stalled
+    g.destroy_planner()                      # as planner_node's main does after Ctrl-C
+    _assert_ended_with_a_reason(result, "shutting down")
+
+
+def test_goal_in_flight_gets_a_result_on_ctrl_c(tmp_path):
+    """SIGINT to a planner_node process planning a client's goal: the client gets the result."""
+    log = tmp_path / "planner_node.log"
+    cmd = [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+           "from spacerobot_planner.ros.planner_node import main; sys.exit(main())",
+           "--ros-args", "--params-file", os.path.join(CONFIG_DIR, "paper_3dof.yaml"),
+           "-p", "planner.test_stall_s:=30.0"]
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    client = None
+    try:
+        drv = rclpy.create_node("js_driver", context=ctx)
+        pub_j = drv.create_publisher(JointState, "joint_states", 10)
+        _wait(lambda: pub_j.get_subscription_count() > 0 or proc.poll() is not None, 60, "planner_node subscribed")
+        assert proc.poll() is None, log.read_text()
+        client = _Client(ctx)
+        pub_j.publish(joint_state_msg(("attitude", "shoulder", "elbow"), np.radians([-90.0, 135.0, 90.0])))
+        time.sleep(0.5)                      # (the goal would otherwise wait for joint_states: fine too)
+        result = client.send(_target_goal())
+        _wait(lambda: "planning #" in log.read_text(), 30, "the plan started")
+        os.killpg(proc.pid, signal.SIGINT)
+        _assert_ended_with_a_reason(result, "shutting down")
+        rc = proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        if client is not None:
+            client.close()
+        rclpy.shutdown(context=ctx)
+    text = log.read_text()
+    assert rc == 0 and "Traceback" not in text, text
+    assert "Failed to send result response" not in text, text
