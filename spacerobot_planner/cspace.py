@@ -19,6 +19,11 @@ node farther than ``ROW_EPS_RAD`` inside an interval is occupied, one farther ou
 all of them is free of the last link, and the few nodes within ``ROW_EPS_RAD`` of an
 interval's end get the exact segment test.  The links before it are tested once per
 row.  Same occupancy as the node-by-node test, far fewer tests.
+
+Cancel: the kernels poll the plan's termination token (``termination.Termination``,
+its ``flag`` array) before every row (node by node: before every node) and return
+early when it is set; :func:`build_cspace` then raises ``termination.Cancelled``, so a
+partial occupancy never leaves this module.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from .collision import (link_points, point_segment_dist2, rotate_body, links_hit
                         links_hit_polygons, point_in_polygon, segment_hits_polygons,
                         segment_polygon_within)
 from .scene import pack_polygons
+from .termination import Termination
 
 __all__ = ["GridSpec", "CSpace", "build_cspace", "body_occupancy", "grid_for_robot"]
 
@@ -168,12 +174,13 @@ class CSpace:
 @njit(parallel=True, cache=True, nogil=True)
 def _occupancy_kernel(shape, lower, step, axis_joint, q_locked, lengths, checked, body,
                       obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
-                      known_hit):
+                      known_hit, stop):
     """
     Occupancy (flat, C order) of every node.
 
     ``known_hit`` (size K, may be empty): nodes with ``known_hit[flat % K]`` are
-    occupied without a test (the body table over the trailing axes).
+    occupied without a test (the body table over the trailing axes).  ``stop`` int64
+    (1,): the termination flag, polled before every node (nonzero: return, partial).
     """
     ndim = shape.shape[0]
     n_nodes = 1
@@ -188,6 +195,8 @@ def _occupancy_kernel(shape, lower, step, axis_joint, q_locked, lengths, checked
         pts = np.empty((lengths.shape[0] + 1, 2))
         body_w = np.empty_like(body)
         for flat in range(c * chunk, min(n_nodes, (c + 1) * chunk)):
+            if stop[0] != 0:
+                break
             if n_known > 0 and known_hit[flat % n_known]:
                 occ[flat] = True
                 continue
@@ -309,12 +318,12 @@ def _link_hits(ax, ay, bx, by, verts, starts, centres, radii, body_w, check_body
 @njit(cache=True, nogil=True)
 def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locked, lengths, checked,
                body, obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
-               known_hit, eps_rad):
+               known_hit, eps_rad, stop):
     """
     Fill the occupancy of the rows ``row_start .. row_stop`` (flat, C order, into ``occ``).
 
     Along the last axis, which must be the chain's last joint (see the module doc).
-    Arguments as for ``_occupancy_kernel``.
+    Arguments as for ``_occupancy_kernel``; ``stop`` is polled before every row.
     """
     ndim = shape.shape[0]
     row_len = shape[ndim - 1]
@@ -340,6 +349,8 @@ def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locke
         ivals = np.empty((max_iv, 2))
         unsure = np.zeros(row_len, np.bool_)
         for row in range(row_start, row_stop):
+            if stop[0] != 0:
+                return
             base_flat = row * row_len
             rem = row
             for d in range(ndim - 2, -1, -1):
@@ -421,23 +432,31 @@ def _fill_rows_parallel(occ, n_rows, *args):
 ROWS_PARALLEL_NODES = 300_000
 
 
-def _occupancy(shape, lower, step, axis_joint, *rest):
-    """Use the row kernel where the last axis is the chain's last joint, else node by node."""
+def _occupancy(shape, lower, step, axis_joint, *rest, token=None):
+    """
+    Use the row kernel where the last axis is the chain's last joint, else node by node.
+
+    ``token``: the termination token (None: never); raises Cancelled when it stopped the kernel.
+    """
+    token = Termination.of(token)
+    stop = token.flag
     q_locked = rest[0]
     if axis_joint[-1] != q_locked.shape[0] - 1:
-        return _occupancy_kernel(shape, lower, step, axis_joint, *rest)
-    n_nodes = int(np.prod(shape))
-    occ = np.zeros(n_nodes, dtype=np.bool_)
-    n_rows = n_nodes // int(shape[-1])
-    args = (shape, lower, step, axis_joint, *rest, ROW_EPS_RAD)
-    if n_nodes >= ROWS_PARALLEL_NODES:
-        _fill_rows_parallel(occ, n_rows, *args)
+        occ = _occupancy_kernel(shape, lower, step, axis_joint, *rest, stop)
     else:
-        _fill_rows(occ, 0, n_rows, *args)
+        n_nodes = int(np.prod(shape))
+        occ = np.zeros(n_nodes, dtype=np.bool_)
+        n_rows = n_nodes // int(shape[-1])
+        args = (shape, lower, step, axis_joint, *rest, ROW_EPS_RAD, stop)
+        if n_nodes >= ROWS_PARALLEL_NODES:
+            _fill_rows_parallel(occ, n_rows, *args)
+        else:
+            _fill_rows(occ, 0, n_rows, *args)
+    token.check()           # the kernel may have stopped part-way: never return that
     return occ
 
 
-def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
+def body_occupancy(robot, grid: GridSpec, margin_m: float, token=None) -> np.ndarray | None:
     """
     Collisions with the spacecraft body over the grid's trailing axes, or None.
 
@@ -445,6 +464,7 @@ def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
     the arm joints only: when the attitude is the grid's first axis, one table over
     the other axes serves every attitude.  It does not depend on the target or the
     debris, so a caller may keep it across target moves.  Shape ``grid.shape[1:]``.
+    ``token``: the termination token; raises ``termination.Cancelled`` when it stops the build.
     """
     if robot.planned_joints[0] != 0 or grid.ndim < 2:
         return None
@@ -457,12 +477,12 @@ def body_occupancy(robot, grid: GridSpec, margin_m: float) -> np.ndarray | None:
         np.asarray(robot.planned_joints[1:], dtype=np.int64), q_locked,
         np.asarray(robot.link_lengths_m, dtype=float), np.asarray(robot.checked_links, dtype=np.int64),
         np.ascontiguousarray(robot.body_polygon_m), none, np.zeros(1, dtype=np.int64), none,
-        np.zeros(0), float(margin_m), True, np.zeros(0, dtype=np.bool_))
+        np.zeros(0), float(margin_m), True, np.zeros(0, dtype=np.bool_), token=token)
     return occ.reshape(rest.shape)
 
 
 def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
-                 body_table: np.ndarray | None = None) -> CSpace:
+                 body_table: np.ndarray | None = None, token=None) -> CSpace:
     """
     Occupancy of every node of ``grid`` for ``robot`` among ``scene``'s obstacles.
 
@@ -476,6 +496,10 @@ def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
     body_table
         A ``body_occupancy`` result for the same robot, grid and total margin, to skip
         recomputing it (computed here when None).
+    token
+        The plan's termination token (``termination.Termination``; None: never set),
+        polled by the kernels row by row.  Raises ``termination.Cancelled`` when it is
+        set before the build ends: nothing partial is returned.
 
     """
     if grid.ndim != robot.dof:
@@ -484,7 +508,7 @@ def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
     verts, starts, centres, radii = pack_polygons(scene.obstacle_polygons_m)
     t0 = time.perf_counter()
     if body_table is None:
-        body_table = body_occupancy(robot, grid, margin)
+        body_table = body_occupancy(robot, grid, margin, token=token)
     elif body_table.shape != grid.shape[1:]:
         raise ValueError(f"body_table: shape {body_table.shape} does not match grid {grid.shape}")
     known = (np.zeros(0, dtype=np.bool_) if body_table is None
@@ -494,6 +518,6 @@ def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
         np.asarray(grid.step_rad, dtype=float), np.asarray(robot.planned_joints, dtype=np.int64),
         np.asarray(robot.locked_rad, dtype=float), np.asarray(robot.link_lengths_m, dtype=float),
         np.asarray(robot.checked_links, dtype=np.int64), np.ascontiguousarray(robot.body_polygon_m),
-        verts, starts, centres, radii, margin, body_table is None, known)
+        verts, starts, centres, radii, margin, body_table is None, known, token=token)
     seconds = time.perf_counter() - t0
     return CSpace(grid=grid, occupied=occ.reshape(grid.shape), margin_m=margin, seconds=seconds)

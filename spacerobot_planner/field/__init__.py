@@ -39,12 +39,18 @@ band by band of scale:
 When it stops
 -------------
 When every node has a value (``converged``), or when the budget (``budget_s``, wall
-time; the planner's ``planner.field_budget_s``) or a cancel ends the bands first.  Then
+time; the planner's ``planner.field_budget_s``) or a soft ``cancel`` ends the bands first.  Then
 the nodes without a value are filled breadth-first from the solved ones, each 1/2n of
 the node it was reached from (the subharmonic lower bound's rule), the check and repair
 run as above, and the result is still a valid ascent field: descent reaches the goal
 from every goal-connected node, on a less accurate field there.  ``converged`` is then
 false and ``left`` says what is left.
+
+The plan's termination token (``token``, :class:`~spacerobot_planner.termination.Termination`)
+is another matter: a hard stop, polled inside the kernels' iterations (CG iterations,
+Gauss–Seidel sweeps) as the deadline is, and between the steps.  Once it is set,
+:func:`solve_field` raises :class:`~spacerobot_planner.termination.Cancelled` and returns
+no field, so a cancelled solve leaves nothing behind to be cached.
 
 Solvers (``solve_field(..., solver=NAME)``)
 -------------------------------------------
@@ -63,6 +69,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
+from ..termination import Termination
 from . import harmonic, oracle, paper
 from .graph import NodeGraph, bfs_distance, node_graph, validate_problem
 
@@ -127,10 +134,11 @@ class Field:
         return mask
 
 
-def _paper(occ, per, goals, tol, max_sweeps, t0):
+def _paper(occ, per, goals, tol, max_sweeps, t0, token):
     tol = 1e-6 if tol is None else float(tol)
     max_sweeps = 200_000 if max_sweeps is None else int(max_sweeps)
-    phi, sweeps, change = paper.gauss_seidel_phi(occ, per, goals, 1.0, tol, max_sweeps)
+    phi, sweeps, change = paper.gauss_seidel_phi(occ, per, goals, 1.0, tol, max_sweeps, stop=token.flag)
+    token.check()
     with np.errstate(divide="ignore"):
         log_u = np.log(np.clip(1.0 - phi, 0.0, None))
     log_u[occ] = -np.inf
@@ -141,7 +149,7 @@ def _paper(occ, per, goals, tol, max_sweeps, t0):
 
 
 def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *, tol=None,
-                max_sweeps=None, budget_s=None, cancel=None, cut_edges=None) -> Field:
+                max_sweeps=None, budget_s=None, cancel=None, cut_edges=None, token=None) -> Field:
     """
     Solve the harmonic field (see the package doc).
 
@@ -160,10 +168,15 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
     budget_s
         log_harmonic's wall-time budget, seconds (default ``DEFAULT_BUDGET_S``).
     cancel
-        Optional callable; log_harmonic stops between bands once it returns true.
+        Optional callable; log_harmonic stops between bands once it returns true (a soft
+        stop: the field is completed as when the budget ends).
     cut_edges
         Optional int (k, 2) flat index pairs of face-neighbour nodes whose edge is removed
         (a wall between them: the planner's repair of motions that collide).
+    token
+        The plan's termination token (``termination.Termination``; None: never set):
+        polled inside the kernels.  Raises ``termination.Cancelled`` once it is set
+        (no field: a partial one is never returned).
 
     Raises ValueError naming a malformed argument or an unknown solver.
 
@@ -174,20 +187,23 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
     if solver not in SOLVERS + INTERNAL_SOLVERS:
         raise ValueError(f"solver: unknown solver {solver!r}; expected one of {list(SOLVERS)}")
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
+    token = Termination.of(token)
+    token.check()
     if solver == "gauss_seidel":
         if cut_edges is not None and len(cut_edges):
             raise ValueError("cut_edges: the paper's gauss_seidel works on the full grid, without cut edges")
-        return _paper(occ, per, goals, tol, max_sweeps, t0)
+        return _paper(occ, per, goals, tol, max_sweeps, t0, token)
     budget = DEFAULT_BUDGET_S if budget_s is None else float(budget_s)
     if not (math.isfinite(budget) and budget > 0.0):
         raise ValueError(f"budget_s: must be a positive number of seconds, got {budget_s!r}")
-    graph = node_graph(occ, per, goals, cut_edges)
+    graph = node_graph(occ, per, goals, cut_edges, token=token)
     if solver == "oracle":
         log_u = oracle.oracle_log_u(graph)
+        token.check()
         stats = {"bands": 0}
         return Field(graph.scatter(log_u[:-1]), occ, per, goals, "oracle", 0, 0.0, True,
                      time.perf_counter() - t0, "", stats)
-    log_u, stats = harmonic.solve(graph, budget, cancel=cancel)
+    log_u, stats = harmonic.solve(graph, budget, cancel=cancel, token=token)
     left = stats.pop("left")
     return Field(graph.scatter(log_u[:-1]), occ, per, goals, "log_harmonic",
                  int(stats.pop("iterations")), float(stats.pop("residual")),

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from ..termination import Termination
+
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _next_coord(coord, shape):
@@ -249,14 +251,17 @@ def _cut_edges(gnbr, edges):
                 gnbr[b, d] = -1
 
 
-def bfs(occ, per, goals, cut_edges=None):
+def bfs(occ, per, goals, cut_edges=None, token=None):
     """
     Return (dist, BFS order, grid neighbour table) of a validated problem.
 
     (dist int64 grid-flat, BFS order, grid neighbour table) of a validated problem, without the grid
-    edges ``cut_edges`` (int (k, 2) flat node pairs) if given.
+    edges ``cut_edges`` (int (k, 2) flat node pairs) if given.  ``token``: a termination
+    token checked between the passes (raises ``termination.Cancelled``).
     """
     gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
+    if token is not None:
+        token.check()
     if cut_edges is not None and len(cut_edges):
         _cut_edges(gnbr, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
@@ -264,16 +269,20 @@ def bfs(occ, per, goals, cut_edges=None):
     return dist, order, gnbr
 
 
-def node_graph(occ, per, goals, cut_edges=None) -> NodeGraph:
+def node_graph(occ, per, goals, cut_edges=None, token=None) -> NodeGraph:
     """
     Return the :class:`NodeGraph` of a validated problem.
 
     The :class:`NodeGraph` of a validated problem (``validate_problem``), without the grid edges
-    ``cut_edges`` (int (k, 2) flat node pairs: a wall between the two).
+    ``cut_edges`` (int (k, 2) flat node pairs: a wall between the two).  ``token``: a
+    termination token checked between the passes (raises ``termination.Cancelled``).
     """
-    dist, order, gnbr = bfs(occ, per, goals, cut_edges)
+    token = Termination.of(token)
+    dist, order, gnbr = bfs(occ, per, goals, cut_edges, token)
+    token.check()
     n_goal = len(goals)
     order, coords = _red_black_order(dist, order[:n_goal], np.array(occ.shape, np.int64))
+    token.check()
     return NodeGraph(order, _neighbour_table(order, gnbr), coords, dist[order], n_goal,
                      tuple(occ.shape), tuple(per))
 

@@ -13,6 +13,7 @@ import time
 import numba as nb
 import numpy as np
 
+from ..termination import Termination
 from . import multigrid
 from .graph import NodeGraph, ascent_defects
 
@@ -213,7 +214,7 @@ def _repair_ascent(log_u, nbr, n_goal, step):
 
 
 def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
-          band_floor: float = BAND_FLOOR, cancel=None):
+          band_floor: float = BAND_FLOOR, cancel=None, token=None):
     """
     Return log u over the graph, float64 (N + 1,) with the dummy last (-inf), and the stats.
 
@@ -225,9 +226,15 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
     ``unsolved_nodes`` (left to the breadth-first extension when the budget or a cancel
     stopped the bands), ``repaired_nodes``, ``left`` (what is left, for people; "" when
     converged).
+
+    ``cancel()`` is a soft stop: the field is completed as when the budget ends.
+    ``token`` (``termination.Termination``) is the plan's hard stop: polled inside the
+    CG iterations as the deadline is, and between the steps; once it is set this raises
+    ``termination.Cancelled`` and returns nothing.
     """
     t0 = time.perf_counter()
     deadline = t0 + float(budget_s)
+    token = Termination.of(token)
     n, n_goal = graph.size, graph.n_goal
     nbr = graph.nbr
     log_u = np.full(n + 1, -np.inf)
@@ -242,6 +249,7 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
     window_steps = 0                 # 0: the whole band (the first one)
     scratch = np.full(n + 1, -1, np.int64)
     while active.size:
+        token.check()
         if time.perf_counter() > deadline or (cancel is not None and cancel()):
             converged = False
             left = (f"the field budget of {budget_s:g} s ended after {bands} band(s) with "
@@ -255,8 +263,10 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         inside = np.ones(active.size, np.bool_) if whole else steps <= window_steps
         window = active[inside]
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
+        token.check()
         x, its, res = multigrid.solve(sub, graph.coords[window], graph.shape, rhs,
-                                      tol=residual_tol, deadline=deadline)
+                                      tol=residual_tol, deadline=deadline, stop=token.flag)
+        token.check()               # the iterations stopped part-way: keep nothing
         bands += 1
         iterations += its
         worst = max(worst, res)
@@ -278,9 +288,12 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
     unsolved = int(active.size)
     if unsolved:
         _extend_below(log_u, known, nbr, n_goal, math.log(2 * graph.coords.shape[1]))
+    token.check()
     repaired = 0
     if ascent_defects(log_u, nbr, n_goal).size:
+        token.check()
         repaired = int(_repair_ascent(log_u, nbr, n_goal, REPAIR_STEP))
+    token.check()
     return log_u, {"bands": bands, "iterations": iterations, "residual": worst,
                    "converged": converged, "unsolved_nodes": unsolved,
                    "repaired_nodes": repaired, "left": left}

@@ -133,16 +133,21 @@ def _by_parity(nbr, wt, diag, coords):
     return nbr2, wt2, diag2, coords2, new_of_old[:n].copy()
 
 
+class Stopped(Exception):
+    """The set-up saw its termination flag set."""
+
+
 class Hierarchy:
     """The packed levels of one problem (see the module docstring)."""
 
-    def __init__(self, nbr, coords, shape):
+    def __init__(self, nbr, coords, shape, stop=None):
         """
         Set up the levels from the fine grid.
 
         nbr int (n, deg): fine neighbours, index n = none (already mapped so that goal nodes,
         walls and obstacles all read n); coords int (n, ndim); shape: the fine grid shape.
         ``fine_of_input`` maps an input node to its row on the (renumbered) fine level.
+        ``stop``: a termination flag, polled between levels (raises :class:`Stopped`).
         """
         n, deg = nbr.shape
         coords = np.ascontiguousarray(coords, dtype=np.int64)
@@ -165,6 +170,8 @@ class Hierarchy:
         nbrs, wts, diags, aggs = [nb0], [np.zeros((0, deg))], [np.zeros(0)], []
         shape = np.asarray(shape, np.int64)
         while nbrs[-1].shape[0] > COARSEST_NODES and np.any(shape > 1):
+            if stop is not None and stop[0] != 0:
+                raise Stopped()
             shape = (shape + 1) // 2
             agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape, len(nbrs) == 1)
             if cn.shape[0] == nbrs[-1].shape[0]:
@@ -311,7 +318,7 @@ def _sweep0(nb0, x, b, lo, hi, deg, inv_deg, par):
 
 @nb.njit(cache=True, nogil=True)
 def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
-            boost, par):
+            boost, par, stop):
     """
     Compute x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
 
@@ -319,7 +326,9 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
     ``boost``), backward ones after.  The fine level (unit weights, diagonal deg)
     reads ``nb0``; its first ``red0`` rows are red.  When ``restrict0 == red0`` (no
     two rows of one colour are neighbours) a colour's rows are updated in any order
-    (two threads with ``par``), else one by one in order.  r0 (n0,) scratch.
+    (two threads with ``par``), else one by one in order.  r0 (n0,) scratch.  The
+    termination flag ``stop`` is polled after the fine level's pre-smoothing and
+    before its post-smoothing (x is then garbage: the caller discards it).
     """
     deg = nbr.shape[1]
     inv_deg = 1.0 / deg
@@ -345,6 +354,8 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
             else:
                 for _ in range(sweeps):
                     _gs0(nb0, x, b, 0, n0, deg, inv_deg)
+            if stop[0] != 0:
+                return
             if par:
                 _residual0_par(nb0, x, b, r0, 0, restrict0, deg)
             else:
@@ -383,7 +394,7 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
         for _ in range(COARSE_SWEEPS):
             for i in range(n - 1, -1, -1):
                 x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
-    if nlev == 1:
+    if nlev == 1 or stop[0] != 0:
         return
     cb = off[1]
     for i in range(n0):
@@ -406,12 +417,12 @@ def _now():
 
 @nb.njit(cache=True, nogil=True)
 def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
-                  sweeps, boost, par):
+                  sweeps, boost, par, stop):
     """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
     for i in range(n):
         bs[i] = r[i]
     _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
-            boost, par)
+            boost, par, stop)
     rz = 0.0
     for i in range(n):
         rz += r[i] * xs[i]
@@ -420,13 +431,16 @@ def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes
 
 @nb.njit(cache=True, nogil=True)
 def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
-         sweeps, boost, deadline):
+         sweeps, boost, deadline, stop):
     """
     Preconditioned CG on the finest level, from the initial guess ``u``.
 
     rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
-    largest residual |b - A u| falls below ``tol``.  Returns (iterations,
-    final max residual); u is updated in place.
+    largest residual |b - A u| falls below ``tol``, at ``deadline``, or when the
+    termination flag ``stop`` (int64 (1,)) is nonzero (polled before every
+    iteration, like the deadline, and inside it: after the update and within the
+    V-cycle; u is then partial).  Returns (iterations, final max residual); u is
+    updated in place.
     """
     deg = nbr.shape[1]
     n = sizes[0]
@@ -448,11 +462,13 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
     if res < tol:
         return 0, res
     rz = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
-                       r0, r, n, sweeps, boost, par)
+                       r0, r, n, sweeps, boost, par, stop)
     for i in range(n):
         p[i] = xs[i]
     it = 0
     while it < max_iter:
+        if stop[0] != 0:
+            break
         if deadline > 0.0 and _now() > deadline:
             break
         it += 1
@@ -472,10 +488,10 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
             r[i] -= alpha * q[i]
             if abs(r[i]) > res:
                 res = abs(r[i])
-        if res < tol:
+        if res < tol or stop[0] != 0:
             break
         rz_new = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
-                               ws, r0, r, n, sweeps, boost, par)
+                               ws, r0, r, n, sweeps, boost, par, stop)
         beta = rz_new / rz
         rz = rz_new
         for i in range(n):
@@ -483,7 +499,7 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
     return it, res
 
 
-def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8):
+def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8, stop=None):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -491,7 +507,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     an obstacle or a known node, whose value is in ``rhs``); coords int (n, ndim) grid
     coordinates; shape: the grid shape; rhs float (n,).  Stops when the largest residual
     is below ``tol``, after ``max_iter`` iterations or at ``deadline``
-    (``time.perf_counter()`` seconds, 0 = none).
+    (``time.perf_counter()`` seconds, 0 = none), or when the termination flag ``stop``
+    (``termination.Termination.flag``, int64 (1,); None = never) is set: then the
+    result is partial and the caller must not keep it.
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
@@ -499,12 +517,17 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     n = nbr.shape[0]
     if n == 0:
         return np.zeros(0), 0, 0.0
-    h = Hierarchy(nbr, coords, shape)
+    try:
+        h = Hierarchy(nbr, coords, shape, stop)
+    except Stopped:
+        return np.zeros(n), 0, np.inf
     b = np.zeros(n + 1)
     b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
     par = n >= PARALLEL_NODES and h.restrict0 == h.red0
+    if stop is None:
+        stop = np.zeros(1, np.int64)
     it, res = _pcg(h.nb0, h.red0, h.restrict0, par, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                    h.chol, b, x,
-                   float(tol), int(max_iter), int(sweeps), float(boost), float(deadline))
+                   float(tol), int(max_iter), int(sweeps), float(boost), float(deadline), stop)
     return x[h.fine_of_input], int(it), float(res)

@@ -16,12 +16,15 @@ from .graph import grid_neighbours
 
 
 @nb.njit(cache=True, nogil=True)
-def _sweeps(phi, fixed, gnbr, phi0, tol, max_sweeps):
+def _sweeps(phi, fixed, gnbr, phi0, tol, max_sweeps, stop):
+    """Sweep until the largest change is below ``tol``, ``max_sweeps``, or ``stop[0]`` (polled per sweep)."""
     n, deg = gnbr.shape
     inv = 1.0 / deg
     change = np.inf
     sweeps = 0
     while sweeps < max_sweeps:
+        if stop[0] != 0:
+            break
         change = 0.0
         for f in range(n):
             if fixed[f]:
@@ -41,13 +44,21 @@ def _sweeps(phi, fixed, gnbr, phi0, tol, max_sweeps):
     return sweeps, change
 
 
-def gauss_seidel_phi(occ, per, goals, phi0: float = 1.0, tol: float = 1e-6, max_sweeps: int = 200_000):
-    """(Φ on the grid, sweeps, last largest change) for a validated problem."""
+def gauss_seidel_phi(occ, per, goals, phi0: float = 1.0, tol: float = 1e-6, max_sweeps: int = 200_000,
+                     stop=None):
+    """
+    (Φ on the grid, sweeps, last largest change) for a validated problem.
+
+    ``stop``: a termination flag (int64 (1,), None = never), polled before every sweep;
+    when it stopped the sweeps the result is partial (the caller checks its token).
+    """
     gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
     phi = np.full(occ.size, float(phi0))
     fixed = occ.ravel().copy()
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape)
     phi[goal_flat] = 0.0
     fixed[goal_flat] = True
-    sweeps, change = _sweeps(phi, fixed, gnbr, float(phi0), float(tol), int(max_sweeps))
+    if stop is None:
+        stop = np.zeros(1, np.int64)
+    sweeps, change = _sweeps(phi, fixed, gnbr, float(phi0), float(tol), int(max_sweeps), stop)
     return phi.reshape(occ.shape), int(sweeps), float(change)
