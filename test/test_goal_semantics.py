@@ -97,7 +97,7 @@ def _wait(cond, timeout, what):
 @pytest.fixture
 def stalled(graph):
     """
-    Make a planner plan a stalled (30 s) goal for a client of its own.
+    Make a planner plan a goal of a client of its own, stalled for 30 s.
 
     Yields the graph, the client and the goal's result future.
     """
