@@ -10,6 +10,13 @@ the stage's own module, is timed by :meth:`PlanRun.stage` and fails by raising
 planner's caches and adds entries to them, but never changes an entry: a repaired field
 is a new field, cached under a key that names its cut edges and blocked nodes, so the
 same input gives the same path whatever the planner planned before.
+
+Cancel: the run's one termination token (``termination.Termination``, from the
+``cancel`` given to ``Planner.plan``) is checked between the stages and handed to the
+long ones, whose kernels poll it inside their loops (the C-space rows, the field's CG
+iterations and sweeps) and between their steps (descent candidates and repairs,
+smoothing rounds).  A stage stopped by it raises :class:`Cancelled` before it stores
+anything, so the caches hold only complete C-spaces and fields.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_
 from .motion import SegmentTest, check_path, first_bad_segment
 from .results import STAGES, Code, PlanResult
 from .smoothing import smooth_path
+from .termination import Cancelled, Termination
 
 __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
 
@@ -42,10 +50,6 @@ class Fail(Exception):
     def __init__(self, code: Code, reason: str):
         super().__init__(reason)
         self.code, self.reason = code, reason
-
-
-class Cancelled(Exception):
-    pass
 
 
 def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
@@ -123,7 +127,8 @@ class PlanRun:
     ----------
         planner: the ``Planner`` (its caches and checker).
         settings: the ``PlannerSettings`` of this plan (a snapshot).
-        cancel: an object with ``is_set()`` or None; progress: a callable(str) or None.
+        cancel: a ``termination.Termination`` (polled inside the kernels), any object with
+            ``is_set()`` (polled between steps only) or None; progress: a callable(str) or None.
 
     """
 
@@ -134,7 +139,7 @@ class PlanRun:
         self.robot = self.sc.robot
         self.checker = planner._checker
         self.motions = SegmentTest.of(self.checker)
-        self.cancel = cancel
+        self.cancel = Termination.of(cancel)       # the run's one termination token
         self.progress = progress
         self.timings = {k: 0.0 for k in STAGES}
         self.cached = []
@@ -166,8 +171,7 @@ class PlanRun:
             self.progress(text)
 
     def check_cancel(self) -> None:
-        if self.cancel is not None and self.cancel.is_set():
-            raise Cancelled()
+        self.cancel.check()
 
     def result(self, code: Code, reason: str | None, smooth=None, path=None, tb: str = "",
                trajectory=None, reaction=None) -> PlanResult:
@@ -294,7 +298,7 @@ class PlanRun:
         self.cached = []
         before = self.timings["cspace"]
         with self.stage("cspace"):
-            cs, key, hit = self.p._cspace(self.sc.grid, extra_m)
+            cs, key, hit = self.p._cspace(self.sc.grid, extra_m, token=self.cancel)
         if hit:
             self.timings["cspace"] = before           # a cached stage costs nothing
             self.cached.append("cspace")
@@ -326,7 +330,7 @@ class PlanRun:
         hit = key in self.p._fields
         before = self.timings["field"]
         with self.stage("field"):
-            fld = self.p._solve(cs, key, goal_nodes, self.s)
+            fld = self.p._solve(cs, key, goal_nodes, self.s, token=self.cancel)
         if hit:
             self.timings["field"] = before
             self.cached.append("field")
@@ -351,6 +355,8 @@ class PlanRun:
         blocked, cut = frozenset(), frozenset()
         repairs = 0
         start = self.plan_start
+        with self.stage("descent"):
+            self.p._test_stall("descent", self.cancel)
         for attempt in range(s.max_repairs + 1):
             self.check_cancel()
             self.fld = fld
@@ -368,6 +374,7 @@ class PlanRun:
                 raise self.no_field_path_failure(cs, fld, blocked)
             path, stuck, reasons = None, None, []
             for node in starts[reach]:
+                self.check_cancel()
                 if not self.segment_ok(start, grid.config_of(node)):
                     reasons.append(f"segment to node {tuple(node)} collides")
                     continue
@@ -431,7 +438,7 @@ class PlanRun:
         rkey = key + (tuple(sorted(blocked)), tuple(sorted(cut)))
         hit = rkey in self.p._fields
         with self.stage("repair"):
-            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut)
+            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel)
         if not hit and "field" in self.cached:
             self.cached.remove("field")
         return fld
@@ -467,6 +474,7 @@ class PlanRun:
         self.check_cancel()
         s = self.s
         with self.stage("smoothing"):
+            self.p._test_stall("smoothing", self.cancel)
             sm = smooth_path(self.checker, waypoints, self.lower, self.upper, self.periodic,
                              shortcut=s.shortcut, keep_clearance_m=s.shortcut_keep_clearance_m,
                              max_step_rad=s.max_step_rad, verify_step_rad=s.verify_step_rad,

@@ -46,6 +46,7 @@ from .problem import Scenario
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
 from .smoothing import DEFAULT_MAX_STEP_RAD
+from .termination import stall
 
 __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES", "warm_up",
            "timed_motion", "settings_from_params"]
@@ -177,6 +178,11 @@ class Planner:
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
+        #: test aid: (stage, seconds, polls, on_start) -- that stage ("cspace", "field":
+        #: before its kernels, when not cached; "descent", "smoothing") calls
+        #: ``on_start(stage)`` (or None) and spends ``seconds``, answering the termination
+        #: token when ``polls`` (``termination.stall``)
+        self.test_stall: tuple | None = None
 
     # --------------------------------------------------------------- settings
     def configure(self, **changes) -> PlannerSettings:
@@ -291,6 +297,18 @@ class Planner:
         return "no attitude allows a perpendicular grasp (the handle is out of reach)"
 
     # ------------------------------------------------------------------ caches
+    def cache_sizes(self) -> dict:
+        """Return the number of cached C-spaces, fields and body tables."""
+        return {"cspaces": len(self._cspaces), "fields": len(self._fields),
+                "body_tables": len(self._body_tables)}
+
+    def _test_stall(self, stage: str, token) -> None:
+        st = self.test_stall
+        if st is not None and st[0] == stage:
+            if st[3] is not None:
+                st[3](stage)
+            stall(token, st[1], st[2])
+
     @staticmethod
     def _remember(cache: dict, key, value, size: int) -> None:
         """Store a new entry (oldest out beyond ``size``); existing entries stay as they are."""
@@ -300,12 +318,14 @@ class Planner:
             cache.pop(next(iter(cache)))
         cache[key] = value
 
-    def _cspace(self, grid: GridSpec, extra_m: float):
+    def _cspace(self, grid: GridSpec, extra_m: float, token=None):
         """
         (C-space, its cache key, cache hit) of the current scene on ``grid``.
 
         The spacecraft-body table (``cspace.body_occupancy``) depends on the grid and the
-        margin only, so it is kept across target and debris moves as well.
+        margin only, so it is kept across target and debris moves as well.  ``token``:
+        the plan's termination token; a build it stops raises ``termination.Cancelled``
+        and stores nothing (nor evicts anything).
         """
         sc = self.scenario
         margin = float(sc.scene.safety_margin_m + extra_m)
@@ -315,9 +335,10 @@ class Planner:
             return cs, key, True
         body_key = (grid, margin)
         if body_key not in self._body_tables:
-            self._remember(self._body_tables, body_key, body_occupancy(sc.robot, grid, margin), 4)
+            self._remember(self._body_tables, body_key, body_occupancy(sc.robot, grid, margin, token=token), 4)
+        self._test_stall("cspace", token)
         cs = build_cspace(sc.robot, sc.scene, grid, extra_margin_m=extra_m,
-                          body_table=self._body_tables[body_key])
+                          body_table=self._body_tables[body_key], token=token)
         if len(self._cspaces) >= 4:
             evicted = next(iter(self._cspaces))
             del self._cspaces[evicted]
@@ -332,11 +353,13 @@ class Planner:
         return (cspace_key, tuple(map(tuple, np.asarray(goal_nodes).tolist())), settings.solver,
                 settings.field_tolerance, settings.field_budget_s)
 
-    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=()):
+    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None):
         """
         Return the field under ``key`` (solved and stored when absent).
 
         The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``.
+        ``token``: the plan's termination token; a solve it stops raises
+        ``termination.Cancelled`` and stores nothing.
         """
         fld = self._fields.get(key)
         if fld is not None:
@@ -346,9 +369,10 @@ class Planner:
             occ = occ.copy()
             occ[tuple(np.array(sorted(blocked)).T)] = True
         edges = np.array(sorted(cut_edges), dtype=np.int64).reshape(-1, 2)
+        self._test_stall("field", token)
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,
                           tol=settings.field_tolerance, budget_s=settings.field_budget_s,
-                          cut_edges=edges if len(edges) else None)
+                          cut_edges=edges if len(edges) else None, token=token)
         self._remember(self._fields, key, fld, 16)
         return fld
 
@@ -370,6 +394,12 @@ class Planner:
         ``start_rad`` is the arm's state (periodic joints may be unwrapped: the trajectory
         starts there).  Never raises for bad input or when there is no path: returns
         ``ok=False`` with ``code`` and ``reason``.
+
+        ``cancel``: a ``termination.Termination`` is polled inside the C-space and field
+        kernels, so a cancel ends any stage within one kernel step; any other object
+        with ``is_set()`` (e.g. a ``threading.Event``) is polled between steps only.
+        A cancelled plan returns code ``cancelled`` and leaves the caches with complete
+        entries only (what finished before the cancel is kept and reused).
         """
         with self._lock:
             return PlanRun(self, self.settings, cancel, progress).run(start_rad, goal_rad)
