@@ -14,14 +14,23 @@ Messages are small dataclasses, pickled over a socketpair:
   (a ``PlanResult``, ok or not), :class:`PlanError` (no plan was attempted: e.g. the
   target has no capture posture) or :class:`PlanCrash` (an exception, with its traceback).
 
-Cancel: the core checks a cancel flag between stages.  A stage that does not return
-within ``CANCEL_GRACE_S`` of the cancel (a long field solve inside a numba kernel,
-which cannot be interrupted) has its process terminated; a fresh process is started
-(caches lost) and the job reports ``cancelled``.  So a cancel ends a plan within about
-``CANCEL_GRACE_S`` + the termination, whatever the stage.
+Cancel stops the work, not the process: the planning process holds one termination
+token (``termination.Termination``, a flag array numba kernels read without the GIL);
+its reader thread raises it when a Cancel for the running job arrives, and the core polls
+it inside its long loops (C-space rows, the field's CG iterations and sweeps, descent
+candidates, smoothing rounds).  The stage returns at its next poll, stores nothing
+partial, and the job answers ``PlanDone`` with a ``cancelled`` result; the process and its
+caches (every complete C-space and field) stay for the next job.
 
-Test aid: ``PlanJob.stall_s`` makes the process sleep that long before planning, in
-its main thread (uninterruptible, like a numba kernel): a long plan without a large grid.
+Crash path only: a stage that does not answer the token within ``CANCEL_GRACE_S``
+(seconds: never reached by a stage that polls, even on a loaded machine) has its process
+killed and replaced (caches lost), logged as such, and the job reports ``cancelled``.
+
+Test aids: ``PlanJob.stall_s`` makes the plan spend that long in ``stall_stage``:
+``"start"`` (before planning), ``"cspace"`` or ``"field"`` (inside the stage, before its
+kernels, when not cached), ``"descent"`` or ``"smoothing"``; with ``stall_polls`` (the
+default) the stall answers the token like the kernels do, without it the stall is a plain
+sleep that no cancel shortens (a stage that does not poll: the crash path).
 """
 
 from __future__ import annotations
@@ -32,9 +41,12 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass, replace
+from dataclasses import field as dc_field
 from typing import Callable
 
 import numpy as np
+
+from .termination import Termination, stall
 
 __all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
            "ProcessBackend", "ThreadBackend", "make_backend", "STAGE_ORDER"]
@@ -54,7 +66,7 @@ class PlanJob:
 
     scene, grid: ``scene.Scene`` and ``cspace.GridSpec``; start_rad: (dof,) planned
     joints, rad; joint_goal: (dof,) rad or None (then the goal is the target's IK);
-    stall_s: test aid (see the module docstring), seconds.
+    stall_s, stall_stage, stall_polls: test aid (see the module docstring), seconds.
     """
 
     gen: int
@@ -67,6 +79,8 @@ class PlanJob:
     joint_goal: np.ndarray | None
     stall_s: float = 0.0
     field_budget_s: float = 5.0
+    stall_stage: str = "start"
+    stall_polls: bool = True
 
 
 @dataclass(frozen=True)
@@ -85,6 +99,7 @@ class Progress:
     gen: int
     stage: str                  # one of STAGE_ORDER
     fraction: float             # 0..1, the share of the stages done
+    note: str = ""              # "stall": a test stall (PlanJob.stall_s) has begun in this stage
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,6 +107,9 @@ class PlanDone:
     gen: int
     result: object              # planner.PlanResult (ok or a failure code)
     left_out: tuple = ()        # "cspace"/"field": the same objects as last sent (see _strip_sent)
+    #: the planning process after the job: pid, jobs, cancelled (counts) and its cache
+    #: sizes (cspaces, fields, body_tables)
+    stats: dict = dc_field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -128,17 +146,34 @@ def _apply_settings(planner, job: PlanJob) -> None:
     planner.max_grid_nodes = job.max_grid_nodes
 
 
+STALL_STAGES = ("start", "cspace", "field", "descent", "smoothing")
+
+
 def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] | None = None):
-    """Return PlanDone or PlanError for one job (exceptions propagate: the backends catch them)."""
+    """
+    Return PlanDone or PlanError for one job (exceptions propagate: the backends catch them).
+
+    ``cancel``: the job's termination token (``termination.Termination``, or anything
+    with ``is_set()``).
+    """
     def say(text):
         p = _progress_of(text)
         if p is not None and progress is not None:
             progress(Progress(job.gen, *p))
 
+    def stalling(stage):
+        if progress is not None:
+            stage = "cspace" if stage == "start" else stage
+            progress(Progress(job.gen, stage, STAGE_ORDER.index(stage) / len(STAGE_ORDER), "stall"))
+
+    token = Termination.of(cancel)
+    if job.stall_stage not in STALL_STAGES:
+        raise ValueError(f"stall_stage: expected one of {STALL_STAGES}, got {job.stall_stage!r}")
     if progress is not None:
         progress(Progress(job.gen, "cspace", STAGE_ORDER.index("cspace") / len(STAGE_ORDER)))
-    if job.stall_s > 0:
-        time.sleep(job.stall_s)         # uninterruptible on purpose (see the module docstring)
+    if job.stall_stage == "start" and job.stall_s > 0:
+        stalling("start")
+        stall(token, job.stall_s, job.stall_polls)
     _apply_settings(planner, job)
     goal = job.joint_goal
     if goal is None:
@@ -146,7 +181,12 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
             goal = planner.goal_from_target()
         except ValueError as e:
             return PlanError(job.gen, "goal_unreachable", f"target: {e}")
-    return PlanDone(job.gen, planner.plan(job.start_rad, goal, cancel=cancel, progress=say))
+    if job.stall_stage != "start" and job.stall_s > 0:
+        planner.test_stall = (job.stall_stage, float(job.stall_s), bool(job.stall_polls), stalling)
+    try:
+        return PlanDone(job.gen, planner.plan(job.start_rad, goal, cancel=token, progress=say))
+    finally:
+        planner.test_stall = None
 
 
 def _crash(gen: int, e: BaseException) -> PlanCrash:
@@ -171,18 +211,36 @@ def _strip_sent(done: PlanDone, sent: dict) -> PlanDone:
             sent[name] = obj
     if not left_out:
         return done
-    return PlanDone(done.gen, replace(res, **{n: None for n in left_out}), tuple(left_out))
+    return PlanDone(done.gen, replace(res, **{n: None for n in left_out}), tuple(left_out), done.stats)
 
 
-class _GenCancel:
-    """The process's cancel flag: job ``gen`` is cancelled once a Cancel for it arrived."""
+class _GenCancel(Termination):
+    """
+    The planning process's termination token: set while the running job is cancelled.
+
+    Job ``gen`` is cancelled once a Cancel for it (or a newer job) arrived, before or
+    while it runs.  The main thread calls :meth:`start` for each job, the reader thread
+    :meth:`cancel_upto`; a lock keeps a late Cancel of a finished job off the next one.
+    """
 
     def __init__(self):
+        super().__init__()
+        self._gen_lock = threading.Lock()
         self.cancelled_upto = 0
         self.gen = 0
 
-    def is_set(self) -> bool:
-        return self.cancelled_upto >= self.gen
+    def start(self, gen: int) -> None:
+        with self._gen_lock:
+            self.gen = gen
+            self.clear()
+            if self.cancelled_upto >= gen:
+                self.set()
+
+    def cancel_upto(self, gen: int) -> None:
+        with self._gen_lock:
+            self.cancelled_upto = max(self.cancelled_upto, gen)
+            if self.cancelled_upto >= self.gen:
+                self.set()
 
 
 # ================================================================== warm-up
@@ -262,11 +320,11 @@ def child_main(fd: int) -> None:
             except (EOFError, OSError):
                 msg = None
             if msg is None:
-                cancel.cancelled_upto = 1 << 62
+                cancel.cancel_upto(1 << 62)
                 jobs.put(None)
                 return
             if isinstance(msg, Cancel):
-                cancel.cancelled_upto = max(cancel.cancelled_upto, msg.gen)
+                cancel.cancel_upto(msg.gen)
             else:
                 jobs.put(msg)
 
@@ -274,19 +332,27 @@ def child_main(fd: int) -> None:
     sent: dict = {}
     import sys
     send(Ready(t_warm, tuple(sorted({m.split(".")[0] for m in sys.modules}))))
+    counts = {"jobs": 0, "cancelled": 0}
     while True:
         job = jobs.get()
         if job is None:
             return
-        cancel.gen = job.gen
+        cancel.start(job.gen)
         try:
             out = run_job(planner, job, cancel, send)
         except Exception as e:     # noqa: BLE001 - report to the node, keep serving
             out = _crash(job.gen, e)
+        counts["jobs"] += 1
         if isinstance(out, PlanDone):
+            counts["cancelled"] += out.result.code == "cancelled"
+            out = replace(out, stats=_process_stats(planner, counts))
             out = _strip_sent(out, sent)
         if not send(out):
             return
+
+
+def _process_stats(planner, counts: dict) -> dict:
+    return {"pid": os.getpid(), **counts, **planner.cache_sizes()}
 
 
 # ================================================================== backends (node side)
@@ -294,7 +360,7 @@ class ThreadBackend:
     """
     Plans in the calling (worker) thread: no process (``planner.separate_process:=false``).
 
-    A running numba kernel cannot be stopped: cancel and shutdown wait for the stage.
+    A cancel sets the plan's termination token: the stage stops at its next poll.
     """
 
     def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
@@ -302,8 +368,9 @@ class ThreadBackend:
         from .planner import Planner
         self.planner = Planner(scenario, solver=solver or DEFAULT_SOLVER, field_tolerance=field_tolerance,
                                trajectory=False)
-        self._cancel = threading.Event()
+        self._cancel = Termination()
         self.pid = None
+        self._counts = {"jobs": 0, "cancelled": 0}
 
     def wait_ready(self, timeout_s: float | None = None) -> float | None:
         return 0.0
@@ -311,9 +378,14 @@ class ThreadBackend:
     def run(self, job: PlanJob, progress=None):
         self._cancel.clear()
         try:
-            return run_job(self.planner, job, self._cancel, progress)
+            out = run_job(self.planner, job, self._cancel, progress)
         except Exception as e:     # noqa: BLE001 - report to the node, keep serving
             return _crash(job.gen, e)
+        self._counts["jobs"] += 1
+        if isinstance(out, PlanDone):
+            self._counts["cancelled"] += out.result.code == "cancelled"
+            out = replace(out, stats=_process_stats(self.planner, self._counts))
+        return out
 
     def cancel(self, gen: int) -> None:
         self._cancel.set()
@@ -326,12 +398,18 @@ class ProcessBackend:
     """
     Plans in a child process; the calling thread waits on a socket (GIL free).
 
-    A child that died is replaced by a fresh one at the next :meth:`run`; one that does
-    not honour a cancel within ``CANCEL_GRACE_S`` is terminated and replaced.
+    A cancel reaches the child's termination token: the stage stops at its next poll,
+    the job answers a ``cancelled`` PlanDone and the process keeps its caches.  A child
+    that died is replaced by a fresh one at the next :meth:`run`; one that does not
+    answer a cancel within ``cancel_grace_s`` (the crash path: a stage that does not poll)
+    is killed and replaced, with a warning.
     """
 
     CLOSE_GRACE_S = 0.2         # close(): an idle child exits by itself within this
-    CANCEL_GRACE_S = 0.5        # cancel(): then the child is terminated
+    #: cancel(): a child whose stage has not answered within this is killed and replaced.
+    #: Polling stages answer within a kernel step (milliseconds, see ``bench cancel``); this
+    #: is only for one that does not, so it is long enough never to fire on a loaded machine.
+    CANCEL_GRACE_S = 5.0
 
     def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
         """
@@ -349,6 +427,7 @@ class ProcessBackend:
         self._proc_lock = threading.Lock()
         self._closed = False
         self._cancel_at = {}        # gen -> monotonic time of its cancel
+        self.cancel_grace_s = self.CANCEL_GRACE_S
         self._spawn()
 
     @property
@@ -403,8 +482,9 @@ class ProcessBackend:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"planning process exited (code {self.proc.returncode})")
             t = self._cancel_at.get(gen)
-            if t is not None and time.monotonic() - t > self.CANCEL_GRACE_S:
-                self._respawn(f"did not stop within {self.CANCEL_GRACE_S} s of a cancel")
+            if t is not None and time.monotonic() - t > self.cancel_grace_s:
+                self._respawn(f"did not answer a cancel within {self.cancel_grace_s:g} s (its stage does not "
+                              "poll the termination token): killing it, its C-space and field caches are lost")
                 return _Overdue()
         return None
 
@@ -434,7 +514,7 @@ class ProcessBackend:
         for name in ("cspace", "field"):
             if getattr(res, name, None) is not None:
                 self._held[name] = getattr(res, name)
-        return PlanDone(done.gen, res)
+        return PlanDone(done.gen, res, (), done.stats)
 
     def run(self, job: PlanJob, progress=None):
         """
@@ -456,7 +536,7 @@ class ProcessBackend:
                 if msg is None:
                     return None
                 if isinstance(msg, _Overdue):
-                    return _cancelled_done(job)
+                    return _cancelled_done(job, self.cancel_grace_s)
                 if isinstance(msg, Progress):
                     if msg.gen == job.gen and progress is not None:
                         progress(msg)
@@ -519,10 +599,10 @@ class _Overdue:
     """Internal: the running job's cancel is overdue and its process was replaced."""
 
 
-def _cancelled_done(job: PlanJob) -> PlanError:
+def _cancelled_done(job: PlanJob, grace_s: float) -> PlanError:
     return PlanError(job.gen, "cancelled",
-                     f"planning was cancelled (the planning process was stopped: the running "
-                     f"stage did not return within {ProcessBackend.CANCEL_GRACE_S} s)")
+                     f"planning was cancelled (the planning process was replaced: the running "
+                     f"stage did not answer the cancel within {grace_s:g} s)")
 
 
 def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=1e-6):

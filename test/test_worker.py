@@ -1,13 +1,17 @@
 """
 The planning worker without ROS.
 
-The process loads no rclpy, plans, and a cancel ends even an uninterruptible stage (an injected
-stall) by replacing the process.
+The process loads no rclpy and plans.  A cancel stops the work, not the process (issue 17): the
+stage answers the termination token, the process keeps its caches and the next plan reuses them;
+only a stage that does not answer is ended by replacing the process (the crash path).  The cancel
+is put inside a stage by the job's test stall, whose start the process reports (Progress note
+"stall"), never by timing.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import numpy as np
@@ -17,12 +21,15 @@ from spacerobot_planner.config import load_scenario
 from spacerobot_planner.worker import PlanDone, PlanError, PlanJob, ProcessBackend, ThreadBackend
 from conftest import CONFIG_DIR
 
-CANCEL_BOUND_S = 1.0          # the issue's bound for a cancel
+#: a bound for "promptly" that a loaded 2-core machine meets (the figure itself: ``bench cancel``)
+GENEROUS_S = 3.0
+LOG: list = []                # the module backend's warnings
 
 
 def _job(sc, gen, **kw):
-    return PlanJob(gen=gen, scene=sc.scene, grid=sc.grid, solver="log_harmonic", field_tolerance=1e-6,
-                   max_grid_nodes=4_000_000, start_rad=sc.start_rad, joint_goal=kw.pop("joint_goal", None), **kw)
+    return PlanJob(gen=gen, scene=sc.scene, grid=kw.pop("grid", sc.grid), solver="log_harmonic",
+                   field_tolerance=1e-6, max_grid_nodes=4_000_000, start_rad=sc.start_rad,
+                   joint_goal=kw.pop("joint_goal", None), **kw)
 
 
 def _mapped_libraries(pid):
@@ -33,7 +40,7 @@ def _mapped_libraries(pid):
 @pytest.fixture(scope="module")
 def backend():
     sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
-    b = ProcessBackend(sc)
+    b = ProcessBackend(sc, log=LOG.append)
     assert b.wait_ready(300) is not None
     yield sc, b
     b.close()
@@ -75,31 +82,130 @@ def test_unreachable_target_is_a_plan_error(backend):
     assert isinstance(out, PlanError) and out.code == "goal_unreachable" and "out of the arm's reach" in out.reason
 
 
-def test_cancel_ends_an_uninterruptible_stage_and_a_fresh_process_plans(backend, record_property):
-    import threading
-    sc, b = backend
-    old = b.pid
-    result = {}
+def _cancel_in_stall(b, job, record=None):
+    """
+    Run ``job`` on backend ``b`` and cancel it once its test stall has begun (its Progress says so).
+
+    Returns (outcome, seconds from the cancel to the outcome).
+    """
+    stalled = threading.Event()
+    got = {}
+
+    def progress(p):
+        if p.gen == job.gen and p.note == "stall":
+            stalled.set()
 
     def run():
-        result["out"] = b.run(_job(sc, 3, stall_s=60.0))
-        result["t"] = time.monotonic()
+        got["out"] = b.run(job, progress=progress)
+        got["t"] = time.monotonic()
 
-    t = threading.Thread(target=run)
-    t.start()
-    time.sleep(0.5)                     # inside the stall
+    th = threading.Thread(target=run)
+    th.start()
+    assert stalled.wait(300), "the plan never reached its stall"
     t_cancel = time.monotonic()
-    b.cancel(3)
-    t.join(10)
-    dt = result["t"] - t_cancel
-    print(f"\ncancel during a stalled stage: {dt:.3f} s")
-    record_property("cancel_stalled_stage_s", round(dt, 3))
-    out = result["out"]
+    b.cancel(job.gen)
+    th.join(300)
+    assert not th.is_alive(), "the cancelled plan never answered"
+    dt = got["t"] - t_cancel
+    if record is not None:
+        print(f"\n{record}: {dt:.3f} s from the cancel to the outcome")
+    return got["out"], dt
+
+
+def test_cancel_mid_field_keeps_the_process_and_its_cspace(backend, record_property):
+    """(a), (b): the cancelled plan says cancelled; the next one reuses the C-space, same process."""
+    sc, b = backend
+    grid = sc.grid.with_cells(32)                     # not cached by the warm-up
+    pid = b.pid
+    out, dt = _cancel_in_stall(b, _job(sc, 10, grid=grid, stall_s=120.0, stall_stage="field"),
+                               "cancel mid-field")
+    record_property("cancel_mid_field_s", round(dt, 3))
+    assert isinstance(out, PlanDone), out
+    assert out.result.code == "cancelled" and not out.result.ok, out.result.reason
+    assert out.result.field is None and out.result.cspace is not None
+    assert out.stats["pid"] == pid and b.pid == pid, "the planning process was replaced"
+    assert dt < GENEROUS_S                            # the stage answered: not the grace, not the stall
+    again = b.run(_job(sc, 11, grid=grid))
+    assert isinstance(again, PlanDone) and again.result.ok, again
+    assert "cspace" in again.result.cached and "field" not in again.result.cached, again.result.cached
+    assert again.stats["pid"] == pid and b.pid == pid
+    assert again.stats["fields"] == out.stats["fields"] + 1        # the cancelled solve stored nothing
+    assert again.stats["cancelled"] >= 1 and again.stats["jobs"] == out.stats["jobs"] + 1
+    assert again.result.cspace is out.result.cspace   # the node side holds the very same C-space
+
+
+def test_cancel_mid_cspace_stores_no_cspace(backend, record_property):
+    """(c): nothing cached for the cancelled build; the next plan builds it whole, as an independent build."""
+    from spacerobot_planner.cspace import build_cspace
+    from spacerobot_planner.planner import PlannerSettings
+    sc, b = backend
+    base = b.run(_job(sc, 20))
+    assert isinstance(base, PlanDone) and base.result.ok
+    grid = sc.grid.with_cells(30)
+    out, dt = _cancel_in_stall(b, _job(sc, 21, grid=grid, stall_s=120.0, stall_stage="cspace"),
+                               "cancel mid-C-space")
+    record_property("cancel_mid_cspace_s", round(dt, 3))
+    assert isinstance(out, PlanDone) and out.result.code == "cancelled", out
+    assert out.result.cspace is None
+    assert out.stats["cspaces"] == base.stats["cspaces"], "the cancelled build left a cache entry"
+    assert out.stats["pid"] == base.stats["pid"] == b.pid
+    assert dt < GENEROUS_S
+    again = b.run(_job(sc, 22, grid=grid))
+    assert isinstance(again, PlanDone) and again.result.ok, again
+    assert "cspace" not in again.result.cached
+    extra = PlannerSettings().grid_extra_margin_m
+    assert again.result.cspace.margin_m == sc.scene.safety_margin_m + extra
+    ref = build_cspace(sc.robot, sc.scene, grid, extra_margin_m=extra)
+    np.testing.assert_array_equal(again.result.cspace.occupied, ref.occupied)
+
+
+def test_cancel_during_a_stall_before_planning_keeps_the_process(backend):
+    sc, b = backend
+    pid = b.pid
+    out, dt = _cancel_in_stall(b, _job(sc, 30, stall_s=120.0), "cancel before planning")
+    assert isinstance(out, PlanDone) and out.result.code == "cancelled", out
+    assert b.pid == pid and dt < GENEROUS_S
+    again = b.run(_job(sc, 31))
+    assert isinstance(again, PlanDone) and again.result.ok
+    assert {"cspace", "field"} <= set(again.result.cached)      # the warm-up's, kept
+    assert again.stats["pid"] == pid
+
+
+def test_a_stage_that_does_not_poll_is_the_crash_path(backend, record_property):
+    """A stage deaf to the token: after the grace the process is replaced, logged as such."""
+    sc, b = backend
+    old = b.pid
+    n_logs = len(LOG)
+    b.cancel_grace_s = 1.0            # this stage never answers: any grace ends it; keep the test short
+    try:
+        out, dt = _cancel_in_stall(b, _job(sc, 40, stall_s=120.0, stall_stage="field", stall_polls=False,
+                                           grid=sc.grid.with_cells(28)), "cancel of a stage that does not poll")
+    finally:
+        b.cancel_grace_s = ProcessBackend.CANCEL_GRACE_S
+    record_property("cancel_deaf_stage_s", round(dt, 3))
     assert isinstance(out, PlanError) and out.code == "cancelled", out
-    assert dt < CANCEL_BOUND_S
-    assert b.pid != old                 # replaced
-    out = b.run(_job(sc, 4))
+    assert "replaced" in out.reason
+    assert b.pid != old and dt < 1.0 + GENEROUS_S
+    logged = LOG[n_logs:]
+    assert len(logged) == 1 and f"planning process {old}" in logged[0] and "does not poll" in logged[0], logged
+    out = b.run(_job(sc, 41))
     assert isinstance(out, PlanDone) and out.result.ok
+    assert out.stats["pid"] == b.pid
+
+
+def test_the_grace_is_long_enough_for_a_loaded_machine():
+    assert ProcessBackend.CANCEL_GRACE_S >= 3.0
+
+
+def test_thread_backend_cancel_mid_field_keeps_its_cspace():
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
+    b = ThreadBackend(sc)
+    grid = sc.grid.with_cells(20)
+    out, _ = _cancel_in_stall(b, _job(sc, 1, grid=grid, joint_goal=sc.goal_rad, stall_s=120.0,
+                                      stall_stage="field"))
+    assert isinstance(out, PlanDone) and out.result.code == "cancelled"
+    again = b.run(_job(sc, 2, grid=grid, joint_goal=sc.goal_rad))
+    assert isinstance(again, PlanDone) and again.result.ok and "cspace" in again.result.cached
 
 
 def test_thread_backend_plans_the_same_job():
