@@ -1,15 +1,17 @@
-"""Tests of spacerobot_planner.descent (steepest descent over grid nodes)."""
-import os
-import sys
+"""
+Tests of spacerobot_planner.descent (steepest descent over grid nodes).
 
+The walks are checked against the test's own steepest-ascent rule (test/oracles.py): every
+node's steepest strictly higher face neighbour from its own neighbour table, ties to the
+first in the documented order, and where following them ends.
+"""
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.dirname(__file__))
-import mazes  # noqa: E402
-
-from spacerobot_planner import field as F  # noqa: E402
-from spacerobot_planner.descent import GridPath, descend, reaches_goal_mask  # noqa: E402
+import mazes
+from oracles import ascent_reaches_goal, ascent_walk, steepest_successors
+from spacerobot_planner import field as F
+from spacerobot_planner.descent import GridPath, descend, reaches_goal_mask
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +32,7 @@ def test_path_is_strictly_ascending_face_walk(blocks):
     assert not f.occupied[tuple(p.nodes.T)].any()
     q = descend(f, np.array(start))
     assert np.array_equal(p.nodes, q.nodes)
+    assert np.array_equal(p.nodes, ascent_walk(steepest_successors(f.log_u, f.periodic), f.goal_mask, start))
 
 
 def test_start_in_obstacle(blocks):
@@ -72,6 +75,25 @@ def test_stuck_reason_on_a_local_maximum():
     assert mask[0, 0] and not mask[2, 4] and not mask[4, 6]
 
 
+def test_ties_go_to_the_first_neighbour_in_the_fixed_order():
+    """
+    Equal higher neighbours along one axis and across axes: the walk takes the first in the order.
+
+    The order (axis 0, -1), (axis 0, +1), (axis 1, -1), (axis 1, +1); one walk crosses the seam.
+    """
+    occ = np.zeros((6, 5), dtype=bool)
+    rows = np.array([0, 1, 2, 3, 2, 1])                       # steps to row 0, the seam included
+    log_u = -(np.abs(np.arange(5) - 2)[None, :] + rows[:, None]).astype(float)
+    f = F.Field(log_u, occ, (True, False), np.array([[0, 2]]), "test", 0, 0.0, True, 0.0)
+    succ = steepest_successors(log_u, f.periodic)
+    first_steps = {(3, 2): (2, 2), (1, 0): (0, 0), (1, 4): (0, 4), (5, 3): (0, 3)}
+    for start, step in first_steps.items():
+        p = descend(f, start)
+        assert p.reached and tuple(p.nodes[1]) == step
+        assert np.array_equal(p.nodes, ascent_walk(succ, f.goal_mask, start))
+    assert np.array_equal(reaches_goal_mask(f), ascent_reaches_goal(succ, f.goal_mask))
+
+
 def test_reaches_goal_mask_matches_walks(blocks):
     f, start, goal = blocks
     paper = F.solve_field(f.occupied, f.periodic, f.goal_nodes, solver="gauss_seidel", max_sweeps=60)
@@ -79,7 +101,11 @@ def test_reaches_goal_mask_matches_walks(blocks):
     free = np.argwhere(~f.occupied)
     sample = free[rng.choice(len(free), 300, replace=False)]
     for fld in (f, paper):
+        succ = steepest_successors(fld.log_u, fld.periodic)
         mask = reaches_goal_mask(fld)
+        assert np.array_equal(mask, ascent_reaches_goal(succ, fld.goal_mask) & ~fld.occupied)
         for node in sample:
-            assert descend(fld, node).reached == mask[tuple(node)]
+            p = descend(fld, node)
+            assert p.reached == mask[tuple(node)]
+            assert np.array_equal(p.nodes, ascent_walk(succ, fld.goal_mask, node))
     assert not reaches_goal_mask(paper)[f.reachable].all()   # early paper sweeps: flat
