@@ -9,7 +9,8 @@ to ``run()`` returning the cancelled result.  The same plan then runs again, unc
 in the same process: what it found cached shows what the cancel kept.
 
 Prints the latency's p50, p90 and max, the stage each cancel hit, the planning process's
-replacements (0: no cancel took the crash path), and one JSON object per line.
+replacements (0: no cancel took the crash path), the load average (the figures grow with
+it), and one JSON object per line.
 ``python -m spacerobot_planner.bench cancel [--cells 120] [--repeats 10] [--seed 0]``
 """
 
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import threading
 import time
 from dataclasses import replace
@@ -111,20 +113,21 @@ def main(argv=None) -> int:
             cached = ",".join(again.result.cached) if isinstance(again, PlanDone) else "-"
             if code == "cancelled":
                 latencies.append(latency)
-            print(f"{k:>3}{at:>13.3f}{hit:>11}{1e3 * latency:>12.1f}{code:>11}{cached or 'none':>22}"
-                  f"{again_s:>9.3f}")
+            shown = f"{1e3 * latency:.1f}" if code == "cancelled" else "-"   # it ended before the cancel
+            print(f"{k:>3}{at:>13.3f}{hit:>11}{shown:>12}{code:>11}{cached or 'none':>22}{again_s:>9.3f}")
             rows.append({"stage": "cancel", "grid": sc.grid.label(), "solver": "log_harmonic",
                          "cancel_at_s": round(at, 4), "stage_hit": hit, "seconds": latency, "outcome": code,
                          "next_plan_cached": list(again.result.cached) if isinstance(again, PlanDone) else None,
                          "next_plan_s": again_s, "same_process": b.pid == pid0})
         respawns = sum("does not poll" in m for m in logs)
-        print(f"cancel latency over {len(latencies)} cancels (caches kept): p50 {1e3 * _percentile(latencies, 50):.1f} "
+        load = os.getloadavg()[0]
+        print(f"load average {load:.1f} on {os.cpu_count()} CPUs; cancel latency over {len(latencies)} cancels (caches kept): p50 {1e3 * _percentile(latencies, 50):.1f} "
               f"ms, p90 {1e3 * _percentile(latencies, 90):.1f} ms, max {1e3 * max(latencies, default=np.nan):.1f} ms; "
               f"planning process replaced {respawns} times (pid {pid0} -> {b.pid})")
         rows.append({"stage": "cancel_summary", "grid": sc.grid.label(), "solver": "log_harmonic",
                      "cancels": len(latencies), "p50_s": _percentile(latencies, 50),
                      "p90_s": _percentile(latencies, 90), "max_s": max(latencies, default=None),
-                     "plan_s": plan_s, "respawns": respawns, "same_process": b.pid == pid0})
+                     "plan_s": plan_s, "respawns": respawns, "same_process": b.pid == pid0, "load_avg": load})
         for r in rows:
             print(json.dumps(r))
     finally:
