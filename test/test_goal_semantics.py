@@ -33,7 +33,7 @@ from spacerobot_planner_interfaces.action import PlanCapture
 from spacerobot_planner.ros.conversions import joint_state_msg
 
 from conftest import CONFIG_DIR
-from node_helpers import scene_params
+from node_helpers import diag_list, planned_positions, scene_params
 
 R = PlanCapture.Result
 ENDED = (GoalStatus.STATUS_ABORTED, GoalStatus.STATUS_CANCELED)
@@ -44,6 +44,13 @@ def _target_goal(x=-3.27, y=-2.60, yaw=0.0, frame="world"):
     g.target_pose.header.frame_id = frame
     g.target_pose.pose.position.x, g.target_pose.pose.position.y = float(x), float(y)
     g.target_pose.pose.orientation.z, g.target_pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    return g
+
+
+def _joint_goal(names, q):
+    g = PlanCapture.Goal()
+    g.use_joint_goal = True
+    g.joint_goal = joint_state_msg(names, q)
     return g
 
 
@@ -173,3 +180,77 @@ def test_goal_in_flight_gets_a_result_on_ctrl_c(tmp_path):
     text = log.read_text()
     assert rc == 0 and "Traceback" not in text, text
     assert "Failed to send result response" not in text, text
+
+
+# ================================================================== 4. the latest request is the goal
+A = (-3.27, -2.60)          # the paper's target (topic)
+B = (-3.0, -2.8)            # another reachable one (action goal)
+
+
+def _plan_end(g, k):
+    """Return the planned-joint positions at the end of trajectory ``k`` (its arm and attitude parts)."""
+    g.wait(lambda: g.n_trajs() > k and len(g.att_trajs) > k, 30, f"trajectory {k + 1}")
+    with g.lock:
+        return planned_positions(g.scenario.robot, [g.trajs[k][1], g.att_trajs[k][1]])
+
+
+def _assert_same_posture(g, got, want, msg):
+    """Angles compared modulo a turn for the periodic joints (the attitude), 1e-6 rad."""
+    d = np.asarray(got, dtype=float) - np.asarray(want, dtype=float)
+    for k, periodic in enumerate(g.scenario.robot.planned_periodic):
+        if periodic:
+            d[k] = math.remainder(d[k], 2 * math.pi)
+    assert np.max(np.abs(d)) < 1e-6, f"{msg}: {np.round(np.degrees(got), 3)} vs {np.round(np.degrees(want), 3)} deg"
+
+
+def _replan_by_service(g):
+    from std_srvs.srv import Trigger
+    cli = g.drv.create_client(Trigger, "/spacerobot_planner/replan")
+    assert cli.wait_for_service(30.0)
+    fut = cli.call_async(Trigger.Request())
+    g.wait(fut.done, 60, "the ~/replan response")
+    return fut.result()
+
+
+def _change_margin(g):
+    from rclpy.parameter import Parameter
+    assert g.planner.set_parameters([Parameter("safety_margin_m", value=0.03)])[0].successful
+
+
+@pytest.mark.parametrize("kind", ["target", "joint_goal"])
+@pytest.mark.parametrize("then", [_change_margin, _replan_by_service], ids=["parameter_change", "replan"])
+def test_after_an_action_goal_a_replan_plans_to_the_goals_goal(graph, kind, then):
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+    _start(g)
+    g.send_target(*A)                                      # topic: target A
+    end_a = _plan_end(g, 0)
+    if kind == "target":                                   # then an action goal: target B
+        goal = _target_goal(*B)
+    else:
+        goal = _joint_goal(robot.planned_names, np.radians([150.0, 40.0, 70.0]))
+    status, res, _ = g.goal_result(g.send_goal(goal))
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    end_b = _plan_end(g, 1)
+    with pytest.raises(AssertionError):
+        _assert_same_posture(g, end_b, end_a, "")            # B's goal is not A's
+    then(g)                                                # a replan: to the goal's goal, not A
+    end = _plan_end(g, 2)
+    _assert_same_posture(g, end, end_b, "the replan went back to the older topic target")
+    if kind == "target":
+        assert diag_list(g.status("planner"), "target_m") == list(B)
+
+
+def test_a_goal_with_its_own_start_does_not_change_the_goal(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    _start(g)
+    g.send_target(*A)
+    end_a = _plan_end(g, 0)
+    goal = _target_goal(*B)
+    goal.start = joint_state_msg(g.scenario.robot.planned_names, np.radians([-80.0, 130.0, 95.0]))
+    status, res, _ = g.goal_result(g.send_goal(goal))
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    _change_margin(g)
+    end = _plan_end(g, 1)                                  # planned, not executed: the next one is the replan
+    _assert_same_posture(g, end, end_a, "the replan went to the goal with its own start")
+    assert diag_list(g.status("planner"), "target_m") == list(A)

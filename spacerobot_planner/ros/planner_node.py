@@ -13,6 +13,10 @@ current state is refused with a log line naming the state and the transitions it
 Interfaces (when active):
 
 - subscribes ``target_pose`` (PoseStamped), ``joint_states``, ``goal_joint_state`` (JointState);
+- the goal: the latest accepted request from any channel (a target_pose, a
+  goal_joint_state, a plan_capture goal) is what a later ``~/replan`` or parameter change
+  plans to; a plan_capture goal with its own ``start`` is planned and returned, not
+  executed, and leaves the goal as it was;
 - action ``plan_capture`` (spacerobot_planner_interfaces/action/PlanCapture), Nav2's
   ``ComputePathToPose`` pattern: a newer goal (or a topic request) aborts the older one
   with code SUPERSEDED and a reason; a cancel ends a plan within about 1 s; feedback
@@ -677,12 +681,26 @@ class PlannerNode(LifecycleNode):
                             time.perf_counter(), start_rad=start)
 
     def _submit(self, why: str) -> int:
-        """Submit a request for the current target / joint goal (the topics' and ~/replan's)."""
+        """Submit a request for the current target / joint goal (the topics', ~/replan's, a parameter change's)."""
         with self._lock:
             req = self._make_request(why, self._joint_goal, None if self._joint_goal is not None else self._target)
-            if self._joint_goal is None:
-                self._requested_target = self._target
         return self._submit_request(req)
+
+    def _make_current(self, req: _Request):
+        """
+        (lock held) The goal of an accepted request becomes the current goal.
+
+        The latest request from any channel (target_pose, goal_joint_state, a plan_capture
+        goal) is what a replan or a parameter change plans to; a goal with its own start is
+        planned, not executed, and changes nothing.
+        """
+        if req.start_rad is not None:
+            return
+        if req.joint_goal is not None:
+            self._joint_goal = req.joint_goal
+        else:
+            self._target = self._requested_target = req.scenario.scene.target
+            self._joint_goal = None
 
     def _submit_request(self, req: _Request) -> int:
         with self._lock:
@@ -691,6 +709,7 @@ class PlannerNode(LifecycleNode):
                 return 0
             self._gen += 1
             req.gen = self._gen
+            self._make_current(req)
             self._rejected = None              # a good request: the input status is OK again
             if self._joint_q is None and req.start_rad is None:
                 if self._waiting is not None:
