@@ -1,6 +1,7 @@
-"""Joint limits of the paper's scenes (their paths: the ``paper_path`` fixture, conftest.py)."""
+"""Joint limits of the paper's scenes (their paths: the ``paper_path`` fixture, conftest.py), and a new path."""
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 
 
 def joint_limits(sc):
@@ -8,3 +9,12 @@ def joint_limits(sc):
     idx = list(sc.robot.planned_joints)
     return (np.radians(sc.params["trajectory.max_velocity_deg_s"])[idx],
             np.radians(sc.params["trajectory.max_acceleration_deg_s2"])[idx])
+
+
+def new_path_from(a, turn_deg=(20.0, -15.0, 10.0)):
+    """Return a smooth 3-joint path from ``a`` (exactly) to ``a + turn_deg``, rad, 200 points: a replan's new path."""
+    goal = a + np.radians(turn_deg)
+    knots = np.vstack([a, a + 0.5 * (goal - a) + np.radians([5.0, 5.0, -5.0]), goal])
+    new = CubicSpline([0.0, 0.5, 1.0], knots)(np.linspace(0.0, 1.0, 200))
+    new[0] = a
+    return new

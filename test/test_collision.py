@@ -1,11 +1,18 @@
-"""Exact collision tests and the C-space against an independent brute-force check."""
+"""
+Exact collision tests and the C-space against independent brute-force checks.
 
-import math
+The oracles (test/oracles.py) share nothing with the numba kernels: ``ref_clearance``
+(parametric intersection by Cramer's rule, winding-number containment, projection
+distances, plain Python floats) and ``shapely_clearance`` (GEOS), both on the arm's joint
+points from complex numbers.
+"""
+
 import os
 
 import numpy as np
 import pytest
 from conftest import CONFIG_DIR
+from oracles import ref_clearance, shapely_clearance
 
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
@@ -13,61 +20,6 @@ from spacerobot_planner.cspace import GridSpec, build_cspace
 from spacerobot_planner.scene import Scene
 
 D = np.radians
-
-
-# ---------------------------------------------------- independent reference
-# Written separately from the numba kernels: parametric intersection by Cramer's
-# rule, winding-number containment, projection distances, plain Python floats.
-def ref_point_seg(p, a, b):
-    ax, ay = a
-    dx, dy = b[0] - ax, b[1] - ay
-    L2 = dx * dx + dy * dy
-    t = 0.0 if L2 == 0 else max(0.0, min(1.0, ((p[0] - ax) * dx + (p[1] - ay) * dy) / L2))
-    return math.hypot(ax + t * dx - p[0], ay + t * dy - p[1])
-
-
-def ref_seg_seg_intersect(a, b, c, d):
-    r = (b[0] - a[0], b[1] - a[1])
-    s = (d[0] - c[0], d[1] - c[1])
-    den = r[0] * s[1] - r[1] * s[0]
-    qp = (c[0] - a[0], c[1] - a[1])
-    if abs(den) < 1e-15:
-        return False       # parallel: touching handled by the distance below
-    t = (qp[0] * s[1] - qp[1] * s[0]) / den
-    u = (qp[0] * r[1] - qp[1] * r[0]) / den
-    return 0.0 <= t <= 1.0 and 0.0 <= u <= 1.0
-
-
-def ref_winding_inside(p, poly):
-    angle = 0.0
-    n = len(poly)
-    for i in range(n):
-        a = (poly[i][0] - p[0], poly[i][1] - p[1])
-        b = (poly[(i + 1) % n][0] - p[0], poly[(i + 1) % n][1] - p[1])
-        angle += math.atan2(a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1])
-    return abs(angle) > math.pi
-
-
-def ref_seg_poly_distance(a, b, poly):
-    if ref_winding_inside(a, poly):
-        return 0.0
-    best = math.inf
-    n = len(poly)
-    for i in range(n):
-        c, d = poly[i], poly[(i + 1) % n]
-        if ref_seg_seg_intersect(a, b, c, d):
-            return 0.0
-        best = min(best, ref_point_seg(a, c, d), ref_point_seg(b, c, d),
-                   ref_point_seg(c, a, b), ref_point_seg(d, a, b))
-    return best
-
-
-def ref_clearance(robot, scene, q):
-    q_full = robot.full(q)
-    pts = robot.forward_kinematics(q_full).tolist()
-    polys = [robot.body_polygon_world(q_full[0]).tolist()] + [p.tolist() for p in scene.obstacle_polygons_m]
-    return min(ref_seg_poly_distance(pts[k], pts[k + 1], poly)
-               for k in robot.checked_links for poly in polys)
 
 
 # ------------------------------------------------------------------- scenes
@@ -106,20 +58,6 @@ def test_clearance_matches_reference_on_random_configurations(scenario):
     # both kinds were exercised (clearance never exceeds 0.127 m: the shoulder sits that far
     # beyond the body corner)
     assert (want == 0).sum() > 20 and (want > 0.05).sum() > 20
-
-
-def shapely_clearance(robot, scene, q):
-    """
-    Oracle from shapely (GEOS).
-
-    Distance from the link segments to the posed body and the obstacles; shares nothing with the
-    kernels or the reference above.
-    """
-    from shapely.geometry import LineString, Polygon
-    q_full = robot.full(q)
-    pts = robot.forward_kinematics(q_full)
-    polys = [Polygon(robot.body_polygon_world(q_full[0]))] + [Polygon(p) for p in scene.obstacle_polygons_m]
-    return min(LineString([pts[k], pts[k + 1]]).distance(poly) for k in robot.checked_links for poly in polys)
 
 
 def test_clearance_and_freedom_match_shapely(scenario):

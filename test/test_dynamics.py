@@ -1,13 +1,15 @@
 """
-dynamics.py against oracles written here.
+dynamics.py against independent oracles (test/oracles.py) and a known answer.
 
-Momentum sums from finite differences of forward kinematics (m r × v + I ω about the system CoM), a
+Momentum sums from finite differences of the joint points (m r × v + I ω about the system CoM),
+the wheel's momentum and torque the same way, a free-floating simulator of the test's own, a
 two-body known answer, an inertial-frame point test of the drifted arm.
 """
 
 import numpy as np
 import pytest
 
+from oracles import inside_target_or_margin, momentum_fd, simulate_free_floating, wheel_load
 from paper_paths import joint_limits
 from spacerobot_planner.dynamics import (MassProperties, WheelModel, check_drifted,
                                          free_floating_response, reaction_report)
@@ -16,43 +18,14 @@ from spacerobot_planner.trajectory import time_parameterize
 
 REF = MassProperties()                                   # the reference servicer
 HEAVY = MassProperties(body_mass_kg=2.0e7, body_inertia_kgm2=1.08e7)
+#: test_node.py imports the wheel's load oracle from here
+_load_oracle = wheel_load
 
 
 def _arm(planned=(1, 2), locked=(np.radians(160.7), 0.0, 0.0)):
     return PlanarArm(("attitude", "shoulder", "elbow"), (1.4, 2.0, 2.0), (-np.pi,) * 3, (np.pi,) * 3,
                      (True, False, False), square_polygon(1.8, corner_first=True),
                      planned_joints=planned, locked_rad=np.array(locked))
-
-
-# ----------------------------------------------------------------- the oracle
-def _bodies_world(robot, q_full, body_pos):
-    """Centres (K, 4, 2) of body, link 1, 2, 3 and their angles (K, 4), from FK."""
-    pts = robot.forward_kinematics(q_full) + body_pos[:, None, :]
-    centres = np.concatenate([pts[:, :1], 0.5 * (pts[:, :-1] + pts[:, 1:])], axis=1)
-    phi = np.cumsum(q_full, axis=1)
-    return centres, np.concatenate([phi[:, :1], phi], axis=1)
-
-
-def _mass_table(mp):
-    m = np.array([mp.body_mass_kg, *mp.link_masses_kg])
-    inertia = np.array([mp.body_inertia_kgm2, *mp.link_inertias_kgm2])
-    return m, inertia
-
-
-def _momentum_fd(robot, mp, q_full, body_pos, dt):
-    """Return h about the CoM at the interior samples by central differences, and the CoM (K, 2)."""
-    m, inertia = _mass_table(mp)
-    c, ang = _bodies_world(robot, q_full, body_pos)
-    com = np.einsum("b,kbd->kd", m, c) / m.sum()
-    v = (c[2:] - c[:-2]) / (2 * dt)
-    w = (ang[2:] - ang[:-2]) / (2 * dt)
-    vcom = (com[2:] - com[:-2]) / (2 * dt)
-    r = c[1:-1] - com[1:-1, None]
-    vr = v - vcom[:, None]
-    terms = m * (r[..., 0] * vr[..., 1] - r[..., 1] * vr[..., 0])
-    h = terms.sum(axis=1) + (inertia * w).sum(axis=1)
-    scale = np.abs(terms).sum(axis=1) + np.abs(inertia * w).sum(axis=1)
-    return h, scale, com
 
 
 def _smooth_arm_path(k=4000):
@@ -67,13 +40,13 @@ def test_free_floating_motion_conserves_momentum_and_keeps_the_com(planned):
     path = arm if len(planned) == 2 else np.column_stack([np.linspace(0.3, -1.0, len(arm)), arm])
     resp = free_floating_response(robot, REF, path)
     dt = 0.01                                     # any time law: h is linear in the rates
-    h, scale, com = _momentum_fd(robot, REF, resp.q_full_rad, resp.body_position_m, dt)
+    h, scale, com = momentum_fd(robot, REF, resp.q_full_rad, resp.body_position_m, dt)
     assert np.max(np.abs(h) / scale) < 1e-6
     assert np.max(np.linalg.norm(com - com[0], axis=1)) < 1e-9
     assert abs(resp.attitude_change_deg) > 1.0    # it did turn
     # the oracle can fail: the planned motion (attitude held, body fixed) has momentum
-    h_planned, scale_p, com_p = _momentum_fd(robot, REF, resp.planned_q_full_rad,
-                                             np.zeros_like(resp.body_position_m), dt)
+    h_planned, scale_p, com_p = momentum_fd(robot, REF, resp.planned_q_full_rad,
+                                            np.zeros_like(resp.body_position_m), dt)
     assert np.max(np.abs(h_planned) / scale_p) > 0.1
     assert np.max(np.linalg.norm(com_p - com_p[0], axis=1)) > 1e-3
 
@@ -102,31 +75,6 @@ def test_known_answer_a_rotor_on_a_rigid_body():
     assert np.isclose(resp.body_displacement_m, m2 / (m0 + m2) * r2 * 2 * abs(np.sin(dth / 2)), rtol=1e-9)
 
 
-def _load_oracle(robot, mp, q, qd, qdd, eps=1e-3):
-    """Wheel momentum −h and torque −dh/dt per point from FK by finite differences."""
-    m, inertia = _mass_table(mp)
-
-    def centres(qf):
-        return _bodies_world(robot, qf, np.zeros((len(qf), 2)))[0]
-
-    c = centres(q)
-    v = (centres(q + eps * qd) - centres(q - eps * qd)) / (2 * eps)
-    a = ((centres(q + eps * qdd) - centres(q - eps * qdd)) / (2 * eps)
-         + (centres(q + eps * qd) - 2 * c + centres(q - eps * qd)) / eps ** 2)
-    w = np.concatenate([np.cumsum(qd, axis=1)[:, :1], np.cumsum(qd, axis=1)], axis=1)
-    al = np.concatenate([np.cumsum(qdd, axis=1)[:, :1], np.cumsum(qdd, axis=1)], axis=1)
-
-    def rel(x):
-        return x - (np.einsum("b,kbd->kd", m, x) / m.sum())[:, None]
-
-    def cross(x, y):
-        return x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]
-
-    h = (m * cross(rel(c), rel(v))).sum(axis=1) + (inertia * w).sum(axis=1)
-    dh = (m * cross(rel(c), rel(a))).sum(axis=1) + (inertia * al).sum(axis=1)
-    return -h, -dh
-
-
 @pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
 def test_wheel_limits_hold_on_the_trajectory(dof, paper_scenario, paper_path):
     sc, path = paper_scenario(dof), paper_path(dof)
@@ -138,7 +86,7 @@ def test_wheel_limits_hold_on_the_trajectory(dof, paper_scenario, paper_path):
     q, qd, qdd = (robot.full(traj.positions_rad), np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
     idx = list(robot.planned_joints)
     qd[:, idx], qdd[:, idx] = traj.velocities_rad_s, traj.accelerations_rad_s2
-    h, tau = _load_oracle(robot, REF, q, qd, qdd)
+    h, tau = wheel_load(robot, REF, q, qd, qdd)
     assert np.max(np.abs(h)) <= h_max * (1 + 1e-6)
     assert np.max(np.abs(tau)) <= tau_max * (1 + 1e-6)
     assert np.max(np.abs(tau)) >= 0.99 * tau_max            # the torque limit binds
@@ -147,7 +95,7 @@ def test_wheel_limits_hold_on_the_trajectory(dof, paper_scenario, paper_path):
     # the joint-limited trajectory breaks them (so the check above can fail)
     free = time_parameterize(path, vmax, amax, robot.planned_names)
     qd[:, idx], qdd[:, idx] = free.velocities_rad_s, free.accelerations_rad_s2
-    h_f, tau_f = _load_oracle(robot, REF, robot.full(free.positions_rad), qd, qdd)
+    h_f, tau_f = wheel_load(robot, REF, robot.full(free.positions_rad), qd, qdd)
     assert np.max(np.abs(tau_f)) > 10 * tau_max and free.duration_s < traj.duration_s
 
 
@@ -166,26 +114,6 @@ def test_without_wheel_limits_the_trajectory_is_the_joint_limited_one(dof, paper
     np.testing.assert_allclose(loose.times_s, plain.times_s, rtol=1e-12, atol=1e-12)
 
 
-def _inside_target_or_margin(robot, sc, q_full, body_pos, n=200):
-    """
-    Oracle.
-
-    Any point of links 2-3 (n per link) within the margin of the target's axis-aligned square body
-    (inertial frame).
-    """
-    pts = robot.forward_kinematics(q_full) + body_pos[:, None, :]
-    cx, cy = sc.scene.target.center_m
-    half = 0.5 * sc.scene.target.body_side_m
-    f = np.linspace(0, 1, n)[None, :, None]
-    hit = np.zeros(len(q_full), bool)
-    for k in (1, 2):
-        p = pts[:, k, None, :] + f * (pts[:, k + 1, None, :] - pts[:, k, None, :])
-        dx = np.maximum(np.abs(p[..., 0] - cx) - half, 0.0)
-        dy = np.maximum(np.abs(p[..., 1] - cy) - half, 0.0)
-        hit |= np.any(np.hypot(dx, dy) <= sc.scene.safety_margin_m, axis=1)
-    return hit
-
-
 def test_free_floating_refuses_the_paper_2dof_motion_and_accepts_a_heavy_spacecraft(paper_scenario, paper_path):
     sc, path = paper_scenario(2), paper_path(2)
     robot = sc.robot
@@ -199,8 +127,8 @@ def test_free_floating_refuses_the_paper_2dof_motion_and_accepts_a_heavy_spacecr
     assert 5.0 < abs(rep.free_floating_attitude_change_deg) < 30.0
     # the oracle agrees that the drifted arm hits the target
     resp = free_floating_response(robot, REF, traj.positions_rad, sc.scene.target.grasp_point_m)
-    assert rep.free_floating_collides and _inside_target_or_margin(robot, sc, resp.q_full_rad,
-                                                                   resp.body_position_m).any()
+    assert rep.free_floating_collides
+    assert inside_target_or_margin(robot, sc.scene, resp.q_full_rad, resp.body_position_m).any()
     grasp = sc.scene.target.grasp_point_m
     assert np.isclose(np.linalg.norm(resp.tip_m - grasp), rep.free_floating_tip_miss_m)
     # a very heavy spacecraft barely moves: accepted
@@ -209,7 +137,7 @@ def test_free_floating_refuses_the_paper_2dof_motion_and_accepts_a_heavy_spacecr
     assert heavy.ok, heavy.reason
     assert heavy.free_floating_tip_miss_m < 0.02 and not heavy.free_floating_collides
     resp_h = free_floating_response(robot, HEAVY, traj.positions_rad)
-    assert not _inside_target_or_margin(robot, sc, resp_h.q_full_rad, resp_h.body_position_m).any()
+    assert not inside_target_or_margin(robot, sc.scene, resp_h.q_full_rad, resp_h.body_position_m).any()
     # held mode never refuses without wheel limits, and reports the same free-floating figures
     held = reaction_report(robot, REF, sc.scene, path, traj)
     assert held.ok and held.free_floating_tip_miss_m == rep.free_floating_tip_miss_m
@@ -236,52 +164,6 @@ def test_bad_masses_and_modes_name_the_field(paper_scenario, paper_path):
         reaction_report(sc.robot, REF, sc.scene, path, acs_mode="off")
 
 
-def _simulate_free_floating(robot, mp, path, sub=4):
-    """
-    Own simulator.
-
-    Step the arm along the path; at each step find the attitude increment that makes the step's
-    angular momentum about the CoM zero (momentum from FK positions, midpoint rule, secant solve);
-    the body moves so the CoM stays put.
-
-    Returns the full configurations (K, 3) and the body positions (K, 2).
-    """
-    m, inertia = _mass_table(mp)
-
-    def rel_centres(qf):
-        c, ang = _bodies_world(robot, qf[None, :], np.zeros((1, 2)))
-        com = m @ c[0] / m.sum()
-        return c[0] - com, ang[0]
-
-    def step_momentum(qa, qb):
-        ra, aa = rel_centres(qa)
-        rb, ab = rel_centres(qb)
-        mid, d = 0.5 * (ra + rb), rb - ra
-        return float(m @ (mid[:, 0] * d[:, 1] - mid[:, 1] * d[:, 0]) + inertia @ (ab - aa))
-
-    full = robot.full(path)
-    fine = np.vstack([np.linspace(a, b, sub, endpoint=False) for a, b in zip(full[:-1], full[1:])] + [full[-1:]])
-    q = fine.copy()
-    for k in range(len(q) - 1):
-        qa = q[k]
-        qb = fine[k + 1].copy()
-        qb[0] = qa[0]
-        d0, d1 = 0.0, 1e-3
-        h0 = step_momentum(qa, qb)
-        for _ in range(4):                      # secant on the attitude increment
-            qb1 = qb.copy()
-            qb1[0] = qa[0] + d1
-            h1 = step_momentum(qa, qb1)
-            if h1 == h0:
-                break
-            d0, d1, h0 = d1, d1 - h1 * (d1 - d0) / (h1 - h0), h1
-        q[k + 1] = qb
-        q[k + 1, 0] = qa[0] + d1
-    c, _ = _bodies_world(robot, q, np.zeros((len(q), 2)))
-    com = np.einsum("b,kbd->kd", m, c) / m.sum()
-    return q[::sub], (com[0] - com)[::sub]
-
-
 def test_compensated_free_floating_plan_reaches_the_handle(paper_scenario, paper_path):
     """
     Stretch goal: a drift-compensated plan reaches the handle.
@@ -293,7 +175,7 @@ def test_compensated_free_floating_plan_reaches_the_handle(paper_scenario, paper
     sc, path = paper_scenario(2), paper_path(2)
     robot, grasp = sc.robot, sc.scene.target.grasp_point_m
     # the oracle first agrees that the uncompensated plan misses
-    q0, b0 = _simulate_free_floating(robot, REF, path)
+    q0, b0 = simulate_free_floating(robot, REF, path)
     tip0 = robot.tip_position(q0[-1]) + b0[-1]
     assert np.linalg.norm(tip0 - grasp) > 0.5
     assert np.isclose(np.degrees(q0[-1, 0] - q0[0, 0]), free_floating_response(robot, REF, path).attitude_change_deg,
@@ -301,10 +183,10 @@ def test_compensated_free_floating_plan_reaches_the_handle(paper_scenario, paper
     cp = plan_free_floating(sc, sc.start_rad, sc.goal_rad, masses=REF, position_tolerance_m=0.02)
     assert cp.ok, cp.reason
     assert len(cp.history) > 2 and cp.history[0][0] > 0.5
-    q, b = _simulate_free_floating(robot, REF, cp.plan.path_rad)
+    q, b = simulate_free_floating(robot, REF, cp.plan.path_rad)
     tip = robot.tip_position(q[-1]) + b[-1]
     assert np.linalg.norm(tip - grasp) < 0.02
-    assert not _inside_target_or_margin(robot, sc, q, b).any()
+    assert not inside_target_or_margin(robot, sc.scene, q, b).any()
     rep = reaction_report(robot, REF, sc.scene, cp.plan.path_rad, acs_mode="free_floating")
     assert rep.ok and not rep.free_floating_collides
     with pytest.raises(ValueError, match="robot.planned_joints"):

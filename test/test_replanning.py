@@ -8,11 +8,9 @@ test's own finite differences).
 
 import numpy as np
 import pytest
-from scipy.interpolate import CubicSpline
 
-from paper_paths import joint_limits
-from test_collision import shapely_clearance
-from test_trajectory import _check
+from oracles import check_trajectory, shapely_clearance
+from paper_paths import joint_limits, new_path_from
 
 from spacerobot_planner.pipeline import timed_motion
 from spacerobot_planner.replanning import BLEND_SAMPLES, Executing, joined_motion, plan_start
@@ -28,15 +26,6 @@ def executing(paper_scenario, paper_path):
     first, _ = timed_motion(sc, paper_path(3))
     rs = resample(first, None, time_step_s=0.25)
     return sc, Executing(first, rs.indices, 100 * S)
-
-
-def _new_path(a, turn_deg=(20.0, -15.0, 10.0)):
-    """Return a smooth path from ``a`` to another goal (rad), 200 points."""
-    goal = a + np.radians(turn_deg)
-    knots = np.vstack([a, a + 0.5 * (goal - a) + np.radians([5.0, 5.0, -5.0]), goal])
-    new = CubicSpline([0.0, 0.5, 1.0], knots)(np.linspace(0.0, 1.0, 200))
-    new[0] = a
-    return new
 
 
 def test_a_following_arm_starts_the_plan_on_its_trajectory(executing):
@@ -95,7 +84,7 @@ def test_the_joined_trajectory_continues_the_executing_one(executing, frac):
     now = ex.start_ns + int(frac * old.duration_s * S)
     start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, frac * old.duration_s)],
                                 now, 1.0, np.radians(2.0), PERIODIC)
-    new = _new_path(start)
+    new = new_path_from(start)
     later = now + S // 5                              # the plan took 0.2 s
     lead_s = 0.02
     traj, _, stamp_ns, c = joined_motion(sc, join, new, later, lead_s=lead_s)
@@ -114,7 +103,7 @@ def test_the_joined_trajectory_continues_the_executing_one(executing, frac):
     m = max(1, join.horizon_index - c.index + 1 - max(BLEND_SAMPLES))
     np.testing.assert_array_equal(traj.positions_rad[:m], old.positions_rad[c.index:c.index + m])
     np.testing.assert_array_equal(traj.positions_rad[-1], new[-1])
-    _check(traj, np.vstack([traj.positions_rad[0], new[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+    check_trajectory(traj, np.vstack([traj.positions_rad[0], new[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
     assert min(shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad[::3]) > sc.scene.safety_margin_m
 
 
@@ -144,7 +133,8 @@ def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing
     print(f"\narm speed at the horizon point {np.degrees(speed_then):.2f}°/s; slowest within 1.5 s of it "
           f"{np.degrees(slowest):.2f}°/s")
     assert slowest >= 0.75 * speed_then
-    _check(traj, np.vstack([traj.positions_rad[0], res.path_rad[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+    check_trajectory(traj, np.vstack([traj.positions_rad[0], res.path_rad[-1]]), vmax, amax,
+                     v0=traj.velocities_rad_s[0])
     clr = min(shapely_clearance(sc.robot, moved.scene, q) for q in traj.positions_rad)
     assert clr > moved.scene.safety_margin_m
 
@@ -156,7 +146,7 @@ def test_a_plan_that_took_longer_than_the_horizon_is_refused(executing):
     start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, 0.3 * old.duration_s)],
                                 now, 1.0, np.radians(2.0), PERIODIC)
     with pytest.raises(HorizonPassed, match="behind the arm"):
-        joined_motion(sc, join, _new_path(start), now + 2 * S)
+        joined_motion(sc, join, new_path_from(start), now + 2 * S)
 
 
 def test_at_the_horizon_of_the_end_a_remainder_then_the_new_motion(executing):
@@ -179,4 +169,4 @@ def test_at_the_horizon_of_the_end_a_remainder_then_the_new_motion(executing):
     np.testing.assert_array_equal(traj.positions_rad[0], old.positions_rad[c.index])
     assert np.all(np.abs(traj.velocities_rad_s[0] - old.velocities_rad_s[c.index]) <= 1e-3 * vmax)
     np.testing.assert_array_equal(traj.positions_rad[-1], back[-1])
-    _check(traj, np.vstack([traj.positions_rad[0], back[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+    check_trajectory(traj, np.vstack([traj.positions_rad[0], back[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])

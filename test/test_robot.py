@@ -1,25 +1,22 @@
-"""Kinematics of the paper's robot: FK, Jacobian, manipulability, input checks."""
+"""Kinematics of the paper's robot: FK (against complex numbers, test/oracles.py), Jacobian, manipulability, IK."""
 
-import os
-
-from conftest import CONFIG_DIR
 import numpy as np
 import pytest
 
-from spacerobot_planner.config import load_scenario
+from oracles import arm_points, body_polygon
 from spacerobot_planner.ik import capture_posture, grasp_ik
 
 D = np.radians
 
 
 @pytest.fixture(scope="module")
-def sc3():
-    return load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
+def sc3(paper_scenario):
+    return paper_scenario(3)
 
 
 @pytest.fixture(scope="module")
-def sc2():
-    return load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
+def sc2(paper_scenario):
+    return paper_scenario(2)
 
 
 def test_fk_of_paper_goal_reaches_grasp_point(sc3):
@@ -37,6 +34,9 @@ def test_fk_is_vectorised_and_link_lengths_hold(sc3):
     assert np.allclose(seg, [1.4, 2.0, 2.0])
     single = sc3.robot.forward_kinematics(q[7])
     assert np.allclose(single, pts[7])
+    assert np.allclose(pts, arm_points(sc3.robot, q), rtol=0.0, atol=1e-12)
+    for att in q[:5, 0]:
+        assert np.allclose(sc3.robot.body_polygon_world(att), body_polygon(sc3.robot, att), rtol=0.0, atol=1e-12)
 
 
 def test_jacobian_matches_finite_differences(sc3):

@@ -1,64 +1,23 @@
 """
 Tests of trajectory.py.
 
-Limits hold at every point (published values and finite differences of the positions, computed
-here), exact ends, time increases; durations against TOPP-RA (toppra); scaling factors; a moving
-start; resampling and its certification.
+Limits hold at every point (published values and finite differences of the positions, by the
+test's own check), exact ends, time increases; durations against TOPP-RA (toppra); scaling
+factors; a moving start; resampling and its certification (oracles in test/oracles.py).
 """
 
 import numpy as np
 import pytest
-import toppra
-import toppra.algorithm
-import toppra.constraint
 from hypothesis import example, given, settings, strategies as st
 from scipy.interpolate import CubicSpline
 
-from paper_paths import joint_limits
+from oracles import check_trajectory, dense_samples, toppra_duration_s
+from paper_paths import joint_limits, new_path_from
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.trajectory import densify_path, resample, sample, time_parameterize
 
 VMAX = np.radians([5.0, 15.0, 15.0])
 AMAX = np.radians([5.0, 20.0, 20.0])
-TOL = 1e-9
-
-
-def _own_differences(t, q, v0):
-    """
-    Return segment velocities and point accelerations, computed here.
-
-    Segment velocities Δq/Δt and point accelerations (centred on each point: the change of
-    segment velocity over half the neighbouring durations; rest at the end).
-    """
-    dt = t[1:] - t[:-1]
-    w = (q[1:] - q[:-1]) / dt[:, None]
-    before = np.vstack([v0[None, :], w])
-    after = np.vstack([w, np.zeros((1, q.shape[1]))])
-    half = np.concatenate([[0.0], dt / 2]) + np.concatenate([dt / 2, [0.0]])
-    return w, (after - before) / half[:, None]
-
-
-def _check(traj, path, vmax, amax, v0=None, dense=True, consistency=None):
-    t, q = traj.times_s, traj.positions_rad
-    v0 = np.zeros(q.shape[1]) if v0 is None else np.asarray(v0)
-    assert t[0] == 0.0 and np.all(np.diff(t) > 0.0)
-    np.testing.assert_array_equal(q[0], np.asarray(path)[0])
-    np.testing.assert_array_equal(q[-1], np.asarray(path)[-1])
-    np.testing.assert_allclose(traj.velocities_rad_s[0], v0, atol=1e-12)
-    assert np.all(traj.velocities_rad_s[-1] == 0.0)
-    assert np.all(np.abs(traj.velocities_rad_s) <= vmax * (1 + TOL))
-    assert np.all(np.abs(traj.accelerations_rad_s2) <= amax * (1 + TOL))
-    w, a = _own_differences(t, q, v0)
-    assert np.all(np.abs(w) <= vmax * (1 + TOL))
-    assert np.all(np.abs(a) <= amax * (1 + TOL))
-    if consistency is not None:
-        # the published values belong to the positions: mean of the ends ≈ segment velocity,
-        # published acceleration ≈ the finite difference (smooth paths, dense points)
-        mean_v = 0.5 * (traj.velocities_rad_s[1:] + traj.velocities_rad_s[:-1])
-        assert np.all(np.abs(mean_v - w) <= consistency * vmax)
-        assert np.median(np.abs(traj.accelerations_rad_s2 - a) / amax) <= consistency
-    if dense:
-        assert np.max(np.abs(np.diff(q, axis=0))) <= np.radians(0.5) + 1e-12
 
 
 def _spline_path(rng, n_knots=6, dof=3, scale=1.0):
@@ -70,7 +29,7 @@ def _spline_path(rng, n_knots=6, dof=3, scale=1.0):
 def test_straight_line_is_trapezoidal_and_fast():
     path = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, -0.2]])
     traj = time_parameterize(path, VMAX, AMAX, ("a", "b", "c"))
-    _check(traj, path, VMAX, AMAX)
+    check_trajectory(traj, path, VMAX, AMAX)
     assert traj.joint_names == ("a", "b", "c")
     # joint 0 is the bottleneck: 1 rad at 5°/s with 5°/s² → 1/v + v/a
     ideal = 1.0 / VMAX[0] + VMAX[0] / AMAX[0]
@@ -82,7 +41,7 @@ def test_curved_paths_obey_limits(seed):
     rng = np.random.default_rng(seed)
     path = _spline_path(rng)
     traj = time_parameterize(path, VMAX, AMAX)
-    _check(traj, path, VMAX, AMAX)
+    check_trajectory(traj, path, VMAX, AMAX)
 
 
 @settings(max_examples=25, deadline=None)
@@ -94,7 +53,7 @@ def test_limits_hold_for_any_path_and_limits(seed, scale, speed):
     vmax = rng.uniform(0.2, 2.0, path.shape[1]) * speed * 0.1
     amax = rng.uniform(0.2, 2.0, path.shape[1]) * speed * 0.1
     traj = time_parameterize(path, vmax, amax)
-    _check(traj, path, vmax, amax)
+    check_trajectory(traj, path, vmax, amax)
 
 
 def test_start_equals_goal_gives_one_point():
@@ -132,33 +91,13 @@ def test_bad_limits_raise():
         time_parameterize(np.zeros((2, 2)) + [[0, 0], [1, 1]], [1.0, 1.0], [1.0])
 
 
-# ------------------------------------------------------------------ TOPP-RA oracle
-def _toppra_duration_s(path, vmax, amax):
-    """
-    Return the TOPP-RA duration of the same samples, s.
-
-    TOPP-RA on a cubic spline through the same samples (chord-length parameter), on a grid 16 times
-    finer than the samples.
-    """
-    toppra.setup_logging("WARNING")
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
-    spline = toppra.SplineInterpolator(s, path)
-    cons = [toppra.constraint.JointVelocityConstraint(np.stack([-vmax, vmax], axis=1)),
-            toppra.constraint.JointAccelerationConstraint(
-                np.stack([-amax, amax], axis=1),
-                discretization_scheme=toppra.constraint.DiscretizationType.Interpolation)]
-    algo = toppra.algorithm.TOPPRA(cons, spline, gridpoints=np.linspace(0.0, s[-1], 16 * len(path) + 1),
-                                   parametrizer="ParametrizeConstAccel")
-    return algo.compute_trajectory(0.0, 0.0).duration
-
-
 @pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
 def test_durations_within_one_percent_of_toppra_and_limits_hold(dof, paper_scenario, paper_path):
     sc, path = paper_scenario(dof), paper_path(dof)
     vmax, amax = joint_limits(sc)
     traj = time_parameterize(path, vmax, amax, sc.robot.planned_names)
-    _check(traj, path, vmax, amax, consistency=0.02)
-    ref = _toppra_duration_s(path, vmax, amax)
+    check_trajectory(traj, path, vmax, amax, consistency=0.02)
+    ref = toppra_duration_s(path, vmax, amax)
     assert 0.99 * ref <= traj.duration_s <= 1.01 * ref, (traj.duration_s, ref)
     assert set(traj.active_limit) <= {f"{k}:{j}" for k in ("velocity", "acceleration")
                                       for j in sc.robot.planned_names}
@@ -172,9 +111,9 @@ def test_scaling_factors_scale_time_exactly(paper_scenario, paper_path):
     base = time_parameterize(path, vmax, amax)
     slow = time_parameterize(path, vmax, amax, velocity_scaling=0.5, acceleration_scaling=0.25)
     np.testing.assert_allclose(slow.times_s, 2.0 * base.times_s, rtol=1e-9)
-    _check(slow, path, 0.5 * vmax, 0.25 * amax)
+    check_trajectory(slow, path, 0.5 * vmax, 0.25 * amax)
     only_v = time_parameterize(path, vmax, amax, velocity_scaling=0.3)
-    _check(only_v, path, 0.3 * vmax, amax)
+    check_trajectory(only_v, path, 0.3 * vmax, amax)
     assert only_v.duration_s > 2.5 * base.duration_s
     for bad in (0.0, 1.5, -0.1):
         with pytest.raises(ValueError, match="velocity_scaling"):
@@ -199,7 +138,7 @@ def test_moving_start_continues_an_executing_trajectory(paper_scenario, paper_pa
     rest = first.positions_rad[k:]
     second = time_parameterize(rest, vmax, amax, start_velocity_rad_s=v_switch)
     np.testing.assert_allclose(second.velocities_rad_s[0], v_switch, rtol=1e-3, atol=1e-6)
-    _check(second, rest, vmax, amax, v0=second.velocities_rad_s[0], consistency=0.02)
+    check_trajectory(second, rest, vmax, amax, v0=second.velocities_rad_s[0], consistency=0.02)
     from_rest = time_parameterize(rest, vmax, amax)
     assert second.duration_s < from_rest.duration_s
     assert abs(second.duration_s - (first.duration_s - first.times_s[k])) < 0.01 * first.duration_s
@@ -218,7 +157,7 @@ def test_start_velocities_that_cannot_be_followed_are_refused():
         time_parameterize(path, vmax, amax, start_path_speed=1.5)      # above the velocity limit
     # 1 rad to stop in: from 0.9 rad/s at 1 rad/s² that needs 0.405 rad
     ok = time_parameterize(path, vmax, amax, start_path_speed=0.9)
-    _check(ok, path, vmax, amax, v0=[0.9, 0.0])
+    check_trajectory(ok, path, vmax, amax, v0=[0.9, 0.0])
     short = np.array([[0.0, 0.0], [0.05, 0.0]])
     with pytest.raises(ValueError, match="start_path_speed"):
         time_parameterize(short, vmax, amax, start_path_speed=0.9)    # cannot stop within 0.05 rad
@@ -238,12 +177,11 @@ def test_resampled_trajectory_is_short_exact_and_certified(dof, paper_scenario, 
         assert 5 <= len(sub) <= 200 and len(sub) < len(traj) / 4
         np.testing.assert_array_equal(sub.positions_rad[[0, -1]], traj.positions_rad[[0, -1]])
         np.testing.assert_array_equal(sub.times_s, traj.times_s[res.indices])
-        _check(sub, path, vmax, amax, dense=False)          # the limits hold between kept points too
+        check_trajectory(sub, path, vmax, amax, dense=False)          # the limits hold between kept points too
         if kw.get("time_step_s"):
             assert np.max(np.diff(sub.times_s)) <= kw["time_step_s"] + 1e-12
         # oracle: the polyline through the kept points, sampled at 0.1°, clears the margin
-        fine = np.vstack([np.linspace(a, b, int(np.ceil(np.max(np.abs(b - a)) / np.radians(0.1))) + 1)
-                          for a, b in zip(sub.positions_rad[:-1], sub.positions_rad[1:])])
+        fine = dense_samples(sub.positions_rad, np.radians(0.1))
         assert np.all(checker.clearance_m(fine) > sc.scene.safety_margin_m)
     if dof == 3:
         traj_s = time_parameterize(path, vmax, amax)
@@ -289,17 +227,13 @@ def test_replanning_from_a_moving_arm_joins_continuously(paper_scenario, paper_p
     for frac in (0.1, 0.4, 0.8):
         c = continuation(first, frac * first.duration_s, horizon_s=1.0)
         assert c.join_time_s >= frac * first.duration_s and len(c.prefix_rad) > 1
-        a = c.prefix_rad[-1]
-        goal = a + np.radians([20.0, -15.0, 10.0])
-        knots = np.vstack([a, a + 0.5 * (goal - a) + np.radians([5.0, 5.0, -5.0]), goal])
-        new = CubicSpline([0.0, 0.5, 1.0], knots)(np.linspace(0.0, 1.0, 200))
-        new[0] = a
+        new = new_path_from(c.prefix_rad[-1])
         joined = c.join(new)
         nxt = time_parameterize(joined, vmax, amax, start_path_speed=c.start_path_speed)
         np.testing.assert_array_equal(nxt.positions_rad[0], first.positions_rad[c.index])
         assert np.all(np.abs(nxt.velocities_rad_s[0] - c.start_velocity_rad_s) <= 1e-4 * vmax)
         assert np.linalg.norm(c.start_velocity_rad_s) > 0.01
-        _check(nxt, joined, vmax, amax, v0=nxt.velocities_rad_s[0])
+        check_trajectory(nxt, joined, vmax, amax, v0=nxt.velocities_rad_s[0])
     end = continuation(first, 2 * first.duration_s)
     assert end.start_path_speed == 0.0 and np.all(end.start_velocity_rad_s == 0.0)
     with pytest.raises(ValueError, match="new_path_rad"):
