@@ -365,7 +365,7 @@ def wrap_diff(a, b=0.0):
     return (np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi
 
 
-def dense_samples(path_rad: np.ndarray, step_rad: float) -> np.ndarray:
+def dense_samples(path_rad: np.ndarray, step_rad: float = np.radians(0.25)) -> np.ndarray:
     """Return the path's polyline sampled linearly, consecutive samples at most step_rad apart (Euclidean)."""
     out = [path_rad[:1]]
     for a, b in zip(path_rad[:-1], path_rad[1:]):

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from oracles import dense_samples, link3_and_normal_deg, shapely_depth, wrap_diff
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.cspace import build_cspace
 from spacerobot_planner.planner import CODES, STAGES, Planner
@@ -16,26 +17,17 @@ CONFIG = Path(__file__).resolve().parent.parent / "config"
 HALF_DEG = np.radians(0.5)
 
 
-def wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
-
-
 def dense_check(robot, scene, path, step_rad=np.radians(0.25)):
     """
-    Independent check.
+    Independent check of a path.
 
-    Linear interpolation at ≤ step_rad, CollisionChecker with the margin, bounded joints within
-    bounds.
+    Linear samples at ≤ step_rad (test/oracles.py), CollisionChecker with the margin, bounded
+    joints within bounds.
 
     Returns (all free, min clearance).
     """
     chk = CollisionChecker(robot, scene)
-    samples = [path[:1]]
-    for a, b in zip(path[:-1], path[1:]):
-        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step_rad)))
-        t = np.arange(1, n + 1)[:, None] / n
-        samples.append(a + t * (b - a))
-    q = np.vstack(samples)
+    q = dense_samples(path, step_rad)
     lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
     for k, per in enumerate(robot.planned_periodic):
         if not per:
@@ -51,7 +43,7 @@ def assert_valid_path(res, sc):
     assert np.array_equal(p[0], res.start_rad)
     per = np.array(sc.robot.planned_periodic)
     assert np.array_equal(p[-1][~per], res.goal_rad[~per])
-    assert np.allclose(wrap(p[-1][per] - res.goal_rad[per]), 0.0, atol=1e-12)
+    assert np.allclose(wrap_diff(p[-1][per], res.goal_rad[per]), 0.0, atol=1e-12)
     # dense and continuous (unwrapped): no step above 0.5°
     assert np.max(np.linalg.norm(np.diff(p, axis=0), axis=1)) <= HALF_DEG + 1e-12
     free, clr = dense_check(sc.robot, sc.scene, p)
@@ -127,7 +119,7 @@ def test_json_dict_keys(plan3, sc3):
         assert key in d
     assert d["error"] is None and d["ok"] is True and d["code"] == "ok"
     assert d["path_rad"][0] == list(sc3.start_rad)
-    assert np.allclose(wrap(np.array(d["path_rad"][-1]) - sc3.goal_rad), 0.0, atol=1e-12)
+    assert np.allclose(wrap_diff(d["path_rad"][-1], sc3.goal_rad), 0.0, atol=1e-12)
 
 
 # ---------------------------------------------------------------------- cache
@@ -374,8 +366,7 @@ def test_repairs_on_random_scenes_keep_paths_valid():
 def unwrap(q2):
     """Two wrapped rows as a continuous segment (the short way round a periodic joint)."""
     out = np.array(q2, dtype=float)
-    d = (out[1] - out[0] + np.pi) % (2 * np.pi) - np.pi
-    out[1] = out[0] + d
+    out[1] = out[0] + wrap_diff(out[1], out[0])
     return out
 
 
@@ -470,26 +461,10 @@ def test_passage_between_margin_and_grid_margin_is_found(sc2):
 
 
 # ------------------------------------------------------------- grasp approach
-def _link3_and_normal_deg(robot, target, q_full):
-    """
-    Oracle.
-
-    Angle between link 3 (from hand-written forward kinematics) and the handle's inward normal (from
-    the target's yaw: the handle sits on the local +y face).
-    """
-    l1, l2, l3 = robot.link_lengths_m
-    t1, t2, t3 = q_full
-    elbow = (l1 * np.array([np.cos(t1), np.sin(t1)]) + l2 * np.array([np.cos(t1 + t2), np.sin(t1 + t2)]))
-    tip = elbow + l3 * np.array([np.cos(t1 + t2 + t3), np.sin(t1 + t2 + t3)])
-    link = (tip - elbow) / np.linalg.norm(tip - elbow)
-    inward = np.array([np.sin(target.yaw_rad), -np.cos(target.yaw_rad)])
-    return float(np.degrees(np.arccos(np.clip(link @ inward, -1.0, 1.0))))
-
-
 def test_paper_2dof_grasp_is_near_perpendicular(sc2):
     pl = Planner(sc2)
     goal = pl.goal_from_target()
-    err = _link3_and_normal_deg(sc2.robot, sc2.scene.target, sc2.robot.full(goal))
+    err = link3_and_normal_deg(sc2.robot, sc2.scene.target, sc2.robot.full(goal))
     assert err <= 5.0
     res = pl.plan(sc2.start_rad)
     assert res.ok and abs(res.approach_error_deg - err) < 1e-6
@@ -529,10 +504,10 @@ def test_random_targets_under_locked_attitude_grasp_perpendicular_or_say_which_a
             robot = replace(sc.robot, locked_rad=np.array([np.radians(float(m.group(1))), 0.0, 0.0]))
             relocked = replace(sc, robot=robot)
             q = Planner(relocked).goal_from_target()
-            assert _link3_and_normal_deg(robot, target, robot.full(q)) < 0.2    # the printed 0.1° rounding
+            assert link3_and_normal_deg(robot, target, robot.full(q)) < 0.2    # the printed 0.1° rounding
             continue
         accepted += 1
-        assert _link3_and_normal_deg(sc.robot, target, sc.robot.full(goal)) <= 5.0 + 1e-9
+        assert link3_and_normal_deg(sc.robot, target, sc.robot.full(goal)) <= 5.0 + 1e-9
     assert accepted >= 1 and refused >= 5 and advised >= 1, (accepted, refused, advised)
 
 
@@ -546,23 +521,6 @@ def _captured_then_moved(sc, d_m):
     return q_cap, sc.with_scene(sc.scene.with_target(Target(center_m=tuple(centre), yaw_rad=t.yaw_rad)))
 
 
-def _shapely_depth(robot, scene, q):
-    """Oracle: the deepest point of links 2-3 inside an obstacle (shapely), metres."""
-    from shapely.geometry import LineString, Polygon
-    pts = robot.forward_kinematics(robot.full(q))
-    polys = [Polygon(p) for p in scene.obstacle_polygons_m]
-    best = 0.0
-    for k in robot.checked_links:
-        line = LineString([pts[k], pts[k + 1]])
-        for poly in polys:
-            inside = line.intersection(poly)
-            if inside.is_empty:
-                continue
-            for s in np.linspace(0.0, inside.length, 400):
-                best = max(best, poly.exterior.distance(inside.interpolate(s)))
-    return best
-
-
 @pytest.mark.parametrize("dof, d_m", [(3, 0.10), (3, 0.13), (2, 0.10)])
 def test_target_moved_into_the_captured_posture_is_left(paper_scenario, dof, d_m):
     sc0 = paper_scenario(dof)
@@ -573,7 +531,7 @@ def test_target_moved_into_the_captured_posture_is_left(paper_scenario, dof, d_m
     assert res.ok, res.reason
     ex = res.exit_path_rad
     assert len(ex) >= 2 and np.array_equal(ex[0], res.start_rad)
-    assert abs(res.start_penetration_m - _shapely_depth(sc.robot, sc.scene, q_cap)) < 1.5e-3
+    assert abs(res.start_penetration_m - shapely_depth(sc.robot, sc.scene, q_cap)) < 1.5e-3
     # the exit stretch is the start of the path, in ≤ 0.5° steps, bounded, ending free
     assert np.array_equal(res.path_rad[:len(ex)], ex)
     assert np.max(np.linalg.norm(np.diff(ex, axis=0), axis=1)) <= HALF_DEG + 1e-12
@@ -583,7 +541,7 @@ def test_target_moved_into_the_captured_posture_is_left(paper_scenario, dof, d_m
     rest = res.path_rad[len(ex) - 1:]
     free, clr = dense_check(sc.robot, sc.scene, rest)
     assert free and clr > sc.scene.safety_margin_m
-    assert np.allclose(wrap(rest[-1] - sc0.start_rad), 0.0, atol=1e-12)
+    assert np.allclose(wrap_diff(rest[-1], sc0.start_rad), 0.0, atol=1e-12)
     assert res.to_json_dict()["exit"]["certified"] is False
 
 
@@ -627,4 +585,3 @@ def test_codes_are_strings_on_the_wire(plan3):
     assert plan3.code is Code.OK and plan3.code == "ok" and f"{plan3.code}" == "ok"
     import json
     assert json.loads(json.dumps(plan3.to_json_dict()))["code"] == "ok"
-    assert CODES == tuple(c.value for c in Code)

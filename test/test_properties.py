@@ -7,14 +7,12 @@ coarse to fine grids):
   the joint bounds, and is collision-free under a dense exact check (≤ 0.25°) with the
   scene's margin;
 - "no path" is claimed as "disconnected" only when an independent flood fill of the
-  grid's free space finds start and goal in separate components;
+  grid's free space (test/oracles.py) finds start and goal in separate components;
 - the same input gives the same path;
 - no exception escapes: every failure is a code and a reason.
 
 `pytest --hypothesis-profile=long test/test_properties.py` runs thousands of cases.
 """
-
-from collections import deque
 
 import numpy as np
 import pytest
@@ -23,47 +21,8 @@ from hypothesis import given, note, strategies as st
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.planner import CODES, Planner
 
+from oracles import connected, dense_samples, wrap_diff
 from strategies import random_configuration, scenarios
-
-DENSE_STEP_RAD = np.radians(0.25)
-
-
-def dense_samples(path_rad: np.ndarray, step_rad: float = DENSE_STEP_RAD) -> np.ndarray:
-    """Linear interpolation of the path's rows, no two samples farther apart than step_rad."""
-    out = [path_rad[:1]]
-    for a, b in zip(path_rad[:-1], path_rad[1:]):
-        n = max(1, int(np.ceil(np.max(np.abs(b - a)) / step_rad)))
-        t = np.linspace(0.0, 1.0, n + 1)[1:, None]
-        out.append(a + t * (b - a))
-    return np.concatenate(out)
-
-
-def flood_fill(occupied: np.ndarray, periodic, start) -> np.ndarray:
-    """Free nodes reachable from ``start`` over face neighbours (plain BFS, wrap on periodic axes)."""
-    seen = np.zeros(occupied.shape, dtype=bool)
-    if occupied[start]:
-        return seen
-    seen[start] = True
-    queue = deque([start])
-    shape = occupied.shape
-    while queue:
-        node = queue.popleft()
-        for axis in range(len(shape)):
-            for step in (-1, 1):
-                k = node[axis] + step
-                if periodic[axis]:
-                    k %= shape[axis]
-                elif not 0 <= k < shape[axis]:
-                    continue
-                nb = node[:axis] + (k,) + node[axis + 1:]
-                if not seen[nb] and not occupied[nb]:
-                    seen[nb] = True
-                    queue.append(nb)
-    return seen
-
-
-def wrap_diff(a, b):
-    return (np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi
 
 
 def check_result(sc, start, goal, res):
@@ -117,7 +76,7 @@ def check_no_path_claim(sc, start, goal, res):
     s_node, g_node = grid.node_of(sc.robot.validate_q(start)), grid.node_of(res.goal_rad)
     if occ[s_node] or occ[g_node]:
         return     # the nearest node itself is blocked: the planner looked at neighbours
-    assert not flood_fill(occ, grid.periodic, s_node)[g_node], (
+    assert not connected(occ, grid.periodic, [s_node])[g_node], (
         "planner said 'disconnected' but the grid's free space joins start and goal")
     # and only on the grid at the scene's own margin (not the extra grid margin)
     assert res.cspace.margin_m == sc.scene.safety_margin_m
@@ -167,7 +126,7 @@ def test_connected_grid_means_a_path(case):
     s_node, g_node = grid.node_of(res.start_rad), grid.node_of(res.goal_rad)
     if occ[s_node] or occ[g_node]:
         return
-    if flood_fill(occ, grid.periodic, s_node)[g_node]:
+    if connected(occ, grid.periodic, [s_node])[g_node]:
         assert res.ok or res.code == "path_invalid", res.reason
         note(f"code={res.code}")
 

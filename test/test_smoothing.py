@@ -1,24 +1,20 @@
 """Smoothing stage: unwrap, densify, dense check, shortcut, spline refinement, fallbacks."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from oracles import shortest_grid_path
 from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.config import load_scenario
 from spacerobot_planner.motion import check_path
 from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, densify_polyline,
                                           path_length_rad, shortcut_indices, smooth_path,
                                           spline_through)
 from spacerobot_planner.joint_space import unwrap_path
 
-CONFIG = Path(__file__).resolve().parent.parent / "config"
-
 
 @pytest.fixture(scope="module")
-def sc2():
-    return load_scenario(CONFIG / "paper_2dof.yaml")
+def sc2(paper_scenario):
+    return paper_scenario(2)
 
 
 @pytest.fixture(scope="module")
@@ -145,31 +141,14 @@ def test_shortcut_keeps_clearance(sc2, chk2):
 
 def _hugging_path(sc2):
     """
-    Shortest 4-connected grid path (2° grid, BFS) from (96°, 0) to (30°, 0).
+    Shortest face-step grid path (2° grid, test/oracles.py) from (96°, 0) to (30°, 0).
 
     It hugs the obstacle, so coarse splines through it cut corners.
     """
-    from collections import deque
-
     from spacerobot_planner.cspace import build_cspace
     cs = build_cspace(sc2.robot, sc2.scene, sc2.grid, extra_margin_m=0.04)
-    occ = cs.occupied
     start, goal = sc2.grid.node_of(np.radians([96.0, 0.0])), sc2.grid.node_of(np.radians([30.0, 0.0]))
-    prev = {start: None}
-    todo = deque([start])
-    while todo:
-        n = todo.popleft()
-        if n == goal:
-            break
-        for d in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-            m = (n[0] + d[0], n[1] + d[1])
-            if 0 <= m[0] < occ.shape[0] and 0 <= m[1] < occ.shape[1] and not occ[m] and m not in prev:
-                prev[m] = n
-                todo.append(m)
-    nodes = [goal]
-    while prev[nodes[-1]] is not None:
-        nodes.append(prev[nodes[-1]])
-    return sc2.grid.config_of(np.array(nodes[::-1]))
+    return sc2.grid.config_of(shortest_grid_path(cs.occupied, sc2.grid.periodic, start, goal))
 
 
 def test_spline_refines_where_it_cuts_a_corner(sc2, chk2):
