@@ -40,11 +40,15 @@ interfaces:
 
 venv: $(STAMP)
 
+# the suite mostly waits (discovery, plans, arm motions): 3 worker processes on 2 cores, each
+# with a ROS domain of its own (test/conftest.py); slow tests are handed out first
+PYTEST_WORKERS ?= 3
+
 test: venv
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS)
 
 test-long: venv
-	$(PY) -m pytest -q --hypothesis-profile=long
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --hypothesis-profile=long
 
 demo: venv
 	$(PY) -m spacerobot_planner.tools.demo --out $(OUT)

@@ -63,6 +63,16 @@ settings.register_profile("long", max_examples=3000, **_common)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
 
 
+def pytest_collection_modifyitems(config, items):
+    """
+    Run the ``slow`` tests first.
+
+    They are the long poles of a run in several workers (``make test``: pytest-xdist hands the
+    tests out in collection order), so they start while the short ones fill the other workers.
+    """
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)      # stable: order kept otherwise
+
+
 @pytest.fixture
 def graph():
     """

@@ -504,4 +504,5 @@ def assert_next_plan_grasps(g, n_traj, n_att, x_m, y_m, yaw_rad=0.0, timeout=30,
     tip = robot.tip_position(robot.full(end))
     grasp = dataclasses.replace(g.scenario.scene.target, center_m=(x_m, y_m), yaw_rad=yaw_rad).grasp_point_m
     miss = float(np.linalg.norm(tip - grasp))
-    assert miss < tol_m, f"the next trajectory ends {miss:.4f} m from the grasp of ({x_m}, {y_m}): another plan went out first"
+    assert miss < tol_m, (f"the next trajectory ends {miss:.4f} m from the grasp of ({x_m}, {y_m}): "
+                          "another plan went out first")
