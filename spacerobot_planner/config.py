@@ -42,9 +42,10 @@ from .dynamics import ACS_MODES, AcsSettings, MassProperties
 from .problem import Scenario
 from .robot import PlanarArm, square_polygon
 from .scene import Scene, Target
+from .settings import JointLimits, PlannerSettings
 
 __all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file", "matching_sections",
-           "scenario_from_params", "spec_default", "NODE_NAME"]
+           "scenario_from_params", "spec_default", "NODE_NAME", "settings_from_params", "joint_limits_from_params"]
 
 NODE_NAME = "spacerobot_planner"
 
@@ -422,7 +423,45 @@ def scenario_from_params(params: dict) -> Scenario:
     return Scenario(robot=robot, scene=scene, grid=grid, start_rad=posture("scenario.start_deg"),
                     goal_rad=posture("scenario.goal_deg"),
                     planning_frame=_get(params, "planning_frame"), params=dict(params),
-                    masses=masses, acs=acs)
+                    masses=masses, acs=acs, joint_limits=joint_limits_from_params(params, robot),
+                    planner_settings=settings_from_params(params))
+
+
+#: parameters (``PARAMETERS``) → ``settings.PlannerSettings`` fields
+_PLANNER_SETTINGS = {"planner.solver": "solver", "planner.field_tolerance": "field_tolerance",
+                     "planner.field_budget_s": "field_budget_s", "planner.max_grid_nodes": "max_grid_nodes",
+                     "planner.max_start_penetration_m": "max_start_penetration_m",
+                     "grasp.max_approach_error_deg": "max_approach_error_deg"}
+
+
+def settings_from_params(params: dict, **overrides) -> PlannerSettings:
+    """Return the PlannerSettings of a flat dotted parameter dict (the schema's defaults for what is absent)."""
+    kw = {f: _get(params, k) for k, f in _PLANNER_SETTINGS.items()}
+    kw.update(overrides)
+    return PlannerSettings(**kw)
+
+
+def joint_limits_from_params(params: dict, robot: PlanarArm) -> JointLimits | None:
+    """
+    Return the JointLimits of a flat dotted parameter dict (``trajectory.*``), rad.
+
+    None unless it states both ``trajectory.max_velocity_deg_s`` and
+    ``trajectory.max_acceleration_deg_s2`` (a scenario without limits plans paths only);
+    the scaling factors default to the schema's.  ValueError (naming the parameter) for a
+    bad value or not one value per joint of ``robot``.
+    """
+    keys = ("trajectory.max_velocity_deg_s", "trajectory.max_acceleration_deg_s2")
+    given = {k: _get(params, k) for k in keys if k in params}
+    for key, v in given.items():
+        if len(v) != robot.n_joints:
+            raise ValueError(f"{key}: expected {robot.n_joints} values (one per joint in robot.joint_names), "
+                             f"got {len(v)}")
+    if len(given) < len(keys):
+        return None
+    return JointLimits(tuple(np.radians(np.asarray(given[keys[0]], dtype=float))),
+                       tuple(np.radians(np.asarray(given[keys[1]], dtype=float))),
+                       _get(params, "trajectory.max_velocity_scaling_factor"),
+                       _get(params, "trajectory.max_acceleration_scaling_factor"))
 
 
 def load_scenario(path) -> Scenario:

@@ -588,28 +588,17 @@ class Motion:
 
 def scenario_joint_limits(scenario):
     """
-    Return the planned joints' limits and scalings from ``trajectory.*``.
+    Return the planned joints' limits and scalings (``Scenario.joint_limits``).
 
     (max velocity (dof,) rad/s, max acceleration (dof,) rad/s², velocity scaling, acceleration
-    scaling) of the planned joints from the scenario's ``trajectory.*``.
+    scaling); ValueError when the scenario states no joint limits.
     """
-    from .config import check_value, spec_default
-    robot = scenario.robot
-    params = scenario.params
-    idx = list(robot.planned_joints)
-
-    def get(key):
-        return check_value(key, params[key]) if key in params else spec_default(key)
-
-    out = []
-    for key in ("trajectory.max_velocity_deg_s", "trajectory.max_acceleration_deg_s2"):
-        v = get(key)
-        if len(v) != robot.n_joints:
-            raise ValueError(f"{key}: expected {robot.n_joints} values (one per joint in robot.joint_names), "
-                             f"got {len(v)}")
-        out.append(np.radians(np.asarray(v, dtype=float))[idx])
-    return (out[0], out[1], get("trajectory.max_velocity_scaling_factor"),
-            get("trajectory.max_acceleration_scaling_factor"))
+    limits = scenario.joint_limits
+    if limits is None:
+        raise ValueError("trajectory.max_velocity_deg_s, trajectory.max_acceleration_deg_s2: the scenario "
+                         "states no joint limits (no trajectory)")
+    vmax, amax = limits.planned(scenario.robot)
+    return vmax, amax, limits.velocity_scaling, limits.acceleration_scaling
 
 
 def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None) -> Motion:

@@ -73,8 +73,7 @@ def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
 
 def trajectory_limits_known(scenario) -> bool:
     """Tell whether the scenario states joint velocity and acceleration limits (``trajectory.*``)."""
-    return ("trajectory.max_velocity_deg_s" in scenario.params
-            and "trajectory.max_acceleration_deg_s2" in scenario.params)
+    return scenario.joint_limits is not None
 
 
 def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0):

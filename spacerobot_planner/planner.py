@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import fields, replace
 from typing import Callable
 
 import numpy as np
@@ -37,105 +37,18 @@ import numpy as np
 from .collision import CollisionChecker
 from .cspace import GridSpec, body_occupancy, build_cspace
 from .descent import descend
-from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS, solve_field
+from .field import solve_field
 from .field import warm_up as field_warm_up
 from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
-from .motion import DEFAULT_VERIFY_STEP_RAD
 from .pipeline import PlanRun, timed_motion, trajectory_limits_known
 from .problem import Scenario
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
-from .smoothing import DEFAULT_MAX_STEP_RAD
+from .settings import PlannerSettings
 from .termination import stall
 
 __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES", "warm_up",
-           "timed_motion", "settings_from_params"]
-
-
-def _positive(name, value, allow_zero=False) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0)):
-        raise ValueError(f"{name}: must be a {'non-negative' if allow_zero else 'positive'} number, "
-                         f"got {value!r}")
-    return v
-
-
-@dataclass(frozen=True)
-class PlannerSettings:
-    """
-    How the planner plans (immutable; ``Planner.configure`` makes a new one).
-
-    Attributes
-    ----------
-        solver: field solver name (``field.SOLVERS``).
-        field_tolerance: gauss_seidel's stopping tolerance (largest change per sweep).
-        field_budget_s: wall-time budget of one field solve (log_harmonic), seconds.
-        max_grid_nodes: refuse larger grids (before allocating).
-        grid_extra_margin_m: added to the safety margin for the grid only, metres (the
-            planner retries at 0 before answering ``disconnected``).
-        shortcut: try a shortcut spline before the paper's every-second-node spline.
-        shortcut_keep_clearance_m: shortcuts keep at least margin + this (or the
-            clearance of the stretch they replace, if smaller), metres.
-        max_step_rad: spacing of the returned samples (≤ 0.5°).
-        verify_step_rad: largest spacing of the certified collision checks along the path.
-        max_repairs: edge-cutting / node-blocking re-solves allowed per plan.
-        max_start_penetration_m: a start whose links reach at most this deep into an
-            obstacle is walked out of the contact first (0: refuse as start_in_collision).
-        max_approach_error_deg: largest angle between link 3 and the handle's inward
-            normal accepted for a goal from the target's IK.
-        trajectory: run the trajectory stage when the scenario states joint limits.
-        reaction: report the spacecraft's reaction with the trajectory (None: when the
-            scenario has ACS or wheel settings).
-
-    """
-
-    solver: str = DEFAULT_SOLVER
-    field_tolerance: float = 1e-6
-    field_budget_s: float = DEFAULT_BUDGET_S
-    max_grid_nodes: int = 4_000_000
-    grid_extra_margin_m: float = 0.02
-    shortcut: bool = True
-    shortcut_keep_clearance_m: float = 0.05
-    max_step_rad: float = DEFAULT_MAX_STEP_RAD
-    verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD
-    max_repairs: int = 30
-    max_start_penetration_m: float = 0.05
-    max_approach_error_deg: float = 5.0
-    trajectory: bool = True
-    reaction: bool | None = None
-
-    def __post_init__(self):
-        if self.solver not in SOLVERS + INTERNAL_SOLVERS:
-            raise ValueError(f"planner.solver: unknown solver {self.solver!r}; expected one of {list(SOLVERS)}")
-        set_ = object.__setattr__
-        set_(self, "field_tolerance", _positive("planner.field_tolerance", self.field_tolerance))
-        set_(self, "field_budget_s", _positive("planner.field_budget_s", self.field_budget_s))
-        if isinstance(self.max_grid_nodes, bool) or int(self.max_grid_nodes) != self.max_grid_nodes \
-                or self.max_grid_nodes < 1:
-            raise ValueError(f"planner.max_grid_nodes: must be a positive integer, got {self.max_grid_nodes!r}")
-        set_(self, "max_grid_nodes", int(self.max_grid_nodes))
-        for name in ("grid_extra_margin_m", "shortcut_keep_clearance_m", "max_start_penetration_m",
-                     "max_approach_error_deg"):
-            set_(self, name, _positive(name, getattr(self, name), allow_zero=True))
-        for name in ("max_step_rad", "verify_step_rad"):
-            set_(self, name, _positive(name, getattr(self, name)))
-        if int(self.max_repairs) != self.max_repairs or self.max_repairs < 0:
-            raise ValueError(f"max_repairs: must be an integer ≥ 0, got {self.max_repairs!r}")
-
-
-#: scenario parameters (``config.PARAMETERS``) → PlannerSettings fields
-_PARAM_SETTINGS = {"planner.solver": "solver", "planner.field_tolerance": "field_tolerance",
-                   "planner.field_budget_s": "field_budget_s", "planner.max_grid_nodes": "max_grid_nodes",
-                   "planner.max_start_penetration_m": "max_start_penetration_m",
-                   "grasp.max_approach_error_deg": "max_approach_error_deg"}
-
-
-def settings_from_params(params: dict, **overrides) -> PlannerSettings:
-    """Return PlannerSettings from a scenario's flat parameters (defaults for what is absent)."""
-    from .config import check_value
-    kw = {f: check_value(k, params[k]) for k, f in _PARAM_SETTINGS.items() if k in params}
-    kw.update(overrides)
-    return PlannerSettings(**kw)
+           "timed_motion"]
 
 
 def _scene_geometry_key(scene: Scene) -> tuple:
@@ -156,14 +69,14 @@ class Planner:
     ----------
         scenario: robot, scene and grid (``problem.Scenario``).
         solver, field_tolerance, max_grid_nodes, field_budget_s, and any other
-            :class:`PlannerSettings` field as a keyword, over ``settings`` (default: from
-            the scenario's parameters, :func:`settings_from_params`).
+            :class:`PlannerSettings` field as a keyword, over ``settings`` (default: the
+            scenario's, ``Scenario.planner_settings``).
 
     """
 
     def __init__(self, scenario: Scenario, solver: str | None = None, field_tolerance: float | None = None,
                  max_grid_nodes: int | None = None, *, settings: PlannerSettings | None = None, **options):
-        base = settings if settings is not None else settings_from_params(scenario.params)
+        base = settings if settings is not None else scenario.planner_settings
         given = {"solver": solver, "field_tolerance": field_tolerance, "max_grid_nodes": max_grid_nodes}
         changes = {k: v for k, v in given.items() if v is not None}
         unknown = set(options) - {f.name for f in fields(PlannerSettings)}

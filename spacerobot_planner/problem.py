@@ -1,7 +1,8 @@
 """
-The planning problem: robot, scene, grid and the spacecraft's settings (no file format here).
+The planning problem: robot, scene, grid and typed settings (no file format here).
 
-``config.py`` builds one from a parameter file; tests and tools build one directly.
+``config.py`` builds one from a parameter file (the only place that reads the dotted
+parameter names); tests and tools build one directly.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from .cspace import GridSpec
 from .dynamics import AcsSettings, MassProperties
 from .robot import PlanarArm
 from .scene import Scene
+from .settings import JointLimits, PlannerSettings
 
 __all__ = ["Scenario"]
 
@@ -30,10 +32,15 @@ class Scenario:
         grid: the C-space grid over the planned joints (``cspace.GridSpec``).
         start_rad, goal_rad: (dof,) planned-joint postures, rad (None when not given).
         planning_frame: frame name of the scene's coordinates.
-        params: the flat dotted parameter dict it was built from (``config.PARAMETERS``
-            names; the trajectory limits and planner options are read from it).
+        params: the flat dotted parameter dict it was built from, for display only: the
+            core never reads it (a copy with other values changes nothing; build a new
+            scenario with ``config.scenario_from_params`` or replace the typed fields).
         masses: the spacecraft's mass properties (``dynamics.*``).
         acs: attitude-control settings (``acs.*``, ``grasp.position_tolerance_m``).
+        joint_limits: the trajectory's joint limits (``trajectory.*``); None when the
+            scenario states none: the planner then returns paths without trajectories.
+        planner_settings: how the planner plans (``planner.*``,
+            ``grasp.max_approach_error_deg``); ``Planner`` starts from them.
 
     """
 
@@ -46,6 +53,12 @@ class Scenario:
     params: dict = field(default_factory=dict)
     masses: MassProperties = field(default_factory=MassProperties)
     acs: AcsSettings = field(default_factory=AcsSettings)
+    joint_limits: JointLimits | None = None
+    planner_settings: PlannerSettings = field(default_factory=PlannerSettings)
+
+    def __post_init__(self):
+        if self.joint_limits is not None:
+            self.joint_limits.check_robot(self.robot)
 
     def grid_with_cells(self, cells) -> GridSpec:
         """Return the same grid bounds with ``cells`` cells per planned joint."""

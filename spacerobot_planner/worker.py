@@ -619,16 +619,13 @@ def main(argv=None) -> int:
     installing; so does ``setup.py install``, in the installed tree).
     """
     import argparse
-    from .config import load_params_file, scenario_from_params
+    from .config import load_scenario
     from .planner import Planner
     ap = argparse.ArgumentParser(description=main.__doc__.strip().splitlines()[0])
     ap.add_argument("--warm-cache", nargs="+", metavar="FILE", required=True)
     args = ap.parse_args(argv)
     for path in args.warm_cache:
-        params = load_params_file(path)
-        sc = scenario_from_params(params)
-        planner = Planner(sc, solver=params.get("planner.solver", "log_harmonic"),
-                          field_tolerance=float(params.get("planner.field_tolerance", 1e-6)))
+        planner = Planner(load_scenario(path))        # the file's solver and tolerance
         t = warm_up(planner, full_grid_max_nodes=10 ** 9)
         print(f"warm-cache {path}: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
     return 0

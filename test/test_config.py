@@ -109,14 +109,13 @@ def test_arrays_from_ros_messages_are_lists():
 
 
 def test_planner_settings_come_from_the_parameters_and_name_bad_values(paper_scenario):
-    from dataclasses import replace
-
-    from spacerobot_planner.planner import Planner, settings_from_params
+    from spacerobot_planner.config import scenario_from_params, settings_from_params
+    from spacerobot_planner.planner import Planner
     sc = paper_scenario(2)
     params = dict(sc.params, **{"planner.max_start_penetration_m": 0.0, "grasp.max_approach_error_deg": 2.5})
-    pl = Planner(replace(sc, params=params))
+    pl = Planner(scenario_from_params(params))
     assert pl.settings.max_start_penetration_m == 0.0 and pl.settings.max_approach_error_deg == 2.5
-    assert Planner(replace(sc, params=params), max_start_penetration_m=0.01).settings.max_start_penetration_m == 0.01
+    assert Planner(scenario_from_params(params), max_start_penetration_m=0.01).settings.max_start_penetration_m == 0.01
     for key, bad in (("planner.max_start_penetration_m", -0.1), ("grasp.max_approach_error_deg", 200.0),
                      ("planner.solver", "magic")):
         with pytest.raises(ValueError, match=key.replace(".", r"\.")):

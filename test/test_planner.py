@@ -576,7 +576,7 @@ def test_result_carries_a_trajectory_aligned_to_the_raw_state(planner3, sc3):
 
 
 def test_no_trajectory_without_limits(sc3):
-    res = Planner(replace(sc3, params={})).plan(sc3.start_rad, sc3.goal_rad)
+    res = Planner(replace(sc3, joint_limits=None)).plan(sc3.start_rad, sc3.goal_rad)
     assert res.ok and res.trajectory is None and "trajectory" not in res.to_json_dict()
 
 

@@ -121,8 +121,9 @@ def main(argv=None) -> int:
                          "next_plan_s": again_s, "same_process": b.pid == pid0})
         respawns = sum("does not poll" in m for m in logs)
         load = os.getloadavg()[0]
-        print(f"load average {load:.1f} on {os.cpu_count()} CPUs; cancel latency over {len(latencies)} cancels (caches kept): p50 {1e3 * _percentile(latencies, 50):.1f} "
-              f"ms, p90 {1e3 * _percentile(latencies, 90):.1f} ms, max {1e3 * max(latencies, default=np.nan):.1f} ms; "
+        print(f"load average {load:.1f} on {os.cpu_count()} CPUs; cancel latency over {len(latencies)} cancels "
+              f"(caches kept): p50 {1e3 * _percentile(latencies, 50):.1f} ms, "
+              f"p90 {1e3 * _percentile(latencies, 90):.1f} ms, max {1e3 * max(latencies, default=np.nan):.1f} ms; "
               f"planning process replaced {respawns} times (pid {pid0} -> {b.pid})")
         rows.append({"stage": "cancel_summary", "grid": sc.grid.label(), "solver": "log_harmonic",
                      "cancels": len(latencies), "p50_s": _percentile(latencies, 50),

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..config import check_value, load_scenario
 from ..field import SOLVERS
+from ..planner import Planner
 
 __all__ = ["main", "build_parser"]
 
@@ -112,21 +113,19 @@ def main(argv=None) -> int:
     try:
         scenario = load_scenario(args.params_file)
         robot = scenario.robot
-        params = scenario.params
+        given = scenario.planner_settings           # the file's planner.* (defaults filled)
         if args.cells is not None:
             cells = args.cells * robot.dof if len(args.cells) == 1 else args.cells
             check_value("grid.cells", cells)
             if len(cells) != robot.dof:
                 raise ValueError(f"--cells: expected 1 or {robot.dof} values, got {len(args.cells)}")
             scenario = scenario.with_grid(scenario.grid_with_cells(cells))
-        solver = args.solver if args.solver is not None else params.get("planner.solver", "log_harmonic")
+        solver = args.solver if args.solver is not None else given.solver
         if solver not in SOLVERS:
             raise ValueError(f"--solver: unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
-        tol = args.tolerance if args.tolerance is not None else params.get("planner.field_tolerance", 1e-6)
+        tol = args.tolerance if args.tolerance is not None else given.field_tolerance
         tol = check_value("planner.field_tolerance", float(tol))
-        budget = check_value("planner.max_grid_nodes", params.get("planner.max_grid_nodes", 4_000_000))
-        field_budget = args.field_budget if args.field_budget is not None else \
-            params.get("planner.field_budget_s", 5.0)
+        field_budget = args.field_budget if args.field_budget is not None else given.field_budget_s
         field_budget = check_value("planner.field_budget_s", float(field_budget))
 
         def posture(values, flag):
@@ -144,10 +143,7 @@ def main(argv=None) -> int:
         else:
             raise ValueError("--start-deg: no start given and the file has no scenario.start_deg")
         goal = posture(args.goal_deg, "--goal-deg") if args.goal_deg is not None else scenario.goal_rad
-        from ..planner import Planner, settings_from_params
-        settings = settings_from_params(params, solver=solver, field_tolerance=tol, max_grid_nodes=budget,
-                                        field_budget_s=field_budget, reaction=True)
-        planner = Planner(scenario, settings=settings)
+        planner = Planner(scenario, solver=solver, field_tolerance=tol, field_budget_s=field_budget, reaction=True)
     except ValueError as e:
         return _fail_input(str(e))
     # ---- plan

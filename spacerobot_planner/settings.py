@@ -1,0 +1,151 @@
+"""
+Typed settings of a planning problem: how the planner plans, and the arm's joint limits.
+
+``config.py`` is the only reader of the dotted parameter names (``config.PARAMETERS``:
+names, defaults, ranges): it parses a parameter file once into these dataclasses, which
+the core reads as attributes.  They validate themselves (so do the spacecraft's,
+``spacecraft.MassProperties`` and ``spacecraft.AcsSettings``), for the scenarios that
+tests and tools build directly.  Their defaults are the schema's (the paper's scenes).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS
+from .motion import DEFAULT_VERIFY_STEP_RAD
+from .smoothing import DEFAULT_MAX_STEP_RAD
+
+__all__ = ["PlannerSettings", "JointLimits"]
+
+
+def _positive(name, value, allow_zero=False) -> float:
+    v = float(value)
+    if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0)):
+        raise ValueError(f"{name}: must be a {'non-negative' if allow_zero else 'positive'} number, "
+                         f"got {value!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """
+    How the planner plans (immutable; ``Planner.configure`` makes a new one).
+
+    From the parameters (``config.settings_from_params``): ``planner.solver``,
+    ``planner.field_tolerance``, ``planner.field_budget_s``, ``planner.max_grid_nodes``,
+    ``planner.max_start_penetration_m``, ``grasp.max_approach_error_deg``; the others are
+    the planner's own.
+
+    Attributes
+    ----------
+        solver: field solver name (``field.SOLVERS``).
+        field_tolerance: gauss_seidel's stopping tolerance (largest change per sweep).
+        field_budget_s: wall-time budget of one field solve (log_harmonic), seconds.
+        max_grid_nodes: refuse larger grids (before allocating).
+        grid_extra_margin_m: added to the safety margin for the grid only, metres (the
+            planner retries at 0 before answering ``disconnected``).
+        shortcut: try a shortcut spline before the paper's every-second-node spline.
+        shortcut_keep_clearance_m: shortcuts keep at least margin + this (or the
+            clearance of the stretch they replace, if smaller), metres.
+        max_step_rad: spacing of the returned samples (≤ 0.5°).
+        verify_step_rad: largest spacing of the certified collision checks along the path.
+        max_repairs: edge-cutting / node-blocking re-solves allowed per plan.
+        max_start_penetration_m: a start whose links reach at most this deep into an
+            obstacle is walked out of the contact first (0: refuse as start_in_collision).
+        max_approach_error_deg: largest angle between link 3 and the handle's inward
+            normal accepted for a goal from the target's IK.
+        trajectory: run the trajectory stage when the scenario states joint limits.
+        reaction: report the spacecraft's reaction with the trajectory (None: when the
+            scenario has ACS or wheel settings).
+
+    """
+
+    solver: str = DEFAULT_SOLVER
+    field_tolerance: float = 1e-6
+    field_budget_s: float = DEFAULT_BUDGET_S
+    max_grid_nodes: int = 4_000_000
+    grid_extra_margin_m: float = 0.02
+    shortcut: bool = True
+    shortcut_keep_clearance_m: float = 0.05
+    max_step_rad: float = DEFAULT_MAX_STEP_RAD
+    verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD
+    max_repairs: int = 30
+    max_start_penetration_m: float = 0.05
+    max_approach_error_deg: float = 5.0
+    trajectory: bool = True
+    reaction: bool | None = None
+
+    def __post_init__(self):
+        if self.solver not in SOLVERS + INTERNAL_SOLVERS:
+            raise ValueError(f"planner.solver: unknown solver {self.solver!r}; expected one of {list(SOLVERS)}")
+        set_ = object.__setattr__
+        set_(self, "field_tolerance", _positive("planner.field_tolerance", self.field_tolerance))
+        set_(self, "field_budget_s", _positive("planner.field_budget_s", self.field_budget_s))
+        if isinstance(self.max_grid_nodes, bool) or int(self.max_grid_nodes) != self.max_grid_nodes \
+                or self.max_grid_nodes < 1:
+            raise ValueError(f"planner.max_grid_nodes: must be a positive integer, got {self.max_grid_nodes!r}")
+        set_(self, "max_grid_nodes", int(self.max_grid_nodes))
+        for name in ("grid_extra_margin_m", "shortcut_keep_clearance_m", "max_start_penetration_m",
+                     "max_approach_error_deg"):
+            set_(self, name, _positive(name, getattr(self, name), allow_zero=True))
+        for name in ("max_step_rad", "verify_step_rad"):
+            set_(self, name, _positive(name, getattr(self, name)))
+        if int(self.max_repairs) != self.max_repairs or self.max_repairs < 0:
+            raise ValueError(f"max_repairs: must be an integer ≥ 0, got {self.max_repairs!r}")
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """
+    The trajectory's joint limits (``trajectory.*``), one per joint of ``robot.joint_names``.
+
+    Attributes
+    ----------
+        max_velocity_rad_s: (n,) velocity limit per joint, rad/s, > 0.
+        max_acceleration_rad_s2: (n,) acceleration limit per joint, rad/s², > 0.
+        velocity_scaling, acceleration_scaling: factors in (0, 1] on every limit
+            (MoveIt's max_velocity_scaling_factor, max_acceleration_scaling_factor).
+        A scenario without them (``Scenario.joint_limits`` None) plans paths, not trajectories.
+
+    """
+
+    max_velocity_rad_s: tuple
+    max_acceleration_rad_s2: tuple
+    velocity_scaling: float = 1.0
+    acceleration_scaling: float = 1.0
+
+    def __post_init__(self):
+        set_ = object.__setattr__
+        for name, key in (("max_velocity_rad_s", "trajectory.max_velocity_deg_s"),
+                          ("max_acceleration_rad_s2", "trajectory.max_acceleration_deg_s2")):
+            vals = tuple(float(v) for v in np.atleast_1d(np.asarray(getattr(self, name), dtype=float)))
+            if not vals or not all(math.isfinite(v) and v > 0.0 for v in vals):
+                raise ValueError(f"{key}: expected positive finite limits, got {list(vals)}")
+            set_(self, name, vals)
+        if len(self.max_velocity_rad_s) != len(self.max_acceleration_rad_s2):
+            raise ValueError(f"trajectory.max_acceleration_deg_s2: expected {len(self.max_velocity_rad_s)} values "
+                             f"(like trajectory.max_velocity_deg_s), got {len(self.max_acceleration_rad_s2)}")
+        for name, key in (("velocity_scaling", "trajectory.max_velocity_scaling_factor"),
+                          ("acceleration_scaling", "trajectory.max_acceleration_scaling_factor")):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and 0.0 < v <= 1.0):
+                raise ValueError(f"{key}: must be in (0, 1], got {v}")
+            set_(self, name, v)
+
+    def check_robot(self, robot) -> None:
+        """Raise ValueError when there is not one limit per joint of the robot."""
+        for key, vals in (("trajectory.max_velocity_deg_s", self.max_velocity_rad_s),
+                          ("trajectory.max_acceleration_deg_s2", self.max_acceleration_rad_s2)):
+            if len(vals) != robot.n_joints:
+                raise ValueError(f"{key}: expected {robot.n_joints} values (one per joint in robot.joint_names), "
+                                 f"got {len(vals)}")
+
+    def planned(self, robot) -> tuple:
+        """Return (max velocity (dof,) rad/s, max acceleration (dof,) rad/s²) of the planned joints, unscaled."""
+        self.check_robot(robot)
+        idx = list(robot.planned_joints)
+        return (np.asarray(self.max_velocity_rad_s)[idx], np.asarray(self.max_acceleration_rad_s2)[idx])
