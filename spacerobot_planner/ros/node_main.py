@@ -3,10 +3,13 @@ The executables' shared main: create a node, spin it, shut down cleanly on Ctrl-
 
 rclpy's own SIGINT handler shuts the context down at once, so whatever the node logs
 while it stops (a plan being cancelled) fails to reach rosout and rcl prints "Failed to
-publish log message to rosout".  So ``run_node`` installs none: Ctrl-C (and SIGTERM)
-raise KeyboardInterrupt in ``spin``, the node shuts down while the context still
-works, then the context goes.  A context shut down from elsewhere makes ``spin`` raise
+publish log message to rosout", and its clients get no answers.  So ``run_node`` installs
+its own: Ctrl-C (and SIGTERM) only ask the spin loop to stop (a KeyboardInterrupt could
+land inside any callback or coroutine step, e.g. an action goal's, which then never
+sends its result); the node shuts down while the context still works, then the context
+goes.  A context shut down from elsewhere makes ``spin`` raise
 ``ExternalShutdownException``; both end the spin quietly (no traceback under ``ros2 run``).
+A process that starts with SIGINT ignored (a background job of a script) keeps it ignored.
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from typing import Callable
 
 import signal
 import sys
+import threading
 
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -21,13 +25,14 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 
-#: the longest the main thread waits in rcl before Python can see a Ctrl-C, seconds
+#: the longest the main thread waits in rcl before it sees a Ctrl-C, seconds
 SPIN_WAKE_S = 0.1
 
 
-def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | None = None) -> None:
+def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | None = None,
+                        stop: threading.Event | None = None) -> None:
     """
-    Spin ``node`` on ``executor`` until Ctrl-C or its context shuts down.
+    Spin ``node`` on ``executor`` until ``stop`` is set (Ctrl-C), Ctrl-C or its context shuts down.
 
     Then call ``on_shutdown`` (if given), shut the executor down and destroy the node.
     """
@@ -37,7 +42,7 @@ def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | 
         # spin() can wait in rcl for as long as nothing happens (up to the diagnostics
         # period), so Ctrl-C would wait that long; this wakes every SPIN_WAKE_S
         ctx = executor.context
-        while ctx.ok():
+        while ctx.ok() and not (stop is not None and stop.is_set()):
             executor.spin_once(timeout_sec=SPIN_WAKE_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -58,10 +63,15 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
     ``<exe_name>: <reason>`` on stderr, without a traceback, and gives exit code 1;
     otherwise 0.
     """
+    stop = threading.Event()
+
     def interrupt(signum, frame):
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, interrupt)
+    def request_stop(signum, frame):
+        stop.set()
+
+    signal.signal(signal.SIGTERM, interrupt)          # while the node starts: stop at once
     try:
         with rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO):
             try:
@@ -69,8 +79,12 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
             except (ValueError, RuntimeError, ParameterException) as e:
                 print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
                 return 1
+            # from now on a signal asks the spin loop to stop
+            signal.signal(signal.SIGTERM, request_stop)
+            if signal.getsignal(signal.SIGINT) is signal.default_int_handler:     # not ignored
+                signal.signal(signal.SIGINT, request_stop)
             spin_until_shutdown(node, SingleThreadedExecutor(),
-                                None if on_shutdown is None else (lambda: on_shutdown(node)))
+                                None if on_shutdown is None else (lambda: on_shutdown(node)), stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     return 0
