@@ -168,7 +168,10 @@ def test_goal_in_flight_gets_a_result_on_ctrl_c(tmp_path):
         result = client.send(_target_goal())
         _wait(lambda: "planning #" in log.read_text(), 30, "the plan started")
         os.killpg(proc.pid, signal.SIGINT)
-        _assert_ended_with_a_reason(result, "shutting down")
+        try:
+            _assert_ended_with_a_reason(result, "shutting down")
+        except AssertionError as e:
+            raise AssertionError(f"{e}\n{log.read_text()[-3000:]}") from None
         rc = proc.wait(30)
     finally:
         if proc.poll() is None:
@@ -254,3 +257,55 @@ def test_a_goal_with_its_own_start_does_not_change_the_goal(graph):
     end = _plan_end(g, 1)                                  # planned, not executed: the next one is the replan
     _assert_same_posture(g, end, end_a, "the replan went to the goal with its own start")
     assert diag_list(g.status("planner"), "target_m") == list(A)
+
+
+# ================================================================== 5. ~/replan answers with the outcome
+def _replan_client(g):
+    from std_srvs.srv import Trigger
+    cli = g.drv.create_client(Trigger, "/spacerobot_planner/replan")
+    assert cli.wait_for_service(30.0)
+    return cli
+
+
+def _call(g, cli, timeout=60):
+    from std_srvs.srv import Trigger
+    fut = cli.call_async(Trigger.Request())
+    g.wait(fut.done, timeout, "the ~/replan response")
+    return fut.result()
+
+
+def test_replan_answers_with_the_plans_outcome(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    _start(g)
+    cli = _replan_client(g)
+    g.send_target(*A)
+    g.wait(lambda: g.n_trajs() == 1, 30, "the first trajectory")
+    resp = _call(g, cli)
+    assert resp.success and "ok" in resp.message, resp.message
+    assert g.n_trajs() == 2, "~/replan answered before its trajectory was published"
+    g.send_target(3.0, 2.5)                                # out of the arm's reach
+    g.wait(lambda: g.level("planner") == b"\x02", 30, "the failed request")
+    resp = _call(g, cli)
+    assert not resp.success, resp.message
+    assert "goal_unreachable" in resp.message and "inverse-kinematics" in resp.message, resp.message
+
+
+def test_replan_before_joint_states_says_it_is_queued(graph):
+    g = graph(scene_params("3dof"), with_arm=False)
+    resp = _call(g, _replan_client(g))
+    assert not resp.success and "queued" in resp.message and "joint_states" in resp.message, resp.message
+
+
+def test_replan_awaits_its_plan_and_the_node_serves_on(graph):
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 3.0}), with_arm=False)
+    _start(g)
+    cli = _replan_client(g)
+    from std_srvs.srv import Trigger
+    fut = cli.call_async(Trigger.Request())
+    g.wait(lambda: g.planner.state == "planning", 30, "the replan planning")
+    g.send_target(frame="map")                             # rejected at once, while the plan stalls
+    g.wait(lambda: g.level("input") == b"\x02", 10, "the input status ERROR during the replan")
+    assert not fut.done(), f"the replan answered before its (stalled) plan ended: {fut.result()}"
+    g.wait(fut.done, 60, "the ~/replan response")
+    assert fut.result().success, fut.result().message
+    assert g.n_trajs() == 1

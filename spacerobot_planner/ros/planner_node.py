@@ -28,7 +28,13 @@ Interfaces (when active):
   frame ``grid_frame``, x/y in radians, transient-local), ``planned_path_markers`` and
   ``/diagnostics`` (two statuses: ``planner`` = state + outcome of the last finished
   request, ``input`` = the last rejected input, OK again once a good request follows);
-- serves ``~/replan`` (std_srvs/Trigger).
+- serves ``~/replan`` (std_srvs/Trigger): plans to the current goal from the arm's state
+  and answers once that plan has ended (the executor serves everything else meanwhile):
+  ``success`` true when it was planned (and its trajectory published), else false with
+  the planner's code and reason in ``message`` (e.g. ``replan #7: goal_unreachable: ...``;
+  ``superseded`` when a newer request took over; ``cancelled`` when the node was
+  deactivated).  Before the first joint_states it answers at once, success false, saying
+  that the replan is queued until they arrive.
 
 Threads: callbacks only record requests (one SingleThreadedExecutor; see the README on
 why not a MultiThreadedExecutor).  ONE worker thread plans, latest request wins (a new
@@ -54,6 +60,7 @@ from lifecycle_msgs.msg import Transition
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -191,8 +198,9 @@ class PlannerNode(LifecycleNode):
         self._active_entities = []       # subscriptions, service (destroyed on deactivate)
         self._action = None
         self._goals = {}                 # goal id bytes -> _Request of an action goal
+        self._replans = 0                # ~/replan calls awaiting their plans
         self._goal_thread = None         # the thread that runs the goals' coroutines (the executor's)
-        self._retired = []               # action servers left until their goals have sent results
+        self._retired = []               # destroy callables of servers left until their calls are answered
         self._retire_timer = None
         self._retire_idle = False
         self._wake = self.create_guard_condition(lambda: None)   # resumes awaiting goals
@@ -316,7 +324,9 @@ class PlannerNode(LifecycleNode):
             self.create_subscription(PoseStamped, "target_pose", self._on_target, 10),
             self.create_subscription(JointState, "joint_states", self._on_joint_state, 10),
             self.create_subscription(JointState, "goal_joint_state", self._on_goal_joint_state, 10),
-            self.create_service(Trigger, "~/replan", self._on_replan),
+            # its own (reentrant) group: the node's default group is mutually exclusive, and an
+            # awaiting callback would hold it (no other callback of the node) until it answers
+            self.create_service(Trigger, "~/replan", self._on_replan, callback_group=ReentrantCallbackGroup()),
         ]
         with self._lock:
             self._accepting = True
@@ -340,7 +350,7 @@ class PlannerNode(LifecycleNode):
             self._drop_requests(why)
         for ent in self._active_entities:
             if hasattr(ent, "srv_name"):
-                self.destroy_service(ent)
+                self._retire(lambda srv=ent: self.destroy_service(srv))   # ~/replan: after its answers
             else:
                 self.destroy_subscription(ent)
         self._active_entities = []
@@ -523,15 +533,33 @@ class PlannerNode(LifecycleNode):
             if waiting is not None:
                 self._replace_pending(waiting)
 
-    def _on_replan(self, request, response):
+    async def _on_replan(self, request, response):
+        """~/replan: plan to the current goal now; answer with the plan's outcome (see the module docstring)."""
+        self._goal_thread = threading.current_thread()
         if self._joint_q is None:
+            gen = self._submit("~/replan")
             response.success = False
-            response.message = "no joint_states received yet: will plan when the first arrives"
-            self._submit("~/replan")
+            response.message = (f"replan #{gen} queued: no joint_states received yet, it plans when the first "
+                                "arrives (its outcome: /diagnostics)")
             return response
-        gen = self._submit("~/replan")
-        response.success = True
-        response.message = f"replan #{gen} queued"
+        done = Future()
+
+        def on_done(outcome):
+            done.set_result(outcome)
+            self._wake_goals()
+
+        with self._lock:
+            req = self._make_request("~/replan", self._joint_goal,
+                                     None if self._joint_goal is not None else self._target)
+        req.on_done = on_done
+        self._replans += 1
+        try:
+            gen = self._submit_request(req)
+            outcome = await done
+        finally:
+            self._replans -= 1
+        response.success = outcome.ok
+        response.message = f"replan #{gen}: {outcome.code}" + (f": {outcome.reason}" if outcome.reason else "")
         return response
 
     # ------------------------------------------------------------------ action
@@ -623,7 +651,7 @@ class PlannerNode(LifecycleNode):
         is this one or has ended: planner_node's main after Ctrl-C, destroy_node after the
         spinning stopped); otherwise waits for that thread.  Bounded by ``timeout_s``.
         """
-        if not self._goals:
+        if not self._in_flight():
             return
         ex, runner = self.executor, self._goal_thread
         spin = ex is not None and (runner is None or runner is threading.current_thread() or not runner.is_alive())
@@ -633,7 +661,7 @@ class PlannerNode(LifecycleNode):
             now = time.monotonic()
             if now >= deadline or (flushed is not None and now >= flushed):
                 break
-            if not self._goals and flushed is None:
+            if not self._in_flight() and flushed is None:
                 flushed = now + RESULT_FLUSH_S
             if spin:
                 try:
@@ -642,30 +670,37 @@ class PlannerNode(LifecycleNode):
                     break
             else:
                 time.sleep(0.02)
-        if self._goals:
-            self._log("warning", f"plan_capture: {len(self._goals)} goal(s) did not return a result in "
-                      f"{timeout_s:g} s")
+        if self._in_flight():
+            self._log("warning", f"{self._in_flight()} plan_capture goal(s) or ~/replan call(s) were not "
+                      f"answered within {timeout_s:g} s")
+
+    def _in_flight(self) -> int:
+        """Count the plan_capture goals and ~/replan calls still to be answered."""
+        return len(self._goals) + self._replans
 
     def _retire_action(self):
         """Destroy the action server now, or once its goals in flight have returned their results."""
         action, self._action = self._action, None
-        if action is None:
+        if action is not None:
+            self._retire(action.destroy)
+
+    def _retire(self, destroy):
+        """Call ``destroy`` (of a server) now, or once no goal or ~/replan call waits for an answer."""
+        if not self._in_flight():
+            destroy()
             return
-        if not self._goals:
-            action.destroy()
-            return
-        self._retired.append(action)
+        self._retired.append(destroy)
         if self._retire_timer is None:
             self._retire_timer = self.create_timer(RESULT_FLUSH_S, self._reap_retired)
 
     def _reap_retired(self, now: bool = False):
-        """Timer: destroy the retired action servers a whole period after their last goal ended (or ``now``)."""
-        idle, self._retire_idle = self._retire_idle, not self._goals
+        """Timer: destroy the retired servers a whole period after the last call was answered (or ``now``)."""
+        idle, self._retire_idle = self._retire_idle, not self._in_flight()
         if not now and not (idle and self._retire_idle):
             return
         done, self._retired = self._retired, []
-        for action in done:
-            action.destroy()
+        for destroy in done:
+            destroy()
         if self._retire_timer is not None:
             self.destroy_timer(self._retire_timer)
             self._retire_timer = None
