@@ -208,6 +208,10 @@ PARAMETERS = (
               "The join needs the arm to follow the executing trajectory: the measured joint_states "
               "within this of it (per joint), else the replan starts from the measured state at "
               "rest, degrees.", False, 0.0, 360.0),
+    ParamSpec("joint_states_timeout_s", "double", 10.0,
+              "A plan_capture goal without its own start sent before any joint_states waits this long "
+              "for them (feedback stage waiting_for_joint_states), then aborts with INVALID_INPUT; "
+              "topic requests wait without limit, seconds.", False, 0.1, 3600.0),
     ParamSpec("planner.test_stall_s", "double", 0.0,
               "Testing aid: the planning process stalls this long before every plan (a long, "
               "uninterruptible stage without a large grid); 0 in normal use, seconds.", False, 0.0, 600.0),

@@ -106,3 +106,49 @@ def test_shipped_files_have_only_namespace_independent_sections(name):
     flat = load_params_file(os.path.join(CONFIG_DIR, f"{name}.yaml"))
     assert "grid.cells" in flat and "robot.joint_names" in flat
     assert load_params_file(os.path.join(CONFIG_DIR, f"{name}.yaml"), node="mock_arm").get("rate_hz", 50.0) == 50.0
+
+
+# ================================================================== 6. a goal before any joint_states
+def test_goal_without_start_before_joint_states_says_so_then_aborts(graph):
+    from action_msgs.msg import GoalStatus
+    from spacerobot_planner_interfaces.action import PlanCapture
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof", joint_states_timeout_s=1.0), with_arm=False)     # no joint_states at all
+    desc = g.planner.describe_parameter("joint_states_timeout_s")
+    assert desc.floating_point_range and "seconds" in desc.description
+    goal = PlanCapture.Goal()
+    goal.target_pose.header.frame_id = "world"
+    goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = -3.27, -2.60
+    goal.target_pose.pose.orientation.w = 1.0
+    feedback = []
+    handle = g.send_goal(goal, feedback=lambda m: feedback.append(m.feedback.stage))
+    status, res, _ = g.goal_result(handle, timeout=60)
+    assert "waiting_for_joint_states" in feedback, feedback
+    assert status == GoalStatus.STATUS_ABORTED and res.error_code == PlanCapture.Result.INVALID_INPUT
+    assert "joint_states" in res.reason and "1 s" in res.reason, res.reason
+    assert g.n_trajs() == 0
+
+
+def test_goal_waiting_for_joint_states_plans_when_they_arrive(graph):
+    from action_msgs.msg import GoalStatus
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from spacerobot_planner_interfaces.action import PlanCapture
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof", joint_states_timeout_s=600.0), with_arm=False)
+    goal = PlanCapture.Goal()
+    goal.target_pose.header.frame_id = "world"
+    goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = -3.27, -2.60
+    goal.target_pose.pose.orientation.w = 1.0
+    feedback = []
+    handle = g.send_goal(goal, feedback=lambda m: feedback.append(m.feedback.stage))
+    g.wait(lambda: "waiting_for_joint_states" in feedback, 10, "the waiting feedback")
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    status, res, _ = g.goal_result(handle, timeout=60)
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    assert feedback[0] == "waiting_for_joint_states" and "cspace" in feedback, feedback
+
+
+def test_joint_states_timeout_default():
+    from spacerobot_planner.config import spec_default
+    assert spec_default("joint_states_timeout_s") == 10.0

@@ -20,7 +20,10 @@ Interfaces (when active):
 - action ``plan_capture`` (spacerobot_planner_interfaces/action/PlanCapture), Nav2's
   ``ComputePathToPose`` pattern: a newer goal (or a topic request) aborts the older one
   with code SUPERSEDED and a reason; a cancel ends a plan within about 1 s; feedback
-  carries the stage and a progress fraction; bad goals abort with INVALID_INPUT and
+  carries the stage and a progress fraction (``waiting_for_joint_states`` while a goal
+  without its own start waits for the first joint_states: it aborts with INVALID_INPUT
+  after ``joint_states_timeout_s``; topic requests wait without limit); bad goals abort
+  with INVALID_INPUT and
   the reason; every accepted goal ends with a result: deactivate, shutdown, cleanup,
   destroy_node and Ctrl-C abort the goals in flight with code CANCELLED and the reason
   before the action server goes;
@@ -76,7 +79,7 @@ from ..collision import CollisionChecker
 from ..pipeline import timed_motion
 from ..replanning import START_LEAD_S, Executing, joined_motion, plan_start
 from ..trajectory import HorizonPassed, resample, time_parameterize
-from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, make_backend
+from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, Progress, make_backend
 from . import conversions as conv
 from . import node_main
 from .parameters import PLANNER_PARAMETERS, SPECS, check_choice, declare_checked, params_to_overrides
@@ -91,12 +94,14 @@ GRID_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
 _NO_REPLAN = {"replan.target_tolerance_m", "replan.target_tolerance_deg", "diagnostics.period_s",
               "replan.min_publish_period_s", "replan.horizon_s", "replan.follow_tolerance_deg",
               "potential_grid.use_current_attitude", "potential_grid.slice_attitude_deg", "grid_frame",
-              "planner.test_stall_s"}
+              "planner.test_stall_s", "joint_states_timeout_s"}
 WARM_UP_TIMEOUT_S = 300.0
 #: a joint group that moves less than this is at the goal: no trajectory for it, rad
 AT_GOAL_TOL_RAD = 1e-4
 #: Published trajectories keep a point at least this often (plus where the path bends).
 RESAMPLE_STEP_S = 0.25
+#: the feedback stage of a goal that waits for the first joint_states
+WAITING_STAGE = "waiting_for_joint_states"
 #: at shutdown, the longest the goals in flight are given to return their results, s
 GOAL_DRAIN_S = 2.0
 #: the executor sends a goal's result in a task after the goal's own: spun this long more, s
@@ -181,6 +186,7 @@ class PlannerNode(LifecycleNode):
         self._joint_ns = 0               # ROS time of that measurement (its stamp, else arrival), ns
         self._executing = None           # replanning.Executing: the trajectory last sent to the arm
         self._bad_joint_reason = None
+        self._waiting_timer = None       # ends a goal's wait for the first joint_states
 
         self.state = "unconfigured"
         self.last_result = None          # PlanResult of the last published plan
@@ -751,6 +757,7 @@ class PlannerNode(LifecycleNode):
                     self._finish(self._waiting, _superseded(req))
                 self._waiting = req
                 self.get_logger().info(f"request #{req.gen} ({req.why}): waiting for joint_states")
+                self._wait_for_joint_states(req)
             else:
                 self._replace_pending(req)
             self._latest = req
@@ -764,6 +771,38 @@ class PlannerNode(LifecycleNode):
                     self._backend.cancel(active.gen)   # supersede the plan in progress
             self._lock.notify_all()
             return req.gen
+
+    def _wait_for_joint_states(self, req):
+        """
+        (lock held) ``req`` waits for the first joint_states: say so to its client, and bound the wait.
+
+        A request a client awaits (a plan_capture goal) ends after ``joint_states_timeout_s``.
+        """
+        if req.on_progress is not None:
+            req.on_progress(Progress(req.gen, WAITING_STAGE, 0.0))
+        if req.on_done is None:
+            return
+        timeout_s = float(self._params["joint_states_timeout_s"])
+        if self._waiting_timer is not None:
+            self.destroy_timer(self._waiting_timer)
+        self._waiting_timer = self.create_timer(timeout_s, lambda: self._joint_states_timeout(req, timeout_s))
+
+    def _joint_states_timeout(self, req, timeout_s):
+        """Timer: ``req`` waited too long for joint_states."""
+        with self._lock:
+            timer, self._waiting_timer = self._waiting_timer, None
+            expired = self._waiting is req
+            if expired:
+                self._waiting = None
+        if timer is not None:
+            self.destroy_timer(timer)
+        if not expired:
+            return
+        outcome = self._failure(req, "invalid_input", f"no joint_states within {timeout_s:g} s: the arm's state (the "
+                                "plan's start) is unknown; publish joint_states or give the goal a start")
+        self._record(req, outcome)
+        with self._lock:
+            self._finish(req, outcome)
 
     def _replace_pending(self, req):
         """(lock held) ``req`` becomes the next request; the one it replaces is superseded."""
