@@ -197,7 +197,10 @@ def harmonic_log_u(occupied: np.ndarray, periodic, goals, cut_edges=None) -> np.
     log_u[goal_flat] = 0.0
     known = np.zeros(occ.size, bool)
     known[goal_flat] = True
+    # the unknowns with an even coordinate sum first: MMD then fills the factors least
+    parity = np.indices(occ.shape).sum(axis=0).ravel() % 2
     todo = np.flatnonzero(joined & ~known)
+    todo = todo[np.argsort(parity[todo], kind="stable")]
     while todo.size:
         rows = adj[todo]
         kn = np.flatnonzero(known)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import mazes
-from oracles import connected, harmonic_log_u, neighbour_max
+from oracles import connected, face_neighbours, harmonic_log_u, neighbour_max
 from spacerobot_planner import field as F
 from spacerobot_planner.cspace import build_cspace
 from spacerobot_planner.descent import descend
@@ -217,6 +217,21 @@ def test_ascent_repair_on_a_3d_periodic_grid_matches_the_oracle():
     assert np.max(np.abs(ref[inner])) < 1e-12
     assert np.all(f.log_u[inner] < 0.0) and np.all(f.log_u[inner] > -1e-7)
     _assert_valid_ascent(f, occ, per, shell)
+
+
+def test_the_oracles_neighbour_table_is_the_grids():
+    """The oracles' face neighbours on a 3 × 2 grid, written out: axis 0 wraps, axis 1 ends in walls, one edge cut."""
+    #            node:  (0,0) (0,1) (1,0) (1,1) (2,0) (2,1)   flat 0..5
+    want = np.array([[4, 5, 0, 1, 2, 3],                   # axis 0, -1: wraps from row 0 to row 2
+                     [2, 3, 4, 5, 0, 1],                   # axis 0, +1: wraps from row 2 to row 0
+                     [-1, 0, -1, 2, -1, 4],                # axis 1, -1: a wall beyond column 0
+                     [1, -1, 3, -1, 5, -1]])               # axis 1, +1: a wall beyond column 1
+    assert np.array_equal(face_neighbours((3, 2), (True, False)).reshape(4, 6), want)
+    cut = want.copy()
+    cut[0, 0] = cut[1, 4] = -1                             # the seam edge (0,0)-(2,0)
+    assert np.array_equal(face_neighbours((3, 2), (True, False), [(0, 4)]).reshape(4, 6), cut)
+    with pytest.raises(ValueError, match="no face neighbours"):
+        face_neighbours((3, 2), (True, False), [(0, 3)])
 
 
 def test_solve_field_errors():
