@@ -38,7 +38,7 @@ import numpy as np
 import yaml
 
 from .cspace import grid_for_robot
-from .dynamics import ACS_MODES, AcsSettings, MassProperties
+from .spacecraft import ACS_MODES, AcsSettings, MassProperties
 from .problem import Scenario
 from .robot import PlanarArm, square_polygon
 from .scene import Scene, Target
@@ -139,7 +139,7 @@ PARAMETERS = (
     ParamSpec("trajectory.max_acceleration_scaling_factor", "double", 1.0,
               "Factor in (0, 1] on every joint acceleration limit (MoveIt's "
               "max_acceleration_scaling_factor).", False, 1e-6, 1.0),
-    # ---- the spacecraft's reaction (dynamics.py; shared/reference/free-floating.md)
+    # ---- the spacecraft's reaction (spacecraft.py, reaction.py; shared/reference/free-floating.md)
     ParamSpec("dynamics.body_mass_kg", "double", 2000.0,
               "Spacecraft body mass (with the massless link 1), kg.", False, 1e-6, 1e12),
     ParamSpec("dynamics.body_inertia_kgm2", "double", 1080.0,

@@ -36,7 +36,10 @@ from .motion import SegmentTest, check_path, first_bad_segment
 from .results import STAGES, Code, PlanResult
 from .smoothing import smooth_path
 from .termination import Cancelled, Termination
+from .timing import timed_motion, trajectory_limits_known
 
+#: timed_motion, trajectory_limits_known: the trajectory stage (``timing.py``), also importable
+#: from here (the node imports ``pipeline.timed_motion``)
 __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node
@@ -69,53 +72,6 @@ def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
             run.say(f"{f.code} with the grid's extra margin {extra_m} m; trying again without it")
     smooth = run.smooth(waypoints)
     return run.time_parameterize(smooth)
-
-
-def trajectory_limits_known(scenario) -> bool:
-    """Tell whether the scenario states joint velocity and acceleration limits (``trajectory.*``)."""
-    return scenario.joint_limits is not None
-
-
-def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0):
-    """
-    Run the last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
-
-    Args:
-        scenario: ``problem.Scenario`` (limits from ``trajectory.*``, ACS from ``acs.*``).
-        path_rad: (M, dof) the planned path (unwrapped, exact ends).
-        state_rad: (dof,) the arm's current joint positions (any number of turns on
-            periodic joints); the path is first shifted by whole turns to start there
-            (``joint_space.align_to_state``).  Default: the path's first row.
-        reaction: also report the spacecraft's reaction (``dynamics.plan_motion``);
-            None: when the scenario has ACS or wheel settings (free floating, wheel
-            limits), where the reaction shapes or refuses the trajectory.
-        start_path_speed: the arm's speed along the path at its start (rad/s of joint-space
-            chord length; a replan joined to a moving arm, see ``trajectory.continuation``).
-
-    Returns
-    -------
-        (trajectory.Trajectory, dynamics.ReactionReport or None).
-
-    Raises
-    ------
-        ValueError: bad limits (naming the parameter), or a start speed the path cannot be
-            followed with (``trajectory.time_parameterize``).
-
-    """
-    from .dynamics import plan_motion, scenario_joint_limits
-    from .trajectory import time_parameterize
-    robot = scenario.robot
-    path = np.asarray(path_rad, dtype=float)
-    if state_rad is not None:
-        path = align_to_state(path, state_rad, robot.planned_periodic)
-    if reaction is None:
-        reaction = scenario.acs.mode != "held" or scenario.acs.has_wheel_limits
-    if reaction:
-        motion = plan_motion(scenario, path, start_path_speed=start_path_speed)
-        return motion.trajectory, motion.reaction
-    vmax, amax, vs, as_ = scenario_joint_limits(scenario)
-    return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
-                             acceleration_scaling=as_, start_path_speed=start_path_speed), None
 
 
 class PlanRun:

@@ -40,12 +40,13 @@ from .descent import descend
 from .field import solve_field
 from .field import warm_up as field_warm_up
 from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
-from .pipeline import PlanRun, timed_motion, trajectory_limits_known
+from .pipeline import PlanRun
 from .problem import Scenario
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
 from .settings import PlannerSettings
 from .termination import stall
+from .timing import timed_motion, trajectory_limits_known
 
 __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES", "warm_up",
            "timed_motion"]

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .cspace import GridSpec
-from .dynamics import AcsSettings, MassProperties
+from .spacecraft import AcsSettings, MassProperties
 from .robot import PlanarArm
 from .scene import Scene
 from .settings import JointLimits, PlannerSettings

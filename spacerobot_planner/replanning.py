@@ -41,13 +41,14 @@ Times are ROS times in integer nanoseconds (the stamps of the messages); no rclp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .collision import CollisionChecker
 from .joint_space import align_to_state, difference_rad
-from dataclasses import replace
-
+from .motion import check_path
+from .timing import timed_motion
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
@@ -255,7 +256,7 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = S
 
     Returns
     -------
-        (trajectory.Trajectory, dynamics.ReactionReport or None, stamp_ns, Continuation):
+        (trajectory.Trajectory, reaction.ReactionReport or None, stamp_ns, Continuation):
         the trajectory from the join (time 0) through the horizon point to the new goal,
         to be stamped ``stamp_ns``.  (For a remainder followed by a new motion from rest,
         the reaction report covers the new motion: the remainder's was reported before.)
@@ -266,7 +267,6 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = S
         ValueError: the new path cannot be entered at the arm's speed.
 
     """
-    from .pipeline import timed_motion
     ex = join.executing
     c = continuation(ex.trajectory, ex.time_s(now_ns) + lead_s, horizon_at=join.horizon_index,
                      join_indices=ex.published)
@@ -292,9 +292,6 @@ def _fastest_through_corner(scenario, c, new, checker):
     The joined path with its corner at the horizon point, and its certified corner blends;
     ValueError when none can be entered at the join's speed.
     """
-    from .collision import CollisionChecker
-    from .motion import check_path
-    from .pipeline import timed_motion
     robot = scenario.robot
     path = c.join(new)                      # the prefix's rows, then the new path's
     corner = len(c.prefix_rad) - 1          # the horizon point's row

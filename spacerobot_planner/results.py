@@ -81,7 +81,7 @@ class PlanResult:
         traceback: the formatted traceback when ``code == "internal_error"``; "" otherwise.
         trajectory: ``trajectory.Trajectory`` of path_rad aligned to the start as given
             (whole turns on periodic joints), None without limits or path.
-        reaction: ``dynamics.ReactionReport`` when the trajectory stage assessed the
+        reaction: ``reaction.ReactionReport`` when the trajectory stage assessed the
             spacecraft's reaction (ACS or wheel settings), else None.
         approach_error_deg: angle between link 3 and the handle's inward normal at the
             goal when the goal is a grasp of the scene's target (tip within

@@ -6,7 +6,7 @@ planner's dense path (M×n joint positions, rad, start first, goal last, periodi
 joints unwrapped) and returns the times at which to pass every point, with joint
 velocities and accelerations, so that no joint exceeds its velocity limit (rad/s)
 or its acceleration limit (rad/s²), scaled by MoveIt's ``velocity_scaling`` /
-``acceleration_scaling`` factors, and, given a wheel model (``dynamics.WheelModel``),
+``acceleration_scaling`` factors, and, given a wheel model (``spacecraft.WheelModel``),
 the reaction-wheel momentum (N·m·s) and torque (N·m) stay within their limits.  The
 arm starts at rest or moving along the path's tangent (``start_path_speed`` or
 ``start_velocity_rad_s``) and ends at rest.
@@ -70,6 +70,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numba import njit
 from scipy.interpolate import CubicSpline
+
+from .motion import check_path
 
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
@@ -496,7 +498,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         start_velocity_rad_s: (n,) instead of ``start_path_speed``: a start joint
             velocity, projected on the path's start tangent (it must lie along it, see
             :func:`start_path_speed_from_velocity`).
-        wheel: optional ``dynamics.WheelModel``; adds the wheel momentum
+        wheel: optional ``spacecraft.WheelModel``; adds the wheel momentum
             (``|H·q'| ṡ ≤ max_momentum_Nms``) and torque
             (``|d(H·q')/ds ṡ² + H·q' s̈| ≤ max_torque_Nm``) constraints (a None or 0
             limit: not enforced, only reported).
@@ -778,7 +780,6 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
         idx = _select(t, q, time_step_s, path_tolerance_rad)
     check, rounds = None, 0
     if checker is not None:
-        from .motion import check_path
         robot = checker.robot
         bounds = (robot.planned_lower_rad, robot.planned_upper_rad, robot.planned_periodic)
         while True:

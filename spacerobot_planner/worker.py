@@ -46,6 +46,9 @@ from typing import Callable
 
 import numpy as np
 
+from .config import load_scenario
+from .field import DEFAULT_SOLVER
+from .planner import Planner
 from .termination import Termination, stall
 
 __all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
@@ -260,7 +263,6 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
     compiled, and its C-space and field stay in ``planner``'s caches.  Kernels of other
     solvers are compiled when first used.  Returns seconds per phase.
     """
-    from .planner import Planner
     t0 = time.perf_counter()
     sc = planner.scenario
     coarse = Planner(replace(sc, grid=sc.grid.with_cells(cells)), solver=planner.solver,
@@ -295,7 +297,6 @@ def child_main(fd: int) -> None:
     import signal
     from multiprocessing.connection import Connection
 
-    from .planner import Planner
     signal.signal(signal.SIGINT, signal.SIG_IGN)        # the node decides when to stop
     conn = Connection(fd)
     scenario, solver, field_tolerance = conn.recv()
@@ -364,8 +365,6 @@ class ThreadBackend:
     """
 
     def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
-        from .field import DEFAULT_SOLVER
-        from .planner import Planner
         self.planner = Planner(scenario, solver=solver or DEFAULT_SOLVER, field_tolerance=field_tolerance,
                                trajectory=False)
         self._cancel = Termination()
@@ -418,7 +417,6 @@ class ProcessBackend:
         log: callable for warnings (a child that died); info: for progress (warm-up); solver,
         field_tolerance: what the warm-up compiles (default: the core's default).
         """
-        from .field import DEFAULT_SOLVER
         self._scenario = scenario
         self._solver = (solver or DEFAULT_SOLVER, float(field_tolerance))
         self._log = log
@@ -619,8 +617,6 @@ def main(argv=None) -> int:
     installing; so does ``setup.py install``, in the installed tree).
     """
     import argparse
-    from .config import load_scenario
-    from .planner import Planner
     ap = argparse.ArgumentParser(description=main.__doc__.strip().splitlines()[0])
     ap.add_argument("--warm-cache", nargs="+", metavar="FILE", required=True)
     args = ap.parse_args(argv)

@@ -277,7 +277,7 @@ def test_json_reports_the_grasp_approach_error(tmp_path, capsys):
 def test_importing_the_core_loads_no_rclpy():
     code = ("import sys\n"
             "import spacerobot_planner.planner, spacerobot_planner.field, spacerobot_planner.trajectory\n"
-            "import spacerobot_planner.dynamics, spacerobot_planner.tools.cli, spacerobot_planner.pipeline\n"
+            "import spacerobot_planner.free_floating, spacerobot_planner.tools.cli, spacerobot_planner.pipeline\n"
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rcl_interfaces', "
             "'sensor_msgs', 'trajectory_msgs'))\n"
             "print(bad)\n"

@@ -11,8 +11,8 @@ import pytest
 
 from oracles import inside_target_or_margin, momentum_fd, simulate_free_floating, wheel_load
 from paper_paths import joint_limits
-from spacerobot_planner.dynamics import (MassProperties, WheelModel, check_drifted,
-                                         free_floating_response, reaction_report)
+from spacerobot_planner.reaction import check_drifted, reaction_report
+from spacerobot_planner.spacecraft import MassProperties, WheelModel, free_floating_response
 from spacerobot_planner.robot import PlanarArm, square_polygon
 from spacerobot_planner.trajectory import time_parameterize
 
@@ -171,7 +171,7 @@ def test_compensated_free_floating_plan_reaches_the_handle(paper_scenario, paper
     The goal is corrected for the predicted drift and replanned until the free-floating arm reaches
     the grasp; checked with the test's own simulator.
     """
-    from spacerobot_planner.dynamics import plan_free_floating
+    from spacerobot_planner.free_floating import plan_free_floating
     sc, path = paper_scenario(2), paper_path(2)
     robot, grasp = sc.robot, sc.scene.target.grasp_point_m
     # the oracle first agrees that the uncompensated plan misses

@@ -26,8 +26,9 @@ import numpy as np
 
 from ..collision import CollisionChecker
 from ..config import load_scenario
-from ..dynamics import MassProperties, WheelModel, reaction_report, scenario_joint_limits
 from ..planner import Planner
+from ..reaction import reaction_report
+from ..spacecraft import MassProperties, WheelModel
 from ..trajectory import resample, time_parameterize
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
             print(f"{name}: no path ({res.code})")
             return 1
         robot, path = sc.robot, res.path_rad
-        vmax, amax, _, _ = scenario_joint_limits(sc)
+        vmax, amax = sc.joint_limits.planned(robot)
         traj = time_parameterize(path, vmax, amax, robot.planned_names)
         rep = reaction_report(robot, masses, sc.scene, path, traj)
         row = {"stage": "reaction", "grid": name, "points": len(traj), "duration_s": traj.duration_s,

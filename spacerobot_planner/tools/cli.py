@@ -19,9 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..collision import CollisionChecker
 from ..config import check_value, load_scenario
 from ..field import SOLVERS
+from ..free_floating import plan_free_floating
 from ..planner import Planner
+from ..timing import Motion
+from ..trajectory import resample
 
 __all__ = ["main", "build_parser"]
 
@@ -156,7 +160,6 @@ def main(argv=None) -> int:
         return _fail_input(res.reason)
     if res.code in ("ok", "reaction_refused") and scenario.acs.mode == "free_floating" \
             and scenario.acs.compensate_drift:
-        from ..dynamics import plan_free_floating
         # the compensation plans geometry only; the trajectory stage follows on its result
         try:
             comp = plan_free_floating(scenario, start, goal)
@@ -171,8 +174,6 @@ def main(argv=None) -> int:
         print(line)
     resampled = None
     if res.trajectory is not None:
-        from ..collision import CollisionChecker
-        from ..trajectory import resample
         resampled = resample(res.trajectory, CollisionChecker(robot, scenario.scene))
         for line in _motion_summary(res.trajectory, res.reaction, resampled):
             print(line)
@@ -191,13 +192,12 @@ def main(argv=None) -> int:
             Path(args.json).write_text(text + "\n", encoding="utf-8")
             print(f"wrote {args.json}")
     if args.plot:
-        from .plotting import plot_plan
+        from .plotting import plot_plan        # matplotlib: loaded only when a plot is asked for
         Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
         plot_plan(res, scenario, args.plot)
         print(f"wrote {args.plot}")
         if res.reaction is not None:
-            from ..dynamics import Motion
-            from .plotting import plot_reaction
+            from .plotting import plot_reaction    # matplotlib, as above
             rpath = Path(args.plot).with_name(Path(args.plot).stem + "_reaction.png")
             plot_reaction(Motion(res.trajectory, res.reaction), rpath)
             print(f"wrote {rpath}")

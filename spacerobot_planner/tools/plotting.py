@@ -253,7 +253,7 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
 
 def plot_reaction(motion, path, dpi: int = 110) -> None:
     """
-    Write a PNG of a ``dynamics.Motion``.
+    Write a PNG of a ``timing.Motion``.
 
     Wheel momentum and torque against time with their limits (attitude held/commanded), and the
     free-floating attitude against time.

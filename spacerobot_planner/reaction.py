@@ -1,0 +1,248 @@
+"""
+The spacecraft's verdict on a planned motion: wheel load, free-floating drift, accept or refuse.
+
+With the attitude held (reaction wheels on), the wheels' momentum and torque along the
+trajectory against ``acs.max_wheel_*``.  Free floating (attitude control off), the
+spacecraft turns and translates (``spacecraft.free_floating_response``) while the target
+and the debris stay where they are: the arm is checked in the inertial frame
+(:func:`check_drifted`) and the tip lands somewhere else than planned.
+:func:`reaction_report` gathers both and says whether the plan is acceptable in the
+scenario's ACS mode.  Physics: ``spacecraft.py``.  No ROS imports.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .collision import CollisionChecker, config_clearance
+from .spacecraft import (ACS_MODES, MassProperties, WheelModel, free_floating_response, system_com_m,
+                         wheel_load)
+
+__all__ = ["DriftCheck", "ReactionReport", "check_drifted", "reaction_report"]
+
+
+@njit(cache=True, nogil=True)
+def _drifted_clearance(q_full, body_pos, lengths, checked, body, verts, starts):
+    """
+    Return the clearance of each configuration in the drifted scene, (K,) m.
+
+    Clearance of each configuration with the obstacles shifted by −body position (the inertial scene
+    seen from the translated spacecraft body), (K,) m.
+    """
+    k_n = q_full.shape[0]
+    out = np.empty(k_n)
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    shifted = np.empty_like(verts)
+    for k in range(k_n):
+        for v in range(verts.shape[0]):
+            shifted[v, 0] = verts[v, 0] - body_pos[k, 0]
+            shifted[v, 1] = verts[v, 1] - body_pos[k, 1]
+        out[k] = config_clearance(q_full[k], lengths, checked, body, shifted, starts, pts, body_w)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class DriftCheck:
+    """
+    Inertial-frame check of the free-floating arm motion.
+
+    Attributes
+    ----------
+        ok: the whole drifted motion keeps clearance > the scene's margin (certified
+            between samples, see :func:`check_drifted`).
+        min_clearance_m: smallest clearance at the samples, metres.
+        first_collision_fraction: path fraction (0…1, by sample) of the first sample
+            within the margin, None when none is.
+        n_checked: configurations evaluated.
+
+    """
+
+    ok: bool
+    min_clearance_m: float
+    first_collision_fraction: float | None
+    n_checked: int
+
+
+def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: int = 12) -> DriftCheck:
+    """
+    Check the free-floating motion along ``path_rad`` against the inertially fixed scene.
+
+    The spacecraft turns and translates (:func:`free_floating_response`), the target and
+    debris do not; clearance is the exact segment–polygon distance of links 2… to the
+    obstacles and to the (moving) body.  Between two samples every point of a checked
+    link moves (relative to the obstacles and to the body) by at most
+    δ = Σ_j |Δq_j| · reach_j + |Δb| (reach_j: chain length beyond joint j, b: body
+    position), so an interval is certified when (c_a + c_b − δ)/2 > margin; otherwise
+    it is split (the path is straight between its rows) and the drift recomputed.
+    """
+    chk = CollisionChecker(robot, scene)
+    lengths = chk.lengths
+    reach = np.cumsum(lengths[::-1])[::-1]
+    p = np.atleast_2d(np.asarray(path_rad, dtype=float))
+    margin = chk.margin_m
+    n_eval = 0
+    for _ in range(max_rounds + 1):
+        resp = free_floating_response(robot, masses, p)
+        c = _drifted_clearance(np.ascontiguousarray(resp.q_full_rad), np.ascontiguousarray(resp.body_position_m),
+                               lengths, chk.checked, chk.body, chk.verts, chk.starts)
+        n_eval += len(c)
+        hit = np.flatnonzero(~(c > margin))
+        if len(hit):
+            return DriftCheck(False, float(c.min()), float(hit[0] / max(1, len(c) - 1)), n_eval)
+        if len(p) < 2:
+            return DriftCheck(True, float(c.min()), None, n_eval)
+        delta = (np.abs(np.diff(resp.q_full_rad, axis=0)) @ reach
+                 + np.linalg.norm(np.diff(resp.body_position_m, axis=0), axis=1))
+        bad = np.flatnonzero(~(0.5 * (c[:-1] + c[1:] - delta) > margin))
+        if not len(bad):
+            return DriftCheck(True, float(c.min()), None, n_eval)
+        mids = 0.5 * (p[bad] + p[bad + 1])
+        p = np.insert(p, bad + 1, mids, axis=0)
+    return DriftCheck(False, float(c.min()), None, n_eval)
+
+
+@dataclass(frozen=True, eq=False)
+class ReactionReport:
+    """
+    The spacecraft's reaction to a planned motion (the CLI's ``reaction`` object).
+
+    Attributes
+    ----------
+        acs_mode: "held" (wheels hold/command the attitude) or "free_floating".
+        ok: False when the plan must be refused (free floating: the drifted arm
+            collides or the tip misses by more than the tolerance; held: the wheel load
+            exceeds a limit); reason says why.
+        peak_wheel_momentum_Nms, peak_wheel_torque_Nm: largest |h_wheel|, |τ_wheel| over
+            the trajectory (attitude held/commanded); None without a trajectory.
+        max_wheel_momentum_Nms, max_wheel_torque_Nm: the limits (None: none).
+        free_floating_attitude_change_deg, free_floating_body_displacement_m,
+        free_floating_tip_miss_m: the free-floating response (see FreeFloatingResponse).
+        free_floating_min_clearance_m, free_floating_collides: the inertial-frame check.
+        held_body_displacement_m: how far the body translates with the attitude held
+            (the CoM stays put either way), and held_tip_miss_m: the tip's miss that causes
+            (vs the grasp point, else vs the planned tip).
+        position_tolerance_m: grasp.position_tolerance_m.
+        times_s, wheel_momentum_Nms, wheel_torque_Nm, free_floating_attitude_rad,
+        planned_attitude_rad: (M,) series for plots (None without a trajectory; the
+            attitudes per sample of the trajectory, else of the path).
+
+    """
+
+    acs_mode: str
+    ok: bool
+    reason: str | None
+    peak_wheel_momentum_Nms: float | None
+    peak_wheel_torque_Nm: float | None
+    max_wheel_momentum_Nms: float | None
+    max_wheel_torque_Nm: float | None
+    free_floating_attitude_change_deg: float
+    free_floating_body_displacement_m: float
+    free_floating_tip_miss_m: float
+    free_floating_min_clearance_m: float
+    free_floating_collides: bool
+    held_body_displacement_m: float
+    held_tip_miss_m: float
+    position_tolerance_m: float
+    times_s: np.ndarray | None = None
+    wheel_momentum_Nms: np.ndarray | None = None
+    wheel_torque_Nm: np.ndarray | None = None
+    free_floating_attitude_rad: np.ndarray | None = None
+    planned_attitude_rad: np.ndarray | None = None
+
+    def to_json_dict(self) -> dict:
+        """Scalars only (plain JSON; None where not known)."""
+        keys = ("acs_mode", "ok", "reason", "peak_wheel_momentum_Nms", "peak_wheel_torque_Nm",
+                "max_wheel_momentum_Nms", "max_wheel_torque_Nm", "free_floating_attitude_change_deg",
+                "free_floating_body_displacement_m", "free_floating_tip_miss_m",
+                "free_floating_min_clearance_m", "free_floating_collides", "held_body_displacement_m",
+                "held_tip_miss_m", "position_tolerance_m")
+        out = {}
+        for k in keys:
+            v = getattr(self, k)
+            if isinstance(v, float) and not math.isfinite(v):
+                v = None
+            out[k] = v
+        return out
+
+
+def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=None, *,
+                    acs_mode: str = "held", max_wheel_momentum_Nms: float | None = None,
+                    max_wheel_torque_Nm: float | None = None, grasp_point_m=None,
+                    position_tolerance_m: float = 0.02) -> ReactionReport:
+    """
+    Report the wheel load and free-floating response of a planned motion.
+
+    Wheel load (attitude held) and free-floating response of a planned motion, and whether it is
+    acceptable in the given ACS mode.
+
+    Args:
+        robot, masses, scene: the PlanarArm, its MassProperties, the Scene planned in.
+        path_rad: (K, dof) the planned path (unwrapped).
+        trajectory: optional ``trajectory.Trajectory`` over the planned joints: the wheel
+            series and peaks come from it, and the free-floating response is taken
+            along its positions (so the attitude series matches its times).
+        acs_mode: "held" or "free_floating".
+        max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits (None or 0: none).
+        grasp_point_m: (2,) the inertial grasp point (default: the scene target's, if any).
+        position_tolerance_m: largest acceptable free-floating tip miss, metres.
+
+    Returns
+    -------
+        ReactionReport.
+
+    Raises
+    ------
+        ValueError: an unknown ``acs_mode`` (named ``acs.mode``), bad limits or masses.
+
+    """
+    if acs_mode not in ACS_MODES:
+        raise ValueError(f"acs.mode: expected one of {', '.join(ACS_MODES)}, got {acs_mode!r}")
+    if not (math.isfinite(position_tolerance_m) and position_tolerance_m >= 0.0):
+        raise ValueError(f"grasp.position_tolerance_m: must be a finite number ≥ 0, got {position_tolerance_m}")
+    wheel = WheelModel(robot, masses, max_wheel_momentum_Nms, max_wheel_torque_Nm)
+    if grasp_point_m is None and scene.target is not None:
+        grasp_point_m = scene.target.grasp_point_m
+    along = trajectory.positions_rad if trajectory is not None else np.asarray(path_rad, dtype=float)
+    resp = free_floating_response(robot, masses, along, grasp_point_m)
+    drift = check_drifted(robot, masses, scene, along)
+    com = system_com_m(robot, masses, robot.full(along))
+    held_disp = float(np.linalg.norm(com[-1] - com[0]))
+    held_tip = com[0] - com[-1] + robot.tip_position(robot.full(along[-1]))
+    held_miss = float(np.linalg.norm(held_tip - (resp.planned_tip_m if grasp_point_m is None
+                                                 else np.asarray(grasp_point_m, dtype=float))))
+    times = h_w = tau_w = None
+    peak_h = peak_tau = None
+    if trajectory is not None:
+        times = trajectory.times_s
+        h_w, tau_w = wheel_load(robot, masses, trajectory.positions_rad, trajectory.velocities_rad_s,
+                                trajectory.accelerations_rad_s2)
+        peak_h, peak_tau = float(np.max(np.abs(h_w))), float(np.max(np.abs(tau_w)))
+    reason = None
+    if acs_mode == "free_floating":
+        if not drift.ok:
+            where = ("" if drift.first_collision_fraction is None
+                     else f" at {100 * drift.first_collision_fraction:.0f} % of the path")
+            reason = (f"free floating: the drifted arm comes within the safety margin of an obstacle or the "
+                      f"body{where} (clearance {drift.min_clearance_m:.3f} m, margin {scene.safety_margin_m} m; "
+                      f"attitude change {resp.attitude_change_deg:.2f}°, the tip would miss the grasp by "
+                      f"{resp.tip_miss_m:.3f} m)")
+        elif resp.tip_miss_m > position_tolerance_m:
+            reason = (f"free floating: the tip misses the grasp by {resp.tip_miss_m:.3f} m > "
+                      f"grasp.position_tolerance_m {position_tolerance_m} m (attitude change "
+                      f"{resp.attitude_change_deg:.2f}°, body displacement {resp.body_displacement_m:.3f} m)")
+    elif peak_h is not None:
+        tol = 1.0 + 1e-6
+        if wheel.max_momentum_Nms is not None and peak_h > wheel.max_momentum_Nms * tol:
+            reason = f"wheel momentum peak {peak_h:.2f} N·m·s > acs.max_wheel_momentum_Nms {wheel.max_momentum_Nms}"
+        elif wheel.max_torque_Nm is not None and peak_tau > wheel.max_torque_Nm * tol:
+            reason = f"wheel torque peak {peak_tau:.3f} N·m > acs.max_wheel_torque_Nm {wheel.max_torque_Nm}"
+    return ReactionReport(acs_mode, reason is None, reason, peak_h, peak_tau, wheel.max_momentum_Nms,
+                          wheel.max_torque_Nm, resp.attitude_change_deg, resp.body_displacement_m,
+                          resp.tip_miss_m, drift.min_clearance_m, not drift.ok, held_disp, held_miss,
+                          float(position_tolerance_m), times, h_w, tau_w, resp.q_full_rad[:, 0],
+                          resp.planned_q_full_rad[:, 0])

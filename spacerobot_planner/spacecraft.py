@@ -1,0 +1,338 @@
+"""
+The spacecraft's physics: mass properties, momentum map, wheel load, free-floating drift.
+
+The planar chain of ``robot.py`` (joint 1 = the spacecraft attitude θ1, link 1 a rigid,
+massless offset fixed in the body, links 2… the arm) is given masses: the spacecraft
+body (mass, inertia about its centre, which is the chain's origin) and each link (mass
+and inertia about its centre, at mid-link).  Positions here are relative to the
+spacecraft body centre with inertial axes (the absolute angles φ_k = θ1 + … + θk);
+the planning frame is the body-centred frame at the start of the motion.  Numbers:
+``shared/reference/free-floating.md``.
+
+- **Momentum map.** With no external force the system centre of mass (CoM) stays put
+  and the angular momentum about it, h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇, is linear in
+  the joint rates: h = H(q) · q̇ (H depends on the arm joints only).
+- **Attitude held or commanded** (reaction wheels on): the wheels take the rest,
+  h_wheel = −H · q̇, and their torque is τ_wheel = dh_wheel/dt = −dh/dt.  Along a path
+  q(s): h_wheel = −(H·q′) ṡ and τ_wheel = −(d(H·q′)/ds ṡ² + H·q′ s̈) — the terms
+  :class:`WheelModel` hands to ``trajectory.time_parameterize``.
+- **Free floating** (attitude control off during the motion): θ1 is not commanded,
+  θ̇1 = −(Σ_{k>1} H_k θ̇k) / H_1, integrated along the arm's path (Simpson's rule per
+  segment; H does not depend on θ1, so this is a quadrature), and the body translates
+  so that the CoM stays fixed: b = r̄(q(0)) − r̄(q) (:func:`free_floating_response`).
+
+What the reaction means for a plan (the inertial-frame check of the drifted arm, the
+verdict) is ``reaction.py``; planning for the drift is ``free_floating.py``.
+
+Units: kg, kg·m², m, rad, s; momentum N·m·s, torque N·m.  NumPy only: no geometry, no ROS.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["MassProperties", "AcsSettings", "WheelModel", "FreeFloatingResponse", "ACS_MODES", "system_com_m",
+           "angular_momentum_Nms", "momentum_rate_Nm", "momentum_map", "wheel_load", "free_floating_response"]
+
+ACS_MODES = ("held", "free_floating")
+
+
+@dataclass(frozen=True)
+class MassProperties:
+    """
+    Masses and inertias of the spacecraft body and the links (planar, about the z axis).
+
+    Attributes
+    ----------
+        body_mass_kg: spacecraft body (with the massless link 1), > 0.
+        body_inertia_kgm2: its inertia about its centre (the chain's origin), ≥ 0.
+        link_masses_kg: one per link (link 1 first, usually 0: it is part of the body), ≥ 0.
+        link_inertias_kgm2: one per link, about the link's centre (mid-link), ≥ 0.
+    Defaults: the reference servicer (2000 kg, 1080 kg·m²; links 2, 3: 30 kg, 10 kg·m²).
+
+    """
+
+    body_mass_kg: float = 2000.0
+    body_inertia_kgm2: float = 1080.0
+    link_masses_kg: tuple = (0.0, 30.0, 30.0)
+    link_inertias_kgm2: tuple = (0.0, 10.0, 10.0)
+
+    def __post_init__(self):
+        def finite(name, v, positive=False):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+                raise ValueError(f"dynamics.{name}: expected a finite number, got {v!r}")
+            if (positive and v <= 0.0) or v < 0.0:
+                raise ValueError(f"dynamics.{name}: must be {'> 0' if positive else '≥ 0'}, got {v}")
+            return float(v)
+
+        object.__setattr__(self, "body_mass_kg", finite("body_mass_kg", self.body_mass_kg, True))
+        object.__setattr__(self, "body_inertia_kgm2", finite("body_inertia_kgm2", self.body_inertia_kgm2))
+        for name in ("link_masses_kg", "link_inertias_kgm2"):
+            vals = tuple(finite(f"{name}[{i}]", v) for i, v in enumerate(getattr(self, name)))
+            object.__setattr__(self, name, vals)
+        if len(self.link_masses_kg) != len(self.link_inertias_kgm2):
+            raise ValueError(f"dynamics.link_inertias_kgm2: expected {len(self.link_masses_kg)} values "
+                             f"(one per link, like dynamics.link_masses_kg), got {len(self.link_inertias_kgm2)}")
+
+    def check_robot(self, robot) -> None:
+        """Raise ValueError when the link tables do not match the robot's links."""
+        if len(self.link_masses_kg) != robot.n_joints:
+            raise ValueError(f"dynamics.link_masses_kg: expected {robot.n_joints} values (one per link "
+                             f"of robot.joint_names), got {len(self.link_masses_kg)}")
+
+    @property
+    def total_mass_kg(self) -> float:
+        return self.body_mass_kg + sum(self.link_masses_kg)
+
+
+@dataclass(frozen=True)
+class AcsSettings:
+    """
+    Attitude control during the arm motion (``acs.*``, ``grasp.position_tolerance_m``).
+
+    Attributes
+    ----------
+        mode: "held" (reaction wheels hold or command the attitude) or "free_floating".
+        max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits, 0 = no limit.
+        position_tolerance_m: free floating: largest acceptable tip miss, metres.
+        compensate_drift: free floating: plan for the predicted drift (:func:`plan_free_floating`).
+
+    """
+
+    mode: str = "held"
+    max_wheel_momentum_Nms: float = 0.0
+    max_wheel_torque_Nm: float = 0.0
+    position_tolerance_m: float = 0.02
+    compensate_drift: bool = False
+
+    @property
+    def has_wheel_limits(self) -> bool:
+        return self.max_wheel_momentum_Nms > 0.0 or self.max_wheel_torque_Nm > 0.0
+
+
+# ------------------------------------------------------------------ kinematics
+def _tables(robot, masses):
+    masses.check_robot(robot)
+    n = robot.n_joints
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
+    coef = np.tril(np.ones((n, n)), -1) + 0.5 * np.eye(n)      # link centre: Σ_{j<k} L_j e_j + L_k/2 e_k
+    m = np.concatenate([[masses.body_mass_kg], masses.link_masses_kg])
+    inertia = np.concatenate([[masses.body_inertia_kgm2], masses.link_inertias_kgm2])
+    return coef * lengths[None, :], m, inertia
+
+
+def _cross(a, b):
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _bodies(robot, masses, q_full, qd_full=None, qdd_full=None):
+    """
+    Return the centres, velocities and accelerations of the body and the links.
+
+    Centres (..., n+1, 2) of the body (row 0, at the origin) and the links, their velocities and
+    accelerations, and the bodies' absolute angles, rates, accelerations.
+    """
+    cl, m, inertia = _tables(robot, masses)
+    q = np.asarray(q_full, dtype=float)
+    phi = np.cumsum(q, axis=-1)
+    e = np.stack([np.cos(phi), np.sin(phi)], axis=-1)
+    e_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=-1)
+    zero = np.zeros(q.shape[:-1] + (1, 2))
+
+    def with_body(links):
+        return np.concatenate([zero, links], axis=-2)
+
+    r = with_body(np.einsum("kj,...jd->...kd", cl, e))
+    ang = np.concatenate([phi[..., :1], phi], axis=-1)
+    out = {"r": r, "phi": ang, "m": m, "I": inertia}
+    if qd_full is not None:
+        phid = np.cumsum(np.asarray(qd_full, dtype=float), axis=-1)
+        out["v"] = with_body(np.einsum("kj,...jd->...kd", cl, phid[..., None] * e_perp))
+        out["phid"] = np.concatenate([phid[..., :1], phid], axis=-1)
+        if qdd_full is not None:
+            phidd = np.cumsum(np.asarray(qdd_full, dtype=float), axis=-1)
+            acc = phidd[..., None] * e_perp - (phid ** 2)[..., None] * e
+            out["a"] = with_body(np.einsum("kj,...jd->...kd", cl, acc))
+            out["phidd"] = np.concatenate([phidd[..., :1], phidd], axis=-1)
+    return out
+
+
+def _about_com(x, m):
+    """Return x (..., nb, 2) minus its mass-weighted mean."""
+    return x - np.einsum("b,...bd->...d", m, x)[..., None, :] / m.sum()
+
+
+def system_com_m(robot, masses: MassProperties, q_full) -> np.ndarray:
+    """
+    System centre of mass relative to the spacecraft body centre, inertial axes.
+
+    q_full: (n,) or (N, n) rad → (2,) or (N, 2) m.
+    """
+    b = _bodies(robot, masses, q_full)
+    return np.einsum("b,...bd->...d", b["m"], b["r"]) / b["m"].sum()
+
+
+def angular_momentum_Nms(robot, masses: MassProperties, q_full, qd_full) -> np.ndarray:
+    """Return h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇ about the system CoM: (...,) N·m·s."""
+    b = _bodies(robot, masses, q_full, qd_full)
+    m = b["m"]
+    return (np.einsum("b,...b->...", m, _cross(_about_com(b["r"], m), _about_com(b["v"], m)))
+            + np.einsum("b,...b->...", b["I"], b["phid"]))
+
+
+def momentum_rate_Nm(robot, masses: MassProperties, q_full, qd_full, qdd_full) -> np.ndarray:
+    """dh/dt = Σ m (r − r̄) × (r̈ − r̄̈) + Σ I φ̈ (the cross term ṙ × ṙ vanishes): (...,) N·m."""
+    b = _bodies(robot, masses, q_full, qd_full, qdd_full)
+    m = b["m"]
+    return (np.einsum("b,...b->...", m, _cross(_about_com(b["r"], m), _about_com(b["a"], m)))
+            + np.einsum("b,...b->...", b["I"], b["phidd"]))
+
+
+def momentum_map(robot, masses: MassProperties, q_full) -> np.ndarray:
+    """Return the row H(q) with h = H · q̇: (n,) or (N, n), N·m·s per rad/s (kg·m²)."""
+    q = np.asarray(q_full, dtype=float)
+    n = q.shape[-1]
+    eye = np.eye(n)
+    qb = np.broadcast_to(q[..., None, :], q.shape[:-1] + (n, n))
+    return angular_momentum_Nms(robot, masses, qb, np.broadcast_to(eye, qb.shape))
+
+
+def _planned_rates(robot, d_planned):
+    """Planned-joint rates (..., dof) → full-joint rates (..., n) (locked joints: 0)."""
+    d = np.asarray(d_planned, dtype=float)
+    out = np.zeros(d.shape[:-1] + (robot.n_joints,))
+    out[..., list(robot.planned_joints)] = d
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class WheelModel:
+    """
+    Reaction-wheel load of a trajectory, and the wheels' limits.
+
+    Reaction-wheel load of a trajectory with the attitude held (locked joint) or commanded (planned
+    joint), and the wheels' limits (None: no limit).
+
+    ``trajectory.time_parameterize(..., wheel=WheelModel(...))`` uses :meth:`path_terms`.
+    """
+
+    robot: object
+    masses: MassProperties
+    max_momentum_Nms: float | None = None
+    max_torque_Nm: float | None = None
+
+    def __post_init__(self):
+        self.masses.check_robot(self.robot)
+        for name, key in (("max_momentum_Nms", "acs.max_wheel_momentum_Nms"),
+                          ("max_torque_Nm", "acs.max_wheel_torque_Nm")):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{key}: must be a finite number ≥ 0 (0: no limit), got {v}")
+            object.__setattr__(self, name, None if v is None or v == 0.0 else float(v))
+
+    def path_terms(self, q_rad, dq_ds, d2q_ds2):
+        """
+        Return the wheel terms along a path q(s) of the planned joints ((G, dof) each).
+
+        g = H·q′ (G,) and g′ = d(H·q′)/ds (G,), so h_wheel = −g ṡ and τ_wheel = −(g′ ṡ² + g s̈).
+        """
+        qf = self.robot.full(q_rad)
+        d1 = _planned_rates(self.robot, dq_ds)
+        d2 = _planned_rates(self.robot, d2q_ds2)
+        g = angular_momentum_Nms(self.robot, self.masses, qf, d1)
+        gp = momentum_rate_Nm(self.robot, self.masses, qf, d1, d2)
+        return g, gp
+
+
+def wheel_load(robot, masses: MassProperties, positions_rad, velocities_rad_s, accelerations_rad_s2):
+    """
+    Return the wheel momentum and torque at the points of a trajectory.
+
+    Wheel momentum h_wheel = −H·q̇ (M,) N·m·s and torque dh_wheel/dt (M,) N·m at the points of a
+    trajectory over the planned joints ((M, dof) each; locked joints at rest).
+    """
+    qf = robot.full(positions_rad)
+    qd = _planned_rates(robot, velocities_rad_s)
+    qdd = _planned_rates(robot, accelerations_rad_s2)
+    return (-angular_momentum_Nms(robot, masses, qf, qd),
+            -momentum_rate_Nm(robot, masses, qf, qd, qdd))
+
+
+# ----------------------------------------------------------------- free floating
+@dataclass(frozen=True, eq=False)
+class FreeFloatingResponse:
+    """
+    The spacecraft's free-floating response along a joint path.
+
+    Attributes
+    ----------
+        q_full_rad: (K, n) the configurations that happen: arm joints as planned, the
+            attitude (joint 1) drifting (its planned motion, if any, is not executed).
+        planned_q_full_rad: (K, n) the configurations as planned.
+        body_position_m: (K, 2) spacecraft body centre in the planning (inertial) frame
+            (0 at the start).
+        attitude_change_deg: final minus initial attitude, degrees.
+        body_displacement_m: |body_position_m[-1]|, metres.
+        tip_m: (2,) where the tip ends in the inertial frame; planned_tip_m: where the
+            plan puts it (body fixed, attitude as planned).
+        tip_miss_m: |tip_m − grasp point| when a grasp point was given, else
+            |tip_m − planned_tip_m|, metres.
+
+    """
+
+    q_full_rad: np.ndarray
+    planned_q_full_rad: np.ndarray
+    body_position_m: np.ndarray
+    attitude_change_deg: float
+    body_displacement_m: float
+    tip_m: np.ndarray
+    planned_tip_m: np.ndarray
+    tip_miss_m: float
+
+    @property
+    def attitude_drift_rad(self) -> np.ndarray:
+        """(K,) attitude that happens minus the planned one, rad."""
+        return self.q_full_rad[:, 0] - self.planned_q_full_rad[:, 0]
+
+
+def _attitude_rate_integrand(robot, masses, q_full, dq_full):
+    """dθ1 along a step dq (arm joints) at q: −(Σ_{k>1} H_k dq_k) / H_1, rows (N,)."""
+    h = momentum_map(robot, masses, q_full)
+    return -np.einsum("...k,...k->...", h[..., 1:], dq_full[..., 1:]) / h[..., 0]
+
+
+def free_floating_response(robot, masses: MassProperties, path_rad, grasp_point_m=None) -> FreeFloatingResponse:
+    """
+    Integrate the free-floating attitude and body translation along a planned path.
+
+    Args:
+        robot: the PlanarArm (joint 1 = attitude).
+        masses: MassProperties for its links.
+        path_rad: (K, dof) planned joints, unwrapped, start first; straight between rows.
+        grasp_point_m: optional (2,) inertial grasp point for ``tip_miss_m``.
+
+    Returns
+    -------
+        FreeFloatingResponse.
+
+    """
+    masses.check_robot(robot)
+    planned = robot.full(np.atleast_2d(np.asarray(path_rad, dtype=float)))
+    q = planned.copy()
+    if len(q) > 1:
+        step = np.diff(planned, axis=0)
+        f = [_attitude_rate_integrand(robot, masses, planned[:-1] + w * step, step) for w in (0.0, 0.5, 1.0)]
+        dtheta = (f[0] + 4.0 * f[1] + f[2]) / 6.0             # Simpson per segment
+        q[:, 0] = planned[0, 0] + np.concatenate([[0.0], np.cumsum(dtheta)])
+    com = system_com_m(robot, masses, q)
+    body = com[0] - com
+    tip = body[-1] + robot.tip_position(q[-1])
+    planned_tip = robot.tip_position(planned[-1])
+    ref = planned_tip if grasp_point_m is None else np.asarray(grasp_point_m, dtype=float)
+    return FreeFloatingResponse(q, planned, body, float(np.degrees(q[-1, 0] - q[0, 0])),
+                                float(np.linalg.norm(body[-1])), tip, planned_tip,
+                                float(np.linalg.norm(tip - ref)))

@@ -1,0 +1,141 @@
+"""
+The trajectory stage of a scenario: the path in time, and the spacecraft's verdict on it.
+
+:func:`timed_motion` (the pipeline's last stage, the node's replan joins and the CLI)
+time-parameterises a planned path with the scenario's joint limits
+(``Scenario.joint_limits``) and, with the attitude held and wheel limits set, the wheel
+momentum and torque (``spacecraft.WheelModel``); where the ACS settings make the reaction
+matter (free floating, wheel limits) it also reports it (``reaction.reaction_report``):
+:func:`plan_motion`.  No ROS imports.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .joint_space import align_to_state
+from .reaction import ReactionReport, reaction_report
+from .spacecraft import WheelModel
+from .trajectory import time_parameterize
+
+__all__ = ["Motion", "plan_motion", "timed_motion", "scenario_joint_limits", "trajectory_limits_known"]
+
+
+@dataclass(frozen=True, eq=False)
+class Motion:
+    """
+    A planned path in time and the spacecraft's reaction to it.
+
+    Attributes
+    ----------
+        trajectory: ``trajectory.Trajectory`` over the planned joints.
+        reaction: ReactionReport (``reaction.ok`` False: refuse the plan, ``reaction.reason``).
+
+    """
+
+    trajectory: object
+    reaction: ReactionReport
+
+    def to_json_dict(self) -> dict:
+        return {"trajectory": self.trajectory.to_json_dict(), "reaction": self.reaction.to_json_dict()}
+
+
+def scenario_joint_limits(scenario):
+    """
+    Return the planned joints' limits and scalings (``Scenario.joint_limits``).
+
+    (max velocity (dof,) rad/s, max acceleration (dof,) rad/s², velocity scaling, acceleration
+    scaling); ValueError when the scenario states no joint limits.
+    """
+    limits = scenario.joint_limits
+    if limits is None:
+        raise ValueError("trajectory.max_velocity_deg_s, trajectory.max_acceleration_deg_s2: the scenario "
+                         "states no joint limits (no trajectory)")
+    vmax, amax = limits.planned(scenario.robot)
+    return vmax, amax, limits.velocity_scaling, limits.acceleration_scaling
+
+
+def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None) -> Motion:
+    """
+    Time-parameterise a planned path with the scenario's limits and report the reaction.
+
+    The joint limits and scaling factors are ``Scenario.joint_limits``; with ``acs.mode``
+    held and a wheel limit set (``acs.max_wheel_*``), the wheel momentum and torque
+    enter the time-optimal parameterisation.  The reaction report then says whether
+    the plan is acceptable (free floating: the drifted arm is checked against the
+    inertial scene and the tip miss against ``grasp.position_tolerance_m``).
+
+    Args:
+        scenario: ``problem.Scenario`` (robot, scene, masses, acs, joint_limits).
+        path_rad: (M, dof) the planned path (unwrapped, exact ends).
+        start_velocity_rad_s, start_path_speed: a moving start (see
+            ``trajectory.time_parameterize``); default at rest.
+
+    Returns
+    -------
+        Motion(trajectory, reaction).
+
+    Raises
+    ------
+        ValueError: bad limits or a start velocity the path cannot be followed with.
+
+    """
+    robot, acs = scenario.robot, scenario.acs
+    vmax, amax, vs, as_ = scenario_joint_limits(scenario)
+    limits = (acs.max_wheel_momentum_Nms, acs.max_wheel_torque_Nm) if acs.mode == "held" else (None, None)
+    wheel = WheelModel(robot, scenario.masses, *limits)
+    traj = time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
+                             acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
+                             start_path_speed=start_path_speed, wheel=wheel)
+    report = reaction_report(robot, scenario.masses, scenario.scene, path_rad, traj, acs_mode=acs.mode,
+                             max_wheel_momentum_Nms=acs.max_wheel_momentum_Nms,
+                             max_wheel_torque_Nm=acs.max_wheel_torque_Nm,
+                             position_tolerance_m=acs.position_tolerance_m)
+    return Motion(traj, report)
+
+
+def trajectory_limits_known(scenario) -> bool:
+    """Tell whether the scenario states joint velocity and acceleration limits (``trajectory.*``)."""
+    return scenario.joint_limits is not None
+
+
+def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0):
+    """
+    Run the last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
+
+    Args:
+        scenario: ``problem.Scenario`` (its joint_limits, masses and ACS settings).
+        path_rad: (M, dof) the planned path (unwrapped, exact ends).
+        state_rad: (dof,) the arm's current joint positions (any number of turns on
+            periodic joints); the path is first shifted by whole turns to start there
+            (``joint_space.align_to_state``).  Default: the path's first row.
+        reaction: also report the spacecraft's reaction (``plan_motion``);
+            None: when the scenario has ACS or wheel settings (free floating, wheel
+            limits), where the reaction shapes or refuses the trajectory.
+        start_path_speed: the arm's speed along the path at its start (rad/s of joint-space
+            chord length; a replan joined to a moving arm, see ``trajectory.continuation``).
+
+    Returns
+    -------
+        (trajectory.Trajectory, reaction.ReactionReport or None).
+
+    Raises
+    ------
+        ValueError: no joint limits or bad ones (naming the parameter), or a start speed the
+            path cannot be followed with (``trajectory.time_parameterize``).
+
+    """
+    robot = scenario.robot
+    path = np.asarray(path_rad, dtype=float)
+    if state_rad is not None:
+        path = align_to_state(path, state_rad, robot.planned_periodic)
+    if reaction is None:
+        reaction = scenario.acs.mode != "held" or scenario.acs.has_wheel_limits
+    if reaction:
+        motion = plan_motion(scenario, path, start_path_speed=start_path_speed)
+        return motion.trajectory, motion.reaction
+    vmax, amax, vs, as_ = scenario_joint_limits(scenario)
+    return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
+                             acceleration_scaling=as_, start_path_speed=start_path_speed), None
