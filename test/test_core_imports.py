@@ -7,11 +7,18 @@ inside functions, relative and absolute ``spacerobot_planner.*``), resolved to t
 it loads.  The core is the package less ``ros/`` (the ROS shell), ``tools/`` and
 ``bench/`` (programs built on the core); the graph holds the core and those programs.
 
-- the graph has no cycle (the test names one when it has);
+- the graph has no cycle (the test names one, and the knot it belongs to, when it has);
 - no core module imports rclpy, a ROS message package or ``spacerobot_planner.ros``;
-- no core module imports a program (``tools``, ``bench``);
+- no core module imports a program (``tools``, ``bench``) or a compatibility re-export;
+- the core's imports run down its :data:`LAYERS` (session and boundary → planner →
+  pipeline → stages → physics and geometry);
 - an import inside a function of the core that loads a core module is in
-  :data:`LAZY_ALLOWED`, with the reason it is not at module level (never to dodge a cycle).
+  :data:`LAZY_ALLOWED`, with the reason it is not at module level (never to dodge a cycle);
+- every name ``ros/`` imports from the core exists there.
+
+Before issue 17 the core had one knot, config → dynamics → config (``dynamics`` imported
+``config`` inside ``scenario_joint_limits``), with pipeline, planner and problem in it,
+and 20 imports of core modules inside functions.
 """
 
 from __future__ import annotations
@@ -32,6 +39,21 @@ ROS_TOP = ("rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs"
 #: (importing core module, imported core module) → why the import is inside a function.
 #: Empty: every import of a core module by a core module is at module level.
 LAZY_ALLOWED: dict = {}
+
+#: compatibility re-exports for code outside the core; no core module imports them
+COMPAT = (f"{PACKAGE}.dynamics",)
+
+#: the core's layers, lowest first: a module imports modules of its own layer or lower ones
+#: (within a layer the graph is acyclic).  Every core module is in one.
+LAYERS = (
+    ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft")),
+    ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.oracle",
+                "field.paper", "descent", "contact", "smoothing", "ik", "results", "trajectory", "reaction",
+                "timing", "replanning", "settings", "problem")),
+    ("pipeline", ("pipeline",)),
+    ("planner", ("planner",)),
+    ("session and boundary", ("config", "free_floating", "worker", "dynamics", "")),
+)
 
 
 def _module_name(path: Path) -> str:
@@ -173,6 +195,50 @@ def test_the_core_imports_no_ros_and_no_program():
             if m.split(".")[0] in ROS_TOP or _under(m, ROS) or any(_under(m, p) for p in PROGRAMS):
                 bad.append(f"{n} line {line}: imports {m}")
     assert bad == [], "\n".join(bad)
+
+
+def _layer_of() -> dict:
+    return {(f"{PACKAGE}.{m}" if m else PACKAGE): k for k, (_, ms) in enumerate(LAYERS) for m in ms}
+
+
+def test_the_core_imports_run_down_its_layers():
+    mods, imports = _graph()
+    layer = _layer_of()
+    core = sorted(n for n in mods if _is_core(n))
+    missing = [n for n in core if n not in layer]
+    assert missing == [], f"core modules in no layer of LAYERS: {missing}"
+    bad = []
+    for n in core:
+        for m, line, _ in imports[n]:
+            if m in layer and layer[m] > layer[n]:
+                bad.append(f"{n} ({LAYERS[layer[n]][0]}) line {line}: imports {m} ({LAYERS[layer[m]][0]})")
+    assert bad == [], "imports up the layers:\n" + "\n".join(bad)
+
+
+def test_no_core_module_imports_a_compatibility_module():
+    mods, imports = _graph()
+    bad = [f"{n} line {line}: imports {m}" for n, imps in imports.items() if _is_core(n) and n not in COMPAT
+           for m, line, _ in imps if m in COMPAT]
+    assert bad == [], "\n".join(bad)
+
+
+def test_the_names_the_ros_shell_imports_from_the_core_exist():
+    """What ``ros/`` imports from the core (read from its source; rclpy is not imported here)."""
+    import importlib
+
+    known = _modules()
+    missing = []
+    for n, path in known.items():
+        if not _under(n, ROS):
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level >= 2:
+                mod = ".".join([PACKAGE] + ([node.module] if node.module else []))
+                target = importlib.import_module(mod)
+                missing += [f"{n} line {node.lineno}: {mod}.{a.name}" for a in node.names
+                            if not hasattr(target, a.name) and f"{mod}.{a.name}" not in known]
+    assert missing == [], "\n".join(missing)
 
 
 def test_function_level_imports_of_core_modules_are_documented():
