@@ -152,3 +152,64 @@ def test_goal_waiting_for_joint_states_plans_when_they_arrive(graph):
 def test_joint_states_timeout_default():
     from spacerobot_planner.config import spec_default
     assert spec_default("joint_states_timeout_s") == 10.0
+
+
+# ================================================================== 7. a flood of bad input
+def test_rejection_log_first_line_then_counts():
+    from spacerobot_planner.ros.rejections import RejectionLog
+    t = [0.0]
+    log = RejectionLog(period_s=5.0, clock=lambda: t[0])
+    lines = []
+    for i in range(100):                  # 100 Hz for 1 s
+        t[0] = 0.01 * i
+        lines.append(log.reject("joint_states", f"bad {i}"))
+    assert [x for x in lines if x] == ["joint_states: bad 0"]
+    assert log.flush() == []              # within the period
+    t[0] = 5.0
+    assert log.flush() == ["joint_states: 99 more rejected in the last 5.0 s (latest: bad 99)"]
+    assert log.flush() == []
+    t[0] = 5.5                            # not quiet long enough: counted
+    assert log.reject("joint_states", "bad") is None
+    assert log.reject("target_pose", "other source") == "target_pose: other source"
+    t[0] = 20.0                           # quiet for a period: whole again
+    assert log.flush() == ["joint_states: 1 more rejected in the last 15.0 s (latest: bad)"]
+    assert log.reject("joint_states", "again") == "joint_states: again"
+    for i in range(1000):                 # a long flood: one count line per period
+        t[0] = 20.0 + 0.01 * (i + 1)
+        line = log.reject("joint_states", "x")
+        assert line is None or (i + 1) % 500 == 0, (i, line)
+
+
+def test_a_flood_of_bad_joint_states_logs_a_line_then_counts(graph, capfd):
+    import math
+    import time
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from spacerobot_planner.ros.rejections import REJECT_LOG_PERIOD_S
+    from node_helpers import diag_values, scene_params
+    g = graph(scene_params("3dof"), with_arm=False)
+    names = g.scenario.robot.joint_names
+    capfd.readouterr()
+    t0 = time.monotonic()
+    for i in range(100):                  # a NaN in a different joint each time: the reasons differ
+        q = [0.1, 0.2, 0.3]
+        q[i % 3] = math.nan
+        n0 = g.planner._rejected_total
+        g.pub_js.publish(joint_state_msg(names, q))
+        g.wait(lambda: g.planner._rejected_total > n0, 10, f"bad joint_states {i} rejected")
+    elapsed = time.monotonic() - t0
+    latest = f"joint(s) {names[99 % 3]} not finite"
+    g.wait(lambda: diag_values(g.status("input")).get("rejected_total") == "100", 10, "the count in /diagnostics")
+    iv = diag_values(g.status("input"))
+    assert iv["source"] == "joint_states" and latest in iv["reason"], iv
+    err = ""
+    t1 = time.monotonic()
+    while "more rejected" not in err:     # the count line of the flood, at the latest a period after it
+        err += capfd.readouterr().err
+        assert time.monotonic() - t1 < REJECT_LOG_PERIOD_S + 15, err[-2000:]
+        time.sleep(0.1)
+    lines = [line for line in err.splitlines() if "joint_states" in line and "planning" not in line]
+    assert "not finite" in lines[0], lines
+    assert len(lines) <= 2 + elapsed / REJECT_LOG_PERIOD_S, lines
+    total = 1 + sum(int(line.split("joint_states: ")[1].split(" more")[0]) for line in lines[1:])
+    assert total == 100, lines
+    assert latest in lines[-1], lines

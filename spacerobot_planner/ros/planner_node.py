@@ -30,7 +30,10 @@ Interfaces (when active):
 - publishes ``joint_trajectory``, ``potential_grid`` / ``cspace_grid`` (OccupancyGrid in
   frame ``grid_frame``, x/y in radians, transient-local), ``planned_path_markers`` and
   ``/diagnostics`` (two statuses: ``planner`` = state + outcome of the last finished
-  request, ``input`` = the last rejected input, OK again once a good request follows);
+  request, ``input`` = the last rejected input and the count of all, OK again once a good
+  request follows); a topic's rejected messages are logged rate-limited (the first
+  whole, then at most one line per 5 s with the count and the latest reason:
+  ``rejections.py``), a parameter's and a goal's each;
 - serves ``~/replan`` (std_srvs/Trigger): plans to the current goal from the arm's state
   and answers once that plan has ended (the executor serves everything else meanwhile):
   ``success`` true when it was planned (and its trajectory published), else false with
@@ -82,6 +85,7 @@ from ..trajectory import HorizonPassed, resample, time_parameterize
 from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, Progress, make_backend
 from . import conversions as conv
 from . import node_main
+from .rejections import RejectionLog
 from .parameters import PLANNER_PARAMETERS, SPECS, check_choice, declare_checked, params_to_overrides
 
 __all__ = ["PlannerNode", "main", "spin_until_shutdown", "params_to_overrides", "GRID_QOS", "Outcome"]
@@ -96,6 +100,8 @@ _NO_REPLAN = {"replan.target_tolerance_m", "replan.target_tolerance_deg", "diagn
               "potential_grid.use_current_attitude", "potential_grid.slice_attitude_deg", "grid_frame",
               "planner.test_stall_s", "joint_states_timeout_s"}
 WARM_UP_TIMEOUT_S = 300.0
+#: inputs at sensor rate: their rejections are logged rate-limited
+_RATE_LIMITED = ("joint_states", "target_pose", "goal_joint_state")
 #: a joint group that moves less than this is at the goal: no trajectory for it, rad
 AT_GOAL_TOL_RAD = 1e-4
 #: Published trajectories keep a point at least this often (plus where the path bends).
@@ -185,7 +191,7 @@ class PlannerNode(LifecycleNode):
         self._joint_q = None             # latest planned-joint positions (raw, unwrapped), rad
         self._joint_ns = 0               # ROS time of that measurement (its stamp, else arrival), ns
         self._executing = None           # replanning.Executing: the trajectory last sent to the arm
-        self._bad_joint_reason = None
+        self._rejections = RejectionLog()     # topics' rejections: a line, then counts
         self._waiting_timer = None       # ends a goal's wait for the first joint_states
 
         self.state = "unconfigured"
@@ -295,7 +301,7 @@ class PlannerNode(LifecycleNode):
         self._action = ActionServer(self, PlanCapture, "plan_capture", execute_callback=self._execute_goal,
                                     goal_callback=self._on_goal_request, cancel_callback=self._cancel_goal,
                                     handle_accepted_callback=lambda h: h.execute())
-        self._diag_timer = self.create_timer(float(self._params["diagnostics.period_s"]), self._publish_diag)
+        self._diag_timer = self.create_timer(float(self._params["diagnostics.period_s"]), self._diag_tick)
         with self._lock:
             self._stop = False
             self._closing = False
@@ -482,7 +488,7 @@ class PlannerNode(LifecycleNode):
                 self._target = scenario.scene.target
         if "diagnostics.period_s" in names and self._diag_timer is not None:
             self.destroy_timer(self._diag_timer)
-            self._diag_timer = self.create_timer(float(merged["diagnostics.period_s"]), self._publish_diag)
+            self._diag_timer = self.create_timer(float(merged["diagnostics.period_s"]), self._diag_tick)
         if any(n not in _NO_REPLAN for n in names) and self._accepting:
             self.get_logger().info(f"parameters changed ({', '.join(names)}): replanning")
             self._submit(f"parameter change ({', '.join(names)})")
@@ -526,11 +532,8 @@ class PlannerNode(LifecycleNode):
         try:
             q = conv.joint_state_positions(msg, self._robot.planned_names)
         except ValueError as e:
-            if self._bad_joint_reason != str(e):
-                self._bad_joint_reason = str(e)
-                self._reject("joint_states", "invalid_input", str(e))
+            self._reject("joint_states", "invalid_input", str(e))
             return
-        self._bad_joint_reason = None
         stamp_ns = conv.time_to_ns(msg.header.stamp)
         with self._lock:
             self._joint_q = q
@@ -1116,11 +1119,29 @@ class PlannerNode(LifecycleNode):
         self._publish_diag()
 
     def _reject(self, source: str, code: str, reason: str):
-        """Bad input (a message, a goal, a parameter): log it and raise the input status."""
-        self.get_logger().error(f"{source}: {code}: {reason}")
+        """
+        Bad input (a message, a goal, a parameter): log it and raise the input status.
+
+        A topic's rejections are rate-limited (:mod:`.rejections`: the first whole, then counts);
+        a parameter's or a goal's (one per request of a person or a client) are all logged.
+        /diagnostics counts them all and names the latest.
+        """
+        line = f"{source}: {code}: {reason}"
+        if source in _RATE_LIMITED:
+            line = self._rejections.reject(source, f"{code}: {reason}")
+        if line is not None:
+            self.get_logger().error(line)
         with self._lock:
+            news = self._rejected is None or self._rejected[:3] != (source, code, reason)
             self._rejected = (source, code, reason, time.monotonic())
             self._rejected_total += 1
+        if line is not None or news:          # else the heartbeat carries the count
+            self._publish_diag()
+
+    def _diag_tick(self):
+        """Diagnostics timer: the heartbeat, and the count lines of floods of bad input."""
+        for line in self._rejections.flush():
+            self.get_logger().error(line)
         self._publish_diag()
 
     def diagnostic_statuses(self):
