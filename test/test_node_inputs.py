@@ -10,6 +10,7 @@ node's declared parameters, the action protocol, the log lines (capfd) and
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -213,3 +214,55 @@ def test_a_flood_of_bad_joint_states_logs_a_line_then_counts(graph, capfd):
     total = 1 + sum(int(line.split("joint_states: ")[1].split(" more")[0]) for line in lines[1:])
     assert total == 100, lines
     assert latest in lines[-1], lines
+
+
+# ================================================================== 8. a target inside the spacecraft
+def _unit_target(r, deg, side=0.2):
+    from spacerobot_planner.scene import Target
+    a = math.radians(deg)
+    return Target(center_m=(r * math.cos(a), r * math.sin(a)), body_side_m=side)
+
+
+def test_overlap_with_the_spacecraft_body(paper_scenario):
+    from spacerobot_planner.overlap import polygons_overlap, target_overlap_reason
+    from spacerobot_planner.robot import square_polygon
+    assert polygons_overlap(square_polygon(1.0), square_polygon(0.2, (0.45, 0.0)))
+    assert polygons_overlap(square_polygon(1.0), square_polygon(0.2))            # inside
+    assert polygons_overlap(square_polygon(0.2), square_polygon(1.0))
+    assert not polygons_overlap(square_polygon(1.0), square_polygon(0.2, (0.61, 0.0)))
+    r2, r3 = paper_scenario(2).robot, paper_scenario(3).robot   # 1.8 m body, link 1 points at a corner
+    assert target_overlap_reason(r3, paper_scenario(3).scene.target) is None   # the paper's target
+    assert "overlaps the spacecraft body" in target_overlap_reason(r3, _unit_target(1.0, 180.0, 1.0))
+    # 1.2 m out: inside the corner's reach (1.27 m), outside the edges' (0.9 m)
+    locked = 160.7                                                  # the 2-DOF scene's attitude
+    assert "locked attitude 160.7°" in target_overlap_reason(r2, _unit_target(1.2, locked))
+    assert target_overlap_reason(r2, _unit_target(1.2, locked + 45.0)) is None
+    assert "attitude is planned" in target_overlap_reason(r3, _unit_target(1.2, locked + 45.0))
+    assert target_overlap_reason(r3, _unit_target(1.4, 0.0)) is None            # beyond the reach
+    assert target_overlap_reason(r3, _unit_target(0.0, 0.0, 50.0)) is not None  # around the spacecraft
+
+
+def test_target_overlapping_the_spacecraft_is_invalid_input(graph):
+    from action_msgs.msg import GoalStatus
+    from rclpy.parameter import Parameter
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from spacerobot_planner_interfaces.action import PlanCapture
+    from node_helpers import diag_values, scene_params
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_target(-1.0, 0.0)
+    g.wait(lambda: g.level("input") == b"\x02", 15, "the input status ERROR")
+    iv = diag_values(g.status("input"))
+    assert iv["code"] == "invalid_input" and "overlaps the spacecraft body" in iv["reason"], iv
+    goal = PlanCapture.Goal()
+    goal.target_pose.header.frame_id = "world"
+    goal.target_pose.pose.position.x = -1.0
+    goal.target_pose.pose.orientation.w = 1.0
+    status, res, _ = g.goal_result(g.send_goal(goal))
+    assert status == GoalStatus.STATUS_ABORTED and res.error_code == PlanCapture.Result.INVALID_INPUT
+    assert "goal.target_pose" in res.reason and "overlaps the spacecraft body" in res.reason, res.reason
+    refused = g.planner.set_parameters([Parameter("target.center_m", value=[-1.0, 0.0])])[0]
+    assert not refused.successful and "target.center_m" in refused.reason and "overlaps" in refused.reason
+    assert g.planner._gen == 0 and g.n_trajs() == 0                 # nothing was planned

@@ -13,6 +13,9 @@ current state is refused with a log line naming the state and the transitions it
 Interfaces (when active):
 
 - subscribes ``target_pose`` (PoseStamped), ``joint_states``, ``goal_joint_state`` (JointState);
+  a target whose body overlaps the spacecraft's body (at the locked attitude, or at any
+  attitude within its bounds when the attitude is planned: ``overlap.py``) is invalid
+  input, as a goal's or as the ``target.*`` parameters;
 - the goal: the latest accepted request from any channel (a target_pose, a
   goal_joint_state, a plan_capture goal) is what a later ``~/replan`` or parameter change
   plans to; a plan_capture goal with its own ``start`` is planned and returned, not
@@ -79,6 +82,7 @@ from visualization_msgs.msg import MarkerArray
 from ..config import NODE_NAME, check_value, scenario_from_params
 from ..scene import Target
 from ..collision import CollisionChecker
+from ..overlap import target_overlap_reason
 from ..pipeline import timed_motion
 from ..replanning import START_LEAD_S, Executing, joined_motion, plan_start
 from ..trajectory import HorizonPassed, resample, time_parameterize
@@ -417,6 +421,9 @@ class PlannerNode(LifecycleNode):
             if len(params[key]) != n:
                 raise ValueError(f"{key}: expected {n} values (one per joint in robot.joint_names), "
                                  f"got {len(params[key])}")
+        overlap = target_overlap_reason(scenario.robot, scenario.scene.target)
+        if overlap is not None:
+            raise ValueError(f"target.center_m: {overlap}")
         nodes = scenario.grid.n_nodes
         if nodes > params["planner.max_grid_nodes"]:
             raise ValueError(f"grid.cells: {scenario.grid.label()} = {nodes} nodes exceeds "
@@ -494,9 +501,20 @@ class PlannerNode(LifecycleNode):
             self._submit(f"parameter change ({', '.join(names)})")
 
     # ------------------------------------------------------------------ inputs
-    def _on_target(self, msg: PoseStamped):
+    def _target_from_pose(self, msg: PoseStamped, what: str) -> Target:
+        """Return the target of a pose; ValueError (named ``what``) when unusable or inside the spacecraft."""
         try:
             target = conv.pose_to_target(msg, self._frame, self._scenario.scene.target)
+        except ValueError as e:
+            raise ValueError(str(e).replace("target_pose:", f"{what}:", 1)) from None
+        overlap = target_overlap_reason(self._robot, target)
+        if overlap is not None:
+            raise ValueError(f"{what}: {overlap}")
+        return target
+
+    def _on_target(self, msg: PoseStamped):
+        try:
+            target = self._target_from_pose(msg, "target_pose")
         except ValueError as e:
             self._reject("target_pose", "invalid_input", str(e))
             return
@@ -626,10 +644,7 @@ class PlannerNode(LifecycleNode):
             q = self._joint_goal_from_msg(goal.joint_goal, "goal.joint_goal")
             return self._make_request(f"plan_capture goal: joint goal {np.round(np.degrees(q), 2).tolist()}°",
                                       joint_goal=q, target=None, start=start)
-        try:
-            target = conv.pose_to_target(goal.target_pose, self._frame, self._scenario.scene.target)
-        except ValueError as e:
-            raise ValueError(str(e).replace("target_pose:", "goal.target_pose:", 1)) from None
+        target = self._target_from_pose(goal.target_pose, "goal.target_pose")
         return self._make_request(f"plan_capture goal: {_target_why(target)}", joint_goal=None, target=target,
                                   start=start)
 
