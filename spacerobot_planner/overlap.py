@@ -1,5 +1,5 @@
 """
-Input validation without ROS: does a target's body overlap the spacecraft's body?
+Input validation without ROS: whether a target's body overlaps the spacecraft's body.
 
 Two bodies cannot be in one place: such a target is a wrong input (a pose in another
 frame, a sign error), not something to plan for.  The spacecraft body turns with the
