@@ -438,6 +438,7 @@ class PlannerNode(LifecycleNode):
             if SPECS[p.name].read_only:
                 raise ValueError(f"{p.name}: read-only (a change needs a restart)")
             merged[p.name] = check_value(p.name, p.value)
+            check_choice(p.name, merged[p.name])       # the node's wording, before the scenario's
         scenario = scenario_from_params(merged)
         self._check_runtime(merged, scenario)
         return merged, scenario
