@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..collision import CollisionChecker
-from ..config import load_params_file, load_scenario
+from ..config import load_params_file, load_scenario, scenario_from_params, spec_default
 from ..cspace import build_cspace
 from ..ik import capture_posture, grasp_ik
 
@@ -57,19 +57,19 @@ def _wrapped_err_deg(robot, q_full, goal):
 
 
 def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target_xy, yaw_deg) -> int:
+    # ROS (rclpy, the messages, the nodes) only here: offline_facts runs without it
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from trajectory_msgs.msg import JointTrajectory
 
-    from ..config import scenario_from_params
     from ..ros.mock_arm_node import MockArmNode
     from ..ros.parameters import MOCK_ARM_PARAMETERS
     from ..ros.planner_node import PlannerNode, params_to_overrides
 
     flat = load_params_file(params_file)
     for key, power in (("trajectory.max_velocity_deg_s", 1), ("trajectory.max_acceleration_deg_s2", 2)):
-        flat[key] = [float(v) * speedup ** power for v in flat.get(key, [5.0, 15.0, 15.0])]
+        flat[key] = [float(v) * speedup ** power for v in flat.get(key, spec_default(key))]
     scenario = scenario_from_params(flat)
     robot = scenario.robot
     t_start = time.monotonic()
@@ -140,7 +140,7 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
 
 def _plot(res, scenario, out: Path) -> None:
     try:
-        from .plotting import plot_plan
+        from .plotting import plot_plan       # matplotlib: optional here
     except ImportError:
         print("[demo] spacerobot_planner.tools.plotting not available: no figure")
         return
