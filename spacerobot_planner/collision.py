@@ -217,6 +217,22 @@ def _batch_clearance(q_full, lengths, checked, body, obs_verts, obs_starts):
     return out
 
 
+@njit(cache=True, nogil=True)
+def _batch_clearance_shifted(q_full, shift, lengths, checked, body, verts, starts):
+    """Clearance of each configuration q_full[k] with the obstacles shifted by −shift[k], (K,) m."""
+    k_n = q_full.shape[0]
+    out = np.empty(k_n)
+    pts = np.empty((lengths.shape[0] + 1, 2))
+    body_w = np.empty_like(body)
+    shifted = np.empty_like(verts)
+    for k in range(k_n):
+        for v in range(verts.shape[0]):
+            shifted[v, 0] = verts[v, 0] - shift[k, 0]
+            shifted[v, 1] = verts[v, 1] - shift[k, 1]
+        out[k] = config_clearance(q_full[k], lengths, checked, body, shifted, starts, pts, body_w)
+    return out
+
+
 # ------------------------------------------------------------------ public API
 class CollisionChecker:
     """
@@ -241,6 +257,17 @@ class CollisionChecker:
         q_full = np.ascontiguousarray(self.robot.full(np.atleast_2d(q)))
         out = _batch_clearance(q_full, self.lengths, self.checked, self.body, self.verts, self.starts)
         return float(out[0]) if single else out
+
+    def clearance_shifted_m(self, q_full, shift_m) -> np.ndarray:
+        """
+        Clearance (m) of full configurations (K, n) with the obstacles moved by −shift_m (K, 2).
+
+        The scene seen from a spacecraft body that translated by ``shift_m`` (the obstacles
+        stay where they are in the inertial frame): one value per row.
+        """
+        return _batch_clearance_shifted(np.ascontiguousarray(q_full, dtype=float),
+                                        np.ascontiguousarray(shift_m, dtype=float), self.lengths, self.checked,
+                                        self.body, self.verts, self.starts)
 
     def is_free(self, q) -> np.ndarray | bool:
         """Return True where clearance > safety margin: (dof,) → bool, (N, dof) → (N,) bool."""

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .joint_space import deg_text, within_bounds
+from .joint_space import deg_text
 
 __all__ = ["penetration_depth_m", "signed_distance_m", "Exit", "leave_contact"]
 
@@ -109,11 +109,13 @@ class Exit:
     reason: str | None = None
 
 
-def leave_contact(checker, start_rad, lower_rad, upper_rad, periodic, *, max_penetration_m: float,
+def leave_contact(motions, start_rad, *, max_penetration_m: float,
                   room_m: float = 0.01, step_rad: float = math.radians(0.25),
                   max_length_rad: float = math.radians(30.0)) -> Exit:
     """
     Walk from a colliding ``start_rad`` to a posture with clearance ≥ margin + ``room_m``.
+
+    ``motions``: the scene's ``motion.MotionValidator`` (its checker and joint bounds).
 
     Each step moves ``step_rad`` (joint-space norm) towards the neighbour, among the
     3^dof − 1 directions of the joint-space grid, with the largest signed distance, and
@@ -121,6 +123,7 @@ def leave_contact(checker, start_rad, lower_rad, upper_rad, periodic, *, max_pen
     deeper than ``max_penetration_m``, when no direction increases the signed distance,
     or after ``max_length_rad``.
     """
+    checker = motions.checker
     q = np.asarray(start_rad, dtype=float)
     dof = len(q)
     margin = checker.margin_m
@@ -138,7 +141,7 @@ def leave_contact(checker, start_rad, lower_rad, upper_rad, periodic, *, max_pen
         if sds[-1] >= margin + room_m:
             return Exit(True, np.array(path), depth, np.array(sds))
         cand = path[-1] + dirs
-        cand = cand[within_bounds(cand, lower_rad, upper_rad, periodic)]
+        cand = cand[motions.within_bounds(cand)]
         if not len(cand):
             break
         clr = np.asarray(checker.clearance_m(cand), dtype=float)

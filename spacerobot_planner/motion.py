@@ -14,6 +14,14 @@ segment, not only the samples, keeps clearance above the threshold.  The quick t
 (``certified=False``) samples at a fixed step only: for choosing among candidates,
 never for what is returned.
 
+One scene, one validator (OMPL's ``SpaceInformation`` with its ``MotionValidator``):
+:class:`MotionValidator` is bound to a scene's collision checker and owns the planned
+joints' bounds, their periodic axes and the certified step.  The stages (smoothing, the
+pipeline's joins and grid paths, ``trajectory.resample``, the replan's corner blends, the
+exit from a contact) ask it instead of passing a checker, bounds and packed arrays around;
+:func:`check_path` and :func:`first_bad_segment` are the same checks for a checker and
+bounds given one by one.
+
 All configurations are planned-joint vectors in radians; paths are (M, dof) arrays,
 periodic joints unwrapped (continuous).
 """
@@ -26,10 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .collision import config_clearance
+from .collision import CollisionChecker, config_clearance
+from .joint_space import unwrap_path, within_bounds
 
-__all__ = ["PathCheck", "check_path", "first_bad_segment", "lipschitz_m_per_rad", "certify_segments",
-           "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD"]
+__all__ = ["PathCheck", "MotionValidator", "check_path", "first_bad_segment", "lipschitz_m_per_rad",
+           "certify_segments", "SegmentTest", "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD"]
 
 DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the certified checks
 QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of candidates
@@ -56,14 +65,6 @@ class PathCheck:
     min_clearance_m: float
     n_checked: int
     interval_clearance_m: np.ndarray = None
-
-
-def _within_bounds(q, lower, upper, periodic):
-    ok = np.ones(len(q), dtype=bool)
-    for a, p in enumerate(periodic):
-        if not p:
-            ok &= (q[:, a] >= lower[a]) & (q[:, a] <= upper[a])
-    return ok
 
 
 @njit(cache=True, nogil=True)
@@ -136,45 +137,16 @@ def check_path(checker, path_rad, lower_rad, upper_rad, periodic,
     """
     Certified check of the piecewise-linear path through the rows of ``path_rad``.
 
-    Along every interval, samples are at most ``verify_step_rad`` apart and close
-    enough that their clearance balls overlap (Lipschitz bound of the arm), so the
-    *whole* interval, not only the samples, keeps clearance above the safety
-    margin (and at least ``required_clearance_m`` if given).  Bounded joints must
-    stay within bounds at the rows (then also between them).  ``certified=False``:
-    a quick test at samples ``verify_step_rad`` apart only (for candidates; never for
-    what is returned).
+    :meth:`MotionValidator.check` of the validator of ``checker`` with these bounds and step.
     """
-    p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
-    robot = checker.robot
-    threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
-                                                                          required_clearance_m)
-    in_bounds = _within_bounds(p, lower_rad, upper_rad, periodic)
-    if len(p) == 1:
-        c = float(checker.clearance_m(p[0]))
-        return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
-                         np.zeros(0))
-    m = len(p) - 1
-    interval_ok = np.zeros(m, dtype=np.bool_)
-    interval_clr = np.zeros(m)
-    lip = lipschitz_m_per_rad(robot)
-    n = certify_segments(p, np.asarray(robot.locked_rad, dtype=float),
-                         np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                         checker.checked, checker.body, checker.verts, checker.starts,
-                         float(threshold), lip, float(verify_step_rad), float(min_step_rad),
-                         interval_ok, interval_clr, bool(certified))
-    interval_ok &= in_bounds[:-1] & in_bounds[1:]
-    return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
-                     interval_clr)
+    return MotionValidator(checker, lower_rad, upper_rad, periodic, verify_step_rad).check(
+        path_rad, required_clearance_m=required_clearance_m, min_step_rad=min_step_rad, certified=certified)
 
 
 def first_bad_segment(checker, points_rad, lower_rad, upper_rad, periodic,
                       verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> int:
     """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""
-    chk = check_path(checker, points_rad, lower_rad, upper_rad, periodic, verify_step_rad)
-    if chk.ok:
-        return -1
-    bad = np.flatnonzero(~chk.interval_ok)
-    return int(bad[0]) if len(bad) else len(points_rad) - 2
+    return MotionValidator(checker, lower_rad, upper_rad, periodic, verify_step_rad).first_bad_segment(points_rad)
 
 
 @njit(cache=True, nogil=True)
@@ -237,3 +209,123 @@ class SegmentTest:
     def arrays(self) -> tuple:
         return (self.q_template, self.planned, self.lengths, self.checked, self.body, self.verts,
                 self.starts, self.threshold_m, self.step_rad)
+
+
+class MotionValidator:
+    """
+    The motion validator of one scene: its checker, the planned joints' bounds and axes, the step.
+
+    OMPL's ``SpaceInformation`` and ``MotionValidator`` in one object: state validity comes
+    from the scene's ``collision.CollisionChecker`` (clearance above its safety margin) and
+    the bounds (bounded joints within them, periodic ones anywhere); motion validity from
+    the certified walk along straight joint-space segments (:func:`certify_segments`,
+    samples at most ``step_rad`` apart and closer near obstacles).
+
+    Parameters
+    ----------
+        checker: the scene's CollisionChecker (robot, scene, margin).
+        lower_rad, upper_rad, periodic: planned-joint bounds and periodic axes (default: the
+            robot's, ``robot.planned_lower_rad`` ...).
+        step_rad: largest spacing of the certified checks (``DEFAULT_VERIFY_STEP_RAD``).
+
+    """
+
+    def __init__(self, checker, lower_rad=None, upper_rad=None, periodic=None,
+                 step_rad: float = DEFAULT_VERIFY_STEP_RAD):
+        robot = checker.robot
+        self.checker = checker
+        self.lower_rad = np.asarray(robot.planned_lower_rad if lower_rad is None else lower_rad, dtype=float)
+        self.upper_rad = np.asarray(robot.planned_upper_rad if upper_rad is None else upper_rad, dtype=float)
+        self.periodic = tuple(bool(p) for p in (robot.planned_periodic if periodic is None else periodic))
+        self.step_rad = float(step_rad)
+        if not (np.isfinite(self.step_rad) and self.step_rad > 0.0):
+            raise ValueError(f"step_rad: must be a positive number, got {step_rad!r}")
+
+    @classmethod
+    def for_scene(cls, robot, scene, step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> "MotionValidator":
+        """Return the validator of ``scene`` for ``robot`` (its bounds; a new CollisionChecker)."""
+        return cls(CollisionChecker(robot, scene), step_rad=step_rad)
+
+    @classmethod
+    def of(cls, motions, step_rad: float | None = None) -> "MotionValidator":
+        """Return ``motions`` itself (a MotionValidator) or the validator of a CollisionChecker."""
+        if isinstance(motions, MotionValidator):
+            return motions if step_rad is None else motions.with_step(step_rad)
+        return cls(motions, step_rad=DEFAULT_VERIFY_STEP_RAD if step_rad is None else step_rad)
+
+    def with_step(self, step_rad: float) -> "MotionValidator":
+        """Return a validator of the same scene and bounds with another certified step."""
+        if float(step_rad) == self.step_rad:
+            return self
+        return MotionValidator(self.checker, self.lower_rad, self.upper_rad, self.periodic, step_rad)
+
+    @property
+    def robot(self):
+        return self.checker.robot
+
+    @property
+    def margin_m(self) -> float:
+        return self.checker.margin_m
+
+    # ----------------------------------------------------------------- states
+    def clearance_m(self, q_rad):
+        """Clearance of one configuration (float) or of each row of (N, dof) (array), metres."""
+        return self.checker.clearance_m(q_rad)
+
+    def within_bounds(self, q_rad, tol_rad: float = 0.0) -> np.ndarray:
+        """Per row of q: every bounded joint within its bounds (± ``tol_rad``)."""
+        return within_bounds(q_rad, self.lower_rad, self.upper_rad, self.periodic, tol_rad)
+
+    # ---------------------------------------------------------------- motions
+    def check(self, path_rad, *, step_rad: float | None = None, required_clearance_m: float | None = None,
+              min_step_rad: float = 1e-6, certified: bool = True) -> PathCheck:
+        """
+        Certified check of the piecewise-linear path through the rows of ``path_rad``.
+
+        Along every interval, samples are at most ``step_rad`` (default the validator's)
+        apart and close enough that their clearance balls overlap (Lipschitz bound of the
+        arm), so the *whole* interval, not only the samples, keeps clearance above the
+        safety margin (and at least ``required_clearance_m`` if given).  Bounded joints
+        must stay within bounds at the rows (then also between them).  ``certified=False``:
+        a quick test at samples ``step_rad`` apart only (for candidates; never for what
+        is returned).
+        """
+        checker = self.checker
+        step = self.step_rad if step_rad is None else float(step_rad)
+        p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
+        robot = checker.robot
+        threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
+                                                                              required_clearance_m)
+        in_bounds = self.within_bounds(p)
+        if len(p) == 1:
+            c = float(checker.clearance_m(p[0]))
+            return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
+                             np.zeros(0))
+        m = len(p) - 1
+        interval_ok = np.zeros(m, dtype=np.bool_)
+        interval_clr = np.zeros(m)
+        lip = lipschitz_m_per_rad(robot)
+        n = certify_segments(p, np.asarray(robot.locked_rad, dtype=float),
+                             np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
+                             checker.checked, checker.body, checker.verts, checker.starts,
+                             float(threshold), lip, step, float(min_step_rad),
+                             interval_ok, interval_clr, bool(certified))
+        interval_ok &= in_bounds[:-1] & in_bounds[1:]
+        return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
+                         interval_clr)
+
+    def first_bad_segment(self, points_rad, step_rad: float | None = None) -> int:
+        """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""
+        chk = self.check(points_rad, step_rad=step_rad)
+        if chk.ok:
+            return -1
+        bad = np.flatnonzero(~chk.interval_ok)
+        return int(bad[0]) if len(bad) else len(points_rad) - 2
+
+    def segment_ok(self, a_rad, b_rad, step_rad: float | None = None) -> bool:
+        """Certified check of the shortest straight segment a → b (periodic axes unwrapped)."""
+        return self.check(unwrap_path(np.vstack([a_rad, b_rad]), self.periodic), step_rad=step_rad).ok
+
+    def segment_test(self, step_rad: float = QUICK_STEP_RAD) -> SegmentTest:
+        """Return what a numba kernel needs to run the quick :func:`segment_free` on this scene."""
+        return SegmentTest.of(self.checker, step_rad)

@@ -32,7 +32,7 @@ from .contact import leave_contact
 from .descent import colliding_edges
 from .field import bfs_distance
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
-from .motion import SegmentTest, check_path, first_bad_segment
+from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
 from .smoothing import smooth_path
 from .termination import Cancelled, Termination
@@ -93,7 +93,9 @@ class PlanRun:
         self.sc = planner.scenario
         self.robot = self.sc.robot
         self.checker = planner._checker
-        self.motions = SegmentTest.of(self.checker)
+        #: the scene's motion validator at this plan's certified step; the descent's quick test
+        self.validator = MotionValidator.of(planner._validator, settings.verify_step_rad)
+        self.motions = self.validator.segment_test()
         self.cancel = Termination.of(cancel)       # the run's one termination token
         self.progress = progress
         self.timings = {k: 0.0 for k in STAGES}
@@ -106,9 +108,7 @@ class PlanRun:
         self.penetration_m = 0.0
         self.approach_error_deg = math.nan
         self.grid_path = np.zeros((0, self.robot.dof))
-        self.lower = self.robot.planned_lower_rad
-        self.upper = self.robot.planned_upper_rad
-        self.periodic = self.robot.planned_periodic
+        self.periodic = self.validator.periodic
         self.t0 = time.perf_counter()
 
     # ---------------------------------------------------------------- helpers
@@ -149,10 +149,8 @@ class PlanRun:
 
     def segment_ok(self, a, b) -> bool:
         """Run the certified motion check of the straight (shortest) segment a → b."""
-        seg = unwrap_path(np.vstack([a, b]), self.periodic)
         with self.stage("verify"):
-            return check_path(self.checker, seg, self.lower, self.upper, self.periodic,
-                              self.s.verify_step_rad).ok
+            return self.validator.segment_ok(a, b)
 
     def candidates(self, q, grid, free_mask, max_count: int = 8) -> np.ndarray:
         """Free grid nodes near q (within 2 steps per axis), nearest first: (k, dof) int."""
@@ -227,8 +225,7 @@ class PlanRun:
         refusal = (f"the start {deg_text(self.start)} is in collision: clearance {clr_s:.3f} m, the "
                    f"safety margin is {margin} m")
         with self.stage("exit"):
-            ex = leave_contact(self.checker, self.start, self.lower, self.upper, self.periodic,
-                               max_penetration_m=self.s.max_start_penetration_m)
+            ex = leave_contact(self.validator, self.start, max_penetration_m=self.s.max_start_penetration_m)
         self.penetration_m = ex.start_penetration_m
         if not ex.ok:
             raise Fail(Code.START_IN_COLLISION, f"{refusal}; no way out: {ex.reason}")
@@ -367,8 +364,7 @@ class PlanRun:
             wp = unwrap_path(np.vstack([start, nodes_rad, self.goal]), self.periodic)
             wp[-1] = nearest_turn_rad(self.goal, wp[-1], self.periodic)   # exactly the goal (mod 2π)
             with self.stage("verify"):
-                bad = first_bad_segment(self.checker, wp, self.lower, self.upper, self.periodic,
-                                        s.verify_step_rad)
+                bad = self.validator.first_bad_segment(wp)
             if bad < 0:
                 return wp
             # segment bad joins waypoint bad and bad+1; waypoint k ≥ 1 is path node k-1
@@ -430,9 +426,8 @@ class PlanRun:
         s = self.s
         with self.stage("smoothing"):
             self.p._test_stall("smoothing", self.cancel)
-            sm = smooth_path(self.checker, waypoints, self.lower, self.upper, self.periodic,
-                             shortcut=s.shortcut, keep_clearance_m=s.shortcut_keep_clearance_m,
-                             max_step_rad=s.max_step_rad, verify_step_rad=s.verify_step_rad,
+            sm = smooth_path(self.validator, waypoints, shortcut=s.shortcut,
+                             keep_clearance_m=s.shortcut_keep_clearance_m, max_step_rad=s.max_step_rad,
                              cancel=self.cancel)
         self.check_cancel()
         if sm is None:
@@ -457,7 +452,8 @@ class PlanRun:
             self.check_cancel()
             try:
                 with self.stage("trajectory"):
-                    traj, reaction = timed_motion(self.sc, path, self.start_given, self.s.reaction)
+                    traj, reaction = timed_motion(self.sc, path, self.start_given, self.s.reaction,
+                                                  motions=self.validator)
             except ValueError as e:
                 raise Fail(Code.INVALID_INPUT, str(e)) from None
             self.say(f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points "

@@ -40,6 +40,7 @@ from .descent import descend
 from .field import solve_field
 from .field import warm_up as field_warm_up
 from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
+from .motion import MotionValidator
 from .pipeline import PlanRun
 from .problem import Scenario
 from .results import CODES, STAGES, Code, PlanResult
@@ -92,6 +93,7 @@ class Planner:
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
+        self._validator = MotionValidator(self._checker)    # the scene's motion validator
         #: test aid: (stage, seconds, polls, on_start) -- that stage ("cspace", "field":
         #: before its kernels, when not cached; "descent", "smoothing") calls
         #: ``on_start(stage)`` (or None) and spends ``seconds``, answering the termination
@@ -135,6 +137,7 @@ class Planner:
                 self._goal_nodes.clear()
             self.scenario = self.scenario.with_scene(scene)
             self._checker = CollisionChecker(self.scenario.robot, scene)
+            self._validator = MotionValidator(self._checker)
 
     def set_grid(self, grid: GridSpec) -> None:
         """Replace the grid (C-spaces of other grids stay cached)."""
@@ -323,7 +326,8 @@ class Planner:
         if not result.ok or not trajectory_limits_known(self.scenario):
             return result
         t = time.perf_counter()
-        traj, reaction = timed_motion(self.scenario, result.path_rad, state_rad, self.settings.reaction)
+        traj, reaction = timed_motion(self.scenario, result.path_rad, state_rad, self.settings.reaction,
+                                      motions=self._validator)
         timings = dict(result.timings_s, trajectory=time.perf_counter() - t)
         if reaction is not None and not reaction.ok:
             return replace(result, ok=False, code=Code.REACTION_REFUSED, reason=reaction.reason,

@@ -16,34 +16,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
-
-from .collision import CollisionChecker, config_clearance
+from .collision import CollisionChecker
 from .spacecraft import (ACS_MODES, MassProperties, WheelModel, free_floating_response, system_com_m,
                          wheel_load)
 
 __all__ = ["DriftCheck", "ReactionReport", "check_drifted", "reaction_report"]
-
-
-@njit(cache=True, nogil=True)
-def _drifted_clearance(q_full, body_pos, lengths, checked, body, verts, starts):
-    """
-    Return the clearance of each configuration in the drifted scene, (K,) m.
-
-    Clearance of each configuration with the obstacles shifted by −body position (the inertial scene
-    seen from the translated spacecraft body), (K,) m.
-    """
-    k_n = q_full.shape[0]
-    out = np.empty(k_n)
-    pts = np.empty((lengths.shape[0] + 1, 2))
-    body_w = np.empty_like(body)
-    shifted = np.empty_like(verts)
-    for k in range(k_n):
-        for v in range(verts.shape[0]):
-            shifted[v, 0] = verts[v, 0] - body_pos[k, 0]
-            shifted[v, 1] = verts[v, 1] - body_pos[k, 1]
-        out[k] = config_clearance(q_full[k], lengths, checked, body, shifted, starts, pts, body_w)
-    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,7 +45,7 @@ class DriftCheck:
     n_checked: int
 
 
-def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: int = 12) -> DriftCheck:
+def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: int = 12, motions=None) -> DriftCheck:
     """
     Check the free-floating motion along ``path_rad`` against the inertially fixed scene.
 
@@ -79,17 +56,19 @@ def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: in
     δ = Σ_j |Δq_j| · reach_j + |Δb| (reach_j: chain length beyond joint j, b: body
     position), so an interval is certified when (c_a + c_b − δ)/2 > margin; otherwise
     it is split (the path is straight between its rows) and the drift recomputed.
+
+    ``motions``: the scene's ``motion.MotionValidator`` (its checker is used; one is made
+    when None).
     """
-    chk = CollisionChecker(robot, scene)
-    lengths = chk.lengths
+    chk = CollisionChecker(robot, scene) if motions is None else motions.checker
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
     reach = np.cumsum(lengths[::-1])[::-1]
     p = np.atleast_2d(np.asarray(path_rad, dtype=float))
     margin = chk.margin_m
     n_eval = 0
     for _ in range(max_rounds + 1):
         resp = free_floating_response(robot, masses, p)
-        c = _drifted_clearance(np.ascontiguousarray(resp.q_full_rad), np.ascontiguousarray(resp.body_position_m),
-                               lengths, chk.checked, chk.body, chk.verts, chk.starts)
+        c = chk.clearance_shifted_m(resp.q_full_rad, resp.body_position_m)
         n_eval += len(c)
         hit = np.flatnonzero(~(c > margin))
         if len(hit):
@@ -173,7 +152,7 @@ class ReactionReport:
 def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=None, *,
                     acs_mode: str = "held", max_wheel_momentum_Nms: float | None = None,
                     max_wheel_torque_Nm: float | None = None, grasp_point_m=None,
-                    position_tolerance_m: float = 0.02) -> ReactionReport:
+                    position_tolerance_m: float = 0.02, motions=None) -> ReactionReport:
     """
     Report the wheel load and free-floating response of a planned motion.
 
@@ -190,6 +169,7 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
         max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits (None or 0: none).
         grasp_point_m: (2,) the inertial grasp point (default: the scene target's, if any).
         position_tolerance_m: largest acceptable free-floating tip miss, metres.
+        motions: the scene's ``motion.MotionValidator`` for the drift check (made when None).
 
     Returns
     -------
@@ -209,7 +189,7 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
         grasp_point_m = scene.target.grasp_point_m
     along = trajectory.positions_rad if trajectory is not None else np.asarray(path_rad, dtype=float)
     resp = free_floating_response(robot, masses, along, grasp_point_m)
-    drift = check_drifted(robot, masses, scene, along)
+    drift = check_drifted(robot, masses, scene, along, motions=motions)
     com = system_com_m(robot, masses, robot.full(along))
     held_disp = float(np.linalg.norm(com[-1] - com[0]))
     held_tip = com[0] - com[-1] + robot.tip_position(robot.full(along[-1]))

@@ -29,7 +29,7 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    direction than the arm's, a corner the arm would have to slow down for.  So the
    corner is also replaced by cubic (Hermite) blends, tangent to both paths, over
    ``BLEND_SAMPLES`` samples on either side; each blend is certified on the exact
-   geometry (``motion.check_path``) and the fastest certified candidate (the corner
+   geometry (the scene's ``motion.MotionValidator``) and the fastest certified candidate (the corner
    itself included) is published.  Where none can be entered at the arm's speed (the
    re-fitted spline through a sharp corner asks for a slower arm than the join's) it
    raises ``ValueError``; with the horizon at the executing trajectory's end (its goal,
@@ -45,9 +45,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .collision import CollisionChecker
 from .joint_space import align_to_state, difference_rad
-from .motion import check_path
+from .motion import MotionValidator
 from .timing import timed_motion
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
@@ -251,8 +250,8 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = S
         lead_s: the join is at least this far in the future, s: the message must reach the
             controller before it (a controller that gets it late switches there with the
             difference of the two accelerations times the delay as a velocity step).
-        checker: ``collision.CollisionChecker`` of the scenario's scene (made when None),
-            to certify the corner blends.
+        checker: the scene's ``motion.MotionValidator`` (or its ``collision.CollisionChecker``;
+            made when None), to certify the corner blends.
 
     Returns
     -------
@@ -267,25 +266,26 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = S
         ValueError: the new path cannot be entered at the arm's speed.
 
     """
+    motions = None if checker is None else MotionValidator.of(checker)
     ex = join.executing
     c = continuation(ex.trajectory, ex.time_s(now_ns) + lead_s, horizon_at=join.horizon_index,
                      join_indices=ex.published)
     new = align_to_state(np.asarray(path_rad, dtype=float), c.prefix_rad[-1], scenario.robot.planned_periodic)
     stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
     try:
-        traj, reaction = _fastest_through_corner(scenario, c, new, checker)
+        traj, reaction = _fastest_through_corner(scenario, c, new, motions)
     except ValueError:
         last = len(ex.trajectory) - 1
         if join.horizon_index != last:
             raise
         rest = ex.trajectory.subset(np.arange(c.index, last + 1))
         rest = replace(rest, times_s=rest.times_s - rest.times_s[0])
-        after, reaction = timed_motion(scenario, new)
+        after, reaction = timed_motion(scenario, new, motions=motions)
         traj = rest.then(after)
     return traj, reaction, stamp_ns, c
 
 
-def _fastest_through_corner(scenario, c, new, checker):
+def _fastest_through_corner(scenario, c, new, motions):
     """
     (trajectory, reaction) of the fastest of.
 
@@ -298,15 +298,14 @@ def _fastest_through_corner(scenario, c, new, checker):
     best, err = None, None
     candidates = [path]
     if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:
-        checker = checker or CollisionChecker(robot, scenario.scene)
-        bounds = (robot.planned_lower_rad, robot.planned_upper_rad, robot.planned_periodic)
+        motions = motions or MotionValidator.for_scene(robot, scenario.scene)
         for a, b, cand in _corner_blends(path, corner, 1, np.radians(0.5)):
             piece = cand[a - 1:len(cand) - (len(path) - b) + 2]
-            if check_path(checker, piece, *bounds).ok:
+            if motions.check(piece).ok:
                 candidates.append(cand)
     for cand in candidates:
         try:
-            got = timed_motion(scenario, cand, start_path_speed=c.start_path_speed)
+            got = timed_motion(scenario, cand, start_path_speed=c.start_path_speed, motions=motions)
         except ValueError as e:
             err = err or e
             continue

@@ -6,8 +6,9 @@ periodic joints, and turned into a cubic spline as in the paper (knots at every
 second node).  The spline is checked on the *exact* geometry, not the grid: it is
 sampled so that consecutive samples are at most ``max_step_rad`` apart (Euclidean
 norm in joint space) and the piecewise-linear path through the samples is
-*certified* by the motion validator (``motion.check_path``): the whole path, not only
-the samples, keeps clearance above the scene's safety margin.  Bounded joints stay within bounds.  Where the spline
+*certified* by the scene's motion validator (``motion.MotionValidator``): the whole path,
+not only the samples, keeps clearance above the scene's safety margin.  Bounded joints stay
+within bounds.  Where the spline
 cuts a corner, knots are added in that stretch only (first the skipped nodes,
 then midpoints of the polyline) until it is clean.
 
@@ -23,8 +24,7 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import CubicSpline
 
-from .motion import (DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, certify_segments, check_path,
-                     lipschitz_m_per_rad)
+from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, lipschitz_m_per_rad
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
            "spline_through", "smooth_path", "DEFAULT_MAX_STEP_RAD"]
@@ -104,8 +104,18 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
     return q
 
 
-def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
-                     verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
+def _validator(motions, lower_rad, upper_rad, periodic, step_rad):
+    """Return the scene's MotionValidator: ``motions`` itself, or a CollisionChecker's with these bounds."""
+    if isinstance(motions, MotionValidator):
+        if lower_rad is not None or upper_rad is not None or periodic is not None:
+            raise TypeError("a MotionValidator holds its bounds: give none")
+        return motions if step_rad is None else motions.with_step(step_rad)
+    return MotionValidator(motions, lower_rad, upper_rad, periodic,
+                           DEFAULT_VERIFY_STEP_RAD if step_rad is None else step_rad)
+
+
+def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, periodic=None,
+                     verify_step_rad: float | None = None,
                      keep_clearance_m: float = 0.05, certified: bool = True) -> np.ndarray:
     """
     Greedy, clearance-keeping shortcut of a verified polyline: indices of the vertices kept.
@@ -116,16 +126,20 @@ def shortcut_indices(checker, points_rad, lower_rad, upper_rad, periodic,
     (so shortcuts do not trade the field's distance from obstacles for length).
     From each kept vertex the farthest such j is found by binary search.  Returns
     increasing indices, first and last kept.
+
+    ``motions``: the scene's ``motion.MotionValidator`` (checks at its step unless
+    ``verify_step_rad`` is given), or a ``CollisionChecker`` with the bounds.
     """
+    v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
     pts = np.ascontiguousarray(np.asarray(points_rad, dtype=float))
-    poly = check_path(checker, pts, lower_rad, upper_rad, periodic, verify_step_rad, certified=certified)
-    robot = checker.robot
+    poly = v.check(pts, certified=certified)
+    checker, robot = v.checker, v.robot
     # a segment between two in-bounds points stays in bounds (the bounds are a box)
     return _shortcut_kernel(pts, poly.interval_clearance_m, checker.margin_m + keep_clearance_m,
                             np.asarray(robot.locked_rad, dtype=float),
                             np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
                             checker.checked, checker.body, checker.verts, checker.starts,
-                            checker.margin_m, lipschitz_m_per_rad(robot), float(verify_step_rad),
+                            checker.margin_m, lipschitz_m_per_rad(robot), v.step_rad,
                             bool(certified))
 
 
@@ -219,8 +233,7 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
     return q, s, u
 
 
-def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad, verify_step_rad,
-                    max_rounds, cancel, certified):
+def _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified):
     """
     Spline through polyline points at arc lengths t_knots, refined where it collides.
 
@@ -235,9 +248,8 @@ def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad
         knots = _polyline_at(poly, t_poly, t_knots)
         # vertices map exactly onto themselves (np.interp is exact at its nodes)
         samples, s_knots, s_samples = spline_through(knots, max_step_rad)
-        samples = snap_to_bounds(samples, lower, upper, periodic)
-        chk = check_path(checker, samples, lower, upper, periodic, verify_step_rad,
-                         certified=certified)
+        samples = snap_to_bounds(samples, v.lower_rad, v.upper_rad, v.periodic)
+        chk = v.check(samples, certified=certified)
         if chk.ok:
             return samples, knots, chk, rounds
         bad = np.flatnonzero(~chk.interval_ok)
@@ -259,20 +271,22 @@ def _refined_spline(checker, poly, t_knots, lower, upper, periodic, max_step_rad
     return None
 
 
-def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
+def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic=None, *,
                 shortcut: bool = True, knot_stride: int = 2, keep_clearance_m: float = 0.05,
                 max_step_rad: float = DEFAULT_MAX_STEP_RAD,
-                verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD,
+                verify_step_rad: float | None = None,
                 quick_step_rad: float = QUICK_STEP_RAD,
                 max_rounds: int = 12, cancel=None) -> SmoothPath | None:
     """
     Smooth a polyline into a dense path whose certified check passed.
 
     Args:
-        checker: a ``CollisionChecker`` (exact geometry, the scene's margin).
+        motions: the scene's ``motion.MotionValidator`` (exact geometry, the scene's margin,
+            the joint bounds: bounded joints must stay in; its step certifies unless
+            ``verify_step_rad`` is given), or a ``CollisionChecker`` with
+            ``lower_rad, upper_rad, periodic``.
         waypoints_rad: (m, dof) exact start, grid nodes, exact goal; unwrapped
             (see ``joint_space.unwrap_path``) and joined by straight segments.
-        lower_rad, upper_rad, periodic: joint bounds (bounded joints must stay in).
         shortcut: first try a spline along the greedily shortcut polyline.
         keep_clearance_m: shortcuts keep at least margin + this (or the replaced
             stretch's own clearance, if smaller), metres.
@@ -285,37 +299,38 @@ def smooth_path(checker, waypoints_rad, lower_rad, upper_rad, periodic, *,
         ``knot_stride``-th waypoint (the paper), the polyline itself; None when even the
         polyline fails (or on cancel).  Candidates (shortcuts, spline refinements) are
         chosen by the quick test at ``quick_step_rad``; the chosen path alone is then
-        certified (``check_path``), and only if that fails is the choice made again with
+        certified (``MotionValidator.check``), and only if that fails is the choice made again with
         certified tests throughout.  ``n_checked`` and ``min_clearance_m`` are the
         certified check's.
 
     """
-    first = _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
-                    keep_clearance_m, max_step_rad, quick_step_rad, max_rounds, cancel, False)
+    v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
+    first = _smooth(v.with_step(quick_step_rad), waypoints_rad, shortcut, knot_stride,
+                    keep_clearance_m, max_step_rad, max_rounds, cancel, False)
     if first is not None:
         path, knots, method, rounds = first
-        chk = check_path(checker, path, lower_rad, upper_rad, periodic, verify_step_rad)
+        chk = v.check(path)
         if chk.ok:
             return SmoothPath(path, knots, method, chk.min_clearance_m, path_length_rad(path),
                               rounds, chk.n_checked)
     if cancel is not None and cancel.is_set():
         return None
-    again = _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
-                    keep_clearance_m, max_step_rad, verify_step_rad, max_rounds, cancel, True)
+    again = _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad,
+                    max_rounds, cancel, True)
     if again is None:
         return None
     path, knots, method, rounds = again
-    chk = check_path(checker, path, lower_rad, upper_rad, periodic, verify_step_rad)
+    chk = v.check(path)
     if not chk.ok:          # the choice was certified piece by piece: not expected
         return None
     return SmoothPath(path, knots, method, chk.min_clearance_m, path_length_rad(path), rounds,
                       chk.n_checked)
 
 
-def _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, knot_stride,
-            keep_clearance_m, max_step_rad, step_rad, max_rounds, cancel, certified):
+def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad, max_rounds, cancel,
+            certified):
     """
-    (path, knots, method, rounds) chosen with tests at ``step_rad`` (certified or quick), or None.
+    (path, knots, method, rounds) chosen with tests at the step of ``v`` (certified or quick), or None.
 
     See :func:`smooth_path`.
     """
@@ -330,12 +345,11 @@ def _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, kn
     elif len(rows) > 1:
         rows[-1] = w[-1]
     w = np.array(rows)
-    args = (lower_rad, upper_rad, periodic)
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
         return ends, ends.copy(), "polyline", 0
     attempts = []
     if shortcut and len(w) > 2:
-        keep_idx = shortcut_indices(checker, w, *args, step_rad, keep_clearance_m, certified)
+        keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified)
         sc = w[keep_idx]
         t_sc = _polyline_param(sc)
         # knots: the shortcut vertices plus points about two grid steps apart on
@@ -348,15 +362,14 @@ def _smooth(checker, waypoints_rad, lower_rad, upper_rad, periodic, shortcut, kn
     stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
     attempts.append(("spline", w, t_w[stride_idx]))
     for method, poly, t_knots in attempts:
-        res = _refined_spline(checker, poly, t_knots, *args, max_step_rad, step_rad,
-                              max_rounds, cancel, certified)
+        res = _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified)
         if res is not None:
             samples, knots, chk, rounds = res
             samples[0], samples[-1] = w[0], w[-1]
             return samples, knots, method, rounds
         if cancel is not None and cancel.is_set():
             return None
-    dense = snap_to_bounds(densify_polyline(w, max_step_rad), *args)
-    if not check_path(checker, dense, *args, step_rad, certified=certified).ok:
+    dense = snap_to_bounds(densify_polyline(w, max_step_rad), v.lower_rad, v.upper_rad, v.periodic)
+    if not v.check(dense, certified=certified).ok:
         return None
     return dense, w.copy(), "polyline", 0

@@ -57,7 +57,7 @@ def scenario_joint_limits(scenario):
     return vmax, amax, limits.velocity_scaling, limits.acceleration_scaling
 
 
-def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None) -> Motion:
+def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None, motions=None) -> Motion:
     """
     Time-parameterise a planned path with the scenario's limits and report the reaction.
 
@@ -72,6 +72,7 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
         path_rad: (M, dof) the planned path (unwrapped, exact ends).
         start_velocity_rad_s, start_path_speed: a moving start (see
             ``trajectory.time_parameterize``); default at rest.
+        motions: the scene's ``motion.MotionValidator``, for the drift check (made when None).
 
     Returns
     -------
@@ -92,7 +93,7 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
     report = reaction_report(robot, scenario.masses, scenario.scene, path_rad, traj, acs_mode=acs.mode,
                              max_wheel_momentum_Nms=acs.max_wheel_momentum_Nms,
                              max_wheel_torque_Nm=acs.max_wheel_torque_Nm,
-                             position_tolerance_m=acs.position_tolerance_m)
+                             position_tolerance_m=acs.position_tolerance_m, motions=motions)
     return Motion(traj, report)
 
 
@@ -101,7 +102,8 @@ def trajectory_limits_known(scenario) -> bool:
     return scenario.joint_limits is not None
 
 
-def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0):
+def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0,
+                 motions=None):
     """
     Run the last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
 
@@ -116,6 +118,8 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
             limits), where the reaction shapes or refuses the trajectory.
         start_path_speed: the arm's speed along the path at its start (rad/s of joint-space
             chord length; a replan joined to a moving arm, see ``trajectory.continuation``).
+        motions: the scene's ``motion.MotionValidator`` (the reaction's drift check; made
+            when None and needed).
 
     Returns
     -------
@@ -134,7 +138,7 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
     if reaction is None:
         reaction = scenario.acs.mode != "held" or scenario.acs.has_wheel_limits
     if reaction:
-        motion = plan_motion(scenario, path, start_path_speed=start_path_speed)
+        motion = plan_motion(scenario, path, start_path_speed=start_path_speed, motions=motions)
         return motion.trajectory, motion.reaction
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,

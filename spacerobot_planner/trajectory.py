@@ -57,8 +57,8 @@ the limits (see 2.) and approach the published values as the samples get closer.
 
 Resampling (``resample``) keeps a subset of the points (exact start and goal, at
 most ``time_step_s`` apart and/or within ``path_tolerance_rad`` of the dense path)
-and certifies the polyline through them on the exact geometry
-(``motion.check_path``), adding points back where it fails.
+and certifies the polyline through them on the exact geometry (the scene's
+``motion.MotionValidator``), adding points back where it fails.
 
 No ROS imports here: NumPy/SciPy, numba for the two passes.
 """
@@ -71,7 +71,7 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import CubicSpline
 
-from .motion import check_path
+from .motion import MotionValidator
 
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
@@ -689,7 +689,7 @@ class Resampled:
     ----------
         trajectory: the kept points (a subset of the dense trajectory's: exact states).
         indices: (K,) their indices in the dense trajectory (0 and M-1 included).
-        check: ``smoothing.PathCheck`` of the polyline through ``trajectory.positions_rad``
+        check: ``motion.PathCheck`` of the polyline through ``trajectory.positions_rad``
             on the exact geometry (None when no checker was given).
         refinements: rounds in which points were added back where the check failed.
 
@@ -748,14 +748,16 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
     accelerations unchanged), start and goal included.  Consecutive kept points are at
     most ``time_step_s`` apart (when given) and the dense path between them stays within
     ``path_tolerance_rad`` (Euclidean, joint space) of the straight segment joining them
-    (when given).  With a ``checker`` (``collision.CollisionChecker``) the polyline through
-    the kept points is certified on the exact geometry with ``motion.check_path``
-    (bounds of ``checker.robot``); where an interval fails, the dense point in its
-    middle is added back, until it passes or only dense intervals fail.
+    (when given).  With a ``checker`` (the scene's ``motion.MotionValidator``, or its
+    ``collision.CollisionChecker``: then the bounds of ``checker.robot`` and the default
+    step) the polyline through the kept points is certified on the exact geometry; where
+    an interval fails, the dense point in its middle is added back, until it passes or
+    only dense intervals fail.
 
     Args:
         traj: a dense trajectory from :func:`time_parameterize`.
-        checker: optional CollisionChecker of the scene the path was planned in.
+        checker: optional MotionValidator (or CollisionChecker) of the scene the path was
+            planned in.
         time_step_s: largest time between kept points, s (> 0) or None.
         path_tolerance_rad: largest deviation from the dense path, rad (> 0) or None.
 
@@ -780,10 +782,9 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
         idx = _select(t, q, time_step_s, path_tolerance_rad)
     check, rounds = None, 0
     if checker is not None:
-        robot = checker.robot
-        bounds = (robot.planned_lower_rad, robot.planned_upper_rad, robot.planned_periodic)
+        motions = MotionValidator.of(checker)
         while True:
-            check = check_path(checker, q[idx], *bounds)
+            check = motions.check(q[idx])
             if check.ok or rounds >= max_rounds:
                 break
             bad = np.flatnonzero(~check.interval_ok)

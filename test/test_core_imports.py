@@ -46,7 +46,7 @@ COMPAT = (f"{PACKAGE}.dynamics",)
 #: the core's layers, lowest first: a module imports modules of its own layer or lower ones
 #: (within a layer the graph is acyclic).  Every core module is in one.
 LAYERS = (
-    ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft")),
+    ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft", "overlap")),
     ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.oracle",
                 "field.paper", "descent", "contact", "smoothing", "ik", "results", "trajectory", "reaction",
                 "timing", "replanning", "settings", "problem")),
