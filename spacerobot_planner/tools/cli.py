@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..collision import CollisionChecker
 from ..config import check_value, load_scenario
 from ..field import SOLVERS
 from ..free_floating import plan_free_floating
+from ..motion import MotionValidator
 from ..planner import Planner
 from ..timing import Motion
 from ..trajectory import resample
@@ -115,7 +115,8 @@ def main(argv=None) -> int:
         return int(e.code or 0)
     # ---- inputs (exit 1 on anything malformed, naming the field)
     try:
-        scenario = load_scenario(args.params_file)
+        scenario = load_scenario(args.params_file,
+                                 warn=lambda line: print(f"spacerobot-plan: warning: {line}", file=sys.stderr))
         robot = scenario.robot
         given = scenario.planner_settings           # the file's planner.* (defaults filled)
         if args.cells is not None:
@@ -174,7 +175,7 @@ def main(argv=None) -> int:
         print(line)
     resampled = None
     if res.trajectory is not None:
-        resampled = resample(res.trajectory, CollisionChecker(robot, scenario.scene))
+        resampled = resample(res.trajectory, MotionValidator.for_scene(robot, scenario.scene))
         for line in _motion_summary(res.trajectory, res.reaction, resampled):
             print(line)
         if res.code == "reaction_refused":
