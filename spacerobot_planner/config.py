@@ -30,6 +30,7 @@ range and whether a change needs a restart; the node declares exactly these.
 from __future__ import annotations
 
 import array
+import difflib
 import math
 import re
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ from .scene import Scene, Target
 from .settings import JointLimits, PlannerSettings
 
 __all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file", "matching_sections",
+           "unknown_parameters", "ROS_PARAMETERS", "DECLARED_ALIASES",
            "scenario_from_params", "spec_default", "NODE_NAME", "settings_from_params", "joint_limits_from_params"]
 
 NODE_NAME = "spacerobot_planner"
@@ -219,6 +221,30 @@ PARAMETERS = (
 
 _SPECS = {p.name: p for p in PARAMETERS}
 
+#: parameters rclpy declares on every node (never the package's, never unknown)
+ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+#: names a node of the package declares that differ from the schema's (mock_arm_node)
+DECLARED_ALIASES = {"rate_hz": "mock_arm.rate_hz"}
+
+
+def unknown_parameters(names) -> list:
+    """
+    Return a line for each name that no node of the package knows (a typo in a file, a ``-p``).
+
+    The line names it and the closest known name (difflib), e.g. ``unknown parameter
+    'safety_margn_m' (ignored); did you mean 'safety_margin_m'?``.  Known: the schema
+    (``PARAMETERS``: every node's), ``DECLARED_ALIASES``, rclpy's own (``ROS_PARAMETERS``,
+    ``qos_overrides.*``).
+    """
+    known = sorted({*_SPECS, *DECLARED_ALIASES, *ROS_PARAMETERS})
+    out = []
+    for name in names:
+        if name in known or name.startswith("qos_overrides."):
+            continue
+        close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+        out.append(f"unknown parameter '{name}' (ignored)" + (f"; did you mean '{close[0]}'?" if close else ""))
+    return out
+
 
 # --------------------------------------------------------------- type checking
 def _check_scalar(name, kind, value):
@@ -313,7 +339,7 @@ def load_params_file(path, node: str = NODE_NAME, namespace: str = "/") -> dict:
     matches it (``/**``, ``/**/node``, ``node``, ``/node``, ``/ns/node``; rcl's wildcards),
     in file order, a later one on top.  A file with one section of another name is taken
     whole (older single-section files).  Unknown parameters are kept (the nodes ignore
-    them); known ones are type-checked.
+    them; :func:`unknown_parameters` names them); known ones are type-checked.
     """
     try:
         with open(path, encoding="utf-8") as f:
@@ -468,9 +494,17 @@ def joint_limits_from_params(params: dict, robot: PlanarArm) -> JointLimits | No
                        _get(params, "trajectory.max_acceleration_scaling_factor"))
 
 
-def load_scenario(path) -> Scenario:
-    """Load a scenario from a ROS 2 parameter file (see ``config/paper_3dof.yaml``)."""
+def load_scenario(path, warn=None) -> Scenario:
+    """
+    Load a scenario from a ROS 2 parameter file (see ``config/paper_3dof.yaml``).
+
+    ``warn(line)``, when given, is told each unknown parameter of the file (see
+    :func:`unknown_parameters`).
+    """
     params = load_params_file(path)
+    if warn is not None:
+        for line in unknown_parameters(params):
+            warn(f"{path}: {line}")
     try:
         return scenario_from_params(params)
     except ValueError as e:

@@ -266,3 +266,48 @@ def test_target_overlapping_the_spacecraft_is_invalid_input(graph):
     refused = g.planner.set_parameters([Parameter("target.center_m", value=[-1.0, 0.0])])[0]
     assert not refused.successful and "target.center_m" in refused.reason and "overlaps" in refused.reason
     assert g.planner._gen == 0 and g.n_trajs() == 0                 # nothing was planned
+
+
+# ================================================================== 9. unknown parameters
+def test_unknown_parameters_name_the_closest_known_one():
+    from spacerobot_planner.config import unknown_parameters
+    lines = unknown_parameters(["safety_margn_m", "grid.cells", "rate_hz", "use_sim_time", "planner.solvr",
+                                "qos_overrides./x.publisher.depth", "zzzzzz"])
+    assert lines == ["unknown parameter 'safety_margn_m' (ignored); did you mean 'safety_margin_m'?",
+                     "unknown parameter 'planner.solvr' (ignored); did you mean 'planner.solver'?",
+                     "unknown parameter 'zzzzzz' (ignored)"], lines
+
+
+def _typo_file(tmp_path):
+    import yaml
+    with open(os.path.join(CONFIG_DIR, "paper_2dof.yaml")) as f:
+        doc = yaml.safe_load(f)
+    doc["/**/spacerobot_planner"]["ros__parameters"]["safety_margn_m"] = 0.05
+    doc["/**/spacerobot_planner"]["ros__parameters"]["grid"]["cells"] = [60, 60]
+    path = tmp_path / "typo.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return str(path)
+
+
+def test_unknown_parameter_in_a_file_is_reported_by_the_cli(tmp_path, capsys):
+    from spacerobot_planner.tools.cli import main
+    rc = main(["--params-file", _typo_file(tmp_path), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "unknown parameter 'safety_margn_m' (ignored); did you mean 'safety_margin_m'?" in err, err
+
+
+def test_unknown_parameter_in_a_file_is_reported_by_the_node(tmp_path, capfd):
+    from spacerobot_planner.ros.planner_node import PlannerNode
+    ctx = Context()
+    rclpy.init(context=ctx, args=["--ros-args", "--params-file", _typo_file(tmp_path), "-p", "autostart:=false"])
+    try:
+        node = PlannerNode(context=ctx)
+        assert not node.has_parameter("safety_margn_m")
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    err = capfd.readouterr().err
+    lines = [line for line in err.splitlines() if "safety_margn_m" in line]
+    assert len(lines) == 1 and "WARN" in lines[0], err
+    assert "unknown parameter 'safety_margn_m' (ignored); did you mean 'safety_margin_m'?" in lines[0]

@@ -13,7 +13,7 @@ from __future__ import annotations
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.parameter import Parameter
 
-from ..config import PARAMETERS, check_value
+from ..config import PARAMETERS, ROS_PARAMETERS, check_value
 
 __all__ = ["PLANNER_PARAMETERS", "MOCK_ARM_PARAMETERS", "descriptor_for", "params_to_overrides",
            "check_choice", "CHOICES", "declare_checked", "ROS_PARAMETERS"]
@@ -75,8 +75,6 @@ def descriptor_for(spec, name: str | None = None) -> ParameterDescriptor:
     return d
 
 
-#: parameters rclpy itself declares (or reads) on every node: never the package's, never unknown
-ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
 _ROS_PREFIXES = ("qos_overrides.",)
 
 
@@ -101,7 +99,7 @@ def declare_checked(node, names, specs: dict | None = None) -> dict:
     messages are about types and ranges only) and declared again with its descriptor.
     ``names``: declared name -> schema name (or an iterable of schema names).  Returns the
     values given at start that are not among ``names``, by name (another node's, or
-    unknown); they are undeclared.
+    unknown: ``config.unknown_parameters``); they are undeclared.
     """
     names = dict(names) if isinstance(names, dict) else {n: n for n in names}
     specs = SPECS if specs is None else specs

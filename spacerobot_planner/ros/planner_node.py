@@ -79,7 +79,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from ..config import NODE_NAME, check_value, scenario_from_params
+from ..config import NODE_NAME, check_value, scenario_from_params, unknown_parameters
 from ..scene import Target
 from ..collision import CollisionChecker
 from ..overlap import target_overlap_reason
@@ -171,7 +171,9 @@ class PlannerNode(LifecycleNode):
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides,
                          automatically_declare_parameters_from_overrides=True, **kwargs)
         self._log_name = node_name
-        declare_checked(self, PLANNER_PARAMETERS)      # ValueError: the parameter and why
+        others = declare_checked(self, PLANNER_PARAMETERS)      # ValueError: the parameter and why
+        for line in unknown_parameters(others):                 # typos, named with the closest name
+            self.get_logger().warning(line)
         params = {n: self.get_parameter(n).value for n in PLANNER_PARAMETERS}
         self._params = {k: (list(v) if isinstance(v, (tuple, np.ndarray, array.array)) else v)
                         for k, v in params.items()}
