@@ -210,6 +210,10 @@ PARAMETERS = (
               "The join needs the arm to follow the executing trajectory: the measured joint_states "
               "within this of it (per joint), else the replan starts from the measured state at "
               "rest, degrees.", False, 0.0, 360.0),
+    ParamSpec("attitude_topic", "string", "",
+              "Topic of the spacecraft body's pose (geometry_msgs/PoseStamped in the planning frame; "
+              "its yaw is the attitude joint, its position is ignored), for joint_states that lack the "
+              "attitude joint (a real servicer's); empty: joint_states only.", True),
     ParamSpec("joint_states_timeout_s", "double", 10.0,
               "A plan_capture goal without its own start sent before any joint_states waits this long "
               "for them (feedback stage waiting_for_joint_states), then aborts with INVALID_INPUT; "

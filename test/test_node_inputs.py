@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
@@ -311,3 +312,37 @@ def test_unknown_parameter_in_a_file_is_reported_by_the_node(tmp_path, capfd):
     lines = [line for line in err.splitlines() if "safety_margn_m" in line]
     assert len(lines) == 1 and "WARN" in lines[0], err
     assert "unknown parameter 'safety_margn_m' (ignored); did you mean 'safety_margin_m'?" in lines[0]
+
+
+# ================================================================== 10. the attitude from its own topic
+def test_attitude_from_its_own_topic_when_joint_states_lack_it(graph):
+    from geometry_msgs.msg import PoseStamped
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import diag_values, planned_positions, scene_params
+    g = graph(scene_params("3dof", attitude_topic="spacecraft_pose"), with_arm=False)
+    robot = g.scenario.robot
+    assert g.planner.get_parameter("attitude_topic").value == "spacecraft_pose"
+    start = robot.full(g.scenario.start_rad)                  # attitude -90°, shoulder 135°, elbow 90°
+    arm_only = joint_state_msg(robot.joint_names[1:], start[1:])  # a real servicer's joint_states
+    g.pub_js.publish(arm_only)                                 # no attitude yet: refused, saying where from
+    g.wait(lambda: g.level("input") == b"\x02", 10, "joint_states without the attitude refused")
+    reason = diag_values(g.status("input"))["reason"]
+    assert "attitude" in reason and "spacecraft_pose" in reason, reason
+    pub = g.drv.create_publisher(PoseStamped, "spacecraft_pose", 10)
+    g.wait(lambda: pub.get_subscription_count() > 0, 10, "the planner subscribed to spacecraft_pose")
+    pose = PoseStamped()
+    pose.header.frame_id = "world"
+    yaw = start[0]
+    pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    pub.publish(pose)
+    g.wait(lambda: g.planner._attitude is not None, 10, "the attitude received")
+    g.pub_js.publish(arm_only)
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states with the topic's attitude")
+    # the graph's controller check reads the recorded joint_states, which lack the attitude here: it
+    # cannot see the attitude's current state (checked against the topic's yaw below instead)
+    g.known_violations.add("the first point is at time 0 but is not the current state")
+    g.send_target()
+    g.wait(lambda: g.n_trajs() == 1 and len(g.att_trajs) == 1, 30, "a trajectory")
+    first = planned_positions(robot, [g.trajs[0][1], g.att_trajs[0][1]], 0)
+    assert abs(math.remainder(first[0] - yaw, 2 * math.pi)) < 1e-6, np.degrees(first)
+    np.testing.assert_allclose(first[1:], start[1:], atol=1e-9)

@@ -129,11 +129,13 @@ def target_to_pose(target: Target, frame: str, stamp=None) -> PoseStamped:
 
 
 # ------------------------------------------------------------------ joints
-def joint_state_positions(msg: JointState, names, what: str = "joint_states") -> np.ndarray:
+def joint_state_positions(msg: JointState, names, what: str = "joint_states", fallback: dict | None = None
+                          ) -> np.ndarray:
     """
     Positions (rad) of the joints ``names`` (in that order) from a JointState.
 
-    Extra joints are ignored. Raises ValueError when the message's name and position
+    Extra joints are ignored; a joint the message lacks takes its value from ``fallback``
+    (name -> rad) when there.  Raises ValueError when the message's name and position
     lists differ in length, a joint is missing or listed twice, or a value is not finite.
     """
     if len(msg.name) != len(msg.position):
@@ -143,11 +145,12 @@ def joint_state_positions(msg: JointState, names, what: str = "joint_states") ->
         if n in index:
             raise ValueError(f"{what}: joint '{n}' is listed twice")
         index[n] = i
-    missing = [n for n in names if n not in index]
+    fallback = fallback or {}
+    missing = [n for n in names if n not in index and n not in fallback]
     if missing:
         raise ValueError(f"{what}: missing joint(s) {', '.join(missing)} "
                          f"(got {', '.join(msg.name) or 'none'})")
-    q = np.array([msg.position[index[n]] for n in names], dtype=float)
+    q = np.array([msg.position[index[n]] if n in index else fallback[n] for n in names], dtype=float)
     bad = [n for n, v in zip(names, q) if not math.isfinite(v)]
     if bad:
         raise ValueError(f"{what}: joint(s) {', '.join(bad)} not finite")

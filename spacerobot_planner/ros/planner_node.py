@@ -12,7 +12,9 @@ current state is refused with a log line naming the state and the transitions it
 
 Interfaces (when active):
 
-- subscribes ``target_pose`` (PoseStamped), ``joint_states``, ``goal_joint_state`` (JointState);
+- subscribes ``target_pose`` (PoseStamped), ``joint_states``, ``goal_joint_state`` (JointState),
+  and ``attitude_topic`` when set (PoseStamped of the spacecraft body in the planning frame:
+  its yaw stands for the attitude joint in joint_states that lack it, a real servicer's);
   a target whose body overlaps the spacecraft's body (at the locked attitude, or at any
   attitude within its bounds when the attitude is planned: ``overlap.py``) is invalid
   input, as a goal's or as the ``target.*`` parameters;
@@ -105,7 +107,7 @@ _NO_REPLAN = {"replan.target_tolerance_m", "replan.target_tolerance_deg", "diagn
               "planner.test_stall_s", "joint_states_timeout_s"}
 WARM_UP_TIMEOUT_S = 300.0
 #: inputs at sensor rate: their rejections are logged rate-limited
-_RATE_LIMITED = ("joint_states", "target_pose", "goal_joint_state")
+_RATE_LIMITED = ("joint_states", "target_pose", "goal_joint_state", "attitude")
 #: a joint group that moves less than this is at the goal: no trajectory for it, rad
 AT_GOAL_TOL_RAD = 1e-4
 #: Published trajectories keep a point at least this often (plus where the path bends).
@@ -198,6 +200,7 @@ class PlannerNode(LifecycleNode):
         self._joint_ns = 0               # ROS time of that measurement (its stamp, else arrival), ns
         self._executing = None           # replanning.Executing: the trajectory last sent to the arm
         self._rejections = RejectionLog()     # topics' rejections: a line, then counts
+        self._attitude = None            # rad: the latest yaw on attitude_topic (joint_states without it)
         self._waiting_timer = None       # ends a goal's wait for the first joint_states
 
         self.state = "unconfigured"
@@ -346,6 +349,9 @@ class PlannerNode(LifecycleNode):
             # awaiting callback would hold it (no other callback of the node) until it answers
             self.create_service(Trigger, "~/replan", self._on_replan, callback_group=ReentrantCallbackGroup()),
         ]
+        topic = self._params["attitude_topic"]
+        if topic:
+            self._active_entities.append(self.create_subscription(PoseStamped, topic, self._on_attitude, 10))
         with self._lock:
             self._accepting = True
             self.state = "idle"
@@ -550,10 +556,16 @@ class PlannerNode(LifecycleNode):
         return self._robot.validate_q(q, what)
 
     def _on_joint_state(self, msg: JointState):
+        attitude = self._robot.joint_names[0]
+        topic = self._params["attitude_topic"]
+        fallback = None if self._attitude is None else {attitude: self._attitude}
         try:
-            q = conv.joint_state_positions(msg, self._robot.planned_names)
+            q = conv.joint_state_positions(msg, self._robot.planned_names, fallback=fallback)
         except ValueError as e:
-            self._reject("joint_states", "invalid_input", str(e))
+            reason = str(e)
+            if topic and fallback is None and attitude in self._robot.planned_names and attitude not in msg.name:
+                reason += f"; no attitude received on '{topic}' yet"
+            self._reject("joint_states", "invalid_input", reason)
             return
         stamp_ns = conv.time_to_ns(msg.header.stamp)
         with self._lock:
@@ -562,6 +574,26 @@ class PlannerNode(LifecycleNode):
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self._replace_pending(waiting)
+
+    def _on_attitude(self, msg: PoseStamped):
+        """
+        Take the spacecraft body's pose (``attitude_topic``): its yaw is the attitude joint.
+
+        Used for the joint_states that lack the attitude joint (a real servicer's); the
+        position is ignored.
+        """
+        topic = self._params["attitude_topic"]
+        if msg.header.frame_id.lstrip("/") != self._frame.lstrip("/"):
+            self._reject("attitude", "invalid_input", f"{topic}: frame '{msg.header.frame_id}' is not the "
+                         f"planning frame '{self._frame}'")
+            return
+        o = msg.pose.orientation
+        try:
+            yaw = conv.quaternion_to_yaw(o.x, o.y, o.z, o.w)
+        except ValueError as e:
+            self._reject("attitude", "invalid_input", f"{topic}: {e}")
+            return
+        self._attitude = yaw
 
     async def _on_replan(self, request, response):
         """~/replan: plan to the current goal now; answer with the plan's outcome (see the module docstring)."""
