@@ -142,13 +142,13 @@ def steepest_successors(log_u: np.ndarray, periodic) -> np.ndarray:
 
 def ascent_walk(succ: np.ndarray, goal_mask: np.ndarray, start) -> np.ndarray:
     """Return the nodes of the ascent from ``start`` (``succ`` from ``steepest_successors``), int (m, ndim)."""
-    shape = succ.shape
-    f = int(np.ravel_multi_index(tuple(start), shape))
+    nxt, goal = succ.ravel(), goal_mask.ravel()
+    f = int(np.ravel_multi_index(tuple(start), succ.shape))
     walk = [f]
-    while not goal_mask.ravel()[f] and succ.ravel()[f] >= 0:
-        f = int(succ.ravel()[f])
+    while not goal[f] and nxt[f] >= 0:
+        f = int(nxt[f])
         walk.append(f)
-    return np.stack(np.unravel_index(np.array(walk), shape), axis=1)
+    return np.stack(np.unravel_index(np.array(walk), succ.shape), axis=1)
 
 
 def ascent_reaches_goal(succ: np.ndarray, goal_mask: np.ndarray) -> np.ndarray:
