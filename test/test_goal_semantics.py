@@ -163,10 +163,14 @@ def test_goal_in_flight_gets_a_result_on_ctrl_c(tmp_path):
         _wait(lambda: pub_j.get_subscription_count() > 0 or proc.poll() is not None, 60, "planner_node subscribed")
         assert proc.poll() is None, log.read_text()
         client = _Client(ctx)
-        pub_j.publish(joint_state_msg(("attitude", "shoulder", "elbow"), np.radians([-90.0, 135.0, 90.0])))
-        time.sleep(0.5)                      # (the goal would otherwise wait for joint_states: fine too)
-        result = client.send(_target_goal())
-        _wait(lambda: "planning #" in log.read_text(), 30, "the plan started")
+        js = joint_state_msg(("attitude", "shoulder", "elbow"), np.radians([-90.0, 135.0, 90.0]))
+        pub_j.publish(js)
+        result = client.send(_target_goal())          # (if before the joint_states: it waits for them)
+        t0 = time.monotonic()
+        while "planning #" not in log.read_text():
+            assert time.monotonic() - t0 < 30, "no plan started\n" + log.read_text()
+            pub_j.publish(js)
+            time.sleep(0.2)
         os.killpg(proc.pid, signal.SIGINT)
         try:
             _assert_ended_with_a_reason(result, "shutting down")
@@ -297,7 +301,7 @@ def test_replan_before_joint_states_says_it_is_queued(graph):
 
 
 def test_replan_awaits_its_plan_and_the_node_serves_on(graph):
-    g = graph(scene_params("3dof", **{"planner.test_stall_s": 3.0}), with_arm=False)
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 10.0}), with_arm=False)
     _start(g)
     cli = _replan_client(g)
     from std_srvs.srv import Trigger
