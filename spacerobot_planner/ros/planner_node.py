@@ -710,10 +710,10 @@ class PlannerNode(LifecycleNode):
         is this one or has ended: planner_node's main after Ctrl-C, destroy_node after the
         spinning stopped); otherwise waits for that thread.  Bounded by ``timeout_s``.
         """
-        if not self._in_flight():
-            return
         ex, runner = self.executor, self._goal_thread
-        spin = ex is not None and (runner is None or runner is threading.current_thread() or not runner.is_alive())
+        if not self._in_flight() or ex is None:        # (in no executor: nothing can run them)
+            return
+        spin = runner is None or runner is threading.current_thread() or not runner.is_alive()
         deadline = time.monotonic() + timeout_s
         flushed = None                # the results are sent by tasks after the goals' own
         while self.context.ok():
