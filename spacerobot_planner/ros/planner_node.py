@@ -91,6 +91,7 @@ from ..trajectory import HorizonPassed, resample, time_parameterize
 from ..worker import PlanCrash, PlanDone, PlanError, PlanJob, Progress, make_backend
 from . import conversions as conv
 from . import node_main
+from .pending import PendingAnswers
 from .rejections import RejectionLog
 from .parameters import PLANNER_PARAMETERS, SPECS, check_choice, declare_checked, params_to_overrides
 
@@ -114,10 +115,6 @@ AT_GOAL_TOL_RAD = 1e-4
 RESAMPLE_STEP_S = 0.25
 #: the feedback stage of a goal that waits for the first joint_states
 WAITING_STAGE = "waiting_for_joint_states"
-#: at shutdown, the longest the goals in flight are given to return their results, s
-GOAL_DRAIN_S = 2.0
-#: the executor sends a goal's result in a task after the goal's own: spun this long more, s
-RESULT_FLUSH_S = 0.2
 
 
 @dataclass(eq=False)
@@ -218,12 +215,8 @@ class PlannerNode(LifecycleNode):
         self._diag_timer = None
         self._active_entities = []       # subscriptions, service (destroyed on deactivate)
         self._action = None
-        self._goals = {}                 # goal id bytes -> _Request of an action goal
-        self._replans = 0                # ~/replan calls awaiting their plans
-        self._goal_thread = None         # the thread that runs the goals' coroutines (the executor's)
-        self._retired = []               # destroy callables of servers left until their calls are answered
-        self._retire_timer = None
-        self._retire_idle = False
+        self._pending_answers = PendingAnswers(self, self._log)    # goals and ~/replan calls in flight
+        self._goals = self._pending_answers.goals                  # goal id bytes -> _Request of a goal
         self._wake = self.create_guard_condition(lambda: None)   # resumes awaiting goals
         self.add_pre_set_parameters_callback(self._pre_set_params)
         self.add_on_set_parameters_callback(self._on_set_params)
@@ -374,7 +367,7 @@ class PlannerNode(LifecycleNode):
             self._drop_requests(why)
         for ent in self._active_entities:
             if hasattr(ent, "srv_name"):
-                self._retire(lambda srv=ent: self.destroy_service(srv))   # ~/replan: after its answers
+                self._pending_answers.retire(lambda srv=ent: self.destroy_service(srv))   # after its answers
             else:
                 self.destroy_subscription(ent)
         self._active_entities = []
@@ -390,11 +383,13 @@ class PlannerNode(LifecycleNode):
         Stop the worker and remove what configure made.
 
         In a transition (a callback of the executor) the goals in flight return their results
-        after it, so their action server is destroyed later (:meth:`_retire_action`);
+        after it, so their action server is destroyed later (``pending.PendingAnswers.retire``);
         ``finish_goals`` (not in a callback: destroy_node) lets them return their results first.
         """
         self.shutdown_worker(finish_goals=finish_goals)
-        self._retire_action()
+        action, self._action = self._action, None
+        if action is not None:
+            self._pending_answers.retire(action.destroy)
         for pub in self._pubs.values():
             self.destroy_lifecycle_publisher(pub)
         self._pubs = {}
@@ -597,7 +592,7 @@ class PlannerNode(LifecycleNode):
 
     async def _on_replan(self, request, response):
         """~/replan: plan to the current goal now; answer with the plan's outcome (see the module docstring)."""
-        self._goal_thread = threading.current_thread()
+        self._pending_answers.running()
         if self._joint_q is None:
             gen = self._submit("~/replan")
             response.success = False
@@ -614,12 +609,12 @@ class PlannerNode(LifecycleNode):
             req = self._make_request("~/replan", self._joint_goal,
                                      None if self._joint_goal is not None else self._target)
         req.on_done = on_done
-        self._replans += 1
+        self._pending_answers.replans += 1
         try:
             gen = self._submit_request(req)
             outcome = await done
         finally:
-            self._replans -= 1
+            self._pending_answers.replans -= 1
         response.success = outcome.ok
         response.message = f"replan #{gen}: {outcome.code}" + (f": {outcome.reason}" if outcome.reason else "")
         return response
@@ -627,7 +622,7 @@ class PlannerNode(LifecycleNode):
     # ------------------------------------------------------------------ action
     async def _execute_goal(self, goal_handle):
         """One plan_capture goal: validate, hand to the worker, await its outcome."""
-        self._goal_thread = threading.current_thread()
+        self._pending_answers.running()
         goal = goal_handle.request
         done = Future()
         try:
@@ -701,68 +696,6 @@ class PlannerNode(LifecycleNode):
             self._wake.trigger()
         except Exception:          # noqa: BLE001 - context already shut down
             pass
-
-    def _drain_goals(self, timeout_s: float = GOAL_DRAIN_S):
-        """
-        Let the goals in flight (their requests finished) return their results to their clients.
-
-        Spins the node's executor when no other thread does (the thread that ran the goals
-        is this one or has ended: planner_node's main after Ctrl-C, destroy_node after the
-        spinning stopped); otherwise waits for that thread.  Bounded by ``timeout_s``.
-        """
-        ex, runner = self.executor, self._goal_thread
-        if not self._in_flight() or ex is None:        # (in no executor: nothing can run them)
-            return
-        spin = runner is None or runner is threading.current_thread() or not runner.is_alive()
-        deadline = time.monotonic() + timeout_s
-        flushed = None                # the results are sent by tasks after the goals' own
-        while self.context.ok():
-            now = time.monotonic()
-            if now >= deadline or (flushed is not None and now >= flushed):
-                break
-            if not self._in_flight() and flushed is None:
-                flushed = now + RESULT_FLUSH_S
-            if spin:
-                try:
-                    ex.spin_once(timeout_sec=0.02)
-                except Exception:      # noqa: BLE001 - the executor or context is going away
-                    break
-            else:
-                time.sleep(0.02)
-        if self._in_flight():
-            self._log("warning", f"{self._in_flight()} plan_capture goal(s) or ~/replan call(s) were not "
-                      f"answered within {timeout_s:g} s")
-
-    def _in_flight(self) -> int:
-        """Count the plan_capture goals and ~/replan calls still to be answered."""
-        return len(self._goals) + self._replans
-
-    def _retire_action(self):
-        """Destroy the action server now, or once its goals in flight have returned their results."""
-        action, self._action = self._action, None
-        if action is not None:
-            self._retire(action.destroy)
-
-    def _retire(self, destroy):
-        """Call ``destroy`` (of a server) now, or once no goal or ~/replan call waits for an answer."""
-        if not self._in_flight():
-            destroy()
-            return
-        self._retired.append(destroy)
-        if self._retire_timer is None:
-            self._retire_timer = self.create_timer(RESULT_FLUSH_S, self._reap_retired)
-
-    def _reap_retired(self, now: bool = False):
-        """Timer: destroy the retired servers a whole period after the last call was answered (or ``now``)."""
-        idle, self._retire_idle = self._retire_idle, not self._in_flight()
-        if not now and not (idle and self._retire_idle):
-            return
-        done, self._retired = self._retired, []
-        for destroy in done:
-            destroy()
-        if self._retire_timer is not None:
-            self.destroy_timer(self._retire_timer)
-            self._retire_timer = None
 
     # ------------------------------------------------------------------ requests
     def _make_request(self, why, joint_goal, target, start=None) -> _Request:
@@ -1263,8 +1196,8 @@ class PlannerNode(LifecycleNode):
         if self._started and self._state_machine.current_state[1] != "finalized":
             self._shutdown_all("destroy_node")
         if self._started:
-            self._drain_goals()
-            self._reap_retired(now=True)
+            self._pending_answers.drain()
+            self._pending_answers.reap(now=True)
         return super().destroy_node()
 
     def shutdown_worker(self, timeout_s: float = 5.0, finish_goals: bool = False):
@@ -1272,12 +1205,12 @@ class PlannerNode(LifecycleNode):
         Stop the worker (cancelling a plan in progress) and the planning process.
 
         Every request ends (cancelled: the node is shutting down); ``finish_goals`` then lets
-        the plan_capture goals in flight send their results (see :meth:`_drain_goals`; not
-        from a callback of the node's executor).
+        the plan_capture goals and ~/replan calls in flight send their answers (see
+        ``pending.PendingAnswers.drain``; not from a callback of the node's executor).
         """
         self._stop_worker(timeout_s)
         if finish_goals:
-            self._drain_goals()
+            self._pending_answers.drain()
 
     def _stop_worker(self, timeout_s):
         with self._lock:
