@@ -10,6 +10,12 @@ what is needed from any state.  ``autostart`` (default true) configures and acti
 at start, so ``ros2 run`` plans at once.  A transition that is not possible from the
 current state is refused with a log line naming the state and the transitions it has.
 
+Start: the values given (parameter file, ``-p``, ``parameter_overrides``) are checked
+against the schema (``config.PARAMETERS``) before rclpy's descriptors; a refused one
+ends the start with one line naming the parameter and why (``planner_node: safety_margin_m:
+-1.0 is below the minimum 0.0``, exit code 1); an unknown one is named in a warning with
+the closest known name.
+
 Interfaces (when active):
 
 - subscribes ``target_pose`` (PoseStamped), ``joint_states``, ``goal_joint_state`` (JointState),
@@ -28,10 +34,9 @@ Interfaces (when active):
   carries the stage and a progress fraction (``waiting_for_joint_states`` while a goal
   without its own start waits for the first joint_states: it aborts with INVALID_INPUT
   after ``joint_states_timeout_s``; topic requests wait without limit); bad goals abort
-  with INVALID_INPUT and
-  the reason; every accepted goal ends with a result: deactivate, shutdown, cleanup,
-  destroy_node and Ctrl-C abort the goals in flight with code CANCELLED and the reason
-  before the action server goes;
+  with INVALID_INPUT and the reason; every accepted goal ends with a result: deactivate,
+  shutdown, cleanup, destroy_node and Ctrl-C abort the goals in flight with code
+  CANCELLED and the reason before the action server goes (``pending.py``);
 - publishes ``joint_trajectory``, ``potential_grid`` / ``cspace_grid`` (OccupancyGrid in
   frame ``grid_frame``, x/y in radians, transient-local), ``planned_path_markers`` and
   ``/diagnostics`` (two statuses: ``planner`` = state + outcome of the last finished
