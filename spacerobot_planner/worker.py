@@ -47,7 +47,6 @@ from typing import Callable
 import numpy as np
 
 from .config import load_scenario
-from .field import DEFAULT_SOLVER
 from .planner import Planner
 from .termination import Termination, stall
 
@@ -364,9 +363,9 @@ class ThreadBackend:
     A cancel sets the plan's termination token: the stage stops at its next poll.
     """
 
-    def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
-        self.planner = Planner(scenario, solver=solver or DEFAULT_SOLVER, field_tolerance=field_tolerance,
-                               trajectory=False)
+    def __init__(self, scenario, log=None, info=None, solver: str | None = None,
+                 field_tolerance: float | None = None):
+        self.planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)
         self._cancel = Termination()
         self.pid = None
         self._counts = {"jobs": 0, "cancelled": 0}
@@ -410,15 +409,16 @@ class ProcessBackend:
     #: is only for one that does not, so it is long enough never to fire on a loaded machine.
     CANCEL_GRACE_S = 5.0
 
-    def __init__(self, scenario, log=None, info=None, solver: str | None = None, field_tolerance: float = 1e-6):
+    def __init__(self, scenario, log=None, info=None, solver: str | None = None,
+                 field_tolerance: float | None = None):
         """
         Start the planning process for ``scenario`` (it warms up meanwhile: see :meth:`wait_ready`).
 
         log: callable for warnings (a child that died); info: for progress (warm-up); solver,
-        field_tolerance: what the warm-up compiles (default: the core's default).
+        field_tolerance: what the warm-up compiles (None: the scenario's, ``Scenario.planner_settings``).
         """
         self._scenario = scenario
-        self._solver = (solver or DEFAULT_SOLVER, float(field_tolerance))
+        self._solver = (solver, None if field_tolerance is None else float(field_tolerance))
         self._log = log
         self._info = info
         self._send_lock = threading.Lock()
@@ -603,7 +603,7 @@ def _cancelled_done(job: PlanJob, grace_s: float) -> PlanError:
                      f"stage did not answer the cancel within {grace_s:g} s)")
 
 
-def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=1e-6):
+def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=None):
     """Make a ProcessBackend (default) or ThreadBackend."""
     return (ProcessBackend if separate_process else ThreadBackend)(scenario, log=log, info=info, solver=solver,
                                                                    field_tolerance=field_tolerance)
