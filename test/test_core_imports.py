@@ -41,7 +41,7 @@ ROS_TOP = ("rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs"
 LAZY_ALLOWED: dict = {}
 
 #: compatibility re-exports for code outside the core; no core module imports them
-COMPAT = (f"{PACKAGE}.dynamics",)
+COMPAT = ()
 
 #: the core's layers, lowest first: a module imports modules of its own layer or lower ones
 #: (within a layer the graph is acyclic).  Every core module is in one.
@@ -52,7 +52,7 @@ LAYERS = (
                 "timing", "replanning", "settings", "problem")),
     ("pipeline", ("pipeline",)),
     ("planner", ("planner",)),
-    ("session and boundary", ("config", "free_floating", "worker", "dynamics", "")),
+    ("session and boundary", ("config", "free_floating", "worker", "")),
 )
 
 

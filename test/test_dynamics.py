@@ -1,5 +1,8 @@
 """
-dynamics.py against independent oracles (test/oracles.py) and a known answer.
+Spacecraft physics, reaction verdict and free-floating planning against independent oracles.
+
+The modules: spacecraft.py, reaction.py, free_floating.py; the oracles: test/oracles.py, and a
+known answer.
 
 Momentum sums from finite differences of the joint points (m r × v + I ω about the system CoM),
 the wheel's momentum and torque the same way, a free-floating simulator of the test's own, a

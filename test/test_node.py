@@ -296,7 +296,7 @@ def test_servicer_trajectory_keeps_the_wheel_limits(graph):
     """
     from node_helpers import diag_values
     from test_dynamics import _load_oracle
-    from spacerobot_planner.dynamics import MassProperties
+    from spacerobot_planner.spacecraft import MassProperties
     g = graph(scene_params("servicer"), with_arm=False)
     robot = g.scenario.robot
     g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))

@@ -56,7 +56,7 @@ def _value(v) -> str:
 def render_parameters() -> str:
     """Return docs/parameters.md: every parameter of ``config.PARAMETERS``, grouped by section."""
     from ..config import PARAMETERS
-    from ..dynamics import ACS_MODES
+    from ..spacecraft import ACS_MODES
     from ..ros.parameters import CHOICES, MOCK_ARM_PARAMETERS, PLANNER_PARAMETERS
 
     choices = {name: tuple(f()) for name, f in CHOICES.items()}
