@@ -8,11 +8,13 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
 1. When the plan begins (:func:`plan_start`), the new plan starts at the executing
    trajectory's point ``horizon_s`` ahead (the *horizon point*): the arm will get there
    on the trajectory it already follows while the plan is computed.  This needs the arm
-   to follow that trajectory: a measured joint state at most ``MAX_STATE_AGE_S`` old,
-   taken after the trajectory started, must lie within ``follow_tolerance_rad`` of where
-   the trajectory (or the one it joined, before its start) had the arm at the
-   measurement's time, interpolated as a spline (the dense trajectory) or linearly
-   between the published points; otherwise (no recent joint_states, a controller that
+   to follow that trajectory: a measured joint state at most ``MAX_STATE_AGE_S`` old
+   must lie within ``follow_tolerance_rad`` of where the trajectory (or the one it
+   joined, before its start) had the arm at the measurement's time, interpolated as a
+   spline (the dense trajectory) or linearly between the published points; a state
+   taken before the trajectory started counts when it is at its first point (the
+   controller holds the start until the stamp; under load the first joint_states after
+   a start arrive late); otherwise (no recent joint_states, a controller that
    stopped, an arm pushed away) the plan starts from the measured state, at rest, as for
    an arm standing still.  (A still arm is told from a following one only once the
    trajectory has moved by more than the tolerance: just after it started, it joins.)
@@ -189,13 +191,17 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     if age_s > MAX_STATE_AGE_S:
         return q, None, (f"the last joint_states is {age_s:.2f} s old (no sign that the arm follows its "
                          f"trajectory): planned from it, at rest")
-    if measured_ns < executing.first_start_ns():
-        return q, None, ("no joint_states since the trajectory started (no sign that the arm follows it): "
-                         "planned from the last one, at rest")
+    # before the (oldest kept) trajectory's start the controller holds its first point (a
+    # controller holds the start until the stamp): a state there is consistent with following
+    before_start = measured_ns < executing.first_start_ns()
     off = min((np.abs(difference_rad(q, executing.expected_at(measured_ns, lin), periodic)) for lin in (False, True)),
               key=lambda d: float(d.max()))
     if float(off.max()) > follow_tolerance_rad:
         j = int(np.argmax(off))
+        if before_start:
+            return q, None, (f"no joint_states since the trajectory started, and the last one is not at its start "
+                             f"({traj.joint_names[j]} {np.degrees(off[j]):.2f}° from it; no sign that the arm "
+                             "follows it): planned from the last one, at rest")
         return q, None, (f"the arm does not follow its trajectory ({traj.joint_names[j]} "
                          f"{np.degrees(off[j]):.2f}° from it): planned from the measured state, at rest")
     h = horizon_index(traj, executing.time_s(now_ns), horizon_s)

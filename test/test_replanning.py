@@ -67,6 +67,33 @@ def test_otherwise_the_plan_starts_at_the_measured_state(executing, case):
     assert (why is None) if expect is None else (expect in why), why
 
 
+@pytest.mark.parametrize("joined", [False, True], ids=["from_rest", "joined"])
+def test_a_recent_state_from_before_the_start_at_its_first_point_follows(executing, joined):
+    """
+    Under load the first joint_states after a trajectory's start arrive late.
+
+    The last one, taken before the start (the controller holds the first point until the stamp),
+    is at the trajectory's first point: the arm counts as following, the plan joins.  (For a
+    trajectory joined to an older one the state before its start is on the older one.)
+    """
+    _, ex = executing
+    traj = ex.trajectory
+    if joined:             # an older trajectory (the same one, earlier) that this one was joined to
+        older = Executing(traj, ex.published, ex.start_ns - 10 * S)
+        ex = older.joined_by(traj, ex.published, ex.start_ns)
+    now, measured_ns = ex.start_ns + S // 10, ex.start_ns - S // 5      # 0.1 s in; the state 0.2 s before
+    q = ex.expected_at(measured_ns) + np.radians(0.5)
+    start, join, why = plan_start(ex, now, q, measured_ns, 1.0, np.radians(2.0), PERIODIC)
+    assert why is None and join is not None
+    np.testing.assert_array_equal(start, traj.positions_rad[join.horizon_index])
+    # the same state 3° away from that first point: not following, planned from it at rest
+    q[1] += np.radians(3.0)
+    start, join, why = plan_start(ex, now, q, measured_ns, 1.0, np.radians(2.0), PERIODIC)
+    expect = "does not follow its trajectory" if joined else "since the trajectory started"
+    assert join is None and expect in why and "shoulder 3.50°" in why, why
+    np.testing.assert_array_equal(start, q)
+
+
 def test_a_periodic_attitude_a_turn_away_still_follows(executing):
     _, ex = executing
     traj = ex.trajectory
