@@ -43,11 +43,12 @@ from .spacecraft import ACS_MODES, AcsSettings, MassProperties
 from .problem import Scenario
 from .robot import PlanarArm, square_polygon
 from .scene import Scene, Target
-from .settings import JointLimits, PlannerSettings
+from .settings import JointLimits, PlannerSettings, SessionSettings
 
 __all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file", "matching_sections",
            "unknown_parameters", "ROS_PARAMETERS", "DECLARED_ALIASES",
-           "scenario_from_params", "spec_default", "NODE_NAME", "settings_from_params", "joint_limits_from_params"]
+           "scenario_from_params", "spec_default", "NODE_NAME", "settings_from_params", "joint_limits_from_params",
+           "session_settings_from_params"]
 
 NODE_NAME = "spacerobot_planner"
 
@@ -141,6 +142,14 @@ PARAMETERS = (
     ParamSpec("trajectory.max_acceleration_scaling_factor", "double", 1.0,
               "Factor in (0, 1] on every joint acceleration limit (MoveIt's "
               "max_acceleration_scaling_factor).", False, 1e-6, 1.0),
+    ParamSpec("trajectory.start_lead_s", "double", 0.35,
+              "Every published trajectory starts at least this long after it is published (its stamp: "
+              "now + this from rest, the join's time when joined), checked just before publishing, so it "
+              "reaches the controller first: joint_trajectory_controller refuses one that ends before it "
+              "arrives, and one arriving after its start begins with a velocity step. 0.35 s: the worst "
+              "stamp-to-arrival time measured on a loaded machine (load 5, in-process graphs) was 0.26 s "
+              "(python -m spacerobot_planner.bench latency --load N reports the margin), seconds.",
+              False, 0.0, 10.0),
     # ---- the spacecraft's reaction (spacecraft.py, reaction.py; shared/reference/free-floating.md)
     ParamSpec("dynamics.body_mass_kg", "double", 2000.0,
               "Spacecraft body mass (with the massless link 1), kg.", False, 1e-6, 1e12),
@@ -473,6 +482,17 @@ def settings_from_params(params: dict, **overrides) -> PlannerSettings:
     kw = {f: _get(params, k) for k, f in _PLANNER_SETTINGS.items()}
     kw.update(overrides)
     return PlannerSettings(**kw)
+
+
+def session_settings_from_params(params: dict) -> SessionSettings:
+    """Return the SessionSettings of a flat dotted parameter dict (``replan.*``, ``trajectory.start_lead_s``)."""
+    return SessionSettings(horizon_s=_get(params, "replan.horizon_s"),
+                           follow_tolerance_rad=math.radians(_get(params, "replan.follow_tolerance_deg")),
+                           min_publish_period_s=_get(params, "replan.min_publish_period_s"),
+                           start_lead_s=_get(params, "trajectory.start_lead_s"),
+                           target_tolerance_m=_get(params, "replan.target_tolerance_m"),
+                           target_tolerance_deg=_get(params, "replan.target_tolerance_deg"),
+                           test_stall_s=_get(params, "planner.test_stall_s"))
 
 
 def joint_limits_from_params(params: dict, robot: PlanarArm) -> JointLimits | None:

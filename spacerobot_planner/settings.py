@@ -1,5 +1,5 @@
 """
-Typed settings of a planning problem: how the planner plans, and the arm's joint limits.
+Typed settings: how the planner plans, the arm's joint limits, how a capture session replans.
 
 ``config.py`` is the only reader of the dotted parameter names (``config.PARAMETERS``:
 names, defaults, ranges): it parses a parameter file once into these dataclasses, which
@@ -19,7 +19,7 @@ from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS
 from .motion import DEFAULT_VERIFY_STEP_RAD
 from .smoothing import DEFAULT_MAX_STEP_RAD
 
-__all__ = ["PlannerSettings", "JointLimits"]
+__all__ = ["PlannerSettings", "JointLimits", "SessionSettings"]
 
 
 def _positive(name, value, allow_zero=False) -> float:
@@ -149,3 +149,40 @@ class JointLimits:
         self.check_robot(robot)
         idx = list(robot.planned_joints)
         return (np.asarray(self.max_velocity_rad_s)[idx], np.asarray(self.max_acceleration_rad_s2)[idx])
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """
+    How a capture session (``session.py``) replans a moving arm and stamps what it publishes.
+
+    From the parameters (``config.session_settings_from_params``): ``replan.*``,
+    ``trajectory.start_lead_s``, ``planner.test_stall_s``.
+
+    Attributes
+    ----------
+        horizon_s: a replan while a trajectory executes starts this far ahead on it, s (0: never join).
+        follow_tolerance_rad: largest per-joint distance of the measured state from the executing
+            trajectory for the arm to count as following it, rad.
+        min_publish_period_s: under a stream of topic requests, a plan in progress is let finish
+            (not superseded) once nothing was published for this long, s (0: latest always wins).
+        start_lead_s: every published trajectory starts (its stamp) at least this long after it is
+            published, s.
+        target_tolerance_m, target_tolerance_deg: a topic target this close to the current one
+            is not a new request (metres, degrees).
+        test_stall_s: testing aid, the planning process stalls this long before each plan, s.
+
+    """
+
+    horizon_s: float = 1.0
+    follow_tolerance_rad: float = math.radians(2.0)
+    min_publish_period_s: float = 1.0
+    start_lead_s: float = 0.35
+    target_tolerance_m: float = 0.005
+    target_tolerance_deg: float = 0.5
+    test_stall_s: float = 0.0
+
+    def __post_init__(self):
+        for name in ("horizon_s", "follow_tolerance_rad", "min_publish_period_s", "start_lead_s",
+                     "target_tolerance_m", "target_tolerance_deg", "test_stall_s"):
+            object.__setattr__(self, name, _positive(name, getattr(self, name), allow_zero=True))

@@ -50,9 +50,9 @@ LAYERS = (
     ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.oracle",
                 "field.paper", "descent", "contact", "smoothing", "ik", "results", "trajectory", "reaction",
                 "timing", "replanning", "settings", "problem")),
-    ("pipeline", ("pipeline",)),
+    ("pipeline", ("pipeline", "adapters")),
     ("planner", ("planner",)),
-    ("session and boundary", ("config", "free_floating", "worker", "")),
+    ("session and boundary", ("config", "free_floating", "worker", "session", "")),
 )
 
 

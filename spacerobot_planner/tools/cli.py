@@ -4,6 +4,12 @@
     spacerobot-plan --params-file config/paper_3dof.yaml [--start-deg A B C]
         [--goal-deg A B C] [--cells N] [--solver NAME] [--json PATH] [--plot PATH]
 
+The trajectory is made by the same chain as the node's (``adapters.post_process``: time
+parameterisation, the spacecraft's reaction, resampling certified on the exact geometry,
+the arm/attitude split): ``--json`` carries it as ``published_trajectory`` (the
+``joint_trajectory`` and ``attitude_trajectory`` the node publishes for the same request
+from rest, point for point) and the dense samples as ``dense_trajectory``.
+
 Exit status: 0 a path was found, 2 there is none or the spacecraft's reaction refuses
 it (``acs.mode: free_floating`` and the drifted arm collides or misses the grasp; the
 reason is printed and in the JSON), 1 bad input (a message naming the field on stderr).
@@ -19,13 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..adapters import post_process
 from ..config import check_value, load_scenario
 from ..field import SOLVERS
 from ..free_floating import plan_free_floating
 from ..motion import MotionValidator
 from ..planner import Planner
 from ..timing import Motion
-from ..trajectory import resample
 
 __all__ = ["main", "build_parser"]
 
@@ -82,14 +88,14 @@ def _summary(res, scenario) -> list:
     return lines
 
 
-def _motion_summary(traj, r, resampled) -> list:
+def _motion_summary(r, processed) -> list:
+    traj = processed.dense
     labels, counts = np.unique(traj.active_limit, return_counts=True)
     active = ", ".join(f"{lab} {100 * c / len(traj):.0f} %" for lab, c in
                        sorted(zip(labels, counts), key=lambda lc: -lc[1]))
-    chk = resampled.check
-    lines = [f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points (resampled: {len(resampled.trajectory)}, "
-             f"{'certified' if resampled.ok else 'NOT certified'}, clearance {chk.min_clearance_m:.4f} m); "
-             f"active limits: {active}"]
+    lines = [f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points (published: {len(processed.trajectory)}, "
+             f"{'certified' if processed.certified else 'NOT certified'}, clearance "
+             f"{processed.min_clearance_m:.4f} m); active limits: {active}"]
 
     def lim(v, unit):
         return "no limit" if v is None else f"limit {v:g} {unit}"
@@ -173,18 +179,23 @@ def main(argv=None) -> int:
             res = planner.add_trajectory(comp.plan, start)
     for line in _summary(res, scenario):
         print(line)
-    resampled = None
+    processed = None
     if res.trajectory is not None:
-        resampled = resample(res.trajectory, MotionValidator.for_scene(robot, scenario.scene))
-        for line in _motion_summary(res.trajectory, res.reaction, resampled):
+        # the node's chain, from rest at the start: what the node publishes for this request
+        processed = post_process(scenario, res.path_rad, start_rad=start,
+                                 motions=MotionValidator.for_scene(robot, scenario.scene))
+        for line in _motion_summary(res.reaction, processed):
             print(line)
         if res.code == "reaction_refused":
             print(f"spacerobot-plan: refused: {res.reason}", file=sys.stderr)
     if args.json:
         doc = res.to_json_dict()
-        if resampled is not None:
-            doc["trajectory_resampled"] = dict(resampled.trajectory.to_json_dict(), certified=resampled.ok,
-                                               min_clearance_m=float(resampled.check.min_clearance_m))
+        if processed is not None:
+            clr = processed.min_clearance_m
+            doc["trajectory_resampled"] = dict(processed.trajectory.to_json_dict(), certified=processed.certified,
+                                               min_clearance_m=float(clr) if math.isfinite(clr) else None)
+            doc["published_trajectory"] = processed.to_json_dict()
+            doc["dense_trajectory"] = processed.dense.to_json_dict()
         text = json.dumps(doc, indent=None, allow_nan=False)
         if args.json == "-":
             print(text)

@@ -1,0 +1,200 @@
+"""
+The chain after the path: what a planned path becomes before it is published.
+
+MoveIt's planning adapters in one function, :func:`post_process`, which the capture
+session (``session.py``: the node) and ``spacerobot-plan`` both run, so the CLI's JSON
+carries the very trajectory the node publishes:
+
+1. **time** -- the path in time under the scenario's joint limits, from rest
+   (``timing.timed_motion``) or joined to the executing trajectory
+   (``replanning.joined_motion``: from the join, through the horizon point);
+2. **reaction** -- the spacecraft's verdict on it (free floating, wheel limits); a refused
+   trajectory stops the chain (``Processed.refused``);
+3. **resample and certify** -- a subset of the dense points at most ``time_step_s``
+   apart and within 0.1° of the dense path, the polyline through them certified on the
+   exact geometry with the scene's ``motion.MotionValidator`` (``trajectory.resample``);
+   when that certification fails the dense trajectory is kept;
+4. **split** -- the attitude joint (the robot's first, the spacecraft's) for the attitude
+   control system, the arm joints for the arm's controller (:class:`TrajectoryPart`,
+   None for a group that is not planned); both None when nothing moves more than
+   ``AT_GOAL_TOL_RAD`` (at the goal: nothing to publish).
+
+No rclpy here; times are seconds from the trajectory's start, ROS times integer ns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .motion import MotionValidator
+from .replanning import START_LEAD_S, joined_motion
+from .timing import timed_motion
+from .trajectory import Trajectory, resample
+
+__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
+
+#: published trajectories keep a point at least this often (plus where the path bends), s
+RESAMPLE_STEP_S = 0.25
+#: a plan whose joints all move less than this is at the goal: nothing is published, rad
+AT_GOAL_TOL_RAD = 1e-4
+
+
+@dataclass(frozen=True, eq=False)
+class TrajectoryPart:
+    """
+    The points sent to one controller: some joints of a published trajectory.
+
+    Attributes
+    ----------
+        joint_names: the joints (columns), in the robot's order.
+        times_s: (K,) from the trajectory's start (its stamp), s.
+        positions_rad, velocities_rad_s, accelerations_rad_s2: (K, len(joint_names)).
+
+    """
+
+    joint_names: tuple
+    times_s: np.ndarray
+    positions_rad: np.ndarray
+    velocities_rad_s: np.ndarray
+    accelerations_rad_s2: np.ndarray
+
+    @classmethod
+    def of(cls, traj: Trajectory, joints) -> "TrajectoryPart | None":
+        """Return the columns of ``traj`` named in ``joints`` (None when there are none)."""
+        cols = [i for i, n in enumerate(traj.joint_names) if n in joints]
+        if not cols:
+            return None
+        return cls(tuple(traj.joint_names[i] for i in cols), traj.times_s.copy(), traj.positions_rad[:, cols],
+                   traj.velocities_rad_s[:, cols], traj.accelerations_rad_s2[:, cols])
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.times_s[-1])
+
+    def to_json_dict(self) -> dict:
+        return {"joint_names": list(self.joint_names), "times_s": self.times_s.tolist(),
+                "positions_rad": self.positions_rad.tolist(), "velocities_rad_s": self.velocities_rad_s.tolist(),
+                "accelerations_rad_s2": self.accelerations_rad_s2.tolist()}
+
+
+def split_parts(traj: Trajectory, attitude_joint: str) -> tuple:
+    """
+    Return (arm part, attitude part) of a trajectory to publish: the at-goal rule and the split.
+
+    Both None when no joint moves more than ``AT_GOAL_TOL_RAD`` from start to end.  A group
+    that does not move while the other does still gets its (holding) part, which replaces an
+    older trajectory still running on its controller.
+    """
+    q = np.asarray(traj.positions_rad)
+    if float(np.max(np.abs(q[-1] - q[0]))) <= AT_GOAL_TOL_RAD:
+        return None, None
+    others = [n for n in traj.joint_names if n != attitude_joint]
+    return TrajectoryPart.of(traj, others), TrajectoryPart.of(traj, [attitude_joint])
+
+
+@dataclass(frozen=True, eq=False)
+class Processed:
+    """
+    What :func:`post_process` made of a path.
+
+    Attributes
+    ----------
+        dense: the time-parameterised trajectory (every sample; its polyline is the path
+            the collision checks certified).
+        trajectory: the points to publish (``dense`` resampled; ``dense`` itself when the
+            resampled polyline could not be certified, or when refused).
+        indices: (K,) their indices in ``dense``.
+        certified: the published polyline passed the exact-geometry check.
+        min_clearance_m: its clearance (nan when not checked).
+        reaction: ``reaction.ReactionReport`` or None (not reported for this scenario).
+        arm, attitude: the :class:`TrajectoryPart` of each controller (see :func:`split_parts`).
+        join_stamp_ns: ROS time of the trajectory's start when joined to an executing one
+            (its stamp: the join), None from rest (stamped when published).
+        continuation: the ``trajectory.Continuation`` of a join, else None.
+
+    """
+
+    dense: Trajectory
+    trajectory: Trajectory
+    indices: np.ndarray
+    certified: bool
+    min_clearance_m: float
+    reaction: object
+    arm: TrajectoryPart | None
+    attitude: TrajectoryPart | None
+    join_stamp_ns: int | None = None
+    continuation: object = None
+
+    @property
+    def refused(self) -> str | None:
+        """Return the spacecraft's reason to refuse the trajectory, or None."""
+        if self.reaction is not None and not self.reaction.ok:
+            return self.reaction.reason
+        return None
+
+    @property
+    def at_goal(self) -> bool:
+        """Tell whether nothing moves (nothing to publish)."""
+        return self.arm is None and self.attitude is None and self.refused is None
+
+    def to_json_dict(self) -> dict:
+        """
+        Return the published trajectory as plain JSON.
+
+        ``joint_trajectory`` (arm) and ``attitude_trajectory`` parts, as the node publishes them
+        (null when not published), ``at_goal``, ``certified``, ``min_clearance_m``, and the dense
+        point count.
+        """
+        clr = self.min_clearance_m
+        return {"joint_trajectory": None if self.arm is None else self.arm.to_json_dict(),
+                "attitude_trajectory": None if self.attitude is None else self.attitude.to_json_dict(),
+                "at_goal": self.at_goal, "certified": bool(self.certified),
+                "min_clearance_m": None if not np.isfinite(clr) else float(clr),
+                "points": len(self.trajectory), "dense_points": len(self.dense)}
+
+
+def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int = 0, lead_s: float = START_LEAD_S,
+                 motions: MotionValidator | None = None, time_step_s: float = RESAMPLE_STEP_S) -> Processed:
+    """
+    Run the chain after the path (see the module docstring).
+
+    Args:
+        scenario: ``problem.Scenario`` (joint limits, spacecraft, scene).
+        path_rad: (M, dof) the planned path.
+        start_rad: (dof,) the arm's state from rest (periodic joints as measured: the path is
+            shifted by whole turns to start there); ignored when joined.
+        join: a ``replanning.Join`` (the plan started on the executing trajectory), or None.
+        now_ns: ROS time now (for a join), ns.
+        lead_s: a join is at least this far after ``now_ns``, s.
+        motions: the scene's MotionValidator (made when None), for the certification, the
+            corner blends of a join and the reaction's drift check.
+        time_step_s: largest time between published points, s.
+
+    Returns
+    -------
+        Processed.
+
+    Raises
+    ------
+        trajectory.HorizonPassed: (joined) the arm is already past the horizon point.
+        ValueError: no or bad joint limits; (joined) the new path cannot be entered at the
+            arm's speed.
+
+    """
+    motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
+    stamp_ns = cont = None
+    if join is None:
+        dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions)
+    else:
+        dense, reaction, stamp_ns, cont = joined_motion(scenario, join, path_rad, now_ns, lead_s=lead_s,
+                                                        checker=motions)
+    if reaction is not None and not reaction.ok:
+        return Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
+                         stamp_ns, cont)
+    rs = resample(dense, motions, time_step_s=time_step_s)
+    traj, idx = (rs.trajectory, rs.indices) if rs.ok else (dense, np.arange(len(dense)))
+    arm, att = split_parts(traj, scenario.robot.joint_names[0])
+    clr = float(rs.check.min_clearance_m) if rs.ok and rs.check is not None else float("nan")
+    return Processed(dense, traj, idx, rs.ok, clr, reaction, arm, att, stamp_ns, cont)
