@@ -302,7 +302,9 @@ def test_target_pose_flood(graph, record_property):
     print("\nflood:", "; ".join(f"{k} = {v}" for k, v in figures.items()))
     for k, v in figures.items():
         record_property(k, v)
-    assert max_gap < 0.5, f"joint_states stopped for {max_gap:.2f} s during the flood"
+    # an executor blocked by the flood stops joint_states for seconds; on a loaded 2-core machine
+    # (three test workers) a healthy one has shown gaps up to about 0.5 s
+    assert max_gap < 2.0, f"joint_states stopped for {max_gap:.2f} s during the flood"
     assert rss1[0] - rss0[0] < 150.0 and child_peak - rss0[1] < 150.0, figures
     assert g.planner._worker.is_alive()
 
