@@ -84,6 +84,20 @@ class PlanJob:
     stall_stage: str = "start"
     stall_polls: bool = True
 
+    @classmethod
+    def for_scenario(cls, gen: int, scenario, start_rad, joint_goal=None, **test) -> "PlanJob":
+        """
+        Return the job of planning ``scenario`` from ``start_rad``.
+
+        Its scene and grid, and its solver, tolerance, budget and grid limit
+        (``Scenario.planner_settings``); ``test``: the stall fields.
+        """
+        s = scenario.planner_settings
+        return cls(gen=gen, scene=scenario.scene, grid=scenario.grid, solver=s.solver,
+                   field_tolerance=float(s.field_tolerance), max_grid_nodes=int(s.max_grid_nodes),
+                   start_rad=np.asarray(start_rad, dtype=float), joint_goal=joint_goal,
+                   field_budget_s=float(s.field_budget_s), **test)
+
 
 @dataclass(frozen=True)
 class Cancel:

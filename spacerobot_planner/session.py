@@ -1,0 +1,654 @@
+"""
+A capture session: requests from any channel in, what to publish out.  No rclpy.
+
+The node (``ros/planner_node.py``) turns messages into calls of a :class:`CaptureSession`
+and its answers into messages; everything between is here:
+
+- **requests** from any channel (a topic target, a joint goal, an action goal, a replan,
+  a parameter change): :meth:`CaptureSession.submit`.  The latest request wins: a newer
+  one supersedes the one queued and cancels the one being planned (its result is dropped),
+  except under a stream of topic targets, where a plan is let finish once nothing was
+  published for ``min_publish_period_s``.  A request without its own start waits for the
+  first joint state.
+- **the current goal**: the latest accepted request from any channel (its target or its
+  joint goal) is what a replan or a parameter change plans to; a request with its own
+  ``start_rad`` (an action goal's) is planned and returned, not executed, and changes
+  nothing.  A joint goal is planned in the scene of the current target (the obstacle).
+- **the start**: its own, or the arm's measured state at rest, or (the arm following the
+  trajectory last published) the point ``horizon_s`` ahead on it
+  (``replanning.plan_start``).
+- **ONE post-processing chain** (``adapters.post_process``: time, reaction, resampling
+  certified with the scene's ``motion.MotionValidator``, arm/attitude split), the same
+  as ``spacerobot-plan``'s.
+- **retries**: when a joined plan cannot be published (it took longer than the horizon,
+  the new path cannot be entered at the arm's speed, or the join is less than
+  ``start_lead_s`` ahead when it would be published) it is planned again with twice the
+  horizon, then from the executing trajectory's end, then from the measured state at
+  rest (:data:`RETRY`).
+- **the stamp**: every published trajectory starts at least ``start_lead_s`` after it is
+  published: a trajectory from rest is stamped now + the lead just before it is
+  published; a joined one carries the join's time, checked then to be still at least the
+  lead ahead (else the retry above).
+- **the at-goal rule**: a plan along which nothing moves more than
+  ``adapters.AT_GOAL_TOL_RAD`` publishes nothing and says so.
+
+What to publish is plain data (:class:`Publication`: the stamp in ns, the arm's and the
+attitude's :class:`adapters.TrajectoryPart`), handed with the request's
+:class:`Outcome` (code, reason, the ``PlanResult``, diagnostics values) to the hooks
+given to the session: ``publish`` (ok outcomes, in the worker thread, just after the stamp
+was taken), ``record`` (every finished request but a superseded one), ``log``,
+``changed`` (planning began) and ``now_ns`` (the ROS clock).  One worker thread plans
+(:meth:`start`); tests may instead call :meth:`run_once`.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process
+from .motion import MotionValidator
+from .replanning import Executing, plan_start
+from .scene import Target
+from .settings import SessionSettings
+from .trajectory import HorizonPassed
+from .worker import STAGE_ORDER, PlanCrash, PlanDone, PlanError, PlanJob, Progress
+
+__all__ = ["CaptureSession", "Request", "Outcome", "Publication", "RETRY", "WAITING_STAGE", "stamp_for",
+           "target_why"]
+
+#: the feedback stage of a request that waits for the first joint state
+WAITING_STAGE = "waiting_for_joint_states"
+#: what a further attempt does after a join failed (index = the attempt)
+RETRY = ("", "with twice the horizon", "from the end of the executing trajectory", "from the measured state, at rest")
+
+
+@dataclass(eq=False)
+class Request:
+    """
+    One request, from any channel, as the session plans it.
+
+    ``scenario`` is the session's at submission, its scene with the request's target (a
+    target request) or the current target (a joint goal, a replan); ``settings`` likewise.
+    """
+
+    gen: int
+    why: str
+    scenario: object
+    settings: SessionSettings
+    joint_goal: np.ndarray | None
+    t_request: float
+    start_rad: np.ndarray | None = None          # its own start: planned, not executed
+    on_done: Callable | None = None              # called once with the Outcome
+    on_progress: Callable | None = None          # worker.Progress while planning
+    cancelled: str | None = None                 # reason, once cancelled
+    keep: bool = False                           # finish and publish although superseded (a stream)
+    attempt: int = 0                             # planned again after a join failed (RETRY)
+    waiting: bool = False                        # waited for the first joint state
+
+
+@dataclass(frozen=True, eq=False)
+class Publication:
+    """
+    What goes to the controllers: one stamp for both parts (they start together).
+
+    ``arm``/``attitude``: ``adapters.TrajectoryPart`` or None; both None at the goal.
+    ``execute``: False for a plan from a request's own start (returned, not sent).
+    """
+
+    stamp_ns: int
+    arm: TrajectoryPart | None
+    attitude: TrajectoryPart | None
+    execute: bool = True
+
+    @property
+    def at_goal(self) -> bool:
+        return self.arm is None and self.attitude is None
+
+    @property
+    def sent(self) -> bool:
+        """Tell whether the parts go to the controllers (executed and not at the goal)."""
+        return self.execute and not self.at_goal
+
+
+@dataclass(eq=False)
+class Outcome:
+    """
+    How a request ended: code (a planner code, ``superseded``, ``cancelled``), reason.
+
+    On success also the ``PlanResult``, the published ``Trajectory`` (all planned joints),
+    the :class:`Publication`, the chain's ``adapters.Processed``, the plan's start and the
+    diagnostics values.
+    """
+
+    code: str
+    reason: str = ""
+    result: object = None
+    trajectory: object = None
+    publication: Publication | None = None
+    values: dict = field(default_factory=dict)
+    processed: Processed | None = None
+    start_rad: np.ndarray | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.code == "ok"
+
+
+def stamp_for(processed: Processed, now_ns: int, lead_s: float) -> int | None:
+    """
+    Return the stamp of a trajectory published at ``now_ns``, or None when the join is too close.
+
+    From rest: ``now_ns`` + the lead.  Joined: the join's time, when it is still at least
+    the lead ahead (None otherwise: plan again).  Either way the trajectory also ends at
+    least the lead after ``now_ns``.
+    """
+    lead_ns = int(round(lead_s * 1e9))
+    if processed.join_stamp_ns is None:
+        return int(now_ns) + lead_ns
+    stamp = int(processed.join_stamp_ns)
+    end = stamp + int(round(processed.trajectory.duration_s * 1e9))
+    return stamp if stamp - int(now_ns) >= lead_ns and end - int(now_ns) >= lead_ns else None
+
+
+def target_why(target: Target) -> str:
+    """Describe a new target in a request's ``why``."""
+    return (f"new target ({target.center_m[0]:.3f}, {target.center_m[1]:.3f}) m, "
+            f"yaw {math.degrees(target.yaw_rad):.1f}°")
+
+
+def _superseded(newer: Request) -> Outcome:
+    return Outcome("superseded", f"superseded by request #{newer.gen} ({newer.why})")
+
+
+def _progress(stage):
+    return Progress(0, stage, STAGE_ORDER.index(stage) / len(STAGE_ORDER))
+
+
+def _quiet(level, text):
+    pass
+
+
+class CaptureSession:
+    """
+    See the module docstring.
+
+    Parameters
+    ----------
+        scenario: ``problem.Scenario`` (the parameters' scene: its target is the first current target).
+        settings: ``settings.SessionSettings``.
+        now_ns: the clock of the stamps and the joint states (ROS time), ns.
+        log(level, text): "info", "warning" or "error".
+        publish(request, outcome): an ok outcome, to publish (``outcome.publication``).
+        record(request, outcome): a finished request (ok or failed; not a superseded one).
+        changed(): the session began planning (``activity`` is "planning").
+
+    """
+
+    def __init__(self, scenario, settings: SessionSettings | None = None, *, now_ns: Callable[[], int] = time.time_ns,
+                 log: Callable = _quiet, publish: Callable | None = None, record: Callable | None = None,
+                 changed: Callable | None = None):
+        self.lock = threading.Condition()
+        self.scenario = scenario
+        self.settings = settings or SessionSettings()
+        self.now_ns = now_ns
+        self.log = log
+        self._publish = publish or (lambda req, out: None)
+        self._record = record or (lambda req, out: None)
+        self._changed = changed or (lambda: None)
+        self.target: Target | None = scenario.scene.target      # the current target
+        self.joint_goal = None           # (dof,) rad when the current goal is a joint goal
+        self.requested_target = None     # the target of the last target request that became current
+        self.gen = 0
+        self._pending: Request | None = None
+        self._waiting: Request | None = None      # waits for the first joint state
+        self._active: Request | None = None
+        self._latest: Request | None = None
+        self.accepting = False           # requests are taken (the node is active)
+        self._stop = True                # no worker until started
+        self.closing = False             # stop() runs
+        self.joint_q = None              # latest planned-joint positions (raw, unwrapped), rad
+        self.joint_ns = 0                # its ROS time, ns
+        self.executing: Executing | None = None      # the trajectory last sent to the arm
+        self.activity = "idle"           # "idle" or "planning"
+        self.last_result = None          # PlanResult of the last ok plan
+        self.last_trajectory = None      # its published Trajectory
+        self.last_publish_t = time.monotonic()
+        self.backend = None
+        self.worker: threading.Thread | None = None
+        self._motions = (None, None)     # (scene, its MotionValidator)
+
+    # ------------------------------------------------------------------ set-up
+    def configure(self, scenario, settings: SessionSettings, target_changed: bool = False) -> None:
+        """Take new parameters (a validated change); ``target_changed``: the scenario's target becomes current."""
+        with self.lock:
+            self.scenario, self.settings = scenario, settings
+            if target_changed:
+                self.target = scenario.scene.target
+
+    def start(self, backend, thread: bool = True) -> None:
+        """Plan with ``backend`` (``worker.ProcessBackend`` or ``ThreadBackend``), in the worker thread (``thread``)."""
+        with self.lock:
+            self.backend = backend
+            self._stop = False
+            self.closing = False
+        if thread:
+            self.worker = threading.Thread(target=self._worker_loop, name="spacerobot_planner-worker", daemon=True)
+            self.worker.start()
+
+    def accept(self, on: bool, why: str = "") -> None:
+        """Take requests (activate) or not (deactivate: what is queued or planned is cancelled with ``why``)."""
+        with self.lock:
+            self.accepting = on
+            if on:
+                self.activity = "idle"
+                self.last_publish_t = time.monotonic()
+            else:
+                self.drop(why)
+
+    def stop(self, timeout_s: float = 5.0) -> bool:
+        """
+        Stop the worker (a plan in progress is cancelled) and close the backend.
+
+        Every request ends (cancelled: the node is shutting down).  False when nothing was running.
+        """
+        with self.lock:
+            if self._stop and self.worker is None and self.backend is None:
+                return False
+            self.closing = True
+            was_planning = self._active is not None
+            self._stop = True
+            self.accepting = False
+            self.drop("the node is shutting down")
+            self.lock.notify_all()
+        if was_planning:
+            self.log("info", "shutdown: the plan in progress is cancelled")
+        backend, self.backend = self.backend, None
+        if backend is not None:
+            backend.close()
+        if self.worker is not None:
+            self.worker.join(timeout_s)
+            self.worker = None
+        return True
+
+    # ------------------------------------------------------------------ inputs
+    def joint_state(self, q_rad, stamp_ns: int) -> None:
+        """Take the arm's measured planned-joint positions (rad) at ROS time ``stamp_ns``."""
+        with self.lock:
+            self.joint_q = np.asarray(q_rad, dtype=float)
+            self.joint_ns = int(stamp_ns)
+            waiting, self._waiting = self._waiting, None
+            if waiting is not None:
+                self._replace_pending(waiting)
+
+    def same_target(self, target: Target) -> str | None:
+        """Say why a topic target is not a new request (within tolerance of the current one), else None."""
+        s = self.settings
+        with self.lock:
+            prev, joint_goal = self.requested_target, self.joint_goal
+        if prev is None or joint_goal is not None:
+            return None
+        dist = math.hypot(target.center_m[0] - prev.center_m[0], target.center_m[1] - prev.center_m[1])
+        dyaw = abs(math.degrees(math.remainder(target.yaw_rad - prev.yaw_rad, 2 * math.pi)))
+        if dist <= s.target_tolerance_m and dyaw <= s.target_tolerance_deg:
+            return f"target_pose within tolerance of the current target ({dist:.4f} m, {dyaw:.2f}°): no replan"
+        return None
+
+    def request(self, why: str, *, target: Target | None = None, joint_goal=None, start_rad=None,
+                on_done: Callable | None = None, on_progress: Callable | None = None) -> Request:
+        """Make a request, not yet submitted: to ``target``, to ``joint_goal``, or (neither) to the current goal."""
+        with self.lock:
+            if target is None and joint_goal is None:
+                joint_goal = self.joint_goal
+                target = None if joint_goal is not None else self.target
+            scene_target = target if target is not None else self.target
+            scenario = self.scenario
+            if scene_target is not None:
+                scenario = scenario.with_scene(scenario.scene.with_target(scene_target))
+            return Request(0, why, scenario, self.settings,
+                           None if joint_goal is None else np.array(joint_goal, dtype=float),
+                           time.perf_counter(), start_rad=None if start_rad is None else np.asarray(start_rad),
+                           on_done=on_done, on_progress=on_progress)
+
+    def submit(self, req: Request | str, **kw) -> Request:
+        """
+        Submit a request (or make one from ``why`` and the keywords of :meth:`request`).
+
+        Its ``gen`` is 0 when refused (not accepting: it ends cancelled at once); ``waiting``
+        when it waits for the first joint state.
+        """
+        if isinstance(req, str):
+            req = self.request(req, **kw)
+        with self.lock:
+            if not self.accepting:
+                self._finish(req, Outcome("cancelled", "the node is not active"))
+                return req
+            self.gen += 1
+            req.gen = self.gen
+            self._make_current(req)
+            if self.joint_q is None and req.start_rad is None:
+                if self._waiting is not None:
+                    self._finish(self._waiting, _superseded(req))
+                self._waiting = req
+                req.waiting = True
+                self.log("info", f"request #{req.gen} ({req.why}): waiting for joint_states")
+                if req.on_progress is not None:
+                    req.on_progress(Progress(req.gen, WAITING_STAGE, 0.0))
+            else:
+                self._replace_pending(req)
+            self._latest = req
+            active = self._active
+            if active is not None:
+                period = float(req.settings.min_publish_period_s)
+                starving = period > 0 and time.monotonic() - self.last_publish_t >= period
+                if starving and active.on_done is None and req.on_done is None:
+                    active.keep = True          # a stream of targets: let this one be published
+                elif self.backend is not None:
+                    self.backend.cancel(active.gen)   # supersede the plan in progress
+            self.lock.notify_all()
+            return req
+
+    def expire_waiting(self, req: Request, why: str) -> bool:
+        """End ``req`` with ``invalid_input`` (``why``) if it still waits for the first joint state."""
+        with self.lock:
+            expired = self._waiting is req
+            if expired:
+                self._waiting = None
+        if expired:
+            outcome = self._failure(req, "invalid_input", why)
+            self._record(req, outcome)
+            with self.lock:
+                self._finish(req, outcome)
+        return expired
+
+    def cancel(self, req: Request, reason: str) -> None:
+        """Cancel one request (queued, waiting or being planned)."""
+        with self.lock:
+            if self._pending is req:
+                self._pending = None
+                self._finish(req, Outcome("cancelled", reason))
+            elif self._waiting is req:
+                self._waiting = None
+                self._finish(req, Outcome("cancelled", reason))
+            elif self._active is req:
+                req.cancelled = reason
+                if self.backend is not None:
+                    self.backend.cancel(req.gen)
+
+    def drop(self, why: str) -> None:
+        """Cancel everything queued or being planned."""
+        with self.lock:
+            for attr in ("_pending", "_waiting"):
+                req = getattr(self, attr)
+                if req is not None:
+                    setattr(self, attr, None)
+                    self._finish(req, Outcome("cancelled", why))
+            if self._active is not None:
+                self._active.cancelled = why
+                if self.backend is not None:
+                    self.backend.cancel(self._active.gen)
+
+    @property
+    def planning(self) -> bool:
+        """Tell whether a request is being planned."""
+        return self._active is not None
+
+    # ------------------------------------------------------------------ bookkeeping (lock held)
+    def _make_current(self, req: Request) -> None:
+        """Make the goal of an accepted request the current goal (not that of one with its own start)."""
+        if req.start_rad is not None:
+            return
+        if req.joint_goal is not None:
+            self.joint_goal = req.joint_goal
+        else:
+            self.target = self.requested_target = req.scenario.scene.target
+            self.joint_goal = None
+
+    def _replace_pending(self, req: Request) -> None:
+        """``req`` becomes the next request; the one it replaces is superseded."""
+        if self._pending is not None:
+            self._finish(self._pending, _superseded(req))
+        if self._waiting is not None and self._waiting is not req:
+            self._finish(self._waiting, _superseded(req))
+            self._waiting = None
+        self._pending = req
+        self.lock.notify_all()
+
+    @staticmethod
+    def _finish(req: Request, outcome: Outcome) -> None:
+        """Every request ends here exactly once."""
+        cb, req.on_done = req.on_done, None
+        if cb is not None:
+            cb(outcome)
+
+    # ------------------------------------------------------------------ planning
+    def _worker_loop(self):
+        while True:
+            with self.lock:
+                while self._pending is None and not self._stop:
+                    self.lock.wait()
+                if self._stop:
+                    return
+                req, self._pending = self._pending, None
+                self._active = req
+            self._run(req)
+
+    def run_once(self) -> Outcome | None:
+        """Plan the queued request in this thread (instead of the worker); None when there is none."""
+        with self.lock:
+            req, self._pending = self._pending, None
+            if req is None:
+                return None
+            self._active = req
+        return self._run(req)
+
+    def _run(self, req: Request) -> Outcome:
+        while True:
+            try:
+                outcome = self._plan(req, *self._start_of(req))
+            except Exception as e:      # noqa: BLE001 - never let the worker die
+                outcome = self._failure(req, "internal_error", f"planning crashed: {type(e).__name__}: {e}",
+                                        tb=traceback.format_exc())
+            if outcome.code != "retry":
+                break
+            req.attempt += 1
+            self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
+                     + RETRY[min(req.attempt, len(RETRY) - 1)])
+        with self.lock:
+            self._active = None
+            if self._pending is None:
+                self.activity = "idle"
+        if not outcome.ok and outcome.code != "superseded":
+            self._record(req, outcome)
+        with self.lock:
+            self._finish(req, outcome)
+        return outcome
+
+    def _start_of(self, req: Request):
+        """
+        Return (start_raw, replanning.Join or None) of a request's attempt.
+
+        Its own start, or the arm's state, or (the arm moving on the last trajectory) the point
+        ``horizon_s`` ahead on it; attempts after a failed join: :data:`RETRY`.
+        """
+        with self.lock:
+            if req.start_rad is not None:
+                return req.start_rad, None
+            q, q_ns, ex = self.joint_q.copy(), self.joint_ns, self.executing
+        s = req.settings
+        horizon_s = float(s.horizon_s) * (2.0 if req.attempt == 1 else 1.0)
+        if req.attempt == 2 and ex is not None and horizon_s > 0.0:
+            horizon_s = max(horizon_s, ex.trajectory.duration_s - ex.time_s(self.now_ns()))
+        if req.attempt >= 3:
+            horizon_s = 0.0
+        start, join, why = plan_start(ex, self.now_ns(), q, q_ns, horizon_s, float(s.follow_tolerance_rad),
+                                      req.scenario.robot.planned_periodic)
+        if why is not None:
+            self.log("warning", f"plan #{req.gen}: {why}")
+        return start, join
+
+    def _superseded_by(self, req: Request) -> Outcome | None:
+        with self.lock:
+            if req.cancelled:
+                return Outcome("cancelled", req.cancelled)
+            if self._stop:
+                return Outcome("cancelled", "the node is shutting down")
+            if req.gen != self.gen and not req.keep:
+                return _superseded(self._latest)
+        return None
+
+    def motions(self, scene) -> MotionValidator:
+        """Return the scene's one MotionValidator (kept while the scene is the same object)."""
+        held, motions = self._motions
+        if held is not scene:
+            motions = MotionValidator.for_scene(self.scenario.robot, scene)
+            self._motions = (scene, motions)
+        return motions
+
+    def _plan(self, req: Request, start_raw: np.ndarray, join=None) -> Outcome:
+        if self.activity != "planning":       # the state changes at once; a flood is not echoed
+            self.activity = "planning"
+            self._changed()
+        sc = req.scenario
+        where = "" if join is None else f" ({join.horizon_s:g} s ahead on the executing trajectory)"
+        self.log("info", f"planning #{req.gen} ({req.why}) from {np.round(np.degrees(start_raw), 2).tolist()}°"
+                 f"{where} on {sc.grid.label()}")
+        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, stall_s=float(req.settings.test_stall_s))
+        out = self.backend.run(job, progress=req.on_progress) if self.backend is not None else None
+        dropped = self._superseded_by(req)
+        if out is None or dropped is not None:
+            dropped = dropped or Outcome("cancelled", "the node is shutting down")
+            if isinstance(out, PlanCrash):      # still worth a traceback
+                self.log("error", f"plan #{req.gen} crashed: {out.what}\n{out.traceback.rstrip()}")
+            self.log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
+            return dropped
+        if isinstance(out, PlanCrash):
+            return self._failure(req, "internal_error", f"planning crashed: {out.what}", tb=out.traceback)
+        if isinstance(out, PlanError):
+            if out.code == "cancelled":
+                return Outcome("cancelled", out.reason)
+            return self._failure(req, out.code, out.reason)
+        assert isinstance(out, PlanDone)
+        res = out.result
+        if not res.ok:
+            if res.code == "cancelled":
+                self.log("info", f"plan #{req.gen} cancelled")
+                return Outcome("cancelled", res.reason or "cancelled")
+            return self._failure(req, res.code, res.reason or res.code, res, tb=res.traceback or None)
+        if req.on_progress is not None:
+            req.on_progress(_progress("trajectory"))
+        try:
+            processed = post_process(sc, res.path_rad, start_rad=start_raw, join=join, now_ns=self.now_ns(),
+                                     lead_s=float(req.settings.start_lead_s), motions=self.motions(sc.scene))
+        except HorizonPassed:
+            return Outcome("retry", f"the plan took longer than the {join.horizon_s:g} s horizon")
+        except ValueError as e:
+            if join is not None:
+                return Outcome("retry", f"the new path cannot be joined at the arm's speed ({e})")
+            return self._failure(req, "invalid_input", f"time parameterisation: {e}", res)
+        if processed.refused is not None:
+            return self._failure(req, "reaction_refused", processed.refused, res)
+        dropped = self._superseded_by(req)
+        if dropped is not None:
+            self.log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
+            return dropped
+        return self._publish_plan(req, res, processed, start_raw, join)
+
+    def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join) -> Outcome:
+        """Record an ok plan, stamp it just before it is published, publish it (the hooks)."""
+        lead_s = float(req.settings.start_lead_s)
+        if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
+            ahead = 1e-9 * (processed.join_stamp_ns - self.now_ns())
+            return Outcome("retry", f"the join is {ahead:.3f} s ahead, less than trajectory.start_lead_s "
+                           f"({lead_s:g} s): it would reach the controller after it")
+        traj = processed.trajectory
+        c = processed.continuation
+        joined = "no (the arm at rest)" if c is None else (
+            f"yes, {c.join_time_s:.3f} s into the executing trajectory at "
+            f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s")
+        latency = time.perf_counter() - req.t_request
+        values = {
+            "goal_deg": np.round(np.degrees(res.goal_rad), 3).tolist(),
+            "min_clearance_m": f"{res.min_clearance_m:.4f}",
+            "trajectory_duration_s": f"{traj.duration_s:.3f}",
+            "trajectory_points": len(traj),
+            "trajectory_dense_points": len(processed.dense),
+            "joined_moving_arm": joined,
+            "cached": ",".join(res.cached) or "none",
+            "solver": res.solver,
+            "latency_s": f"{latency:.4f}",
+            **result_values(res, processed.reaction),
+        }
+        at_goal = processed.at_goal
+        if at_goal:
+            values["at_goal"] = "true"
+        outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
+                          None, values, processed, np.asarray(start_raw))
+        with self.lock:           # the session's state first: whoever reacts to the trajectory sees it
+            self.last_result = res
+            self.last_trajectory = traj
+            if self._pending is None:
+                self.activity = "idle"
+        self._record(req, outcome)
+        execute = req.start_rad is None      # a goal with its own start: the arm is elsewhere
+        now = self.now_ns()
+        stamp = stamp_for(processed, now, lead_s)
+        if stamp is None:            # the record took the join's margin (a stalled machine): publish nothing
+            return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
+        outcome.publication = Publication(stamp, processed.arm, processed.attitude, execute)
+        if outcome.publication.sent:
+            dense, idx = processed.dense, processed.indices
+            with self.lock:
+                self.last_publish_t = time.monotonic()
+                self.executing = (Executing(dense, idx, stamp) if join is None
+                                  else join.executing.joined_by(dense, idx, stamp))
+        self._publish(req, outcome)
+        if not execute:
+            self.log("info", f"plan #{req.gen}: planned from the goal's own start: returned, not published")
+        elif at_goal:
+            self.log("info", f"plan #{req.gen}: already at the goal (within {AT_GOAL_TOL_RAD:g} rad): "
+                     "no trajectory published")
+        t = res.timings_s
+        self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
+                 f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
+                 f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
+                 f"{', '.join(res.cached) or 'none'}); clearance {res.min_clearance_m:.3f} m; "
+                 f"trajectory {len(traj)} points, {traj.duration_s:.2f} s, joined to the moving arm: "
+                 f"{joined}; stamped {1e-9 * (stamp - now):.3f} s ahead; request→trajectory {1e3 * latency:.1f} ms")
+        return outcome
+
+    def _failure(self, req: Request, code: str, reason: str, res=None, tb=None) -> Outcome:
+        self.log("error", f"plan #{req.gen}: {code}: {reason}" + (f"\n{tb.rstrip()}" if tb else ""))
+        values = {}
+        if res is not None and res.goal_rad is not None:
+            values["goal_deg"] = np.round(np.degrees(res.goal_rad), 3).tolist()
+        return Outcome(code, reason, res, values=values)
+
+
+def result_values(res, reaction) -> dict:
+    """
+    Diagnostics values of a plan beyond the basics.
+
+    The field's convergence and repairs, the grasp's approach error, the spacecraft's reaction.
+    """
+    st = res.solver_stats
+    out = {"field_converged": str(bool(st.get("converged", True))).lower(),
+           "field_bands": st.get("bands", ""), "repairs": st.get("repairs", 0)}
+    if st.get("left"):
+        out["field_left"] = st["left"]
+    approach = getattr(res, "approach_error_deg", float("nan"))
+    if approach == approach:
+        out["approach_error_deg"] = f"{approach:.2f}"
+    if reaction is not None:
+        for key in ("acs_mode", "peak_wheel_momentum_Nms", "peak_wheel_torque_Nm",
+                    "free_floating_attitude_change_deg", "free_floating_tip_miss_m"):
+            value = getattr(reaction, key, None)
+            if value is not None:
+                out[key] = f"{value:.4f}" if isinstance(value, float) else str(value)
+    return out

@@ -1,0 +1,264 @@
+"""
+The capture session (session.py) without ROS: requests, the current goal, start, retries, stamp, at-goal.
+
+Plans run in this thread (``run_once``) with a ``worker.ThreadBackend``; the ROS clock is a
+fake the test sets.  Oracles: the target's grasp geometry (tip by the robot's forward
+kinematics), the executing trajectory's own points, the clock.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from spacerobot_planner.adapters import AT_GOAL_TOL_RAD
+from spacerobot_planner.config import load_params_file, scenario_from_params, session_settings_from_params
+from spacerobot_planner.scene import Target
+from spacerobot_planner.session import CaptureSession, stamp_for
+from spacerobot_planner.worker import ThreadBackend
+
+S = 1_000_000_000
+CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config")
+FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
+        "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
+
+
+def test_the_session_imports_no_rclpy():
+    code = ("import sys; import spacerobot_planner.session; "
+            "assert 'rclpy' not in sys.modules, sorted(m for m in sys.modules if m.startswith('rcl'))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+
+
+class Clock:
+    """A ROS clock the test moves: ``step_ns`` more at every reading."""
+
+    def __init__(self, t_ns=1_000 * S, step_ns=0):
+        self.t, self.step, self.last = int(t_ns), int(step_ns), None
+
+    def __call__(self):
+        self.t += self.step
+        self.last = self.t
+        return self.t
+
+
+class SlowBackend(ThreadBackend):
+    """A ThreadBackend whose plans take ``plan_s`` of the fake clock; ``meanwhile(ns)`` then runs (joint states)."""
+
+    def __init__(self, scenario, clock, plan_s):
+        super().__init__(scenario)
+        self.clock, self.plan_s, self.meanwhile = clock, plan_s, None
+
+    def run(self, job, progress=None):
+        out = super().run(job, progress)
+        self.clock.t += int(self.plan_s * S)
+        if self.meanwhile is not None:
+            self.meanwhile(self.clock.t)
+        return out
+
+
+@pytest.fixture(scope="module")
+def flat():
+    f = load_params_file(os.path.join(CONFIG, "paper_3dof.yaml"))
+    f.update(FAST)
+    f["grid.cells"] = [36, 36, 36]
+    return f
+
+
+@pytest.fixture(scope="module")
+def backend(flat):
+    be = ThreadBackend(scenario_from_params(flat))
+    yield be
+    be.close()
+
+
+def _session(flat, backend, clock=None, **settings):
+    sc = scenario_from_params(flat)
+    st = replace(session_settings_from_params(flat), **settings)
+    log, published, recorded = [], [], []
+    ses = CaptureSession(sc, st, now_ns=clock or Clock(), log=lambda lvl, text: log.append((lvl, text)),
+                         publish=lambda req, out: published.append((req, out, (clock.last if clock else None))),
+                         record=lambda req, out: recorded.append((req, out)))
+    ses.start(backend, thread=False)
+    ses.accept(True)
+    ses.log_lines, ses.published, ses.recorded = log, published, recorded
+    return ses
+
+
+def _end_full(ses, out):
+    """Return the robot's full joint vector at the end of the published trajectory."""
+    robot = ses.scenario.robot
+    q = out.trajectory.positions_rad[-1]
+    return robot.full(q)
+
+
+def _grasp_miss_m(ses, out, target):
+    robot = ses.scenario.robot
+    return float(np.linalg.norm(robot.tip_position(_end_full(ses, out)) - target.grasp_point_m))
+
+
+def _target(ses, x, y):
+    return replace(ses.scenario.scene.target, center_m=(x, y))
+
+
+def test_the_latest_request_wins(flat, backend):
+    ses = _session(flat, backend)
+    ses.joint_state(ses.scenario.start_rad, 999 * S)
+    done = []
+    first, second = _target(ses, -3.27, -2.60), _target(ses, -3.20, -2.70)
+    a = ses.submit("first", target=first, on_done=done.append)
+    b = ses.submit("second", target=second, on_done=done.append)
+    assert [o.code for o in done] == ["superseded"] and f"request #{b.gen}" in done[0].reason
+    out = ses.run_once()
+    assert out.ok and done[-1] is out and a.gen < b.gen
+    assert ses.run_once() is None                                   # nothing else queued
+    assert len(ses.published) == 1 and ses.published[0][1] is out
+    assert _grasp_miss_m(ses, out, second) < 1e-3
+    assert ses.target is second and ses.requested_target is second
+
+
+def test_which_goal_a_replan_or_a_parameter_change_uses(flat, backend):
+    ses = _session(flat, backend)
+    robot = ses.scenario.robot
+    ses.joint_state(ses.scenario.start_rad, 999 * S)
+    topic = _target(ses, -3.20, -2.70)
+    assert ses.submit("topic target", target=topic).gen == 1 and ses.run_once().ok
+    # a joint goal: planned in the scene of the current target (the topic's), not the parameters'
+    goal = ses.last_result.goal_rad + np.radians([0.0, -10.0, 5.0])
+    req = ses.submit("joint goal", joint_goal=goal)
+    assert req.scenario.scene.target is topic
+    assert ses.run_once().ok
+    executing = ses.executing
+    # an action goal with its own start: planned and returned, not executed; the goal stays
+    other = _target(ses, -3.30, -2.55)
+    own = ses.submit("goal with its own start", target=other, start_rad=ses.scenario.start_rad)
+    out = ses.run_once()
+    assert out.ok and not out.publication.execute and not out.publication.sent
+    assert ses.executing is executing and own.scenario.scene.target is other
+    np.testing.assert_array_equal(ses.joint_goal, goal)
+    assert ses.target is topic
+    # a replan: the joint goal, in the current target's scene
+    replan = ses.submit("~/replan")
+    np.testing.assert_array_equal(replan.joint_goal, goal)
+    assert replan.scenario.scene.target is topic and replan.start_rad is None
+    # a parameter change of something else than the target: the same goal and obstacle
+    moved = dict(flat, **{"safety_margin_m": 0.03})
+    ses.configure(scenario_from_params(moved), ses.settings)
+    change = ses.submit("parameter change (safety_margin_m)")
+    np.testing.assert_array_equal(change.joint_goal, goal)
+    assert change.scenario.scene.target is topic and change.scenario.scene.safety_margin_m == 0.03
+    # a change of target.*: the parameters' target becomes current (a target request plans to it)
+    ses.configure(scenario_from_params(dict(moved, **{"target.center_m": [-3.25, -2.62]})), ses.settings,
+                  target_changed=True)
+    ses.submit("topic target", target=ses.target)
+    again = ses.submit("~/replan")
+    assert again.joint_goal is None and again.scenario.scene.target.center_m == (-3.25, -2.62)
+    assert robot.dof == 3
+
+
+def test_a_plan_from_rest_is_stamped_the_lead_after_it_is_published(flat, backend):
+    clock = Clock(step_ns=S // 100)                  # every reading 10 ms later
+    ses = _session(flat, backend, clock)
+    ses.joint_state(ses.scenario.start_rad, clock.t)
+    ses.submit("target", target=ses.target)
+    out = ses.run_once()
+    (_, got, read_at_publish), = ses.published
+    pub = got.publication
+    lead_ns = int(ses.settings.start_lead_s * S)
+    assert pub.stamp_ns == read_at_publish + lead_ns         # taken at the last reading before publishing
+    assert pub.stamp_ns + out.trajectory.duration_s * S >= read_at_publish + lead_ns
+    assert ses.executing.start_ns == pub.stamp_ns
+    assert ses.settings.start_lead_s == pytest.approx(0.35)
+
+
+def _moving(flat, backend, clock, t_in_s=1.0, **settings):
+    """Return a session whose first trajectory executes, ``t_in_s`` into it, the arm following it."""
+    ses = _session(flat, backend, clock, **settings)
+    ses.joint_state(ses.scenario.start_rad, clock.t)
+    ses.submit("first target", target=ses.target)
+    assert ses.run_once().ok
+    ex = ses.executing
+    clock.t = ex.start_ns + int(t_in_s * S)
+    measured_ns = clock.t - S // 100
+    ses.joint_state(ex.expected_at(measured_ns), measured_ns)
+    return ses, ex
+
+
+def test_a_replan_joins_the_executing_trajectory_at_a_stamp_the_lead_ahead(flat, backend):
+    clock = Clock()
+    ses, ex = _moving(flat, backend, clock)
+    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+    now = clock.t
+    out = ses.run_once()
+    assert out.ok and out.values["joined_moving_arm"].startswith("yes"), out.values
+    c = out.processed.continuation
+    pub = out.publication
+    assert pub.stamp_ns == ex.start_ns + int(round(c.join_time_s * S))
+    assert pub.stamp_ns >= now + ses.settings.start_lead_s * S
+    np.testing.assert_array_equal(out.trajectory.positions_rad[0], ex.trajectory.positions_rad[c.index])
+    assert ses.executing.previous is not None and ses.executing.start_ns == pub.stamp_ns
+
+
+def test_a_plan_longer_than_the_horizon_is_planned_again_with_twice_the_horizon(flat):
+    clock = Clock()
+    paper = load_params_file(os.path.join(CONFIG, "paper_3dof.yaml"))     # the paper's limits: a 25 s motion
+    paper["grid.cells"] = flat["grid.cells"]
+    slow = SlowBackend(scenario_from_params(paper), clock, plan_s=1.2)    # each plan takes 1.2 s
+    try:
+        ses, ex = _moving(paper, slow, clock, t_in_s=0.5, horizon_s=1.0)
+        # the arm follows its trajectory meanwhile: a fresh joint state after each plan
+        slow.meanwhile = lambda ns: ses.joint_state(ex.expected_at(ns - S // 100), ns - S // 100)
+        ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+        out = ses.run_once()
+    finally:
+        slow.close()
+    retries = [t for lvl, t in ses.log_lines if "planning again" in t]
+    assert len(retries) == 1 and "longer than the 1 s horizon" in retries[0] and "twice the horizon" in retries[0]
+    assert out.ok and out.values["joined_moving_arm"].startswith("yes")
+    assert any("2 s ahead on the executing trajectory" in t for _, t in ses.log_lines)
+
+
+def test_stamp_for_a_join_too_close_asks_for_another_plan():
+    traj = SimpleNamespace(duration_s=0.06)
+    now, lead = 100 * S, 0.35
+    rest = SimpleNamespace(join_stamp_ns=None, trajectory=traj)
+    assert stamp_for(rest, now, lead) == now + int(0.35 * S)
+    assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 2, trajectory=traj), now, lead) == now + S // 2
+    assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 5, trajectory=traj), now, lead) is None
+
+
+def test_at_the_goal_nothing_is_published_and_it_says_so(flat, backend):
+    ses = _session(flat, backend)
+    q = ses.scenario.start_rad
+    ses.joint_state(q, 999 * S)
+    ses.submit("joint goal", joint_goal=q + AT_GOAL_TOL_RAD / 4)
+    out = ses.run_once()
+    assert out.ok and out.values["at_goal"] == "true" and "already at the goal" in out.reason
+    assert out.publication.at_goal and not out.publication.sent and ses.executing is None
+
+
+def test_a_request_waits_for_the_first_joint_state_and_can_expire(flat, backend):
+    ses = _session(flat, backend)
+    done, stages = [], []
+    req = ses.submit("target", target=ses.target, on_done=done.append,
+                     on_progress=lambda p: stages.append(p.stage))
+    assert req.waiting and stages == ["waiting_for_joint_states"] and ses.run_once() is None
+    assert ses.expire_waiting(req, "no joint_states within 1 s") and done[0].code == "invalid_input"
+    later = ses.submit("target again", target=ses.target)
+    ses.joint_state(ses.scenario.start_rad, 999 * S)
+    assert not ses.expire_waiting(later, "late") and ses.run_once().ok
+
+
+def test_refused_while_not_accepting(flat, backend):
+    ses = _session(flat, backend)
+    ses.accept(False, "deactivated")
+    done = []
+    assert ses.submit("target", target=ses.target, on_done=done.append).gen == 0
+    assert done[0].code == "cancelled" and done[0].reason == "the node is not active"
+    assert isinstance(ses.target, Target)
