@@ -75,7 +75,7 @@ from .motion import MotionValidator
 
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
-           "horizon_index", "HorizonPassed"]
+           "horizon_index", "HorizonPassed", "sample_points"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -915,3 +915,95 @@ def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizo
     speed = 0.0 if traj.path_speed is None else float(traj.path_speed[k])
     return Continuation(k, float(t[k]), traj.positions_rad[k:h + 1].copy(), speed,
                         traj.velocities_rad_s[k].copy())
+
+
+def sample_points(times_s, positions, velocities, accelerations, t_s):
+    """
+    Sample published trajectory points as joint_trajectory_controller interpolates them.
+
+    Each segment between consecutive points is a polynomial in time chosen by the fields
+    the points have (ros2_controllers' spline interpolation): positions only → linear;
+    positions and velocities → cubic Hermite (position and velocity match at both ends);
+    positions, velocities and accelerations → quintic (position, velocity and acceleration
+    match at both ends).  A segment covers [t_k, t_k+1), as in the controller; at the last
+    point's time exactly the result is that point (its velocities and accelerations, zero
+    where absent).  Before the first point the arm holds the first, after the last point
+    the last, at rest (zero velocity and acceleration).  Vectorised over the joints and
+    over ``t_s``.
+
+    Args:
+        times_s: (M,) the points' times from the trajectory's start, s, strictly increasing.
+        positions: (M, n) joint positions (rad, or m for a prismatic joint).
+        velocities: (M, n) joint velocities per s, or None (positions only: linear).
+        accelerations: (M, n) joint accelerations per s², or None; used only with
+            ``velocities`` (a controller's quintic needs both).
+        t_s: a time (float) or times (K,) from the trajectory's start, s.
+
+    Returns
+    -------
+        (positions, velocities, accelerations): each (n,) for a float ``t_s``, (K, n) for
+        an array; accelerations are zero on linear segments.
+
+    Raises
+    ------
+        ValueError: shapes that do not match, times that do not increase, accelerations
+        without velocities.
+
+    """
+    t = np.asarray(times_s, dtype=float)
+    q = np.asarray(positions, dtype=float)
+    if t.ndim != 1 or len(t) == 0 or q.ndim != 2 or q.shape[0] != len(t):
+        raise ValueError(f"sample_points: times {t.shape} and positions {q.shape} must be (M,) and (M, n)")
+    if np.any(np.diff(t) <= 0.0):
+        raise ValueError("sample_points: times must increase strictly")
+    v = None if velocities is None else np.asarray(velocities, dtype=float)
+    a = None if accelerations is None else np.asarray(accelerations, dtype=float)
+    for name, arr in (("velocities", v), ("accelerations", a)):
+        if arr is not None and arr.shape != q.shape:
+            raise ValueError(f"sample_points: {name} {arr.shape} must be shaped as the positions {q.shape}")
+    if a is not None and v is None:
+        raise ValueError("sample_points: accelerations without velocities")
+    ts = np.asarray(t_s, dtype=float)
+    scalar = ts.ndim == 0
+    ts = np.atleast_1d(ts)
+    n_t, n = len(ts), q.shape[1]
+    pos = np.empty((n_t, n))
+    vel = np.zeros((n_t, n))
+    acc = np.zeros((n_t, n))
+    before, after, at_end = ts < t[0], ts > t[-1], ts == t[-1]
+    pos[before], pos[after | at_end] = q[0], q[-1]
+    if v is not None:
+        vel[at_end] = v[-1]
+    if a is not None:
+        acc[at_end] = a[-1]
+    inside = ~(before | after | at_end)
+    if np.any(inside):
+        s_in = ts[inside]
+        k = np.clip(np.searchsorted(t, s_in, side="right") - 1, 0, len(t) - 2)
+        dur = (t[k + 1] - t[k])[:, None]                      # (K', 1)
+        x = ((s_in - t[k])[:, None]) / dur                    # normalised time in the segment
+        q0, q1 = q[k], q[k + 1]
+        d = q1 - q0
+        c = np.zeros((6,) + q0.shape)                         # p(x) = Σ c_i x^i, x ∈ [0, 1]
+        c[0] = q0
+        if v is None:
+            c[1] = d
+        else:
+            w0, w1 = dur * v[k], dur * v[k + 1]
+            if a is None:
+                c[1], c[2], c[3] = w0, 3.0 * d - 2.0 * w0 - w1, -2.0 * d + w0 + w1
+            else:
+                b0, b1 = dur ** 2 * a[k], dur ** 2 * a[k + 1]
+                c[1], c[2] = w0, 0.5 * b0
+                c[3] = 10.0 * d - 6.0 * w0 - 4.0 * w1 - 1.5 * b0 + 0.5 * b1
+                c[4] = -15.0 * d + 8.0 * w0 + 7.0 * w1 + 1.5 * b0 - b1
+                c[5] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
+        p, dp, ddp = c[5], np.zeros_like(q0), np.zeros_like(q0)
+        for i in range(4, -1, -1):                            # Horner, with the first two derivatives
+            ddp = ddp * x + 2.0 * dp
+            dp = dp * x + p
+            p = p * x + c[i]
+        pos[inside], vel[inside], acc[inside] = p, dp / dur, ddp / dur ** 2
+    if scalar:
+        return pos[0], vel[0], acc[0]
+    return pos, vel, acc
