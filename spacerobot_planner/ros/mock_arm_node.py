@@ -1,18 +1,33 @@
 """
 `mock_arm_node`: a kinematic arm that follows JointTrajectory messages.
 
-Publishes ``joint_states`` (every joint in ``robot.joint_names``) at
-``mock_arm.rate_hz``.  The initial posture is ``scenario.start_deg`` over the
-planned joints and ``robot.locked_positions_deg`` for the rest.  A trajectory on
-``joint_trajectory`` (the arm) or ``attitude_trajectory`` (the spacecraft's attitude, as
-an attitude control system would) is followed by interpolating its points in time from
-its header stamp (a zero stamp: from the moment it arrives).  A newer trajectory on the
-same topic replaces the old one at its stamp: until then the arm goes on following the
-old one (or holds still), as a controller does with a trajectory that starts in the
-future.  When the arm is not exactly where the new trajectory is at that moment (it moved
-while the planner worked), the difference is faded out linearly over ``blend_s`` (0.2 s),
-so the arm starts from where it is without a jump.  The published velocities are the
-trajectory's, interpolated in time like the positions.
+Publishes ``joint_states`` (every joint in ``robot.joint_names``: positions and velocities) at
+``mock_arm.rate_hz``.  The initial posture is ``scenario.start_deg`` over the planned joints
+and ``robot.locked_positions_deg`` for the rest.  A trajectory on ``joint_trajectory`` (the
+arm) or ``attitude_trajectory`` (the spacecraft's attitude, as an attitude control system
+would) is followed as ros2_controllers' joint_trajectory_controller (JTC) follows one:
+
+- its points are interpolated per segment by ``trajectory.sample_points``: linear for
+  positions only, a cubic Hermite with velocities, a quintic with velocities and
+  accelerations; after the last point the arm holds it, at rest;
+- its time base is its header stamp (a zero stamp: the moment it arrives); one that would
+  end before it arrives (a non-zero stamp plus its duration in the past) is refused;
+- it takes over at its stamp (at its arrival when that is later): until then the arm goes on
+  following the trajectory it had on the same topic (or holds still), as JTC does with
+  ``allow_trajectory_replacement`` (a newer waiting trajectory drops any waiting one that
+  would start at or after it);
+- when it takes over before its first point's time, the arm moves from its state at that
+  moment (position, velocity, acceleration) to the first point along the segment the first
+  point's fields call for (JTC's "point before the trajectory"; a periodic joint's state is
+  first wrapped to within half a turn of the point); a trajectory whose first point is at
+  time 0 starts on it there.
+
+The state is a function of the ROS time: ``state(now_ns)`` (positions, velocities,
+accelerations of every joint) starts the trajectories due by then and samples them;
+``joint_state_at(now_ns)`` is the message the timer publishes for that instant (the
+accelerations are not in it: JointState has no field for them).  Times are kept in integer
+nanoseconds, so a state is exact at its stamp.  Joints that no trajectory moves hold their
+position.
 
 Parameters: ``robot.*`` and ``scenario.start_deg`` (the shared ``/**`` section of a
 scenario file) and ``rate_hz`` (its own ``mock_arm`` section).  Run it with the same
@@ -26,6 +41,7 @@ from __future__ import annotations
 import array
 import math
 import threading
+from dataclasses import dataclass, replace
 
 import numpy as np
 from rclpy.node import Node
@@ -33,6 +49,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from ..config import scenario_from_params
+from ..trajectory import sample_points
 from . import conversions as conv
 from . import node_main
 from .parameters import MOCK_ARM_PARAMETERS, SPECS, descriptor_for
@@ -40,9 +57,36 @@ from .parameters import MOCK_ARM_PARAMETERS, SPECS, descriptor_for
 __all__ = ["MockArmNode", "main"]
 
 
+@dataclass(frozen=True, eq=False)
+class _Motion:
+    """
+    A received trajectory.
+
+    Attributes
+    ----------
+        cols: the joint_states columns of its joints.
+        times: (M,) its points' times from ``start_ns``, s.
+        q, v, a: (M, k) its positions, velocities (or None), accelerations (or None).
+        start_ns: ROS time of its time 0 (its stamp, or its arrival for a zero stamp), ns.
+        switch_ns: ROS time at which it takes over (its stamp, or its arrival when later), ns.
+
+    """
+
+    cols: tuple
+    times: np.ndarray
+    q: np.ndarray
+    v: np.ndarray | None
+    a: np.ndarray | None
+    start_ns: int
+    switch_ns: int
+
+    def s_at(self, ns: int) -> float:
+        """Return ROS time ``ns`` in the trajectory's time, s (from its time 0)."""
+        return 1e-9 * (int(ns) - self.start_ns)
+
+
 class MockArmNode(Node):
-    def __init__(self, *, context=None, parameter_overrides=None, node_name: str = "mock_arm",
-                 blend_s: float = 0.2, **kwargs):
+    def __init__(self, *, context=None, parameter_overrides=None, node_name: str = "mock_arm", **kwargs):
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides, **kwargs)
         params = {}
         for name, schema in MOCK_ARM_PARAMETERS.items():
@@ -56,12 +100,13 @@ class MockArmNode(Node):
             list(self.robot.planned_joints)])
         self.names = tuple(self.robot.joint_names)
         self.periodic = tuple(bool(p) for p in self.robot.periodic)
-        self._q = np.array(q_full, dtype=float)
-        self._v = np.zeros_like(self._q)
         self._lock = threading.Lock()
-        self._trajs = {}             # topic -> (column indices, times, positions, velocities, t0, offset, s_switch)
-        self._next = {}              # topic -> (column indices, times, positions, velocities, t0): not started
-        self.blend_s = float(blend_s)
+        self._hold = np.array(q_full, dtype=float)     # where joints no trajectory moves are
+        self._q = self._hold.copy()                    # the latest state computed (positions)
+        self._v = np.zeros_like(self._q)
+        self._a = np.zeros_like(self._q)
+        self._active = {}            # topic -> _Motion followed now (its point before prepended)
+        self._waiting = {}           # topic -> [_Motion] not started yet, by switch time
         self.trajectories_received = 0
         self.executing = False
         self.pub = self.create_publisher(JointState, "joint_states", 10)
@@ -73,108 +118,114 @@ class MockArmNode(Node):
 
     @property
     def positions(self) -> np.ndarray:
+        """Return the positions of the latest state (the last ``state`` call's: the last published), (n,) rad."""
         with self._lock:
             return self._q.copy()
 
     def _on_trajectory(self, msg: JointTrajectory, topic: str = "joint_trajectory"):
+        self.receive(msg, topic, self.get_clock().now().nanoseconds)
+
+    def receive(self, msg: JointTrajectory, topic: str, now_ns: int) -> bool:
+        """
+        Take a trajectory arriving on ``topic`` at ROS time ``now_ns`` (ns).
+
+        What the subscriptions do (with the clock's time).  Returns False, logging why, for
+        one that is refused (unknown joints, malformed, ending in the past).
+        """
         try:
             names, t, q, v = conv.msg_to_trajectory_arrays(msg)
             unknown = [n for n in names if n not in self.names]
             if unknown:
-                raise ValueError(f"joint_trajectory: unknown joint(s) {', '.join(unknown)}")
+                raise ValueError(f"{topic}: unknown joint(s) {', '.join(unknown)}")
         except ValueError as e:
             self.get_logger().error(str(e))
-            return
-        cols = [self.names.index(n) for n in names]
-        t0 = self._start_time(msg)
+            return False
+        a = None
+        if v is not None and all(len(p.accelerations) == len(names) for p in msg.points):
+            a = np.array([list(p.accelerations) for p in msg.points], dtype=float)
+            if not np.all(np.isfinite(a)):
+                a = None
+        now_ns = int(now_ns)
+        start_ns = conv.time_to_ns(msg.header.stamp) or now_ns
+        m = _Motion(tuple(self.names.index(n) for n in names), t, q, v, a, start_ns, max(start_ns, now_ns))
+        if m.s_at(now_ns) > t[-1]:
+            self.get_logger().error(f"{topic}: refused a trajectory that ends in the past (stamp + duration "
+                                    f"{m.s_at(now_ns) - t[-1]:.3f} s before now)")
+            return False
         with self._lock:
-            self._next[topic] = (cols, t, q, v, t0)
+            self._waiting[topic] = [w for w in self._waiting.get(topic, []) if w.switch_ns < m.switch_ns] + [m]
             self.trajectories_received += 1
             self.executing = True
-        ahead = t0 - self._now_s()
-        self.get_logger().info(f"received a trajectory of {len(t)} points, {t[-1]:.2f} s, starting "
-                               + (f"in {ahead:.3f} s" if ahead > 0 else f"{-ahead:.3f} s ago"))
+        ahead = -m.s_at(now_ns)
+        kind = "quintic" if a is not None else "cubic" if v is not None else "linear"
+        self.get_logger().info(f"received a trajectory of {len(t)} points ({kind}), {t[-1]:.2f} s, on {topic}, "
+                               "starting " + (f"in {ahead:.3f} s" if ahead > 0 else f"{-ahead:.3f} s ago"))
+        return True
 
-    def _now_s(self) -> float:
-        """Return the node's clock (ROS time), s: the time base of the motion and of the stamps."""
-        return 1e-9 * self.get_clock().now().nanoseconds
-
-    def _start_time(self, msg) -> float:
+    def state(self, now_ns: int):
         """
-        Return the ROS time (s) at which ``msg`` starts.
+        Return the arm's state at ROS time ``now_ns`` (ns): (positions, velocities, accelerations), each (n,).
 
-        Its header stamp (as a controller reads it: the arm's and the attitude's parts of one plan
-        start together), or now for a zero stamp.
+        The node's clock is the time base of the motion and of the stamps.  Starts the
+        trajectories due by ``now_ns`` first (in the order of their switch times, each from the
+        state at its own switch time), so the result does not depend on when it is asked,
+        provided the times asked do not go back past a switch already made.
         """
-        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        return self._now_s() if stamp_ns == 0 else 1e-9 * stamp_ns
-
-    def _advance(self, now):
+        now_ns = int(now_ns)
         with self._lock:
-            self._v[:] = 0.0
-            for topic in list(self._trajs):
-                self._advance_one(topic, now)
-            for topic in list(self._next):
-                if now >= self._next[topic][4]:
-                    self._switch(topic, now)
-                    self._advance_one(topic, now)
-            self.executing = bool(self._trajs or self._next)
+            due = []
+            for topic, waiting in self._waiting.items():
+                due += [(m.switch_ns, topic, m) for m in waiting if m.switch_ns <= now_ns]
+                self._waiting[topic] = [m for m in waiting if m.switch_ns > now_ns]
+            for _, topic, m in sorted(due, key=lambda d: d[0]):
+                self._start(topic, m)
+            self._waiting = {k: w for k, w in self._waiting.items() if w}
+            q, v, a = self._evaluate(now_ns)
+            self._q, self._v, self._a = q, v, a
+            self.executing = bool(self._waiting) or any(m.s_at(now_ns) < m.times[-1] for m in self._active.values())
+            return q.copy(), v.copy(), a.copy()
 
-    def _switch(self, topic, now):
-        """
-        (lock held) the waiting trajectory of ``topic`` takes over at ``now``.
+    def _start(self, topic: str, m: _Motion):
+        """(lock held) ``m`` takes over ``topic`` at its switch time, from the arm's state then."""
+        q_s, v_s, a_s = self._evaluate(m.switch_ns)
+        self._hold = q_s.copy()            # the joints it leaves (a replaced trajectory's) stay there
+        s0 = m.s_at(m.switch_ns)
+        if s0 < m.times[0]:                # JTC's point before the trajectory, at the switch
+            cols = list(m.cols)
+            before = q_s[cols]
+            for k, c in enumerate(cols):
+                if self.periodic[c]:
+                    before[k] = m.q[0, k] - _shortest_angle(before[k], m.q[0, k])
+            m = replace(m, times=np.concatenate([[s0], m.times]), q=np.vstack([before, m.q]),
+                        v=None if m.v is None else np.vstack([v_s[cols], m.v]),
+                        a=None if m.a is None else np.vstack([a_s[cols], m.a]))
+        self._active[topic] = m
 
-        The arm's offset from it there is faded out over blend_s.
-        """
-        cols, t, q, v, t0 = self._next.pop(topic)
-        s = now - t0
-        pos, _ = _interpolate(t, q, v, s)
-        off = self._q[cols] - pos
-        for k, c in enumerate(cols):
-            if self.periodic[c]:
-                off[k] = math.remainder(off[k], 2 * math.pi)
-        self._trajs[topic] = (cols, t, q, v, t0, off, s)
+    def _evaluate(self, now_ns: int):
+        """(lock held) the state at ``now_ns`` on the trajectories followed now."""
+        q = self._hold.copy()
+        v, a = np.zeros_like(q), np.zeros_like(q)
+        for m in self._active.values():
+            cols = list(m.cols)
+            q[cols], v[cols], a[cols] = sample_points(m.times, m.q, m.v, m.a, m.s_at(now_ns))
+        return q, v, a
 
-    def _advance_one(self, topic, now):
-        """(lock held) one topic's trajectory at time ``now``."""
-        cols, t, q, v, t0, off, s_switch = self._trajs[topic]
-        s = now - t0
-        since = s - s_switch
-        if s >= t[-1] and since >= self.blend_s:
-            self._q[cols] = q[-1]
-            self._v[cols] = 0.0
-            del self._trajs[topic]
-            return
-        pos, vel = _interpolate(t, q, v, s)
-        fade = max(0.0, 1.0 - since / self.blend_s) if self.blend_s > 0 else 0.0
-        self._q[cols] = pos + fade * off
-        self._v[cols] = vel
+    def joint_state_at(self, now_ns: int) -> JointState:
+        """Return the joint_states message of the state at ROS time ``now_ns`` (ns), stamped with it."""
+        q, v, _ = self.state(now_ns)
+        return conv.joint_state_msg(self.names, q, v, conv.ns_to_time(now_ns))
 
     def _tick(self):
         # one instant for the state and its stamp (the state is computed at the stamp's time)
-        now_ns = self.get_clock().now().nanoseconds
-        self._advance(1e-9 * now_ns)
-        with self._lock:
-            q, v = self._q.copy(), self._v.copy()
-        self.pub.publish(conv.joint_state_msg(self.names, q, v, conv.ns_to_time(now_ns)))
+        self.pub.publish(self.joint_state_at(self.get_clock().now().nanoseconds))
 
 
-def _interpolate(t, q, v, s):
-    """
-    Interpolate a trajectory's points at time ``s``: (positions, velocities).
-
-    The points: times ``t`` (M,), positions ``q`` (M, n), velocities ``v`` (M, n) or None;
-    linear in time, clamped to its ends (at rest after the last point).
-    """
-    if s <= t[0]:
-        return q[0].copy(), (np.zeros(q.shape[1]) if v is None or len(t) == 1 else v[0].copy())
-    k = int(np.searchsorted(t, s, side="right") - 1)
-    if k >= len(t) - 1:
-        return q[-1].copy(), np.zeros(q.shape[1])
-    f = (s - t[k]) / (t[k + 1] - t[k])
-    pos = q[k] + f * (q[k + 1] - q[k])
-    vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k]) if v is None else v[k] + f * (v[k + 1] - v[k])
-    return pos, vel
+def _shortest_angle(from_rad: float, to_rad: float) -> float:
+    """Return the shortest signed angle from ``from_rad`` to ``to_rad`` (a half turn: toward the larger value)."""
+    d = math.remainder(to_rad - from_rad, 2 * math.pi)
+    if abs(abs(d) - math.pi) < 1e-9:
+        d = abs(d) if to_rad > from_rad else -abs(d)
+    return d
 
 
 def main(args=None) -> int:
