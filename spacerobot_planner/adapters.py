@@ -7,7 +7,9 @@ carries the very trajectory the node publishes:
 
 1. **time** -- the path in time under the scenario's joint limits, from rest
    (``timing.timed_motion``) or joined to the executing trajectory
-   (``replanning.joined_motion``: from the join, through the horizon point);
+   (``replanning.joined_motion``: from the join, through the horizon point; when the
+   executing trajectory ends within the lead and the plan starts at its end, from rest
+   there: :func:`ends_within_lead`);
 2. **reaction** -- the spacecraft's verdict on it (free floating, wheel limits); a refused
    trajectory stops the chain (``Processed.refused``);
 3. **resample and certify** -- a subset of the dense points at most ``time_step_s``
@@ -33,7 +35,8 @@ from .replanning import START_LEAD_S, joined_motion
 from .timing import timed_motion
 from .trajectory import Trajectory, resample
 
-__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
+__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "ends_within_lead", "RESAMPLE_STEP_S",
+           "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
 RESAMPLE_STEP_S = 0.25
@@ -111,7 +114,8 @@ class Processed:
         reaction: ``reaction.ReactionReport`` or None (not reported for this scenario).
         arm, attitude: the :class:`TrajectoryPart` of each controller (see :func:`split_parts`).
         join_stamp_ns: ROS time of the trajectory's start when joined to an executing one
-            (its stamp: the join), None from rest (stamped when published).
+            (its stamp: the join), None from rest (stamped when published; for a plan
+            given a join, from the executing trajectory's end, which it reaches first).
         continuation: the ``trajectory.Continuation`` of a join, else None.
 
     """
@@ -155,6 +159,19 @@ class Processed:
                 "points": len(self.trajectory), "dense_points": len(self.dense)}
 
 
+def ends_within_lead(join, now_ns: int, lead_s: float) -> bool:
+    """
+    Tell whether a plan joined at the executing trajectory's end starts there at rest.
+
+    The plan starts at the executing trajectory's last point (``join.horizon_index``) and
+    that trajectory ends less than ``lead_s`` after ``now_ns``: no join can be the lead ahead,
+    and the arm rests at the end before anything published now starts.
+    """
+    ex = join.executing
+    end_ns = ex.start_ns + int(round(ex.trajectory.duration_s * 1e9))
+    return join.horizon_index == len(ex.trajectory) - 1 and end_ns <= int(now_ns) + int(round(lead_s * 1e9))
+
+
 def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int = 0, lead_s: float = START_LEAD_S,
                  motions: MotionValidator | None = None, time_step_s: float = RESAMPLE_STEP_S) -> Processed:
     """
@@ -187,6 +204,10 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
     stamp_ns = cont = None
     if join is None:
         dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions)
+    elif ends_within_lead(join, now_ns, lead_s):
+        # the arm is at rest at the executing trajectory's end before anything new can start (a
+        # join would be less than the lead ahead): from rest there, stamped when published
+        dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions)
     else:
         dense, reaction, stamp_ns, cont = joined_motion(scenario, join, path_rad, now_ns, lead_s=lead_s,
                                                         checker=motions)

@@ -16,7 +16,9 @@ and its answers into messages; everything between is here:
   nothing.  A joint goal is planned in the scene of the current target (the obstacle).
 - **the start**: its own, or the arm's measured state at rest, or (the arm following the
   trajectory last published) the point ``horizon_s`` ahead on it
-  (``replanning.plan_start``).
+  (``replanning.plan_start``).  A request is planned once the trajectory last published has
+  started (it waits at most the lead): controllers differ in what a newer trajectory does
+  to one still waiting for its stamp, not to one running.
 - **ONE post-processing chain** (``adapters.post_process``: time, reaction, resampling
   certified with the scene's ``motion.MotionValidator``, arm/attitude split), the same
   as ``spacerobot-plan``'s.
@@ -28,7 +30,9 @@ and its answers into messages; everything between is here:
 - **the stamp**: every published trajectory starts at least ``start_lead_s`` after it is
   published: a trajectory from rest is stamped now + the lead just before it is
   published; a joined one carries the join's time, checked then to be still at least the
-  lead ahead (else the retry above).
+  lead ahead (else the retry above).  A plan starting at the end of an executing
+  trajectory that ends within the lead starts there at rest (the arm rests there before
+  anything new can start; ``adapters.ends_within_lead``).
 - **the at-goal rule**: a plan along which nothing moves more than
   ``adapters.AT_GOAL_TOL_RAD`` publishes nothing and says so.
 
@@ -60,11 +64,14 @@ from .settings import SessionSettings
 from .trajectory import HorizonPassed
 from .worker import STAGE_ORDER, PlanCrash, PlanDone, PlanError, PlanJob, Progress
 
-__all__ = ["CaptureSession", "Request", "Outcome", "Publication", "RETRY", "WAITING_STAGE", "stamp_for",
-           "target_why"]
+__all__ = ["CaptureSession", "Request", "Outcome", "Publication", "RETRY", "WAITING_STAGE", "CHAIN_ALLOWANCE_S",
+           "stamp_for", "target_why"]
 
 #: the feedback stage of a request that waits for the first joint state
 WAITING_STAGE = "waiting_for_joint_states"
+#: a join is chosen this much more than the lead ahead: the chain's own time after it is chosen
+#: (time parameterisation, resampling and certification, the record; ms, tens under load), s
+CHAIN_ALLOWANCE_S = 0.1
 #: what a further attempt does after a join failed (index = the attempt)
 RETRY = ("", "with twice the horizon", "from the end of the executing trajectory", "from the measured state, at rest")
 
@@ -448,18 +455,41 @@ class CaptureSession:
             self._active = req
         return self._run(req)
 
+    def _await_start_of_executing(self, req: Request) -> Outcome | None:
+        """
+        Wait until the trajectory last published has started (at most ``start_lead_s``).
+
+        Until then the controller may still hold it waiting, and controllers differ in what a
+        newer trajectory does to a waiting one (drop it at once, or keep it until its own start);
+        once it runs, a join is followed the same way by all.  Returns the outcome of a request
+        superseded or cancelled meanwhile, else None.
+        """
+        if req.start_rad is not None:
+            return None
+        deadline = time.monotonic() + float(req.settings.start_lead_s) + CHAIN_ALLOWANCE_S
+        with self.lock:
+            while self.executing is not None and not (req.cancelled or self._stop or
+                                                      (req.gen != self.gen and not req.keep)):
+                ahead_s = 1e-9 * (self.executing.start_ns - self.now_ns())
+                left_s = deadline - time.monotonic()
+                if ahead_s <= 0.0 or left_s <= 0.0:
+                    return None
+                self.lock.wait(min(ahead_s, left_s))
+        return self._superseded_by(req)
+
     def _run(self, req: Request) -> Outcome:
-        while True:
+        outcome = self._await_start_of_executing(req)
+        while outcome is None:
             try:
                 outcome = self._plan(req, *self._start_of(req))
             except Exception as e:      # noqa: BLE001 - never let the worker die
                 outcome = self._failure(req, "internal_error", f"planning crashed: {type(e).__name__}: {e}",
                                         tb=traceback.format_exc())
-            if outcome.code != "retry":
-                break
-            req.attempt += 1
-            self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
-                     + RETRY[min(req.attempt, len(RETRY) - 1)])
+            if outcome.code == "retry":
+                req.attempt += 1
+                self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
+                         + RETRY[min(req.attempt, len(RETRY) - 1)])
+                outcome = None
         with self.lock:
             self._active = None
             if self._pending is None:
@@ -545,7 +575,8 @@ class CaptureSession:
             req.on_progress(_progress("trajectory"))
         try:
             processed = post_process(sc, res.path_rad, start_rad=start_raw, join=join, now_ns=self.now_ns(),
-                                     lead_s=float(req.settings.start_lead_s), motions=self.motions(sc.scene))
+                                     lead_s=float(req.settings.start_lead_s) + CHAIN_ALLOWANCE_S,
+                                     motions=self.motions(sc.scene))
         except HorizonPassed:
             return Outcome("retry", f"the plan took longer than the {join.horizon_s:g} s horizon")
         except ValueError as e:
@@ -569,7 +600,8 @@ class CaptureSession:
                            f"({lead_s:g} s): it would reach the controller after it")
         traj = processed.trajectory
         c = processed.continuation
-        joined = "no (the arm at rest)" if c is None else (
+        joined = ("no (from the end of the executing trajectory, at rest)" if c is None and join is not None
+                  else "no (the arm at rest)") if c is None else (
             f"yes, {c.join_time_s:.3f} s into the executing trajectory at "
             f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s")
         latency = time.perf_counter() - req.t_request

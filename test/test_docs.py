@@ -29,7 +29,7 @@ README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 PAGES = [README] + sorted(DOCS.glob("*.md"))
 ACTION = ROOT / "interfaces" / "spacerobot_planner_interfaces" / "action" / "PlanCapture.action"
-NODE_SOURCES = [ROOT / "spacerobot_planner" / "ros" / f for f in ("planner_node.py", "mock_arm_node.py")]
+NODE_SOURCES = sorted((ROOT / "spacerobot_planner" / "ros").glob("*.py"))     # the nodes and their parts
 #: folders whose paths the docs may name (out/ is what the tools write: not in the repository)
 REPO_DIRS = ("spacerobot_planner", "config", "test", "interfaces", "docs")
 
@@ -284,7 +284,7 @@ def test_ros2_command_lines_match_the_node():
     pubs = dict((t, c) for c, t in re.findall(r"create_(?:lifecycle_)?publisher\((\w+), \"([^\"]+)\"", source))
     services = dict((t.replace("~/", f"/{NODE_NAME}/"), c)
                     for c, t in re.findall(r"create_service\((\w+), \"([^\"]+)\"", source))
-    actions = dict((t, c) for c, t in re.findall(r"ActionServer\(self, (\w+), \"([^\"]+)\"", source))
+    actions = dict((t, c) for c, t in re.findall(r"ActionServer\([\w.]+, (\w+), \"([^\"]+)\"", source))
     executables = set(re.findall(r"\"([\w-]+) = spacerobot_planner\.", _text(ROOT / "setup.py")))
     seen = set()
     for page, words in _all_commands():

@@ -89,7 +89,7 @@ def test_shipped_file_configures_a_node_in_a_namespace(ns):
         assert node.get_fully_qualified_name() == f"{ns}/spacerobot_planner"
         assert list(node.get_parameter("grid.cells").value) == [180, 180]      # its own section
         assert list(node.get_parameter("robot.planned_joints").value) == ["shoulder", "elbow"]   # /**
-        assert node._scenario.grid.shape == (181, 181)
+        assert node.param_handler.scenario.grid.shape == (181, 181)
         assert list(arm.get_parameter("robot.planned_joints").value) == ["shoulder", "elbow"]
         node.destroy_node()
         arm.destroy_node()

@@ -490,7 +490,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
         while pub_t.get_subscription_count() == 0 or pub_j.get_subscription_count() == 0:
             assert time.monotonic() - t0 < 60, "planner not subscribed"
             time.sleep(0.01)
-        robot = node._robot
+        robot = node.robot
         pub_j.publish(joint_state_msg(robot.joint_names, robot.full(scenario_from_params(flat).start_rad)))
         while node._joint_q is None:
             assert time.monotonic() - t0 < 10

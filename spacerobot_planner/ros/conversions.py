@@ -39,7 +39,7 @@ __all__ = [
     "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
     "duration_to_s", "s_to_duration", "ns_to_time", "time_to_ns", "potential_slice_values", "obstacle_slice_values",
     "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result",
-    "split_trajectory_msg",
+    "split_trajectory_msg", "plan_visuals", "slice_axes_and_point", "publication_msgs",
     "OBSTACLE", "UNREACHABLE",
 ]
 
@@ -414,3 +414,61 @@ def plan_result(result_type, code: str, reason: str = "", trajectory=None, plan=
         if plan.min_clearance_m is not None and math.isfinite(plan.min_clearance_m):
             res.min_clearance_m = float(plan.min_clearance_m)
     return res
+
+
+def slice_axes_and_point(robot, start_rad, use_current_attitude: bool = True, slice_attitude_deg: float = 0.0):
+    """
+    Return (x axis, y axis, q at which to slice) of the published grids, or None (under 2 planned joints).
+
+    The last two planned joints; the others at the plan's start, or (``use_current_attitude``
+    false, more than 2 joints) the first at ``slice_attitude_deg``.
+    """
+    dof = robot.dof
+    if dof < 2:
+        return None
+    q = np.array(start_rad, dtype=float)
+    if dof > 2 and not use_current_attitude:
+        q[0] = math.radians(slice_attitude_deg)
+    q = robot.validate_q(q, "slice")
+    return dof - 2, dof - 1, q
+
+
+def plan_visuals(robot, scene, res, frame: str, grid_frame: str, stamp=None, use_current_attitude: bool = True,
+                 slice_attitude_deg: float = 0.0) -> tuple:
+    """
+    Return the visual messages of an ok plan (a ``PlanResult``): (markers, cspace grid, potential grid).
+
+    The markers in the planning ``frame``; the grids (None without a C-space or field, or
+    under 2 planned joints) sliced by :func:`slice_axes_and_point` in ``grid_frame``.
+    """
+    markers = path_markers(robot, scene, res.path_rad, frame, stamp)
+    sl = slice_axes_and_point(robot, res.start_rad, use_current_attitude, slice_attitude_deg)
+    if sl is None or res.cspace is None:
+        return markers, None, None
+    ax, ay, q = sl
+    grid = res.cspace.grid
+    occ = grid_slice(grid, res.cspace.occupied, q, (ax, ay))
+    cspace = grid_slice_to_msg(obstacle_slice_values(occ), grid, (ax, ay), grid_frame, stamp)
+    potential = None
+    if res.field is not None:
+        phi = res.field.potential()
+        finite = np.isfinite(phi)
+        phi_max = float(phi[finite].max()) if finite.any() else 0.0
+        log_u = grid_slice(grid, res.field.log_u, q, (ax, ay))
+        focc = grid_slice(grid, res.field.occupied, q, (ax, ay))
+        potential = grid_slice_to_msg(potential_slice_values(log_u, focc, phi_max), grid, (ax, ay), grid_frame,
+                                      stamp)
+    return markers, cspace, potential
+
+
+def publication_msgs(publication) -> tuple:
+    """
+    Return (arm message, attitude message) of a ``session.Publication`` (None: no publication, or a part not planned).
+
+    One stamp for both (the controllers start them together); the points as the session made them.
+    """
+    if publication is None:
+        return None, None
+    stamp = ns_to_time(publication.stamp_ns)
+    return tuple(None if part is None else trajectory_to_msg(part, stamp)
+                 for part in (publication.arm, publication.attitude))

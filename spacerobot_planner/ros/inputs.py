@@ -1,0 +1,113 @@
+"""
+The planner node's input topics: messages checked and turned into the session's requests and states.
+
+- ``target_pose`` (PoseStamped): a new target (``conversions.pose_to_target``; a target
+  whose body overlaps the spacecraft's, at the locked attitude or at any attitude within its
+  bounds when the attitude is planned, is invalid input: ``overlap.py``); one within
+  ``replan.target_tolerance_*`` of the current target is no new request;
+- ``goal_joint_state`` (JointState): a joint goal of the planned joints;
+- ``joint_states`` (JointState): the arm's state, stamped (its header, else the arrival);
+- ``attitude_topic`` when set (PoseStamped of the spacecraft body in the planning frame):
+  its yaw stands for the attitude joint in joint_states that lack it (a real servicer's).
+
+A bad message is rejected through the node (log, rate-limited per topic, and /diagnostics).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import JointState
+
+from ..overlap import target_overlap_reason
+from ..scene import Target
+from ..session import target_why
+from . import conversions as conv
+
+__all__ = ["Inputs"]
+
+
+class Inputs:
+    """The input subscriptions of ``node`` (a ``planner_node.PlannerNode``) and what they hold (the attitude)."""
+
+    def __init__(self, node):
+        self.node = node
+        self.attitude = None        # rad: the latest yaw on attitude_topic (joint_states without it)
+
+    def subscribe(self) -> list:
+        """Create the subscriptions (activate); return them."""
+        node = self.node
+        subs = [node.create_subscription(PoseStamped, "target_pose", self.on_target, 10),
+                node.create_subscription(JointState, "joint_states", self.on_joint_state, 10),
+                node.create_subscription(JointState, "goal_joint_state", self.on_goal_joint_state, 10)]
+        topic = node.param_handler.params["attitude_topic"]
+        if topic:
+            subs.append(node.create_subscription(PoseStamped, topic, self.on_attitude, 10))
+        return subs
+
+    def target_from_pose(self, msg: PoseStamped, what: str) -> Target:
+        """Return the target of a pose; ValueError (named ``what``) when unusable or inside the spacecraft."""
+        node = self.node
+        try:
+            target = conv.pose_to_target(msg, node.planning_frame, node.param_handler.scenario.scene.target)
+        except ValueError as e:
+            raise ValueError(str(e).replace("target_pose:", f"{what}:", 1)) from None
+        overlap = target_overlap_reason(node.robot, target)
+        if overlap is not None:
+            raise ValueError(f"{what}: {overlap}")
+        return target
+
+    def joint_goal_from_msg(self, msg: JointState, what: str) -> np.ndarray:
+        """Return the planned joints' goal of a JointState; ValueError (named ``what``) when unusable."""
+        robot = self.node.robot
+        return robot.validate_q(conv.joint_state_positions(msg, robot.planned_names, what), what)
+
+    def on_target(self, msg: PoseStamped):
+        node = self.node
+        try:
+            target = self.target_from_pose(msg, "target_pose")
+        except ValueError as e:
+            node._reject("target_pose", "invalid_input", str(e))
+            return
+        same = node.session.same_target(target)
+        if same is not None:
+            node.get_logger().debug(same)
+            return
+        node._submit(target_why(target), target=target)
+
+    def on_goal_joint_state(self, msg: JointState):
+        try:
+            q = self.joint_goal_from_msg(msg, "goal_joint_state")
+        except ValueError as e:
+            self.node._reject("goal_joint_state", "invalid_input", str(e))
+            return
+        self.node._submit(f"joint goal {np.round(np.degrees(q), 2).tolist()}°", joint_goal=q)
+
+    def on_joint_state(self, msg: JointState):
+        node, robot = self.node, self.node.robot
+        attitude = robot.joint_names[0]
+        topic = node.param_handler.params["attitude_topic"]
+        fallback = None if self.attitude is None else {attitude: self.attitude}
+        try:
+            q = conv.joint_state_positions(msg, robot.planned_names, fallback=fallback)
+        except ValueError as e:
+            reason = str(e)
+            if topic and fallback is None and attitude in robot.planned_names and attitude not in msg.name:
+                reason += f"; no attitude received on '{topic}' yet"
+            node._reject("joint_states", "invalid_input", reason)
+            return
+        node.session.joint_state(q, conv.time_to_ns(msg.header.stamp) or node.get_clock().now().nanoseconds)
+
+    def on_attitude(self, msg: PoseStamped):
+        """Take the spacecraft body's pose (``attitude_topic``): its yaw is the attitude joint (position ignored)."""
+        node = self.node
+        topic, frame = node.param_handler.params["attitude_topic"], node.planning_frame
+        if msg.header.frame_id.lstrip("/") != frame.lstrip("/"):
+            node._reject("attitude", "invalid_input", f"{topic}: frame '{msg.header.frame_id}' is not the "
+                         f"planning frame '{frame}'")
+            return
+        o = msg.pose.orientation
+        try:
+            self.attitude = conv.quaternion_to_yaw(o.x, o.y, o.z, o.w)
+        except ValueError as e:
+            node._reject("attitude", "invalid_input", f"{topic}: {e}")
