@@ -190,3 +190,41 @@ def test_lifecycle_shutdown_during_a_long_plan(graph, capfd, record_property):
     err = capfd.readouterr().err
     assert "shutdown: the plan in progress is cancelled" in err
     assert "Failed to publish log message to rosout" not in err
+
+
+def test_the_lifecycle_services_answer_as_ros2_lifecycle_expects(manual):
+    """
+    `ros2 lifecycle list/get/set` use get_available_transitions, get_state and change_state (by id or label).
+
+    The node serves them itself (rclpy's public API); the oracle is the standard state machine's table.
+    """
+    from lifecycle_msgs.msg import TransitionEvent
+    from lifecycle_msgs.srv import GetAvailableStates, GetAvailableTransitions
+    g = manual
+    events = []
+    g.drv.create_subscription(TransitionEvent, "/spacerobot_planner/transition_event", events.append, 10)
+    lc = _lifecycle(g)
+    avail = g.drv.create_client(GetAvailableTransitions, "/spacerobot_planner/get_available_transitions")
+    states = g.drv.create_client(GetAvailableStates, "/spacerobot_planner/get_available_states")
+    for cli in (avail, states):
+        g.wait(cli.service_is_ready, 60, f"{cli.srv_name} discovered")
+
+    def transitions():
+        return [(d.transition.id, d.transition.label, d.start_state.label, d.goal_state.label)
+                for d in lc._call(avail, GetAvailableTransitions.Request()).available_transitions]
+
+    assert transitions() == [(1, "configure", "unconfigured", "configuring"),
+                             (5, "shutdown", "unconfigured", "shuttingdown")]
+    labels = {s.label for s in lc._call(states, GetAvailableStates.Request()).available_states}
+    assert {"unconfigured", "inactive", "active", "finalized", "configuring", "errorprocessing"} <= labels
+    g.wait(lambda: g.drv.count_publishers("/spacerobot_planner/transition_event") == 1, 30, "transition_event")
+    g.wait(lambda: events is not None and g.planner.count_subscribers("/spacerobot_planner/transition_event") == 1,
+           30, "the driver subscribed to transition_event")
+    # by label, as `ros2 lifecycle set /spacerobot_planner configure` may
+    assert lc._call(lc.change, ChangeState.Request(transition=Transition(label="configure"))).success
+    assert _state(g) == "inactive"
+    assert [t[1] for t in transitions()] == ["cleanup", "activate", "shutdown"]
+    g.wait(lambda: any(e.goal_state.label == "inactive" for e in events), 10, "the configure transition event")
+    # a shutdown id of another state is refused, the state kept
+    assert not _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    assert _state(g) == "inactive"

@@ -312,3 +312,49 @@ def test_servicer_trajectory_keeps_the_wheel_limits(graph):
     g.wait(lambda: "peak_wheel_momentum_Nms" in diag_values(g.status("planner")), 10, "the reaction")
     pv = diag_values(g.status("planner"))
     assert float(pv["peak_wheel_torque_Nm"]) <= 0.5 + 1e-9 and pv["acs_mode"] == "held"
+
+
+def _params_file(flat, path):
+    """Write a flat dotted parameter dict as a ROS 2 parameter file (one ``/**`` section)."""
+    import yaml
+    nested = {}
+    for name, value in flat.items():
+        *parents, leaf = name.split(".")
+        d = nested
+        for p in parents:
+            d = d.setdefault(p, {})
+        d[leaf] = list(value) if isinstance(value, (list, tuple)) else value
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": nested}}))
+    return str(path)
+
+
+def test_the_cli_json_carries_the_trajectory_the_node_publishes(graph, tmp_path):
+    """
+    One scenario file, one request: from rest at the scenario's start to its target.
+
+    ``spacerobot-plan --json`` carries the node's published trajectory point for point (same
+    times and positions, both parts): the CLI and the node share the chain after the path.
+    """
+    from spacerobot_planner.tools.cli import main as cli_main
+    flat = {k: v for k, v in scene_params("3dof").items() if k != "scenario.goal_deg"}   # the goal: the target's
+    g = graph(flat, with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_target(*g.scenario.scene.target.center_m)
+    g.wait(lambda: g.n_trajs() == 1 and len(g.att_trajs) == 1, 60, "the trajectory")
+    with g.lock:
+        published = {"joint_trajectory": g.trajs[0][1], "attitude_trajectory": g.att_trajs[0][1]}
+    js = tmp_path / "plan.json"
+    assert cli_main(["--params-file", _params_file(flat, tmp_path / "scene.yaml"), "--json", str(js), "--quiet"]) == 0
+    doc = json.loads(js.read_text())
+    for topic, msg in published.items():
+        part = doc["published_trajectory"][topic]
+        assert part["joint_names"] == list(msg.joint_names)
+        times = [p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points]
+        np.testing.assert_allclose(part["times_s"], times, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(part["positions_rad"], [list(p.positions) for p in msg.points])
+        np.testing.assert_array_equal(part["velocities_rad_s"], [list(p.velocities) for p in msg.points])
+    dense = doc["dense_trajectory"]
+    assert len(dense["times_s"]) > len(doc["published_trajectory"]["joint_trajectory"]["times_s"])
+    assert dense["times_s"][-1] == doc["published_trajectory"]["joint_trajectory"]["times_s"][-1]

@@ -79,6 +79,29 @@ def test_rejected_values_name_the_parameter(graph):
     assert g.planner.get_parameter("safety_margin_m").value == 0.02
 
 
+def test_a_change_is_validated_once_and_applied_once(graph, monkeypatch):
+    """
+    Nav2's parameter handler: one scenario built per change, one application (through the service too).
+
+    The oracle: a counting wrapper around the scenario builder the handler uses, and one around the
+    session's configure.
+    """
+    import spacerobot_planner.ros.parameter_handler as handler
+    g = graph(scene_params("3dof"), with_arm=False)
+    built, applied = [], []
+    real_build, real_configure = handler.scenario_from_params, g.planner.session.configure
+    monkeypatch.setattr(handler, "scenario_from_params", lambda params: built.append(1) or real_build(params))
+    monkeypatch.setattr(g.planner.session, "configure", lambda *a, **k: applied.append(a) or real_configure(*a, **k))
+    assert g.planner.set_parameters([Parameter("replan.horizon_s", value=0.5)])[0].successful
+    assert (len(built), len(applied)) == (1, 1) and applied[0][1].horizon_s == 0.5
+    req = SetParameters.Request(parameters=[Parameter("replan.horizon_s", value=0.75).to_parameter_msg()])
+    assert _call(g, "spacerobot_planner", SetParameters, "set_parameters", req).results[0].successful
+    assert (len(built), len(applied)) == (2, 2) and g.planner.session.settings.horizon_s == 0.75
+    # a refused change: validated once, applied never
+    assert not g.planner.set_parameters([Parameter("safety_margin_m", value=-1.0)])[0].successful
+    assert (len(built), len(applied)) == (2, 2)
+
+
 def test_both_nodes_from_one_params_file(tmp_path):
     """
     `--params-file` with /** + a section per node.

@@ -4,7 +4,7 @@ The planner node's lifecycle interface, on rclpy's public API only.
 The node is a ``rclpy.lifecycle.LifecycleNode`` made with
 ``enable_communication_interface=False``: it serves the lifecycle services itself
 (``~/change_state``, ``~/get_state``, ``~/get_available_states``,
-``~/get_available_transitions``, ``~/get_transition_graph``, and publishes
+``~/get_available_transitions``, ``~/get_transition_graph``; rcl still publishes
 ``~/transition_event``), as ``ros2 lifecycle`` expects them, so that a transition that is
 not possible from the current state is refused with a log line naming the state and the
 transitions it has (rclpy's own service answers with numbers only).  Transitions run
@@ -14,7 +14,7 @@ what they return (the node's ``on_error`` always succeeds: an error ends unconfi
 
 from __future__ import annotations
 
-from lifecycle_msgs.msg import State, Transition, TransitionDescription, TransitionEvent
+from lifecycle_msgs.msg import State, Transition, TransitionDescription
 from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
 from rclpy.lifecycle import TransitionCallbackReturn
 
@@ -57,7 +57,6 @@ class LifecycleInterface:
     def __init__(self, node):
         self.node = node
         self.state_id = _U
-        self._event = node.create_publisher(TransitionEvent, "~/transition_event", 10)
         node.create_service(ChangeState, "~/change_state", self._on_change_state)
         node.create_service(GetState, "~/get_state", self._on_get_state)
         node.create_service(GetAvailableStates, "~/get_available_states", self._on_get_available_states)
@@ -89,7 +88,7 @@ class LifecycleInterface:
         """Run one transition through ``trigger`` (rclpy's ``trigger_<label>``) when possible now."""
         if self.refusal(label) is not None:
             return TransitionCallbackReturn.ERROR
-        tid, _, start, middle, goal = next(t for t in self.available() if t[1] == label)
+        goal = next(t for t in self.available() if t[1] == label)[4]
         ret = trigger()
         if ret == TransitionCallbackReturn.SUCCESS:
             self.state_id = goal
@@ -97,12 +96,6 @@ class LifecycleInterface:
             self.state_id = _U
         elif label == "shutdown":
             self.state_id = _F
-        try:
-            self._event.publish(TransitionEvent(
-                timestamp=self.node.get_clock().now().nanoseconds, transition=Transition(id=tid, label=label),
-                start_state=_state(start), goal_state=_state(self.state_id)))
-        except Exception:      # noqa: BLE001 - the context is going away (shutdown)
-            pass
         return ret
 
     # ------------------------------------------------------------------ services
