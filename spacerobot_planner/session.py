@@ -16,9 +16,9 @@ and its answers into messages; everything between is here:
   nothing.  A joint goal is planned in the scene of the current target (the obstacle).
 - **the start**: its own, or the arm's measured state at rest, or (the arm following the
   trajectory last published) the point ``horizon_s`` ahead on it
-  (``replanning.plan_start``).  A request is planned once the trajectory last published has
-  started (it waits at most the lead): controllers differ in what a newer trajectory does
-  to one still waiting for its stamp, not to one running.
+  (``replanning.plan_start``; a trajectory published but not started yet is joined like
+  one running: joint_trajectory_controller keeps a waiting trajectory until a newer one's
+  stamp, when that is later, as the mock arm does).
 - **ONE post-processing chain** (``adapters.post_process``: time, reaction, resampling
   certified with the scene's ``motion.MotionValidator``, arm/attitude split), the same
   as ``spacerobot-plan``'s.
@@ -455,30 +455,8 @@ class CaptureSession:
             self._active = req
         return self._run(req)
 
-    def _await_start_of_executing(self, req: Request) -> Outcome | None:
-        """
-        Wait until the trajectory last published has started (at most ``start_lead_s``).
-
-        Until then the controller may still hold it waiting, and controllers differ in what a
-        newer trajectory does to a waiting one (drop it at once, or keep it until its own start);
-        once it runs, a join is followed the same way by all.  Returns the outcome of a request
-        superseded or cancelled meanwhile, else None.
-        """
-        if req.start_rad is not None:
-            return None
-        deadline = time.monotonic() + float(req.settings.start_lead_s) + CHAIN_ALLOWANCE_S
-        with self.lock:
-            while self.executing is not None and not (req.cancelled or self._stop or
-                                                      (req.gen != self.gen and not req.keep)):
-                ahead_s = 1e-9 * (self.executing.start_ns - self.now_ns())
-                left_s = deadline - time.monotonic()
-                if ahead_s <= 0.0 or left_s <= 0.0:
-                    return None
-                self.lock.wait(min(ahead_s, left_s))
-        return self._superseded_by(req)
-
     def _run(self, req: Request) -> Outcome:
-        outcome = self._await_start_of_executing(req)
+        outcome = None
         while outcome is None:
             try:
                 outcome = self._plan(req, *self._start_of(req))

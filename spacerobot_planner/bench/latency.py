@@ -10,17 +10,26 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   gives how many replans were joined to the moving arm and the largest velocity step
   the mock arm recorded at a switch (between two joint_states, deg/s, less what the
   acceleration limits allow in that time);
-- ``message``: building the published messages (resample + certify + JointTrajectory)
-  for the last trajectory, and the message of the dense trajectory for comparison.
+- ``message``: the chain after the path (``adapters.post_process``: time parameterisation,
+  resample + certify, split) and the published messages for the last plan, and the
+  messages of the dense trajectory for comparison;
+- ``stamp_margin``: for every trajectory received in the run, its stamp minus its arrival
+  (ROS time) and its stamp + duration minus its arrival: min, p10 and median, so the worst
+  case of the node's ``trajectory.start_lead_s`` is measured (both must stay positive: a
+  controller refuses a trajectory that ends before it arrives, and one arriving after its
+  start begins with a velocity step);
+- ``--load N`` runs N busy-loop processes meanwhile (a loaded machine).
 
 Median, p90 and max of ``--repeats`` after one warm-up plan.  Prints a table and one JSON
-object per line.  ``python -m spacerobot_planner.bench latency [--cells 36] [--repeats 7]``
+object per line.  ``python -m spacerobot_planner.bench latency [--cells 36] [--repeats 7] [--load N]``
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -38,7 +47,19 @@ def main(argv=None) -> int:
     ap.add_argument("--in-process", action="store_true",
                     help="plan in the worker thread instead of the child process")
     ap.add_argument("--no-moving", action="store_true", help="skip the latency_moving stage (mock arm)")
+    ap.add_argument("--load", type=int, default=0, metavar="N", help="run N busy-loop processes meanwhile")
     args = ap.parse_args(argv)
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(max(0, args.load))]
+    try:
+        return _run(args)
+    finally:
+        for h in hogs:              # only the processes started here
+            h.kill()
+            h.wait()
+
+
+def _run(args) -> int:
+    margins = []                    # (stamp - arrival, stamp + duration - arrival) of every trajectory, s
 
     import os
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -66,7 +87,7 @@ def main(argv=None) -> int:
     ex = SingleThreadedExecutor(context=ctx)     # as planner_node.main
     ex.add_node(node)
     ex.add_node(drv)
-    got = _Arrivals(node)
+    got = _Arrivals(node, drv, margins)
     drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
     pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
     pub_js = drv.create_publisher(JointState, "joint_states", 10)
@@ -108,14 +129,15 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             pub_js.publish(joint_state_msg(robot.joint_names, q))
             time.sleep(0.0)
-            while node._joint_q is None or not np.allclose(node._joint_q, q[list(robot.planned_joints)]):
+            while node.session.joint_q is None or not np.allclose(node.session.joint_q,
+                                                                  q[list(robot.planned_joints)]):
                 time.sleep(0.0005)
             cli.call_async(Trigger.Request())
             lat_j.append(got.wait(n + 1) - t0)
             time.sleep(0.05)
         cached = node.last_result.cached
         grid = sc.grid.label()
-        msg_s = _message_times(node, sc, args.repeats)
+        msg_s = _message_times(node, args.repeats)
         stages = [("latency_target", lat_t, 0.150), ("latency_joint_state", lat_j, 0.020),
                   ("message_published", msg_s[0], None), ("message_dense", msg_s[1], None)]
         for stage, vals, aim in stages:
@@ -130,13 +152,21 @@ def main(argv=None) -> int:
         drv.destroy_node()
         rclpy.shutdown(context=ctx)
     if not args.no_moving:
-        rows.append(_moving(args, flat))
+        rows.append(_moving(args, flat, margins))
+    rows.append(_margin_row(margins, sc.grid.label(), args))
     print(f"{'stage':<22}{'grid':<12}{'median ms':>10}{'p90 ms':>9}{'max ms':>9}{'aim ms':>8}")
     for r in rows:
+        if "seconds" not in r:
+            continue
         aim = "" if r["aim_s"] is None else f"{1e3 * r['aim_s']:.0f}"
         print(f"{r['stage']:<22}{r['grid']:<12}{1e3 * r['seconds']:>10.1f}{1e3 * r['p90_s']:>9.1f}"
               f"{1e3 * r['max_s']:>9.1f}{aim:>8}")
     for r in rows:
+        if r["stage"] == "stamp_margin":
+            print(f"stamp_margin over {r['trajectories']} trajectories (load {args.load}): stamp - arrival min "
+                  f"{1e3 * r['start_min_s']:.1f} ms, p10 {1e3 * r['start_p10_s']:.1f}, median "
+                  f"{1e3 * r['start_median_s']:.1f}; stamp + duration - arrival min {1e3 * r['end_min_s']:.1f} ms, "
+                  f"p10 {1e3 * r['end_p10_s']:.1f}, median {1e3 * r['end_median_s']:.1f}")
         if "joined" in r:
             print(f"latency_moving: {r['joined']} of {r['repeats']} replans joined to the moving arm; "
                   f"largest velocity step at a switch {r['velocity_step_deg_s']:.3f}°/s beyond the "
@@ -147,14 +177,25 @@ def main(argv=None) -> int:
 
 
 class _Arrivals:
-    """A joint_trajectory subscriber's callback: arrival times (perf_counter, s)."""
+    """
+    A joint_trajectory subscriber's callback: arrival times (perf_counter, s).
 
-    def __init__(self, node):
+    With ``margins`` (a list) also each message's (stamp - arrival, stamp + duration - arrival)
+    in ROS time (``clock_node``'s clock), s.
+    """
+
+    def __init__(self, node, clock_node=None, margins=None):
         self.node = node
+        self.clock_node, self.margins = clock_node, margins
         self.times = []
         self.cond = threading.Condition()
 
     def __call__(self, msg):
+        if self.margins is not None and msg.points:
+            now_s = 1e-9 * self.clock_node.get_clock().now().nanoseconds
+            stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            end = msg.points[-1].time_from_start
+            self.margins.append((stamp_s - now_s, stamp_s + end.sec + 1e-9 * end.nanosec - now_s))
         with self.cond:
             self.times.append(time.perf_counter())
             self.cond.notify_all()
@@ -171,39 +212,50 @@ class _Arrivals:
             return self.times[n - 1]
 
 
+def _margin_row(margins, grid, args) -> dict:
+    """Return the stamp_margin row: min, p10, median of stamp - arrival and of stamp + duration - arrival, s."""
+    m = np.asarray(margins, dtype=float).reshape(-1, 2)
+    out = {"stage": "stamp_margin", "grid": grid, "trajectories": int(len(m)), "load": args.load,
+           "backend": "thread" if args.in_process else "process"}
+    for k, name in enumerate(("start", "end")):
+        v = m[:, k] if len(m) else np.array([np.nan])
+        out.update({f"{name}_min_s": float(v.min()), f"{name}_p10_s": float(np.percentile(v, 10)),
+                    f"{name}_median_s": float(np.median(v))})
+    return out
+
+
 def _stats(vals) -> dict:
     v = np.asarray(vals, dtype=float)
     return {"seconds": float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "min_s": float(v.min()),
             "max_s": float(v.max()), "repeats": int(len(v))}
 
 
-def _message_times(node, sc, repeats):
+def _message_times(node, repeats):
     """
-    Time the building of the published and the dense messages for the node's last plan.
+    Time the chain after the path and the messages for the node's last plan.
 
-    (seconds to resample + certify + build the published messages, seconds to build the dense
-    trajectory's message), ``repeats`` each, for the node's last plan.
+    (seconds of ``adapters.post_process`` + the published messages, seconds to build the dense
+    trajectory's messages), ``repeats`` each.
     """
-    from ..collision import CollisionChecker
-    from ..pipeline import timed_motion
+    from ..adapters import post_process, split_parts
     from ..ros import conversions as conv
-    from ..trajectory import resample
-    dense, _ = timed_motion(sc, node.last_result.path_rad)
-    checker = CollisionChecker(sc.robot, node._scenario.scene if node._target is None
-                               else node._scenario.scene.with_target(node._target))
+    sc = node.param_handler.scenario
+    sc = sc.with_scene(sc.scene.with_target(node.session.target))
+    path = node.last_result.path_rad
+    motions = node.session.motions(sc.scene)
     pub, full = [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        rs = resample(dense, checker, time_step_s=0.25)
-        node._split(conv.trajectory_to_msg(rs.trajectory), rs.trajectory)
+        p = post_process(sc, path, motions=motions)
+        [conv.trajectory_to_msg(part) for part in (p.arm, p.attitude) if part is not None]
         pub.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        node._split(conv.trajectory_to_msg(dense), dense)
+        [conv.trajectory_to_msg(part) for part in split_parts(p.dense, sc.robot.joint_names[0]) if part is not None]
         full.append(time.perf_counter() - t0)
     return pub, full
 
 
-def _moving(args, flat) -> dict:
+def _moving(args, flat, margins) -> dict:
     """Measure the latency_moving row: planner + mock arm; the arm moving, new targets."""
     import rclpy
     from geometry_msgs.msg import PoseStamped
@@ -227,7 +279,7 @@ def _moving(args, flat) -> dict:
     ex = SingleThreadedExecutor(context=ctx)
     for n in (node, arm, drv):
         ex.add_node(n)
-    got, states = _Arrivals(node), []
+    got, states = _Arrivals(node, drv, margins), []
     drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
     drv.create_subscription(JointState, "joint_states", states.append, 100)
     pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
