@@ -39,7 +39,7 @@ from .termination import Cancelled, Termination
 from .timing import timed_motion, trajectory_limits_known
 
 #: timed_motion, trajectory_limits_known: the trajectory stage (``timing.py``), also importable
-#: from here (the node imports ``pipeline.timed_motion``)
+#: from here (tests do; the node's chain, ``adapters.py``, imports it from ``timing``)
 __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node

@@ -54,8 +54,9 @@ from .trajectory import Trajectory, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
-#: every published trajectory starts at least this long after it is published (the messages'
-#: transit: a controller that gets one after its start catches up with a velocity step), s
+#: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
+#: transit: a controller that gets one after its start catches up with a velocity step); the node's
+#: is the parameter ``trajectory.start_lead_s`` (``session.py``), s
 START_LEAD_S = 0.1
 #: half-widths (path samples on either side of the horizon point) of the corner blends tried
 BLEND_SAMPLES = (8, 24)

@@ -205,6 +205,31 @@ def test_a_replan_joins_the_executing_trajectory_at_a_stamp_the_lead_ahead(flat,
     assert ses.executing.previous is not None and ses.executing.start_ns == pub.stamp_ns
 
 
+def test_a_plan_from_the_end_of_a_trajectory_ending_within_the_lead_starts_there_at_rest(flat, backend):
+    """
+    The executing trajectory ends before anything published now could start (within the lead).
+
+    The new plan starts at its end from rest, stamped the lead after publishing (after that end),
+    and it is recorded as following it (a later replan joins the chain).
+    """
+    clock = Clock()
+    ses = _session(flat, backend, clock)
+    ses.joint_state(ses.scenario.start_rad, clock.t)
+    ses.submit("first target", target=ses.target)
+    assert ses.run_once().ok
+    ex = ses.executing
+    end_ns = ex.start_ns + int(ex.trajectory.duration_s * S)
+    clock.t = end_ns - S // 10                       # 0.1 s before its end
+    ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
+    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+    out = ses.run_once()
+    assert out.ok and out.values["joined_moving_arm"] == "no (from the end of the executing trajectory, at rest)"
+    np.testing.assert_array_equal(out.trajectory.positions_rad[0], ex.trajectory.positions_rad[-1])
+    assert not np.any(out.trajectory.velocities_rad_s[0])
+    assert out.publication.stamp_ns == clock.last + int(ses.settings.start_lead_s * S) >= end_ns
+    assert ses.executing.previous is not None and ses.executing.previous.trajectory is ex.trajectory
+
+
 def test_a_plan_longer_than_the_horizon_is_planned_again_with_twice_the_horizon(flat):
     clock = Clock()
     paper = load_params_file(os.path.join(CONFIG, "paper_3dof.yaml"))     # the paper's limits: a 25 s motion
