@@ -16,7 +16,12 @@ carries the very trajectory the node publishes:
    apart and within 0.1° of the dense path, the polyline through them certified on the
    exact geometry with the scene's ``motion.MotionValidator`` (``trajectory.resample``);
    when that certification fails the dense trajectory is kept;
-4. **split** -- the attitude joint (the robot's first, the spacecraft's) for the attitude
+4. **the controller's motion** -- joint_trajectory_controller interpolates the published
+   points (quintic segments), which overshoots the time-optimal profile's piecewise-constant
+   accelerations by up to about a quarter: that motion is sampled (:func:`controller_overshoot`)
+   and, where it exceeds a limit, steps 1 to 3 run again with the scaling factors lowered by the
+   overshoot (a few percent longer, within the limits as the arm really moves);
+5. **split** -- the attitude joint (the robot's first, the spacecraft's) for the attitude
    control system, the arm joints for the arm's controller (:class:`TrajectoryPart`,
    None for a group that is not planned); both None when nothing moves more than
    ``AT_GOAL_TOL_RAD`` (at the goal: nothing to publish).
@@ -26,22 +31,28 @@ No rclpy here; times are seconds from the trajectory's start, ROS times integer 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_motion
 from .timing import timed_motion
-from .trajectory import Trajectory, resample
+from .trajectory import HorizonPassed, Trajectory, resample, sample_points
 
-__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "ends_within_lead", "RESAMPLE_STEP_S",
-           "AT_GOAL_TOL_RAD"]
+__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "ends_within_lead", "controller_overshoot",
+           "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
 RESAMPLE_STEP_S = 0.25
 #: a plan whose joints all move less than this is at the goal: nothing is published, rad
 AT_GOAL_TOL_RAD = 1e-4
+#: the controller's interpolation may exceed a limit by this fraction (sampling of its peak)
+CONTROLLER_TOL = 1e-3
+#: at most this many re-timings with lowered scaling factors when the controller's motion overshoots
+CONTROLLER_RETIMES = 4
+#: each re-timing lowers the scaling factors a little more than the overshoot (converges in 1-2)
+CONTROLLER_SHRINK = 0.99
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,6 +212,51 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
 
     """
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
+    limits = scenario.joint_limits
+    got = _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s)
+    # the controller interpolates the published points (quintic segments): certify its motion
+    # against the limits; where it overshoots, the whole chain runs again with the scaling
+    # factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times
+    for _ in range(CONTROLLER_RETIMES):
+        if got.refused is not None or limits is None:
+            break
+        over_v, over_a = controller_overshoot(got.trajectory, scenario)
+        if over_v <= 1.0 + CONTROLLER_TOL and over_a <= 1.0 + CONTROLLER_TOL:
+            break
+        limits = replace(limits, velocity_scaling=limits.velocity_scaling / max(1.0, over_v) * CONTROLLER_SHRINK,
+                         acceleration_scaling=limits.acceleration_scaling / max(1.0, over_a) * CONTROLLER_SHRINK)
+        try:
+            got = _time_and_resample(replace(scenario, joint_limits=limits), path_rad, start_rad, join, now_ns,
+                                     lead_s, motions, time_step_s)
+        except (ValueError, HorizonPassed):
+            break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
+    return got
+
+
+def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
+    """
+    Return the peak (velocity, acceleration) over the scenario's limits of the controller's motion.
+
+    The motion is joint_trajectory_controller's interpolation of ``traj``'s points
+    (``trajectory.sample_points``: quintic segments with positions, velocities and
+    accelerations), sampled ``samples_per_segment`` times per segment; the ratios are the
+    largest over the planned joints of |v| / (max velocity × velocity scaling) and
+    |a| / (max acceleration × acceleration scaling) (1.0: at the limit).
+    """
+    vmax, amax = scenario.joint_limits.planned(scenario.robot)
+    vlim = vmax * scenario.joint_limits.velocity_scaling
+    alim = amax * scenario.joint_limits.acceleration_scaling
+    t = np.asarray(traj.times_s, dtype=float)
+    if len(t) < 2:
+        return 0.0, 0.0
+    u = np.linspace(0.0, 1.0, samples_per_segment, endpoint=False)
+    fine = np.append((t[:-1, None] + np.diff(t)[:, None] * u[None, :]).ravel(), t[-1])
+    _, v, a = sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, fine)
+    return float(np.max(np.abs(v) / vlim)), float(np.max(np.abs(a) / alim))
+
+
+def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s) -> Processed:
+    """Run steps 1 to 3 and 5 of the chain (see the module docstring) under the scenario's limits."""
     stamp_ns = cont = None
     if join is None:
         dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions)

@@ -1,0 +1,54 @@
+"""
+The chain after the path (adapters.post_process): the controller's motion stays within the limits.
+
+Oracle: joint_trajectory_controller's interpolation of the published points rebuilt with
+SciPy's ``BPoly.from_derivatives`` (a piecewise polynomial matching position, velocity and
+acceleration at both ends of each segment: the controller's quintic), sampled densely, against
+the scenario's limits.  No code of the package's sampler is used.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.interpolate import BPoly
+
+from spacerobot_planner.adapters import post_process
+from spacerobot_planner.settings import JointLimits
+
+
+def _controller_peaks(traj):
+    """(dof,) peak |velocity| and |acceleration| of the quintic through the points, per joint."""
+    t = np.asarray(traj.times_s)
+    fine = np.linspace(t[0], t[-1], 40 * len(t))
+    vpk, apk = [], []
+    for j in range(traj.positions_rad.shape[1]):
+        derivs = np.stack([traj.positions_rad[:, j], traj.velocities_rad_s[:, j], traj.accelerations_rad_s2[:, j]],
+                          axis=1)
+        poly = BPoly.from_derivatives(t, derivs[:, :, None].tolist(), orders=5)
+        vpk.append(np.max(np.abs(poly.derivative(1)(fine))))
+        apk.append(np.max(np.abs(poly.derivative(2)(fine))))
+    return np.array(vpk), np.array(apk)
+
+
+LIMITS = [([30.0, 60.0, 60.0], [60.0, 120.0, 120.0]), ([90.0, 180.0, 180.0], [360.0, 720.0, 720.0])]
+
+
+@pytest.mark.parametrize("vmax_deg_s, amax_deg_s2", LIMITS, ids=["moderate", "fast"])
+def test_the_controllers_interpolation_of_the_published_points_keeps_the_limits(
+        paper_scenario, paper_path, vmax_deg_s, amax_deg_s2):
+    sc = paper_scenario(3)
+    limits = JointLimits(np.radians(vmax_deg_s), np.radians(amax_deg_s2))
+    sc = replace(sc, joint_limits=limits)
+    out = post_process(sc, paper_path(3), start_rad=sc.start_rad)
+    traj = out.trajectory
+    idx = list(sc.robot.planned_joints)
+    vpk, apk = _controller_peaks(traj)
+    v_ratio = vpk / np.radians(vmax_deg_s)[idx]
+    a_ratio = apk / np.radians(amax_deg_s2)[idx]
+    assert np.all(v_ratio <= 1.0 + 2e-3), f"velocity over the limits: {v_ratio}"
+    assert np.all(a_ratio <= 1.0 + 2e-3), f"acceleration over the limits: {a_ratio}"
+    # and it is not slowed for nothing: some joint comes within 15 % of a limit
+    assert max(v_ratio.max(), a_ratio.max()) > 0.85, (v_ratio, a_ratio)
+    np.testing.assert_allclose(traj.positions_rad[0], sc.start_rad, atol=1e-9)
+    np.testing.assert_allclose(traj.positions_rad[-1], paper_path(3)[-1], atol=1e-9)
