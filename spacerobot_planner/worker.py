@@ -446,6 +446,10 @@ class ProcessBackend:
     def pid(self) -> int:
         return self.proc.pid
 
+    def attach_logs(self, log=None, info=None) -> None:
+        """Send this backend's warnings to ``log``, its progress to ``info`` from now on (a process started ahead)."""
+        self._log, self._info = log, info
+
     @property
     def ready(self) -> Ready | None:
         """Return the current process's Ready message (None before its warm-up ended)."""

@@ -8,9 +8,12 @@ launch_testing.
 
 from __future__ import annotations
 
+import atexit
+import dataclasses
 import json
 import math
 import os
+import pickle
 import threading
 import time
 
@@ -29,6 +32,7 @@ from spacerobot_planner.config import load_params_file, scenario_from_params
 from spacerobot_planner.ros.mock_arm_node import MockArmNode
 from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
 from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
+from spacerobot_planner.worker import ProcessBackend, make_backend
 
 #: The node's promises about time (a cancel within 0.5 s, a shutdown within 1 s) are measured by
 #: ``python -m spacerobot_planner.bench promptness``; a test checks only that the work ends far
@@ -40,6 +44,60 @@ _CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 SCENES = {"2dof": (os.path.join(_CONFIG, "paper_2dof.yaml"), [180, 180]),
           "3dof": (os.path.join(_CONFIG, "paper_3dof.yaml"), [36, 36, 36]),
           "servicer": (os.path.join(_CONFIG, "servicer_3dof.yaml"), [36, 36, 36])}
+
+
+class SparePlanningProcesses:
+    """
+    Planning processes started ahead, so that a graph's configure does not wait for one's warm-up.
+
+    ``make`` (a PlannerNode ``backend_factory``) hands out a process started for the same scenario
+    while the previous test ran, and starts the next one.  Each is handed out once, never used
+    before: tests stay independent; only the ~1 s warm-up overlaps with the previous test.  At
+    most ``keep`` spares wait (the oldest is closed); all are closed when the process exits.
+    """
+
+    def __init__(self, keep: int = 2):
+        self.keep = keep
+        self._spares = {}            # key -> ProcessBackend, oldest first
+        self._lock = threading.Lock()
+        atexit.register(self.close)
+
+    @staticmethod
+    def _key(scenario) -> bytes:
+        return pickle.dumps(dataclasses.replace(scenario, params={}))     # params: display only
+
+    def make(self, scenario, separate_process, log=None, info=None, **kw):
+        """Return a warm-starting backend for ``scenario`` (as worker.make_backend)."""
+        if not separate_process or kw:
+            return make_backend(scenario, separate_process, log=log, info=info, **kw)
+        key = self._key(scenario)
+        with self._lock:
+            spare = self._spares.pop(key, None)
+        if spare is None or spare.proc.poll() is not None:
+            if spare is not None:
+                spare.close()
+            spare = ProcessBackend(scenario)
+        spare.attach_logs(log, info)                 # its messages go to the node's log from now on
+        nxt = ProcessBackend(scenario)
+        with self._lock:
+            self._spares[key] = nxt
+            while len(self._spares) > self.keep:
+                self._spares.pop(next(iter(self._spares))).close()
+        return spare
+
+    def pids(self) -> set:
+        with self._lock:
+            return {b.pid for b in self._spares.values()}
+
+    def close(self):
+        with self._lock:
+            spares, self._spares = list(self._spares.values()), {}
+        for b in spares:
+            b.close()
+
+
+#: this test process's spare planning processes (every Graph's planner takes its backend here)
+SPARES = SparePlanningProcesses()
 
 
 def scene_params(name, cells=None, **extra):
@@ -73,7 +131,8 @@ class Graph:
         rclpy.init(context=self.ctx)
         self.flat = flat
         self.scenario = scenario_from_params(flat)
-        self.planner = PlannerNode(context=self.ctx, parameter_overrides=params_to_overrides(flat))
+        self.planner = PlannerNode(context=self.ctx, parameter_overrides=params_to_overrides(flat),
+                                   backend_factory=SPARES.make)
         self.planner_destroyed = False
         self.arm = None
         self.ex = SingleThreadedExecutor(context=self.ctx)     # as planner_node.main
@@ -351,7 +410,8 @@ def rss_mb(pid="self") -> float:
 
 
 def child_pids(pid=None) -> list:
-    """Direct children of a process (default: this one), from /proc/*/stat."""
+    """Direct children of a process (default: this one, less its spare planning processes), from /proc/*/stat."""
+    spares = SPARES.pids() if pid is None else set()
     pid = os.getpid() if pid is None else pid
     out = []
     for entry in os.listdir("/proc"):
@@ -363,7 +423,7 @@ def child_pids(pid=None) -> list:
         except OSError:
             continue
         fields = stat[stat.rfind(")") + 2:].split()       # after "(comm)": state, ppid, ...
-        if int(fields[1]) == pid:
+        if int(fields[1]) == pid and int(entry) not in spares:
             out.append(int(entry))
     return out
 

@@ -86,7 +86,11 @@ class PlannerNode(LifecycleNode):
     #: every attribute exists (a refused start ends in ``__init__``; rclpy destroys the node later)
     _started = False
 
-    def __init__(self, *, context=None, parameter_overrides=None, node_name: str = NODE_NAME, **kwargs):
+    def __init__(self, *, context=None, parameter_overrides=None, node_name: str = NODE_NAME, backend_factory=None,
+                 **kwargs):
+        # backend_factory(scenario, separate_process, log=, info=) -> a worker backend: how configure
+        # gets its planning process (default worker.make_backend: a new one, warmed up then)
+        self._make_backend = backend_factory or make_backend
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides,
                          automatically_declare_parameters_from_overrides=True,
                          enable_communication_interface=False, **kwargs)
@@ -187,8 +191,8 @@ class PlannerNode(LifecycleNode):
         scenario = self.param_handler.scenario
         backend = None
         try:
-            backend = make_backend(scenario, self._params["planner.separate_process"], log=log.warning,
-                                   info=log.info)
+            backend = self._make_backend(scenario, self._params["planner.separate_process"], log=log.warning,
+                                         info=log.info)
             # this process's kernels (time parameterisation, certification), while the child warms up
             lo, hi = self.robot.planned_lower_rad, self.robot.planned_upper_rad
             post_process(scenario, np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8))
