@@ -8,8 +8,8 @@ carries the very trajectory the node publishes:
 1. **time** -- the path in time under the scenario's joint limits, from rest
    (``timing.timed_motion``) or joined to the executing trajectory
    (``replanning.joined_motion``: from the join, through the horizon point; when the
-   executing trajectory ends within the lead and the plan starts at its end, from rest
-   there: :func:`ends_within_lead`);
+   executing trajectory ends within the lead, or the session retries from its end, from
+   rest at that end, stamped no earlier than it: :func:`starts_at_the_end`);
 2. **reaction** -- the spacecraft's verdict on it (free floating, wheel limits); a refused
    trajectory stops the chain (``Processed.refused``);
 3. **resample and certify** -- a subset of the dense points at most ``time_step_s``
@@ -40,7 +40,7 @@ from .replanning import START_LEAD_S, joined_motion
 from .timing import timed_motion
 from .trajectory import HorizonPassed, Trajectory, resample, sample_points
 
-__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "ends_within_lead", "controller_overshoot",
+__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "starts_at_the_end", "controller_overshoot",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
@@ -128,6 +128,8 @@ class Processed:
             (its stamp: the join), None from rest (stamped when published; for a plan
             given a join, from the executing trajectory's end, which it reaches first).
         continuation: the ``trajectory.Continuation`` of a join, else None.
+        not_before_ns: from rest at the executing trajectory's end: that end (ROS time, ns),
+            the earliest stamp (see :func:`starts_at_the_end`); else None.
 
     """
 
@@ -141,6 +143,7 @@ class Processed:
     attitude: TrajectoryPart | None
     join_stamp_ns: int | None = None
     continuation: object = None
+    not_before_ns: int | None = None
 
     @property
     def refused(self) -> str | None:
@@ -170,21 +173,30 @@ class Processed:
                 "points": len(self.trajectory), "dense_points": len(self.dense)}
 
 
-def ends_within_lead(join, now_ns: int, lead_s: float) -> bool:
+def starts_at_the_end(join, now_ns: int, lead_s: float, from_end_at_rest: bool = False) -> int | None:
     """
-    Tell whether a plan joined at the executing trajectory's end starts there at rest.
+    Return the executing trajectory's end (ROS time, ns) when a plan starts there at rest, else None.
 
     The plan starts at the executing trajectory's last point (``join.horizon_index``) and
-    that trajectory ends less than ``lead_s`` after ``now_ns``: no join can be the lead ahead,
-    and the arm rests at the end before anything published now starts.
+    either that trajectory ends less than ``lead_s`` after ``now_ns`` (no join can be the lead
+    ahead) or ``from_end_at_rest`` (the session's retry from the end, after a join missed its
+    time).  The arm comes to rest there on the trajectory it follows, so the new one starts
+    there from rest, stamped no earlier than that end (and the lead after it is published):
+    a stamp the chain's own time cannot overtake.  None: a join (through the horizon point
+    without stopping).
     """
     ex = join.executing
     end_ns = ex.start_ns + int(round(ex.trajectory.duration_s * 1e9))
-    return join.horizon_index == len(ex.trajectory) - 1 and end_ns <= int(now_ns) + int(round(lead_s * 1e9))
+    if join.horizon_index != len(ex.trajectory) - 1:
+        return None
+    if from_end_at_rest or end_ns <= int(now_ns) + int(round(lead_s * 1e9)):
+        return end_ns
+    return None
 
 
 def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int = 0, lead_s: float = START_LEAD_S,
-                 motions: MotionValidator | None = None, time_step_s: float = RESAMPLE_STEP_S) -> Processed:
+                 motions: MotionValidator | None = None, time_step_s: float = RESAMPLE_STEP_S,
+                 from_end_at_rest: bool = False) -> Processed:
     """
     Run the chain after the path (see the module docstring).
 
@@ -199,6 +211,8 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
         motions: the scene's MotionValidator (made when None), for the certification, the
             corner blends of a join and the reaction's drift check.
         time_step_s: largest time between published points, s.
+        from_end_at_rest: (joined at the executing trajectory's end) start there from rest,
+            stamped no earlier than that end, instead of joining (:func:`starts_at_the_end`).
 
     Returns
     -------
@@ -213,7 +227,8 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
     """
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
     limits = scenario.joint_limits
-    got = _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s)
+    got = _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
+                             from_end_at_rest)
     # the controller interpolates the published points (quintic segments): certify its motion
     # against the limits; where it overshoots, the whole chain runs again with the scaling
     # factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times
@@ -223,11 +238,15 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
         over_v, over_a = controller_overshoot(got.trajectory, scenario)
         if over_v <= 1.0 + CONTROLLER_TOL and over_a <= 1.0 + CONTROLLER_TOL:
             break
-        limits = replace(limits, velocity_scaling=limits.velocity_scaling / max(1.0, over_v) * CONTROLLER_SHRINK,
-                         acceleration_scaling=limits.acceleration_scaling / max(1.0, over_a) * CONTROLLER_SHRINK)
+        # only the factor that overshoots (a slower velocity limit could not enter a joined path at
+        # the arm's speed)
+        if over_v > 1.0 + CONTROLLER_TOL:
+            limits = replace(limits, velocity_scaling=limits.velocity_scaling / over_v * CONTROLLER_SHRINK)
+        if over_a > 1.0 + CONTROLLER_TOL:
+            limits = replace(limits, acceleration_scaling=limits.acceleration_scaling / over_a * CONTROLLER_SHRINK)
         try:
             got = _time_and_resample(replace(scenario, joint_limits=limits), path_rad, start_rad, join, now_ns,
-                                     lead_s, motions, time_step_s)
+                                     lead_s, motions, time_step_s, from_end_at_rest)
         except (ValueError, HorizonPassed):
             break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
     return got
@@ -255,23 +274,23 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
     return float(np.max(np.abs(v) / vlim)), float(np.max(np.abs(a) / alim))
 
 
-def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s) -> Processed:
+def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
+                       from_end_at_rest) -> Processed:
     """Run steps 1 to 3 and 5 of the chain (see the module docstring) under the scenario's limits."""
-    stamp_ns = cont = None
+    stamp_ns = cont = not_before_ns = None
     if join is None:
         dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions)
-    elif ends_within_lead(join, now_ns, lead_s):
-        # the arm is at rest at the executing trajectory's end before anything new can start (a
-        # join would be less than the lead ahead): from rest there, stamped when published
+    elif (not_before_ns := starts_at_the_end(join, now_ns, lead_s, from_end_at_rest)) is not None:
+        # from rest at the executing trajectory's end, stamped when published, not before that end
         dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions)
     else:
         dense, reaction, stamp_ns, cont = joined_motion(scenario, join, path_rad, now_ns, lead_s=lead_s,
                                                         checker=motions)
     if reaction is not None and not reaction.ok:
         return Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
-                         stamp_ns, cont)
+                         stamp_ns, cont, not_before_ns)
     rs = resample(dense, motions, time_step_s=time_step_s)
     traj, idx = (rs.trajectory, rs.indices) if rs.ok else (dense, np.arange(len(dense)))
     arm, att = split_parts(traj, scenario.robot.joint_names[0])
     clr = float(rs.check.min_clearance_m) if rs.ok and rs.check is not None else float("nan")
-    return Processed(dense, traj, idx, rs.ok, clr, reaction, arm, att, stamp_ns, cont)
+    return Processed(dense, traj, idx, rs.ok, clr, reaction, arm, att, stamp_ns, cont, not_before_ns)

@@ -31,8 +31,10 @@ and its answers into messages; everything between is here:
   published: a trajectory from rest is stamped now + the lead just before it is
   published; a joined one carries the join's time, checked then to be still at least the
   lead ahead (else the retry above).  A plan starting at the end of an executing
-  trajectory that ends within the lead starts there at rest (the arm rests there before
-  anything new can start; ``adapters.ends_within_lead``).
+  trajectory that ends within the lead, and the retry from the end, start there at rest,
+  stamped no earlier than that end (the arm comes to rest there on the trajectory it
+  follows; ``adapters.starts_at_the_end``): a stamp the chain's time cannot overtake, so
+  the retry from the measured state is left for an arm that does not follow.
 - **the at-goal rule**: a plan along which nothing moves more than
   ``adapters.AT_GOAL_TOL_RAD`` publishes nothing and says so.
 
@@ -152,13 +154,13 @@ def stamp_for(processed: Processed, now_ns: int, lead_s: float) -> int | None:
     """
     Return the stamp of a trajectory published at ``now_ns``, or None when the join is too close.
 
-    From rest: ``now_ns`` + the lead.  Joined: the join's time, when it is still at least
-    the lead ahead (None otherwise: plan again).  Either way the trajectory also ends at
-    least the lead after ``now_ns``.
+    From rest: ``now_ns`` + the lead (from the executing trajectory's end: not before that
+    end).  Joined: the join's time, when it is still at least the lead ahead (None otherwise:
+    plan again).  Either way the trajectory also ends at least the lead after ``now_ns``.
     """
     lead_ns = int(round(lead_s * 1e9))
-    if processed.join_stamp_ns is None:
-        return int(now_ns) + lead_ns
+    if processed.join_stamp_ns is None:        # from rest (at the executing trajectory's end: not before it)
+        return max(int(now_ns) + lead_ns, int(processed.not_before_ns or 0))
     stamp = int(processed.join_stamp_ns)
     end = stamp + int(round(processed.trajectory.duration_s * 1e9))
     return stamp if stamp - int(now_ns) >= lead_ns and end - int(now_ns) >= lead_ns else None
@@ -554,7 +556,7 @@ class CaptureSession:
         try:
             processed = post_process(sc, res.path_rad, start_rad=start_raw, join=join, now_ns=self.now_ns(),
                                      lead_s=float(req.settings.start_lead_s) + CHAIN_ALLOWANCE_S,
-                                     motions=self.motions(sc.scene))
+                                     motions=self.motions(sc.scene), from_end_at_rest=req.attempt == 2)
         except HorizonPassed:
             return Outcome("retry", f"the plan took longer than the {join.horizon_s:g} s horizon")
         except ValueError as e:

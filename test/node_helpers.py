@@ -248,8 +248,9 @@ class Graph:
 
         [(topic, index, violations)] for every trajectory received (see
         controller_rule_violations).  "The current state" of a first point at time 0 is the
-        arm's recorded state at the trajectory's stamp (at its arrival for a zero stamp, or when
-        the record does not reach the stamp).
+        mock arm's state just before the trajectory's stamp (its own motion, exact), without an
+        arm the recorded joint_states interpolated at the stamp (at its arrival for a zero
+        stamp, or when the record does not reach the stamp).
         """
         known = set(self.scenario.robot.joint_names)
         out = []
@@ -260,7 +261,15 @@ class Graph:
             if msg.points:
                 names, first = list(msg.joint_names), list(msg.points[0].positions)
                 stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-                q = self.state_at(names, stamp_s) if stamp_s else None
+                q = None
+                if stamp_s and self.arm is not None and all(n in self.arm.names for n in names):
+                    # the mock arm's own motion just before the stamp (exact, also in a gap of its
+                    # joint_states under load; at the stamp itself this trajectory takes over)
+                    stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                    q_arm = self.arm.history_state_at(stamp_ns - 1)[0]
+                    q = [q_arm[self.arm.names.index(n)] for n in names]
+                elif stamp_s:
+                    q = self.state_at(names, stamp_s)
                 if q is None and state is not None and all(n in state for n in names):
                     q = [state[n] for n in names]
                 if q is not None and len(first) == len(q) and all(

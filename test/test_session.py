@@ -230,6 +230,33 @@ def test_a_plan_from_the_end_of_a_trajectory_ending_within_the_lead_starts_there
     assert ses.executing.previous is not None and ses.executing.previous.trajectory is ex.trajectory
 
 
+def test_the_retry_from_the_end_starts_there_at_rest_stamped_at_that_end(flat, backend):
+    """
+    The retry from the executing trajectory's end (after a join missed its time).
+
+    From rest at the end, stamped at that end (not the lead after publishing, while the arm
+    still moves), however long the chain took: no join that the clock can overtake.
+    """
+    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.replanning import Join
+    clock = Clock()
+    ses = _session(flat, backend, clock)
+    ses.joint_state(ses.scenario.start_rad, clock.t)
+    ses.submit("first target", target=ses.target)
+    assert ses.run_once().ok
+    ex = ses.executing
+    end_ns = ex.start_ns + int(round(ex.trajectory.duration_s * S))
+    now = end_ns - 15 * S // 10                      # 1.5 s before its end
+    join = Join(ex, len(ex.trajectory) - 1, 2.0)
+    new_path = np.vstack([ex.trajectory.positions_rad[-1], ses.scenario.start_rad])
+    out = post_process(ses.scenario, new_path, join=join, now_ns=now, lead_s=0.35, from_end_at_rest=True)
+    assert out.join_stamp_ns is None and out.continuation is None and out.not_before_ns == end_ns
+    np.testing.assert_array_equal(out.trajectory.positions_rad[0], ex.trajectory.positions_rad[-1])
+    assert not np.any(out.trajectory.velocities_rad_s[0])
+    assert stamp_for(out, now, 0.35) == end_ns                   # published now: at the end
+    assert stamp_for(out, end_ns, 0.35) == end_ns + int(0.35 * S)   # published at the end: the lead later
+
+
 def test_a_plan_longer_than_the_horizon_is_planned_again_with_twice_the_horizon(flat):
     clock = Clock()
     paper = load_params_file(os.path.join(CONFIG, "paper_3dof.yaml"))     # the paper's limits: a 25 s motion
@@ -252,8 +279,11 @@ def test_a_plan_longer_than_the_horizon_is_planned_again_with_twice_the_horizon(
 def test_stamp_for_a_join_too_close_asks_for_another_plan():
     traj = SimpleNamespace(duration_s=0.06)
     now, lead = 100 * S, 0.35
-    rest = SimpleNamespace(join_stamp_ns=None, trajectory=traj)
+    rest = SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=None)
     assert stamp_for(rest, now, lead) == now + int(0.35 * S)
+    # from rest at the end of an executing trajectory that ends later: at that end
+    at_end = SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=now + 2 * S)
+    assert stamp_for(at_end, now, lead) == now + 2 * S
     assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 2, trajectory=traj), now, lead) == now + S // 2
     assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 5, trajectory=traj), now, lead) is None
 

@@ -107,6 +107,9 @@ class MockArmNode(Node):
         self._a = np.zeros_like(self._q)
         self._active = {}            # topic -> _Motion followed now (its point before prepended)
         self._waiting = {}           # topic -> [_Motion] not started yet, by switch time
+        # (switch time ns, what is followed from then: active motions, hold): the motion is a
+        # function of time, so the state at any past instant is exact (history_state_at)
+        self._history = [(-1, {}, self._hold.copy())]
         self.trajectories_received = 0
         self.executing = False
         self.pub = self.create_publisher(JointState, "joint_states", 10)
@@ -200,12 +203,27 @@ class MockArmNode(Node):
                         v=None if m.v is None else np.vstack([v_s[cols], m.v]),
                         a=None if m.a is None else np.vstack([a_s[cols], m.a]))
         self._active[topic] = m
+        self._history.append((int(m.switch_ns), dict(self._active), self._hold.copy()))
 
-    def _evaluate(self, now_ns: int):
-        """(lock held) the state at ``now_ns`` on the trajectories followed now."""
-        q = self._hold.copy()
+    def history_state_at(self, ros_ns: int):
+        """
+        Return the arm's (positions, velocities, accelerations) at a past ROS time ``ros_ns`` (ns).
+
+        Exact whenever the node published or not (a test's view of where the arm was at a
+        trajectory's stamp, even in a gap of its joint_states under load); the switches made so
+        far only (times after the latest state computed are not known yet).
+        """
+        with self._lock:
+            k = max(i for i, (t, _, _) in enumerate(self._history) if t <= int(ros_ns))
+            _, active, hold = self._history[k]
+            return self._evaluate(int(ros_ns), active, hold)
+
+    def _evaluate(self, now_ns: int, active=None, hold=None):
+        """(lock held) the state at ``now_ns`` on the trajectories followed now (or ``active`` from ``hold``)."""
+        active = self._active if active is None else active
+        q = (self._hold if hold is None else hold).copy()
         v, a = np.zeros_like(q), np.zeros_like(q)
-        for m in self._active.values():
+        for m in active.values():
             cols = list(m.cols)
             q[cols], v[cols], a[cols] = sample_points(m.times, m.q, m.v, m.a, m.s_at(now_ns))
         return q, v, a
