@@ -14,6 +14,7 @@ import json
 import math
 import os
 import pickle
+import re
 import threading
 import time
 
@@ -34,6 +35,10 @@ from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
 from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
 from spacerobot_planner.worker import ProcessBackend, make_backend
 
+#: the log line of a plan ended by a shutdown: the session stops it ("the plan in progress is
+#: cancelled"), or the deactivation that a shutdown from active starts with cancels it first
+PLAN_CANCELLED_AT_SHUTDOWN = re.compile(r"shutdown: the plan in progress is cancelled"
+                                        r"|plan #\d+ cancelled: the node is shutting down")
 #: The node's promises about time (a cancel within 0.5 s, a shutdown within 1 s) are measured by
 #: ``python -m spacerobot_planner.bench promptness``; a test checks only that the work ends far
 #: sooner than the injected stall (30 s) would, a bound a loaded machine keeps.

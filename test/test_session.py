@@ -261,7 +261,7 @@ def test_a_plan_longer_than_the_horizon_is_planned_again_with_twice_the_horizon(
     clock = Clock()
     paper = load_params_file(os.path.join(CONFIG, "paper_3dof.yaml"))     # the paper's limits: a 25 s motion
     paper["grid.cells"] = flat["grid.cells"]
-    slow = SlowBackend(scenario_from_params(paper), clock, plan_s=1.2)    # each plan takes 1.2 s
+    slow = SlowBackend(scenario_from_params(paper), clock, plan_s=1.05)   # each plan takes 1.05 s
     try:
         ses, ex = _moving(paper, slow, clock, t_in_s=0.5, horizon_s=1.0)
         # the arm follows its trajectory meanwhile: a fresh joint state after each plan
