@@ -34,30 +34,10 @@ from spacerobot_planner.ros.conversions import joint_state_msg
 
 from conftest import CONFIG_DIR
 from node_helpers import diag_list, planned_positions, scene_params
+from test_action import _joint_goal, _start, _target_goal
 
 R = PlanCapture.Result
 ENDED = (GoalStatus.STATUS_ABORTED, GoalStatus.STATUS_CANCELED)
-
-
-def _target_goal(x=-3.27, y=-2.60, yaw=0.0, frame="world"):
-    g = PlanCapture.Goal()
-    g.target_pose.header.frame_id = frame
-    g.target_pose.pose.position.x, g.target_pose.pose.position.y = float(x), float(y)
-    g.target_pose.pose.orientation.z, g.target_pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
-    return g
-
-
-def _joint_goal(names, q):
-    g = PlanCapture.Goal()
-    g.use_joint_goal = True
-    g.joint_goal = joint_state_msg(names, q)
-    return g
-
-
-def _start(g):
-    robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
 
 
 class _Client:

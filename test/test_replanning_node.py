@@ -69,7 +69,9 @@ def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph):
     t_ros0 = g.drv.get_clock().now().nanoseconds * 1e-9
     g.send_target()
     g.wait(lambda: g.arm.executing and g.n_trajs() >= 1, 30, "the first trajectory executing")
-    time.sleep(1.0)                       # well into the motion (about 4 s long)
+    # well into the motion (about 4 s long): the arm measurably moving, not a fixed sleep
+    g.wait(lambda: g.arm.executing and float(np.degrees(np.max(np.abs(g.arm.state(
+        g.arm.get_clock().now().nanoseconds)[1])))) > 10.0, 30, "the arm moving faster than 10°/s")
     g.send_target(-3.0, -2.8)
     g.wait(lambda: g.n_trajs() >= 2, 30, "the second trajectory")
     with g.lock:
