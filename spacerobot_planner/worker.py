@@ -455,20 +455,28 @@ class ProcessBackend:
         """Return the current process's Ready message (None before its warm-up ended)."""
         return self._ready
 
-    def _spawn(self):
-        import socket
+    def start_process(self, fd: int):
+        """
+        Start a planning process that runs :func:`child_main` on socket ``fd``; return its handle.
+
+        The handle has ``subprocess.Popen``'s ``pid``, ``returncode``, ``poll``, ``wait``,
+        ``terminate`` and ``kill``.  A fresh interpreter; a subclass may start it otherwise.
+        """
         import subprocess
         import sys
-        from multiprocessing.connection import Connection
-        parent, child = socket.socketpair()
-        self.conn = Connection(parent.detach())
-        fd = child.fileno()
         # the child imports this very copy of the package (first on its sys.path), not one
         # that `python -c` would find in the working directory (e.g. a source tree)
-        self.proc = subprocess.Popen(
+        return subprocess.Popen(
             [sys.executable, "-c", f"import sys; sys.path.insert(0, {_PACKAGE_PARENT!r}); "
              "from spacerobot_planner.worker import child_main; child_main(int(sys.argv[1]))", str(fd)],
             pass_fds=(fd,), stdin=subprocess.DEVNULL)
+
+    def _spawn(self):
+        import socket
+        from multiprocessing.connection import Connection
+        parent, child = socket.socketpair()
+        self.conn = Connection(parent.detach())
+        self.proc = self.start_process(child.fileno())
         child.close()
         self.conn.send((self._scenario, *self._solver))
         self._ready = None          # Ready once received

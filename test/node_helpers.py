@@ -8,12 +8,10 @@ launch_testing.
 
 from __future__ import annotations
 
-import atexit
 import dataclasses
 import json
 import math
 import os
-import pickle
 import re
 import threading
 import time
@@ -28,12 +26,15 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
+import spacerobot_planner
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_params_file, scenario_from_params
 from spacerobot_planner.ros.mock_arm_node import MockArmNode
 from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
 from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
 from spacerobot_planner.worker import ProcessBackend, make_backend
+
+from planning_zygote import PlanningZygote
 
 #: the log line of a plan ended by a shutdown: the session stops it ("the plan in progress is
 #: cancelled"), or the deactivation that a shutdown from active starts with cancels it first
@@ -51,58 +52,22 @@ SCENES = {"2dof": (os.path.join(_CONFIG, "paper_2dof.yaml"), [180, 180]),
           "servicer": (os.path.join(_CONFIG, "servicer_3dof.yaml"), [36, 36, 36])}
 
 
-class SparePlanningProcesses:
-    """
-    Planning processes started ahead, so that a graph's configure does not wait for one's warm-up.
+class ZygoteBackend(ProcessBackend):
+    """The node's ``worker.ProcessBackend``, its planning processes forked warm by this test process's zygote."""
 
-    ``make`` (a PlannerNode ``backend_factory``) hands out a process started for the same scenario
-    while the previous test ran, and starts the next one.  Each is handed out once, never used
-    before: tests stay independent; only the ~1 s warm-up overlaps with the previous test.  At
-    most ``keep`` spares wait (the oldest is closed); all are closed when the process exits.
-    """
-
-    def __init__(self, keep: int = 2):
-        self.keep = keep
-        self._spares = {}            # key -> ProcessBackend, oldest first
-        self._lock = threading.Lock()
-        atexit.register(self.close)
-
-    @staticmethod
-    def _key(scenario) -> bytes:
-        return pickle.dumps(dataclasses.replace(scenario, params={}))     # params: display only
-
-    def make(self, scenario, separate_process, log=None, info=None, **kw):
-        """Return a warm-starting backend for ``scenario`` (as worker.make_backend)."""
-        if not separate_process or kw:
-            return make_backend(scenario, separate_process, log=log, info=info, **kw)
-        key = self._key(scenario)
-        with self._lock:
-            spare = self._spares.pop(key, None)
-        if spare is None or spare.proc.poll() is not None:
-            if spare is not None:
-                spare.close()
-            spare = ProcessBackend(scenario)
-        spare.attach_logs(log, info)                 # its messages go to the node's log from now on
-        nxt = ProcessBackend(scenario)
-        with self._lock:
-            self._spares[key] = nxt
-            while len(self._spares) > self.keep:
-                self._spares.pop(next(iter(self._spares))).close()
-        return spare
-
-    def pids(self) -> set:
-        with self._lock:
-            return {b.pid for b in self._spares.values()}
-
-    def close(self):
-        with self._lock:
-            spares, self._spares = list(self._spares.values()), {}
-        for b in spares:
-            b.close()
+    def start_process(self, fd: int):
+        return ZYGOTE.fork(fd)
 
 
-#: this test process's spare planning processes (every Graph's planner takes its backend here)
-SPARES = SparePlanningProcesses()
+def planning_backend(scenario, separate_process, log=None, info=None, **kw):
+    """A PlannerNode ``backend_factory``: the node's own backends, planning processes forked by the zygote."""
+    if not separate_process:
+        return make_backend(scenario, False, log=log, info=info, **kw)
+    return ZygoteBackend(scenario, log=log, info=info, **kw)
+
+
+#: this test process's zygote (planning_zygote.py): every Graph's planning process is forked there
+ZYGOTE = PlanningZygote(os.path.dirname(os.path.dirname(os.path.abspath(spacerobot_planner.__file__))), _CONFIG)
 
 
 def scene_params(name, cells=None, **extra):
@@ -137,7 +102,7 @@ class Graph:
         self.flat = flat
         self.scenario = scenario_from_params(flat)
         self.planner = PlannerNode(context=self.ctx, parameter_overrides=params_to_overrides(flat),
-                                   backend_factory=SPARES.make)
+                                   backend_factory=planning_backend)
         self.planner_destroyed = False
         self.arm = None
         self.ex = SingleThreadedExecutor(context=self.ctx)     # as planner_node.main
@@ -424,8 +389,8 @@ def rss_mb(pid="self") -> float:
 
 
 def child_pids(pid=None) -> list:
-    """Direct children of a process (default: this one, less its spare planning processes), from /proc/*/stat."""
-    spares = SPARES.pids() if pid is None else set()
+    """Direct children of a process (default: this one, less its planning zygote), from /proc/*/stat."""
+    zygote = {ZYGOTE.pid} if pid is None else set()
     pid = os.getpid() if pid is None else pid
     out = []
     for entry in os.listdir("/proc"):
@@ -437,7 +402,7 @@ def child_pids(pid=None) -> list:
         except OSError:
             continue
         fields = stat[stat.rfind(")") + 2:].split()       # after "(comm)": state, ppid, ...
-        if int(fields[1]) == pid and int(entry) not in spares:
+        if int(fields[1]) == pid and int(entry) not in zygote:
             out.append(int(entry))
     return out
 
@@ -572,7 +537,6 @@ def next_plan(g, n_traj, n_att=0, timeout=30):
 
 def assert_next_plan_grasps(g, n_traj, n_att, x_m, y_m, yaw_rad=0.0, timeout=30, tol_m=1e-3):
     """Assert the next plan published (see next_plan) ends with the tip at the grasp point of the target (x, y, yaw)."""
-    import dataclasses
     end, _ = next_plan(g, n_traj, n_att, timeout)
     robot = g.scenario.robot
     tip = robot.tip_position(robot.full(end))
