@@ -46,10 +46,14 @@ class warm_numba_cache(Command):
     """
     Fill numba's cache of the installed package (the last step of ``install``).
 
-    numba keys its cache on the source file's path (the index sits in the source's
-    ``__pycache__``) and its mtime and size, so a cache built in the source tree is
-    not used by an installed copy: this builds it in the installed tree, with the
-    interpreter that runs setup.py (the one the executables' shebang names).
+    numba finds a function's cache in the ``__pycache__`` beside its source file and
+    takes it while that file keeps its mtime and size (the index holds both; the key
+    is the signature, the machine and the bytecode, no path).  ``install`` copies the
+    sources with their mtimes, so this first copies the source tree's cache files
+    (``make venv`` fills them) beside each installed source that is the same file, then
+    runs the warm-up in the installed tree with the interpreter that runs setup.py (the
+    one the executables' shebang names): it loads what was copied and compiles only
+    what is missing or stale.
     Skipped with ``--root`` (a staged install such as a wheel build: the files move
     afterwards) and when ``SPACEROBOT_PLANNER_WARM_CACHE=0``.  A failure is reported
     and does not fail the install (the first start then compiles).  The cache files are
@@ -80,7 +84,9 @@ class warm_numba_cache(Command):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([install_dir] + kept))
         cmd = [sys.executable, "-m", f"{PACKAGE}.worker", "--warm-cache",
                *(os.path.join(HERE, c) for c in WARM_CONFIGS)]
-        print(f"{self.get_command_name()}: compiling numba kernels in {install_dir} (about 20 s)")
+        copied = _copy_numba_cache(os.path.join(HERE, PACKAGE), os.path.join(install_dir, PACKAGE))
+        print(f"{self.get_command_name()}: {copied} cache files copied from the source tree; compiling what "
+              f"is missing in {install_dir} (up to 20 s)")
         # cwd = the install dir: `-m` puts it first on sys.path, so the installed copy is imported
         r = subprocess.run(cmd, cwd=install_dir, env=env)
         if r.returncode:
@@ -94,6 +100,31 @@ class warm_numba_cache(Command):
 
     def get_inputs(self):
         return []
+
+
+def _copy_numba_cache(src_pkg, dst_pkg):
+    """
+    Copy numba's cache files of ``src_pkg`` to ``dst_pkg`` where the source beside them is the same.
+
+    The same: equal bytes, size and mtime (what numba's index checks); others are left to
+    the warm-up.  Returns the number of files copied.
+    """
+    copied = 0
+    for cache in glob(os.path.join(src_pkg, "**", "__pycache__", "*.nb[ic]"), recursive=True):
+        rel_dir = os.path.relpath(os.path.dirname(os.path.dirname(cache)), src_pkg)
+        stem = os.path.basename(cache).split(".")[0]          # module.function-line.py311.nbi
+        module = stem.split(".")[0] + ".py"
+        src, dst = os.path.join(src_pkg, rel_dir, module), os.path.join(dst_pkg, rel_dir, module)
+        if not (os.path.isfile(src) and os.path.isfile(dst)):
+            continue
+        s, d = os.stat(src), os.stat(dst)
+        if (s.st_mtime, s.st_size) != (d.st_mtime, d.st_size) or not filecmp.cmp(src, dst, shallow=False):
+            continue
+        out_dir = os.path.join(dst_pkg, rel_dir, "__pycache__")
+        os.makedirs(out_dir, exist_ok=True)
+        shutil.copy2(cache, out_dir)
+        copied += 1
+    return copied
 
 
 def _same_interface_sources(prefix):
