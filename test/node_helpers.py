@@ -60,7 +60,7 @@ class ZygoteBackend(ProcessBackend):
 
 
 def planning_backend(scenario, separate_process, log=None, info=None, **kw):
-    """A PlannerNode ``backend_factory``: the node's own backends, planning processes forked by the zygote."""
+    """Make the node's own backend (a PlannerNode ``backend_factory``), its planning processes forked by the zygote."""
     if not separate_process:
         return make_backend(scenario, False, log=log, info=info, **kw)
     return ZygoteBackend(scenario, log=log, info=info, **kw)
@@ -176,8 +176,9 @@ class Graph:
         self.thread.join(5)
 
     def _rec_traj(self, store, topic):
-        def cb(msg):
-            now = self.drv.get_clock().now().nanoseconds * 1e-9
+        def cb(msg, info):
+            # when DDS received it (what a controller's subscription sees; this executor may run later)
+            now = info["received_timestamp"] * 1e-9 or self.drv.get_clock().now().nanoseconds * 1e-9
             with self.lock:
                 store.append((time.monotonic(), msg))
                 last = self.states[-1][1] if self.states else None
@@ -293,6 +294,29 @@ class Graph:
                 return None
             d = self.diags[index][1]
         return next(st for st in d.status if st.name.endswith(f": {which}"))
+
+    def planner_values_for_goal(self, goal_rad, timeout=PROMPT_BOUND_S):
+        """
+        Return the key/values of the planner status that reported the plan to ``goal_rad`` (rad).
+
+        The record is published before the trajectory, on another topic: it may arrive after it.
+        """
+        want = np.degrees(np.asarray(goal_rad, dtype=float))
+        found = []
+
+        def seen():
+            with self.lock:
+                diags = [d for _, d in self.diags]
+            for d in reversed(diags):
+                for st in d.status:
+                    v = diag_values(st)
+                    if st.name.endswith(": planner") and "goal_deg" in v and \
+                            np.allclose(json.loads(v["goal_deg"]), want, atol=1e-2):
+                        found.append(v)
+                        return True
+            return False
+        self.wait(seen, timeout, f"the planner status of the plan to {np.round(want, 2).tolist()}°")
+        return found[0]
 
     def level(self, which):
         """Return the latest level of the ``which`` status (None before any diagnostics)."""

@@ -53,7 +53,7 @@ def _warm(config_dir: str) -> None:
 
 
 def _planning_process(fd: int) -> None:
-    """The grandchild: a planning process on socket ``fd``; never returns."""
+    """Run the grandchild: a planning process on socket ``fd``; never returns."""
     code = 0
     try:
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
@@ -150,7 +150,7 @@ class PlanningZygote:
 
     @property
     def pid(self):
-        """The zygote's pid (None before the first fork)."""
+        """Return the zygote's process id (None before the first fork)."""
         return None if self._proc is None else self._proc.pid
 
     def _start(self) -> None:

@@ -14,7 +14,7 @@ import math
 import time
 
 import numpy as np
-from node_helpers import angle_err_deg, diag_values, scene_params, wait_at_goal
+from node_helpers import angle_err_deg, scene_params, wait_at_goal
 from test_action import _tip_m
 
 from spacerobot_planner.scene import Target
@@ -77,8 +77,8 @@ def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph):
     with g.lock:
         second = g.trajs[1][1]
     goal2 = g.planner.last_result.goal_rad.copy()
-    assert diag_values(g.status("planner"))["joined_moving_arm"].startswith("yes"), \
-        diag_values(g.status("planner"))["joined_moving_arm"]
+    joined = g.planner_values_for_goal(goal2)["joined_moving_arm"]
+    assert joined.startswith("yes"), joined
     wait_at_goal(g, 30)
     assert angle_err_deg(robot, g.arm.positions, goal2) < 0.5
 
