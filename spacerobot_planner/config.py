@@ -99,7 +99,8 @@ PARAMETERS = (
               "Debris polygons in the planning frame as a list of [[x, y], ...] lists, metres "
               "(a string, like Nav2's footprint).", False),
     ParamSpec("safety_margin_m", "double", 0.02,
-              "Minimum distance kept between links 2-3 and any obstacle or the body, metres.",
+              "Minimum distance kept between the arm's links (link 2 on: 2-3 on the paper's chain) and any "
+              "obstacle or the body, metres.",
               False, 0.0, 1.0),
     ParamSpec("grid.cells", "integer_array", [36, 36, 36],
               "C-space cells per planned joint.", False, 2, 4096, True),
@@ -433,7 +434,7 @@ def scenario_from_params(params: dict) -> Scenario:
     planned = tuple(names.index(j) for j in planned_names)
     robot = PlanarArm(tuple(names), tuple(lengths), tuple(lower), tuple(upper), tuple(periodic),
                       square_polygon(_get(params, "robot.body_side_m"), corner_first=True),
-                      planned_joints=planned, locked_rad=locked)
+                      planned_joints=planned, locked_rad=locked, checked_links=tuple(range(1, n)))
     center = _get(params, "target.center_m")
     if len(center) != 2:
         raise ValueError(f"target.center_m: expected [x, y], got {len(center)} values")

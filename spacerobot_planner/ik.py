@@ -5,7 +5,9 @@ For the 3-joint chain (attitude, shoulder, elbow) the grasp pose fixes the tip
 position and the absolute angle of the last link, so the elbow point is known and
 the first two joints solve a two-link problem: two branches.  With locked joints
 (the 2-DOF case) only the tip position can be met: position-only IK of the two
-joints nearest the tip, again two branches.
+joints nearest the tip, again two branches.  Longer chains (redundant: more planned
+joints than the grasp's three constraints) take the most manipulable collision-free
+posture of their self-motion (``redundant.py``).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from scipy.optimize import minimize
 
 from .collision import CollisionChecker
 from .joint_space import TWO_PI, wrap_angle_rad, wrap_rad
+from .redundant import most_manipulable_arm, redundant_grasp
 
 __all__ = ["IKSolution", "grasp_ik", "capture_posture", "CapturePosture", "approach_error_rad",
            "perpendicular_attitudes"]
@@ -34,6 +37,7 @@ class IKSolution:
         manipulability: sqrt(det(J Jᵀ)), m².
         clearance_m: exact clearance of the posture.
         free: clearance > safety margin.
+        method: how the posture was chosen, for people.
 
     """
 
@@ -42,6 +46,7 @@ class IKSolution:
     manipulability: float
     clearance_m: float
     free: bool
+    method: str = "closed form, 2 branches"
 
 
 def _two_link(base, target, l_a, l_b):
@@ -87,6 +92,10 @@ def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_onl
             locked.
         free_only: drop branches whose posture collides (clearance ≤ margin).
 
+    Other chains than the 3-joint one: per branch of the self-motion, the most manipulable
+    collision-free posture within the bounds (``redundant.redundant_grasp``; its ``method``
+    says how it was found); ``approach_angle_rad`` is always met.
+
     Returns
     -------
         list of IKSolution (possibly empty: the grasp pose is out of reach).
@@ -102,7 +111,10 @@ def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_onl
     if p.shape != (2,) or not np.all(np.isfinite(p)):
         raise ValueError(f"grasp point: expected two finite numbers, got {grasp_point_m!r}")
     if robot.n_joints != 3:
-        raise ValueError("grasp_ik: implemented for the 3-joint chain (attitude, shoulder, elbow)")
+        return [IKSolution(q=sol.q_full[list(robot.planned_joints)], q_full=sol.q_full,
+                           manipulability=sol.manipulability, clearance_m=sol.clearance_m, free=sol.free,
+                           method=sol.method)
+                for sol in redundant_grasp(robot, scene, p, float(approach_angle_rad), free_only=free_only)]
     l1, l2, l3 = (float(v) for v in robot.link_lengths_m)
     candidates = []
     if 0 in robot.planned_joints:
@@ -169,6 +181,7 @@ class CapturePosture:
         tip_m: end-effector tip position, metres.
         target_center_m: where the target's body centre must be for its grasp point to
             coincide with the tip (for the given target yaw and size).
+        method: how the posture was found, for people.
 
     """
 
@@ -176,16 +189,22 @@ class CapturePosture:
     manipulability: float
     tip_m: np.ndarray
     target_center_m: np.ndarray
+    method: str = "scanned (θ2, θ3 > 0) every 3°, refined by Nelder-Mead"
 
 
 def capture_posture(robot, target) -> CapturePosture:
     """
     Maximise manipulability over (θ2, θ3 > 0), then orient the chain for the target's approach.
 
-    The mirror posture (−θ2, −θ3) is as manipulable; the paper's branch is returned.
+    The mirror posture (−θ2, −θ3) is as manipulable; the paper's branch is returned.  Longer
+    chains: every arm joint within its bounds (``redundant.most_manipulable_arm``).
     """
+    offset = target.grasp_point_m - np.asarray(target.center_m)
     if robot.n_joints != 3:
-        raise ValueError("capture_posture: implemented for the 3-joint chain")
+        q_full, w, method = most_manipulable_arm(robot, target.approach_angle_rad)
+        tip = robot.tip_position(q_full)
+        return CapturePosture(q_full=q_full, manipulability=w, tip_m=tip, target_center_m=tip - offset,
+                              method=method)
 
     def neg_w(x):
         return -float(robot.manipulability(np.array([0.0, x[0], x[1]])))
@@ -203,6 +222,5 @@ def capture_posture(robot, target) -> CapturePosture:
     th1 = float(wrap_angle_rad(target.approach_angle_rad - th2 - th3))
     q_full = np.array([th1, float(wrap_angle_rad(th2)), float(wrap_angle_rad(th3))])
     tip = robot.tip_position(q_full)
-    offset = target.grasp_point_m - np.asarray(target.center_m)
     return CapturePosture(q_full=q_full, manipulability=-float(res.fun), tip_m=tip,
                           target_center_m=tip - offset)

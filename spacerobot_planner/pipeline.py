@@ -194,10 +194,12 @@ class PlanRun:
                        f"above the budget planner.max_grid_nodes = {self.s.max_grid_nodes:,}")
         if goal_rad is None:
             try:
-                self.goal = self.p.goal_from_target()
+                chosen = self.p.capture_goal()
             except ValueError as e:
                 raise Fail(Code.GOAL_UNREACHABLE, str(e)) from None
-            self.say(f"goal from the target's IK: {deg_text(self.goal)}")
+            self.goal = chosen.q.copy()
+            self.say(f"goal from the target's IK: {deg_text(self.goal)}, manipulability "
+                     f"{chosen.manipulability:.3f} m² ({chosen.method})")
         else:
             try:
                 self.goal = robot.validate_q(np.asarray(goal_rad, dtype=float), "goal")

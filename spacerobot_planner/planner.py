@@ -165,11 +165,16 @@ class Planner:
         return math.degrees(approach_error_rad(sc.robot, target, q_full)) if miss <= tol else math.nan
 
     def goal_from_target(self) -> np.ndarray:
-        """
-        Return the best free IK branch of the scene's target, (dof,) rad.
+        """Return the best free IK branch of the scene's target, (dof,) rad (:meth:`capture_goal`)."""
+        return self.capture_goal().q.copy()
 
-        Best free IK branch (highest manipulability) of the scene's target, (dof,) rad, among those
-        whose approach error is within ``max_approach_error_deg``.
+    def capture_goal(self):
+        """
+        Return the best free IK branch of the scene's target, an ``ik.IKSolution``.
+
+        Best free IK branch (highest manipulability) of the scene's target among those whose
+        approach error is within ``max_approach_error_deg``; its ``method`` says how it was
+        found (a redundant chain's self-motion sweep, ``redundant.py``).
 
         Raises ValueError with a reason when there is no target, the grasp pose is out of
         reach, every branch collides, or no branch meets the handle near perpendicular
@@ -194,7 +199,7 @@ class Planner:
         errs = [math.degrees(approach_error_rad(sc.robot, sc.scene.target, s.q_full)) for s in free]
         good = [s for s, e in zip(free, errs) if e <= bound]
         if good:
-            return good[0].q.copy()
+            return good[0]
         raise ValueError(f"no capture posture grasps the handle perpendicularly: link 3 meets it "
                          f"{min(errs):.1f}° off its normal, above grasp.max_approach_error_deg = "
                          f"{bound:g}°; {self._attitude_advice()}")

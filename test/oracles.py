@@ -294,13 +294,18 @@ def ref_seg_poly_distance(a, b, poly):
     return best
 
 
-def ref_clearance(robot, scene, q):
-    """Return the clearance of the checked links from the body and the obstacles, plain Python floats."""
+def ref_clearance(robot, scene, q, links=None):
+    """
+    Return the clearance of links from the body and the obstacles, plain Python floats.
+
+    ``links``: link indices (default ``robot.checked_links``; a test of longer chains passes
+    every arm link, ``range(1, n_joints)``, its own choice).
+    """
     q_full = robot.full(q)
     pts = arm_points(robot, q_full).tolist()
     polys = [p.tolist() for p in _polygons(robot, scene, q_full[0])]
     return min(ref_seg_poly_distance(pts[k], pts[k + 1], poly)
-               for k in robot.checked_links for poly in polys)
+               for k in (robot.checked_links if links is None else links) for poly in polys)
 
 
 def shapely_clearance(robot, scene, q):

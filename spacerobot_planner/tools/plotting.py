@@ -2,8 +2,9 @@
 Figures of a plan, as in the paper's figures 3–5 and 7–10 (matplotlib, Agg).
 
 One PNG with several panels: the C-space (2-DOF image; 3-DOF boundary voxels and
-θ1 slices), the potential φ = -log u on a log colour scale (3-DOF: the slice
-through the goal's θ1), the path in C-space (grid nodes and spline, lines broken
+θ1 slices; more joints: the slice of the last two through the goal), the potential
+φ = -log u on a log colour scale (3-DOF: the slice through the goal's θ1; more joints:
+the same slice as the C-space's, with every joint along the path), the path in C-space (grid nodes and spline, lines broken
 where a periodic joint wraps), and the arm's motion in the plane with the target
 and the spacecraft body (stroboscopic postures, start and goal highlighted).
 """
@@ -170,6 +171,8 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
             ax.set_xlabel(f"θ ({names[0]}) [deg]")
             ax.set_ylabel(f"θ ({names[1]}) [deg]")
         _arm_panel(axes[2], res, scenario)
+    elif robot.dof > 3:
+        fig = _plot_many_joints(res, scenario, cs, phi)
     else:
         fig = plt.figure(figsize=(19, 10.5))
         gs = fig.add_gridspec(2, 4)
@@ -249,6 +252,56 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
+
+
+def _plot_many_joints(res, scenario, cs, phi):
+    """
+    Return the figure of a plan over 4 or more planned joints.
+
+    The C-space and the potential in the plane of the last two planned joints, sliced through
+    the goal's nodes on the other axes (the start's without a goal); every joint along the
+    path; the arm's motion.
+    """
+    robot, grid = scenario.robot, cs.grid
+    names = robot.planned_names
+    a0, a1 = robot.dof - 2, robot.dof - 1
+    q_slice = res.goal_rad if res.goal_rad is not None else res.start_rad
+    node = grid.node_of(q_slice)
+    index = tuple(slice(None) if a in (a0, a1) else int(node[a]) for a in range(grid.ndim))
+    at = ", ".join(f"{names[a]} = {np.degrees(grid.axis_values_rad(a)[node[a]]):.0f}°"
+                   for a in range(grid.ndim) if a not in (a0, a1))
+    fig = plt.figure(figsize=(19, 10.5))
+    gs = fig.add_gridspec(2, 3)
+    ax = fig.add_subplot(gs[0, 0])
+    _image(ax, cs.occupied[index], grid, a0, a1, cmap=_occ_cmap(), vmin=0, vmax=1)
+    _plot_path_2d(ax, res, robot, a0, a1)
+    ax.set_title(f"C-space {grid.label()}, slice {at}\n(grey: collision incl. margin; path projected)",
+                 fontsize=9)
+    ax.legend(loc="upper left", fontsize=7)
+    ax = fig.add_subplot(gs[0, 1])
+    if phi is not None:
+        _potential_panel(ax, fig, phi[index], grid, a0, a1, f"potential φ, slice {at}")
+    else:
+        _image(ax, cs.occupied[index], grid, a0, a1, cmap=_occ_cmap(), vmin=0, vmax=1)
+        ax.set_title(f"C-space slice {at} (no field)", fontsize=9)
+    _plot_path_2d(ax, res, robot, a0, a1, label=False)
+    for ax in fig.axes[:2]:
+        ax.set_xlabel(f"θ ({names[a0]}) [deg]")
+        ax.set_ylabel(f"θ ({names[a1]}) [deg]")
+    ax = fig.add_subplot(gs[1, 0:2])
+    if len(res.path_rad):
+        p = np.degrees(wrap_for_plot(res.path_rad, robot.planned_lower_rad, robot.planned_periodic))
+        for a, name in enumerate(names):
+            ax.plot(p[:, a], lw=1.8, label=name)
+        ax.set_xlabel("path sample (≤ 0.5° apart)")
+    else:
+        ax.text(0.5, 0.5, "no path", ha="center", va="center", transform=ax.transAxes)
+    ax.set_ylabel("joint angle [deg]")
+    ax.set_title("joints along the path", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    _arm_panel(fig.add_subplot(gs[:, 2]), res, scenario)
+    return fig
 
 
 def plot_reaction(motion, path, dpi: int = 110) -> None:
