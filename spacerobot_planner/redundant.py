@@ -135,7 +135,8 @@ class SelfMotion:
             reachable (2, N) bool (the two-link reach exists).
 
         """
-        s = np.asarray(s, dtype=float).reshape(-1, self.dim)
+        s = np.asarray(s, dtype=float)
+        s = s.reshape(s.shape[0] if s.ndim == 2 else -1, self.dim)
         a, b, c = self.solved
         q = np.broadcast_to(self._template, (len(s), self.robot.n_joints)).copy()
         q[:, list(self.swept)] = s
@@ -215,7 +216,7 @@ class _Evaluator:
 
 
 def _sweep_axes(robot, joints, per_axis: int) -> list:
-    """Sample values of each swept joint: one turn for a periodic joint (end excluded), the bounds included otherwise."""
+    """Sample each swept joint: one turn for a periodic joint (end excluded), else its bounds included."""
     axes = []
     for j in joints:
         lo, hi = float(robot.lower_rad[j]), float(robot.upper_rad[j])
@@ -259,7 +260,7 @@ def _golden(f, lo: float, hi: float) -> None:
 def redundant_grasp(robot, scene, grasp_point_m, approach_angle_rad: float, free_only: bool = True,
                     sweep_values: int | None = None) -> list:
     """
-    The most manipulable collision-free grasping posture of each branch of a chain's self-motion.
+    Return the most manipulable collision-free grasping posture of each branch of a chain's self-motion.
 
     Args:
         robot: a PlanarArm with at least 3 planned joints.
@@ -349,7 +350,7 @@ def redundant_grasp(robot, scene, grasp_point_m, approach_angle_rad: float, free
 
 def most_manipulable_arm(robot, approach_angle_rad: float, grid_nodes: int = 100_000) -> tuple:
     """
-    The arm joints (all but the first) of largest manipulability, the first joint turned for the approach.
+    Return the arm joints (all but the first) of largest manipulability, the first turned for the approach.
 
     A grid scan of the arm joints within their bounds (about ``grid_nodes`` samples), then
     bounded Nelder–Mead from the best sample.  The manipulability does not depend on the

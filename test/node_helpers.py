@@ -49,7 +49,8 @@ FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
 _CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config")
 SCENES = {"2dof": (os.path.join(_CONFIG, "paper_2dof.yaml"), [180, 180]),
           "3dof": (os.path.join(_CONFIG, "paper_3dof.yaml"), [36, 36, 36]),
-          "servicer": (os.path.join(_CONFIG, "servicer_3dof.yaml"), [36, 36, 36])}
+          "servicer": (os.path.join(_CONFIG, "servicer_3dof.yaml"), [36, 36, 36]),
+          "servicer4": (os.path.join(_CONFIG, "servicer_4joint.yaml"), [16, 16, 16, 16])}
 
 
 class ZygoteBackend(ProcessBackend):
@@ -78,7 +79,8 @@ def scene_params(name, cells=None, **extra):
     """
     path, default_cells = SCENES[name]
     flat = load_params_file(path)
-    flat.update(FAST)
+    n = len(flat["robot.joint_names"])
+    flat.update({k: v[:1] + v[1:2] * (n - 1) for k, v in FAST.items()})    # the attitude's, then the arm's
     flat["grid.cells"] = list(cells or default_cells)
     flat.update(extra)
     return flat

@@ -12,7 +12,10 @@ displacement and tip miss; resampled point counts; the median time of
 velocity) over the limit *between* the points when a controller interpolates them as
 ros2_control's joint_trajectory_controller does (cubic from positions and velocities,
 quintic with the accelerations too), for the dense trajectory and the one the node
-publishes (resampled at 0.25 s).  Prints a table, then one JSON object per line.
+publishes (resampled at 0.25 s).  Then a row for ``config/servicer_4joint.yaml`` (a redundant
+arm, its own masses and wheels, attitude held): plan time, the attitude change, the tip's and
+the approach's error at the end (the tip also in the inertial frame), the wheel peaks and the
+free-floating drift.  Prints a table, then one JSON object per line.
 """
 
 from __future__ import annotations
@@ -152,6 +155,47 @@ def main(argv=None) -> int:
         print(f"  {r['grid']:12} " + "; ".join(
             f"{kind} {label} {r[f'{kind}_{label}_max_acc_ratio']:.3f} / {r[f'{kind}_{label}_max_vel_ratio']:.3f}"
             for label in ("dense", "published") for kind in ("cubic", "quintic")))
-    for r in rows:
+    red = redundant_row(args.repeats)
+    print(f"servicer_4joint (held): plan {1e3 * red['plan_seconds']:.0f} ms, attitude change "
+          f"{red['attitude_change_deg']:.1f}°, tip error {1e3 * red['tip_error_m']:.3f} mm planned / "
+          f"{1e3 * red['held_tip_miss_m']:.1f} mm inertial, approach error {red['approach_error_deg']:.2e}°, "
+          f"trajectory {red['duration_s']:.1f} s (wheel peaks {red['peak_wheel_momentum_Nms']:.1f} N·m·s, "
+          f"{red['peak_wheel_torque_Nm']:.3f} N·m); free floating it would turn "
+          f"{red['ff_attitude_change_deg']:.2f}° and miss by {red['ff_tip_miss_m']:.3f} m")
+    for r in rows + [red]:
         print(json.dumps(r))
     return 0
+
+
+def redundant_row(repeats: int) -> dict:
+    """
+    Return the row of ``config/servicer_4joint.yaml`` (attitude held, its wheels and masses).
+
+    The plan to the target's capture posture (the median time of ``repeats`` fresh planners
+    after a warm-up: grasp IK, C-space, field, descent, smoothing, check, trajectory with the
+    spacecraft's reaction), the attitude change it commands, the tip's error at the end (as
+    planned, and in the inertial frame: the body translates so that the centre of mass stays),
+    the approach error, and what the same motion would do free floating.
+    """
+    sc = load_scenario(CONFIG / "servicer_4joint.yaml")
+    Planner(sc, reaction=True).plan(sc.start_rad)                      # warm-up (numba)
+    plans = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        res = Planner(sc, reaction=True).plan(sc.start_rad)
+        plans.append((time.perf_counter() - t0, res))
+    seconds = float(np.median([t for t, _ in plans]))
+    res = plans[-1][1]
+    if not res.ok:
+        raise RuntimeError(f"servicer_4joint: no plan ({res.code}): {res.reason}")
+    robot, path, rep = sc.robot, res.path_rad, res.reaction
+    tip = robot.tip_position(robot.full(path[-1]))
+    return {"stage": "reaction", "grid": "servicer_4joint", "cells": list(sc.grid.cells), "plan_seconds": seconds,
+            "timings_s": {k: float(v) for k, v in res.timings_s.items()},
+            "attitude_change_deg": float(np.degrees(path[-1, 0] - path[0, 0])),
+            "tip_error_m": float(np.linalg.norm(tip - sc.scene.target.grasp_point_m)),
+            "held_tip_miss_m": rep.held_tip_miss_m, "held_body_displacement_m": rep.held_body_displacement_m,
+            "approach_error_deg": res.approach_error_deg, "duration_s": res.trajectory.duration_s,
+            "peak_wheel_momentum_Nms": rep.peak_wheel_momentum_Nms, "peak_wheel_torque_Nm": rep.peak_wheel_torque_Nm,
+            "ff_attitude_change_deg": rep.free_floating_attitude_change_deg,
+            "ff_tip_miss_m": rep.free_floating_tip_miss_m, "min_clearance_m": res.min_clearance_m}

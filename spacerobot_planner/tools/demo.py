@@ -1,12 +1,13 @@
 """
-`make demo`: the closed loop on the paper's 3-DOF scene, in one process.
+`make demo`: the closed loop on the paper's 3-DOF scene (or ``--params-file``'s), in one process.
 
 planner_node + mock_arm_node + a small driver node that publishes the paper's target
 pose (frame ``world``, (-3.27, -2.60), yaw 0) once the planner is up.  Prints the
 progress (planning, stage timings, executing, reached), writes a figure of the plan
-to ``--out`` and exits 0 once the arm is at the goal (within 0.5°), 1 with a reason
-on timeout or failure.  ``--speedup`` scales the velocity limits by k and the
-acceleration limits by k² (default 10: the motion takes a few seconds).
+to ``--out`` (``demo_<scenario file's stem>.png``) and exits 0 once the arm is at the
+goal (within 0.5°), 1 with a reason on timeout or failure.  ``--speedup`` scales the
+velocity limits and the wheels' momentum limit by k, the acceleration limits and the
+wheels' torque limit by k² (default 10: the motion takes a few seconds).
 """
 
 from __future__ import annotations
@@ -37,13 +38,12 @@ def offline_facts(params_file) -> None:
           f"links {sc.robot.link_lengths_m} m")
     chk = CollisionChecker(sc.robot, sc.scene)
     print(f"start {np.round(deg(sc.start_rad), 2)} deg: clearance {chk.clearance_m(sc.start_rad):.3f} m")
-    if sc.robot.n_joints == 3:
-        cp = capture_posture(sc.robot, sc.scene.target)
-        print(f"capture posture (max manipulability {cp.manipulability:.3f} m^2): "
-              f"{np.round(deg(cp.q_full), 2)} deg, tip {np.round(cp.tip_m, 3)} m")
-        for i, s in enumerate(grasp_ik(sc.robot, sc.scene)):
-            print(f"IK branch {i}: {np.round(deg(s.q_full), 2)} deg, w={s.manipulability:.3f} m^2, "
-                  f"clearance {s.clearance_m:.3f} m")
+    cp = capture_posture(sc.robot, sc.scene.target)
+    print(f"capture posture (max manipulability {cp.manipulability:.3f} m^2): "
+          f"{np.round(deg(cp.q_full), 2)} deg, tip {np.round(cp.tip_m, 3)} m")
+    for i, s in enumerate(grasp_ik(sc.robot, sc.scene)):
+        print(f"IK branch {i}: {np.round(deg(s.q_full), 2)} deg, w={s.manipulability:.3f} m^2, "
+              f"clearance {s.clearance_m:.3f} m ({s.method})")
     cs = build_cspace(sc.robot, sc.scene, sc.grid)
     print(f"C-space {cs.grid.label()}: {100 * cs.free_fraction:.1f} % free")
 
@@ -70,6 +70,10 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
     flat = load_params_file(params_file)
     for key, power in (("trajectory.max_velocity_deg_s", 1), ("trajectory.max_acceleration_deg_s2", 2)):
         flat[key] = [float(v) * speedup ** power for v in flat.get(key, spec_default(key))]
+    # the wheels' momentum goes with the joint rates, their torque with the accelerations (0: no limit)
+    for key, power in (("acs.max_wheel_momentum_Nms", 1), ("acs.max_wheel_torque_Nm", 2)):
+        if key in flat:
+            flat[key] = float(flat[key]) * speedup ** power
     scenario = scenario_from_params(flat)
     robot = scenario.robot
     t_start = time.monotonic()
@@ -117,7 +121,7 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
                         print(f"[demo] executing: {len(traj)} points, {traj.duration_s:.2f} s "
                               f"(limits × {speedup:g})")
                         phase = "executing"
-                        _plot(res, scenario, out)
+                        _plot(res, scenario, out / f"demo_{Path(params_file).stem}.png")
                     if phase == "executing" and not arm.executing:
                         err = _wrapped_err_deg(robot, arm.positions, res.goal_rad)
                         if err < 0.5:
@@ -138,14 +142,13 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
     return rc
 
 
-def _plot(res, scenario, out: Path) -> None:
+def _plot(res, scenario, path: Path) -> None:
     try:
         from .plotting import plot_plan       # matplotlib: optional here
     except ImportError:
         print("[demo] spacerobot_planner.tools.plotting not available: no figure")
         return
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "demo_paper_3dof.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
     sc = scenario.with_scene(scenario.scene)
     try:
         plot_plan(res, sc, path)

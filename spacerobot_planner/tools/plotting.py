@@ -3,10 +3,11 @@ Figures of a plan, as in the paper's figures 3–5 and 7–10 (matplotlib, Agg).
 
 One PNG with several panels: the C-space (2-DOF image; 3-DOF boundary voxels and
 θ1 slices; more joints: the slice of the last two through the goal), the potential
-φ = -log u on a log colour scale (3-DOF: the slice through the goal's θ1; more joints:
-the same slice as the C-space's, with every joint along the path), the path in C-space (grid nodes and spline, lines broken
-where a periodic joint wraps), and the arm's motion in the plane with the target
-and the spacecraft body (stroboscopic postures, start and goal highlighted).
+φ = -log u on a log colour scale (3-DOF: the slice through the goal's θ1; more
+joints: the same slice as the C-space's, with every joint along the path), the path
+in C-space (grid nodes and spline, lines broken where a periodic joint wraps), and
+the arm's motion in the plane with the target and the spacecraft body (stroboscopic
+postures, start and goal highlighted).
 """
 
 from __future__ import annotations
