@@ -52,7 +52,8 @@ LAYERS = (
                 "reaction", "timing", "replanning", "settings", "problem")),
     ("pipeline", ("pipeline", "adapters")),
     ("planner", ("planner",)),
-    ("session and boundary", ("config", "free_floating", "worker", "session", "")),
+    ("session and boundary", ("config", "free_floating", "worker", "session", "offline", "")),
+    ("sweeps", ("envelope", "envelope.sweep", "envelope.store", "envelope.engine", "envelope.plots")),
 )
 
 

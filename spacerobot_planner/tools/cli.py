@@ -3,6 +3,8 @@
 
     spacerobot-plan --params-file config/paper_3dof.yaml [--start-deg A B C]
         [--goal-deg A B C] [--cells N] [--solver NAME] [--json PATH] [--plot PATH]
+    spacerobot-plan envelope --params-file F --x-m X0 X1 NX --y-m Y0 Y1 NY
+        --yaw-deg A0 A1 NA --out DIR [--scheduler ADDRESS]    (tools/envelope_cli.py)
 
 The trajectory is made by the same chain as the node's (``adapters.post_process``: time
 parameterisation, the spacecraft's reaction, resampling certified on the exact geometry,
@@ -25,29 +27,21 @@ from pathlib import Path
 
 import numpy as np
 
-from ..adapters import post_process
 from ..config import check_value, load_scenario
 from ..field import SOLVERS
-from ..free_floating import plan_free_floating
-from ..motion import MotionValidator
+from ..offline import plan_offline
 from ..planner import Planner
 from ..timing import Motion
+from .args import ArgError, Parser, fail_input, posture, with_cells
 
 __all__ = ["main", "build_parser"]
 
 
-class _ArgError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):          # exit 1 (bad input), not argparse's 2 (= "no path")
-        raise _ArgError(message)
-
-
 def build_parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog="spacerobot-plan", description=__doc__.strip().split("\n\n")[0],
-                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = Parser(prog="spacerobot-plan", description=__doc__.strip().split("\n\n")[0],
+                formatter_class=argparse.RawDescriptionHelpFormatter,
+                epilog="spacerobot-plan envelope --help: capture envelope maps over target poses "
+                       "(docs/envelope.md)")
     ap.add_argument("--params-file", required=True, help="ROS 2 parameter file (config/paper_3dof.yaml)")
     ap.add_argument("--start-deg", type=float, nargs="+", metavar="DEG",
                     help="start posture of the planned joints, degrees (default: scenario.start_deg)")
@@ -62,11 +56,6 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--plot", metavar="PATH", help="write a PNG: C-space, potential, path, arm motion")
     ap.add_argument("--quiet", action="store_true", help="no stage lines")
     return ap
-
-
-def _fail_input(message: str) -> int:
-    print(f"spacerobot-plan: error: {message}", file=sys.stderr)
-    return 1
 
 
 def _summary(res, scenario) -> list:
@@ -112,11 +101,15 @@ def _motion_summary(r, processed) -> list:
 
 
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["envelope"]:
+        from .envelope_cli import main as envelope_main     # Dask: loaded only for a sweep
+        return envelope_main(argv[1:])
     ap = build_parser()
     try:
         args = ap.parse_args(argv)
-    except _ArgError as e:
-        return _fail_input(str(e))
+    except ArgError as e:
+        return fail_input(str(e))
     except SystemExit as e:            # --help
         return int(e.code or 0)
     # ---- inputs (exit 1 on anything malformed, naming the field)
@@ -126,11 +119,7 @@ def main(argv=None) -> int:
         robot = scenario.robot
         given = scenario.planner_settings           # the file's planner.* (defaults filled)
         if args.cells is not None:
-            cells = args.cells * robot.dof if len(args.cells) == 1 else args.cells
-            check_value("grid.cells", cells)
-            if len(cells) != robot.dof:
-                raise ValueError(f"--cells: expected 1 or {robot.dof} values, got {len(args.cells)}")
-            scenario = scenario.with_grid(scenario.grid_with_cells(cells))
+            scenario = with_cells(scenario, args.cells)
         solver = args.solver if args.solver is not None else given.solver
         if solver not in SOLVERS:
             raise ValueError(f"--solver: unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
@@ -139,51 +128,35 @@ def main(argv=None) -> int:
         field_budget = args.field_budget if args.field_budget is not None else given.field_budget_s
         field_budget = check_value("planner.field_budget_s", float(field_budget))
 
-        def posture(values, flag):
-            if len(values) != robot.dof:
-                raise ValueError(f"{flag}: expected {robot.dof} values "
-                                 f"({', '.join(robot.planned_names)}), got {len(values)}")
-            if not all(math.isfinite(v) for v in values):
-                raise ValueError(f"{flag}: values must be finite numbers")
-            return robot.validate_q(np.radians(values), flag)
-
         if args.start_deg is not None:
-            start = posture(args.start_deg, "--start-deg")
+            start = posture(robot, args.start_deg, "--start-deg")
         elif scenario.start_rad is not None:
             start = scenario.start_rad
         else:
             raise ValueError("--start-deg: no start given and the file has no scenario.start_deg")
-        goal = posture(args.goal_deg, "--goal-deg") if args.goal_deg is not None else scenario.goal_rad
+        goal = posture(robot, args.goal_deg, "--goal-deg") if args.goal_deg is not None else scenario.goal_rad
         planner = Planner(scenario, solver=solver, field_tolerance=tol, field_budget_s=field_budget, reaction=True)
     except ValueError as e:
-        return _fail_input(str(e))
+        return fail_input(str(e))
     # ---- plan
     progress = None if args.quiet else (lambda line: print(f"  {line}", flush=True))
     if not args.quiet:
         print(f"planning {args.params_file}: joints {', '.join(robot.planned_names)}, "
               f"grid {scenario.grid.label()}, solver {solver}")
-    res = planner.plan(start, goal, progress=progress)
+    try:
+        done = plan_offline(planner, start, goal, progress=progress)
+    except ValueError as e:            # the drift compensation refuses the scenario
+        return fail_input(str(e))
+    res, processed, comp = done.result, done.processed, done.compensated
     if res.code == "invalid_input":
-        return _fail_input(res.reason)
-    if res.code in ("ok", "reaction_refused") and scenario.acs.mode == "free_floating" \
-            and scenario.acs.compensate_drift:
-        # the compensation plans geometry only; the trajectory stage follows on its result
-        try:
-            comp = plan_free_floating(scenario, start, goal)
-        except ValueError as e:
-            return _fail_input(str(e))
+        return fail_input(res.reason)
+    if comp is not None:
         print(f"drift compensation: {len(comp.history)} plans, tip miss "
               f"{' → '.join(f'{h[0]:.4f}' for h in comp.history)} m; goal "
               f"{np.round(np.degrees(comp.goal_rad), 2).tolist()}°")
-        if comp.plan.ok:
-            res = planner.add_trajectory(comp.plan, start)
     for line in _summary(res, scenario):
         print(line)
-    processed = None
-    if res.trajectory is not None:
-        # the node's chain, from rest at the start: what the node publishes for this request
-        processed = post_process(scenario, res.path_rad, start_rad=start,
-                                 motions=MotionValidator.for_scene(robot, scenario.scene))
+    if processed is not None:
         for line in _motion_summary(res.reaction, processed):
             print(line)
         if res.code == "reaction_refused":

@@ -1,0 +1,257 @@
+"""
+Running a sweep: the chunks on Dask (or in this process), rows to the store, a progress bar.
+
+:func:`run_envelope` opens the sweep's folder (``store.EnvelopeStore``: what is done
+already), splits the poses still to plan into chunks of consecutive ``pose_id``
+(``sweep.chunks``) and hands each chunk to ``sweep.plan_chunk``:
+
+- by default on a ``distributed.LocalCluster`` it starts on this machine: one worker
+  process per core, one thread each (numba's kernels then run on one thread per process);
+- with ``scheduler="tcp://host:8786"`` on a running Dask cluster (``dask scheduler`` and
+  ``dask worker``, each worker with this package installed): the same tasks, the same table;
+- with ``workers=0`` in this process, one chunk after the other, without Dask.
+
+Chunks finish in any order; each one's rows go to disk as it finishes, so a killed sweep
+resumes where it stopped.  A chunk whose task fails as a whole (its worker died, say)
+becomes ``internal_error`` rows naming the failure, like a pose that raises.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+
+from ..problem import Scenario
+from ..results import Code
+from .store import PARQUET_MIN_POSES, EnvelopeStore
+from .sweep import PoseGrid, blank_row, chunks, plan_chunk
+
+__all__ = ["run_envelope", "SweepReport", "Progress", "default_workers", "chunk_size_for"]
+
+#: chunks per worker slot when the chunk size is not given (load balance against per-chunk cost)
+CHUNKS_PER_SLOT = 4
+#: the largest default chunk, poses
+MAX_CHUNK = 64
+
+
+def default_workers() -> int:
+    """Return the cores this process may use (one local worker process each)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:              # not on Linux
+        return os.cpu_count() or 1
+
+
+def chunk_size_for(n_poses: int, slots: int) -> int:
+    """Return the default chunk size: about ``CHUNKS_PER_SLOT`` chunks per slot, at most ``MAX_CHUNK``."""
+    return max(1, min(MAX_CHUNK, math.ceil(n_poses / (CHUNKS_PER_SLOT * max(1, slots)))))
+
+
+@dataclass
+class SweepReport:
+    """
+    What one run of a sweep did.
+
+    Attributes
+    ----------
+        n_poses: the sweep's poses.
+        done_before: poses that had a row when the run started (resume).
+        planned_ids: the ``pose_id`` of every pose this run planned, in the order written.
+        complete: every pose has its row.
+        seconds: the run's wall time, s (cluster start included).
+        plan_seconds: from the first task handed out to the last row written, s.
+        engine: "serial", "local cluster, N workers" or the scheduler's address.
+        chunks: the chunks this run handed out.
+        rows: the whole table sorted by ``pose_id`` when complete, else [].
+
+    """
+
+    n_poses: int
+    done_before: int
+    planned_ids: list = field(default_factory=list)
+    complete: bool = False
+    seconds: float = 0.0
+    plan_seconds: float = 0.0
+    engine: str = ""
+    chunks: int = 0
+    rows: list = field(default_factory=list)
+
+    @property
+    def planned(self) -> int:
+        return len(self.planned_ids)
+
+
+class Progress:
+    """
+    A one-line progress bar on a terminal: poses done, rate (poses/s) and ETA.
+
+    Quiet when ``enabled`` is false or the stream is not a terminal.
+    """
+
+    WIDTH = 28
+
+    def __init__(self, total: int, done: int, enabled: bool = True, stream=None):
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = enabled and hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.total, self.done, self.new = total, done, 0
+        self.t0 = time.perf_counter()
+        self._draw()
+
+    def line(self) -> str:
+        """Return the bar's text (without the carriage return)."""
+        frac = self.done / self.total if self.total else 1.0
+        fill = int(round(self.WIDTH * frac))
+        elapsed = max(time.perf_counter() - self.t0, 1e-9)
+        rate = self.new / elapsed
+        left = self.total - self.done
+        eta = "--:--" if rate <= 0 else _clock(left / rate)
+        return (f"envelope [{'#' * fill}{'-' * (self.WIDTH - fill)}] {self.done}/{self.total} poses "
+                f"{rate:6.1f} poses/s  ETA {eta}")
+
+    def update(self, n: int) -> None:
+        self.done += n
+        self.new += n
+        self._draw()
+
+    def _draw(self) -> None:
+        if self.enabled:
+            self.stream.write("\r" + self.line())
+            self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _clock(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+def _failed_chunk_rows(grid: PoseGrid, ids, error: BaseException) -> list:
+    rows = []
+    for i in ids:
+        row = blank_row(grid, i)
+        row.update(code=str(Code.INTERNAL_ERROR),
+                   reason=" ".join(f"the task planning this pose's chunk failed: {type(error).__name__}: "
+                                   f"{error}".split()))
+        rows.append(row)
+    return rows
+
+
+def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, scheduler: str | None = None,
+                 workers: int | None = None, client=None, chunk_size: int | None = None,
+                 parquet: bool | None = None, quiet: bool = False, after_chunk=None) -> SweepReport:
+    """
+    Plan every pose of ``grid`` not yet in ``out_dir`` (see the module docstring).
+
+    Args:
+        scenario: the scenario (its target is moved to each pose).
+        grid: the poses (``sweep.PoseGrid``).
+        out_dir: the sweep's folder; spec: ``store.sweep_spec`` (a rerun must match it).
+        scheduler: a Dask scheduler's address ("tcp://host:8786"), or None.
+        workers: local worker processes when no scheduler or client is given (default: one per
+            core); 0 plans in this process without Dask.
+        client: a ``distributed.Client`` to use (the caller keeps it open), or None.
+        chunk_size: poses per task (default: :func:`chunk_size_for`).
+        parquet: write ``envelope.parquet`` too (default: for ``PARQUET_MIN_POSES`` poses or more).
+        quiet: no progress bar.
+        after_chunk: called with each chunk's rows once they are on disk (a test's hook), or None.
+
+    Returns
+    -------
+        SweepReport.
+
+    Raises
+    ------
+        ValueError: ``out_dir`` holds another sweep or a damaged table; bad workers/chunk size.
+
+    """
+    t_start = time.perf_counter()
+    if workers is not None and workers < 0:
+        raise ValueError(f"--workers: must be ≥ 0, got {workers}")
+    if chunk_size is not None and chunk_size < 1:
+        raise ValueError(f"--chunk-size: must be ≥ 1, got {chunk_size}")
+    if scenario.scene.target is None:
+        raise ValueError("target: the scenario has no target; an envelope sweeps the target's pose")
+    store = EnvelopeStore(out_dir, spec)
+    done = store.open()
+    todo_ids = [i for i in range(grid.n_poses) if i not in done]
+    report = SweepReport(n_poses=grid.n_poses, done_before=len(done))
+    serial = client is None and scheduler is None and workers == 0
+    bar = None
+    try:
+        with ExitStack() as stack:
+            if serial:
+                slots, report.engine = 1, "serial (this process)"
+            else:
+                client = client or _client(stack, scheduler, workers)
+                slots = max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values()))
+                report.engine = (f"Dask at {scheduler}" if scheduler else f"Dask, {slots} worker slots")
+            size = chunk_size or chunk_size_for(len(todo_ids), slots)
+            work = chunks(todo_ids, size)
+            report.chunks = len(work)
+            store.start_run(engine=report.engine, poses_to_plan=len(todo_ids), chunk_size=size)
+            bar = Progress(grid.n_poses, len(done), enabled=not quiet)
+            t_plan = time.perf_counter()
+
+            def take(rows):
+                store.append(rows)
+                report.planned_ids.extend(r["pose_id"] for r in rows)
+                bar.update(len(rows))
+                if after_chunk is not None:
+                    after_chunk(rows)
+
+            if serial:
+                for ids in work:
+                    take(plan_chunk(scenario, grid, ids))
+            elif work:
+                _run_on_dask(client, scenario, grid, work, take)
+            report.plan_seconds = time.perf_counter() - t_plan
+        report.complete = len(done) + report.planned == grid.n_poses
+    finally:
+        if bar is not None:
+            bar.close()
+        store.close()
+        report.seconds = time.perf_counter() - t_start
+        if store._run is not None:
+            store.end_run(report.planned, report.complete, report.seconds)
+    if report.complete:
+        want_parquet = grid.n_poses >= PARQUET_MIN_POSES if parquet is None else parquet
+        report.rows = store.finish(want_parquet)
+    return report
+
+
+def _client(stack: ExitStack, scheduler: str | None, workers: int | None):
+    """Open a Client on ``scheduler``, or on a LocalCluster of ``workers`` processes (closed with the stack)."""
+    from distributed import Client, LocalCluster     # Dask: loaded only when a sweep runs on it
+    if scheduler:
+        return stack.enter_context(Client(scheduler, timeout="30s"))
+    cluster = stack.enter_context(LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1,
+                                               processes=True, dashboard_address=":0",
+                                               silence_logs=logging.ERROR))
+    return stack.enter_context(Client(cluster))
+
+
+def _run_on_dask(client, scenario, grid, work, take) -> None:
+    """Submit one task per chunk; hand each chunk's rows to ``take`` as it finishes."""
+    from distributed import as_completed
+    scenario_f = client.scatter(scenario, broadcast=True)
+    futures = {}
+    for ids in work:
+        f = client.submit(plan_chunk, scenario_f, grid, ids, 1, pure=False)
+        futures[f.key] = (f, ids)
+    for f in as_completed([f for f, _ in futures.values()]):
+        ids = futures.pop(f.key)[1]
+        try:
+            rows = f.result()
+        except Exception as e:  # noqa: BLE001 -- a lost task is rows naming the failure, not the end of the run
+            rows = _failed_chunk_rows(grid, ids, e)
+        f.release()
+        take(rows)

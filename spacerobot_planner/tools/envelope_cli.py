@@ -1,0 +1,142 @@
+"""
+``spacerobot-plan envelope``: capture envelope maps, the capture planned at every target pose of a grid.
+
+    spacerobot-plan envelope --params-file F --x-m X0 X1 NX --y-m Y0 Y1 NY
+        [--yaw-deg A0 A1 NA] [--starts-deg A B ... [--starts-deg ...]] --out DIR
+        [--scheduler tcp://host:8786 | --workers N] [--cells N] [--chunk-size N]
+        [--parquet {auto,yes,no}] [--no-plots] [--quiet]
+
+Each range is inclusive with a count (``--x-m -4 -2 5``: five values from −4 to −2 m): the
+target body's centre and yaw.  Every pose is planned as ``spacerobot-plan`` plans one
+request (``offline.plan_offline``), its goal the grasp of that pose's target (a
+``scenario.goal_deg`` does not apply), from the scenario's start or from each
+``--starts-deg`` posture (the flag once per posture).  Rows stream to ``DIR/envelope.csv`` as
+chunks finish; a rerun into the same folder plans only the poses not yet there.  The maps
+(PNG, one per yaw and start) go to ``DIR`` when every pose is done.
+
+Runs on a Dask ``LocalCluster`` on this machine (one process per core) by default, on a
+running Dask cluster with ``--scheduler``, or in this process with ``--workers 0``.
+
+Exit status: 0 every pose has its row (whatever its code), 1 bad input (the message names
+the field), 3 the sweep stopped before every pose was done (rerun to resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import math
+import sys
+from pathlib import Path
+
+from ..config import load_scenario
+from ..envelope.engine import run_envelope
+from ..envelope.store import sweep_spec
+from ..envelope.sweep import PoseGrid, axis_values
+from .args import ArgError, Parser, fail_input, posture, with_cells
+
+__all__ = ["main", "build_parser"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = Parser(prog="spacerobot-plan envelope", description=__doc__.strip().split("\n\n")[0],
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--params-file", required=True, help="ROS 2 parameter file (any scenario, any acs.mode)")
+    ap.add_argument("--x-m", type=float, nargs=3, required=True, metavar=("X0", "X1", "NX"),
+                    help="target centre x: from X0 to X1 m inclusive, NX values")
+    ap.add_argument("--y-m", type=float, nargs=3, required=True, metavar=("Y0", "Y1", "NY"),
+                    help="target centre y: from Y0 to Y1 m inclusive, NY values")
+    ap.add_argument("--yaw-deg", type=float, nargs=3, metavar=("A0", "A1", "NA"),
+                    help="target yaw: from A0 to A1 deg inclusive, NA values (default: the scenario's yaw)")
+    ap.add_argument("--starts-deg", type=float, nargs="+", action="append", metavar="DEG",
+                    help="a start posture of the planned joints, degrees; once per posture "
+                         "(default: scenario.start_deg)")
+    ap.add_argument("--out", required=True, metavar="DIR", help="the sweep's folder (envelope.csv, maps)")
+    ap.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://host:8786)")
+    ap.add_argument("--workers", type=int, metavar="N",
+                    help="local worker processes (default: one per core); 0: in this process, without Dask")
+    ap.add_argument("--cells", type=int, nargs="+", metavar="N",
+                    help="grid cells per planned joint (one value for all, or one per joint)")
+    ap.add_argument("--chunk-size", type=int, metavar="N", help="poses per task (default: about 4 tasks per worker)")
+    ap.add_argument("--parquet", choices=("auto", "yes", "no"), default="auto",
+                    help="also write envelope.parquet (auto: for 10,000 poses or more)")
+    ap.add_argument("--no-plots", action="store_true", help="no PNG maps")
+    ap.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    return ap
+
+
+def _count(value: float, flag: str) -> int:
+    if value != int(value):
+        raise ValueError(f"{flag}: the count must be an integer, got {value}")
+    return int(value)
+
+
+def main(argv=None) -> int:
+    ap = build_parser()
+    try:
+        args = ap.parse_args(argv)
+    except ArgError as e:
+        return fail_input(str(e))
+    except SystemExit as e:            # --help
+        return int(e.code or 0)
+    try:
+        scenario = load_scenario(args.params_file,
+                                 warn=lambda line: print(f"spacerobot-plan: warning: {line}", file=sys.stderr))
+        if args.cells is not None:
+            scenario = with_cells(scenario, args.cells)
+        if scenario.scene.target is None:
+            raise ValueError("target: the scenario has no target; an envelope sweeps the target's pose")
+        if args.scheduler is not None and args.workers is not None:
+            raise ValueError("--workers: the cluster at --scheduler has its own workers; give one of the two")
+        xs = axis_values(args.x_m[0], args.x_m[1], _count(args.x_m[2], "--x-m"), "--x-m")
+        ys = axis_values(args.y_m[0], args.y_m[1], _count(args.y_m[2], "--y-m"), "--y-m")
+        if args.yaw_deg is None:
+            yaws = (math.degrees(scenario.scene.target.yaw_rad),)
+        else:
+            yaws = axis_values(args.yaw_deg[0], args.yaw_deg[1], _count(args.yaw_deg[2], "--yaw-deg"), "--yaw-deg")
+        if args.starts_deg:
+            starts = [posture(scenario.robot, s, "--starts-deg") for s in args.starts_deg]
+        elif scenario.start_rad is not None:
+            starts = [scenario.start_rad]
+        else:
+            raise ValueError("--starts-deg: no start given and the file has no scenario.start_deg")
+        grid = PoseGrid(xs, ys, yaws, tuple(tuple(s) for s in starts))
+        spec = sweep_spec(args.params_file, scenario.grid.cells, grid)
+        parquet = {"auto": None, "yes": True, "no": False}[args.parquet]
+        if not args.quiet:
+            print(f"envelope {args.params_file}: {grid.n_poses} poses ({len(xs)} x × {len(ys)} y × {len(yaws)} "
+                  f"yaw × {len(starts)} start), grid {scenario.grid.label()}, into {args.out}", flush=True)
+        report = run_envelope(scenario, grid, args.out, spec, scheduler=args.scheduler, workers=args.workers,
+                              chunk_size=args.chunk_size, parquet=parquet, quiet=args.quiet)
+    except ValueError as e:
+        return fail_input(str(e))
+    except OSError as e:
+        return fail_input(f"--out {args.out}: {e}")
+    except KeyboardInterrupt:
+        print("spacerobot-plan envelope: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    if not args.quiet:
+        rate = report.planned / report.plan_seconds if report.plan_seconds > 0 else float("nan")
+        print(f"planned {report.planned} poses this run ({report.done_before} done before) in "
+              f"{report.seconds:.1f} s on {report.engine}, {report.chunks} chunks; {rate:.1f} poses/s "
+              "while planning")
+    if not report.complete:
+        print(f"spacerobot-plan envelope: {report.n_poses - report.done_before - report.planned} poses not "
+              f"planned; run the same command again to resume", file=sys.stderr)
+        return 3
+    if not args.quiet:
+        codes = collections.Counter(r["code"] for r in report.rows)
+        print("codes: " + ", ".join(f"{c} {n}" for c, n in codes.most_common()))
+        for name in ("envelope.csv", "envelope.parquet"):
+            if (Path(args.out) / name).exists():
+                print(f"wrote {Path(args.out) / name}")
+    if not args.no_plots:
+        from ..envelope.plots import plot_envelope     # matplotlib: loaded only when maps are drawn
+        for path in plot_envelope(report.rows, scenario, grid, args.out):
+            if not args.quiet:
+                print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
