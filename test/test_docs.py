@@ -229,12 +229,15 @@ def _flags_of(module: str) -> set:
 def test_commands_shown_exist():
     from spacerobot_planner.bench.__main__ import BENCHES
     from spacerobot_planner.tools.cli import build_parser
+    from spacerobot_planner.tools.envelope_cli import build_parser as build_envelope_parser
 
     targets, checked = _make_targets(), 0
     for page, words in _all_commands():
         exe, args = Path(words[0]).name, words[1:]
         if exe == "make":
             assert set(args) <= targets, f"{page}: make {' '.join(args)}: no such target"
+        elif exe == "spacerobot-plan" and args[:1] == ["envelope"]:
+            build_envelope_parser().parse_args(args[1:])
         elif exe == "spacerobot-plan":
             build_parser().parse_args(args)          # raises on an unknown flag or a bad value
         elif exe == "python" and args[:1] == ["-m"]:

@@ -2,7 +2,9 @@
 The commands the README and docs/ show are run here, as a reader would run them.
 
 - every ``spacerobot-plan`` line (its ``out/`` files written to a temporary folder instead):
-  exit 0, and what it says it writes is there (a PNG, a JSON whose plan is ``ok``);
+  exit 0, and what it says it writes is there (a PNG, a JSON whose plan is ``ok``; for
+  ``spacerobot-plan envelope``, ``envelope.csv`` and a map in its ``--out`` folder, the sweep
+  run in this process: ``--workers 0``);
 - ``make demo`` and ``make plan`` (the README's set-up and CLI commands), with ``OUT`` in a
   temporary folder, when the virtualenv is current (``make -q venv``): a run that would
   rebuild it is no test of the command.
@@ -57,8 +59,15 @@ def test_cli_command_shown_runs(page, argv, tmp_path, monkeypatch):
             a = str(tmp_path / a)
             made.append(Path(a))
         args.append(a)
+    if args[:1] == ["envelope"] and not {"--workers", "--scheduler"} & set(args):
+        args += ["--workers", "0"]        # in this process: test_envelope.py starts the Dask clusters
     assert cli.main(args) == 0, f"{page}: spacerobot-plan {' '.join(argv)}"
     for path in made:
+        if argv[:1] == ["envelope"] and path.is_dir():      # --out DIR: the table and the maps
+            assert (path / "envelope.csv").is_file(), f"{page}: no envelope.csv in {path.name}"
+            assert [p.read_bytes()[:8] for p in path.glob("*.png")][:1] == [b"\x89PNG\r\n\x1a\n"], \
+                f"{page}: no map in {path.name}"
+            continue
         assert path.is_file() and path.stat().st_size > 0, f"{page}: {path.name} not written"
         if path.suffix == ".json":
             assert json.loads(path.read_text())["code"] == "ok"

@@ -151,11 +151,14 @@ def plot_envelope(rows, scenario: Scenario, grid: PoseGrid, out_dir, dpi: int = 
             ax.set_title(f"feasibility: {ok} of {nx * ny} poses ok", fontsize=10)
             _panel_limits(ax, xe, ye, body)
             for ax, (col, label, vals) in zip(flat[1:], panels):
-                im = ax.pcolormesh(xe, ye, np.ma.masked_invalid(vals), cmap="viridis")
+                lo, hi = np.nanmin(vals), np.nanmax(vals)
+                flat_map = hi - lo <= 1e-9 * max(1.0, abs(hi))     # e.g. an approach error of 0 everywhere
+                im = ax.pcolormesh(xe, ye, np.ma.masked_invalid(vals), cmap="viridis",
+                                   vmin=hi - 1.0 if flat_map else None, vmax=hi + 1.0 if flat_map else None)
                 ax.set_facecolor("#eeeeee")
                 fig.colorbar(im, ax=ax, shrink=0.85)
                 _overlay(ax, scenario, grid.starts_rad[s], grid.yaw_deg[a])
-                ax.set_title(label, fontsize=10)
+                ax.set_title(f"{label}: {round(float(hi), 6):g} everywhere" if flat_map else label, fontsize=10)
                 _panel_limits(ax, xe, ye, body)
             for ax in flat[n:]:
                 ax.set_visible(False)

@@ -1,0 +1,153 @@
+"""
+Envelope sweep throughput: poses per second serial and on a local Dask cluster, overhead per pose.
+
+    python -m spacerobot_planner.bench envelope [--scene 3dof] [--cells 36] [--nx 5] [--ny 5]
+        [--starts 2] [--workers 2] [--chunk-size N]
+
+The poses: a grid of ``--nx`` × ``--ny`` target centres around the paper's target
+(x −3.5…−2.5 m, y −3.1…−2.1 m, yaw 0) from ``--starts`` start postures (the scenario's, then
+others a few degrees away).  After a JIT warm-up, in this order, on the same poses:
+
+1. **single plans**: each pose planned alone in this process, the way ``spacerobot-plan``
+   plans one request (a fresh ``Planner``, ``offline.plan_offline``): the baseline;
+2. **serial sweep**: ``run_envelope(workers=0)``, the chunks one after the other in this
+   process, rows to a folder;
+3. **local cluster**: ``run_envelope`` on a ``distributed.LocalCluster`` of ``--workers``
+   processes (one thread each), its workers warmed up first (cluster start and warm-up are
+   reported apart); poses/s over the time from the first task to the last row.
+
+Overhead per pose: (worker-seconds per pose of the sweep) / (seconds per single plan) − 1,
+the cluster's worker-seconds being its wall time × workers.  The tables must agree (every
+column but the wall times).  Prints a table, then one JSON object per line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..collision import CollisionChecker
+from ..config import load_scenario
+from ..envelope import TIMING_COLUMNS, PoseGrid, axis_values, run_envelope, sweep_spec
+from ..offline import plan_offline
+from ..planner import Planner
+from ..scene import Target
+
+CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
+
+
+def _starts(sc, n: int) -> list:
+    """Return ``n`` free start postures: the scenario's, then a few degrees away."""
+    chk = CollisionChecker(sc.robot, sc.scene)
+    out = [sc.start_rad]
+    for off in ([6.0, -4.0, 3.0], [-6.0, 4.0, -3.0], [10.0, 3.0, -5.0], [3.0, -8.0, 5.0], [-9.0, -3.0, 4.0]):
+        q = sc.start_rad + np.radians(off[:sc.robot.dof])
+        if len(out) < n and chk.is_free(q):
+            out.append(q)
+    return out[:n]
+
+
+def _single_plans(sc, grid) -> float:
+    """Plan every pose alone (fresh planner, the CLI's pipeline); return the seconds."""
+    t0 = time.perf_counter()
+    for i in range(grid.n_poses):
+        p = grid.pose(i)
+        tg = sc.scene.target
+        one = sc.with_scene(sc.scene.with_target(Target((p.x_m, p.y_m), math.radians(p.yaw_deg), tg.body_side_m,
+                                                        tg.handle_side_m)))
+        plan_offline(Planner(one, reaction=True), np.asarray(grid.starts_rad[p.start_index]))
+    return time.perf_counter() - t0
+
+
+def _warm_up(scenario, numba_threads=None):
+    """Load the numba kernels in this process: the scenario's own capture planned (a worker: one thread)."""
+    if numba_threads is not None:
+        import numba
+        numba.set_num_threads(numba_threads)
+    done = plan_offline(Planner(scenario, reaction=True), scenario.start_rad)
+    return str(done.result.code)
+
+
+def _differences(a, b) -> int:
+    def same(x, y):
+        return x == y or (isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y))
+    return sum(1 for ra, rb in zip(a, b) for k in ra if k not in TIMING_COLUMNS and not same(ra[k], rb[k]))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="bench envelope", description=__doc__.strip().split("\n\n")[0])
+    ap.add_argument("--scene", choices=("2dof", "3dof"), default="3dof")
+    ap.add_argument("--cells", type=int, default=36)
+    ap.add_argument("--nx", type=int, default=5)
+    ap.add_argument("--ny", type=int, default=5)
+    ap.add_argument("--starts", type=int, default=2)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--chunk-size", type=int)
+    args = ap.parse_args(argv)
+    from distributed import Client, LocalCluster
+
+    params = CONFIG / f"paper_{args.scene}.yaml"
+    sc = load_scenario(params)
+    sc = sc.with_grid(sc.grid_with_cells([args.cells] * sc.robot.dof))
+    grid = PoseGrid(axis_values(-3.5, -2.5, args.nx, "x"), axis_values(-3.1, -2.1, args.ny, "y"), (0.0,),
+                    tuple(tuple(s) for s in _starts(sc, args.starts)))
+    spec = sweep_spec(params, sc.grid.cells, grid)
+    n = grid.n_poses
+    t0 = time.perf_counter()
+    _warm_up(sc)
+    print(f"bench envelope: paper_{args.scene}, grid {sc.grid.label()}, {n} poses ({args.nx} x × {args.ny} y × "
+          f"{len(grid.starts_rad)} starts), JIT warm-up {time.perf_counter() - t0:.1f} s", flush=True)
+    single_s = _single_plans(sc, grid)
+    with tempfile.TemporaryDirectory() as tmp:
+        serial = run_envelope(sc, grid, Path(tmp) / "serial", spec, workers=0, chunk_size=args.chunk_size,
+                              quiet=True)
+        t1 = time.perf_counter()
+        with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                          silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+            started_s = time.perf_counter() - t1
+            t2 = time.perf_counter()
+            client.run(_warm_up, sc, 1)
+            warm_s = time.perf_counter() - t2
+            dask = run_envelope(sc, grid, Path(tmp) / "dask", spec, client=client, chunk_size=args.chunk_size,
+                                quiet=True)
+    serial_rate = n / serial.plan_seconds
+    dask_rate = n / dask.plan_seconds
+    single_per = single_s / n
+    rows = [
+        {"stage": "single_plans", "poses": n, "seconds": single_s, "poses_per_s": n / single_s,
+         "seconds_per_pose": single_per},
+        {"stage": "serial_sweep", "poses": n, "seconds": serial.plan_seconds, "poses_per_s": serial_rate,
+         "chunks": serial.chunks, "overhead": serial.plan_seconds / n / single_per - 1.0},
+        {"stage": "local_cluster", "poses": n, "workers": args.workers, "seconds": dask.plan_seconds,
+         "poses_per_s": dask_rate, "chunks": dask.chunks, "speedup_vs_serial": dask_rate / serial_rate,
+         "overhead": dask.plan_seconds * args.workers / n / single_per - 1.0,
+         "cluster_start_s": started_s, "worker_warm_up_s": warm_s,
+         "rows_differing_from_serial": _differences(serial.rows, dask.rows)},
+    ]
+    codes = {}
+    for r in serial.rows:
+        codes[r["code"]] = codes.get(r["code"], 0) + 1
+    print(f"codes: {', '.join(f'{c} {k}' for c, k in sorted(codes.items()))}")
+    head = f"{'run':<16}{'seconds':>9}{'poses/s':>9}{'chunks':>8}{'overhead':>10}{'speedup':>9}"
+    print(head + "\n" + "-" * len(head))
+    print(f"{'single plans':<16}{single_s:>9.2f}{n / single_s:>9.2f}{'':>8}{'':>10}{'':>9}")
+    print(f"{'serial sweep':<16}{serial.plan_seconds:>9.2f}{serial_rate:>9.2f}{serial.chunks:>8}"
+          f"{100 * rows[1]['overhead']:>9.1f}%{'1.00':>9}")
+    print(f"{'local cluster':<16}{dask.plan_seconds:>9.2f}{dask_rate:>9.2f}{dask.chunks:>8}"
+          f"{100 * rows[2]['overhead']:>9.1f}%{rows[2]['speedup_vs_serial']:>9.2f}")
+    print(f"local cluster: {args.workers} workers, started in {started_s:.1f} s, warmed up in {warm_s:.1f} s; "
+          f"rows differing from the serial sweep: {rows[2]['rows_differing_from_serial']}")
+    for row in rows:
+        print(json.dumps(row))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,293 @@
+"""
+Capture envelope maps (issue 21): ``spacerobot_planner.envelope`` and ``spacerobot-plan envelope``.
+
+- a sweep on a ``distributed.LocalCluster`` the test starts equals the serial sweep row by
+  row (every column but the wall times), and a few of its rows replanned one by one with a
+  fresh plain ``Planner`` (and the node's chain) agree; the goals grasp the target where the
+  test's own geometry puts the handle;
+- a sweep killed (SIGKILL, in a subprocess) after some chunks resumes: the rerun plans only
+  the poses without a row (counted from its own record and the manifest) and the final table
+  equals the uninterrupted one;
+- a pose whose planning raises becomes an ``internal_error`` row with the reason, and the
+  sweep completes;
+- the command: its files, Parquet equal to the CSV, bad input naming the flag.
+
+Kept small: the paper's 2-DOF scene on a 31×31 grid, 2 x × 2 y × 1 yaw × 2 starts.
+"""
+
+import csv
+import io
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from oracles import arm_points
+from spacerobot_planner.adapters import post_process
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.envelope import (TIMING_COLUMNS, PoseGrid, axis_values, read_rows, run_envelope,
+                                         sweep_spec)
+from spacerobot_planner.envelope.engine import Progress
+from spacerobot_planner.envelope.sweep import chunks
+from spacerobot_planner.motion import MotionValidator
+from spacerobot_planner.planner import Planner
+from spacerobot_planner.scene import Target
+from spacerobot_planner.tools.cli import main as cli_main
+
+ROOT = Path(__file__).resolve().parent.parent
+P2 = ROOT / "config" / "paper_2dof.yaml"
+CELLS = 30
+#: the paper's target at (−3.27, −2.60) and a pose 0.25 m right of it (ok and goal_unreachable, see below)
+X_M, Y_M, YAW_DEG = (-3.27, -3.02, 2), (-2.60, -2.45, 2), (0.0, 0.0, 1)
+STARTS_DEG = ((135.0, 90.0), (120.0, 100.0))
+
+
+def _scenario():
+    sc = load_scenario(P2)
+    return sc.with_grid(sc.grid_with_cells([CELLS, CELLS]))
+
+
+def _grid(sc):
+    return PoseGrid(axis_values(*X_M, "x"), axis_values(*Y_M, "y"), axis_values(*YAW_DEG, "yaw"),
+                    tuple(tuple(np.radians(s)) for s in STARTS_DEG))
+
+
+def _spec(sc, grid):
+    return sweep_spec(P2, sc.grid.cells, grid)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return a == b
+
+
+def _differences(rows_a, rows_b) -> list:
+    """Every (pose_id, column, a, b) where two tables differ, wall times aside."""
+    assert [r["pose_id"] for r in rows_a] == [r["pose_id"] for r in rows_b]
+    return [(ra["pose_id"], k, ra[k], rb[k]) for ra, rb in zip(rows_a, rows_b) for k in ra
+            if k not in TIMING_COLUMNS and not _same(ra[k], rb[k])]
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    """The uninterrupted serial sweep (in this process, chunks of 3): (scenario, grid, report)."""
+    sc = _scenario()
+    grid = _grid(sc)
+    report = run_envelope(sc, grid, tmp_path_factory.mktemp("serial"), _spec(sc, grid), workers=0, chunk_size=3,
+                          quiet=True)
+    return sc, grid, report
+
+
+def test_poses_are_numbered_starts_fastest_then_x_y_yaw():
+    grid = PoseGrid((1.0, 2.0, 3.0), (10.0, 20.0), (0.0, 45.0), ((0.0,), (1.0,)))
+    assert grid.n_poses == 3 * 2 * 2 * 2
+    poses = [grid.pose(i) for i in range(grid.n_poses)]
+    expected = [(x, y, a, s) for a in (0.0, 45.0) for y in (10.0, 20.0) for x in (1.0, 2.0, 3.0) for s in (0, 1)]
+    assert [(p.x_m, p.y_m, p.yaw_deg, p.start_index) for p in poses] == expected
+    assert chunks([7, 0, 3, 1, 2], 2) == [[0, 1], [2, 3], [7]]
+
+
+def test_the_serial_sweep_covers_the_grid_with_both_outcomes(serial):
+    sc, grid, rep = serial
+    assert rep.complete and rep.done_before == 0 and rep.planned == grid.n_poses == 8
+    rows = rep.rows
+    assert [r["pose_id"] for r in rows] == list(range(8))
+    # the poses, from the test's own grid
+    xs, ys = np.linspace(*X_M[:2], 2), np.linspace(*Y_M[:2], 2)
+    assert {(r["x_m"], r["y_m"]) for r in rows} == {(x, y) for x in xs for y in ys}
+    codes = {r["code"] for r in rows}
+    assert "ok" in codes and codes - {"ok"}, codes          # the map has both sides of its boundary
+    for r in rows:
+        assert (r["code"] == "ok") == (r["reason"] == "")
+        assert (r["code"] == "ok") == math.isfinite(r["path_length_rad"]) == math.isfinite(r["duration_s"])
+
+
+def test_ok_goals_grasp_the_pose_target_in_the_tests_own_geometry(serial):
+    sc, grid, rep = serial
+    robot, tgt = sc.robot, sc.scene.target
+    tol = sc.acs.position_tolerance_m
+    oks = [r for r in rep.rows if r["code"] == "ok"]
+    assert oks
+    for r in oks:
+        q_full = robot.full(np.radians([float(v) for v in r["goal_deg"].split()]))
+        tip = arm_points(robot, q_full)[-1]
+        yaw = math.radians(r["yaw_deg"])
+        d = 0.5 * tgt.body_side_m + tgt.handle_side_m
+        grasp = np.array([r["x_m"] - d * math.sin(yaw), r["y_m"] + d * math.cos(yaw)])
+        assert np.linalg.norm(tip - grasp) <= tol + 1e-6, (r["pose_id"], tip, grasp)
+
+
+def test_local_cluster_sweep_equals_the_serial_sweep_row_by_row(serial, tmp_path):
+    from distributed import Client, LocalCluster, get_task_stream
+
+    sc, grid, ser = serial
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as client, get_task_stream(client) as stream:
+        rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), client=client, chunk_size=1, quiet=True)
+        workers = len(client.scheduler_info()["workers"])
+    assert workers == 2
+    assert rep.complete and rep.planned == grid.n_poses and rep.chunks == grid.n_poses
+    tasks = [t for t in stream.data if "plan_chunk" in str(t.get("key"))]
+    assert len(tasks) == grid.n_poses, stream.data                  # the chunks ran on the cluster
+    assert _differences(ser.rows, rep.rows) == []
+    # what the folder holds is the table the run returned
+    assert _differences(rep.rows, read_rows(tmp_path / "envelope.csv")) == []
+
+
+@pytest.mark.parametrize("pose_id", [0, 1, 3, 6])
+def test_rows_replanned_one_by_one_with_the_plain_planner_agree(serial, pose_id):
+    sc, grid, rep = serial
+    row = rep.rows[pose_id]
+    p = grid.pose(pose_id)
+    base = sc.scene.target
+    scene = sc.scene.with_target(Target((p.x_m, p.y_m), math.radians(p.yaw_deg), base.body_side_m,
+                                        base.handle_side_m))
+    one = sc.with_scene(scene)
+    start = np.radians(STARTS_DEG[p.start_index])
+    res = Planner(one, reaction=True).plan(start)
+    assert row["code"] == str(res.code)
+    assert _same(row["path_length_rad"], res.path_length_rad if len(res.path_rad) else math.nan)
+    assert _same(row["min_clearance_m"], res.min_clearance_m)
+    if res.trajectory is not None:
+        dense = post_process(one, res.path_rad, start_rad=start,
+                             motions=MotionValidator.for_scene(one.robot, one.scene)).dense
+        assert row["duration_s"] == dense.duration_s
+    if res.goal_rad is not None:
+        assert np.allclose(np.radians([float(v) for v in row["goal_deg"].split()]), res.goal_rad, atol=1e-7)
+
+
+def test_a_pose_that_raises_becomes_an_internal_error_row(serial, tmp_path, monkeypatch):
+    sc, grid, ser = serial
+    bad = grid.pose(2)
+    plan = Planner.plan
+
+    def failing(self, start_rad, goal_rad=None, cancel=None, progress=None):
+        if self.scenario.scene.target.center_m == (bad.x_m, bad.y_m):
+            raise RuntimeError("injected failure in the planner")
+        return plan(self, start_rad, goal_rad, cancel, progress)
+
+    monkeypatch.setattr(Planner, "plan", failing)
+    rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), workers=0, chunk_size=4, quiet=True)
+    assert rep.complete and len(rep.rows) == grid.n_poses
+    hit = [r for r in rep.rows if (r["x_m"], r["y_m"]) == (bad.x_m, bad.y_m)]
+    assert len(hit) == 2                                           # both starts of that target
+    for r in hit:
+        assert r["code"] == "internal_error"
+        assert "RuntimeError: injected failure in the planner" in r["reason"]
+        assert math.isnan(r["path_length_rad"])
+    rest = [r for r in rep.rows if r not in hit]
+    assert _differences([r for r in ser.rows if r["pose_id"] in {x["pose_id"] for x in rest}], rest) == []
+
+
+KILLED_RUN = """
+import os, signal, sys
+import numpy as np
+sys.path.insert(0, {test_dir!r})
+import test_envelope as t
+from spacerobot_planner.envelope import run_envelope
+sc = t._scenario(); grid = t._grid(sc); seen = []
+
+def after_chunk(rows):
+    seen.append(rows)
+    if len(seen) == {kill_after}:
+        os.kill(os.getpid(), signal.SIGKILL)       # killed between two chunks
+
+run_envelope(sc, grid, {out!r}, t._spec(sc, grid), workers=0, chunk_size=1, quiet=True, after_chunk=after_chunk)
+"""
+
+
+def test_a_killed_sweep_resumes_planning_only_what_is_missing(serial, tmp_path):
+    sc, grid, ser = serial
+    out = tmp_path / "sweep"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    script = KILLED_RUN.format(test_dir=str(Path(__file__).parent), kill_after=3, out=str(out))
+    r = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == -signal.SIGKILL, r.stderr[-3000:]
+    first = read_rows(out / "envelope.csv")
+    assert len(first) == 3
+    manifest = json.loads((out / "envelope.json").read_text())
+    assert [run["complete"] for run in manifest["runs"]] == [False]     # the killed run never ended
+    # a kill in the middle of a write leaves a torn line: that pose is planned again
+    torn = next(row for row in ser.rows if row["pose_id"] not in {x["pose_id"] for x in first})
+    with open(out / "envelope.csv", "a") as f:
+        f.write(f"{torn['pose_id']},{torn['x_m']},{torn['y_m']},0.0,0,ok,1.2")
+    rep = run_envelope(sc, grid, out, _spec(sc, grid), workers=0, quiet=True)
+    missing = sorted(set(range(grid.n_poses)) - {x["pose_id"] for x in first})
+    assert rep.done_before == 3
+    assert sorted(rep.planned_ids) == missing and len(rep.planned_ids) == len(set(rep.planned_ids))
+    runs = json.loads((out / "envelope.json").read_text())["runs"]
+    assert runs[-1]["planned"] == len(missing) and runs[-1]["complete"] and runs[-1]["poses_to_plan"] == len(missing)
+    assert rep.complete and _differences(ser.rows, rep.rows) == []
+    assert _differences(ser.rows, read_rows(out / "envelope.csv")) == []
+    # a third run has nothing left to plan
+    again = run_envelope(sc, grid, out, _spec(sc, grid), workers=0, quiet=True)
+    assert again.planned == 0 and again.complete
+
+
+def test_a_folder_of_another_sweep_is_refused(serial, tmp_path):
+    sc, grid, _ = serial
+    small = PoseGrid(grid.x_m[:1], grid.y_m[:1], grid.yaw_deg, grid.starts_rad[:1])
+    run_envelope(sc, small, tmp_path, _spec(sc, small), workers=0, quiet=True)
+    with pytest.raises(ValueError, match="another sweep.*poses"):
+        run_envelope(sc, grid, tmp_path, _spec(sc, grid), workers=0, quiet=True)
+
+
+def test_the_progress_bar_shows_rate_and_eta_on_a_terminal_only():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty, pipe = Tty(), io.StringIO()
+    for stream in (tty, pipe):
+        bar = Progress(10, 2, stream=stream)
+        bar.update(3)
+        bar.close()
+    assert pipe.getvalue() == ""
+    last = tty.getvalue().split("\r")[-1]
+    assert "5/10 poses" in last and "poses/s" in last and "ETA" in last
+
+
+def test_the_command_writes_the_table_parquet_and_maps(tmp_path, capsys):
+    out = tmp_path / "env"
+    argv = ["envelope", "--params-file", str(P2), "--x-m", "-3.27", "-3.02", "2", "--y-m", "-2.6", "-2.6", "1",
+            "--cells", str(CELLS), "--out", str(out), "--workers", "0", "--parquet", "yes"]
+    assert cli_main(argv) == 0, capsys.readouterr().err
+    text = capsys.readouterr().out
+    assert "codes:" in text and "wrote" in text
+    rows = read_rows(out / "envelope.csv")
+    assert [r["pose_id"] for r in rows] == [0, 1]
+    header = next(csv.reader(io.StringIO((out / "envelope.csv").read_text())))
+    assert header[:6] == ["pose_id", "x_m", "y_m", "yaw_deg", "start_index", "code"]
+    import pyarrow.parquet as pq
+    table = pq.read_table(out / "envelope.parquet").to_pylist()
+    assert _differences(rows, table) == [] and [r["plan_s"] for r in rows] == [r["plan_s"] for r in table]
+    pngs = sorted(out.glob("*.png"))
+    assert [p.name for p in pngs] == ["envelope_yaw0deg.png"]
+    assert pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("extra, named", [
+    (["--x-m", "-3", "-2", "0"], "--x-m"),
+    (["--x-m", "-3", "-2", "1"], "--x-m"),
+    (["--starts-deg", "1", "2", "3"], "--starts-deg"),
+    (["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "--workers"),
+    (["--cells", "0"], "grid.cells"),
+])
+def test_bad_input_exits_1_naming_the_flag(extra, named, tmp_path, capsys):
+    argv = ["envelope", "--params-file", str(P2), "--x-m", "-3.27", "-3.02", "2", "--y-m", "-2.6", "-2.6", "1",
+            "--out", str(tmp_path / "env"), "--workers", "0"]
+    flags = {a for a in extra if a.startswith("--")}
+    for flag in flags:              # the test's value replaces the default one
+        if flag in argv:
+            k = argv.index(flag)
+            n = 4 if flag in ("--x-m", "--y-m") else 2
+            del argv[k:k + n]
+    assert cli_main(argv + extra) == 1
+    assert named in capsys.readouterr().err
