@@ -33,7 +33,7 @@ from spacerobot_planner.adapters import post_process
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.envelope import (TIMING_COLUMNS, PoseGrid, axis_values, read_rows, run_envelope,
                                          sweep_spec)
-from spacerobot_planner.envelope.engine import Progress
+from spacerobot_planner.envelope.engine import Progress, local_cluster
 from spacerobot_planner.envelope.sweep import chunks
 from spacerobot_planner.motion import MotionValidator
 from spacerobot_planner.planner import Planner
@@ -125,11 +125,10 @@ def test_ok_goals_grasp_the_pose_target_in_the_tests_own_geometry(serial):
 
 
 def test_local_cluster_sweep_equals_the_serial_sweep_row_by_row(serial, tmp_path):
-    from distributed import Client, LocalCluster, get_task_stream
+    from distributed import Client, get_task_stream
 
     sc, grid, ser = serial
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as client, get_task_stream(client) as stream:
+    with local_cluster(2) as cluster, Client(cluster) as client, get_task_stream(client) as stream:
         rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), client=client, chunk_size=1, quiet=True)
         workers = len(client.scheduler_info()["workers"])
     assert workers == 2

@@ -12,21 +12,24 @@ others a few degrees away).  After a JIT warm-up, in this order, on the same pos
    plans one request (a fresh ``Planner``, ``offline.plan_offline``): the baseline;
 2. **serial sweep**: ``run_envelope(workers=0)``, the chunks one after the other in this
    process, rows to a folder;
-3. **local cluster**: ``run_envelope`` on a ``distributed.LocalCluster`` of ``--workers``
-   processes (one thread each), its workers warmed up first (cluster start and warm-up are
-   reported apart); poses/s over the time from the first task to the last row.
+3. **local cluster**: ``run_envelope`` on the sweep's ``distributed.LocalCluster``
+   (``envelope.engine.local_cluster``) of ``--workers`` processes (one thread each), its
+   workers warmed up first (cluster start and warm-up are reported apart); poses/s over the
+   time from the first task to the last row.
 
 Overhead per pose: (worker-seconds per pose of the sweep) / (seconds per single plan) − 1,
-the cluster's worker-seconds being its wall time × workers.  The tables must agree (every
-column but the wall times).  Prints a table, then one JSON object per line.
+the cluster's worker-seconds being its wall time × workers; and the same in CPU time (every
+worker process's, plus this process's: the client and the local scheduler), which other work
+on the machine does not inflate as it does wall times.  The tables must agree (every column
+but the wall times).  Prints a table, then one JSON object per line.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -36,6 +39,7 @@ import numpy as np
 from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..envelope import TIMING_COLUMNS, PoseGrid, axis_values, run_envelope, sweep_spec
+from ..envelope.engine import local_cluster
 from ..offline import plan_offline
 from ..planner import Planner
 from ..scene import Target
@@ -75,6 +79,13 @@ def _warm_up(scenario, numba_threads=None):
     return str(done.result.code)
 
 
+def _cpu_s() -> float:
+    """Return this process's CPU time (user + system, every thread), s."""
+    import psutil
+    t = psutil.Process().cpu_times()
+    return t.user + t.system
+
+
 def _differences(a, b) -> int:
     def same(x, y):
         return x == y or (isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y))
@@ -91,7 +102,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--chunk-size", type=int)
     args = ap.parse_args(argv)
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     params = CONFIG / f"paper_{args.scene}.yaml"
     sc = load_scenario(params)
@@ -104,46 +115,59 @@ def main(argv=None) -> int:
     _warm_up(sc)
     print(f"bench envelope: paper_{args.scene}, grid {sc.grid.label()}, {n} poses ({args.nx} x × {args.ny} y × "
           f"{len(grid.starts_rad)} starts), JIT warm-up {time.perf_counter() - t0:.1f} s", flush=True)
+    c0 = _cpu_s()
     single_s = _single_plans(sc, grid)
+    single_cpu = _cpu_s() - c0
     with tempfile.TemporaryDirectory() as tmp:
+        c0 = _cpu_s()
         serial = run_envelope(sc, grid, Path(tmp) / "serial", spec, workers=0, chunk_size=args.chunk_size,
                               quiet=True)
+        serial_cpu = _cpu_s() - c0
         t1 = time.perf_counter()
-        with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                          silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        with local_cluster(args.workers) as cluster, Client(cluster) as client:
             started_s = time.perf_counter() - t1
             t2 = time.perf_counter()
             client.run(_warm_up, sc, 1)
             warm_s = time.perf_counter() - t2
+            w0, c0 = client.run(_cpu_s), _cpu_s()
             dask = run_envelope(sc, grid, Path(tmp) / "dask", spec, client=client, chunk_size=args.chunk_size,
                                 quiet=True)
+            w1, c1 = client.run(_cpu_s), _cpu_s()
+            # the workers' CPU and this process's (client and scheduler)
+            worker_cpu, client_cpu = sum(w1[k] - w0[k] for k in w1), c1 - c0
+            dask_cpu = worker_cpu + client_cpu
     serial_rate = n / serial.plan_seconds
     dask_rate = n / dask.plan_seconds
     single_per = single_s / n
     rows = [
         {"stage": "single_plans", "poses": n, "seconds": single_s, "poses_per_s": n / single_s,
-         "seconds_per_pose": single_per},
+         "seconds_per_pose": single_per, "cpu_seconds": single_cpu},
         {"stage": "serial_sweep", "poses": n, "seconds": serial.plan_seconds, "poses_per_s": serial_rate,
-         "chunks": serial.chunks, "overhead": serial.plan_seconds / n / single_per - 1.0},
+         "chunks": serial.chunks, "overhead": serial.plan_seconds / n / single_per - 1.0,
+         "cpu_seconds": serial_cpu, "cpu_overhead": serial_cpu / single_cpu - 1.0},
         {"stage": "local_cluster", "poses": n, "workers": args.workers, "seconds": dask.plan_seconds,
          "poses_per_s": dask_rate, "chunks": dask.chunks, "speedup_vs_serial": dask_rate / serial_rate,
          "overhead": dask.plan_seconds * args.workers / n / single_per - 1.0,
+         "cpu_seconds": dask_cpu, "cpu_overhead": dask_cpu / single_cpu - 1.0,
+         "worker_cpu_seconds": worker_cpu, "client_and_scheduler_cpu_seconds": client_cpu,
          "cluster_start_s": started_s, "worker_warm_up_s": warm_s,
          "rows_differing_from_serial": _differences(serial.rows, dask.rows)},
     ]
+    load = os.getloadavg()
     codes = {}
     for r in serial.rows:
         codes[r["code"]] = codes.get(r["code"], 0) + 1
     print(f"codes: {', '.join(f'{c} {k}' for c, k in sorted(codes.items()))}")
-    head = f"{'run':<16}{'seconds':>9}{'poses/s':>9}{'chunks':>8}{'overhead':>10}{'speedup':>9}"
+    head = (f"{'run':<16}{'seconds':>9}{'poses/s':>9}{'chunks':>8}{'overhead':>10}{'CPU s':>8}"
+            f"{'CPU overhead':>14}{'speedup':>9}")
     print(head + "\n" + "-" * len(head))
-    print(f"{'single plans':<16}{single_s:>9.2f}{n / single_s:>9.2f}{'':>8}{'':>10}{'':>9}")
-    print(f"{'serial sweep':<16}{serial.plan_seconds:>9.2f}{serial_rate:>9.2f}{serial.chunks:>8}"
-          f"{100 * rows[1]['overhead']:>9.1f}%{'1.00':>9}")
-    print(f"{'local cluster':<16}{dask.plan_seconds:>9.2f}{dask_rate:>9.2f}{dask.chunks:>8}"
-          f"{100 * rows[2]['overhead']:>9.1f}%{rows[2]['speedup_vs_serial']:>9.2f}")
+    print(f"{'single plans':<16}{single_s:>9.2f}{n / single_s:>9.2f}{'':>8}{'':>10}{single_cpu:>8.2f}{'':>14}{'':>9}")
+    for name, r, rate in (("serial sweep", rows[1], serial_rate), ("local cluster", rows[2], dask_rate)):
+        print(f"{name:<16}{r['seconds']:>9.2f}{rate:>9.2f}{r['chunks']:>8}{100 * r['overhead']:>9.1f}%"
+              f"{r['cpu_seconds']:>8.2f}{100 * r['cpu_overhead']:>13.1f}%{rate / serial_rate:>9.2f}")
     print(f"local cluster: {args.workers} workers, started in {started_s:.1f} s, warmed up in {warm_s:.1f} s; "
-          f"rows differing from the serial sweep: {rows[2]['rows_differing_from_serial']}")
+          f"rows differing from the serial sweep: {rows[2]['rows_differing_from_serial']}; load average "
+          f"{load[0]:.1f} {load[1]:.1f} {load[2]:.1f} at the end")
     for row in rows:
         print(json.dumps(row))
     return 0
