@@ -124,12 +124,14 @@ def test_ok_goals_grasp_the_pose_target_in_the_tests_own_geometry(serial):
         assert np.linalg.norm(tip - grasp) <= tol + 1e-6, (r["pose_id"], tip, grasp)
 
 
-def test_local_cluster_sweep_equals_the_serial_sweep_row_by_row(serial, tmp_path):
+def test_a_sweep_on_a_local_cluster_equals_the_serial_sweep_row_by_row(serial, tmp_path):
     from distributed import Client, get_task_stream
 
     sc, grid, ser = serial
     with local_cluster(2) as cluster, Client(cluster) as client, get_task_stream(client) as stream:
-        rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), client=client, chunk_size=1, quiet=True)
+        # as `--scheduler ADDRESS` does: the sweep opens its own client on the running cluster
+        rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), scheduler=cluster.scheduler_address, chunk_size=1,
+                           quiet=True)
         workers = len(client.scheduler_info()["workers"])
     assert workers == 2
     assert rep.complete and rep.planned == grid.n_poses and rep.chunks == grid.n_poses

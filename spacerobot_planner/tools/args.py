@@ -8,9 +8,9 @@ import sys
 
 import numpy as np
 
-from ..config import check_value
+from ..config import check_value, load_scenario
 
-__all__ = ["ArgError", "Parser", "fail_input", "posture", "with_cells"]
+__all__ = ["ArgError", "Parser", "fail_input", "posture", "with_cells", "parse", "load"]
 
 
 class ArgError(Exception):
@@ -48,3 +48,18 @@ def fail_input(message: str) -> int:
     """Print the bad-input message on stderr; return exit status 1."""
     print(f"spacerobot-plan: error: {message}", file=sys.stderr)
     return 1
+
+
+def parse(ap: argparse.ArgumentParser, argv) -> tuple:
+    """Return (args, None), or (None, exit status): 1 for a command line argparse refused, 0 after ``--help``."""
+    try:
+        return ap.parse_args(argv), None
+    except ArgError as e:
+        return None, fail_input(str(e))
+    except SystemExit as e:            # --help
+        return None, int(e.code or 0)
+
+
+def load(params_file):
+    """Return the scenario of a parameter file, its warnings on stderr (ValueError naming a bad field)."""
+    return load_scenario(params_file, warn=lambda line: print(f"spacerobot-plan: warning: {line}", file=sys.stderr))

@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import check_value, load_scenario
+from ..config import check_value
 from ..field import SOLVERS
 from ..offline import plan_offline
 from ..planner import Planner
 from ..timing import Motion
-from .args import ArgError, Parser, fail_input, posture, with_cells
+from .args import Parser, fail_input, load, parse, posture, with_cells
 
 __all__ = ["main", "build_parser"]
 
@@ -105,17 +105,12 @@ def main(argv=None) -> int:
     if argv[:1] == ["envelope"]:
         from .envelope_cli import main as envelope_main     # Dask: loaded only for a sweep
         return envelope_main(argv[1:])
-    ap = build_parser()
-    try:
-        args = ap.parse_args(argv)
-    except ArgError as e:
-        return fail_input(str(e))
-    except SystemExit as e:            # --help
-        return int(e.code or 0)
+    args, rc = parse(build_parser(), argv)
+    if args is None:
+        return rc
     # ---- inputs (exit 1 on anything malformed, naming the field)
     try:
-        scenario = load_scenario(args.params_file,
-                                 warn=lambda line: print(f"spacerobot-plan: warning: {line}", file=sys.stderr))
+        scenario = load(args.params_file)
         robot = scenario.robot
         given = scenario.planner_settings           # the file's planner.* (defaults filled)
         if args.cells is not None:

@@ -29,11 +29,10 @@ import math
 import sys
 from pathlib import Path
 
-from ..config import load_scenario
 from ..envelope.engine import run_envelope
 from ..envelope.store import sweep_spec
 from ..envelope.sweep import PoseGrid, axis_values
-from .args import ArgError, Parser, fail_input, posture, with_cells
+from .args import Parser, fail_input, load, parse, posture, with_cells
 
 __all__ = ["main", "build_parser"]
 
@@ -72,16 +71,11 @@ def _count(value: float, flag: str) -> int:
 
 
 def main(argv=None) -> int:
-    ap = build_parser()
+    args, rc = parse(build_parser(), argv)
+    if args is None:
+        return rc
     try:
-        args = ap.parse_args(argv)
-    except ArgError as e:
-        return fail_input(str(e))
-    except SystemExit as e:            # --help
-        return int(e.code or 0)
-    try:
-        scenario = load_scenario(args.params_file,
-                                 warn=lambda line: print(f"spacerobot-plan: warning: {line}", file=sys.stderr))
+        scenario = load(args.params_file)
         if args.cells is not None:
             scenario = with_cells(scenario, args.cells)
         if scenario.scene.target is None:
