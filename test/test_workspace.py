@@ -174,7 +174,8 @@ def test_a_broken_interface_fails_the_install_with_what_to_do(tmp_path):
 
 # third-party modules the package imports and their rosdep keys (package.xml)
 _ROSDEP_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml",
-                "matplotlib": "python3-matplotlib", "numba": "python3-numba"}
+                "matplotlib": "python3-matplotlib", "numba": "python3-numba", "dask": "python3-dask",
+                "distributed": "python3-distributed", "pyarrow": "python3-pyarrow"}
 #: imported only by the benchmarks, declared as test dependencies
 _TEST_ONLY = {"toppra": "python3-toppra-pip"}
 
