@@ -77,7 +77,7 @@ def _differences(rows_a, rows_b) -> list:
 
 @pytest.fixture(scope="module")
 def serial(tmp_path_factory):
-    """The uninterrupted serial sweep (in this process, chunks of 3): (scenario, grid, report)."""
+    """Return the uninterrupted serial sweep (in this process, chunks of 3): (scenario, grid, report)."""
     sc = _scenario()
     grid = _grid(sc)
     report = run_envelope(sc, grid, tmp_path_factory.mktemp("serial"), _spec(sc, grid), workers=0, chunk_size=3,
