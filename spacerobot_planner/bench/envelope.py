@@ -2,11 +2,13 @@
 Envelope sweep throughput: poses per second serial and on a local Dask cluster, overhead per pose.
 
     python -m spacerobot_planner.bench envelope [--scene 3dof] [--cells 36] [--nx 5] [--ny 5]
-        [--starts 2] [--workers 2] [--chunk-size N]
+        [--starts 2] [--workers 2] [--chunk-size N] [--repeats 3]
 
 The poses: a grid of ``--nx`` × ``--ny`` target centres around the paper's target
 (x −3.5…−2.5 m, y −3.1…−2.1 m, yaw 0) from ``--starts`` start postures (the scenario's, then
-others a few degrees away).  After a JIT warm-up, in this order, on the same poses:
+others a few degrees away).  After a warm-up (the numba kernels loaded: the scenario's own
+capture and every tenth pose planned), ``--repeats`` times in this order on the same poses
+(the best of each kind is shown, with the speedup of each repeat):
 
 1. **single plans**: each pose planned alone in this process, the way ``spacerobot-plan``
    plans one request (a fresh ``Planner``, ``offline.plan_offline``): the baseline;
@@ -40,6 +42,7 @@ from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..envelope import TIMING_COLUMNS, PoseGrid, axis_values, run_envelope, sweep_spec
 from ..envelope.engine import local_cluster
+from ..envelope.sweep import plan_chunk
 from ..offline import plan_offline
 from ..planner import Planner
 from ..scene import Target
@@ -70,13 +73,14 @@ def _single_plans(sc, grid) -> float:
     return time.perf_counter() - t0
 
 
-def _warm_up(scenario, numba_threads=None):
-    """Load the numba kernels in this process: the scenario's own capture planned (a worker: one thread)."""
-    if numba_threads is not None:
-        import numba
-        numba.set_num_threads(numba_threads)
-    done = plan_offline(Planner(scenario, reaction=True), scenario.start_rad)
-    return str(done.result.code)
+def _warm_up(scenario, grid, numba_threads=None):
+    """
+    Load the numba kernels in this process (a worker: one thread).
+
+    The scenario's own capture, then every tenth pose of the grid (their failures too).
+    """
+    plan_offline(Planner(scenario, reaction=True), scenario.start_rad)
+    return len(plan_chunk(scenario, grid, range(0, grid.n_poses, 10), numba_threads))
 
 
 def _cpu_s() -> float:
@@ -100,6 +104,7 @@ def main(argv=None) -> int:
     ap.add_argument("--starts", type=int, default=2)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--chunk-size", type=int)
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each kind, interleaved; the best is shown")
     args = ap.parse_args(argv)
     from distributed import Client
 
@@ -111,46 +116,51 @@ def main(argv=None) -> int:
     spec = sweep_spec(params, sc.grid.cells, grid)
     n = grid.n_poses
     t0 = time.perf_counter()
-    _warm_up(sc)
+    _warm_up(sc, grid)
     print(f"bench envelope: paper_{args.scene}, grid {sc.grid.label()}, {n} poses ({args.nx} x × {args.ny} y × "
           f"{len(grid.starts_rad)} starts), JIT warm-up {time.perf_counter() - t0:.1f} s", flush=True)
-    c0 = _cpu_s()
-    single_s = _single_plans(sc, grid)
-    single_cpu = _cpu_s() - c0
+    singles, serials, dasks = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
-        c0 = _cpu_s()
-        serial = run_envelope(sc, grid, Path(tmp) / "serial", spec, workers=0, chunk_size=args.chunk_size,
-                              quiet=True)
-        serial_cpu = _cpu_s() - c0
         t1 = time.perf_counter()
         with local_cluster(args.workers) as cluster, Client(cluster) as client:
             started_s = time.perf_counter() - t1
             t2 = time.perf_counter()
-            client.run(_warm_up, sc, 1)
+            client.run(_warm_up, sc, grid, 1)
             warm_s = time.perf_counter() - t2
-            w0, c0 = client.run(_cpu_s), _cpu_s()
-            dask = run_envelope(sc, grid, Path(tmp) / "dask", spec, client=client, chunk_size=args.chunk_size,
-                                quiet=True)
-            w1, c1 = client.run(_cpu_s), _cpu_s()
-            # the workers' CPU and this process's (client and scheduler)
-            worker_cpu, client_cpu = sum(w1[k] - w0[k] for k in w1), c1 - c0
-            dask_cpu = worker_cpu + client_cpu
-    serial_rate = n / serial.plan_seconds
-    dask_rate = n / dask.plan_seconds
+            for k in range(args.repeats):       # interleaved, so a burst of other work hits every kind alike
+                c0 = _cpu_s()
+                seconds = _single_plans(sc, grid)
+                singles.append((seconds, _cpu_s() - c0))
+                c0 = _cpu_s()
+                rep = run_envelope(sc, grid, Path(tmp) / f"serial{k}", spec, workers=0, chunk_size=args.chunk_size,
+                                   quiet=True)
+                serials.append((rep.plan_seconds, _cpu_s() - c0, rep))
+                w0, c0 = client.run(_cpu_s), _cpu_s()
+                rep = run_envelope(sc, grid, Path(tmp) / f"dask{k}", spec, client=client,
+                                   chunk_size=args.chunk_size, quiet=True)
+                w1, c1 = client.run(_cpu_s), _cpu_s()
+                # the workers' CPU and this process's (client and scheduler)
+                dasks.append((rep.plan_seconds, sum(w1[w] - w0[w] for w in w1) + c1 - c0, rep, c1 - c0))
+    single_s, single_cpu = min(singles)
+    serial_s, serial_cpu, serial = min(serials, key=lambda r: r[0])
+    dask_s, dask_cpu, dask, client_cpu = min(dasks, key=lambda r: r[0])
+    serial_rate, dask_rate = n / serial_s, n / dask_s
     single_per = single_s / n
     rows = [
         {"stage": "single_plans", "poses": n, "seconds": single_s, "poses_per_s": n / single_s,
-         "seconds_per_pose": single_per, "cpu_seconds": single_cpu},
-        {"stage": "serial_sweep", "poses": n, "seconds": serial.plan_seconds, "poses_per_s": serial_rate,
-         "chunks": serial.chunks, "overhead": serial.plan_seconds / n / single_per - 1.0,
-         "cpu_seconds": serial_cpu, "cpu_overhead": serial_cpu / single_cpu - 1.0},
-        {"stage": "local_cluster", "poses": n, "workers": args.workers, "seconds": dask.plan_seconds,
+         "seconds_per_pose": single_per, "cpu_seconds": single_cpu, "all_seconds": [r[0] for r in singles]},
+        {"stage": "serial_sweep", "poses": n, "seconds": serial_s, "poses_per_s": serial_rate,
+         "chunks": serial.chunks, "overhead": serial_s / n / single_per - 1.0,
+         "cpu_seconds": serial_cpu, "cpu_overhead": serial_cpu / single_cpu - 1.0,
+         "all_seconds": [r[0] for r in serials]},
+        {"stage": "local_cluster", "poses": n, "workers": args.workers, "seconds": dask_s,
          "poses_per_s": dask_rate, "chunks": dask.chunks, "speedup_vs_serial": dask_rate / serial_rate,
-         "overhead": dask.plan_seconds * args.workers / n / single_per - 1.0,
+         "speedups_per_repeat": [s[0] / d[0] for s, d in zip(serials, dasks)],
+         "overhead": dask_s * args.workers / n / single_per - 1.0,
          "cpu_seconds": dask_cpu, "cpu_overhead": dask_cpu / single_cpu - 1.0,
-         "worker_cpu_seconds": worker_cpu, "client_and_scheduler_cpu_seconds": client_cpu,
+         "client_and_scheduler_cpu_seconds": client_cpu, "all_seconds": [r[0] for r in dasks],
          "cluster_start_s": started_s, "worker_warm_up_s": warm_s,
-         "rows_differing_from_serial": _differences(serial.rows, dask.rows)},
+         "rows_differing_from_serial": max(_differences(serial.rows, d[2].rows) for d in dasks)},
     ]
     load = os.getloadavg()
     codes = {}
@@ -164,6 +174,8 @@ def main(argv=None) -> int:
     for name, r, rate in (("serial sweep", rows[1], serial_rate), ("local cluster", rows[2], dask_rate)):
         print(f"{name:<16}{r['seconds']:>9.2f}{rate:>9.2f}{r['chunks']:>8}{100 * r['overhead']:>9.1f}%"
               f"{r['cpu_seconds']:>8.2f}{100 * r['cpu_overhead']:>13.1f}%{rate / serial_rate:>9.2f}")
+    print(f"best of {args.repeats} of each; speedup per repeat "
+          f"{', '.join(f'{x:.2f}' for x in rows[2]['speedups_per_repeat'])}")
     print(f"local cluster: {args.workers} workers, started in {started_s:.1f} s, warmed up in {warm_s:.1f} s; "
           f"rows differing from the serial sweep: {rows[2]['rows_differing_from_serial']}; load average "
           f"{load[0]:.1f} {load[1]:.1f} {load[2]:.1f} at the end")
