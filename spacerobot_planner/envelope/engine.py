@@ -221,7 +221,7 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
             bar.close()
         store.close()
         report.seconds = time.perf_counter() - t_start
-        if store._run is not None:
+        if store.running:
             store.end_run(report.planned, report.complete, report.seconds)
     if report.complete:
         want_parquet = grid.n_poses >= PARQUET_MIN_POSES if parquet is None else parquet

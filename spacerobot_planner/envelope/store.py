@@ -23,7 +23,6 @@ import datetime
 import hashlib
 import io
 import json
-import math
 import os
 from pathlib import Path
 
@@ -159,6 +158,11 @@ class EnvelopeStore:
         self.manifest.setdefault("runs", []).append(self._run)
         self._write_manifest()
 
+    @property
+    def running(self) -> bool:
+        """Tell whether a run was recorded by :meth:`start_run` in this store."""
+        return self._run is not None
+
     def end_run(self, planned: int, complete: bool, seconds: float) -> None:
         """Record how the current run ended."""
         self._run.update(planned=int(planned), complete=bool(complete), seconds=round(float(seconds), 3))
@@ -204,8 +208,3 @@ class EnvelopeStore:
         if parquet:
             write_parquet(rows, self.parquet_path)
         return rows
-
-
-def finite(x) -> bool:
-    """Tell whether a row's value is a finite number."""
-    return isinstance(x, (int, float)) and math.isfinite(x)
