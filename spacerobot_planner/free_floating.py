@@ -37,13 +37,14 @@ import numpy as np
 from numba import njit
 from scipy.optimize import brentq
 
+from .collision import CollisionChecker
 from .ik import approach_error_rad, grasp_ik
 from .joint_space import wrap_angle_rad
 from .reaction import DriftCheck, check_drifted
 from .scene import Scene, Target
 from .spacecraft import FreeFloatingResponse, MassProperties, free_floating_response, system_com_m
 
-__all__ = ["CompensatedPlan", "plan_free_floating", "FreeFloatingCapture", "CapturePostureFF",
+__all__ = ["CompensatedPlan", "plan_free_floating", "apparent_scene", "FreeFloatingCapture", "CapturePostureFF",
            "capture_postures", "attitude_changes_rad", "plan_capture", "SEARCH"]
 
 
@@ -74,7 +75,7 @@ class CompensatedPlan:
     history: tuple
 
 
-def _apparent_scene(scene, attitude_change_rad, body_position_m):
+def apparent_scene(scene, attitude_change_rad, body_position_m):
     """
     Return the inertial scene as the body sees it at the end of a free-floating motion.
 
@@ -152,7 +153,7 @@ def plan_free_floating(scenario, start_rad, goal_rad=None, *, masses: MassProper
         history.append((resp.tip_miss_m, resp.attitude_change_deg, drift.ok))
         if drift.ok and resp.tip_miss_m <= min(0.1 * tol, 1e-3) or len(history) > max_iterations:
             break
-        apparent = _apparent_scene(scene, math.radians(resp.attitude_change_deg), resp.body_position_m[-1])
+        apparent = apparent_scene(scene, math.radians(resp.attitude_change_deg), resp.body_position_m[-1])
         sols = grasp_ik(robot, apparent)
         if not sols:
             return CompensatedPlan(False, "no collision-free grasp posture for the drifted target", res, goal,
@@ -171,25 +172,27 @@ def plan_free_floating(scenario, start_rad, goal_rad=None, *, masses: MassProper
 #: sine harmonics per arm joint, the scanned amplitudes (rad), the scanned directions of the
 #: coefficient space (seeded, so the plan is deterministic), the candidates certified at most
 SEARCH = {"coarse_samples": 61, "harmonics": 2, "max_amplitude_rad": math.radians(180.0), "amplitudes": 31,
-          "directions": 96, "seed": 0, "max_checks": 24}
+          "directions": 96, "seed": 0, "max_checks": 400}
 
 
 @njit(cache=True, nogil=True)
-def _attitude_changes(paths, pair, inertia):
+def _attitude_profiles(paths, pair, inertia):
     """
-    Attitude change (rad) of each full-joint path of ``paths`` (B, K, n), straight between rows.
+    Attitude change (rad) at every row of each full-joint path of ``paths`` (B, K, n): (B, K).
 
-    The momentum row at q: g_k = Σ_j pair[j, k] cos(φ_k − φ_j) + inertia[k] is the angular
-    momentum per unit rate of the absolute angle φ_k (about the system's centre of mass), and
-    H_i = Σ_{k≥i} g_k; free floating dθ1 = −Σ_{i>0} H_i dθ_i / H_0, Simpson's rule per row step.
+    The paths are straight between rows.  The momentum row at q: g_k = Σ_j pair[j, k]
+    cos(φ_k − φ_j) + inertia[k] is the angular momentum per unit rate of the absolute angle
+    φ_k (about the system's centre of mass), and H_i = Σ_{k≥i} g_k; free floating
+    dθ1 = −Σ_{i>0} H_i dθ_i / H_0, Simpson's rule per row step.
     """
     nb, nk, n = paths.shape
-    out = np.zeros(nb)
+    out = np.zeros((nb, nk))
     phi = np.empty(n)
     g = np.empty(n)
     for b in range(nb):
         total = 0.0
         for k in range(nk - 1):
+            step = 0.0
             for w_i in range(3):
                 w = 0.5 * w_i
                 acc = 0.0
@@ -207,9 +210,15 @@ def _attitude_changes(paths, pair, inertia):
                     hsum += g[i]
                     if i > 0:
                         num += hsum * (paths[b, k + 1, i] - paths[b, k, i])
-                total += (4.0 if w_i == 1 else 1.0) * (-num / hsum)
-        out[b] = total / 6.0
+                step += (4.0 if w_i == 1 else 1.0) * (-num / hsum)
+            total += step / 6.0
+            out[b, k + 1] = total
     return out
+
+
+def _attitude_changes(paths, pair, inertia):
+    """The attitude change over each path of ``paths`` (B, K, n): (B,) rad (see :func:`_attitude_profiles`)."""
+    return _attitude_profiles(paths, pair, inertia)[:, -1]
 
 
 def _pair_tables(robot, masses):
@@ -319,6 +328,8 @@ class FreeFloatingCapture:
         candidates: paths with the needed attitude change within the bounds; checked: how many
             were certified before one passed.
         search_s, verify_s: seconds in the search and in the inertial certification.
+        family: the base of the chosen path: "field" (the harmonic field's path, see
+            ``base_path``) or "quintic" ("" when not ok).
 
     """
 
@@ -337,17 +348,36 @@ class FreeFloatingCapture:
     checked: int
     search_s: float
     verify_s: float
+    family: str = ""
 
 
 def _basis(s, harmonics):
-    return np.stack([np.sin((h + 1) * np.pi * s) for h in range(harmonics)])          # (H, K)
+    """(H, K): sin(hπs), h = 1…H: zero at both ends (the base's ends kept)."""
+    return np.stack([np.sin((h + 1) * np.pi * s) for h in range(harmonics)])
 
 
-def _family(a0, af, coef, s, harmonics):
-    """Arm paths (..., K, m): quintic a0 → af plus Σ_h coef[..., j, h] sin((h+1)π s) on joint j."""
-    sig = s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s)
-    base = a0 + (af - a0) * sig[:, None]
-    return base + np.einsum("...jh,hk->...kj", coef, _basis(s, harmonics))
+def _quintic(a0, af):
+    """The rest-to-rest quintic a0 → af: a function of s ∈ [0, 1] (K,) → (K, m)."""
+    def at(s):
+        sig = s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s)
+        return a0 + (af - a0) * sig[:, None]
+    return at
+
+
+def _along(path):
+    """A path's rows as a function of its normalised joint-space arc length s ∈ [0, 1] (K,) → (K, m)."""
+    p = np.asarray(path, dtype=float)
+    u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    u = u / u[-1] if u[-1] > 0.0 else np.linspace(0.0, 1.0, len(p))
+
+    def at(s):
+        return np.stack([np.interp(s, u, p[:, j]) for j in range(p.shape[1])], axis=-1)
+    return at
+
+
+def _family(base_at_s, coef, s, harmonics):
+    """Arm paths (..., K, m): the base's rows at s plus Σ_h coef[..., j, h] sin((h+1)π s) on joint j."""
+    return base_at_s + np.einsum("...jh,hk->...kj", coef, _basis(s, harmonics))
 
 
 def _directions(m, harmonics, count, seed):
@@ -366,14 +396,15 @@ def _full(q0, arm_paths):
 
 
 def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties | None = None,
-                 check=None) -> FreeFloatingCapture:
+                 base_path=None, check=None) -> FreeFloatingCapture:
     """
     Plan the arm so that the free-floating spacecraft ends grasping the handle perpendicularly.
 
     Papadopoulos' method: the end posture is fixed (:func:`capture_postures`, or the given
     goal with the attitude as a planned joint), so is the attitude change Δ the arm's motion
-    must cause.  The arm joints follow a(s) = a0 + (af − a0) σ(s) + Σ_h c_h sin(hπs)
-    (σ the rest-to-rest quintic, s ∈ [0, 1], ``SEARCH["harmonics"]`` terms per joint).  The
+    must cause.  The arm joints follow a(s) = base(s) + Σ_h c_h sin(hπs) (s ∈ [0, 1],
+    ``SEARCH["harmonics"]`` terms per joint), the base being the rest-to-rest quintic
+    a0 + (af − a0) σ(s) and, when ``base_path`` gives one, a guide path by arc length.  The
     attitude change of the free-floating motion is a function of the coefficients c; along
     each of ``SEARCH["directions"]`` directions c = α d the amplitude α is scanned
     (``SEARCH["amplitudes"]`` values up to ``max_amplitude_rad``, coarse paths) and every
@@ -387,6 +418,10 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         start_rad: (dof,) planned joints; goal_rad: (dof,) a goal posture to reach instead of
             a capture posture (its attitude is reached by the drift).
         masses: default ``scenario.masses``.
+        base_path: optional callable(posture) → (K, m) arm path from the start's arm joints to the
+            posture's (or None): a second family on that path (by arc length) besides the
+            quintic — the harmonic field's path in the scene as the body sees it at the end
+            (``pipeline``).
         check: callable polled between candidates (a cancel check that raises).
 
     Raises
@@ -420,57 +455,74 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
     s_coarse = np.linspace(0.0, 1.0, SEARCH["coarse_samples"])
     pair, inertia = _pair_tables(robot, masses)
     candidates, needed, achievable = [], [], []
-    for post in postures:
+    for i_post, post in enumerate(postures):
         af = post.q_full[arm]
         af = np.where(np.asarray(robot.periodic)[arm], a0 + wrap_angle_rad(af - a0), af)
         need = post.attitude_change_rad
         needed.append(math.degrees(need))
-        coef = dirs[:, None] * amps[None, :, None, None]                       # (D, A, m, H)
-        paths = _family(a0, af, coef, s_coarse, harm)                          # (D, A, K, m)
-        inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))          # (D, A)
-        flat = paths.reshape(-1, len(s_coarse), len(arm))
-        delta = _attitude_changes(np.ascontiguousarray(_full(start_full, flat)), pair, inertia)
-        delta = delta.reshape(inside.shape)
-        if inside.any():
-            achievable.append((math.degrees(delta[inside].min()), math.degrees(delta[inside].max())))
-        else:
-            achievable.append((math.nan, math.nan))
-        # the final paths: no joint moves more than 0.5° between rows
-        span = float(np.max(np.abs(paths[inside] - a0))) if inside.any() else 0.0
-        k_fine = int(max(241, math.ceil(2.0 * span / math.radians(0.5)) + 1))
-        s_fine = np.linspace(0.0, 1.0, k_fine)
-        for d_i, d in enumerate(dirs):
-            f = delta[d_i] - need
-            for a_i in range(len(amps) - 1):
-                if not (inside[d_i, a_i] and inside[d_i, a_i + 1]) or f[a_i] * f[a_i + 1] > 0.0:
-                    continue
+        lo_hi = [math.inf, -math.inf]
+        bases = [("quintic", _quintic(a0, af))]
+        if base_path is not None:
+            guide = base_path(post)
+            if guide is not None:
+                bases.insert(0, ("field", _along(guide)))
+        for kind, base in bases:
+            coef = dirs[:, None] * amps[None, :, None, None]                   # (D, A, m, H)
+            paths = _family(base(s_coarse), coef, s_coarse, harm)             # (D, A, K, m)
+            inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))      # (D, A)
+            flat = paths.reshape(-1, len(s_coarse), len(arm))
+            delta = _attitude_changes(np.ascontiguousarray(_full(start_full, flat)), pair, inertia)
+            delta = delta.reshape(inside.shape)
+            if not inside.any():
+                continue
+            lo_hi = [min(lo_hi[0], float(delta[inside].min())), max(lo_hi[1], float(delta[inside].max()))]
+            # the final paths: no joint moves more than about 0.4° between rows
+            step = float(np.max(np.abs(np.diff(paths[inside], axis=-2)))) * (len(s_coarse) - 1)
+            s_fine = np.linspace(0.0, 1.0, int(max(241, math.ceil(step / math.radians(0.4)) + 1)))
+            base_fine = base(s_fine)
+            for d_i, d in enumerate(dirs):
+                f = delta[d_i] - need
+                for a_i in range(len(amps) - 1):
+                    if not (inside[d_i, a_i] and inside[d_i, a_i + 1]) or f[a_i] * f[a_i + 1] > 0.0:
+                        continue
 
-                def miss(alpha, d=d):
-                    p = _family(a0, af, alpha * d, s_fine, harm)
-                    return _attitude_changes(_full(start_full, p)[None], pair, inertia)[0] - need
+                    def miss(alpha, d=d):
+                        p = _family(base_fine, alpha * d, s_fine, harm)
+                        return _attitude_changes(_full(start_full, p)[None], pair, inertia)[0] - need
 
-                try:
-                    alpha = brentq(miss, amps[a_i], amps[a_i + 1], xtol=1e-12, rtol=1e-12)
-                except ValueError:         # the fine path's sign differs from the coarse one's
-                    continue
-                p = _family(a0, af, alpha * d, s_fine, harm)
-                if np.all((p >= lo) & (p <= hi)):
-                    length = float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
-                    candidates.append((length, p, post))
-                break                      # the smallest amplitude along this direction
+                    try:
+                        alpha = brentq(miss, amps[a_i], amps[a_i + 1], xtol=1e-12, rtol=1e-12)
+                    except ValueError:     # the fine path's sign differs from the coarse one's
+                        continue
+                    p = _family(base_fine, alpha * d, s_fine, harm)
+                    if np.all((p >= lo) & (p <= hi)):
+                        length = float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+                        candidates.append((length, p, post, kind))
+                    break                  # the smallest amplitude along this direction
+        achievable.append((math.degrees(lo_hi[0]), math.degrees(lo_hi[1])) if lo_hi[0] <= lo_hi[1]
+                          else (math.nan, math.nan))
     search_s = time.perf_counter() - t0
     candidates.sort(key=lambda c: c[0])
     t1 = time.perf_counter()
     n_checked = 0
     best_clear = -math.inf
     dof_cols = list(robot.planned_joints)
-    for length, p, post in candidates[:SEARCH["max_checks"]]:
+    checker = CollisionChecker(robot, scene)
+    for length, p, post, kind in candidates[:SEARCH["max_checks"]]:
         if check is not None:
             check()
         n_checked += 1
         full = _full(start_full, p)
+        # a quick look at the rows first (the kernel's drift, the body where the CoM puts it)
+        moved = full.copy()
+        moved[:, 0] += _attitude_profiles(full[None], pair, inertia)[0]
+        com = system_com_m(robot, masses, moved)
+        clr = checker.clearance_shifted_m(moved, com[0] - com)
+        best_clear = max(best_clear, float(clr.min()))
+        if not np.all(clr > scene.safety_margin_m):
+            continue
         planned = full[:, dof_cols]
-        drift = check_drifted(robot, masses, scene, planned)
+        drift = check_drifted(robot, masses, scene, planned, motions=None)
         best_clear = max(best_clear, drift.min_clearance_m)
         if not drift.ok:
             continue
@@ -482,7 +534,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         verify_s = time.perf_counter() - t1
         return FreeFloatingCapture(True, None, planned, planned[-1].copy(), post, tuple(needed),
                                    tuple(achievable), resp, drift, resp.tip_miss_m, approach,
-                                   len(candidates), n_checked, search_s, verify_s)
+                                   len(candidates), n_checked, search_s, verify_s, kind)
     verify_s = time.perf_counter() - t1
     names = ("elbow one way", "elbow the other way") if goal_rad is None else ("the goal",)
     what = "; ".join(f"{n}: needs {nd:+.1f}° (or {nd - math.copysign(360.0, nd):+.1f}° the other way round), "

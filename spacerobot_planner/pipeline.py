@@ -4,6 +4,10 @@ One plan, stage by stage: :func:`run_pipeline` reads top to bottom.
     inputs → exit (leave a contact) → C-space → goal nodes → field → descent/repair
            → smoothing → trajectory
 
+Free floating (``acs.mode: free_floating``) with a target and no goal, or with the attitude
+a planned joint: ``free_floating.plan_capture`` replaces the stages up to smoothing (its
+search is timed as "descent", its inertial certification as "verify"), then the trajectory.
+
 Each stage is a method of :class:`PlanRun` (one call of ``Planner.plan``) that calls
 the stage's own module, is timed by :meth:`PlanRun.stage` and fails by raising
 :class:`Fail` with a :class:`~spacerobot_planner.results.Code`.  The run reads the
@@ -31,10 +35,12 @@ import numpy as np
 from .contact import leave_contact
 from .descent import colliding_edges
 from .field import bfs_distance
+from .free_floating import apparent_scene, plan_capture
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
-from .smoothing import smooth_path
+from .smoothing import SmoothPath, smooth_path
+from .spacecraft import free_floating_response
 from .termination import Cancelled, Termination
 from .timing import timed_motion, trajectory_limits_known
 
@@ -57,6 +63,8 @@ class Fail(Exception):
 
 def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
     """Run the stages in order; see the module docstring.  Raises Fail or Cancelled."""
+    if run.free_floating_capture(goal_rad):
+        return run.time_parameterize(run.capture_free_floating(start_rad, goal_rad))
     run.check_inputs(start_rad, goal_rad)            # invalid_input, goal_unreachable, *_in_collision
     run.leave_contact()                              # a start touching an obstacle: the exit stretch
     for extra_m in run.grid_margins():               # the grid's extra margin, then none
@@ -145,7 +153,14 @@ class PlanRun:
                              if path is not None else math.nan),
             traceback=tb, trajectory=trajectory, reaction=reaction,
             approach_error_deg=self.approach_error_deg, exit_path_rad=self.exit_path,
-            start_penetration_m=self.penetration_m)
+            start_penetration_m=self.penetration_m, free_floating=self.drift_of(path))
+
+    def drift_of(self, path):
+        """Free floating: the response (``spacecraft.FreeFloatingResponse``) along ``path``; else None."""
+        if self.sc.acs.mode != "free_floating" or path is None or not len(path):
+            return None
+        grasp = None if self.sc.scene.target is None else self.sc.scene.target.grasp_point_m
+        return free_floating_response(self.robot, self.sc.masses, path, grasp)
 
     def segment_ok(self, a, b) -> bool:
         """Run the certified motion check of the straight (shortest) segment a → b."""
@@ -212,6 +227,78 @@ class PlanRun:
                        f"{clr_g:.3f} m, the safety margin is {margin} m")
         self.plan_start = self.start
         self.check_cancel()
+
+    def free_floating_capture(self, goal_rad) -> bool:
+        """
+        Tell whether this plan is a free-floating capture (:meth:`capture_free_floating`).
+
+        ``acs.mode: free_floating`` (not ``acs.compensate_drift``, the CLI's earlier strategy),
+        a target, and either no goal (capture the target) or the attitude a planned joint
+        (its motion must come from the arm's).
+        """
+        acs = self.sc.acs
+        return (acs.mode == "free_floating" and not acs.compensate_drift and self.sc.scene.target is not None
+                and (goal_rad is None or 0 in self.robot.planned_joints))
+
+    def capture_free_floating(self, start_rad, goal_rad):
+        """
+        Free floating: the arm's path that ends in the grasp with the body drifted (``free_floating.plan_capture``).
+
+        Returns a ``smoothing.SmoothPath`` of it (clearance: the inertial check's); refused
+        (``reaction_refused``) with the attitude change needed and what the arm's motions
+        achieve, or the inertial clearance; ``goal_unreachable`` for a chain it does not handle.
+        """
+        robot, margin = self.robot, self.sc.scene.safety_margin_m
+        try:
+            self.start_given = np.asarray(start_rad, dtype=float)
+            self.start = robot.validate_q(self.start_given, "start")
+            goal = None if goal_rad is None else robot.validate_q(np.asarray(goal_rad, dtype=float), "goal")
+        except (ValueError, TypeError) as e:
+            raise Fail(Code.INVALID_INPUT, str(e)) from None
+        clr_s = self.checker.clearance_m(self.start)
+        if not clr_s > margin:
+            raise Fail(Code.START_IN_COLLISION, f"the start {deg_text(self.start)} is in collision: "
+                       f"clearance {clr_s:.3f} m, the safety margin is {margin} m")
+        self.plan_start = self.start
+        guide = self.field_guide if goal is None and 0 not in robot.planned_joints else None
+        try:
+            cap = plan_capture(self.sc, self.start, goal, base_path=guide, check=self.check_cancel)
+        except ValueError as e:
+            raise Fail(Code.GOAL_UNREACHABLE, str(e)) from None
+        self.timings["descent"] += cap.search_s
+        self.timings["verify"] += cap.verify_s
+        self.stats.update(free_floating_candidates=cap.candidates, free_floating_checked=cap.checked)
+        if not cap.ok:
+            raise Fail(Code.REACTION_REFUSED, cap.reason)
+        self.goal = cap.goal_rad
+        self.approach_error_deg = cap.approach_error_deg
+        self.say(f"free-floating capture: attitude change {cap.response.attitude_change_deg:.2f}°, body "
+                 f"displacement {cap.response.body_displacement_m:.3f} m, tip miss {cap.tip_miss_m:.2e} m, "
+                 f"approach error {cap.approach_error_deg:.2e}°; {cap.candidates} candidate paths, "
+                 f"{cap.checked} certified in the inertial frame (clearance {cap.drift.min_clearance_m:.3f} m)")
+        self.say(f"free-floating capture: the {cap.family} family's path")
+        path = align_to_state(cap.path_rad, self.start_given, self.periodic)
+        length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+        return SmoothPath(path, path[[0, -1]], "free_floating_capture", cap.drift.min_clearance_m, length, 0,
+                          cap.drift.n_checked)
+
+    def field_guide(self, posture):
+        """
+        The harmonic field's path to a free-floating capture posture's arm joints, or None.
+
+        Planned in the scene as the body sees it at the end of the motion (turned by the
+        posture's attitude change about the body centre, after the body moved:
+        ``free_floating.apparent_scene``), where the posture grasps the handle; the planner's
+        planners of those scenes are cached (``Planner.apparent_planner``).  Its stage times
+        add to this run's.
+        """
+        sub = self.p.apparent_planner(apparent_scene(self.sc.scene, posture.attitude_change_rad, posture.body_m))
+        res = sub.plan(self.start, posture.q_full[list(self.robot.planned_joints)], cancel=self.cancel)
+        for k in ("cspace", "field", "descent", "repair", "smoothing", "verify"):
+            self.timings[k] += res.timings_s.get(k, 0.0)
+        if res.code == Code.CANCELLED:
+            raise Cancelled()
+        return res.path_rad if res.ok else None
 
     def leave_contact(self) -> None:
         """

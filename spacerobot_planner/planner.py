@@ -92,6 +92,7 @@ class Planner:
         self._fields: dict = {}          # (C-space key, goal nodes, solver settings[, repairs]) -> Field
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
+        self._apparent: dict = {}        # scene geometry -> Planner (free-floating capture's guides)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
         #: test aid: (stage, seconds, polls, on_start) -- that stage ("cspace", "field":
@@ -219,6 +220,20 @@ class Planner:
         return "no attitude allows a perpendicular grasp (the handle is out of reach)"
 
     # ------------------------------------------------------------------ caches
+    def apparent_planner(self, scene: Scene) -> "Planner":
+        """
+        A planner (geometry only) of this scenario in ``scene``, cached by its geometry (at most 4).
+
+        The free-floating capture's field guides (``pipeline.PlanRun.field_guide``): the scene
+        as the drifted body sees it at the end of the motion.
+        """
+        key = _scene_geometry_key(scene)
+        sub = self._apparent.get(key)
+        if sub is None:
+            sub = Planner(self.scenario.with_scene(scene), settings=replace(self.settings, trajectory=False))
+            self._remember(self._apparent, key, sub, 4)
+        return sub
+
     def cache_sizes(self) -> dict:
         """Return the number of cached C-spaces, fields and body tables."""
         return {"cspaces": len(self._cspaces), "fields": len(self._fields),

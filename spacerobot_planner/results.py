@@ -92,6 +92,10 @@ class PlanResult:
             the start was free.
         start_penetration_m: how deep the start's links were inside an obstacle (0 when
             they were not), metres.
+        free_floating: ``acs.mode: free_floating``: the ``spacecraft.FreeFloatingResponse``
+            along path_rad (every joint with the attitude as it drifts, the body's
+            position); else None.  ``smoothing`` is "free_floating_capture" when
+            ``free_floating.plan_capture`` planned the path.
 
     """
 
@@ -118,6 +122,7 @@ class PlanResult:
     approach_error_deg: float = math.nan
     exit_path_rad: np.ndarray | None = None
     start_penetration_m: float = 0.0
+    free_floating: object = None
 
     def to_json_dict(self) -> dict:
         """
@@ -125,7 +130,9 @@ class PlanResult:
 
         ``trajectory`` (joint_names, times_s, positions_rad, velocities_rad_s,
         accelerations_rad_s2, duration_s, active_limit) and ``reaction`` only when
-        the trajectory stage ran; ``exit`` only when the start left a contact.
+        the trajectory stage ran; ``exit`` only when the start left a contact.  Free
+        floating: ``path_rad`` holds every joint (``path_joint_names``), the attitude as it
+        drifts, and ``free_floating`` the body's position along it and the figures at its end.
         """
         def arr(a):
             return None if a is None else np.asarray(a, dtype=float).tolist()
@@ -156,6 +163,14 @@ class PlanResult:
             doc["exit"] = {"path_rad": arr(self.exit_path_rad),
                            "start_penetration_m": float(self.start_penetration_m),
                            "certified": False}
+        ff = self.free_floating
+        if ff is not None:
+            doc["path_joint_names"] = list(ff.joint_names)
+            doc["path_rad"] = arr(ff.q_full_rad)
+            doc["free_floating"] = {"body_position_m": arr(ff.body_position_m),
+                                    "body_displacement_m": float(ff.body_displacement_m),
+                                    "attitude_change_deg": float(ff.attitude_change_deg),
+                                    "tip_m": arr(ff.tip_m), "tip_miss_m": float(ff.tip_miss_m)}
         if self.trajectory is not None:
             doc["trajectory"] = self.trajectory.to_json_dict()
         if self.reaction is not None:

@@ -281,6 +281,7 @@ class FreeFloatingResponse:
             plan puts it (body fixed, attitude as planned).
         tip_miss_m: |tip_m − grasp point| when a grasp point was given, else
             |tip_m − planned_tip_m|, metres.
+        joint_names: the robot's joints (the columns of ``q_full_rad``).
 
     """
 
@@ -292,6 +293,7 @@ class FreeFloatingResponse:
     tip_m: np.ndarray
     planned_tip_m: np.ndarray
     tip_miss_m: float
+    joint_names: tuple = ()
 
     @property
     def attitude_drift_rad(self) -> np.ndarray:
@@ -335,4 +337,4 @@ def free_floating_response(robot, masses: MassProperties, path_rad, grasp_point_
     ref = planned_tip if grasp_point_m is None else np.asarray(grasp_point_m, dtype=float)
     return FreeFloatingResponse(q, planned, body, float(np.degrees(q[-1, 0] - q[0, 0])),
                                 float(np.linalg.norm(body[-1])), tip, planned_tip,
-                                float(np.linalg.norm(tip - ref)))
+                                float(np.linalg.norm(tip - ref)), tuple(robot.joint_names))
