@@ -24,7 +24,10 @@ carries the very trajectory the node publishes:
 5. **split** -- the attitude joint (the robot's first, the spacecraft's) for the attitude
    control system, the arm joints for the arm's controller (:class:`TrajectoryPart`,
    None for a group that is not planned); both None when nothing moves more than
-   ``AT_GOAL_TOL_RAD`` (at the goal: nothing to publish).
+   ``AT_GOAL_TOL_RAD`` (at the goal: nothing to publish).  Free floating
+   (``acs.mode: free_floating``) nothing commands the attitude: no attitude part, and
+   ``Processed.predicted_drift`` holds the attitude as it will drift and the body's
+   displacement at the published points' times (:func:`predicted_drift`).
 
 No rclpy here; times are seconds from the trajectory's start, ROS times integer ns.
 """
@@ -37,10 +40,11 @@ import numpy as np
 
 from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_motion
+from .spacecraft import free_floating_response
 from .timing import timed_motion
 from .trajectory import HorizonPassed, Trajectory, resample, sample_points
 
-__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "starts_at_the_end", "controller_overshoot",
+__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end", "controller_overshoot",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
@@ -130,6 +134,8 @@ class Processed:
         continuation: the ``trajectory.Continuation`` of a join, else None.
         not_before_ns: from rest at the executing trajectory's end: that end (ROS time, ns),
             the earliest stamp (see :func:`starts_at_the_end`); else None.
+        predicted_drift: free floating: :func:`predicted_drift` at the published points (not
+            published: nothing commands the attitude); else None.
 
     """
 
@@ -144,6 +150,7 @@ class Processed:
     join_stamp_ns: int | None = None
     continuation: object = None
     not_before_ns: int | None = None
+    predicted_drift: TrajectoryPart | None = None
 
     @property
     def refused(self) -> str | None:
@@ -162,12 +169,14 @@ class Processed:
         Return the published trajectory as plain JSON.
 
         ``joint_trajectory`` (arm) and ``attitude_trajectory`` parts, as the node publishes them
-        (null when not published), ``at_goal``, ``certified``, ``min_clearance_m``, and the dense
+        (null when not published), ``predicted_drift`` (free floating), ``at_goal``, ``certified``, ``min_clearance_m``, and the dense
         point count.
         """
         clr = self.min_clearance_m
         return {"joint_trajectory": None if self.arm is None else self.arm.to_json_dict(),
                 "attitude_trajectory": None if self.attitude is None else self.attitude.to_json_dict(),
+                "predicted_drift": (None if self.predicted_drift is None
+                                    else self.predicted_drift.to_json_dict()),
                 "at_goal": self.at_goal, "certified": bool(self.certified),
                 "min_clearance_m": None if not np.isfinite(clr) else float(clr),
                 "points": len(self.trajectory), "dense_points": len(self.dense)}
@@ -292,5 +301,28 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     rs = resample(dense, motions, time_step_s=time_step_s)
     traj, idx = (rs.trajectory, rs.indices) if rs.ok else (dense, np.arange(len(dense)))
     arm, att = split_parts(traj, scenario.robot.joint_names[0])
+    drift = None
+    if scenario.acs.mode == "free_floating":
+        att = None                  # nothing commands the attitude
+        drift = None if arm is None else predicted_drift(scenario, dense, idx)
     clr = float(rs.check.min_clearance_m) if rs.ok and rs.check is not None else float("nan")
-    return Processed(dense, traj, idx, rs.ok, clr, reaction, arm, att, stamp_ns, cont, not_before_ns)
+    return Processed(dense, traj, idx, rs.ok, clr, reaction, arm, att, stamp_ns, cont, not_before_ns, drift)
+
+
+def predicted_drift(scenario, dense: Trajectory, indices) -> TrajectoryPart:
+    """
+    Return the free-floating drift of a trajectory at some of its points.
+
+    Columns: the attitude joint (rad, as it drifts: what an attitude sensor would read) and
+    ``body_x``, ``body_y`` (the body centre's displacement from the start, inertial frame,
+    metres), at ``dense``'s points ``indices`` (``spacecraft.free_floating_response`` along
+    the dense points; velocities by finite differences, accelerations 0).
+    """
+    robot = scenario.robot
+    resp = free_floating_response(robot, scenario.masses, dense.positions_rad)
+    q = np.column_stack([resp.q_full_rad[:, 0], resp.body_position_m])
+    t = np.asarray(dense.times_s, dtype=float)
+    v = np.gradient(q, t, axis=0) if len(t) > 1 else np.zeros_like(q)
+    idx = np.asarray(indices)
+    return TrajectoryPart((robot.joint_names[0], "body_x", "body_y"), t[idx].copy(), q[idx], v[idx],
+                          np.zeros_like(q[idx]))

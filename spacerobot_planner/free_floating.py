@@ -38,6 +38,8 @@ from numba import njit
 from scipy.optimize import brentq
 
 from .collision import CollisionChecker
+from .ik import _fit_to_bounds as fit_to_bounds  # noqa: PLC2701 - the IK module's own helpers
+from .ik import _two_link as two_link  # noqa: PLC2701
 from .ik import approach_error_rad, grasp_ik
 from .joint_space import wrap_angle_rad
 from .reaction import DriftCheck, check_drifted
@@ -172,7 +174,7 @@ def plan_free_floating(scenario, start_rad, goal_rad=None, *, masses: MassProper
 #: sine harmonics per arm joint, the scanned amplitudes (rad), the scanned directions of the
 #: coefficient space (seeded, so the plan is deterministic), the candidates certified at most
 SEARCH = {"coarse_samples": 61, "harmonics": 2, "max_amplitude_rad": math.radians(180.0), "amplitudes": 31,
-          "directions": 96, "seed": 0, "max_checks": 400}
+          "directions": 96, "seed": 0, "max_checks": 400, "approach_fractions": (0.0, -0.5, 0.5, -0.9, 0.9)}
 
 
 @njit(cache=True, nogil=True)
@@ -221,6 +223,15 @@ def _attitude_changes(paths, pair, inertia):
     return _attitude_profiles(paths, pair, inertia)[:, -1]
 
 
+def _com_coefficients(robot, masses):
+    """(n,) c with the system's centre of mass r̄ = Σ_k c_k (cos φ_k, sin φ_k) from the body centre."""
+    masses.check_robot(robot)
+    n = robot.n_joints
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
+    coef = (np.tril(np.ones((n, n)), -1) + 0.5 * np.eye(n)) * lengths[None, :]
+    return np.asarray(masses.link_masses_kg, dtype=float) @ coef / masses.total_mass_kg
+
+
 def _pair_tables(robot, masses):
     """(pair (n, n), inertia per absolute angle (n,)) of the momentum row (see :func:`_attitude_changes`)."""
     masses.check_robot(robot)
@@ -261,46 +272,60 @@ class CapturePostureFF:
         body_m: (2,) where the body centre is then (the start's centre of mass kept), metres.
         attitude_change_rad: the attitude change from the start that this posture needs,
             wrapped into [−π, π).
+        branch: 0 or 1, the inverse-kinematics branch (elbow one way or the other); None for
+            a goal posture.
 
     """
 
     q_full: np.ndarray
     body_m: np.ndarray
     attitude_change_rad: float
+    branch: int | None = None
 
 
-def capture_postures(robot, masses: MassProperties, scene, start_full_rad) -> list:
+def capture_postures(robot, masses: MassProperties, scene, start_full_rad, approach_offset_rad: float = 0.0) -> list:
     """
     Return the inertial capture postures of the scene's target from ``start_full_rad`` (n,).
 
-    The grasp pose (``ik.grasp_ik`` with the attitude free: both branches) for the grasp point
-    moved by the body's displacement b, and b = r̄(start) − r̄(q) from that posture, iterated
-    to a fixed point (b is a few centimetres: it converges in a handful of steps).  Postures
-    outside the joint bounds are dropped; collisions are not judged here (the inertial
-    check of the whole motion does that).  3-joint chains (``grasp_ik``'s).
+    The grasp pose (the full-pose inverse kinematics of ``ik.grasp_ik`` with the attitude free:
+    both branches; link 3 at the handle's inward normal turned by ``approach_offset_rad``) for
+    the grasp point moved by the body's displacement b, and b = r̄(start) − r̄(q) from that posture, iterated to a fixed
+    point (b is a few centimetres: it converges in a handful of steps).  Postures outside
+    the joint bounds are dropped; collisions are not judged here (the inertial check of the
+    whole motion does that).  3-joint chains (``grasp_ik``'s).
     """
-    free_robot = replace(robot, planned_joints=tuple(range(robot.n_joints)))
     q0 = np.asarray(start_full_rad, dtype=float)
-    com0 = system_com_m(robot, masses, q0)
+    com_coef = _com_coefficients(robot, masses)
+
+    def com(q):
+        phi = np.cumsum(q)
+        return com_coef @ np.column_stack([np.cos(phi), np.sin(phi)])
+
+    com0 = com(q0)
     grasp = np.asarray(scene.target.grasp_point_m, dtype=float)
+    psi = scene.target.approach_angle_rad + float(approach_offset_rad)
+    l1, l2, l3 = (float(v) for v in robot.link_lengths_m)
+    elbow0 = grasp - l3 * np.array([math.cos(psi), math.sin(psi)])
     out = []
     for branch in (0, 1):
         body = np.zeros(2)
         q = None
         for _ in range(50):
-            sols = sorted(grasp_ik(free_robot, scene, grasp_point_m=grasp - body, free_only=False),
-                          key=lambda s: s.q_full[-1])
+            sols = two_link((0.0, 0.0), elbow0 - body, l1, l2)     # (θ1, θ2) with the elbow point reached
             if len(sols) <= branch:
                 q = None
                 break
-            q = sols[branch].q_full
-            moved = com0 - system_com_m(robot, masses, q)
+            th1, th2 = sorted(sols, key=lambda s: -s[1])[branch]
+            q = np.array([th1, th2, psi - th1 - th2])
+            moved = com0 - com(q)
             done = float(np.linalg.norm(moved - body)) < 1e-12
             body = moved
             if done:
                 break
         if q is not None:
-            out.append(CapturePostureFF(q, body, float(wrap_angle_rad(q[0] - q0[0]))))
+            q = fit_to_bounds(robot, wrap_angle_rad(q))
+        if q is not None:
+            out.append(CapturePostureFF(q, body, float(wrap_angle_rad(q[0] - q0[0])), branch))
     return out
 
 
@@ -319,9 +344,10 @@ class FreeFloatingCapture:
             holds the attitude as it drifts.  (0, dof) when not ok.
         goal_rad: (dof,) the last row (None when not ok).
         posture: the chosen :class:`CapturePostureFF` (or the goal's), None when none.
-        needed_deg: per capture posture (or the goal), the attitude change it needs, degrees.
-        achievable_deg: per capture posture, (lowest, highest) attitude change of the
-            family's motions to its arm joints within the joint bounds, degrees.
+        needed_deg: ((branch, degrees), …): the attitude change each capture posture (or the
+            goal, branch None) needs.
+        achievable_deg: ((branch, lowest, highest), …): the attitude changes of the families'
+            motions that were searched, within the joint bounds, per branch, degrees.
         response: ``FreeFloatingResponse`` of ``path_rad`` (inertial), None when not ok.
         drift: the inertial ``DriftCheck`` of ``path_rad``, None when not ok.
         tip_miss_m, approach_error_deg: at the end, inertial frame (nan when not ok).
@@ -441,8 +467,10 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
                          "may be locked)")
     t0 = time.perf_counter()
     start_full = robot.full(np.asarray(start_rad, dtype=float))
+    tol = math.radians(scenario.planner_settings.max_approach_error_deg)
     if goal_rad is None:
-        postures = capture_postures(robot, masses, scene, start_full)
+        postures = [p for f in SEARCH["approach_fractions"]
+                    for p in capture_postures(robot, masses, scene, start_full, f * tol)]
     else:
         goal_full = robot.full(np.asarray(goal_rad, dtype=float))
         postures = [CapturePostureFF(goal_full, np.zeros(2), float(wrap_angle_rad(goal_full[0] - start_full[0])))]
@@ -454,103 +482,187 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
     amps = np.linspace(0.0, SEARCH["max_amplitude_rad"], SEARCH["amplitudes"])
     s_coarse = np.linspace(0.0, 1.0, SEARCH["coarse_samples"])
     pair, inertia = _pair_tables(robot, masses)
-    candidates, needed, achievable = [], [], []
-    for i_post, post in enumerate(postures):
+    periodic = np.asarray(robot.periodic)[arm]
+
+    def arm_end(post):
         af = post.q_full[arm]
-        af = np.where(np.asarray(robot.periodic)[arm], a0 + wrap_angle_rad(af - a0), af)
-        need = post.attitude_change_rad
-        needed.append(math.degrees(need))
-        lo_hi = [math.inf, -math.inf]
-        bases = [("quintic", _quintic(a0, af))]
-        if base_path is not None:
-            guide = base_path(post)
-            if guide is not None:
-                bases.insert(0, ("field", _along(guide)))
-        for kind, base in bases:
-            coef = dirs[:, None] * amps[None, :, None, None]                   # (D, A, m, H)
-            paths = _family(base(s_coarse), coef, s_coarse, harm)             # (D, A, K, m)
-            inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))      # (D, A)
-            flat = paths.reshape(-1, len(s_coarse), len(arm))
-            delta = _attitude_changes(np.ascontiguousarray(_full(start_full, flat)), pair, inertia)
-            delta = delta.reshape(inside.shape)
-            if not inside.any():
-                continue
-            lo_hi = [min(lo_hi[0], float(delta[inside].min())), max(lo_hi[1], float(delta[inside].max()))]
-            # the final paths: no joint moves more than about 0.4° between rows
-            step = float(np.max(np.abs(np.diff(paths[inside], axis=-2)))) * (len(s_coarse) - 1)
-            s_fine = np.linspace(0.0, 1.0, int(max(241, math.ceil(step / math.radians(0.4)) + 1)))
-            base_fine = base(s_fine)
-            for d_i, d in enumerate(dirs):
-                f = delta[d_i] - need
-                for a_i in range(len(amps) - 1):
-                    if not (inside[d_i, a_i] and inside[d_i, a_i + 1]) or f[a_i] * f[a_i + 1] > 0.0:
+        return np.where(periodic, a0 + wrap_angle_rad(af - a0), af)
+
+    # the families: (posture, name, base); the base's own attitude change (amplitude 0) orders them
+    guides = {}
+
+    def make_base(post, kind):
+        af = arm_end(post)
+        if kind == "quintic":
+            return _quintic(a0, af)
+        if post.branch not in guides:
+            first = next(p for p in postures if p.branch == post.branch)        # approach offset 0
+            g = base_path(first)
+            guides[post.branch] = None if g is None else (_along(g), arm_end(first))
+        if guides[post.branch] is None:
+            return None
+        along, af0 = guides[post.branch]
+        ramp = _quintic(np.zeros_like(af), af - af0)                             # to this posture's end
+        return lambda s: along(s) + ramp(s)
+
+    kinds = ("field", "quintic") if base_path is not None and goal_rad is None else ("quintic",)
+    families = [(post, kind, base) for post in postures for kind in kinds
+                if (base := make_base(post, kind)) is not None]
+    if goal_rad is None:
+        # the approach tolerance as a free parameter: the end posture whose attitude change the
+        # base path itself makes (no correction needed), where one exists within the tolerance
+        s_mid = np.linspace(0.0, 1.0, 801)
+        fracs = np.linspace(-0.95, 0.95, 20)
+        front = []
+        for branch in sorted({p.branch for p in postures}):
+            for kind in kinds:
+                def gap(frac, branch=branch, kind=kind):
+                    posts = [p for p in capture_postures(robot, masses, scene, start_full, frac * tol)
+                             if p.branch == branch]
+                    if not posts:
+                        return math.nan, None
+                    base = make_base(posts[0], kind)
+                    if base is None:
+                        return math.nan, None
+                    own_d = _attitude_changes(np.ascontiguousarray(_full(start_full, base(s_mid))[None]), pair,
+                                              inertia)[0]
+                    return own_d - posts[0].attitude_change_rad, posts[0]
+
+                vals = [gap(f)[0] for f in fracs]
+                for i in range(len(fracs) - 1):
+                    a_f, b_f, b_v = fracs[i], fracs[i + 1], vals[i + 1]
+                    if math.isnan(vals[i]) != math.isnan(b_v):   # the edge of reach: bisect it
+                        inner, outer = (a_f, b_f) if math.isnan(b_v) else (b_f, a_f)
+                        for _ in range(24):
+                            mid = 0.5 * (inner + outer)
+                            inner, outer = (inner, mid) if math.isnan(gap(mid)[0]) else (mid, outer)
+                        a_f, b_f = (a_f, inner) if math.isnan(b_v) else (inner, b_f)
+                        a_v, b_v = gap(a_f)[0], gap(b_f)[0]
+                    else:
+                        a_v = vals[i]
+                    if not (a_v * b_v <= 0.0):                     # no sign change
                         continue
-
-                    def miss(alpha, d=d):
-                        p = _family(base_fine, alpha * d, s_fine, harm)
-                        return _attitude_changes(_full(start_full, p)[None], pair, inertia)[0] - need
-
                     try:
-                        alpha = brentq(miss, amps[a_i], amps[a_i + 1], xtol=1e-12, rtol=1e-12)
-                    except ValueError:     # the fine path's sign differs from the coarse one's
+                        f_star = brentq(lambda f: gap(f)[0], a_f, b_f, xtol=1e-12)
+                    except ValueError:
                         continue
-                    p = _family(base_fine, alpha * d, s_fine, harm)
-                    if np.all((p >= lo) & (p <= hi)):
-                        length = float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
-                        candidates.append((length, p, post, kind))
-                    break                  # the smallest amplitude along this direction
-        achievable.append((math.degrees(lo_hi[0]), math.degrees(lo_hi[1])) if lo_hi[0] <= lo_hi[1]
-                          else (math.nan, math.nan))
-    search_s = time.perf_counter() - t0
-    candidates.sort(key=lambda c: c[0])
-    t1 = time.perf_counter()
-    n_checked = 0
-    best_clear = -math.inf
-    dof_cols = list(robot.planned_joints)
+                    post = gap(f_star)[1]
+                    if post is not None:
+                        front.append((post, kind, make_base(post, kind)))
+                        postures.append(post)
+        families = front + families
+    base_paths = np.stack([base(s_coarse) for _, _, base in families])
+    own = _attitude_changes(np.ascontiguousarray(_full(start_full, base_paths)), pair, inertia)
+    # least correction first (to 1e-3 rad: the tolerance-matched postures first, the field's first)
+    order = sorted(range(len(families)), key=lambda i: (round(abs(own[i] - families[i][0].attitude_change_rad), 3), i))
     checker = CollisionChecker(robot, scene)
-    for length, p, post, kind in candidates[:SEARCH["max_checks"]]:
-        if check is not None:
-            check()
-        n_checked += 1
-        full = _full(start_full, p)
-        # a quick look at the rows first (the kernel's drift, the body where the CoM puts it)
-        moved = full.copy()
-        moved[:, 0] += _attitude_profiles(full[None], pair, inertia)[0]
-        com = system_com_m(robot, masses, moved)
-        clr = checker.clearance_shifted_m(moved, com[0] - com)
-        best_clear = max(best_clear, float(clr.min()))
-        if not np.all(clr > scene.safety_margin_m):
+    dof_cols = list(robot.planned_joints)
+    n_candidates = n_checked = 0
+    best_clear = -math.inf
+    search_s = verify_s = 0.0
+    reach = {}                    # branch (or the goal) -> (lowest, highest) attitude change, rad
+    found = None
+    for f_i in order:
+        post, kind, base = families[f_i]
+        need = post.attitude_change_rad
+        t_s = time.perf_counter()
+        coef = dirs[:, None] * amps[None, :, None, None]                       # (D, A, m, H)
+        paths = _family(base(s_coarse), coef, s_coarse, harm)                 # (D, A, K, m)
+        inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))          # (D, A)
+        flat = paths.reshape(-1, len(s_coarse), len(arm))
+        delta = _attitude_changes(np.ascontiguousarray(_full(start_full, flat)), pair, inertia)
+        delta = delta.reshape(inside.shape)
+        if not inside.any():
             continue
-        planned = full[:, dof_cols]
-        drift = check_drifted(robot, masses, scene, planned, motions=None)
-        best_clear = max(best_clear, drift.min_clearance_m)
-        if not drift.ok:
-            continue
+        r = reach.get(post.branch, (math.inf, -math.inf))
+        reach[post.branch] = (min(r[0], float(delta[inside].min())), max(r[1], float(delta[inside].max())))
+        # the final paths: no joint moves more than about 0.4° between rows
+        step = float(np.max(np.abs(np.diff(paths[inside], axis=-2)))) * (len(s_coarse) - 1)
+        s_fine = np.linspace(0.0, 1.0, int(max(241, math.ceil(step / math.radians(0.4)) + 1)))
+        base_fine = base(s_fine)
+        # the brackets (the smallest amplitude along each direction), the coarse path's length at
+        # the interpolated root; refined on the final path only when certified, shortest first
+        candidates = []
+        for d_i, d in enumerate(dirs):
+            f = delta[d_i] - need
+            for a_i in range(len(amps) - 1):
+                if not (inside[d_i, a_i] and inside[d_i, a_i + 1]) or f[a_i] * f[a_i + 1] > 0.0:
+                    continue
+                w = f[a_i] / (f[a_i] - f[a_i + 1]) if f[a_i] != f[a_i + 1] else 0.0
+                approx = _family(base(s_coarse), (amps[a_i] + w * (amps[a_i + 1] - amps[a_i])) * d, s_coarse, harm)
+                candidates.append((float(np.sum(np.linalg.norm(np.diff(approx, axis=0), axis=1))), d_i, a_i))
+                break
+        candidates.sort()
+        n_candidates += len(candidates)
+        search_s += time.perf_counter() - t_s
+        t_v = time.perf_counter()
+        for _, d_i, a_i in candidates[:SEARCH["max_checks"]]:
+            if check is not None:
+                check()
+            d = dirs[d_i]
+
+            def miss(alpha, d=d):
+                p = _family(base_fine, alpha * d, s_fine, harm)
+                return _attitude_changes(_full(start_full, p)[None], pair, inertia)[0] - need
+
+            try:
+                alpha = brentq(miss, amps[a_i], amps[a_i + 1], xtol=1e-10, rtol=1e-12)
+            except ValueError:             # the final path's sign differs from the coarse one's
+                continue
+            p = _family(base_fine, alpha * d, s_fine, harm)
+            if not np.all((p >= lo) & (p <= hi)):
+                continue
+            n_checked += 1
+            full = _full(start_full, p)
+            # a quick look at the rows first (the kernel's drift, the body where the CoM puts it)
+            moved = full.copy()
+            moved[:, 0] += _attitude_profiles(full[None], pair, inertia)[0]
+            com = system_com_m(robot, masses, moved)
+            clr = checker.clearance_shifted_m(moved, com[0] - com)
+            best_clear = max(best_clear, float(clr.min()))
+            if not np.all(clr > scene.safety_margin_m):
+                continue
+            drift = check_drifted(robot, masses, scene, full[:, dof_cols])
+            if drift.ok:
+                found = (p, post, kind, drift)
+                break
+        verify_s += time.perf_counter() - t_v
+        if found is not None:
+            break
+    search_s = time.perf_counter() - t0 - verify_s     # with the postures and the guides
+    needed = tuple(sorted({(p.branch, round(math.degrees(p.attitude_change_rad), 9)) for p in postures}))
+    achievable = tuple((b, math.degrees(r[0]), math.degrees(r[1])) for b, r in sorted(reach.items(),
+                                                                                  key=lambda kv: str(kv[0])))
+    if found is not None:
+        p, post, kind, drift = found
+        planned = _full(start_full, p)[:, dof_cols]
         resp = free_floating_response(robot, masses, planned, scene.target.grasp_point_m)
         if 0 in robot.planned_joints:                  # the attitude column: as it drifts
-            planned = planned.copy()
             planned[:, dof_cols.index(0)] = resp.q_full_rad[:, 0]
         approach = math.degrees(approach_error_rad(robot, scene.target, resp.q_full_rad[-1]))
-        verify_s = time.perf_counter() - t1
-        return FreeFloatingCapture(True, None, planned, planned[-1].copy(), post, tuple(needed),
-                                   tuple(achievable), resp, drift, resp.tip_miss_m, approach,
-                                   len(candidates), n_checked, search_s, verify_s, kind)
-    verify_s = time.perf_counter() - t1
-    names = ("elbow one way", "elbow the other way") if goal_rad is None else ("the goal",)
-    what = "; ".join(f"{n}: needs {nd:+.1f}° (or {nd - math.copysign(360.0, nd):+.1f}° the other way round), "
-                     f"the arm's motions achieve {a[0]:+.1f}° to {a[1]:+.1f}°"
-                     for n, nd, a in zip(names, needed, achievable))
+        return FreeFloatingCapture(True, None, planned, planned[-1].copy(), post, needed, achievable, resp, drift,
+                                   resp.tip_miss_m, approach, n_candidates, n_checked, search_s, verify_s, kind)
+    names = {0: "elbow one way", 1: "elbow the other way", None: "the goal"}
+    parts = []
+    for b in sorted({p.branch for p in postures}, key=str):
+        nd = [v for bb, v in needed if bb == b]
+        ach = [(lo_, hi_) for bb, lo_, hi_ in achievable if bb == b]
+        need_text = (f"{nd[0]:+.1f}°" if len(nd) == 1 else f"{min(nd):+.1f}° to {max(nd):+.1f}°")
+        other = nd[0] - math.copysign(360.0, nd[0])
+        ach_text = (f"{ach[0][0]:+.1f}° to {ach[0][1]:+.1f}°" if ach else "none within the joint bounds")
+        parts.append(f"{names[b]}: needs {need_text} (or {other:+.1f}° the other way round), the arm's "
+                     f"motions achieve {ach_text}")
+    what = "; ".join(parts)
     if not postures:
         reason = (f"free floating: the grasp pose at {np.round(scene.target.grasp_point_m, 3).tolist()} m is "
                   "out of the arm's reach (no capture posture)")
-    elif not candidates:
+    elif not n_candidates:
         reason = (f"free floating: no arm motion turns the spacecraft by the attitude change the capture needs "
-                  f"({what}; single motions of the family: quintic plus {harm} sine terms per joint, "
-                  f"within the joint bounds)")
+                  f"({what}; single motions of the families: quintic or the field's path plus {harm} sine "
+                  f"terms per joint, within the joint bounds)")
     else:
-        reason = (f"free floating: {len(candidates)} arm motions turn the spacecraft by the needed attitude change "
+        reason = (f"free floating: {n_candidates} arm motions turn the spacecraft by the needed attitude change "
                   f"({what}), but the {n_checked} certified come within the safety margin in the inertial "
                   f"frame (best clearance {best_clear:.3f} m, margin {scene.safety_margin_m} m)")
-    return FreeFloatingCapture(False, reason, np.zeros((0, robot.dof)), None, None, tuple(needed),
-                               tuple(achievable), None, None, math.nan, math.nan, len(candidates), n_checked,
-                               search_s, verify_s)
+    return FreeFloatingCapture(False, reason, np.zeros((0, robot.dof)), None, None, needed, achievable, None, None,
+                               math.nan, math.nan, n_candidates, n_checked, search_s, verify_s)

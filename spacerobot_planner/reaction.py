@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from .collision import CollisionChecker
+from .ik import approach_error_rad
 from .spacecraft import (ACS_MODES, MassProperties, WheelModel, free_floating_response, system_com_m,
                          wheel_load)
 
@@ -102,6 +103,8 @@ class ReactionReport:
         free_floating_attitude_change_deg, free_floating_body_displacement_m,
         free_floating_tip_miss_m: the free-floating response (see FreeFloatingResponse).
         free_floating_min_clearance_m, free_floating_collides: the inertial-frame check.
+        free_floating_approach_error_deg: at the end, the angle between link 3 (attitude
+            drifted) and the handle's inward normal, degrees (nan without a target).
         held_body_displacement_m: how far the body translates with the attitude held
             (the CoM stays put either way), and held_tip_miss_m: the tip's miss that causes
             (vs the grasp point, else vs the planned tip).
@@ -127,6 +130,7 @@ class ReactionReport:
     held_body_displacement_m: float
     held_tip_miss_m: float
     position_tolerance_m: float
+    free_floating_approach_error_deg: float = math.nan
     times_s: np.ndarray | None = None
     wheel_momentum_Nms: np.ndarray | None = None
     wheel_torque_Nm: np.ndarray | None = None
@@ -139,7 +143,7 @@ class ReactionReport:
                 "max_wheel_momentum_Nms", "max_wheel_torque_Nm", "free_floating_attitude_change_deg",
                 "free_floating_body_displacement_m", "free_floating_tip_miss_m",
                 "free_floating_min_clearance_m", "free_floating_collides", "held_body_displacement_m",
-                "held_tip_miss_m", "position_tolerance_m")
+                "held_tip_miss_m", "position_tolerance_m", "free_floating_approach_error_deg")
         out = {}
         for k in keys:
             v = getattr(self, k)
@@ -152,7 +156,8 @@ class ReactionReport:
 def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=None, *,
                     acs_mode: str = "held", max_wheel_momentum_Nms: float | None = None,
                     max_wheel_torque_Nm: float | None = None, grasp_point_m=None,
-                    position_tolerance_m: float = 0.02, motions=None) -> ReactionReport:
+                    position_tolerance_m: float = 0.02, max_approach_error_deg: float | None = None,
+                    motions=None) -> ReactionReport:
     """
     Report the wheel load and free-floating response of a planned motion.
 
@@ -169,6 +174,9 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
         max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits (None or 0: none).
         grasp_point_m: (2,) the inertial grasp point (default: the scene target's, if any).
         position_tolerance_m: largest acceptable free-floating tip miss, metres.
+        max_approach_error_deg: free floating with a target: a tip within the tolerance must
+            also meet the handle within this angle of its normal (a grasp), degrees; None:
+            not judged.
         motions: the scene's ``motion.MotionValidator`` for the drift check (made when None).
 
     Returns
@@ -195,6 +203,8 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
     held_tip = com[0] - com[-1] + robot.tip_position(robot.full(along[-1]))
     held_miss = float(np.linalg.norm(held_tip - (resp.planned_tip_m if grasp_point_m is None
                                                  else np.asarray(grasp_point_m, dtype=float))))
+    approach = (math.degrees(approach_error_rad(robot, scene.target, resp.q_full_rad[-1]))
+                if scene.target is not None else math.nan)
     times = h_w = tau_w = None
     peak_h = peak_tau = None
     if trajectory is not None:
@@ -215,6 +225,10 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
             reason = (f"free floating: the tip misses the grasp by {resp.tip_miss_m:.3f} m > "
                       f"grasp.position_tolerance_m {position_tolerance_m} m (attitude change "
                       f"{resp.attitude_change_deg:.2f}°, body displacement {resp.body_displacement_m:.3f} m)")
+        elif max_approach_error_deg is not None and approach > max_approach_error_deg:
+            reason = (f"free floating: the tip reaches the grasp point (miss {resp.tip_miss_m:.3f} m) but link 3 "
+                      f"meets the handle {approach:.1f}° off its normal > grasp.max_approach_error_deg "
+                      f"{max_approach_error_deg:g}° (attitude change {resp.attitude_change_deg:.2f}°): not a grasp")
     elif peak_h is not None:
         tol = 1.0 + 1e-6
         if wheel.max_momentum_Nms is not None and peak_h > wheel.max_momentum_Nms * tol:
@@ -224,5 +238,5 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
     return ReactionReport(acs_mode, reason is None, reason, peak_h, peak_tau, wheel.max_momentum_Nms,
                           wheel.max_torque_Nm, resp.attitude_change_deg, resp.body_displacement_m,
                           resp.tip_miss_m, drift.min_clearance_m, not drift.ok, held_disp, held_miss,
-                          float(position_tolerance_m), times, h_w, tau_w, resp.q_full_rad[:, 0],
+                          float(position_tolerance_m), approach, times, h_w, tau_w, resp.q_full_rad[:, 0],
                           resp.planned_q_full_rad[:, 0])

@@ -111,12 +111,15 @@ class Publication:
 
     ``arm``/``attitude``: ``adapters.TrajectoryPart`` or None; both None at the goal.
     ``execute``: False for a plan from a request's own start (returned, not sent).
+    ``predicted_drift``: free floating, the attitude as it will drift and the body's
+    displacement (``adapters.predicted_drift``): reported (the action's result), never sent.
     """
 
     stamp_ns: int
     arm: TrajectoryPart | None
     attitude: TrajectoryPart | None
     execute: bool = True
+    predicted_drift: TrajectoryPart | None = None
 
     @property
     def at_goal(self) -> bool:
@@ -615,7 +618,8 @@ class CaptureSession:
         stamp = stamp_for(processed, now, lead_s)
         if stamp is None:            # the record took the join's margin (a stalled machine): publish nothing
             return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
-        outcome.publication = Publication(stamp, processed.arm, processed.attitude, execute)
+        outcome.publication = Publication(stamp, processed.arm, processed.attitude, execute,
+                                          processed.predicted_drift)
         if outcome.publication.sent:
             dense, idx = processed.dense, processed.indices
             with self.lock:
@@ -660,8 +664,11 @@ def result_values(res, reaction) -> dict:
     if approach == approach:
         out["approach_error_deg"] = f"{approach:.2f}"
     if reaction is not None:
-        for key in ("acs_mode", "peak_wheel_momentum_Nms", "peak_wheel_torque_Nm",
-                    "free_floating_attitude_change_deg", "free_floating_tip_miss_m"):
+        keys = ["acs_mode", "peak_wheel_momentum_Nms", "peak_wheel_torque_Nm",
+                "free_floating_attitude_change_deg", "free_floating_tip_miss_m"]
+        if getattr(reaction, "acs_mode", None) == "free_floating":
+            keys += ["free_floating_body_displacement_m", "free_floating_approach_error_deg"]
+        for key in keys:
             value = getattr(reaction, key, None)
             if value is not None:
                 out[key] = f"{value:.4f}" if isinstance(value, float) else str(value)

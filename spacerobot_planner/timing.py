@@ -65,7 +65,8 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
     held and a wheel limit set (``acs.max_wheel_*``), the wheel momentum and torque
     enter the time-optimal parameterisation.  The reaction report then says whether
     the plan is acceptable (free floating: the drifted arm is checked against the
-    inertial scene and the tip miss against ``grasp.position_tolerance_m``).
+    inertial scene, the tip miss against ``grasp.position_tolerance_m`` and, at the grasp
+    point, the approach against ``grasp.max_approach_error_deg``).
 
     Args:
         scenario: ``problem.Scenario`` (robot, scene, masses, acs, joint_limits).
@@ -93,7 +94,9 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
     report = reaction_report(robot, scenario.masses, scenario.scene, path_rad, traj, acs_mode=acs.mode,
                              max_wheel_momentum_Nms=acs.max_wheel_momentum_Nms,
                              max_wheel_torque_Nm=acs.max_wheel_torque_Nm,
-                             position_tolerance_m=acs.position_tolerance_m, motions=motions)
+                             position_tolerance_m=acs.position_tolerance_m,
+                             max_approach_error_deg=scenario.planner_settings.max_approach_error_deg,
+                             motions=motions)
     return Motion(traj, report)
 
 

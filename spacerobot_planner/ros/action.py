@@ -7,7 +7,8 @@ returned, not executed).  A newer goal (or a topic request) supersedes it: it ab
 code SUPERSEDED and the reason; a cancel ends its plan; feedback carries the stage and a
 progress fraction (``waiting_for_joint_states`` while it waits for the first
 joint_states); a bad goal aborts with INVALID_INPUT and the reason.  The result carries
-the published trajectories (``conversions.publication_msgs``) and the plan's figures.
+the published trajectories (``conversions.publication_msgs``; free floating, the predicted
+drift in ``attitude_trajectory``: ``conversions.predicted_drift_msg``) and the plan's figures.
 """
 
 from __future__ import annotations
@@ -66,6 +67,8 @@ class PlanCaptureServer:
         finally:
             node._goals.pop(key, None)
         arm, att = conv.publication_msgs(outcome.publication)
+        if att is None:                # free floating: the predicted drift (never published)
+            att = conv.predicted_drift_msg(outcome.publication)
         result = conv.plan_result(PlanCapture.Result, outcome.code, outcome.reason, arm, outcome.result, att)
         try:
             if outcome.ok:

@@ -38,7 +38,7 @@ __all__ = [
     "pose_to_target", "quaternion_to_yaw", "yaw_to_quaternion", "target_to_pose",
     "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
     "duration_to_s", "s_to_duration", "ns_to_time", "time_to_ns", "potential_slice_values", "obstacle_slice_values",
-    "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result",
+    "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result", "predicted_drift_msg",
     "split_trajectory_msg", "plan_visuals", "slice_axes_and_point", "publication_msgs",
     "OBSTACLE", "UNREACHABLE",
 ]
@@ -459,6 +459,19 @@ def plan_visuals(robot, scene, res, frame: str, grid_frame: str, stamp=None, use
         potential = grid_slice_to_msg(potential_slice_values(log_u, focc, phi_max), grid, (ax, ay), grid_frame,
                                       stamp)
     return markers, cspace, potential
+
+
+def predicted_drift_msg(publication):
+    """
+    Return the free-floating drift of a ``session.Publication`` as a JointTrajectory, or None.
+
+    Joints: the attitude (rad, as it will drift), ``body_x`` and ``body_y`` (the body centre's
+    displacement, inertial frame, m); the publication's stamp.  Reported in the action's
+    result (its ``attitude_trajectory``), never published: nothing commands the attitude.
+    """
+    if publication is None or publication.predicted_drift is None:
+        return None
+    return trajectory_to_msg(publication.predicted_drift, ns_to_time(publication.stamp_ns))
 
 
 def publication_msgs(publication) -> tuple:
