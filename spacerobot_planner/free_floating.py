@@ -576,10 +576,6 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
             continue
         r = reach.get(post.branch, (math.inf, -math.inf))
         reach[post.branch] = (min(r[0], float(delta[inside].min())), max(r[1], float(delta[inside].max())))
-        # the final paths: no joint moves more than about 0.4° between rows
-        step = float(np.max(np.abs(np.diff(paths[inside], axis=-2)))) * (len(s_coarse) - 1)
-        s_fine = np.linspace(0.0, 1.0, int(max(241, math.ceil(step / math.radians(0.4)) + 1)))
-        base_fine = base(s_fine)
         # the brackets (the smallest amplitude along each direction), the coarse path's length at
         # the interpolated root; refined on the final path only when certified, shortest first
         candidates = []
@@ -600,8 +596,12 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
             if check is not None:
                 check()
             d = dirs[d_i]
+            # the final path: no joint moves more than about 0.4° between rows (at the bracket's end)
+            step = float(np.max(np.abs(np.diff(paths[d_i, a_i + 1], axis=0)))) * (len(s_coarse) - 1)
+            s_fine = np.linspace(0.0, 1.0, int(max(241, math.ceil(step / math.radians(0.4)) + 1)))
+            base_fine = base(s_fine)
 
-            def miss(alpha, d=d):
+            def miss(alpha, d=d, s_fine=s_fine, base_fine=base_fine):
                 p = _family(base_fine, alpha * d, s_fine, harm)
                 return _attitude_changes(_full(start_full, p)[None], pair, inertia)[0] - need
 

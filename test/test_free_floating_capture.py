@@ -1,0 +1,157 @@
+"""
+Free-floating capture (``free_floating.plan_capture`` through the planner, the CLI and the node's chain).
+
+Judged by the test's own physics and geometry (test/oracles.py): the attitude and the body's
+position from the test's free-floating simulator (``simulate_free_floating``: each step's attitude
+increment solved so that the step's angular momentum about the centre of mass is zero, the body
+moved so that the centre of mass stays put), the tip and link 3 from the test's complex-number
+chain (``arm_points``, ``link3_and_normal_deg``), the inertial collision check by points along the
+links against the target's square and by segment-polygon distances against the spacecraft body.
+"""
+
+import json
+import math
+import re
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from oracles import (arm_points, body_polygon, inside_target_or_margin, link3_and_normal_deg, ref_seg_poly_distance,
+                     simulate_free_floating, wrap_diff)
+from spacerobot_planner.adapters import post_process
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.motion import MotionValidator
+from spacerobot_planner.planner import Planner
+from spacerobot_planner.tools.cli import main
+
+FF = "config/free_floating_capture.yaml"
+S3 = "config/servicer_3dof.yaml"
+
+
+@pytest.fixture(scope="module")
+def capture():
+    sc = load_scenario(FF)
+    return sc, Planner(sc).plan(sc.start_rad)
+
+
+def _judge(sc, path_rad, sub=2):
+    """The test's own drift along a planned path: (q_full (K, 3) with the drifted attitude, body (K, 2))."""
+    return simulate_free_floating(sc.robot, sc.masses, path_rad, sub=sub)
+
+
+def _tip_and_approach(sc, q_full, body):
+    tip = arm_points(sc.robot, q_full)[-1] + body
+    return float(np.linalg.norm(tip - sc.scene.target.grasp_point_m)), link3_and_normal_deg(sc.robot, sc.scene.target,
+                                                                                             q_full)
+
+
+def _body_clearance_m(sc, q_full):
+    """Smallest distance of links 2 and 3 to the spacecraft's own body (a relative check: drift-free)."""
+    best = math.inf
+    for q in q_full:
+        pts = arm_points(sc.robot, q).tolist()
+        poly = body_polygon(sc.robot, q[0]).tolist()
+        best = min(best, *(ref_seg_poly_distance(pts[k], pts[k + 1], poly) for k in (1, 2)))
+    return best
+
+
+def test_capture_grasps_perpendicularly_by_the_tests_own_momentum_integration(capture):
+    sc, res = capture
+    assert res.ok, res.reason
+    assert res.smoothing == "free_floating_capture"
+    assert np.max(np.abs(np.diff(res.path_rad, axis=0))) <= math.radians(0.5)        # the path's promise
+    tol_m = sc.acs.position_tolerance_m
+    tol_deg = sc.planner_settings.max_approach_error_deg
+    # the held-attitude plan of the same scene would miss: the drift is real
+    q, body = _judge(sc, res.path_rad)
+    assert np.all(np.isclose(q[:, 1:], sc.robot.full(res.path_rad)[:, 1:]))       # the arm as planned
+    change_deg = math.degrees(q[-1, 0] - q[0, 0])
+    assert abs(change_deg) > 3.0 and np.linalg.norm(body[-1]) > 0.02
+    # the attitude along the path: the package's prediction (the JSON's path_rad) against the test's
+    doc = res.to_json_dict()
+    assert doc["path_joint_names"] == ["attitude", "shoulder", "elbow"] and doc["joint_names"] == ["shoulder", "elbow"]
+    predicted = np.asarray(doc["path_rad"])
+    assert predicted.shape == (len(res.path_rad), 3)
+    assert np.max(np.abs(wrap_diff(predicted[:, 0], q[:, 0]))) < math.radians(0.02)
+    assert np.allclose(doc["free_floating"]["body_position_m"], body, atol=1e-3)
+    assert doc["free_floating"]["body_displacement_m"] == pytest.approx(np.linalg.norm(body[-1]), abs=1e-3)
+    # the end: at the handle, perpendicular, in the inertial frame
+    miss_m, approach_deg = _tip_and_approach(sc, q[-1], body[-1])
+    assert miss_m < 0.25 * tol_m and approach_deg < tol_deg
+    # collision-free all along: drifted links vs the fixed target (points), links vs the own body
+    assert not inside_target_or_margin(sc.robot, sc.scene, q, body).any()
+    assert _body_clearance_m(sc, q) > sc.scene.safety_margin_m
+
+
+def test_the_executed_trajectory_grasps_too(capture):
+    """The dense trajectory (what the arm follows) judged the same way, and the reaction report agrees."""
+    sc, res = capture
+    traj = res.trajectory
+    q, body = _judge(sc, traj.positions_rad, sub=1)
+    miss_m, approach_deg = _tip_and_approach(sc, q[-1], body[-1])
+    assert miss_m < 0.25 * sc.acs.position_tolerance_m and approach_deg < sc.planner_settings.max_approach_error_deg
+    assert not inside_target_or_margin(sc.robot, sc.scene, q, body).any()
+    rep = res.reaction
+    assert rep.ok and rep.acs_mode == "free_floating" and not rep.free_floating_collides
+    assert rep.free_floating_approach_error_deg == pytest.approx(approach_deg, abs=0.05)
+    assert rep.free_floating_attitude_change_deg == pytest.approx(math.degrees(q[-1, 0] - q[0, 0]), abs=0.02)
+
+
+def test_the_node_chain_publishes_the_arm_only_and_predicts_the_drift(capture):
+    sc, res = capture
+    processed = post_process(sc, res.path_rad, start_rad=sc.start_rad,
+                             motions=MotionValidator.for_scene(sc.robot, sc.scene))
+    assert processed.refused is None and processed.certified
+    assert processed.attitude is None and processed.arm.joint_names == ("shoulder", "elbow")
+    drift = processed.predicted_drift
+    assert drift.joint_names == ("attitude", "body_x", "body_y")
+    assert np.array_equal(drift.times_s, processed.arm.times_s)
+    q, body = _judge(sc, processed.dense.positions_rad, sub=1)
+    idx = processed.indices
+    assert np.max(np.abs(wrap_diff(drift.positions_rad[:, 0], q[idx, 0]))) < math.radians(0.02)
+    assert np.allclose(drift.positions_rad[:, 1:], body[idx], atol=1e-3)
+    doc = processed.to_json_dict()
+    assert doc["attitude_trajectory"] is None and doc["predicted_drift"]["joint_names"] == ["attitude", "body_x",
+                                                                                             "body_y"]
+
+
+def test_the_cli_json_holds_every_joint_and_the_bodys_displacement(tmp_path, capsys):
+    js = tmp_path / "ff.json"
+    rc = main(["--params-file", FF, "--json", str(js), "--quiet"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    d = json.loads(js.read_text())
+    assert d["ok"] and d["path_joint_names"] == ["attitude", "shoulder", "elbow"]
+    path = np.asarray(d["path_rad"])
+    assert path.shape[1] == 3 and path[0, 0] == pytest.approx(math.radians(160.7))
+    assert d["free_floating"]["body_displacement_m"] > 0.02
+    assert d["published_trajectory"]["attitude_trajectory"] is None
+    assert d["reaction"]["free_floating_approach_error_deg"] < 5.0
+
+
+def test_the_3dof_slew_is_refused_with_the_attitude_change_it_needs():
+    """
+    Free floating, the paper's 3-DOF slew (attitude −90° → 160.7°) cannot be made by the arm.
+
+    The refusal names the attitude change (the test's own: 250.7°, or −109.3° the other way) and the
+    range the arm's motions achieve, which must hold a motion the test integrates itself (the
+    straight joint motion) and be far from the change needed.
+    """
+    sc = load_scenario(S3)
+    sc = replace(sc, acs=replace(sc.acs, mode="free_floating"))
+    res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+    assert res.code == "reaction_refused" and not res.ok
+    need = math.degrees(sc.goal_rad[0] - sc.start_rad[0])                           # 250.7
+    m = re.search(r"needs ([-+][\d.]+)° \(or ([-+][\d.]+)° the other way round\), the arm's motions achieve "
+                  r"([-+][\d.]+)° to ([-+][\d.]+)°", res.reason)
+    assert m, res.reason
+    needs = sorted(float(v) for v in m.group(1, 2))
+    assert needs == pytest.approx(sorted([need, need - 360.0]), abs=0.05)
+    lo, hi = float(m.group(3)), float(m.group(4))
+    straight = np.linspace(sc.start_rad, sc.goal_rad, 400)
+    straight[:, 0] = sc.start_rad[0]                                                  # the attitude is not driven
+    q, _ = simulate_free_floating(sc.robot, sc.masses, straight, sub=1)
+    own = math.degrees(q[-1, 0] - q[0, 0])
+    assert lo - 0.1 <= own <= hi + 0.1
+    assert min(abs(n) for n in needs) > 3.0 * max(abs(lo), abs(hi))
