@@ -44,8 +44,8 @@ from .spacecraft import free_floating_response
 from .timing import timed_motion
 from .trajectory import HorizonPassed, Trajectory, resample, sample_points
 
-__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end", "controller_overshoot",
-           "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
+__all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
+           "controller_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
 RESAMPLE_STEP_S = 0.25
@@ -169,8 +169,8 @@ class Processed:
         Return the published trajectory as plain JSON.
 
         ``joint_trajectory`` (arm) and ``attitude_trajectory`` parts, as the node publishes them
-        (null when not published), ``predicted_drift`` (free floating), ``at_goal``, ``certified``, ``min_clearance_m``, and the dense
-        point count.
+        (null when not published), ``predicted_drift`` (free floating), ``at_goal``, ``certified``,
+        ``min_clearance_m``, and the dense point count.
         """
         clr = self.min_clearance_m
         return {"joint_trajectory": None if self.arm is None else self.arm.to_json_dict(),

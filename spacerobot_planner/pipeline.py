@@ -5,7 +5,7 @@ One plan, stage by stage: :func:`run_pipeline` reads top to bottom.
            → smoothing → trajectory
 
 Free floating (``acs.mode: free_floating``) with a target and no goal, or with the attitude
-a planned joint: ``free_floating.plan_capture`` replaces the stages up to smoothing (its
+a planned joint: ``free_floating_capture.plan_capture`` replaces the stages up to smoothing (its
 search is timed as "descent", its inertial certification as "verify"), then the trajectory.
 
 Each stage is a method of :class:`PlanRun` (one call of ``Planner.plan``) that calls
@@ -35,7 +35,7 @@ import numpy as np
 from .contact import leave_contact
 from .descent import colliding_edges
 from .field import bfs_distance
-from .free_floating import apparent_scene, plan_capture
+from .free_floating_capture import apparent_scene, plan_capture
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
@@ -242,7 +242,7 @@ class PlanRun:
 
     def capture_free_floating(self, start_rad, goal_rad):
         """
-        Free floating: the arm's path that ends in the grasp with the body drifted (``free_floating.plan_capture``).
+        Free floating: the arm's path that ends in the grasp, the body drifted (``free_floating_capture.plan_capture``).
 
         Returns a ``smoothing.SmoothPath`` of it (clearance: the inertial check's); refused
         (``reaction_refused``) with the attitude change needed and what the arm's motions
@@ -284,11 +284,11 @@ class PlanRun:
 
     def field_guide(self, posture):
         """
-        The harmonic field's path to a free-floating capture posture's arm joints, or None.
+        Return the harmonic field's path to a free-floating capture posture's arm joints, or None.
 
         Planned in the scene as the body sees it at the end of the motion (turned by the
         posture's attitude change about the body centre, after the body moved:
-        ``free_floating.apparent_scene``), where the posture grasps the handle; the planner's
+        ``free_floating_capture.apparent_scene``), where the posture grasps the handle; the planner's
         planners of those scenes are cached (``Planner.apparent_planner``).  Its stage times
         add to this run's.
         """

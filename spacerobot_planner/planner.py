@@ -222,7 +222,7 @@ class Planner:
     # ------------------------------------------------------------------ caches
     def apparent_planner(self, scene: Scene) -> "Planner":
         """
-        A planner (geometry only) of this scenario in ``scene``, cached by its geometry (at most 4).
+        Return a planner (geometry only) of this scenario in ``scene``, cached by its geometry (at most 4).
 
         The free-floating capture's field guides (``pipeline.PlanRun.field_guide``): the scene
         as the drifted body sees it at the end of the motion.

@@ -95,7 +95,7 @@ class PlanResult:
         free_floating: ``acs.mode: free_floating``: the ``spacecraft.FreeFloatingResponse``
             along path_rad (every joint with the attitude as it drifts, the body's
             position); else None.  ``smoothing`` is "free_floating_capture" when
-            ``free_floating.plan_capture`` planned the path.
+            ``free_floating_capture.plan_capture`` planned the path.
 
     """
 

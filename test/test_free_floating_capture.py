@@ -36,14 +36,14 @@ def capture():
 
 
 def _judge(sc, path_rad, sub=2):
-    """The test's own drift along a planned path: (q_full (K, 3) with the drifted attitude, body (K, 2))."""
+    """Return the test's own drift along a planned path: (q_full (K, 3) with the drifted attitude, body (K, 2))."""
     return simulate_free_floating(sc.robot, sc.masses, path_rad, sub=sub)
 
 
 def _tip_and_approach(sc, q_full, body):
     tip = arm_points(sc.robot, q_full)[-1] + body
-    return float(np.linalg.norm(tip - sc.scene.target.grasp_point_m)), link3_and_normal_deg(sc.robot, sc.scene.target,
-                                                                                             q_full)
+    approach_deg = link3_and_normal_deg(sc.robot, sc.scene.target, q_full)
+    return float(np.linalg.norm(tip - sc.scene.target.grasp_point_m)), approach_deg
 
 
 def _body_clearance_m(sc, q_full):
@@ -112,8 +112,8 @@ def test_the_node_chain_publishes_the_arm_only_and_predicts_the_drift(capture):
     assert np.max(np.abs(wrap_diff(drift.positions_rad[:, 0], q[idx, 0]))) < math.radians(0.02)
     assert np.allclose(drift.positions_rad[:, 1:], body[idx], atol=1e-3)
     doc = processed.to_json_dict()
-    assert doc["attitude_trajectory"] is None and doc["predicted_drift"]["joint_names"] == ["attitude", "body_x",
-                                                                                             "body_y"]
+    assert doc["attitude_trajectory"] is None
+    assert doc["predicted_drift"]["joint_names"] == ["attitude", "body_x", "body_y"]
 
 
 def test_the_cli_json_holds_every_joint_and_the_bodys_displacement(tmp_path, capsys):

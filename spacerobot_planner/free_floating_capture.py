@@ -1,0 +1,573 @@
+"""
+Free-floating capture: plan the arm so that, drifting, it still grasps the handle perpendicularly.
+
+With attitude control off during the motion (``acs.mode: free_floating``) the spacecraft turns
+and translates under the arm (``spacecraft.free_floating_response``): the attitude change
+depends on the arm's whole path (the constraint is nonholonomic), the body's position only on
+the configuration (the system's centre of mass stays put).  :func:`plan_capture` is
+Papadopoulos' method with polynomial joint paths whose free parameters steer the final
+attitude:
+
+1. the capture postures, inertial frame (:func:`capture_postures`): tip at the grasp point,
+   link 3 at the handle's normal turned by an offset within ``grasp.max_approach_error_deg``,
+   the body where the centre of mass puts it; each fixes the attitude change the arm's motion
+   must make;
+2. the base paths from the start's arm joints to the posture's: the rest-to-rest quintic and,
+   from the pipeline, the harmonic field's path in the scene as the drifted body sees it at
+   the end (:func:`apparent_scene`);
+3. the approach offset is a free parameter: where a base path's own attitude change equals
+   the one its posture needs, that base needs no correction (found by Brent's method over
+   the offset, the edge of reach bisected);
+4. otherwise sine terms (``SEARCH["harmonics"]`` per joint) are added along seeded
+   directions of their coefficient space, the amplitude solved (Brent) so that the
+   momentum balance turns the body by exactly the needed change;
+5. the families are taken least correction first, each one's candidates shortest first,
+   each certified in the inertial frame (``reaction.check_drifted``: the body turned and
+   moved, the target fixed); the first certified is the plan.
+
+A change outside what the families' motions achieve is refused with both numbers.  The
+attitude change of a path is integrated by a numba kernel (:func:`attitude_changes_rad`,
+the same quadrature as ``spacecraft.free_floating_response``).  No ROS imports.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from scipy.optimize import brentq
+
+from .collision import CollisionChecker
+from .ik import _fit_to_bounds as fit_to_bounds  # noqa: PLC2701 - the IK module's own helpers
+from .ik import _two_link as two_link  # noqa: PLC2701
+from .ik import approach_error_rad
+from .joint_space import wrap_angle_rad
+from .reaction import DriftCheck, check_drifted
+from .scene import Scene, Target
+from .spacecraft import FreeFloatingResponse, MassProperties, free_floating_response, system_com_m
+
+__all__ = ["apparent_scene", "FreeFloatingCapture", "CapturePostureFF", "capture_postures", "attitude_changes_rad",
+           "plan_capture", "SEARCH"]
+
+
+def apparent_scene(scene, attitude_change_rad, body_position_m):
+    """
+    Return the inertial scene as the body sees it at the end of a free-floating motion.
+
+    Turned by −Δθ1 about the body centre after the body moved by b.
+    """
+    c, s = math.cos(-attitude_change_rad), math.sin(-attitude_change_rad)
+    rot = np.array([[c, -s], [s, c]])
+    b = np.asarray(body_position_m, dtype=float)
+
+    def move(p):
+        return (np.asarray(p, dtype=float) - b) @ rot.T
+
+    target = None
+    if scene.target is not None:
+        t = scene.target
+        target = Target(center_m=tuple(move(t.center_m)), yaw_rad=t.yaw_rad - attitude_change_rad,
+                        body_side_m=t.body_side_m, handle_side_m=t.handle_side_m)
+    return Scene(target=target, debris_m=tuple(move(p) for p in scene.debris_m),
+                 safety_margin_m=scene.safety_margin_m)
+
+
+#: the path family and its search (see :func:`plan_capture`): samples of the coarse scan, the
+#: sine harmonics per arm joint, the scanned amplitudes (rad), the scanned directions of the
+#: coefficient space (seeded, so the plan is deterministic), the candidates certified at most
+SEARCH = {"coarse_samples": 61, "harmonics": 2, "max_amplitude_rad": math.radians(180.0), "amplitudes": 31,
+          "directions": 96, "seed": 0, "max_checks": 400, "approach_fractions": (0.0, -0.5, 0.5, -0.9, 0.9)}
+
+
+@njit(cache=True, nogil=True)
+def _attitude_profiles(paths, pair, inertia):
+    """
+    Attitude change (rad) at every row of each full-joint path of ``paths`` (B, K, n): (B, K).
+
+    The paths are straight between rows.  The momentum row at q: g_k = Σ_j pair[j, k]
+    cos(φ_k − φ_j) + inertia[k] is the angular momentum per unit rate of the absolute angle
+    φ_k (about the system's centre of mass), and H_i = Σ_{k≥i} g_k; free floating
+    dθ1 = −Σ_{i>0} H_i dθ_i / H_0, Simpson's rule per row step.
+    """
+    nb, nk, n = paths.shape
+    out = np.zeros((nb, nk))
+    phi = np.empty(n)
+    g = np.empty(n)
+    for b in range(nb):
+        total = 0.0
+        for k in range(nk - 1):
+            step = 0.0
+            for w_i in range(3):
+                w = 0.5 * w_i
+                acc = 0.0
+                for j in range(n):
+                    acc += paths[b, k, j] + w * (paths[b, k + 1, j] - paths[b, k, j])
+                    phi[j] = acc
+                for kk in range(n):
+                    v = inertia[kk]
+                    for j in range(n):
+                        v += pair[j, kk] * math.cos(phi[kk] - phi[j])
+                    g[kk] = v
+                hsum = 0.0
+                num = 0.0
+                for i in range(n - 1, -1, -1):
+                    hsum += g[i]
+                    if i > 0:
+                        num += hsum * (paths[b, k + 1, i] - paths[b, k, i])
+                step += (4.0 if w_i == 1 else 1.0) * (-num / hsum)
+            total += step / 6.0
+            out[b, k + 1] = total
+    return out
+
+
+def _attitude_changes(paths, pair, inertia):
+    """Return the attitude change over each path of ``paths`` (B, K, n): (B,) rad (see :func:`_attitude_profiles`)."""
+    return _attitude_profiles(paths, pair, inertia)[:, -1]
+
+
+def _com_coefficients(robot, masses):
+    """(n,) c with the system's centre of mass r̄ = Σ_k c_k (cos φ_k, sin φ_k) from the body centre."""
+    masses.check_robot(robot)
+    n = robot.n_joints
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
+    coef = (np.tril(np.ones((n, n)), -1) + 0.5 * np.eye(n)) * lengths[None, :]
+    return np.asarray(masses.link_masses_kg, dtype=float) @ coef / masses.total_mass_kg
+
+
+def _pair_tables(robot, masses):
+    """(pair (n, n), inertia per absolute angle (n,)) of the momentum row (see :func:`_attitude_changes`)."""
+    masses.check_robot(robot)
+    n = robot.n_joints
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
+    coef = (np.tril(np.ones((n, n)), -1) + 0.5 * np.eye(n)) * lengths[None, :]   # link centres
+    a = np.vstack([np.zeros((1, n)), coef])                                       # body first
+    m = np.concatenate([[masses.body_mass_kg], masses.link_masses_kg])
+    ma = m @ a
+    pair = a.T @ (m[:, None] * a) - np.outer(ma, ma) / m.sum()
+    inertia = np.array(masses.link_inertias_kgm2, dtype=float)
+    inertia[0] += masses.body_inertia_kgm2                                        # the body turns with θ1
+    return np.ascontiguousarray(pair), inertia
+
+
+def attitude_changes_rad(robot, masses: MassProperties, paths_full_rad) -> np.ndarray:
+    """
+    Free-floating attitude change of full-joint paths, rad: (K, n) → float, (B, K, n) → (B,).
+
+    The arm joints (columns 1…) straight between rows; column 0 is ignored (it drifts).  The
+    same quadrature as ``spacecraft.free_floating_response`` in a numba kernel.
+    """
+    p = np.asarray(paths_full_rad, dtype=float)
+    pair, inertia = _pair_tables(robot, masses)
+    out = _attitude_changes(np.ascontiguousarray(np.atleast_3d(p) if p.ndim == 3 else p[None]), pair, inertia)
+    return out if p.ndim == 3 else float(out[0])
+
+
+@dataclass(frozen=True)
+class CapturePostureFF:
+    """
+    A capture posture of the free-floating spacecraft, inertial frame.
+
+    Attributes
+    ----------
+        q_full: (n,) rad: tip at the grasp point and link 3 along the handle's inward normal
+            with the body at ``body_m``.
+        body_m: (2,) where the body centre is then (the start's centre of mass kept), metres.
+        attitude_change_rad: the attitude change from the start that this posture needs,
+            wrapped into [−π, π).
+        branch: 0 or 1, the inverse-kinematics branch (elbow one way or the other); None for
+            a goal posture.
+
+    """
+
+    q_full: np.ndarray
+    body_m: np.ndarray
+    attitude_change_rad: float
+    branch: int | None = None
+
+
+def capture_postures(robot, masses: MassProperties, scene, start_full_rad, approach_offset_rad: float = 0.0) -> list:
+    """
+    Return the inertial capture postures of the scene's target from ``start_full_rad`` (n,).
+
+    The grasp pose (the full-pose inverse kinematics of ``ik.grasp_ik`` with the attitude free:
+    both branches; link 3 at the handle's inward normal turned by ``approach_offset_rad``) for
+    the grasp point moved by the body's displacement b, and b = r̄(start) − r̄(q) from that
+    posture, iterated to a fixed point (b is a few centimetres: a handful of steps).  Postures outside
+    the joint bounds are dropped; collisions are not judged here (the inertial check of the
+    whole motion does that).  3-joint chains (``grasp_ik``'s).
+    """
+    q0 = np.asarray(start_full_rad, dtype=float)
+    com_coef = _com_coefficients(robot, masses)
+
+    def com(q):
+        phi = np.cumsum(q)
+        return com_coef @ np.column_stack([np.cos(phi), np.sin(phi)])
+
+    com0 = com(q0)
+    grasp = np.asarray(scene.target.grasp_point_m, dtype=float)
+    psi = scene.target.approach_angle_rad + float(approach_offset_rad)
+    l1, l2, l3 = (float(v) for v in robot.link_lengths_m)
+    elbow0 = grasp - l3 * np.array([math.cos(psi), math.sin(psi)])
+    out = []
+    for branch in (0, 1):
+        body = np.zeros(2)
+        q = None
+        for _ in range(50):
+            sols = two_link((0.0, 0.0), elbow0 - body, l1, l2)     # (θ1, θ2) with the elbow point reached
+            if len(sols) <= branch:
+                q = None
+                break
+            th1, th2 = sorted(sols, key=lambda s: -s[1])[branch]
+            q = np.array([th1, th2, psi - th1 - th2])
+            moved = com0 - com(q)
+            done = float(np.linalg.norm(moved - body)) < 1e-12
+            body = moved
+            if done:
+                break
+        if q is not None:
+            q = fit_to_bounds(robot, wrap_angle_rad(q))
+        if q is not None:
+            out.append(CapturePostureFF(q, body, float(wrap_angle_rad(q[0] - q0[0])), branch))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class FreeFloatingCapture:
+    """
+    What :func:`plan_capture` found (or why not).
+
+    Attributes
+    ----------
+        ok: a path whose free-floating motion ends in the grasp and is certified
+            collision-free in the inertial frame.
+        reason: why not (None when ok): the numbers (attitude change needed, the range the
+            family's motions achieve, or the best clearance).
+        path_rad: (K, dof) planned joints, samples ≤ 0.5° apart; a planned attitude column
+            holds the attitude as it drifts.  (0, dof) when not ok.
+        goal_rad: (dof,) the last row (None when not ok).
+        posture: the chosen :class:`CapturePostureFF` (or the goal's), None when none.
+        needed_deg: ((branch, degrees), …): the attitude change each capture posture (or the
+            goal, branch None) needs.
+        achievable_deg: ((branch, lowest, highest), …): the attitude changes of the families'
+            motions that were searched, within the joint bounds, per branch, degrees.
+        response: ``FreeFloatingResponse`` of ``path_rad`` (inertial), None when not ok.
+        drift: the inertial ``DriftCheck`` of ``path_rad``, None when not ok.
+        tip_miss_m, approach_error_deg: at the end, inertial frame (nan when not ok).
+        candidates: paths with the needed attitude change within the bounds; checked: how many
+            were certified before one passed.
+        search_s, verify_s: seconds in the search and in the inertial certification.
+        family: the base of the chosen path: "field" (the harmonic field's path, see
+            ``base_path``) or "quintic" ("" when not ok).
+
+    """
+
+    ok: bool
+    reason: str | None
+    path_rad: np.ndarray
+    goal_rad: np.ndarray | None
+    posture: CapturePostureFF | None
+    needed_deg: tuple
+    achievable_deg: tuple
+    response: FreeFloatingResponse | None
+    drift: DriftCheck | None
+    tip_miss_m: float
+    approach_error_deg: float
+    candidates: int
+    checked: int
+    search_s: float
+    verify_s: float
+    family: str = ""
+
+
+def _basis(s, harmonics):
+    """(H, K): sin(hπs), h = 1…H: zero at both ends (the base's ends kept)."""
+    return np.stack([np.sin((h + 1) * np.pi * s) for h in range(harmonics)])
+
+
+def _quintic(a0, af):
+    """Return the rest-to-rest quintic a0 → af: a function of s ∈ [0, 1] (K,) → (K, m)."""
+    def at(s):
+        sig = s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s)
+        return a0 + (af - a0) * sig[:, None]
+    return at
+
+
+def _along(path):
+    """Return a path's rows as a function of its normalised joint-space arc length s ∈ [0, 1] (K,) → (K, m)."""
+    p = np.asarray(path, dtype=float)
+    u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    u = u / u[-1] if u[-1] > 0.0 else np.linspace(0.0, 1.0, len(p))
+
+    def at(s):
+        return np.stack([np.interp(s, u, p[:, j]) for j in range(p.shape[1])], axis=-1)
+    return at
+
+
+def _family(base_at_s, coef, s, harmonics):
+    """Arm paths (..., K, m): the base's rows at s plus Σ_h coef[..., j, h] sin((h+1)π s) on joint j."""
+    return base_at_s + np.einsum("...jh,hk->...kj", coef, _basis(s, harmonics))
+
+
+def _directions(m, harmonics, count, seed):
+    """Return unit directions of the (m × harmonics) coefficient space: the axes (both signs), then seeded ones."""
+    dim = m * harmonics
+    eye = np.eye(dim)
+    rnd = np.random.default_rng(seed).normal(size=(max(0, count - 2 * dim), dim))
+    d = np.vstack([eye, -eye, rnd / np.linalg.norm(rnd, axis=1, keepdims=True)])
+    return d.reshape(-1, m, harmonics)
+
+
+def _full(q0, arm_paths):
+    """Full-joint paths: column 0 at the start's attitude (it drifts), the arm columns."""
+    att = np.full(arm_paths.shape[:-1] + (1,), q0[0])
+    return np.concatenate([att, arm_paths], axis=-1)
+
+
+def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties | None = None,
+                 base_path=None, check=None) -> FreeFloatingCapture:
+    """
+    Plan the arm so that the free-floating spacecraft ends grasping the handle perpendicularly.
+
+    Papadopoulos' method: the end posture is fixed (:func:`capture_postures`, or the given
+    goal with the attitude as a planned joint), so is the attitude change Δ the arm's motion
+    must cause.  The arm joints follow a(s) = base(s) + Σ_h c_h sin(hπs) (s ∈ [0, 1],
+    ``SEARCH["harmonics"]`` terms per joint), the base being the rest-to-rest quintic
+    a0 + (af − a0) σ(s) and, when ``base_path`` gives one, a guide path by arc length.  The
+    attitude change of the free-floating motion is a function of the coefficients c; along
+    each of ``SEARCH["directions"]`` directions c = α d the amplitude α is scanned
+    (``SEARCH["amplitudes"]`` values up to ``max_amplitude_rad``, coarse paths) and every
+    bracket of Δ refined by Brent's method on the final path.  Candidates (within the joint
+    bounds) are certified shortest first (``reaction.check_drifted``: the body turned and
+    moved, the target fixed).  No candidate: ``ok`` False with the numbers.
+
+    Args:
+        scenario: a ``config.Scenario`` with a target and ``acs.mode`` free floating; every
+            arm joint planned (the attitude may be planned: its column is the drift).
+        start_rad: (dof,) planned joints; goal_rad: (dof,) a goal posture to reach instead of
+            a capture posture (its attitude is reached by the drift).
+        masses: default ``scenario.masses``.
+        base_path: optional callable(posture) → (K, m) arm path from the start's arm joints to the
+            posture's (or None): a second family on that path (by arc length) besides the
+            quintic — the harmonic field's path in the scene as the body sees it at the end
+            (``pipeline``).
+        check: callable polled between candidates (a cancel check that raises).
+
+    Raises
+    ------
+        ValueError: no target, a locked arm joint, or a chain other than 3 joints.
+
+    """
+    robot, scene = scenario.robot, scenario.scene
+    masses = scenario.masses if masses is None else masses
+    if scene.target is None:
+        raise ValueError("free-floating capture: the scene has no target")
+    if robot.n_joints != 3:
+        raise ValueError("free-floating capture: implemented for the 3-joint chain (attitude, shoulder, elbow)")
+    arm = list(range(1, robot.n_joints))
+    if any(j not in robot.planned_joints for j in arm):
+        raise ValueError("robot.planned_joints: free-floating capture plans every arm joint (only the attitude "
+                         "may be locked)")
+    t0 = time.perf_counter()
+    start_full = robot.full(np.asarray(start_rad, dtype=float))
+    tol = math.radians(scenario.planner_settings.max_approach_error_deg)
+    if goal_rad is None:
+        postures = [p for f in SEARCH["approach_fractions"]
+                    for p in capture_postures(robot, masses, scene, start_full, f * tol)]
+    else:
+        goal_full = robot.full(np.asarray(goal_rad, dtype=float))
+        postures = [CapturePostureFF(goal_full, np.zeros(2), float(wrap_angle_rad(goal_full[0] - start_full[0])))]
+    lo = np.asarray(robot.lower_rad)[arm] - 1e-9
+    hi = np.asarray(robot.upper_rad)[arm] + 1e-9
+    a0 = start_full[arm]
+    harm = SEARCH["harmonics"]
+    dirs = _directions(len(arm), harm, SEARCH["directions"], SEARCH["seed"])
+    amps = np.linspace(0.0, SEARCH["max_amplitude_rad"], SEARCH["amplitudes"])
+    s_coarse = np.linspace(0.0, 1.0, SEARCH["coarse_samples"])
+    pair, inertia = _pair_tables(robot, masses)
+    periodic = np.asarray(robot.periodic)[arm]
+
+    def arm_end(post):
+        af = post.q_full[arm]
+        return np.where(periodic, a0 + wrap_angle_rad(af - a0), af)
+
+    # the families: (posture, name, base); the base's own attitude change (amplitude 0) orders them
+    guides = {}
+
+    def make_base(post, kind):
+        af = arm_end(post)
+        if kind == "quintic":
+            return _quintic(a0, af)
+        if post.branch not in guides:
+            first = next(p for p in postures if p.branch == post.branch)        # approach offset 0
+            g = base_path(first)
+            guides[post.branch] = None if g is None else (_along(g), arm_end(first))
+        if guides[post.branch] is None:
+            return None
+        along, af0 = guides[post.branch]
+        ramp = _quintic(np.zeros_like(af), af - af0)                             # to this posture's end
+        return lambda s: along(s) + ramp(s)
+
+    kinds = ("field", "quintic") if base_path is not None and goal_rad is None else ("quintic",)
+    families = [(post, kind, base) for post in postures for kind in kinds
+                if (base := make_base(post, kind)) is not None]
+    if goal_rad is None:
+        # the approach tolerance as a free parameter: the end posture whose attitude change the
+        # base path itself makes (no correction needed), where one exists within the tolerance
+        s_mid = np.linspace(0.0, 1.0, 801)
+        fracs = np.linspace(-0.95, 0.95, 20)
+        front = []
+        for branch in sorted({p.branch for p in postures}):
+            for kind in kinds:
+                def gap(frac, branch=branch, kind=kind):
+                    posts = [p for p in capture_postures(robot, masses, scene, start_full, frac * tol)
+                             if p.branch == branch]
+                    if not posts:
+                        return math.nan, None
+                    base = make_base(posts[0], kind)
+                    if base is None:
+                        return math.nan, None
+                    own_d = _attitude_changes(np.ascontiguousarray(_full(start_full, base(s_mid))[None]), pair,
+                                              inertia)[0]
+                    return own_d - posts[0].attitude_change_rad, posts[0]
+
+                vals = [gap(f)[0] for f in fracs]
+                for i in range(len(fracs) - 1):
+                    a_f, b_f, b_v = fracs[i], fracs[i + 1], vals[i + 1]
+                    if math.isnan(vals[i]) != math.isnan(b_v):   # the edge of reach: bisect it
+                        inner, outer = (a_f, b_f) if math.isnan(b_v) else (b_f, a_f)
+                        for _ in range(24):
+                            mid = 0.5 * (inner + outer)
+                            inner, outer = (inner, mid) if math.isnan(gap(mid)[0]) else (mid, outer)
+                        a_f, b_f = (a_f, inner) if math.isnan(b_v) else (inner, b_f)
+                        a_v, b_v = gap(a_f)[0], gap(b_f)[0]
+                    else:
+                        a_v = vals[i]
+                    if not (a_v * b_v <= 0.0):                     # no sign change
+                        continue
+                    try:
+                        f_star = brentq(lambda f: gap(f)[0], a_f, b_f, xtol=1e-12)
+                    except ValueError:
+                        continue
+                    post = gap(f_star)[1]
+                    if post is not None:
+                        front.append((post, kind, make_base(post, kind)))
+                        postures.append(post)
+        families = front + families
+    base_paths = np.stack([base(s_coarse) for _, _, base in families])
+    own = _attitude_changes(np.ascontiguousarray(_full(start_full, base_paths)), pair, inertia)
+    # least correction first (to 1e-3 rad: the tolerance-matched postures first, the field's first)
+    order = sorted(range(len(families)), key=lambda i: (round(abs(own[i] - families[i][0].attitude_change_rad), 3), i))
+    checker = CollisionChecker(robot, scene)
+    dof_cols = list(robot.planned_joints)
+    n_candidates = n_checked = 0
+    best_clear = -math.inf
+    search_s = verify_s = 0.0
+    reach = {}                    # branch (or the goal) -> (lowest, highest) attitude change, rad
+    found = None
+    for f_i in order:
+        post, kind, base = families[f_i]
+        need = post.attitude_change_rad
+        t_s = time.perf_counter()
+        coef = dirs[:, None] * amps[None, :, None, None]                       # (D, A, m, H)
+        paths = _family(base(s_coarse), coef, s_coarse, harm)                 # (D, A, K, m)
+        inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))          # (D, A)
+        flat = paths.reshape(-1, len(s_coarse), len(arm))
+        delta = _attitude_changes(np.ascontiguousarray(_full(start_full, flat)), pair, inertia)
+        delta = delta.reshape(inside.shape)
+        if not inside.any():
+            continue
+        r = reach.get(post.branch, (math.inf, -math.inf))
+        reach[post.branch] = (min(r[0], float(delta[inside].min())), max(r[1], float(delta[inside].max())))
+        # the brackets (the smallest amplitude along each direction), the coarse path's length at
+        # the interpolated root; refined on the final path only when certified, shortest first
+        candidates = []
+        for d_i, d in enumerate(dirs):
+            f = delta[d_i] - need
+            for a_i in range(len(amps) - 1):
+                if not (inside[d_i, a_i] and inside[d_i, a_i + 1]) or f[a_i] * f[a_i + 1] > 0.0:
+                    continue
+                w = f[a_i] / (f[a_i] - f[a_i + 1]) if f[a_i] != f[a_i + 1] else 0.0
+                approx = _family(base(s_coarse), (amps[a_i] + w * (amps[a_i + 1] - amps[a_i])) * d, s_coarse, harm)
+                candidates.append((float(np.sum(np.linalg.norm(np.diff(approx, axis=0), axis=1))), d_i, a_i))
+                break
+        candidates.sort()
+        n_candidates += len(candidates)
+        search_s += time.perf_counter() - t_s
+        t_v = time.perf_counter()
+        for _, d_i, a_i in candidates[:SEARCH["max_checks"]]:
+            if check is not None:
+                check()
+            d = dirs[d_i]
+            # the final path: no joint moves more than about 0.4° between rows (at the bracket's end)
+            step = float(np.max(np.abs(np.diff(paths[d_i, a_i + 1], axis=0)))) * (len(s_coarse) - 1)
+            s_fine = np.linspace(0.0, 1.0, int(max(241, math.ceil(step / math.radians(0.4)) + 1)))
+            base_fine = base(s_fine)
+
+            def miss(alpha, d=d, s_fine=s_fine, base_fine=base_fine):
+                p = _family(base_fine, alpha * d, s_fine, harm)
+                return _attitude_changes(_full(start_full, p)[None], pair, inertia)[0] - need
+
+            try:
+                alpha = brentq(miss, amps[a_i], amps[a_i + 1], xtol=1e-10, rtol=1e-12)
+            except ValueError:             # the final path's sign differs from the coarse one's
+                continue
+            p = _family(base_fine, alpha * d, s_fine, harm)
+            if not np.all((p >= lo) & (p <= hi)):
+                continue
+            n_checked += 1
+            full = _full(start_full, p)
+            # a quick look at the rows first (the kernel's drift, the body where the CoM puts it)
+            moved = full.copy()
+            moved[:, 0] += _attitude_profiles(full[None], pair, inertia)[0]
+            com = system_com_m(robot, masses, moved)
+            clr = checker.clearance_shifted_m(moved, com[0] - com)
+            best_clear = max(best_clear, float(clr.min()))
+            if not np.all(clr > scene.safety_margin_m):
+                continue
+            drift = check_drifted(robot, masses, scene, full[:, dof_cols])
+            if drift.ok:
+                found = (p, post, kind, drift)
+                break
+        verify_s += time.perf_counter() - t_v
+        if found is not None:
+            break
+    search_s = time.perf_counter() - t0 - verify_s     # with the postures and the guides
+    needed = tuple(sorted({(p.branch, round(math.degrees(p.attitude_change_rad), 9)) for p in postures}))
+    achievable = tuple((b, math.degrees(r[0]), math.degrees(r[1]))
+                       for b, r in sorted(reach.items(), key=lambda kv: str(kv[0])))
+    if found is not None:
+        p, post, kind, drift = found
+        planned = _full(start_full, p)[:, dof_cols]
+        resp = free_floating_response(robot, masses, planned, scene.target.grasp_point_m)
+        if 0 in robot.planned_joints:                  # the attitude column: as it drifts
+            planned[:, dof_cols.index(0)] = resp.q_full_rad[:, 0]
+        approach = math.degrees(approach_error_rad(robot, scene.target, resp.q_full_rad[-1]))
+        return FreeFloatingCapture(True, None, planned, planned[-1].copy(), post, needed, achievable, resp, drift,
+                                   resp.tip_miss_m, approach, n_candidates, n_checked, search_s, verify_s, kind)
+    names = {0: "elbow one way", 1: "elbow the other way", None: "the goal"}
+    parts = []
+    for b in sorted({p.branch for p in postures}, key=str):
+        nd = [v for bb, v in needed if bb == b]
+        ach = [(lo_, hi_) for bb, lo_, hi_ in achievable if bb == b]
+        need_text = (f"{nd[0]:+.1f}°" if len(nd) == 1 else f"{min(nd):+.1f}° to {max(nd):+.1f}°")
+        other = nd[0] - math.copysign(360.0, nd[0])
+        ach_text = (f"{ach[0][0]:+.1f}° to {ach[0][1]:+.1f}°" if ach else "none within the joint bounds")
+        parts.append(f"{names[b]}: needs {need_text} (or {other:+.1f}° the other way round), the arm's "
+                     f"motions achieve {ach_text}")
+    what = "; ".join(parts)
+    if not postures:
+        reason = (f"free floating: the grasp pose at {np.round(scene.target.grasp_point_m, 3).tolist()} m is "
+                  "out of the arm's reach (no capture posture)")
+    elif not n_candidates:
+        reason = (f"free floating: no arm motion turns the spacecraft by the attitude change the capture needs "
+                  f"({what}; single motions of the families: quintic or the field's path plus {harm} sine "
+                  f"terms per joint, within the joint bounds)")
+    else:
+        reason = (f"free floating: {n_candidates} arm motions turn the spacecraft by the needed attitude change "
+                  f"({what}), but the {n_checked} certified come within the safety margin in the inertial "
+                  f"frame (best clearance {best_clear:.3f} m, margin {scene.safety_margin_m} m)")
+    return FreeFloatingCapture(False, reason, np.zeros((0, robot.dof)), None, None, needed, achievable, None, None,
+                               math.nan, math.nan, n_candidates, n_checked, search_s, verify_s)
