@@ -49,7 +49,7 @@ from .reaction import DriftCheck, check_drifted
 from .scene import Scene, Target
 from .spacecraft import FreeFloatingResponse, MassProperties, free_floating_response, system_com_m
 
-__all__ = ["apparent_scene", "FreeFloatingCapture", "CapturePostureFF", "capture_postures", "attitude_changes_rad",
+__all__ = ["apparent_scene", "check_capture_scenario", "FreeFloatingCapture", "CapturePostureFF", "capture_postures", "attitude_changes_rad",
            "plan_capture", "SEARCH"]
 
 
@@ -77,9 +77,13 @@ def apparent_scene(scene, attitude_change_rad, body_position_m):
 
 #: the path family and its search (see :func:`plan_capture`): samples of the coarse scan, the
 #: sine harmonics per arm joint, the scanned amplitudes (rad), the scanned directions of the
-#: coefficient space (seeded, so the plan is deterministic), the candidates certified at most
+#: coefficient space (seeded, so the plan is deterministic), the candidates certified at most, the
+#: capture postures' approach offsets (fractions of grasp.max_approach_error_deg), and whether the
+#: offset is solved for as a free parameter (step 3), whether the field's guide is used (step 2);
+#: the bench turns those off to measure without them
 SEARCH = {"coarse_samples": 61, "harmonics": 2, "max_amplitude_rad": math.radians(180.0), "amplitudes": 31,
-          "directions": 96, "seed": 0, "max_checks": 400, "approach_fractions": (0.0, -0.5, 0.5, -0.9, 0.9)}
+          "directions": 96, "seed": 0, "max_checks": 400, "approach_fractions": (0.0, -0.5, 0.5, -0.9, 0.9),
+          "approach_as_parameter": True, "field_guide": True}
 
 
 @njit(cache=True, nogil=True)
@@ -326,6 +330,18 @@ def _full(q0, arm_paths):
     return np.concatenate([att, arm_paths], axis=-1)
 
 
+def check_capture_scenario(scenario) -> None:
+    """Raise ValueError (naming what) when :func:`plan_capture` cannot plan for the scenario."""
+    robot = scenario.robot
+    if scenario.scene.target is None:
+        raise ValueError("free-floating capture: the scene has no target")
+    if robot.n_joints != 3:
+        raise ValueError("free-floating capture: implemented for the 3-joint chain (attitude, shoulder, elbow)")
+    if any(j not in robot.planned_joints for j in range(1, robot.n_joints)):
+        raise ValueError("robot.planned_joints: free-floating capture plans every arm joint (only the attitude "
+                         "may be locked)")
+
+
 def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties | None = None,
                  base_path=None, check=None) -> FreeFloatingCapture:
     """
@@ -360,16 +376,10 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         ValueError: no target, a locked arm joint, or a chain other than 3 joints.
 
     """
+    check_capture_scenario(scenario)
     robot, scene = scenario.robot, scenario.scene
     masses = scenario.masses if masses is None else masses
-    if scene.target is None:
-        raise ValueError("free-floating capture: the scene has no target")
-    if robot.n_joints != 3:
-        raise ValueError("free-floating capture: implemented for the 3-joint chain (attitude, shoulder, elbow)")
     arm = list(range(1, robot.n_joints))
-    if any(j not in robot.planned_joints for j in arm):
-        raise ValueError("robot.planned_joints: free-floating capture plans every arm joint (only the attitude "
-                         "may be locked)")
     t0 = time.perf_counter()
     start_full = robot.full(np.asarray(start_rad, dtype=float))
     tol = math.radians(scenario.planner_settings.max_approach_error_deg)
@@ -410,10 +420,11 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         ramp = _quintic(np.zeros_like(af), af - af0)                             # to this posture's end
         return lambda s: along(s) + ramp(s)
 
-    kinds = ("field", "quintic") if base_path is not None and goal_rad is None else ("quintic",)
+    guided = base_path is not None and goal_rad is None and SEARCH["field_guide"]
+    kinds = ("field", "quintic") if guided else ("quintic",)
     families = [(post, kind, base) for post in postures for kind in kinds
                 if (base := make_base(post, kind)) is not None]
-    if goal_rad is None:
+    if goal_rad is None and SEARCH["approach_as_parameter"]:
         # the approach tolerance as a free parameter: the end posture whose attitude change the
         # base path itself makes (no correction needed), where one exists within the tolerance
         s_mid = np.linspace(0.0, 1.0, 801)
@@ -456,7 +467,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
                         front.append((post, kind, make_base(post, kind)))
                         postures.append(post)
         families = front + families
-    base_paths = np.stack([base(s_coarse) for _, _, base in families])
+    base_paths = np.stack([base(s_coarse) for _, _, base in families]) if families else np.zeros((0, 1, len(arm)))
     own = _attitude_changes(np.ascontiguousarray(_full(start_full, base_paths)), pair, inertia)
     # least correction first (to 1e-3 rad: the tolerance-matched postures first, the field's first)
     order = sorted(range(len(families)), key=lambda i: (round(abs(own[i] - families[i][0].attitude_change_rad), 3), i))

@@ -35,7 +35,7 @@ import numpy as np
 from .contact import leave_contact
 from .descent import colliding_edges
 from .field import bfs_distance
-from .free_floating_capture import apparent_scene, plan_capture
+from .free_floating_capture import apparent_scene, check_capture_scenario, plan_capture
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
@@ -262,9 +262,10 @@ class PlanRun:
         self.plan_start = self.start
         guide = self.field_guide if goal is None and 0 not in robot.planned_joints else None
         try:
-            cap = plan_capture(self.sc, self.start, goal, base_path=guide, check=self.check_cancel)
+            check_capture_scenario(self.sc)
         except ValueError as e:
             raise Fail(Code.GOAL_UNREACHABLE, str(e)) from None
+        cap = plan_capture(self.sc, self.start, goal, base_path=guide, check=self.check_cancel)
         self.timings["descent"] += cap.search_s
         self.timings["verify"] += cap.verify_s
         self.stats.update(free_floating_candidates=cap.candidates, free_floating_checked=cap.checked)

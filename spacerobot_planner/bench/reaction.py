@@ -16,6 +16,20 @@ publishes (resampled at 0.25 s).  Then a row for ``config/servicer_4joint.yaml``
 arm, its own masses and wheels, attitude held): plan time, the attitude change, the tip's and
 the approach's error at the end (the tip also in the inertial frame), the wheel peaks and the
 free-floating drift.  Prints a table, then one JSON object per line.
+
+Free floating (``config/free_floating_capture.yaml``, and the 3-DOF slew of
+``config/servicer_3dof.yaml`` with ``acs.mode: free_floating``), one row per method: the
+planner's capture (``free_floating_capture.plan_capture``: the field-guided and quintic
+families with the approach offset as a free parameter), the same without the field's guide,
+the same without the approach offset (exactly perpendicular postures, sine corrections only),
+and the drift compensation (``free_floating.plan_free_floating``): plan time (a new planner,
+then a replan from the same start), attitude change, body displacement, tip miss and approach
+error in the inertial frame (the reaction report of the timed trajectory), path length,
+duration.  Then ``--ff-starts`` cases of the capture scene with a random target (graspable
+perpendicularly by a random posture whose attitude is within 20° of the start's, its centre at
+least 2.2 m from the body's) and a random collision-free arm start: how often each method
+ends in a grasp (tip within ``grasp.position_tolerance_m``, approach within
+``grasp.max_approach_error_deg``, the drifted motion certified).
 """
 
 from __future__ import annotations
@@ -23,12 +37,16 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from .. import free_floating_capture as ffc
 from ..collision import CollisionChecker
 from ..config import load_scenario
+from ..free_floating import plan_free_floating
+from ..ik import grasp_ik
 from ..planner import Planner
 from ..reaction import reaction_report
 from ..spacecraft import MassProperties, WheelModel
@@ -97,11 +115,114 @@ def _median_s(fn, repeats):
     return float(np.median(out))
 
 
+def _ff_row(sc, method, start):
+    """Plan one free-floating scene with ``method``; the row's figures (see the module docstring)."""
+    saved = dict(ffc.SEARCH)
+    try:
+        if method == "capture, no approach offset":
+            ffc.SEARCH["approach_as_parameter"] = False
+        if method == "capture, no field guide":
+            ffc.SEARCH["field_guide"] = False
+        t0 = time.perf_counter()
+        if method == "drift compensation":
+            # its goal: the position-only grasp (the attitude locked) of the best branch, if any
+            goals = grasp_ik(sc.robot, sc.scene)
+            cp = plan_free_floating(replace(sc, acs=replace(sc.acs, compensate_drift=True)), start,
+                                    goals[0].q if goals else None)
+            planner = Planner(sc)
+            res = planner.add_trajectory(cp.plan, start) if cp.plan.ok else cp.plan
+            if cp.plan.ok and res.ok is False and res.code != "reaction_refused":
+                res = cp.plan
+            replan_s = float("nan")
+        else:
+            planner = Planner(sc)
+            res = planner.plan(start)
+            t1 = time.perf_counter()
+            planner.plan(start)
+            replan_s = time.perf_counter() - t1
+        plan_s = time.perf_counter() - t0 - (0.0 if replan_s != replan_s else replan_s)
+    finally:
+        ffc.SEARCH.clear()
+        ffc.SEARCH.update(saved)
+    row = {"stage": "reaction", "grid": sc.params.get("_name", ""), "method": method, "code": str(res.code),
+           "plan_s": plan_s, "replan_s": replan_s}
+    rep = res.reaction
+    if rep is not None:
+        row.update(ff_attitude_change_deg=rep.free_floating_attitude_change_deg,
+                   ff_body_displacement_m=rep.free_floating_body_displacement_m,
+                   ff_tip_miss_m=rep.free_floating_tip_miss_m,
+                   ff_approach_error_deg=rep.free_floating_approach_error_deg,
+                   ff_collides=rep.free_floating_collides, duration_s=res.trajectory.duration_s)
+    if len(res.path_rad):
+        row["path_length_deg"] = float(np.degrees(res.path_length_rad))
+        row["grasp"] = bool(res.ok)
+    else:
+        row["grasp"] = False
+    row["reason"] = res.reason
+    return row
+
+
+FF_METHODS = ("capture", "capture, no field guide", "capture, no approach offset", "drift compensation")
+
+
+def free_floating_rows(n_starts: int, seed: int = 0) -> list:
+    """The free-floating rows (see the module docstring): per scene and method, then the random starts."""
+    rows = []
+    cap = load_scenario(CONFIG / "free_floating_capture.yaml")
+    cap = replace(cap, params=dict(cap.params, _name="free_floating_capture"))
+    slew = load_scenario(CONFIG / "servicer_3dof.yaml")
+    slew = replace(slew, acs=replace(slew.acs, mode="free_floating"),
+                   params=dict(slew.params, _name="servicer_3dof free floating"))
+    for method in FF_METHODS:
+        rows.append(_ff_row(cap, method, cap.start_rad))
+    t0 = time.perf_counter()
+    res = Planner(slew).plan(slew.start_rad, slew.goal_rad)
+    rows.append({"stage": "reaction", "grid": "servicer_3dof free floating", "method": "capture",
+                 "code": str(res.code), "plan_s": time.perf_counter() - t0, "grasp": bool(res.ok),
+                 "reason": res.reason})
+    rng = np.random.default_rng(seed)
+    lo, hi = cap.robot.planned_lower_rad, cap.robot.planned_upper_rad
+    cases = []                   # (scenario with a random target, a random free start)
+    t0_ = cap.scene.target
+    handle = np.asarray(t0_.grasp_point_m) - np.asarray(t0_.center_m)         # at yaw 0
+    while len(cases) < n_starts:
+        # a target graspable perpendicularly by a posture whose attitude is within 20° of the start's
+        # (the arm's motions turn the body by tens of degrees at most)
+        q_grasp = np.array([cap.robot.locked_rad[0] + rng.uniform(-1.0, 1.0) * np.radians(20.0),
+                            rng.uniform(-np.pi, np.pi), rng.uniform(np.radians(20.0), np.radians(160.0))])
+        grasp = cap.robot.tip_position(q_grasp)
+        yaw = float(np.sum(q_grasp)) - 1.5 * np.pi
+        rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        centre = grasp - rot @ handle
+        if np.linalg.norm(centre) < 2.2:
+            continue
+        target = replace(t0_, center_m=(float(centre[0]), float(centre[1])), yaw_rad=float(yaw))
+        sc = cap.with_scene(replace(cap.scene, target=target))
+        checker = CollisionChecker(sc.robot, sc.scene)
+        for _ in range(50):
+            q = rng.uniform(lo, hi)
+            if checker.clearance_m(q) > 0.1:
+                cases.append((sc, q))
+                break
+    for method in FF_METHODS:
+        got = [_ff_row(sc, method, q) for sc, q in cases]
+        ok = [r for r in got if r["grasp"]]
+        rows.append({"stage": "reaction", "grid": f"free_floating_capture, {n_starts} random targets and starts",
+                     "method": method, "grasps": len(ok), "starts": n_starts,
+                     "refused_out_of_range": sum("no arm motion turns" in (r["reason"] or "") for r in got),
+                     "refused_collisions": sum("come within the safety margin" in (r["reason"] or "") for r in got),
+                     "median_plan_s": float(np.median([r["plan_s"] for r in got])),
+                     "median_duration_s": float(np.median([r["duration_s"] for r in ok])) if ok else None,
+                     "median_path_length_deg": float(np.median([r["path_length_deg"] for r in ok])) if ok else None})
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="bench reaction")
     ap.add_argument("--wheel", type=float, nargs=2, default=(50.0, 0.5), metavar=("NMS", "NM"),
                     help="wheel momentum and torque limits (default: the reference page's 50 0.5)")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--ff-starts", type=int, default=12, help="random starts of the free-floating capture scene")
     args = ap.parse_args(argv)
     masses = MassProperties()
     rows = []
@@ -162,7 +283,29 @@ def main(argv=None) -> int:
           f"trajectory {red['duration_s']:.1f} s (wheel peaks {red['peak_wheel_momentum_Nms']:.1f} N·m·s, "
           f"{red['peak_wheel_torque_Nm']:.3f} N·m); free floating it would turn "
           f"{red['ff_attitude_change_deg']:.2f}° and miss by {red['ff_tip_miss_m']:.3f} m")
-    for r in rows + [red]:
+    ff = free_floating_rows(args.ff_starts)
+    print("free floating (inertial frame; plan = new planner, replan = same start again):")
+    print(f"  {'scene':32} {'method':28} {'code':17} {'plan s':>7} {'replan':>7} {'Δθ1 °':>7} {'body m':>7} "
+          f"{'tip m':>9} {'appr °':>7} {'path °':>7} {'T s':>6}")
+    for r in ff:
+        if "starts" in r:
+            continue
+
+        def f(key, fmt):
+            v = r.get(key)
+            return format(v, fmt) if isinstance(v, float) and v == v else "-"
+        print(f"  {r['grid']:32} {r['method']:28} {r['code']:17} {f('plan_s', '7.2f')} {f('replan_s', '7.2f')} "
+              f"{f('ff_attitude_change_deg', '7.2f')} {f('ff_body_displacement_m', '7.3f')} "
+              f"{f('ff_tip_miss_m', '9.2e')} {f('ff_approach_error_deg', '7.2f')} {f('path_length_deg', '7.1f')} "
+              f"{f('duration_s', '6.2f')}")
+    for r in ff:
+        if "starts" in r:
+            print(f"  {r['grid']}: {r['method']}: {r['grasps']}/{r['starts']} grasps (refused: "
+                  f"{r['refused_out_of_range']} out of the motions' attitude range, {r['refused_collisions']} "
+                  f"collide), median plan "
+                  f"{r['median_plan_s']:.2f} s, median duration {r['median_duration_s']} s, median path "
+                  f"{r['median_path_length_deg']}°")
+    for r in rows + [red] + ff:
         print(json.dumps(r))
     return 0
 
