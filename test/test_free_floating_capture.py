@@ -23,6 +23,8 @@ from spacerobot_planner.adapters import post_process
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.motion import MotionValidator
 from spacerobot_planner.planner import Planner
+from spacerobot_planner.ros import conversions as conv
+from spacerobot_planner.session import Publication, result_values
 from spacerobot_planner.tools.cli import main
 
 FF = "config/free_floating_capture.yaml"
@@ -111,6 +113,16 @@ def test_the_node_chain_publishes_the_arm_only_and_predicts_the_drift(capture):
     idx = processed.indices
     assert np.max(np.abs(wrap_diff(drift.positions_rad[:, 0], q[idx, 0]))) < math.radians(0.02)
     assert np.allclose(drift.positions_rad[:, 1:], body[idx], atol=1e-3)
+    # what the node makes of it: the action result's attitude_trajectory, the diagnostics' values
+    publication = Publication(123, processed.arm, processed.attitude, True, drift)
+    arm_msg, att_msg = conv.publication_msgs(publication)
+    assert arm_msg is not None and att_msg is None                                   # nothing commands the attitude
+    msg = conv.predicted_drift_msg(publication)
+    assert list(msg.joint_names) == ["attitude", "body_x", "body_y"] and len(msg.points) == len(drift.times_s)
+    assert np.allclose(msg.points[-1].positions, drift.positions_rad[-1])
+    values = result_values(res, processed.reaction)
+    assert float(values["free_floating_body_displacement_m"]) == pytest.approx(np.linalg.norm(body[-1]), abs=1e-3)
+    assert float(values["free_floating_approach_error_deg"]) < sc.planner_settings.max_approach_error_deg
     doc = processed.to_json_dict()
     assert doc["attitude_trajectory"] is None
     assert doc["predicted_drift"]["joint_names"] == ["attitude", "body_x", "body_y"]

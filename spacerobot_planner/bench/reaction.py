@@ -302,9 +302,9 @@ def main(argv=None) -> int:
         if "starts" in r:
             print(f"  {r['grid']}: {r['method']}: {r['grasps']}/{r['starts']} grasps (refused: "
                   f"{r['refused_out_of_range']} out of the motions' attitude range, {r['refused_collisions']} "
-                  f"collide), median plan "
-                  f"{r['median_plan_s']:.2f} s, median duration {r['median_duration_s']} s, median path "
-                  f"{r['median_path_length_deg']}°")
+                  f"collide), median plan {r['median_plan_s']:.2f} s; of the grasps, median duration "
+                  f"{r['median_duration_s'] or float('nan'):.2f} s, median path "
+                  f"{r['median_path_length_deg'] or float('nan'):.1f}°")
     for r in rows + [red] + ff:
         print(json.dumps(r))
     return 0
