@@ -39,6 +39,7 @@ from .cspace import GridSpec, body_occupancy, build_cspace
 from .descent import descend
 from .field import solve_field
 from .field import warm_up as field_warm_up
+from .free_floating_capture import attitude_changes_rad
 from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
 from .motion import MotionValidator
 from .pipeline import PlanRun
@@ -375,4 +376,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
         if planner.plan(start, goal).ok:
             break
     field_warm_up()             # the solver kernels a coarse grid does not reach
+    if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
+        # the free-floating capture's attitude kernel (numba)
+        attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))
     return time.perf_counter() - t0
