@@ -49,8 +49,8 @@ from .reaction import DriftCheck, check_drifted
 from .scene import Scene, Target
 from .spacecraft import FreeFloatingResponse, MassProperties, free_floating_response, system_com_m
 
-__all__ = ["apparent_scene", "check_capture_scenario", "FreeFloatingCapture", "CapturePostureFF", "capture_postures", "attitude_changes_rad",
-           "plan_capture", "SEARCH"]
+__all__ = ["apparent_scene", "check_capture_scenario", "FreeFloatingCapture", "CapturePostureFF", "capture_postures",
+           "attitude_changes_rad", "plan_capture", "SEARCH"]
 
 
 def apparent_scene(scene, attitude_change_rad, body_position_m):

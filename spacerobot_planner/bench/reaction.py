@@ -166,7 +166,7 @@ FF_METHODS = ("capture", "capture, no field guide", "capture, no approach offset
 
 
 def free_floating_rows(n_starts: int, seed: int = 0) -> list:
-    """The free-floating rows (see the module docstring): per scene and method, then the random starts."""
+    """Return the free-floating rows (see the module docstring): per scene and method, then the random starts."""
     rows = []
     cap = load_scenario(CONFIG / "free_floating_capture.yaml")
     cap = replace(cap, params=dict(cap.params, _name="free_floating_capture"))
