@@ -49,8 +49,8 @@ from .reaction import DriftCheck, check_drifted
 from .scene import Scene, Target
 from .spacecraft import FreeFloatingResponse, MassProperties, free_floating_response, system_com_m
 
-__all__ = ["apparent_scene", "check_capture_scenario", "FreeFloatingCapture", "CapturePostureFF", "capture_postures",
-           "attitude_changes_rad", "plan_capture", "SEARCH"]
+__all__ = ["apparent_scene", "captures_free_floating", "check_capture_scenario", "FreeFloatingCapture",
+           "CapturePostureFF", "capture_postures", "attitude_changes_rad", "plan_capture", "SEARCH"]
 
 
 def apparent_scene(scene, attitude_change_rad, body_position_m):
@@ -328,6 +328,19 @@ def _full(q0, arm_paths):
     """Full-joint paths: column 0 at the start's attitude (it drifts), the arm columns."""
     att = np.full(arm_paths.shape[:-1] + (1,), q0[0])
     return np.concatenate([att, arm_paths], axis=-1)
+
+
+def captures_free_floating(scenario, goal_given: bool) -> bool:
+    """
+    Tell whether a plan of ``scenario`` is a free-floating capture (the pipeline runs :func:`plan_capture`).
+
+    ``acs.mode: free_floating`` (not ``acs.compensate_drift``, the CLI's earlier strategy), a
+    target, and either no goal (capture the target: callers leave the goal to the pipeline)
+    or the attitude a planned joint (its motion must come from the arm's).
+    """
+    acs = scenario.acs
+    return (acs.mode == "free_floating" and not acs.compensate_drift and scenario.scene.target is not None
+            and (not goal_given or 0 in scenario.robot.planned_joints))
 
 
 def check_capture_scenario(scenario) -> None:

@@ -35,7 +35,7 @@ import numpy as np
 from .contact import leave_contact
 from .descent import colliding_edges
 from .field import bfs_distance
-from .free_floating_capture import apparent_scene, check_capture_scenario, plan_capture
+from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
@@ -229,16 +229,8 @@ class PlanRun:
         self.check_cancel()
 
     def free_floating_capture(self, goal_rad) -> bool:
-        """
-        Tell whether this plan is a free-floating capture (:meth:`capture_free_floating`).
-
-        ``acs.mode: free_floating`` (not ``acs.compensate_drift``, the CLI's earlier strategy),
-        a target, and either no goal (capture the target) or the attitude a planned joint
-        (its motion must come from the arm's).
-        """
-        acs = self.sc.acs
-        return (acs.mode == "free_floating" and not acs.compensate_drift and self.sc.scene.target is not None
-                and (goal_rad is None or 0 in self.robot.planned_joints))
+        """Tell whether this plan is a free-floating capture (``free_floating_capture.captures_free_floating``)."""
+        return captures_free_floating(self.sc, goal_rad is not None)
 
     def capture_free_floating(self, start_rad, goal_rad):
         """

@@ -47,6 +47,7 @@ from typing import Callable
 import numpy as np
 
 from .config import load_scenario
+from .free_floating_capture import captures_free_floating
 from .planner import Planner
 from .termination import Termination, stall
 
@@ -192,7 +193,7 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
         stall(token, job.stall_s, job.stall_polls)
     _apply_settings(planner, job)
     goal = job.joint_goal
-    if goal is None:
+    if goal is None and not captures_free_floating(planner.scenario, False):   # free floating: the pipeline's
         try:
             goal = planner.goal_from_target()
         except ValueError as e:

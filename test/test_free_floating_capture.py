@@ -167,3 +167,40 @@ def test_the_3dof_slew_is_refused_with_the_attitude_change_it_needs():
     own = math.degrees(q[-1, 0] - q[0, 0])
     assert lo - 0.1 <= own <= hi + 0.1
     assert min(abs(n) for n in needs) > 3.0 * max(abs(lo), abs(hi))
+
+
+def test_the_node_publishes_the_arm_only_and_returns_the_predicted_drift(graph):
+    """The planner node on the capture scene: the action's result and /diagnostics carry the drift."""
+    from action_msgs.msg import GoalStatus
+    from spacerobot_planner_interfaces.action import PlanCapture
+
+    from node_helpers import FAST, load_params_file
+
+    flat = load_params_file(FF)
+    flat.update({k: v[:1] + v[1:2] * 2 for k, v in FAST.items()})
+    g = graph(flat, with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(conv.joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    goal = PlanCapture.Goal()
+    goal.target_pose.header.frame_id = "world"
+    goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = -3.27, -2.60
+    goal.target_pose.pose.orientation.w = 1.0
+    status, res, _ = g.goal_result(g.send_goal(goal))
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    g.wait(lambda: g.n_trajs() == 1, 5, "the arm's trajectory on joint_trajectory")
+    assert list(res.trajectory.joint_names) == ["shoulder", "elbow"]
+    drift = res.attitude_trajectory                       # the prediction, never published
+    assert list(drift.joint_names) == ["attitude", "body_x", "body_y"]
+    assert len(drift.points) == len(res.trajectory.points)
+    assert g.att_trajs == []
+    # the predicted end grasps: the test's own chain at the drifted attitude, the body moved
+    q_end = np.array([drift.points[-1].positions[0], *res.trajectory.points[-1].positions])
+    body = np.array(drift.points[-1].positions[1:])
+    miss_m, approach_deg = _tip_and_approach(g.scenario, q_end, body)
+    assert miss_m < g.scenario.acs.position_tolerance_m and approach_deg < 5.0
+    values = g.planner_values_for_goal(res.trajectory.points[-1].positions)
+    assert values["acs_mode"] == "free_floating"
+    assert float(values["free_floating_body_displacement_m"]) == pytest.approx(np.linalg.norm(body), abs=1e-3)
+    assert float(values["free_floating_attitude_change_deg"]) == pytest.approx(
+        math.degrees(q_end[0] - drift.points[0].positions[0]), abs=1e-3)
