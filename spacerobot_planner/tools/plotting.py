@@ -109,21 +109,26 @@ def _arm_panel(ax, res, scenario, n_poses=12):
         [res.goal_rad] if res.goal_rad is not None else []))
     idx = np.unique(np.linspace(0, len(path) - 1, min(n_poses, len(path))).round().astype(int))
     cmap = plt.get_cmap("plasma")
+    # free floating: the motion as it happens, inertial frame (attitude drifted, body moved)
+    ff = getattr(res, "free_floating", None)
+    drifted = ff is not None and len(ff.q_full_rad) == len(path)
+    fulls = ff.q_full_rad if drifted else robot.full(path)
+    shifts = ff.body_position_m if drifted else np.zeros((len(path), 2))
     for k, i in enumerate(idx):
-        q_full = robot.full(path[i])
-        pts = robot.forward_kinematics(q_full)
+        q_full = fulls[i]
+        pts = robot.forward_kinematics(q_full) + shifts[i]
         first, last = i == idx[0], i == idx[-1] and len(res.path_rad) > 0
         color = _START if first else (_GOAL if last else cmap(0.15 + 0.7 * k / max(1, len(idx) - 1)))
         alpha = 1.0 if (first or last) else 0.45
         lw = 2.6 if (first or last) else 1.3
-        body = robot.body_polygon_world(q_full[0])
+        body = robot.body_polygon_world(q_full[0]) + shifts[i]
         ax.add_patch(Polygon(body, closed=True, fill=False, ec=color, alpha=0.5 if (first or last) else 0.15,
                              lw=1.2))
         ax.plot(pts[:2, 0], pts[:2, 1], ":", color=color, alpha=alpha, lw=1)
         lab = "start" if first else ("goal" if last else None)
         ax.plot(pts[1:, 0], pts[1:, 1], "-o", color=color, alpha=alpha, lw=lw, ms=2.5, label=lab)
     if len(res.path_rad):
-        tip = robot.tip_position(robot.full(res.path_rad))
+        tip = robot.tip_position(fulls) + shifts
         ax.plot(tip[:, 0], tip[:, 1], "--", color="k", lw=0.8, alpha=0.6, label="tip trace")
     ax.plot(0, 0, "k+", ms=8)
     reach = float(np.sum(robot.link_lengths_m))
@@ -133,7 +138,8 @@ def _arm_panel(ax, res, scenario, n_poses=12):
     ax.grid(alpha=0.3)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(f"arm motion (body turns with θ1; margin {margin} m)", fontsize=10)
+    what = ("free floating, inertial frame: the body drifts" if drifted else "body turns with θ1")
+    ax.set_title(f"arm motion ({what}; margin {margin} m)", fontsize=10)
     ax.legend(loc="lower right", fontsize=7)
 
 
@@ -159,14 +165,17 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
         ax = axes[0]
         _image(ax, cs.occupied, grid, 0, 1, cmap=_occ_cmap(), vmin=0, vmax=1)
         _plot_path_2d(ax, res, robot, 0, 1)
-        ax.set_title(f"C-space {grid.label()} (grey: collision incl. margin)", fontsize=10)
+        ax.set_title(f"C-space {grid.label()} (grey: collision incl. margin"
+                     f"{', body at its start pose' if res.free_floating is not None else ''})", fontsize=10)
         ax.legend(loc="upper left", fontsize=7)
         ax = axes[1]
         if phi is not None:
             _potential_panel(ax, fig, phi, grid, 0, 1, "harmonic potential φ")
         else:
             _image(ax, cs.occupied, grid, 0, 1, cmap=_occ_cmap(), vmin=0, vmax=1)
-            ax.set_title("no field (planning stopped before it)", fontsize=10)
+            ax.set_title("no field (free-floating capture: its guide is planned in the drifted body's scene)"
+                         if res.smoothing == "free_floating_capture" else "no field (planning stopped before it)",
+                         fontsize=10)
         _plot_path_2d(ax, res, robot, 0, 1, label=False)
         for ax in axes[:2]:
             ax.set_xlabel(f"θ ({names[0]}) [deg]")
