@@ -2,7 +2,7 @@
 Full offline plan, per stage, on the paper's scenes; the paper's Gauss–Seidel as baseline.
 
     python -m spacerobot_planner.bench plan [--cases 2dof:180,3dof:36] [--repeats 3]
-        [--solver log_harmonic] [--baseline-max-sweeps N]
+        [--solver log_harmonic] [--baseline-max-sweeps N] [--profile]
 
 Grids: 2-DOF 180² (181×181), 360², 720²; 3-DOF 36³, 72³, 120³.  Per case, after a
 JIT warm-up: C-space, field, descent, smoothing + verify and total of a fresh plan
@@ -28,6 +28,7 @@ from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
 from ..planner import Planner
+from .profile import StepProfile, print_rows
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 CASES = (("2dof", 180), ("2dof", 360), ("2dof", 720), ("3dof", 36), ("3dof", 72), ("3dof", 120))
@@ -108,6 +109,24 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
     return rows
 
 
+def profile_case(scene: str, cells: int, solver: str, repeats: int) -> list:
+    """Per-step profile of ``repeats`` fresh plans, then of as many cached replans (JSON rows)."""
+    sc = _scenario(scene, cells)
+    n = 1 if sc.grid.n_nodes > BIG_GRID_NODES else repeats
+    planners = [Planner(sc, solver=solver, max_grid_nodes=max(4_000_000, sc.grid.n_nodes)) for _ in range(n)]
+    starts = _new_start(sc, planners[0])
+    out = []
+    for kind in ("fresh plan", "cached replan"):
+        with StepProfile() as prof:
+            for pl in planners:
+                pl.plan(sc.start_rad if kind == "fresh plan" else starts, sc.goal_rad)
+        rows = prof.rows(plans=n)
+        print_rows(f"{scene} {sc.grid.label()}, {kind} (mean of {n})", rows)
+        out += [{"stage": "profile", "scene": f"paper_{scene}", "grid": sc.grid.label(), "plan": kind, **r}
+                for r in rows]
+    return out
+
+
 def _parse_cases(text):
     if not text:
         return CASES
@@ -127,6 +146,7 @@ def main(argv=None) -> int:
     ap.add_argument("--solver", default=DEFAULT_SOLVER, choices=SOLVERS)
     ap.add_argument("--baseline-max-sweeps", type=int, default=400,
                     help=f"cap of the Gauss–Seidel baseline on grids above {BIG_GRID_NODES:,} nodes")
+    ap.add_argument("--profile", action="store_true", help="also print the per-step profile of each case")
     args = ap.parse_args(argv)
     cases = _parse_cases(args.cases)
     t0 = time.perf_counter()
@@ -150,6 +170,9 @@ def main(argv=None) -> int:
               f"{1e3 * r['trajectory']['seconds']:>7.1f}"
               f"{1e3 * r['total']['seconds']:>10.1f}{1e3 * r['replan_cached']['seconds']:>9.2f}"
               f"{1e3 * f['baseline_seconds']:>9.0f}{capped}{f['ratio']:>8.1f}  {path}", flush=True)
+    if args.profile:
+        for scene, cells in cases:
+            all_rows += profile_case(scene, cells, args.solver, args.repeats)
     if any(row.get("baseline_capped") for row in all_rows):
         print(f"* Gauss–Seidel baseline capped at {args.baseline_max_sweeps} sweeps (not converged): "
               "its time and the ratio are lower bounds")

@@ -9,6 +9,8 @@ random locked attitude, and 3-DOF at 36³.  The goal is the planner's own (the b
 capture posture of the target), so some scenes end before the field (``goal_unreachable``,
 ``goal_in_collision``): the code counts say how many.
 
+``--profile`` adds the per-step profile (``bench/profile.py``), the mean per scene.
+
 Scenes are drawn until ``count`` of them have a free start and a reachable capture
 posture (the draws that did not are counted: ``no_free_start``, ``goal_unreachable``).
 Each is planned once by a fresh planner after a JIT warm-up.  Prints per stage the
@@ -35,6 +37,7 @@ from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..planner import STAGES, Planner
 from ..scene import Scene, Target
+from .profile import StepProfile, print_rows
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 CELLS = {2: 180, 3: 36}
@@ -94,9 +97,10 @@ def _warm_up(dof: int) -> None:
     Planner(sc).plan(sc.start_rad, sc.goal_rad)
 
 
-def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict) -> list:
+def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile: bool = False) -> list:
     """Plan ``count`` random scenes; return the JSON rows (and print the table)."""
     _warm_up(dof)
+    prof = StepProfile() if profile else None
     rng = np.random.default_rng([seed, dof])
     per_stage = {k: [] for k in STAGES}
     codes = Counter()
@@ -115,7 +119,11 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict) -> list
         except ValueError:
             drawn["goal_unreachable"] += 1
             continue
-        res = planner.plan(start, goal)
+        if prof is not None:
+            with prof:
+                res = planner.plan(start, goal)
+        else:
+            res = planner.plan(start, goal)
         codes[res.code] += 1
         for k in STAGES:
             if res.timings_s.get(k, 0.0) > 0.0 or k == "total":
@@ -136,6 +144,10 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict) -> list
           + "; draws skipped: " + (", ".join(f"{c} {n}" for c, n in drawn.most_common()) or "none"))
     rows.append({"stage": "codes", "grid": grid_label, "dof": dof, "seed": seed, "codes": dict(codes),
                  "skipped_draws": dict(drawn)})
+    if prof is not None:
+        prof_rows = prof.rows(plans=count)
+        print_rows(f"{dof}-DOF at {grid_label}, mean over {count} scenes", prof_rows)
+        rows += [{"stage": "profile", "grid": grid_label, "dof": dof, "seed": seed, **r} for r in prof_rows]
     rows += _oracle_rows(planned[:n_oracle], grid_label, dof, seed)
     return rows
 
@@ -170,11 +182,12 @@ def main(argv=None) -> int:
     ap.add_argument("--dof", default="2,3", help="comma list of 2 and/or 3")
     ap.add_argument("--oracle", type=int, default=20, help="planned scenes compared with the oracle field")
     ap.add_argument("--solver", default=None, help="field solver (default: the planner's)")
+    ap.add_argument("--profile", action="store_true", help="also print the per-step profile (mean per scene)")
     args = ap.parse_args(argv)
     kw = {} if args.solver is None else {"solver": args.solver}
     rows = []
     for dof in (int(d) for d in args.dof.split(",")):
-        rows += run(dof, args.count, args.seed, args.oracle, kw)
+        rows += run(dof, args.count, args.seed, args.oracle, kw, args.profile)
     for r in rows:
         print(json.dumps(r))
     return 0
