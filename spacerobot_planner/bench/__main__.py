@@ -1,7 +1,7 @@
 """
 Benchmarks.
 
-``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,redundant,startup,cancel,envelope,all}
+``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,redundant,startup,cancel,envelope,peers,all}
 [options]``.
 
 Every benchmark warms the JIT first, prints a readable table, and one JSON object per
@@ -14,7 +14,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction", "redundant", "startup", "cancel", "envelope")
+BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction", "redundant", "startup", "cancel", "envelope", "peers")
 
 
 def main(argv=None) -> int:
