@@ -304,6 +304,96 @@ def _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
 
 
 @njit(cache=True, nogil=True)
+def _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
+    """
+    How far x_i = x is from admitting an x_{i+1} (≤ 0: it does), and its slope in x.
+
+    The constraints of :func:`_next_range` as functions of x: every bound on x_{i+1} is
+    affine in x, so ``lo(x) - hi(x)`` (largest lower bound less smallest upper bound) and
+    the bounds on x alone (a constraint with no x_{i+1} term) make up a convex piecewise
+    linear function; returns its value and the slope of the piece that attains it.
+    """
+    inv = 0.5 / delta[i]
+    lo, s_lo = 0.0, 0.0
+    hi, s_hi = min(xv[i + 1], k_next), 0.0
+    g, s_g = -np.inf, 0.0
+    for end in range(2):
+        p = i + end
+        for r in range(a_row.shape[1]):
+            c = c_row[p, r]
+            if not c < np.inf:
+                continue
+            b = b_row[p, r]
+            n_var = 2 if kappa[i, r] > 0.0 else 1
+            for var in range(n_var):
+                a = a_row[p, r] + (kappa[i, r] if var == 0 else -kappa[i, r])
+                if end == 0:
+                    beta = a * inv
+                    sr = b - a * inv
+                else:
+                    beta = a * inv + b
+                    sr = -a * inv
+                if beta != 0.0:
+                    cc = c if beta > 0.0 else -c
+                    up = (cc - sr * x) / beta
+                    dn = (-cc - sr * x) / beta
+                    if up < hi:
+                        hi, s_hi = up, -sr / beta
+                    if dn > lo:
+                        lo, s_lo = dn, -sr / beta
+                else:
+                    v = abs(sr) * x - c
+                    if v > g:
+                        g, s_g = v, abs(sr)
+    f = lo - hi
+    if g > f:
+        return g, s_g
+    return f, s_lo - s_hi
+
+
+@njit(cache=True, nogil=True)
+def _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k_next):
+    """
+    Return the largest x_i ≤ xv[i] from which some x_{i+1} ∈ [0, k_next] is admissible (0: none).
+
+    Newton's method from above on the convex piecewise linear :func:`_violation` (each step
+    lands on or above the root, exactly on it once on the last piece: a few steps), then
+    lowered by ulps until :func:`_next_range` (the passes' own test) admits it.
+    """
+    x = xv[i]
+    for _ in range(64):
+        f, slope = _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
+        if f <= 0.0:
+            break
+        if not slope > 0.0:
+            return 0.0
+        x_new = x - f / slope
+        if x_new < 0.0:
+            return 0.0
+        if x_new >= x:
+            break
+        x = x_new
+    for _ in range(64):
+        lo, hi = _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
+        if lo <= hi:
+            return x
+        x = x - max(4.0 * 2.220446049250313e-16 * x, 1e-300)
+        if x <= 0.0:
+            return 0.0
+    a, b = 0.0, x                   # not reached in practice: bisection below the estimate
+    for _ in range(200):
+        mid = 0.5 * (a + b)
+        if mid <= a or mid >= b:
+            break
+        lo, hi = _next_range(i, mid, a_row, b_row, c_row, kappa, xv, delta, k_next)
+        if lo <= hi:
+            a = mid
+        else:
+            b = mid
+    return a
+
+
+@njit(cache=True, nogil=True)
 def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
     """Compute the controllable sets K_i = [0, k_i]: the x_i from which x_N = x_end is reachable."""
     m = xv.shape[0]
@@ -313,18 +403,8 @@ def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
         lo, hi = _next_range(i, xv[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
         if lo <= hi:
             k[i] = xv[i]
-            continue
-        a, b = 0.0, xv[i]           # the feasible x_i form an interval [0, k_i]
-        for _ in range(200):
-            mid = 0.5 * (a + b)
-            if mid <= a or mid >= b:
-                break
-            lo, hi = _next_range(i, mid, a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
-            if lo <= hi:
-                a = mid
-            else:
-                b = mid
-        k[i] = a
+        else:                       # the feasible x_i form an interval [0, k_i]
+            k[i] = _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
     return k
 
 
