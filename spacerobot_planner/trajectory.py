@@ -234,6 +234,102 @@ def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: in
     return np.concatenate([p[:1], out])
 
 
+@njit(cache=True, nogil=True)
+def _not_a_knot_slopes(x, y):
+    """
+    Return the slopes (M, n) at the knots of the not-a-knot cubic spline through (x (M,), y (M, n)), M ≥ 4.
+
+    SciPy's ``CubicSpline`` system (the same rows), solved by LAPACK's ``gtsv`` elimination
+    (tridiagonal, partial pivoting) for every column.
+    """
+    m, n = y.shape
+    dx = x[1:] - x[:-1]
+    out = np.empty((m, n))
+    d = np.empty(m)
+    du = np.empty(m - 1)
+    dl = np.empty(m - 1)
+    du2 = np.empty(m)
+    b = np.empty(m)
+    sl = np.empty(m - 1)
+    for col in range(n):
+        for i in range(m - 1):
+            sl[i] = (y[i + 1, col] - y[i, col]) / dx[i]
+        for i in range(1, m - 1):
+            d[i] = 2.0 * (dx[i - 1] + dx[i])
+            du[i] = dx[i - 1]
+            dl[i - 1] = dx[i]
+            b[i] = 3.0 * (dx[i] * sl[i - 1] + dx[i - 1] * sl[i])
+        w = x[2] - x[0]
+        d[0] = dx[1]
+        du[0] = w
+        b[0] = ((dx[0] + 2.0 * w) * dx[1] * sl[0] + dx[0] ** 2 * sl[1]) / w
+        w = x[m - 1] - x[m - 3]
+        d[m - 1] = dx[m - 3]
+        dl[m - 2] = w
+        b[m - 1] = (dx[m - 2] ** 2 * sl[m - 3] + (2.0 * w + dx[m - 2]) * dx[m - 3] * sl[m - 2]) / w
+        du2[:] = 0.0
+        for i in range(m - 1):
+            if abs(d[i]) >= abs(dl[i]):
+                f = dl[i] / d[i]
+                d[i + 1] -= f * du[i]
+                b[i + 1] -= f * b[i]
+            else:
+                f = d[i] / dl[i]
+                d[i] = dl[i]
+                t = d[i + 1]
+                d[i + 1] = du[i] - f * t
+                if i < m - 2:
+                    du2[i] = du[i + 1]
+                    du[i + 1] = -f * du2[i]
+                du[i] = t
+                t = b[i]
+                b[i] = b[i + 1]
+                b[i + 1] = t - f * b[i + 1]
+        b[m - 1] /= d[m - 1]
+        b[m - 2] = (b[m - 2] - du[m - 2] * b[m - 1]) / d[m - 2]
+        for i in range(m - 3, -1, -1):
+            b[i] = (b[i] - du[i] * b[i + 1] - du2[i] * b[i + 2]) / d[i]
+        for i in range(m):
+            out[i, col] = b[i]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _hermite_on_grid(x, y, slopes, s, refine):
+    """
+    Evaluate the cubic through the knots with these slopes on the refined grid s (G,), G = (M-1)·refine + 1.
+
+    Returns (q, its first and second derivatives (G, n), its third derivative per grid
+    segment (G-1, n)); SciPy's ``CubicHermiteSpline`` coefficients, evaluated in its local
+    power basis.
+    """
+    m, n = y.shape
+    g = s.shape[0]
+    q = np.empty((g, n))
+    d1 = np.empty((g, n))
+    d2 = np.empty((g, n))
+    d3 = np.empty((g - 1, n))
+    for k in range(m - 1):
+        h = x[k + 1] - x[k]
+        last = k == m - 2
+        for col in range(n):
+            sl = (y[k + 1, col] - y[k, col]) / h
+            t = (slopes[k, col] + slopes[k + 1, col] - 2.0 * sl) / h
+            c0 = t / h
+            c1 = (sl - slopes[k, col]) / h - t
+            c2 = slopes[k, col]
+            c3 = y[k, col]
+            for r in range(refine + (1 if last else 0)):
+                j = k * refine + r
+                z = s[j] - x[k]
+                q[j, col] = ((c0 * z + c1) * z + c2) * z + c3
+                d1[j, col] = (3.0 * c0 * z + 2.0 * c1) * z + c2
+                d2[j, col] = 6.0 * c0 * z + 2.0 * c1
+                if j < g - 1:
+                    d3[j, col] = 6.0 * c0
+    return q, d1, d2, d3
+
+
 def _path_model(p, refine: int):
     """
     Fit the cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
@@ -241,6 +337,7 @@ def _path_model(p, refine: int):
     Returns (s, idx, q, d1, d2, d3): grid chord lengths s (G,), the grid indices of the
     samples idx (M,), the spline's q, q', q'' at the grid points (G, n) (q[idx] == p
     exactly) and its q''' per grid segment (G-1, n) (constant on each spline piece).
+    SciPy's not-a-knot ``CubicSpline``, by the kernels above from 4 samples on.
     """
     ds = np.linalg.norm(np.diff(p, axis=0), axis=1)
     s_knots = np.concatenate([[0.0], np.cumsum(ds)])
@@ -248,7 +345,9 @@ def _path_model(p, refine: int):
     s = np.concatenate([(s_knots[:-1, None] + ds[:, None] * frac[None, :]).reshape(-1), s_knots[-1:]])
     idx = np.arange(len(p)) * refine
     s[idx] = s_knots
-    if len(p) >= 3:
+    if len(p) >= 4:
+        q, d1, d2, d3 = _hermite_on_grid(s_knots, p, _not_a_knot_slopes(s_knots, p), s, int(refine))
+    elif len(p) == 3:
         cs = CubicSpline(s_knots, p, axis=0, bc_type="not-a-knot")
         q, d1, d2 = cs(s), cs(s, 1), cs(s, 2)
         d3 = np.repeat(cs(0.5 * (s_knots[:-1] + s_knots[1:]), 3), refine, axis=0)
