@@ -79,11 +79,14 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     next sample goes at most that far (and at most max_step_rad).  An interval
     fails where c ≤ threshold or the certified step falls below min_step_rad.
     With ``certified`` false the samples go ``max_step_rad`` apart whatever the
-    clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
+    clearance (a quick test, not a proof).  Returns the number of clearance evaluations:
+    an interval's last sample is the next one's first vertex itself, evaluated once.
     """
     dof = points.shape[1]
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     n_eval = 0
+    shared = False                  # the previous interval ended at points[i]: its clearance is c
+    c = 0.0
     for i in range(points.shape[0] - 1):
         seg_len = 0.0
         for a in range(dof):
@@ -94,11 +97,16 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
         ok = True
         best = np.inf
         while True:
-            f = t / seg_len if seg_len > 0.0 else 0.0
-            for a in range(dof):
-                q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
-            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
-            n_eval += 1
+            if not (t == 0.0 and shared):       # else: the vertex's clearance, evaluated once
+                if t >= seg_len:                # the end: the vertex itself
+                    for a in range(dof):
+                        q_full[planned[a]] = points[i + 1, a]
+                else:
+                    f = t / seg_len
+                    for a in range(dof):
+                        q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
+                c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+                n_eval += 1
             if c < best:
                 best = c
             if not c > threshold_m:
@@ -113,6 +121,7 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
             t = min(seg_len, t + min(step, max_step_rad))
         interval_ok[i] = ok
         interval_clr[i] = best
+        shared = ok                     # it reached its end: c is the clearance at points[i + 1]
     return n_eval
 
 
