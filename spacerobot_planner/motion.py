@@ -57,6 +57,8 @@ class PathCheck:
         min_clearance_m: smallest clearance over all check samples, metres.
         n_checked: number of configurations tested.
         interval_clearance_m: (M-1,) smallest clearance per interval, metres.
+        vertex_clearance_m: (M,) clearance at each point where the check evaluated it
+            (NaN elsewhere); give it to a later check of the same points to reuse.
 
     """
 
@@ -65,12 +67,13 @@ class PathCheck:
     min_clearance_m: float
     n_checked: int
     interval_clearance_m: np.ndarray = None
+    vertex_clearance_m: np.ndarray = None
 
 
 @njit(cache=True, nogil=True)
 def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts,
                      threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
-                     interval_ok, interval_clr, certified):
+                     interval_ok, interval_clr, certified, vertex_clr):
     """
     Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
 
@@ -79,14 +82,16 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     next sample goes at most that far (and at most max_step_rad).  An interval
     fails where c ≤ threshold or the certified step falls below min_step_rad.
     With ``certified`` false the samples go ``max_step_rad`` apart whatever the
-    clearance (a quick test, not a proof).  Returns the number of clearance evaluations:
-    an interval's last sample is the next one's first vertex itself, evaluated once.
+    clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
+
+    ``vertex_clr`` (M,): the clearance at each point (NaN: not known yet), read where
+    known and filled where evaluated, so a vertex is evaluated once (an interval's first
+    and last samples are the points themselves) and a later check of the same points
+    (the certified check after the quick one) reuses them.
     """
     dof = points.shape[1]
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     n_eval = 0
-    shared = False                  # the previous interval ended at points[i]: its clearance is c
-    c = 0.0
     for i in range(points.shape[0] - 1):
         seg_len = 0.0
         for a in range(dof):
@@ -97,16 +102,21 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
         ok = True
         best = np.inf
         while True:
-            if not (t == 0.0 and shared):       # else: the vertex's clearance, evaluated once
-                if t >= seg_len:                # the end: the vertex itself
+            v = i if t == 0.0 else (i + 1 if t >= seg_len else -1)     # a vertex: its index
+            if v >= 0 and not np.isnan(vertex_clr[v]):
+                c = vertex_clr[v]
+            else:
+                if v >= 0:
                     for a in range(dof):
-                        q_full[planned[a]] = points[i + 1, a]
+                        q_full[planned[a]] = points[v, a]
                 else:
                     f = t / seg_len
                     for a in range(dof):
                         q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
                 c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
                 n_eval += 1
+                if v >= 0:
+                    vertex_clr[v] = c
             if c < best:
                 best = c
             if not c > threshold_m:
@@ -121,7 +131,6 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
             t = min(seg_len, t + min(step, max_step_rad))
         interval_ok[i] = ok
         interval_clr[i] = best
-        shared = ok                     # it reached its end: c is the clearance at points[i + 1]
     return n_eval
 
 
@@ -287,7 +296,7 @@ class MotionValidator:
 
     # ---------------------------------------------------------------- motions
     def check(self, path_rad, *, step_rad: float | None = None, required_clearance_m: float | None = None,
-              min_step_rad: float = 1e-6, certified: bool = True) -> PathCheck:
+              min_step_rad: float = 1e-6, certified: bool = True, vertex_clearance_m=None) -> PathCheck:
         """
         Certified check of the piecewise-linear path through the rows of ``path_rad``.
 
@@ -297,7 +306,9 @@ class MotionValidator:
         safety margin (and at least ``required_clearance_m`` if given).  Bounded joints
         must stay within bounds at the rows (then also between them).  ``certified=False``:
         a quick test at samples ``step_rad`` apart only (for candidates; never for what
-        is returned).
+        is returned).  ``vertex_clearance_m``: (M,) the clearances at the rows from an
+        earlier check of the *same* rows (``PathCheck.vertex_clearance_m``, NaN where not
+        known), reused instead of evaluated again.
         """
         checker = self.checker
         step = self.step_rad if step_rad is None else float(step_rad)
@@ -314,14 +325,21 @@ class MotionValidator:
         interval_ok = np.zeros(m, dtype=np.bool_)
         interval_clr = np.zeros(m)
         lip = lipschitz_m_per_rad(robot)
+        if vertex_clearance_m is None:
+            vertex_clr = np.full(len(p), np.nan)
+        else:
+            vertex_clr = np.array(vertex_clearance_m, dtype=float)
+            if vertex_clr.shape != (len(p),):
+                raise ValueError(f"vertex_clearance_m: expected {len(p)} values (one per row), "
+                                 f"got shape {vertex_clr.shape}")
         n = certify_segments(p, np.asarray(robot.locked_rad, dtype=float),
                              np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
                              checker.checked, checker.body, checker.verts, checker.starts,
                              float(threshold), lip, step, float(min_step_rad),
-                             interval_ok, interval_clr, bool(certified))
+                             interval_ok, interval_clr, bool(certified), vertex_clr)
         interval_ok &= in_bounds[:-1] & in_bounds[1:]
         return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
-                         interval_clr)
+                         interval_clr, vertex_clr)
 
     def first_bad_segment(self, points_rad, step_rad: float | None = None) -> int:
         """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""

@@ -46,7 +46,8 @@ class SmoothPath:
         min_clearance_m: smallest clearance over the dense check, metres.
         length_rad: joint-space length (Euclidean), rad.
         refinements: knot-refinement rounds used.
-        n_checked: configurations tested by the final check.
+        n_checked: clearance evaluations of the final check (the vertex clearances it
+            reused from the quick test that chose the path are not counted).
 
     """
 
@@ -152,6 +153,8 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
     seg = np.empty((2, pts.shape[1]))
     ok_iv = np.zeros(1, np.bool_)
     clr_iv = np.zeros(1)
+    vertex_clr = np.full(m, np.nan)   # each vertex's clearance, evaluated once
+    ends_clr = np.empty(2)
     n_keep = 1
     keep[0] = 0
     i = 0
@@ -170,8 +173,13 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                         need = iv_clr[k]
                 seg[0] = pts[i]
                 seg[1] = pts[j]
+                ends_clr[0] = vertex_clr[i]
+                ends_clr[1] = vertex_clr[j]
                 certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts,
-                                 max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified)
+                                 max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified,
+                                 ends_clr)
+                vertex_clr[i] = ends_clr[0]
+                vertex_clr[j] = ends_clr[1]
                 good = ok_iv[0]
             if good:
                 lo = j
@@ -299,17 +307,19 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
         ``knot_stride``-th waypoint (the paper), the polyline itself; None when even the
         polyline fails (or on cancel).  Candidates (shortcuts, spline refinements) are
         chosen by the quick test at ``quick_step_rad``; the chosen path alone is then
-        certified (``MotionValidator.check``), and only if that fails is the choice made again with
-        certified tests throughout.  ``n_checked`` and ``min_clearance_m`` are the
-        certified check's.
+        certified (``MotionValidator.check``, reusing the clearances the quick test
+        evaluated at the path's own rows: the certificate needs only the clearance at each
+        of its samples, whoever evaluated it), and only if that fails is the choice made
+        again with certified tests throughout.  ``n_checked`` and ``min_clearance_m`` are
+        the certified check's.
 
     """
     v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
     first = _smooth(v.with_step(quick_step_rad), waypoints_rad, shortcut, knot_stride,
                     keep_clearance_m, max_step_rad, max_rounds, cancel, False)
     if first is not None:
-        path, knots, method, rounds = first
-        chk = v.check(path)
+        path, knots, method, rounds, quick = first
+        chk = v.check(path, vertex_clearance_m=quick)     # the quick check's vertices reused
         if chk.ok:
             return SmoothPath(path, knots, method, chk.min_clearance_m, path_length_rad(path),
                               rounds, chk.n_checked)
@@ -319,8 +329,8 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
                     max_rounds, cancel, True)
     if again is None:
         return None
-    path, knots, method, rounds = again
-    chk = v.check(path)
+    path, knots, method, rounds, known = again
+    chk = v.check(path, vertex_clearance_m=known)
     if not chk.ok:          # the choice was certified piece by piece: not expected
         return None
     return SmoothPath(path, knots, method, chk.min_clearance_m, path_length_rad(path), rounds,
@@ -330,7 +340,9 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
 def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad, max_rounds, cancel,
             certified):
     """
-    (path, knots, method, rounds) chosen with tests at the step of ``v`` (certified or quick), or None.
+    (path, knots, method, rounds, vertex clearances) chosen with tests at the step of ``v``
+    (certified or quick), or None.  The vertex clearances (one per path row, NaN where not
+    evaluated) are those of the test that accepted the path, for the final check to reuse.
 
     See :func:`smooth_path`.
     """
@@ -346,7 +358,7 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
         rows[-1] = w[-1]
     w = np.array(rows)
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
-        return ends, ends.copy(), "polyline", 0
+        return ends, ends.copy(), "polyline", 0, None
     attempts = []
     if shortcut and len(w) > 2:
         keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified)
@@ -365,11 +377,16 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
         res = _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified)
         if res is not None:
             samples, knots, chk, rounds = res
+            known = None if chk.vertex_clearance_m is None else chk.vertex_clearance_m.copy()
+            for k, end in ((0, w[0]), (-1, w[-1])):
+                if known is not None and not np.array_equal(samples[k], end):
+                    known[k] = np.nan           # moved: evaluated again
             samples[0], samples[-1] = w[0], w[-1]
-            return samples, knots, method, rounds
+            return samples, knots, method, rounds, known
         if cancel is not None and cancel.is_set():
             return None
     dense = snap_to_bounds(densify_polyline(w, max_step_rad), v.lower_rad, v.upper_rad, v.periodic)
-    if not v.check(dense, certified=certified).ok:
+    chk = v.check(dense, certified=certified)
+    if not chk.ok:
         return None
-    return dense, w.copy(), "polyline", 0
+    return dense, w.copy(), "polyline", 0, chk.vertex_clearance_m

@@ -5,7 +5,7 @@ import pytest
 
 from oracles import shortest_grid_path
 from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.motion import check_path
+from spacerobot_planner.motion import MotionValidator, check_path
 from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, densify_polyline,
                                           path_length_rad, shortcut_indices, smooth_path,
                                           spline_through)
@@ -86,6 +86,28 @@ def test_check_path_rejects_out_of_bounds(sc2, chk2):
     assert chk2.is_free(dense).all()          # free everywhere, but the elbow leaves its bounds
     assert check_path(chk2, p[:1], *bounds(sc2)).ok
     assert not check_path(chk2, p, *bounds(sc2)).ok
+
+
+def test_check_reuses_vertex_clearances_and_answers_the_same(sc2, chk2):
+    # a path that leaves the free space in its middle and one that stays free
+    a, b = _free_pair_with_colliding_middle(sc2, chk2)
+    c = np.radians([96.0, 40.0])
+    v = MotionValidator(chk2)
+    for path in (densify_polyline(np.vstack([a, b]), DEFAULT_MAX_STEP_RAD),
+                 densify_polyline(np.vstack([a, c, b + np.radians([0.0, 60.0])]), DEFAULT_MAX_STEP_RAD)):
+        fresh = v.check(path)
+        quick = v.check(path, certified=False)
+        known = quick.vertex_clearance_m
+        evaluated = np.isfinite(known)
+        # the vertex clearances are the clearances of the rows themselves
+        assert np.array_equal(known[evaluated], chk2.clearance_m(path[evaluated]))
+        again = v.check(path, vertex_clearance_m=known)
+        assert again.ok == fresh.ok
+        assert np.array_equal(again.interval_ok, fresh.interval_ok)
+        assert np.array_equal(again.interval_clearance_m, fresh.interval_clearance_m)
+        assert again.n_checked < fresh.n_checked
+    with pytest.raises(ValueError, match="vertex_clearance_m"):
+        v.check(path, vertex_clearance_m=np.zeros(3))
 
 
 def test_smooth_path_refuses_a_colliding_polyline(sc2, chk2):
