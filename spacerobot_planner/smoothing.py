@@ -340,9 +340,11 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
 def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad, max_rounds, cancel,
             certified):
     """
-    (path, knots, method, rounds, vertex clearances) chosen with tests at the step of ``v``
-    (certified or quick), or None.  The vertex clearances (one per path row, NaN where not
-    evaluated) are those of the test that accepted the path, for the final check to reuse.
+    Choose a path with tests at the step of ``v`` (certified or quick).
+
+    Returns (path, knots, method, rounds, vertex clearances), or None.  The vertex
+    clearances (one per path row, NaN where not evaluated) are those of the test that
+    accepted the path, for the final check to reuse.
 
     See :func:`smooth_path`.
     """

@@ -106,7 +106,7 @@ class OmplProblem:
         return bool(self.v.within_bounds(q[None, :])[0]) and float(self.v.clearance_m(q)) > self.v.margin_m
 
     def motion_ok(self, s1, s2) -> bool:
-        """OMPL's discrete motion check at the step: samples of the shortest segment s1 → s2."""
+        """Check the shortest segment s1 → s2 as OMPL's discrete motion check does, at the step."""
         q = unwrap_path(np.stack([self.to_q(s1), self.to_q(s2)]), self.periodic)
         if not self.v.within_bounds(q[1:])[0]:
             return False

@@ -1,7 +1,7 @@
 """
-Per-step profile of plans: where a plan's time goes, step by step, for ``bench plan --profile``
-and ``bench scenes --profile``.
+Per-step profile of plans: where a plan's time goes, step by step.
 
+For ``bench plan --profile`` and ``bench scenes --profile``:
 :class:`StepProfile` wraps named functions of the planning core (module attributes looked up
 at call time by their Python callers, and a few methods) with wall-clock timers while it is
 active, and restores them on exit; the core itself is not changed.  Steps nest (the field's
