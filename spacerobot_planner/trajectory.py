@@ -885,37 +885,51 @@ class Resampled:
         return self.check is None or bool(self.check.ok)
 
 
-def _chord_deviation(q, i, j):
-    """Largest Euclidean distance (rad) of q[i..j] from the segment q[i] → q[j]."""
-    a, b = q[i], q[j]
-    d = b - a
-    den = float(d @ d)
-    pts = q[i:j + 1] - a
-    f = np.clip(pts @ d / den, 0.0, 1.0) if den > 0.0 else np.zeros(len(pts))
-    return float(np.max(np.linalg.norm(pts - f[:, None] * d, axis=1)))
+@njit(cache=True, nogil=True)
+def _within_chord(q, i, j, tol):
+    """Tell whether every q[i..j] lies within ``tol`` (rad, Euclidean) of the segment q[i] → q[j]."""
+    n = q.shape[1]
+    den = 0.0
+    for a in range(n):
+        den += (q[j, a] - q[i, a]) ** 2
+    for k in range(i, j + 1):
+        dot = 0.0
+        for a in range(n):
+            dot += (q[k, a] - q[i, a]) * (q[j, a] - q[i, a])
+        f = min(max(dot / den, 0.0), 1.0) if den > 0.0 else 0.0
+        r2 = 0.0
+        for a in range(n):
+            r = (q[k, a] - q[i, a]) - f * (q[j, a] - q[i, a])
+            r2 += r * r
+        if not np.sqrt(r2) <= tol:
+            return False
+    return True
 
 
+@njit(cache=True, nogil=True)
 def _select(t, q, time_step_s, path_tolerance_rad):
-    """Greedy: from each kept point, go on while the next point still meets both criteria."""
-    m = len(t)
-    keep = [0]
+    """
+    Greedy: from each kept point, go on while the next point still meets both criteria.
+
+    ``time_step_s`` / ``path_tolerance_rad``: inf when not given.  Returns the kept indices
+    (int64, first and last included).
+    """
+    m = t.shape[0]
+    keep = np.empty(m, np.int64)
+    keep[0] = 0
+    n_keep = 1
     i, j = 0, 1
     while j < m - 1:
-        if _ok(t, q, i, j + 1, time_step_s, path_tolerance_rad):
-            j += 1
+        k = j + 1
+        if t[k] - t[i] <= time_step_s and (path_tolerance_rad == np.inf
+                                           or _within_chord(q, i, k, path_tolerance_rad)):
+            j = k
         else:
-            keep.append(j)
+            keep[n_keep] = j
+            n_keep += 1
             i, j = j, j + 1
-    keep.append(m - 1)
-    return np.array(keep, dtype=np.int64)
-
-
-def _ok(t, q, i, j, time_step_s, path_tolerance_rad):
-    if j == i + 1:
-        return True
-    if time_step_s is not None and t[j] - t[i] > time_step_s:
-        return False
-    return path_tolerance_rad is None or _chord_deviation(q, i, j) <= path_tolerance_rad
+    keep[n_keep] = m - 1
+    return keep[:n_keep + 1].copy()
 
 
 def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None,
@@ -958,7 +972,9 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
     if len(t) <= 2:
         idx = np.arange(len(t))
     else:
-        idx = _select(t, q, time_step_s, path_tolerance_rad)
+        idx = _select(np.ascontiguousarray(t, dtype=float), np.ascontiguousarray(q, dtype=float),
+                      np.inf if time_step_s is None else float(time_step_s),
+                      np.inf if path_tolerance_rad is None else float(path_tolerance_rad))
     check, rounds = None, 0
     if checker is not None:
         motions = MotionValidator.of(checker)
