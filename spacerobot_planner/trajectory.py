@@ -190,6 +190,22 @@ class Trajectory:
                 "active_limit": None if self.active_limit is None else [str(a) for a in self.active_limit]}
 
 
+@njit(cache=True, nogil=True)
+def _moved_rows(p):
+    """Rows more than 1e-12 rad (in some joint) from the last kept row, the first kept: bool (M,)."""
+    m, n = p.shape
+    keep = np.zeros(m, np.bool_)
+    keep[0] = True
+    last = 0
+    for k in range(1, m):
+        for a in range(n):
+            if abs(p[k, a] - p[last, a]) > 1e-12:
+                keep[k] = True
+                last = k
+                break
+    return keep
+
+
 def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: int = 3) -> np.ndarray:
     """
     Drop repeated points and subdivide the path.
@@ -207,12 +223,7 @@ def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: in
         keep = np.concatenate([[True], moved])
         # compare with the last kept point, not the previous one (slow creeps)
         if not np.all(moved):
-            idx = [0]
-            for k in range(1, len(p)):
-                if np.max(np.abs(p[k] - p[idx[-1]])) > 1e-12:
-                    idx.append(k)
-            keep = np.zeros(len(p), dtype=bool)
-            keep[idx] = True
+            keep = _moved_rows(np.ascontiguousarray(p))
         last = np.flatnonzero(keep)[-1]
         if 0 < last != len(p) - 1:
             keep[last] = False
