@@ -372,56 +372,17 @@ def _path_model(p, refine: int):
     return s, idx, q, d1, d2, d3
 
 
-@njit(cache=True, nogil=True)
-def _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
+@njit(cache=True, nogil=True, inline="always")
+def _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
-    Admissible x_{i+1} from x_i = x on segment i: the interval [lo, hi] (lo > hi: none).
+    The bounds on x_{i+1} from x_i = x on segment i, and their slopes in x.
 
     Constraints (rows r, at both ends p = i, i+1 of the segment, u = (x_{i+1} - x_i)/(2Δ_i)):
-    |a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]; 0 ≤ x_p ≤ xv[p]; x_{i+1} ≤ k_next.
-    (|f| + κ|u| ≤ c is |f + κu| ≤ c and |f − κu| ≤ c.)
-    """
-    if x > xv[i] or x < 0.0:
-        return 1.0, -1.0
-    inv = 0.5 / delta[i]
-    lo = 0.0
-    hi = min(xv[i + 1], k_next)
-    for end in range(2):
-        p = i + end
-        for r in range(a_row.shape[1]):
-            c = c_row[p, r]
-            if not c < np.inf:
-                continue
-            b = b_row[p, r]
-            n_var = 2 if kappa[i, r] > 0.0 else 1
-            for var in range(n_var):
-                a = a_row[p, r] + (kappa[i, r] if var == 0 else -kappa[i, r])
-                if end == 0:
-                    beta = a * inv
-                    rest = (b - a * inv) * x
-                else:
-                    beta = a * inv + b
-                    rest = -a * inv * x
-                if beta > 0.0:
-                    hi = min(hi, (c - rest) / beta)
-                    lo = max(lo, (-c - rest) / beta)
-                elif beta < 0.0:
-                    hi = min(hi, (-c - rest) / beta)
-                    lo = max(lo, (c - rest) / beta)
-                elif abs(rest) > c:
-                    return 1.0, -1.0
-    return lo, hi
-
-
-@njit(cache=True, nogil=True)
-def _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
-    """
-    How far x_i = x is from admitting an x_{i+1} (≤ 0: it does), and its slope in x.
-
-    The constraints of :func:`_next_range` as functions of x: every bound on x_{i+1} is
-    affine in x, so ``lo(x) - hi(x)`` (largest lower bound less smallest upper bound) and
-    the bounds on x alone (a constraint with no x_{i+1} term) make up a convex piecewise
-    linear function; returns its value and the slope of the piece that attains it.
+    |a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]; 0 ≤ x_{i+1} ≤ xv[i+1]; x_{i+1} ≤ k_next.
+    (|f| + κ|u| ≤ c is |f + κu| ≤ c and |f − κu| ≤ c.)  Each bound on x_{i+1} is affine in
+    x; a constraint without an x_{i+1} term bounds x alone.  Returns (lo, its slope, hi,
+    its slope, g, its slope): the largest lower bound, the smallest upper bound, and the
+    largest violation ``|coefficient| x - c`` of the constraints on x alone (-inf: none).
     """
     inv = 0.5 / delta[i]
     lo, s_lo = 0.0, 0.0
@@ -443,18 +404,47 @@ def _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
                 else:
                     beta = a * inv + b
                     sr = -a * inv
+                rest = sr * x
                 if beta != 0.0:
                     cc = c if beta > 0.0 else -c
-                    up = (cc - sr * x) / beta
-                    dn = (-cc - sr * x) / beta
+                    up = (cc - rest) / beta
+                    dn = (-cc - rest) / beta
                     if up < hi:
                         hi, s_hi = up, -sr / beta
                     if dn > lo:
                         lo, s_lo = dn, -sr / beta
                 else:
-                    v = abs(sr) * x - c
+                    v = abs(rest) - c
                     if v > g:
                         g, s_g = v, abs(sr)
+    return lo, s_lo, hi, s_hi, g, s_g
+
+
+@njit(cache=True, nogil=True)
+def _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
+    """
+    Admissible x_{i+1} from x_i = x on segment i: the interval [lo, hi] (lo > hi: none).
+
+    The constraints are :func:`_bounds`'; besides them 0 ≤ x_i ≤ xv[i].
+    """
+    if x > xv[i] or x < 0.0:
+        return 1.0, -1.0
+    lo, _, hi, _, g, _ = _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
+    if g > 0.0:
+        return 1.0, -1.0
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
+    """
+    How far x_i = x (≥ 0) is from admitting an x_{i+1} (≤ 0: it does), and its slope in x.
+
+    ``lo(x) - hi(x)`` and the constraints on x alone (:func:`_bounds`) make up a convex
+    piecewise linear function of x; returns its value and the slope of the piece that
+    attains it.
+    """
+    lo, s_lo, hi, s_hi, g, s_g = _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
     f = lo - hi
     if g > f:
         return g, s_g
