@@ -375,7 +375,7 @@ def _path_model(p, refine: int):
 @njit(cache=True, nogil=True, inline="always")
 def _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
-    The bounds on x_{i+1} from x_i = x on segment i, and their slopes in x.
+    Return the bounds on x_{i+1} from x_i = x on segment i, and their slopes in x.
 
     Constraints (rows r, at both ends p = i, i+1 of the segment, u = (x_{i+1} - x_i)/(2Δ_i)):
     |a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]; 0 ≤ x_{i+1} ≤ xv[i+1]; x_{i+1} ≤ k_next.

@@ -1,8 +1,8 @@
 """
 Benchmarks.
 
-``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,redundant,startup,cancel,envelope,peers,all}
-[options]``.
+``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,redundant,startup,cancel,envelope,
+peers,all} [options]``.
 
 Every benchmark warms the JIT first, prints a readable table, and one JSON object per
 line (``stage``, ``grid``, ``solver``, ``seconds``, ...) so runs can be compared.
@@ -14,7 +14,8 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction", "redundant", "startup", "cancel", "envelope", "peers")
+BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction", "redundant", "startup", "cancel", "envelope",
+           "peers")
 
 
 def main(argv=None) -> int:
