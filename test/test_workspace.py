@@ -177,7 +177,7 @@ _ROSDEP_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "pyt
                 "matplotlib": "python3-matplotlib", "numba": "python3-numba", "dask": "python3-dask",
                 "distributed": "python3-distributed", "pyarrow": "python3-pyarrow"}
 #: imported only by the benchmarks, declared as test dependencies
-_TEST_ONLY = {"toppra": "python3-toppra-pip"}
+_TEST_ONLY = {"toppra": "python3-toppra-pip", "ompl": "python3-ompl-pip"}
 
 
 def test_package_xml_declares_every_imported_module():
