@@ -133,7 +133,7 @@ class PlanRun:
         self.approach_error_deg = math.nan
         self.grid_path = np.zeros((0, self.robot.dof))
         self.periodic = self.validator.periodic
-        self.t0 = self.grid_t0 = time.perf_counter()
+        self.t0 = time.perf_counter()
         self.level = 0                             # refinements of the grid now tried
 
     # ---------------------------------------------------------------- helpers
@@ -342,12 +342,10 @@ class PlanRun:
         grid does not join start and goal (``disconnected``), leaves no verified grid path
         (``path_invalid``), or its repairs pile up (``refine_after_repairs``), the grid with
         twice the cells per joint at the safety margin, up to ``max_refinements`` times,
-        while it stays within ``max_grid_nodes`` and the plan's time on grids within
-        ``field_budget_s`` (:meth:`refinement_refused`).  The answer after the last grid
-        says which grids were tried and why no finer one was.
+        while it stays within ``max_grid_nodes`` (:meth:`refinement_refused`).  The answer
+        after the last grid says which grids were tried and why no finer one was.
         """
         grid, level, tried = self.sc.grid, 0, []
-        self.grid_t0 = time.perf_counter()
         while True:
             self.level = level
             failure = None
@@ -384,18 +382,13 @@ class PlanRun:
         extra = self.s.grid_extra_margin_m
         return (extra, 0.0) if extra > 0.0 and level == 0 else (0.0,)
 
-    def grid_time_s(self) -> float:
-        """Seconds since the first grid of this plan started (C-spaces, fields, descents, repairs)."""
-        return time.perf_counter() - self.grid_t0
-
     def refinement_refused(self, grid) -> str:
         """
-        '' when the grid after ``grid`` (twice the cells) may be tried now, else why not.
+        '' when the grid after ``grid`` (twice the cells) may be tried, else why not.
 
-        Refused beyond ``max_refinements``, above ``max_grid_nodes``, or once this plan's
-        time on grids (C-spaces, fields, descents, repairs) has reached ``field_budget_s``.
-        Within the budget the answer does not depend on the clock, so a plan stays
-        deterministic; each field solve has the budget of one solve, as on the first grid.
+        Refused beyond ``max_refinements`` and above ``max_grid_nodes``: counts, not the
+        clock, so the same input gives the same answer (each field solve has the budget
+        ``field_budget_s`` of one solve, as on the first grid).
         """
         s, finer = self.s, refined(grid)
         if self.level >= s.max_refinements:
@@ -403,9 +396,6 @@ class PlanRun:
         if finer.n_nodes > s.max_grid_nodes:
             return (f"{finer.label()} not tried: {finer.n_nodes:,} nodes, above planner.max_grid_nodes "
                     f"= {s.max_grid_nodes:,}")
-        if self.grid_time_s() >= s.field_budget_s:
-            return (f"{finer.label()} not tried: the grids took {self.grid_time_s():.2f} s, the budget "
-                    f"planner.field_budget_s is {s.field_budget_s:g} s")
         return ""
 
     def unresolved(self, tried, stop: str) -> Fail:
@@ -413,13 +403,15 @@ class PlanRun:
         last = tried[-1][1]
         grids = " and ".join(label for label, _ in tried)
         what = "; ".join(f"{label}: {f.brief}" for label, f in tried)
+        if self.fld is not None and not self.fld.converged:
+            stop += (f"; the last field did not converge within planner.field_budget_s = "
+                     f"{self.s.field_budget_s:g} s")
         ends = f"the start {deg_text(self.plan_start)} and the goal {deg_text(self.goal)}"
         if last.code == Code.DISCONNECTED:
             step = deg_text(self.cs.grid.step_rad).replace("(", "").replace(")°", "")
-            return Fail(last.code, f"{ends} are not joined on the grid at {grids} within the budget ({what}); "
-                        f"{stop}; a passage narrower than a grid step ({step}°) can be missed", last.brief)
-        return Fail(last.code, f"no verified path joins {ends} at {grids} within the budget ({what}); {stop}",
-                    last.brief)
+            return Fail(last.code, f"{ends} are not joined on the grids {grids} ({what}); {stop}; a passage "
+                        f"narrower than a grid step ({step}°) can be missed", last.brief)
+        return Fail(last.code, f"no verified path joins {ends} on the grids {grids} ({what}); {stop}", last.brief)
 
     def cspace(self, grid, extra_m: float):
         """(C-space, its cache key) of the current scene on ``grid`` with the extra margin ``extra_m``."""
@@ -478,7 +470,7 @@ class PlanRun:
         Where a walk is blocked or its polyline does not verify, cut grid edges or block nodes (a
         plan-local field, cached under its own key) and descend again: up to ``max_repairs``
         times, or ``refine_after_repairs`` times when a finer grid may follow (then
-        :class:`Refine`), and on a refined grid while its budget lasts.
+        :class:`Refine`).
 
         Returns the unwrapped waypoints: exact start, grid nodes, exact goal.
         """
@@ -575,20 +567,11 @@ class PlanRun:
         raise AssertionError("unreachable")
 
     def may_repair(self, grid, repairs: int, cut, blocked) -> None:
-        """
-        Raise :class:`Refine` instead of a further repair when repairs pile up.
-
-        After ``refine_after_repairs`` repairs when a finer grid may be tried now, and on
-        a refined grid once the plan's time on grids has reached ``field_budget_s``.
-        """
-        done = _repairs_text(repairs, cut, blocked)
+        """Raise :class:`Refine` instead of a further repair once ``refine_after_repairs`` are done and a finer grid may follow."""
         if repairs >= self.s.refine_after_repairs and not self.refinement_refused(grid):
+            done = _repairs_text(repairs, cut, blocked)
             raise Refine(Code.PATH_INVALID, f"{done} on the grid {grid.label()} gave no verified grid path; "
                          "a finer grid is tried instead of more repairs", f"{done}, then a finer grid")
-        if self.level and self.grid_time_s() >= self.s.field_budget_s:
-            spent = f"the budget planner.field_budget_s = {self.s.field_budget_s:g} s was spent"
-            raise Fail(Code.PATH_INVALID, f"the descent on the grid {grid.label()} needs a repair after {done}, "
-                       f"but {spent}", f"a repair needed after {done}, but {spent}")
 
     def resolve(self, cs, key, goal_nodes, blocked, cut):
         """Return the field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
