@@ -83,18 +83,18 @@ def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
 
 
 def _count(n: int, word: str) -> str:
-    """'1 repair', '3 repairs'."""
+    """Return '1 repair', '3 repairs'."""
     return f"{n} {word}" + ("" if n == 1 else "s")
 
 
 def _repairs_text(repairs: int, cut, blocked) -> str:
-    """'3 repairs (12 cut edges, 1 blocked node)'."""
+    """Return '3 repairs (12 cut edges, 1 blocked node)'."""
     return (f"{_count(repairs, 'repair')} ({_count(len(cut), 'cut edge')}, "
             f"{_count(len(blocked), 'blocked node')})")
 
 
 def refined(grid):
-    """The grid with twice the cells along every axis (``cspace.GridSpec``)."""
+    """Return the grid with twice the cells along every axis (``cspace.GridSpec``)."""
     return grid.with_cells(tuple(2 * int(c) for c in grid.cells))
 
 
@@ -336,7 +336,7 @@ class PlanRun:
 
     def find_grid_path(self) -> np.ndarray:
         """
-        Waypoints of a verified grid path (:meth:`descend_and_repair`), on a finer grid where need be.
+        Return the waypoints of a verified grid path (:meth:`descend_and_repair`), refined if need be.
 
         The scenario's grid first, with the extra grid margin and then without.  Where that
         grid does not join start and goal (``disconnected``), leaves no verified grid path
@@ -384,7 +384,7 @@ class PlanRun:
 
     def refinement_refused(self, grid) -> str:
         """
-        '' when the grid after ``grid`` (twice the cells) may be tried, else why not.
+        Return '' when the grid after ``grid`` (twice the cells) may be tried, else why not.
 
         Refused beyond ``max_refinements`` and above ``max_grid_nodes``: counts, not the
         clock, so the same input gives the same answer (each field solve has the budget
@@ -399,7 +399,7 @@ class PlanRun:
         return ""
 
     def unresolved(self, tried, stop: str) -> Fail:
-        """The answer when no grid tried gave a path: the finest grid's code, and what was tried."""
+        """Return the answer when no grid tried gave a path: the finest grid's code, and what was tried."""
         last = tried[-1][1]
         grids = " and ".join(label for label, _ in tried)
         what = "; ".join(f"{label}: {f.brief}" for label, f in tried)
@@ -414,7 +414,7 @@ class PlanRun:
         return Fail(last.code, f"no verified path joins {ends} on the grids {grids} ({what}); {stop}", last.brief)
 
     def cspace(self, grid, extra_m: float):
-        """(C-space, its cache key) of the current scene on ``grid`` with the extra margin ``extra_m``."""
+        """Return (C-space, its cache key) of the current scene on ``grid`` with the extra margin ``extra_m``."""
         self.cached = []
         before = self.timings["cspace"]
         with self.stage("cspace"):
@@ -567,7 +567,7 @@ class PlanRun:
         raise AssertionError("unreachable")
 
     def may_repair(self, grid, repairs: int, cut, blocked) -> None:
-        """Raise :class:`Refine` instead of a further repair once ``refine_after_repairs`` are done and a finer grid may follow."""
+        """Raise :class:`Refine` instead of a further repair: ``refine_after_repairs`` done, a finer grid next."""
         if repairs >= self.s.refine_after_repairs and not self.refinement_refused(grid):
             done = _repairs_text(repairs, cut, blocked)
             raise Refine(Code.PATH_INVALID, f"{done} on the grid {grid.label()} gave no verified grid path; "

@@ -73,7 +73,7 @@ def check_result(sc, start, goal, res):
 
 
 def honest_reason(reason: str, solver: str) -> None:
-    """A reason for people: no numpy reprs, no advice to use the solver that was used."""
+    """Assert a reason is for people: no numpy reprs, no advice to use the solver that was used."""
     assert "np." not in reason and "int64" not in reason, reason
     for name in SOLVERS:
         if re.search(rf"use the {name}\b", reason):

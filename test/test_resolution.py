@@ -1,6 +1,8 @@
 """
-Resolution where it is needed (issue 19): the planner refines a grid that cannot join start
-and goal, and says what it tried when no grid does.
+Resolution where it is needed (issue 19).
+
+The planner refines a grid that cannot join start and goal, and says what it tried when no
+grid does.
 
 The scenes are built here from the geometry of the paper's 2-DOF arm (attitude locked):
 - a slot around the outer part of link 3 at the start, 0.08 m wider than the margin on each
