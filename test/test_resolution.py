@@ -79,15 +79,24 @@ def test_a_passage_only_a_finer_grid_resolves_is_planned(sc2):
     assert clearance.min() > MARGIN_M
 
 
-def test_a_start_no_grid_joins_to_the_goal_is_disconnected_with_what_was_tried(sc2):
-    # a block on the elbow's circle: link 2 meets it whatever the elbow does, so the bounded
-    # shoulder range splits in two, the start and the goal on opposite sides
+def walled(sc2, cells: int):
+    """
+    Return the paper's 2-DOF scene with a block on the elbow's circle, on ``cells`` cells.
+
+    Link 2 meets the block whatever the elbow does, so the bounded shoulder range splits in
+    two, the start and the goal on opposite sides.
+    """
     att = sc2.robot.locked_rad[0]
     shoulder = 1.4 * np.array([math.cos(att), math.sin(att)])
     u = np.array([math.cos(math.radians(245.0)), math.sin(math.radians(245.0))])
     block = shoulder + 2.0 * u + 0.15 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
     scene = Scene(target=sc2.scene.target, debris_m=(block,), safety_margin_m=MARGIN_M)
-    sc = replace(sc2.with_scene(scene), grid=sc2.grid_with_cells(45))
+    return replace(sc2.with_scene(scene), grid=sc2.grid_with_cells(cells))
+
+
+def test_a_start_no_grid_joins_to_the_goal_is_disconnected_with_what_was_tried(sc2):
+    sc = walled(sc2, 45)
+    scene, att = sc.scene, sc.robot.locked_rad[0]
     # the oracle: at shoulder angles across the block link 2 collides for every elbow angle
     # (link 2's distance does not depend on the elbow), and start and goal lie either side
     a_start, a_goal = (att + q[0] for q in (sc.start_rad, sc.goal_rad))
@@ -109,12 +118,7 @@ def test_a_start_no_grid_joins_to_the_goal_is_disconnected_with_what_was_tried(s
 
 
 def test_no_refinement_beyond_the_node_budget_and_the_reason_says_so(sc2):
-    att = sc2.robot.locked_rad[0]
-    shoulder = 1.4 * np.array([math.cos(att), math.sin(att)])
-    u = np.array([math.cos(math.radians(245.0)), math.sin(math.radians(245.0))])
-    block = shoulder + 2.0 * u + 0.15 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
-    scene = Scene(target=sc2.scene.target, debris_m=(block,), safety_margin_m=MARGIN_M)
-    sc = replace(sc2.with_scene(scene), grid=sc2.grid_with_cells(45))
+    sc = walled(sc2, 45)
     res = Planner(sc, max_refinements=3, max_grid_nodes=91 * 91).plan(sc.start_rad, sc.goal_rad)
     assert res.code == "disconnected"
     assert "46x46 and 91x91" in res.reason and "181x181 not tried" in res.reason
