@@ -342,7 +342,8 @@ class PlanRun:
         grid does not join start and goal (``disconnected``), leaves no verified grid path
         (``path_invalid``), or its repairs pile up (``refine_after_repairs``), the grid with
         twice the cells per joint at the safety margin, up to ``max_refinements`` times,
-        while it stays within ``max_grid_nodes`` (:meth:`refinement_refused`).  The answer
+        while it stays within ``max_grid_nodes`` and ``max_refined_nodes``
+        (:meth:`refinement_refused`).  The answer
         after the last grid says which grids were tried and why no finer one was.
         """
         grid, level, tried = self.sc.grid, 0, []
@@ -386,16 +387,18 @@ class PlanRun:
         """
         Return '' when the grid after ``grid`` (twice the cells) may be tried, else why not.
 
-        Refused beyond ``max_refinements`` and above ``max_grid_nodes``: counts, not the
-        clock, so the same input gives the same answer (each field solve has the budget
-        ``field_budget_s`` of one solve, as on the first grid).
+        Refused beyond ``max_refinements`` and above ``max_grid_nodes`` or
+        ``max_refined_nodes``: counts, not the clock, so the same input gives the same
+        answer (each field solve has the budget ``field_budget_s`` of one solve, as on the
+        first grid).
         """
         s, finer = self.s, refined(grid)
         if self.level >= s.max_refinements:
             return f"no finer grid tried (planner.max_refinements = {s.max_refinements})"
-        if finer.n_nodes > s.max_grid_nodes:
-            return (f"{finer.label()} not tried: {finer.n_nodes:,} nodes, above planner.max_grid_nodes "
-                    f"= {s.max_grid_nodes:,}")
+        for name, limit in (("planner.max_grid_nodes", s.max_grid_nodes),
+                            ("max_refined_nodes", s.max_refined_nodes)):
+            if finer.n_nodes > limit:
+                return f"{finer.label()} not tried: {finer.n_nodes:,} nodes, above {name} = {limit:,}"
         return ""
 
     def unresolved(self, tried, stop: str) -> Fail:

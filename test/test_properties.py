@@ -24,6 +24,7 @@ from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.field import SOLVERS
 from spacerobot_planner.planner import CODES, Planner
 
+from conftest import TEST_FIELD_BUDGET_S
 from oracles import connected, dense_samples, wrap_diff
 from strategies import random_configuration, scenarios
 
@@ -112,14 +113,14 @@ def test_same_input_same_path(case, goal_seed):
 
     Two fresh planners agree bit for bit, and one planner agrees with itself after planning
     something else in between (caches never change a plan).  The field budget is out of the
-    way (60 s): a solve that it ends depends on the clock (docs/field.md), and on a loaded
-    machine a refined 72³ field of a random scene took 4-6 s, near the default 5 s.
+    way (conftest's): a solve that it ends depends on the clock (docs/field.md), and on a
+    loaded machine a refined 72³ field of a random scene took 4-6 s, near the default 5 s.
     """
     sc, start = case
     goal = random_configuration(sc, goal_seed)
-    pl = Planner(sc, field_budget_s=60.0)
+    pl = Planner(sc, field_budget_s=TEST_FIELD_BUDGET_S)
     a = pl.plan(start, goal)
-    b = Planner(sc, field_budget_s=60.0).plan(start, goal)
+    b = Planner(sc, field_budget_s=TEST_FIELD_BUDGET_S).plan(start, goal)
     pl.plan(goal, start)                                                    # another plan between ...
     c = pl.plan(start, goal)                                                # ... changes nothing
     for other in (b, c):

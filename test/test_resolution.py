@@ -123,3 +123,6 @@ def test_no_refinement_beyond_the_node_budget_and_the_reason_says_so(sc2):
     assert res.code == "disconnected"
     assert "46x46 and 91x91" in res.reason and "181x181 not tried" in res.reason
     assert "planner.max_grid_nodes" in res.reason
+    res = Planner(sc, max_refinements=3, max_refined_nodes=91 * 91).plan(sc.start_rad, sc.goal_rad)
+    assert "46x46 and 91x91" in res.reason and "181x181 not tried" in res.reason
+    assert "max_refined_nodes = 8,281" in res.reason
