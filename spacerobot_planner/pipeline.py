@@ -77,7 +77,7 @@ def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
         return run.time_parameterize(run.capture_free_floating(start_rad, goal_rad))
     run.check_inputs(start_rad, goal_rad)            # invalid_input, goal_unreachable, *_in_collision
     run.leave_contact()                              # a start touching an obstacle: the exit stretch
-    waypoints = run.find_grid_path()                    # C-space → field → descent/repair, refined if need be
+    waypoints = run.find_grid_path()                 # C-space → field → descent/repair, refined if need be
     smooth = run.smooth(waypoints)
     return run.time_parameterize(smooth)
 
