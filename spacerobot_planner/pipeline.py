@@ -34,7 +34,8 @@ import numpy as np
 
 from .contact import leave_contact
 from .descent import colliding_edges
-from .field import bfs_distance
+from .field import bfs_distance, validate_problem
+from .field.graph import bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
@@ -54,11 +55,20 @@ REPAIR_RADIUS = 2
 
 
 class Fail(Exception):
-    """A stage's answer that there is no (acceptable) plan: a code and a reason."""
+    """
+    A stage's answer that there is no (acceptable) plan: a code and a reason.
 
-    def __init__(self, code: Code, reason: str):
+    ``brief``: for a failure on one grid, a short phrase for the summary of the grids tried
+    (``PlanRun.find_grid_path``); the reason when empty.
+    """
+
+    def __init__(self, code: Code, reason: str, brief: str = ""):
         super().__init__(reason)
-        self.code, self.reason = code, reason
+        self.code, self.reason, self.brief = code, reason, brief or reason
+
+
+class Refine(Fail):
+    """A grid given up for a finer one (repairs piled up): ``PlanRun.find_grid_path`` refines at once."""
 
 
 def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
@@ -67,19 +77,25 @@ def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
         return run.time_parameterize(run.capture_free_floating(start_rad, goal_rad))
     run.check_inputs(start_rad, goal_rad)            # invalid_input, goal_unreachable, *_in_collision
     run.leave_contact()                              # a start touching an obstacle: the exit stretch
-    for extra_m in run.grid_margins():               # the grid's extra margin, then none
-        try:
-            cs, cs_key = run.cspace(extra_m)
-            goal_nodes = run.goal_nodes(cs, cs_key)
-            field, field_key = run.field(cs, cs_key, goal_nodes)
-            waypoints = run.descend_and_repair(cs, field, field_key, goal_nodes)
-            break
-        except Fail as f:                            # the extra margin may close a passage
-            if not (extra_m > 0.0 and f.code in (Code.DISCONNECTED, Code.PATH_INVALID)):
-                raise
-            run.say(f"{f.code} with the grid's extra margin {extra_m} m; trying again without it")
+    waypoints = run.find_grid_path()                 # C-space → field → descent/repair, refined if need be
     smooth = run.smooth(waypoints)
     return run.time_parameterize(smooth)
+
+
+def _count(n: int, word: str) -> str:
+    """Return '1 repair', '3 repairs'."""
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+def _repairs_text(repairs: int, cut, blocked) -> str:
+    """Return '3 repairs (12 cut edges, 1 blocked node)'."""
+    return (f"{_count(repairs, 'repair')} ({_count(len(cut), 'cut edge')}, "
+            f"{_count(len(blocked), 'blocked node')})")
+
+
+def refined(grid):
+    """Return the grid with twice the cells along every axis (``cspace.GridSpec``)."""
+    return grid.with_cells(tuple(2 * int(c) for c in grid.cells))
 
 
 class PlanRun:
@@ -118,6 +134,7 @@ class PlanRun:
         self.grid_path = np.zeros((0, self.robot.dof))
         self.periodic = self.validator.periodic
         self.t0 = time.perf_counter()
+        self.level = 0                             # refinements of the grid now tried
 
     # ---------------------------------------------------------------- helpers
     @contextmanager
@@ -317,28 +334,100 @@ class PlanRun:
                  f"{len(ex.path_rad) - 1} steps out to {deg_text(ex.path_rad[-1])}, clearance "
                  f"{ex.signed_distance_m[-1]:.3f} m (not certified)")
 
-    def grid_margins(self) -> tuple:
+    def find_grid_path(self) -> np.ndarray:
         """
-        Return the grid's extra margins to try.
+        Return the waypoints of a verified grid path (:meth:`descend_and_repair`), refined if need be.
 
-        The configured one, then 0 (a grid with the extra margin can close a passage that the safety
-        margin leaves open).
+        The scenario's grid first, with the extra grid margin and then without.  Where that
+        grid does not join start and goal (``disconnected``), leaves no verified grid path
+        (``path_invalid``), or its repairs pile up (``refine_after_repairs``), the grid with
+        twice the cells per joint at the safety margin, up to ``max_refinements`` times,
+        while it stays within ``max_grid_nodes`` and ``max_refined_nodes``
+        (:meth:`refinement_refused`).  The answer
+        after the last grid says which grids were tried and why no finer one was.
+        """
+        grid, level, tried = self.sc.grid, 0, []
+        while True:
+            self.level = level
+            failure = None
+            for extra_m in self.grid_margins(level):
+                try:
+                    cs, cs_key = self.cspace(grid, extra_m)
+                    goal_nodes = self.goal_nodes(cs, cs_key)
+                    field, field_key = self.field(cs, cs_key, goal_nodes)
+                    return self.descend_and_repair(cs, field, field_key, goal_nodes)
+                except Fail as f:
+                    if f.code not in (Code.DISCONNECTED, Code.PATH_INVALID):
+                        raise
+                    failure = f
+                    self.say(f"{f.code} on the grid {grid.label()} (grid margin "
+                             f"{self.sc.scene.safety_margin_m + extra_m:.3f} m): {f.reason}")
+                    if isinstance(f, Refine):
+                        break
+            tried.append((grid.label(), failure))
+            stop = self.refinement_refused(grid)
+            if stop:
+                raise self.unresolved(tried, stop)
+            grid, level = refined(grid), level + 1
+            self.say(f"refining the grid to {grid.label()}")
+
+    def grid_margins(self, level: int = 0) -> tuple:
+        """
+        Return the grid's extra margins to try on a grid of refinement ``level``.
+
+        On the scenario's grid the configured one, then 0 (a grid with the extra margin can
+        close a passage that the safety margin leaves open); on a refined grid 0 only (it is
+        tried because a coarser one did not give a path: the extra margin would narrow the
+        passages it looks for).
         """
         extra = self.s.grid_extra_margin_m
-        return (extra, 0.0) if extra > 0.0 else (0.0,)
+        return (extra, 0.0) if extra > 0.0 and level == 0 else (0.0,)
 
-    def cspace(self, extra_m: float):
-        """(C-space, its cache key) of the current scene on the scenario's grid."""
+    def refinement_refused(self, grid) -> str:
+        """
+        Return '' when the grid after ``grid`` (twice the cells) may be tried, else why not.
+
+        Refused beyond ``max_refinements`` and above ``max_grid_nodes`` or
+        ``max_refined_nodes``: counts, not the clock, so the same input gives the same
+        answer (each field solve has the budget ``field_budget_s`` of one solve, as on the
+        first grid).
+        """
+        s, finer = self.s, refined(grid)
+        if self.level >= s.max_refinements:
+            return f"no finer grid tried (planner.max_refinements = {s.max_refinements})"
+        for name, limit in (("planner.max_grid_nodes", s.max_grid_nodes),
+                            ("max_refined_nodes", s.max_refined_nodes)):
+            if finer.n_nodes > limit:
+                return f"{finer.label()} not tried: {finer.n_nodes:,} nodes, above {name} = {limit:,}"
+        return ""
+
+    def unresolved(self, tried, stop: str) -> Fail:
+        """Return the answer when no grid tried gave a path: the finest grid's code, and what was tried."""
+        last = tried[-1][1]
+        grids = " and ".join(label for label, _ in tried)
+        what = "; ".join(f"{label}: {f.brief}" for label, f in tried)
+        if self.fld is not None and not self.fld.converged:
+            stop += (f"; the last field did not converge within planner.field_budget_s = "
+                     f"{self.s.field_budget_s:g} s")
+        ends = f"the start {deg_text(self.plan_start)} and the goal {deg_text(self.goal)}"
+        if last.code == Code.DISCONNECTED:
+            step = deg_text(self.cs.grid.step_rad).replace("(", "").replace(")°", "")
+            return Fail(last.code, f"{ends} are not joined on the grids {grids} ({what}); {stop}; a passage "
+                        f"narrower than a grid step ({step}°) can be missed", last.brief)
+        return Fail(last.code, f"no verified path joins {ends} on the grids {grids} ({what}); {stop}", last.brief)
+
+    def cspace(self, grid, extra_m: float):
+        """Return (C-space, its cache key) of the current scene on ``grid`` with the extra margin ``extra_m``."""
         self.cached = []
         before = self.timings["cspace"]
         with self.stage("cspace"):
-            cs, key, hit = self.p._cspace(self.sc.grid, extra_m, token=self.cancel)
+            cs, key, hit = self.p._cspace(grid, extra_m, token=self.cancel)
         if hit:
             self.timings["cspace"] = before           # a cached stage costs nothing
             self.cached.append("cspace")
         self.cs = cs
-        ms = "cached" if hit else f"{1e3 * self.timings['cspace']:.1f} ms"
-        self.say(f"cspace {self.sc.grid.label()} (grid margin {cs.margin_m:.3f} m): {ms}, "
+        ms = "cached" if hit else f"{1e3 * (self.timings['cspace'] - before):.1f} ms"
+        self.say(f"cspace {grid.label()} (grid margin {cs.margin_m:.3f} m): {ms}, "
                  f"{100 * cs.free_fraction:.1f} % free")
         self.check_cancel()
         return cs, key
@@ -353,8 +442,8 @@ class PlanRun:
             self.p._remember(self.p._goal_nodes, key, nodes, 16)
         if not nodes:
             raise Fail(Code.PATH_INVALID, f"no free grid node near the goal {deg_text(self.goal)} can be "
-                       f"joined to it by a collision-free straight segment (grid {cs.grid.label()}); "
-                       "try a finer grid")
+                       f"joined to it by a collision-free straight segment (grid {cs.grid.label()})",
+                       "no free grid node near the goal is joined to it by a collision-free segment")
         return np.array(nodes)
 
     def field(self, cs, cs_key, goal_nodes):
@@ -365,12 +454,13 @@ class PlanRun:
         before = self.timings["field"]
         with self.stage("field"):
             fld = self.p._solve(cs, key, goal_nodes, self.s, token=self.cancel)
+        spent = self.timings["field"] - before
         if hit:
             self.timings["field"] = before
             self.cached.append("field")
             self.say(f"field: cached ({fld.solver})")
         else:
-            self.say(f"field ({fld.solver}): {1e3 * self.timings['field']:.1f} ms, {fld.sweeps} "
+            self.say(f"field ({fld.solver}): {1e3 * spent:.1f} ms, {fld.sweeps} "
                      f"{'sweeps' if fld.solver == 'gauss_seidel' else 'iterations'}, residual "
                      f"{fld.residual:.2e}" + ("" if fld.converged else f"; NOT converged: {fld.left}"))
         self.fld = fld
@@ -381,7 +471,9 @@ class PlanRun:
         Descent from a start node.
 
         Where a walk is blocked or its polyline does not verify, cut grid edges or block nodes (a
-        plan-local field, cached under its own key) and descend again.
+        plan-local field, cached under its own key) and descend again: up to ``max_repairs``
+        times, or ``refine_after_repairs`` times when a finer grid may follow (then
+        :class:`Refine`).
 
         Returns the unwrapped waypoints: exact start, grid nodes, exact goal.
         """
@@ -397,20 +489,22 @@ class PlanRun:
             self.stats = {"sweeps": int(fld.sweeps), "residual": float(fld.residual),
                           "converged": bool(fld.converged), "left": fld.left, **fld.stats,
                           "repairs": repairs, "blocked_nodes": len(blocked), "cut_edges": len(cut),
-                          "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m)}
+                          "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m),
+                          "grid": grid.label(), "refinements": self.level}
             with self.stage("descent"):
                 starts = self.candidates(start, grid, ~fld.occupied)
             if len(starts) == 0:
                 raise Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is "
-                           f"blocked (grid {grid.label()}, margin {cs.margin_m:.3f} m); try a finer grid")
+                           f"blocked (grid {grid.label()}, margin {cs.margin_m:.3f} m)",
+                           "every grid node near the start is blocked")
             reach = fld.reachable[tuple(starts.T)]
             if not reach.any():
-                raise self.no_field_path_failure(cs, fld, blocked)
-            path, stuck, reasons = None, None, []
+                raise self.no_field_path_failure(cs, fld, blocked, cut, repairs)
+            path, stuck, reasons, collide = None, None, [], []
             for node in starts[reach]:
                 self.check_cancel()
                 if not self.segment_ok(start, grid.config_of(node)):
-                    reasons.append(f"segment to node {tuple(node)} collides")
+                    collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
                     gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
@@ -421,6 +515,7 @@ class PlanRun:
                     stuck = gp
                 reasons.append(gp.reason)
             if path is None and stuck is not None and attempt < s.max_repairs:
+                self.may_repair(grid, repairs, cut, blocked)
                 # every way up from that node collides: cut the colliding grid edges around it
                 # (the node itself when they are cut already) and re-solve
                 node = tuple(int(v) for v in stuck.nodes[-1])
@@ -440,7 +535,13 @@ class PlanRun:
                 fld = self.resolve(cs, key, goal_nodes, blocked, cut)
                 continue
             if path is None:
-                raise Fail(Code.PATH_INVALID, "no grid path from the start: " + "; ".join(reasons[:3]))
+                if collide:
+                    reasons.insert(0, f"the straight segment from the start to each of the grid nodes "
+                                   f"{', '.join(collide[:3])} collides")
+                raise Fail(Code.PATH_INVALID, f"no grid path from the start {deg_text(start)} on the grid "
+                           f"{grid.label()}: " + "; ".join(reasons[:3]),
+                           (f"after {_count(repairs, 'repair')}, " if repairs else "") + "no grid path from the start"
+                           + (": every straight segment to a nearby free node collides" if not stuck else ""))
             nodes_rad = grid.config_of(path.nodes)
             self.grid_path = nodes_rad
             wp = unwrap_path(np.vstack([start, nodes_rad, self.goal]), self.periodic)
@@ -456,7 +557,9 @@ class PlanRun:
             if not cand or attempt == s.max_repairs:
                 raise Fail(Code.PATH_INVALID, f"the straight segment between grid nodes "
                            f"{deg_text(wp[bad])} and {deg_text(wp[bad + 1])} collides and the grid "
-                           f"path could not be repaired ({repairs} repairs); try a finer grid")
+                           f"path could not be repaired ({_count(repairs, 'repair')}, grid {grid.label()})",
+                           f"{_count(repairs, 'repair')}, a grid path whose straight segments collide")
+            self.may_repair(grid, repairs, cut, blocked)
             clr = [self.checker.clearance_m(nodes_rad[c]) for c in cand]
             node = tuple(int(v) for v in path.nodes[cand[int(np.argmin(clr))]])
             blocked = blocked | {node}
@@ -465,6 +568,13 @@ class PlanRun:
                      f"blocking node {node} and re-solving the field")
             fld = self.resolve(cs, key, goal_nodes, blocked, cut)
         raise AssertionError("unreachable")
+
+    def may_repair(self, grid, repairs: int, cut, blocked) -> None:
+        """Raise :class:`Refine` instead of a further repair: ``refine_after_repairs`` done, a finer grid next."""
+        if repairs >= self.s.refine_after_repairs and not self.refinement_refused(grid):
+            done = _repairs_text(repairs, cut, blocked)
+            raise Refine(Code.PATH_INVALID, f"{done} on the grid {grid.label()} gave no verified grid path; "
+                         "a finer grid is tried instead of more repairs", f"{done}, then a finer grid")
 
     def resolve(self, cs, key, goal_nodes, blocked, cut):
         """Return the field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
@@ -476,31 +586,49 @@ class PlanRun:
             self.cached.remove("field")
         return fld
 
-    def no_field_path_failure(self, cs, fld, blocked) -> Fail:
+    def no_field_path_failure(self, cs, fld, blocked, cut, repairs: int) -> Fail:
         """
         Why no start node has a field value.
 
-        'disconnected' only when the grid's own free space (without nodes blocked by repairs)
-        separates every free node near the start from every free node near the goal.
+        'disconnected' only when the grid's own free space (without the repairs' blocked
+        nodes and cut edges) separates every free node near the start from every free node
+        near the goal; otherwise what separated them: the repairs, the goal's joins, or (the
+        paper's solver only) a field flat in float64.
         """
         grid, occ = cs.grid, cs.occupied
         start = self.plan_start
         goal_nodes = self.candidates(self.goal, grid, ~occ)
         start_nodes = self.candidates(start, grid, ~occ)
+        where = f"the grid {grid.label()}, grid margin {cs.margin_m:.3f} m"
         if len(start_nodes) == 0:
             return Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is an "
-                        f"obstacle on the grid {grid.label()}; try a finer grid")
+                        f"obstacle on {where}", "every grid node near the start is an obstacle")
         dist = bfs_distance(occ, grid.periodic, goal_nodes)
         if np.all(dist[tuple(start_nodes.T)] < 0):
             return Fail(Code.DISCONNECTED, f"the start {deg_text(start)} and the goal {deg_text(self.goal)} "
-                        f"lie in separate free regions of the configuration space (grid {grid.label()}, "
-                        f"grid margin {cs.margin_m:.3f} m): no collision-free motion joins them")
-        if blocked:
-            return Fail(Code.PATH_INVALID, f"start and goal are connected on the grid {grid.label()}, but "
-                        f"after blocking {len(blocked)} node(s) whose straight joins collide no "
-                        "verified grid path remains; try a finer grid")
-        return Fail(Code.PATH_INVALID, f"the field of solver '{fld.solver}' is zero (flat in float64) at "
-                    "the start although the grid joins start and goal; use the log_harmonic solver")
+                        f"lie in separate free regions of {where}",
+                        f"separate free regions (grid margin {cs.margin_m:.3f} m)")
+        # the grid joins them: does the field's own graph (repairs, goal joins) join them?
+        f_occ, per, f_goals = validate_problem(fld.occupied, grid.periodic, fld.goal_nodes)
+        f_dist = field_bfs(f_occ, per, f_goals, np.array(sorted(cut), dtype=np.int64).reshape(-1, 2))[0]
+        f_starts = self.candidates(start, grid, ~fld.occupied)
+        joined = len(f_starts) and np.any(f_dist.reshape(occ.shape)[tuple(f_starts.T)] >= 0)
+        if joined and fld.solver == "gauss_seidel":
+            return Fail(Code.PATH_INVALID, f"the field of solver 'gauss_seidel' is zero (flat in float64) at "
+                        f"the start although {where} joins start and goal; the log_harmonic solver has no "
+                        "flat field", "the gauss_seidel field is flat (zero in float64) at the start")
+        if joined:
+            return Fail(Code.PATH_INVALID, f"the field of solver '{fld.solver}' has no value at the start's "
+                        f"grid nodes although its graph joins them to the goal ({where})",
+                        "no field value at the start")
+        if repairs:
+            done = _repairs_text(repairs, cut, blocked)
+            return Fail(Code.PATH_INVALID, f"{where} joins start and goal, but {done} whose straight motions "
+                        "collide separated them", f"joined, but {done} separated them")
+        return Fail(Code.PATH_INVALID, f"on {where} the start's free region reaches only grid nodes near the "
+                    f"goal {deg_text(self.goal)} whose straight segment to it collides",
+                    "the start's free region holds no grid node joined to the goal by a collision-free "
+                    "segment")
 
     def smooth(self, waypoints) -> object:
         """Spline through the waypoints, certified on the exact geometry (``smoothing``)."""

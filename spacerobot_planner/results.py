@@ -72,7 +72,8 @@ class PlanResult:
             cutting grid edges or blocking nodes whose motions collide), cut_edges,
             blocked_nodes, grid_extra_margin_m (the grid's margin beyond the safety margin
             that gave the answer: the planner retries at 0 before answering
-            ``disconnected``).
+            ``disconnected``), grid (the grid's label, e.g. "72x73x73") and refinements
+            (how many times the scenario's grid was doubled to get it).
         min_clearance_m: minimum clearance over the certified check, metres (nan
             without path); the exit stretch is not part of it.
         cspace, field: the grid and the field used (None if not reached).

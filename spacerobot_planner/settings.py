@@ -53,7 +53,13 @@ class PlannerSettings:
             clearance of the stretch they replace, if smaller), metres.
         max_step_rad: spacing of the returned samples (≤ 0.5°).
         verify_step_rad: largest spacing of the certified collision checks along the path.
-        max_repairs: edge-cutting / node-blocking re-solves allowed per plan.
+        max_repairs: edge-cutting / node-blocking re-solves allowed on one grid.
+        max_refinements: how many times a plan may double the grid's cells per joint where
+            a grid does not join start and goal or gives no verified path (0: never).
+        refine_after_repairs: on a grid that a finer one may follow, refine after this many
+            repairs instead of repairing further.
+        max_refined_nodes: a refined grid is tried only up to this many nodes (72³ is
+            389 017; a 4-joint grid doubled from 16 cells, 1.15 million, is not).
         max_start_penetration_m: a start whose links reach at most this deep into an
             obstacle is walked out of the contact first (0: refuse as start_in_collision).
         max_approach_error_deg: largest angle between link 3 and the handle's inward
@@ -74,6 +80,9 @@ class PlannerSettings:
     max_step_rad: float = DEFAULT_MAX_STEP_RAD
     verify_step_rad: float = DEFAULT_VERIFY_STEP_RAD
     max_repairs: int = 30
+    max_refinements: int = 1
+    refine_after_repairs: int = 8
+    max_refined_nodes: int = 500_000
     max_start_penetration_m: float = 0.05
     max_approach_error_deg: float = 5.0
     trajectory: bool = True
@@ -94,8 +103,11 @@ class PlannerSettings:
             set_(self, name, _positive(name, getattr(self, name), allow_zero=True))
         for name in ("max_step_rad", "verify_step_rad"):
             set_(self, name, _positive(name, getattr(self, name)))
-        if int(self.max_repairs) != self.max_repairs or self.max_repairs < 0:
-            raise ValueError(f"max_repairs: must be an integer ≥ 0, got {self.max_repairs!r}")
+        for name in ("max_repairs", "max_refinements", "refine_after_repairs", "max_refined_nodes"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < 0:
+                raise ValueError(f"{name}: must be an integer ≥ 0, got {v!r}")
+            set_(self, name, int(v))
 
 
 @dataclass(frozen=True)
