@@ -647,9 +647,17 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=main.__doc__.strip().splitlines()[0])
     ap.add_argument("--warm-cache", nargs="+", metavar="FILE", required=True)
     args = ap.parse_args(argv)
+    from .offline import plan_offline         # the plan and the node's chain after it, as the CLI runs them
     for path in args.warm_cache:
-        planner = Planner(load_scenario(path))        # the file's solver and tolerance
+        scenario = load_scenario(path)
+        planner = Planner(scenario, reaction=True)    # the file's solver and tolerance; as the CLI
         t = warm_up(planner, full_grid_max_nodes=10 ** 9)
+        # the chain after the plan (timing, resampling, certification, reaction; the node runs it in
+        # its own process): the node's first trajectory and the CLI load its kernels, not compile them
+        t0 = time.perf_counter()
+        if scenario.start_rad is not None and scenario.scene.target is not None:
+            plan_offline(planner, scenario.start_rad)
+        t["chain_s"] = time.perf_counter() - t0
         print(f"warm-cache {path}: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
     return 0
 

@@ -38,18 +38,22 @@ def test_ament_install_into_a_temp_prefix(tmp_path):
 
 
 # run in the installed tree: the default route (the planning process's warm-up, then a full
-# plan with its trajectory, as the node's first target), and numba's own count of the kernels
-# it loaded from the cache (hits) and compiled because the cache had nothing valid (misses)
+# plan with its trajectory and the chain after it, as spacerobot-plan and the node's first target
+# run them), and numba's own count of the kernels it loaded from the cache (hits) and compiled
+# because the cache had nothing valid (misses)
 _CACHE_CHECK = r"""
 import json, os, sys
 import numba
 from spacerobot_planner.config import load_params_file, scenario_from_params
 from spacerobot_planner.planner import Planner
+from spacerobot_planner.offline import plan_offline
 from spacerobot_planner.worker import warm_up
 import spacerobot_planner
 sc = scenario_from_params(load_params_file(sys.argv[1]))
 warm_up(Planner(sc, trajectory=False))
-res = Planner(sc).plan(sc.start_rad, Planner(sc).goal_from_target())
+out = plan_offline(Planner(sc, reaction=True), sc.start_rad)
+res = out.result
+assert out.processed is not None
 hits, misses = 0, {}
 for name, mod in list(sys.modules.items()):
     if name.startswith("spacerobot_planner"):
