@@ -414,6 +414,16 @@ def rss_mb(pid="self") -> float:
     return math.nan
 
 
+def planning_pids() -> list:
+    """
+    Return the pids of this test process's planning processes that run (the graphs' nodes start them).
+
+    Not every child: with the zygote this process is a child subreaper, so the orphaned
+    planning process of a node run as a subprocess (and killed) also becomes its child for a while.
+    """
+    return ZYGOTE.running()
+
+
 def child_pids(pid=None) -> list:
     """Direct children of a process (default: this one, less its planning zygote), from /proc/*/stat."""
     zygote = {ZYGOTE.pid} if pid is None else set()

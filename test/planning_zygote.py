@@ -146,6 +146,7 @@ class PlanningZygote:
         self._lock = threading.Lock()
         self._proc = None
         self._control = None
+        self._forked = []            # every ForkedProcess handed out
         atexit.register(self.close)
 
     @property
@@ -183,7 +184,16 @@ class PlanningZygote:
         ppid = int(stat[stat.rfind(")") + 2:].split()[1])
         if ppid != os.getpid():
             raise RuntimeError(f"planning process {pid} has parent {ppid}, not this process {os.getpid()}")
-        return ForkedProcess(pid)
+        child = ForkedProcess(pid)
+        with self._lock:
+            self._forked.append(child)
+        return child
+
+    def running(self) -> list:
+        """Return the pids of the planning processes forked here that have not exited."""
+        with self._lock:
+            forked = list(self._forked)
+        return [c.pid for c in forked if c.poll() is None]
 
     def close(self) -> None:
         with self._lock:

@@ -15,7 +15,7 @@ from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.lifecycle import TransitionCallbackReturn
 
-from node_helpers import PLAN_CANCELLED_AT_SHUTDOWN, PROMPT_BOUND_S, child_pids, pid_alive, scene_params
+from node_helpers import PLAN_CANCELLED_AT_SHUTDOWN, PROMPT_BOUND_S, pid_alive, planning_pids, scene_params
 
 
 class _Lifecycle:
@@ -76,12 +76,12 @@ def test_transitions_in_order_then_shutdown_leaves_nothing(manual, capfd):
     before = _threads()
     g = manual
     assert _state(g) == "unconfigured"
-    assert child_pids() == [] or all(not pid_alive(p) for p in child_pids())
+    assert planning_pids() == []
     assert not _subscribed(g)
 
     assert _change(g, Transition.TRANSITION_CONFIGURE)
     assert _state(g) == "inactive"
-    kids = [p for p in child_pids() if pid_alive(p)]
+    kids = planning_pids()
     assert len(kids) == 1, kids                     # the planning process, warmed up
     # the node's own view of the graph (its local entities are in it at once; no discovery)
     assert g.planner.count_subscribers("target_pose") == 0, "an inactive node subscribes target_pose"
@@ -107,7 +107,7 @@ def test_transitions_in_order_then_shutdown_leaves_nothing(manual, capfd):
 
     # configure again (a fresh planning process), activate, then shut down from active
     assert _change(g, Transition.TRANSITION_CONFIGURE) and _change(g, Transition.TRANSITION_ACTIVATE)
-    kids2 = [p for p in child_pids() if pid_alive(p)]
+    kids2 = planning_pids()
     assert len(kids2) == 1 and kids2 != kids
     assert _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
     assert _state(g) == "finalized"
@@ -176,7 +176,7 @@ def test_lifecycle_shutdown_during_a_long_plan(graph, capfd, record_property):
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
     _lifecycle(g)                                      # discovered before the clock starts
     time.sleep(0.5)
-    kids = [p for p in child_pids() if pid_alive(p)]
+    kids = planning_pids()
     t0 = time.monotonic()
     assert _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
     dt = time.monotonic() - t0
