@@ -47,6 +47,7 @@ from typing import Callable
 import numpy as np
 
 from .config import load_scenario
+from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .planner import Planner
 from .termination import Termination, stall
@@ -647,7 +648,6 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=main.__doc__.strip().splitlines()[0])
     ap.add_argument("--warm-cache", nargs="+", metavar="FILE", required=True)
     args = ap.parse_args(argv)
-    from .offline import plan_offline         # the plan and the node's chain after it, as the CLI runs them
     for path in args.warm_cache:
         scenario = load_scenario(path)
         planner = Planner(scenario, reaction=True)    # the file's solver and tolerance; as the CLI
