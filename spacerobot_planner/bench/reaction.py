@@ -51,6 +51,7 @@ from ..planner import Planner
 from ..reaction import reaction_report
 from ..spacecraft import MassProperties, WheelModel
 from ..trajectory import resample, time_parameterize
+from .timing import median_s
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 
@@ -104,15 +105,6 @@ def interpolated_ratios(traj, quintic: bool, samples: int = 40):
         worst_a = max(worst_a, float(np.max(np.abs(acc) / traj.max_acceleration_rad_s2)))
         worst_v = max(worst_v, float(np.max(np.abs(vel) / traj.max_velocity_rad_s)))
     return worst_a, worst_v
-
-
-def _median_s(fn, repeats):
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return float(np.median(out))
 
 
 def _ff_row(sc, method, start):
@@ -255,10 +247,10 @@ def main(argv=None) -> int:
             for kind in ("cubic", "quintic"):
                 ra, rv = interpolated_ratios(tr, kind == "quintic")
                 row[f"{kind}_{label}_max_acc_ratio"], row[f"{kind}_{label}_max_vel_ratio"] = ra, rv
-        row["seconds"] = _median_s(lambda: time_parameterize(path, vmax, amax), args.repeats)
-        row["seconds_with_wheel"] = _median_s(
+        row["seconds"] = median_s(lambda: time_parameterize(path, vmax, amax), args.repeats)
+        row["seconds_with_wheel"] = median_s(
             lambda: time_parameterize(path, vmax, amax, wheel=WheelModel(robot, masses, *args.wheel)), args.repeats)
-        row["seconds_reaction_report"] = _median_s(
+        row["seconds_reaction_report"] = median_s(
             lambda: reaction_report(robot, masses, sc.scene, path, traj), args.repeats)
         rows.append(row)
     print(f"{'scene':12} {'T [s]':>8} {'TOPP-RA':>8} {'h peak':>7} {'τ peak':>7} {'T h/τ/both [s]':>22} "

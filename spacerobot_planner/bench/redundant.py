@@ -35,6 +35,7 @@ from ..planner import Planner
 from ..redundant import SWEEP_VALUES, redundant_grasp
 from ..robot import PlanarArm
 from ..scene import Target
+from .timing import median_s
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 
@@ -46,15 +47,6 @@ def five_joint(robot4: PlanarArm) -> PlanarArm:
                      checked_links=(1, 2, 3, 4))
 
 
-def _median_s(fn, repeats):
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return float(np.median(out))
-
-
 def ik_rows(sc, repeats: int) -> list:
     """Part 1: the grasp IK's cost and quality for 4 and 5 joints."""
     rows = []
@@ -62,7 +54,7 @@ def ik_rows(sc, repeats: int) -> list:
     for label, robot in (("4 joints", sc.robot), ("5 joints", five_joint(sc.robot))):
         grasp_ik(robot, sc.scene)                                          # warm-up (numba)
         sols = grasp_ik(robot, sc.scene)
-        seconds = _median_s(lambda robot=robot: grasp_ik(robot, sc.scene), repeats)
+        seconds = median_s(lambda robot=robot: grasp_ik(robot, sc.scene), repeats)
         r = robot.dof - 3
         dense = 4 * SWEEP_VALUES[r]
         t0 = time.perf_counter()
