@@ -10,6 +10,8 @@ export AMENT_PREFIX_PATH := $(abspath $(VENV))
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
 IFACE  := interfaces/spacerobot_planner_interfaces
+# every scenario file: numba's cache gets each one's route (2-D, 3-D, 4-D grids; free-floating capture)
+CONFIGS := $(sort $(wildcard config/*.yaml))
 IFACE_BUILD := build/interfaces
 VENV_ABS := $(abspath $(VENV))
 
@@ -18,7 +20,7 @@ VENV_ABS := $(abspath $(VENV))
 all: test
 
 # 1. the wheels; 2. the interface package (CMake, into the venv prefix, as colcon would);
-# 3. this package (editable) and its ament layout; 4. numba's cache of the default route
+# 3. this package (editable) and its ament layout; 4. numba's cache of each scenario file's route
 $(STAMP): requirements.txt setup.py setup.cfg package.xml $(IFACE)/CMakeLists.txt $(IFACE)/package.xml \
 		$(wildcard $(IFACE)/action/*.action)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,7 +29,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml $(IFACE)/CMakeLists.tx
 	$(MAKE) interfaces
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	$(PY) -m spacerobot_planner.tools.ament_install --prefix $(VENV)
-	$(PY) -m spacerobot_planner.worker --warm-cache config/paper_3dof.yaml config/paper_2dof.yaml
+	$(PY) -m spacerobot_planner.worker --warm-cache $(CONFIGS)
 	touch $(STAMP)
 
 interfaces:

@@ -10,7 +10,7 @@ Packaging of spacerobot_planner (ament_python: colcon and pip).
   repository in ``src/`` would otherwise never build it.  ``colcon build --symlink-install``
   (``setup.py develop``) runs it too.
 - ``warm_numba_cache``: it runs ``python -m spacerobot_planner.worker --warm-cache`` on the
-  paper scenes in the installed tree, so numba's cache (``__pycache__/*.nbi``, ``*.nbc``)
+  scenario files of ``config/`` in the installed tree, so numba's cache (``__pycache__/*.nbi``, ``*.nbc``)
   sits next to the installed sources and the first start loads the kernels instead of
   compiling them.
 """
@@ -28,8 +28,9 @@ from setuptools.command.install import install
 
 PACKAGE = "spacerobot_planner"
 HERE = os.path.dirname(os.path.abspath(__file__))
-#: the scenes whose default route the install compiles (both paper scenes)
-WARM_CONFIGS = ("config/paper_3dof.yaml", "config/paper_2dof.yaml")
+#: the scenario files whose routes the install compiles (all of config/: 2-D, 3-D and 4-D grids,
+#: the free-floating capture)
+WARM_CONFIGS = tuple(sorted(os.path.relpath(p, HERE) for p in glob(os.path.join(HERE, "config", "*.yaml"))))
 #: set to 0 to skip the cache step (the first start then compiles, ~20 s)
 WARM_ENV = "SPACEROBOT_PLANNER_WARM_CACHE"
 #: colcon's PYTHONPATH entries for setup.py itself (its sitecustomize moves sys.prefix)
