@@ -133,6 +133,114 @@ def _by_parity(nbr, wt, diag, coords):
     return nbr2, wt2, diag2, coords2, new_of_old[:n].copy()
 
 
+@nb.njit(cache=True, nogil=True)
+def _fine_restrict(nb0, red):
+    """Return the fine level's restricted rows: ``red`` unless two black rows are neighbours (then all n)."""
+    n, deg = nb0.shape
+    for i in range(red, n):
+        for d in range(deg):
+            j = nb0[i, d]
+            if j >= red and j < n:
+                return n
+    return red
+
+
+@nb.njit(cache=True, nogil=True)
+def _levels(nb0, coords, shape, stop):
+    """
+    Aggregate the fine level (``nb0`` int32 (n, deg), red rows first) down to the coarsest.
+
+    coords int64 (n, ndim), shape int64 (ndim,): the fine grid.  Returns the packed
+    arrays ``(sizes, off, nbr, wt, inv_diag, diag, agg, cn, cw, cd, stopped)`` (see the
+    module doc; the fine level's rows of nbr and wt are left unset: its kernels read
+    ``nb0`` and unit weights); ``cn, cw, cd``: the coarsest level's own, for its dense
+    factor; ``stopped``: the termination flag ``stop`` was seen set between levels
+    (nothing else is valid).
+    """
+    n, deg = nb0.shape
+    aggs = [np.zeros(0, np.int64)]          # aggs[l]: the aggregate on level l of each row of level l - 1
+    nbrs = [np.zeros((0, deg), np.int64)]   # the coarse levels' (entry 0 unused: the fine level is nb0)
+    wts = [np.zeros((0, deg))]
+    diags = [np.zeros(0)]
+    shape = shape.copy()
+    stopped = False
+    size = n
+    while size > COARSEST_NODES and np.any(shape > 1):
+        if stop[0] != 0:
+            stopped = True
+            break
+        shape = (shape + 1) // 2
+        if len(nbrs) == 1:
+            agg, cn, cw, cd, coords = _coarsen(nb0, wts[0], diags[0], coords, shape, True)
+        else:
+            agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape, False)
+        if cn.shape[0] == size:
+            break
+        cn, cw, cd, coords, new_of_old = _by_parity(cn, cw, cd, coords)
+        aggs.append(new_of_old[agg])
+        nbrs.append(cn)
+        wts.append(cw)
+        diags.append(cd)
+        size = cn.shape[0]
+    levels = len(nbrs)
+    sizes = np.empty(levels, np.int64)
+    sizes[0] = n
+    for lv in range(1, levels):
+        sizes[lv] = nbrs[lv].shape[0]
+    off = np.zeros(levels + 1, np.int64)
+    for lv in range(levels):
+        off[lv + 1] = off[lv] + sizes[lv] + 1
+    total = off[levels]
+    nbr = np.empty((total, deg), np.int32)
+    wt = np.empty((total, deg))
+    diag = np.ones(total)
+    inv_diag = np.ones(total)
+    agg = np.zeros(total, np.int32)
+    for lv in range(levels):
+        a = off[lv]
+        m = sizes[lv]
+        if lv + 1 < levels:
+            agg[a:a + m] = aggs[lv + 1]
+        if lv == 0:
+            continue             # the fine level reads nb0 (unit weights, diagonal deg)
+        nbr[a:a + m] = nbrs[lv]
+        wt[a:a + m] = wts[lv]
+        diag[a:a + m] = diags[lv]
+        for i in range(m):
+            inv_diag[a + i] = 1.0 / diag[a + i]
+        nbr[a + m] = m           # the dummy row: no neighbours, weight 0, diagonal 1
+        wt[a + m] = 0.0
+    if levels == 1:
+        m = n
+        cn = nb0.astype(np.int64)
+        cw = np.zeros((m, deg))
+        for i in range(m):
+            for d in range(deg):
+                if cn[i, d] < m:
+                    cw[i, d] = 1.0
+        cd = np.full(m, float(deg))
+    else:
+        cn = nbrs[levels - 1]
+        cw = wts[levels - 1]
+        cd = diags[levels - 1]
+    return sizes, off, nbr, wt, inv_diag, diag, agg, cn, cw, cd, stopped
+
+
+@nb.njit(cache=True, nogil=True)
+def _coarsest_matrix(cn, cw, cd):
+    """The coarsest level's dense matrix: ``cd`` on the diagonal, ``-cw`` at each neighbour (summed, row by row)."""
+    m, deg = cn.shape
+    dense = np.zeros((m, m))
+    for i in range(m):
+        dense[i, i] = cd[i]
+    for i in range(m):
+        for d in range(deg):
+            j = cn[i, d]
+            if j < m:
+                dense[i, j] += -cw[i, d]
+    return dense
+
+
 class Stopped(Exception):
     """The set-up saw its termination flag set."""
 
@@ -165,53 +273,15 @@ class Hierarchy:
         self.red0 = red
         # after a sweep (red rows first, then black) the black residuals are zero unless two
         # black rows are neighbours (across an odd periodic seam): restrict the red ones only
-        black_nbrs = nb0[red:]
-        self.restrict0 = n if np.any((black_nbrs >= red) & (black_nbrs < n)) else red
-        nbrs, wts, diags, aggs = [nb0], [np.zeros((0, deg))], [np.zeros(0)], []
-        shape = np.asarray(shape, np.int64)
-        while nbrs[-1].shape[0] > COARSEST_NODES and np.any(shape > 1):
-            if stop is not None and stop[0] != 0:
-                raise Stopped()
-            shape = (shape + 1) // 2
-            agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape, len(nbrs) == 1)
-            if cn.shape[0] == nbrs[-1].shape[0]:
-                break
-            cn, cw, cd, coords, new_of_old = _by_parity(cn, cw, cd, coords)
-            aggs.append(new_of_old[agg])
-            nbrs.append(cn)
-            wts.append(cw)
-            diags.append(cd)
-        sizes = np.array([a.shape[0] for a in nbrs], np.int64)
-        off = np.zeros(sizes.size + 1, np.int64)
-        off[1:] = np.cumsum(sizes + 1)
-        total = int(off[-1])
-        self.levels = int(sizes.size)
-        self.sizes = sizes
-        self.off = off
-        self.nbr = np.zeros((total, deg), np.int32)
-        self.wt = np.zeros((total, deg))
-        self.diag = np.ones(total)
-        self.agg = np.zeros(total, np.int32)
-        for lv in range(self.levels):
-            a, b = off[lv], off[lv] + sizes[lv]
-            if lv < len(aggs):
-                self.agg[a:b] = aggs[lv]
-            if lv == 0:
-                continue             # the fine level reads nb0 (unit weights, diagonal deg)
-            self.nbr[a:b] = nbrs[lv]
-            self.nbr[b] = sizes[lv]
-            self.wt[a:b] = wts[lv]
-            self.diag[a:b] = diags[lv]
-        self.inv_diag = 1.0 / self.diag
-        m = int(sizes[-1])
-        cn, cw, cd = nbrs[-1], wts[-1], diags[-1]
-        if self.levels == 1:
-            cw, cd = np.where(cn < m, 1.0, 0.0), np.full(m, float(deg))
-        dense = np.diag(cd)
-        rows, dirs = np.nonzero(cn < m)
-        np.add.at(dense, (rows, cn[rows, dirs]), -cw[rows, dirs])
+        self.restrict0 = int(_fine_restrict(nb0, red))
+        (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, cn, cw, cd,
+         stopped) = _levels(nb0, coords, np.asarray(shape, np.int64),
+                            np.zeros(1, np.int64) if stop is None else stop)
+        if stopped:
+            raise Stopped()
+        self.levels = int(self.sizes.size)
         # SPD: every unknown is connected to the goal, a Dirichlet node
-        self.chol = np.linalg.cholesky(dense)
+        self.chol = np.linalg.cholesky(_coarsest_matrix(cn, cw, cd))
 
 
 # --------------------------------------------------------------------------
