@@ -36,13 +36,13 @@ def _band_problem(nbr, active, known, log_u):
     """
     Return the Dirichlet problem on the ``active`` nodes, with the ``known`` ones fixed.
 
-    Returns ``(sub_nbr int64 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
+    Returns ``(sub_nbr int32 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
     (m = none), and the known neighbour values divided by the largest of them,
     ``exp(log_scale)``.
     """
     n, deg = nbr.shape
     m = active.size
-    local = np.full(n + 1, m, np.int64)
+    local = np.full(n + 1, m, np.int32)
     for k in range(m):
         local[active[k]] = k
     log_scale = -np.inf
@@ -51,7 +51,7 @@ def _band_problem(nbr, active, known, log_u):
             j = nbr[active[k], a]
             if j < n and known[j] and log_u[j] > log_scale:
                 log_scale = log_u[j]
-    sub = np.empty((m, deg), np.int64)
+    sub = np.empty((m, deg), np.int32)      # the multigrid's fine level reads int32
     rhs = np.zeros(m)
     for k in range(m):
         for a in range(deg):
