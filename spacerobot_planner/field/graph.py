@@ -37,14 +37,22 @@ def grid_neighbours(shape, periodic):
     column 2a + (0|1) = the (-|+) neighbour along axis a, wrapping on periodic axes.
     One odometer pass over the grid, no integer divisions.
     """
-    ndim = shape.size
     n = 1
-    for a in range(ndim):
+    for a in range(shape.size):
         n *= shape[a]
+    out = np.empty((n, 2 * shape.size), np.int64)
+    fill_grid_neighbours(shape, periodic, out)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def fill_grid_neighbours(shape, periodic, out):
+    """:func:`grid_neighbours` into ``out`` (prod(shape), 2 ndim), any integer type (the node graph's: int32)."""
+    ndim = shape.size
+    n = out.shape[0]
     strides = np.ones(ndim, np.int64)
     for a in range(ndim - 2, -1, -1):
         strides[a] = strides[a + 1] * shape[a + 1]
-    out = np.empty((n, 2 * ndim), np.int64)
     coord = np.zeros(ndim, np.int64)
     for f in range(n):
         for a in range(ndim):
@@ -123,24 +131,29 @@ def _red_black_order(dist, goal_flat, shape):
                 n_red += 1
         _next_coord(coord, shape)
     order = np.empty(n_all, np.int64)
+    coords = np.empty((n_all, ndim), np.int64)
     order[:n_goal] = goal_flat
-    k_red = n_goal
-    k_black = n_goal + n_red
-    for f in range(n_grid):
-        if dist[f] >= 0 and not is_goal[f]:
-            if parity[f] == 0:
-                order[k_red] = f
-                k_red += 1
-            else:
-                order[k_black] = f
-                k_black += 1
     strides = np.ones(ndim, np.int64)
     for a in range(ndim - 2, -1, -1):
         strides[a] = strides[a + 1] * shape[a + 1]
-    coords = np.empty((n_all, ndim), np.int64)
-    for k in range(n_all):
+    for k in range(n_goal):
         for a in range(ndim):
             coords[k, a] = (order[k] // strides[a]) % shape[a]
+    k_red = n_goal
+    k_black = n_goal + n_red
+    coord[:] = 0
+    for f in range(n_grid):                  # the same odometer: the coordinates without divisions
+        if dist[f] >= 0 and not is_goal[f]:
+            if parity[f] == 0:
+                k = k_red
+                k_red += 1
+            else:
+                k = k_black
+                k_black += 1
+            order[k] = f
+            for a in range(ndim):
+                coords[k, a] = coord[a]
+        _next_coord(coord, shape)
     return order, coords
 
 
@@ -259,7 +272,8 @@ def bfs(occ, per, goals, cut_edges=None, token=None):
     edges ``cut_edges`` (int (k, 2) flat node pairs) if given.  ``token``: a termination
     token checked between the passes (raises ``termination.Cancelled``).
     """
-    gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
+    gnbr = np.empty((occ.size, 2 * occ.ndim), np.int32 if occ.size < 2**31 else np.int64)
+    fill_grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_), gnbr)
     if token is not None:
         token.check()
     if cut_edges is not None and len(cut_edges):
