@@ -228,7 +228,7 @@ def _levels(nb0, coords, shape, stop):
 
 @nb.njit(cache=True, nogil=True)
 def _coarsest_matrix(cn, cw, cd):
-    """The coarsest level's dense matrix: ``cd`` on the diagonal, ``-cw`` at each neighbour (summed, row by row)."""
+    """Return the coarsest level's dense matrix: ``cd`` on the diagonal, ``-cw`` at each neighbour."""
     m, deg = cn.shape
     dense = np.zeros((m, m))
     for i in range(m):
