@@ -387,18 +387,16 @@ def _sweep0(nb0, x, b, lo, hi, deg, inv_deg, par):
 
 
 @nb.njit(cache=True, nogil=True)
-def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b0, b, r, r0, sweeps,
+def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
             boost, par, stop):
     """
-    Compute x = M^-1 b0 on the finest level (b0 (n0 + 1,); x, b, r: packed level vectors, b and r scratch).
+    Compute x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
 
     Symmetric: forward Gauss-Seidel sweeps before the coarse correction (scaled by
     ``boost``), backward ones after.  The fine level (unit weights, diagonal deg)
     reads ``nb0``; its first ``red0`` rows are red.  When ``restrict0 == red0`` (no
     two rows of one colour are neighbours) a colour's rows are updated in any order
-    (two threads with ``par``), else one by one in order; then the black rows' residuals
-    are zero after pre-smoothing and their coarse correction is dead (post-smoothing
-    starts with them), so neither is computed.  r0 (n0,) scratch.  The
+    (two threads with ``par``), else one by one in order.  r0 (n0,) scratch.  The
     termination flag ``stop`` is polled after the fine level's pre-smoothing and
     before its post-smoothing (x is then garbage: the caller discards it).
     """
@@ -418,24 +416,22 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
                 x[i] = 0.0
             if clean:            # first sweep from 0: a red row sees only black zeros
                 for i in range(red0):
-                    x[i] = b0[i] * inv_deg
-                _sweep0(nb0, x, b0, red0, n0, deg, inv_deg, par)
+                    x[i] = b[i] * inv_deg
+                _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
                 for _ in range(sweeps - 1):
-                    _sweep0(nb0, x, b0, 0, red0, deg, inv_deg, par)
-                    _sweep0(nb0, x, b0, red0, n0, deg, inv_deg, par)
+                    _sweep0(nb0, x, b, 0, red0, deg, inv_deg, par)
+                    _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
             else:
                 for _ in range(sweeps):
-                    _gs0(nb0, x, b0, 0, n0, deg, inv_deg)
+                    _gs0(nb0, x, b, 0, n0, deg, inv_deg)
             if stop[0] != 0:
                 return
             if par:
-                _residual0_par(nb0, x, b0, r0, 0, restrict0, deg)
-                for i in range(restrict0):
-                    b[cb + agg[i]] += r0[i]
-            else:                # the residual restricted as it is computed (the same sums)
-                fdeg = float(deg)
-                for i in range(restrict0):
-                    b[cb + agg[i]] += b0[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
+                _residual0_par(nb0, x, b, r0, 0, restrict0, deg)
+            else:
+                _residual0(nb0, x, b, r0, 0, restrict0, deg)
+            for i in range(restrict0):
+                b[cb + agg[i]] += r0[i]
             continue
         for i in range(n + 1):
             x[base + i] = 0.0
@@ -445,12 +441,11 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
         for i in range(n):
             ri = b[base + i] - diag[base + i] * x[base + i] + _row(nbr, wt, x, i, base, deg)
             b[cb + agg[base + i]] += ri
-    # coarsest: L L^T x = b (b0 when the fine level is the only one)
+    # coarsest: L L^T x = b
     base = off[nlev - 1]
     m = sizes[nlev - 1]
-    bc = b0 if nlev == 1 else b
     for i in range(m):
-        s = bc[base + i]
+        s = b[base + i]
         for k in range(i):
             s -= chol[i, k] * r[base + k]
         r[base + i] = s / chol[i, i]
@@ -472,17 +467,15 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
     if nlev == 1 or stop[0] != 0:
         return
     cb = off[1]
-    # a black row's correction is dead when the black rows are swept first (below)
-    corrected = red0 if restrict0 == red0 and sweeps > 0 else n0
-    for i in range(corrected):
+    for i in range(n0):
         x[i] += boost * x[cb + agg[i]]
     for _ in range(sweeps):
         if restrict0 == red0:        # black rows, then red (the backward order by colour)
-            _sweep0(nb0, x, b0, red0, n0, deg, inv_deg, par)
-            _sweep0(nb0, x, b0, 0, red0, deg, inv_deg, par)
+            _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
+            _sweep0(nb0, x, b, 0, red0, deg, inv_deg, par)
         else:
             for i in range(n0 - 1, -1, -1):
-                x[i] = (b0[i] + _row0(nb0, x, i, deg)) * inv_deg
+                x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
 
 
 @nb.njit(cache=True)
@@ -496,7 +489,9 @@ def _now():
 def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
                   sweeps, boost, par, stop):
     """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
-    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, r, bs, ws, r0, sweeps,
+    for i in range(n):
+        bs[i] = r[i]
+    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
             boost, par, stop)
     rz = 0.0
     for i in range(n):
@@ -547,16 +542,13 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
         if deadline > 0.0 and _now() > deadline:
             break
         it += 1
-        pq = 0.0
         if par:
             _matvec0_par(nb0, p, q, 0, n, deg)
-            for i in range(n):
-                pq += p[i] * q[i]
-        else:                        # q = A p and p · q in one pass (the same sums)
-            for i in range(n):
-                qi = fdeg * p[i] - _row0(nb0, p, i, deg)
-                q[i] = qi
-                pq += p[i] * qi
+        else:
+            _matvec0(nb0, p, q, 0, n, deg)
+        pq = 0.0
+        for i in range(n):
+            pq += p[i] * q[i]
         if not pq > 0.0:
             break
         alpha = rz / pq
