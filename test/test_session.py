@@ -177,13 +177,18 @@ def test_a_plan_from_rest_is_stamped_the_lead_after_it_is_published(flat, backen
     assert ses.settings.start_lead_s == pytest.approx(0.35)
 
 
-def _moving(flat, backend, clock, t_in_s=1.0, **settings):
-    """Return a session whose first trajectory executes, ``t_in_s`` into it, the arm following it."""
+def _executing(flat, backend, clock, **settings):
+    """Return a session that planned and published its first target from rest, and its Executing."""
     ses = _session(flat, backend, clock, **settings)
     ses.joint_state(ses.scenario.start_rad, clock.t)
     ses.submit("first target", target=ses.target)
     assert ses.run_once().ok
-    ex = ses.executing
+    return ses, ses.executing
+
+
+def _moving(flat, backend, clock, t_in_s=1.0, **settings):
+    """Return a session whose first trajectory executes, ``t_in_s`` into it, the arm following it."""
+    ses, ex = _executing(flat, backend, clock, **settings)
     clock.t = ex.start_ns + int(t_in_s * S)
     measured_ns = clock.t - S // 100
     ses.joint_state(ex.expected_at(measured_ns), measured_ns)
@@ -213,11 +218,7 @@ def test_a_plan_from_the_end_of_a_trajectory_ending_within_the_lead_starts_there
     and it is recorded as following it (a later replan joins the chain).
     """
     clock = Clock()
-    ses = _session(flat, backend, clock)
-    ses.joint_state(ses.scenario.start_rad, clock.t)
-    ses.submit("first target", target=ses.target)
-    assert ses.run_once().ok
-    ex = ses.executing
+    ses, ex = _executing(flat, backend, clock)
     end_ns = ex.start_ns + int(ex.trajectory.duration_s * S)
     clock.t = end_ns - S // 10                       # 0.1 s before its end
     ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
@@ -240,11 +241,7 @@ def test_the_retry_from_the_end_starts_there_at_rest_stamped_at_that_end(flat, b
     from spacerobot_planner.adapters import post_process
     from spacerobot_planner.replanning import Join
     clock = Clock()
-    ses = _session(flat, backend, clock)
-    ses.joint_state(ses.scenario.start_rad, clock.t)
-    ses.submit("first target", target=ses.target)
-    assert ses.run_once().ok
-    ex = ses.executing
+    ses, ex = _executing(flat, backend, clock)
     end_ns = ex.start_ns + int(round(ex.trajectory.duration_s * S))
     now = end_ns - 15 * S // 10                      # 1.5 s before its end
     join = Join(ex, len(ex.trajectory) - 1, 2.0)
