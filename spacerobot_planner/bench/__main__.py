@@ -2,7 +2,7 @@
 Benchmarks.
 
 ``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,redundant,startup,cancel,envelope,
-peers,all} [options]``.
+peers,coldstart,all} [options]``.
 
 Every benchmark warms the JIT first, prints a readable table, and one JSON object per
 line (``stage``, ``grid``, ``solver``, ``seconds``, ...) so runs can be compared.
@@ -15,7 +15,7 @@ import importlib
 import sys
 
 BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction", "redundant", "startup", "cancel", "envelope",
-           "peers")
+           "peers", "coldstart")
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,121 @@
+"""
+Cold start of ``spacerobot-plan``: a fresh process, numba's cache filled, to the first plan.
+
+Runs ``python -m spacerobot_planner.tools.cli --params-file FILE --quiet`` (the console
+script's code) ``--runs`` times as a new process each, and in the same run, interleaved,
+the floors it cannot go below:
+
+- ``interpreter``: ``python -c pass``;
+- ``numpy + numba imports``: what every kernel module needs before it is defined;
+- ``numba first cached kernel``: those imports plus one call of a one-line kernel loaded
+  from numba's cache (numba's target set-up happens at the first load, whatever the kernel).
+
+Each CLI run also reports, from inside the process (``_probe``), where its time went:
+importing the package, loading each kernel from numba's cache (count and seconds), and the
+rest of the plan.  Figures are wall seconds: median, p90 and max over the runs.
+
+``python -m spacerobot_planner.bench coldstart [--params-file F] [--runs N]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+_PKG = Path(__file__).resolve().parent.parent
+_PARAMS = _PKG.parent / "config" / "paper_3dof.yaml"
+
+#: Run inside the CLI's process: phases and numba cache loads, as one JSON line on stderr.
+_PROBE = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import numba.core.caching as caching
+loads = [0, 0.0]
+_load = caching.Cache.load_overload
+def load_overload(self, *a, **k):
+    s = time.perf_counter()
+    try:
+        return _load(self, *a, **k)
+    finally:
+        loads[0] += 1
+        loads[1] += time.perf_counter() - s
+caching.Cache.load_overload = load_overload
+t1 = time.perf_counter()
+from spacerobot_planner.tools.cli import main
+t2 = time.perf_counter()
+rc = main(sys.argv[1:])
+t3 = time.perf_counter()
+print(json.dumps({"numba_import_s": t1 - t0, "package_import_s": t2 - t1, "main_s": t3 - t2,
+                  "kernel_loads": loads[0], "kernel_load_s": loads[1], "rc": rc}), file=sys.stderr)
+"""
+
+_KERNEL = "from numba import njit\n@njit(cache=True)\ndef one(x):\n    return x + 1.0\n"
+
+
+def _wall(cmd, env=None, cwd=None) -> tuple:
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=cwd)
+    wall = time.perf_counter() - t0
+    if done.returncode not in (0, 2):
+        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}):\n{done.stderr[-2000:]}")
+    return wall, done.stderr
+
+
+def _stats(vals) -> dict:
+    v = np.asarray(vals)
+    return {"median_s": float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "max_s": float(v.max()),
+            "min_s": float(v.min()), "runs": int(v.size)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    ap.add_argument("--params-file", default=str(_PARAMS))
+    ap.add_argument("--runs", type=int, default=7)
+    args = ap.parse_args(argv)
+    py = sys.executable
+    with tempfile.TemporaryDirectory() as tmp:
+        Path(tmp, "one_kernel.py").write_text(_KERNEL)
+        kernel_env = dict(os.environ, PYTHONPATH=tmp + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        cases = {
+            "interpreter": ([py, "-c", "pass"], None),
+            "numpy + numba imports": ([py, "-c", "import numpy, numba"], None),
+            "numba first cached kernel": ([py, "-c", "import one_kernel; one_kernel.one(1.0)"], kernel_env),
+            "spacerobot-plan": ([py, "-c", _PROBE, "--params-file", args.params_file, "--quiet"], None),
+        }
+        for cmd, env in cases.values():          # warm-up: numba's cache of the kernel, the OS file cache
+            _wall(cmd, env)
+        walls = {name: [] for name in cases}
+        probes = []
+        for _ in range(args.runs):
+            for name, (cmd, env) in cases.items():
+                w, err = _wall(cmd, env)
+                walls[name].append(w)
+                if name == "spacerobot-plan":
+                    probes.append(json.loads(err.strip().splitlines()[-1]))
+    rows = [{"bench": "coldstart", "case": name, **_stats(v)} for name, v in walls.items()]
+    for key in ("numba_import_s", "package_import_s", "kernel_load_s", "main_s"):
+        rows.append({"bench": "coldstart", "case": f"spacerobot-plan: {key[:-2]}",
+                     **_stats([p[key] for p in probes])})
+    loads = sorted({p["kernel_loads"] for p in probes})
+    print(f"bench coldstart: {Path(args.params_file).name}, {args.runs} runs each, interleaved; "
+          f"wall seconds of a fresh process (load {os.getloadavg()[0]:.1f})")
+    print(f"{'case':<40}{'median':>9}{'p90':>9}{'max':>9}")
+    for r in rows:
+        print(f"{r['case']:<40}{r['median_s']:>9.3f}{r['p90_s']:>9.3f}{r['max_s']:>9.3f}")
+    print(f"kernels loaded from numba's cache per CLI run: {', '.join(map(str, loads))} (the first load "
+          f"includes numba's target set-up; the package import includes numba's and numpy's)")
+    for r in rows:
+        print(json.dumps(r))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
