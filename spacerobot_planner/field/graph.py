@@ -225,7 +225,6 @@ class NodeGraph:
     coords: int64 (N, ndim) grid coordinates.
     dist: int64 (N,) BFS distance (face steps through free nodes) from the goal.
     shape, periodic: the grid's.
-    cut: some grid edge was cut (``cut_edges``): nbr is then not the grid's own.
     """
 
     order: np.ndarray
@@ -235,7 +234,6 @@ class NodeGraph:
     n_goal: int
     shape: tuple
     periodic: tuple
-    cut: bool = False
 
     @property
     def size(self) -> int:
@@ -300,7 +298,7 @@ def node_graph(occ, per, goals, cut_edges=None, token=None) -> NodeGraph:
     order, coords = _red_black_order(dist, order[:n_goal], np.array(occ.shape, np.int64))
     token.check()
     return NodeGraph(order, _neighbour_table(order, gnbr), coords, dist[order], n_goal,
-                     tuple(occ.shape), tuple(per), cut_edges is not None and len(cut_edges) > 0)
+                     tuple(occ.shape), tuple(per))
 
 
 def bfs_distance(occupied, periodic, goal_nodes) -> np.ndarray:

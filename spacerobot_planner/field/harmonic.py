@@ -265,8 +265,7 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
         token.check()
         x, its, res = multigrid.solve(sub, graph.coords[window], graph.shape, rhs,
-                                      tol=residual_tol, deadline=deadline, stop=token.flag,
-                                      cells=None if graph.cut else graph.order[window], periodic=graph.periodic)
+                                      tol=residual_tol, deadline=deadline, stop=token.flag)
         token.check()               # the iterations stopped part-way: keep nothing
         bands += 1
         iterations += its

@@ -33,9 +33,6 @@ import numpy as np
 COARSEST_NODES = 100
 #: Gauss–Seidel sweeps before and after the coarse correction on the coarse levels.
 COARSE_SWEEPS = 2
-#: The fine level runs on the grid itself (the grid route, :class:`GridLevel`) when the
-#: unknowns are at least this share of the grid's cells (its vectors span the whole grid).
-GRID_MIN_FILL = 0.25
 
 
 # --------------------------------------------------------------------------
@@ -192,11 +189,11 @@ def _levels(nb0, coords, shape, stop):
     for lv in range(levels):
         off[lv + 1] = off[lv] + sizes[lv] + 1
     total = off[levels]
-    nbr = np.empty((total, deg), np.int32)
+    nbr = np.empty((total, deg), np.uint32)
     wt = np.empty((total, deg))
     diag = np.ones(total)
     inv_diag = np.ones(total)
-    agg = np.zeros(total, np.int32)
+    agg = np.zeros(total, np.uint32)
     for lv in range(levels):
         a = off[lv]
         m = sizes[lv]
@@ -263,12 +260,12 @@ class Hierarchy:
         parity = coords.sum(axis=1) % 2
         red = int(n - np.count_nonzero(parity))
         if np.all(parity[:red] == 0):           # already red rows first (the node graph's order)
-            nb0 = np.ascontiguousarray(nbr, dtype=np.int32)
+            nb0 = np.ascontiguousarray(nbr, dtype=np.int32).view(np.uint32)
             self.fine_of_input = np.arange(n)
         else:
             nb0, _, _, coords, self.fine_of_input = _by_parity(
                 np.ascontiguousarray(nbr, dtype=np.int64), np.zeros((n, deg)), np.zeros(n), coords)
-            nb0 = nb0.astype(np.int32)
+            nb0 = nb0.astype(np.uint32)
         # the fine level on its own: unit weights, diagonal deg, int32 neighbours
         self.nb0 = nb0
         self.red0 = red
@@ -289,24 +286,24 @@ class Hierarchy:
 # kernels
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True, inline="always")
-def _row(nbr, wt, x, i, base, deg):
+def _row(nbr, wt, x, i, deg):
     """
-    Return one row's neighbour sum on the level starting at ``base``.
+    Return one row's neighbour sum on a coarse level: sum_d wt[i, d] * x[nbr[i, d]].
 
-    sum_d wt[i, d] * x[nbr[i, d]] on the level whose rows start at ``base`` (the usual degrees
-    spelled out, as in :func:`_row0`).
+    nbr, wt, x: the level's own rows (views of the packed arrays); nbr unsigned, so that no
+    index pays numba's negative-index wrap-around.  The usual degrees spelled out, as in
+    :func:`_row0`.
     """
-    r = base + i
     if deg == 4:
-        return (wt[r, 0] * x[base + nbr[r, 0]] + wt[r, 1] * x[base + nbr[r, 1]]
-                + wt[r, 2] * x[base + nbr[r, 2]] + wt[r, 3] * x[base + nbr[r, 3]])
+        return (wt[i, 0] * x[nbr[i, 0]] + wt[i, 1] * x[nbr[i, 1]]
+                + wt[i, 2] * x[nbr[i, 2]] + wt[i, 3] * x[nbr[i, 3]])
     if deg == 6:
-        return (wt[r, 0] * x[base + nbr[r, 0]] + wt[r, 1] * x[base + nbr[r, 1]]
-                + wt[r, 2] * x[base + nbr[r, 2]] + wt[r, 3] * x[base + nbr[r, 3]]
-                + wt[r, 4] * x[base + nbr[r, 4]] + wt[r, 5] * x[base + nbr[r, 5]])
+        return (wt[i, 0] * x[nbr[i, 0]] + wt[i, 1] * x[nbr[i, 1]]
+                + wt[i, 2] * x[nbr[i, 2]] + wt[i, 3] * x[nbr[i, 3]]
+                + wt[i, 4] * x[nbr[i, 4]] + wt[i, 5] * x[nbr[i, 5]])
     s = 0.0
     for d in range(deg):
-        s += wt[r, d] * x[base + nbr[r, d]]
+        s += wt[i, d] * x[nbr[i, d]]
     return s
 
 
@@ -316,7 +313,7 @@ def _row0(nb0, x, i, deg):
     sum_d x[nb0[i, d]] on the fine level (unit weights).
 
     The usual degrees are spelled out (the same sum in the same order, 1.5x faster than
-    the loop).
+    the loop); nb0 is unsigned (uint32: no negative-index wrap-around, 2x faster).
     """
     if deg == 4:
         return x[nb0[i, 0]] + x[nb0[i, 1]] + x[nb0[i, 2]] + x[nb0[i, 3]]
@@ -332,7 +329,7 @@ def _row0(nb0, x, i, deg):
 
 
 # --------------------------------------------------------------------------
-# the fine level on the node graph (the graph route): a range of rows, gathers through nb0
+# the fine level: a range of rows, gathers through nb0
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
 def _gs0(nb0, x, b, lo, hi, deg, inv_deg):
@@ -355,265 +352,31 @@ def _matvec0(nb0, p, q, lo, hi, deg):
 
 
 # --------------------------------------------------------------------------
-# the fine level on the grid itself (the grid route; see GridLevel): the unknowns as runs
-# of consecutive cells along the last axis, their neighbours at fixed offsets per line
-# --------------------------------------------------------------------------
-@nb.njit(cache=True, nogil=True)
-def _grid_lines(shape, periodic):
-    """
-    Return ``(delta, ends, parity)`` of the grid's lines along its last axis (see :class:`GridLevel`).
-
-    shape int64 (ndim,), periodic bool (ndim,).
-    """
-    ndim = shape.size
-    nl = shape[ndim - 1]
-    size = 1
-    for a in range(ndim):
-        size *= shape[a]
-    lines = size // nl
-    zero = size                              # the zero line (walls)
-    strides = np.ones(ndim, np.int64)
-    for a in range(ndim - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
-    delta = np.empty((lines, 2 * (ndim - 1)), np.int64)
-    ends = np.empty((lines, 2), np.int64)
-    parity = np.empty(lines, np.int64)
-    coord = np.zeros(ndim, np.int64)
-    for line in range(lines):
-        base = line * nl
-        par = 0
-        for a in range(ndim - 1):
-            c = coord[a]
-            par += c
-            span = (shape[a] - 1) * strides[a]
-            if c > 0:
-                delta[line, 2 * a] = -strides[a]
-            else:
-                delta[line, 2 * a] = span if periodic[a] else zero - base
-            if c < shape[a] - 1:
-                delta[line, 2 * a + 1] = strides[a]
-            else:
-                delta[line, 2 * a + 1] = -span if periodic[a] else zero - base
-        parity[line] = par % 2
-        ends[line, 0] = base + nl - 1 if periodic[ndim - 1] else zero
-        ends[line, 1] = base if periodic[ndim - 1] else zero
-        a = ndim - 2                           # the odometer over the other axes
-        while a >= 0:
-            coord[a] += 1
-            if coord[a] < shape[a]:
-                break
-            coord[a] = 0
-            a -= 1
-    return delta, ends, parity
-
-
-@nb.njit(cache=True, nogil=True)
-def _grid_runs(cells, size, nl):
-    """Return the runs int64 (k, 3) (first cell, count, line) of the cells ``cells`` (flat, any order)."""
-    mark = np.zeros(size + 1, np.bool_)
-    for k in range(cells.size):
-        mark[cells[k]] = True
-    runs = np.empty((cells.size, 3), np.int64)
-    k = 0
-    f = 0
-    while f < size:
-        if not mark[f]:
-            f += 1
-            continue
-        line = f // nl
-        end = (line + 1) * nl
-        first = f
-        while f < end and mark[f]:
-            f += 1
-        runs[k, 0] = first
-        runs[k, 1] = f - first
-        runs[k, 2] = line
-        k += 1
-    return runs[:k].copy()
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _run_offsets(delta, line):
-    """The first four neighbour-line offsets of ``line`` (0 where the grid has fewer axes)."""
-    nd2 = delta.shape[1]
-    d0 = delta[line, 0] if nd2 > 0 else 0
-    d1 = delta[line, 1] if nd2 > 1 else 0
-    d2 = delta[line, 2] if nd2 > 2 else 0
-    d3 = delta[line, 3] if nd2 > 3 else 0
-    return d0, d1, d2, d3
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _gsum(x, f, i, nl, el, er, d0, d1, d2, d3, delta, line):
-    """
-    Return the neighbour sum of cell ``f`` (position ``i`` on its line) on the grid route.
-
-    The usual dimensions spelled out: the line's offsets come in as scalars.
-    """
-    s = (x[f - 1] if i > 0 else x[el]) + (x[f + 1] if i < nl - 1 else x[er])
-    nd2 = delta.shape[1]
-    if nd2 == 0:
-        return s
-    s += x[f + d0] + x[f + d1]
-    if nd2 == 2:
-        return s
-    s += x[f + d2] + x[f + d3]
-    for a in range(4, nd2):
-        s += x[f + delta[line, a]]
-    return s
-
-
-@nb.njit(cache=True, nogil=True)
-def _gs_grid(g, x, b, colour, inv_deg):
-    """One Gauss–Seidel sweep over the unknowns of one colour (coordinate sum mod 2) on the grid route."""
-    runs, delta, ends, parity, _, nl = g
-    for k in range(runs.shape[0]):
-        f0, m, line = runs[k, 0], runs[k, 1], runs[k, 2]
-        lb = line * nl
-        el, er = ends[line, 0], ends[line, 1]
-        d0, d1, d2, d3 = _run_offsets(delta, line)
-        for f in range(f0 + ((parity[line] + f0 - lb + colour) & 1), f0 + m, 2):
-            x[f] = (b[f] + _gsum(x, f, f - lb, nl, el, er, d0, d1, d2, d3, delta, line)) * inv_deg
-
-
-@nb.njit(cache=True, nogil=True)
-def _matvec_grid(g, p, q, fdeg):
-    """q = A p on the unknowns of the grid route (q elsewhere untouched)."""
-    runs, delta, ends, parity, _, nl = g
-    for k in range(runs.shape[0]):
-        f0, m, line = runs[k, 0], runs[k, 1], runs[k, 2]
-        lb = line * nl
-        el, er = ends[line, 0], ends[line, 1]
-        d0, d1, d2, d3 = _run_offsets(delta, line)
-        for f in range(f0, f0 + m):
-            q[f] = fdeg * p[f] - _gsum(p, f, f - lb, nl, el, er, d0, d1, d2, d3, delta, line)
-
-
-@nb.njit(cache=True, nogil=True)
-def _restrict_grid(g, x, b, bc, cb, colour, fdeg):
-    """Add the residuals of one colour's unknowns to their aggregates' rows ``cb + agg`` of ``bc``."""
-    runs, delta, ends, parity, aggg, nl = g
-    for k in range(runs.shape[0]):
-        f0, m, line = runs[k, 0], runs[k, 1], runs[k, 2]
-        lb = line * nl
-        el, er = ends[line, 0], ends[line, 1]
-        d0, d1, d2, d3 = _run_offsets(delta, line)
-        for f in range(f0 + ((parity[line] + f0 - lb + colour) & 1), f0 + m, 2):
-            bc[cb + aggg[f]] += b[f] - fdeg * x[f] + _gsum(x, f, f - lb, nl, el, er, d0, d1, d2, d3, delta, line)
-
-
-@nb.njit(cache=True, nogil=True)
-def _vcycle_grid(g, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, xs, bs, ws, sweeps, boost, stop):
-    """
-    Compute x = M^-1 b on the grid route (x, b: grid vectors; xs, bs, ws: the packed levels, scratch).
-
-    The same cycle as :func:`_vcycle`'s on the fine level (red cells first: all colours
-    independent, as the grid route is taken only when no two cells of one colour are
-    neighbours), then :func:`_coarse_cycle`.
-    """
-    runs, aggg, nl = g[0], g[4], g[5]
-    deg = nbr.shape[1]
-    inv_deg = 1.0 / deg
-    parity = g[3]
-    for k in range(runs.shape[0]):           # the first sweep from 0: red = b / deg, black 0
-        f0, m, line = runs[k, 0], runs[k, 1], runs[k, 2]
-        red = (parity[line] + f0 - line * nl) & 1
-        for f in range(f0, f0 + m):
-            x[f] = b[f] * inv_deg if (f - f0) & 1 == red else 0.0
-    _gs_grid(g, x, b, 1, inv_deg)
-    for _ in range(sweeps - 1):
-        _gs_grid(g, x, b, 0, inv_deg)
-        _gs_grid(g, x, b, 1, inv_deg)
-    if stop[0] != 0:
-        return
-    cb = off[1]
-    for i in range(sizes[1] + 1):
-        bs[cb + i] = 0.0
-    _restrict_grid(g, x, b, bs, cb, 0, float(deg))     # the black residuals are 0
-    _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, 1, boost)
-    if stop[0] != 0:
-        return
-    for k in range(runs.shape[0]):
-        f0, m = runs[k, 0], runs[k, 1]
-        for f in range(f0, f0 + m):
-            x[f] += boost * xs[cb + aggg[f]]
-    for _ in range(sweeps):
-        _gs_grid(g, x, b, 1, inv_deg)
-        _gs_grid(g, x, b, 0, inv_deg)
-
-
-class GridLevel:
-    """
-    The fine level of one problem on its grid (the grid route), instead of its node graph.
-
-    Vectors over it have ``size + shape[-1]`` entries: the grid's cells in C order, then one
-    line of zeros that stands for the walls of bounded axes; every cell that is not an
-    unknown (walls, obstacles, the goal, known or unreachable nodes) holds 0, so a stencil
-    reads its neighbours at fixed offsets without a neighbour table (no gathers).
-    ``g`` is the kernels' tuple ``(runs, delta, ends, parity, agg, nl)``: runs int64 (k, 3)
-    (first cell, count, line) of consecutive unknowns along the last axis; per line of the
-    last axis, ``delta`` int64 (lines, 2 (ndim - 1)) the offset from a cell to its (−|+)
-    neighbour along each other axis (into the zero line beyond a wall), ``ends`` int64
-    (lines, 2) the (−) neighbour of its first cell and the (+) one of its last, ``parity``
-    its first cell's coordinate sum mod 2; ``agg`` int32 (size,) each unknown's aggregate on
-    level 1; ``nl`` = shape[-1].
-    """
-
-    def __init__(self, h, cells, shape, periodic):
-        """From the hierarchy ``h`` of the same problem; cells int64 (n,): each input node's flat cell."""
-        shape = np.asarray(shape, np.int64)
-        self.size = int(np.prod(shape))
-        self.cells = cells
-        nl = int(shape[-1])
-        delta, ends, parity = _grid_lines(shape, np.asarray(periodic, np.bool_))
-        agg = np.zeros(self.size, np.int32)
-        agg[cells] = h.agg[h.fine_of_input]
-        self.g = (_grid_runs(cells, self.size, nl), delta, ends, parity, agg, nl)
-
-    @staticmethod
-    def fits(h, cells, shape, periodic) -> bool:
-        """
-        Whether the grid route applies: the cells are given, fill ``GRID_MIN_FILL`` of the grid, below a coarse level.
-
-        And no periodic axis has an odd count (two cells of one colour would be neighbours).
-        """
-        return (cells is not None and h.levels > 1 and cells.size >= GRID_MIN_FILL * np.prod(shape)
-                and not any(p and k % 2 for p, k in zip(periodic, shape)))
-
-
-#: No grid route (the graph route's placeholder for the kernels' grid tuple).
-_NO_GRID = (np.zeros((0, 3), np.int64), np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64),
-            np.zeros(0, np.int64), np.zeros(0, np.int32), 1)
-
-
-# --------------------------------------------------------------------------
 # the cycle
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, boost):
+def _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, boost, coarse_sweeps):
     """
     Compute x = M^-1 b on level ``top`` by a V-cycle over the levels from ``top`` down (packed vectors).
 
-    Forward Gauss–Seidel sweeps (``COARSE_SWEEPS``) before the coarse correction (scaled by
+    Forward Gauss–Seidel sweeps (``coarse_sweeps``) before the coarse correction (scaled by
     ``boost``), backward ones after; the coarsest level by its Cholesky factor ``chol``.
     b of the levels below ``top`` and r are scratch.
     """
     deg = nbr.shape[1]
     nlev = sizes.size
     for lv in range(top, nlev - 1):
-        base = off[lv]
-        n = sizes[lv]
-        cb = off[lv + 1]
-        for i in range(sizes[lv + 1] + 1):
-            b[cb + i] = 0.0
-        for i in range(n + 1):
-            x[base + i] = 0.0
-        for _ in range(COARSE_SWEEPS):
+        lo, n, cb = off[lv], sizes[lv], off[lv + 1]
+        xl, bl, nl, wl, dl, idl, al = (x[lo:cb], b[lo:cb], nbr[lo:cb], wt[lo:cb], diag[lo:cb], inv_diag[lo:cb],
+                                       agg[lo:cb])
+        bc = b[cb:off[lv + 2]]
+        bc[:] = 0.0
+        xl[:] = 0.0
+        for _ in range(coarse_sweeps):
             for i in range(n):
-                x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
+                xl[i] = (bl[i] + _row(nl, wl, xl, i, deg)) * idl[i]
         for i in range(n):
-            ri = b[base + i] - diag[base + i] * x[base + i] + _row(nbr, wt, x, i, base, deg)
-            b[cb + agg[base + i]] += ri
+            bc[al[i]] += bl[i] - dl[i] * xl[i] + _row(nl, wl, xl, i, deg)
     # coarsest: L L^T x = b
     base = off[nlev - 1]
     m = sizes[nlev - 1]
@@ -629,19 +392,19 @@ def _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, 
         x[base + i] = s / chol[i, i]
     x[base + m] = 0.0
     for lv in range(nlev - 2, top - 1, -1):
-        base = off[lv]
-        cb = off[lv + 1]
-        n = sizes[lv]
+        lo, n, cb = off[lv], sizes[lv], off[lv + 1]
+        xl, bl, nl, wl, idl, al = x[lo:cb], b[lo:cb], nbr[lo:cb], wt[lo:cb], inv_diag[lo:cb], agg[lo:cb]
+        xc = x[cb:off[lv + 2]]
         for i in range(n):
-            x[base + i] += boost * x[cb + agg[base + i]]
-        for _ in range(COARSE_SWEEPS):
+            xl[i] += boost * xc[al[i]]
+        for _ in range(coarse_sweeps):
             for i in range(n - 1, -1, -1):
-                x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
+                xl[i] = (bl[i] + _row(nl, wl, xl, i, deg)) * idl[i]
 
 
 @nb.njit(cache=True, nogil=True)
 def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
-            boost, stop):
+            boost, coarse_sweeps, stop):
     """
     Compute x = M^-1 b on the finest level of the graph route (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
 
@@ -657,7 +420,7 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
     inv_deg = 1.0 / deg
     n0 = sizes[0]
     if sizes.size == 1:          # the fine level is the coarsest
-        _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 0, boost)
+        _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 0, boost, coarse_sweeps)
         return
     clean = restrict0 == red0
     for i in range(red0 if clean else 0, n0 + 1):
@@ -676,15 +439,16 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
         return
     _residual0(nb0, x, b, r0, 0, restrict0, deg)
     cb = off[1]
-    for i in range(sizes[1] + 1):
-        b[cb + i] = 0.0
+    bc = b[cb:off[2]]
+    bc[:] = 0.0
     for i in range(restrict0):
-        b[cb + agg[i]] += r0[i]
-    _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 1, boost)
+        bc[agg[i]] += r0[i]
+    _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 1, boost, coarse_sweeps)
     if stop[0] != 0:
         return
+    xc = x[cb:off[2]]
     for i in range(n0):
-        x[i] += boost * x[cb + agg[i]]
+        x[i] += boost * xc[agg[i]]
     for _ in range(sweeps):
         if clean:        # black rows, then red (the backward order by colour)
             _gs0(nb0, x, b, red0, n0, deg, inv_deg)
@@ -702,64 +466,55 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _precondition(on_grid, nb0, red0, restrict0, g, nbr, wt, diag, inv_diag, agg, off, sizes, chol, z, xs, bs,
-                  ws, r0, r, n, sweeps, boost, stop):
-    """Compute z = M^-1 r (one V-cycle; on the graph route z is xs, on the grid route a grid vector); returns r · z."""
-    if on_grid:
-        _vcycle_grid(g, nbr, wt, diag, inv_diag, agg, off, sizes, chol, z, r, xs, bs, ws, sweeps, boost, stop)
-    else:
-        for i in range(n):
-            bs[i] = r[i]
-        _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
-                boost, stop)
+def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
+                  sweeps, boost, coarse_sweeps, stop):
+    """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
+    for i in range(n):
+        bs[i] = r[i]
+    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
+            boost, coarse_sweeps, stop)
     rz = 0.0
     for i in range(n):
-        rz += r[i] * z[i]
+        rz += r[i] * xs[i]
     return rz
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(on_grid, nb0, red0, restrict0, g, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
-         sweeps, boost, deadline, stop):
+def _pcg(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
+         sweeps, boost, coarse_sweeps, deadline, stop):
     """
     Preconditioned CG on the finest level, from the initial guess ``u``.
 
-    Graph route: rhs, u float64 (n + 1,) over the fine rows (last entry the dummy, kept 0);
-    grid route (``on_grid``, ``g`` the :class:`GridLevel`'s tuple): grid vectors, 0 off the
-    unknowns.  Stops when the largest residual |b - A u| falls below ``tol``, at
-    ``deadline``, or when the termination flag ``stop`` (int64 (1,)) is nonzero (polled
-    before every iteration, like the deadline, and inside it: after the update and
-    within the V-cycle; u is then partial).  Returns (iterations, final max residual);
-    u is updated in place.
+    rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
+    largest residual |b - A u| falls below ``tol``, at ``deadline``, or when the
+    termination flag ``stop`` (int64 (1,)) is nonzero (polled before every
+    iteration, like the deadline, and inside it: after the update and within the
+    V-cycle; u is then partial).  Returns (iterations, final max residual); u is
+    updated in place.
     """
     deg = nbr.shape[1]
-    fdeg = float(deg)
-    n = rhs.size - g[5] if on_grid else sizes[0]
+    n = sizes[0]
     total = off[-1]
     xs = np.zeros(total)
     bs = np.zeros(total)
     ws = np.zeros(total)
-    z = np.zeros(rhs.size) if on_grid else xs
-    r = np.zeros(rhs.size)
-    p = np.zeros(rhs.size)
-    q = np.zeros(rhs.size)
-    r0 = np.zeros(rhs.size)
+    r = np.zeros(n + 1)
+    p = np.zeros(n + 1)
+    q = np.zeros(n + 1)
+    r0 = np.zeros(n + 1)
+    u[n] = 0.0
     res = 0.0
-    if on_grid:
-        _matvec_grid(g, u, q, fdeg)
-    else:
-        u[n] = 0.0
-        _matvec0(nb0, u, q, 0, n, deg)
+    fdeg = float(deg)
     for i in range(n):
-        r[i] = rhs[i] - q[i]
+        r[i] = rhs[i] - fdeg * u[i] + _row0(nb0, u, i, deg)
         if abs(r[i]) > res:
             res = abs(r[i])
     if res < tol:
         return 0, res
-    rz = _precondition(on_grid, nb0, red0, restrict0, g, nbr, wt, diag, inv_diag, agg, off, sizes, chol, z, xs,
-                       bs, ws, r0, r, n, sweeps, boost, stop)
+    rz = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
+                       r0, r, n, sweeps, boost, coarse_sweeps, stop)
     for i in range(n):
-        p[i] = z[i]
+        p[i] = xs[i]
     it = 0
     while it < max_iter:
         if stop[0] != 0:
@@ -767,10 +522,7 @@ def _pcg(on_grid, nb0, red0, restrict0, g, nbr, wt, diag, inv_diag, agg, off, si
         if deadline > 0.0 and _now() > deadline:
             break
         it += 1
-        if on_grid:
-            _matvec_grid(g, p, q, fdeg)
-        else:
-            _matvec0(nb0, p, q, 0, n, deg)
+        _matvec0(nb0, p, q, 0, n, deg)
         pq = 0.0
         for i in range(n):
             pq += p[i] * q[i]
@@ -785,17 +537,17 @@ def _pcg(on_grid, nb0, red0, restrict0, g, nbr, wt, diag, inv_diag, agg, off, si
                 res = abs(r[i])
         if res < tol or stop[0] != 0:
             break
-        rz_new = _precondition(on_grid, nb0, red0, restrict0, g, nbr, wt, diag, inv_diag, agg, off, sizes, chol,
-                               z, xs, bs, ws, r0, r, n, sweeps, boost, stop)
+        rz_new = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
+                               ws, r0, r, n, sweeps, boost, coarse_sweeps, stop)
         beta = rz_new / rz
         rz = rz_new
         for i in range(n):
-            p[i] = z[i] + beta * p[i]
+            p[i] = xs[i] + beta * p[i]
     return it, res
 
 
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8, stop=None,
-          cells=None, periodic=None):
+          coarse_sweeps=COARSE_SWEEPS):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -807,11 +559,6 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     (``termination.Termination.flag``, int64 (1,); None = never) is set: then the
     result is partial and the caller must not keep it.
 
-    ``cells`` int64 (n,), each unknown's flat grid cell, and ``periodic`` (one bool per
-    axis): the caller's word that ``nbr`` is the grid's own face neighbours between the
-    unknowns (no edge cut); the fine level then runs on the grid where
-    :meth:`GridLevel.fits` (the grid route), else on ``nbr``.
-
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
     nbr = np.asarray(nbr)
@@ -822,21 +569,12 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         h = Hierarchy(nbr, coords, shape, stop)
     except Stopped:
         return np.zeros(n), 0, np.inf
-    if stop is None:
-        stop = np.zeros(1, np.int64)
-    if GridLevel.fits(h, cells, shape, periodic):
-        grid = GridLevel(h, cells, shape, periodic)
-        b = np.zeros(grid.size + int(shape[-1]))
-        b[cells] = rhs
-        x = np.zeros(b.size)
-        it, res = _pcg(True, h.nb0, h.red0, h.restrict0, grid.g, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off,
-                       h.sizes, h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost),
-                       float(deadline), stop)
-        return x[cells], int(it), float(res)
     b = np.zeros(n + 1)
     b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
-    it, res = _pcg(False, h.nb0, h.red0, h.restrict0, _NO_GRID, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off,
-                   h.sizes, h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), float(deadline),
-                   stop)
+    if stop is None:
+        stop = np.zeros(1, np.int64)
+    it, res = _pcg(h.nb0, h.red0, h.restrict0, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
+                   h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), int(coarse_sweeps),
+                   float(deadline), stop)
     return x[h.fine_of_input], int(it), float(res)
