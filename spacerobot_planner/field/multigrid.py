@@ -97,7 +97,7 @@ def _by_parity(nbr, wt, diag, coords):
     colour, except across odd periodic seams, where the serial sweep is still a valid Gauss–Seidel
     order).
 
-    Returns the renumbered arrays and ``new_of_old`` (n,).
+    Returns the renumbered arrays, ``new_of_old`` (n,) and the number of red nodes.
     """
     n, deg = nbr.shape
     ndim = coords.shape[1]
@@ -128,23 +128,28 @@ def _by_parity(nbr, wt, diag, coords):
         diag2[j] = diag[i]
         for a in range(ndim):
             coords2[j, a] = coords[i, a]
-    return nbr2, wt2, diag2, coords2, new_of_old[:n].copy()
+    return nbr2, wt2, diag2, coords2, new_of_old[:n].copy(), red
 
 
 @nb.njit(cache=True, nogil=True)
-def _fine_restrict(nb0, red):
-    """Return the fine level's restricted rows: ``red`` unless two black rows are neighbours (then all n)."""
-    n, deg = nb0.shape
+def _restrict_rows(nbr, n, red):
+    """
+    Return the rows of a level (``n`` rows, red rows first) whose residual a sweep leaves nonzero.
+
+    ``red`` unless two black rows are neighbours (across an odd periodic seam; then all n).
+    nbr (n, deg): the level's neighbours, n = none.
+    """
+    deg = nbr.shape[1]
     for i in range(red, n):
         for d in range(deg):
-            j = nb0[i, d]
+            j = nbr[i, d]
             if j >= red and j < n:
                 return n
     return red
 
 
 @nb.njit(cache=True, nogil=True)
-def _levels(nb0, coords, shape, stop):
+def _levels(nb0, red0, coords, shape, stop):
     """
     Aggregate the fine level (``nb0`` int32 (n, deg), red rows first) down to the coarsest.
 
@@ -160,6 +165,7 @@ def _levels(nb0, coords, shape, stop):
     nbrs = [np.zeros((0, deg), np.int64)]   # the coarse levels' (entry 0 unused: the fine level is nb0)
     wts = [np.zeros((0, deg))]
     diags = [np.zeros(0)]
+    reds = [red0]
     shape = shape.copy()
     stopped = False
     size = n
@@ -174,7 +180,8 @@ def _levels(nb0, coords, shape, stop):
             agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape, False)
         if cn.shape[0] == size:
             break
-        cn, cw, cd, coords, new_of_old = _by_parity(cn, cw, cd, coords)
+        cn, cw, cd, coords, new_of_old, red = _by_parity(cn, cw, cd, coords)
+        reds.append(red)
         aggs.append(new_of_old[agg])
         nbrs.append(cn)
         wts.append(cw)
@@ -194,12 +201,16 @@ def _levels(nb0, coords, shape, stop):
     diag = np.ones(total)
     inv_diag = np.ones(total)
     agg = np.zeros(total, np.uint32)
+    red = np.empty(levels, np.int64)
+    rrows = np.empty(levels, np.int64)
     for lv in range(levels):
         a = off[lv]
         m = sizes[lv]
+        red[lv] = reds[lv]
         if lv + 1 < levels:
             agg[a:a + m] = aggs[lv + 1]
         if lv == 0:
+            rrows[0] = _restrict_rows(nb0, n, red0)
             continue             # the fine level reads nb0 (unit weights, diagonal deg)
         nbr[a:a + m] = nbrs[lv]
         wt[a:a + m] = wts[lv]
@@ -208,6 +219,7 @@ def _levels(nb0, coords, shape, stop):
             inv_diag[a + i] = 1.0 / diag[a + i]
         nbr[a + m] = m           # the dummy row: no neighbours, weight 0, diagonal 1
         wt[a + m] = 0.0
+        rrows[lv] = _restrict_rows(nbrs[lv], m, reds[lv])
     if levels == 1:
         m = n
         cn = nb0.astype(np.int64)
@@ -221,7 +233,7 @@ def _levels(nb0, coords, shape, stop):
         cn = nbrs[levels - 1]
         cw = wts[levels - 1]
         cd = diags[levels - 1]
-    return sizes, off, nbr, wt, inv_diag, diag, agg, cn, cw, cd, stopped
+    return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, cn, cw, cd, stopped
 
 
 @nb.njit(cache=True, nogil=True)
@@ -263,18 +275,17 @@ class Hierarchy:
             nb0 = np.ascontiguousarray(nbr, dtype=np.int32).view(np.uint32)
             self.fine_of_input = np.arange(n)
         else:
-            nb0, _, _, coords, self.fine_of_input = _by_parity(
+            nb0, _, _, coords, self.fine_of_input, _ = _by_parity(
                 np.ascontiguousarray(nbr, dtype=np.int64), np.zeros((n, deg)), np.zeros(n), coords)
             nb0 = nb0.astype(np.uint32)
-        # the fine level on its own: unit weights, diagonal deg, int32 neighbours
+        # the fine level on its own: unit weights, diagonal deg, uint32 neighbours
         self.nb0 = nb0
-        self.red0 = red
-        # after a sweep (red rows first, then black) the black residuals are zero unless two
-        # black rows are neighbours (across an odd periodic seam): restrict the red ones only
-        self.restrict0 = int(_fine_restrict(nb0, red))
-        (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, cn, cw, cd,
-         stopped) = _levels(nb0, coords, np.asarray(shape, np.int64),
-                            np.zeros(1, np.int64) if stop is None else stop)
+        # per level: red rows (first), and the rows to restrict: after a sweep (red rows, then
+        # black) the black residuals are zero unless two black rows are neighbours (across an
+        # odd periodic seam): the red ones only
+        (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, self.red, self.rrows,
+         cn, cw, cd, stopped) = _levels(nb0, red, coords, np.asarray(shape, np.int64),
+                                        np.zeros(1, np.int64) if stop is None else stop)
         if stopped:
             raise Stopped()
         self.levels = int(self.sizes.size)
@@ -355,12 +366,17 @@ def _matvec0(nb0, p, q, lo, hi, deg):
 # the cycle
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, boost, coarse_sweeps):
+def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, boost,
+                  coarse_sweeps):
     """
     Compute x = M^-1 b on level ``top`` by a V-cycle over the levels from ``top`` down (packed vectors).
 
     Forward Gauss–Seidel sweeps (``coarse_sweeps``) before the coarse correction (scaled by
     ``boost``), backward ones after; the coarsest level by its Cholesky factor ``chol``.
+    Each level's first ``red[l]`` rows are red; where no two rows of one colour are
+    neighbours (``rrows[l] == red[l]``) the first sweep from 0 sets the red rows without
+    reading their (zero) neighbours, and only the red rows' residuals (``rrows[l]``) are
+    restricted: the black ones are zero after the sweep.
     b of the levels below ``top`` and r are scratch.
     """
     deg = nbr.shape[1]
@@ -371,11 +387,21 @@ def _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, 
                                        agg[lo:cb])
         bc = b[cb:off[lv + 2]]
         bc[:] = 0.0
-        xl[:] = 0.0
-        for _ in range(coarse_sweeps):
+        sweeps = coarse_sweeps
+        clean = rrows[lv] == red[lv] and sweeps > 0
+        if not clean:
+            xl[:] = 0.0
+        else:                        # the first sweep from 0: a red row sees only black zeros
+            xl[n] = 0.0              # (and the black rows' old values are never read)
+            for i in range(red[lv]):
+                xl[i] = bl[i] * idl[i]
+            for i in range(red[lv], n):
+                xl[i] = (bl[i] + _row(nl, wl, xl, i, deg)) * idl[i]
+            sweeps -= 1
+        for _ in range(sweeps):
             for i in range(n):
                 xl[i] = (bl[i] + _row(nl, wl, xl, i, deg)) * idl[i]
-        for i in range(n):
+        for i in range(rrows[lv]):
             bc[al[i]] += bl[i] - dl[i] * xl[i] + _row(nl, wl, xl, i, deg)
     # coarsest: L L^T x = b
     base = off[nlev - 1]
@@ -395,7 +421,8 @@ def _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, 
         lo, n, cb = off[lv], sizes[lv], off[lv + 1]
         xl, bl, nl, wl, idl, al = x[lo:cb], b[lo:cb], nbr[lo:cb], wt[lo:cb], inv_diag[lo:cb], agg[lo:cb]
         xc = x[cb:off[lv + 2]]
-        for i in range(n):
+        # the backward sweep sets the black rows from red ones only: their correction is dead
+        for i in range(red[lv] if rrows[lv] == red[lv] and coarse_sweeps > 0 else n):
             xl[i] += boost * xc[al[i]]
         for _ in range(coarse_sweeps):
             for i in range(n - 1, -1, -1):
@@ -403,29 +430,30 @@ def _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, 
 
 
 @nb.njit(cache=True, nogil=True)
-def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
+def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
             boost, coarse_sweeps, stop):
     """
-    Compute x = M^-1 b on the finest level of the graph route (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
+    Compute x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
 
     Symmetric: forward Gauss-Seidel sweeps before the coarse correction (scaled by
     ``boost``), backward ones after.  The fine level (unit weights, diagonal deg)
-    reads ``nb0``; its first ``red0`` rows are red.  When ``restrict0 == red0`` (no
+    reads ``nb0``; its first ``red[0]`` rows are red.  When ``rrows[0] == red[0]`` (no
     two rows of one colour are neighbours) a colour's rows are updated in any order,
-    else one by one in order.  r0 (n0,) scratch.  The
+    else one by one in order; the coarser levels by :func:`_coarse_cycle`.  r0 (n0,) scratch.  The
     termination flag ``stop`` is polled after the fine level's pre-smoothing and
     before its post-smoothing (x is then garbage: the caller discards it).
     """
     deg = nbr.shape[1]
     inv_deg = 1.0 / deg
     n0 = sizes[0]
+    red0, restrict0 = red[0], rrows[0]
     if sizes.size == 1:          # the fine level is the coarsest
-        _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 0, boost, coarse_sweeps)
+        _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 0, boost, coarse_sweeps)
         return
-    clean = restrict0 == red0
-    for i in range(red0 if clean else 0, n0 + 1):
+    clean = restrict0 == red0 and sweeps > 0
+    for i in range(n0 if clean else 0, n0 + 1):
         x[i] = 0.0
-    if clean:            # first sweep from 0: a red row sees only black zeros
+    if clean:            # first sweep from 0: a red row sees only black zeros (black rows are set, not read)
         for i in range(red0):
             x[i] = b[i] * inv_deg
         _gs0(nb0, x, b, red0, n0, deg, inv_deg)
@@ -443,11 +471,11 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
     bc[:] = 0.0
     for i in range(restrict0):
         bc[agg[i]] += r0[i]
-    _coarse_cycle(nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 1, boost, coarse_sweeps)
+    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 1, boost, coarse_sweeps)
     if stop[0] != 0:
         return
     xc = x[cb:off[2]]
-    for i in range(n0):
+    for i in range(red0 if clean else n0):     # clean: the black rows' correction is dead (set, not read)
         x[i] += boost * xc[agg[i]]
     for _ in range(sweeps):
         if clean:        # black rows, then red (the backward order by colour)
@@ -458,6 +486,26 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
                 x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
 
 
+@nb.njit(cache=True, nogil=True)
+def _dot(a, b, n):
+    """
+    Return sum_i a[i] * b[i] over the first n entries, in four interleaved partial sums.
+
+    A fixed order (the same bits every run), four independent chains instead of one: the
+    sum is no longer bound by the latency of one addition after another.
+    """
+    s0 = s1 = s2 = s3 = 0.0
+    m = n - n % 4
+    for i in range(0, m, 4):
+        s0 += a[i] * b[i]
+        s1 += a[i + 1] * b[i + 1]
+        s2 += a[i + 2] * b[i + 2]
+        s3 += a[i + 3] * b[i + 3]
+    for i in range(m, n):
+        s0 += a[i] * b[i]
+    return (s0 + s1) + (s2 + s3)
+
+
 @nb.njit(cache=True)
 def _now():
     with nb.objmode(t="float64"):
@@ -466,21 +514,18 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
+def _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
                   sweeps, boost, coarse_sweeps, stop):
     """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
     for i in range(n):
         bs[i] = r[i]
-    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
+    _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
             boost, coarse_sweeps, stop)
-    rz = 0.0
-    for i in range(n):
-        rz += r[i] * xs[i]
-    return rz
+    return _dot(r, xs, n)
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
+def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
          sweeps, boost, coarse_sweeps, deadline, stop):
     """
     Preconditioned CG on the finest level, from the initial guess ``u``.
@@ -511,7 +556,7 @@ def _pcg(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, r
             res = abs(r[i])
     if res < tol:
         return 0, res
-    rz = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
+    rz = _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
                        r0, r, n, sweeps, boost, coarse_sweeps, stop)
     for i in range(n):
         p[i] = xs[i]
@@ -523,9 +568,7 @@ def _pcg(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, r
             break
         it += 1
         _matvec0(nb0, p, q, 0, n, deg)
-        pq = 0.0
-        for i in range(n):
-            pq += p[i] * q[i]
+        pq = _dot(p, q, n)
         if not pq > 0.0:
             break
         alpha = rz / pq
@@ -537,7 +580,7 @@ def _pcg(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, r
                 res = abs(r[i])
         if res < tol or stop[0] != 0:
             break
-        rz_new = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
+        rz_new = _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
                                ws, r0, r, n, sweeps, boost, coarse_sweeps, stop)
         beta = rz_new / rz
         rz = rz_new
@@ -574,7 +617,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     x = np.zeros(n + 1)
     if stop is None:
         stop = np.zeros(1, np.int64)
-    it, res = _pcg(h.nb0, h.red0, h.restrict0, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
+    it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), int(coarse_sweeps),
                    float(deadline), stop)
     return x[h.fine_of_input], int(it), float(res)
