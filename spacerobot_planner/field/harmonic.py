@@ -36,7 +36,7 @@ def _band_problem(nbr, active, known, log_u):
     """
     Return the Dirichlet problem on the ``active`` nodes, with the ``known`` ones fixed.
 
-    Returns ``(sub_nbr int32 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
+    Returns ``(sub_nbr uint32 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
     (m = none), and the known neighbour values divided by the largest of them,
     ``exp(log_scale)``.
     """
@@ -51,7 +51,7 @@ def _band_problem(nbr, active, known, log_u):
             j = nbr[active[k], a]
             if j < n and known[j] and log_u[j] > log_scale:
                 log_scale = log_u[j]
-    sub = np.empty((m, deg), np.int32)      # the multigrid's fine level reads int32
+    sub = np.empty((m, deg), np.uint32)     # the multigrid's fine level reads uint32
     rhs = np.zeros(m)
     for k in range(m):
         for a in range(deg):
@@ -264,7 +264,9 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         window = active[inside]
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
         token.check()
-        x, its, res = multigrid.solve(sub, graph.coords[window], graph.shape, rhs,
+        # every node but the goal's (the first band): a view of their coordinates, not a copy
+        coords = graph.coords[n_goal:] if window.size == n - n_goal else graph.coords[window]
+        x, its, res = multigrid.solve(sub, coords, graph.shape, rhs,
                                       tol=residual_tol, deadline=deadline, stop=token.flag)
         token.check()               # the iterations stopped part-way: keep nothing
         bands += 1

@@ -57,22 +57,25 @@ def _coarsen(nbr, wt, diag, coords, cshape, unit):
     cell_id = np.full(ncell, -1, np.int64)
     agg = np.empty(n, np.int64)
     nc = 0
+    first = np.empty(n, np.int64)           # a node of each aggregate (its coarse coordinates)
     for i in range(n):
         f = 0
         for a in range(ndim):
-            f = f * cshape[a] + coords[i, a] // 2
+            f = f * cshape[a] + (coords[i, a] >> 1)     # coordinates are >= 0: // 2
         if cell_id[f] < 0:
             cell_id[f] = nc
+            first[nc] = i
             nc += 1
         agg[i] = cell_id[f]
     cnbr = np.full((nc, deg), nc, np.int64)
     cwt = np.zeros((nc, deg))
     cdiag = np.zeros(nc)
     ccoords = np.empty((nc, ndim), np.int64)
+    for c in range(nc):
+        for a in range(ndim):
+            ccoords[c, a] = coords[first[c], a] >> 1
     for i in range(n):
         c = agg[i]
-        for a in range(ndim):
-            ccoords[c, a] = coords[i, a] // 2
         cdiag[c] += deg if unit else diag[i]
         for d in range(deg):
             j = nbr[i, d]
@@ -132,6 +135,23 @@ def _by_parity(nbr, wt, diag, coords):
 
 
 @nb.njit(cache=True, nogil=True)
+def _red_rows(coords):
+    """Return ``(red, in_order)``: the number of red nodes (even coordinate sum) and whether they come first."""
+    n, ndim = coords.shape
+    red = 0
+    in_order = True
+    for i in range(n):
+        par = 0
+        for a in range(ndim):
+            par += coords[i, a]
+        if par % 2 == 0:
+            if red < i:
+                in_order = False
+            red += 1
+    return red, in_order
+
+
+@nb.njit(cache=True, nogil=True)
 def _restrict_rows(nbr, n, red):
     """
     Return the rows of a level (``n`` rows, red rows first) whose residual a sweep leaves nonzero.
@@ -151,7 +171,7 @@ def _restrict_rows(nbr, n, red):
 @nb.njit(cache=True, nogil=True)
 def _levels(nb0, red0, coords, shape, stop):
     """
-    Aggregate the fine level (``nb0`` int32 (n, deg), red rows first) down to the coarsest.
+    Aggregate the fine level (``nb0`` uint32 (n, deg), red rows first) down to the coarsest.
 
     coords int64 (n, ndim), shape int64 (ndim,): the fine grid.  Returns the packed
     arrays ``(sizes, off, nbr, wt, inv_diag, diag, agg, cn, cw, cd, stopped)`` (see the
@@ -269,10 +289,9 @@ class Hierarchy:
         """
         n, deg = nbr.shape
         coords = np.ascontiguousarray(coords, dtype=np.int64)
-        parity = coords.sum(axis=1) % 2
-        red = int(n - np.count_nonzero(parity))
-        if np.all(parity[:red] == 0):           # already red rows first (the node graph's order)
-            nb0 = np.ascontiguousarray(nbr, dtype=np.int32).view(np.uint32)
+        red, in_order = _red_rows(coords)
+        if in_order:                            # already red rows first (the node graph's order)
+            nb0 = np.ascontiguousarray(nbr, dtype=np.uint32)
             self.fine_of_input = np.arange(n)
         else:
             nb0, _, _, coords, self.fine_of_input, _ = _by_parity(
