@@ -42,25 +42,28 @@ def _band_problem(nbr, active, known, log_u):
     """
     n, deg = nbr.shape
     m = active.size
-    local = np.full(n + 1, m, np.int32)
+    local = np.full(n + 1, m, np.int32)     # m: not in the band (known, outside the window, none)
     for k in range(m):
         local[active[k]] = k
+    sub = np.empty((m, deg), np.uint32)     # the multigrid's fine level reads uint32
+    edge_k = np.empty(m * deg, np.int64)    # the band's edges to known nodes, in row order
+    edge_j = np.empty(m * deg, np.int64)
+    edges = 0
     log_scale = -np.inf
     for k in range(m):
+        i = active[k]
         for a in range(deg):
-            j = nbr[active[k], a]
-            if j < n and known[j] and log_u[j] > log_scale:
-                log_scale = log_u[j]
-    sub = np.empty((m, deg), np.uint32)     # the multigrid's fine level reads uint32
-    rhs = np.zeros(m)
-    for k in range(m):
-        for a in range(deg):
-            j = nbr[active[k], a]
+            j = nbr[i, a]
+            sub[k, a] = local[j]
             if j < n and known[j]:
-                rhs[k] += math.exp(log_u[j] - log_scale)
-                sub[k, a] = m
-            else:
-                sub[k, a] = local[j]
+                edge_k[edges] = k
+                edge_j[edges] = j
+                edges += 1
+                if log_u[j] > log_scale:
+                    log_scale = log_u[j]
+    rhs = np.zeros(m)
+    for e in range(edges):
+        rhs[edge_k[e]] += math.exp(log_u[edge_j[e]] - log_scale)
     return sub, rhs, log_scale
 
 
