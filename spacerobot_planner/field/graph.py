@@ -160,7 +160,7 @@ def _red_black_order(dist, goal_flat, shape):
 @nb.njit(cache=True, nogil=True)
 def _neighbour_table(order, gnbr):
     """
-    Return nbr int32 (N, 2n).
+    Return nbr uint32 (N, 2n).
 
     Position in ``order`` of each node's face neighbours, N for walls, obstacles and nodes not in
     ``order``.
@@ -170,7 +170,7 @@ def _neighbour_table(order, gnbr):
     pos = np.full(gnbr.shape[0], n, np.int32)
     for k in range(n):
         pos[order[k]] = k
-    nbr = np.empty((n, deg), np.int32)
+    nbr = np.empty((n, deg), np.uint32)     # unsigned: no negative-index wrap-around in the kernels
     for k in range(n):
         f = order[k]
         for a in range(deg):
@@ -221,7 +221,7 @@ class NodeGraph:
     order: int64 (N,) flat grid index of each graph node: the goal nodes first (``n_goal``
         of them), then the others with an even coordinate sum ("red"), then the odd ones
         ("black"), each in grid order (memory locality; the multigrid smoother's order).
-    nbr: int32 (N, 2 ndim) neighbour positions in ``order``; N = none (see module doc).
+    nbr: uint32 (N, 2 ndim) neighbour positions in ``order``; N = none (see module doc).
     coords: int64 (N, ndim) grid coordinates.
     dist: int64 (N,) BFS distance (face steps through free nodes) from the goal.
     shape, periodic: the grid's.

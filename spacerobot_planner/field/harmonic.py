@@ -36,31 +36,34 @@ def _band_problem(nbr, active, known, log_u):
     """
     Return the Dirichlet problem on the ``active`` nodes, with the ``known`` ones fixed.
 
-    Returns ``(sub_nbr int32 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
+    Returns ``(sub_nbr uint32 (m, deg), rhs (m,), log_scale)``: neighbours in local indices
     (m = none), and the known neighbour values divided by the largest of them,
     ``exp(log_scale)``.
     """
     n, deg = nbr.shape
     m = active.size
-    local = np.full(n + 1, m, np.int32)
+    local = np.full(n + 1, m, np.int32)     # m: not in the band (known, outside the window, none)
     for k in range(m):
         local[active[k]] = k
+    sub = np.empty((m, deg), np.uint32)     # the multigrid's fine level reads uint32
+    edge_k = np.empty(m * deg, np.int64)    # the band's edges to known nodes, in row order
+    edge_j = np.empty(m * deg, np.int64)
+    edges = 0
     log_scale = -np.inf
     for k in range(m):
+        i = active[k]
         for a in range(deg):
-            j = nbr[active[k], a]
-            if j < n and known[j] and log_u[j] > log_scale:
-                log_scale = log_u[j]
-    sub = np.empty((m, deg), np.int32)      # the multigrid's fine level reads int32
-    rhs = np.zeros(m)
-    for k in range(m):
-        for a in range(deg):
-            j = nbr[active[k], a]
+            j = nbr[i, a]
+            sub[k, a] = local[j]
             if j < n and known[j]:
-                rhs[k] += math.exp(log_u[j] - log_scale)
-                sub[k, a] = m
-            else:
-                sub[k, a] = local[j]
+                edge_k[edges] = k
+                edge_j[edges] = j
+                edges += 1
+                if log_u[j] > log_scale:
+                    log_scale = log_u[j]
+    rhs = np.zeros(m)
+    for e in range(edges):
+        rhs[edge_k[e]] += math.exp(log_u[edge_j[e]] - log_scale)
     return sub, rhs, log_scale
 
 
@@ -264,7 +267,9 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         window = active[inside]
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
         token.check()
-        x, its, res = multigrid.solve(sub, graph.coords[window], graph.shape, rhs,
+        # every node but the goal's (the first band): a view of their coordinates, not a copy
+        coords = graph.coords[n_goal:] if window.size == n - n_goal else graph.coords[window]
+        x, its, res = multigrid.solve(sub, coords, graph.shape, rhs,
                                       tol=residual_tol, deadline=deadline, stop=token.flag)
         token.check()               # the iterations stopped part-way: keep nothing
         bands += 1

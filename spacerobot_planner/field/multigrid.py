@@ -21,6 +21,13 @@ of residual on the paper's scenes.  Each level is renumbered red nodes first, th
 
 Levels are packed into flat arrays: level l owns rows ``off[l] .. off[l] + size[l]`` plus
 one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that stands for "no neighbour".
+Neighbour tables and aggregate maps are unsigned (uint32): an index of a signed type makes
+numba test it for a negative wrap-around at every load, which doubled the cost of a sweep.
+
+Every kernel runs on one thread.  A two-thread fine level (from 100 000 unknowns) was
+2–4× *slower* on the project's shared two-core machine under load (its threads wait for
+each other at every colour of every sweep), and gains at most the second core when the
+machine is quiet.
 """
 from __future__ import annotations
 
@@ -31,8 +38,6 @@ import numpy as np
 
 #: Stop coarsening at this many unknowns and solve that level directly.
 COARSEST_NODES = 100
-#: From this many unknowns the fine level's sweeps and products run on two threads.
-PARALLEL_NODES = 100_000
 #: Gauss–Seidel sweeps before and after the coarse correction on the coarse levels.
 COARSE_SWEEPS = 2
 
@@ -59,22 +64,25 @@ def _coarsen(nbr, wt, diag, coords, cshape, unit):
     cell_id = np.full(ncell, -1, np.int64)
     agg = np.empty(n, np.int64)
     nc = 0
+    first = np.empty(n, np.int64)           # a node of each aggregate (its coarse coordinates)
     for i in range(n):
         f = 0
         for a in range(ndim):
-            f = f * cshape[a] + coords[i, a] // 2
+            f = f * cshape[a] + (coords[i, a] >> 1)     # coordinates are >= 0: // 2
         if cell_id[f] < 0:
             cell_id[f] = nc
+            first[nc] = i
             nc += 1
         agg[i] = cell_id[f]
     cnbr = np.full((nc, deg), nc, np.int64)
     cwt = np.zeros((nc, deg))
     cdiag = np.zeros(nc)
     ccoords = np.empty((nc, ndim), np.int64)
+    for c in range(nc):
+        for a in range(ndim):
+            ccoords[c, a] = coords[first[c], a] >> 1
     for i in range(n):
         c = agg[i]
-        for a in range(ndim):
-            ccoords[c, a] = coords[i, a] // 2
         cdiag[c] += deg if unit else diag[i]
         for d in range(deg):
             j = nbr[i, d]
@@ -99,7 +107,7 @@ def _by_parity(nbr, wt, diag, coords):
     colour, except across odd periodic seams, where the serial sweep is still a valid Gauss–Seidel
     order).
 
-    Returns the renumbered arrays and ``new_of_old`` (n,).
+    Returns the renumbered arrays, ``new_of_old`` (n,) and the number of red nodes.
     """
     n, deg = nbr.shape
     ndim = coords.shape[1]
@@ -130,25 +138,47 @@ def _by_parity(nbr, wt, diag, coords):
         diag2[j] = diag[i]
         for a in range(ndim):
             coords2[j, a] = coords[i, a]
-    return nbr2, wt2, diag2, coords2, new_of_old[:n].copy()
+    return nbr2, wt2, diag2, coords2, new_of_old[:n].copy(), red
 
 
 @nb.njit(cache=True, nogil=True)
-def _fine_restrict(nb0, red):
-    """Return the fine level's restricted rows: ``red`` unless two black rows are neighbours (then all n)."""
-    n, deg = nb0.shape
+def _red_rows(coords):
+    """Return ``(red, in_order)``: the number of red nodes (even coordinate sum) and whether they come first."""
+    n, ndim = coords.shape
+    red = 0
+    in_order = True
+    for i in range(n):
+        par = 0
+        for a in range(ndim):
+            par += coords[i, a]
+        if par % 2 == 0:
+            if red < i:
+                in_order = False
+            red += 1
+    return red, in_order
+
+
+@nb.njit(cache=True, nogil=True)
+def _restrict_rows(nbr, n, red):
+    """
+    Return the rows of a level (``n`` rows, red rows first) whose residual a sweep leaves nonzero.
+
+    ``red`` unless two black rows are neighbours (across an odd periodic seam; then all n).
+    nbr (n, deg): the level's neighbours, n = none.
+    """
+    deg = nbr.shape[1]
     for i in range(red, n):
         for d in range(deg):
-            j = nb0[i, d]
+            j = nbr[i, d]
             if j >= red and j < n:
                 return n
     return red
 
 
 @nb.njit(cache=True, nogil=True)
-def _levels(nb0, coords, shape, stop):
+def _levels(nb0, red0, coords, shape, stop):
     """
-    Aggregate the fine level (``nb0`` int32 (n, deg), red rows first) down to the coarsest.
+    Aggregate the fine level (``nb0`` uint32 (n, deg), red rows first) down to the coarsest.
 
     coords int64 (n, ndim), shape int64 (ndim,): the fine grid.  Returns the packed
     arrays ``(sizes, off, nbr, wt, inv_diag, diag, agg, cn, cw, cd, stopped)`` (see the
@@ -162,6 +192,7 @@ def _levels(nb0, coords, shape, stop):
     nbrs = [np.zeros((0, deg), np.int64)]   # the coarse levels' (entry 0 unused: the fine level is nb0)
     wts = [np.zeros((0, deg))]
     diags = [np.zeros(0)]
+    reds = [red0]
     shape = shape.copy()
     stopped = False
     size = n
@@ -176,7 +207,8 @@ def _levels(nb0, coords, shape, stop):
             agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape, False)
         if cn.shape[0] == size:
             break
-        cn, cw, cd, coords, new_of_old = _by_parity(cn, cw, cd, coords)
+        cn, cw, cd, coords, new_of_old, red = _by_parity(cn, cw, cd, coords)
+        reds.append(red)
         aggs.append(new_of_old[agg])
         nbrs.append(cn)
         wts.append(cw)
@@ -191,17 +223,21 @@ def _levels(nb0, coords, shape, stop):
     for lv in range(levels):
         off[lv + 1] = off[lv] + sizes[lv] + 1
     total = off[levels]
-    nbr = np.empty((total, deg), np.int32)
+    nbr = np.empty((total, deg), np.uint32)
     wt = np.empty((total, deg))
     diag = np.ones(total)
     inv_diag = np.ones(total)
-    agg = np.zeros(total, np.int32)
+    agg = np.zeros(total, np.uint32)
+    red = np.empty(levels, np.int64)
+    rrows = np.empty(levels, np.int64)
     for lv in range(levels):
         a = off[lv]
         m = sizes[lv]
+        red[lv] = reds[lv]
         if lv + 1 < levels:
             agg[a:a + m] = aggs[lv + 1]
         if lv == 0:
+            rrows[0] = _restrict_rows(nb0, n, red0)
             continue             # the fine level reads nb0 (unit weights, diagonal deg)
         nbr[a:a + m] = nbrs[lv]
         wt[a:a + m] = wts[lv]
@@ -210,6 +246,7 @@ def _levels(nb0, coords, shape, stop):
             inv_diag[a + i] = 1.0 / diag[a + i]
         nbr[a + m] = m           # the dummy row: no neighbours, weight 0, diagonal 1
         wt[a + m] = 0.0
+        rrows[lv] = _restrict_rows(nbrs[lv], m, reds[lv])
     if levels == 1:
         m = n
         cn = nb0.astype(np.int64)
@@ -223,7 +260,7 @@ def _levels(nb0, coords, shape, stop):
         cn = nbrs[levels - 1]
         cw = wts[levels - 1]
         cd = diags[levels - 1]
-    return sizes, off, nbr, wt, inv_diag, diag, agg, cn, cw, cd, stopped
+    return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, cn, cw, cd, stopped
 
 
 @nb.njit(cache=True, nogil=True)
@@ -259,24 +296,22 @@ class Hierarchy:
         """
         n, deg = nbr.shape
         coords = np.ascontiguousarray(coords, dtype=np.int64)
-        parity = coords.sum(axis=1) % 2
-        red = int(n - np.count_nonzero(parity))
-        if np.all(parity[:red] == 0):           # already red rows first (the node graph's order)
-            nb0 = np.ascontiguousarray(nbr, dtype=np.int32)
+        red, in_order = _red_rows(coords)
+        if in_order:                            # already red rows first (the node graph's order)
+            nb0 = np.ascontiguousarray(nbr, dtype=np.uint32)
             self.fine_of_input = np.arange(n)
         else:
-            nb0, _, _, coords, self.fine_of_input = _by_parity(
+            nb0, _, _, coords, self.fine_of_input, _ = _by_parity(
                 np.ascontiguousarray(nbr, dtype=np.int64), np.zeros((n, deg)), np.zeros(n), coords)
-            nb0 = nb0.astype(np.int32)
-        # the fine level on its own: unit weights, diagonal deg, int32 neighbours
+            nb0 = nb0.astype(np.uint32)
+        # the fine level on its own: unit weights, diagonal deg, uint32 neighbours
         self.nb0 = nb0
-        self.red0 = red
-        # after a sweep (red rows first, then black) the black residuals are zero unless two
-        # black rows are neighbours (across an odd periodic seam): restrict the red ones only
-        self.restrict0 = int(_fine_restrict(nb0, red))
-        (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, cn, cw, cd,
-         stopped) = _levels(nb0, coords, np.asarray(shape, np.int64),
-                            np.zeros(1, np.int64) if stop is None else stop)
+        # per level: red rows (first), and the rows to restrict: after a sweep (red rows, then
+        # black) the black residuals are zero unless two black rows are neighbours (across an
+        # odd periodic seam): the red ones only
+        (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, self.red, self.rrows,
+         cn, cw, cd, stopped) = _levels(nb0, red, coords, np.asarray(shape, np.int64),
+                                        np.zeros(1, np.int64) if stop is None else stop)
         if stopped:
             raise Stopped()
         self.levels = int(self.sizes.size)
@@ -288,24 +323,24 @@ class Hierarchy:
 # kernels
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True, inline="always")
-def _row(nbr, wt, x, i, base, deg):
+def _row(nbr, wt, x, i, deg):
     """
-    Return one row's neighbour sum on the level starting at ``base``.
+    Return one row's neighbour sum on a coarse level: sum_d wt[i, d] * x[nbr[i, d]].
 
-    sum_d wt[i, d] * x[nbr[i, d]] on the level whose rows start at ``base`` (the usual degrees
-    spelled out, as in :func:`_row0`).
+    nbr, wt, x: the level's own rows (views of the packed arrays); nbr unsigned, so that no
+    index pays numba's negative-index wrap-around.  The usual degrees spelled out, as in
+    :func:`_row0`.
     """
-    r = base + i
     if deg == 4:
-        return (wt[r, 0] * x[base + nbr[r, 0]] + wt[r, 1] * x[base + nbr[r, 1]]
-                + wt[r, 2] * x[base + nbr[r, 2]] + wt[r, 3] * x[base + nbr[r, 3]])
+        return (wt[i, 0] * x[nbr[i, 0]] + wt[i, 1] * x[nbr[i, 1]]
+                + wt[i, 2] * x[nbr[i, 2]] + wt[i, 3] * x[nbr[i, 3]])
     if deg == 6:
-        return (wt[r, 0] * x[base + nbr[r, 0]] + wt[r, 1] * x[base + nbr[r, 1]]
-                + wt[r, 2] * x[base + nbr[r, 2]] + wt[r, 3] * x[base + nbr[r, 3]]
-                + wt[r, 4] * x[base + nbr[r, 4]] + wt[r, 5] * x[base + nbr[r, 5]])
+        return (wt[i, 0] * x[nbr[i, 0]] + wt[i, 1] * x[nbr[i, 1]]
+                + wt[i, 2] * x[nbr[i, 2]] + wt[i, 3] * x[nbr[i, 3]]
+                + wt[i, 4] * x[nbr[i, 4]] + wt[i, 5] * x[nbr[i, 5]])
     s = 0.0
     for d in range(deg):
-        s += wt[r, d] * x[base + nbr[r, d]]
+        s += wt[i, d] * x[nbr[i, d]]
     return s
 
 
@@ -315,7 +350,7 @@ def _row0(nb0, x, i, deg):
     sum_d x[nb0[i, d]] on the fine level (unit weights).
 
     The usual degrees are spelled out (the same sum in the same order, 1.5x faster than
-    the loop).
+    the loop); nb0 is unsigned (uint32: no negative-index wrap-around, 2x faster).
     """
     if deg == 4:
         return x[nb0[i, 0]] + x[nb0[i, 1]] + x[nb0[i, 2]] + x[nb0[i, 3]]
@@ -331,21 +366,12 @@ def _row0(nb0, x, i, deg):
 
 
 # --------------------------------------------------------------------------
-# fine-level kernels: a range of rows, serial, and the same over two threads
-# (rows of one colour do not depend on each other: the same result either way)
+# the fine level: a range of rows, gathers through nb0
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
 def _gs0(nb0, x, b, lo, hi, deg, inv_deg):
     for i in range(lo, hi):
         x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
-
-
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _gs0_par(nb0, x, b, lo, hi, deg, inv_deg):
-    chunks = 16
-    size = (hi - lo + chunks - 1) // chunks
-    for c in nb.prange(chunks):
-        _gs0(nb0, x, b, lo + c * size, min(hi, lo + (c + 1) * size), deg, inv_deg)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -355,14 +381,6 @@ def _residual0(nb0, x, b, r, lo, hi, deg):
         r[i] = b[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _residual0_par(nb0, x, b, r, lo, hi, deg):
-    chunks = 16
-    size = (hi - lo + chunks - 1) // chunks
-    for c in nb.prange(chunks):
-        _residual0(nb0, x, b, r, lo + c * size, min(hi, lo + (c + 1) * size), deg)
-
-
 @nb.njit(cache=True, nogil=True)
 def _matvec0(nb0, p, q, lo, hi, deg):
     fdeg = float(deg)
@@ -370,77 +388,47 @@ def _matvec0(nb0, p, q, lo, hi, deg):
         q[i] = fdeg * p[i] - _row0(nb0, p, i, deg)
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _matvec0_par(nb0, p, q, lo, hi, deg):
-    chunks = 16
-    size = (hi - lo + chunks - 1) // chunks
-    for c in nb.prange(chunks):
-        _matvec0(nb0, p, q, lo + c * size, min(hi, lo + (c + 1) * size), deg)
-
-
+# --------------------------------------------------------------------------
+# the cycle
+# --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _sweep0(nb0, x, b, lo, hi, deg, inv_deg, par):
-    if par:
-        _gs0_par(nb0, x, b, lo, hi, deg, inv_deg)
-    else:
-        _gs0(nb0, x, b, lo, hi, deg, inv_deg)
-
-
-@nb.njit(cache=True, nogil=True)
-def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
-            boost, par, stop):
+def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, boost,
+                  coarse_sweeps):
     """
-    Compute x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
+    Compute x = M^-1 b on level ``top`` by a V-cycle over the levels from ``top`` down (packed vectors).
 
-    Symmetric: forward Gauss-Seidel sweeps before the coarse correction (scaled by
-    ``boost``), backward ones after.  The fine level (unit weights, diagonal deg)
-    reads ``nb0``; its first ``red0`` rows are red.  When ``restrict0 == red0`` (no
-    two rows of one colour are neighbours) a colour's rows are updated in any order
-    (two threads with ``par``), else one by one in order.  r0 (n0,) scratch.  The
-    termination flag ``stop`` is polled after the fine level's pre-smoothing and
-    before its post-smoothing (x is then garbage: the caller discards it).
+    Forward Gauss–Seidel sweeps (``coarse_sweeps``) before the coarse correction (scaled by
+    ``boost``), backward ones after; the coarsest level by its Cholesky factor ``chol``.
+    Each level's first ``red[l]`` rows are red; where no two rows of one colour are
+    neighbours (``rrows[l] == red[l]``) the first sweep from 0 sets the red rows without
+    reading their (zero) neighbours, and only the red rows' residuals (``rrows[l]``) are
+    restricted: the black ones are zero after the sweep.
+    b of the levels below ``top`` and r are scratch.
     """
     deg = nbr.shape[1]
-    inv_deg = 1.0 / deg
     nlev = sizes.size
-    n0 = sizes[0]
-    for lv in range(nlev - 1):
-        base = off[lv]
-        n = sizes[lv]
-        cb = off[lv + 1]
-        for i in range(sizes[lv + 1] + 1):
-            b[cb + i] = 0.0
-        if lv == 0:
-            clean = restrict0 == red0
-            for i in range(red0 if clean else 0, n0 + 1):
-                x[i] = 0.0
-            if clean:            # first sweep from 0: a red row sees only black zeros
-                for i in range(red0):
-                    x[i] = b[i] * inv_deg
-                _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
-                for _ in range(sweeps - 1):
-                    _sweep0(nb0, x, b, 0, red0, deg, inv_deg, par)
-                    _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
-            else:
-                for _ in range(sweeps):
-                    _gs0(nb0, x, b, 0, n0, deg, inv_deg)
-            if stop[0] != 0:
-                return
-            if par:
-                _residual0_par(nb0, x, b, r0, 0, restrict0, deg)
-            else:
-                _residual0(nb0, x, b, r0, 0, restrict0, deg)
-            for i in range(restrict0):
-                b[cb + agg[i]] += r0[i]
-            continue
-        for i in range(n + 1):
-            x[base + i] = 0.0
-        for _ in range(COARSE_SWEEPS):
+    for lv in range(top, nlev - 1):
+        lo, n, cb = off[lv], sizes[lv], off[lv + 1]
+        xl, bl, nl, wl, dl, idl, al = (x[lo:cb], b[lo:cb], nbr[lo:cb], wt[lo:cb], diag[lo:cb], inv_diag[lo:cb],
+                                       agg[lo:cb])
+        bc = b[cb:off[lv + 2]]
+        bc[:] = 0.0
+        sweeps = coarse_sweeps
+        clean = rrows[lv] == red[lv] and sweeps > 0
+        if not clean:
+            xl[:] = 0.0
+        else:                        # the first sweep from 0: a red row sees only black zeros
+            xl[n] = 0.0              # (and the black rows' old values are never read)
+            for i in range(red[lv]):
+                xl[i] = bl[i] * idl[i]
+            for i in range(red[lv], n):
+                xl[i] = (bl[i] + _row(nl, wl, xl, i, deg)) * idl[i]
+            sweeps -= 1
+        for _ in range(sweeps):
             for i in range(n):
-                x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
-        for i in range(n):
-            ri = b[base + i] - diag[base + i] * x[base + i] + _row(nbr, wt, x, i, base, deg)
-            b[cb + agg[base + i]] += ri
+                xl[i] = (bl[i] + _row(nl, wl, xl, i, deg)) * idl[i]
+        for i in range(rrows[lv]):
+            bc[al[i]] += bl[i] - dl[i] * xl[i] + _row(nl, wl, xl, i, deg)
     # coarsest: L L^T x = b
     base = off[nlev - 1]
     m = sizes[nlev - 1]
@@ -455,27 +443,93 @@ def _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol
             s -= chol[k, i] * x[base + k]
         x[base + i] = s / chol[i, i]
     x[base + m] = 0.0
-    for lv in range(nlev - 2, 0, -1):
-        base = off[lv]
-        cb = off[lv + 1]
-        n = sizes[lv]
-        for i in range(n):
-            x[base + i] += boost * x[cb + agg[base + i]]
-        for _ in range(COARSE_SWEEPS):
+    for lv in range(nlev - 2, top - 1, -1):
+        lo, n, cb = off[lv], sizes[lv], off[lv + 1]
+        xl, bl, nl, wl, idl, al = x[lo:cb], b[lo:cb], nbr[lo:cb], wt[lo:cb], inv_diag[lo:cb], agg[lo:cb]
+        xc = x[cb:off[lv + 2]]
+        # the backward sweep sets the black rows from red ones only: their correction is dead
+        for i in range(red[lv] if rrows[lv] == red[lv] and coarse_sweeps > 0 else n):
+            xl[i] += boost * xc[al[i]]
+        for _ in range(coarse_sweeps):
             for i in range(n - 1, -1, -1):
-                x[base + i] = (b[base + i] + _row(nbr, wt, x, i, base, deg)) * inv_diag[base + i]
-    if nlev == 1 or stop[0] != 0:
+                xl[i] = (bl[i] + _row(nl, wl, xl, i, deg)) * idl[i]
+
+
+@nb.njit(cache=True, nogil=True)
+def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
+            boost, coarse_sweeps, stop):
+    """
+    Compute x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
+
+    Symmetric: forward Gauss-Seidel sweeps before the coarse correction (scaled by
+    ``boost``), backward ones after.  The fine level (unit weights, diagonal deg)
+    reads ``nb0``; its first ``red[0]`` rows are red.  When ``rrows[0] == red[0]`` (no
+    two rows of one colour are neighbours) a colour's rows are updated in any order,
+    else one by one in order; the coarser levels by :func:`_coarse_cycle`.  r0 (n0,) scratch.  The
+    termination flag ``stop`` is polled after the fine level's pre-smoothing and
+    before its post-smoothing (x is then garbage: the caller discards it).
+    """
+    deg = nbr.shape[1]
+    inv_deg = 1.0 / deg
+    n0 = sizes[0]
+    red0, restrict0 = red[0], rrows[0]
+    if sizes.size == 1:          # the fine level is the coarsest
+        _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 0, boost, coarse_sweeps)
         return
+    clean = restrict0 == red0 and sweeps > 0
+    for i in range(n0 if clean else 0, n0 + 1):
+        x[i] = 0.0
+    if clean:            # first sweep from 0: a red row sees only black zeros (black rows are set, not read)
+        for i in range(red0):
+            x[i] = b[i] * inv_deg
+        _gs0(nb0, x, b, red0, n0, deg, inv_deg)
+        for _ in range(sweeps - 1):
+            _gs0(nb0, x, b, 0, red0, deg, inv_deg)
+            _gs0(nb0, x, b, red0, n0, deg, inv_deg)
+    else:
+        for _ in range(sweeps):
+            _gs0(nb0, x, b, 0, n0, deg, inv_deg)
+    if stop[0] != 0:
+        return
+    _residual0(nb0, x, b, r0, 0, restrict0, deg)
     cb = off[1]
-    for i in range(n0):
-        x[i] += boost * x[cb + agg[i]]
+    bc = b[cb:off[2]]
+    bc[:] = 0.0
+    for i in range(restrict0):
+        bc[agg[i]] += r0[i]
+    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 1, boost, coarse_sweeps)
+    if stop[0] != 0:
+        return
+    xc = x[cb:off[2]]
+    for i in range(red0 if clean else n0):     # clean: the black rows' correction is dead (set, not read)
+        x[i] += boost * xc[agg[i]]
     for _ in range(sweeps):
-        if restrict0 == red0:        # black rows, then red (the backward order by colour)
-            _sweep0(nb0, x, b, red0, n0, deg, inv_deg, par)
-            _sweep0(nb0, x, b, 0, red0, deg, inv_deg, par)
+        if clean:        # black rows, then red (the backward order by colour)
+            _gs0(nb0, x, b, red0, n0, deg, inv_deg)
+            _gs0(nb0, x, b, 0, red0, deg, inv_deg)
         else:
             for i in range(n0 - 1, -1, -1):
                 x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+
+
+@nb.njit(cache=True, nogil=True)
+def _dot(a, b, n):
+    """
+    Return sum_i a[i] * b[i] over the first n entries, in four interleaved partial sums.
+
+    A fixed order (the same bits every run), four independent chains instead of one: the
+    sum is no longer bound by the latency of one addition after another.
+    """
+    s0 = s1 = s2 = s3 = 0.0
+    m = n - n % 4
+    for i in range(0, m, 4):
+        s0 += a[i] * b[i]
+        s1 += a[i + 1] * b[i + 1]
+        s2 += a[i + 2] * b[i + 2]
+        s3 += a[i + 3] * b[i + 3]
+    for i in range(m, n):
+        s0 += a[i] * b[i]
+    return (s0 + s1) + (s2 + s3)
 
 
 @nb.njit(cache=True)
@@ -486,22 +540,19 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
-                  sweeps, boost, par, stop):
+def _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
+                  sweeps, boost, coarse_sweeps, stop):
     """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
     for i in range(n):
         bs[i] = r[i]
-    _vcycle(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
-            boost, par, stop)
-    rz = 0.0
-    for i in range(n):
-        rz += r[i] * xs[i]
-    return rz
+    _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
+            boost, coarse_sweeps, stop)
+    return _dot(r, xs, n)
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
-         sweeps, boost, deadline, stop):
+def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
+         sweeps, boost, coarse_sweeps, deadline, stop):
     """
     Preconditioned CG on the finest level, from the initial guess ``u``.
 
@@ -531,8 +582,8 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
             res = abs(r[i])
     if res < tol:
         return 0, res
-    rz = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
-                       r0, r, n, sweeps, boost, par, stop)
+    rz = _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
+                       r0, r, n, sweeps, boost, coarse_sweeps, stop)
     for i in range(n):
         p[i] = xs[i]
     it = 0
@@ -542,13 +593,8 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
         if deadline > 0.0 and _now() > deadline:
             break
         it += 1
-        if par:
-            _matvec0_par(nb0, p, q, 0, n, deg)
-        else:
-            _matvec0(nb0, p, q, 0, n, deg)
-        pq = 0.0
-        for i in range(n):
-            pq += p[i] * q[i]
+        _matvec0(nb0, p, q, 0, n, deg)
+        pq = _dot(p, q, n)
         if not pq > 0.0:
             break
         alpha = rz / pq
@@ -560,8 +606,8 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
                 res = abs(r[i])
         if res < tol or stop[0] != 0:
             break
-        rz_new = _precondition(nb0, red0, restrict0, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
-                               ws, r0, r, n, sweeps, boost, par, stop)
+        rz_new = _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
+                               ws, r0, r, n, sweeps, boost, coarse_sweeps, stop)
         beta = rz_new / rz
         rz = rz_new
         for i in range(n):
@@ -569,7 +615,8 @@ def _pcg(nb0, red0, restrict0, par, nbr, wt, diag, inv_diag, agg, off, sizes, ch
     return it, res
 
 
-def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8, stop=None):
+def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8, stop=None,
+          coarse_sweeps=COARSE_SWEEPS):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -594,10 +641,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     b = np.zeros(n + 1)
     b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
-    par = n >= PARALLEL_NODES and h.restrict0 == h.red0
     if stop is None:
         stop = np.zeros(1, np.int64)
-    it, res = _pcg(h.nb0, h.red0, h.restrict0, par, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
-                   h.chol, b, x,
-                   float(tol), int(max_iter), int(sweeps), float(boost), float(deadline), stop)
+    it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
+                   h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), int(coarse_sweeps),
+                   float(deadline), stop)
     return x[h.fine_of_input], int(it), float(res)
