@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.interpolate import CubicSpline
 
 from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, lipschitz_m_per_rad
 
@@ -214,6 +213,18 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
     Returns (samples (M, dof), knot_param (k,), sample_param (M,)): samples ≤
     max_step_rad apart, the first and last knot reproduced exactly.
     """
+    q, s, u, _ = _spline_samples(knots_rad, max_step_rad)
+    return q, s, u
+
+
+def _spline_samples(knots_rad, max_step_rad):
+    """
+    Return :func:`spline_through`'s (samples, knot_param, sample_param) and each sample's knot interval.
+
+    The knot interval (M,) int64 of sample r is the i with knot_param[i] ≤ sample_param[r] <
+    knot_param[i + 1] (the last sample: the last interval).  Knots closer than 1e-12 rad to
+    the previous one are dropped (the chord-length parameter must increase strictly).
+    """
     k = np.asarray(knots_rad, dtype=float)
     if len(k) > 1:       # the chord-length parameter must increase strictly
         step = np.linalg.norm(np.diff(k, axis=0), axis=1)
@@ -224,21 +235,130 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
         k = k[keep] if keep.sum() >= 2 else k[[0, -1]]
     s = _polyline_param(k)
     if len(k) == 1 or s[-1] <= 1e-12:
-        return k[[0, -1]].copy(), s[[0, -1]], s[[0, -1]].copy()
+        return k[[0, -1]].copy(), s[[0, -1]], s[[0, -1]].copy(), np.zeros(2, np.int64)
     if len(k) == 2:
         dense = densify_polyline(k, max_step_rad)
-        return dense, s, _polyline_param(dense)
-    spline = CubicSpline(s, k, axis=0, bc_type="not-a-knot")
-    n = max(2, int(np.ceil(s[-1] / max_step_rad)) + 1)
+        u = _polyline_param(dense)
+        return dense, s, u, np.zeros(len(dense), np.int64)
+    k = np.ascontiguousarray(k)
+    q, u, iv = _spline_kernel(s, k, float(max_step_rad))
+    return q, s, u, iv
+
+
+@njit(cache=True, nogil=True)
+def _not_a_knot_slopes(s, y):
+    """
+    First derivatives (n, dof) at the knots of the not-a-knot cubic spline through y (n, dof) at s (n,).
+
+    n ≥ 3; n = 3: the parabola through the three knots (scipy's ``CubicSpline`` does the same).
+    n ≥ 4: the tridiagonal system of ``CubicSpline`` (``bc_type="not-a-knot"``), by Thomas'
+    elimination (its first pivot dx[1] > 0, the second dx[0] + dx[1], the rest diagonally dominant).
+    """
+    n, dof = y.shape
+    dx = np.empty(n - 1)
+    slope = np.empty((n - 1, dof))
+    for i in range(n - 1):
+        dx[i] = s[i + 1] - s[i]
+        for a in range(dof):
+            slope[i, a] = (y[i + 1, a] - y[i, a]) / dx[i]
+    m = np.empty((n, dof))
+    if n == 3:
+        for a in range(dof):
+            c = (slope[1, a] - slope[0, a]) / (s[2] - s[0])
+            m[0, a] = slope[0, a] - c * dx[0]
+            m[1, a] = slope[0, a] + c * dx[0]
+            m[2, a] = slope[1, a] + c * dx[1]
+        return m
+    cp = np.empty(n)          # the eliminated upper diagonal
+    rp = np.empty((n, dof))   # the eliminated right-hand side
+    d = s[2] - s[0]
+    cp[0] = d / dx[1]
+    for a in range(dof):
+        rp[0, a] = ((dx[0] + 2.0 * d) * dx[1] * slope[0, a] + dx[0] * dx[0] * slope[1, a]) / d / dx[1]
+    for i in range(1, n - 1):
+        lower, diag, upper = dx[i], 2.0 * (dx[i - 1] + dx[i]), dx[i - 1]
+        den = diag - lower * cp[i - 1]
+        cp[i] = upper / den
+        for a in range(dof):
+            rhs = 3.0 * (dx[i] * slope[i - 1, a] + dx[i - 1] * slope[i, a])
+            rp[i, a] = (rhs - lower * rp[i - 1, a]) / den
+    d = s[n - 1] - s[n - 3]
+    lower, diag = d, dx[n - 3]
+    den = diag - lower * cp[n - 2]
+    for a in range(dof):
+        rhs = (dx[n - 2] * dx[n - 2] * slope[n - 3, a] + (2.0 * d + dx[n - 2]) * dx[n - 3] * slope[n - 2, a]) / d
+        m[n - 1, a] = (rhs - lower * rp[n - 2, a]) / den
+    for i in range(n - 2, -1, -1):
+        for a in range(dof):
+            m[i, a] = rp[i, a] - cp[i] * m[i + 1, a]
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _spline_kernel(s, y, max_step_rad):
+    """
+    Sample the not-a-knot cubic spline through y (n ≥ 3, dof) at the chord parameters s (n,).
+
+    Each knot interval i is sampled at n_i equal parameter steps, its first sample the knot
+    itself (exact: the cubic's constant term), n_i from a bound on the speed |dq/ds| over the
+    interval (each joint's derivative is a quadratic: its largest magnitude is at an end or its
+    vertex), so consecutive samples are at most ``max_step_rad`` apart (Euclidean); checked
+    after, and an interval that fails (rounding) gets one more step.  The last sample is the
+    last knot.  Returns (samples (M, dof), sample parameters (M,), knot interval of each (M,)).
+    """
+    n, dof = y.shape
+    m = _not_a_knot_slopes(s, y)
+    c0 = np.empty((n - 1, dof))
+    c1 = np.empty((n - 1, dof))
+    steps = np.empty(n - 1, np.int64)
+    for i in range(n - 1):
+        h = s[i + 1] - s[i]
+        v2 = 0.0
+        for a in range(dof):
+            sl = (y[i + 1, a] - y[i, a]) / h
+            t = (m[i, a] + m[i + 1, a] - 2.0 * sl) / h
+            c0[i, a] = t / h
+            c1[i, a] = (sl - m[i, a]) / h - t
+            # |q_a'| on [0, h]: q_a'(x) = 3 c0 x² + 2 c1 x + m_i
+            best = max(abs(m[i, a]), abs(m[i + 1, a]))
+            if c0[i, a] != 0.0:
+                x = -c1[i, a] / (3.0 * c0[i, a])
+                if 0.0 < x < h:
+                    best = max(best, abs((3.0 * c0[i, a] * x + 2.0 * c1[i, a]) * x + m[i, a]))
+            v2 += best * best
+        steps[i] = max(1, int(np.ceil(h * np.sqrt(v2) / max_step_rad)))
     while True:
-        u = np.linspace(0.0, s[-1], n)
-        q = spline(u)
-        steps = np.linalg.norm(np.diff(q, axis=0), axis=1)
-        if steps.max() <= max_step_rad:
-            break
-        n = int(np.ceil(n * steps.max() / max_step_rad * 1.05)) + 1
-    q[0], q[-1] = k[0], k[-1]
-    return q, s, u
+        total = 1
+        for i in range(n - 1):
+            total += steps[i]
+        q = np.empty((total, dof))
+        u = np.empty(total)
+        iv = np.empty(total, np.int64)
+        r = 0
+        for i in range(n - 1):
+            h = s[i + 1] - s[i]
+            for j in range(steps[i]):
+                x = h * j / steps[i]
+                u[r] = s[i] + x
+                iv[r] = i
+                for a in range(dof):
+                    q[r, a] = ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
+                r += 1
+        u[r] = s[n - 1]
+        iv[r] = n - 2
+        for a in range(dof):
+            q[r, a] = y[n - 1, a]
+        clean = True
+        for r in range(total - 1):
+            d2 = 0.0
+            for a in range(dof):
+                d = q[r + 1, a] - q[r, a]
+                d2 += d * d
+            if np.sqrt(d2) > max_step_rad:
+                steps[iv[r]] += 1
+                clean = False
+        if clean:
+            return q, u, iv
 
 
 def _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified):
