@@ -258,6 +258,13 @@ class MotionValidator:
         self.step_rad = float(step_rad)
         if not (np.isfinite(self.step_rad) and self.step_rad > 0.0):
             raise ValueError(f"step_rad: must be a positive number, got {step_rad!r}")
+        self._periodic_mask = np.array(self.periodic, dtype=bool)
+        self._with_step = {}          # the validators of other steps (with_step), made once
+        #: what the certified walk (``certify_segments``) needs of the robot and the scene
+        self.kernel_arrays = (np.asarray(robot.locked_rad, dtype=float),
+                              np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
+                              checker.checked, checker.body, checker.verts, checker.starts)
+        self.lipschitz_m_per_rad = lipschitz_m_per_rad(robot)
 
     @classmethod
     def for_scene(cls, robot, scene, step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> "MotionValidator":
@@ -275,7 +282,13 @@ class MotionValidator:
         """Return a validator of the same scene and bounds with another certified step."""
         if float(step_rad) == self.step_rad:
             return self
-        return MotionValidator(self.checker, self.lower_rad, self.upper_rad, self.periodic, step_rad)
+        other = self._with_step.get(float(step_rad))
+        if other is None:
+            other = MotionValidator(self.checker, self.lower_rad, self.upper_rad, self.periodic, step_rad)
+            if len(self._with_step) >= 8:
+                self._with_step.clear()
+            self._with_step[float(step_rad)] = other
+        return other
 
     @property
     def robot(self):
@@ -312,19 +325,17 @@ class MotionValidator:
         """
         checker = self.checker
         step = self.step_rad if step_rad is None else float(step_rad)
-        p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
-        robot = checker.robot
+        p = np.ascontiguousarray(path_rad, dtype=float)
         threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
                                                                               required_clearance_m)
-        in_bounds = self.within_bounds(p)
+        in_bounds = (((p >= self.lower_rad) & (p <= self.upper_rad)) | self._periodic_mask).all(axis=-1)
         if len(p) == 1:
             c = float(checker.clearance_m(p[0]))
             return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
                              np.zeros(0))
         m = len(p) - 1
-        interval_ok = np.zeros(m, dtype=np.bool_)
-        interval_clr = np.zeros(m)
-        lip = lipschitz_m_per_rad(robot)
+        interval_ok = np.empty(m, dtype=np.bool_)
+        interval_clr = np.empty(m)
         if vertex_clearance_m is None:
             vertex_clr = np.full(len(p), np.nan)
         else:
@@ -332,12 +343,10 @@ class MotionValidator:
             if vertex_clr.shape != (len(p),):
                 raise ValueError(f"vertex_clearance_m: expected {len(p)} values (one per row), "
                                  f"got shape {vertex_clr.shape}")
-        n = certify_segments(p, np.asarray(robot.locked_rad, dtype=float),
-                             np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                             checker.checked, checker.body, checker.verts, checker.starts,
-                             float(threshold), lip, step, float(min_step_rad),
-                             interval_ok, interval_clr, bool(certified), vertex_clr)
-        interval_ok &= in_bounds[:-1] & in_bounds[1:]
+        n = certify_segments(p, *self.kernel_arrays, float(threshold), self.lipschitz_m_per_rad, step,
+                             float(min_step_rad), interval_ok, interval_clr, bool(certified), vertex_clr)
+        interval_ok &= in_bounds[:-1]
+        interval_ok &= in_bounds[1:]
         return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
                          interval_clr, vertex_clr)
 

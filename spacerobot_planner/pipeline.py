@@ -132,6 +132,7 @@ class PlanRun:
         self.penetration_m = 0.0
         self.approach_error_deg = math.nan
         self.grid_path = np.zeros((0, self.robot.dof))
+        self.waypoint_check = None               # the certified check of the verified waypoints
         self.periodic = self.validator.periodic
         self.t0 = time.perf_counter()
         self.level = 0                             # refinements of the grid now tried
@@ -547,9 +548,11 @@ class PlanRun:
             wp = unwrap_path(np.vstack([start, nodes_rad, self.goal]), self.periodic)
             wp[-1] = nearest_turn_rad(self.goal, wp[-1], self.periodic)   # exactly the goal (mod 2π)
             with self.stage("verify"):
-                bad = self.validator.first_bad_segment(wp)
-            if bad < 0:
+                chk = self.validator.check(wp)
+            if chk.ok:
+                self.waypoint_check = chk            # the smoothing's shortcut pass reuses it
                 return wp
+            bad = int(np.flatnonzero(~chk.interval_ok)[0])
             # segment bad joins waypoint bad and bad+1; waypoint k ≥ 1 is path node k-1
             cand = [k - 1 for k in (bad, bad + 1) if 1 <= k <= len(path.nodes)]
             goal_set = {tuple(g) for g in goal_nodes}
@@ -638,7 +641,7 @@ class PlanRun:
             self.p._test_stall("smoothing", self.cancel)
             sm = smooth_path(self.validator, waypoints, shortcut=s.shortcut,
                              keep_clearance_m=s.shortcut_keep_clearance_m, max_step_rad=s.max_step_rad,
-                             cancel=self.cancel)
+                             cancel=self.cancel, waypoint_check=self.waypoint_check)
         self.check_cancel()
         if sm is None:
             raise Fail(Code.PATH_INVALID, "no smoothed path passed the dense collision check")

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, lipschitz_m_per_rad
+from .collision import config_clearance
+from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
            "spline_through", "smooth_path", "DEFAULT_MAX_STEP_RAD"]
@@ -96,6 +97,8 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
     (m, dof) → a new (m, dof) array.
     """
     q = np.array(q, dtype=float)
+    if (((q >= lower) & (q <= upper)) | np.asarray(periodic, dtype=bool)).all():
+        return q                        # the common case: nothing to snap
     for a, p in enumerate(periodic):
         if not p:
             col = q[:, a]
@@ -116,7 +119,8 @@ def _validator(motions, lower_rad, upper_rad, periodic, step_rad):
 
 def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, periodic=None,
                      verify_step_rad: float | None = None,
-                     keep_clearance_m: float = 0.05, certified: bool = True) -> np.ndarray:
+                     keep_clearance_m: float = 0.05, certified: bool = True,
+                     polyline_check=None) -> np.ndarray:
     """
     Greedy, clearance-keeping shortcut of a verified polyline: indices of the vertices kept.
 
@@ -129,31 +133,91 @@ def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, period
 
     ``motions``: the scene's ``motion.MotionValidator`` (checks at its step unless
     ``verify_step_rad`` is given), or a ``CollisionChecker`` with the bounds.
+    ``certified``: candidates certified (``MotionValidator.check``), else the quick test:
+    clearance above the threshold at samples the validator's step apart along the segment
+    (a sample that a clearance ball of an earlier one covers passes without being evaluated:
+    the same answer).  ``polyline_check``: a ``PathCheck`` of these very rows (the certified
+    check that verified the polyline): its interval clearances (the stretches' own) and
+    vertex clearances are used instead of a check of the polyline here.
     """
     v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
-    pts = np.ascontiguousarray(np.asarray(points_rad, dtype=float))
-    poly = v.check(pts, certified=certified)
-    checker, robot = v.checker, v.robot
+    pts = np.ascontiguousarray(points_rad, dtype=float)
+    if polyline_check is None:
+        polyline_check = v.check(pts, certified=certified)
+    elif len(polyline_check.interval_clearance_m) != len(pts) - 1:
+        raise ValueError(f"polyline_check: a check of {len(polyline_check.interval_clearance_m) + 1} rows, "
+                         f"not of these {len(pts)}")
+    known = polyline_check.vertex_clearance_m
+    vertex_clr = np.full(len(pts), np.nan) if known is None else np.array(known, dtype=float)
     # a segment between two in-bounds points stays in bounds (the bounds are a box)
-    return _shortcut_kernel(pts, poly.interval_clearance_m, checker.margin_m + keep_clearance_m,
-                            np.asarray(robot.locked_rad, dtype=float),
-                            np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                            checker.checked, checker.body, checker.verts, checker.starts,
-                            checker.margin_m, lipschitz_m_per_rad(robot), v.step_rad,
-                            bool(certified))
+    return _shortcut_kernel(pts, polyline_check.interval_clearance_m, v.margin_m + keep_clearance_m,
+                            *v.kernel_arrays, v.margin_m, v.lipschitz_m_per_rad, v.step_rad,
+                            bool(certified), vertex_clr)
+
+
+@njit(cache=True, nogil=True)
+def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts, starts,
+                      threshold_m, lip, step_rad, q_full, pts, body_w):
+    """
+    Quick test of the straight segment points[i] → points[j]: clearance > threshold at its samples.
+
+    The samples of the quick test (``certify_segments`` with ``certified`` false): at arc
+    lengths k·step_rad and at the end.  A sample within the clearance ball of an evaluated
+    one, (c - threshold)/L (the Lipschitz bound ``lip``, m per rad, with a 0.1 % margin), passes
+    without being evaluated; the answer is the same.  The ends' clearances are read from
+    ``vertex_clr`` where known (not NaN) and written there when evaluated.
+    """
+    dof = points.shape[1]
+    seg_len = 0.0
+    for a in range(dof):
+        d = points[j, a] - points[i, a]
+        seg_len += d * d
+    seg_len = np.sqrt(seg_len)
+    c = vertex_clr[i]
+    if np.isnan(c):
+        for a in range(dof):
+            q_full[planned[a]] = points[i, a]
+        c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+        vertex_clr[i] = c
+    if not c > threshold_m:
+        return False
+    reach = 0.999 * (c - threshold_m) / lip       # arc length certified so far
+    k = 0
+    while reach < seg_len:
+        kn = int(reach / step_rad) + 1            # the first sample beyond the ball
+        if kn <= k:
+            kn = k + 1
+        t = kn * step_rad
+        if t >= seg_len:
+            c = vertex_clr[j]
+            if np.isnan(c):
+                for a in range(dof):
+                    q_full[planned[a]] = points[j, a]
+                c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+                vertex_clr[j] = c
+            return c > threshold_m
+        f = t / seg_len
+        for a in range(dof):
+            q_full[planned[a]] = points[i, a] + f * (points[j, a] - points[i, a])
+        c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+        if not c > threshold_m:
+            return False
+        k = kn
+        reach = t + 0.999 * (c - threshold_m) / lip
+    return True
 
 
 @njit(cache=True, nogil=True)
 def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts,
-                     margin_m, lip, step_rad, certified):
+                     margin_m, lip, step_rad, certified, vertex_clr):
     """Run the greedy binary search of :func:`shortcut_indices` (see there), in one kernel."""
     m = pts.shape[0]
     keep = np.empty(m, np.int64)
     seg = np.empty((2, pts.shape[1]))
     ok_iv = np.zeros(1, np.bool_)
     clr_iv = np.zeros(1)
-    vertex_clr = np.full(m, np.nan)   # each vertex's clearance, evaluated once
     ends_clr = np.empty(2)
+    q_full, chain, body_w = motion_scratch(q_template, lengths, body)
     n_keep = 1
     keep[0] = 0
     i = 0
@@ -170,16 +234,21 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                 for k in range(i, j):
                     if iv_clr[k] < need:
                         need = iv_clr[k]
-                seg[0] = pts[i]
-                seg[1] = pts[j]
-                ends_clr[0] = vertex_clr[i]
-                ends_clr[1] = vertex_clr[j]
-                certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts,
-                                 max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified,
-                                 ends_clr)
-                vertex_clr[i] = ends_clr[0]
-                vertex_clr[j] = ends_clr[1]
-                good = ok_iv[0]
+                threshold = max(margin_m, need)
+                if certified:
+                    seg[0] = pts[i]
+                    seg[1] = pts[j]
+                    ends_clr[0] = vertex_clr[i]
+                    ends_clr[1] = vertex_clr[j]
+                    certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts,
+                                     threshold, lip, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr)
+                    vertex_clr[i] = ends_clr[0]
+                    vertex_clr[j] = ends_clr[1]
+                    good = ok_iv[0]
+                else:
+                    good = _quick_segment_ok(pts, i, j, vertex_clr, q_template, planned, lengths, checked,
+                                             body, verts, starts, threshold, lip, step_rad, q_full, chain,
+                                             body_w)
             if good:
                 lo = j
             else:
@@ -404,7 +473,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
                 max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                 verify_step_rad: float | None = None,
                 quick_step_rad: float = QUICK_STEP_RAD,
-                max_rounds: int = 12, cancel=None) -> SmoothPath | None:
+                max_rounds: int = 12, cancel=None, waypoint_check=None) -> SmoothPath | None:
     """
     Smooth a polyline into a dense path whose certified check passed.
 
@@ -420,6 +489,9 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
             stretch's own clearance, if smaller), metres.
         knot_stride: the paper's "every second node" (2).
         quick_step_rad: spacing of the quick test of candidates.
+        waypoint_check: the certified check (``MotionValidator.check``) of these very
+            waypoints, if the caller made one: the shortcut pass uses its interval and vertex
+            clearances instead of checking the polyline again.
 
     Returns
     -------
@@ -436,7 +508,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
     """
     v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
     first = _smooth(v.with_step(quick_step_rad), waypoints_rad, shortcut, knot_stride,
-                    keep_clearance_m, max_step_rad, max_rounds, cancel, False)
+                    keep_clearance_m, max_step_rad, max_rounds, cancel, False, waypoint_check)
     if first is not None:
         path, knots, method, rounds, quick = first
         chk = v.check(path, vertex_clearance_m=quick)     # the quick check's vertices reused
@@ -446,7 +518,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
     if cancel is not None and cancel.is_set():
         return None
     again = _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad,
-                    max_rounds, cancel, True)
+                    max_rounds, cancel, True, waypoint_check)
     if again is None:
         return None
     path, knots, method, rounds, known = again
@@ -458,7 +530,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
 
 
 def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad, max_rounds, cancel,
-            certified):
+            certified, waypoint_check=None):
     """
     Choose a path with tests at the step of ``v`` (certified or quick).
 
@@ -470,20 +542,23 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
     """
     w = np.asarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
-    rows = [w[0]]                       # drop repeated rows, keep the exact ends
-    for r in w[1:-1]:
-        if np.linalg.norm(r - rows[-1]) > 1e-12:
-            rows.append(r)
-    if np.linalg.norm(w[-1] - rows[-1]) > 1e-12:
-        rows.append(w[-1])
-    elif len(rows) > 1:
-        rows[-1] = w[-1]
-    w = np.array(rows)
+    if len(w) < 2 or not np.all(np.linalg.norm(np.diff(w, axis=0), axis=1) > 1e-12):
+        rows = [w[0]]                   # drop repeated rows, keep the exact ends
+        for r in w[1:-1]:
+            if np.linalg.norm(r - rows[-1]) > 1e-12:
+                rows.append(r)
+        if np.linalg.norm(w[-1] - rows[-1]) > 1e-12:
+            rows.append(w[-1])
+        elif len(rows) > 1:
+            rows[-1] = w[-1]
+        w = np.array(rows)
+        waypoint_check = None           # a check of other rows
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
         return ends, ends.copy(), "polyline", 0, None
     attempts = []
     if shortcut and len(w) > 2:
-        keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified)
+        keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified,
+                                    polyline_check=waypoint_check)
         sc = w[keep_idx]
         t_sc = _polyline_param(sc)
         # knots: the shortcut vertices plus points about two grid steps apart on
