@@ -25,6 +25,7 @@ anything, so the caches hold only complete C-spaces and fields.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import traceback as _traceback
@@ -91,6 +92,14 @@ def _repairs_text(repairs: int, cut, blocked) -> str:
     """Return '3 repairs (12 cut edges, 1 blocked node)'."""
     return (f"{_count(repairs, 'repair')} ({_count(len(cut), 'cut edge')}, "
             f"{_count(len(blocked), 'blocked node')})")
+
+
+@functools.lru_cache(maxsize=8)
+def _near_offsets(ndim: int) -> np.ndarray:
+    """Index offsets -1 .. 2 on every axis, (4**ndim, ndim) int64 (``PlanRun.candidates``; do not modify)."""
+    offs = np.stack(np.meshgrid(*[np.arange(-1, 3)] * ndim, indexing="ij"), -1).reshape(-1, ndim)
+    offs.flags.writeable = False
+    return offs
 
 
 def refined(grid):
@@ -187,18 +196,17 @@ class PlanRun:
 
     def candidates(self, q, grid, free_mask, max_count: int = 8) -> np.ndarray:
         """Free grid nodes near q (within 2 steps per axis), nearest first: (k, dof) int."""
-        base = np.floor((q - np.asarray(grid.lower_rad)) / grid.step_rad).astype(np.int64)
-        offs = np.stack(np.meshgrid(*[np.arange(-1, 3)] * grid.ndim, indexing="ij"), -1).reshape(-1, grid.ndim)
-        nodes = base + offs
+        lower, step = np.asarray(grid.lower_rad), grid.step_rad
+        base = np.floor((q - lower) / step).astype(np.int64)
+        nodes = base + _near_offsets(grid.ndim)
         shape = np.asarray(grid.shape)
-        keep = np.ones(len(nodes), dtype=bool)
-        for a, p in enumerate(grid.periodic):
-            if p:
-                nodes[:, a] %= shape[a]
-            else:
-                keep &= (nodes[:, a] >= 0) & (nodes[:, a] < shape[a])
-        nodes = np.unique(nodes[keep], axis=0)
-        d = difference_rad(q, grid.config_of(nodes), grid.periodic)
+        per = np.asarray(grid.periodic, dtype=bool)
+        nodes[:, per] %= shape[per]
+        nodes = nodes[((nodes >= 0) & (nodes < shape) | per).all(axis=1)]
+        # distinct nodes in index order (a row-major flat index sorts as the index tuples do)
+        nodes = np.array(np.unravel_index(np.unique(np.ravel_multi_index(nodes.T, grid.shape)), grid.shape)).T
+        d = lower + nodes * step - q
+        d[:, per] = (d[:, per] + np.pi) % (2.0 * np.pi) - np.pi     # the short way round
         nodes = nodes[np.argsort(np.linalg.norm(d, axis=1), kind="stable")]
         nodes = nodes[free_mask[tuple(nodes.T)]]
         return nodes[:max_count]

@@ -162,10 +162,13 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
     Quick test of the straight segment points[i] → points[j]: clearance > threshold at its samples.
 
     The samples of the quick test (``certify_segments`` with ``certified`` false): at arc
-    lengths k·step_rad and at the end.  A sample within the clearance ball of an evaluated
-    one, (c - threshold)/L (the Lipschitz bound ``lip``, m per rad, with a 0.1 % margin), passes
-    without being evaluated; the answer is the same.  The ends' clearances are read from
-    ``vertex_clr`` where known (not NaN) and written there when evaluated.
+    lengths k·step_rad below the length, and the end.  Evaluated ends first, then by
+    bisection (coarse to fine, as OMPL's discrete motion validator), so a segment that
+    collides is usually rejected after a few evaluations; a sample within the clearance ball
+    (c - threshold)/L of an evaluated one (the Lipschitz bound ``lip``, m per rad, less 0.1 %)
+    passes without being evaluated.  The answer is that of evaluating every sample.  The
+    ends' clearances are read from ``vertex_clr`` where known (not NaN) and written there
+    when evaluated.
     """
     dof = points.shape[1]
     seg_len = 0.0
@@ -173,38 +176,63 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
         d = points[j, a] - points[i, a]
         seg_len += d * d
     seg_len = np.sqrt(seg_len)
-    c = vertex_clr[i]
-    if np.isnan(c):
-        for a in range(dof):
-            q_full[planned[a]] = points[i, a]
-        c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
-        vertex_clr[i] = c
-    if not c > threshold_m:
-        return False
-    reach = 0.999 * (c - threshold_m) / lip       # arc length certified so far
-    k = 0
-    while reach < seg_len:
-        kn = int(reach / step_rad) + 1            # the first sample beyond the ball
-        if kn <= k:
-            kn = k + 1
-        t = kn * step_rad
-        if t >= seg_len:
-            c = vertex_clr[j]
-            if np.isnan(c):
-                for a in range(dof):
-                    q_full[planned[a]] = points[j, a]
-                c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
-                vertex_clr[j] = c
-            return c > threshold_m
-        f = t / seg_len
-        for a in range(dof):
-            q_full[planned[a]] = points[i, a] + f * (points[j, a] - points[i, a])
-        c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+    n_last = max(1, int(np.ceil(seg_len / step_rad)))        # samples 0 .. n_last (the end)
+    covered = np.zeros(n_last + 1, np.bool_)
+    queue = np.empty((2 * n_last + 1, 2), np.int64)
+    head = 0
+    tail = 0
+    for e in range(2):
+        k = 0 if e == 0 else n_last
+        if covered[k]:
+            continue
+        v = i if e == 0 else j
+        c = vertex_clr[v]
+        if np.isnan(c):
+            for a in range(dof):
+                q_full[planned[a]] = points[v, a]
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+            vertex_clr[v] = c
         if not c > threshold_m:
             return False
-        k = kn
-        reach = t + 0.999 * (c - threshold_m) / lip
+        _cover(covered, k, 0.0 if e == 0 else seg_len, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+    queue[tail, 0] = 0
+    queue[tail, 1] = n_last
+    tail += 1
+    while head < tail:
+        lo = queue[head, 0]
+        hi = queue[head, 1]
+        head += 1
+        if hi - lo < 2:
+            continue
+        k = (lo + hi) // 2
+        if not covered[k]:
+            t = min(k * step_rad, seg_len)
+            f = t / seg_len
+            for a in range(dof):
+                q_full[planned[a]] = points[i, a] + f * (points[j, a] - points[i, a])
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+            if not c > threshold_m:
+                return False
+            _cover(covered, k, t, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+        queue[tail, 0] = lo
+        queue[tail, 1] = k
+        queue[tail + 1, 0] = k
+        queue[tail + 1, 1] = hi
+        tail += 2
     return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cover(covered, k, t, radius, step_rad, seg_len):
+    """Mark the samples of :func:`_quick_segment_ok` within ``radius`` (rad) of sample k (at arc length t)."""
+    n_last = covered.size - 1
+    covered[k] = True
+    lo = max(0, int(np.ceil((t - radius) / step_rad)))
+    hi = min(n_last - 1, int(np.floor((t + radius) / step_rad)))
+    for m in range(lo, hi + 1):
+        covered[m] = True
+    if seg_len - t <= radius:
+        covered[n_last] = True
 
 
 @njit(cache=True, nogil=True)
