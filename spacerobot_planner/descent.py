@@ -112,7 +112,8 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
 
 @nb.njit(cache=True, nogil=True)
 def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_template, planned, lengths,
-            checked, body, verts, starts, threshold_m, seg_step_rad, q_full, pts, body_w, path):
+            checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
+            path):
     """
     Search breadth-first for a detour to a higher node.
 
@@ -171,8 +172,8 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
                 for b in range(ndim):
                     qb[b] = qa[b]
                 qb[a] += d * step[a]
-                if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                                    threshold_m, seg_step_rad, q_full, pts, body_w):
+                if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
+                                    obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
                     continue
                 parent[nb_box] = bi
                 flat_of[nb_box] = h
@@ -194,7 +195,7 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
 
 @nb.njit(cache=True, nogil=True)
 def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
-                  planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+                  planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
     """
     Walk as :func:`_ascend` does, but only along motions that pass the motion test.
 
@@ -253,8 +254,8 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
             for a in range(ndim):
                 qb[a] = qa[a]
             qb[cand_a[t]] += cand_d[t] * step[cand_a[t]]      # the short way across a seam
-            if segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                            threshold_m, seg_step_rad, q_full, pts, body_w):
+            if segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
+                            obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
                 f = cand_f[t]
                 out[m] = f
                 m += 1
@@ -263,8 +264,8 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
         if not moved:
             n = 0 if detour_steps == 0 else _detour(
                 log_u_flat, shape, periodic, strides, f, detour_steps, lower, step, q_template,
-                planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad,
-                q_full, pts, body_w, detour)
+                planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
+                seg_step_rad, q_full, pts, body_w, detour)
             if n == 0 or m + n > out.size:
                 return m, _BLOCKED
             for i in range(n):
@@ -275,7 +276,7 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
 
 @nb.njit(cache=True, nogil=True)
 def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_template, planned,
-                     lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+                     lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
     """
     Return the colliding edges between free nodes near ``centre``, int64 (k, 2).
 
@@ -324,8 +325,8 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
             for b in range(ndim):
                 qb[b] = qa[b]
             qb[a] += step[a]
-            if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                                threshold_m, seg_step_rad, q_full, pts, body_w):
+            if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
+                                obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
                 found.append((min(f, g), max(f, g)))
     out = np.empty((len(found), 2), np.int64)
     for t in range(len(found)):

@@ -71,7 +71,7 @@ class PathCheck:
 
 
 @njit(cache=True, nogil=True)
-def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts,
+def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
                      threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
                      interval_ok, interval_clr, certified, vertex_clr):
     """
@@ -113,7 +113,7 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
                     f = t / seg_len
                     for a in range(dof):
                         q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
-                c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+                c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
                 n_eval += 1
                 if v >= 0:
                     vertex_clr[v] = c
@@ -179,8 +179,8 @@ def motion_scratch(q_template, lengths, body):
 
 
 @njit(cache=True, nogil=True)
-def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, threshold_m,
-                 step_rad, q_full, pts, body_w):
+def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                 threshold_m, step_rad, q_full, pts, body_w):
     """
     Quick test of the straight segment qa → qb (planned joints, rad).
 
@@ -198,7 +198,8 @@ def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, sta
         f = k / n
         for a in range(dof):
             q_full[planned[a]] = qa[a] + f * (qb[a] - qa[a])
-        if not config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w) > threshold_m:
+        if not config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts,
+                                body_w) > threshold_m:
             return False
     return True
 
@@ -214,6 +215,8 @@ class SegmentTest:
     body: np.ndarray
     verts: np.ndarray
     starts: np.ndarray
+    centres: np.ndarray
+    radii: np.ndarray
     threshold_m: float
     step_rad: float
 
@@ -222,11 +225,11 @@ class SegmentTest:
         robot = checker.robot
         return cls(np.asarray(robot.locked_rad, dtype=float), np.asarray(robot.planned_joints, dtype=np.int64),
                    checker.lengths, checker.checked, checker.body, checker.verts, checker.starts,
-                   float(checker.margin_m), float(step_rad))
+                   checker.centres, checker.radii, float(checker.margin_m), float(step_rad))
 
     def arrays(self) -> tuple:
         return (self.q_template, self.planned, self.lengths, self.checked, self.body, self.verts,
-                self.starts, self.threshold_m, self.step_rad)
+                self.starts, self.centres, self.radii, self.threshold_m, self.step_rad)
 
 
 class MotionValidator:
@@ -263,7 +266,8 @@ class MotionValidator:
         #: what the certified walk (``certify_segments``) needs of the robot and the scene
         self.kernel_arrays = (np.asarray(robot.locked_rad, dtype=float),
                               np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                              checker.checked, checker.body, checker.verts, checker.starts)
+                              checker.checked, checker.body, checker.verts, checker.starts, checker.centres,
+                              checker.radii)
         self.lipschitz_m_per_rad = lipschitz_m_per_rad(robot)
 
     @classmethod

@@ -157,7 +157,7 @@ def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, period
 
 @njit(cache=True, nogil=True)
 def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts, starts,
-                      threshold_m, lip, step_rad, q_full, pts, body_w):
+                      centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w):
     """
     Quick test of the straight segment points[i] → points[j]: clearance > threshold at its samples.
 
@@ -190,7 +190,7 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
         if np.isnan(c):
             for a in range(dof):
                 q_full[planned[a]] = points[v, a]
-            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
             vertex_clr[v] = c
         if not c > threshold_m:
             return False
@@ -210,7 +210,7 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
             f = t / seg_len
             for a in range(dof):
                 q_full[planned[a]] = points[i, a] + f * (points[j, a] - points[i, a])
-            c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
             if not c > threshold_m:
                 return False
             _cover(covered, k, t, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
@@ -236,8 +236,8 @@ def _cover(covered, k, t, radius, step_rad, seg_len):
 
 
 @njit(cache=True, nogil=True)
-def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts,
-                     margin_m, lip, step_rad, certified, vertex_clr):
+def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts, centres,
+                     radii, margin_m, lip, step_rad, certified, vertex_clr):
     """Run the greedy binary search of :func:`shortcut_indices` (see there), in one kernel."""
     m = pts.shape[0]
     keep = np.empty(m, np.int64)
@@ -268,15 +268,15 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                     seg[1] = pts[j]
                     ends_clr[0] = vertex_clr[i]
                     ends_clr[1] = vertex_clr[j]
-                    certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts,
-                                     threshold, lip, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr)
+                    certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts, centres,
+                                     radii, threshold, lip, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr)
                     vertex_clr[i] = ends_clr[0]
                     vertex_clr[j] = ends_clr[1]
                     good = ok_iv[0]
                 else:
                     good = _quick_segment_ok(pts, i, j, vertex_clr, q_template, planned, lengths, checked,
-                                             body, verts, starts, threshold, lip, step_rad, q_full, chain,
-                                             body_w)
+                                             body, verts, starts, centres, radii, threshold, lip, step_rad,
+                                             q_full, chain, body_w)
             if good:
                 lo = j
             else:
