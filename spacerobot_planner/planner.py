@@ -49,6 +49,7 @@ from .problem import Scenario
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
 from .settings import PlannerSettings
+from .smoothing import warm_up as smoothing_warm_up
 from .termination import stall
 from .timing import timed_motion, trajectory_limits_known
 
@@ -378,6 +379,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
         if planner.plan(start, goal).ok:
             break
     field_warm_up()             # the solver kernels a coarse grid does not reach
+    smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
         # the free-floating capture's attitude kernel (numba)
         attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))

@@ -27,7 +27,7 @@ from .collision import config_clearance
 from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
-           "spline_through", "smooth_path", "DEFAULT_MAX_STEP_RAD"]
+           "spline_through", "smooth_path", "warm_up", "DEFAULT_MAX_STEP_RAD"]
 
 DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
 
@@ -615,3 +615,22 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
     if not chk.ok:
         return None
     return dense, w.copy(), "polyline", 0, chk.vertex_clearance_m
+
+
+def warm_up() -> None:
+    """
+    Compile (or load from numba's cache) this module's kernels: the spline and the shortcut pass.
+
+    On a made-up three-link arm (planned joints 1 and 2) and one square obstacle, with the
+    argument types of a plan; a coarse warm-up plan may not reach them (a straight shortcut
+    needs no spline).
+    """
+    _spline_samples(np.radians([[0.0, 0.0], [20.0, 10.0], [40.0, 5.0], [55.0, -3.0]]), DEFAULT_MAX_STEP_RAD)
+    square = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    arrays = (np.zeros(3), np.array([1, 2], dtype=np.int64), np.array([1.4, 2.0, 2.0]),
+              np.array([1, 2], dtype=np.int64), square.copy(), square + 6.0, np.array([0, 4], dtype=np.int64),
+              np.array([[6.0, 6.0]]), np.array([1.0]))
+    pts = np.radians([[0.0, 0.0], [5.0, 5.0], [10.0, 5.0], [15.0, 0.0]])
+    iv_clr = np.ones(len(pts) - 1)
+    for certified in (False, True):
+        _shortcut_kernel(pts, iv_clr, 0.07, *arrays, 0.02, 4.5, QUICK_STEP_RAD, certified, np.full(len(pts), np.nan))
