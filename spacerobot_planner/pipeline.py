@@ -138,6 +138,7 @@ class PlanRun:
         self.start = self.goal = self.start_given = None
         self.plan_start = None                   # the start of the certified plan (after an exit)
         self.exit_path = np.zeros((0, self.robot.dof))
+        self.start_clearance_m = math.nan        # the start's clearance (check_inputs), m
         self.penetration_m = 0.0
         self.approach_error_deg = math.nan
         self.grid_path = np.zeros((0, self.robot.dof))
@@ -225,7 +226,7 @@ class PlanRun:
             self.start = robot.validate_q(self.start_given, "start")
         except (ValueError, TypeError) as e:
             raise Fail(Code.INVALID_INPUT, str(e)) from None
-        clr_s = self.checker.clearance_m(self.start)
+        clr_s = self.start_clearance_m = self.checker.clearance_m(self.start)
         if not clr_s > margin and not self.s.max_start_penetration_m > 0.0:
             raise Fail(Code.START_IN_COLLISION, f"the start {deg_text(self.start)} is in collision: "
                        f"clearance {clr_s:.3f} m, the safety margin is {margin} m")
@@ -327,7 +328,7 @@ class PlanRun:
         ``max_start_penetration_m`` into it, else start_in_collision.
         """
         margin = self.sc.scene.safety_margin_m
-        clr_s = self.checker.clearance_m(self.start)
+        clr_s = self.start_clearance_m          # check_inputs' (the same start)
         if clr_s > margin:
             return
         refusal = (f"the start {deg_text(self.start)} is in collision: clearance {clr_s:.3f} m, the "
@@ -506,7 +507,7 @@ class PlanRun:
                 raise Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is "
                            f"blocked (grid {grid.label()}, margin {cs.margin_m:.3f} m)",
                            "every grid node near the start is blocked")
-            reach = fld.reachable[tuple(starts.T)]
+            reach = np.isfinite(fld.log_u[tuple(starts.T)])       # fld.reachable at these nodes
             if not reach.any():
                 raise self.no_field_path_failure(cs, fld, blocked, cut, repairs)
             path, stuck, reasons, collide = None, None, [], []

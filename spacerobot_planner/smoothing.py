@@ -570,7 +570,8 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
     """
     w = np.asarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
-    if len(w) < 2 or not np.all(np.linalg.norm(np.diff(w, axis=0), axis=1) > 1e-12):
+    steps = np.linalg.norm(np.diff(w, axis=0), axis=1)
+    if len(w) < 2 or not np.all(steps > 1e-12):
         rows = [w[0]]                   # drop repeated rows, keep the exact ends
         for r in w[1:-1]:
             if np.linalg.norm(r - rows[-1]) > 1e-12:
@@ -580,25 +581,28 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
         elif len(rows) > 1:
             rows[-1] = w[-1]
         w = np.array(rows)
+        steps = np.linalg.norm(np.diff(w, axis=0), axis=1)
         waypoint_check = None           # a check of other rows
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
         return ends, ends.copy(), "polyline", 0, None
-    attempts = []
-    if shortcut and len(w) > 2:
-        keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified,
-                                    polyline_check=waypoint_check)
-        sc = w[keep_idx]
-        t_sc = _polyline_param(sc)
-        # knots: the shortcut vertices plus points about two grid steps apart on
-        # long straight stretches, so corners are rounded but not cut
-        spacing = knot_stride * np.median(np.linalg.norm(np.diff(w, axis=0), axis=1))
-        extra = [np.linspace(a, b, max(2, int(np.ceil((b - a) / max(spacing, 1e-9))) + 1))
-                 for a, b in zip(t_sc[:-1], t_sc[1:])]
-        attempts.append(("shortcut_spline", sc, np.concatenate(extra)))
-    t_w = _polyline_param(w)
-    stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
-    attempts.append(("spline", w, t_w[stride_idx]))
-    for method, poly, t_knots in attempts:
+
+    def attempts():                     # each made only when the one before failed
+        if shortcut and len(w) > 2:
+            keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified,
+                                        polyline_check=waypoint_check)
+            sc = w[keep_idx]
+            t_sc = _polyline_param(sc)
+            # knots: the shortcut vertices plus points about two grid steps apart on
+            # long straight stretches, so corners are rounded but not cut
+            spacing = knot_stride * np.median(steps)
+            extra = [np.linspace(a, b, max(2, int(np.ceil((b - a) / max(spacing, 1e-9))) + 1))
+                     for a, b in zip(t_sc[:-1], t_sc[1:])]
+            yield "shortcut_spline", sc, np.concatenate(extra)
+        t_w = np.concatenate([[0.0], np.cumsum(steps)])        # _polyline_param(w)
+        stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
+        yield "spline", w, t_w[stride_idx]
+
+    for method, poly, t_knots in attempts():
         res = _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified)
         if res is not None:
             samples, knots, chk, rounds = res
