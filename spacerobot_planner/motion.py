@@ -134,6 +134,45 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     return n_eval
 
 
+@njit(cache=True, nogil=True)
+def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts,
+                 starts, centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, certified,
+                 vertex_clr):
+    """
+    Run :meth:`MotionValidator.check` on M ≥ 2 rows: :func:`certify_segments` and the bounds, in one call.
+
+    An interval fails also where a row at either end has a bounded joint outside
+    [lower_rad, upper_rad] (``periodic`` (dof,) bool: unbounded).  Returns (ok, smallest
+    interval clearance (NaN if one is NaN), evaluations, interval_ok (M-1,), interval
+    clearances (M-1,)); ``vertex_clr`` as in :func:`certify_segments`.
+    """
+    m = points.shape[0] - 1
+    interval_ok = np.empty(m, np.bool_)
+    interval_clr = np.empty(m)
+    n = certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                         threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, interval_ok,
+                         interval_clr, certified, vertex_clr)
+    ok = True
+    best = np.inf
+    before = True
+    for r in range(m + 1):
+        inside = True
+        for a in range(points.shape[1]):
+            x = points[r, a]
+            if not ((x >= lower_rad[a] and x <= upper_rad[a]) or periodic[a]):
+                inside = False
+        if r > 0:
+            if not (before and inside):
+                interval_ok[r - 1] = False
+            ok = ok and interval_ok[r - 1]
+            c = interval_clr[r - 1]
+            if np.isnan(c) or c < best:
+                if not np.isnan(best):
+                    best = c
+        before = inside
+    return ok, best, n, interval_ok, interval_clr
+
+
 @functools.lru_cache(maxsize=64)
 def lipschitz_m_per_rad(robot) -> float:
     """
@@ -332,14 +371,10 @@ class MotionValidator:
         p = np.ascontiguousarray(path_rad, dtype=float)
         threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
                                                                               required_clearance_m)
-        in_bounds = (((p >= self.lower_rad) & (p <= self.upper_rad)) | self._periodic_mask).all(axis=-1)
         if len(p) == 1:
             c = float(checker.clearance_m(p[0]))
-            return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
+            return PathCheck(c > threshold and bool(self.within_bounds(p)[0]), np.zeros(0, dtype=bool), c, 1,
                              np.zeros(0))
-        m = len(p) - 1
-        interval_ok = np.empty(m, dtype=np.bool_)
-        interval_clr = np.empty(m)
         if vertex_clearance_m is None:
             vertex_clr = np.full(len(p), np.nan)
         else:
@@ -347,12 +382,10 @@ class MotionValidator:
             if vertex_clr.shape != (len(p),):
                 raise ValueError(f"vertex_clearance_m: expected {len(p)} values (one per row), "
                                  f"got shape {vertex_clr.shape}")
-        n = certify_segments(p, *self.kernel_arrays, float(threshold), self.lipschitz_m_per_rad, step,
-                             float(min_step_rad), interval_ok, interval_clr, bool(certified), vertex_clr)
-        interval_ok &= in_bounds[:-1]
-        interval_ok &= in_bounds[1:]
-        return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
-                         interval_clr, vertex_clr)
+        ok, best, n, interval_ok, interval_clr = check_kernel(
+            p, self.lower_rad, self.upper_rad, self._periodic_mask, *self.kernel_arrays, float(threshold),
+            self.lipschitz_m_per_rad, step, float(min_step_rad), bool(certified), vertex_clr)
+        return PathCheck(bool(ok), interval_ok, float(best), int(n), interval_clr, vertex_clr)
 
     def first_bad_segment(self, points_rad, step_rad: float | None = None) -> int:
         """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""
