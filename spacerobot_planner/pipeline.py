@@ -247,8 +247,7 @@ class PlanRun:
                 self.goal = robot.validate_q(np.asarray(goal_rad, dtype=float), "goal")
             except (ValueError, TypeError) as e:
                 raise Fail(Code.INVALID_INPUT, str(e)) from None
-        self.approach_error_deg = self.p.approach_error_deg(self.goal)
-        clr_g = self.checker.clearance_m(self.goal)
+        clr_g, self.approach_error_deg = self.p.goal_clearance_and_approach(self.goal)
         if not clr_g > margin:
             raise Fail(Code.GOAL_IN_COLLISION, f"the goal {deg_text(self.goal)} is in collision: clearance "
                        f"{clr_g:.3f} m, the safety margin is {margin} m")
@@ -436,9 +435,10 @@ class PlanRun:
             self.timings["cspace"] = before           # a cached stage costs nothing
             self.cached.append("cspace")
         self.cs = cs
-        ms = "cached" if hit else f"{1e3 * (self.timings['cspace'] - before):.1f} ms"
-        self.say(f"cspace {grid.label()} (grid margin {cs.margin_m:.3f} m): {ms}, "
-                 f"{100 * cs.free_fraction:.1f} % free")
+        if self.progress is not None:             # the free fraction is a pass over the grid
+            ms = "cached" if hit else f"{1e3 * (self.timings['cspace'] - before):.1f} ms"
+            self.say(f"cspace {grid.label()} (grid margin {cs.margin_m:.3f} m): {ms}, "
+                     f"{100 * cs.free_fraction:.1f} % free")
         self.check_cancel()
         return cs, key
 

@@ -99,6 +99,7 @@ class Planner:
         self._apparent: dict = {}        # scene geometry -> Planner (free-floating capture's guides)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
+        self._last_goal = None           # (scenario, checker, goal bytes, its clearance, approach error)
         #: test aid: (stage, seconds, polls, on_start) -- that stage ("cspace", "field":
         #: before its kernels, when not cached; "descent", "smoothing") calls
         #: ``on_start(stage)`` (or None) and spends ``seconds``, answering the termination
@@ -168,6 +169,20 @@ class Planner:
         miss = float(np.linalg.norm(sc.robot.tip_position(q_full) - target.grasp_point_m))
         tol = max(sc.acs.position_tolerance_m, 1e-6)
         return math.degrees(approach_error_rad(sc.robot, target, q_full)) if miss <= tol else math.nan
+
+    def goal_clearance_and_approach(self, goal_rad) -> tuple:
+        """
+        Return (clearance m, :meth:`approach_error_deg`) of a goal (planned joints, rad).
+
+        The last goal's are kept: a replan's goal repeats (same scenario, checker and goal bits).
+        """
+        goal = np.asarray(goal_rad, dtype=float)
+        last = self._last_goal
+        if last is not None and last[0] is self.scenario and last[1] is self._checker and last[2] == goal.tobytes():
+            return last[3], last[4]
+        clr, err = float(self._checker.clearance_m(goal)), self.approach_error_deg(goal)
+        self._last_goal = (self.scenario, self._checker, goal.tobytes(), clr, err)
+        return clr, err
 
     def goal_from_target(self) -> np.ndarray:
         """Return the best free IK branch of the scene's target, (dof,) rad (:meth:`capture_goal`)."""
