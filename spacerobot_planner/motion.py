@@ -223,22 +223,50 @@ def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, sta
     """
     Quick test of the straight segment qa → qb (planned joints, rad).
 
-    Clearance above ``threshold_m`` at samples at most ``step_rad`` apart, both ends included.
+    Clearance above ``threshold_m`` at samples at most ``step_rad`` apart, both ends included
+    (:func:`segment_free_from` with nothing known).
 
     Scratch: q_full (n_joints,) starting as ``q_template``, pts (n_links + 1, 2), body_w
     like body.
+    """
+    return segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                             threshold_m, step_rad, q_full, pts, body_w, np.full(2, np.nan))
+
+
+@njit(cache=True, nogil=True)
+def segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                      threshold_m, step_rad, q_full, pts, body_w, clr_ends):
+    """
+    Quick test of qa → qb, as :func:`segment_free`, reusing a known clearance at qa.
+
+    Samples at qa + (k/n)·(qb − qa), k = 0 .. n (n = ⌈|qb − qa| / step_rad⌉), the last one qb
+    itself.  ``clr_ends`` (2,), m: [0] the clearance at qa (NaN: evaluated, then stored
+    there, so a walk trying several neighbours measures its node once); [1] set to the
+    clearance at qb, NaN when the test stopped before it (the next step's [0]).
     """
     dof = qa.shape[0]
     d2 = 0.0
     for a in range(dof):
         d2 += (qb[a] - qa[a]) ** 2
     n = max(1, int(np.ceil(np.sqrt(d2) / step_rad)))
+    clr_ends[1] = np.nan
     for k in range(n + 1):
-        f = k / n
-        for a in range(dof):
-            q_full[planned[a]] = qa[a] + f * (qb[a] - qa[a])
-        if not config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts,
-                                body_w) > threshold_m:
+        if k == 0 and not np.isnan(clr_ends[0]):
+            c = clr_ends[0]
+        else:
+            if k == n:
+                for a in range(dof):
+                    q_full[planned[a]] = qb[a]
+            else:
+                f = k / n
+                for a in range(dof):
+                    q_full[planned[a]] = qa[a] + f * (qb[a] - qa[a])
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
+            if k == 0:
+                clr_ends[0] = c
+        if k == n:
+            clr_ends[1] = c
+        if not c > threshold_m:
             return False
     return True
 
