@@ -339,6 +339,7 @@ def _spline_samples(knots_rad, max_step_rad):
         return dense, s, u, np.zeros(len(dense), np.int64)
     k = np.ascontiguousarray(k)
     q, u, iv = _spline_kernel(s, k, float(max_step_rad))
+    q[0], q[-1] = k[0], k[-1]
     return q, s, u, iv
 
 
@@ -391,29 +392,22 @@ def _not_a_knot_slopes(s, y):
     return m
 
 
-#: pieces of equal parameter length per knot interval, each sampled from its own speed bound
-SPLINE_PIECES = 4
-
-
 @njit(cache=True, nogil=True)
 def _spline_kernel(s, y, max_step_rad):
     """
     Sample the not-a-knot cubic spline through y (n ≥ 3, dof) at the chord parameters s (n,).
 
-    Each knot interval is cut into ``SPLINE_PIECES`` pieces of equal parameter length, each
-    sampled at n_p equal parameter steps, the interval's first sample the knot itself (exact:
-    the cubic's constant term).  n_p comes from a bound on the speed |dq/ds| over the piece
-    (each joint's derivative is a quadratic: its largest magnitude is at an end or its
-    vertex), so consecutive samples are at most ``max_step_rad`` apart (Euclidean); checked
-    after, and a piece that fails (rounding) gets one more step.  The last sample is the last
-    knot.  Returns (samples (M, dof), sample parameters (M,), knot interval of each (M,)).
+    At N equally spaced parameters from s[0] to s[-1] (``np.linspace``'s), N = ⌈s[-1] /
+    max_step_rad⌉ + 1 at first and, while two consecutive samples are farther apart than
+    ``max_step_rad`` (Euclidean), N·(largest step / max_step_rad)·1.05 + 1.  Each sample is the
+    cubic of its knot interval (the last one's for the last sample), by Horner's rule in the
+    interval's local parameter.  Returns (samples (N, dof), sample parameters (N,), knot
+    interval of each (N,)).
     """
     n, dof = y.shape
     m = _not_a_knot_slopes(s, y)
     c0 = np.empty((n - 1, dof))
     c1 = np.empty((n - 1, dof))
-    n_pieces = (n - 1) * SPLINE_PIECES
-    steps = np.empty(n_pieces, np.int64)
     for i in range(n - 1):
         h = s[i + 1] - s[i]
         for a in range(dof):
@@ -421,56 +415,31 @@ def _spline_kernel(s, y, max_step_rad):
             t = (m[i, a] + m[i + 1, a] - 2.0 * sl) / h
             c0[i, a] = t / h
             c1[i, a] = (sl - m[i, a]) / h - t
-        for p in range(SPLINE_PIECES):
-            x0 = h * p / SPLINE_PIECES
-            x1 = h * (p + 1) / SPLINE_PIECES
-            v2 = 0.0
-            for a in range(dof):
-                # q_a'(x) = 3 c0 x² + 2 c1 x + m_i on [x0, x1]
-                best = max(abs((3.0 * c0[i, a] * x0 + 2.0 * c1[i, a]) * x0 + m[i, a]),
-                           abs((3.0 * c0[i, a] * x1 + 2.0 * c1[i, a]) * x1 + m[i, a]))
-                if c0[i, a] != 0.0:
-                    x = -c1[i, a] / (3.0 * c0[i, a])
-                    if x0 < x < x1:
-                        best = max(best, abs((3.0 * c0[i, a] * x + 2.0 * c1[i, a]) * x + m[i, a]))
-                v2 += best * best
-            steps[i * SPLINE_PIECES + p] = max(1, int(np.ceil((x1 - x0) * np.sqrt(v2) / max_step_rad)))
+    total = max(2, int(np.ceil(s[n - 1] / max_step_rad)) + 1)
     while True:
-        total = 1
-        for k in range(n_pieces):
-            total += steps[k]
         q = np.empty((total, dof))
         u = np.empty(total)
-        piece = np.empty(total, np.int64)
-        r = 0
-        for i in range(n - 1):
-            h = s[i + 1] - s[i]
-            for p in range(SPLINE_PIECES):
-                k = i * SPLINE_PIECES + p
-                x0 = h * p / SPLINE_PIECES
-                x1 = h * (p + 1) / SPLINE_PIECES
-                for j in range(steps[k]):
-                    x = x0 + (x1 - x0) * j / steps[k]
-                    u[r] = s[i] + x
-                    piece[r] = k
-                    for a in range(dof):
-                        q[r, a] = ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
-                    r += 1
-        u[r] = s[n - 1]
-        piece[r] = n_pieces - 1
-        for a in range(dof):
-            q[r, a] = y[n - 1, a]
-        clean = True
+        iv = np.empty(total, np.int64)
+        du = (s[n - 1] - s[0]) / (total - 1)
+        i = 0
+        for r in range(total):
+            u[r] = s[0] + r * du if r < total - 1 else s[n - 1]
+            while i < n - 2 and u[r] >= s[i + 1]:
+                i += 1
+            iv[r] = i
+            x = u[r] - s[i]
+            for a in range(dof):
+                q[r, a] = ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
+        largest = 0.0
         for r in range(total - 1):
             d2 = 0.0
             for a in range(dof):
                 d = q[r + 1, a] - q[r, a]
                 d2 += d * d
-            if np.sqrt(d2) > max_step_rad:
-                steps[piece[r]] += 1
-                clean = False
-        if clean:
-            return q, u, piece // SPLINE_PIECES
+            largest = max(largest, np.sqrt(d2))
+        if largest <= max_step_rad:
+            return q, u, iv
+        total = int(np.ceil(total * largest / max_step_rad * 1.05)) + 1
 
 
 def _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified):
