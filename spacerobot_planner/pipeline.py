@@ -38,7 +38,7 @@ from .descent import colliding_edges
 from .field import bfs_distance, validate_problem
 from .field.graph import bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
-from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
+from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
 from .smoothing import SmoothPath, smooth_path

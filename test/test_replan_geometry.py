@@ -62,7 +62,7 @@ def test_spline_sample_intervals_name_their_knot_interval():
 
 
 def _every_sample_ok(checker, a, b, threshold_m, step_rad):
-    """The quick test's answer from every one of its samples (arc lengths k·step below the length, the end)."""
+    """Answer the quick test from every one of its samples (arc lengths k·step below the length, the end)."""
     length = float(np.linalg.norm(b - a))
     n_last = max(1, int(np.ceil(length / step_rad)))
     t = np.minimum(np.arange(n_last) * step_rad, length) / length
@@ -100,7 +100,7 @@ def test_quick_shortcut_test_answers_as_every_sample(scenario):
 
 
 def _staircase():
-    """A free 2-DOF grid-like polyline around the paper's target (2° steps)."""
+    """Return a free 2-DOF grid-like polyline around the paper's target (2° steps)."""
     up = np.radians(np.column_stack([np.full(46, 96.0), np.arange(0, 92, 2.0)]))
     over = np.radians(np.column_stack([np.arange(94, 28, -2.0), np.full(33, 90.0)]))
     down = np.radians(np.column_stack([np.full(45, 30.0), np.arange(88, -2, -2.0)]))
