@@ -517,7 +517,7 @@ class PlanRun:
                     collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
-                    gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
+                    gp = self.descend(grid, fld, key, blocked, cut, node)
                 if gp.reached:
                     path = gp
                     break
@@ -530,9 +530,8 @@ class PlanRun:
                 # (the node itself when they are cut already) and re-solve
                 node = tuple(int(v) for v in stuck.nodes[-1])
                 with self.stage("repair"):
-                    edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions,
-                                            grid.lower_rad, grid.step_rad,
-                                            radius=REPAIR_RADIUS + min(repairs, 3))   # wider each time
+                    edges = self.colliding_edges(grid, fld, key, blocked, node,
+                                                 REPAIR_RADIUS + min(repairs, 3))     # wider each time
                 new = {(int(a), int(b)) for a, b in edges} - cut
                 if new:
                     cut = cut | new
@@ -580,6 +579,42 @@ class PlanRun:
                      f"blocking node {node} and re-solving the field")
             fld = self.resolve(cs, key, goal_nodes, blocked, cut)
         raise AssertionError("unreachable")
+
+    def descend(self, grid, fld, key, blocked, cut, node):
+        """
+        Return the descent from ``node`` on the field under ``key`` less ``blocked`` and ``cut`` (``descent.GridPath``).
+
+        A walk that does not reach the goal is kept by the planner (``Planner._failed_walks``),
+        keyed by that field and the node: the next plan that repairs the same way (a replan
+        from a nearby start) tries the same nodes on the same fields first.  Walks that reach
+        the goal are made afresh.
+        """
+        dkey = (key, tuple(sorted(blocked)), tuple(sorted(cut)), tuple(int(v) for v in node))
+        gp = self.p._failed_walks.get(dkey)
+        if gp is None:
+            gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
+            if not gp.reached:
+                gp.nodes.flags.writeable = False
+                self.p._remember(self.p._failed_walks, dkey, gp, 256)
+        return gp
+
+    def colliding_edges(self, grid, fld, key, blocked, node, radius: int) -> np.ndarray:
+        """
+        Return the colliding grid edges within ``radius`` of ``node`` (``descent.colliding_edges``), cached.
+
+        On the field under ``key`` with the ``blocked`` nodes (its occupancy; cut edges do not
+        change it): a pure function of those, the node and the radius, so kept by the planner
+        (``Planner._colliding``) for the next plan that repairs the same way (a replan from a
+        nearby start walks into the same blocked node).  (k, 2) int64, read-only.
+        """
+        ekey = (key, tuple(sorted(blocked)), node, int(radius))
+        edges = self.p._colliding.get(ekey)
+        if edges is None:
+            edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions, grid.lower_rad,
+                                    grid.step_rad, radius=radius)
+            edges.flags.writeable = False
+            self.p._remember(self.p._colliding, ekey, edges, 64)
+        return edges
 
     def may_repair(self, grid, repairs: int, cut, blocked) -> None:
         """Raise :class:`Refine` instead of a further repair: ``refine_after_repairs`` done, a finer grid next."""

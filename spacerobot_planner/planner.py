@@ -96,6 +96,8 @@ class Planner:
         self._fields: dict = {}          # (C-space key, goal nodes, solver settings[, repairs]) -> Field
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
+        self._colliding: dict = {}       # (field key, blocked nodes, node, radius) -> a repair's colliding edges
+        self._failed_walks: dict = {}    # (field key, blocked nodes, cut edges, node) -> a descent that failed
         self._apparent: dict = {}        # scene geometry -> Planner (free-floating capture's guides)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
@@ -141,6 +143,8 @@ class Planner:
                 self._cspaces.clear()
                 self._fields.clear()
                 self._goal_nodes.clear()
+                self._colliding.clear()
+                self._failed_walks.clear()
             self.scenario = self.scenario.with_scene(scene)
             self._checker = CollisionChecker(self.scenario.robot, scene)
             self._validator = MotionValidator(self._checker)
@@ -300,6 +304,9 @@ class Planner:
             del self._cspaces[evicted]
             for cache in (self._fields, self._goal_nodes):    # their fields go with them
                 for k in [k for k in cache if k[0] == evicted]:
+                    del cache[k]
+            for cache in (self._colliding, self._failed_walks):
+                for k in [k for k in cache if k[0][0] == evicted]:
                     del cache[k]
         self._cspaces[key] = cs
         return cs, key, False

@@ -432,6 +432,32 @@ def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
     _same(a1, Planner(sc).plan(start, goal))
 
 
+def test_a_replan_that_repairs_as_the_plan_before_equals_a_fresh_planners():
+    """
+    A replan from a start near a repaired plan's start reuses its repairs' work.
+
+    The planner keeps the colliding grid edges a repair found and the walks that failed, keyed
+    by the field and the node (pure functions of those); the replan equals a fresh planner's
+    plan from the same start bit for bit, and it walks into the same repairs.
+    """
+    for sc, start, goal, pl, a1 in _random_target_plans():
+        if a1.solver_stats.get("repairs", 0) > 0:
+            break
+    else:
+        pytest.fail("no scene needing repairs")
+    chk = CollisionChecker(sc.robot, sc.scene)
+    rng = np.random.default_rng(3)
+    near = [q for q in start + np.radians(rng.uniform(-3.0, 3.0, size=(40, 3))) if chk.is_free(q)
+            and np.all(q >= sc.robot.planned_lower_rad) and np.all(q <= sc.robot.planned_upper_rad)]
+    repaired = 0
+    for q in near[:6]:
+        again = pl.plan(q, goal)
+        _same(again, Planner(sc).plan(q, goal))
+        repaired += again.solver_stats.get("repairs", 0) > 0
+    assert repaired > 0
+    assert pl._colliding or pl._failed_walks           # the caches the replans used
+
+
 # ---------------------------------------------------- honest "disconnected"
 def test_passage_between_margin_and_grid_margin_is_found(sc2):
     """
