@@ -190,46 +190,90 @@ def links_hit_body(pts, checked, body_w, margin_m):
 
 
 @njit(cache=True, nogil=True)
-def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, pts, body_w):
-    """Smallest distance (m) from a checked link to the body or any obstacle."""
+def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres, obs_radii, pts, body_w):
+    """
+    Smallest distance (m) from a checked link to the body or any obstacle.
+
+    Each (link, polygon) pair has a lower bound on its distance: the link's distance to the
+    polygon's bounding circle (``obs_centres``, ``obs_radii`` of ``scene.pack_polygons``; for
+    the body, the circle about the origin through its farthest vertex), less 1e-9 m for
+    rounding.  Pairs are measured nearest bound first and the rest skipped once a bound
+    reaches the smallest distance found: the minimum is the same as over every pair.
+    """
     link_points(q_full, lengths, pts)
     rotate_body(body, q_full[0], body_w)
     nb = body.shape[0]
-    best = np.inf
+    body_r2 = 0.0
+    for i in range(nb):
+        body_r2 = max(body_r2, body[i, 0] * body[i, 0] + body[i, 1] * body[i, 1])
+    n_poly = obs_starts.shape[0]          # the body, then the obstacles
+    n_pair = checked.shape[0] * n_poly
+    bound = np.empty(n_pair)
+    order = np.empty(n_pair, np.int64)
     for c in range(checked.shape[0]):
         k = checked[c]
         ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
-        best = min(best, segment_polygon_distance(ax, ay, bx, by, body_w, 0, nb))
-        for p in range(obs_starts.shape[0] - 1):
-            best = min(best, segment_polygon_distance(ax, ay, bx, by, obs_verts,
-                                                      obs_starts[p], obs_starts[p + 1]))
+        for p in range(n_poly):
+            if p == 0:
+                d2 = point_segment_dist2(0.0, 0.0, ax, ay, bx, by)
+                r = np.sqrt(body_r2)
+            else:
+                d2 = point_segment_dist2(obs_centres[p - 1, 0], obs_centres[p - 1, 1], ax, ay, bx, by)
+                r = obs_radii[p - 1]
+            b = np.sqrt(d2) - r - 1e-9
+            pair = c * n_poly + p
+            t = pair                          # insertion by bound (stable)
+            while t > 0 and bound[order[t - 1]] > b:
+                order[t] = order[t - 1]
+                t -= 1
+            bound[pair] = b
+            order[t] = pair
+    best = np.inf
+    for t in range(n_pair):
+        pair = order[t]
+        if bound[pair] >= best:
+            break
+        k = checked[pair // n_poly]
+        p = pair % n_poly
+        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
+        if p == 0:
+            d = segment_polygon_distance(ax, ay, bx, by, body_w, 0, nb)
+        else:
+            d = segment_polygon_distance(ax, ay, bx, by, obs_verts, obs_starts[p - 1], obs_starts[p])
+        best = min(best, d)
     return best
 
 
 @njit(cache=True, nogil=True)
-def _batch_clearance(q_full, lengths, checked, body, obs_verts, obs_starts):
+def _batch_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres, obs_radii):
     n = q_full.shape[0]
     out = np.empty(n)
     pts = np.empty((lengths.shape[0] + 1, 2))
     body_w = np.empty_like(body)
     for i in range(n):
-        out[i] = config_clearance(q_full[i], lengths, checked, body, obs_verts, obs_starts, pts, body_w)
+        out[i] = config_clearance(q_full[i], lengths, checked, body, obs_verts, obs_starts, obs_centres,
+                                  obs_radii, pts, body_w)
     return out
 
 
 @njit(cache=True, nogil=True)
-def _batch_clearance_shifted(q_full, shift, lengths, checked, body, verts, starts):
+def _batch_clearance_shifted(q_full, shift, lengths, checked, body, verts, starts, centres, radii):
     """Clearance of each configuration q_full[k] with the obstacles shifted by −shift[k], (K,) m."""
     k_n = q_full.shape[0]
     out = np.empty(k_n)
     pts = np.empty((lengths.shape[0] + 1, 2))
     body_w = np.empty_like(body)
     shifted = np.empty_like(verts)
+    shifted_centres = np.empty_like(centres)
     for k in range(k_n):
         for v in range(verts.shape[0]):
             shifted[v, 0] = verts[v, 0] - shift[k, 0]
             shifted[v, 1] = verts[v, 1] - shift[k, 1]
-        out[k] = config_clearance(q_full[k], lengths, checked, body, shifted, starts, pts, body_w)
+        for p in range(centres.shape[0]):
+            shifted_centres[p, 0] = centres[p, 0] - shift[k, 0]
+            shifted_centres[p, 1] = centres[p, 1] - shift[k, 1]
+        out[k] = config_clearance(q_full[k], lengths, checked, body, shifted, starts, shifted_centres, radii,
+                                  pts, body_w)
     return out
 
 
@@ -255,7 +299,8 @@ class CollisionChecker:
         q = np.asarray(q, dtype=float)
         single = q.ndim == 1
         q_full = np.ascontiguousarray(self.robot.full(np.atleast_2d(q)))
-        out = _batch_clearance(q_full, self.lengths, self.checked, self.body, self.verts, self.starts)
+        out = _batch_clearance(q_full, self.lengths, self.checked, self.body, self.verts, self.starts,
+                               self.centres, self.radii)
         return float(out[0]) if single else out
 
     def clearance_shifted_m(self, q_full, shift_m) -> np.ndarray:
@@ -267,7 +312,7 @@ class CollisionChecker:
         """
         return _batch_clearance_shifted(np.ascontiguousarray(q_full, dtype=float),
                                         np.ascontiguousarray(shift_m, dtype=float), self.lengths, self.checked,
-                                        self.body, self.verts, self.starts)
+                                        self.body, self.verts, self.starts, self.centres, self.radii)
 
     def is_free(self, q) -> np.ndarray | bool:
         """Return True where clearance > safety margin: (dof,) → bool, (N, dof) → (N,) bool."""

@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from .field import Field, bfs_distance
-from .motion import motion_scratch, segment_free
+from .motion import motion_scratch, segment_free, segment_free_from
 
 # status codes of the kernels
 _REACHED, _STUCK, _TOO_LONG, _BLOCKED = 0, 1, 2, 3
@@ -112,7 +112,8 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
 
 @nb.njit(cache=True, nogil=True)
 def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_template, planned, lengths,
-            checked, body, verts, starts, threshold_m, seg_step_rad, q_full, pts, body_w, path):
+            checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
+            path):
     """
     Search breadth-first for a detour to a higher node.
 
@@ -171,8 +172,8 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
                 for b in range(ndim):
                     qb[b] = qa[b]
                 qb[a] += d * step[a]
-                if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                                    threshold_m, seg_step_rad, q_full, pts, body_w):
+                if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
+                                    obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
                     continue
                 parent[nb_box] = bi
                 flat_of[nb_box] = h
@@ -194,14 +195,16 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
 
 @nb.njit(cache=True, nogil=True)
 def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
-                  planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+                  planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
     """
     Walk as :func:`_ascend` does, but only along motions that pass the motion test.
 
     The walk of :func:`_ascend`, but each step to the steepest strictly higher neighbour whose
     straight segment passes ``motion.segment_free`` (next steepest if not); where none passes, a
     detour over passing motions within ``detour_steps`` to the nearest strictly higher node (log u
-    rises from detour to detour, so the walk ends).
+    rises from detour to detour, so the walk ends).  A step ends at the neighbour node's own
+    coordinates (not across a seam), so the clearance measured there starts the next step's
+    test (``motion.segment_free_from``): each node is measured once.
 
     Returns (number of nodes, status).
     """
@@ -215,7 +218,9 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     cand_v = np.empty(2 * ndim)
     cand_a = np.empty(2 * ndim, np.int64)
     cand_d = np.empty(2 * ndim, np.int64)
+    cand_n = np.empty(2 * ndim, np.int64)
     detour = np.empty((2 * detour_steps + 1) ** ndim, np.int64)
+    clr_ends = np.full(2, np.nan)        # [0] the clearance at the current node once measured; [1] the next
     m = 0
     out[m] = f
     m += 1
@@ -242,9 +247,9 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
                 t = k                    # insertion by value, ties keep the fixed order
                 while t > 0 and cand_v[t - 1] < v:
                     cand_f[t], cand_v[t] = cand_f[t - 1], cand_v[t - 1]
-                    cand_a[t], cand_d[t] = cand_a[t - 1], cand_d[t - 1]
+                    cand_a[t], cand_d[t], cand_n[t] = cand_a[t - 1], cand_d[t - 1], cand_n[t - 1]
                     t -= 1
-                cand_f[t], cand_v[t], cand_a[t], cand_d[t] = g, v, a, d
+                cand_f[t], cand_v[t], cand_a[t], cand_d[t], cand_n[t] = g, v, a, d, nc
                 k += 1
         if k == 0:
             return m, _STUCK
@@ -252,30 +257,37 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
         for t in range(k):
             for a in range(ndim):
                 qb[a] = qa[a]
-            qb[cand_a[t]] += cand_d[t] * step[cand_a[t]]      # the short way across a seam
-            if segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                            threshold_m, seg_step_rad, q_full, pts, body_w):
+            a = cand_a[t]
+            seam = cand_n[t] != coord[a] + cand_d[t]
+            if seam:
+                qb[a] += cand_d[t] * step[a]             # the short way across a seam
+            else:
+                qb[a] = lower[a] + cand_n[t] * step[a]   # the neighbour node itself
+            if segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
+                                 obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w, clr_ends):
                 f = cand_f[t]
                 out[m] = f
                 m += 1
                 moved = True
+                clr_ends[0] = np.nan if seam else clr_ends[1]    # measured at the next node's own coordinates
                 break
         if not moved:
             n = 0 if detour_steps == 0 else _detour(
                 log_u_flat, shape, periodic, strides, f, detour_steps, lower, step, q_template,
-                planned, lengths, checked, body, verts, starts, threshold_m, seg_step_rad,
-                q_full, pts, body_w, detour)
+                planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
+                seg_step_rad, q_full, pts, body_w, detour)
             if n == 0 or m + n > out.size:
                 return m, _BLOCKED
             for i in range(n):
                 out[m] = detour[i]
                 m += 1
             f = detour[n - 1]
+            clr_ends[0] = np.nan
 
 
 @nb.njit(cache=True, nogil=True)
 def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_template, planned,
-                     lengths, checked, body, verts, starts, threshold_m, seg_step_rad):
+                     lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
     """
     Return the colliding edges between free nodes near ``centre``, int64 (k, 2).
 
@@ -324,8 +336,8 @@ def _colliding_edges(occ_flat, shape, periodic, centre, radius, lower, step, q_t
             for b in range(ndim):
                 qb[b] = qa[b]
             qb[a] += step[a]
-            if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                                threshold_m, seg_step_rad, q_full, pts, body_w):
+            if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
+                                obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
                 found.append((min(f, g), max(f, g)))
     out = np.empty((len(found), 2), np.int64)
     for t in range(len(found)):

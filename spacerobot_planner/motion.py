@@ -71,7 +71,7 @@ class PathCheck:
 
 
 @njit(cache=True, nogil=True)
-def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts,
+def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
                      threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
                      interval_ok, interval_clr, certified, vertex_clr):
     """
@@ -113,7 +113,7 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
                     f = t / seg_len
                     for a in range(dof):
                         q_full[planned[a]] = points[i, a] + f * (points[i + 1, a] - points[i, a])
-                c = config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w)
+                c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
                 n_eval += 1
                 if v >= 0:
                     vertex_clr[v] = c
@@ -132,6 +132,45 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
         interval_ok[i] = ok
         interval_clr[i] = best
     return n_eval
+
+
+@njit(cache=True, nogil=True)
+def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts,
+                 starts, centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, certified,
+                 vertex_clr):
+    """
+    Run :meth:`MotionValidator.check` on M ≥ 2 rows: :func:`certify_segments` and the bounds, in one call.
+
+    An interval fails also where a row at either end has a bounded joint outside
+    [lower_rad, upper_rad] (``periodic`` (dof,) bool: unbounded).  Returns (ok, smallest
+    interval clearance (NaN if one is NaN), evaluations, interval_ok (M-1,), interval
+    clearances (M-1,)); ``vertex_clr`` as in :func:`certify_segments`.
+    """
+    m = points.shape[0] - 1
+    interval_ok = np.empty(m, np.bool_)
+    interval_clr = np.empty(m)
+    n = certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                         threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, interval_ok,
+                         interval_clr, certified, vertex_clr)
+    ok = True
+    best = np.inf
+    before = True
+    for r in range(m + 1):
+        inside = True
+        for a in range(points.shape[1]):
+            x = points[r, a]
+            if not ((x >= lower_rad[a] and x <= upper_rad[a]) or periodic[a]):
+                inside = False
+        if r > 0:
+            if not (before and inside):
+                interval_ok[r - 1] = False
+            ok = ok and interval_ok[r - 1]
+            c = interval_clr[r - 1]
+            if np.isnan(c) or c < best:
+                if not np.isnan(best):
+                    best = c
+        before = inside
+    return ok, best, n, interval_ok, interval_clr
 
 
 @functools.lru_cache(maxsize=64)
@@ -179,26 +218,55 @@ def motion_scratch(q_template, lengths, body):
 
 
 @njit(cache=True, nogil=True)
-def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, threshold_m,
-                 step_rad, q_full, pts, body_w):
+def segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                 threshold_m, step_rad, q_full, pts, body_w):
     """
     Quick test of the straight segment qa → qb (planned joints, rad).
 
-    Clearance above ``threshold_m`` at samples at most ``step_rad`` apart, both ends included.
+    Clearance above ``threshold_m`` at samples at most ``step_rad`` apart, both ends included
+    (:func:`segment_free_from` with nothing known).
 
     Scratch: q_full (n_joints,) starting as ``q_template``, pts (n_links + 1, 2), body_w
     like body.
+    """
+    return segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                             threshold_m, step_rad, q_full, pts, body_w, np.full(2, np.nan))
+
+
+@njit(cache=True, nogil=True)
+def segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                      threshold_m, step_rad, q_full, pts, body_w, clr_ends):
+    """
+    Quick test of qa → qb, as :func:`segment_free`, reusing a known clearance at qa.
+
+    Samples at qa + (k/n)·(qb − qa), k = 0 .. n (n = ⌈|qb − qa| / step_rad⌉), the last one qb
+    itself.  ``clr_ends`` (2,), m: [0] the clearance at qa (NaN: evaluated, then stored
+    there, so a walk trying several neighbours measures its node once); [1] set to the
+    clearance at qb, NaN when the test stopped before it (the next step's [0]).
     """
     dof = qa.shape[0]
     d2 = 0.0
     for a in range(dof):
         d2 += (qb[a] - qa[a]) ** 2
     n = max(1, int(np.ceil(np.sqrt(d2) / step_rad)))
+    clr_ends[1] = np.nan
     for k in range(n + 1):
-        f = k / n
-        for a in range(dof):
-            q_full[planned[a]] = qa[a] + f * (qb[a] - qa[a])
-        if not config_clearance(q_full, lengths, checked, body, verts, starts, pts, body_w) > threshold_m:
+        if k == 0 and not np.isnan(clr_ends[0]):
+            c = clr_ends[0]
+        else:
+            if k == n:
+                for a in range(dof):
+                    q_full[planned[a]] = qb[a]
+            else:
+                f = k / n
+                for a in range(dof):
+                    q_full[planned[a]] = qa[a] + f * (qb[a] - qa[a])
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
+            if k == 0:
+                clr_ends[0] = c
+        if k == n:
+            clr_ends[1] = c
+        if not c > threshold_m:
             return False
     return True
 
@@ -214,6 +282,8 @@ class SegmentTest:
     body: np.ndarray
     verts: np.ndarray
     starts: np.ndarray
+    centres: np.ndarray
+    radii: np.ndarray
     threshold_m: float
     step_rad: float
 
@@ -222,11 +292,11 @@ class SegmentTest:
         robot = checker.robot
         return cls(np.asarray(robot.locked_rad, dtype=float), np.asarray(robot.planned_joints, dtype=np.int64),
                    checker.lengths, checker.checked, checker.body, checker.verts, checker.starts,
-                   float(checker.margin_m), float(step_rad))
+                   checker.centres, checker.radii, float(checker.margin_m), float(step_rad))
 
     def arrays(self) -> tuple:
         return (self.q_template, self.planned, self.lengths, self.checked, self.body, self.verts,
-                self.starts, self.threshold_m, self.step_rad)
+                self.starts, self.centres, self.radii, self.threshold_m, self.step_rad)
 
 
 class MotionValidator:
@@ -258,6 +328,14 @@ class MotionValidator:
         self.step_rad = float(step_rad)
         if not (np.isfinite(self.step_rad) and self.step_rad > 0.0):
             raise ValueError(f"step_rad: must be a positive number, got {step_rad!r}")
+        self._periodic_mask = np.array(self.periodic, dtype=bool)
+        self._with_step = {}          # the validators of other steps (with_step), made once
+        #: what the certified walk (``certify_segments``) needs of the robot and the scene
+        self.kernel_arrays = (np.asarray(robot.locked_rad, dtype=float),
+                              np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
+                              checker.checked, checker.body, checker.verts, checker.starts, checker.centres,
+                              checker.radii)
+        self.lipschitz_m_per_rad = lipschitz_m_per_rad(robot)
 
     @classmethod
     def for_scene(cls, robot, scene, step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> "MotionValidator":
@@ -275,7 +353,13 @@ class MotionValidator:
         """Return a validator of the same scene and bounds with another certified step."""
         if float(step_rad) == self.step_rad:
             return self
-        return MotionValidator(self.checker, self.lower_rad, self.upper_rad, self.periodic, step_rad)
+        other = self._with_step.get(float(step_rad))
+        if other is None:
+            other = MotionValidator(self.checker, self.lower_rad, self.upper_rad, self.periodic, step_rad)
+            if len(self._with_step) >= 8:
+                self._with_step.clear()
+            self._with_step[float(step_rad)] = other
+        return other
 
     @property
     def robot(self):
@@ -312,19 +396,13 @@ class MotionValidator:
         """
         checker = self.checker
         step = self.step_rad if step_rad is None else float(step_rad)
-        p = np.ascontiguousarray(np.asarray(path_rad, dtype=float))
-        robot = checker.robot
+        p = np.ascontiguousarray(path_rad, dtype=float)
         threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
                                                                               required_clearance_m)
-        in_bounds = self.within_bounds(p)
         if len(p) == 1:
             c = float(checker.clearance_m(p[0]))
-            return PathCheck(c > threshold and bool(in_bounds[0]), np.zeros(0, dtype=bool), c, 1,
+            return PathCheck(c > threshold and bool(self.within_bounds(p)[0]), np.zeros(0, dtype=bool), c, 1,
                              np.zeros(0))
-        m = len(p) - 1
-        interval_ok = np.zeros(m, dtype=np.bool_)
-        interval_clr = np.zeros(m)
-        lip = lipschitz_m_per_rad(robot)
         if vertex_clearance_m is None:
             vertex_clr = np.full(len(p), np.nan)
         else:
@@ -332,14 +410,10 @@ class MotionValidator:
             if vertex_clr.shape != (len(p),):
                 raise ValueError(f"vertex_clearance_m: expected {len(p)} values (one per row), "
                                  f"got shape {vertex_clr.shape}")
-        n = certify_segments(p, np.asarray(robot.locked_rad, dtype=float),
-                             np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                             checker.checked, checker.body, checker.verts, checker.starts,
-                             float(threshold), lip, step, float(min_step_rad),
-                             interval_ok, interval_clr, bool(certified), vertex_clr)
-        interval_ok &= in_bounds[:-1] & in_bounds[1:]
-        return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), int(n),
-                         interval_clr, vertex_clr)
+        ok, best, n, interval_ok, interval_clr = check_kernel(
+            p, self.lower_rad, self.upper_rad, self._periodic_mask, *self.kernel_arrays, float(threshold),
+            self.lipschitz_m_per_rad, step, float(min_step_rad), bool(certified), vertex_clr)
+        return PathCheck(bool(ok), interval_ok, float(best), int(n), interval_clr, vertex_clr)
 
     def first_bad_segment(self, points_rad, step_rad: float | None = None) -> int:
         """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""

@@ -25,6 +25,7 @@ anything, so the caches hold only complete C-spaces and fields.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import traceback as _traceback
@@ -37,7 +38,7 @@ from .descent import colliding_edges
 from .field import bfs_distance, validate_problem
 from .field.graph import bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
-from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
+from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
 from .smoothing import SmoothPath, smooth_path
@@ -93,6 +94,14 @@ def _repairs_text(repairs: int, cut, blocked) -> str:
             f"{_count(len(blocked), 'blocked node')})")
 
 
+@functools.lru_cache(maxsize=8)
+def _near_offsets(ndim: int) -> np.ndarray:
+    """Index offsets -1 .. 2 on every axis, (4**ndim, ndim) int64 (``PlanRun.candidates``; do not modify)."""
+    offs = np.stack(np.meshgrid(*[np.arange(-1, 3)] * ndim, indexing="ij"), -1).reshape(-1, ndim)
+    offs.flags.writeable = False
+    return offs
+
+
 def refined(grid):
     """Return the grid with twice the cells along every axis (``cspace.GridSpec``)."""
     return grid.with_cells(tuple(2 * int(c) for c in grid.cells))
@@ -129,9 +138,11 @@ class PlanRun:
         self.start = self.goal = self.start_given = None
         self.plan_start = None                   # the start of the certified plan (after an exit)
         self.exit_path = np.zeros((0, self.robot.dof))
+        self.start_clearance_m = math.nan        # the start's clearance (check_inputs), m
         self.penetration_m = 0.0
         self.approach_error_deg = math.nan
         self.grid_path = np.zeros((0, self.robot.dof))
+        self.waypoint_check = None               # the certified check of the verified waypoints
         self.periodic = self.validator.periodic
         self.t0 = time.perf_counter()
         self.level = 0                             # refinements of the grid now tried
@@ -186,18 +197,17 @@ class PlanRun:
 
     def candidates(self, q, grid, free_mask, max_count: int = 8) -> np.ndarray:
         """Free grid nodes near q (within 2 steps per axis), nearest first: (k, dof) int."""
-        base = np.floor((q - np.asarray(grid.lower_rad)) / grid.step_rad).astype(np.int64)
-        offs = np.stack(np.meshgrid(*[np.arange(-1, 3)] * grid.ndim, indexing="ij"), -1).reshape(-1, grid.ndim)
-        nodes = base + offs
+        lower, step = np.asarray(grid.lower_rad), grid.step_rad
+        base = np.floor((q - lower) / step).astype(np.int64)
+        nodes = base + _near_offsets(grid.ndim)
         shape = np.asarray(grid.shape)
-        keep = np.ones(len(nodes), dtype=bool)
-        for a, p in enumerate(grid.periodic):
-            if p:
-                nodes[:, a] %= shape[a]
-            else:
-                keep &= (nodes[:, a] >= 0) & (nodes[:, a] < shape[a])
-        nodes = np.unique(nodes[keep], axis=0)
-        d = difference_rad(q, grid.config_of(nodes), grid.periodic)
+        per = np.asarray(grid.periodic, dtype=bool)
+        nodes[:, per] %= shape[per]
+        nodes = nodes[((nodes >= 0) & (nodes < shape) | per).all(axis=1)]
+        # distinct nodes in index order (a row-major flat index sorts as the index tuples do)
+        nodes = np.array(np.unravel_index(np.unique(np.ravel_multi_index(nodes.T, grid.shape)), grid.shape)).T
+        d = lower + nodes * step - q
+        d[:, per] = (d[:, per] + np.pi) % (2.0 * np.pi) - np.pi     # the short way round
         nodes = nodes[np.argsort(np.linalg.norm(d, axis=1), kind="stable")]
         nodes = nodes[free_mask[tuple(nodes.T)]]
         return nodes[:max_count]
@@ -216,7 +226,7 @@ class PlanRun:
             self.start = robot.validate_q(self.start_given, "start")
         except (ValueError, TypeError) as e:
             raise Fail(Code.INVALID_INPUT, str(e)) from None
-        clr_s = self.checker.clearance_m(self.start)
+        clr_s = self.start_clearance_m = self.checker.clearance_m(self.start)
         if not clr_s > margin and not self.s.max_start_penetration_m > 0.0:
             raise Fail(Code.START_IN_COLLISION, f"the start {deg_text(self.start)} is in collision: "
                        f"clearance {clr_s:.3f} m, the safety margin is {margin} m")
@@ -237,8 +247,7 @@ class PlanRun:
                 self.goal = robot.validate_q(np.asarray(goal_rad, dtype=float), "goal")
             except (ValueError, TypeError) as e:
                 raise Fail(Code.INVALID_INPUT, str(e)) from None
-        self.approach_error_deg = self.p.approach_error_deg(self.goal)
-        clr_g = self.checker.clearance_m(self.goal)
+        clr_g, self.approach_error_deg = self.p.goal_clearance_and_approach(self.goal)
         if not clr_g > margin:
             raise Fail(Code.GOAL_IN_COLLISION, f"the goal {deg_text(self.goal)} is in collision: clearance "
                        f"{clr_g:.3f} m, the safety margin is {margin} m")
@@ -318,7 +327,7 @@ class PlanRun:
         ``max_start_penetration_m`` into it, else start_in_collision.
         """
         margin = self.sc.scene.safety_margin_m
-        clr_s = self.checker.clearance_m(self.start)
+        clr_s = self.start_clearance_m          # check_inputs' (the same start)
         if clr_s > margin:
             return
         refusal = (f"the start {deg_text(self.start)} is in collision: clearance {clr_s:.3f} m, the "
@@ -426,9 +435,10 @@ class PlanRun:
             self.timings["cspace"] = before           # a cached stage costs nothing
             self.cached.append("cspace")
         self.cs = cs
-        ms = "cached" if hit else f"{1e3 * (self.timings['cspace'] - before):.1f} ms"
-        self.say(f"cspace {grid.label()} (grid margin {cs.margin_m:.3f} m): {ms}, "
-                 f"{100 * cs.free_fraction:.1f} % free")
+        if self.progress is not None:             # the free fraction is a pass over the grid
+            ms = "cached" if hit else f"{1e3 * (self.timings['cspace'] - before):.1f} ms"
+            self.say(f"cspace {grid.label()} (grid margin {cs.margin_m:.3f} m): {ms}, "
+                     f"{100 * cs.free_fraction:.1f} % free")
         self.check_cancel()
         return cs, key
 
@@ -497,7 +507,7 @@ class PlanRun:
                 raise Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is "
                            f"blocked (grid {grid.label()}, margin {cs.margin_m:.3f} m)",
                            "every grid node near the start is blocked")
-            reach = fld.reachable[tuple(starts.T)]
+            reach = np.isfinite(fld.log_u[tuple(starts.T)])       # fld.reachable at these nodes
             if not reach.any():
                 raise self.no_field_path_failure(cs, fld, blocked, cut, repairs)
             path, stuck, reasons, collide = None, None, [], []
@@ -507,7 +517,7 @@ class PlanRun:
                     collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
-                    gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
+                    gp = self.descend(grid, fld, key, blocked, cut, node)
                 if gp.reached:
                     path = gp
                     break
@@ -520,9 +530,8 @@ class PlanRun:
                 # (the node itself when they are cut already) and re-solve
                 node = tuple(int(v) for v in stuck.nodes[-1])
                 with self.stage("repair"):
-                    edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions,
-                                            grid.lower_rad, grid.step_rad,
-                                            radius=REPAIR_RADIUS + min(repairs, 3))   # wider each time
+                    edges = self.colliding_edges(grid, fld, key, blocked, node,
+                                                 REPAIR_RADIUS + min(repairs, 3))     # wider each time
                 new = {(int(a), int(b)) for a, b in edges} - cut
                 if new:
                     cut = cut | new
@@ -547,9 +556,11 @@ class PlanRun:
             wp = unwrap_path(np.vstack([start, nodes_rad, self.goal]), self.periodic)
             wp[-1] = nearest_turn_rad(self.goal, wp[-1], self.periodic)   # exactly the goal (mod 2π)
             with self.stage("verify"):
-                bad = self.validator.first_bad_segment(wp)
-            if bad < 0:
+                chk = self.validator.check(wp)
+            if chk.ok:
+                self.waypoint_check = chk            # the smoothing's shortcut pass reuses it
                 return wp
+            bad = int(np.flatnonzero(~chk.interval_ok)[0])
             # segment bad joins waypoint bad and bad+1; waypoint k ≥ 1 is path node k-1
             cand = [k - 1 for k in (bad, bad + 1) if 1 <= k <= len(path.nodes)]
             goal_set = {tuple(g) for g in goal_nodes}
@@ -568,6 +579,42 @@ class PlanRun:
                      f"blocking node {node} and re-solving the field")
             fld = self.resolve(cs, key, goal_nodes, blocked, cut)
         raise AssertionError("unreachable")
+
+    def descend(self, grid, fld, key, blocked, cut, node):
+        """
+        Return the descent from ``node`` on the field under ``key`` less ``blocked`` and ``cut`` (``descent.GridPath``).
+
+        A walk that does not reach the goal is kept by the planner (``Planner._failed_walks``),
+        keyed by that field and the node: the next plan that repairs the same way (a replan
+        from a nearby start) tries the same nodes on the same fields first.  Walks that reach
+        the goal are made afresh.
+        """
+        dkey = (key, tuple(sorted(blocked)), tuple(sorted(cut)), tuple(int(v) for v in node))
+        gp = self.p._failed_walks.get(dkey)
+        if gp is None:
+            gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
+            if not gp.reached:
+                gp.nodes.flags.writeable = False
+                self.p._remember(self.p._failed_walks, dkey, gp, 256)
+        return gp
+
+    def colliding_edges(self, grid, fld, key, blocked, node, radius: int) -> np.ndarray:
+        """
+        Return the colliding grid edges within ``radius`` of ``node`` (``descent.colliding_edges``), cached.
+
+        On the field under ``key`` with the ``blocked`` nodes (its occupancy; cut edges do not
+        change it): a pure function of those, the node and the radius, so kept by the planner
+        (``Planner._colliding``) for the next plan that repairs the same way (a replan from a
+        nearby start walks into the same blocked node).  (k, 2) int64, read-only.
+        """
+        ekey = (key, tuple(sorted(blocked)), node, int(radius))
+        edges = self.p._colliding.get(ekey)
+        if edges is None:
+            edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions, grid.lower_rad,
+                                    grid.step_rad, radius=radius)
+            edges.flags.writeable = False
+            self.p._remember(self.p._colliding, ekey, edges, 64)
+        return edges
 
     def may_repair(self, grid, repairs: int, cut, blocked) -> None:
         """Raise :class:`Refine` instead of a further repair: ``refine_after_repairs`` done, a finer grid next."""
@@ -638,7 +685,7 @@ class PlanRun:
             self.p._test_stall("smoothing", self.cancel)
             sm = smooth_path(self.validator, waypoints, shortcut=s.shortcut,
                              keep_clearance_m=s.shortcut_keep_clearance_m, max_step_rad=s.max_step_rad,
-                             cancel=self.cancel)
+                             cancel=self.cancel, waypoint_check=self.waypoint_check)
         self.check_cancel()
         if sm is None:
             raise Fail(Code.PATH_INVALID, "no smoothed path passed the dense collision check")

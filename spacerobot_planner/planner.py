@@ -49,6 +49,7 @@ from .problem import Scenario
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
 from .settings import PlannerSettings
+from .smoothing import warm_up as smoothing_warm_up
 from .termination import stall
 from .timing import timed_motion, trajectory_limits_known
 
@@ -95,9 +96,12 @@ class Planner:
         self._fields: dict = {}          # (C-space key, goal nodes, solver settings[, repairs]) -> Field
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
+        self._colliding: dict = {}       # (field key, blocked nodes, node, radius) -> a repair's colliding edges
+        self._failed_walks: dict = {}    # (field key, blocked nodes, cut edges, node) -> a descent that failed
         self._apparent: dict = {}        # scene geometry -> Planner (free-floating capture's guides)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
+        self._last_goal = None           # (scenario, checker, goal bytes, its clearance, approach error)
         #: test aid: (stage, seconds, polls, on_start) -- that stage ("cspace", "field":
         #: before its kernels, when not cached; "descent", "smoothing") calls
         #: ``on_start(stage)`` (or None) and spends ``seconds``, answering the termination
@@ -139,6 +143,8 @@ class Planner:
                 self._cspaces.clear()
                 self._fields.clear()
                 self._goal_nodes.clear()
+                self._colliding.clear()
+                self._failed_walks.clear()
             self.scenario = self.scenario.with_scene(scene)
             self._checker = CollisionChecker(self.scenario.robot, scene)
             self._validator = MotionValidator(self._checker)
@@ -167,6 +173,20 @@ class Planner:
         miss = float(np.linalg.norm(sc.robot.tip_position(q_full) - target.grasp_point_m))
         tol = max(sc.acs.position_tolerance_m, 1e-6)
         return math.degrees(approach_error_rad(sc.robot, target, q_full)) if miss <= tol else math.nan
+
+    def goal_clearance_and_approach(self, goal_rad) -> tuple:
+        """
+        Return (clearance m, :meth:`approach_error_deg`) of a goal (planned joints, rad).
+
+        The last goal's are kept: a replan's goal repeats (same scenario, checker and goal bits).
+        """
+        goal = np.asarray(goal_rad, dtype=float)
+        last = self._last_goal
+        if last is not None and last[0] is self.scenario and last[1] is self._checker and last[2] == goal.tobytes():
+            return last[3], last[4]
+        clr, err = float(self._checker.clearance_m(goal)), self.approach_error_deg(goal)
+        self._last_goal = (self.scenario, self._checker, goal.tobytes(), clr, err)
+        return clr, err
 
     def goal_from_target(self) -> np.ndarray:
         """Return the best free IK branch of the scene's target, (dof,) rad (:meth:`capture_goal`)."""
@@ -285,6 +305,9 @@ class Planner:
             for cache in (self._fields, self._goal_nodes):    # their fields go with them
                 for k in [k for k in cache if k[0] == evicted]:
                     del cache[k]
+            for cache in (self._colliding, self._failed_walks):
+                for k in [k for k in cache if k[0][0] == evicted]:
+                    del cache[k]
         self._cspaces[key] = cs
         return cs, key, False
 
@@ -378,6 +401,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
         if planner.plan(start, goal).ok:
             break
     field_warm_up()             # the solver kernels a coarse grid does not reach
+    smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
         # the free-floating capture's attitude kernel (numba)
         attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))

@@ -22,12 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.interpolate import CubicSpline
 
-from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, lipschitz_m_per_rad
+from .collision import config_clearance
+from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
-           "spline_through", "smooth_path", "DEFAULT_MAX_STEP_RAD"]
+           "spline_through", "smooth_path", "warm_up", "DEFAULT_MAX_STEP_RAD"]
 
 DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
 
@@ -97,6 +97,8 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
     (m, dof) → a new (m, dof) array.
     """
     q = np.array(q, dtype=float)
+    if (((q >= lower) & (q <= upper)) | np.asarray(periodic, dtype=bool)).all():
+        return q                        # the common case: nothing to snap
     for a, p in enumerate(periodic):
         if not p:
             col = q[:, a]
@@ -117,7 +119,8 @@ def _validator(motions, lower_rad, upper_rad, periodic, step_rad):
 
 def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, periodic=None,
                      verify_step_rad: float | None = None,
-                     keep_clearance_m: float = 0.05, certified: bool = True) -> np.ndarray:
+                     keep_clearance_m: float = 0.05, certified: bool = True,
+                     polyline_check=None) -> np.ndarray:
     """
     Greedy, clearance-keeping shortcut of a verified polyline: indices of the vertices kept.
 
@@ -130,31 +133,119 @@ def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, period
 
     ``motions``: the scene's ``motion.MotionValidator`` (checks at its step unless
     ``verify_step_rad`` is given), or a ``CollisionChecker`` with the bounds.
+    ``certified``: candidates certified (``MotionValidator.check``), else the quick test:
+    clearance above the threshold at samples the validator's step apart along the segment
+    (a sample that a clearance ball of an earlier one covers passes without being evaluated:
+    the same answer).  ``polyline_check``: a ``PathCheck`` of these very rows (the certified
+    check that verified the polyline): its interval clearances (the stretches' own) and
+    vertex clearances are used instead of a check of the polyline here.
     """
     v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
-    pts = np.ascontiguousarray(np.asarray(points_rad, dtype=float))
-    poly = v.check(pts, certified=certified)
-    checker, robot = v.checker, v.robot
+    pts = np.ascontiguousarray(points_rad, dtype=float)
+    if polyline_check is None:
+        polyline_check = v.check(pts, certified=certified)
+    elif len(polyline_check.interval_clearance_m) != len(pts) - 1:
+        raise ValueError(f"polyline_check: a check of {len(polyline_check.interval_clearance_m) + 1} rows, "
+                         f"not of these {len(pts)}")
+    known = polyline_check.vertex_clearance_m
+    vertex_clr = np.full(len(pts), np.nan) if known is None else np.array(known, dtype=float)
     # a segment between two in-bounds points stays in bounds (the bounds are a box)
-    return _shortcut_kernel(pts, poly.interval_clearance_m, checker.margin_m + keep_clearance_m,
-                            np.asarray(robot.locked_rad, dtype=float),
-                            np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
-                            checker.checked, checker.body, checker.verts, checker.starts,
-                            checker.margin_m, lipschitz_m_per_rad(robot), v.step_rad,
-                            bool(certified))
+    return _shortcut_kernel(pts, polyline_check.interval_clearance_m, v.margin_m + keep_clearance_m,
+                            *v.kernel_arrays, v.margin_m, v.lipschitz_m_per_rad, v.step_rad,
+                            bool(certified), vertex_clr)
 
 
 @njit(cache=True, nogil=True)
-def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts,
-                     margin_m, lip, step_rad, certified):
+def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts, starts,
+                      centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w):
+    """
+    Quick test of the straight segment points[i] → points[j]: clearance > threshold at its samples.
+
+    The samples of the quick test (``certify_segments`` with ``certified`` false): at arc
+    lengths k·step_rad below the length, and the end.  Evaluated ends first, then by
+    bisection (coarse to fine, as OMPL's discrete motion validator), so a segment that
+    collides is usually rejected after a few evaluations; a sample within the clearance ball
+    (c - threshold)/L of an evaluated one (the Lipschitz bound ``lip``, m per rad, less 0.1 %)
+    passes without being evaluated.  The answer is that of evaluating every sample.  The
+    ends' clearances are read from ``vertex_clr`` where known (not NaN) and written there
+    when evaluated.
+    """
+    dof = points.shape[1]
+    seg_len = 0.0
+    for a in range(dof):
+        d = points[j, a] - points[i, a]
+        seg_len += d * d
+    seg_len = np.sqrt(seg_len)
+    n_last = max(1, int(np.ceil(seg_len / step_rad)))        # samples 0 .. n_last (the end)
+    covered = np.zeros(n_last + 1, np.bool_)
+    queue = np.empty((2 * n_last + 1, 2), np.int64)
+    head = 0
+    tail = 0
+    for e in range(2):
+        k = 0 if e == 0 else n_last
+        if covered[k]:
+            continue
+        v = i if e == 0 else j
+        c = vertex_clr[v]
+        if np.isnan(c):
+            for a in range(dof):
+                q_full[planned[a]] = points[v, a]
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
+            vertex_clr[v] = c
+        if not c > threshold_m:
+            return False
+        _cover(covered, k, 0.0 if e == 0 else seg_len, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+    queue[tail, 0] = 0
+    queue[tail, 1] = n_last
+    tail += 1
+    while head < tail:
+        lo = queue[head, 0]
+        hi = queue[head, 1]
+        head += 1
+        if hi - lo < 2:
+            continue
+        k = (lo + hi) // 2
+        if not covered[k]:
+            t = min(k * step_rad, seg_len)
+            f = t / seg_len
+            for a in range(dof):
+                q_full[planned[a]] = points[i, a] + f * (points[j, a] - points[i, a])
+            c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
+            if not c > threshold_m:
+                return False
+            _cover(covered, k, t, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+        queue[tail, 0] = lo
+        queue[tail, 1] = k
+        queue[tail + 1, 0] = k
+        queue[tail + 1, 1] = hi
+        tail += 2
+    return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cover(covered, k, t, radius, step_rad, seg_len):
+    """Mark the samples of :func:`_quick_segment_ok` within ``radius`` (rad) of sample k (at arc length t)."""
+    n_last = covered.size - 1
+    covered[k] = True
+    lo = max(0, int(np.ceil((t - radius) / step_rad)))
+    hi = min(n_last - 1, int(np.floor((t + radius) / step_rad)))
+    for m in range(lo, hi + 1):
+        covered[m] = True
+    if seg_len - t <= radius:
+        covered[n_last] = True
+
+
+@njit(cache=True, nogil=True)
+def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts, centres,
+                     radii, margin_m, lip, step_rad, certified, vertex_clr):
     """Run the greedy binary search of :func:`shortcut_indices` (see there), in one kernel."""
     m = pts.shape[0]
     keep = np.empty(m, np.int64)
     seg = np.empty((2, pts.shape[1]))
     ok_iv = np.zeros(1, np.bool_)
     clr_iv = np.zeros(1)
-    vertex_clr = np.full(m, np.nan)   # each vertex's clearance, evaluated once
     ends_clr = np.empty(2)
+    q_full, chain, body_w = motion_scratch(q_template, lengths, body)
     n_keep = 1
     keep[0] = 0
     i = 0
@@ -171,16 +262,21 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                 for k in range(i, j):
                     if iv_clr[k] < need:
                         need = iv_clr[k]
-                seg[0] = pts[i]
-                seg[1] = pts[j]
-                ends_clr[0] = vertex_clr[i]
-                ends_clr[1] = vertex_clr[j]
-                certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts,
-                                 max(margin_m, need), lip, step_rad, 1e-6, ok_iv, clr_iv, certified,
-                                 ends_clr)
-                vertex_clr[i] = ends_clr[0]
-                vertex_clr[j] = ends_clr[1]
-                good = ok_iv[0]
+                threshold = max(margin_m, need)
+                if certified:
+                    seg[0] = pts[i]
+                    seg[1] = pts[j]
+                    ends_clr[0] = vertex_clr[i]
+                    ends_clr[1] = vertex_clr[j]
+                    certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts, centres,
+                                     radii, threshold, lip, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr)
+                    vertex_clr[i] = ends_clr[0]
+                    vertex_clr[j] = ends_clr[1]
+                    good = ok_iv[0]
+                else:
+                    good = _quick_segment_ok(pts, i, j, vertex_clr, q_template, planned, lengths, checked,
+                                             body, verts, starts, centres, radii, threshold, lip, step_rad,
+                                             q_full, chain, body_w)
             if good:
                 lo = j
             else:
@@ -214,6 +310,18 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
     Returns (samples (M, dof), knot_param (k,), sample_param (M,)): samples ≤
     max_step_rad apart, the first and last knot reproduced exactly.
     """
+    q, s, u, _ = _spline_samples(knots_rad, max_step_rad)
+    return q, s, u
+
+
+def _spline_samples(knots_rad, max_step_rad):
+    """
+    Return :func:`spline_through`'s (samples, knot_param, sample_param) and each sample's knot interval.
+
+    The knot interval (M,) int64 of sample r is the i with knot_param[i] ≤ sample_param[r] <
+    knot_param[i + 1] (the last sample: the last interval).  Knots closer than 1e-12 rad to
+    the previous one are dropped (the chord-length parameter must increase strictly).
+    """
     k = np.asarray(knots_rad, dtype=float)
     if len(k) > 1:       # the chord-length parameter must increase strictly
         step = np.linalg.norm(np.diff(k, axis=0), axis=1)
@@ -224,21 +332,114 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
         k = k[keep] if keep.sum() >= 2 else k[[0, -1]]
     s = _polyline_param(k)
     if len(k) == 1 or s[-1] <= 1e-12:
-        return k[[0, -1]].copy(), s[[0, -1]], s[[0, -1]].copy()
+        return k[[0, -1]].copy(), s[[0, -1]], s[[0, -1]].copy(), np.zeros(2, np.int64)
     if len(k) == 2:
         dense = densify_polyline(k, max_step_rad)
-        return dense, s, _polyline_param(dense)
-    spline = CubicSpline(s, k, axis=0, bc_type="not-a-knot")
-    n = max(2, int(np.ceil(s[-1] / max_step_rad)) + 1)
-    while True:
-        u = np.linspace(0.0, s[-1], n)
-        q = spline(u)
-        steps = np.linalg.norm(np.diff(q, axis=0), axis=1)
-        if steps.max() <= max_step_rad:
-            break
-        n = int(np.ceil(n * steps.max() / max_step_rad * 1.05)) + 1
+        u = _polyline_param(dense)
+        return dense, s, u, np.zeros(len(dense), np.int64)
+    k = np.ascontiguousarray(k)
+    q, u, iv = _spline_kernel(s, k, float(max_step_rad))
     q[0], q[-1] = k[0], k[-1]
-    return q, s, u
+    return q, s, u, iv
+
+
+@njit(cache=True, nogil=True)
+def _not_a_knot_slopes(s, y):
+    """
+    First derivatives (n, dof) at the knots of the not-a-knot cubic spline through y (n, dof) at s (n,).
+
+    n ≥ 3; n = 3: the parabola through the three knots (scipy's ``CubicSpline`` does the same).
+    n ≥ 4: the tridiagonal system of ``CubicSpline`` (``bc_type="not-a-knot"``), by Thomas'
+    elimination (its first pivot dx[1] > 0, the second dx[0] + dx[1], the rest diagonally dominant).
+    """
+    n, dof = y.shape
+    dx = np.empty(n - 1)
+    slope = np.empty((n - 1, dof))
+    for i in range(n - 1):
+        dx[i] = s[i + 1] - s[i]
+        for a in range(dof):
+            slope[i, a] = (y[i + 1, a] - y[i, a]) / dx[i]
+    m = np.empty((n, dof))
+    if n == 3:
+        for a in range(dof):
+            c = (slope[1, a] - slope[0, a]) / (s[2] - s[0])
+            m[0, a] = slope[0, a] - c * dx[0]
+            m[1, a] = slope[0, a] + c * dx[0]
+            m[2, a] = slope[1, a] + c * dx[1]
+        return m
+    cp = np.empty(n)          # the eliminated upper diagonal
+    rp = np.empty((n, dof))   # the eliminated right-hand side
+    d = s[2] - s[0]
+    cp[0] = d / dx[1]
+    for a in range(dof):
+        rp[0, a] = ((dx[0] + 2.0 * d) * dx[1] * slope[0, a] + dx[0] * dx[0] * slope[1, a]) / d / dx[1]
+    for i in range(1, n - 1):
+        lower, diag, upper = dx[i], 2.0 * (dx[i - 1] + dx[i]), dx[i - 1]
+        den = diag - lower * cp[i - 1]
+        cp[i] = upper / den
+        for a in range(dof):
+            rhs = 3.0 * (dx[i] * slope[i - 1, a] + dx[i - 1] * slope[i, a])
+            rp[i, a] = (rhs - lower * rp[i - 1, a]) / den
+    d = s[n - 1] - s[n - 3]
+    lower, diag = d, dx[n - 3]
+    den = diag - lower * cp[n - 2]
+    for a in range(dof):
+        rhs = (dx[n - 2] * dx[n - 2] * slope[n - 3, a] + (2.0 * d + dx[n - 2]) * dx[n - 3] * slope[n - 2, a]) / d
+        m[n - 1, a] = (rhs - lower * rp[n - 2, a]) / den
+    for i in range(n - 2, -1, -1):
+        for a in range(dof):
+            m[i, a] = rp[i, a] - cp[i] * m[i + 1, a]
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _spline_kernel(s, y, max_step_rad):
+    """
+    Sample the not-a-knot cubic spline through y (n ≥ 3, dof) at the chord parameters s (n,).
+
+    At N equally spaced parameters from s[0] to s[-1] (``np.linspace``'s), N = ⌈s[-1] /
+    max_step_rad⌉ + 1 at first and, while two consecutive samples are farther apart than
+    ``max_step_rad`` (Euclidean), N·(largest step / max_step_rad)·1.05 + 1.  Each sample is the
+    cubic of its knot interval (the last one's for the last sample), by Horner's rule in the
+    interval's local parameter.  Returns (samples (N, dof), sample parameters (N,), knot
+    interval of each (N,)).
+    """
+    n, dof = y.shape
+    m = _not_a_knot_slopes(s, y)
+    c0 = np.empty((n - 1, dof))
+    c1 = np.empty((n - 1, dof))
+    for i in range(n - 1):
+        h = s[i + 1] - s[i]
+        for a in range(dof):
+            sl = (y[i + 1, a] - y[i, a]) / h
+            t = (m[i, a] + m[i + 1, a] - 2.0 * sl) / h
+            c0[i, a] = t / h
+            c1[i, a] = (sl - m[i, a]) / h - t
+    total = max(2, int(np.ceil(s[n - 1] / max_step_rad)) + 1)
+    while True:
+        q = np.empty((total, dof))
+        u = np.empty(total)
+        iv = np.empty(total, np.int64)
+        du = (s[n - 1] - s[0]) / (total - 1)
+        i = 0
+        for r in range(total):
+            u[r] = s[0] + r * du if r < total - 1 else s[n - 1]
+            while i < n - 2 and u[r] >= s[i + 1]:
+                i += 1
+            iv[r] = i
+            x = u[r] - s[i]
+            for a in range(dof):
+                q[r, a] = ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
+        largest = 0.0
+        for r in range(total - 1):
+            d2 = 0.0
+            for a in range(dof):
+                d = q[r + 1, a] - q[r, a]
+                d2 += d * d
+            largest = max(largest, np.sqrt(d2))
+        if largest <= max_step_rad:
+            return q, u, iv
+        total = int(np.ceil(total * largest / max_step_rad * 1.05)) + 1
 
 
 def _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified):
@@ -284,7 +485,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
                 max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                 verify_step_rad: float | None = None,
                 quick_step_rad: float = QUICK_STEP_RAD,
-                max_rounds: int = 12, cancel=None) -> SmoothPath | None:
+                max_rounds: int = 12, cancel=None, waypoint_check=None) -> SmoothPath | None:
     """
     Smooth a polyline into a dense path whose certified check passed.
 
@@ -300,6 +501,9 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
             stretch's own clearance, if smaller), metres.
         knot_stride: the paper's "every second node" (2).
         quick_step_rad: spacing of the quick test of candidates.
+        waypoint_check: the certified check (``MotionValidator.check``) of these very
+            waypoints, if the caller made one: the shortcut pass uses its interval and vertex
+            clearances instead of checking the polyline again.
 
     Returns
     -------
@@ -316,7 +520,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
     """
     v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
     first = _smooth(v.with_step(quick_step_rad), waypoints_rad, shortcut, knot_stride,
-                    keep_clearance_m, max_step_rad, max_rounds, cancel, False)
+                    keep_clearance_m, max_step_rad, max_rounds, cancel, False, waypoint_check)
     if first is not None:
         path, knots, method, rounds, quick = first
         chk = v.check(path, vertex_clearance_m=quick)     # the quick check's vertices reused
@@ -326,7 +530,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
     if cancel is not None and cancel.is_set():
         return None
     again = _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad,
-                    max_rounds, cancel, True)
+                    max_rounds, cancel, True, waypoint_check)
     if again is None:
         return None
     path, knots, method, rounds, known = again
@@ -338,7 +542,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
 
 
 def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad, max_rounds, cancel,
-            certified):
+            certified, waypoint_check=None):
     """
     Choose a path with tests at the step of ``v`` (certified or quick).
 
@@ -350,32 +554,39 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
     """
     w = np.asarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
-    rows = [w[0]]                       # drop repeated rows, keep the exact ends
-    for r in w[1:-1]:
-        if np.linalg.norm(r - rows[-1]) > 1e-12:
-            rows.append(r)
-    if np.linalg.norm(w[-1] - rows[-1]) > 1e-12:
-        rows.append(w[-1])
-    elif len(rows) > 1:
-        rows[-1] = w[-1]
-    w = np.array(rows)
+    steps = np.linalg.norm(np.diff(w, axis=0), axis=1)
+    if len(w) < 2 or not np.all(steps > 1e-12):
+        rows = [w[0]]                   # drop repeated rows, keep the exact ends
+        for r in w[1:-1]:
+            if np.linalg.norm(r - rows[-1]) > 1e-12:
+                rows.append(r)
+        if np.linalg.norm(w[-1] - rows[-1]) > 1e-12:
+            rows.append(w[-1])
+        elif len(rows) > 1:
+            rows[-1] = w[-1]
+        w = np.array(rows)
+        steps = np.linalg.norm(np.diff(w, axis=0), axis=1)
+        waypoint_check = None           # a check of other rows
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
         return ends, ends.copy(), "polyline", 0, None
-    attempts = []
-    if shortcut and len(w) > 2:
-        keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified)
-        sc = w[keep_idx]
-        t_sc = _polyline_param(sc)
-        # knots: the shortcut vertices plus points about two grid steps apart on
-        # long straight stretches, so corners are rounded but not cut
-        spacing = knot_stride * np.median(np.linalg.norm(np.diff(w, axis=0), axis=1))
-        extra = [np.linspace(a, b, max(2, int(np.ceil((b - a) / max(spacing, 1e-9))) + 1))
-                 for a, b in zip(t_sc[:-1], t_sc[1:])]
-        attempts.append(("shortcut_spline", sc, np.concatenate(extra)))
-    t_w = _polyline_param(w)
-    stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
-    attempts.append(("spline", w, t_w[stride_idx]))
-    for method, poly, t_knots in attempts:
+
+    def attempts():                     # each made only when the one before failed
+        if shortcut and len(w) > 2:
+            keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified,
+                                        polyline_check=waypoint_check)
+            sc = w[keep_idx]
+            t_sc = _polyline_param(sc)
+            # knots: the shortcut vertices plus points about two grid steps apart on
+            # long straight stretches, so corners are rounded but not cut
+            spacing = knot_stride * np.median(steps)
+            extra = [np.linspace(a, b, max(2, int(np.ceil((b - a) / max(spacing, 1e-9))) + 1))
+                     for a, b in zip(t_sc[:-1], t_sc[1:])]
+            yield "shortcut_spline", sc, np.concatenate(extra)
+        t_w = np.concatenate([[0.0], np.cumsum(steps)])        # _polyline_param(w)
+        stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
+        yield "spline", w, t_w[stride_idx]
+
+    for method, poly, t_knots in attempts():
         res = _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified)
         if res is not None:
             samples, knots, chk, rounds = res
@@ -392,3 +603,22 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
     if not chk.ok:
         return None
     return dense, w.copy(), "polyline", 0, chk.vertex_clearance_m
+
+
+def warm_up() -> None:
+    """
+    Compile (or load from numba's cache) this module's kernels: the spline and the shortcut pass.
+
+    On a made-up three-link arm (planned joints 1 and 2) and one square obstacle, with the
+    argument types of a plan; a coarse warm-up plan may not reach them (a straight shortcut
+    needs no spline).
+    """
+    _spline_samples(np.radians([[0.0, 0.0], [20.0, 10.0], [40.0, 5.0], [55.0, -3.0]]), DEFAULT_MAX_STEP_RAD)
+    square = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    arrays = (np.zeros(3), np.array([1, 2], dtype=np.int64), np.array([1.4, 2.0, 2.0]),
+              np.array([1, 2], dtype=np.int64), square.copy(), square + 6.0, np.array([0, 4], dtype=np.int64),
+              np.array([[6.0, 6.0]]), np.array([1.0]))
+    pts = np.radians([[0.0, 0.0], [5.0, 5.0], [10.0, 5.0], [15.0, 0.0]])
+    iv_clr = np.ones(len(pts) - 1)
+    for certified in (False, True):
+        _shortcut_kernel(pts, iv_clr, 0.07, *arrays, 0.02, 4.5, QUICK_STEP_RAD, certified, np.full(len(pts), np.nan))

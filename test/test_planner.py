@@ -410,6 +410,14 @@ def test_plan_a_b_a_gives_a_bit_for_bit(sc3):
     _same(a1, Planner(sc3).plan(sc3.start_rad, sc3.goal_rad))       # a fresh planner agrees
 
 
+def _first_repaired_plan():
+    """Return (scenario, start, goal, planner, result) of the first of :func:`_random_target_plans` that repaired."""
+    for sc, start, goal, pl, res in _random_target_plans():
+        if res.solver_stats.get("repairs", 0) > 0:
+            return sc, start, goal, pl, res
+    pytest.fail("no scene needing repairs")
+
+
 def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
     """
     A scene whose plan cuts grid edges / blocks nodes.
@@ -417,11 +425,7 @@ def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
     Planning another start in between (which repairs the field too) does not change the repaired
     plan.
     """
-    for sc, start, goal, pl, a1 in _random_target_plans():
-        if a1.solver_stats.get("repairs", 0) > 0:
-            break
-    else:
-        pytest.fail("no scene needing repairs")
+    sc, start, goal, pl, a1 = _first_repaired_plan()
     chk = CollisionChecker(sc.robot, sc.scene)
     others = [q for q in np.random.default_rng(1).uniform(sc.robot.planned_lower_rad, sc.robot.planned_upper_rad,
                                                           size=(40, 3)) if chk.is_free(q)][:4]
@@ -430,6 +434,28 @@ def test_plan_a_b_a_with_repairs_gives_a_bit_for_bit():
     a2 = pl.plan(start, goal)
     _same(a1, a2)
     _same(a1, Planner(sc).plan(start, goal))
+
+
+def test_a_replan_that_repairs_as_the_plan_before_equals_a_fresh_planners():
+    """
+    A replan from a start near a repaired plan's start reuses its repairs' work.
+
+    The planner keeps the colliding grid edges a repair found and the walks that failed, keyed
+    by the field and the node (pure functions of those); the replan equals a fresh planner's
+    plan from the same start bit for bit, and it walks into the same repairs.
+    """
+    sc, start, goal, pl, a1 = _first_repaired_plan()
+    chk = CollisionChecker(sc.robot, sc.scene)
+    rng = np.random.default_rng(3)
+    near = [q for q in start + np.radians(rng.uniform(-3.0, 3.0, size=(40, 3))) if chk.is_free(q)
+            and np.all(q >= sc.robot.planned_lower_rad) and np.all(q <= sc.robot.planned_upper_rad)]
+    repaired = 0
+    for q in near[:6]:
+        again = pl.plan(q, goal)
+        _same(again, Planner(sc).plan(q, goal))
+        repaired += again.solver_stats.get("repairs", 0) > 0
+    assert repaired > 0
+    assert pl._colliding or pl._failed_walks           # the caches the replans used
 
 
 # ---------------------------------------------------- honest "disconnected"

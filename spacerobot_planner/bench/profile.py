@@ -47,7 +47,7 @@ STEPS = (
     ("spline + refinements", "smoothing", "spacerobot_planner.smoothing", "_refined_spline"),
     ("spline fit", "spline + refinements", "spacerobot_planner.smoothing", "spline_through"),
     ("motion checks", "", "spacerobot_planner.motion", "MotionValidator.check"),
-    ("certify kernel", "motion checks", "spacerobot_planner.motion", "certify_segments"),
+    ("certify kernel", "motion checks", "spacerobot_planner.motion", "check_kernel"),
     ("trajectory", "", "spacerobot_planner.pipeline", "timed_motion"),
     ("time parameterisation", "trajectory", "spacerobot_planner.timing", "time_parameterize"),
     ("densify", "time parameterisation", "spacerobot_planner.trajectory", "densify_path"),

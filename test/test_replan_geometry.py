@@ -1,0 +1,130 @@
+"""
+The cached replan's geometry kernels against independent oracles.
+
+The spline kernel against scipy's ``CubicSpline`` (not-a-knot); the quick shortcut test
+(ends first, bisection, clearance balls) against evaluating every sample of the quick test
+with ``CollisionChecker.clearance_m`` (itself checked against shapely in test_collision.py);
+the shortcut pass given the polyline's certified check against the pass that checks it
+itself.
+"""
+
+import numpy as np
+import pytest
+from scipy.interpolate import CubicSpline
+
+from spacerobot_planner.collision import CollisionChecker
+from spacerobot_planner.motion import QUICK_STEP_RAD, MotionValidator, motion_scratch
+from spacerobot_planner.scene import Scene
+from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, _quick_segment_ok, _spline_samples,
+                                          shortcut_indices, spline_through)
+
+DEBRIS = (
+    [[-1.0, 2.2], [0.0, 2.0], [0.2, 2.8], [-0.8, 3.0]],
+    [[2.0, -1.0], [3.2, -1.0], [3.2, 0.2], [2.6, -0.4], [2.0, 0.2]],
+    [[-4.5, 0.5], [-3.9, 0.5], [-4.2, 1.2]],
+)
+
+
+@pytest.fixture(scope="module", params=[2, 3])
+def scenario(request, paper_scenario):
+    sc = paper_scenario(request.param)
+    scene = Scene(target=sc.scene.target, debris_m=tuple(np.array(p) for p in DEBRIS), safety_margin_m=0.05)
+    return sc.with_scene(scene)
+
+
+def _chord_param(k):
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(k, axis=0), axis=1))])
+
+
+@pytest.mark.parametrize("n_knots", [3, 4, 5, 9, 30])
+def test_spline_is_scipys_not_a_knot_spline_sampled_within_the_step(n_knots):
+    rng = np.random.default_rng(n_knots)
+    for dof in (2, 3):
+        k = np.cumsum(rng.normal(scale=0.2, size=(n_knots, dof)), axis=0)
+        q, s_knots, s_samples = spline_through(k)
+        ref = CubicSpline(_chord_param(k), k, axis=0, bc_type="not-a-knot")
+        assert np.allclose(s_knots, _chord_param(k), rtol=0, atol=1e-15)
+        assert np.allclose(q, ref(s_samples), rtol=0, atol=1e-10)
+        assert np.array_equal(q[0], k[0]) and np.array_equal(q[-1], k[-1])
+        assert s_samples[0] == 0.0 and s_samples[-1] == s_knots[-1] and np.all(np.diff(s_samples) > 0)
+        steps = np.linalg.norm(np.diff(q, axis=0), axis=1)
+        assert steps.max() <= DEFAULT_MAX_STEP_RAD
+        # at the parameters np.linspace gives for as many samples
+        assert np.array_equal(s_samples, np.linspace(0.0, s_knots[-1], len(q)))
+
+
+def test_spline_sample_intervals_name_their_knot_interval():
+    k = np.radians([[0.0, 0.0], [20.0, 10.0], [40.0, 5.0], [55.5, -3.3], [60.0, 10.0]])
+    q, s_knots, s_samples, iv = _spline_samples(k, DEFAULT_MAX_STEP_RAD)
+    assert len(iv) == len(q)
+    want = np.clip(np.searchsorted(s_knots, s_samples, side="right") - 1, 0, len(s_knots) - 2)
+    assert np.array_equal(iv, want)
+
+
+def _every_sample_ok(checker, a, b, threshold_m, step_rad):
+    """Answer the quick test from every one of its samples (arc lengths k·step below the length, the end)."""
+    length = float(np.linalg.norm(b - a))
+    n_last = max(1, int(np.ceil(length / step_rad)))
+    t = np.minimum(np.arange(n_last) * step_rad, length) / length
+    q = np.vstack([a + t[:, None] * (b - a), b])
+    return bool(np.all(checker.clearance_m(q) > threshold_m))
+
+
+def test_quick_shortcut_test_answers_as_every_sample(scenario):
+    chk = CollisionChecker(scenario.robot, scenario.scene)
+    v = MotionValidator(chk)
+    rng = np.random.default_rng(7)
+    lo, hi = scenario.robot.planned_lower_rad, scenario.robot.planned_upper_rad
+    scratch = motion_scratch(v.kernel_arrays[0], chk.lengths, chk.body)
+    answers = []
+    for _ in range(400):
+        a = rng.uniform(lo, hi)
+        b = a + rng.normal(scale=rng.choice([0.05, 0.3, 1.0]), size=scenario.robot.dof)
+        b = np.clip(b, lo, hi)
+        if np.linalg.norm(b - a) < 1e-6:
+            continue
+        threshold = chk.margin_m + rng.choice([0.0, 0.02, 0.05])
+        pts = np.ascontiguousarray(np.vstack([a, b]))
+        known = np.full(2, np.nan)
+        if rng.random() < 0.5:                  # an end's clearance already known
+            known[0] = chk.clearance_m(a)
+        got = _quick_segment_ok(pts, 0, 1, known, *v.kernel_arrays, threshold, v.lipschitz_m_per_rad,
+                                QUICK_STEP_RAD, *scratch)
+        want = _every_sample_ok(chk, a, b, threshold, QUICK_STEP_RAD)
+        assert got == want, (a, b, threshold)
+        for e, q in ((0, a), (1, b)):       # what it wrote for the ends is their clearance
+            if np.isfinite(known[e]):
+                assert known[e] == chk.clearance_m(q)
+        answers.append(got)
+    assert 50 < sum(answers) < len(answers) - 50          # both answers exercised
+
+
+def _staircase():
+    """Return a free 2-DOF grid-like polyline around the paper's target (2° steps)."""
+    up = np.radians(np.column_stack([np.full(46, 96.0), np.arange(0, 92, 2.0)]))
+    over = np.radians(np.column_stack([np.arange(94, 28, -2.0), np.full(33, 90.0)]))
+    down = np.radians(np.column_stack([np.full(45, 30.0), np.arange(88, -2, -2.0)]))
+    return np.vstack([up, over, down])
+
+
+@pytest.mark.parametrize("certified", [True, False])
+def test_shortcut_given_the_polylines_certified_check(paper_scenario, certified):
+    sc = paper_scenario(2)
+    v = MotionValidator(CollisionChecker(sc.robot, sc.scene))
+    w = _staircase()
+    poly = v.check(w)
+    assert poly.ok
+    given = shortcut_indices(v, w, certified=certified, polyline_check=poly)
+    if certified:       # its own check is the same certified check
+        assert np.array_equal(given, shortcut_indices(v, w, certified=True))
+    assert given[0] == 0 and given[-1] == len(w) - 1 and np.all(np.diff(given) > 0) and len(given) < len(w) // 4
+    # each kept segment keeps the clearance of what it replaced (or margin + 0.05 m), at the
+    # quick test's samples
+    chk = v.checker
+    for i, j in zip(given[:-1], given[1:]):
+        if j > i + 1:
+            need = max(chk.margin_m, min(poly.interval_clearance_m[i:j].min(), chk.margin_m + 0.05))
+            step = v.step_rad if certified else QUICK_STEP_RAD
+            assert _every_sample_ok(chk, w[i], w[j], need, step)
+    with pytest.raises(ValueError, match="polyline_check"):
+        shortcut_indices(v, w[:-1], polyline_check=poly)
