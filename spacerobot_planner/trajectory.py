@@ -268,58 +268,62 @@ def _not_a_knot_slopes(x, y):
     Return the slopes (M, n) at the knots of the not-a-knot cubic spline through (x (M,), y (M, n)), M ≥ 4.
 
     SciPy's ``CubicSpline`` system (the same rows), solved by LAPACK's ``gtsv`` elimination
-    (tridiagonal, partial pivoting) for every column.
+    (tridiagonal, partial pivoting); the matrix is the same for every column, so it is
+    eliminated once and the columns' right-hand sides follow it.
     """
     m, n = y.shape
     dx = x[1:] - x[:-1]
-    out = np.empty((m, n))
     d = np.empty(m)
     du = np.empty(m - 1)
     dl = np.empty(m - 1)
-    du2 = np.empty(m)
-    b = np.empty(m)
-    sl = np.empty(m - 1)
+    du2 = np.zeros(m)
+    b = np.empty((m, n))
+    sl = np.empty((m - 1, n))
+    for i in range(m - 1):
+        for col in range(n):
+            sl[i, col] = (y[i + 1, col] - y[i, col]) / dx[i]
+    for i in range(1, m - 1):
+        d[i] = 2.0 * (dx[i - 1] + dx[i])
+        du[i] = dx[i - 1]
+        dl[i - 1] = dx[i]
+        for col in range(n):
+            b[i, col] = 3.0 * (dx[i] * sl[i - 1, col] + dx[i - 1] * sl[i, col])
+    w = x[2] - x[0]
+    d[0] = dx[1]
+    du[0] = w
     for col in range(n):
-        for i in range(m - 1):
-            sl[i] = (y[i + 1, col] - y[i, col]) / dx[i]
-        for i in range(1, m - 1):
-            d[i] = 2.0 * (dx[i - 1] + dx[i])
-            du[i] = dx[i - 1]
-            dl[i - 1] = dx[i]
-            b[i] = 3.0 * (dx[i] * sl[i - 1] + dx[i - 1] * sl[i])
-        w = x[2] - x[0]
-        d[0] = dx[1]
-        du[0] = w
-        b[0] = ((dx[0] + 2.0 * w) * dx[1] * sl[0] + dx[0] ** 2 * sl[1]) / w
-        w = x[m - 1] - x[m - 3]
-        d[m - 1] = dx[m - 3]
-        dl[m - 2] = w
-        b[m - 1] = (dx[m - 2] ** 2 * sl[m - 3] + (2.0 * w + dx[m - 2]) * dx[m - 3] * sl[m - 2]) / w
-        du2[:] = 0.0
-        for i in range(m - 1):
-            if abs(d[i]) >= abs(dl[i]):
-                f = dl[i] / d[i]
-                d[i + 1] -= f * du[i]
-                b[i + 1] -= f * b[i]
-            else:
-                f = d[i] / dl[i]
-                d[i] = dl[i]
-                t = d[i + 1]
-                d[i + 1] = du[i] - f * t
-                if i < m - 2:
-                    du2[i] = du[i + 1]
-                    du[i + 1] = -f * du2[i]
-                du[i] = t
-                t = b[i]
-                b[i] = b[i + 1]
-                b[i + 1] = t - f * b[i + 1]
-        b[m - 1] /= d[m - 1]
-        b[m - 2] = (b[m - 2] - du[m - 2] * b[m - 1]) / d[m - 2]
-        for i in range(m - 3, -1, -1):
-            b[i] = (b[i] - du[i] * b[i + 1] - du2[i] * b[i + 2]) / d[i]
-        for i in range(m):
-            out[i, col] = b[i]
-    return out
+        b[0, col] = ((dx[0] + 2.0 * w) * dx[1] * sl[0, col] + dx[0] ** 2 * sl[1, col]) / w
+    w = x[m - 1] - x[m - 3]
+    d[m - 1] = dx[m - 3]
+    dl[m - 2] = w
+    for col in range(n):
+        b[m - 1, col] = (dx[m - 2] ** 2 * sl[m - 3, col] + (2.0 * w + dx[m - 2]) * dx[m - 3] * sl[m - 2, col]) / w
+    for i in range(m - 1):
+        if abs(d[i]) >= abs(dl[i]):
+            f = dl[i] / d[i]
+            d[i + 1] -= f * du[i]
+            for col in range(n):
+                b[i + 1, col] -= f * b[i, col]
+        else:
+            f = d[i] / dl[i]
+            d[i] = dl[i]
+            t = d[i + 1]
+            d[i + 1] = du[i] - f * t
+            if i < m - 2:
+                du2[i] = du[i + 1]
+                du[i + 1] = -f * du2[i]
+            du[i] = t
+            for col in range(n):
+                t = b[i, col]
+                b[i, col] = b[i + 1, col]
+                b[i + 1, col] = t - f * b[i + 1, col]
+    for col in range(n):
+        b[m - 1, col] /= d[m - 1]
+        b[m - 2, col] = (b[m - 2, col] - du[m - 2] * b[m - 1, col]) / d[m - 2]
+    for i in range(m - 3, -1, -1):
+        for col in range(n):
+            b[i, col] = (b[i, col] - du[i] * b[i + 1, col] - du2[i] * b[i + 2, col]) / d[i]
+    return b
 
 
 @njit(cache=True, nogil=True)
@@ -337,24 +341,25 @@ def _hermite_on_grid(x, y, slopes, s, refine):
     d1 = np.empty((g, n))
     d2 = np.empty((g, n))
     d3 = np.empty((g - 1, n))
+    c0 = np.empty(n)
+    c1 = np.empty(n)
     for k in range(m - 1):
         h = x[k + 1] - x[k]
-        last = k == m - 2
         for col in range(n):
             sl = (y[k + 1, col] - y[k, col]) / h
             t = (slopes[k, col] + slopes[k + 1, col] - 2.0 * sl) / h
-            c0 = t / h
-            c1 = (sl - slopes[k, col]) / h - t
-            c2 = slopes[k, col]
-            c3 = y[k, col]
-            for r in range(refine + (1 if last else 0)):
-                j = k * refine + r
-                z = s[j] - x[k]
-                q[j, col] = ((c0 * z + c1) * z + c2) * z + c3
-                d1[j, col] = (3.0 * c0 * z + 2.0 * c1) * z + c2
-                d2[j, col] = 6.0 * c0 * z + 2.0 * c1
+            c0[col] = t / h
+            c1[col] = (sl - slopes[k, col]) / h - t
+        for r in range(refine + (1 if k == m - 2 else 0)):
+            j = k * refine + r
+            z = s[j] - x[k]
+            for col in range(n):
+                c2 = slopes[k, col]
+                q[j, col] = ((c0[col] * z + c1[col]) * z + c2) * z + y[k, col]
+                d1[j, col] = (3.0 * c0[col] * z + 2.0 * c1[col]) * z + c2
+                d2[j, col] = 6.0 * c0[col] * z + 2.0 * c1[col]
                 if j < g - 1:
-                    d3[j, col] = 6.0 * c0
+                    d3[j, col] = 6.0 * c0[col]
     return q, d1, d2, d3
 
 
@@ -436,88 +441,103 @@ def _path_model(p, refine: int):
     return s, idx, q, d1, d2, d3
 
 
-#: what :func:`_bounds` computes: the bounds and their slopes; only whether x_i admits an
-#: x_{i+1} (it stops at the first proof that it does not); only the upper bound (and g)
-_FULL, _ADMITS, _UPPER = 0, 1, 2
+@njit(cache=True, nogil=True)
+def _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv):
+    """
+    One constraint of grid segment i on (x_i, x_{i+1}), written ``|β x_{i+1} + σ x_i| ≤ c``.
+
+    Rows r of the constraints ``|a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]`` at
+    the segment's end p = i + ``end`` (0, 1), with u = (x_{i+1} - x_i) / (2Δ_i) (``inv`` =
+    0.5 / Δ_i); ``|f| + κ|u| ≤ c`` is ``|f + κu| ≤ c`` (``var`` 0) and ``|f − κu| ≤ c``
+    (``var`` 1, only where κ > 0).  Returns (β, σ, c with the sign of β (c where β = 0),
+    active: False where c is not finite or the constraint is var 1 of a κ = 0 row).
+    """
+    p = i + end
+    c = c_row[p, r]
+    kap = kappa[i, r]
+    if not c < np.inf or (var == 1 and not kap > 0.0):
+        return 1.0, 0.0, c, False
+    a = a_row[p, r] + (kap if var == 0 else -kap)
+    if end == 0:
+        beta = a * inv
+        sr = b_row[p, r] - a * inv
+    else:
+        beta = a * inv + b_row[p, r]
+        sr = -a * inv
+    return beta, sr, (-c if beta < 0.0 else c), True
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next, what):
+def _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
     Return the bounds on x_{i+1} from x_i = x on segment i, and their slopes in x.
 
-    Constraints (rows r, at both ends p = i, i+1 of the segment, u = (x_{i+1} - x_i)/(2Δ_i)):
-    |a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]; 0 ≤ x_{i+1} ≤ xv[i+1]; x_{i+1} ≤ k_next.
-    (|f| + κ|u| ≤ c is |f + κu| ≤ c and |f − κu| ≤ c.)  Each bound on x_{i+1} is affine in
-    x; a constraint without an x_{i+1} term bounds x alone.  Returns (lo, its slope, hi,
-    its slope, g, its slope): the largest lower bound, the smallest upper bound, and the
-    largest violation ``|coefficient| x - c`` of the constraints on x alone (-inf: none).
-    ``what`` (a constant: the passes' kernels are compiled for each): ``_FULL`` all of them;
-    ``_ADMITS`` no slopes, and it returns as soon as lo > hi or g > 0; ``_UPPER`` hi and g
-    only (lo stays 0, no slopes).
+    The constraints :func:`_constraint` and 0 ≤ x_{i+1} ≤ xv[i+1], x_{i+1} ≤ k_next.  Each
+    bound on x_{i+1} is affine in x; a constraint without an x_{i+1} term (β = 0) bounds x
+    alone.  Returns (lo, its slope, hi, its slope, g, its slope): the largest lower bound,
+    the smallest upper bound, and the largest violation ``|σ| x - c`` of the constraints on
+    x alone (-inf: none).
     """
     inv = 0.5 / delta[i]
     lo, s_lo = 0.0, 0.0
     hi, s_hi = min(xv[i + 1], k_next), 0.0
     g, s_g = -np.inf, 0.0
     for end in range(2):
-        p = i + end
         for r in range(a_row.shape[1]):
-            c = c_row[p, r]
-            if not c < np.inf:
-                continue
-            b = b_row[p, r]
-            n_var = 2 if kappa[i, r] > 0.0 else 1
-            for var in range(n_var):
-                a = a_row[p, r] + (kappa[i, r] if var == 0 else -kappa[i, r])
-                if end == 0:
-                    beta = a * inv
-                    sr = b - a * inv
-                else:
-                    beta = a * inv + b
-                    sr = -a * inv
+            for var in range(2):
+                beta, sr, cc, active = _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv)
+                if not active:
+                    continue
                 rest = sr * x
                 if beta != 0.0:
-                    cc = c if beta > 0.0 else -c
                     up = (cc - rest) / beta
+                    dn = (-cc - rest) / beta
                     if up < hi:
-                        hi = up
-                        if what == _FULL:
-                            s_hi = -sr / beta
-                    if what != _UPPER:
-                        dn = (-cc - rest) / beta
-                        if dn > lo:
-                            lo = dn
-                            if what == _FULL:
-                                s_lo = -sr / beta
-                        if what == _ADMITS and lo > hi:
-                            return lo, s_lo, hi, s_hi, g, s_g
+                        hi, s_hi = up, -sr / beta
+                    if dn > lo:
+                        lo, s_lo = dn, -sr / beta
                 else:
-                    v = abs(rest) - c
+                    v = abs(rest) - cc
                     if v > g:
-                        g = v
-                        if what == _FULL:
-                            s_g = abs(sr)
-                        if what == _ADMITS and g > 0.0:
-                            return lo, s_lo, hi, s_hi, g, s_g
+                        g, s_g = v, abs(sr)
     return lo, s_lo, hi, s_hi, g, s_g
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _admits(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
-    Tell whether x_i = x admits some x_{i+1} on segment i.
+    Tell whether x_i = x admits some x_{i+1} on segment i (the passes' test).
 
-    0 ≤ x ≤ xv[i], and :func:`_bounds`' constraints leave [lo, hi] non-empty with no
-    constraint on x alone violated (g ≤ 0).
+    0 ≤ x ≤ xv[i], and :func:`_bounds`' lo ≤ hi and g ≤ 0 (the bounds' values only; it stops
+    at the first proof that x is not admitted).
     """
     if x > xv[i] or x < 0.0:
         return False
-    lo, _, hi, _, g, _ = _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next, _ADMITS)
-    return lo <= hi and not g > 0.0
+    inv = 0.5 / delta[i]
+    lo = 0.0
+    hi = min(xv[i + 1], k_next)
+    for end in range(2):
+        for r in range(a_row.shape[1]):
+            for var in range(2):
+                beta, sr, cc, active = _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv)
+                if not active:
+                    continue
+                rest = sr * x
+                if beta != 0.0:
+                    up = (cc - rest) / beta
+                    dn = (-cc - rest) / beta
+                    if up < hi:
+                        hi = up
+                    if dn > lo:
+                        lo = dn
+                    if lo > hi:
+                        return False
+                elif abs(rest) - cc > 0.0:
+                    return False
+    return True
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
     How far x_i = x (≥ 0) is from admitting an x_{i+1} (≤ 0: it does), and its slope in x.
@@ -526,7 +546,7 @@ def _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     piecewise linear function of x; returns its value and the slope of the piece that
     attains it.
     """
-    lo, s_lo, hi, s_hi, g, s_g = _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next, _FULL)
+    lo, s_lo, hi, s_hi, g, s_g = _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
     f = lo - hi
     if g > f:
         return g, s_g
@@ -604,7 +624,22 @@ def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
         if xi > xv[i] or xi < 0.0:
             x[i + 1] = 0.0
             continue
-        _, _, hi, _, g, _ = _bounds(i, xi, a_row, b_row, c_row, kappa, xv, delta, k[i + 1], _UPPER)
+        inv = 0.5 / delta[i]
+        hi = min(xv[i + 1], k[i + 1])        # the upper bound of _bounds (and g), values only
+        g = -np.inf
+        for end in range(2):
+            for r in range(a_row.shape[1]):
+                for var in range(2):
+                    beta, sr, cc, active = _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv)
+                    if not active:
+                        continue
+                    rest = sr * xi
+                    if beta != 0.0:
+                        up = (cc - rest) / beta
+                        if up < hi:
+                            hi = up
+                    else:
+                        g = max(g, abs(rest) - cc)
         x[i + 1] = 0.0 if g > 0.0 else max(hi, 0.0)     # lo ≤ hi up to rounding: x_i ∈ K_i
     return x
 
@@ -737,10 +772,11 @@ def _rounding_margins(t, dt, p, d1, x, amax, refine, m_acc, m_vel):
     # those of the durations themselves) and, after the first, the time's rounding
     err_t = np.empty(m - 1)
     rel = np.empty(m - 1)
+    t_up = (t.view(np.int64) + 1).view(np.float64)      # the next double above each t ≥ 0
     for k in range(m - 1):
         err_t[k] = (refine + 6) * _EPS * dt[k]
         if k >= 1:
-            err_t[k] += 0.5 * (np.nextafter(t[k + 1], np.inf) - t[k + 1])
+            err_t[k] += 0.5 * (t_up[k + 1] - t[k + 1])
         rel[k] = err_t[k] / dt[k] + 2.0 * _EPS          # of Δt_k, and of the quotient
     # per sample k: (w_after − w_before) / half, w the segment speeds (the start velocity
     # before the first, rest after the last): the velocities' errors, the difference's own
@@ -767,28 +803,30 @@ def _rounding_margins(t, dt, p, d1, x, amax, refine, m_acc, m_vel):
                 w_a = 0.0
                 e_a = 0.0
             fd[k, a] = 2.0 * ((e_b + e_a + _EPS * (w_b + w_a)) / half + amax[a] * tt)
-    # the finite difference at sample k averages the motion over intervals k-1 and k
+    # the finite difference at sample k averages the motion over intervals k-1 and k: grid
+    # point j = k·refine + r of interval k (the last point: of the last interval)
     acc = np.empty((g, n))
     vel = np.empty(g)
     grown = False
-    for j in range(g):
-        k = min(j // refine, m - 2)             # the interval of grid point j (the last: the last)
-        shared = j % refine == 0 and 0 < j < g - 1
-        for a in range(n):
-            v = max(fd[k, a], fd[k + 1, a])
-            if shared:
-                v = max(max(fd[k - 1, a], fd[k, a]), v)
-            if v <= _ROUNDING_SLACK * amax[a]:
-                v = 0.0
-            acc[j, a] = v
-            if not v <= m_acc[j, a]:
+    for k in range(m - 1):
+        for r in range(refine + 1 if k == m - 2 else refine):
+            j = k * refine + r
+            shared = r == 0 and k > 0
+            for a in range(n):
+                v = max(fd[k, a], fd[k + 1, a])
+                if shared:
+                    v = max(max(fd[k - 1, a], fd[k, a]), v)
+                if v <= _ROUNDING_SLACK * amax[a]:
+                    v = 0.0
+                acc[j, a] = v
+                if not v <= m_acc[j, a]:
+                    grown = True
+            e = 2.0 * max(rel[k - 1], rel[k]) if shared else 2.0 * rel[k]
+            if e <= _ROUNDING_SLACK:
+                e = 0.0
+            vel[j] = e
+            if not e <= m_vel[j]:
                 grown = True
-        r = 2.0 * max(rel[k - 1], rel[k]) if shared else 2.0 * rel[k]
-        if r <= _ROUNDING_SLACK:
-            r = 0.0
-        vel[j] = r
-        if not r <= m_vel[j]:
-            grown = True
     return acc, vel, grown
 
 
