@@ -1361,6 +1361,72 @@ def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizo
                         traj.velocities_rad_s[k].copy())
 
 
+@njit(cache=True, nogil=True)
+def _controller_states(t, q, v, a, fields, ts, pos, vel, acc):
+    """
+    Fill pos, vel, acc (K, n) with the controller's interpolation of the points at the times ts (K,).
+
+    ``fields``: 1 positions only (linear segments), 2 with velocities (cubic Hermite), 3
+    with accelerations too (quintic); v, a are ignored where not given.  See
+    :func:`sample_points` for the rules at and beyond the ends; the polynomial on
+    [t_k, t_k+1] is in the normalised time x ∈ [0, 1], evaluated by Horner's rule with its
+    first two derivatives.
+    """
+    m, n = q.shape
+    c = np.zeros((6, n))
+    k_coef = -1
+    for i in range(ts.shape[0]):
+        s = ts[i]
+        if s < t[0] or s >= t[m - 1]:
+            last = s >= t[m - 1]
+            for j in range(n):
+                pos[i, j] = q[m - 1, j] if last else q[0, j]
+                vel[i, j] = v[m - 1, j] if s == t[m - 1] and fields >= 2 else 0.0
+                acc[i, j] = a[m - 1, j] if s == t[m - 1] and fields == 3 else 0.0
+            continue
+        if s != s:                      # NaN: NumPy's searchsorted puts it last
+            k = m - 2
+        else:                           # the last k with t[k] <= s (the segment [t_k, t_k+1))
+            lo, hi = 0, m
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if t[mid] <= s:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            k = min(max(lo - 1, 0), m - 2)
+        dur = t[k + 1] - t[k]
+        x = (s - t[k]) / dur
+        if k != k_coef:                 # the segment's coefficients (kept while ts stay in it)
+            k_coef = k
+            for j in range(n):
+                d = q[k + 1, j] - q[k, j]
+                c[0, j] = q[k, j]
+                if fields == 1:
+                    c[1, j] = d
+                else:
+                    w0, w1 = dur * v[k, j], dur * v[k + 1, j]
+                    c[1, j] = w0
+                    if fields == 2:
+                        c[2, j] = 3.0 * d - 2.0 * w0 - w1
+                        c[3, j] = -2.0 * d + w0 + w1
+                    else:
+                        b0, b1 = dur * dur * a[k, j], dur * dur * a[k + 1, j]
+                        c[2, j] = 0.5 * b0
+                        c[3, j] = 10.0 * d - 6.0 * w0 - 4.0 * w1 - 1.5 * b0 + 0.5 * b1
+                        c[4, j] = -15.0 * d + 8.0 * w0 + 7.0 * w1 + 1.5 * b0 - b1
+                        c[5, j] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
+        for j in range(n):
+            p, dp, ddp = c[5, j], 0.0, 0.0
+            for r in range(4, -1, -1):
+                ddp = ddp * x + 2.0 * dp
+                dp = dp * x + p
+                p = p * x + c[r, j]
+            pos[i, j] = p
+            vel[i, j] = dp / dur
+            acc[i, j] = ddp / (dur * dur)
+
+
 def sample_points(times_s, positions, velocities, accelerations, t_s):
     """
     Sample published trajectory points as joint_trajectory_controller interpolates them.
@@ -1409,45 +1475,13 @@ def sample_points(times_s, positions, velocities, accelerations, t_s):
         raise ValueError("sample_points: accelerations without velocities")
     ts = np.asarray(t_s, dtype=float)
     scalar = ts.ndim == 0
-    ts = np.atleast_1d(ts)
+    ts = np.ascontiguousarray(np.atleast_1d(ts))
     n_t, n = len(ts), q.shape[1]
-    pos = np.empty((n_t, n))
-    vel = np.zeros((n_t, n))
-    acc = np.zeros((n_t, n))
-    before, after, at_end = ts < t[0], ts > t[-1], ts == t[-1]
-    pos[before], pos[after | at_end] = q[0], q[-1]
-    if v is not None:
-        vel[at_end] = v[-1]
-    if a is not None:
-        acc[at_end] = a[-1]
-    inside = ~(before | after | at_end)
-    if np.any(inside):
-        s_in = ts[inside]
-        k = np.clip(np.searchsorted(t, s_in, side="right") - 1, 0, len(t) - 2)
-        dur = (t[k + 1] - t[k])[:, None]                      # (K', 1)
-        x = ((s_in - t[k])[:, None]) / dur                    # normalised time in the segment
-        q0, q1 = q[k], q[k + 1]
-        d = q1 - q0
-        c = np.zeros((6,) + q0.shape)                         # p(x) = Σ c_i x^i, x ∈ [0, 1]
-        c[0] = q0
-        if v is None:
-            c[1] = d
-        else:
-            w0, w1 = dur * v[k], dur * v[k + 1]
-            if a is None:
-                c[1], c[2], c[3] = w0, 3.0 * d - 2.0 * w0 - w1, -2.0 * d + w0 + w1
-            else:
-                b0, b1 = dur ** 2 * a[k], dur ** 2 * a[k + 1]
-                c[1], c[2] = w0, 0.5 * b0
-                c[3] = 10.0 * d - 6.0 * w0 - 4.0 * w1 - 1.5 * b0 + 0.5 * b1
-                c[4] = -15.0 * d + 8.0 * w0 + 7.0 * w1 + 1.5 * b0 - b1
-                c[5] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
-        p, dp, ddp = c[5], np.zeros_like(q0), np.zeros_like(q0)
-        for i in range(4, -1, -1):                            # Horner, with the first two derivatives
-            ddp = ddp * x + 2.0 * dp
-            dp = dp * x + p
-            p = p * x + c[i]
-        pos[inside], vel[inside], acc[inside] = p, dp / dur, ddp / dur ** 2
+    pos, vel, acc = np.empty((n_t, n)), np.empty((n_t, n)), np.empty((n_t, n))
+    fields = 1 if v is None else 2 if a is None else 3
+    q = np.ascontiguousarray(q)
+    _controller_states(np.ascontiguousarray(t), q, q if v is None else np.ascontiguousarray(v),
+                       q if a is None else np.ascontiguousarray(a), fields, ts, pos, vel, acc)
     if scalar:
         return pos[0], vel[0], acc[0]
     return pos, vel, acc
