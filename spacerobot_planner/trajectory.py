@@ -60,7 +60,10 @@ most ``time_step_s`` apart and/or within ``path_tolerance_rad`` of the dense pat
 and certifies the polyline through them on the exact geometry (the scene's
 ``motion.MotionValidator``), adding points back where it fails.
 
-No ROS imports here: NumPy/SciPy, numba for the two passes.
+No ROS imports here: NumPy/SciPy; every per-sample loop (densifying, the spline on the
+grid, the constraint rows, the two passes, the rounding margins, the samples' states, the
+controller's interpolation) is a numba kernel that keeps NumPy's arithmetic operation for
+operation, so the trajectories are the same bit for bit as the array code they replaced.
 """
 
 from __future__ import annotations
