@@ -399,7 +399,7 @@ def _grid(ds, refine):
 
 @njit(cache=True, nogil=True)
 def _spline_on_grid(p, ds, refine):
-    """The not-a-knot spline through p (M ≥ 4) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
+    """Return the not-a-knot spline through p (M ≥ 4) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
     s_knots, s = _grid(ds, refine)
     q, d1, d2, d3 = _hermite_on_grid(s_knots, p, _not_a_knot_slopes(s_knots, p), s, refine)
     for k in range(p.shape[0]):
@@ -698,7 +698,7 @@ _EPS = float(np.finfo(float).eps)
 @njit(cache=True, nogil=True)
 def _timed_forward(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
     """
-    The forward pass from x0 (clipped to K_0) to rest, and its durations.
+    Run the forward pass from x0 (clipped to K_0) to rest, and time it.
 
     Returns (x (G,), grid durations dt (G-1,) s, sample times t (M,) s, sample intervals
     (M-1,) s, ok): ``dt = 2 Δ / (ṡ_i + ṡ_{i+1})``; each sample interval the sum of its
@@ -836,7 +836,7 @@ def _rounding_margins(t, dt, p, d1, x, amax, refine, m_acc, m_vel):
 @njit(cache=True, nogil=True)
 def _constraint_rows(d1, d3, ds, vmax):
     """
-    The velocity bound xv (G,) on x = ṡ² and the acceleration rows' κ (G-1, n).
+    Return the velocity bound xv (G,) on x = ṡ² and the acceleration rows' κ (G-1, n).
 
     Velocity type: on a grid segment |q'_j| exceeds its larger end value by at most
     |q'''| Δ²/8 and ṡ stays below the larger end value, so bounding both ends with that
@@ -867,7 +867,7 @@ def _constraint_rows(d1, d3, ds, vmax):
 @njit(cache=True, nogil=True)
 def _sample_states(x, dt, ds, d1, d2, refine, vmax, amax, g_w, gp_w, h_max, tau_max):
     """
-    The published samples' states and the constraint closest to its limit at each.
+    Return the published samples' states and the constraint closest to its limit at each.
 
     Args:
         x: (G,) ṡ² on the grid; dt: (G-1,) grid durations, s; ds: (G-1,) grid steps, rad;

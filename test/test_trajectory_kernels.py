@@ -42,7 +42,7 @@ def test_spline_on_the_grid_is_scipys_not_a_knot_spline(seed):
 
 
 def _densify_numpy(path, max_step):
-    """The array formulation: keep rows more than 1e-12 from the last kept one, exact goal, subdivide."""
+    """Densify as the array formulation did: keep rows more than 1e-12 from the last kept one, exact goal, subdivide."""
     p = np.asarray(path, dtype=float)
     keep = [0]
     for k in range(1, len(p)):
@@ -82,7 +82,7 @@ def test_densify_is_the_array_formulation_bit_for_bit(seed):
 
 
 def _margins_numpy(t, dt, p, v0, amax, refine):
-    """The array formulation of the rounding margins, thresholded at SLACK of the limits."""
+    """Return the rounding margins by the array formulation, thresholded at SLACK of the limits."""
     m, n = p.shape
     err_t = (refine + 6) * EPS * dt
     err_t[1:] += 0.5 * np.spacing(t[2:])
