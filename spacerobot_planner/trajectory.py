@@ -482,9 +482,9 @@ def _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     x alone (-inf: none).
     """
     inv = 0.5 / delta[i]
-    lo, s_lo = 0.0, 0.0
-    hi, s_hi = min(xv[i + 1], k_next), 0.0
+    lo, hi = 0.0, min(xv[i + 1], k_next)
     g, s_g = -np.inf, 0.0
+    lo_beta = lo_sr = hi_beta = hi_sr = 0.0     # the constraints that set lo and hi (β = 0: none)
     for end in range(2):
         for r in range(a_row.shape[1]):
             for var in range(2):
@@ -496,13 +496,15 @@ def _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
                     up = (cc - rest) / beta
                     dn = (-cc - rest) / beta
                     if up < hi:
-                        hi, s_hi = up, -sr / beta
+                        hi, hi_beta, hi_sr = up, beta, sr
                     if dn > lo:
-                        lo, s_lo = dn, -sr / beta
+                        lo, lo_beta, lo_sr = dn, beta, sr
                 else:
                     v = abs(rest) - cc
                     if v > g:
                         g, s_g = v, abs(sr)
+    s_lo = -lo_sr / lo_beta if lo_beta != 0.0 else 0.0
+    s_hi = -hi_sr / hi_beta if hi_beta != 0.0 else 0.0
     return lo, s_lo, hi, s_hi, g, s_g
 
 
