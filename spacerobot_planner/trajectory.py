@@ -605,11 +605,15 @@ def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
     m = xv.shape[0]
     k = np.empty(m)
     k[m - 1] = min(x_end, xv[m - 1])
+    limited = False
     for i in range(m - 2, -1, -1):
-        if _admits(i, xv[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1]):
+        # after a limited k_{i+1} (runs of them: where the acceleration limits bind), Newton's
+        # first step is the test itself (f(xv[i]) ≤ 0 is admission): the same k_i either way
+        if not limited and _admits(i, xv[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1]):
             k[i] = xv[i]
         else:                       # the feasible x_i form an interval [0, k_i]
             k[i] = _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
+        limited = k[i] < xv[i]
     return k
 
 
