@@ -68,6 +68,7 @@ operation, so the trajectories are the same bit for bit as the array code they r
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -196,12 +197,17 @@ class Trajectory:
 @njit(cache=True, nogil=True)
 def _densified(p, max_step_rad, min_points):
     """
-    :func:`densify_path` on a checked (M, n) array (M ≥ 2): the kept rows, then subdivided.
+    :func:`densify_path` on an (M, n) array (M ≥ 2): the kept rows, then subdivided (no rows:
+    p has a NaN or inf).
 
     A row is kept when it is more than 1e-12 rad (in some joint) from the last kept row,
     the first always and the last in place of the last kept one (exact goal).
     """
     m, n = p.shape
+    for k in range(m):
+        for a in range(n):
+            if not np.isfinite(p[k, a]):
+                return np.empty((0, n))     # refused by the caller
     keep = np.empty(m, np.int64)
     keep[0] = 0
     n_keep = 1
@@ -258,11 +264,10 @@ def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: in
     p = np.asarray(path_rad, dtype=float)
     if p.ndim != 2 or p.shape[0] < 1:
         raise ValueError(f"path: expected an (M, n) array with M ≥ 1, got shape {p.shape}")
-    if not np.all(np.isfinite(p)):
+    out = _densified(np.ascontiguousarray(p), float(max_step_rad), int(min_points)) if len(p) > 1 else p.copy()
+    if len(out) == 0 or (len(p) == 1 and not np.all(np.isfinite(p))):
         raise ValueError("path: contains NaN or inf")
-    if len(p) == 1:
-        return p.copy()
-    return _densified(np.ascontiguousarray(p), float(max_step_rad), int(min_points))
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -840,9 +845,9 @@ def _rounding_margins(t, dt, p, d1, x, amax, refine, m_acc, m_vel):
 
 
 @njit(cache=True, nogil=True)
-def _constraint_rows(d1, d3, ds, vmax):
+def _constraint_rows(d1, d3, ds, vmax, amax):
     """
-    Return the velocity bound xv (G,) on x = ṡ² and the acceleration rows' κ (G-1, n).
+    Return the velocity bound xv (G,) on x = ṡ², the acceleration rows' κ (G-1, n) and limits c (G, n).
 
     Velocity type: on a grid segment |q'_j| exceeds its larger end value by at most
     |q'''| Δ²/8 and ṡ stays below the larger end value, so bounding both ends with that
@@ -853,9 +858,11 @@ def _constraint_rows(d1, d3, ds, vmax):
     g, n = d1.shape
     xv = np.empty(g)
     kappa = np.empty((g - 1, n))
+    c_row = np.empty((g, n))
     for i in range(g):
         lim = np.inf
         for a in range(n):
+            c_row[i, a] = amax[a]
             tang = abs(d1[i, a])
             if i < g - 1:
                 tang = max(tang, max(abs(d1[i, a]), abs(d1[i + 1, a])) + abs(d3[i, a]) * (ds[i] * ds[i] / 8.0))
@@ -867,7 +874,7 @@ def _constraint_rows(d1, d3, ds, vmax):
                 r = vmax[a] / tang
                 lim = min(lim, r * r)
         xv[i] = min(lim, 1e300)
-    return xv, kappa
+    return xv, kappa, c_row
 
 
 @njit(cache=True, nogil=True)
@@ -941,7 +948,7 @@ def _check_limits(name, lim, n):
     lim = np.asarray(lim, dtype=float).reshape(-1)
     if lim.shape != (n,):
         raise ValueError(f"{name}: expected {n} values (one per joint), got {lim.shape[0]}")
-    if not np.all(np.isfinite(lim)) or np.any(lim <= 0.0):
+    if not all(0.0 < v < math.inf for v in lim.tolist()):      # a few joints: no array reductions
         raise ValueError(f"{name}: every limit must be a finite number > 0, got {list(lim)}")
     return lim
 
@@ -1033,10 +1040,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     d1, d2, d3 = np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3)
     ds = np.diff(s)
     g_n = len(s)
-    # velocity type x = ṡ² ≤ xv and the acceleration rows' κ: see _constraint_rows
-    xv, kappa = _constraint_rows(d1, d3, ds, vmax)
-    c_row = np.empty((g_n, n))
-    c_row[:] = amax
+    # velocity type x = ṡ² ≤ xv, the acceleration rows' κ and limits: see _constraint_rows
+    xv, kappa, c_row = _constraint_rows(d1, d3, ds, vmax, amax)
     a_row, b_row = d1, d2
     g = gp = None
     if wheel is not None:
