@@ -197,10 +197,9 @@ class Trajectory:
 @njit(cache=True, nogil=True)
 def _densified(p, max_step_rad, min_points):
     """
-    :func:`densify_path` on an (M, n) array (M ≥ 2): the kept rows, then subdivided (no rows:
-    p has a NaN or inf).
+    Return :func:`densify_path` of an (M, n) array (M ≥ 2): the kept rows, then subdivided.
 
-    A row is kept when it is more than 1e-12 rad (in some joint) from the last kept row,
+    No rows: p has a NaN or inf.  A row is kept when it is more than 1e-12 rad (in some joint) from the last kept row,
     the first always and the last in place of the last kept one (exact goal).
     """
     m, n = p.shape
