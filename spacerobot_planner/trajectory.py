@@ -517,33 +517,12 @@ def _admits(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
     Tell whether x_i = x admits some x_{i+1} on segment i (the passes' test).
 
-    0 ≤ x ≤ xv[i], and :func:`_bounds`' lo ≤ hi and g ≤ 0 (the bounds' values only; it stops
-    at the first proof that x is not admitted).
+    0 ≤ x ≤ xv[i], and :func:`_bounds`' lo ≤ hi and g ≤ 0.
     """
     if x > xv[i] or x < 0.0:
         return False
-    inv = 0.5 / delta[i]
-    lo = 0.0
-    hi = min(xv[i + 1], k_next)
-    for end in range(2):
-        for r in range(a_row.shape[1]):
-            for var in range(2):
-                beta, sr, cc, active = _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv)
-                if not active:
-                    continue
-                rest = sr * x
-                if beta != 0.0:
-                    up = (cc - rest) / beta
-                    dn = (-cc - rest) / beta
-                    if up < hi:
-                        hi = up
-                    if dn > lo:
-                        lo = dn
-                    if lo > hi:
-                        return False
-                elif abs(rest) - cc > 0.0:
-                    return False
-    return True
+    lo, _, hi, _, g, _ = _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
+    return lo <= hi and not g > 0.0
 
 
 @njit(cache=True, nogil=True)
