@@ -605,8 +605,9 @@ def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
     """
     Greedy forward pass: the largest admissible x_{i+1} ∈ K_{i+1} at every step, x (G,).
 
-    An x_i outside [0, xv[i]] or violating a constraint on x alone (not reached: x_i ∈ K_i)
-    is followed by 0.
+    :func:`_bounds`' upper bound and g, by a loop of its own: the values only, half the
+    divisions (the lower bounds are not needed).  An x_i outside [0, xv[i]] or violating a
+    constraint on x alone (not reached: x_i ∈ K_i) is followed by 0.
     """
     m = xv.shape[0]
     x = np.empty(m)
@@ -617,7 +618,7 @@ def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
             x[i + 1] = 0.0
             continue
         inv = 0.5 / delta[i]
-        hi = min(xv[i + 1], k[i + 1])        # the upper bound of _bounds (and g), values only
+        hi = min(xv[i + 1], k[i + 1])
         g = -np.inf
         for end in range(2):
             for r in range(a_row.shape[1]):
