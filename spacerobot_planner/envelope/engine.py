@@ -243,6 +243,8 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
     return report
 
 
+#: glibc's variable that Dask sets in its workers' environment (see ``LOCAL_CLUSTER_CONFIG``)
+MALLOC_TRIM = "MALLOC_TRIM_THRESHOLD_"
 #: Dask settings of the local cluster: the workers' statistical profiler samples every thread's
 #: stack every 10 ms (3 % of a core per idle worker on the 2-core development machine, 0.4 %
 #: without it, and it competes with the plans for the GIL); the event-loop tick and the system
@@ -256,8 +258,9 @@ LOCAL_CLUSTER_CONFIG = {
     # between large dataframe tasks); any such setting also turns off glibc's adaptive mmap
     # threshold, so every array of 128 kB or more is mapped and unmapped at each plan: 3× the
     # page faults and 8-12 % more CPU per pose than the same plans in a plain process.  None
-    # keeps the variable out of the workers' environment (unless the user's environment sets it).
-    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    # keeps the variable out of the workers' environment (``local_cluster`` also keeps this
+    # process's own out of it while the workers spawn).
+    f"distributed.nanny.pre-spawn-environ.{MALLOC_TRIM}": None,
 }
 
 
@@ -267,13 +270,21 @@ def local_cluster(workers: int | None = None):
 
     Use it as a context manager (it closes its processes).  No dashboard port is taken from
     the default 8787 (a free one is chosen); logs below ERROR are silenced; the workers get
-    ``LOCAL_CLUSTER_CONFIG``.
+    ``LOCAL_CLUSTER_CONFIG`` and start without ``MALLOC_TRIM_THRESHOLD_`` in their environment
+    (whatever this process's says; a worker the nanny restarts later gets this process's).
     """
     import dask                                      # Dask: loaded only when a sweep runs on it
     from distributed import LocalCluster
-    with dask.config.set(LOCAL_CLUSTER_CONFIG):      # the nannies hand this config to their workers
-        return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                            dashboard_address=":0", silence_logs=logging.ERROR)
+    # a Dask cluster started before in this process leaves MALLOC_TRIM_THRESHOLD_ in its
+    # environment (the nannies set it there before they spawn); out of it while ours spawn
+    trim = os.environ.pop(MALLOC_TRIM, None)
+    try:
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):      # the nannies hand this config to their workers
+            return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
+                                dashboard_address=":0", silence_logs=logging.ERROR)
+    finally:
+        if trim is not None:
+            os.environ[MALLOC_TRIM] = trim
 
 
 def _client(stack: ExitStack, scheduler: str | None, workers: int | None):
