@@ -217,10 +217,11 @@ def main(argv=None) -> int:
           f"{', '.join(f'{x:.2f}' for x in speedups)} (median {med(speedups):.2f}); with the cores to itself "
           f"(serial CPU / cluster CPU per worker) {', '.join(f'{x:.2f}' for x in cpu_bound)}; the cluster's "
           f"workers busy {', '.join(f'{100 * x:.0f}' for x in busy)} % of their wall time")
-    print(f"local cluster: {args.workers} workers, started in {started_s:.1f} s, warmed up in {warm_s:.1f} s; with "
-          f"start-up {serial_e2e_s:.1f} s serial (a fresh process warmed up in {cold_s:.1f} s) vs {dask_e2e_s:.1f} s, speedup "
-          f"{serial_e2e_s / dask_e2e_s:.2f}; rows differing from the serial sweep: "
-          f"{rows[2]['rows_differing_from_serial']}; load average {load0[0]:.1f} at the start, {load1[0]:.1f} at the end")
+    print(f"local cluster: {args.workers} workers, started in {started_s:.1f} s, warmed up in {warm_s:.1f} s; "
+          f"with start-up {serial_e2e_s:.1f} s serial (a fresh process warmed up in {cold_s:.1f} s) vs "
+          f"{dask_e2e_s:.1f} s, speedup {serial_e2e_s / dask_e2e_s:.2f}; rows differing from the serial sweep: "
+          f"{rows[2]['rows_differing_from_serial']}; load average {load0[0]:.1f} at the start, "
+          f"{load1[0]:.1f} at the end")
     for row in rows:
         print(json.dumps(row))
     return 0
