@@ -10,7 +10,9 @@ Capture envelope maps (issue 21): ``spacerobot_planner.envelope`` and ``spacerob
   equals the uninterrupted one;
 - a pose whose planning raises becomes an ``internal_error`` row with the reason, and the
   sweep completes;
-- the command: its files, Parquet equal to the CSV, bad input naming the flag.
+- the command: its files, Parquet equal to the CSV, bad input naming the flag;
+- the default chunks shrink towards the end and never split a target's starts; the local
+  cluster's workers start without the MALLOC_TRIM_THRESHOLD_ Dask sets.
 
 Kept small: the paper's 2-DOF scene on a 31×31 grid, 2 x × 2 y × 1 yaw × 2 starts.
 """
@@ -33,7 +35,7 @@ from spacerobot_planner.adapters import post_process
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.envelope import (TIMING_COLUMNS, PoseGrid, axis_values, read_rows, run_envelope,
                                          sweep_spec)
-from spacerobot_planner.envelope.engine import Progress, local_cluster
+from spacerobot_planner.envelope.engine import MAX_CHUNK, Progress, guided_size, local_cluster
 from spacerobot_planner.envelope.sweep import chunks
 from spacerobot_planner.motion import MotionValidator
 from spacerobot_planner.planner import Planner
@@ -92,6 +94,39 @@ def test_poses_are_numbered_starts_fastest_then_x_y_yaw():
     expected = [(x, y, a, s) for a in (0.0, 45.0) for y in (10.0, 20.0) for x in (1.0, 2.0, 3.0) for s in (0, 1)]
     assert [(p.x_m, p.y_m, p.yaw_deg, p.start_index) for p in poses] == expected
     assert chunks([7, 0, 3, 1, 2], 2) == [[0, 1], [2, 3], [7]]
+
+
+def test_default_chunks_shrink_towards_the_end_and_keep_a_targets_starts_together():
+    # 20 poses, 2 starts per target, 2 worker slots: each chunk a quarter of what is left
+    # (at least 2), extended to the end of its target: 5 -> 6, 14/4 -> 4, 10/4 -> 3 -> 4, then 2s
+    assert chunks(range(20), guided_size(2), group=2) == [
+        list(range(0, 6)), list(range(6, 10)), list(range(10, 14)), [14, 15], [16, 17], [18, 19]]
+    rng = np.random.default_rng(5)
+    for slots, group in ((1, 1), (2, 2), (3, 3), (16, 2)):
+        ids = sorted(rng.choice(2000, size=int(rng.integers(1, 1500)), replace=False).tolist())
+        work = chunks(rng.permutation(ids), guided_size(slots), group=group)
+        assert [i for c in work for i in c] == ids                  # every id once, in order
+        for a, b in zip(work, work[1:]):
+            assert a[-1] // group != b[0] // group                  # no target split between chunks
+        assert all(1 <= len(c) <= MAX_CHUNK + group - 1 for c in work)
+        # large first (a 1/(2·slots) share of all, at most MAX_CHUNK), small last
+        assert len(work[0]) >= min(len(ids), MAX_CHUNK, math.ceil(len(ids) / (2 * slots)))
+        assert len(work[-1]) <= 2 + group - 1 or len(work) == 1
+    with pytest.raises(ValueError, match="≥ 1"):
+        chunks([1, 2], lambda left: 0)
+
+
+def test_the_local_clusters_workers_start_without_dasks_malloc_trim_threshold(monkeypatch):
+    from distributed import Client
+
+    # as a Dask cluster started before in this process leaves it in the environment
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    with local_cluster(1) as cluster, Client(cluster) as client:
+        seen = client.run(lambda: (os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.getpid()))
+        assert os.environ.get("MALLOC_TRIM_THRESHOLD_") == "65536"          # this process's is back
+    assert len(seen) == 1
+    ((trim, pid),) = seen.values()
+    assert pid != os.getpid() and trim is None
 
 
 def test_the_serial_sweep_covers_the_grid_with_both_outcomes(serial):

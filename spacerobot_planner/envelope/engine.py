@@ -31,11 +31,13 @@ from ..results import Code
 from .store import PARQUET_MIN_POSES, EnvelopeStore
 from .sweep import PoseGrid, blank_row, chunks, plan_chunk
 
-__all__ = ["run_envelope", "SweepReport", "Progress", "default_workers", "chunk_size_for", "local_cluster",
+__all__ = ["run_envelope", "SweepReport", "Progress", "default_workers", "guided_size", "local_cluster",
            "LOCAL_CLUSTER_CONFIG"]
 
-#: chunks per worker slot when the chunk size is not given (load balance against per-chunk cost)
-CHUNKS_PER_SLOT = 4
+#: guided chunks: each default chunk takes 1/(GUIDED_SHARE · slots) of the poses not yet in a chunk
+GUIDED_SHARE = 2
+#: the smallest default chunk, poses (then extended to whole target poses: all their starts)
+MIN_CHUNK = 2
 #: the largest default chunk, poses
 MAX_CHUNK = 64
 
@@ -48,9 +50,18 @@ def default_workers() -> int:
         return os.cpu_count() or 1
 
 
-def chunk_size_for(n_poses: int, slots: int) -> int:
-    """Return the default chunk size: about ``CHUNKS_PER_SLOT`` chunks per slot, at most ``MAX_CHUNK``."""
-    return max(1, min(MAX_CHUNK, math.ceil(n_poses / (CHUNKS_PER_SLOT * max(1, slots)))))
+def guided_size(slots: int):
+    """
+    Return the default chunk-size rule for ``slots`` worker slots: a function of the poses left.
+
+    Guided self-scheduling: the next chunk takes ``1/(GUIDED_SHARE · slots)`` of the poses
+    not yet in a chunk, between ``MIN_CHUNK`` and ``MAX_CHUNK``.  The first chunks are large
+    (few tasks, rows on disk in large writes); the last are small, so the workers run out of
+    work at nearly the same moment instead of one finishing a large last chunk while the
+    others wait.  Chunks go to the workers in this order as they free up.
+    """
+    share = GUIDED_SHARE * max(1, int(slots))
+    return lambda left: max(MIN_CHUNK, min(MAX_CHUNK, math.ceil(left / share)))
 
 
 @dataclass
@@ -160,7 +171,7 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
         workers: local worker processes when no scheduler or client is given (default: one per
             core); 0 plans in this process without Dask.
         client: a ``distributed.Client`` to use (the caller keeps it open), or None.
-        chunk_size: poses per task (default: :func:`chunk_size_for`).
+        chunk_size: poses per task (default: :func:`guided_size`, chunks of whole target poses).
         parquet: write ``envelope.parquet`` too (default: for ``PARQUET_MIN_POSES`` poses or more).
         quiet: no progress bar.
         after_chunk: called with each chunk's rows once they are on disk (a test's hook), or None.
@@ -195,10 +206,13 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
                 client = client or _client(stack, scheduler, workers)
                 slots = max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values()))
                 report.engine = (f"Dask at {scheduler}" if scheduler else f"Dask, {slots} worker slots")
-            size = chunk_size or chunk_size_for(len(todo_ids), slots)
-            work = chunks(todo_ids, size)
+            if chunk_size:
+                work = chunks(todo_ids, chunk_size)
+            else:
+                work = chunks(todo_ids, guided_size(slots), group=len(grid.starts_rad))
             report.chunks = len(work)
-            store.start_run(engine=report.engine, poses_to_plan=len(todo_ids), chunk_size=size)
+            store.start_run(engine=report.engine, poses_to_plan=len(todo_ids), chunks=len(work),
+                            chunk_size=chunk_size or "guided")
             bar = Progress(grid.n_poses, len(done), enabled=not quiet)
             t_plan = time.perf_counter()
 
@@ -229,6 +243,8 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
     return report
 
 
+#: glibc's variable that Dask sets in its workers' environment (see ``LOCAL_CLUSTER_CONFIG``)
+MALLOC_TRIM = "MALLOC_TRIM_THRESHOLD_"
 #: Dask settings of the local cluster: the workers' statistical profiler samples every thread's
 #: stack every 10 ms (3 % of a core per idle worker on the 2-core development machine, 0.4 %
 #: without it, and it competes with the plans for the GIL); the event-loop tick and the system
@@ -238,6 +254,13 @@ LOCAL_CLUSTER_CONFIG = {
     "distributed.admin.tick.interval": "500ms",
     "distributed.admin.system-monitor.interval": "1s",
     "distributed.worker.memory.monitor-interval": "1s",
+    # Dask spawns its workers with MALLOC_TRIM_THRESHOLD_=65536 (to hand memory back to the OS
+    # between large dataframe tasks); any such setting also turns off glibc's adaptive mmap
+    # threshold, so every array of 128 kB or more is mapped and unmapped at each plan: 3× the
+    # page faults and 8-12 % more CPU per pose than the same plans in a plain process.  None
+    # keeps the variable out of the workers' environment (``local_cluster`` also keeps this
+    # process's own out of it while the workers spawn).
+    f"distributed.nanny.pre-spawn-environ.{MALLOC_TRIM}": None,
 }
 
 
@@ -246,13 +269,22 @@ def local_cluster(workers: int | None = None):
     Return a ``distributed.LocalCluster`` for sweeps: ``workers`` processes (default one per core), one thread each.
 
     Use it as a context manager (it closes its processes).  No dashboard port is taken from
-    the default 8787 (a free one is chosen); logs below ERROR are silenced.
+    the default 8787 (a free one is chosen); logs below ERROR are silenced; the workers get
+    ``LOCAL_CLUSTER_CONFIG`` and start without ``MALLOC_TRIM_THRESHOLD_`` in their environment
+    (whatever this process's says; a worker the nanny restarts later gets this process's).
     """
     import dask                                      # Dask: loaded only when a sweep runs on it
     from distributed import LocalCluster
-    with dask.config.set(LOCAL_CLUSTER_CONFIG):      # the nannies hand this config to their workers
-        return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                            dashboard_address=":0", silence_logs=logging.ERROR)
+    # a Dask cluster started before in this process leaves MALLOC_TRIM_THRESHOLD_ in its
+    # environment (the nannies set it there before they spawn); out of it while ours spawn
+    trim = os.environ.pop(MALLOC_TRIM, None)
+    try:
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):      # the nannies hand this config to their workers
+            return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
+                                dashboard_address=":0", silence_logs=logging.ERROR)
+    finally:
+        if trim is not None:
+            os.environ[MALLOC_TRIM] = trim
 
 
 def _client(stack: ExitStack, scheduler: str | None, workers: int | None):
@@ -265,12 +297,16 @@ def _client(stack: ExitStack, scheduler: str | None, workers: int | None):
 
 
 def _run_on_dask(client, scenario, grid, work, take) -> None:
-    """Submit one task per chunk; hand each chunk's rows to ``take`` as it finishes."""
+    """
+    Submit one task per chunk; hand each chunk's rows to ``take`` as it finishes.
+
+    The chunks' priorities follow their order (the scheduler hands the first ones out first).
+    """
     from distributed import as_completed
     scenario_f = client.scatter(scenario, broadcast=True)
     futures = {}
-    for ids in work:
-        f = client.submit(plan_chunk, scenario_f, grid, ids, 1, pure=False)
+    for k, ids in enumerate(work):
+        f = client.submit(plan_chunk, scenario_f, grid, ids, 1, pure=False, priority=len(work) - k)
         futures[f.key] = (f, ids)
     for f in as_completed([f for f, _ in futures.values()]):
         ids = futures.pop(f.key)[1]

@@ -131,12 +131,28 @@ class PoseGrid:
                 "starts_deg": [[math.degrees(v) for v in s] for s in self.starts_rad]}
 
 
-def chunks(pose_ids, size: int) -> list:
-    """Split ``pose_ids`` (sorted) into lists of at most ``size`` consecutive ids."""
+def chunks(pose_ids, size, group: int = 1) -> list:
+    """
+    Split ``pose_ids`` (sorted here) into lists of consecutive ids.
+
+    ``size``: poses per chunk, an int (every chunk; the last may be shorter) or a function
+    of the ids not yet in a chunk returning the next chunk's size (``engine.guided_size``).
+    ``group``: a chunk is extended past its size until it ends on a multiple of ``group``
+    ids (the ``NS`` starts of one target pose share its C-space and field, so they stay in
+    one chunk); 1 cuts exactly at ``size``.
+    """
     ids = sorted(int(i) for i in pose_ids)
-    if size < 1:
-        raise ValueError(f"chunk size: must be ≥ 1, got {size}")
-    return [ids[k:k + size] for k in range(0, len(ids), size)]
+    out, k = [], 0
+    while k < len(ids):
+        n = size if isinstance(size, int) else int(size(len(ids) - k))
+        if n < 1:
+            raise ValueError(f"chunk size: must be ≥ 1, got {n}")
+        end = min(k + n, len(ids))
+        while group > 1 and end < len(ids) and ids[end] // group == ids[end - 1] // group:
+            end += 1
+        out.append(ids[k:end])
+        k = end
+    return out
 
 
 def _deg_text(q_rad) -> str:

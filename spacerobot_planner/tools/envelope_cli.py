@@ -56,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="local worker processes (default: one per core); 0: in this process, without Dask")
     ap.add_argument("--cells", type=int, nargs="+", metavar="N",
                     help="grid cells per planned joint (one value for all, or one per joint)")
-    ap.add_argument("--chunk-size", type=int, metavar="N", help="poses per task (default: about 4 tasks per worker)")
+    ap.add_argument("--chunk-size", type=int, metavar="N",
+                    help="poses per task (default: large chunks first, small ones last, whole target poses)")
     ap.add_argument("--parquet", choices=("auto", "yes", "no"), default="auto",
                     help="also write envelope.parquet (auto: for 10,000 poses or more)")
     ap.add_argument("--no-plots", action="store_true", help="no PNG maps")
