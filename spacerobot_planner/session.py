@@ -545,7 +545,8 @@ class CaptureSession:
         if changed:                           # the state changes at once; a flood is not echoed
             self.activity = "planning"
         sc = req.scenario
-        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, stall_s=float(req.settings.test_stall_s))
+        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, stall_s=float(req.settings.test_stall_s),
+                                   stages=req.on_progress is not None)
         announced = []
 
         def announce():

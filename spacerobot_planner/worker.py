@@ -71,7 +71,9 @@ class PlanJob:
 
     scene, grid: ``scene.Scene`` and ``cspace.GridSpec``; start_rad: (dof,) planned
     joints, rad; joint_goal: (dof,) rad or None (then the goal is the target's IK);
-    stall_s, stall_stage, stall_polls: test aid (see the module docstring), seconds.
+    stall_s, stall_stage, stall_polls: test aid (see the module docstring), seconds;
+    stages: False sends only the first Progress (the job began), not one per stage (no one
+    follows them: each is a message the plan pays for).
     """
 
     gen: int
@@ -86,6 +88,7 @@ class PlanJob:
     field_budget_s: float = 5.0
     stall_stage: str = "start"
     stall_polls: bool = True
+    stages: bool = True
 
     @classmethod
     def for_scenario(cls, gen: int, scenario, start_rad, joint_goal=None, **test) -> "PlanJob":
@@ -177,7 +180,7 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
     """
     def say(text):
         p = _progress_of(text)
-        if p is not None and progress is not None:
+        if p is not None and progress is not None and job.stages:
             progress(Progress(job.gen, *p))
 
     def stalling(stage):

@@ -73,6 +73,18 @@ def test_process_plans_and_reports_progress(backend):
     assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] < 1.0
 
 
+def test_a_job_without_stages_reports_only_that_it_began(backend):
+    """``stages=False``: one Progress (the job began, stage "cspace"), the same plan as with every stage."""
+    sc, b = backend
+    for make in (lambda: b, lambda: ThreadBackend(sc)):
+        seen = {True: [], False: []}
+        outs = {st: make().run(_job(sc, 11 + st, stages=st), progress=lambda p, st=st: seen[st].append(p.stage))
+                for st in (True, False)}
+        assert seen[False] == ["cspace"] and seen[True][0] == "cspace" and len(seen[True]) > 1
+        assert all(isinstance(o, PlanDone) and o.result.ok for o in outs.values())
+        np.testing.assert_array_equal(outs[False].result.path_rad, outs[True].result.path_rad)
+
+
 def test_unreachable_target_is_a_plan_error(backend):
     sc, b = backend
     far = sc.scene.with_target(sc.scene.target.__class__(center_m=(9.0, 9.0)))
