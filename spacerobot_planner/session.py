@@ -149,6 +149,10 @@ class Outcome:
     values: dict = field(default_factory=dict)
     processed: Processed | None = None
     start_rad: np.ndarray | None = None
+    #: where the request's time went, ``time.perf_counter()`` s: "request" (made), "planning"
+    #: (its attempt began: the start chosen), "received" (the backend's answer), "chain" (the
+    #: chain after the path done), "published" (the publish hook returned; ok outcomes)
+    stamps: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -541,6 +545,7 @@ class CaptureSession:
         return motions
 
     def _plan(self, req: Request, start_raw: np.ndarray, join=None) -> Outcome:
+        stamps = {"request": req.t_request, "planning": time.perf_counter()}
         changed = self.activity != "planning"
         if changed:                           # the state changes at once; a flood is not echoed
             self.activity = "planning"
@@ -568,6 +573,7 @@ class CaptureSession:
         # the job goes first: the announcement is made at its first progress (the planning process
         # has begun), in parallel with the plan, or else once the backend answered
         out = self.backend.run(job, progress=progress) if self.backend is not None else None
+        stamps["received"] = time.perf_counter()
         announce()
         dropped = self._superseded_by(req)
         if out is None or dropped is not None:
@@ -603,13 +609,14 @@ class CaptureSession:
             return self._failure(req, "invalid_input", f"time parameterisation: {e}", res)
         if processed.refused is not None:
             return self._failure(req, "reaction_refused", processed.refused, res)
+        stamps["chain"] = time.perf_counter()
         dropped = self._superseded_by(req)
         if dropped is not None:
             self.log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
-        return self._publish_plan(req, res, processed, start_raw, join)
+        return self._publish_plan(req, res, processed, start_raw, join, stamps)
 
-    def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join) -> Outcome:
+    def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None) -> Outcome:
         """Record an ok plan, stamp it just before it is published, publish it (the hooks)."""
         lead_s = float(req.settings.start_lead_s)
         if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
@@ -639,7 +646,7 @@ class CaptureSession:
         if at_goal:
             values["at_goal"] = "true"
         outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
-                          None, values, processed, np.asarray(start_raw))
+                          None, values, processed, np.asarray(start_raw), dict(stamps or {}))
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it
             self.last_result = res
             self.last_trajectory = traj
@@ -660,6 +667,7 @@ class CaptureSession:
                 self.executing = (Executing(dense, idx, stamp) if join is None
                                   else join.executing.joined_by(dense, idx, stamp))
         self._publish(req, outcome)
+        outcome.stamps["published"] = time.perf_counter()
         if not execute:
             self.log("info", f"plan #{req.gen}: planned from the goal's own start: returned, not published")
         elif at_goal:

@@ -383,6 +383,7 @@ class PlannerNode(LifecycleNode):
                 self._pubs["traj"].publish(arm)
             if att is not None:
                 self._pubs["attitude"].publish(att)
+            outcome.stamps["sent"] = time.perf_counter()      # the trajectories (bench latency's breakdown)
         p = self._params
         markers, cspace, potential = conv.plan_visuals(
             self.robot, req.scenario.scene, outcome.result, self.planning_frame, p["grid_frame"],
