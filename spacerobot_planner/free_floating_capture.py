@@ -38,7 +38,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.optimize import brentq
 
 from .collision import CollisionChecker
 from .ik import _fit_to_bounds as fit_to_bounds  # noqa: PLC2701 - the IK module's own helpers
@@ -472,6 +471,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
                     if not (a_v * b_v <= 0.0):                     # no sign change
                         continue
                     try:
+                        from scipy.optimize import brentq    # SciPy loaded only where it is used (start-up)
                         f_star = brentq(lambda f: gap(f)[0], a_f, b_f, xtol=1e-12)
                     except ValueError:
                         continue
@@ -535,6 +535,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
                 return _attitude_changes(_full(start_full, p)[None], pair, inertia)[0] - need
 
             try:
+                from scipy.optimize import brentq    # SciPy loaded only where it is used (start-up)
                 alpha = brentq(miss, amps[a_i], amps[a_i + 1], xtol=1e-10, rtol=1e-12)
             except ValueError:             # the final path's sign differs from the coarse one's
                 continue

@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import minimize
 
 from .collision import CollisionChecker
 from .joint_space import TWO_PI, wrap_angle_rad, wrap_rad
@@ -216,6 +215,7 @@ def capture_posture(robot, target) -> CapturePosture:
     t2, t3 = np.meshgrid(g2, g3, indexing="ij")
     w = robot.manipulability(np.stack([np.zeros_like(t2), t2, t3], axis=-1))
     i, j = np.unravel_index(np.argmax(w), w.shape)
+    from scipy.optimize import minimize     # SciPy loaded only here: off the plan's route
     res = minimize(neg_w, x0=[t2[i, j], t3[i, j]], method="Nelder-Mead",
                    options={"xatol": 1e-9, "fatol": 1e-12, "maxiter": 2000})
     th2, th3 = res.x

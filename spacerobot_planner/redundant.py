@@ -39,7 +39,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
 
 from .collision import CollisionChecker
 from .joint_space import TWO_PI, wrap_angle_rad
@@ -337,6 +336,7 @@ def redundant_grasp(robot, scene, grasp_point_m, approach_angle_rad: float, free
                     val = f(x)
                     return -val if math.isfinite(val) else 1e6   # infeasible: worse than any posture
 
+                from scipy.optimize import minimize    # SciPy loaded only where it is used (start-up)
                 minimize(cost, s0, method="Nelder-Mead", bounds=box,
                          options={"xatol": 1e-9, "fatol": 1e-12, "maxiter": 200 * r})
         refine = "golden-section search" if r == 1 else "Nelder-Mead"
@@ -371,6 +371,7 @@ def most_manipulable_arm(robot, approach_angle_rad: float, grid_nodes: int = 100
     def neg_w(x):
         return -float(robot.manipulability(np.concatenate([[0.0], x])))
 
+    from scipy.optimize import minimize    # SciPy loaded only where it is used (start-up)
     res = minimize(neg_w, x0, method="Nelder-Mead", bounds=list(zip(lo, hi)),
                    options={"xatol": 1e-10, "fatol": 1e-13, "maxiter": 4000})
     arm_q = np.clip(res.x, lo, hi)

@@ -60,11 +60,15 @@ most ``time_step_s`` apart and/or within ``path_tolerance_rad`` of the dense pat
 and certifies the polyline through them on the exact geometry (the scene's
 ``motion.MotionValidator``), adding points back where it fails.
 
-No ROS imports here: NumPy/SciPy, numba for the two passes.
+No ROS imports here: NumPy/SciPy; every per-sample loop (densifying, the spline on the
+grid, the constraint rows, the two passes, the rounding margins, the samples' states, the
+controller's interpolation) is a numba kernel that keeps NumPy's arithmetic operation for
+operation, so the trajectories are the same bit for bit as the array code they replaced.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -191,19 +195,62 @@ class Trajectory:
 
 
 @njit(cache=True, nogil=True)
-def _moved_rows(p):
-    """Rows more than 1e-12 rad (in some joint) from the last kept row, the first kept: bool (M,)."""
+def _densified(p, max_step_rad, min_points):
+    """
+    Return :func:`densify_path` of an (M, n) array (M ≥ 2): the kept rows, then subdivided.
+
+    No rows: p has a NaN or inf.  A row is kept when it is more than 1e-12 rad (in some joint) from the last kept row,
+    the first always and the last in place of the last kept one (exact goal).
+    """
     m, n = p.shape
-    keep = np.zeros(m, np.bool_)
-    keep[0] = True
-    last = 0
+    for k in range(m):
+        for a in range(n):
+            if not np.isfinite(p[k, a]):
+                return np.empty((0, n))     # refused by the caller
+    keep = np.empty(m, np.int64)
+    keep[0] = 0
+    n_keep = 1
     for k in range(1, m):
+        last = keep[n_keep - 1]
         for a in range(n):
             if abs(p[k, a] - p[last, a]) > 1e-12:
-                keep[k] = True
-                last = k
+                keep[n_keep] = k
+                n_keep += 1
                 break
-    return keep
+    if n_keep > 1:
+        keep[n_keep - 1] = m - 1            # exact goal last
+    if n_keep == 1:
+        return p[:1].copy()
+    steps = np.empty(n_keep - 1)
+    subdiv = np.empty(n_keep - 1, np.int64)
+    total = 0
+    widest = 0
+    for k in range(n_keep - 1):
+        st = 0.0
+        for a in range(n):
+            st = max(st, abs(p[keep[k + 1], a] - p[keep[k], a]))
+        steps[k] = st
+        if st > steps[widest]:
+            widest = k
+        subdiv[k] = max(1, int(np.ceil(st / max_step_rad - 1e-9)))
+        total += subdiv[k]
+    if total + 1 < min_points:
+        subdiv[widest] += min_points - 1 - total
+        total = min_points - 1
+    out = np.empty((total + 1, n))
+    out[0] = p[keep[0]]
+    row = 1
+    for k in range(n_keep - 1):
+        sub = subdiv[k]
+        i0, i1 = keep[k], keep[k + 1]
+        for j in range(sub - 1):
+            f = (j + 1) / sub
+            for a in range(n):
+                out[row, a] = p[i0, a] + f * (p[i1, a] - p[i0, a])
+            row += 1
+        out[row] = p[i1]                    # segment ends exactly
+        row += 1
+    return out
 
 
 def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: int = 3) -> np.ndarray:
@@ -216,33 +263,10 @@ def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: in
     p = np.asarray(path_rad, dtype=float)
     if p.ndim != 2 or p.shape[0] < 1:
         raise ValueError(f"path: expected an (M, n) array with M ≥ 1, got shape {p.shape}")
-    if not np.all(np.isfinite(p)):
+    out = _densified(np.ascontiguousarray(p), float(max_step_rad), int(min_points)) if len(p) > 1 else p.copy()
+    if len(out) == 0 or (len(p) == 1 and not np.all(np.isfinite(p))):
         raise ValueError("path: contains NaN or inf")
-    if len(p) > 1:
-        moved = np.max(np.abs(np.diff(p, axis=0)), axis=1) > 1e-12
-        keep = np.concatenate([[True], moved])
-        # compare with the last kept point, not the previous one (slow creeps)
-        if not np.all(moved):
-            keep = _moved_rows(np.ascontiguousarray(p))
-        last = np.flatnonzero(keep)[-1]
-        if 0 < last != len(p) - 1:
-            keep[last] = False
-            keep[-1] = True                 # exact goal last
-        p = p[keep]
-    if len(p) == 1:
-        return p
-    steps = np.max(np.abs(np.diff(p, axis=0)), axis=1)
-    subdiv = np.maximum(1, np.ceil(steps / max_step_rad - 1e-9)).astype(int)
-    total = int(subdiv.sum())
-    if total + 1 < min_points:
-        subdiv[np.argmax(steps)] += min_points - 1 - total
-    if np.all(subdiv == 1):
-        return p
-    seg = np.repeat(np.arange(len(subdiv)), subdiv)
-    frac = (np.arange(total) - np.repeat(np.cumsum(subdiv) - subdiv, subdiv) + 1) / np.repeat(subdiv, subdiv)
-    out = p[seg] + frac[:, None] * (p[seg + 1] - p[seg])
-    out[np.cumsum(subdiv) - 1] = p[1:]     # segment ends exactly
-    return np.concatenate([p[:1], out])
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -251,58 +275,62 @@ def _not_a_knot_slopes(x, y):
     Return the slopes (M, n) at the knots of the not-a-knot cubic spline through (x (M,), y (M, n)), M ≥ 4.
 
     SciPy's ``CubicSpline`` system (the same rows), solved by LAPACK's ``gtsv`` elimination
-    (tridiagonal, partial pivoting) for every column.
+    (tridiagonal, partial pivoting); the matrix is the same for every column, so it is
+    eliminated once and the columns' right-hand sides follow it.
     """
     m, n = y.shape
     dx = x[1:] - x[:-1]
-    out = np.empty((m, n))
     d = np.empty(m)
     du = np.empty(m - 1)
     dl = np.empty(m - 1)
-    du2 = np.empty(m)
-    b = np.empty(m)
-    sl = np.empty(m - 1)
+    du2 = np.zeros(m)
+    b = np.empty((m, n))
+    sl = np.empty((m - 1, n))
+    for i in range(m - 1):
+        for col in range(n):
+            sl[i, col] = (y[i + 1, col] - y[i, col]) / dx[i]
+    for i in range(1, m - 1):
+        d[i] = 2.0 * (dx[i - 1] + dx[i])
+        du[i] = dx[i - 1]
+        dl[i - 1] = dx[i]
+        for col in range(n):
+            b[i, col] = 3.0 * (dx[i] * sl[i - 1, col] + dx[i - 1] * sl[i, col])
+    w = x[2] - x[0]
+    d[0] = dx[1]
+    du[0] = w
     for col in range(n):
-        for i in range(m - 1):
-            sl[i] = (y[i + 1, col] - y[i, col]) / dx[i]
-        for i in range(1, m - 1):
-            d[i] = 2.0 * (dx[i - 1] + dx[i])
-            du[i] = dx[i - 1]
-            dl[i - 1] = dx[i]
-            b[i] = 3.0 * (dx[i] * sl[i - 1] + dx[i - 1] * sl[i])
-        w = x[2] - x[0]
-        d[0] = dx[1]
-        du[0] = w
-        b[0] = ((dx[0] + 2.0 * w) * dx[1] * sl[0] + dx[0] ** 2 * sl[1]) / w
-        w = x[m - 1] - x[m - 3]
-        d[m - 1] = dx[m - 3]
-        dl[m - 2] = w
-        b[m - 1] = (dx[m - 2] ** 2 * sl[m - 3] + (2.0 * w + dx[m - 2]) * dx[m - 3] * sl[m - 2]) / w
-        du2[:] = 0.0
-        for i in range(m - 1):
-            if abs(d[i]) >= abs(dl[i]):
-                f = dl[i] / d[i]
-                d[i + 1] -= f * du[i]
-                b[i + 1] -= f * b[i]
-            else:
-                f = d[i] / dl[i]
-                d[i] = dl[i]
-                t = d[i + 1]
-                d[i + 1] = du[i] - f * t
-                if i < m - 2:
-                    du2[i] = du[i + 1]
-                    du[i + 1] = -f * du2[i]
-                du[i] = t
-                t = b[i]
-                b[i] = b[i + 1]
-                b[i + 1] = t - f * b[i + 1]
-        b[m - 1] /= d[m - 1]
-        b[m - 2] = (b[m - 2] - du[m - 2] * b[m - 1]) / d[m - 2]
-        for i in range(m - 3, -1, -1):
-            b[i] = (b[i] - du[i] * b[i + 1] - du2[i] * b[i + 2]) / d[i]
-        for i in range(m):
-            out[i, col] = b[i]
-    return out
+        b[0, col] = ((dx[0] + 2.0 * w) * dx[1] * sl[0, col] + dx[0] ** 2 * sl[1, col]) / w
+    w = x[m - 1] - x[m - 3]
+    d[m - 1] = dx[m - 3]
+    dl[m - 2] = w
+    for col in range(n):
+        b[m - 1, col] = (dx[m - 2] ** 2 * sl[m - 3, col] + (2.0 * w + dx[m - 2]) * dx[m - 3] * sl[m - 2, col]) / w
+    for i in range(m - 1):
+        if abs(d[i]) >= abs(dl[i]):
+            f = dl[i] / d[i]
+            d[i + 1] -= f * du[i]
+            for col in range(n):
+                b[i + 1, col] -= f * b[i, col]
+        else:
+            f = d[i] / dl[i]
+            d[i] = dl[i]
+            t = d[i + 1]
+            d[i + 1] = du[i] - f * t
+            if i < m - 2:
+                du2[i] = du[i + 1]
+                du[i + 1] = -f * du2[i]
+            du[i] = t
+            for col in range(n):
+                t = b[i, col]
+                b[i, col] = b[i + 1, col]
+                b[i + 1, col] = t - f * b[i + 1, col]
+    for col in range(n):
+        b[m - 1, col] /= d[m - 1]
+        b[m - 2, col] = (b[m - 2, col] - du[m - 2] * b[m - 1, col]) / d[m - 2]
+    for i in range(m - 3, -1, -1):
+        for col in range(n):
+            b[i, col] = (b[i, col] - du[i] * b[i + 1, col] - du2[i] * b[i + 2, col]) / d[i]
+    return b
 
 
 @njit(cache=True, nogil=True)
@@ -320,25 +348,72 @@ def _hermite_on_grid(x, y, slopes, s, refine):
     d1 = np.empty((g, n))
     d2 = np.empty((g, n))
     d3 = np.empty((g - 1, n))
+    c0 = np.empty(n)
+    c1 = np.empty(n)
     for k in range(m - 1):
         h = x[k + 1] - x[k]
-        last = k == m - 2
         for col in range(n):
             sl = (y[k + 1, col] - y[k, col]) / h
             t = (slopes[k, col] + slopes[k + 1, col] - 2.0 * sl) / h
-            c0 = t / h
-            c1 = (sl - slopes[k, col]) / h - t
-            c2 = slopes[k, col]
-            c3 = y[k, col]
-            for r in range(refine + (1 if last else 0)):
-                j = k * refine + r
-                z = s[j] - x[k]
-                q[j, col] = ((c0 * z + c1) * z + c2) * z + c3
-                d1[j, col] = (3.0 * c0 * z + 2.0 * c1) * z + c2
-                d2[j, col] = 6.0 * c0 * z + 2.0 * c1
+            c0[col] = t / h
+            c1[col] = (sl - slopes[k, col]) / h - t
+        for r in range(refine + (1 if k == m - 2 else 0)):
+            j = k * refine + r
+            z = s[j] - x[k]
+            for col in range(n):
+                c2 = slopes[k, col]
+                q[j, col] = ((c0[col] * z + c1[col]) * z + c2) * z + y[k, col]
+                d1[j, col] = (3.0 * c0[col] * z + 2.0 * c1[col]) * z + c2
+                d2[j, col] = 6.0 * c0[col] * z + 2.0 * c1[col]
                 if j < g - 1:
-                    d3[j, col] = 6.0 * c0
+                    d3[j, col] = 6.0 * c0[col]
     return q, d1, d2, d3
+
+
+@njit(cache=True, nogil=True)
+def _chords(p):
+    """Return the joint-space chord length of each step of p (M, n): (M-1,), rad (summed in joint order)."""
+    m, n = p.shape
+    ds = np.empty(m - 1)
+    for k in range(m - 1):
+        acc = 0.0
+        for a in range(n):
+            d = p[k + 1, a] - p[k, a]
+            acc += d * d
+        ds[k] = np.sqrt(acc)
+    return ds
+
+
+@njit(cache=True, nogil=True)
+def _grid(ds, refine):
+    """Return the knots' chord lengths (M,) and the grid's s (G,), G = (M-1)·refine + 1, knots exact."""
+    m = ds.shape[0] + 1
+    s_knots = np.empty(m)
+    s_knots[0] = 0.0
+    for k in range(m - 1):
+        s_knots[k + 1] = s_knots[k] + ds[k]
+    s = np.empty((m - 1) * refine + 1)
+    for k in range(m - 1):
+        s[k * refine] = s_knots[k]
+        for r in range(1, refine):
+            s[k * refine + r] = s_knots[k] + ds[k] * (r / refine)
+    s[-1] = s_knots[-1]
+    return s_knots, s
+
+
+@njit(cache=True, nogil=True)
+def _spline_on_grid(p, ds, refine):
+    """Return the not-a-knot spline through p (M ≥ 4) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
+    s_knots, s = _grid(ds, refine)
+    q, d1, d2, d3 = _hermite_on_grid(s_knots, p, _not_a_knot_slopes(s_knots, p), s, refine)
+    for k in range(p.shape[0]):
+        q[k * refine] = p[k]
+    return s, q, d1, d2, d3
+
+
+#: joints from which NumPy's row norms and sums (pairwise summation) are not plain left-to-right
+#: sums: the kernels keep to NumPy's arithmetic below it (the same trajectories bit for bit)
+_SEQUENTIAL_SUM_MAX = 7
 
 
 def _path_model(p, refine: int):
@@ -350,15 +425,16 @@ def _path_model(p, refine: int):
     exactly) and its q''' per grid segment (G-1, n) (constant on each spline piece).
     SciPy's not-a-knot ``CubicSpline``, by the kernels above from 4 samples on.
     """
-    ds = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    s_knots = np.concatenate([[0.0], np.cumsum(ds)])
-    frac = np.arange(refine) / refine
-    s = np.concatenate([(s_knots[:-1, None] + ds[:, None] * frac[None, :]).reshape(-1), s_knots[-1:]])
     idx = np.arange(len(p)) * refine
-    s[idx] = s_knots
+    if p.shape[1] <= _SEQUENTIAL_SUM_MAX:
+        ds = _chords(p)
+    else:
+        ds = np.linalg.norm(np.diff(p, axis=0), axis=1)
     if len(p) >= 4:
-        q, d1, d2, d3 = _hermite_on_grid(s_knots, p, _not_a_knot_slopes(s_knots, p), s, int(refine))
-    elif len(p) == 3:
+        s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine)
+        return s, idx, q, d1, d2, d3
+    s_knots, s = _grid(ds, refine)
+    if len(p) == 3:
         cs = CubicSpline(s_knots, p, axis=0, bc_type="not-a-knot")
         q, d1, d2 = cs(s), cs(s, 1), cs(s, 2)
         d3 = np.repeat(cs(0.5 * (s_knots[:-1] + s_knots[1:]), 3), refine, axis=0)
@@ -372,67 +448,81 @@ def _path_model(p, refine: int):
     return s, idx, q, d1, d2, d3
 
 
+@njit(cache=True, nogil=True)
+def _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv):
+    """
+    One constraint of grid segment i on (x_i, x_{i+1}), written ``|β x_{i+1} + σ x_i| ≤ c``.
+
+    Rows r of the constraints ``|a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]`` at
+    the segment's end p = i + ``end`` (0, 1), with u = (x_{i+1} - x_i) / (2Δ_i) (``inv`` =
+    0.5 / Δ_i); ``|f| + κ|u| ≤ c`` is ``|f + κu| ≤ c`` (``var`` 0) and ``|f − κu| ≤ c``
+    (``var`` 1, only where κ > 0).  Returns (β, σ, c with the sign of β (c where β = 0),
+    active: False where c is not finite or the constraint is var 1 of a κ = 0 row).
+    """
+    p = i + end
+    c = c_row[p, r]
+    kap = kappa[i, r]
+    if not c < np.inf or (var == 1 and not kap > 0.0):
+        return 1.0, 0.0, c, False
+    a = a_row[p, r] + (kap if var == 0 else -kap)
+    if end == 0:
+        beta = a * inv
+        sr = b_row[p, r] - a * inv
+    else:
+        beta = a * inv + b_row[p, r]
+        sr = -a * inv
+    return beta, sr, (-c if beta < 0.0 else c), True
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
     Return the bounds on x_{i+1} from x_i = x on segment i, and their slopes in x.
 
-    Constraints (rows r, at both ends p = i, i+1 of the segment, u = (x_{i+1} - x_i)/(2Δ_i)):
-    |a[p, r] u + b[p, r] x_p| + kappa[i, r] |u| ≤ c[p, r]; 0 ≤ x_{i+1} ≤ xv[i+1]; x_{i+1} ≤ k_next.
-    (|f| + κ|u| ≤ c is |f + κu| ≤ c and |f − κu| ≤ c.)  Each bound on x_{i+1} is affine in
-    x; a constraint without an x_{i+1} term bounds x alone.  Returns (lo, its slope, hi,
-    its slope, g, its slope): the largest lower bound, the smallest upper bound, and the
-    largest violation ``|coefficient| x - c`` of the constraints on x alone (-inf: none).
+    The constraints :func:`_constraint` and 0 ≤ x_{i+1} ≤ xv[i+1], x_{i+1} ≤ k_next.  Each
+    bound on x_{i+1} is affine in x; a constraint without an x_{i+1} term (β = 0) bounds x
+    alone.  Returns (lo, its slope, hi, its slope, g, its slope): the largest lower bound,
+    the smallest upper bound, and the largest violation ``|σ| x - c`` of the constraints on
+    x alone (-inf: none).
     """
     inv = 0.5 / delta[i]
-    lo, s_lo = 0.0, 0.0
-    hi, s_hi = min(xv[i + 1], k_next), 0.0
+    lo, hi = 0.0, min(xv[i + 1], k_next)
     g, s_g = -np.inf, 0.0
+    lo_beta = lo_sr = hi_beta = hi_sr = 0.0     # the constraints that set lo and hi (β = 0: none)
     for end in range(2):
-        p = i + end
         for r in range(a_row.shape[1]):
-            c = c_row[p, r]
-            if not c < np.inf:
-                continue
-            b = b_row[p, r]
-            n_var = 2 if kappa[i, r] > 0.0 else 1
-            for var in range(n_var):
-                a = a_row[p, r] + (kappa[i, r] if var == 0 else -kappa[i, r])
-                if end == 0:
-                    beta = a * inv
-                    sr = b - a * inv
-                else:
-                    beta = a * inv + b
-                    sr = -a * inv
+            for var in range(2):
+                beta, sr, cc, active = _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv)
+                if not active:
+                    continue
                 rest = sr * x
                 if beta != 0.0:
-                    cc = c if beta > 0.0 else -c
                     up = (cc - rest) / beta
                     dn = (-cc - rest) / beta
                     if up < hi:
-                        hi, s_hi = up, -sr / beta
+                        hi, hi_beta, hi_sr = up, beta, sr
                     if dn > lo:
-                        lo, s_lo = dn, -sr / beta
+                        lo, lo_beta, lo_sr = dn, beta, sr
                 else:
-                    v = abs(rest) - c
+                    v = abs(rest) - cc
                     if v > g:
                         g, s_g = v, abs(sr)
+    s_lo = -lo_sr / lo_beta if lo_beta != 0.0 else 0.0
+    s_hi = -hi_sr / hi_beta if hi_beta != 0.0 else 0.0
     return lo, s_lo, hi, s_hi, g, s_g
 
 
-@njit(cache=True, nogil=True)
-def _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
+@njit(cache=True, nogil=True, inline="always")
+def _admits(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
     """
-    Admissible x_{i+1} from x_i = x on segment i: the interval [lo, hi] (lo > hi: none).
+    Tell whether x_i = x admits some x_{i+1} on segment i (the passes' test).
 
-    The constraints are :func:`_bounds`'; besides them 0 ≤ x_i ≤ xv[i].
+    0 ≤ x ≤ xv[i], and :func:`_bounds`' lo ≤ hi and g ≤ 0.
     """
     if x > xv[i] or x < 0.0:
-        return 1.0, -1.0
+        return False
     lo, _, hi, _, g, _ = _bounds(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
-    if g > 0.0:
-        return 1.0, -1.0
-    return lo, hi
+    return lo <= hi and not g > 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -457,14 +547,15 @@ def _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k_next):
     Return the largest x_i ≤ xv[i] from which some x_{i+1} ∈ [0, k_next] is admissible (0: none).
 
     Newton's method from above on the convex piecewise linear :func:`_violation` (each step
-    lands on or above the root, exactly on it once on the last piece: a few steps), then
-    lowered by ulps until :func:`_next_range` (the passes' own test) admits it.
+    lands on or above the root, exactly on it once on the last piece: a few steps; a
+    non-positive violation is :func:`_admits`), else lowered by ulps until :func:`_admits`
+    (the passes' own test) holds.
     """
     x = xv[i]
     for _ in range(64):
         f, slope = _violation(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
-        if f <= 0.0:
-            break
+        if f <= 0.0:                # 0 ≤ x ≤ xv[i], lo ≤ hi and g ≤ 0: admitted
+            return x
         if not slope > 0.0:
             return 0.0
         x_new = x - f / slope
@@ -474,8 +565,7 @@ def _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k_next):
             break
         x = x_new
     for _ in range(64):
-        lo, hi = _next_range(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next)
-        if lo <= hi:
+        if _admits(i, x, a_row, b_row, c_row, kappa, xv, delta, k_next):
             return x
         x = x - max(4.0 * 2.220446049250313e-16 * x, 1e-300)
         if x <= 0.0:
@@ -485,8 +575,7 @@ def _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k_next):
         mid = 0.5 * (a + b)
         if mid <= a or mid >= b:
             break
-        lo, hi = _next_range(i, mid, a_row, b_row, c_row, kappa, xv, delta, k_next)
-        if lo <= hi:
+        if _admits(i, mid, a_row, b_row, c_row, kappa, xv, delta, k_next):
             a = mid
         else:
             b = mid
@@ -499,24 +588,52 @@ def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
     m = xv.shape[0]
     k = np.empty(m)
     k[m - 1] = min(x_end, xv[m - 1])
+    limited = False
     for i in range(m - 2, -1, -1):
-        lo, hi = _next_range(i, xv[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
-        if lo <= hi:
+        # after a limited k_{i+1} (runs of them: where the acceleration limits bind), Newton's
+        # first step is the test itself (f(xv[i]) ≤ 0 is admission): the same k_i either way
+        if not limited and _admits(i, xv[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1]):
             k[i] = xv[i]
         else:                       # the feasible x_i form an interval [0, k_i]
             k[i] = _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
+        limited = k[i] < xv[i]
     return k
 
 
 @njit(cache=True, nogil=True)
 def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
-    """Greedy forward pass: the largest admissible x_{i+1} ∈ K_{i+1} at every step."""
+    """
+    Greedy forward pass: the largest admissible x_{i+1} ∈ K_{i+1} at every step, x (G,).
+
+    :func:`_bounds`' upper bound and g, by a loop of its own: the values only, half the
+    divisions (the lower bounds are not needed).  An x_i outside [0, xv[i]] or violating a
+    constraint on x alone (not reached: x_i ∈ K_i) is followed by 0.
+    """
     m = xv.shape[0]
     x = np.empty(m)
     x[0] = x0
     for i in range(m - 1):
-        lo, hi = _next_range(i, x[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
-        x[i + 1] = max(hi, 0.0)     # lo ≤ hi up to rounding: x_i ∈ K_i
+        xi = x[i]
+        if xi > xv[i] or xi < 0.0:
+            x[i + 1] = 0.0
+            continue
+        inv = 0.5 / delta[i]
+        hi = min(xv[i + 1], k[i + 1])
+        g = -np.inf
+        for end in range(2):
+            for r in range(a_row.shape[1]):
+                for var in range(2):
+                    beta, sr, cc, active = _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv)
+                    if not active:
+                        continue
+                    rest = sr * xi
+                    if beta != 0.0:
+                        up = (cc - rest) / beta
+                        if up < hi:
+                            hi = up
+                    else:
+                        g = max(g, abs(rest) - cc)
+        x[i + 1] = 0.0 if g > 0.0 else max(hi, 0.0)     # lo ≤ hi up to rounding: x_i ∈ K_i
     return x
 
 
@@ -568,29 +685,60 @@ _ROUNDING_ROUNDS = 8
 _EPS = float(np.finfo(float).eps)
 
 
-def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0):
-    """Forward pass from x0 (clipped to K_0) to rest: (x (G,), grid durations dt (G-1,) s)."""
+@njit(cache=True, nogil=True)
+def _timed_forward(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
+    """
+    Run the forward pass from x0 (clipped to K_0) to rest, and time it.
+
+    Returns (x (G,), grid durations dt (G-1,) s, sample times t (M,) s, sample intervals
+    (M-1,) s, ok): ``dt = 2 Δ / (ṡ_i + ṡ_{i+1})``; each sample interval the sum of its
+    ``refine`` grid durations in order, the times their running sum from 0 (NumPy's row sums
+    and ``cumsum`` for ``refine`` ≤ 7); ok False when a stretch has ṡ = 0 at both ends.
+    """
     x = _forward(a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
-    x[-1] = 0.0
-    sdg = np.sqrt(x)
-    den = sdg[:-1] + sdg[1:]
-    if np.any(den <= 0.0):
+    g = x.shape[0]
+    x[g - 1] = 0.0
+    dt = np.empty(g - 1)
+    ok = True
+    prev = np.sqrt(x[0])
+    for j in range(g - 1):
+        nxt = np.sqrt(x[j + 1])
+        den = prev + nxt
+        if den <= 0.0:
+            ok = False
+        dt[j] = 2.0 * ds[j] / den if den > 0.0 else np.inf
+        prev = nxt
+    m = (g - 1) // refine + 1
+    per = np.empty(m - 1)
+    t = np.empty(m)
+    t[0] = 0.0
+    for k_s in range(m - 1):
+        acc = dt[k_s * refine]
+        for r in range(1, refine):
+            acc += dt[k_s * refine + r]
+        per[k_s] = acc
+        t[k_s + 1] = t[k_s] + acc
+    return x, dt, t, per, ok
+
+
+def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
+    """
+    Forward pass from x0 (clipped to K_0) to rest (:func:`_timed_forward`).
+
+    Returns (x (G,), grid durations dt (G-1,) s, sample times (M,) s, 0 first, sample
+    intervals (M-1,) s).  Raises ValueError where ṡ = 0 at both ends of a grid segment.
+    """
+    x, dt, t, per, ok = _timed_forward(a_row, b_row, c_row, kappa, xv, ds, k, float(x0), int(refine))
+    if not ok:
         raise ValueError("path: a stretch cannot be followed at any speed within the limits")
-    return x, 2.0 * ds / den
+    if refine > _SEQUENTIAL_SUM_MAX:        # NumPy's pairwise row sums
+        per = dt.reshape(-1, refine).sum(axis=1)
+        t = np.concatenate([[0.0], np.cumsum(per)])
+    return x, dt, t, per
 
 
-def _sample_times(dt, refine):
-    """
-    Sample times (M,) s, 0 first, and the sample intervals (M-1,) s.
-
-    The grid durations dt (G-1,) summed per sample interval (``refine`` grid segments), then
-    accumulated (so each published interval is its sum up to half an ulp of the time).
-    """
-    per = dt.reshape(-1, refine).sum(axis=1)
-    return np.concatenate([[0.0], np.cumsum(per)]), per
-
-
-def _rounding_margins(t, dt, p, v0, amax, refine):
+@njit(cache=True, nogil=True)
+def _rounding_margins(t, dt, p, d1, x, amax, refine, m_acc, m_vel):
     """
     Bound the effect of float rounding on the published samples' finite differences.
 
@@ -598,51 +746,188 @@ def _rounding_margins(t, dt, p, v0, amax, refine):
 
     Args:
         t: (M,) published sample times, s; dt: (M-1,) sample intervals, s; p: (M, n)
-        positions, rad; v0: (n,) |start velocity|, rad/s; amax: (n,) rad/s²;
-        refine: grid segments per sample interval.
+        positions, rad; d1: (G, n) the path's tangent q' and x: (G,) ṡ² on the grid (the
+        start velocity is |q'(0)| ṡ(0)); amax: (n,) rad/s²; refine: grid segments per
+        sample interval; m_acc (G, n), m_vel (G,): the margins taken so far.
 
     Returns
     -------
         (acc (G, n) rad/s²: per grid point, the most rounding can add to a finite-difference
         acceleration whose interval covers it; vel (G,): the most it can add to a segment
-        velocity, as a fraction of it).  Both carry a factor 2 for second-order terms.
+        velocity, as a fraction of it; both 0 where at most ``_ROUNDING_SLACK`` of the limit,
+        and carrying a factor 2 for second-order terms; grown: some exceeds its margin so far).
 
     """
     m, n = p.shape
+    g = (m - 1) * refine + 1
+    sd0 = np.sqrt(x[0])
     # |published Δt_k − exact Δt_k|: the sum of `refine` durations (relative eps each, plus
     # those of the durations themselves) and, after the first, the time's rounding
-    err_t = (refine + 6) * _EPS * dt
-    err_t[1:] += 0.5 * np.spacing(t[2:])
-    rel = err_t / dt + 2.0 * _EPS                       # of Δt_k, and of the quotient
-    w = np.abs(np.diff(p, axis=0)) / dt[:, None]        # (M-1, n) segment speeds
-    e = w * rel[:, None]                                # their errors
-    zero = np.zeros((1, n))
-    e_b, e_a = np.vstack([2.0 * _EPS * v0[None, :], e]), np.vstack([e, zero])
-    w_b, w_a = np.vstack([v0[None, :], w]), np.vstack([w, zero])
-    t_b, t_a = np.concatenate([[0.0], err_t]), np.concatenate([err_t, [0.0]])
-    half = 0.5 * (np.concatenate([[0.0], dt]) + np.concatenate([dt, [0.0]]))
-    # (w_after − w_before) / half: the velocities' errors, the difference's own rounding,
-    # and the relative error of `half` times the (bounded) value
-    fd = 2.0 * ((e_b + e_a + _EPS * (w_b + w_a)) / half[:, None]
-                + amax[None, :] * ((t_b + t_a) / (2.0 * half))[:, None])
-    # the finite difference at sample k averages the motion over intervals k-1 and k
-    per_int = np.maximum(fd[:-1], fd[1:])               # (M-1, n)
-    acc = np.empty(((m - 1) * refine + 1, n))
-    acc[:-1] = np.repeat(per_int, refine, axis=0)
-    acc[-1] = per_int[-1]
-    acc[refine:-1:refine] = np.maximum(per_int[:-1], per_int[1:])
-    vel = np.empty(len(acc))
-    vel[:-1] = np.repeat(2.0 * rel, refine)
-    vel[-1] = 2.0 * rel[-1]
-    vel[refine:-1:refine] = 2.0 * np.maximum(rel[:-1], rel[1:])
-    return acc, vel
+    err_t = np.empty(m - 1)
+    rel = np.empty(m - 1)
+    t_up = (t.view(np.int64) + 1).view(np.float64)      # the next double above each t ≥ 0
+    for k in range(m - 1):
+        err_t[k] = (refine + 6) * _EPS * dt[k]
+        if k >= 1:
+            err_t[k] += 0.5 * (t_up[k + 1] - t[k + 1])
+        rel[k] = err_t[k] / dt[k] + 2.0 * _EPS          # of Δt_k, and of the quotient
+    # per sample k: (w_after − w_before) / half, w the segment speeds (the start velocity
+    # before the first, rest after the last): the velocities' errors, the difference's own
+    # rounding, and the relative error of `half` times the (bounded) value
+    fd = np.empty((m, n))
+    for k in range(m):
+        dt_b = dt[k - 1] if k > 0 else 0.0
+        dt_a = dt[k] if k < m - 1 else 0.0
+        half = 0.5 * (dt_b + dt_a)
+        t_b = err_t[k - 1] if k > 0 else 0.0
+        t_a = err_t[k] if k < m - 1 else 0.0
+        tt = (t_b + t_a) / (2.0 * half)
+        for a in range(n):
+            if k > 0:
+                w_b = abs(p[k, a] - p[k - 1, a]) / dt[k - 1]
+                e_b = w_b * rel[k - 1]
+            else:
+                w_b = abs(d1[0, a]) * sd0
+                e_b = 2.0 * _EPS * w_b
+            if k < m - 1:
+                w_a = abs(p[k + 1, a] - p[k, a]) / dt[k]
+                e_a = w_a * rel[k]
+            else:
+                w_a = 0.0
+                e_a = 0.0
+            fd[k, a] = 2.0 * ((e_b + e_a + _EPS * (w_b + w_a)) / half + amax[a] * tt)
+    # the finite difference at sample k averages the motion over intervals k-1 and k: grid
+    # point j = k·refine + r of interval k (the last point: of the last interval)
+    acc = np.empty((g, n))
+    vel = np.empty(g)
+    grown = False
+    for k in range(m - 1):
+        for r in range(refine + 1 if k == m - 2 else refine):
+            j = k * refine + r
+            shared = r == 0 and k > 0
+            for a in range(n):
+                v = max(fd[k, a], fd[k + 1, a])
+                if shared:
+                    v = max(max(fd[k - 1, a], fd[k, a]), v)
+                if v <= _ROUNDING_SLACK * amax[a]:
+                    v = 0.0
+                acc[j, a] = v
+                if not v <= m_acc[j, a]:
+                    grown = True
+            e = 2.0 * max(rel[k - 1], rel[k]) if shared else 2.0 * rel[k]
+            if e <= _ROUNDING_SLACK:
+                e = 0.0
+            vel[j] = e
+            if not e <= m_vel[j]:
+                grown = True
+    return acc, vel, grown
+
+
+@njit(cache=True, nogil=True)
+def _constraint_rows(d1, d3, ds, vmax, amax):
+    """
+    Return the velocity bound xv (G,) on x = ṡ², the acceleration rows' κ (G-1, n) and limits c (G, n).
+
+    Velocity type: on a grid segment |q'_j| exceeds its larger end value by at most
+    |q'''| Δ²/8 and ṡ stays below the larger end value, so bounding both ends with that
+    margin bounds the velocity everywhere on the spline (xv ≤ 1e300).  Acceleration type:
+    inside a segment q' u + q'' x is quadratic in s with leading coefficient 2.5 q''' u, so
+    it exceeds the larger end value by at most κ |u| = 2.5 |q'''| |u| Δ²/4.
+    """
+    g, n = d1.shape
+    xv = np.empty(g)
+    kappa = np.empty((g - 1, n))
+    c_row = np.empty((g, n))
+    for i in range(g):
+        lim = np.inf
+        for a in range(n):
+            c_row[i, a] = amax[a]
+            tang = abs(d1[i, a])
+            if i < g - 1:
+                tang = max(tang, max(abs(d1[i, a]), abs(d1[i + 1, a])) + abs(d3[i, a]) * (ds[i] * ds[i] / 8.0))
+                kappa[i, a] = 2.5 * abs(d3[i, a]) * (ds[i] * ds[i] / 4.0)
+            if i > 0:
+                tang = max(tang, max(abs(d1[i - 1, a]), abs(d1[i, a]))
+                           + abs(d3[i - 1, a]) * (ds[i - 1] * ds[i - 1] / 8.0))
+            if tang > 0.0:
+                r = vmax[a] / tang
+                lim = min(lim, r * r)
+        xv[i] = min(lim, 1e300)
+    return xv, kappa, c_row
+
+
+@njit(cache=True, nogil=True)
+def _sample_states(x, dt, ds, d1, d2, refine, vmax, amax, g_w, gp_w, h_max, tau_max):
+    """
+    Return the published samples' states and the constraint closest to its limit at each.
+
+    Args:
+        x: (G,) ṡ² on the grid; dt: (G-1,) grid durations, s; ds: (G-1,) grid steps, rad;
+        d1, d2: (G, n) q', q''; refine: grid segments per sample; vmax, amax: (n,) the
+        limits; g_w, gp_w: (G,) the wheel terms H·q' and d(H·q')/ds (empty: no wheel);
+        h_max, tau_max: the wheel limits (inf: none).
+
+    Returns
+    -------
+        (ṡ (M,), velocities (M, n) rad/s (0 at the end), accelerations (M, n) rad/s², the
+        wheel momentum and torque (M,) (empty: no wheel), the index of the constraint closest
+        to its limit (M,): velocity of joint j (j), acceleration of joint j (n + j), wheel
+        momentum (2n), wheel torque (2n + 1), and its |value| / limit (M,)).  The
+        acceleration is ``q' ū + q'' x`` with ``ū`` the Δt-weighted mean of the neighbouring
+        grid segments' ``u``; the ratios take each segment's ``u``.
+
+    """
+    g, n = d1.shape
+    m = (g - 1) // refine + 1
+    wheel = g_w.shape[0] > 0
+    sd = np.empty(m)
+    vel = np.empty((m, n))
+    acc = np.empty((m, n))
+    h_w = np.empty(m if wheel else 0)
+    tau_w = np.empty(m if wheel else 0)
+    best = np.empty(m, np.int64)
+    ratio = np.empty(m)
+    for k in range(m):
+        j = k * refine
+        u_b = (x[j] - x[j - 1]) / (2.0 * ds[j - 1]) if j > 0 else (x[1] - x[0]) / (2.0 * ds[0])
+        u_a = (x[j + 1] - x[j]) / (2.0 * ds[j]) if j < g - 1 else (x[g - 1] - x[g - 2]) / (2.0 * ds[g - 2])
+        dt_b = dt[j - 1] if j > 0 else 0.0
+        dt_a = dt[j] if j < g - 1 else 0.0
+        u = (dt_b * u_b + dt_a * u_a) / (dt_b + dt_a)
+        xs = x[j]
+        s_d = np.sqrt(xs)
+        sd[k] = s_d
+        top, arg = -np.inf, -1
+        for a in range(n):
+            vel[k, a] = 0.0 if k == m - 1 else d1[j, a] * s_d
+            acc[k, a] = d1[j, a] * u + d2[j, a] * xs
+            r = abs(d1[j, a]) * s_d / vmax[a]
+            if r > top:
+                top, arg = r, a
+        for a in range(n):
+            r = max(abs(d1[j, a] * u_b + d2[j, a] * xs), abs(d1[j, a] * u_a + d2[j, a] * xs)) / amax[a]
+            if r > top:
+                top, arg = r, n + a
+        if wheel:
+            gs, gps = g_w[j], gp_w[j]
+            h_w[k] = -gs * s_d
+            tau_w[k] = -(gps * xs + gs * u)
+            r = abs(gs) * s_d / h_max
+            if r > top:
+                top, arg = r, 2 * n
+            r = max(abs(gps * xs + gs * u_b), abs(gps * xs + gs * u_a)) / tau_max
+            if r > top:
+                top, arg = r, 2 * n + 1
+        best[k] = arg
+        ratio[k] = top
+    return sd, vel, acc, h_w, tau_w, best, ratio
 
 
 def _check_limits(name, lim, n):
     lim = np.asarray(lim, dtype=float).reshape(-1)
     if lim.shape != (n,):
         raise ValueError(f"{name}: expected {n} values (one per joint), got {lim.shape[0]}")
-    if not np.all(np.isfinite(lim)) or np.any(lim <= 0.0):
+    if not all(0.0 < v < math.inf for v in lim.tolist()):      # a few joints: no array reductions
         raise ValueError(f"{name}: every limit must be a finite number > 0, got {list(lim)}")
     return lim
 
@@ -729,39 +1014,23 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                           zero.copy() if wheel is not None else None,
                           None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
 
-    s, idx, qg, d1, d2, d3 = _path_model(p, int(grid_refinement))
+    refine = int(grid_refinement)
+    s, idx, qg, d1, d2, d3 = _path_model(p, refine)
+    d1, d2, d3 = np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3)
     ds = np.diff(s)
     g_n = len(s)
-    # ---- velocity type, x = ṡ² ≤ xv: on a grid segment |q'_j| exceeds its larger end
-    # value by at most |q'''| Δ²/8 and ṡ stays below the larger end value, so
-    # bounding both ends with that margin bounds the velocity everywhere on the spline
-    tang = np.abs(d1)
-    dev = np.abs(d3) * (ds ** 2 / 8.0)[:, None]
-    seg_tang = np.maximum(tang[:-1], tang[1:]) + dev
-    tang_b = tang.copy()
-    tang_b[:-1] = np.maximum(tang_b[:-1], seg_tang)
-    tang_b[1:] = np.maximum(tang_b[1:], seg_tang)
-    with np.errstate(divide="ignore"):
-        xv = np.min((vmax[None, :] / tang_b) ** 2, axis=1)
-    # ---- acceleration type, |a u + b x| + κ|u| ≤ c: inside a segment q' u + q'' x is
-    # quadratic in s with leading coefficient 2.5 q''' u, so it exceeds the larger end
-    # value by at most 2.5 |q'''| |u| Δ²/4 (κ): the bound holds everywhere on the spline
-    kappas = [2.5 * np.abs(d3) * (ds ** 2 / 4.0)[:, None]]
-    a_rows, b_rows, c_rows = [d1], [d2], [np.broadcast_to(amax, (g_n, n))]
+    # velocity type x = ṡ² ≤ xv, the acceleration rows' κ and limits: see _constraint_rows
+    xv, kappa, c_row = _constraint_rows(d1, d3, ds, vmax, amax)
+    a_row, b_row = d1, d2
     g = gp = None
     if wheel is not None:
         g, gp = wheel.path_terms(qg, d1, d2)
         with np.errstate(divide="ignore"):
             xv = np.minimum(xv, (h_max / np.abs(g)) ** 2)
-        a_rows.append(g[:, None])
-        b_rows.append(gp[:, None])
-        c_rows.append(np.full((g_n, 1), tau_max))
-        kappas.append(np.zeros((g_n - 1, 1)))
-    a_row = np.ascontiguousarray(np.hstack(a_rows))
-    b_row = np.ascontiguousarray(np.hstack(b_rows))
-    c_row = np.ascontiguousarray(np.hstack(c_rows))
-    kappa = np.ascontiguousarray(np.hstack(kappas))
-    xv = np.ascontiguousarray(np.minimum(xv, 1e300))
+        a_row = np.ascontiguousarray(np.hstack([d1, g[:, None]]))
+        b_row = np.ascontiguousarray(np.hstack([d2, gp[:, None]]))
+        c_row = np.ascontiguousarray(np.hstack([c_row, np.full((g_n, 1), tau_max)]))
+        kappa = np.ascontiguousarray(np.hstack([kappa, np.zeros((g_n - 1, 1))]))
 
     k = _backward(a_row, b_row, c_row, kappa, xv, ds, 0.0)
     x0 = sd0 * sd0
@@ -773,16 +1042,12 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     # of the positions (by up to |w| ulp(t) / Δt² where samples are close in time).  Where
     # that could exceed _ROUNDING_SLACK of a limit, the limits there are lowered by a bound
     # on it and the passes rerun, until the bound from the new solution fits the margin.
-    refine = int(grid_refinement)
     c_used, xv_used = c_row, xv
     m_acc, m_vel = np.zeros((g_n, n)), np.zeros(g_n)
     for _ in range(_ROUNDING_ROUNDS):
-        x, dt = _solve(a_row, b_row, c_used, kappa, xv_used, ds, k, x0)
-        t, dt_samples = _sample_times(dt, refine)
-        acc_m, vel_m = _rounding_margins(t, dt_samples, p, np.abs(d1[0]) * np.sqrt(x[0]), amax, refine)
-        acc_m[acc_m <= _ROUNDING_SLACK * amax] = 0.0
-        vel_m[vel_m <= _ROUNDING_SLACK] = 0.0
-        if np.all(acc_m <= m_acc) and np.all(vel_m <= m_vel):
+        x, dt, t, dt_samples = _solve(a_row, b_row, c_used, kappa, xv_used, ds, k, x0, refine)
+        acc_m, vel_m, grown = _rounding_margins(t, dt_samples, p, d1, x, amax, refine, m_acc, m_vel)
+        if not grown:
             break
         m_acc = np.maximum(m_acc, np.minimum(2.0 * acc_m, 0.9 * amax))
         m_vel = np.maximum(m_vel, np.minimum(2.0 * vel_m, 0.9))
@@ -790,40 +1055,16 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         c_used[:, :n] = amax - m_acc
         xv_used = np.ascontiguousarray(xv * (1.0 - m_vel) ** 2)
         k = _backward(a_row, b_row, c_used, kappa, xv_used, ds, 0.0)
-    sdg = np.sqrt(x)
-    u_seg = (x[1:] - x[:-1]) / (2.0 * ds)
-    # ---- the samples: u before/after each sample (its neighbouring grid segments)
-    u_before = np.concatenate([[u_seg[0]], u_seg])[idx]
-    u_after = np.concatenate([u_seg, [u_seg[-1]]])[idx]
-    dt_before = np.concatenate([[0.0], dt])[idx]
-    dt_after = np.concatenate([dt, [0.0]])[idx]
-    u = (dt_before * u_before + dt_after * u_after) / (dt_before + dt_after)
-    xs, sd = x[idx], sdg[idx]
-    q1, q2 = d1[idx], d2[idx]
-    vel = q1 * sd[:, None]
-    acc = q1 * u[:, None] + q2 * xs[:, None]
-    vel[-1] = 0.0
-
-    # ---- which constraint is closest to its limit at each sample (both segments' u)
-    ratios = [tang[idx] * sd[:, None] / vmax]
-    labels = [f"velocity:{nm}" for nm in names]
-    ratios.append(np.maximum(np.abs(q1 * u_before[:, None] + q2 * xs[:, None]),
-                             np.abs(q1 * u_after[:, None] + q2 * xs[:, None])) / amax)
-    labels += [f"acceleration:{nm}" for nm in names]
-    h_w = tau_w = None
+    empty = np.zeros(0)
+    sd, vel, acc, h_w, tau_w, best, ratio = _sample_states(
+        x, dt, ds, d1, d2, refine, vmax, amax, empty if g is None else np.ascontiguousarray(g),
+        empty if gp is None else np.ascontiguousarray(gp), h_max, tau_max)
+    labels = [f"velocity:{nm}" for nm in names] + [f"acceleration:{nm}" for nm in names]
     if wheel is not None:
-        gs, gps = g[idx], gp[idx]
-        h_w = -gs * sd
-        tau_w = -(gps * xs + gs * u)
-        ratios.append((np.abs(gs) * sd / h_max)[:, None])
-        ratios.append((np.maximum(np.abs(gps * xs + gs * u_before), np.abs(gps * xs + gs * u_after))
-                       / tau_max)[:, None])
         labels += ["wheel_momentum", "wheel_torque"]
-    r = np.hstack(ratios)
-    best = np.argmax(r, axis=1)
-    m = len(p)
-    return Trajectory(names, t, p, vel, acc, vmax, amax, sd, np.array(labels)[best],
-                      r[np.arange(m), best], h_w, tau_w,
+    else:
+        h_w = tau_w = None
+    return Trajectory(names, t, p, vel, acc, vmax, amax, sd, np.array(labels)[best], ratio, h_w, tau_w,
                       None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
 
 
@@ -1113,6 +1354,72 @@ def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizo
                         traj.velocities_rad_s[k].copy())
 
 
+@njit(cache=True, nogil=True)
+def _controller_states(t, q, v, a, fields, ts, pos, vel, acc):
+    """
+    Fill pos, vel, acc (K, n) with the controller's interpolation of the points at the times ts (K,).
+
+    ``fields``: 1 positions only (linear segments), 2 with velocities (cubic Hermite), 3
+    with accelerations too (quintic); v, a are ignored where not given.  See
+    :func:`sample_points` for the rules at and beyond the ends; the polynomial on
+    [t_k, t_k+1] is in the normalised time x ∈ [0, 1], evaluated by Horner's rule with its
+    first two derivatives.
+    """
+    m, n = q.shape
+    c = np.zeros((6, n))
+    k_coef = -1
+    for i in range(ts.shape[0]):
+        s = ts[i]
+        if s < t[0] or s >= t[m - 1]:
+            last = s >= t[m - 1]
+            for j in range(n):
+                pos[i, j] = q[m - 1, j] if last else q[0, j]
+                vel[i, j] = v[m - 1, j] if s == t[m - 1] and fields >= 2 else 0.0
+                acc[i, j] = a[m - 1, j] if s == t[m - 1] and fields == 3 else 0.0
+            continue
+        if s != s:                      # NaN: NumPy's searchsorted puts it last
+            k = m - 2
+        else:                           # the last k with t[k] <= s (the segment [t_k, t_k+1))
+            lo, hi = 0, m
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if t[mid] <= s:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            k = min(max(lo - 1, 0), m - 2)
+        dur = t[k + 1] - t[k]
+        x = (s - t[k]) / dur
+        if k != k_coef:                 # the segment's coefficients (kept while ts stay in it)
+            k_coef = k
+            for j in range(n):
+                d = q[k + 1, j] - q[k, j]
+                c[0, j] = q[k, j]
+                if fields == 1:
+                    c[1, j] = d
+                else:
+                    w0, w1 = dur * v[k, j], dur * v[k + 1, j]
+                    c[1, j] = w0
+                    if fields == 2:
+                        c[2, j] = 3.0 * d - 2.0 * w0 - w1
+                        c[3, j] = -2.0 * d + w0 + w1
+                    else:
+                        b0, b1 = dur * dur * a[k, j], dur * dur * a[k + 1, j]
+                        c[2, j] = 0.5 * b0
+                        c[3, j] = 10.0 * d - 6.0 * w0 - 4.0 * w1 - 1.5 * b0 + 0.5 * b1
+                        c[4, j] = -15.0 * d + 8.0 * w0 + 7.0 * w1 + 1.5 * b0 - b1
+                        c[5, j] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
+        for j in range(n):
+            p, dp, ddp = c[5, j], 0.0, 0.0
+            for r in range(4, -1, -1):
+                ddp = ddp * x + 2.0 * dp
+                dp = dp * x + p
+                p = p * x + c[r, j]
+            pos[i, j] = p
+            vel[i, j] = dp / dur
+            acc[i, j] = ddp / (dur * dur)
+
+
 def sample_points(times_s, positions, velocities, accelerations, t_s):
     """
     Sample published trajectory points as joint_trajectory_controller interpolates them.
@@ -1161,45 +1468,13 @@ def sample_points(times_s, positions, velocities, accelerations, t_s):
         raise ValueError("sample_points: accelerations without velocities")
     ts = np.asarray(t_s, dtype=float)
     scalar = ts.ndim == 0
-    ts = np.atleast_1d(ts)
+    ts = np.ascontiguousarray(np.atleast_1d(ts))
     n_t, n = len(ts), q.shape[1]
-    pos = np.empty((n_t, n))
-    vel = np.zeros((n_t, n))
-    acc = np.zeros((n_t, n))
-    before, after, at_end = ts < t[0], ts > t[-1], ts == t[-1]
-    pos[before], pos[after | at_end] = q[0], q[-1]
-    if v is not None:
-        vel[at_end] = v[-1]
-    if a is not None:
-        acc[at_end] = a[-1]
-    inside = ~(before | after | at_end)
-    if np.any(inside):
-        s_in = ts[inside]
-        k = np.clip(np.searchsorted(t, s_in, side="right") - 1, 0, len(t) - 2)
-        dur = (t[k + 1] - t[k])[:, None]                      # (K', 1)
-        x = ((s_in - t[k])[:, None]) / dur                    # normalised time in the segment
-        q0, q1 = q[k], q[k + 1]
-        d = q1 - q0
-        c = np.zeros((6,) + q0.shape)                         # p(x) = Σ c_i x^i, x ∈ [0, 1]
-        c[0] = q0
-        if v is None:
-            c[1] = d
-        else:
-            w0, w1 = dur * v[k], dur * v[k + 1]
-            if a is None:
-                c[1], c[2], c[3] = w0, 3.0 * d - 2.0 * w0 - w1, -2.0 * d + w0 + w1
-            else:
-                b0, b1 = dur ** 2 * a[k], dur ** 2 * a[k + 1]
-                c[1], c[2] = w0, 0.5 * b0
-                c[3] = 10.0 * d - 6.0 * w0 - 4.0 * w1 - 1.5 * b0 + 0.5 * b1
-                c[4] = -15.0 * d + 8.0 * w0 + 7.0 * w1 + 1.5 * b0 - b1
-                c[5] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
-        p, dp, ddp = c[5], np.zeros_like(q0), np.zeros_like(q0)
-        for i in range(4, -1, -1):                            # Horner, with the first two derivatives
-            ddp = ddp * x + 2.0 * dp
-            dp = dp * x + p
-            p = p * x + c[i]
-        pos[inside], vel[inside], acc[inside] = p, dp / dur, ddp / dur ** 2
+    pos, vel, acc = np.empty((n_t, n)), np.empty((n_t, n)), np.empty((n_t, n))
+    fields = 1 if v is None else 2 if a is None else 3
+    q = np.ascontiguousarray(q)
+    _controller_states(np.ascontiguousarray(t), q, q if v is None else np.ascontiguousarray(v),
+                       q if a is None else np.ascontiguousarray(a), fields, ts, pos, vel, acc)
     if scalar:
         return pos[0], vel[0], acc[0]
     return pos, vel, acc

@@ -52,9 +52,11 @@ STEPS = (
     ("time parameterisation", "trajectory", "spacerobot_planner.timing", "time_parameterize"),
     ("densify", "time parameterisation", "spacerobot_planner.trajectory", "densify_path"),
     ("spline model", "time parameterisation", "spacerobot_planner.trajectory", "_path_model"),
+    ("constraint rows", "time parameterisation", "spacerobot_planner.trajectory", "_constraint_rows"),
     ("backward pass", "time parameterisation", "spacerobot_planner.trajectory", "_backward"),
     ("forward pass", "time parameterisation", "spacerobot_planner.trajectory", "_solve"),
     ("rounding margins", "time parameterisation", "spacerobot_planner.trajectory", "_rounding_margins"),
+    ("sample states", "time parameterisation", "spacerobot_planner.trajectory", "_sample_states"),
     ("reaction report", "trajectory", "spacerobot_planner.timing", "reaction_report"),
 )
 

@@ -1,0 +1,130 @@
+"""
+Tests of trajectory.py's numba kernels against independent formulations.
+
+The spline on the reachability grid against SciPy's not-a-knot ``CubicSpline``; densifying and
+the rounding margins against the array (NumPy) formulation they replaced, which they must
+reproduce bit for bit (the published trajectories do not change with the kernels).
+"""
+
+import numpy as np
+import pytest
+from scipy.interpolate import CubicSpline
+
+from spacerobot_planner.trajectory import _path_model, _rounding_margins, densify_path
+
+EPS = float(np.finfo(float).eps)
+SLACK = 1e-10
+
+
+def _random_path(rng, m, n):
+    return np.cumsum(rng.normal(0.0, 0.05, (m, n)), axis=0)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_spline_on_the_grid_is_scipys_not_a_knot_spline(seed):
+    rng = np.random.default_rng(seed)
+    m, n, refine = int(rng.integers(3, 60)), int(rng.integers(1, 5)), int(rng.integers(1, 6))
+    p = _random_path(rng, m, n)
+    s, idx, q, d1, d2, d3 = _path_model(p, refine)
+    knots = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    cs = CubicSpline(knots, p, axis=0, bc_type="not-a-knot")
+    assert s.shape == ((m - 1) * refine + 1,) and np.all(np.diff(s) > 0.0)
+    np.testing.assert_array_equal(s[idx], knots)
+    np.testing.assert_array_equal(q[idx], p)                   # the samples exactly
+    scale = np.max(np.abs(p)) + 1.0
+    np.testing.assert_allclose(q, cs(s), rtol=0, atol=1e-10 * scale)
+    for got, nu in ((d1, 1), (d2, 2)):
+        ref = cs(s, nu)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-7 * (np.max(np.abs(ref)) + 1.0))
+    mid = 0.5 * (s[:-1] + s[1:])
+    ref3 = cs(mid, 3)
+    np.testing.assert_allclose(d3, ref3, rtol=0, atol=1e-6 * (np.max(np.abs(ref3)) + 1.0))
+
+
+def _densify_numpy(path, max_step):
+    """Densify as the array formulation did: keep rows more than 1e-12 from the last kept one, exact goal, subdivide."""
+    p = np.asarray(path, dtype=float)
+    keep = [0]
+    for k in range(1, len(p)):
+        if np.max(np.abs(p[k] - p[keep[-1]])) > 1e-12:
+            keep.append(k)
+    if len(keep) > 1:
+        keep[-1] = len(p) - 1
+    p = p[keep]
+    if len(p) == 1:
+        return p
+    steps = np.max(np.abs(np.diff(p, axis=0)), axis=1)
+    subdiv = np.maximum(1, np.ceil(steps / max_step - 1e-9)).astype(int)
+    total = int(subdiv.sum())
+    if total + 1 < 3:
+        subdiv[np.argmax(steps)] += 3 - 1 - total
+        total = int(subdiv.sum())
+    seg = np.repeat(np.arange(len(subdiv)), subdiv)
+    frac = (np.arange(total) - np.repeat(np.cumsum(subdiv) - subdiv, subdiv) + 1) / np.repeat(subdiv, subdiv)
+    out = p[seg] + frac[:, None] * (p[seg + 1] - p[seg])
+    out[np.cumsum(subdiv) - 1] = p[1:]
+    return np.concatenate([p[:1], out])
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_densify_is_the_array_formulation_bit_for_bit(seed):
+    rng = np.random.default_rng(100 + seed)
+    m, n = int(rng.integers(2, 30)), int(rng.integers(1, 5))
+    p = _random_path(rng, m, n)
+    p[rng.integers(0, m, m // 3)] = p[0]                        # repeats
+    p = np.repeat(p, rng.integers(1, 3, m), axis=0)
+    if seed % 3 == 0:
+        p[1:-1] += rng.normal(0.0, 1e-13, p[1:-1].shape)      # creeping below the 1e-12 rad threshold
+    max_step = float(rng.choice([np.radians(0.5), 0.2, 1e-3]))
+    got, ref = densify_path(p, max_step), _densify_numpy(p, max_step)
+    assert got.shape == ref.shape
+    assert got.tobytes() == ref.tobytes()
+
+
+def _margins_numpy(t, dt, p, v0, amax, refine):
+    """Return the rounding margins by the array formulation, thresholded at SLACK of the limits."""
+    m, n = p.shape
+    err_t = (refine + 6) * EPS * dt
+    err_t[1:] += 0.5 * np.spacing(t[2:])
+    rel = err_t / dt + 2.0 * EPS
+    w = np.abs(np.diff(p, axis=0)) / dt[:, None]
+    e = w * rel[:, None]
+    zero = np.zeros((1, n))
+    e_b, e_a = np.vstack([2.0 * EPS * v0[None, :], e]), np.vstack([e, zero])
+    w_b, w_a = np.vstack([v0[None, :], w]), np.vstack([w, zero])
+    t_b, t_a = np.concatenate([[0.0], err_t]), np.concatenate([err_t, [0.0]])
+    half = 0.5 * (np.concatenate([[0.0], dt]) + np.concatenate([dt, [0.0]]))
+    fd = 2.0 * ((e_b + e_a + EPS * (w_b + w_a)) / half[:, None]
+                + amax[None, :] * ((t_b + t_a) / (2.0 * half))[:, None])
+    per_int = np.maximum(fd[:-1], fd[1:])
+    acc = np.empty(((m - 1) * refine + 1, n))
+    acc[:-1] = np.repeat(per_int, refine, axis=0)
+    acc[-1] = per_int[-1]
+    acc[refine:-1:refine] = np.maximum(per_int[:-1], per_int[1:])
+    vel = np.empty(len(acc))
+    vel[:-1] = np.repeat(2.0 * rel, refine)
+    vel[-1] = 2.0 * rel[-1]
+    vel[refine:-1:refine] = 2.0 * np.maximum(rel[:-1], rel[1:])
+    acc[acc <= SLACK * amax] = 0.0
+    vel[vel <= SLACK] = 0.0
+    return acc, vel
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_rounding_margins_are_the_array_formulation_bit_for_bit(seed):
+    rng = np.random.default_rng(200 + seed)
+    m, n, refine = int(rng.integers(2, 40)), int(rng.integers(1, 5)), int(rng.integers(1, 6))
+    p = _random_path(rng, m, n)
+    dt = 10.0 ** rng.uniform(-7, 0, m - 1)                      # some samples very close in time
+    t = np.concatenate([[0.0], np.cumsum(dt)]) + (0.0 if seed % 2 else 100.0) * (np.arange(m) > 0)
+    dt = np.diff(t)
+    g = (m - 1) * refine + 1
+    d1 = rng.normal(0.0, 1.0, (g, n))
+    x = rng.uniform(0.0, 0.01, g)
+    amax = rng.uniform(0.1, 1.0, n)
+    m_acc = np.where(rng.random((g, n)) < 0.5, 0.0, rng.uniform(0.0, 1e-3, (g, n)))
+    m_vel = np.zeros(g)
+    acc, vel, grown = _rounding_margins(t, dt, p, d1, x, amax, refine, m_acc, m_vel)
+    ref_acc, ref_vel = _margins_numpy(t, dt, p, np.abs(d1[0]) * np.sqrt(x[0]), amax, refine)
+    assert acc.tobytes() == ref_acc.tobytes() and vel.tobytes() == ref_vel.tobytes()
+    assert grown == (not (np.all(ref_acc <= m_acc) and np.all(ref_vel <= m_vel)))
