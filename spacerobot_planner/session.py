@@ -555,7 +555,7 @@ class CaptureSession:
         announced = []
 
         def announce():
-            """The planning began: the ``changed`` hook and the log line, once (while the job is planned)."""
+            """Say that the planning began: the ``changed`` hook and the log line, once (while the job is planned)."""
             if announced:
                 return
             announced.append(True)

@@ -190,7 +190,7 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
 
 
 def _state(planner) -> tuple:
-    """What a change of the planner outside a job would change: its scenario (compared by identity), solver, limits."""
+    """Return what a change of the planner outside a job changes: its scenario (by identity), solver, limits."""
     return (planner.scenario, planner.solver, planner.field_tolerance, planner.settings.field_budget_s,
             planner.max_grid_nodes)
 

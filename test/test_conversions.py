@@ -142,7 +142,7 @@ def test_plan_result_codes_mirror_the_planner_codes():
 
 
 def _oracle_points(times_s, q, v, a):
-    """JointTrajectoryPoints through the public setters, lists of floats; time by Python's round (ties to even)."""
+    """Build the points through the public setters, lists of floats; time by Python's round (ties to even)."""
     from builtin_interfaces.msg import Duration
     from trajectory_msgs.msg import JointTrajectoryPoint
     out = []

@@ -88,8 +88,10 @@ def test_a_job_without_stages_reports_only_that_it_began(backend):
 
 def test_jobs_of_the_same_settings_keep_the_goal_and_a_new_target_or_scene_takes_its_own():
     """
-    A replan (the same scene bytes) reuses the applied settings and goal; a moved target, or the
-    planner's scene changed outside a job, plans to the job's own target (tip on its grasp point).
+    A replan (the same scene bytes) reuses the applied settings and goal.
+
+    A moved target, or the planner's scene changed outside a job, plans to the job's own target
+    (the tip on its grasp point).
     """
     sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
     b = ThreadBackend(sc)

@@ -170,7 +170,7 @@ def joint_state_msg(names, positions, velocities=None, stamp=None) -> JointState
 
 
 def _points_public(rows, secs, nsecs) -> list:
-    """JointTrajectoryPoints through the messages' constructors (rows: (positions, velocities, accelerations) bytes)."""
+    """Return the points built by the messages' constructors (rows: (positions, velocities, accelerations) bytes)."""
     dbl = array.array
     return [JointTrajectoryPoint(positions=dbl("d", q), velocities=dbl("d", v), accelerations=dbl("d", a),
                                  time_from_start=Duration(sec=s, nanosec=n, check_fields=False), check_fields=False)
@@ -179,7 +179,7 @@ def _points_public(rows, secs, nsecs) -> list:
 
 def _points_direct(rows, secs, nsecs) -> list:
     """
-    The same points as :func:`_points_public`, its fields set on the generated slots (7× faster).
+    Return the points :func:`_points_public` builds, their fields set on the generated slots (7× faster).
 
     Used only when the message classes have the slots of rosidl's generated Python (checked
     once against :func:`_points_public`: see :data:`_POINTS`).
