@@ -149,6 +149,10 @@ class Outcome:
     values: dict = field(default_factory=dict)
     processed: Processed | None = None
     start_rad: np.ndarray | None = None
+    #: where the request's time went, ``time.perf_counter()`` s: "request" (made), "planning"
+    #: (its attempt began: the start chosen), "received" (the backend's answer), "chain" (the
+    #: chain after the path done), "published" (the publish hook returned; ok outcomes)
+    stamps: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -237,6 +241,7 @@ class CaptureSession:
         self.backend = None
         self.worker: threading.Thread | None = None
         self._motions = (None, None)     # (scene, its MotionValidator)
+        self._with_target = (None, None, None)   # (scenario, target, the scenario with the target)
 
     # ------------------------------------------------------------------ set-up
     def configure(self, scenario, settings: SessionSettings, target_changed: bool = False) -> None:
@@ -322,13 +327,26 @@ class CaptureSession:
                 joint_goal = self.joint_goal
                 target = None if joint_goal is not None else self.target
             scene_target = target if target is not None else self.target
-            scenario = self.scenario
-            if scene_target is not None:
-                scenario = scenario.with_scene(scenario.scene.with_target(scene_target))
+            scenario = self._scenario_with(scene_target)
             return Request(0, why, scenario, self.settings,
                            None if joint_goal is None else np.array(joint_goal, dtype=float),
                            time.perf_counter(), start_rad=None if start_rad is None else np.asarray(start_rad),
                            on_done=on_done, on_progress=on_progress)
+
+    def _scenario_with(self, target: Target | None):
+        """
+        Return the session's scenario with ``target`` in its scene (lock held).
+
+        The same object for the same scenario and target (a replan): its scene keeps its one
+        ``MotionValidator`` (:meth:`motions`).
+        """
+        if target is None:
+            return self.scenario
+        base, held, scenario = self._with_target
+        if base is not self.scenario or held is not target:
+            scenario = self.scenario.with_scene(self.scenario.scene.with_target(target))
+            self._with_target = (self.scenario, target, scenario)
+        return scenario
 
     def submit(self, req: Request | str, **kw) -> Request:
         """
@@ -527,15 +545,36 @@ class CaptureSession:
         return motions
 
     def _plan(self, req: Request, start_raw: np.ndarray, join=None) -> Outcome:
-        if self.activity != "planning":       # the state changes at once; a flood is not echoed
+        stamps = {"request": req.t_request, "planning": time.perf_counter()}
+        changed = self.activity != "planning"
+        if changed:                           # the state changes at once; a flood is not echoed
             self.activity = "planning"
-            self._changed()
         sc = req.scenario
-        where = "" if join is None else f" ({join.horizon_s:g} s ahead on the executing trajectory)"
-        self.log("info", f"planning #{req.gen} ({req.why}) from {np.round(np.degrees(start_raw), 2).tolist()}°"
-                 f"{where} on {sc.grid.label()}")
-        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, stall_s=float(req.settings.test_stall_s))
-        out = self.backend.run(job, progress=req.on_progress) if self.backend is not None else None
+        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, stall_s=float(req.settings.test_stall_s),
+                                   stages=req.on_progress is not None)
+        announced = []
+
+        def announce():
+            """Say that the planning began: the ``changed`` hook and the log line, once (while the job is planned)."""
+            if announced:
+                return
+            announced.append(True)
+            if changed:
+                self._changed()
+            where = "" if join is None else f" ({join.horizon_s:g} s ahead on the executing trajectory)"
+            self.log("info", f"planning #{req.gen} ({req.why}) from {np.round(np.degrees(start_raw), 2).tolist()}°"
+                     f"{where} on {sc.grid.label()}")
+
+        def progress(p):
+            announce()
+            if req.on_progress is not None:
+                req.on_progress(p)
+
+        # the job goes first: the announcement is made at its first progress (the planning process
+        # has begun), in parallel with the plan, or else once the backend answered
+        out = self.backend.run(job, progress=progress) if self.backend is not None else None
+        stamps["received"] = time.perf_counter()
+        announce()
         dropped = self._superseded_by(req)
         if out is None or dropped is not None:
             dropped = dropped or Outcome("cancelled", "the node is shutting down")
@@ -570,13 +609,14 @@ class CaptureSession:
             return self._failure(req, "invalid_input", f"time parameterisation: {e}", res)
         if processed.refused is not None:
             return self._failure(req, "reaction_refused", processed.refused, res)
+        stamps["chain"] = time.perf_counter()
         dropped = self._superseded_by(req)
         if dropped is not None:
             self.log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
-        return self._publish_plan(req, res, processed, start_raw, join)
+        return self._publish_plan(req, res, processed, start_raw, join, stamps)
 
-    def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join) -> Outcome:
+    def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None) -> Outcome:
         """Record an ok plan, stamp it just before it is published, publish it (the hooks)."""
         lead_s = float(req.settings.start_lead_s)
         if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
@@ -606,7 +646,7 @@ class CaptureSession:
         if at_goal:
             values["at_goal"] = "true"
         outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
-                          None, values, processed, np.asarray(start_raw))
+                          None, values, processed, np.asarray(start_raw), dict(stamps or {}))
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it
             self.last_result = res
             self.last_trajectory = traj
@@ -627,6 +667,7 @@ class CaptureSession:
                 self.executing = (Executing(dense, idx, stamp) if join is None
                                   else join.executing.joined_by(dense, idx, stamp))
         self._publish(req, outcome)
+        outcome.stamps["published"] = time.perf_counter()
         if not execute:
             self.log("info", f"plan #{req.gen}: planned from the goal's own start: returned, not published")
         elif at_goal:

@@ -36,10 +36,12 @@ sleep that no cancel shortens (a stage that does not poll: the crash path).
 from __future__ import annotations
 
 import os
+import pickle
 import queue
 import threading
 import time
 import traceback
+import weakref
 from dataclasses import dataclass, replace
 from dataclasses import field as dc_field
 from typing import Callable
@@ -71,7 +73,9 @@ class PlanJob:
 
     scene, grid: ``scene.Scene`` and ``cspace.GridSpec``; start_rad: (dof,) planned
     joints, rad; joint_goal: (dof,) rad or None (then the goal is the target's IK);
-    stall_s, stall_stage, stall_polls: test aid (see the module docstring), seconds.
+    stall_s, stall_stage, stall_polls: test aid (see the module docstring), seconds;
+    stages: False sends only the first Progress (the job began), not one per stage (no one
+    follows them: each is a message the plan pays for).
     """
 
     gen: int
@@ -86,6 +90,7 @@ class PlanJob:
     field_budget_s: float = 5.0
     stall_stage: str = "start"
     stall_polls: bool = True
+    stages: bool = True
 
     @classmethod
     def for_scenario(cls, gen: int, scenario, start_rad, joint_goal=None, **test) -> "PlanJob":
@@ -155,7 +160,24 @@ def _progress_of(text: str):
     return None
 
 
-def _apply_settings(planner, job: PlanJob) -> None:
+#: planner -> (the settings key of the last job applied to it, the target's goal then or None,
+#: the planner's state after it: see :func:`_state`)
+_APPLIED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _apply_settings(planner, job: PlanJob) -> bytes:
+    """
+    Give ``planner`` the job's scene, grid, solver and limits; return their key (bytes).
+
+    A job with the settings of the last one applied (a replan: the same bytes) changes
+    nothing: the scene's checker and the target's goal stay (:func:`_target_goal`).
+    """
+    key = pickle.dumps((job.scene, job.grid, job.solver, job.field_tolerance, job.field_budget_s,
+                        job.max_grid_nodes), protocol=pickle.HIGHEST_PROTOCOL)
+    held = _APPLIED.get(planner)
+    if held is not None and held[0] == key and held[2] == _state(planner):
+        return key
+    _APPLIED.pop(planner, None)
     planner.set_scene(job.scene)
     if planner.scenario.grid != job.grid:
         planner.set_grid(job.grid)
@@ -163,6 +185,24 @@ def _apply_settings(planner, job: PlanJob) -> None:
             (job.solver, job.field_tolerance, job.field_budget_s):
         planner.set_solver(job.solver, job.field_tolerance, job.field_budget_s)
     planner.max_grid_nodes = job.max_grid_nodes
+    _APPLIED[planner] = (key, None, _state(planner))
+    return key
+
+
+def _state(planner) -> tuple:
+    """Return what a change of the planner outside a job changes: its scenario (by identity), solver, limits."""
+    return (planner.scenario, planner.solver, planner.field_tolerance, planner.settings.field_budget_s,
+            planner.max_grid_nodes)
+
+
+def _target_goal(planner, key: bytes) -> np.ndarray:
+    """Return the target's goal (``Planner.goal_from_target``), kept while the settings key is the same."""
+    held = _APPLIED.get(planner)
+    if held is not None and held[0] == key and held[1] is not None and held[2] == _state(planner):
+        return held[1].copy()
+    goal = planner.goal_from_target()          # ValueError: not kept
+    _APPLIED[planner] = (key, goal.copy(), _state(planner))
+    return goal
 
 
 STALL_STAGES = ("start", "cspace", "field", "descent", "smoothing")
@@ -177,7 +217,7 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
     """
     def say(text):
         p = _progress_of(text)
-        if p is not None and progress is not None:
+        if p is not None and progress is not None and job.stages:
             progress(Progress(job.gen, *p))
 
     def stalling(stage):
@@ -193,11 +233,11 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
     if job.stall_stage == "start" and job.stall_s > 0:
         stalling("start")
         stall(token, job.stall_s, job.stall_polls)
-    _apply_settings(planner, job)
+    key = _apply_settings(planner, job)
     goal = job.joint_goal
     if goal is None and not captures_free_floating(planner.scenario, False):   # free floating: the pipeline's
         try:
-            goal = planner.goal_from_target()
+            goal = _target_goal(planner, key)
         except ValueError as e:
             return PlanError(job.gen, "goal_unreachable", f"target: {e}")
     if job.stall_stage != "start" and job.stall_s > 0:

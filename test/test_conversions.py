@@ -139,3 +139,85 @@ def test_plan_result_codes_mirror_the_planner_codes():
     assert conv.plan_result(PlanCapture.Result, "superseded").error_code == PlanCapture.Result.SUPERSEDED
     with pytest.raises(ValueError, match="no PlanCapture result code"):
         conv.plan_result(PlanCapture.Result, "bogus")
+
+
+def _oracle_points(times_s, q, v, a):
+    """Build the points through the public setters, lists of floats; time by Python's round (ties to even)."""
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectoryPoint
+    out = []
+    for t, qi, vi, ai in zip(times_s, q, v, a):
+        p = JointTrajectoryPoint()
+        p.positions = [float(x) for x in qi]
+        p.velocities = [float(x) for x in vi]
+        p.accelerations = [float(x) for x in ai]
+        ns = round(float(t) * 1e9)
+        p.time_from_start = Duration(sec=ns // 10 ** 9, nanosec=ns % 10 ** 9)
+        out.append(p)
+    return out
+
+
+def test_trajectory_msg_points_equal_a_plain_build_and_survive_serialization():
+    """Both ways of building points (slots, constructors) give the points a plain build gives; they serialize."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from trajectory_msgs.msg import JointTrajectory
+    from spacerobot_planner.adapters import TrajectoryPart
+    rng = np.random.default_rng(7)
+    k = 57
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(1e-3, 0.4, k - 1))])
+    t[3], t[4] = 1.0000000005, 2.0000000015           # half-ns ties
+    q, v, a = rng.normal(size=(3, k, 3))
+    part = TrajectoryPart(("j0", "j1", "j2"), t, q, v, a)
+    oracle = _oracle_points(t, q, v, a)
+    msg = conv.trajectory_to_msg(part, conv.ns_to_time(5 * 10 ** 9 + 3), "world")
+    assert list(msg.points) == oracle and msg.joint_names == ["j0", "j1", "j2"]
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (5, 3, "world")
+    rows = [(qi.tobytes(), vi.tobytes(), ai.tobytes()) for qi, vi, ai in zip(q, v, a)]
+    ns = [round(float(x) * 1e9) for x in t]
+    secs, nsecs = [n // 10 ** 9 for n in ns], [n % 10 ** 9 for n in ns]
+    assert conv._points_public(rows, secs, nsecs) == oracle
+    assert conv._points_direct(rows, secs, nsecs) == oracle
+    back = deserialize_message(serialize_message(msg), JointTrajectory)
+    assert list(back.points) == oracle and len(back.points[0].effort) == 0
+
+
+def _fake_result(grid, rng, cspace=None, field=None):
+    from types import SimpleNamespace
+    occ = rng.uniform(size=grid.shape) < 0.2
+    log_u = np.where(occ, -np.inf, -rng.uniform(0.0, 30.0, size=grid.shape))
+    cspace = cspace or SimpleNamespace(grid=grid, occupied=occ)
+    field = field or SimpleNamespace(occupied=occ, log_u=log_u, potential=lambda: -log_u)
+    return SimpleNamespace(cspace=cspace, field=field, path_rad=np.zeros((3, 3)), start_rad=np.zeros(3))
+
+
+def test_grid_slices_are_reused_only_for_the_same_cspace_field_and_slice():
+    """A cached replan's grids are the last ones restamped; another C-space, field or slice node rebuilds them."""
+    from types import SimpleNamespace
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
+    robot = sc.robot
+    grid = GridSpec((6, 5, 5), tuple(robot.planned_lower_rad), tuple(robot.planned_upper_rad),
+                    tuple(robot.planned_periodic))
+    rng = np.random.default_rng(3)
+    res = _fake_result(grid, rng)
+    res.path_rad = np.linspace(sc.start_rad, sc.goal_rad, 5)
+    slices = conv.GridSlices()
+
+    def both(r, stamp_ns, **kw):
+        stamp = conv.ns_to_time(stamp_ns)
+        fresh = conv.plan_visuals(robot, sc.scene, r, "w", "g", stamp, **kw)
+        held = conv.plan_visuals(robot, sc.scene, r, "w", "g", stamp, slices=slices, **kw)
+        for f, h in zip(fresh[1:], held[1:]):
+            assert h == f                                         # what a fresh build gives, this stamp
+        return held
+
+    first = both(res, 10)
+    again = both(SimpleNamespace(**{**vars(res), "path_rad": res.path_rad[::-1]}), 20)
+    assert again[1] is first[1] and again[2] is first[2]           # same C-space, field, node: reused
+    other = _fake_result(grid, rng)
+    assert both(SimpleNamespace(**{**vars(res), "cspace": other.cspace}), 30)[1] is not first[1]
+    assert both(SimpleNamespace(**{**vars(res), "field": other.field}), 40)[2] is not first[2]
+    res2 = SimpleNamespace(**{**vars(res), "field": other.field})
+    moved = SimpleNamespace(**{**vars(res2), "start_rad": np.array([1.0, 0.0, 0.0])})
+    both(res2, 50)
+    assert both(moved, 60)[2] is not both(res2, 70)[2]             # another node of the sliced-out axis
+    assert both(res2, 80, slice_attitude_deg=90.0, use_current_attitude=False)[1] is not None

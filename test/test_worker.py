@@ -10,6 +10,7 @@ is put inside a stage by the job's test stall, whose start the process reports (
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -71,6 +72,44 @@ def test_process_plans_and_reports_progress(backend):
     assert names[0] == "cspace" and "field" in names and "verify" in names
     fractions = [f for _, f in stages]
     assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] < 1.0
+
+
+def test_a_job_without_stages_reports_only_that_it_began(backend):
+    """``stages=False``: one Progress (the job began, stage "cspace"), the same plan as with every stage."""
+    sc, b = backend
+    for make in (lambda: b, lambda: ThreadBackend(sc)):
+        seen = {True: [], False: []}
+        outs = {st: make().run(_job(sc, 11 + st, stages=st), progress=lambda p, st=st: seen[st].append(p.stage))
+                for st in (True, False)}
+        assert seen[False] == ["cspace"] and seen[True][0] == "cspace" and len(seen[True]) > 1
+        assert all(isinstance(o, PlanDone) and o.result.ok for o in outs.values())
+        np.testing.assert_array_equal(outs[False].result.path_rad, outs[True].result.path_rad)
+
+
+def test_jobs_of_the_same_settings_keep_the_goal_and_a_new_target_or_scene_takes_its_own():
+    """
+    A replan (the same scene bytes) reuses the applied settings and goal.
+
+    A moved target, or the planner's scene changed outside a job, plans to the job's own target
+    (the tip on its grasp point).
+    """
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
+    b = ThreadBackend(sc)
+    moved = sc.scene.with_target(dataclasses.replace(sc.scene.target, center_m=(-3.23, -2.59)))
+
+    def tip_miss(out, scene):
+        assert isinstance(out, PlanDone) and out.result.ok, out
+        tip = sc.robot.tip_position(sc.robot.full(out.result.path_rad[-1]))
+        return float(np.linalg.norm(tip - scene.target.grasp_point_m))
+
+    first = b.run(_job(sc, 1))
+    again = b.run(dataclasses.replace(_job(sc, 2), start_rad=first.result.path_rad[len(first.result.path_rad) // 2]))
+    np.testing.assert_array_equal(again.result.path_rad[-1], first.result.path_rad[-1])
+    assert tip_miss(again, sc.scene) < 1e-6
+    assert tip_miss(b.run(_job(dataclasses.replace(sc, scene=moved), 3)), moved) < 1e-6
+    b.planner.set_scene(sc.scene)                          # outside any job: the next job applies its own
+    assert tip_miss(b.run(_job(dataclasses.replace(sc, scene=moved), 4)), moved) < 1e-6
+    assert b.planner.scenario.scene.target.center_m == moved.target.center_m
 
 
 def test_unreachable_target_is_a_plan_error(backend):

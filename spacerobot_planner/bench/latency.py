@@ -10,6 +10,14 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   gives how many replans were joined to the moving arm and the largest velocity step
   the mock arm recorded at a switch (between two joint_states, deg/s, less what the
   acceleration limits allow in that time);
+- ``js_*``: where ``latency_joint_state`` goes (the session's stamps, ``session.Outcome.stamps``):
+  ``js_to_planning`` (the joint state and the ``~/replan`` call through the executor, the
+  session's queue, the start on the executing trajectory), ``js_plan_round_trip`` (the job to
+  the planning process and its answer back; ``js_plan_in_process``: the plan itself, its
+  ``timings_s``), ``js_chain`` (``adapters.post_process``), ``js_record_and_send`` (the record,
+  the stamp, the messages, the trajectories published), ``js_sent_to_arrival`` (the driver's
+  subscriber has it: the visuals and the log line that follow in the worker thread hold the
+  interpreter meanwhile), and ``js_after_sent`` (the publish hook's rest: the visuals);
 - ``message``: the chain after the path (``adapters.post_process``: time parameterisation,
   resample + certify, split) and the published messages for the last plan, and the
   messages of the dense trajectory for comparison;
@@ -120,7 +128,7 @@ def _run(args) -> int:
             pub_t.publish(target(i))
             lat_t.append(got.wait(n + 1) - t0)
             time.sleep(0.05)
-        lat_j = []
+        lat_j, parts = [], []
         rng = np.random.default_rng(0)
         for i in range(args.repeats):
             q = q_full.copy()
@@ -134,12 +142,15 @@ def _run(args) -> int:
                 time.sleep(0.0005)
             cli.call_async(Trigger.Request())
             lat_j.append(got.wait(n + 1) - t0)
+            parts.append(_parts(node, t0, lat_j[-1] + t0))
             time.sleep(0.05)
         cached = node.last_result.cached
         grid = sc.grid.label()
         msg_s = _message_times(node, args.repeats)
         stages = [("latency_target", lat_t, 0.150), ("latency_joint_state", lat_j, 0.020),
                   ("message_published", msg_s[0], None), ("message_dense", msg_s[1], None)]
+        parts = [p for p in parts if p is not None]
+        stages[2:2] = [(name, [p[name] for p in parts], None) for name in _PARTS if parts]
         for stage, vals, aim in stages:
             rows.append({"stage": stage, "grid": grid, **_stats(vals), "aim_s": aim,
                          "backend": "thread" if args.in_process else "process",
@@ -228,6 +239,33 @@ def _stats(vals) -> dict:
     v = np.asarray(vals, dtype=float)
     return {"seconds": float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "min_s": float(v.min()),
             "max_s": float(v.max()), "repeats": int(len(v))}
+
+
+#: the parts of latency_joint_state (see the module docstring), in order
+_PARTS = ("js_to_planning", "js_plan_round_trip", "js_plan_in_process", "js_chain", "js_record_and_send",
+          "js_sent_to_arrival", "js_after_sent")
+
+
+def _parts(node, t0: float, arrival: float, timeout_s: float = 5.0) -> dict | None:
+    """
+    Return the parts of one joint state → trajectory (s, see :data:`_PARTS`), or None.
+
+    From the last outcome's stamps (``session.Outcome.stamps``, perf_counter s) once its
+    publish hook returned; ``t0``: the joint state published, ``arrival``: the trajectory received.
+    """
+    end = time.perf_counter() + timeout_s
+    while True:
+        out = node.last_outcome
+        st = {} if out is None else out.stamps
+        if out is not None and out.ok and "published" in st and st.get("planning", 0.0) >= t0:
+            break
+        if time.perf_counter() > end:
+            return None
+        time.sleep(0.001)
+    return {"js_to_planning": st["planning"] - t0, "js_plan_round_trip": st["received"] - st["planning"],
+            "js_plan_in_process": float(out.result.timings_s["total"]), "js_chain": st["chain"] - st["received"],
+            "js_record_and_send": st["sent"] - st["chain"], "js_sent_to_arrival": arrival - st["sent"],
+            "js_after_sent": st["published"] - st["sent"]}
 
 
 def _message_times(node, repeats):

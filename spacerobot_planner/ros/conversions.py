@@ -19,6 +19,7 @@ Decisions documented here (and in the README):
 
 from __future__ import annotations
 
+import array
 import math
 
 import numpy as np
@@ -39,7 +40,7 @@ __all__ = [
     "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
     "duration_to_s", "s_to_duration", "ns_to_time", "time_to_ns", "potential_slice_values", "obstacle_slice_values",
     "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result", "predicted_drift_msg",
-    "split_trajectory_msg", "plan_visuals", "slice_axes_and_point", "publication_msgs",
+    "split_trajectory_msg", "plan_visuals", "GridSlices", "slice_axes_and_point", "publication_msgs",
     "OBSTACLE", "UNREACHABLE",
 ]
 
@@ -168,23 +169,67 @@ def joint_state_msg(names, positions, velocities=None, stamp=None) -> JointState
     return msg
 
 
+def _points_public(rows, secs, nsecs) -> list:
+    """Return the points built by the messages' constructors (rows: (positions, velocities, accelerations) bytes)."""
+    dbl = array.array
+    return [JointTrajectoryPoint(positions=dbl("d", q), velocities=dbl("d", v), accelerations=dbl("d", a),
+                                 time_from_start=Duration(sec=s, nanosec=n, check_fields=False), check_fields=False)
+            for (q, v, a), s, n in zip(rows, secs, nsecs)]
+
+
+def _points_direct(rows, secs, nsecs) -> list:
+    """
+    Return the points :func:`_points_public` builds, their fields set on the generated slots (7× faster).
+
+    Used only when the message classes have the slots of rosidl's generated Python (checked
+    once against :func:`_points_public`: see :data:`_POINTS`).
+    """
+    new_p, new_d, dbl = JointTrajectoryPoint.__new__, Duration.__new__, array.array
+    out = []
+    for (q, v, a), s, n in zip(rows, secs, nsecs):
+        d = new_d(Duration)
+        d._check_fields, d._sec, d._nanosec = False, s, n
+        p = new_p(JointTrajectoryPoint)
+        p._check_fields = False
+        p._positions, p._velocities, p._accelerations = dbl("d", q), dbl("d", v), dbl("d", a)
+        p._effort, p._time_from_start = dbl("d"), d
+        out.append(p)
+    return out
+
+
+def _choose_points():
+    """Return :func:`_points_direct` when it builds what :func:`_points_public` builds, else the latter."""
+    rows = [(np.array([0.5, -1.0]).tobytes(), np.array([0.25, 2.0]).tobytes(), np.array([-3.0, 0.0]).tobytes())]
+    try:
+        if _points_direct(rows, [3], [7]) == _points_public(rows, [3], [7]):
+            return _points_direct
+    except (AttributeError, TypeError):        # other generated classes: the public way
+        pass
+    return _points_public
+
+
+_POINTS = _choose_points()
+
+
 def trajectory_to_msg(traj: Trajectory, stamp=None, frame_id: str = "") -> JointTrajectory:
-    """Trajectory → JointTrajectory (positions, velocities, accelerations, time_from_start)."""
+    """
+    Trajectory → JointTrajectory (positions, velocities, accelerations, time_from_start).
+
+    Each point's arrays are ``array.array('d')`` (as a received message's are; publishing
+    copies them whole), built without the per-field checks (the values are float64 by
+    construction).  The times as :func:`s_to_duration` rounds them (nearest ns, ties to even).
+    """
     msg = JointTrajectory()
     if stamp is not None:
         msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     msg.joint_names = list(traj.joint_names)
-    pts = []
-    for t, q, v, a in zip(traj.times_s, traj.positions_rad, traj.velocities_rad_s,
-                          traj.accelerations_rad_s2):
-        pt = JointTrajectoryPoint()
-        pt.positions = q.tolist()
-        pt.velocities = v.tolist()
-        pt.accelerations = a.tolist()
-        pt.time_from_start = s_to_duration(t)
-        pts.append(pt)
-    msg.points = pts
+    q, v, a = (np.ascontiguousarray(x, dtype=np.float64)
+               for x in (traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2))
+    ns = np.rint(np.asarray(traj.times_s, dtype=np.float64) * 1e9).astype(np.int64)
+    sec, nsec = np.divmod(ns, 1_000_000_000)
+    rows = [(qi.tobytes(), vi.tobytes(), ai.tobytes()) for qi, vi, ai in zip(q, v, a)]
+    msg.points = _POINTS(rows, sec.tolist(), nsec.tolist())
     return msg
 
 
@@ -308,7 +353,7 @@ def grid_slice_to_msg(values_xy, grid, slice_axes, frame_id: str, stamp=None) ->
     msg.info.origin.position.x = float(grid.lower_rad[ax])
     msg.info.origin.position.y = float(grid.lower_rad[ay])
     msg.info.origin.orientation.w = 1.0
-    msg.data = np.ascontiguousarray(vals.T).reshape(-1).astype(np.int8).tolist()
+    msg.data = array.array("b", np.ascontiguousarray(vals.T, dtype=np.int8).tobytes())
     return msg
 
 
@@ -433,13 +478,42 @@ def slice_axes_and_point(robot, start_rad, use_current_attitude: bool = True, sl
     return dof - 2, dof - 1, q
 
 
+class GridSlices:
+    """
+    The C-space and potential grid messages of the last plan (see :func:`plan_visuals`).
+
+    A replan from the cached C-space and field slices the same arrays through the same
+    node: its messages are the last ones, restamped, not sliced and converted again.
+    Holds the C-space and field it sliced (compared by identity: cached objects).
+    """
+
+    def __init__(self):
+        self._key = None
+        self._msgs = (None, None)
+
+    def get(self, key, stamp):
+        """Return the held (cspace, potential) messages restamped when ``key`` is the held key, else None."""
+        if self._key is None or len(key) != len(self._key) or not all(
+                a is b if i < 2 else a == b for i, (a, b) in enumerate(zip(key, self._key))):
+            return None
+        for msg in self._msgs:
+            if msg is not None and stamp is not None:
+                msg.header.stamp = stamp
+        return self._msgs
+
+    def put(self, key, msgs) -> None:
+        self._key, self._msgs = key, msgs
+
+
 def plan_visuals(robot, scene, res, frame: str, grid_frame: str, stamp=None, use_current_attitude: bool = True,
-                 slice_attitude_deg: float = 0.0) -> tuple:
+                 slice_attitude_deg: float = 0.0, slices: GridSlices | None = None) -> tuple:
     """
     Return the visual messages of an ok plan (a ``PlanResult``): (markers, cspace grid, potential grid).
 
     The markers in the planning ``frame``; the grids (None without a C-space or field, or
     under 2 planned joints) sliced by :func:`slice_axes_and_point` in ``grid_frame``.
+    ``slices``: the last plan's grids (:class:`GridSlices`), reused (restamped) when this plan
+    has the same C-space and field objects and the slice passes through the same node.
     """
     markers = path_markers(robot, scene, res.path_rad, frame, stamp)
     sl = slice_axes_and_point(robot, res.start_rad, use_current_attitude, slice_attitude_deg)
@@ -447,6 +521,10 @@ def plan_visuals(robot, scene, res, frame: str, grid_frame: str, stamp=None, use
         return markers, None, None
     ax, ay, q = sl
     grid = res.cspace.grid
+    key = (res.cspace, res.field, grid_frame, (ax, ay), _slice_index(grid, q, (ax, ay)))
+    held = None if slices is None else slices.get(key, stamp)
+    if held is not None:
+        return (markers, *held)
     occ = grid_slice(grid, res.cspace.occupied, q, (ax, ay))
     cspace = grid_slice_to_msg(obstacle_slice_values(occ), grid, (ax, ay), grid_frame, stamp)
     potential = None
@@ -458,6 +536,8 @@ def plan_visuals(robot, scene, res, frame: str, grid_frame: str, stamp=None, use
         focc = grid_slice(grid, res.field.occupied, q, (ax, ay))
         potential = grid_slice_to_msg(potential_slice_values(log_u, focc, phi_max), grid, (ax, ay), grid_frame,
                                       stamp)
+    if slices is not None:
+        slices.put(key, (cspace, potential))
     return markers, cspace, potential
 
 

@@ -112,6 +112,7 @@ class PlannerNode(LifecycleNode):
         self.inputs = Inputs(self)       # the input topics
         self._waiting_timer = None       # ends a goal's wait for the first joint_states
         self._pubs = {}
+        self._grid_slices = conv.GridSlices()     # the last plan's grid messages (reused by a cached replan)
         self.pub_diag = None
         self._diag_timer = None
         self._active_entities = []       # subscriptions, service (destroyed on deactivate)
@@ -382,11 +383,12 @@ class PlannerNode(LifecycleNode):
                 self._pubs["traj"].publish(arm)
             if att is not None:
                 self._pubs["attitude"].publish(att)
+            outcome.stamps["sent"] = time.perf_counter()      # the trajectories (bench latency's breakdown)
         p = self._params
         markers, cspace, potential = conv.plan_visuals(
             self.robot, req.scenario.scene, outcome.result, self.planning_frame, p["grid_frame"],
             self.get_clock().now().to_msg(), p["potential_grid.use_current_attitude"],
-            p["potential_grid.slice_attitude_deg"])
+            p["potential_grid.slice_attitude_deg"], slices=self._grid_slices)
         for key, msg in (("markers", markers), ("cspace", cspace), ("potential", potential)):
             if msg is not None:
                 self._pubs[key].publish(msg)
