@@ -291,12 +291,14 @@ class Hierarchy:
 
         nbr int (n, deg): fine neighbours, index n = none (already mapped so that goal nodes,
         walls and obstacles all read n); coords int (n, ndim); shape: the fine grid shape.
-        ``fine_of_input`` maps an input node to its row on the (renumbered) fine level.
+        ``fine_of_input`` maps an input node to its row on the (renumbered) fine level;
+        ``in_order``: it is the identity (the input came red rows first).
         ``stop``: a termination flag, polled between levels (raises :class:`Stopped`).
         """
         n, deg = nbr.shape
         coords = np.ascontiguousarray(coords, dtype=np.int64)
         red, in_order = _red_rows(coords)
+        self.in_order = bool(in_order)
         if in_order:                            # already red rows first (the node graph's order)
             nb0 = np.ascontiguousarray(nbr, dtype=np.uint32)
             self.fine_of_input = np.arange(n)
@@ -639,11 +641,14 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     except Stopped:
         return np.zeros(n), 0, np.inf
     b = np.zeros(n + 1)
-    b[h.fine_of_input] = rhs
+    if h.in_order:                  # the node graph's order: no renumbering to undo
+        b[:n] = rhs
+    else:
+        b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
     if stop is None:
         stop = np.zeros(1, np.int64)
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), int(coarse_sweeps),
                    float(deadline), stop)
-    return x[h.fine_of_input], int(it), float(res)
+    return (x[:n] if h.in_order else x[h.fine_of_input]), int(it), float(res)
