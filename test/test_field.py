@@ -325,14 +325,13 @@ def test_the_field_keeps_freed_memory_for_the_next_solve():
     the V-cycle's three: 8, about 500 pages here; without the kept heap a solve faults ~900).
     """
     resource = pytest.importorskip("resource")
-    from spacerobot_planner.field import heap
     occ = np.zeros((180, 181), dtype=bool)
     occ[40:140, 60:70] = True
     for _ in range(2):                       # the heap grows to the solve's peak
         F.solve_field(occ, (False, False), [(170, 170)])
-    if not heap.keep_heap():
+    if not F.keep_heap():
         pytest.skip("not glibc, or its thresholds set by the environment")
-    assert heap.keep_heap()                  # once per process, the same answer
+    assert F.keep_heap()                  # once per process, the same answer
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     F.solve_field(occ, (False, False), [(170, 170)])
     faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
