@@ -249,8 +249,8 @@ def warm_up() -> None:
 # the heap
 # --------------------------------------------------------------------------
 #: :func:`keep_heap`: blocks up to this many bytes come from the heap (glibc's default: 128 KiB,
-#: rising to 32 MiB) ...
-MMAP_THRESHOLD_BYTES = 64 << 20
+#: rising to 32 MiB, the most that every 64-bit glibc accepts) ...
+MMAP_THRESHOLD_BYTES = 32 << 20
 #: ... and free memory at the heap's top is given back to the system above this many bytes.
 TRIM_THRESHOLD_BYTES = 256 << 20
 _M_TRIM_THRESHOLD = -1          # glibc's mallopt parameters (malloc.h)
