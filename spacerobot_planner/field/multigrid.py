@@ -544,9 +544,7 @@ def _now():
 @nb.njit(cache=True, nogil=True)
 def _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
                   sweeps, boost, coarse_sweeps, stop):
-    """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
-    for i in range(n):
-        bs[i] = r[i]
+    """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs.  r: bs's fine part (a view)."""
     _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
             boost, coarse_sweeps, stop)
     return _dot(r, xs, n)
@@ -571,7 +569,7 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u
     xs = np.zeros(total)
     bs = np.zeros(total)
     ws = np.zeros(total)
-    r = np.zeros(n + 1)
+    r = bs[:n + 1]          # the V-cycle's fine right-hand side is the residual itself: no copy
     p = np.zeros(n + 1)
     q = np.zeros(n + 1)
     r0 = np.zeros(n + 1)
