@@ -263,8 +263,8 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         else:
             steps = _steps_from_known(nbr, active, known, scratch, window_steps)
             whole = steps.max() <= window_steps
-        inside = np.ones(active.size, np.bool_) if whole else steps <= window_steps
-        window = active[inside]
+        inside = None if whole else steps <= window_steps
+        window = active if whole else active[inside]
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
         token.check()
         # every node but the goal's (the first band): a view of their coordinates, not a copy
@@ -284,12 +284,19 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             keep &= x >= 1e6 * res
         if not keep.any():
             continue                 # only when the deadline stopped the band: caught above
-        log_u[window[keep]] = np.log(x[keep]) + log_scale
-        known[window[keep]] = True
-        window_steps = WINDOW_STEPS if steps is None else max(WINDOW_STEPS, 2 * int(steps[inside][keep].max()))
-        rest = np.ones(active.size, np.bool_)
-        rest[np.flatnonzero(inside)[keep]] = False
-        active = active[rest]
+        kept = window[keep]
+        log_u[kept] = np.log(x[keep]) + log_scale
+        known[kept] = True
+        if steps is None:
+            window_steps = WINDOW_STEPS
+        else:
+            window_steps = max(WINDOW_STEPS, 2 * int((steps if whole else steps[inside])[keep].max()))
+        if whole:                    # the window is every active node
+            active = active[~keep]
+        else:
+            rest = np.ones(active.size, np.bool_)
+            rest[np.flatnonzero(inside)[keep]] = False
+            active = active[rest]
     unsolved = int(active.size)
     if unsolved:
         _extend_below(log_u, known, nbr, n_goal, math.log(2 * graph.coords.shape[1]))

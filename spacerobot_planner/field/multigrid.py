@@ -291,12 +291,14 @@ class Hierarchy:
 
         nbr int (n, deg): fine neighbours, index n = none (already mapped so that goal nodes,
         walls and obstacles all read n); coords int (n, ndim); shape: the fine grid shape.
-        ``fine_of_input`` maps an input node to its row on the (renumbered) fine level.
+        ``fine_of_input`` maps an input node to its row on the (renumbered) fine level;
+        ``in_order``: it is the identity (the input came red rows first).
         ``stop``: a termination flag, polled between levels (raises :class:`Stopped`).
         """
         n, deg = nbr.shape
         coords = np.ascontiguousarray(coords, dtype=np.int64)
         red, in_order = _red_rows(coords)
+        self.in_order = bool(in_order)
         if in_order:                            # already red rows first (the node graph's order)
             nb0 = np.ascontiguousarray(nbr, dtype=np.uint32)
             self.fine_of_input = np.arange(n)
@@ -542,9 +544,7 @@ def _now():
 @nb.njit(cache=True, nogil=True)
 def _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
                   sweeps, boost, coarse_sweeps, stop):
-    """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs."""
-    for i in range(n):
-        bs[i] = r[i]
+    """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs.  r: bs's fine part (a view)."""
     _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
             boost, coarse_sweeps, stop)
     return _dot(r, xs, n)
@@ -569,7 +569,7 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u
     xs = np.zeros(total)
     bs = np.zeros(total)
     ws = np.zeros(total)
-    r = np.zeros(n + 1)
+    r = bs[:n + 1]          # the V-cycle's fine right-hand side is the residual itself: no copy
     p = np.zeros(n + 1)
     q = np.zeros(n + 1)
     r0 = np.zeros(n + 1)
@@ -639,11 +639,14 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     except Stopped:
         return np.zeros(n), 0, np.inf
     b = np.zeros(n + 1)
-    b[h.fine_of_input] = rhs
+    if h.in_order:                  # the node graph's order: no renumbering to undo
+        b[:n] = rhs
+    else:
+        b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
     if stop is None:
         stop = np.zeros(1, np.int64)
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), int(coarse_sweeps),
                    float(deadline), stop)
-    return x[h.fine_of_input], int(it), float(res)
+    return (x[:n] if h.in_order else x[h.fine_of_input]), int(it), float(res)
