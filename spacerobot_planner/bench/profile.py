@@ -25,7 +25,7 @@ STEPS = (
     ("goal nodes", "", "spacerobot_planner.pipeline", "PlanRun.goal_nodes"),
     ("field", "", "spacerobot_planner.planner", "Planner._solve"),
     ("graph build", "field", "spacerobot_planner.field", "node_graph"),
-    ("graph: grid neighbours", "graph build", "spacerobot_planner.field.graph", "fill_grid_neighbours"),
+    ("graph: face codes", "graph build", "spacerobot_planner.field.graph", "grid_codes"),
     ("graph: bfs", "graph build", "spacerobot_planner.field.graph", "_bfs"),
     ("graph: red-black order", "graph build", "spacerobot_planner.field.graph", "_red_black_order"),
     ("graph: neighbour table", "graph build", "spacerobot_planner.field.graph", "_neighbour_table"),
