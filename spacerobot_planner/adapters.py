@@ -41,7 +41,7 @@ import numpy as np
 from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_motion
 from .spacecraft import free_floating_response
-from .timing import timed_motion
+from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import HorizonPassed, Trajectory, resample, sample_points
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
@@ -237,15 +237,16 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
     args = (path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s, from_end_at_rest)
     # the re-timing rounds need only the published points (the certification cannot change them
-    # when it passes at once): certify the accepted round alone ...
+    # when it passes at once) and, from rest, not the reaction report (the same path; the verdict
+    # is the accepted round's): certify and report the accepted round alone ...
     got = _retimed(scenario, args, certify=False)
     if got.refused is not None:
         return got
-    done = _certified(scenario, got, motions, time_step_s)
+    done = _certified(scenario, got, args)
     if done is not None:
         return done
-    # ... and where it added points back or failed, run every round certified (the points whose
-    # interpolation is checked are then the ones published)
+    # ... and where that added points back, failed or refused, run every round certified and
+    # reported (the points whose interpolation is checked are then the ones published)
     return _retimed(scenario, args, certify=True)
 
 
@@ -306,15 +307,16 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     """
     Run steps 1 to 3 and 5 of the chain (see the module docstring) under the scenario's limits.
 
-    ``certify`` False: the points are resampled but neither certified nor split (a round whose
-    points only the controller check reads; :func:`_certified` finishes the accepted one).
+    ``certify`` False: the points are resampled but neither certified nor split, and from rest
+    the reaction is not reported (a round whose points only the controller check reads;
+    :func:`_certified` finishes the accepted one).
     """
     stamp_ns = cont = not_before_ns = None
     if join is None:
-        dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions)
+        dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions, report=certify)
     elif (not_before_ns := starts_at_the_end(join, now_ns, lead_s, from_end_at_rest)) is not None:
         # from rest at the executing trajectory's end, stamped when published, not before that end
-        dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions)
+        dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions, report=certify)
     else:
         dense, reaction, stamp_ns, cont = joined_motion(scenario, join, path_rad, now_ns, lead_s=lead_s,
                                                         checker=motions)
@@ -329,13 +331,20 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s))
 
 
-def _certified(scenario, got: Processed, motions, time_step_s) -> Processed | None:
+def _certified(scenario, got: Processed, args) -> Processed | None:
     """
-    Certify the points of an uncertified round (``_time_and_resample(certify=False)``).
+    Certify (and from rest report) an uncertified round (``_time_and_resample(certify=False)``).
 
-    Returns the finished :class:`Processed`, or None when the certification added points back
-    or failed (the published points would not be the ones whose interpolation was checked).
+    ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns the finished
+    :class:`Processed`, or None when the reaction refuses, or the certification added points
+    back or failed (the published points would not be the ones whose interpolation was checked).
     """
+    path_rad, start_rad, join, _, _, motions, time_step_s, _ = args
+    if got.join_stamp_ns is None and reaction_matters(scenario):
+        state = start_rad if got.not_before_ns is None else join.start_rad
+        got = replace(got, reaction=reaction_of(scenario, path_rad, got.dense, state, motions=motions))
+        if got.refused is not None:
+            return None
     rs = resample(got.dense, motions, time_step_s=time_step_s)
     if not rs.ok or not np.array_equal(rs.indices, got.indices):
         return None

@@ -26,7 +26,8 @@ verdict) is ``reaction.py``; planning for the drift is ``free_floating.py``.
 
 Units: kg, kg·m², m, rad, s; momentum N·m·s, torque N·m.  NumPy, and numba for the momentum sums
 (:func:`angular_momentum_Nms`, :func:`momentum_rate_Nm`, :func:`momentum_map`: one pass per sample
-instead of stacked (N, n+1, 2) arrays); no geometry, no ROS.
+instead of stacked (N, n+1, 2) arrays; ``worker --warm-cache`` fills their cache: it runs the chain
+with the reaction on); no geometry, no ROS.
 """
 
 from __future__ import annotations
@@ -281,15 +282,6 @@ def momentum_map(robot, masses: MassProperties, q_full) -> np.ndarray:
     q = np.asarray(q_full, dtype=float)
     rows = _momentum_map_rows(cl, m, inertia, np.ascontiguousarray(q.reshape(-1, q.shape[-1])))
     return rows.reshape(q.shape)
-
-
-def warm_up() -> None:
-    """Compile (or load from numba's cache) the momentum kernels (a 3-joint chain)."""
-    cl, m, inertia = np.tril(np.ones((3, 3))), np.ones(4), np.ones(4)
-    q = np.zeros((1, 3))
-    _momentum_rows(cl, m, inertia, q, q, q, False)
-    _momentum_rows(cl, m, inertia, q, q, q, True)
-    _momentum_map_rows(cl, m, inertia, q)
 
 
 def _planned_rates(robot, d_planned):
