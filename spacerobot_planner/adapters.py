@@ -41,7 +41,7 @@ import numpy as np
 from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_motion
 from .spacecraft import free_floating_response
-from .timing import timed_motion
+from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import HorizonPassed, Trajectory, resample, sample_points
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
@@ -235,12 +235,32 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
 
     """
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
+    args = (path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s, from_end_at_rest)
+    # the re-timing rounds need only the published points (the certification cannot change them
+    # when it passes at once) and, from rest, not the reaction report (the same path; the verdict
+    # is the accepted round's): certify and report the accepted round alone ...
+    got = _retimed(scenario, args, certify=False)
+    if got.refused is not None:
+        return got
+    done = _certified(scenario, got, args)
+    if done is not None:
+        return done
+    # ... and where that added points back, failed or refused, run every round certified and
+    # reported (the points whose interpolation is checked are then the ones published)
+    return _retimed(scenario, args, certify=True)
+
+
+def _retimed(scenario, args, certify: bool) -> Processed:
+    """
+    Run steps 1 to 4 of the chain: time, react, resample (certified when ``certify``), re-time.
+
+    The controller interpolates the published points (quintic segments): its motion is
+    checked against the limits; where it overshoots, the chain runs again with the scaling
+    factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times.
+    ``args``: :func:`_time_and_resample`'s arguments after the scenario.
+    """
     limits = scenario.joint_limits
-    got = _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
-                             from_end_at_rest)
-    # the controller interpolates the published points (quintic segments): certify its motion
-    # against the limits; where it overshoots, the whole chain runs again with the scaling
-    # factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times
+    got = _time_and_resample(scenario, *args, certify=certify)
     for _ in range(CONTROLLER_RETIMES):
         if got.refused is not None or limits is None:
             break
@@ -254,8 +274,7 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
         if over_a > 1.0 + CONTROLLER_TOL:
             limits = replace(limits, acceleration_scaling=limits.acceleration_scaling / over_a * CONTROLLER_SHRINK)
         try:
-            got = _time_and_resample(replace(scenario, joint_limits=limits), path_rad, start_rad, join, now_ns,
-                                     lead_s, motions, time_step_s, from_end_at_rest)
+            got = _time_and_resample(replace(scenario, joint_limits=limits), *args, certify=certify)
         except (ValueError, HorizonPassed):
             break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
     return got
@@ -284,21 +303,57 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
 
 
 def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
-                       from_end_at_rest) -> Processed:
-    """Run steps 1 to 3 and 5 of the chain (see the module docstring) under the scenario's limits."""
+                       from_end_at_rest, certify: bool = True) -> Processed:
+    """
+    Run steps 1 to 3 and 5 of the chain (see the module docstring) under the scenario's limits.
+
+    ``certify`` False: the points are resampled but neither certified nor split, and from rest
+    the reaction is not reported (a round whose points only the controller check reads;
+    :func:`_certified` finishes the accepted one).
+    """
     stamp_ns = cont = not_before_ns = None
     if join is None:
-        dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions)
+        dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions, report=certify)
     elif (not_before_ns := starts_at_the_end(join, now_ns, lead_s, from_end_at_rest)) is not None:
         # from rest at the executing trajectory's end, stamped when published, not before that end
-        dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions)
+        dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions, report=certify)
     else:
         dense, reaction, stamp_ns, cont = joined_motion(scenario, join, path_rad, now_ns, lead_s=lead_s,
                                                         checker=motions)
     if reaction is not None and not reaction.ok:
         return Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
                          stamp_ns, cont, not_before_ns)
-    rs = resample(dense, motions, time_step_s=time_step_s)
+    got = Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
+                    stamp_ns, cont, not_before_ns)
+    if not certify:
+        rs = resample(dense, None, time_step_s=time_step_s)
+        return replace(got, trajectory=rs.trajectory, indices=rs.indices)
+    return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s))
+
+
+def _certified(scenario, got: Processed, args) -> Processed | None:
+    """
+    Certify (and from rest report) an uncertified round (``_time_and_resample(certify=False)``).
+
+    ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns the finished
+    :class:`Processed`, or None when the reaction refuses, or the certification added points
+    back or failed (the published points would not be the ones whose interpolation was checked).
+    """
+    path_rad, start_rad, join, _, _, motions, time_step_s, _ = args
+    if got.join_stamp_ns is None and reaction_matters(scenario):
+        state = start_rad if got.not_before_ns is None else join.start_rad
+        got = replace(got, reaction=reaction_of(scenario, path_rad, got.dense, state, motions=motions))
+        if got.refused is not None:
+            return None
+    rs = resample(got.dense, motions, time_step_s=time_step_s)
+    if not rs.ok or not np.array_equal(rs.indices, got.indices):
+        return None
+    return _finished(scenario, got, rs)
+
+
+def _finished(scenario, got: Processed, rs) -> Processed:
+    """Return ``got`` with the resampled points ``rs`` (the dense ones when not certified), split."""
+    dense = got.dense
     traj, idx = (rs.trajectory, rs.indices) if rs.ok else (dense, np.arange(len(dense)))
     arm, att = split_parts(traj, scenario.robot.joint_names[0])
     drift = None
@@ -306,7 +361,8 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
         att = None                  # nothing commands the attitude
         drift = None if arm is None else predicted_drift(scenario, dense, idx)
     clr = float(rs.check.min_clearance_m) if rs.ok and rs.check is not None else float("nan")
-    return Processed(dense, traj, idx, rs.ok, clr, reaction, arm, att, stamp_ns, cont, not_before_ns, drift)
+    return replace(got, trajectory=traj, indices=idx, certified=rs.ok, min_clearance_m=clr, arm=arm,
+                   attitude=att, predicted_drift=drift)
 
 
 def predicted_drift(scenario, dense: Trajectory, indices) -> TrajectoryPart:

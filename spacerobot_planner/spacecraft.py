@@ -24,7 +24,10 @@ the planning frame is the body-centred frame at the start of the motion.  Number
 What the reaction means for a plan (the inertial-frame check of the drifted arm, the
 verdict) is ``reaction.py``; planning for the drift is ``free_floating.py``.
 
-Units: kg, kg·m², m, rad, s; momentum N·m·s, torque N·m.  NumPy only: no geometry, no ROS.
+Units: kg, kg·m², m, rad, s; momentum N·m·s, torque N·m.  NumPy, and numba for the momentum sums
+(:func:`angular_momentum_Nms`, :func:`momentum_rate_Nm`, :func:`momentum_map`: one pass per sample
+instead of stacked (N, n+1, 2) arrays; ``worker --warm-cache`` fills their cache: it runs the chain
+with the reaction on); no geometry, no ROS.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import numbers
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 __all__ = ["MassProperties", "AcsSettings", "WheelModel", "FreeFloatingResponse", "ACS_MODES", "system_com_m",
            "angular_momentum_Nms", "momentum_rate_Nm", "momentum_map", "wheel_load", "free_floating_response"]
@@ -125,45 +129,19 @@ def _tables(robot, masses):
     return coef * lengths[None, :], m, inertia
 
 
-def _cross(a, b):
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
-def _bodies(robot, masses, q_full, qd_full=None, qdd_full=None):
+def _bodies(robot, masses, q_full):
     """
-    Return the centres, velocities and accelerations of the body and the links.
+    Return the centres of the body and the links, and the masses.
 
-    Centres (..., n+1, 2) of the body (row 0, at the origin) and the links, their velocities and
-    accelerations, and the bodies' absolute angles, rates, accelerations.
+    Centres (..., n+1, 2) of the body (row 0, at the origin) and the links (``"r"``), the
+    masses (``"m"``, (n+1,)).
     """
-    cl, m, inertia = _tables(robot, masses)
+    cl, m, _ = _tables(robot, masses)
     q = np.asarray(q_full, dtype=float)
     phi = np.cumsum(q, axis=-1)
     e = np.stack([np.cos(phi), np.sin(phi)], axis=-1)
-    e_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=-1)
-    zero = np.zeros(q.shape[:-1] + (1, 2))
-
-    def with_body(links):
-        return np.concatenate([zero, links], axis=-2)
-
-    r = with_body(np.einsum("kj,...jd->...kd", cl, e))
-    ang = np.concatenate([phi[..., :1], phi], axis=-1)
-    out = {"r": r, "phi": ang, "m": m, "I": inertia}
-    if qd_full is not None:
-        phid = np.cumsum(np.asarray(qd_full, dtype=float), axis=-1)
-        out["v"] = with_body(np.einsum("kj,...jd->...kd", cl, phid[..., None] * e_perp))
-        out["phid"] = np.concatenate([phid[..., :1], phid], axis=-1)
-        if qdd_full is not None:
-            phidd = np.cumsum(np.asarray(qdd_full, dtype=float), axis=-1)
-            acc = phidd[..., None] * e_perp - (phid ** 2)[..., None] * e
-            out["a"] = with_body(np.einsum("kj,...jd->...kd", cl, acc))
-            out["phidd"] = np.concatenate([phidd[..., :1], phidd], axis=-1)
-    return out
-
-
-def _about_com(x, m):
-    """Return x (..., nb, 2) minus its mass-weighted mean."""
-    return x - np.einsum("b,...bd->...d", m, x)[..., None, :] / m.sum()
+    links = np.einsum("kj,...jd->...kd", cl, e)
+    return {"r": np.concatenate([np.zeros(q.shape[:-1] + (1, 2)), links], axis=-2), "m": m}
 
 
 def system_com_m(robot, masses: MassProperties, q_full) -> np.ndarray:
@@ -176,29 +154,134 @@ def system_com_m(robot, masses: MassProperties, q_full) -> np.ndarray:
     return np.einsum("b,...bd->...d", b["m"], b["r"]) / b["m"].sum()
 
 
+@njit(cache=True, nogil=True)
+def _sample_momentum(cl, m, inertia, q, qd, qdd, r, v, a):
+    """
+    (h, dh/dt) of one sample: q, qd, qdd (n,) full joints (qdd None: no rate, 0.0).
+
+    ``r``, ``v``, ``a``: (n + 1, 2) scratch (the body, row 0, and the link centres).  The sums
+    of :func:`_bodies` and the CoM formulas, per sample.
+    """
+    n = q.shape[0]
+    phi = phid = phidd = 0.0
+    for d in range(2):
+        r[0, d] = v[0, d] = a[0, d] = 0.0
+    for k in range(n):
+        r[k + 1, 0] = r[k + 1, 1] = v[k + 1, 0] = v[k + 1, 1] = a[k + 1, 0] = a[k + 1, 1] = 0.0
+    h_spin = 0.0
+    rate_spin = 0.0
+    for j in range(n):
+        phi += q[j]
+        phid += qd[j]
+        c, s = np.cos(phi), np.sin(phi)
+        if qdd is not None:
+            phidd += qdd[j]
+            ax = -phidd * s - phid * phid * c
+            ay = phidd * c - phid * phid * s
+            rate_spin += inertia[j + 1] * phidd
+            if j == 0:
+                rate_spin += inertia[0] * phidd
+        h_spin += inertia[j + 1] * phid
+        if j == 0:
+            h_spin += inertia[0] * phid
+        for k in range(j, n):           # link k's centre: Σ_{j ≤ k} cl[k, j] e_j
+            w = cl[k, j]
+            r[k + 1, 0] += w * c
+            r[k + 1, 1] += w * s
+            v[k + 1, 0] -= w * phid * s
+            v[k + 1, 1] += w * phid * c
+            if qdd is not None:
+                a[k + 1, 0] += w * ax
+                a[k + 1, 1] += w * ay
+    mt = 0.0
+    rx = ry = vx = vy = axm = aym = 0.0
+    for b in range(n + 1):
+        mt += m[b]
+        rx += m[b] * r[b, 0]
+        ry += m[b] * r[b, 1]
+        vx += m[b] * v[b, 0]
+        vy += m[b] * v[b, 1]
+        axm += m[b] * a[b, 0]
+        aym += m[b] * a[b, 1]
+    rx /= mt
+    ry /= mt
+    vx /= mt
+    vy /= mt
+    axm /= mt
+    aym /= mt
+    h = 0.0
+    rate = 0.0
+    for b in range(n + 1):
+        dx, dy = r[b, 0] - rx, r[b, 1] - ry
+        h += m[b] * (dx * (v[b, 1] - vy) - dy * (v[b, 0] - vx))
+        rate += m[b] * (dx * (a[b, 1] - aym) - dy * (a[b, 0] - axm))
+    return h + h_spin, rate + rate_spin
+
+
+@njit(cache=True, nogil=True)
+def _momentum_rows(cl, m, inertia, q, qd, qdd, with_rate):
+    """(h (N,), dh/dt (N,)) of the rows of q, qd, qdd (N, n); dh/dt zeros unless ``with_rate``."""
+    nb = q.shape[1] + 1
+    r, v, a = np.empty((nb, 2)), np.empty((nb, 2)), np.empty((nb, 2))
+    h = np.empty(q.shape[0])
+    rate = np.zeros(q.shape[0])
+    for i in range(q.shape[0]):
+        if with_rate:
+            h[i], rate[i] = _sample_momentum(cl, m, inertia, q[i], qd[i], qdd[i], r, v, a)
+        else:
+            h[i], _ = _sample_momentum(cl, m, inertia, q[i], qd[i], None, r, v, a)
+    return h, rate
+
+
+@njit(cache=True, nogil=True)
+def _momentum_map_rows(cl, m, inertia, q):
+    """H (N, n) of the rows of q (N, n): row i, column k is h at q[i] with unit rate of joint k."""
+    nq, n = q.shape
+    r, v, a = np.empty((n + 1, 2)), np.empty((n + 1, 2)), np.empty((n + 1, 2))
+    unit = np.zeros(n)
+    out = np.empty((nq, n))
+    for i in range(nq):
+        for k in range(n):
+            unit[k] = 1.0
+            out[i, k], _ = _sample_momentum(cl, m, inertia, q[i], unit, None, r, v, a)
+            unit[k] = 0.0
+    return out
+
+
+def _rows(*arrays):
+    """Broadcast (..., n) arrays together; return their leading shape and (N, n) contiguous rows."""
+    b = np.broadcast_arrays(*[np.asarray(x, dtype=float) for x in arrays])
+    shape = b[0].shape[:-1]
+    return shape, [np.ascontiguousarray(x.reshape(-1, x.shape[-1])) for x in b]
+
+
+def _shaped(x, shape):
+    """Rows (N,) back to the leading shape (a NumPy scalar for a single sample)."""
+    return x.reshape(shape) if shape else x[0]
+
+
 def angular_momentum_Nms(robot, masses: MassProperties, q_full, qd_full) -> np.ndarray:
     """Return h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇ about the system CoM: (...,) N·m·s."""
-    b = _bodies(robot, masses, q_full, qd_full)
-    m = b["m"]
-    return (np.einsum("b,...b->...", m, _cross(_about_com(b["r"], m), _about_com(b["v"], m)))
-            + np.einsum("b,...b->...", b["I"], b["phid"]))
+    cl, m, inertia = _tables(robot, masses)
+    shape, (q, qd) = _rows(q_full, qd_full)
+    h, _ = _momentum_rows(cl, m, inertia, q, qd, qd, False)
+    return _shaped(h, shape)
 
 
 def momentum_rate_Nm(robot, masses: MassProperties, q_full, qd_full, qdd_full) -> np.ndarray:
     """dh/dt = Σ m (r − r̄) × (r̈ − r̄̈) + Σ I φ̈ (the cross term ṙ × ṙ vanishes): (...,) N·m."""
-    b = _bodies(robot, masses, q_full, qd_full, qdd_full)
-    m = b["m"]
-    return (np.einsum("b,...b->...", m, _cross(_about_com(b["r"], m), _about_com(b["a"], m)))
-            + np.einsum("b,...b->...", b["I"], b["phidd"]))
+    cl, m, inertia = _tables(robot, masses)
+    shape, (q, qd, qdd) = _rows(q_full, qd_full, qdd_full)
+    _, rate = _momentum_rows(cl, m, inertia, q, qd, qdd, True)
+    return _shaped(rate, shape)
 
 
 def momentum_map(robot, masses: MassProperties, q_full) -> np.ndarray:
     """Return the row H(q) with h = H · q̇: (n,) or (N, n), N·m·s per rad/s (kg·m²)."""
+    cl, m, inertia = _tables(robot, masses)
     q = np.asarray(q_full, dtype=float)
-    n = q.shape[-1]
-    eye = np.eye(n)
-    qb = np.broadcast_to(q[..., None, :], q.shape[:-1] + (n, n))
-    return angular_momentum_Nms(robot, masses, qb, np.broadcast_to(eye, qb.shape))
+    rows = _momentum_map_rows(cl, m, inertia, np.ascontiguousarray(q.reshape(-1, q.shape[-1])))
+    return rows.reshape(q.shape)
 
 
 def _planned_rates(robot, d_planned):

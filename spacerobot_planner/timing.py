@@ -20,7 +20,8 @@ from .reaction import ReactionReport, reaction_report
 from .spacecraft import WheelModel
 from .trajectory import time_parameterize
 
-__all__ = ["Motion", "plan_motion", "timed_motion", "scenario_joint_limits", "trajectory_limits_known"]
+__all__ = ["Motion", "plan_motion", "timed_motion", "reaction_of", "reaction_matters", "scenario_joint_limits",
+           "trajectory_limits_known"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,20 +85,48 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
         ValueError: bad limits or a start velocity the path cannot be followed with.
 
     """
+    traj = _wheel_timed(scenario, path_rad, start_velocity_rad_s, start_path_speed)
+    return Motion(traj, _report(scenario, path_rad, traj, motions))
+
+
+def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed=None):
+    """:func:`plan_motion`'s trajectory (the wheel limits in the time-optimal parameterisation)."""
     robot, acs = scenario.robot, scenario.acs
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     limits = (acs.max_wheel_momentum_Nms, acs.max_wheel_torque_Nm) if acs.mode == "held" else (None, None)
     wheel = WheelModel(robot, scenario.masses, *limits)
-    traj = time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
+    return time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
                              start_path_speed=start_path_speed, wheel=wheel)
-    report = reaction_report(robot, scenario.masses, scenario.scene, path_rad, traj, acs_mode=acs.mode,
-                             max_wheel_momentum_Nms=acs.max_wheel_momentum_Nms,
-                             max_wheel_torque_Nm=acs.max_wheel_torque_Nm,
-                             position_tolerance_m=acs.position_tolerance_m,
-                             max_approach_error_deg=scenario.planner_settings.max_approach_error_deg,
-                             motions=motions)
-    return Motion(traj, report)
+
+
+def _report(scenario, path_rad, traj, motions=None) -> ReactionReport:
+    """:func:`plan_motion`'s reaction report of ``traj`` along ``path_rad``."""
+    acs = scenario.acs
+    return reaction_report(scenario.robot, scenario.masses, scenario.scene, path_rad, traj, acs_mode=acs.mode,
+                           max_wheel_momentum_Nms=acs.max_wheel_momentum_Nms,
+                           max_wheel_torque_Nm=acs.max_wheel_torque_Nm,
+                           position_tolerance_m=acs.position_tolerance_m,
+                           max_approach_error_deg=scenario.planner_settings.max_approach_error_deg,
+                           motions=motions)
+
+
+def reaction_matters(scenario) -> bool:
+    """Tell whether the scenario's ACS settings make the reaction matter (free floating, wheel limits)."""
+    return scenario.acs.mode != "held" or scenario.acs.has_wheel_limits
+
+
+def reaction_of(scenario, path_rad, traj, state_rad=None, motions=None) -> ReactionReport:
+    """
+    Return the reaction report :func:`timed_motion` gives with ``traj`` (its trajectory of ``path_rad``).
+
+    For a trajectory from ``timed_motion(..., report=False)`` with the same path, state and a
+    scenario that differs at most in its scaling factors (the report does not read them).
+    """
+    path = np.asarray(path_rad, dtype=float)
+    if state_rad is not None:
+        path = align_to_state(path, state_rad, scenario.robot.planned_periodic)
+    return _report(scenario, path, traj, motions)
 
 
 def trajectory_limits_known(scenario) -> bool:
@@ -106,7 +135,7 @@ def trajectory_limits_known(scenario) -> bool:
 
 
 def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0,
-                 motions=None):
+                 motions=None, report: bool = True):
     """
     Run the last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
 
@@ -123,6 +152,8 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
             chord length; a replan joined to a moving arm, see ``trajectory.continuation``).
         motions: the scene's ``motion.MotionValidator`` (the reaction's drift check; made
             when None and needed).
+        report: False: the same trajectory, the report left out (None; :func:`reaction_of`
+            makes it later, e.g. for the one of several re-timings that is kept).
 
     Returns
     -------
@@ -139,7 +170,9 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
     if state_rad is not None:
         path = align_to_state(path, state_rad, robot.planned_periodic)
     if reaction is None:
-        reaction = scenario.acs.mode != "held" or scenario.acs.has_wheel_limits
+        reaction = reaction_matters(scenario)
+    if reaction and not report:
+        return _wheel_timed(scenario, path, start_path_speed=start_path_speed), None
     if reaction:
         motion = plan_motion(scenario, path, start_path_speed=start_path_speed, motions=motions)
         return motion.trajectory, motion.reaction
