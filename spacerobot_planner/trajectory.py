@@ -73,7 +73,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
-from scipy.interpolate import CubicSpline
 
 from .motion import MotionValidator
 
@@ -435,6 +434,7 @@ def _path_model(p, refine: int):
         return s, idx, q, d1, d2, d3
     s_knots, s = _grid(ds, refine)
     if len(p) == 3:
+        from scipy.interpolate import CubicSpline   # three samples only: SciPy off the start-up route
         cs = CubicSpline(s_knots, p, axis=0, bc_type="not-a-knot")
         q, d1, d2 = cs(s), cs(s, 1), cs(s, 2)
         d3 = np.repeat(cs(0.5 * (s_knots[:-1] + s_knots[1:]), 3), refine, axis=0)
