@@ -25,6 +25,7 @@ from numba import njit
 
 from .collision import config_clearance
 from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
+from .trajectory import not_a_knot_slopes
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
            "spline_through", "smooth_path", "warm_up", "DEFAULT_MAX_STEP_RAD"]
@@ -344,55 +345,6 @@ def _spline_samples(knots_rad, max_step_rad):
 
 
 @njit(cache=True, nogil=True)
-def _not_a_knot_slopes(s, y):
-    """
-    First derivatives (n, dof) at the knots of the not-a-knot cubic spline through y (n, dof) at s (n,).
-
-    n ≥ 3; n = 3: the parabola through the three knots (scipy's ``CubicSpline`` does the same).
-    n ≥ 4: the tridiagonal system of ``CubicSpline`` (``bc_type="not-a-knot"``), by Thomas'
-    elimination (its first pivot dx[1] > 0, the second dx[0] + dx[1], the rest diagonally dominant).
-    """
-    n, dof = y.shape
-    dx = np.empty(n - 1)
-    slope = np.empty((n - 1, dof))
-    for i in range(n - 1):
-        dx[i] = s[i + 1] - s[i]
-        for a in range(dof):
-            slope[i, a] = (y[i + 1, a] - y[i, a]) / dx[i]
-    m = np.empty((n, dof))
-    if n == 3:
-        for a in range(dof):
-            c = (slope[1, a] - slope[0, a]) / (s[2] - s[0])
-            m[0, a] = slope[0, a] - c * dx[0]
-            m[1, a] = slope[0, a] + c * dx[0]
-            m[2, a] = slope[1, a] + c * dx[1]
-        return m
-    cp = np.empty(n)          # the eliminated upper diagonal
-    rp = np.empty((n, dof))   # the eliminated right-hand side
-    d = s[2] - s[0]
-    cp[0] = d / dx[1]
-    for a in range(dof):
-        rp[0, a] = ((dx[0] + 2.0 * d) * dx[1] * slope[0, a] + dx[0] * dx[0] * slope[1, a]) / d / dx[1]
-    for i in range(1, n - 1):
-        lower, diag, upper = dx[i], 2.0 * (dx[i - 1] + dx[i]), dx[i - 1]
-        den = diag - lower * cp[i - 1]
-        cp[i] = upper / den
-        for a in range(dof):
-            rhs = 3.0 * (dx[i] * slope[i - 1, a] + dx[i - 1] * slope[i, a])
-            rp[i, a] = (rhs - lower * rp[i - 1, a]) / den
-    d = s[n - 1] - s[n - 3]
-    lower, diag = d, dx[n - 3]
-    den = diag - lower * cp[n - 2]
-    for a in range(dof):
-        rhs = (dx[n - 2] * dx[n - 2] * slope[n - 3, a] + (2.0 * d + dx[n - 2]) * dx[n - 3] * slope[n - 2, a]) / d
-        m[n - 1, a] = (rhs - lower * rp[n - 2, a]) / den
-    for i in range(n - 2, -1, -1):
-        for a in range(dof):
-            m[i, a] = rp[i, a] - cp[i] * m[i + 1, a]
-    return m
-
-
-@njit(cache=True, nogil=True)
 def _spline_kernel(s, y, max_step_rad):
     """
     Sample the not-a-knot cubic spline through y (n ≥ 3, dof) at the chord parameters s (n,).
@@ -405,7 +357,7 @@ def _spline_kernel(s, y, max_step_rad):
     interval of each (N,)).
     """
     n, dof = y.shape
-    m = _not_a_knot_slopes(s, y)
+    m = not_a_knot_slopes(s, y)
     c0 = np.empty((n - 1, dof))
     c1 = np.empty((n - 1, dof))
     for i in range(n - 1):

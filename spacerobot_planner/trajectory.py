@@ -269,16 +269,28 @@ def densify_path(path_rad, max_step_rad: float = np.radians(0.5), min_points: in
 
 
 @njit(cache=True, nogil=True)
-def _not_a_knot_slopes(x, y):
+def not_a_knot_slopes(x, y):
     """
-    Return the slopes (M, n) at the knots of the not-a-knot cubic spline through (x (M,), y (M, n)), M ≥ 4.
+    Return the slopes (M, n) at the knots of the not-a-knot cubic spline through (x (M,), y (M, n)), M ≥ 3.
 
-    SciPy's ``CubicSpline`` system (the same rows), solved by LAPACK's ``gtsv`` elimination
-    (tridiagonal, partial pivoting); the matrix is the same for every column, so it is
-    eliminated once and the columns' right-hand sides follow it.
+    M = 3: the parabola through the three knots (SciPy's ``CubicSpline`` does the same).
+    M ≥ 4: SciPy's ``CubicSpline`` system (the same rows), solved by LAPACK's ``gtsv``
+    elimination (tridiagonal, partial pivoting); the matrix is the same for every column, so
+    it is eliminated once and the columns' right-hand sides follow it.  The one not-a-knot
+    solve of the package: the trajectory's path model and the smoothed path's spline.
     """
     m, n = y.shape
     dx = x[1:] - x[:-1]
+    if m == 3:
+        out = np.empty((3, n))
+        for col in range(n):
+            s0 = (y[1, col] - y[0, col]) / dx[0]
+            s1 = (y[2, col] - y[1, col]) / dx[1]
+            c = (s1 - s0) / (x[2] - x[0])
+            out[0, col] = s0 - c * dx[0]
+            out[1, col] = s0 + c * dx[0]
+            out[2, col] = s1 + c * dx[1]
+        return out
     d = np.empty(m)
     du = np.empty(m - 1)
     dl = np.empty(m - 1)
@@ -402,9 +414,9 @@ def _grid(ds, refine):
 
 @njit(cache=True, nogil=True)
 def _spline_on_grid(p, ds, refine):
-    """Return the not-a-knot spline through p (M ≥ 4) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
+    """Return the not-a-knot spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
     s_knots, s = _grid(ds, refine)
-    q, d1, d2, d3 = _hermite_on_grid(s_knots, p, _not_a_knot_slopes(s_knots, p), s, refine)
+    q, d1, d2, d3 = _hermite_on_grid(s_knots, p, not_a_knot_slopes(s_knots, p), s, refine)
     for k in range(p.shape[0]):
         q[k * refine] = p[k]
     return s, q, d1, d2, d3
@@ -422,28 +434,22 @@ def _path_model(p, refine: int):
     Returns (s, idx, q, d1, d2, d3): grid chord lengths s (G,), the grid indices of the
     samples idx (M,), the spline's q, q', q'' at the grid points (G, n) (q[idx] == p
     exactly) and its q''' per grid segment (G-1, n) (constant on each spline piece).
-    SciPy's not-a-knot ``CubicSpline``, by the kernels above from 4 samples on.
+    SciPy's not-a-knot ``CubicSpline``, by the kernels above from 3 samples on.
     """
     idx = np.arange(len(p)) * refine
     if p.shape[1] <= _SEQUENTIAL_SUM_MAX:
         ds = _chords(p)
     else:
         ds = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    if len(p) >= 4:
+    if len(p) >= 3:
         s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine)
         return s, idx, q, d1, d2, d3
-    s_knots, s = _grid(ds, refine)
-    if len(p) == 3:
-        from scipy.interpolate import CubicSpline   # three samples only: SciPy off the start-up route
-        cs = CubicSpline(s_knots, p, axis=0, bc_type="not-a-knot")
-        q, d1, d2 = cs(s), cs(s, 1), cs(s, 2)
-        d3 = np.repeat(cs(0.5 * (s_knots[:-1] + s_knots[1:]), 3), refine, axis=0)
-    else:                                   # a straight segment
-        chord = (p[1] - p[0]) / ds[0]
-        q = p[0] + s[:, None] * chord
-        d1 = np.repeat(chord[None, :], len(s), axis=0)
-        d2 = np.zeros_like(q)
-        d3 = np.zeros((len(s) - 1, p.shape[1]))
+    s_knots, s = _grid(ds, refine)          # a straight segment
+    chord = (p[1] - p[0]) / ds[0]
+    q = p[0] + s[:, None] * chord
+    d1 = np.repeat(chord[None, :], len(s), axis=0)
+    d2 = np.zeros_like(q)
+    d3 = np.zeros((len(s) - 1, p.shape[1]))
     q[idx] = p
     return s, idx, q, d1, d2, d3
 
