@@ -258,6 +258,8 @@ def _parts(node, t0: float, arrival: float, timeout_s: float = 5.0) -> dict | No
         out = node.last_outcome
         st = {} if out is None else out.stamps
         if out is not None and out.ok and "published" in st and st.get("planning", 0.0) >= t0:
+            if "sent" not in st:    # nothing sent (already at the goal): no trajectory to split
+                return None
             break
         if time.perf_counter() > end:
             return None
