@@ -42,6 +42,8 @@ __all__ = ["PathCheck", "MotionValidator", "check_path", "first_bad_segment", "l
 
 DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the certified checks
 QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of candidates
+#: interval certificates a validator keeps (``MotionValidator.check_kept``), oldest out first
+KEPT_INTERVALS = 4096
 
 
 @dataclass(frozen=True, eq=False)
@@ -330,6 +332,7 @@ class MotionValidator:
             raise ValueError(f"step_rad: must be a positive number, got {step_rad!r}")
         self._periodic_mask = np.array(self.periodic, dtype=bool)
         self._with_step = {}          # the validators of other steps (with_step), made once
+        self._kept = {}               # (row bytes, row bytes) -> an interval's certificate (check_kept)
         #: what the certified walk (``certify_segments``) needs of the robot and the scene
         self.kernel_arrays = (np.asarray(robot.locked_rad, dtype=float),
                               np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
@@ -415,6 +418,64 @@ class MotionValidator:
             self.lipschitz_m_per_rad, step, float(min_step_rad), bool(certified), vertex_clr)
         return PathCheck(bool(ok), interval_ok, float(best), int(n), interval_clr, vertex_clr)
 
+    def check_kept(self, path_rad) -> PathCheck:
+        """
+        Run :meth:`check` (certified, this validator's step and margin), keeping each interval's certificate.
+
+        An interval's certificate (passed, its smallest clearance, the clearances at its two
+        rows) is a pure function of its two rows, so the validator keeps it (``KEPT_INTERVALS``,
+        keyed by the rows' bytes) and a later check of an interval with the same two rows bit
+        for bit reuses it: the grid path of a replan shares every interval but its first with
+        the plan before, and a start's join checked by :meth:`segment_ok` is the first interval
+        of its grid path.  The intervals not kept are checked by :func:`check_kernel`, one call
+        per run of consecutive ones.  Returns what :meth:`check` returns, except ``n_checked``:
+        the clearance evaluations this call made.
+        """
+        p = np.ascontiguousarray(path_rad, dtype=float)
+        m = len(p) - 1
+        if m < 1:
+            return self.check(p)
+        rows = [r.tobytes() for r in p]
+        kept = self._kept
+        interval_ok = np.empty(m, dtype=bool)
+        interval_clr = np.empty(m)
+        vertex_clr = np.full(m + 1, np.nan)
+        todo = []
+        for i in range(m):
+            hit = kept.get((rows[i], rows[i + 1]))
+            if hit is None:
+                todo.append(i)
+                continue
+            interval_ok[i], interval_clr[i], a, b = hit
+            if a == a:                  # not NaN (a walk that failed early leaves its end unknown)
+                vertex_clr[i] = a
+            if b == b:
+                vertex_clr[i + 1] = b
+        n = 0
+        k = 0
+        while k < len(todo):
+            lo = todo[k]
+            while k + 1 < len(todo) and todo[k + 1] == todo[k] + 1:
+                k += 1
+            hi = todo[k] + 1            # intervals lo .. hi - 1: rows lo .. hi
+            k += 1
+            vc = vertex_clr[lo:hi + 1].copy()
+            _, _, n_run, ok_run, clr_run = check_kernel(
+                p[lo:hi + 1], self.lower_rad, self.upper_rad, self._periodic_mask, *self.kernel_arrays,
+                float(self.checker.margin_m), self.lipschitz_m_per_rad, self.step_rad, 1e-6, True, vc)
+            n += int(n_run)
+            interval_ok[lo:hi] = ok_run
+            interval_clr[lo:hi] = clr_run
+            vertex_clr[lo:hi + 1] = vc
+            for i in range(lo, hi):
+                if len(kept) >= KEPT_INTERVALS:
+                    kept.pop(next(iter(kept)))
+                kept[rows[i], rows[i + 1]] = (bool(ok_run[i - lo]), float(clr_run[i - lo]),
+                                              float(vc[i - lo]), float(vc[i - lo + 1]))
+        # check_kernel's smallest interval clearance: NaN if one is NaN
+        return PathCheck(bool(interval_ok.all()), interval_ok, float(np.min(interval_clr)), n, interval_clr,
+                         vertex_clr)
+
     def first_bad_segment(self, points_rad, step_rad: float | None = None) -> int:
         """Index i of the first straight segment points[i]→points[i+1] that fails, or -1."""
         chk = self.check(points_rad, step_rad=step_rad)
@@ -424,8 +485,15 @@ class MotionValidator:
         return int(bad[0]) if len(bad) else len(points_rad) - 2
 
     def segment_ok(self, a_rad, b_rad, step_rad: float | None = None) -> bool:
-        """Certified check of the shortest straight segment a → b (periodic axes unwrapped)."""
-        return self.check(unwrap_path(np.vstack([a_rad, b_rad]), self.periodic), step_rad=step_rad).ok
+        """
+        Certified check of the shortest straight segment a → b (periodic axes unwrapped).
+
+        At this validator's step its certificate is kept (:meth:`check_kept`).
+        """
+        seg = unwrap_path(np.vstack([a_rad, b_rad]), self.periodic)
+        if step_rad is None or float(step_rad) == self.step_rad:
+            return self.check_kept(seg).ok
+        return self.check(seg, step_rad=step_rad).ok
 
     def segment_test(self, step_rad: float = QUICK_STEP_RAD) -> SegmentTest:
         """Return what a numba kernel needs to run the quick :func:`segment_free` on this scene."""

@@ -556,7 +556,7 @@ class PlanRun:
             wp = unwrap_path(np.vstack([start, nodes_rad, self.goal]), self.periodic)
             wp[-1] = nearest_turn_rad(self.goal, wp[-1], self.periodic)   # exactly the goal (mod 2π)
             with self.stage("verify"):
-                chk = self.validator.check(wp)
+                chk = self.validator.check_kept(wp)     # the intervals a plan before checked: reused
             if chk.ok:
                 self.waypoint_check = chk            # the smoothing's shortcut pass reuses it
                 return wp
@@ -584,18 +584,20 @@ class PlanRun:
         """
         Return the descent from ``node`` on the field under ``key`` less ``blocked`` and ``cut`` (``descent.GridPath``).
 
-        A walk that does not reach the goal is kept by the planner (``Planner._failed_walks``),
-        keyed by that field and the node: the next plan that repairs the same way (a replan
-        from a nearby start) tries the same nodes on the same fields first.  Walks that reach
-        the goal are made afresh.
+        A walk (a pure function of the field and the node) is kept by the planner, keyed by that
+        field and the node: one that does not reach the goal in ``Planner._failed_walks`` (the
+        next plan that repairs the same way, a replan from a nearby start, tries the same nodes
+        on the same fields first), one that reaches it in ``Planner._walks`` (a replan from a
+        start near the same grid node descends no more).
         """
         dkey = (key, tuple(sorted(blocked)), tuple(sorted(cut)), tuple(int(v) for v in node))
-        gp = self.p._failed_walks.get(dkey)
+        gp = self.p._walks.get(dkey)
+        if gp is None:
+            gp = self.p._failed_walks.get(dkey)
         if gp is None:
             gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
-            if not gp.reached:
-                gp.nodes.flags.writeable = False
-                self.p._remember(self.p._failed_walks, dkey, gp, 256)
+            gp.nodes.flags.writeable = False
+            self.p._remember(self.p._walks if gp.reached else self.p._failed_walks, dkey, gp, 256)
         return gp
 
     def colliding_edges(self, grid, fld, key, blocked, node, radius: int) -> np.ndarray:

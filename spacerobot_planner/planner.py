@@ -98,6 +98,7 @@ class Planner:
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
         self._colliding: dict = {}       # (field key, blocked nodes, node, radius) -> a repair's colliding edges
         self._failed_walks: dict = {}    # (field key, blocked nodes, cut edges, node) -> a descent that failed
+        self._walks: dict = {}           # (field key, blocked nodes, cut edges, node) -> a descent that reached
         self._apparent: dict = {}        # scene geometry -> Planner (free-floating capture's guides)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
@@ -145,6 +146,7 @@ class Planner:
                 self._goal_nodes.clear()
                 self._colliding.clear()
                 self._failed_walks.clear()
+                self._walks.clear()
             self.scenario = self.scenario.with_scene(scene)
             self._checker = CollisionChecker(self.scenario.robot, scene)
             self._validator = MotionValidator(self._checker)
@@ -305,7 +307,7 @@ class Planner:
             for cache in (self._fields, self._goal_nodes):    # their fields go with them
                 for k in [k for k in cache if k[0] == evicted]:
                     del cache[k]
-            for cache in (self._colliding, self._failed_walks):
+            for cache in (self._colliding, self._failed_walks, self._walks):
                 for k in [k for k in cache if k[0][0] == evicted]:
                     del cache[k]
         self._cspaces[key] = cs
