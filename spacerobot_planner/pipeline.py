@@ -38,10 +38,10 @@ from .descent import colliding_edges
 from .field import bfs_distance, validate_problem
 from .field.graph import bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
-from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path
+from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .results import STAGES, Code, PlanResult
-from .smoothing import SmoothPath, smooth_path
+from .smoothing import SmoothPath, path_length_rad, smooth_path
 from .spacecraft import free_floating_response
 from .termination import Cancelled, Termination
 from .timing import timed_motion, trajectory_limits_known
@@ -177,8 +177,8 @@ class PlanRun:
             solver=self.s.solver, solver_stats=dict(self.stats),
             min_clearance_m=smooth.min_clearance_m if smooth is not None else math.nan,
             cspace=self.cs, field=self.fld, smoothing=smooth.method if smooth is not None else "",
-            path_length_rad=(float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
-                             if path is not None else math.nan),
+            path_length_rad=(math.nan if path is None else smooth.length_rad if path is smooth.path_rad
+                             else path_length_rad(path)),
             traceback=tb, trajectory=trajectory, reaction=reaction,
             approach_error_deg=self.approach_error_deg, exit_path_rad=self.exit_path,
             start_penetration_m=self.penetration_m, free_floating=self.drift_of(path))
@@ -195,8 +195,8 @@ class PlanRun:
         with self.stage("verify"):
             return self.validator.segment_ok(a, b)
 
-    def candidates(self, q, grid, free_mask, max_count: int = 8) -> np.ndarray:
-        """Free grid nodes near q (within 2 steps per axis), nearest first: (k, dof) int."""
+    def candidates(self, q, grid, occupied, max_count: int = 8) -> np.ndarray:
+        """Free grid nodes near q (within 2 steps per axis; ``occupied``: the grid's), nearest first: (k, dof) int."""
         lower, step = np.asarray(grid.lower_rad), grid.step_rad
         base = np.floor((q - lower) / step).astype(np.int64)
         nodes = base + _near_offsets(grid.ndim)
@@ -204,13 +204,12 @@ class PlanRun:
         per = np.asarray(grid.periodic, dtype=bool)
         nodes[:, per] %= shape[per]
         nodes = nodes[((nodes >= 0) & (nodes < shape) | per).all(axis=1)]
-        # distinct nodes in index order (a row-major flat index sorts as the index tuples do)
-        nodes = np.array(np.unravel_index(np.unique(np.ravel_multi_index(nodes.T, grid.shape)), grid.shape)).T
-        d = lower + nodes * step - q
-        d[:, per] = (d[:, per] + np.pi) % (2.0 * np.pi) - np.pi     # the short way round
-        nodes = nodes[np.argsort(np.linalg.norm(d, axis=1), kind="stable")]
-        nodes = nodes[free_mask[tuple(nodes.T)]]
-        return nodes[:max_count]
+        # distinct free nodes in index order (a row-major flat index sorts as the index tuples do)
+        flat = np.unique(np.ravel_multi_index(nodes.T, grid.shape))
+        flat = flat[~occupied.ravel()[flat]]
+        nodes = np.array(np.unravel_index(flat, grid.shape)).T
+        d = difference_rad(q, grid.config_of(nodes), grid.periodic)     # the short way round
+        return nodes[np.argsort(np.linalg.norm(d, axis=1), kind="stable")[:max_count]]
 
     # ----------------------------------------------------------------- stages
     def check_inputs(self, start_rad, goal_rad) -> None:
@@ -447,7 +446,7 @@ class PlanRun:
         key = (cs_key, self.goal.tobytes(), self.s.verify_step_rad)
         nodes = self.p._goal_nodes.get(key)
         if nodes is None:
-            nodes = [n for n in self.candidates(self.goal, cs.grid, ~cs.occupied)
+            nodes = [n for n in self.candidates(self.goal, cs.grid, cs.occupied)
                      if self.segment_ok(cs.grid.config_of(n), self.goal)][:4]
             self.p._remember(self.p._goal_nodes, key, nodes, 16)
         if not nodes:
@@ -502,7 +501,7 @@ class PlanRun:
                           "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m),
                           "grid": grid.label(), "refinements": self.level}
             with self.stage("descent"):
-                starts = self.candidates(start, grid, ~fld.occupied)
+                starts = self.candidates(start, grid, fld.occupied)
             if len(starts) == 0:
                 raise Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is "
                            f"blocked (grid {grid.label()}, margin {cs.margin_m:.3f} m)",
@@ -646,8 +645,8 @@ class PlanRun:
         """
         grid, occ = cs.grid, cs.occupied
         start = self.plan_start
-        goal_nodes = self.candidates(self.goal, grid, ~occ)
-        start_nodes = self.candidates(start, grid, ~occ)
+        goal_nodes = self.candidates(self.goal, grid, occ)
+        start_nodes = self.candidates(start, grid, occ)
         where = f"the grid {grid.label()}, grid margin {cs.margin_m:.3f} m"
         if len(start_nodes) == 0:
             return Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is an "
@@ -660,7 +659,7 @@ class PlanRun:
         # the grid joins them: does the field's own graph (repairs, goal joins) join them?
         f_occ, per, f_goals = validate_problem(fld.occupied, grid.periodic, fld.goal_nodes)
         f_dist = field_bfs(f_occ, per, f_goals, np.array(sorted(cut), dtype=np.int64).reshape(-1, 2))[0]
-        f_starts = self.candidates(start, grid, ~fld.occupied)
+        f_starts = self.candidates(start, grid, fld.occupied)
         joined = len(f_starts) and np.any(f_dist.reshape(occ.shape)[tuple(f_starts.T)] >= 0)
         if joined and fld.solver == "gauss_seidel":
             return Fail(Code.PATH_INVALID, f"the field of solver 'gauss_seidel' is zero (flat in float64) at "

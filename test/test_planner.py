@@ -410,6 +410,38 @@ def test_plan_a_b_a_gives_a_bit_for_bit(sc3):
     _same(a1, Planner(sc3).plan(sc3.start_rad, sc3.goal_rad))       # a fresh planner agrees
 
 
+def test_replans_near_a_start_reuse_its_walks_and_equal_fresh_plans(sc3):
+    """
+    Replans from starts near the paper's keep the descent from their grid node and its grid path's interval checks.
+
+    Each replan equals a fresh planner's plan bit for bit (path, grid path, trajectory); a
+    replan whose start joins the same grid node as an earlier one takes its walk from the
+    planner's store instead of descending again.
+    """
+    pl = Planner(sc3)
+    pl.plan(sc3.start_rad, sc3.goal_rad)
+    chk = CollisionChecker(sc3.robot, sc3.scene)
+    rng = np.random.default_rng(5)
+    near = [q for q in sc3.start_rad + np.radians(rng.uniform(-2.0, 2.0, size=(12, 3))) if chk.is_free(q)][:5]
+
+    class Counted(dict):
+        hits = 0
+
+        def get(self, key, default=None):
+            Counted.hits += key in self
+            return super().get(key, default)
+
+    pl._walks = Counted(pl._walks)
+    for q in near + near[:2]:
+        again = pl.plan(q, sc3.goal_rad)
+        fresh = Planner(sc3).plan(q, sc3.goal_rad)
+        assert again.ok
+        _same(again, fresh)
+        assert np.array_equal(again.trajectory.times_s, fresh.trajectory.times_s)
+        assert again.min_clearance_m == fresh.min_clearance_m
+    assert Counted.hits >= 2            # at least the two repeated starts walked from the store
+
+
 def _first_repaired_plan():
     """Return (scenario, start, goal, planner, result) of the first of :func:`_random_target_plans` that repaired."""
     for sc, start, goal, pl, res in _random_target_plans():

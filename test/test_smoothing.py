@@ -192,3 +192,32 @@ def test_spline_refines_where_it_cuts_a_corner(sc2, chk2):
     assert sp is not None and sp.method == "spline" and sp.refinements >= 1
     assert len(sp.knots_rad) > len(idx)
     assert check_path(chk2, sp.path_rad, *bounds(sc2), verify_step_rad=np.radians(0.05)).ok
+
+
+def test_kept_interval_checks_equal_a_fresh_check_bit_for_bit(sc2, chk2):
+    """
+    ``MotionValidator.check_kept`` reuses each interval's certificate kept from earlier checks.
+
+    Polylines that share some intervals with earlier ones (free, colliding and out-of-bounds
+    intervals among them) get what a fresh validator's ``check`` gives, bit for bit, except
+    the evaluation count: none for intervals all kept.
+    """
+    lo, hi, per = bounds(sc2)
+    rng = np.random.default_rng(7)
+    kept = MotionValidator(chk2, lo, hi, per)
+    base = rng.uniform(lo - 0.05, hi, size=(12, 2))        # some rows just below a bound
+    paths = [base, base[3:9], np.vstack([rng.uniform(lo, hi, size=(2, 2)), base[4:10]]), base[::-1].copy(),
+             np.vstack([base[:5], rng.uniform(lo, hi, size=(3, 2)), base[7:]])]
+    outcomes = set()
+    for path in paths:
+        fresh = MotionValidator(chk2, lo, hi, per).check(path)
+        got = kept.check_kept(path)
+        assert got.ok == fresh.ok
+        assert np.array_equal(got.interval_ok, fresh.interval_ok)
+        assert np.array_equal(got.interval_clearance_m, fresh.interval_clearance_m)
+        assert got.min_clearance_m == fresh.min_clearance_m
+        known = ~np.isnan(got.vertex_clearance_m)
+        assert np.array_equal(got.vertex_clearance_m[known], chk2.clearance_m(path[known]))
+        assert kept.check_kept(path).n_checked == 0               # every interval kept now
+        outcomes.update(fresh.interval_ok.tolist())
+    assert outcomes == {True, False}                               # both kinds of interval seen
