@@ -15,8 +15,9 @@ Method (reachability analysis, Pham & Pham's TOPP-RA):
 
 1. A cubic spline through the path samples (not-a-knot, parameter s = joint-space chord
    length, rad) gives q', q'' and the (piecewise constant) q''' on a grid
-   ``grid_refinement`` (4) times finer than the samples; the trajectory keeps one point
-   per sample, at exactly the given positions.
+   ``grid_refinement`` (2) times finer than the samples; the trajectory keeps one point
+   per sample, at exactly the given positions.  (4 times finer: the paper paths' durations
+   0.02-0.2 % shorter, for twice the work of every pass; the limits hold at any refinement.)
 2. On each grid segment ``[s_i, s_{i+1}]`` the path acceleration ``u_i = s̈`` is constant,
    so ``x = ṡ²`` is linear: ``x_{i+1} = x_i + 2 Δ_i u_i``.  Every constraint is written
    at *both* ends of the segment with the segment's ``u_i`` ("first-order
@@ -953,7 +954,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                       velocity_scaling: float = 1.0, acceleration_scaling: float = 1.0,
                       start_path_speed: float | None = None, start_velocity_rad_s=None,
                       wheel=None, max_step_rad: float = np.radians(0.5),
-                      grid_refinement: int = 4, start_speed_tolerance: float = 1e-3) -> Trajectory:
+                      grid_refinement: int = 2, start_speed_tolerance: float = 1e-3) -> Trajectory:
     """
     Time-optimal parameterisation of a joint path within joint (and wheel) limits.
 
