@@ -93,19 +93,29 @@ def point_in_polygon(px, py, verts, start, stop):
 
 @njit(cache=True, nogil=True)
 def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
-    """Distance from segment AB to polygon verts[start:stop] (0 if touching or inside)."""
+    """
+    Distance from segment AB to polygon verts[start:stop] (0 if touching or inside).
+
+    The smallest of :func:`segment_segment_distance` over the edges, by squared distances
+    and one square root (a correctly rounded square root is monotone: the same value); each
+    vertex's squared distance to AB is computed once, for both of its edges.
+    """
     if point_in_polygon(ax, ay, verts, start, stop):
         return 0.0
     best = np.inf
-    j = stop - 1
+    cx, cy = verts[stop - 1, 0], verts[stop - 1, 1]
+    dc = point_segment_dist2(cx, cy, ax, ay, bx, by)
     for i in range(start, stop):
-        d = segment_segment_distance(ax, ay, bx, by, verts[j, 0], verts[j, 1], verts[i, 0], verts[i, 1])
+        dx, dy = verts[i, 0], verts[i, 1]
+        if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
+            return 0.0
+        dd = point_segment_dist2(dx, dy, ax, ay, bx, by)
+        d = min(min(point_segment_dist2(ax, ay, cx, cy, dx, dy), point_segment_dist2(bx, by, cx, cy, dx, dy)),
+                min(dc, dd))
         if d < best:
             best = d
-            if best == 0.0:
-                return 0.0
-        j = i
-    return best
+        cx, cy, dc = dx, dy, dd
+    return np.sqrt(best)
 
 
 @njit(cache=True, nogil=True)
@@ -135,22 +145,36 @@ def segment_polygon_within(ax, ay, bx, by, verts, start, stop, margin_m):
 # ------------------------------------------------------- per-configuration core
 @njit(cache=True, nogil=True)
 def link_points(q_full, lengths, out):
-    """Fill out (n+1, 2) with the chain's joint points for one configuration."""
+    """
+    Fill out (n+1, 2) with the chain's joint points for one configuration.
+
+    Returns the cosine and sine of the first link's angle (0.0 + q_full[0]).
+    """
     ang = 0.0
     out[0, 0] = 0.0
     out[0, 1] = 0.0
+    c0 = s0 = 0.0
     for k in range(q_full.shape[0]):
         ang += q_full[k]
-        out[k + 1, 0] = out[k, 0] + lengths[k] * np.cos(ang)
-        out[k + 1, 1] = out[k, 1] + lengths[k] * np.sin(ang)
+        c, s = np.cos(ang), np.sin(ang)
+        if k == 0:
+            c0, s0 = c, s
+        out[k + 1, 0] = out[k, 0] + lengths[k] * c
+        out[k + 1, 1] = out[k, 1] + lengths[k] * s
+    return c0, s0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rotate_body_cs(body, c, s, out):
+    """Fill out like body, turned by the angle whose cosine and sine are c and s."""
+    for i in range(body.shape[0]):
+        out[i, 0] = c * body[i, 0] - s * body[i, 1]
+        out[i, 1] = s * body[i, 0] + c * body[i, 1]
 
 
 @njit(cache=True, nogil=True)
 def rotate_body(body, attitude, out):
-    c, s = np.cos(attitude), np.sin(attitude)
-    for i in range(body.shape[0]):
-        out[i, 0] = c * body[i, 0] - s * body[i, 1]
-        out[i, 1] = s * body[i, 0] + c * body[i, 1]
+    _rotate_body_cs(body, np.cos(attitude), np.sin(attitude), out)
 
 
 @njit(cache=True, nogil=True)
@@ -189,58 +213,64 @@ def links_hit_body(pts, checked, body_w, margin_m):
     return False
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pair_bound(pts, k, p, obs_centres, obs_radii, body_r):
+    """
+    Lower bound on the distance of link k to polygon p (0: the body, p ≥ 1: obstacle p - 1).
+
+    The link's distance to the polygon's bounding circle (``obs_centres``, ``obs_radii`` of
+    ``scene.pack_polygons``; for the body, the circle of radius ``body_r`` about the origin),
+    less 1e-9 m for rounding.
+    """
+    ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
+    if p == 0:
+        return np.sqrt(point_segment_dist2(0.0, 0.0, ax, ay, bx, by)) - body_r - 1e-9
+    return (np.sqrt(point_segment_dist2(obs_centres[p - 1, 0], obs_centres[p - 1, 1], ax, ay, bx, by))
+            - obs_radii[p - 1] - 1e-9)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pair_distance(pts, k, p, body_w, obs_verts, obs_starts):
+    """Distance of link k to polygon p (0: the posed body ``body_w``, p ≥ 1: obstacle p - 1)."""
+    ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
+    if p == 0:
+        return segment_polygon_distance(ax, ay, bx, by, body_w, 0, body_w.shape[0])
+    return segment_polygon_distance(ax, ay, bx, by, obs_verts, obs_starts[p - 1], obs_starts[p])
+
+
 @njit(cache=True, nogil=True)
 def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres, obs_radii, pts, body_w):
     """
     Smallest distance (m) from a checked link to the body or any obstacle.
 
-    Each (link, polygon) pair has a lower bound on its distance: the link's distance to the
-    polygon's bounding circle (``obs_centres``, ``obs_radii`` of ``scene.pack_polygons``; for
-    the body, the circle about the origin through its farthest vertex), less 1e-9 m for
-    rounding.  Pairs are measured nearest bound first and the rest skipped once a bound
-    reaches the smallest distance found: the minimum is the same as over every pair.
+    Each (link, polygon) pair has a lower bound on its distance (:func:`_pair_bound`).  The
+    pair of the smallest bound is measured first, then every other pair whose bound is below
+    the smallest distance found so far: the minimum is the same as over every pair (a pair
+    skipped is at least as far).  No allocation; ``pts`` and ``body_w`` are scratch (the
+    chain's points, the posed body), the body turned by the attitude with the first link's
+    cosine and sine (:func:`link_points`).
     """
-    link_points(q_full, lengths, pts)
-    rotate_body(body, q_full[0], body_w)
-    nb = body.shape[0]
+    c0, s0 = link_points(q_full, lengths, pts)
+    # the attitude's own sine: sin(0.0 + q) is sin(q) but for q = -0.0 (sin(±0) = ±0)
+    _rotate_body_cs(body, c0, q_full[0] if q_full[0] == 0.0 else s0, body_w)
     body_r2 = 0.0
-    for i in range(nb):
+    for i in range(body.shape[0]):
         body_r2 = max(body_r2, body[i, 0] * body[i, 0] + body[i, 1] * body[i, 1])
+    body_r = np.sqrt(body_r2)
     n_poly = obs_starts.shape[0]          # the body, then the obstacles
     n_pair = checked.shape[0] * n_poly
-    bound = np.empty(n_pair)
-    order = np.empty(n_pair, np.int64)
-    for c in range(checked.shape[0]):
-        k = checked[c]
-        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
-        for p in range(n_poly):
-            if p == 0:
-                d2 = point_segment_dist2(0.0, 0.0, ax, ay, bx, by)
-                r = np.sqrt(body_r2)
-            else:
-                d2 = point_segment_dist2(obs_centres[p - 1, 0], obs_centres[p - 1, 1], ax, ay, bx, by)
-                r = obs_radii[p - 1]
-            b = np.sqrt(d2) - r - 1e-9
-            pair = c * n_poly + p
-            t = pair                          # insertion by bound (stable)
-            while t > 0 and bound[order[t - 1]] > b:
-                order[t] = order[t - 1]
-                t -= 1
-            bound[pair] = b
-            order[t] = pair
-    best = np.inf
-    for t in range(n_pair):
-        pair = order[t]
-        if bound[pair] >= best:
-            break
-        k = checked[pair // n_poly]
-        p = pair % n_poly
-        ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
-        if p == 0:
-            d = segment_polygon_distance(ax, ay, bx, by, body_w, 0, nb)
-        else:
-            d = segment_polygon_distance(ax, ay, bx, by, obs_verts, obs_starts[p - 1], obs_starts[p])
-        best = min(best, d)
+    first, low = 0, np.inf
+    for pair in range(n_pair):
+        b = _pair_bound(pts, checked[pair // n_poly], pair % n_poly, obs_centres, obs_radii, body_r)
+        if b < low:
+            first, low = pair, b
+    best = _pair_distance(pts, checked[first // n_poly], first % n_poly, body_w, obs_verts, obs_starts)
+    for pair in range(n_pair):
+        if pair != first:
+            k = checked[pair // n_poly]
+            p = pair % n_poly
+            if _pair_bound(pts, k, p, obs_centres, obs_radii, body_r) < best:
+                best = min(best, _pair_distance(pts, k, p, body_w, obs_verts, obs_starts))
     return best
 
 

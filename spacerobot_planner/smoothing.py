@@ -25,7 +25,7 @@ from numba import njit
 
 from .collision import config_clearance
 from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
-from .trajectory import not_a_knot_slopes
+from .trajectory import hermite_coefficients, not_a_knot_slopes
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
            "spline_through", "smooth_path", "warm_up", "DEFAULT_MAX_STEP_RAD"]
@@ -361,12 +361,7 @@ def _spline_kernel(s, y, max_step_rad):
     c0 = np.empty((n - 1, dof))
     c1 = np.empty((n - 1, dof))
     for i in range(n - 1):
-        h = s[i + 1] - s[i]
-        for a in range(dof):
-            sl = (y[i + 1, a] - y[i, a]) / h
-            t = (m[i, a] + m[i + 1, a] - 2.0 * sl) / h
-            c0[i, a] = t / h
-            c1[i, a] = (sl - m[i, a]) / h - t
+        hermite_coefficients(s, y, m, i, c0[i], c1[i])
     total = max(2, int(np.ceil(s[n - 1] / max_step_rad)) + 1)
     while True:
         q = np.empty((total, dof))

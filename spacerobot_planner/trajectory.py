@@ -345,6 +345,24 @@ def not_a_knot_slopes(x, y):
     return b
 
 
+@njit(cache=True, nogil=True, inline="always")
+def hermite_coefficients(x, y, slopes, k, c0, c1):
+    """
+    Fill c0, c1 (n,) with the cubic's leading coefficients on the knot interval [x[k], x[k+1]].
+
+    The cubic through y[k], y[k+1] (x (M,), y (M, n)) with the slopes there is
+    ``((c0 z + c1) z + slopes[k]) z + y[k]`` in z = s - x[k]: SciPy's ``CubicHermiteSpline``
+    coefficients in its local power basis (the trajectory's path model and the smoothed path's
+    spline).
+    """
+    h = x[k + 1] - x[k]
+    for col in range(y.shape[1]):
+        sl = (y[k + 1, col] - y[k, col]) / h
+        t = (slopes[k, col] + slopes[k + 1, col] - 2.0 * sl) / h
+        c0[col] = t / h
+        c1[col] = (sl - slopes[k, col]) / h - t
+
+
 @njit(cache=True, nogil=True)
 def _hermite_on_grid(x, y, slopes, s, refine):
     """
@@ -363,12 +381,7 @@ def _hermite_on_grid(x, y, slopes, s, refine):
     c0 = np.empty(n)
     c1 = np.empty(n)
     for k in range(m - 1):
-        h = x[k + 1] - x[k]
-        for col in range(n):
-            sl = (y[k + 1, col] - y[k, col]) / h
-            t = (slopes[k, col] + slopes[k + 1, col] - 2.0 * sl) / h
-            c0[col] = t / h
-            c1[col] = (sl - slopes[k, col]) / h - t
+        hermite_coefficients(x, y, slopes, k, c0, c1)
         for r in range(refine + (1 if k == m - 2 else 0)):
             j = k * refine + r
             z = s[j] - x[k]
