@@ -332,7 +332,7 @@ class MotionValidator:
             raise ValueError(f"step_rad: must be a positive number, got {step_rad!r}")
         self._periodic_mask = np.array(self.periodic, dtype=bool)
         self._with_step = {}          # the validators of other steps (with_step), made once
-        self._kept = {}               # (row bytes, row bytes) -> an interval's certificate (check_kept)
+        self._kept = {}               # an interval's two rows (bytes) -> its certificate (check_kept)
         #: what the certified walk (``certify_segments``) needs of the robot and the scene
         self.kernel_arrays = (np.asarray(robot.locked_rad, dtype=float),
                               np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
@@ -426,7 +426,7 @@ class MotionValidator:
         rows) is a pure function of its two rows, so the validator keeps it (``KEPT_INTERVALS``,
         keyed by the rows' bytes) and a later check of an interval with the same two rows bit
         for bit reuses it: the grid path of a replan shares every interval but its first with
-        the plan before, and a start's join checked by :meth:`segment_ok` is the first interval
+        the plan before, and a start's join checked by :meth:`segment_ok` (``keep``) is the first interval
         of its grid path.  The intervals not kept are checked by :func:`check_kernel`, one call
         per run of consecutive ones.  Returns what :meth:`check` returns, except ``n_checked``:
         the clearance evaluations this call made.
@@ -435,14 +435,15 @@ class MotionValidator:
         m = len(p) - 1
         if m < 1:
             return self.check(p)
-        rows = [r.tobytes() for r in p]
+        buf, row = p.tobytes(), p.shape[1] * 8
+        keys = [buf[i * row:(i + 2) * row] for i in range(m)]      # an interval's two rows, contiguous
         kept = self._kept
+        hits = [kept.get(key) for key in keys]
         interval_ok = np.empty(m, dtype=bool)
         interval_clr = np.empty(m)
         vertex_clr = np.full(m + 1, np.nan)
         todo = []
-        for i in range(m):
-            hit = kept.get((rows[i], rows[i + 1]))
+        for i, hit in enumerate(hits):
             if hit is None:
                 todo.append(i)
                 continue
@@ -467,11 +468,11 @@ class MotionValidator:
             interval_ok[lo:hi] = ok_run
             interval_clr[lo:hi] = clr_run
             vertex_clr[lo:hi + 1] = vc
-            for i in range(lo, hi):
+            oks, clrs, vcs = ok_run.tolist(), clr_run.tolist(), vc.tolist()
+            for j in range(hi - lo):
                 if len(kept) >= KEPT_INTERVALS:
-                    kept.pop(next(iter(kept)))
-                kept[rows[i], rows[i + 1]] = (bool(ok_run[i - lo]), float(clr_run[i - lo]),
-                                              float(vc[i - lo]), float(vc[i - lo + 1]))
+                    kept.pop(next(iter(kept)))              # the oldest out
+                kept[keys[lo + j]] = (oks[j], clrs[j], vcs[j], vcs[j + 1])
         # check_kernel's smallest interval clearance: NaN if one is NaN
         return PathCheck(bool(interval_ok.all()), interval_ok, float(np.min(interval_clr)), n, interval_clr,
                          vertex_clr)
@@ -484,14 +485,15 @@ class MotionValidator:
         bad = np.flatnonzero(~chk.interval_ok)
         return int(bad[0]) if len(bad) else len(points_rad) - 2
 
-    def segment_ok(self, a_rad, b_rad, step_rad: float | None = None) -> bool:
+    def segment_ok(self, a_rad, b_rad, step_rad: float | None = None, keep: bool = False) -> bool:
         """
         Certified check of the shortest straight segment a → b (periodic axes unwrapped).
 
-        At this validator's step its certificate is kept (:meth:`check_kept`).
+        ``keep``: its certificate kept (:meth:`check_kept`, at this validator's step), for a
+        later check of a path that starts with this segment (a start's join to its grid path).
         """
         seg = unwrap_path(np.vstack([a_rad, b_rad]), self.periodic)
-        if step_rad is None or float(step_rad) == self.step_rad:
+        if keep and (step_rad is None or float(step_rad) == self.step_rad):
             return self.check_kept(seg).ok
         return self.check(seg, step_rad=step_rad).ok
 

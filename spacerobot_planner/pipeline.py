@@ -190,10 +190,10 @@ class PlanRun:
         grasp = None if self.sc.scene.target is None else self.sc.scene.target.grasp_point_m
         return free_floating_response(self.robot, self.sc.masses, path, grasp)
 
-    def segment_ok(self, a, b) -> bool:
-        """Run the certified motion check of the straight (shortest) segment a → b."""
+    def segment_ok(self, a, b, keep: bool = False) -> bool:
+        """Run the certified motion check of the straight (shortest) segment a → b (``keep``: its certificate kept)."""
         with self.stage("verify"):
-            return self.validator.segment_ok(a, b)
+            return self.validator.segment_ok(a, b, keep=keep)
 
     def candidates(self, q, grid, occupied, max_count: int = 8) -> np.ndarray:
         """Free grid nodes near q (within 2 steps per axis; ``occupied``: the grid's), nearest first: (k, dof) int."""
@@ -512,7 +512,7 @@ class PlanRun:
             path, stuck, reasons, collide = None, None, [], []
             for node in starts[reach]:
                 self.check_cancel()
-                if not self.segment_ok(start, grid.config_of(node)):
+                if not self.segment_ok(start, grid.config_of(node), keep=True):     # the grid path's first interval
                     collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
