@@ -47,6 +47,7 @@ STEPS = (
     ("spline + refinements", "smoothing", "spacerobot_planner.smoothing", "_refined_spline"),
     ("spline fit", "spline + refinements", "spacerobot_planner.smoothing", "spline_through"),
     ("motion checks", "", "spacerobot_planner.motion", "MotionValidator.check"),
+    ("kept motion checks", "", "spacerobot_planner.motion", "MotionValidator.check_kept"),
     ("certify kernel", "motion checks", "spacerobot_planner.motion", "check_kernel"),
     ("trajectory", "", "spacerobot_planner.pipeline", "timed_motion"),
     ("time parameterisation", "trajectory", "spacerobot_planner.timing", "time_parameterize"),
