@@ -359,10 +359,12 @@ class PlanRun:
         while True:
             self.level = level
             failure = None
-            for extra_m in self.grid_margins(level):
+            for k, extra_m in enumerate(self.grid_margins(level)):
                 try:
                     cs, cs_key = self.cspace(grid, extra_m)
                     goal_nodes = self.goal_nodes(cs, cs_key)
+                    if level or k:             # a grid tried after one that failed
+                        self.check_joined(cs, cs_key, goal_nodes)
                     field, field_key = self.field(cs, cs_key, goal_nodes)
                     return self.descend_and_repair(cs, field, field_key, goal_nodes)
                 except Fail as f:
@@ -455,6 +457,33 @@ class PlanRun:
                        f"joined to it by a collision-free straight segment (grid {cs.grid.label()})",
                        "no free grid node near the goal is joined to it by a collision-free segment")
         return np.array(nodes)
+
+    def check_joined(self, cs, cs_key, goal_nodes) -> None:
+        """
+        Raise, without a field solve, the answer a solve would lead to when the grid separates start and goal nodes.
+
+        Where no free grid node near the start is joined to the goal nodes by the grid's free
+        nodes (a breadth-first search, a millisecond), the field would have no value at those
+        nodes and :meth:`descend_and_repair` would answer ``no_field_path_failure``: that
+        answer, the same code and reason, without the solve.  Run on the grids tried after
+        one that failed (the second margin, a refined grid), where a separation is likely
+        and a field solve costs tens of milliseconds; not when the field is cached.
+        """
+        if self.p._field_key(cs_key, goal_nodes, self.s) in self.p._fields:
+            return
+        grid = cs.grid
+        self.stats = {"repairs": 0, "blocked_nodes": 0, "cut_edges": 0,
+                      "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m),
+                      "grid": grid.label(), "refinements": self.level}
+        with self.stage("descent"):
+            starts = self.candidates(self.plan_start, grid, ~cs.occupied)
+            if len(starts) == 0:
+                return                   # descend_and_repair says so, after the solve
+            dist = field_bfs(*validate_problem(cs.occupied, grid.periodic, goal_nodes))[0]
+            joined = bool(np.any(dist.reshape(grid.shape)[tuple(starts.T)] >= 0))
+        if not joined:
+            self.fld = None
+            raise self.no_field_path_failure(cs, None, frozenset(), frozenset(), 0)
 
     def field(self, cs, cs_key, goal_nodes):
         """(field, its key) on the C-space's free nodes towards the goal nodes, cached."""
@@ -655,6 +684,8 @@ class PlanRun:
             return Fail(Code.DISCONNECTED, f"the start {deg_text(start)} and the goal {deg_text(self.goal)} "
                         f"lie in separate free regions of {where}",
                         f"separate free regions (grid margin {cs.margin_m:.3f} m)")
+        if fld is None:                  # check_joined: no field, no repairs; its goal nodes separated
+            return self.unjoined_failure(where)
         # the grid joins them: does the field's own graph (repairs, goal joins) join them?
         f_occ, per, f_goals = validate_problem(fld.occupied, grid.periodic, fld.goal_nodes)
         f_dist = field_bfs(f_occ, per, f_goals, np.array(sorted(cut), dtype=np.int64).reshape(-1, 2))[0]
@@ -672,6 +703,10 @@ class PlanRun:
             done = _repairs_text(repairs, cut, blocked)
             return Fail(Code.PATH_INVALID, f"{where} joins start and goal, but {done} whose straight motions "
                         "collide separated them", f"joined, but {done} separated them")
+        return self.unjoined_failure(where)
+
+    def unjoined_failure(self, where: str) -> Fail:
+        """The answer when the grid joins start and goal but not to a goal node joined to the goal."""
         return Fail(Code.PATH_INVALID, f"on {where} the start's free region reaches only grid nodes near the "
                     f"goal {deg_text(self.goal)} whose straight segment to it collides",
                     "the start's free region holds no grid node joined to the goal by a collision-free "
