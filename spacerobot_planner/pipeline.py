@@ -34,12 +34,12 @@ from contextlib import contextmanager
 import numpy as np
 
 from .contact import leave_contact
-from .descent import colliding_edges
 from .field import bfs_distance, validate_problem
 from .field.graph import bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
 from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
+from .repair import sheet_edges
 from .results import STAGES, Code, PlanResult
 from .smoothing import SmoothPath, smooth_path
 from .spacecraft import free_floating_response
@@ -51,7 +51,8 @@ from .timing import timed_motion, trajectory_limits_known
 __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node
-#: (one more with each repair of the same plan, up to three more).
+#: (one more with each repair of the same plan, up to three more) and those joined to them
+#: (``repair.sheet_edges``).
 REPAIR_RADIUS = 2
 
 
@@ -519,6 +520,7 @@ class PlanRun:
         grid, s = cs.grid, self.s
         blocked, cut = frozenset(), frozenset()
         repairs = 0
+        fkey = key                       # the current field's key (a repaired one's names its repairs)
         start = self.plan_start
         with self.stage("descent"):
             self.p._test_stall("descent", self.cancel)
@@ -546,7 +548,7 @@ class PlanRun:
                     collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
-                    gp = self.descend(grid, fld, key, blocked, cut, node)
+                    gp = self.descend(grid, fld, fkey, node)
                 if gp.reached:
                     path = gp
                     break
@@ -570,7 +572,7 @@ class PlanRun:
                     blocked = blocked | {node}
                     self.say(f"repair: {stuck.reason}; blocking node {node} and re-solving the field")
                 repairs += 1
-                fld = self.resolve(cs, key, goal_nodes, blocked, cut)
+                fld, fkey = self.resolve(cs, fld, fkey, goal_nodes, blocked, cut)
                 continue
             if path is None:
                 if collide:
@@ -606,19 +608,19 @@ class PlanRun:
             repairs += 1
             self.say(f"repair: segment {deg_text(wp[bad])} → {deg_text(wp[bad + 1])} collides; "
                      f"blocking node {node} and re-solving the field")
-            fld = self.resolve(cs, key, goal_nodes, blocked, cut)
+            fld, fkey = self.resolve(cs, fld, fkey, goal_nodes, blocked, cut)
         raise AssertionError("unreachable")
 
-    def descend(self, grid, fld, key, blocked, cut, node):
+    def descend(self, grid, fld, fkey, node):
         """
-        Return the descent from ``node`` on the field under ``key`` less ``blocked`` and ``cut`` (``descent.GridPath``).
+        Return the descent from ``node`` on the field ``fld`` under ``fkey`` (``descent.GridPath``).
 
         A walk that does not reach the goal is kept by the planner (``Planner._failed_walks``),
         keyed by that field and the node: the next plan that repairs the same way (a replan
         from a nearby start) tries the same nodes on the same fields first.  Walks that reach
         the goal are made afresh.
         """
-        dkey = (key, tuple(sorted(blocked)), tuple(sorted(cut)), tuple(int(v) for v in node))
+        dkey = (fkey, tuple(int(v) for v in node))
         gp = self.p._failed_walks.get(dkey)
         if gp is None:
             gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
@@ -629,7 +631,7 @@ class PlanRun:
 
     def colliding_edges(self, grid, fld, key, blocked, node, radius: int) -> np.ndarray:
         """
-        Return the colliding grid edges within ``radius`` of ``node`` (``descent.colliding_edges``), cached.
+        Return the colliding grid edges within ``radius`` of ``node`` and their sheet (``repair.sheet_edges``), cached.
 
         On the field under ``key`` with the ``blocked`` nodes (its occupancy; cut edges do not
         change it): a pure function of those, the node and the radius, so kept by the planner
@@ -639,8 +641,8 @@ class PlanRun:
         ekey = (key, tuple(sorted(blocked)), node, int(radius))
         edges = self.p._colliding.get(ekey)
         if edges is None:
-            edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions, grid.lower_rad,
-                                    grid.step_rad, radius=radius)
+            edges = sheet_edges(fld.occupied, grid.periodic, node, self.motions, grid.lower_rad,
+                                grid.step_rad, radius=radius)
             edges.flags.writeable = False
             self.p._remember(self.p._colliding, ekey, edges, 64)
         return edges
@@ -652,15 +654,21 @@ class PlanRun:
             raise Refine(Code.PATH_INVALID, f"{done} on the grid {grid.label()} gave no verified grid path; "
                          "a finer grid is tried instead of more repairs", f"{done}, then a finer grid")
 
-    def resolve(self, cs, key, goal_nodes, blocked, cut):
-        """Return the field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
-        rkey = key + (tuple(sorted(blocked)), tuple(sorted(cut)))
+    def resolve(self, cs, fld, fkey, goal_nodes, blocked, cut):
+        """
+        Return (the field, its key) with ``blocked`` nodes and ``cut`` edges taken out, cached.
+
+        Solved from the field ``fld`` (under ``fkey``) that it repairs (the same but near the
+        cut): the key is ``fkey`` and the repair, so the fields of the same repairs in the
+        same order are the same, bit for bit, whichever plan solved them.
+        """
+        rkey = fkey + (("repair", tuple(sorted(blocked)), tuple(sorted(cut))),)
         hit = rkey in self.p._fields
         with self.stage("repair"):
-            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel)
+            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel, guess=fld)
         if not hit and "field" in self.cached:
             self.cached.remove("field")
-        return fld
+        return fld, rkey
 
     def no_field_path_failure(self, cs, fld, blocked, cut, repairs: int) -> Fail:
         """

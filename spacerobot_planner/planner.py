@@ -46,6 +46,7 @@ from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
 from .motion import MotionValidator
 from .pipeline import PlanRun
 from .problem import Scenario
+from .repair import warm_up as repair_warm_up
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
 from .settings import PlannerSettings
@@ -97,7 +98,7 @@ class Planner:
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
         self._colliding: dict = {}       # (field key, blocked nodes, node, radius) -> a repair's colliding edges
-        self._failed_walks: dict = {}    # (field key, blocked nodes, cut edges, node) -> a descent that failed
+        self._failed_walks: dict = {}    # (field key (a repaired one's names its repairs), node) -> a failed descent
         self._apparent: dict = {}        # scene geometry -> Planner (free-floating capture's guides)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
@@ -316,11 +317,15 @@ class Planner:
         return (cspace_key, tuple(map(tuple, np.asarray(goal_nodes).tolist())), settings.solver,
                 settings.field_tolerance, settings.field_budget_s)
 
-    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None):
+    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None,
+               guess=None):
         """
         Return the field under ``key`` (solved and stored when absent).
 
-        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``.
+        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``; the
+        solve starts from the field ``guess`` (``field.Field`` or None), which ``key`` must
+        name as well (a field is a function of its key: a repair's key holds the repairs
+        before it).
         ``token``: the plan's termination token; a solve it stops raises
         ``termination.Cancelled`` and stores nothing.
         """
@@ -335,7 +340,8 @@ class Planner:
         self._test_stall("field", token)
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,
                           tol=settings.field_tolerance, budget_s=settings.field_budget_s,
-                          cut_edges=edges if len(edges) else None, token=token)
+                          cut_edges=edges if len(edges) else None, token=token,
+                          guess=None if guess is None else guess.log_u)
         self._remember(self._fields, key, fld, 16)
         return fld
 
@@ -402,6 +408,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
             break
     field_warm_up()             # the solver kernels a coarse grid does not reach
     smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
+    repair_warm_up()            # a coarse plan seldom repairs
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
         # the free-floating capture's attitude kernel (numba)
         attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))
