@@ -714,7 +714,7 @@ class PlanRun:
         return self.unjoined_failure(where)
 
     def unjoined_failure(self, where: str) -> Fail:
-        """The answer when the grid joins start and goal but not to a goal node joined to the goal."""
+        """Return the answer when the grid joins start and goal but not to a goal node joined to the goal."""
         return Fail(Code.PATH_INVALID, f"on {where} the start's free region reaches only grid nodes near the "
                     f"goal {deg_text(self.goal)} whose straight segment to it collides",
                     "the start's free region holds no grid node joined to the goal by a collision-free "

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .field import solve_field
 from .motion import motion_scratch, segment_free
 
 #: The most edge motions one repair tests beyond the box around the blocked node (about 10 ms;
@@ -147,7 +148,11 @@ def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: 
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernel: a made-up arm and one square obstacle, a plan's types."""
+    """
+    Compile (or load from numba's cache) what a repair runs: the search and a field with cut edges.
+
+    The search on a made-up arm and one square obstacle, with a plan's argument types.
+    """
     square = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
     arrays = (np.zeros(3), np.array([1, 2], dtype=np.int64), np.array([1.4, 2.0, 2.0]),
               np.array([1, 2], dtype=np.int64), square.copy(), square + 3.0, np.array([0, 4], dtype=np.int64),
@@ -155,3 +160,5 @@ def warm_up() -> None:
     occ = np.zeros((6, 6), np.bool_)
     _sheet_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array([True, False]), 14, 1, 100,
                  np.radians([-180.0, -150.0]), np.radians([60.0, 60.0]), *arrays)
+    before = solve_field(occ, (True, False), [(5, 5)])
+    solve_field(occ, (True, False), [(5, 5)], cut_edges=np.array([[14, 15]]), guess=before.log_u)

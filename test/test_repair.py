@@ -73,7 +73,7 @@ def _box(flat, shape, periodic, radius):
 
 
 def _up_edges(nodes, occ_flat, nbr):
-    """The edges (smaller flat index first) from each free node of ``nodes`` to its free upper neighbours."""
+    """Return the edges (smaller flat index first) from each free node of ``nodes`` to its free upper neighbours."""
     out = set()
     for f in nodes:
         if occ_flat[f]:

@@ -272,8 +272,9 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         token.check()
         # every node but the goal's (the first band): a view of their coordinates, not a copy
         coords = graph.coords[n_goal:] if window.size == n - n_goal else graph.coords[window]
+        x0 = None if guess is None else np.exp(np.minimum(guess[window] - log_scale, 0.0))
         x, its, res = multigrid.solve(sub, coords, graph.shape, rhs, tol=residual_tol, deadline=deadline,
-                                      stop=token.flag, x0=None if guess is None else np.exp(np.minimum(guess[window] - log_scale, 0.0)))
+                                      stop=token.flag, x0=x0)
         token.check()               # the iterations stopped part-way: keep nothing
         bands += 1
         iterations += its
