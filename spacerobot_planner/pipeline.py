@@ -51,9 +51,10 @@ from .timing import timed_motion, trajectory_limits_known
 __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node
-#: (one more with each repair of the same plan, up to three more) and those joined to them
-#: (``repair.sheet_edges``).
+#: (one more with each repair of the same plan, up to REPAIR_WIDENING more) and those joined
+#: to them (``repair.sheet_edges``).
 REPAIR_RADIUS = 2
+REPAIR_WIDENING = 3
 
 
 class Fail(Exception):
@@ -520,7 +521,7 @@ class PlanRun:
         grid, s = cs.grid, self.s
         blocked, cut = frozenset(), frozenset()
         repairs = 0
-        fkey = key                       # the current field's key (a repaired one's names its repairs)
+        start_ok = {}                    # grid node -> whether the straight segment from the start passes
         start = self.plan_start
         with self.stage("descent"):
             self.p._test_stall("descent", self.cancel)
@@ -544,11 +545,14 @@ class PlanRun:
             path, stuck, reasons, collide = None, None, [], []
             for node in starts[reach]:
                 self.check_cancel()
-                if not self.segment_ok(start, grid.config_of(node)):
+                tn = tuple(int(v) for v in node)
+                if tn not in start_ok:                   # the same start and node each repair round
+                    start_ok[tn] = self.segment_ok(start, grid.config_of(node))
+                if not start_ok[tn]:
                     collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
-                    gp = self.descend(grid, fld, fkey, node)
+                    gp = self.descend(grid, fld, key, blocked, cut, node)
                 if gp.reached:
                     path = gp
                     break
@@ -562,7 +566,7 @@ class PlanRun:
                 node = tuple(int(v) for v in stuck.nodes[-1])
                 with self.stage("repair"):
                     edges = self.colliding_edges(grid, fld, key, blocked, node,
-                                                 REPAIR_RADIUS + min(repairs, 3))     # wider each time
+                                                 REPAIR_RADIUS + min(repairs, REPAIR_WIDENING))
                 new = {(int(a), int(b)) for a, b in edges} - cut
                 if new:
                     cut = cut | new
@@ -572,7 +576,7 @@ class PlanRun:
                     blocked = blocked | {node}
                     self.say(f"repair: {stuck.reason}; blocking node {node} and re-solving the field")
                 repairs += 1
-                fld, fkey = self.resolve(cs, fld, fkey, goal_nodes, blocked, cut)
+                fld = self.resolve(cs, key, goal_nodes, blocked, cut)
                 continue
             if path is None:
                 if collide:
@@ -608,19 +612,19 @@ class PlanRun:
             repairs += 1
             self.say(f"repair: segment {deg_text(wp[bad])} → {deg_text(wp[bad + 1])} collides; "
                      f"blocking node {node} and re-solving the field")
-            fld, fkey = self.resolve(cs, fld, fkey, goal_nodes, blocked, cut)
+            fld = self.resolve(cs, key, goal_nodes, blocked, cut)
         raise AssertionError("unreachable")
 
-    def descend(self, grid, fld, fkey, node):
+    def descend(self, grid, fld, key, blocked, cut, node):
         """
-        Return the descent from ``node`` on the field ``fld`` under ``fkey`` (``descent.GridPath``).
+        Return the descent from ``node`` on the field under ``key`` less ``blocked`` and ``cut`` (``descent.GridPath``).
 
         A walk that does not reach the goal is kept by the planner (``Planner._failed_walks``),
         keyed by that field and the node: the next plan that repairs the same way (a replan
         from a nearby start) tries the same nodes on the same fields first.  Walks that reach
         the goal are made afresh.
         """
-        dkey = (fkey, tuple(int(v) for v in node))
+        dkey = (key, tuple(sorted(blocked)), tuple(sorted(cut)), tuple(int(v) for v in node))
         gp = self.p._failed_walks.get(dkey)
         if gp is None:
             gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
@@ -654,21 +658,15 @@ class PlanRun:
             raise Refine(Code.PATH_INVALID, f"{done} on the grid {grid.label()} gave no verified grid path; "
                          "a finer grid is tried instead of more repairs", f"{done}, then a finer grid")
 
-    def resolve(self, cs, fld, fkey, goal_nodes, blocked, cut):
-        """
-        Return (the field, its key) with ``blocked`` nodes and ``cut`` edges taken out, cached.
-
-        Solved from the field ``fld`` (under ``fkey``) that it repairs (the same but near the
-        cut): the key is ``fkey`` and the repair, so the fields of the same repairs in the
-        same order are the same, bit for bit, whichever plan solved them.
-        """
-        rkey = fkey + (("repair", tuple(sorted(blocked)), tuple(sorted(cut))),)
+    def resolve(self, cs, key, goal_nodes, blocked, cut):
+        """Return the field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
+        rkey = key + (tuple(sorted(blocked)), tuple(sorted(cut)))
         hit = rkey in self.p._fields
         with self.stage("repair"):
-            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel, guess=fld)
+            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel)
         if not hit and "field" in self.cached:
             self.cached.remove("field")
-        return fld, rkey
+        return fld
 
     def no_field_path_failure(self, cs, fld, blocked, cut, repairs: int) -> Fail:
         """

@@ -98,7 +98,7 @@ class Planner:
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
         self._goal_nodes: dict = {}      # (C-space key, goal, verify step) -> free nodes joined to the goal
         self._colliding: dict = {}       # (field key, blocked nodes, node, radius) -> a repair's colliding edges
-        self._failed_walks: dict = {}    # (field key (a repaired one's names its repairs), node) -> a failed descent
+        self._failed_walks: dict = {}    # (field key, blocked nodes, cut edges, node) -> a descent that failed
         self._apparent: dict = {}        # scene geometry -> Planner (free-floating capture's guides)
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
@@ -317,15 +317,11 @@ class Planner:
         return (cspace_key, tuple(map(tuple, np.asarray(goal_nodes).tolist())), settings.solver,
                 settings.field_tolerance, settings.field_budget_s)
 
-    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None,
-               guess=None):
+    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None):
         """
         Return the field under ``key`` (solved and stored when absent).
 
-        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``; the
-        solve starts from the field ``guess`` (``field.Field`` or None), which ``key`` must
-        name as well (a field is a function of its key: a repair's key holds the repairs
-        before it).
+        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``.
         ``token``: the plan's termination token; a solve it stops raises
         ``termination.Cancelled`` and stores nothing.
         """
@@ -340,8 +336,7 @@ class Planner:
         self._test_stall("field", token)
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,
                           tol=settings.field_tolerance, budget_s=settings.field_budget_s,
-                          cut_edges=edges if len(edges) else None, token=token,
-                          guess=None if guess is None else guess.log_u)
+                          cut_edges=edges if len(edges) else None, token=token)
         self._remember(self._fields, key, fld, 16)
         return fld
 

@@ -24,10 +24,10 @@ import numpy as np
 from .field import solve_field
 from .motion import motion_scratch, segment_free
 
-#: The most edge motions one repair tests beyond the box around the blocked node (about 10 ms;
-#: a field solve at 36³ costs about as much, and a repair round more: measured on
-#: ``bench scenes``, 3000 to 12000 gave the same totals within the noise).
-MAX_TESTS = 4_000
+#: The most edge motions one repair tests beyond the box around the blocked node (a few ms;
+#: a repair round at 36³ costs about 10 to 20 ms: on the repairing scenes of ``bench scenes``
+#: 1000 to 2000 took the least CPU time, 12 % less than the box alone, 4000 more).
+MAX_TESTS = 2_000
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -130,18 +130,19 @@ def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, st
 
 
 def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: int = 2,
-                max_tests: int = MAX_TESTS) -> np.ndarray:
+                max_tests: int | None = None) -> np.ndarray:
     """
     Return the colliding grid edges near ``node`` and those joined to them (see the module doc).
 
     occupied: bool grid; periodic: one bool per axis; node: the grid index where the descent
     was blocked; motions: a ``motion.SegmentTest``; nodes at ``lower_rad + index * step_rad``.
     Returns int64 (k, 2) flat node pairs (smaller first), in the order found; every edge
-    within ``radius`` index steps of ``node`` that collides is among them.
+    within ``radius`` index steps of ``node`` that collides is among them.  ``max_tests``:
+    None for :data:`MAX_TESTS`.
     """
     occ = np.ascontiguousarray(occupied)
     edges, _ = _sheet_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array(periodic, np.bool_),
-                            int(np.ravel_multi_index(tuple(node), occ.shape)), int(radius), int(max_tests),
+                            int(np.ravel_multi_index(tuple(node), occ.shape)), int(radius), int(MAX_TESTS if max_tests is None else max_tests),
                             np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
                             *motions.arrays())
     return edges
@@ -149,7 +150,7 @@ def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: 
 
 def warm_up() -> None:
     """
-    Compile (or load from numba's cache) what a repair runs: the search and a field with cut edges.
+    Compile (or load from numba's cache) what a repair runs: the search, a field with cut edges.
 
     The search on a made-up arm and one square obstacle, with a plan's argument types.
     """
@@ -160,5 +161,4 @@ def warm_up() -> None:
     occ = np.zeros((6, 6), np.bool_)
     _sheet_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array([True, False]), 14, 1, 100,
                  np.radians([-180.0, -150.0]), np.radians([60.0, 60.0]), *arrays)
-    before = solve_field(occ, (True, False), [(5, 5)])
-    solve_field(occ, (True, False), [(5, 5)], cut_edges=np.array([[14, 15]]), guess=before.log_u)
+    solve_field(occ, (True, False), [(5, 5)], cut_edges=np.array([[14, 15]]))

@@ -138,25 +138,3 @@ def test_the_box_around_the_node_is_searched_whatever_the_count(wall):
     again = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2)
     np.testing.assert_array_equal(again, more)
 
-
-def test_a_field_solved_from_the_field_before_a_repair_is_the_harmonic_field(wall):
-    """The warm start (``solve_field(guess=...)``) changes where the solve begins, not where it ends."""
-    from oracles import harmonic_log_u
-    from spacerobot_planner.field import solve_field
-    sc, cs, motions = wall
-    grid, occ = sc.grid, cs.occupied
-    goals = np.argwhere(~occ)[[len(np.argwhere(~occ)) // 3]]
-    before = solve_field(occ, grid.periodic, goals)
-    every = sheet_edges(occ, grid.periodic, (0, 0, 0), motions, grid.lower_rad, grid.step_rad,
-                        radius=max(grid.shape), max_tests=0)
-    cut = every[: len(every) // 2]
-    warm = solve_field(occ, grid.periodic, goals, cut_edges=cut, guess=before.log_u)
-    cold = solve_field(occ, grid.periodic, goals, cut_edges=cut)
-    ref = harmonic_log_u(occ, grid.periodic, goals, cut)
-    r = np.isfinite(ref)
-    assert warm.converged and np.array_equal(np.isfinite(warm.log_u), r)
-    assert np.max(np.abs(warm.log_u[r] - ref[r])) < 1e-4
-    assert np.max(np.abs(warm.log_u[r] - cold.log_u[r])) < 1e-4
-    assert np.any(warm.log_u[r] != before.log_u[r])               # the cut changed the field
-    again = solve_field(occ, grid.periodic, goals, cut_edges=cut, guess=before.log_u)
-    np.testing.assert_array_equal(again.log_u, warm.log_u)       # the same input and guess: the same bits

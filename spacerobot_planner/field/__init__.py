@@ -152,7 +152,7 @@ def _paper(occ, per, goals, tol, max_sweeps, t0, token):
 
 
 def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *, tol=None,
-                max_sweeps=None, budget_s=None, cancel=None, cut_edges=None, token=None, guess=None) -> Field:
+                max_sweeps=None, budget_s=None, cancel=None, cut_edges=None, token=None) -> Field:
     """
     Solve the harmonic field (see the package doc).
 
@@ -180,9 +180,6 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         The plan's termination token (``termination.Termination``; None: never set):
         polled inside the kernels.  Raises ``termination.Cancelled`` once it is set
         (no field: a partial one is never returned).
-    guess
-        Optional log u of a field close to this one (grid shape, -inf: none; e.g. the field
-        before a repair): log_harmonic's solves start from it.
 
     Raises ValueError naming a malformed argument or an unknown solver.
 
@@ -210,8 +207,7 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         stats = {"bands": 0}
         return Field(graph.scatter(log_u[:-1]), occ, per, goals, "oracle", 0, 0.0, True,
                      time.perf_counter() - t0, "", stats)
-    log_u, stats = harmonic.solve(graph, budget, cancel=cancel, token=token,
-                                  guess=None if guess is None else np.ravel(guess)[graph.order])
+    log_u, stats = harmonic.solve(graph, budget, cancel=cancel, token=token)
     left = stats.pop("left")
     return Field(graph.scatter(log_u[:-1]), occ, per, goals, "log_harmonic",
                  int(stats.pop("iterations")), float(stats.pop("residual")),

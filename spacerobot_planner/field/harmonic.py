@@ -217,7 +217,7 @@ def _repair_ascent(log_u, nbr, n_goal, step):
 
 
 def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
-          band_floor: float = BAND_FLOOR, cancel=None, token=None, guess=None):
+          band_floor: float = BAND_FLOOR, cancel=None, token=None):
     """
     Return log u over the graph, float64 (N + 1,) with the dummy last (-inf), and the stats.
 
@@ -234,9 +234,6 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
     ``token`` (``termination.Termination``) is the plan's hard stop: polled inside the
     CG iterations as the deadline is, and between the steps; once it is set this raises
     ``termination.Cancelled`` and returns nothing.
-
-    ``guess``: log u of a field close to this one, float (N,) over the graph (-inf: none),
-    e.g. the field before a repair: each band's solve starts from it (None: from zero).
     """
     t0 = time.perf_counter()
     deadline = t0 + float(budget_s)
@@ -272,9 +269,8 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         token.check()
         # every node but the goal's (the first band): a view of their coordinates, not a copy
         coords = graph.coords[n_goal:] if window.size == n - n_goal else graph.coords[window]
-        x0 = None if guess is None else np.exp(np.minimum(guess[window] - log_scale, 0.0))
-        x, its, res = multigrid.solve(sub, coords, graph.shape, rhs, tol=residual_tol, deadline=deadline,
-                                      stop=token.flag, x0=x0)
+        x, its, res = multigrid.solve(sub, coords, graph.shape, rhs,
+                                      tol=residual_tol, deadline=deadline, stop=token.flag)
         token.check()               # the iterations stopped part-way: keep nothing
         bands += 1
         iterations += its

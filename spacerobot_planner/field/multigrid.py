@@ -616,7 +616,7 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u
 
 
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8, stop=None,
-          coarse_sweeps=COARSE_SWEEPS, x0=None):
+          coarse_sweeps=COARSE_SWEEPS):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -626,8 +626,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     is below ``tol``, after ``max_iter`` iterations or at ``deadline``
     (``time.perf_counter()`` seconds, 0 = none), or when the termination flag ``stop``
     (``termination.Termination.flag``, int64 (1,); None = never) is set: then the
-    result is partial and the caller must not keep it.  ``x0``: the initial guess, float (n,)
-    (None: zero).
+    result is partial and the caller must not keep it.
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
@@ -645,8 +644,6 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     else:
         b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
-    if x0 is not None:
-        x[h.fine_of_input] = x0
     if stop is None:
         stop = np.zeros(1, np.int64)
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
