@@ -21,6 +21,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .descent import _along
 from .field import solve_field
 from .motion import motion_scratch, segment_free
 
@@ -28,17 +29,6 @@ from .motion import motion_scratch, segment_free
 #: a repair round at 36³ costs about 10 to 20 ms: on the repairing scenes of ``bench scenes``
 #: 1000 to 2000 took the least CPU time, 12 % less than the box alone, 4000 more).
 MAX_TESTS = 2_000
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _along(c, d, n, periodic):
-    """Index c + d along an axis of n nodes: wrapped on a periodic axis, -1 beyond a wall."""
-    k = c + d
-    if k < 0 or k >= n:
-        if not periodic:
-            return -1
-        k %= n
-    return k
 
 
 @nb.njit(cache=True, nogil=True)
