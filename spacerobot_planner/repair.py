@@ -131,8 +131,9 @@ def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: 
     None for :data:`MAX_TESTS`.
     """
     occ = np.ascontiguousarray(occupied)
+    limit = MAX_TESTS if max_tests is None else max_tests
     edges, _ = _sheet_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array(periodic, np.bool_),
-                            int(np.ravel_multi_index(tuple(node), occ.shape)), int(radius), int(MAX_TESTS if max_tests is None else max_tests),
+                            int(np.ravel_multi_index(tuple(node), occ.shape)), int(radius), int(limit),
                             np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
                             *motions.arrays())
     return edges

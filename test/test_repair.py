@@ -137,4 +137,3 @@ def test_the_box_around_the_node_is_searched_whatever_the_count(wall):
     # the same input, the same edges in the same order
     again = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2)
     np.testing.assert_array_equal(again, more)
-
