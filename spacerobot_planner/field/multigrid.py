@@ -412,14 +412,15 @@ def _dot(a, b, n):
 # the cycle (single precision: the preconditioner of a double-precision CG)
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, boost,
+def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, top, boost,
                   coarse_sweeps):
     """
     Compute x = M^-1 b on level ``top`` by a V-cycle over the levels from ``top`` down (packed vectors).
 
     Forward Gauss–Seidel sweeps (``coarse_sweeps``) before the coarse correction (scaled by
     ``boost``), backward ones after; the coarsest level by its Cholesky factor ``chol``
-    (float64).  Each level's first ``red[l]`` rows are red; where no two rows of one colour are
+    and its transpose ``chol_t`` (float64, each read along its rows).  Each level's first
+    ``red[l]`` rows are red; where no two rows of one colour are
     neighbours (``rrows[l] == red[l]``) the first sweep from 0 sets the red rows without
     reading their (zero) neighbours, and only the red rows' residuals (``rrows[l]``) are
     restricted: the black ones are zero after the sweep.
@@ -461,8 +462,8 @@ def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x,
     for i in range(m - 1, -1, -1):
         s = float(r[base + i])
         for k in range(i + 1, m):
-            s -= chol[k, i] * x[base + k]
-        x[base + i] = s / chol[i, i]
+            s -= chol_t[i, k] * x[base + k]
+        x[base + i] = s / chol_t[i, i]
     x[base + m] = 0.0
     for lv in range(nlev - 2, top - 1, -1):
         lo, n, cb = off[lv], sizes[lv], off[lv + 1]
@@ -477,7 +478,7 @@ def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x,
 
 
 @nb.njit(cache=True, nogil=True)
-def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rf, x, b, r, sweeps,
+def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, rf, x, b, r, sweeps,
             boost, coarse_sweeps, stop):
     """
     Compute x = M^-1 rf on the finest level; return rf · x.
@@ -503,7 +504,8 @@ def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rf,
     if sizes.size == 1:          # the fine level is the coarsest
         for i in range(n0):
             b[i] = rf[i]
-        _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 0, boost, coarse_sweeps)
+        _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 0, boost,
+                      coarse_sweeps)
         return _dot(rf, x, n0)
     clean = restrict0 == red0 and sweeps > 0
     for i in range(n0 if clean else 0, n0 + 1):
@@ -525,7 +527,8 @@ def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rf,
     bc[:] = 0.0
     for i in range(restrict0):          # the residual, restricted as it is computed
         bc[agg[i]] += rf[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
-    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 1, boost, coarse_sweeps)
+    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 1, boost,
+                  coarse_sweeps)
     if stop[0] != 0:
         return 0.0
     xc = x[cb:off[2]]
@@ -563,7 +566,7 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
+def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, rhs, u, tol, max_iter,
          sweeps, boost, coarse_sweeps, deadline, stop):
     """
     Preconditioned CG on the finest level, from the initial guess ``u``.
@@ -596,7 +599,7 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u
             res = abs(r[i])
     if res < tol:
         return 0, res
-    rz = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, r, xs, bs, ws,
+    rz = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, r, xs, bs, ws,
                  sweeps, boost, coarse_sweeps, stop)
     for i in range(n):
         p[i] = xs[i]
@@ -613,14 +616,14 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u
         alpha = rz / pq
         res = 0.0
         for i in range(n):
-            r[i] -= alpha * q[i]
-            if abs(r[i]) > res:
-                res = abs(r[i])
+            v = r[i] - alpha * q[i]
+            r[i] = v
+            res = max(res, abs(v))
         if res < tol or stop[0] != 0:
             for i in range(n):
                 u[i] += alpha * p[i]
             break
-        rz_new = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, r, xs, bs, ws,
+        rz_new = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, r, xs, bs, ws,
                          sweeps, boost, coarse_sweeps, stop)
         beta = rz_new / rz
         rz = rz_new
@@ -676,6 +679,6 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         stop = np.zeros(1, np.int64)
     wt32, diag32, inv_diag32 = _single_levels(h)
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, wt32, diag32, inv_diag32, h.agg, h.off, h.sizes,
-                   h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), int(coarse_sweeps),
-                   float(deadline), stop)
+                   h.chol, np.ascontiguousarray(h.chol.T), b, x, float(tol), int(max_iter), int(sweeps),
+                   float(boost), int(coarse_sweeps), float(deadline), stop)
     return (x[:n] if h.in_order else x[h.fine_of_input]), int(it), float(res)
