@@ -562,6 +562,34 @@ def _gs0_back(nb0, x, b, n, deg, inv_deg):
     return s
 
 
+@nb.njit(cache=True, nogil=True)
+def _single_levels(off, wt, diag, inv_diag, chol):
+    """
+    Return the V-cycle's arrays ``(wt, diag, inv_diag, chol_t)`` from a hierarchy's packed levels.
+
+    wt, diag, inv_diag: float32 copies of the coarse levels (rows from ``off[1]``; the
+    coarse weights and diagonals are sums of unit weights, small integers: exact in
+    float32); the fine level's rows are never read (its kernels read ``nb0``) and left
+    unset.  chol_t: the coarsest factor's transpose, row-major (float64).
+    """
+    a = off[1] if off.size > 2 else off[-1]
+    total, deg = wt.shape
+    wt32 = np.empty((total, deg), np.float32)
+    diag32 = np.empty(total, np.float32)
+    inv_diag32 = np.empty(total, np.float32)
+    for i in range(a, total):
+        for d in range(deg):
+            wt32[i, d] = wt[i, d]
+        diag32[i] = diag[i]
+        inv_diag32[i] = inv_diag[i]
+    m = chol.shape[0]
+    chol_t = np.empty((m, m))
+    for i in range(m):
+        for k in range(m):
+            chol_t[i, k] = chol[k, i]
+    return wt32, diag32, inv_diag32, chol_t
+
+
 @nb.njit(cache=True)
 def _now():
     with nb.objmode(t="float64"):
@@ -570,16 +598,17 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, rhs, u, tol, max_iter,
+def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, rhs, u, tol, max_iter,
          sweeps, boost, coarse_sweeps, deadline, stop):
     """
     Preconditioned CG on the finest level, from the initial guess ``u``.
 
-    rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  CG runs in float64; its
-    preconditioner, one V-cycle, in float32 (wt, diag, inv_diag: :func:`_single_levels`):
-    half the bytes per pass, and the precision of the preconditioner does not change what
-    CG converges to (each application is exact to float32's relative 6e-8 of the current
-    residual, which costs no iterations).  Stops when the largest residual |b - A u| falls
+    rhs, u float64 (n + 1,) (last entry the dummy, kept 0); the levels as the hierarchy
+    holds them (float64).  CG runs in float64; its preconditioner, one V-cycle, in float32
+    (the levels' copies: :func:`_single_levels`): half the bytes per pass, and the
+    precision of the preconditioner does not change what CG converges to (each application
+    is exact to float32's relative 6e-8 of the current residual: the same iterations on the
+    paper's grids, one more on 3 of 300 band problems of random scenes).  Stops when the largest residual |b - A u| falls
     below ``tol``, at ``deadline``, or when the termination flag ``stop`` (int64 (1,)) is
     nonzero (polled before every iteration, like the deadline, and inside it: after the
     update and within the V-cycle; u is then partial).  Returns (iterations, final max
@@ -588,6 +617,7 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t
     deg = nb0.shape[1]
     n = sizes[0]
     total = off[-1]
+    wt, diag, inv_diag, chol_t = _single_levels(off, wt64, diag64, inv_diag64, chol)
     xs = np.zeros(total, np.float32)
     bs = np.zeros(total, np.float32)
     ws = np.zeros(total, np.float32)
@@ -637,19 +667,6 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t
     return it, res
 
 
-def _single_levels(h):
-    """
-    Return float32 copies ``(wt, diag, inv_diag)`` of a hierarchy's packed coarse levels, for the V-cycle.
-
-    The coarse weights and diagonals are sums of unit weights (small integers: exact in
-    float32); the fine level's rows (unused: its kernels read ``nb0``) are left 0 / 1.
-    """
-    a = h.off[1] if h.levels > 1 else h.off[-1]
-    wt = np.zeros(h.wt.shape, np.float32)
-    wt[a:] = h.wt[a:]
-    return wt, h.diag.astype(np.float32), h.inv_diag.astype(np.float32)
-
-
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=1.8, stop=None,
           coarse_sweeps=COARSE_SWEEPS):
     """
@@ -681,8 +698,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     x = np.zeros(n + 1)
     if stop is None:
         stop = np.zeros(1, np.int64)
-    wt32, diag32, inv_diag32 = _single_levels(h)
-    it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, wt32, diag32, inv_diag32, h.agg, h.off, h.sizes,
-                   h.chol, np.ascontiguousarray(h.chol.T), b, x, float(tol), int(max_iter), int(sweeps),
+    it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
+                   h.chol, b, x, float(tol), int(max_iter), int(sweeps),
                    float(boost), int(coarse_sweeps), float(deadline), stop)
     return (x[:n] if h.in_order else x[h.fine_of_input]), int(it), float(res)
