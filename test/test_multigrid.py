@@ -20,10 +20,10 @@ from spacerobot_planner.field import multigrid
 
 def _grid_problem(shape, periodic, seed, obstacle_fraction=0.2):
     """
-    Return ``(nbr, coords, rhs, A, b)``: a Dirichlet Laplace problem, goal 1 at one corner.
+    Return ``(nbr, coords, rhs, A)``: a Dirichlet Laplace problem, goal 1 at one corner.
 
-    nbr / coords / rhs in multigrid.solve's form (unknowns in a random order); A, b: the
-    same problem as a SciPy matrix built from the grid's face neighbours.
+    nbr / coords / rhs in multigrid.solve's form (unknowns in a random order); A: the
+    same operator as a SciPy matrix, built from the grid's face neighbours.
     """
     rng = np.random.default_rng(seed)
     free = rng.random(shape) >= obstacle_fraction
