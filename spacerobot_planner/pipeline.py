@@ -34,12 +34,12 @@ from contextlib import contextmanager
 import numpy as np
 
 from .contact import leave_contact
-from .descent import colliding_edges
 from .field import bfs_distance, validate_problem
 from .field.graph import bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
 from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
+from .repair import sheet_edges
 from .results import STAGES, Code, PlanResult
 from .smoothing import SmoothPath, path_length_rad, smooth_path
 from .spacecraft import free_floating_response
@@ -51,8 +51,10 @@ from .timing import timed_motion, trajectory_limits_known
 __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node
-#: (one more with each repair of the same plan, up to three more).
+#: (one more with each repair of the same plan, up to REPAIR_WIDENING more) and those joined
+#: to them (``repair.sheet_edges``).
 REPAIR_RADIUS = 2
+REPAIR_WIDENING = 3
 
 
 class Fail(Exception):
@@ -358,10 +360,12 @@ class PlanRun:
         while True:
             self.level = level
             failure = None
-            for extra_m in self.grid_margins(level):
+            for k, extra_m in enumerate(self.grid_margins(level)):
                 try:
                     cs, cs_key = self.cspace(grid, extra_m)
                     goal_nodes = self.goal_nodes(cs, cs_key)
+                    if level or k:             # a grid tried after one that failed
+                        self.check_joined(cs, cs_key, goal_nodes)
                     field, field_key = self.field(cs, cs_key, goal_nodes)
                     return self.descend_and_repair(cs, field, field_key, goal_nodes)
                 except Fail as f:
@@ -455,6 +459,33 @@ class PlanRun:
                        "no free grid node near the goal is joined to it by a collision-free segment")
         return np.array(nodes)
 
+    def check_joined(self, cs, cs_key, goal_nodes) -> None:
+        """
+        Raise, without a field solve, the answer a solve would lead to when the grid separates start and goal nodes.
+
+        Where no free grid node near the start is joined to the goal nodes by the grid's free
+        nodes (a breadth-first search, a millisecond), the field would have no value at those
+        nodes and :meth:`descend_and_repair` would answer ``no_field_path_failure``: that
+        answer, the same code and reason, without the solve.  Run on the grids tried after
+        one that failed (the second margin, a refined grid), where a separation is likely
+        and a field solve costs tens of milliseconds; not when the field is cached.
+        """
+        if self.p._field_key(cs_key, goal_nodes, self.s) in self.p._fields:
+            return
+        grid = cs.grid
+        self.stats = {"repairs": 0, "blocked_nodes": 0, "cut_edges": 0,
+                      "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m),
+                      "grid": grid.label(), "refinements": self.level}
+        with self.stage("descent"):
+            starts = self.candidates(self.plan_start, grid, cs.occupied)
+            if len(starts) == 0:
+                return                   # descend_and_repair says so, after the solve
+            dist = field_bfs(*validate_problem(cs.occupied, grid.periodic, goal_nodes))[0]
+            joined = bool(np.any(dist.reshape(grid.shape)[tuple(starts.T)] >= 0))
+        if not joined:
+            self.fld = None
+            raise self.no_field_path_failure(cs, None, frozenset(), frozenset(), 0)
+
     def field(self, cs, cs_key, goal_nodes):
         """(field, its key) on the C-space's free nodes towards the goal nodes, cached."""
         self.check_cancel()
@@ -489,6 +520,7 @@ class PlanRun:
         grid, s = cs.grid, self.s
         blocked, cut = frozenset(), frozenset()
         repairs = 0
+        start_ok = {}                    # grid node -> whether the straight segment from the start passes
         start = self.plan_start
         with self.stage("descent"):
             self.p._test_stall("descent", self.cancel)
@@ -512,7 +544,11 @@ class PlanRun:
             path, stuck, reasons, collide = None, None, [], []
             for node in starts[reach]:
                 self.check_cancel()
-                if not self.segment_ok(start, grid.config_of(node), keep=True):     # the grid path's first interval
+                tn = tuple(int(v) for v in node)
+                if tn not in start_ok:                   # the same start and node each repair round
+                    # kept: the grid path's first interval
+                    start_ok[tn] = self.segment_ok(start, grid.config_of(node), keep=True)
+                if not start_ok[tn]:
                     collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
@@ -530,7 +566,7 @@ class PlanRun:
                 node = tuple(int(v) for v in stuck.nodes[-1])
                 with self.stage("repair"):
                     edges = self.colliding_edges(grid, fld, key, blocked, node,
-                                                 REPAIR_RADIUS + min(repairs, 3))     # wider each time
+                                                 REPAIR_RADIUS + min(repairs, REPAIR_WIDENING))
                 new = {(int(a), int(b)) for a, b in edges} - cut
                 if new:
                     cut = cut | new
@@ -601,7 +637,7 @@ class PlanRun:
 
     def colliding_edges(self, grid, fld, key, blocked, node, radius: int) -> np.ndarray:
         """
-        Return the colliding grid edges within ``radius`` of ``node`` (``descent.colliding_edges``), cached.
+        Return the colliding grid edges within ``radius`` of ``node`` and their sheet (``repair.sheet_edges``), cached.
 
         On the field under ``key`` with the ``blocked`` nodes (its occupancy; cut edges do not
         change it): a pure function of those, the node and the radius, so kept by the planner
@@ -611,8 +647,8 @@ class PlanRun:
         ekey = (key, tuple(sorted(blocked)), node, int(radius))
         edges = self.p._colliding.get(ekey)
         if edges is None:
-            edges = colliding_edges(fld.occupied, grid.periodic, node, self.motions, grid.lower_rad,
-                                    grid.step_rad, radius=radius)
+            edges = sheet_edges(fld.occupied, grid.periodic, node, self.motions, grid.lower_rad,
+                                grid.step_rad, radius=radius)
             edges.flags.writeable = False
             self.p._remember(self.p._colliding, ekey, edges, 64)
         return edges
@@ -656,6 +692,8 @@ class PlanRun:
             return Fail(Code.DISCONNECTED, f"the start {deg_text(start)} and the goal {deg_text(self.goal)} "
                         f"lie in separate free regions of {where}",
                         f"separate free regions (grid margin {cs.margin_m:.3f} m)")
+        if fld is None:                  # check_joined: no field, no repairs; its goal nodes separated
+            return self.unjoined_failure(where)
         # the grid joins them: does the field's own graph (repairs, goal joins) join them?
         f_occ, per, f_goals = validate_problem(fld.occupied, grid.periodic, fld.goal_nodes)
         f_dist = field_bfs(f_occ, per, f_goals, np.array(sorted(cut), dtype=np.int64).reshape(-1, 2))[0]
@@ -673,6 +711,10 @@ class PlanRun:
             done = _repairs_text(repairs, cut, blocked)
             return Fail(Code.PATH_INVALID, f"{where} joins start and goal, but {done} whose straight motions "
                         "collide separated them", f"joined, but {done} separated them")
+        return self.unjoined_failure(where)
+
+    def unjoined_failure(self, where: str) -> Fail:
+        """Return the answer when the grid joins start and goal but not to a goal node joined to the goal."""
         return Fail(Code.PATH_INVALID, f"on {where} the start's free region reaches only grid nodes near the "
                     f"goal {deg_text(self.goal)} whose straight segment to it collides",
                     "the start's free region holds no grid node joined to the goal by a collision-free "

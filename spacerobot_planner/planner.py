@@ -46,6 +46,7 @@ from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
 from .motion import MotionValidator
 from .pipeline import PlanRun
 from .problem import Scenario
+from .repair import warm_up as repair_warm_up
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
 from .settings import PlannerSettings
@@ -404,6 +405,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
             break
     field_warm_up()             # the solver kernels a coarse grid does not reach
     smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
+    repair_warm_up()            # a coarse plan seldom repairs
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
         # the free-floating capture's attitude kernel (numba)
         attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))

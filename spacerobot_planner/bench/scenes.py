@@ -35,7 +35,7 @@ import numpy as np
 
 from ..collision import CollisionChecker
 from ..config import load_scenario
-from ..planner import STAGES, Planner
+from ..planner import STAGES, Planner, warm_up
 from ..scene import Scene, Target
 from .profile import StepProfile, print_rows
 
@@ -95,6 +95,7 @@ def _warm_up(dof: int) -> None:
     sc = load_scenario(CONFIG / f"paper_{dof}dof.yaml")
     sc = replace(sc, grid=sc.grid_with_cells(12 if dof == 3 else 30))
     Planner(sc).plan(sc.start_rad, sc.goal_rad)
+    warm_up(sc)                 # the kernels a coarse plan may not reach (repairs among them)
 
 
 def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile: bool = False) -> list:

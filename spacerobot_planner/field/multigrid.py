@@ -18,6 +18,10 @@ One preconditioner application is a symmetric V-cycle (forward Gauss–Seidel be
 coarse correction, backward after; the correction scaled by ``boost`` = 1.8, as plain
 aggregation under-corrects) inside conjugate gradients: about two iterations per decade
 of residual on the paper's scenes.  Each level is renumbered red nodes first, then black.
+The V-cycle runs in float32 (its vectors and the coarse weights, which are small integers
+and so exact) inside the float64 CG: half the bytes of every pass over the levels, which
+bound the cost from about 100 000 unknowns; a preconditioner's precision does not change
+what CG converges to, and it costs no iterations on the paper's grids.
 
 Levels are packed into flat arrays: level l owns rows ``off[l] .. off[l] + size[l]`` plus
 one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that stands for "no neighbour".
@@ -372,40 +376,60 @@ def _row0(nb0, x, i, deg):
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
 def _gs0(nb0, x, b, lo, hi, deg, inv_deg):
+    """Gauss–Seidel over the fine rows lo .. hi - 1 (x float32: the V-cycle's; b float64: its right-hand side)."""
     for i in range(lo, hi):
         x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
 
 
 @nb.njit(cache=True, nogil=True)
-def _residual0(nb0, x, b, r, lo, hi, deg):
-    fdeg = float(deg)
+def _gs0_dot(nb0, x, b, lo, hi, deg, inv_deg):
+    """:func:`_gs0`, returning sum b[i] * x[i] over its rows (the new x, as stored; one pass, not two)."""
+    s = 0.0
     for i in range(lo, hi):
-        r[i] = b[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
+        x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+        s += b[i] * x[i]
+    return s
 
 
 @nb.njit(cache=True, nogil=True)
-def _matvec0(nb0, p, q, lo, hi, deg):
+def _matvec0_dot(nb0, p, q, n, deg):
+    """Compute q = A p on the fine level (float64); return p · q (summed in the same pass)."""
     fdeg = float(deg)
-    for i in range(lo, hi):
-        q[i] = fdeg * p[i] - _row0(nb0, p, i, deg)
+    s = 0.0
+    for i in range(n):
+        v = fdeg * p[i] - _row0(nb0, p, i, deg)
+        q[i] = v
+        s += p[i] * v
+    return s
+
+
+@nb.njit(cache=True, nogil=True)
+def _dot(a, b, n):
+    """Return sum_i a[i] * b[i] over the first n entries, in a fixed order (the same bits every run)."""
+    s = 0.0
+    for i in range(n):
+        s += a[i] * b[i]
+    return s
 
 
 # --------------------------------------------------------------------------
-# the cycle
+# the cycle (single precision: the preconditioner of a double-precision CG)
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, top, boost,
+def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, top, boost,
                   coarse_sweeps):
     """
     Compute x = M^-1 b on level ``top`` by a V-cycle over the levels from ``top`` down (packed vectors).
 
     Forward Gauss–Seidel sweeps (``coarse_sweeps``) before the coarse correction (scaled by
-    ``boost``), backward ones after; the coarsest level by its Cholesky factor ``chol``.
-    Each level's first ``red[l]`` rows are red; where no two rows of one colour are
+    ``boost``), backward ones after; the coarsest level by its Cholesky factor ``chol``
+    and its transpose ``chol_t`` (float64, each read along its rows).  Each level's first
+    ``red[l]`` rows are red; where no two rows of one colour are
     neighbours (``rrows[l] == red[l]``) the first sweep from 0 sets the red rows without
     reading their (zero) neighbours, and only the red rows' residuals (``rrows[l]``) are
     restricted: the black ones are zero after the sweep.
-    b of the levels below ``top`` and r are scratch.
+    x, b, r, wt, diag, inv_diag: float32 (:func:`_single_levels`); b of the levels below
+    ``top`` and r are scratch.
     """
     deg = nbr.shape[1]
     nlev = sizes.size
@@ -435,15 +459,15 @@ def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x,
     base = off[nlev - 1]
     m = sizes[nlev - 1]
     for i in range(m):
-        s = b[base + i]
+        s = float(b[base + i])
         for k in range(i):
             s -= chol[i, k] * r[base + k]
         r[base + i] = s / chol[i, i]
     for i in range(m - 1, -1, -1):
-        s = r[base + i]
+        s = float(r[base + i])
         for k in range(i + 1, m):
-            s -= chol[k, i] * x[base + k]
-        x[base + i] = s / chol[i, i]
+            s -= chol_t[i, k] * x[base + k]
+        x[base + i] = s / chol_t[i, i]
     x[base + m] = 0.0
     for lv in range(nlev - 2, top - 1, -1):
         lo, n, cb = off[lv], sizes[lv], off[lv + 1]
@@ -458,80 +482,112 @@ def _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x,
 
 
 @nb.njit(cache=True, nogil=True)
-def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, r0, sweeps,
+def _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, rf, x, b, r, sweeps,
             boost, coarse_sweeps, stop):
     """
-    Compute x = M^-1 b on the finest level (x, b, r: packed level vectors; b of the coarser levels and r are scratch).
+    Compute x = M^-1 rf on the finest level; return rf · x.
 
+    rf float64 (n0 + 1,): the fine right-hand side (the CG residual; read only); x, b, r:
+    float32 packed level vectors (b's fine part unused; b of the coarser levels and r are
+    scratch); wt, diag, inv_diag: the float32 levels (:func:`_single_levels`).
     Symmetric: forward Gauss-Seidel sweeps before the coarse correction (scaled by
     ``boost``), backward ones after.  The fine level (unit weights, diagonal deg)
     reads ``nb0``; its first ``red[0]`` rows are red.  When ``rrows[0] == red[0]`` (no
     two rows of one colour are neighbours) a colour's rows are updated in any order,
-    else one by one in order; the coarser levels by :func:`_coarse_cycle`.  r0 (n0,) scratch.  The
-    termination flag ``stop`` is polled after the fine level's pre-smoothing and
-    before its post-smoothing (x is then garbage: the caller discards it).
+    else one by one in order; the coarser levels by :func:`_coarse_cycle`.  The fine
+    residual is restricted as it is computed (no residual vector), and rf · x summed in
+    the last sweep.  The termination flag ``stop`` is polled after the fine level's
+    pre-smoothing and before its post-smoothing (then x is garbage and 0 is returned: the
+    caller discards both).
     """
-    deg = nbr.shape[1]
+    deg = nb0.shape[1]
     inv_deg = 1.0 / deg
+    fdeg = float(deg)
     n0 = sizes[0]
     red0, restrict0 = red[0], rrows[0]
     if sizes.size == 1:          # the fine level is the coarsest
-        _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 0, boost, coarse_sweeps)
-        return
+        for i in range(n0):
+            b[i] = rf[i]
+        _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 0, boost,
+                      coarse_sweeps)
+        return _dot(rf, x, n0)
     clean = restrict0 == red0 and sweeps > 0
     for i in range(n0 if clean else 0, n0 + 1):
         x[i] = 0.0
     if clean:            # first sweep from 0: a red row sees only black zeros (black rows are set, not read)
         for i in range(red0):
-            x[i] = b[i] * inv_deg
-        _gs0(nb0, x, b, red0, n0, deg, inv_deg)
+            x[i] = rf[i] * inv_deg
+        _gs0(nb0, x, rf, red0, n0, deg, inv_deg)
         for _ in range(sweeps - 1):
-            _gs0(nb0, x, b, 0, red0, deg, inv_deg)
-            _gs0(nb0, x, b, red0, n0, deg, inv_deg)
+            _gs0(nb0, x, rf, 0, red0, deg, inv_deg)
+            _gs0(nb0, x, rf, red0, n0, deg, inv_deg)
     else:
         for _ in range(sweeps):
-            _gs0(nb0, x, b, 0, n0, deg, inv_deg)
+            _gs0(nb0, x, rf, 0, n0, deg, inv_deg)
     if stop[0] != 0:
-        return
-    _residual0(nb0, x, b, r0, 0, restrict0, deg)
+        return 0.0
     cb = off[1]
     bc = b[cb:off[2]]
     bc[:] = 0.0
-    for i in range(restrict0):
-        bc[agg[i]] += r0[i]
-    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, x, b, r, 1, boost, coarse_sweeps)
+    for i in range(restrict0):          # the residual, restricted as it is computed
+        bc[agg[i]] += rf[i] - fdeg * x[i] + _row0(nb0, x, i, deg)
+    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 1, boost,
+                  coarse_sweeps)
     if stop[0] != 0:
-        return
+        return 0.0
     xc = x[cb:off[2]]
     for i in range(red0 if clean else n0):     # clean: the black rows' correction is dead (set, not read)
         x[i] += boost * xc[agg[i]]
-    for _ in range(sweeps):
+    if sweeps == 0:
+        return _dot(rf, x, n0)
+    for _ in range(sweeps - 1):
         if clean:        # black rows, then red (the backward order by colour)
-            _gs0(nb0, x, b, red0, n0, deg, inv_deg)
-            _gs0(nb0, x, b, 0, red0, deg, inv_deg)
+            _gs0(nb0, x, rf, red0, n0, deg, inv_deg)
+            _gs0(nb0, x, rf, 0, red0, deg, inv_deg)
         else:
-            for i in range(n0 - 1, -1, -1):
-                x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+            _gs0_back(nb0, x, rf, n0, deg, inv_deg)
+    if clean:
+        s_black = _gs0_dot(nb0, x, rf, red0, n0, deg, inv_deg)
+        return _gs0_dot(nb0, x, rf, 0, red0, deg, inv_deg) + s_black
+    return _gs0_back(nb0, x, rf, n0, deg, inv_deg)
 
 
 @nb.njit(cache=True, nogil=True)
-def _dot(a, b, n):
-    """
-    Return sum_i a[i] * b[i] over the first n entries, in four interleaved partial sums.
+def _gs0_back(nb0, x, b, n, deg, inv_deg):
+    """Backward Gauss–Seidel over the fine rows n - 1 .. 0; returns sum b[i] * x[i] (the new x)."""
+    s = 0.0
+    for i in range(n - 1, -1, -1):
+        x[i] = (b[i] + _row0(nb0, x, i, deg)) * inv_deg
+        s += b[i] * x[i]
+    return s
 
-    A fixed order (the same bits every run), four independent chains instead of one: the
-    sum is no longer bound by the latency of one addition after another.
+
+@nb.njit(cache=True, nogil=True)
+def _single_levels(off, wt, diag, inv_diag, chol):
     """
-    s0 = s1 = s2 = s3 = 0.0
-    m = n - n % 4
-    for i in range(0, m, 4):
-        s0 += a[i] * b[i]
-        s1 += a[i + 1] * b[i + 1]
-        s2 += a[i + 2] * b[i + 2]
-        s3 += a[i + 3] * b[i + 3]
-    for i in range(m, n):
-        s0 += a[i] * b[i]
-    return (s0 + s1) + (s2 + s3)
+    Return the V-cycle's arrays ``(wt, diag, inv_diag, chol_t)`` from a hierarchy's packed levels.
+
+    wt, diag, inv_diag: float32 copies of the coarse levels (rows from ``off[1]``; the
+    coarse weights and diagonals are sums of unit weights, small integers: exact in
+    float32); the fine level's rows are never read (its kernels read ``nb0``) and left
+    unset.  chol_t: the coarsest factor's transpose, row-major (float64).
+    """
+    a = off[1] if off.size > 2 else off[-1]
+    total, deg = wt.shape
+    wt32 = np.empty((total, deg), np.float32)
+    diag32 = np.empty(total, np.float32)
+    inv_diag32 = np.empty(total, np.float32)
+    for i in range(a, total):
+        for d in range(deg):
+            wt32[i, d] = wt[i, d]
+        diag32[i] = diag[i]
+        inv_diag32[i] = inv_diag[i]
+    m = chol.shape[0]
+    chol_t = np.empty((m, m))
+    for i in range(m):
+        for k in range(m):
+            chol_t[i, k] = chol[k, i]
+    return wt32, diag32, inv_diag32, chol_t
 
 
 @nb.njit(cache=True)
@@ -542,37 +598,33 @@ def _now():
 
 
 @nb.njit(cache=True, nogil=True)
-def _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, r, n,
-                  sweeps, boost, coarse_sweeps, stop):
-    """Compute xs = M^-1 r (one V-cycle) on the fine level; returns r · xs.  r: bs's fine part (a view)."""
-    _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws, r0, sweeps,
-            boost, coarse_sweeps, stop)
-    return _dot(r, xs, n)
-
-
-@nb.njit(cache=True, nogil=True)
-def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u, tol, max_iter,
+def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, rhs, u, tol, max_iter,
          sweeps, boost, coarse_sweeps, deadline, stop):
     """
     Preconditioned CG on the finest level, from the initial guess ``u``.
 
-    rhs, u float64 (n + 1,) (last entry the dummy, kept 0).  Stops when the
-    largest residual |b - A u| falls below ``tol``, at ``deadline``, or when the
-    termination flag ``stop`` (int64 (1,)) is nonzero (polled before every
-    iteration, like the deadline, and inside it: after the update and within the
-    V-cycle; u is then partial).  Returns (iterations, final max residual); u is
+    rhs, u float64 (n + 1,) (last entry the dummy, kept 0); the levels as the hierarchy
+    holds them (float64).  CG runs in float64; its preconditioner, one V-cycle, in float32
+    (the levels' copies: :func:`_single_levels`): half the bytes per pass, and the
+    precision of the preconditioner does not change what CG converges to (each application
+    is exact to float32's relative 6e-8 of the current residual: the same iterations on
+    the paper's scenes at 181², 36³ and 72³, one more at 120³ and on 3 of 300 band problems
+    of random scenes).  Stops when the largest residual |b - A u| falls below ``tol``, at
+    ``deadline``, or when the termination flag ``stop`` (int64 (1,)) is nonzero (polled
+    before every iteration, like the deadline, and inside it: after the update and within
+    the V-cycle; u is then partial).  Returns (iterations, final max residual); u is
     updated in place.
     """
-    deg = nbr.shape[1]
+    deg = nb0.shape[1]
     n = sizes[0]
     total = off[-1]
-    xs = np.zeros(total)
-    bs = np.zeros(total)
-    ws = np.zeros(total)
-    r = bs[:n + 1]          # the V-cycle's fine right-hand side is the residual itself: no copy
+    wt, diag, inv_diag, chol_t = _single_levels(off, wt64, diag64, inv_diag64, chol)
+    xs = np.zeros(total, np.float32)
+    bs = np.zeros(total, np.float32)
+    ws = np.zeros(total, np.float32)
+    r = np.zeros(n + 1)
     p = np.zeros(n + 1)
     q = np.zeros(n + 1)
-    r0 = np.zeros(n + 1)
     u[n] = 0.0
     res = 0.0
     fdeg = float(deg)
@@ -582,8 +634,8 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u
             res = abs(r[i])
     if res < tol:
         return 0, res
-    rz = _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs, ws,
-                       r0, r, n, sweeps, boost, coarse_sweeps, stop)
+    rz = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, r, xs, bs, ws,
+                 sweeps, boost, coarse_sweeps, stop)
     for i in range(n):
         p[i] = xs[i]
     it = 0
@@ -593,24 +645,25 @@ def _pcg(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, rhs, u
         if deadline > 0.0 and _now() > deadline:
             break
         it += 1
-        _matvec0(nb0, p, q, 0, n, deg)
-        pq = _dot(p, q, n)
+        pq = _matvec0_dot(nb0, p, q, n, deg)
         if not pq > 0.0:
             break
         alpha = rz / pq
         res = 0.0
         for i in range(n):
-            u[i] += alpha * p[i]
-            r[i] -= alpha * q[i]
-            if abs(r[i]) > res:
-                res = abs(r[i])
+            v = r[i] - alpha * q[i]
+            r[i] = v
+            res = max(res, abs(v))
         if res < tol or stop[0] != 0:
+            for i in range(n):
+                u[i] += alpha * p[i]
             break
-        rz_new = _precondition(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, xs, bs,
-                               ws, r0, r, n, sweeps, boost, coarse_sweeps, stop)
+        rz_new = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, r, xs, bs, ws,
+                         sweeps, boost, coarse_sweeps, stop)
         beta = rz_new / rz
         rz = rz_new
-        for i in range(n):
+        for i in range(n):           # u's step along the old p, then the new p: one pass over p
+            u[i] += alpha * p[i]
             p[i] = xs[i] + beta * p[i]
     return it, res
 
@@ -647,6 +700,6 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     if stop is None:
         stop = np.zeros(1, np.int64)
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
-                   h.chol, b, x, float(tol), int(max_iter), int(sweeps), float(boost), int(coarse_sweeps),
-                   float(deadline), stop)
+                   h.chol, b, x, float(tol), int(max_iter), int(sweeps),
+                   float(boost), int(coarse_sweeps), float(deadline), stop)
     return (x[:n] if h.in_order else x[h.fine_of_input]), int(it), float(res)

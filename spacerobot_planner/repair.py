@@ -1,0 +1,155 @@
+"""
+The repair stage's search: the colliding grid edges around a node where the descent was blocked.
+
+A grid decides nothing about what lies between two nodes: two free face neighbours can be
+joined by a straight motion that collides (an obstacle thinner than a grid step, in
+C-space).  Such edges make up "sheets": an obstacle's thin part crosses the grid edges next
+to each other.  The descent stops at the first of them; a repair (``pipeline.PlanRun``)
+cuts them from the field's graph and re-solves the field.  Cutting only those within a few
+steps of the node left the rest of the sheet, and the next descent, sliding along it, was
+blocked a few nodes farther (one field solve per few nodes of sheet).
+
+:func:`sheet_edges` follows the sheet: every edge within ``radius`` steps of the node is
+tested, then every edge within one step of a colliding one, until no colliding edge is
+found or ``max_tests`` edges were tested beyond the box (a count, so the same input gives the same
+edges).
+A sheet ends where the obstacle is thick enough to occupy grid nodes (edges to them are not
+graph edges) or where it ends.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from .descent import _along
+from .field import solve_field
+from .motion import motion_scratch, segment_free
+
+#: The most edge motions one repair tests beyond the box around the blocked node (a few ms;
+#: a repair round at 36³ costs about 10 to 20 ms: on the repairing scenes of ``bench scenes``
+#: 1000 to 2000 took the least CPU time, 12 % less than the box alone, 4000 more).
+MAX_TESTS = 2_000
+
+
+@nb.njit(cache=True, nogil=True)
+def _push_box(f, radius, shape, strides, periodic, seen, queue, tail, c0, off):
+    """Append the unseen nodes within ``radius`` index steps of flat node ``f`` to ``queue``; returns the new tail."""
+    ndim = shape.size
+    for a in range(ndim):
+        c0[a] = (f // strides[a]) % shape[a]
+    side = 2 * radius + 1
+    total = 1
+    for a in range(ndim):
+        total *= side
+    for t in range(total):
+        rem = t
+        for a in range(ndim - 1, -1, -1):
+            off[a] = rem % side - radius
+            rem //= side
+        g = 0
+        for a in range(ndim):
+            k = _along(c0[a], off[a], shape[a], periodic[a])
+            if k < 0:
+                g = -1
+                break
+            g += k * strides[a]
+        if g >= 0 and not seen[g]:
+            seen[g] = True
+            queue[tail] = g
+            tail += 1
+    return tail
+
+
+@nb.njit(cache=True, nogil=True)
+def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
+                 lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
+    """
+    Return (colliding edges int64 (k, 2) flat node pairs (smaller first), edges tested).
+
+    Breadth-first over nodes: those within ``radius`` of flat node ``centre`` first; each
+    node's edges to its free + neighbours are tested (``motion.segment_free``), and the nodes
+    within one step of both ends of a colliding edge are queued.  Beyond the box around
+    ``centre``, no node is taken once ``max_tests`` edges were tested.
+    """
+    ndim = shape.size
+    n = occ_flat.size
+    strides = np.ones(ndim, np.int64)
+    for a in range(ndim - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    q_full, pts, body_w = motion_scratch(q_template, lengths, body)
+    qa = np.empty(ndim)
+    qb = np.empty(ndim)
+    c = np.empty(ndim, np.int64)
+    c0 = np.empty(ndim, np.int64)
+    off = np.empty(ndim, np.int64)
+    seen = np.zeros(n, np.bool_)
+    queue = np.empty(n, np.int64)
+    seeds = tail = _push_box(centre, radius, shape, strides, periodic, seen, queue, 0, c0, off)
+    head = 0
+    tests = 0
+    found = []
+    while head < tail and (head < seeds or tests < max_tests):    # the box around the centre: all
+        f = queue[head]
+        head += 1
+        if occ_flat[f]:
+            continue
+        for a in range(ndim):
+            c[a] = (f // strides[a]) % shape[a]
+            qa[a] = lower[a] + c[a] * step[a]
+        for a in range(ndim):
+            k = _along(c[a], 1, shape[a], periodic[a])
+            if k < 0:
+                continue
+            g = f + (k - c[a]) * strides[a]
+            if occ_flat[g]:
+                continue
+            for b in range(ndim):
+                qb[b] = qa[b]
+            qb[a] += step[a]
+            tests += 1
+            if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
+                                obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
+                found.append((min(f, g), max(f, g)))
+                tail = _push_box(f, 1, shape, strides, periodic, seen, queue, tail, c0, off)
+                tail = _push_box(g, 1, shape, strides, periodic, seen, queue, tail, c0, off)
+    out = np.empty((len(found), 2), np.int64)
+    for t in range(len(found)):
+        out[t, 0] = found[t][0]
+        out[t, 1] = found[t][1]
+    return out, tests
+
+
+def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: int = 2,
+                max_tests: int | None = None) -> np.ndarray:
+    """
+    Return the colliding grid edges near ``node`` and those joined to them (see the module doc).
+
+    occupied: bool grid; periodic: one bool per axis; node: the grid index where the descent
+    was blocked; motions: a ``motion.SegmentTest``; nodes at ``lower_rad + index * step_rad``.
+    Returns int64 (k, 2) flat node pairs (smaller first), in the order found; every edge
+    within ``radius`` index steps of ``node`` that collides is among them.  ``max_tests``:
+    None for :data:`MAX_TESTS`.
+    """
+    occ = np.ascontiguousarray(occupied)
+    limit = MAX_TESTS if max_tests is None else max_tests
+    edges, _ = _sheet_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array(periodic, np.bool_),
+                            int(np.ravel_multi_index(tuple(node), occ.shape)), int(radius), int(limit),
+                            np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
+                            *motions.arrays())
+    return edges
+
+
+def warm_up() -> None:
+    """
+    Compile (or load from numba's cache) what a repair runs: the search, a field with cut edges.
+
+    The search on a made-up arm and one square obstacle, with a plan's argument types.
+    """
+    square = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    arrays = (np.zeros(3), np.array([1, 2], dtype=np.int64), np.array([1.4, 2.0, 2.0]),
+              np.array([1, 2], dtype=np.int64), square.copy(), square + 3.0, np.array([0, 4], dtype=np.int64),
+              np.array([[3.0, 3.0]]), np.array([1.0]), 0.02, 0.05)
+    occ = np.zeros((6, 6), np.bool_)
+    _sheet_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array([True, False]), 14, 1, 100,
+                 np.radians([-180.0, -150.0]), np.radians([60.0, 60.0]), *arrays)
+    solve_field(occ, (True, False), [(5, 5)], cut_edges=np.array([[14, 15]]))
