@@ -38,6 +38,7 @@ process that never imports rclpy.
 from __future__ import annotations
 
 import array
+import gc
 import sys
 import threading
 import time
@@ -216,6 +217,10 @@ class PlannerNode(LifecycleNode):
         self._diag_timer = self.create_timer(float(self._params["diagnostics.period_s"]), self._diag_tick)
         self.session.start(backend)
         self._phase = "inactive"
+        # what start-up made (modules, kernels, the warm-up's objects) lives as long as the process:
+        # out of the collector's reach, a full collection in the worker thread (under a trajectory's
+        # way out) walks only what the plans made since (100+ ms -> a few ms at the 3-DOF grid)
+        gc.freeze()
         where = "planning process" if self._params["planner.separate_process"] else "worker thread"
         log.info(f"configured in {time.perf_counter() - t0:.2f} s: planning "
                  f"{', '.join(self.robot.planned_names)} on a {scenario.grid.label()} grid in frame "
@@ -261,7 +266,7 @@ class PlannerNode(LifecycleNode):
 
     def _cleanup(self, finish_goals: bool = False):
         """
-        Stop the worker and remove what configure made.
+        Stop the worker and remove what configure made (the objects frozen then go back to the collector).
 
         In a transition (a callback of the executor) the goals in flight return their results
         after it, so their action server is destroyed later (``pending.PendingAnswers.retire``);
@@ -280,6 +285,7 @@ class PlannerNode(LifecycleNode):
         if self.pub_diag is not None:
             self.destroy_publisher(self.pub_diag)
             self.pub_diag = None
+        gc.unfreeze()
         self._phase = "unconfigured"
 
     def on_shutdown(self, state):
@@ -376,7 +382,12 @@ class PlannerNode(LifecycleNode):
 
     # ------------------------------------------------------------------ outputs (the session's hooks)
     def _publish_outcome(self, req, outcome):
-        """Publish an ok outcome (the worker thread, just after it was stamped): trajectories, then visuals."""
+        """
+        Publish an ok outcome (the worker thread, just after it was stamped).
+
+        The trajectories, then the planner status (recorded before the stamp, see :meth:`_record`),
+        then the visuals.
+        """
         if outcome.publication.sent:
             arm, att = conv.publication_msgs(outcome.publication)
             if arm is not None:
@@ -384,6 +395,7 @@ class PlannerNode(LifecycleNode):
             if att is not None:
                 self._pubs["attitude"].publish(att)
             outcome.stamps["sent"] = time.perf_counter()      # the trajectories (bench latency's breakdown)
+        self._publish_diag()                                  # the outcome _record took
         p = self._params
         markers, cspace, potential = conv.plan_visuals(
             self.robot, req.scenario.scene, outcome.result, self.planning_frame, p["grid_frame"],
@@ -394,9 +406,15 @@ class PlannerNode(LifecycleNode):
                 self._pubs[key].publish(msg)
 
     def _record(self, req, outcome):
-        """Make the planner status describe this finished request from now on, and only it."""
+        """
+        Make the planner status describe this finished request from now on, and only it.
+
+        Published at once, except an ok outcome's: the session publishes it next
+        (:meth:`_publish_outcome`), and its trajectories go out first.
+        """
         self.diagnostics.record(req, outcome)
-        self._publish_diag()
+        if not outcome.ok:
+            self._publish_diag()
 
     def _reject(self, source: str, code: str, reason: str):
         """Log bad input (a message, a goal, a parameter; rate-limited for topics) and raise the input status."""
