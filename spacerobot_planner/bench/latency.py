@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .timing import tail_stats
+
 _PARAMS = Path(__file__).resolve().parent.parent.parent / "config" / "paper_3dof.yaml"
 
 
@@ -236,9 +238,7 @@ def _margin_row(margins, grid, args) -> dict:
 
 
 def _stats(vals) -> dict:
-    v = np.asarray(vals, dtype=float)
-    return {"seconds": float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "min_s": float(v.min()),
-            "max_s": float(v.max()), "repeats": int(len(v))}
+    return tail_stats(vals, median_key="seconds", count_key="repeats")
 
 
 #: the parts of latency_joint_state (see the module docstring), in order
