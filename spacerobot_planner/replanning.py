@@ -52,7 +52,8 @@ from .motion import MotionValidator
 from .timing import timed_motion
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
-__all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join", "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
+__all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
+           "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
 #: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
 #: transit: a controller that gets one after its start catches up with a velocity step); the node's

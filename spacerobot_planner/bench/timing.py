@@ -20,7 +20,7 @@ def median_s(fn, repeats: int) -> float:
 
 
 def tail_stats(values_s, median_key: str = "median_s", count_key: str = "runs") -> dict:
-    """Return the median (under ``median_key``), ``p90_s``, ``min_s``, ``max_s`` and the count (``count_key``) of seconds."""
+    """Return the median (``median_key``), ``p90_s``, ``min_s``, ``max_s`` and the count (``count_key``) of seconds."""
     v = np.asarray(values_s, dtype=float)
     return {median_key: float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "min_s": float(v.min()),
             "max_s": float(v.max()), count_key: int(v.size)}
