@@ -32,8 +32,9 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    corner is also replaced by cubic (Hermite) blends, tangent to both paths, over
    ``BLEND_SAMPLES`` samples on either side; each blend is certified on the exact
    geometry (the scene's ``motion.MotionValidator``) and the fastest certified candidate (the corner
-   itself included) is published (:func:`joined_paths` makes the candidates, :func:`timed_join`
-   times them: a re-timing under lowered scaling factors times the one chosen).  Where none can be entered at the arm's speed (the
+   itself included) is published (:func:`joined_paths` makes the candidates,
+   :func:`timed_join` times them: a re-timing under lowered scaling factors times the one
+   chosen).  Where none can be entered at the arm's speed (the
    re-fitted spline through a sharp corner asks for a slower arm than the join's) it
    raises ``ValueError``; with the horizon at the executing trajectory's end (its goal,
    at rest) the published trajectory is then that trajectory's own remainder followed
