@@ -75,8 +75,8 @@ GRID_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                       reliability=ReliabilityPolicy.RELIABLE)
 WARM_UP_TIMEOUT_S = 300.0
 #: after publishing a trajectory the worker lets go of the interpreter this long before the
-#: status and the visuals (~2 ms of Python): a subscriber in this process (a test's, the latency
-#: bench's, a controller's) takes it meanwhile instead of waiting for them.  Measured with
+#: visuals (~2 ms of Python): a subscriber in this process (a test's, the latency bench's, a
+#: controller's) takes it meanwhile instead of waiting for them.  Measured with
 #: ``bench latency`` (load 9, 2 cores): send -> arrival 2.7 -> 2.0 ms median, p90 7.6 -> 2.5 ms, s
 YIELD_AFTER_SEND_S = 0.0003
 
@@ -387,12 +387,7 @@ class PlannerNode(LifecycleNode):
 
     # ------------------------------------------------------------------ outputs (the session's hooks)
     def _publish_outcome(self, req, outcome):
-        """
-        Publish an ok outcome (the worker thread, just after it was stamped).
-
-        The trajectories, then the planner status (recorded before the stamp, see :meth:`_record`),
-        then the visuals.
-        """
+        """Publish an ok outcome (the worker thread, just after it was stamped): trajectories, then visuals."""
         if outcome.publication.sent:
             arm, att = conv.publication_msgs(outcome.publication)
             if arm is not None:
@@ -401,7 +396,6 @@ class PlannerNode(LifecycleNode):
                 self._pubs["attitude"].publish(att)
             outcome.stamps["sent"] = time.perf_counter()      # the trajectories (bench latency's breakdown)
             time.sleep(YIELD_AFTER_SEND_S)                    # their subscribers in this process first
-        self._publish_diag()                                  # the outcome _record took
         p = self._params
         markers, cspace, potential = conv.plan_visuals(
             self.robot, req.scenario.scene, outcome.result, self.planning_frame, p["grid_frame"],
@@ -412,15 +406,9 @@ class PlannerNode(LifecycleNode):
                 self._pubs[key].publish(msg)
 
     def _record(self, req, outcome):
-        """
-        Make the planner status describe this finished request from now on, and only it.
-
-        Published at once, except an ok outcome's: the session publishes it next
-        (:meth:`_publish_outcome`), and its trajectories go out first.
-        """
+        """Make the planner status describe this finished request from now on, and only it."""
         self.diagnostics.record(req, outcome)
-        if not outcome.ok:
-            self._publish_diag()
+        self._publish_diag()
 
     def _reject(self, source: str, code: str, reason: str):
         """Log bad input (a message, a goal, a parameter; rate-limited for topics) and raise the input status."""
