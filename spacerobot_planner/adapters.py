@@ -246,15 +246,20 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
     # the re-timing rounds need only the published points (the certification cannot change them
     # when it passes at once) and, from rest, not the reaction report (the same path; the verdict
     # is the accepted round's): certify and report the accepted round alone ...
-    got, retimed = _retimed(scenario, args, certify=False)
+    got, first = _retimed(scenario, args, certify=False)
     if got.refused is not None:
         return got
     done = _certified(scenario, got, args)
-    if done is not None and (done.refused is None or not retimed):
-        # (a refusal of the first round is what the certified chain would stop at: the same result)
+    if done is not None and done.refused is None:
         return done
-    # ... and where that added points back, failed or refused a re-timed round, run every round
-    # certified and reported (the points whose interpolation is checked are then the ones published)
+    # a refusal of the first round is where the reported chain stops: that round, as it would
+    # (the accepted round's refusal is the first round's when there was no re-timing)
+    refused = done if first is got else _refusal(scenario, first, args) if done is not None else None
+    if refused is not None:
+        return refused
+    # ... and where the certification added points back or failed (or only a re-timed round was
+    # refused), run every round certified and reported (the points whose interpolation is
+    # checked are then the ones published)
     return _retimed(scenario, args, certify=True)[0]
 
 
@@ -267,11 +272,11 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times.
     A join's re-timings time the path the first round chose (``replanning.timed_join``).
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
-    :class:`Processed` of the last round, whether it was re-timed).
+    :class:`Processed` of the last round, that of the first).
     """
     limits = scenario.joint_limits
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
-    retimed = False
+    first = got
     for _ in range(CONTROLLER_RETIMES):
         if got.refused is not None or limits is None:
             break
@@ -289,8 +294,7 @@ def _retimed(scenario, args, certify: bool) -> tuple:
                                              chosen=chosen)
         except (ValueError, HorizonPassed):
             break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
-        retimed = True
-    return got, retimed
+    return got, first
 
 
 def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
@@ -356,16 +360,35 @@ def _certified(scenario, got: Processed, args) -> Processed | None:
     (the dense points, not split); None when the certification added points back or failed (the
     published points would not be the ones whose interpolation was checked).
     """
-    path_rad, start_rad, join, _, _, motions, time_step_s, _, _ = args
+    motions, time_step_s = args[5], args[6]
     if got.join_stamp_ns is None and reaction_matters(scenario):
-        state = start_rad if got.not_before_ns is None else join.start_rad
-        got = replace(got, reaction=reaction_of(scenario, path_rad, got.dense, state, motions=motions))
-        if got.refused is not None:         # as a reported round stops: the dense points, not split
-            return replace(got, trajectory=got.dense, indices=np.arange(len(got.dense)))
+        got = replace(got, reaction=_reaction(scenario, got, args))
+        if got.refused is not None:
+            return _stopped(got)
     rs = resample(got.dense, motions, time_step_s=time_step_s)
     if not rs.ok or not np.array_equal(rs.indices, got.indices):
         return None
     return _finished(scenario, got, rs)
+
+
+def _reaction(scenario, got: Processed, args):
+    """Return the reaction report of an unreported round from rest (``reaction_of`` its dense points)."""
+    path_rad, start_rad, join, motions = args[0], args[1], args[2], args[5]
+    state = start_rad if got.not_before_ns is None else join.start_rad
+    return reaction_of(scenario, path_rad, got.dense, state, motions=motions)
+
+
+def _refusal(scenario, got: Processed, args) -> Processed | None:
+    """Return an unreported round from rest, reported, when its reaction refuses (:func:`_stopped`), else None."""
+    if got.join_stamp_ns is not None or not reaction_matters(scenario):
+        return None
+    got = replace(got, reaction=_reaction(scenario, got, args))
+    return None if got.refused is None else _stopped(got)
+
+
+def _stopped(got: Processed) -> Processed:
+    """Return a refused round as ``_time_and_resample`` returns one: its dense points, not resampled, not split."""
+    return replace(got, trajectory=got.dense, indices=np.arange(len(got.dense)))
 
 
 def _finished(scenario, got: Processed, rs) -> Processed:
