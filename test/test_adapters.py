@@ -54,10 +54,9 @@ def test_the_controllers_interpolation_of_the_published_points_keeps_the_limits(
     np.testing.assert_allclose(traj.positions_rad[-1], paper_path(3)[-1], atol=1e-9)
 
 
-
 @pytest.mark.parametrize("dof", [2, 3])
 def test_a_refused_trajectory_is_the_first_timings_verdict_without_timing_again(paper_scenario, paper_path, dof,
-                                                                                  monkeypatch):
+                                                                                monkeypatch):
     """
     Free floating, the paper's scenes drift onto the obstacles or miss the grasp: refused.
 
