@@ -20,7 +20,9 @@ carries the very trajectory the node publishes:
    points (quintic segments), which overshoots the time-optimal profile's piecewise-constant
    accelerations by up to about a quarter: that motion is sampled (:func:`controller_overshoot`)
    and, where it exceeds a limit, steps 1 to 3 run again with the scaling factors lowered by the
-   overshoot (a few percent longer, within the limits as the arm really moves);
+   overshoot (a few percent longer, within the limits as the arm really moves); a joined plan's
+   paths (the corner and its blends) are made once and the re-timings time the one the first
+   round chose (the others only when it cannot be entered at the arm's speed);
 5. **split** -- the attitude joint (the robot's first, the spacecraft's) for the attitude
    control system, the arm joints for the arm's controller (:class:`TrajectoryPart`,
    None for a group that is not planned); both None when nothing moves more than
@@ -39,7 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .motion import MotionValidator
-from .replanning import START_LEAD_S, joined_motion
+from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import HorizonPassed, Trajectory, resample, sample_points
@@ -235,32 +237,46 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
 
     """
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
-    args = (path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s, from_end_at_rest)
+    # a join's paths (the continuation, the corner and its certified blends) do not depend on the
+    # limits: made once, the re-timings only time them (HorizonPassed: the arm is past the horizon)
+    paths = None
+    if join is not None and starts_at_the_end(join, now_ns, lead_s, from_end_at_rest) is None:
+        paths = joined_paths(scenario, join, path_rad, now_ns, lead_s, motions)
+    args = (path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s, from_end_at_rest, paths)
     # the re-timing rounds need only the published points (the certification cannot change them
     # when it passes at once) and, from rest, not the reaction report (the same path; the verdict
     # is the accepted round's): certify and report the accepted round alone ...
-    got = _retimed(scenario, args, certify=False)
+    got, first = _retimed(scenario, args, certify=False)
     if got.refused is not None:
         return got
     done = _certified(scenario, got, args)
-    if done is not None:
+    if done is not None and done.refused is None:
         return done
-    # ... and where that added points back, failed or refused, run every round certified and
-    # reported (the points whose interpolation is checked are then the ones published)
-    return _retimed(scenario, args, certify=True)
+    # a refusal of the first round is where the reported chain stops: that round, as it would
+    # (the accepted round's refusal is the first round's when there was no re-timing)
+    refused = done if first is got else _refusal(scenario, first, args) if done is not None else None
+    if refused is not None:
+        return refused
+    # ... and where the certification added points back or failed (or only a re-timed round was
+    # refused), run every round certified and reported (the points whose interpolation is
+    # checked are then the ones published)
+    return _retimed(scenario, args, certify=True)[0]
 
 
-def _retimed(scenario, args, certify: bool) -> Processed:
+def _retimed(scenario, args, certify: bool) -> tuple:
     """
     Run steps 1 to 4 of the chain: time, react, resample (certified when ``certify``), re-time.
 
     The controller interpolates the published points (quintic segments): its motion is
     checked against the limits; where it overshoots, the chain runs again with the scaling
     factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times.
-    ``args``: :func:`_time_and_resample`'s arguments after the scenario.
+    A join's re-timings time the path the first round chose (``replanning.timed_join``).
+    ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
+    :class:`Processed` of the last round, that of the first).
     """
     limits = scenario.joint_limits
-    got = _time_and_resample(scenario, *args, certify=certify)
+    got, chosen = _time_and_resample(scenario, *args, certify=certify)
+    first = got
     for _ in range(CONTROLLER_RETIMES):
         if got.refused is not None or limits is None:
             break
@@ -274,10 +290,11 @@ def _retimed(scenario, args, certify: bool) -> Processed:
         if over_a > 1.0 + CONTROLLER_TOL:
             limits = replace(limits, acceleration_scaling=limits.acceleration_scaling / over_a * CONTROLLER_SHRINK)
         try:
-            got = _time_and_resample(replace(scenario, joint_limits=limits), *args, certify=certify)
+            got, chosen = _time_and_resample(replace(scenario, joint_limits=limits), *args, certify=certify,
+                                             chosen=chosen)
         except (ValueError, HorizonPassed):
             break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
-    return got
+    return got, first
 
 
 def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
@@ -303,32 +320,35 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
 
 
 def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
-                       from_end_at_rest, certify: bool = True) -> Processed:
+                       from_end_at_rest, paths=None, certify: bool = True, chosen: int | None = None) -> tuple:
     """
     Run steps 1 to 3 and 5 of the chain (see the module docstring) under the scenario's limits.
 
+    ``paths``: a join's ``replanning.JoinedPaths`` (None from rest or from the executing
+    trajectory's end); ``chosen``: the candidate an earlier round timed (``replanning.timed_join``).
     ``certify`` False: the points are resampled but neither certified nor split, and from rest
     the reaction is not reported (a round whose points only the controller check reads;
-    :func:`_certified` finishes the accepted one).
+    :func:`_certified` finishes the accepted one).  Returns (:class:`Processed`, the
+    candidate timed or None).
     """
     stamp_ns = cont = not_before_ns = None
-    if join is None:
+    if paths is None and join is None:
         dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions, report=certify)
-    elif (not_before_ns := starts_at_the_end(join, now_ns, lead_s, from_end_at_rest)) is not None:
+    elif paths is None:
         # from rest at the executing trajectory's end, stamped when published, not before that end
+        not_before_ns = starts_at_the_end(join, now_ns, lead_s, from_end_at_rest)
         dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions, report=certify)
     else:
-        dense, reaction, stamp_ns, cont = joined_motion(scenario, join, path_rad, now_ns, lead_s=lead_s,
-                                                        checker=motions)
-    if reaction is not None and not reaction.ok:
-        return Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
-                         stamp_ns, cont, not_before_ns)
+        dense, reaction, chosen = timed_join(scenario, paths, motions, chosen)
+        stamp_ns, cont = paths.stamp_ns, paths.continuation
     got = Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
                     stamp_ns, cont, not_before_ns)
+    if reaction is not None and not reaction.ok:
+        return got, chosen
     if not certify:
         rs = resample(dense, None, time_step_s=time_step_s)
-        return replace(got, trajectory=rs.trajectory, indices=rs.indices)
-    return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s))
+        return replace(got, trajectory=rs.trajectory, indices=rs.indices), chosen
+    return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s)), chosen
 
 
 def _certified(scenario, got: Processed, args) -> Processed | None:
@@ -336,19 +356,39 @@ def _certified(scenario, got: Processed, args) -> Processed | None:
     Certify (and from rest report) an uncertified round (``_time_and_resample(certify=False)``).
 
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns the finished
-    :class:`Processed`, or None when the reaction refuses, or the certification added points
-    back or failed (the published points would not be the ones whose interpolation was checked).
+    :class:`Processed`; when the reaction refuses, the refused round as a reported round stops
+    (the dense points, not split); None when the certification added points back or failed (the
+    published points would not be the ones whose interpolation was checked).
     """
-    path_rad, start_rad, join, _, _, motions, time_step_s, _ = args
+    motions, time_step_s = args[5], args[6]
     if got.join_stamp_ns is None and reaction_matters(scenario):
-        state = start_rad if got.not_before_ns is None else join.start_rad
-        got = replace(got, reaction=reaction_of(scenario, path_rad, got.dense, state, motions=motions))
+        got = replace(got, reaction=_reaction(scenario, got, args))
         if got.refused is not None:
-            return None
+            return _stopped(got)
     rs = resample(got.dense, motions, time_step_s=time_step_s)
     if not rs.ok or not np.array_equal(rs.indices, got.indices):
         return None
     return _finished(scenario, got, rs)
+
+
+def _reaction(scenario, got: Processed, args):
+    """Return the reaction report of an unreported round from rest (``reaction_of`` its dense points)."""
+    path_rad, start_rad, join, motions = args[0], args[1], args[2], args[5]
+    state = start_rad if got.not_before_ns is None else join.start_rad
+    return reaction_of(scenario, path_rad, got.dense, state, motions=motions)
+
+
+def _refusal(scenario, got: Processed, args) -> Processed | None:
+    """Return an unreported round from rest, reported, when its reaction refuses (:func:`_stopped`), else None."""
+    if got.join_stamp_ns is not None or not reaction_matters(scenario):
+        return None
+    got = replace(got, reaction=_reaction(scenario, got, args))
+    return None if got.refused is None else _stopped(got)
+
+
+def _stopped(got: Processed) -> Processed:
+    """Return a refused round as ``_time_and_resample`` returns one: its dense points, not resampled, not split."""
+    return replace(got, trajectory=got.dense, indices=np.arange(len(got.dense)))
 
 
 def _finished(scenario, got: Processed, rs) -> Processed:

@@ -32,7 +32,9 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    corner is also replaced by cubic (Hermite) blends, tangent to both paths, over
    ``BLEND_SAMPLES`` samples on either side; each blend is certified on the exact
    geometry (the scene's ``motion.MotionValidator``) and the fastest certified candidate (the corner
-   itself included) is published.  Where none can be entered at the arm's speed (the
+   itself included) is published (:func:`joined_paths` makes the candidates,
+   :func:`timed_join` times them: a re-timing under lowered scaling factors times the one
+   chosen).  Where none can be entered at the arm's speed (the
    re-fitted spline through a sharp corner asks for a slower arm than the join's) it
    raises ``ValueError``; with the horizon at the executing trajectory's end (its goal,
    at rest) the published trajectory is then that trajectory's own remainder followed
@@ -52,7 +54,8 @@ from .motion import MotionValidator
 from .timing import timed_motion
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
-__all__ = ["Executing", "Join", "plan_start", "joined_motion", "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
+__all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
+           "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
 #: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
 #: transit: a controller that gets one after its start catches up with a velocity step); the node's
@@ -245,6 +248,62 @@ def _corner_blends(path, corner, first, step_rad):
         yield a, b, np.vstack([path[:a], curve, path[b + 1:]])
 
 
+@dataclass(frozen=True, eq=False)
+class JoinedPaths:
+    """
+    The paths a joined plan may take (:func:`joined_paths`): what every timing of it shares.
+
+    Attributes
+    ----------
+        join: the ``Join`` it starts on.
+        continuation: the ``trajectory.Continuation`` (the join, the prefix to the horizon point).
+        new_rad: (M, n) the new plan's path, aligned to the horizon point (unwrapped).
+        stamp_ns: ROS time of the join (the trajectory's stamp), ns.
+        candidates: the joined path with its corner at the horizon point first, then its
+            certified corner blends (each (K, n), rad).
+
+    """
+
+    join: Join
+    continuation: object
+    new_rad: np.ndarray
+    stamp_ns: int
+    candidates: tuple
+
+
+def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = START_LEAD_S,
+                 checker=None) -> JoinedPaths:
+    """
+    Return the paths of a plan that started at ``join.start_rad`` (see :func:`joined_motion`).
+
+    The continuation from the join (at least ``lead_s`` after ``now_ns``) to the horizon
+    point, the new path aligned to it, and the candidates through the corner (the corner
+    itself and its certified blends, :data:`BLEND_SAMPLES`): nothing here depends on the
+    joint limits, so re-timings under lowered scaling factors (``adapters``) share it.
+
+    Raises
+    ------
+        trajectory.HorizonPassed: the arm is already past the horizon point.
+
+    """
+    motions = None if checker is None else MotionValidator.of(checker)
+    ex = join.executing
+    c = continuation(ex.trajectory, ex.time_s(now_ns) + lead_s, horizon_at=join.horizon_index,
+                     join_indices=ex.published)
+    new = align_to_state(np.asarray(path_rad, dtype=float), c.prefix_rad[-1], scenario.robot.planned_periodic)
+    stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
+    path = c.join(new)                      # the prefix's rows, then the new path's
+    corner = len(c.prefix_rad) - 1          # the horizon point's row
+    candidates = [path]
+    if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:
+        motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
+        for a, b, cand in _corner_blends(path, corner, 1, np.radians(0.5)):
+            piece = cand[a - 1:len(cand) - (len(path) - b) + 2]
+            if motions.check(piece).ok:
+                candidates.append(cand)
+    return JoinedPaths(join, c, new, stamp_ns, tuple(candidates))
+
+
 def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = START_LEAD_S, checker=None):
     """
     Build the trajectory to publish for a plan that started at ``join.start_rad``.
@@ -273,51 +332,65 @@ def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = S
         ValueError: the new path cannot be entered at the arm's speed.
 
     """
+    paths = joined_paths(scenario, join, path_rad, now_ns, lead_s, checker)
+    traj, reaction, _ = timed_join(scenario, paths, checker)
+    return traj, reaction, paths.stamp_ns, paths.continuation
+
+
+def timed_join(scenario, paths: JoinedPaths, checker=None, chosen: int | None = None):
+    """
+    Time a joined plan's paths (:func:`joined_paths`) under the scenario's limits.
+
+    The fastest of ``paths.candidates`` that can be entered at the join's speed; with
+    ``chosen`` (a candidate's index, the one an earlier timing picked) that candidate alone,
+    the others only when it cannot be entered.  When none can and the horizon point is the
+    executing trajectory's end (its goal, at rest): that trajectory's remainder, then the
+    new path from rest.
+
+    Returns
+    -------
+        (trajectory.Trajectory, reaction.ReactionReport or None, the candidate's index or None
+        for the remainder and the new motion).
+
+    Raises
+    ------
+        ValueError: the new path cannot be entered at the arm's speed.
+
+    """
     motions = None if checker is None else MotionValidator.of(checker)
-    ex = join.executing
-    c = continuation(ex.trajectory, ex.time_s(now_ns) + lead_s, horizon_at=join.horizon_index,
-                     join_indices=ex.published)
-    new = align_to_state(np.asarray(path_rad, dtype=float), c.prefix_rad[-1], scenario.robot.planned_periodic)
-    stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
+    c, ex = paths.continuation, paths.join.executing
     try:
-        traj, reaction = _fastest_through_corner(scenario, c, new, motions)
+        return _fastest(scenario, paths, motions, chosen)
     except ValueError:
         last = len(ex.trajectory) - 1
-        if join.horizon_index != last:
+        if paths.join.horizon_index != last:
             raise
         rest = ex.trajectory.subset(np.arange(c.index, last + 1))
         rest = replace(rest, times_s=rest.times_s - rest.times_s[0])
-        after, reaction = timed_motion(scenario, new, motions=motions)
-        traj = rest.then(after)
-    return traj, reaction, stamp_ns, c
+        after, reaction = timed_motion(scenario, paths.new_rad, motions=motions)
+        return rest.then(after), reaction, None
 
 
-def _fastest_through_corner(scenario, c, new, motions):
+def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):
     """
-    (trajectory, reaction) of the fastest of.
+    (trajectory, reaction, index) of the fastest candidate of ``paths`` (``chosen`` alone when it times).
 
-    The joined path with its corner at the horizon point, and its certified corner blends;
     ValueError when none can be entered at the join's speed.
     """
-    robot = scenario.robot
-    path = c.join(new)                      # the prefix's rows, then the new path's
-    corner = len(c.prefix_rad) - 1          # the horizon point's row
     best, err = None, None
-    candidates = [path]
-    if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:
-        motions = motions or MotionValidator.for_scene(robot, scenario.scene)
-        for a, b, cand in _corner_blends(path, corner, 1, np.radians(0.5)):
-            piece = cand[a - 1:len(cand) - (len(path) - b) + 2]
-            if motions.check(piece).ok:
-                candidates.append(cand)
-    for cand in candidates:
+    order = [chosen] if chosen is not None else []
+    order += [i for i in range(len(paths.candidates)) if i != chosen]
+    for i in order:
         try:
-            got = timed_motion(scenario, cand, start_path_speed=c.start_path_speed, motions=motions)
+            got = timed_motion(scenario, paths.candidates[i], start_path_speed=paths.continuation.start_path_speed,
+                               motions=motions)
         except ValueError as e:
             err = err or e
             continue
-        if best is None or got[0].duration_s < best[0].duration_s:
-            best = got
+        if i == chosen:
+            return (*got, i)
+        if best is None or got[0].duration_s < best[0][0].duration_s:
+            best = (got, i)
     if best is None:
         raise err
-    return best
+    return (*best[0], best[1])

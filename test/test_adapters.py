@@ -52,3 +52,41 @@ def test_the_controllers_interpolation_of_the_published_points_keeps_the_limits(
     assert max(v_ratio.max(), a_ratio.max()) > 0.85, (v_ratio, a_ratio)
     np.testing.assert_allclose(traj.positions_rad[0], sc.start_rad, atol=1e-9)
     np.testing.assert_allclose(traj.positions_rad[-1], paper_path(3)[-1], atol=1e-9)
+
+
+@pytest.mark.parametrize("dof", [2, 3])
+def test_a_refused_trajectory_is_the_first_timings_verdict_without_timing_again(paper_scenario, paper_path, dof,
+                                                                                monkeypatch):
+    """
+    Free floating, the paper's scenes drift onto the obstacles or miss the grasp: refused.
+
+    Oracle: the core's timing of the path from the start with its reaction report
+    (``timing.timed_motion``, no chain): the chain answers that verdict with that round's dense
+    points (what a reported round stops at), and times the path no more often than the same
+    chain with the spacecraft held (whose reaction does not matter): the refusal does not run
+    the chain again.
+    """
+    from spacerobot_planner import adapters, timing
+    sc = paper_scenario(dof)
+    ff = replace(sc, acs=replace(sc.acs, mode="free_floating"))
+    held = replace(sc, acs=replace(sc.acs, mode="held", max_wheel_momentum_Nms=0.0, max_wheel_torque_Nm=0.0))
+    path = paper_path(dof)
+    dense, report = timing.timed_motion(ff, path, sc.start_rad)
+    assert report is not None and not report.ok
+    timings = []
+    real = adapters.timed_motion
+
+    def counted(*a, **k):
+        timings.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(adapters, "timed_motion", counted)
+    assert post_process(held, path, start_rad=sc.start_rad).refused is None
+    n_held, timings[:] = len(timings), []
+    out = post_process(ff, path, start_rad=sc.start_rad)
+    assert out.refused == report.reason
+    assert len(timings) == n_held, f"timed {len(timings)} times, {n_held} held"
+    np.testing.assert_array_equal(out.dense.times_s, dense.times_s)
+    np.testing.assert_array_equal(out.dense.positions_rad, dense.positions_rad)
+    assert len(out.trajectory) == len(dense)
+    assert out.arm is None and out.attitude is None and not out.certified

@@ -28,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+from .timing import tail_stats
 
 _PKG = Path(__file__).resolve().parent.parent
 _PARAMS = _PKG.parent / "config" / "paper_3dof.yaml"
@@ -69,12 +69,6 @@ def _wall(cmd, env=None, cwd=None) -> tuple:
     return wall, done.stderr
 
 
-def _stats(vals) -> dict:
-    v = np.asarray(vals)
-    return {"median_s": float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "max_s": float(v.max()),
-            "min_s": float(v.min()), "runs": int(v.size)}
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument("--params-file", default=str(_PARAMS))
@@ -100,10 +94,10 @@ def main(argv=None) -> int:
                 walls[name].append(w)
                 if name == "spacerobot-plan":
                     probes.append(json.loads(err.strip().splitlines()[-1]))
-    rows = [{"bench": "coldstart", "case": name, **_stats(v)} for name, v in walls.items()]
+    rows = [{"bench": "coldstart", "case": name, **tail_stats(v)} for name, v in walls.items()]
     for key in ("numba_import_s", "package_import_s", "kernel_load_s", "main_s"):
         rows.append({"bench": "coldstart", "case": f"spacerobot-plan: {key[:-2]}",
-                     **_stats([p[key] for p in probes])})
+                     **tail_stats([p[key] for p in probes])})
     loads = sorted({p["kernel_loads"] for p in probes})
     print(f"bench coldstart: {Path(args.params_file).name}, {args.runs} runs each, interleaved; "
           f"wall seconds of a fresh process (load {os.getloadavg()[0]:.1f})")

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-__all__ = ["median_s"]
+__all__ = ["median_s", "tail_stats"]
 
 
 def median_s(fn, repeats: int) -> float:
@@ -17,3 +17,10 @@ def median_s(fn, repeats: int) -> float:
         fn()
         out.append(time.perf_counter() - t0)
     return float(np.median(out))
+
+
+def tail_stats(values_s, median_key: str = "median_s", count_key: str = "runs") -> dict:
+    """Return the median (``median_key``), ``p90_s``, ``min_s``, ``max_s`` and the count (``count_key``) of seconds."""
+    v = np.asarray(values_s, dtype=float)
+    return {median_key: float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "min_s": float(v.min()),
+            "max_s": float(v.max()), count_key: int(v.size)}

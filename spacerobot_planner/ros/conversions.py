@@ -55,9 +55,21 @@ def duration_to_s(d) -> float:
     return float(d.sec) + 1e-9 * float(d.nanosec)
 
 
+def _sec_nanosec(t_s):
+    """
+    Return (sec, nanosec) of times in seconds (a float or an array): the nearest ns, ties to even.
+
+    ValueError for a time that is not finite.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"time_from_start: not finite ({t_s} s)")
+    return np.divmod(np.rint(t * 1e9).astype(np.int64), 1_000_000_000)
+
+
 def s_to_duration(t_s: float) -> Duration:
-    ns = int(round(float(t_s) * 1e9))
-    return Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    sec, nsec = _sec_nanosec(float(t_s))
+    return Duration(sec=int(sec), nanosec=int(nsec))
 
 
 def ns_to_time(ns: int) -> Time:
@@ -226,8 +238,7 @@ def trajectory_to_msg(traj: Trajectory, stamp=None, frame_id: str = "") -> Joint
     msg.joint_names = list(traj.joint_names)
     q, v, a = (np.ascontiguousarray(x, dtype=np.float64)
                for x in (traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2))
-    ns = np.rint(np.asarray(traj.times_s, dtype=np.float64) * 1e9).astype(np.int64)
-    sec, nsec = np.divmod(ns, 1_000_000_000)
+    sec, nsec = _sec_nanosec(traj.times_s)
     rows = [(qi.tobytes(), vi.tobytes(), ai.tobytes()) for qi, vi, ai in zip(q, v, a)]
     msg.points = _POINTS(rows, sec.tolist(), nsec.tolist())
     return msg
