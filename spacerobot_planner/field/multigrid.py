@@ -179,7 +179,7 @@ def _aggregates(coords, shape, cell_id):
 
 
 @nb.njit(cache=True, nogil=True)
-def _galerkin(nbr, wt, diag, n, agg, cnbr, cwt, cdiag, nc, unit):
+def _galerkin(nbr, wt, diag, n, red, agg, cnbr, cwt, cdiag, nc, unit):
     """
     Fill the coarse level (cnbr, cwt, cdiag: its rows, nc of them) from the level below (n rows).
 
@@ -188,6 +188,8 @@ def _galerkin(nbr, wt, diag, n, agg, cnbr, cwt, cdiag, nc, unit):
     row's coarse row.  The coarse operator Pᵀ A P of piecewise constant P: a coarse row's
     diagonal sums its rows' diagonals less the weights between them, its weight towards a
     neighbouring aggregate sums the weights that cross; accumulated over the rows in order.
+    Returns the level below's rows to restrict (:func:`_restrict_rows`, seen on the way:
+    its first ``red`` rows are red).
     """
     deg = nbr.shape[1]
     for c in range(nc):
@@ -195,6 +197,7 @@ def _galerkin(nbr, wt, diag, n, agg, cnbr, cwt, cdiag, nc, unit):
         for d in range(deg):
             cnbr[c, d] = nc
             cwt[c, d] = 0.0
+    rrows = red
     for i in range(n):
         c = agg[i]
         cdiag[c] += deg if unit else diag[i]
@@ -202,6 +205,8 @@ def _galerkin(nbr, wt, diag, n, agg, cnbr, cwt, cdiag, nc, unit):
             j = nbr[i, d]
             if j >= n:
                 continue
+            if i >= red and j >= red:
+                rrows = n            # two black rows are neighbours (an odd periodic seam)
             cj = agg[j]
             w = 1.0 if unit else wt[i, d]
             if cj == c:
@@ -209,6 +214,7 @@ def _galerkin(nbr, wt, diag, n, agg, cnbr, cwt, cdiag, nc, unit):
             else:
                 cnbr[c, d] = cj
                 cwt[c, d] += w
+    return rrows
 
 
 @nb.njit(cache=True, nogil=True)
@@ -271,21 +277,25 @@ def _levels(nb0, red0, coords, shape, stop):
         if lv + 1 < levels:
             agg[a:a + m] = aggs[lv]
         if lv == 0:
-            rrows[0] = _restrict_rows(nb0, n, red0)
             continue             # the fine level reads nb0 (unit weights, diagonal deg)
         if stop[0] != 0:
             return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, np.zeros((0, 0)), True
         b, mb = off[lv - 1], sizes[lv - 1]
         if lv == 1:
-            _galerkin(nb0, wt, diag, n, aggs[0], nbr[a:a + m], wt[a:a + m], diag[a:a + m], m, True)
+            rrows[0] = _galerkin(nb0, wt, diag, n, red0, aggs[0], nbr[a:a + m], wt[a:a + m], diag[a:a + m], m,
+                                 True)
         else:
-            _galerkin(nbr[b:b + mb], wt[b:b + mb], diag[b:b + mb], mb, aggs[lv - 1],
-                      nbr[a:a + m], wt[a:a + m], diag[a:a + m], m, False)
+            rrows[lv - 1] = _galerkin(nbr[b:b + mb], wt[b:b + mb], diag[b:b + mb], mb, reds[lv - 1], aggs[lv - 1],
+                                      nbr[a:a + m], wt[a:a + m], diag[a:a + m], m, False)
         for i in range(m):
             inv_diag[a + i] = 1.0 / diag[a + i]
         nbr[a + m] = m           # the dummy row: no neighbours, weight 0, diagonal 1
         wt[a + m] = 0.0
-        rrows[lv] = _restrict_rows(nbr[a:a + m], m, reds[lv])
+    if levels == 1:
+        rrows[0] = _restrict_rows(nb0, n, red0)
+    else:                        # the coarsest level's (no level above it to see them on the way)
+        a, m = off[levels - 1], sizes[levels - 1]
+        rrows[levels - 1] = _restrict_rows(nbr[a:a + m], m, reds[levels - 1])
     m = sizes[levels - 1]
     if levels == 1:              # the fine level is the coarsest: unit weights, diagonal deg
         dense = _coarsest_matrix(nb0, np.ones((m, deg)), np.full(m, float(deg)))
