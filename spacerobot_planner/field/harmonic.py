@@ -140,6 +140,13 @@ def _keep(x, floor, window, known, steps):
 
 
 @nb.njit(cache=True, nogil=True)
+def _scatter(out, at, vals):
+    """out[at] = vals (at int64 (k,), vals float64 (k,))."""
+    for k in range(at.size):
+        out[at[k]] = vals[k]
+
+
+@nb.njit(cache=True, nogil=True)
 def _unknown(active, known):
     """Return the ``active`` nodes (int64, graph nodes) not ``known``, in their order."""
     out = np.empty(active.size, np.int64)
@@ -327,10 +334,12 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         if res > residual_tol:       # stopped by the deadline: keep what is already sure
             converged = False
             floor = max(floor, 1e6 * res)
-        kept, x_kept, far = _keep(x, floor, window, known, steps_w)
+        kept, vals, far = _keep(x, floor, window, known, steps_w)
         if not kept.size:
             continue                 # only when the deadline stopped the band: caught above
-        log_u[kept] = np.log(x_kept) + log_scale      # NumPy's log, as ever (math.log differs in the last bit)
+        np.log(vals, out=vals)       # NumPy's log, as ever (math.log differs in the last bit)
+        vals += log_scale
+        _scatter(log_u, kept, vals)
         window_steps = WINDOW_STEPS if steps is None else max(WINDOW_STEPS, 2 * int(far))
         active = _unknown(active, known)
     unsolved = int(active.size)
