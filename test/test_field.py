@@ -316,9 +316,10 @@ def test_the_node_graphs_neighbours_are_the_grids(shape, periodic):
     assert np.array_equal(g.coords, np.array(np.unravel_index(g.order, shape)).T)
 
 
-
-@pytest.mark.parametrize("shape, periodic, in_order", [((31, 23), (True, False), True), ((9, 8, 7), (True, False, True), False),
-                                                       ((300,), (True,), True), ((2, 40, 9), (True, True, False), False)])
+@pytest.mark.parametrize("shape, periodic, in_order", [((31, 23), (True, False), True),
+                                                       ((9, 8, 7), (True, False, True), False),
+                                                       ((300,), (True,), True),
+                                                       ((2, 40, 9), (True, True, False), False)])
 def test_the_multigrid_levels_are_the_galerkin_products_of_index_blocks(shape, periodic, in_order):
     """
     The multigrid set-up against dense matrices built from the grid's definition.
@@ -388,6 +389,7 @@ def test_the_multigrid_levels_are_the_galerkin_products_of_index_blocks(shape, p
         new_block = np.empty((nc, len(shape)), np.int64)
         new_block[agg] = halved
         a, block = want, new_block
+
 
 _KEPT_HEAP_CHILD = """
 import json, resource
