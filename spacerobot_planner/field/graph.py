@@ -281,7 +281,7 @@ def validate_problem(occupied, periodic, goal_nodes):
     if np.any(hit):
         raise ValueError(f"goal_nodes: goal node {tuple(goals[np.argmax(hit)])} lies in an obstacle")
     # distinct, in index order (a row-major flat index sorts as the index tuples do; what
-    # np.unique(goals, axis=0) returns, at a tenth of its cost)
+    # np.unique(goals, axis=0) returns, at a third of its cost)
     flat = np.unique(np.ravel_multi_index(tuple(goals.T), occ.shape))
     return np.ascontiguousarray(occ), per, np.stack(np.unravel_index(flat, occ.shape), axis=1).astype(np.int64)
 
