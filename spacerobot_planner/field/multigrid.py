@@ -264,6 +264,8 @@ def _levels(nb0, red0, coords, shape, stop):
         sizes[lv] = size_list[lv]
         off[lv + 1] = off[lv] + sizes[lv] + 1
     total = off[levels]
+    if stopped:                  # nothing more (above all no dense matrix of a fine level cut short)
+        total = 0
     nbr = np.empty((total, deg), np.uint32)
     wt = np.empty((total, deg))
     diag = np.ones(total)
@@ -271,6 +273,8 @@ def _levels(nb0, red0, coords, shape, stop):
     agg = np.zeros(total, np.uint32)
     red = np.empty(levels, np.int64)
     rrows = np.empty(levels, np.int64)
+    if stopped:
+        return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, np.zeros((0, 0)), True
     for lv in range(levels):
         a, m = off[lv], sizes[lv]
         red[lv] = reds[lv]
