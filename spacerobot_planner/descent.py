@@ -16,6 +16,7 @@ import numba as nb
 import numpy as np
 
 from .field import Field, bfs_distance
+from .field.graph import grid_strides
 from .motion import motion_scratch, segment_free, segment_free_from
 
 # status codes of the kernels
@@ -80,21 +81,13 @@ def _steepest_neighbour(log_u_flat, f, shape, strides, periodic):
 
 
 @nb.njit(cache=True, nogil=True)
-def _strides(shape):
-    strides = np.ones(shape.size, np.int64)
-    for a in range(shape.size - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
-    return strides
-
-
-@nb.njit(cache=True, nogil=True)
 def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
     """
     Walk from flat node ``f``; ``out`` receives the flat nodes visited.
 
     Returns (number of nodes, status).
     """
-    strides = _strides(shape)
+    strides = grid_strides(shape)
     m = 0
     out[m] = f
     m += 1
@@ -208,7 +201,7 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
 
     Returns (number of nodes, status).
     """
-    strides = _strides(shape)
+    strides = grid_strides(shape)
     ndim = shape.size
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     qa = np.empty(ndim)
@@ -354,7 +347,7 @@ def _successors(log_u_flat, shape, periodic):
     Flat index of the steepest strictly-higher face neighbour of every node (the walk's rule and tie
     order), -1 where there is none.
     """
-    strides = _strides(shape)
+    strides = grid_strides(shape)
     succ = np.full(log_u_flat.size, -1, np.int64)
     for f in range(log_u_flat.size):
         if log_u_flat[f] > -np.inf:

@@ -23,6 +23,7 @@ import numpy as np
 
 from .descent import _along
 from .field import solve_field
+from .field.graph import grid_strides
 from .motion import motion_scratch, segment_free
 
 #: The most edge motions one repair tests beyond the box around the blocked node (a few ms;
@@ -73,9 +74,7 @@ def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, st
     """
     ndim = shape.size
     n = occ_flat.size
-    strides = np.ones(ndim, np.int64)
-    for a in range(ndim - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
+    strides = grid_strides(shape)
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     qa = np.empty(ndim)
     qb = np.empty(ndim)

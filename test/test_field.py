@@ -316,6 +316,81 @@ def test_the_node_graphs_neighbours_are_the_grids(shape, periodic):
     assert np.array_equal(g.coords, np.array(np.unravel_index(g.order, shape)).T)
 
 
+@pytest.mark.parametrize("shape, periodic, in_order", [((31, 23), (True, False), True),
+                                                       ((9, 8, 7), (True, False, True), False),
+                                                       ((300,), (True,), True),
+                                                       ((2, 40, 9), (True, True, False), False)])
+def test_the_multigrid_levels_are_the_galerkin_products_of_index_blocks(shape, periodic, in_order):
+    """
+    The multigrid set-up against dense matrices built from the grid's definition.
+
+    The fine operator (2n on the diagonal, -1 per face step to another unknown) from the
+    oracle's face neighbours; every coarse level is Pᵀ A P of the one below (P: each row's
+    aggregate), its aggregates are the 2×2… index blocks of the fine coordinates, its red
+    rows (even coordinate sum of the block) come first, its rows to restrict are the red
+    ones unless two black rows are neighbours, and the coarsest factor is that level's
+    Cholesky factor.  Input given red rows first (the node graph's order) or shuffled.
+    """
+    from spacerobot_planner.field import multigrid
+    rng = np.random.default_rng(sum(shape))
+    occ = rng.random(shape) < (0.15 if len(shape) > 1 else 0.0)
+    occ.flat[occ.size // 2] = True                              # (a ring becomes a line)
+    goal = tuple(int(k) for k in np.argwhere(~occ)[0])
+    conn = connected(occ, periodic, [goal]).ravel()
+    conn[np.ravel_multi_index(goal, shape)] = False            # the unknowns: all but the goal
+    flat = np.flatnonzero(conn)
+    coords = np.array(np.unravel_index(flat, shape)).T
+    red_first = np.argsort(coords.sum(axis=1) % 2, kind="stable")
+    flat = flat[red_first] if in_order else flat[rng.permutation(flat.size)]
+    coords = np.array(np.unravel_index(flat, shape)).T
+    n, deg = flat.size, 2 * len(shape)
+    row_of = np.full(occ.size, n)
+    row_of[flat] = np.arange(n)
+    nbr = row_of[face_neighbours(shape, periodic).reshape(deg, -1)[:, flat].T.clip(0)]
+    nbr[face_neighbours(shape, periodic).reshape(deg, -1)[:, flat].T < 0] = n
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    assert h.levels >= 2 and h.in_order == in_order
+    fine = np.arange(n) if h.fine_of_input is None else np.argsort(h.fine_of_input)   # input node of each row
+    a = np.zeros((n, n))                                        # the fine operator, in the hierarchy's rows
+    for r, i in enumerate(fine):
+        a[r, r] = deg
+        for j in nbr[i]:
+            if j < n:
+                a[r, np.flatnonzero(fine == j)[0]] -= 1.0
+    block = coords[fine]                                        # each row's index block, level by level
+    for lv in range(h.levels):
+        size, o = h.sizes[lv], h.off[lv]
+        par = block.sum(axis=1) % 2
+        assert h.red[lv] == np.sum(par == 0) and np.all(par[:h.red[lv]] == 0)
+        black = np.arange(size) >= h.red[lv]
+        between = a - np.diag(np.diag(a))
+        assert h.rrows[lv] == (size if np.any(between[np.ix_(black, black)] != 0) else h.red[lv])
+        if lv + 1 == h.levels:
+            assert np.allclose(h.chol @ h.chol.T, a, rtol=0, atol=1e-12 * deg)
+            break
+        agg = h.agg[o:o + size].astype(np.int64)
+        nc = h.sizes[lv + 1]
+        p = np.zeros((size, nc))
+        p[np.arange(size), agg] = 1.0
+        # the aggregates are the index blocks of this level's coordinates, halved
+        halved = block >> 1
+        assert len({tuple(b) for b in halved}) == nc
+        for c in range(nc):
+            assert len({tuple(b) for b in halved[agg == c]}) == 1
+        want = p.T @ a @ p
+        co = h.off[lv + 1]
+        got = np.diag(h.diag[co:co + nc]).astype(float)
+        for r in range(nc):
+            for d in range(deg):
+                j = h.nbr[co + r, d]
+                if j < nc:
+                    got[r, j] -= h.wt[co + r, d]
+        assert np.array_equal(got, want)
+        new_block = np.empty((nc, len(shape)), np.int64)
+        new_block[agg] = halved
+        a, block = want, new_block
+
+
 _KEPT_HEAP_CHILD = """
 import json, resource
 import numpy as np

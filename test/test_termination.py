@@ -143,6 +143,17 @@ def test_multigrid_cg_stops_itself_on_a_set_flag():
     assert its == 0, "CG iterated although its flag was set"
 
 
+def test_a_set_flag_stops_the_multigrid_set_up_before_it_builds_its_levels():
+    """A set-up stopped before its first level builds nothing: no packed levels, no dense matrix of the fine level."""
+    sub, coords, shape, _ = _first_band(_maze_problem())
+    flag = _set().flag
+    out = multigrid._levels(sub.astype(np.uint32), 0, coords.astype(np.int64), np.array(shape, np.int64), flag)
+    packed, dense, stopped = out[2], out[-2], out[-1]
+    assert stopped and packed.size == 0 and dense.size == 0
+    with pytest.raises(multigrid.Stopped):
+        multigrid.Hierarchy(sub, coords, shape, flag)
+
+
 def test_gauss_seidel_sweeps_stop_themselves_on_a_set_flag():
     occ, per, goals = validate_problem(*_maze_problem((41, 41)))
     _, sweeps, _ = paper.gauss_seidel_phi(occ, per, goals, 1.0, 1e-12, 50, stop=_set().flag)

@@ -34,40 +34,41 @@ _LOW_NONE, _LOW_WRAP, _HIGH_NONE, _HIGH_WRAP = 1, 2, 4, 8
 
 
 @nb.njit(cache=True, nogil=True)
+def grid_strides(shape):
+    """C-order strides of the grid (in nodes), int64 (ndim,): the one definition (descent uses it too)."""
+    ndim = shape.size
+    strides = np.ones(ndim, np.int64)
+    for a in range(ndim - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    return strides
+
+
+@nb.njit(cache=True, nogil=True)
 def grid_codes(shape, periodic):
     """
     Each grid node's face code per axis: uint8 (prod(shape), ndim), bits ``_LOW_*`` / ``_HIGH_*``.
 
     shape int64 (ndim,), periodic bool (ndim,).  A node's face neighbours follow from its
     code and the grid's strides (:func:`_grid_nbr`): one byte per axis instead of a table of
-    2n indices (a ninth of the memory in 3-D).  One odometer pass, no integer divisions.
+    2n indices (a ninth of the memory in 3-D).  Only the two end slabs of each axis have a
+    nonzero code: they are written, nothing else is visited.
     """
     ndim = shape.size
     n = 1
     for a in range(ndim):
         n *= shape[a]
     code = np.zeros((n, ndim), np.uint8)
-    coord = np.zeros(ndim, np.int64)
-    for f in range(n):
-        for a in range(ndim):
-            c = 0
-            if coord[a] == 0:
-                c |= _LOW_WRAP if periodic[a] else _LOW_NONE
-            if coord[a] == shape[a] - 1:
-                c |= _HIGH_WRAP if periodic[a] else _HIGH_NONE
-            code[f, a] = c
-        _next_coord(coord, shape)
+    strides = grid_strides(shape)
+    for a in range(ndim):
+        low = _LOW_WRAP if periodic[a] else _LOW_NONE
+        high = _HIGH_WRAP if periodic[a] else _HIGH_NONE
+        s = strides[a]
+        top = (shape[a] - 1) * s            # from coordinate 0 to shape[a] - 1 along axis a
+        for base in range(0, n, s * shape[a]):
+            for f in range(base, base + s):
+                code[f, a] = low            # every axis has >= 2 nodes: the slabs are distinct
+                code[f + top, a] = high
     return code
-
-
-@nb.njit(cache=True, nogil=True)
-def _strides(shape):
-    """C-order strides of the grid, int64 (ndim,)."""
-    ndim = shape.size
-    strides = np.ones(ndim, np.int64)
-    for a in range(ndim - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
-    return strides
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -108,7 +109,7 @@ def grid_neighbours(shape, periodic):
 def fill_grid_neighbours(shape, periodic, out):
     """:func:`grid_neighbours` into ``out`` (prod(shape), 2 ndim), any signed integer type."""
     code = grid_codes(shape, periodic)
-    strides = _strides(shape)
+    strides = grid_strides(shape)
     for f in range(out.shape[0]):
         for d in range(out.shape[1]):
             out[f, d] = _grid_nbr(code, f, d, shape, strides)
@@ -125,7 +126,7 @@ def _bfs(occ_flat, code, shape, goal_flat):
     """
     n = occ_flat.size
     deg = 2 * shape.size
-    strides = _strides(shape)
+    strides = grid_strides(shape)
     dist = np.full(n, -1, np.int64)
     order = np.empty(n, np.int64)
     head = 0
@@ -148,82 +149,104 @@ def _bfs(occ_flat, code, shape, goal_flat):
     return dist, order[:tail]
 
 
-@nb.njit(cache=True, nogil=True)
-def _red_black_order(dist, goal_flat, shape):
-    """
-    Return (order, coords) of the reached nodes, red-black ordered.
+#: :func:`_node_tables`' marks in ``pos`` (above any position: a graph has < 2**32 - 2 nodes).
+_UNSEEN = np.uint32(0xFFFFFFFF)
+_REACHED = np.uint32(0xFFFFFFFE)
 
-    The goal nodes, then the reached nodes (dist ≥ 0) with an even coordinate sum, then the odd
-    ones, each in grid order; coords int64 (N, ndim).
+
+@nb.njit(cache=True, nogil=True)
+def _node_tables(occ_flat, code, shape, goal_flat):
     """
+    Return ``(order, coords, nbr)`` of the goal-connected free nodes, in one kernel.
+
+    occ_flat bool (prod(shape),), code: the grid's face codes (:func:`grid_codes`, cut edges
+    marked), goal_flat int64 (k,) distinct free flat nodes.  order int64 (N,): the goal nodes,
+    then the reached nodes with an even coordinate sum ("red"), then the odd ones, each in
+    grid order; coords int64 (N, ndim); nbr uint32 (N, 2 ndim): position in ``order`` of
+    each node's face neighbours, N for walls, obstacles and nodes not reached.
+
+    Three passes and one grid-sized table (``pos``, uint32): a flood fill from the goal
+    (marks), the grid in C order by rows of the last axis (positions and coordinates,
+    no divisions: a row's coordinate sum is counted once per row), the neighbour table.
+    """
+    n_grid = occ_flat.size
     ndim = shape.size
-    n_grid = dist.size
-    n_goal = goal_flat.size
-    is_goal = np.zeros(n_grid, np.bool_)
+    deg = 2 * ndim
+    strides = grid_strides(shape)
+    pos = np.full(n_grid, _UNSEEN, np.uint32)
+    queue = np.empty(n_grid, np.int64)       # the flood's queue, then the order
+    tail = 0
     for g in goal_flat:
-        is_goal[g] = True
-    n_red = 0
-    n_all = n_goal
-    coord = np.zeros(ndim, np.int64)
-    parity = np.zeros(n_grid, np.int8)
-    for f in range(n_grid):                  # odometer over the grid: coordinate sums
-        par = 0
-        for a in range(ndim):
-            par += coord[a]
-        parity[f] = par % 2
-        if dist[f] >= 0 and not is_goal[f]:
-            n_all += 1
-            if par % 2 == 0:
-                n_red += 1
-        _next_coord(coord, shape)
-    order = np.empty(n_all, np.int64)
-    coords = np.empty((n_all, ndim), np.int64)
-    order[:n_goal] = goal_flat
-    strides = np.ones(ndim, np.int64)
-    for a in range(ndim - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
+        if pos[g] == _UNSEEN:
+            pos[g] = tail
+            queue[tail] = g
+            tail += 1
+    n_goal = tail
+    head = 0
+    while head < tail:
+        f = queue[head]
+        head += 1
+        for d in range(deg):
+            g = _grid_nbr(code, f, d, shape, strides)
+            if g < 0 or occ_flat[g] or pos[g] != _UNSEEN:
+                continue
+            pos[g] = _REACHED
+            queue[tail] = g
+            tail += 1
+    n = tail
+    order = queue[:n]
+    coords = np.empty((n, ndim), np.int64)
     for k in range(n_goal):
         for a in range(ndim):
             coords[k, a] = (order[k] // strides[a]) % shape[a]
+    last = shape[ndim - 1]
+    rows = n_grid // last
+    lead = np.zeros(ndim, np.int64)          # the row's coordinates on the leading axes
+    lead_shape = shape.copy()
+    lead_shape[ndim - 1] = 1                 # the odometer turns the leading axes only
+    n_red = 0
+    f = 0
+    par = 0                                  # the row's coordinate sum
+    for r in range(rows):                    # count the red nodes
+        for j in range(last):
+            if pos[f] == _REACHED and (par + j) % 2 == 0:
+                n_red += 1
+            f += 1
+        _next_coord(lead, lead_shape)
+        par = 0
+        for a in range(ndim - 1):
+            par += lead[a]
     k_red = n_goal
     k_black = n_goal + n_red
-    coord[:] = 0
-    for f in range(n_grid):                  # the same odometer: the coordinates without divisions
-        if dist[f] >= 0 and not is_goal[f]:
-            if parity[f] == 0:
-                k = k_red
-                k_red += 1
-            else:
-                k = k_black
-                k_black += 1
-            order[k] = f
-            for a in range(ndim):
-                coords[k, a] = coord[a]
-        _next_coord(coord, shape)
-    return order, coords
-
-
-@nb.njit(cache=True, nogil=True)
-def _neighbour_table(order, code, shape):
-    """
-    Return nbr uint32 (N, 2n).
-
-    Position in ``order`` of each node's face neighbours, N for walls, obstacles and nodes not in
-    ``order``.  code: the grid's face codes (:func:`grid_codes`, cut edges marked).
-    """
-    n = order.size
-    deg = 2 * shape.size
-    strides = _strides(shape)
-    pos = np.full(code.shape[0], n, np.uint32)
-    for k in range(n):
-        pos[order[k]] = k
+    lead[:] = 0
+    f = 0
+    par = 0
+    for r in range(rows):                    # positions, order and coordinates
+        for j in range(last):
+            if pos[f] == _REACHED:
+                if (par + j) % 2 == 0:
+                    k = k_red
+                    k_red += 1
+                else:
+                    k = k_black
+                    k_black += 1
+                pos[f] = k
+                order[k] = f
+                for a in range(ndim - 1):
+                    coords[k, a] = lead[a]
+                coords[k, ndim - 1] = j
+            f += 1
+        _next_coord(lead, lead_shape)
+        par = 0
+        for a in range(ndim - 1):
+            par += lead[a]
     nbr = np.empty((n, deg), np.uint32)     # unsigned: no negative-index wrap-around in the kernels
     for k in range(n):
         f = order[k]
-        for a in range(deg):
-            g = _grid_nbr(code, f, a, shape, strides)
-            nbr[k, a] = n if g < 0 else pos[g]
-    return nbr
+        for d in range(deg):
+            g = _grid_nbr(code, f, d, shape, strides)
+            nbr[k, d] = n if g < 0 or pos[g] == _UNSEEN else pos[g]
+    return order, coords, nbr
 
 
 def validate_problem(occupied, periodic, goal_nodes):
@@ -257,7 +280,10 @@ def validate_problem(occupied, periodic, goal_nodes):
     hit = occ[tuple(goals.T)]
     if np.any(hit):
         raise ValueError(f"goal_nodes: goal node {tuple(goals[np.argmax(hit)])} lies in an obstacle")
-    return np.ascontiguousarray(occ), per, np.unique(goals, axis=0)
+    # distinct, in index order (a row-major flat index sorts as the index tuples do; what
+    # np.unique(goals, axis=0) returns, at a third of its cost)
+    flat = np.unique(np.ravel_multi_index(tuple(goals.T), occ.shape))
+    return np.ascontiguousarray(occ), per, np.stack(np.unravel_index(flat, occ.shape), axis=1).astype(np.int64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,14 +296,12 @@ class NodeGraph:
         ("black"), each in grid order (memory locality; the multigrid smoother's order).
     nbr: uint32 (N, 2 ndim) neighbour positions in ``order``; N = none (see module doc).
     coords: int64 (N, ndim) grid coordinates.
-    dist: int64 (N,) BFS distance (face steps through free nodes) from the goal.
     shape, periodic: the grid's.
     """
 
     order: np.ndarray
     nbr: np.ndarray
     coords: np.ndarray
-    dist: np.ndarray
     n_goal: int
     shape: tuple
     periodic: tuple
@@ -302,7 +326,7 @@ def _cut_edges(code, shape, edges):
     periodic axis of two nodes).
     """
     deg = 2 * shape.size
-    strides = _strides(shape)
+    strides = grid_strides(shape)
     for e in range(edges.shape[0]):
         p, q = edges[e, 0], edges[e, 1]
         for d in range(deg):         # test both ends before either is cut
@@ -343,14 +367,15 @@ def node_graph(occ, per, goals, cut_edges=None, token=None) -> NodeGraph:
     termination token checked between the passes (raises ``termination.Cancelled``).
     """
     token = Termination.of(token)
-    dist, order, code = bfs(occ, per, goals, cut_edges, token)
-    token.check()
-    n_goal = len(goals)
     shape = np.array(occ.shape, np.int64)
-    order, coords = _red_black_order(dist, order[:n_goal], shape)
+    code = grid_codes(shape, np.array(per, np.bool_))
     token.check()
-    return NodeGraph(order, _neighbour_table(order, code, shape), coords, dist[order], n_goal,
-                     tuple(occ.shape), tuple(per))
+    if cut_edges is not None and len(cut_edges):
+        _cut_edges(code, shape, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
+    goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
+    order, coords, nbr = _node_tables(occ.ravel(), code, shape, goal_flat)
+    token.check()
+    return NodeGraph(order, nbr, coords, len(goals), tuple(occ.shape), tuple(per))
 
 
 def bfs_distance(occupied, periodic, goal_nodes) -> np.ndarray:

@@ -109,6 +109,55 @@ def _steps_from_known(nbr, active, known, local, max_steps):
     return steps
 
 
+#: :func:`_keep` without window steps (the first band).
+_NO_STEPS = np.zeros(0, np.int64)
+
+
+@nb.njit(cache=True, nogil=True)
+def _keep(x, floor, window, known, steps):
+    """
+    Return the band's values to keep: those at or above ``floor``.
+
+    x float64 (m,) the band's solution on ``window`` int64 (m,) (graph nodes); marks them
+    ``known``.  steps int64 (m,) each window node's face steps from a known node, or empty.
+    Returns ``(kept int64 (k,) graph nodes, their values float64 (k,), the most steps
+    among them (0 without steps))``.
+    """
+    m = x.size
+    kept = np.empty(m, np.int64)
+    vals = np.empty(m)
+    far = 0
+    k = 0
+    for i in range(m):
+        if x[i] >= floor:
+            kept[k] = window[i]
+            vals[k] = x[i]
+            known[window[i]] = True
+            if steps.size and steps[i] > far:
+                far = steps[i]
+            k += 1
+    return kept[:k], vals[:k], far
+
+
+@nb.njit(cache=True, nogil=True)
+def _scatter(out, at, vals):
+    """out[at] = vals (at int64 (k,), vals float64 (k,))."""
+    for k in range(at.size):
+        out[at[k]] = vals[k]
+
+
+@nb.njit(cache=True, nogil=True)
+def _unknown(active, known):
+    """Return the ``active`` nodes (int64, graph nodes) not ``known``, in their order."""
+    out = np.empty(active.size, np.int64)
+    k = 0
+    for i in active:
+        if not known[i]:
+            out[k] = i
+            k += 1
+    return out[:k]
+
+
 @nb.njit(cache=True, nogil=True)
 def _extend_below(log_u, known, nbr, n_goal, log_deg):
     """
@@ -250,7 +299,7 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
     converged = True
     left = ""
     window_steps = 0                 # 0: the whole band (the first one)
-    scratch = np.full(n + 1, -1, np.int64)
+    scratch = None                   # _steps_from_known's, from the second band on
     while active.size:
         token.check()
         if time.perf_counter() > deadline or (cancel is not None and cancel()):
@@ -261,10 +310,13 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         if window_steps == 0:        # the first band: every node
             whole, steps = True, None
         else:
+            if scratch is None:
+                scratch = np.full(n + 1, -1, np.int64)
             steps = _steps_from_known(nbr, active, known, scratch, window_steps)
             whole = steps.max() <= window_steps
         inside = None if whole else steps <= window_steps
         window = active if whole else active[inside]
+        steps_w = _NO_STEPS if steps is None else steps if whole else steps[inside]    # the window's
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)
         token.check()
         # every node but the goal's (the first band): a view of their coordinates, not a copy
@@ -275,28 +327,21 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
         bands += 1
         iterations += its
         worst = max(worst, res)
-        if not whole and np.max(x[steps[inside] >= window_steps - 1]) > band_floor * WINDOW_NEGLIGIBLE:
+        if not whole and np.max(x[steps_w >= window_steps - 1]) > band_floor * WINDOW_NEGLIGIBLE:
             window_steps *= 2        # the cut is felt: a wider window
             continue
-        keep = x >= band_floor
+        floor = band_floor
         if res > residual_tol:       # stopped by the deadline: keep what is already sure
             converged = False
-            keep &= x >= 1e6 * res
-        if not keep.any():
+            floor = max(floor, 1e6 * res)
+        kept, vals, far = _keep(x, floor, window, known, steps_w)
+        if not kept.size:
             continue                 # only when the deadline stopped the band: caught above
-        kept = window[keep]
-        log_u[kept] = np.log(x[keep]) + log_scale
-        known[kept] = True
-        if steps is None:
-            window_steps = WINDOW_STEPS
-        else:
-            window_steps = max(WINDOW_STEPS, 2 * int((steps if whole else steps[inside])[keep].max()))
-        if whole:                    # the window is every active node
-            active = active[~keep]
-        else:
-            rest = np.ones(active.size, np.bool_)
-            rest[np.flatnonzero(inside)[keep]] = False
-            active = active[rest]
+        np.log(vals, out=vals)       # NumPy's log, as ever (math.log differs in the last bit)
+        vals += log_scale
+        _scatter(log_u, kept, vals)
+        window_steps = WINDOW_STEPS if steps is None else max(WINDOW_STEPS, 2 * int(far))
+        active = _unknown(active, known)
     unsolved = int(active.size)
     if unsolved:
         _extend_below(log_u, known, nbr, n_goal, math.log(2 * graph.coords.shape[1]))

@@ -50,59 +50,6 @@ COARSE_SWEEPS = 2
 # set-up
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _coarsen(nbr, wt, diag, coords, cshape, unit):
-    """
-    One aggregation step.
-
-    nbr int (n, deg) level-local (n = no neighbour), wt / diag float64 (with ``unit``:
-    the fine level, weight 1 to every neighbour, diagonal deg; wt and diag unused),
-    coords int64 (n, ndim) node coordinates on a grid of shape ``2 * cshape``
-    (roughly).  Returns ``(agg, cnbr, cwt, cdiag, ccoords)``: the aggregate
-    of every node and the coarse level's arrays.
-    """
-    n, deg = nbr.shape
-    ndim = coords.shape[1]
-    ncell = 1
-    for a in range(ndim):
-        ncell *= cshape[a]
-    cell_id = np.full(ncell, -1, np.int64)
-    agg = np.empty(n, np.int64)
-    nc = 0
-    first = np.empty(n, np.int64)           # a node of each aggregate (its coarse coordinates)
-    for i in range(n):
-        f = 0
-        for a in range(ndim):
-            f = f * cshape[a] + (coords[i, a] >> 1)     # coordinates are >= 0: // 2
-        if cell_id[f] < 0:
-            cell_id[f] = nc
-            first[nc] = i
-            nc += 1
-        agg[i] = cell_id[f]
-    cnbr = np.full((nc, deg), nc, np.int64)
-    cwt = np.zeros((nc, deg))
-    cdiag = np.zeros(nc)
-    ccoords = np.empty((nc, ndim), np.int64)
-    for c in range(nc):
-        for a in range(ndim):
-            ccoords[c, a] = coords[first[c], a] >> 1
-    for i in range(n):
-        c = agg[i]
-        cdiag[c] += deg if unit else diag[i]
-        for d in range(deg):
-            j = nbr[i, d]
-            if j >= n:
-                continue
-            cj = agg[j]
-            w = 1.0 if unit else wt[i, d]
-            if cj == c:
-                cdiag[c] -= w
-            else:
-                cnbr[c, d] = cj
-                cwt[c, d] += w
-    return agg, cnbr, cwt, cdiag, ccoords
-
-
-@nb.njit(cache=True, nogil=True)
 def _by_parity(nbr, wt, diag, coords):
     """
     Renumber a level red nodes first, then black (parity of the coordinate sum), each in its previous order.
@@ -180,53 +127,149 @@ def _restrict_rows(nbr, n, red):
 
 
 @nb.njit(cache=True, nogil=True)
+def _aggregates(coords, shape, cell_id):
+    """
+    Aggregate one level by index blocks: node (i, j, …) joins cell (i // 2, j // 2, …).
+
+    coords int64 (n, ndim) of a level on a grid of ``shape`` (the coarse grid's, each axis
+    halved rounding up); cell_id int64 scratch, at least prod(shape) entries, all -1 on entry
+    and on return.  The coarse nodes are numbered red first, then black (parity of their
+    coordinate sum), each in the order of their first fine node.  Returns ``(agg uint32 (n,),
+    ccoords int64 (nc, ndim), red)``: each node's coarse node, the coarse coordinates and the
+    number of red coarse nodes.
+    """
+    n, ndim = coords.shape
+    first = np.empty(n, np.int64)           # a node of each cell, in the order the cells are met
+    cell = np.empty(n, np.int64)            # each node's cell (a flat index on the coarse grid)
+    nc = 0
+    red = 0
+    for i in range(n):
+        f = 0
+        for a in range(ndim):
+            f = f * shape[a] + (coords[i, a] >> 1)      # coordinates are >= 0: // 2
+        cell[i] = f
+        if cell_id[f] < 0:
+            cell_id[f] = nc
+            first[nc] = i
+            nc += 1
+            par = 0
+            for a in range(ndim):
+                par += coords[i, a] >> 1
+            if par % 2 == 0:
+                red += 1
+    new = np.empty(nc, np.int64)            # met order -> red first, then black
+    ccoords = np.empty((nc, ndim), np.int64)
+    k_red = 0
+    k_black = red
+    for c in range(nc):
+        par = 0
+        for a in range(ndim):
+            par += coords[first[c], a] >> 1
+        if par % 2 == 0:
+            k = k_red
+            k_red += 1
+        else:
+            k = k_black
+            k_black += 1
+        new[c] = k
+        for a in range(ndim):
+            ccoords[k, a] = coords[first[c], a] >> 1
+    agg = np.empty(n, np.uint32)
+    for i in range(n):
+        agg[i] = new[cell_id[cell[i]]]
+    for c in range(nc):
+        cell_id[cell[first[c]]] = -1
+    return agg, ccoords, red
+
+
+@nb.njit(cache=True, nogil=True)
+def _galerkin(nbr, wt, diag, n, red, agg, cnbr, cwt, cdiag, nc, unit):
+    """
+    Fill the coarse level (cnbr, cwt, cdiag: its rows, nc of them) from the level below (n rows).
+
+    nbr (n, deg) level-local (index >= n: none), wt / diag float64 (with ``unit``: the fine
+    level, weight 1 to every neighbour, diagonal deg; wt and diag unused); agg (n,) each
+    row's coarse row.  The coarse operator Pᵀ A P of piecewise constant P: a coarse row's
+    diagonal sums its rows' diagonals less the weights between them, its weight towards a
+    neighbouring aggregate sums the weights that cross; accumulated over the rows in order.
+    Returns the level below's rows to restrict (:func:`_restrict_rows`, seen on the way:
+    its first ``red`` rows are red).
+    """
+    deg = nbr.shape[1]
+    for c in range(nc):
+        cdiag[c] = 0.0
+        for d in range(deg):
+            cnbr[c, d] = nc
+            cwt[c, d] = 0.0
+    rrows = red
+    for i in range(n):
+        c = agg[i]
+        cdiag[c] += deg if unit else diag[i]
+        for d in range(deg):
+            j = nbr[i, d]
+            if j >= n:
+                continue
+            if i >= red and j >= red:
+                rrows = n            # two black rows are neighbours (an odd periodic seam)
+            cj = agg[j]
+            w = 1.0 if unit else wt[i, d]
+            if cj == c:
+                cdiag[c] -= w
+            else:
+                cnbr[c, d] = cj
+                cwt[c, d] += w
+    return rrows
+
+
+@nb.njit(cache=True, nogil=True)
 def _levels(nb0, red0, coords, shape, stop):
     """
     Aggregate the fine level (``nb0`` uint32 (n, deg), red rows first) down to the coarsest.
 
-    coords int64 (n, ndim), shape int64 (ndim,): the fine grid.  Returns the packed
-    arrays ``(sizes, off, nbr, wt, inv_diag, diag, agg, cn, cw, cd, stopped)`` (see the
-    module doc; the fine level's rows of nbr and wt are left unset: its kernels read
-    ``nb0`` and unit weights); ``cn, cw, cd``: the coarsest level's own, for its dense
-    factor; ``stopped``: the termination flag ``stop`` was seen set between levels
-    (nothing else is valid).
+    coords int64 (n, ndim), shape int64 (ndim,): the fine grid.  First the aggregates of
+    every level (from the coordinates alone), then the packed arrays, each coarse level
+    written in place from the one below.  Returns ``(sizes, off, nbr, wt, inv_diag, diag,
+    agg, red, rrows, dense, stopped)`` (see the module doc; the fine level's rows of nbr
+    and wt are left unset: its kernels read ``nb0`` and unit weights); ``dense``: the
+    coarsest level's matrix, for its Cholesky factor; ``stopped``: the termination flag
+    ``stop`` was seen set between levels (nothing else is valid).
     """
     n, deg = nb0.shape
-    aggs = [np.zeros(0, np.int64)]          # aggs[l]: the aggregate on level l of each row of level l - 1
-    nbrs = [np.zeros((0, deg), np.int64)]   # the coarse levels' (entry 0 unused: the fine level is nb0)
-    wts = [np.zeros((0, deg))]
-    diags = [np.zeros(0)]
+    aggs = [np.zeros(0, np.uint32)]         # aggs[l]: the row on level l + 1 of each row of level l
     reds = [red0]
+    size_list = [n]
     shape = shape.copy()
     stopped = False
     size = n
+    ncell = 1
+    for a in range(shape.size):
+        ncell *= (shape[a] + 1) // 2
+    cell_id = np.full(ncell, -1, np.int64)  # the first coarse grid is the largest
     while size > COARSEST_NODES and np.any(shape > 1):
         if stop[0] != 0:
             stopped = True
             break
         shape = (shape + 1) // 2
-        if len(nbrs) == 1:
-            agg, cn, cw, cd, coords = _coarsen(nb0, wts[0], diags[0], coords, shape, True)
-        else:
-            agg, cn, cw, cd, coords = _coarsen(nbrs[-1], wts[-1], diags[-1], coords, shape, False)
-        if cn.shape[0] == size:
+        agg, ccoords, red = _aggregates(coords, shape, cell_id)
+        if ccoords.shape[0] == size:
             break
-        cn, cw, cd, coords, new_of_old, red = _by_parity(cn, cw, cd, coords)
+        if len(size_list) == 1:
+            aggs[0] = agg
+        else:
+            aggs.append(agg)
         reds.append(red)
-        aggs.append(new_of_old[agg])
-        nbrs.append(cn)
-        wts.append(cw)
-        diags.append(cd)
-        size = cn.shape[0]
-    levels = len(nbrs)
+        coords = ccoords
+        size = ccoords.shape[0]
+        size_list.append(size)
+    levels = len(size_list)
     sizes = np.empty(levels, np.int64)
-    sizes[0] = n
-    for lv in range(1, levels):
-        sizes[lv] = nbrs[lv].shape[0]
     off = np.zeros(levels + 1, np.int64)
     for lv in range(levels):
+        sizes[lv] = size_list[lv]
         off[lv + 1] = off[lv] + sizes[lv] + 1
     total = off[levels]
+    if stopped:                  # nothing more (above all no dense matrix of a fine level cut short)
+        total = 0
     nbr = np.empty((total, deg), np.uint32)
     wt = np.empty((total, deg))
     diag = np.ones(total)
@@ -234,42 +277,45 @@ def _levels(nb0, red0, coords, shape, stop):
     agg = np.zeros(total, np.uint32)
     red = np.empty(levels, np.int64)
     rrows = np.empty(levels, np.int64)
+    if stopped:
+        return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, np.zeros((0, 0)), True
     for lv in range(levels):
-        a = off[lv]
-        m = sizes[lv]
+        a, m = off[lv], sizes[lv]
         red[lv] = reds[lv]
         if lv + 1 < levels:
-            agg[a:a + m] = aggs[lv + 1]
+            agg[a:a + m] = aggs[lv]
         if lv == 0:
-            rrows[0] = _restrict_rows(nb0, n, red0)
             continue             # the fine level reads nb0 (unit weights, diagonal deg)
-        nbr[a:a + m] = nbrs[lv]
-        wt[a:a + m] = wts[lv]
-        diag[a:a + m] = diags[lv]
+        if stop[0] != 0:
+            return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, np.zeros((0, 0)), True
+        b, mb = off[lv - 1], sizes[lv - 1]
+        if lv == 1:
+            rrows[0] = _galerkin(nb0, wt, diag, n, red0, aggs[0], nbr[a:a + m], wt[a:a + m], diag[a:a + m], m,
+                                 True)
+        else:
+            rrows[lv - 1] = _galerkin(nbr[b:b + mb], wt[b:b + mb], diag[b:b + mb], mb, reds[lv - 1], aggs[lv - 1],
+                                      nbr[a:a + m], wt[a:a + m], diag[a:a + m], m, False)
         for i in range(m):
             inv_diag[a + i] = 1.0 / diag[a + i]
         nbr[a + m] = m           # the dummy row: no neighbours, weight 0, diagonal 1
         wt[a + m] = 0.0
-        rrows[lv] = _restrict_rows(nbrs[lv], m, reds[lv])
     if levels == 1:
-        m = n
-        cn = nb0.astype(np.int64)
-        cw = np.zeros((m, deg))
-        for i in range(m):
-            for d in range(deg):
-                if cn[i, d] < m:
-                    cw[i, d] = 1.0
-        cd = np.full(m, float(deg))
+        rrows[0] = _restrict_rows(nb0, n, red0)
+    else:                        # the coarsest level's (no level above it to see them on the way)
+        a, m = off[levels - 1], sizes[levels - 1]
+        rrows[levels - 1] = _restrict_rows(nbr[a:a + m], m, reds[levels - 1])
+    m = sizes[levels - 1]
+    if levels == 1:              # the fine level is the coarsest: unit weights, diagonal deg
+        dense = _coarsest_matrix(nb0, np.ones((m, deg)), np.full(m, float(deg)))
     else:
-        cn = nbrs[levels - 1]
-        cw = wts[levels - 1]
-        cd = diags[levels - 1]
-    return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, cn, cw, cd, stopped
+        a = off[levels - 1]
+        dense = _coarsest_matrix(nbr[a:a + m], wt[a:a + m], diag[a:a + m])
+    return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, dense, stopped
 
 
 @nb.njit(cache=True, nogil=True)
 def _coarsest_matrix(cn, cw, cd):
-    """Return the coarsest level's dense matrix: ``cd`` on the diagonal, ``-cw`` at each neighbour."""
+    """Return the coarsest level's dense matrix: ``cd`` on the diagonal, ``-cw`` at each neighbour (cn >= m: none)."""
     m, deg = cn.shape
     dense = np.zeros((m, m))
     for i in range(m):
@@ -296,7 +342,8 @@ class Hierarchy:
         nbr int (n, deg): fine neighbours, index n = none (already mapped so that goal nodes,
         walls and obstacles all read n); coords int (n, ndim); shape: the fine grid shape.
         ``fine_of_input`` maps an input node to its row on the (renumbered) fine level;
-        ``in_order``: it is the identity (the input came red rows first).
+        ``in_order``: it is the identity (the input came red rows first; ``fine_of_input`` is
+        then None).
         ``stop``: a termination flag, polled between levels (raises :class:`Stopped`).
         """
         n, deg = nbr.shape
@@ -305,7 +352,7 @@ class Hierarchy:
         self.in_order = bool(in_order)
         if in_order:                            # already red rows first (the node graph's order)
             nb0 = np.ascontiguousarray(nbr, dtype=np.uint32)
-            self.fine_of_input = np.arange(n)
+            self.fine_of_input = None
         else:
             nb0, _, _, coords, self.fine_of_input, _ = _by_parity(
                 np.ascontiguousarray(nbr, dtype=np.int64), np.zeros((n, deg)), np.zeros(n), coords)
@@ -316,13 +363,13 @@ class Hierarchy:
         # black) the black residuals are zero unless two black rows are neighbours (across an
         # odd periodic seam): the red ones only
         (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, self.red, self.rrows,
-         cn, cw, cd, stopped) = _levels(nb0, red, coords, np.asarray(shape, np.int64),
-                                        np.zeros(1, np.int64) if stop is None else stop)
+         dense, stopped) = _levels(nb0, red, coords, np.asarray(shape, np.int64),
+                                   np.zeros(1, np.int64) if stop is None else stop)
         if stopped:
             raise Stopped()
         self.levels = int(self.sizes.size)
         # SPD: every unknown is connected to the goal, a Dirichlet node
-        self.chol = np.linalg.cholesky(_coarsest_matrix(cn, cw, cd))
+        self.chol = np.linalg.cholesky(dense)
 
 
 # --------------------------------------------------------------------------
