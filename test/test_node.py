@@ -239,6 +239,32 @@ def test_grids_are_in_the_grid_frame(graph):
     assert all(m.header.frame_id == "world" for m in g.markers[-1][1].markers)   # workspace things stay
 
 
+def test_an_in_process_node_leaves_the_garbage_collector_alone(graph):
+    """
+    Only a node that owns its process (main()) freezes start-up objects out of the collector.
+
+    A node built in a test process must not: frozen garbage (an earlier test's rclpy context
+    and its DDS participant) is never freed, and in a full test run the participants left
+    behind kept a later node process from being discovered.
+    """
+    import gc
+    import weakref
+
+    class Marked:                       # a cycle, garbage before the node is configured
+        pass
+
+    a, b = Marked(), Marked()
+    a.other, b.other = b, a
+    gone = weakref.ref(a)
+    del a, b
+    frozen = gc.get_freeze_count()
+    g = graph(scene_params("2dof"), with_arm=False)
+    g.wait(lambda: g.planner.last_result is None, 5, "the node")       # configured and active
+    assert gc.get_freeze_count() == frozen
+    gc.collect()
+    assert gone() is None, "garbage made before the node's configure was frozen, never freed"
+
+
 def test_at_the_goal_no_trajectory_and_it_says_so(graph, capfd):
     g = graph(scene_params("2dof"))
     g.send_target()

@@ -93,10 +93,15 @@ class PlannerNode(LifecycleNode):
     _started = False
 
     def __init__(self, *, context=None, parameter_overrides=None, node_name: str = NODE_NAME, backend_factory=None,
-                 **kwargs):
+                 freeze_start_up: bool = False, **kwargs):
         # backend_factory(scenario, separate_process, log=, info=) -> a worker backend: how configure
         # gets its planning process (default worker.make_backend: a new one, warmed up then)
         self._make_backend = backend_factory or make_backend
+        # freeze_start_up: configure moves what start-up made out of the garbage collector's reach
+        # (gc.freeze, a process-wide setting): only where the node owns its process (main());
+        # in a process that hosts other nodes or tests, frozen garbage (an old rclpy context and
+        # its DDS participant) would never be freed
+        self._freeze_start_up = bool(freeze_start_up)
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides,
                          automatically_declare_parameters_from_overrides=True,
                          enable_communication_interface=False, **kwargs)
@@ -225,7 +230,9 @@ class PlannerNode(LifecycleNode):
         # what start-up made (modules, kernels, the warm-up's objects) lives as long as the process:
         # out of the collector's reach, a full collection in the worker thread (under a trajectory's
         # way out) walks only what the plans made since (100+ ms -> a few ms at the 3-DOF grid)
-        gc.freeze()
+        if self._freeze_start_up:
+            gc.collect()                 # garbage is freed first, not frozen with the rest
+            gc.freeze()
         where = "planning process" if self._params["planner.separate_process"] else "worker thread"
         log.info(f"configured in {time.perf_counter() - t0:.2f} s: planning "
                  f"{', '.join(self.robot.planned_names)} on a {scenario.grid.label()} grid in frame "
@@ -290,7 +297,8 @@ class PlannerNode(LifecycleNode):
         if self.pub_diag is not None:
             self.destroy_publisher(self.pub_diag)
             self.pub_diag = None
-        gc.unfreeze()
+        if self._freeze_start_up:
+            gc.unfreeze()
         self._phase = "unconfigured"
 
     def on_shutdown(self, state):
@@ -489,7 +497,8 @@ def spin_until_shutdown(node: PlannerNode, executor) -> None:
 
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner planner_node --ros-args --params-file ...``."""
-    return node_main.run_node(PlannerNode, "planner_node", args, lambda node: node.shutdown_worker(finish_goals=True))
+    return node_main.run_node(lambda: PlannerNode(freeze_start_up=True), "planner_node", args,
+                              lambda node: node.shutdown_worker(finish_goals=True))
 
 
 if __name__ == "__main__":
