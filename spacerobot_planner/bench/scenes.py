@@ -98,8 +98,9 @@ def _warm_up(dof: int) -> None:
     warm_up(sc)                 # the kernels a coarse plan may not reach (repairs among them)
 
 
-def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile: bool = False) -> list:
-    """Plan ``count`` random scenes; return the JSON rows (and print the table)."""
+def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile: bool = False,
+        slowest: int = 5) -> list:
+    """Plan ``count`` random scenes; return the JSON rows (and print the table and the ``slowest`` scenes)."""
     _warm_up(dof)
     prof = StepProfile() if profile else None
     rng = np.random.default_rng([seed, dof])
@@ -107,6 +108,7 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
     codes = Counter()
     drawn = Counter()
     planned = []
+    scenes = []                 # (total s, draw number, result) of every planned scene
     grid_label = ""
     while sum(codes.values()) < count:
         sc, start = random_scenario(rng, dof)
@@ -126,6 +128,7 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
         else:
             res = planner.plan(start, goal)
         codes[res.code] += 1
+        scenes.append((res.timings_s["total"], sum(codes.values()) - 1, res))
         for k in STAGES:
             if res.timings_s.get(k, 0.0) > 0.0 or k == "total":
                 per_stage[k].append(res.timings_s[k])
@@ -145,11 +148,33 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
           + "; draws skipped: " + (", ".join(f"{c} {n}" for c, n in drawn.most_common()) or "none"))
     rows.append({"stage": "codes", "grid": grid_label, "dof": dof, "seed": seed, "codes": dict(codes),
                  "skipped_draws": dict(drawn)})
+    rows += _slowest_rows(scenes, slowest, grid_label, dof, seed)
     if prof is not None:
         prof_rows = prof.rows(plans=count)
         print_rows(f"{dof}-DOF at {grid_label}, mean over {count} scenes", prof_rows)
         rows += [{"stage": "profile", "grid": grid_label, "dof": dof, "seed": seed, **r} for r in prof_rows]
     rows += _oracle_rows(planned[:n_oracle], grid_label, dof, seed)
+    return rows
+
+
+def _slowest_rows(scenes, n, grid_label, dof, seed) -> list:
+    """Print and return the ``n`` slowest scenes: where their time went and what the planner did."""
+    if n <= 0 or not scenes:
+        return []
+    slow = sorted(scenes, key=lambda t: (-t[0], t[1]))[:n]
+    print(f"slowest {len(slow)} (scene = its number among the planned ones, from 0), ms:")
+    print(f"{'scene':>6} {'total':>8} {'field':>8} {'repair':>8} {'descent':>8}  code, grid, bands, repairs, cut edges")
+    rows = []
+    for total_s, k, res in slow:
+        st, t = res.solver_stats, res.timings_s
+        print(f"{k:>6} {1e3 * total_s:8.2f} {1e3 * t.get('field', 0.0):8.2f} {1e3 * t.get('repair', 0.0):8.2f} "
+              f"{1e3 * t.get('descent', 0.0):8.2f}  {res.code}, {st.get('grid', '?')}, {st.get('bands', '-')}, "
+              f"{st.get('repairs', 0)}, {st.get('cut_edges', 0)}")
+        rows.append({"stage": "slow_scene", "grid": grid_label, "dof": dof, "seed": seed, "scene": k,
+                     "code": str(res.code), "seconds": total_s,
+                     "stages_s": {s: v for s, v in t.items() if v > 0.0 and s != "total"},
+                     "plan_grid": st.get("grid"), "bands": st.get("bands"), "repairs": st.get("repairs", 0),
+                     "cut_edges": st.get("cut_edges", 0), "refinements": st.get("refinements", 0)})
     return rows
 
 
@@ -184,11 +209,12 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle", type=int, default=20, help="planned scenes compared with the oracle field")
     ap.add_argument("--solver", default=None, help="field solver (default: the planner's)")
     ap.add_argument("--profile", action="store_true", help="also print the per-step profile (mean per scene)")
+    ap.add_argument("--slowest", type=int, default=5, help="print the N slowest scenes, what they did (default 5)")
     args = ap.parse_args(argv)
     kw = {} if args.solver is None else {"solver": args.solver}
     rows = []
     for dof in (int(d) for d in args.dof.split(",")):
-        rows += run(dof, args.count, args.seed, args.oracle, kw, args.profile)
+        rows += run(dof, args.count, args.seed, args.oracle, kw, args.profile, args.slowest)
     for r in rows:
         print(json.dumps(r))
     return 0
