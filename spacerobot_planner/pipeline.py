@@ -531,8 +531,12 @@ class PlanRun:
         key = (cs_key, self.goal.tobytes(), self.s.verify_step_rad)
         nodes = self.p._goal_nodes.get(key)
         if nodes is None:
-            nodes = [n for n in self.candidates(self.goal, cs.grid, cs.occupied)
-                     if self.segment_ok(cs.grid.config_of(n), self.goal)][:4]
+            nodes = []
+            for n in self.candidates(self.goal, cs.grid, cs.occupied):   # nearest first, the first 4 that pass
+                if self.segment_ok(cs.grid.config_of(n), self.goal):
+                    nodes.append(n)
+                    if len(nodes) == 4:
+                        break
             self.p._remember(self.p._goal_nodes, key, nodes, 16)
         if not nodes:
             raise Fail(Code.PATH_INVALID, f"no free grid node near the goal {deg_text(self.goal)} can be "
