@@ -13,7 +13,7 @@ from spacerobot_planner.pipeline import PlanRun
 
 def oracle_candidates(q, grid, occupied, max_count=8):
     """
-    The rule in plain Python floats and tuples.
+    Return the candidates by the rule in plain Python floats and tuples.
 
     Nodes at index offsets -1 .. 2 from the floor cell of q on every axis, wrapped on
     periodic axes, dropped outside bounded ones; the distinct free ones in index order,
@@ -22,7 +22,7 @@ def oracle_candidates(q, grid, occupied, max_count=8):
     """
     cells, lo, up, per = grid.cells, grid.lower_rad, grid.upper_rad, grid.periodic
     shape = [c if p else c + 1 for c, p in zip(cells, per)]
-    step = [(u - l) / c for l, u, c in zip(lo, up, cells)]
+    step = [(hi - low) / c for low, hi, c in zip(lo, up, cells)]
     base = [math.floor((float(q[i]) - lo[i]) / step[i]) for i in range(len(cells))]
     nodes = set()
     for off in itertools.product(range(-1, 3), repeat=len(cells)):
@@ -51,7 +51,7 @@ def oracle_candidates(q, grid, occupied, max_count=8):
 
 
 def random_case(rng: random.Random):
-    """A grid (small periodic axes give repeated indices), an occupancy and a q on nodes, cell centres or anywhere."""
+    """Return a grid (small periodic axes repeat indices), an occupancy, a q on nodes, cell centres or anywhere."""
     ndim = rng.choice([1, 2, 2, 3, 3, 4])
     cells, lo, up, per = [], [], [], []
     for _ in range(ndim):
@@ -67,7 +67,8 @@ def random_case(rng: random.Random):
         cells.append(c)
         per.append(p)
     grid = GridSpec(tuple(cells), tuple(lo), tuple(up), tuple(per))
-    occupied = np.asarray(np.random.default_rng(rng.randrange(1 << 30)).random(grid.shape) < rng.choice([0.0, 0.3, 0.7, 1.0]))
+    fill = rng.choice([0.0, 0.3, 0.7, 1.0])
+    occupied = np.random.default_rng(rng.randrange(1 << 30)).random(grid.shape) < fill
     q = []
     for i in range(ndim):
         step = (up[i] - lo[i]) / cells[i]
@@ -96,7 +97,7 @@ def test_candidates_match_the_plain_rule(seed):
 
 
 def test_candidates_ties_keep_index_order():
-    """q on a node of a grid with unit steps: its 4 axis neighbours tie exactly and come in index order."""
+    """With q on a node of a unit-step grid, its 4 axis neighbours tie exactly and come in index order."""
     grid = GridSpec((8, 8), (0.0, 0.0), (8.0, 8.0), (False, False))
     occupied = np.zeros(grid.shape, bool)
     q = np.array([4.0, 4.0])
