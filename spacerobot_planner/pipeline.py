@@ -291,7 +291,7 @@ class PlanRun:
         ties in row-major order (``_near_free_nodes``).
         """
         lower, step, shape, per = _grid_arrays(grid)
-        return _near_free_nodes(np.asarray(q, dtype=float), lower, step, shape, per,
+        return _near_free_nodes(np.ascontiguousarray(q, dtype=float), lower, step, shape, per,
                                 np.ascontiguousarray(occupied, dtype=np.bool_).ravel(), max_count)
 
     # ----------------------------------------------------------------- stages
