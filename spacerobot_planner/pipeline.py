@@ -31,13 +31,14 @@ import time
 import traceback as _traceback
 from contextlib import contextmanager
 
+import numba as nb
 import numpy as np
 
 from .contact import leave_contact
 from .field import bfs_distance, validate_problem
 from .field.graph import bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
-from .joint_space import align_to_state, deg_text, difference_rad, nearest_turn_rad, unwrap_path
+from .joint_space import TWO_PI, align_to_state, deg_text, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .repair import sheet_edges
 from .results import STAGES, Code, PlanResult
@@ -96,12 +97,96 @@ def _repairs_text(repairs: int, cut, blocked) -> str:
             f"{_count(len(blocked), 'blocked node')})")
 
 
-@functools.lru_cache(maxsize=8)
-def _near_offsets(ndim: int) -> np.ndarray:
-    """Index offsets -1 .. 2 on every axis, (4**ndim, ndim) int64 (``PlanRun.candidates``; do not modify)."""
-    offs = np.stack(np.meshgrid(*[np.arange(-1, 3)] * ndim, indexing="ij"), -1).reshape(-1, ndim)
-    offs.flags.writeable = False
-    return offs
+@nb.njit(cache=True, nogil=True)
+def _near_free_nodes(q_rad, lower_rad, step_rad, shape, periodic, occupied_flat, max_count):
+    """
+    ``PlanRun.candidates``' kernel: free nodes within index offsets -1 .. 2 of q's cell, nearest first.
+
+    q_rad, lower_rad, step_rad: (ndim,) float (rad); shape: (ndim,) int64 nodes per axis;
+    periodic: (ndim,) bool; occupied_flat: (n_nodes,) bool, row-major.  Node indices wrap
+    on periodic axes and are dropped outside bounded ones; distinct free nodes are taken
+    in row-major order and sorted stably by their joint-space distance to q (the short way
+    round on periodic axes; squares summed axis by axis, then the root: the float
+    operations of ``numpy.linalg.norm`` over ``difference_rad``).  Returns (k, ndim) int64,
+    k ≤ max_count.
+    """
+    ndim = q_rad.shape[0]
+    vals = np.empty((ndim, 4), np.int64)         # each axis' distinct in-range indices, ascending
+    dsq = np.empty((ndim, 4))                    # their squared differences to q
+    counts = np.zeros(ndim, np.int64)
+    strides = np.empty(ndim, np.int64)
+    total = 1
+    for a in range(ndim - 1, -1, -1):
+        strides[a] = total
+        base = np.int64(math.floor((q_rad[a] - lower_rad[a]) / step_rad[a]))
+        for o in range(-1, 3):
+            v = base + o
+            if periodic[a]:
+                v = v % shape[a]
+            elif v < 0 or v >= shape[a]:
+                continue
+            j = counts[a]
+            while j > 0 and vals[a, j - 1] > v:   # insert in order, skipping repeats
+                j -= 1
+            if j > 0 and vals[a, j - 1] == v:
+                continue
+            for m in range(counts[a], j, -1):
+                vals[a, m] = vals[a, m - 1]
+            vals[a, j] = v
+            counts[a] += 1
+        if counts[a] == 0:
+            return np.empty((0, ndim), np.int64)
+        for j in range(counts[a]):
+            d = (lower_rad[a] + vals[a, j] * step_rad[a]) - q_rad[a]
+            if periodic[a]:
+                d = (d + np.pi) % TWO_PI - np.pi
+            dsq[a, j] = d * d
+        total *= shape[a]
+    n_all = 1
+    for a in range(ndim):
+        n_all *= counts[a]
+    flat_of = np.empty(n_all, np.int64)
+    dist = np.empty(n_all)
+    pick = np.zeros(ndim, np.int64)              # odometer over the axes' indices, last axis fastest
+    k = 0
+    for _ in range(n_all):
+        flat = 0
+        for a in range(ndim):
+            flat += vals[a, pick[a]] * strides[a]
+        if not occupied_flat[flat]:
+            s = 0.0
+            for a in range(ndim):
+                s += dsq[a, pick[a]]
+            flat_of[k] = flat
+            dist[k] = math.sqrt(s)
+            k += 1
+        a = ndim - 1
+        while a >= 0:
+            pick[a] += 1
+            if pick[a] < counts[a]:
+                break
+            pick[a] = 0
+            a -= 1
+    n_out = min(k, max_count)
+    out = np.empty((n_out, ndim), np.int64)
+    taken = np.zeros(k, np.bool_)
+    for r in range(n_out):                       # the nearest not yet taken; the first in row-major order on ties
+        best = -1
+        for i in range(k):
+            if not taken[i] and (best < 0 or dist[i] < dist[best]):
+                best = i
+        taken[best] = True
+        flat = flat_of[best]
+        for a in range(ndim):
+            out[r, a] = (flat // strides[a]) % shape[a]
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_arrays(grid):
+    """(lower_rad, step_rad, shape, periodic) of a ``GridSpec`` as the arrays ``_near_free_nodes`` takes."""
+    return (np.asarray(grid.lower_rad, dtype=float), np.asarray(grid.step_rad, dtype=float),
+            np.asarray(grid.shape, dtype=np.int64), np.asarray(grid.periodic, dtype=np.bool_))
 
 
 def refined(grid):
@@ -198,20 +283,16 @@ class PlanRun:
             return self.validator.segment_ok(a, b, keep=keep)
 
     def candidates(self, q, grid, occupied, max_count: int = 8) -> np.ndarray:
-        """Free grid nodes near q (within 2 steps per axis; ``occupied``: the grid's), nearest first: (k, dof) int."""
-        lower, step = np.asarray(grid.lower_rad), grid.step_rad
-        base = np.floor((q - lower) / step).astype(np.int64)
-        nodes = base + _near_offsets(grid.ndim)
-        shape = np.asarray(grid.shape)
-        per = np.asarray(grid.periodic, dtype=bool)
-        nodes[:, per] %= shape[per]
-        nodes = nodes[((nodes >= 0) & (nodes < shape) | per).all(axis=1)]
-        # distinct free nodes in index order (a row-major flat index sorts as the index tuples do)
-        flat = np.unique(np.ravel_multi_index(nodes.T, grid.shape))
-        flat = flat[~occupied.ravel()[flat]]
-        nodes = np.array(np.unravel_index(flat, grid.shape)).T
-        d = difference_rad(q, grid.config_of(nodes), grid.periodic)     # the short way round
-        return nodes[np.argsort(np.linalg.norm(d, axis=1), kind="stable")[:max_count]]
+        """
+        Free grid nodes near q, nearest first: (k ≤ max_count, dof) int64.
+
+        Within index offsets -1 .. 2 per axis of q's cell (wrapped on periodic axes, inside
+        bounded ones; ``occupied``: the grid's), by joint-space distance the short way round,
+        ties in row-major order (``_near_free_nodes``).
+        """
+        lower, step, shape, per = _grid_arrays(grid)
+        return _near_free_nodes(np.ascontiguousarray(q, dtype=float), lower, step, shape, per,
+                                np.ascontiguousarray(occupied, dtype=np.bool_).ravel(), max_count)
 
     # ----------------------------------------------------------------- stages
     def check_inputs(self, start_rad, goal_rad) -> None:
@@ -450,8 +531,12 @@ class PlanRun:
         key = (cs_key, self.goal.tobytes(), self.s.verify_step_rad)
         nodes = self.p._goal_nodes.get(key)
         if nodes is None:
-            nodes = [n for n in self.candidates(self.goal, cs.grid, cs.occupied)
-                     if self.segment_ok(cs.grid.config_of(n), self.goal)][:4]
+            nodes = []
+            for n in self.candidates(self.goal, cs.grid, cs.occupied):   # nearest first, the first 4 that pass
+                if self.segment_ok(cs.grid.config_of(n), self.goal):
+                    nodes.append(n)
+                    if len(nodes) == 4:
+                        break
             self.p._remember(self.p._goal_nodes, key, nodes, 16)
         if not nodes:
             raise Fail(Code.PATH_INVALID, f"no free grid node near the goal {deg_text(self.goal)} can be "
