@@ -36,7 +36,7 @@ import numpy as np
 
 from .contact import leave_contact
 from .field import bfs_distance, validate_problem
-from .field.graph import bfs as field_bfs
+from .field.graph import _next_coord, bfs as field_bfs
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
 from .joint_space import TWO_PI, align_to_state, deg_text, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
@@ -160,13 +160,7 @@ def _near_free_nodes(q_rad, lower_rad, step_rad, shape, periodic, occupied_flat,
             flat_of[k] = flat
             dist[k] = math.sqrt(s)
             k += 1
-        a = ndim - 1
-        while a >= 0:
-            pick[a] += 1
-            if pick[a] < counts[a]:
-                break
-            pick[a] = 0
-            a -= 1
+        _next_coord(pick, counts)
     n_out = min(k, max_count)
     out = np.empty((n_out, ndim), np.int64)
     taken = np.zeros(k, np.bool_)
