@@ -131,6 +131,9 @@ class Graph:
         self.pub_target = self.drv.create_publisher(PoseStamped, "target_pose", 10)
         self.pub_js = self.drv.create_publisher(JointState, "joint_states", 10)
         self.pub_goal = self.drv.create_publisher(JointState, "goal_joint_state", 10)
+        self._action_client = None
+        self.client_node = None               # the action client's node (action_client())
+        self.spin_error = None                # what ended the spin thread, if anything did
         self._stop_spin = threading.Event()
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
@@ -170,8 +173,12 @@ class Graph:
         # conditions while spin may still use them (InvalidHandle in this thread); so the
         # loop stops and is joined first, and close() shuts the executor down afterwards
         ctx = self.ctx
-        while not self._stop_spin.is_set() and ctx.ok():
-            self.ex.spin_once(timeout_sec=0.05)
+        try:
+            while not self._stop_spin.is_set() and ctx.ok():
+                self.ex.spin_once(timeout_sec=0.05)
+        except BaseException as e:       # kept for wait(), which fails at once; then raised as before
+            self.spin_error = e
+            raise
 
     def stop_spinning(self):
         self._stop_spin.set()
@@ -261,9 +268,16 @@ class Graph:
         return cb
 
     def wait(self, cond, timeout, what):
-        """Poll ``cond`` until true; AssertionError after ``timeout`` s (``what``: a text, or a callable giving one)."""
+        """
+        Poll ``cond`` until true; AssertionError after ``timeout`` s (``what``: a text, or a callable giving one).
+
+        At once when the graph's spin thread has died (nothing would be delivered any more).
+        """
         t0 = time.monotonic()
         while not cond():
+            if self.spin_error is not None:
+                raise AssertionError(f"the graph's executor stopped spinning ({self.spin_error!r}) while "
+                                     f"waiting for: {what() if callable(what) else what}")
             if time.monotonic() - t0 > timeout:
                 raise AssertionError(f"timed out after {timeout} s waiting for: {what() if callable(what) else what}")
             time.sleep(0.01)
@@ -332,10 +346,21 @@ class Graph:
 
     # ---------------------------------------------------------------- action client
     def action_client(self):
+        """
+        Return the graph's plan_capture action client, made on first use, its server discovered.
+
+        It lives on a node of its own that joins the spinning executor only once the client
+        is built: rclpy's ActionClient registers with its node before it makes its lock, and
+        an executor that meets it in between (from its own thread) raises AttributeError
+        ("'ActionClient' object has no attribute '_lock'") and its spin thread ends; the goal
+        response then never came (one fresh-clone run in three).
+        """
         from rclpy.action import ActionClient
         from spacerobot_planner_interfaces.action import PlanCapture
-        if getattr(self, "_action_client", None) is None:
-            self._action_client = ActionClient(self.drv, PlanCapture, "plan_capture")
+        if self._action_client is None:
+            self.client_node = rclpy.create_node("test_action_client", context=self.ctx)
+            self._action_client = ActionClient(self.client_node, PlanCapture, "plan_capture")
+            self.ex.add_node(self.client_node)
             self.wait(self._action_client.server_is_ready, 60, "the plan_capture action server discovered")
         return self._action_client
 
@@ -383,7 +408,7 @@ class Graph:
             self.planner.shutdown_worker()
         self.stop_spinning()
         self.ex.shutdown()
-        for n in (None if self.planner_destroyed else self.planner, self.arm, self.drv):
+        for n in (None if self.planner_destroyed else self.planner, self.arm, self.drv, self.client_node):
             if n is not None:
                 n.destroy_node()
         rclpy.shutdown(context=self.ctx)
