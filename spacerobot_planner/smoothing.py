@@ -98,15 +98,25 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
     Larger excursions are left as they are, so the bounds check rejects them.
     (m, dof) → a new (m, dof) array.
     """
-    q = np.array(q, dtype=float)
-    if (((q >= lower) & (q <= upper)) | np.asarray(periodic, dtype=bool)).all():
-        return q                        # the common case: nothing to snap
-    for a, p in enumerate(periodic):
-        if not p:
-            col = q[:, a]
-            col[(col < lower[a]) & (col >= lower[a] - tol_rad)] = lower[a]
-            col[(col > upper[a]) & (col <= upper[a] + tol_rad)] = upper[a]
+    q = np.array(q, dtype=float, order="C")
+    _snap_kernel(q, np.asarray(lower, dtype=float), np.asarray(upper, dtype=float),
+                 np.asarray(periodic, dtype=np.bool_), float(tol_rad))
     return q
+
+
+@njit(cache=True, nogil=True)
+def _snap_kernel(q, lower, upper, periodic, tol_rad):
+    """:func:`snap_to_bounds` in place on q (m, dof): per bounded joint, the lower bound's snap, then the upper's."""
+    for r in range(q.shape[0]):
+        for a in range(q.shape[1]):
+            if periodic[a]:
+                continue
+            x = q[r, a]
+            if x < lower[a] and x >= lower[a] - tol_rad:
+                x = lower[a]
+            if x > upper[a] and x <= upper[a] + tol_rad:
+                x = upper[a]
+            q[r, a] = x
 
 
 def _validator(motions, lower_rad, upper_rad, periodic, step_rad):
@@ -585,7 +595,7 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
 
 def warm_up() -> None:
     """
-    Compile (or load from numba's cache) this module's kernels: the spline and the shortcut pass.
+    Compile (or load from numba's cache) this module's kernels: the spline, the bounds' snap and the shortcut pass.
 
     On a made-up three-link arm (planned joints 1 and 2) and one square obstacle, with the
     argument types of a plan; a coarse warm-up plan may not reach them (a straight shortcut
@@ -597,6 +607,7 @@ def warm_up() -> None:
               np.array([1, 2], dtype=np.int64), square.copy(), square + 6.0, np.array([0, 4], dtype=np.int64),
               np.array([[6.0, 6.0]]), np.array([1.0]))
     pts = np.radians([[0.0, 0.0], [5.0, 5.0], [10.0, 5.0], [15.0, 0.0]])
+    snap_to_bounds(pts, np.zeros(2), np.ones(2), (False, True))
     iv_clr = np.ones(len(pts) - 1)
     for certified in (False, True):
         _shortcut(pts, iv_clr, 0.07, arrays, 0.02, 4.5, QUICK_STEP_RAD, certified, np.full(len(pts), np.nan))

@@ -364,23 +364,17 @@ def hermite_coefficients(x, y, slopes, k, c0, c1):
         c1[col] = (sl - slopes[k, col]) / h - t
 
 
-@njit(cache=True, nogil=True)
-def _hermite_on_grid(x, y, slopes, s, refine):
+@njit(**NO_REFCOUNT)
+def _hermite_on_grid(x, y, slopes, s, refine, q, d1, d2, d3, c0, c1):
     """
     Evaluate the cubic through the knots with these slopes on the refined grid s (G,), G = (M-1)·refine + 1.
 
-    Returns (q, its first and second derivatives (G, n), its third derivative per grid
-    segment (G-1, n)); SciPy's ``CubicHermiteSpline`` coefficients, evaluated in its local
-    power basis.
+    Fills q, its first and second derivatives (G, n), its third derivative per grid segment
+    (G-1, n); SciPy's ``CubicHermiteSpline`` coefficients, evaluated in its local power
+    basis (scratch c0, c1 (n,)).
     """
     m, n = y.shape
     g = s.shape[0]
-    q = np.empty((g, n))
-    d1 = np.empty((g, n))
-    d2 = np.empty((g, n))
-    d3 = np.empty((g - 1, n))
-    c0 = np.empty(n)
-    c1 = np.empty(n)
     for k in range(m - 1):
         hermite_coefficients(x, y, slopes, k, c0, c1)
         for r in range(refine + (1 if k == m - 2 else 0)):
@@ -393,7 +387,6 @@ def _hermite_on_grid(x, y, slopes, s, refine):
                 d2[j, col] = 6.0 * c0[col] * z + 2.0 * c1[col]
                 if j < g - 1:
                     d3[j, col] = 6.0 * c0[col]
-    return q, d1, d2, d3
 
 
 @njit(cache=True, nogil=True)
@@ -427,13 +420,13 @@ def _grid(ds, refine):
     return s_knots, s
 
 
-@njit(cache=True, nogil=True)
 def _spline_on_grid(p, ds, refine):
     """Return the not-a-knot spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
     s_knots, s = _grid(ds, refine)
-    q, d1, d2, d3 = _hermite_on_grid(s_knots, p, not_a_knot_slopes(s_knots, p), s, refine)
-    for k in range(p.shape[0]):
-        q[k * refine] = p[k]
+    g, n = s.shape[0], p.shape[1]
+    q, d1, d2, d3 = np.empty((g, n)), np.empty((g, n)), np.empty((g, n)), np.empty((g - 1, n))
+    _hermite_on_grid(s_knots, p, not_a_knot_slopes(s_knots, p), s, refine, q, d1, d2, d3, np.empty(n), np.empty(n))
+    q[::refine] = p                     # the samples exactly
     return s, q, d1, d2, d3
 
 
