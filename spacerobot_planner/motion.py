@@ -29,6 +29,7 @@ periodic joints unwrapped (continuous).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -453,19 +454,20 @@ class MotionValidator:
         keys = [buf[i * row:(i + 2) * row] for i in range(m)]      # an interval's two rows, contiguous
         kept = self._kept
         hits = [kept.get(key) for key in keys]
-        interval_ok = np.empty(m, dtype=bool)
-        interval_clr = np.empty(m)
-        vertex_clr = np.full(m + 1, np.nan)
+        ok_l, clr_l, vc_l = [False] * m, [0.0] * m, [math.nan] * (m + 1)     # Python lists: item by item
         todo = []
         for i, hit in enumerate(hits):
             if hit is None:
                 todo.append(i)
                 continue
-            interval_ok[i], interval_clr[i], a, b = hit
+            ok_l[i], clr_l[i], a, b = hit
             if a == a:                  # not NaN (a walk that failed early leaves its end unknown)
-                vertex_clr[i] = a
+                vc_l[i] = a
             if b == b:
-                vertex_clr[i + 1] = b
+                vc_l[i + 1] = b
+        interval_ok = np.array(ok_l, dtype=bool)
+        interval_clr = np.array(clr_l, dtype=float)
+        vertex_clr = np.array(vc_l, dtype=float)
         n = 0
         k = 0
         while k < len(todo):
