@@ -18,6 +18,15 @@ from numba import njit
 
 from .scene import pack_polygons
 
+#: numba's options for a kernel that allocates nothing (its outputs and scratch come from its
+#: caller, Python): compiled without the runtime's reference counting (NRT).  With it, each call
+#: with array arguments inside a loop (a clearance per sample, a constraint test per grid point)
+#: increments and decrements every array's count atomically, which numba's pruning does not
+#: remove across loops: half of the trajectory's backward pass.  The same arithmetic, bit for
+#: bit.  Such a kernel is called from Python or from another such kernel: called from a kernel
+#: with NRT, it was measured as slow as before.
+NO_REFCOUNT = {"cache": True, "nogil": True, "_nrt": False}
+
 __all__ = ["CollisionChecker"]
 
 

@@ -29,12 +29,13 @@ periodic joints unwrapped (continuous).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
-from .collision import CollisionChecker, config_clearance
+from .collision import NO_REFCOUNT, CollisionChecker, config_clearance
 from .joint_space import unwrap_path, within_bounds
 
 __all__ = ["PathCheck", "MotionValidator", "check_path", "first_bad_segment", "lipschitz_m_per_rad",
@@ -72,10 +73,10 @@ class PathCheck:
     vertex_clearance_m: np.ndarray = None
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
                      threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
-                     interval_ok, interval_clr, certified, vertex_clr):
+                     interval_ok, interval_clr, certified, vertex_clr, q_full, pts, body_w):
     """
     Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
 
@@ -90,9 +91,11 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     known and filled where evaluated, so a vertex is evaluated once (an interval's first
     and last samples are the points themselves) and a later check of the same points
     (the certified check after the quick one) reuses them.
+
+    Scratch (:func:`motion_scratch`): q_full (n_joints,) starting as ``q_template``, pts
+    (n_links + 1, 2), body_w like body.
     """
     dof = points.shape[1]
-    q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     n_eval = 0
     for i in range(points.shape[0] - 1):
         seg_len = 0.0
@@ -136,7 +139,6 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     return n_eval
 
 
-@njit(cache=True, nogil=True)
 def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts,
                  starts, centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, certified,
                  vertex_clr):
@@ -151,9 +153,22 @@ def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, le
     m = points.shape[0] - 1
     interval_ok = np.empty(m, np.bool_)
     interval_clr = np.empty(m)
+    ok, best, n = _check_rows(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body,
+                              verts, starts, centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad,
+                              min_step_rad, certified, vertex_clr, interval_ok, interval_clr,
+                              *motion_scratch(q_template, lengths, body))
+    return ok, best, n, interval_ok, interval_clr
+
+
+@njit(**NO_REFCOUNT)
+def _check_rows(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts, starts,
+                centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, certified, vertex_clr,
+                interval_ok, interval_clr, q_full, pts, body_w):
+    """:func:`check_kernel` into interval_ok, interval_clr (M-1,), with the scratch given; (ok, best, n)."""
+    m = points.shape[0] - 1
     n = certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
                          threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, interval_ok,
-                         interval_clr, certified, vertex_clr)
+                         interval_clr, certified, vertex_clr, q_full, pts, body_w)
     ok = True
     best = np.inf
     before = True
@@ -172,7 +187,7 @@ def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, le
                 if not np.isnan(best):
                     best = c
         before = inside
-    return ok, best, n, interval_ok, interval_clr
+    return ok, best, n
 
 
 @functools.lru_cache(maxsize=64)
@@ -439,19 +454,20 @@ class MotionValidator:
         keys = [buf[i * row:(i + 2) * row] for i in range(m)]      # an interval's two rows, contiguous
         kept = self._kept
         hits = [kept.get(key) for key in keys]
-        interval_ok = np.empty(m, dtype=bool)
-        interval_clr = np.empty(m)
-        vertex_clr = np.full(m + 1, np.nan)
+        ok_l, clr_l, vc_l = [False] * m, [0.0] * m, [math.nan] * (m + 1)     # Python lists: item by item
         todo = []
         for i, hit in enumerate(hits):
             if hit is None:
                 todo.append(i)
                 continue
-            interval_ok[i], interval_clr[i], a, b = hit
+            ok_l[i], clr_l[i], a, b = hit
             if a == a:                  # not NaN (a walk that failed early leaves its end unknown)
-                vertex_clr[i] = a
+                vc_l[i] = a
             if b == b:
-                vertex_clr[i + 1] = b
+                vc_l[i + 1] = b
+        interval_ok = np.array(ok_l, dtype=bool)
+        interval_clr = np.array(clr_l, dtype=float)
+        vertex_clr = np.array(vc_l, dtype=float)
         n = 0
         k = 0
         while k < len(todo):

@@ -18,12 +18,13 @@ arrays.  Periodic joints are *unwrapped* (continuous, may leave [-π, π)).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
-from .collision import config_clearance
+from .collision import NO_REFCOUNT, config_clearance
 from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
 from .trajectory import hermite_coefficients, not_a_knot_slopes
 
@@ -97,15 +98,25 @@ def snap_to_bounds(q, lower, upper, periodic, tol_rad: float = 1e-9) -> np.ndarr
     Larger excursions are left as they are, so the bounds check rejects them.
     (m, dof) → a new (m, dof) array.
     """
-    q = np.array(q, dtype=float)
-    if (((q >= lower) & (q <= upper)) | np.asarray(periodic, dtype=bool)).all():
-        return q                        # the common case: nothing to snap
-    for a, p in enumerate(periodic):
-        if not p:
-            col = q[:, a]
-            col[(col < lower[a]) & (col >= lower[a] - tol_rad)] = lower[a]
-            col[(col > upper[a]) & (col <= upper[a] + tol_rad)] = upper[a]
+    q = np.array(q, dtype=float, order="C")
+    _snap_kernel(q, np.asarray(lower, dtype=float), np.asarray(upper, dtype=float),
+                 np.asarray(periodic, dtype=np.bool_), float(tol_rad))
     return q
+
+
+@njit(cache=True, nogil=True)
+def _snap_kernel(q, lower, upper, periodic, tol_rad):
+    """:func:`snap_to_bounds` in place on q (m, dof): per bounded joint, the lower bound's snap, then the upper's."""
+    for r in range(q.shape[0]):
+        for a in range(q.shape[1]):
+            if periodic[a]:
+                continue
+            x = q[r, a]
+            if x < lower[a] and x >= lower[a] - tol_rad:
+                x = lower[a]
+            if x > upper[a] and x <= upper[a] + tol_rad:
+                x = upper[a]
+            q[r, a] = x
 
 
 def _validator(motions, lower_rad, upper_rad, periodic, step_rad):
@@ -151,14 +162,38 @@ def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, period
     known = polyline_check.vertex_clearance_m
     vertex_clr = np.full(len(pts), np.nan) if known is None else np.array(known, dtype=float)
     # a segment between two in-bounds points stays in bounds (the bounds are a box)
-    return _shortcut_kernel(pts, polyline_check.interval_clearance_m, v.margin_m + keep_clearance_m,
-                            *v.kernel_arrays, v.margin_m, v.lipschitz_m_per_rad, v.step_rad,
-                            bool(certified), vertex_clr)
+    return _shortcut(pts, polyline_check.interval_clearance_m, v.margin_m + keep_clearance_m, v.kernel_arrays,
+                     v.margin_m, v.lipschitz_m_per_rad, v.step_rad, bool(certified), vertex_clr)
 
 
-@njit(cache=True, nogil=True)
+def _shortcut(pts, iv_clr, cap, kernel_arrays, margin_m, lip, step_rad, certified, vertex_clr) -> np.ndarray:
+    """Run :func:`_shortcut_kernel` with its scratch (``kernel_arrays``: ``MotionValidator.kernel_arrays``)."""
+    m, dof = pts.shape
+    keep = np.empty(m, np.int64)
+    # the quick test's samples of a segment: at most its length / step + 1, and no chord is longer
+    # than the polyline (its length with a margin far above the rounding of either)
+    n_samples = int(math.ceil(float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))) * (1.0 + 1e-9)
+                              / step_rad)) + 2
+    n_keep = _shortcut_kernel(pts, iv_clr, cap, *kernel_arrays, margin_m, lip, step_rad, certified, vertex_clr,
+                              keep, np.empty((2, dof)), np.zeros(1, np.bool_), np.zeros(1), np.empty(2),
+                              np.empty(n_samples, np.bool_), np.empty((2 * n_samples + 1, 2), np.int64),
+                              *motion_scratch(kernel_arrays[0], kernel_arrays[2], kernel_arrays[4]))
+    return keep[:n_keep].copy()
+
+
 def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts, starts,
                       centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w):
+    """Run :func:`_quick_segment_kernel` with its scratch (``covered``, ``queue``)."""
+    seg_len = float(np.linalg.norm(points[j] - points[i]))
+    n = max(1, int(math.ceil(seg_len * (1.0 + 1e-9) / step_rad))) + 1
+    return _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts,
+                                 starts, centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w,
+                                 np.empty(n + 1, np.bool_), np.empty((2 * n + 1, 2), np.int64))
+
+
+@njit(**NO_REFCOUNT)
+def _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts, starts,
+                          centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w, covered, queue):
     """
     Quick test of the straight segment points[i] → points[j]: clearance > threshold at its samples.
 
@@ -169,7 +204,8 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
     (c - threshold)/L of an evaluated one (the Lipschitz bound ``lip``, m per rad, less 0.1 %)
     passes without being evaluated.  The answer is that of evaluating every sample.  The
     ends' clearances are read from ``vertex_clr`` where known (not NaN) and written there
-    when evaluated.
+    when evaluated.  Scratch: ``covered`` (≥ n_last + 1,) bool and ``queue`` (≥ 2 n_last + 1, 2)
+    int64, n_last = ⌈length / step_rad⌉.
     """
     dof = points.shape[1]
     seg_len = 0.0
@@ -178,8 +214,10 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
         seg_len += d * d
     seg_len = np.sqrt(seg_len)
     n_last = max(1, int(np.ceil(seg_len / step_rad)))        # samples 0 .. n_last (the end)
-    covered = np.zeros(n_last + 1, np.bool_)
-    queue = np.empty((2 * n_last + 1, 2), np.int64)
+    if n_last + 1 > covered.shape[0] or 2 * n_last + 1 > queue.shape[0]:
+        raise ValueError("_quick_segment_kernel: scratch too small for the segment")
+    for k in range(n_last + 1):
+        covered[k] = False
     head = 0
     tail = 0
     for e in range(2):
@@ -195,7 +233,7 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
             vertex_clr[v] = c
         if not c > threshold_m:
             return False
-        _cover(covered, k, 0.0 if e == 0 else seg_len, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+        _cover(covered, n_last, k, 0.0 if e == 0 else seg_len, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
     queue[tail, 0] = 0
     queue[tail, 1] = n_last
     tail += 1
@@ -214,7 +252,7 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
             c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
             if not c > threshold_m:
                 return False
-            _cover(covered, k, t, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+            _cover(covered, n_last, k, t, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
         queue[tail, 0] = lo
         queue[tail, 1] = k
         queue[tail + 1, 0] = k
@@ -224,9 +262,8 @@ def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, ch
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _cover(covered, k, t, radius, step_rad, seg_len):
-    """Mark the samples of :func:`_quick_segment_ok` within ``radius`` (rad) of sample k (at arc length t)."""
-    n_last = covered.size - 1
+def _cover(covered, n_last, k, t, radius, step_rad, seg_len):
+    """Mark the samples 0 .. n_last of :func:`_quick_segment_kernel` within ``radius`` (rad) of sample k (at t)."""
     covered[k] = True
     lo = max(0, int(np.ceil((t - radius) / step_rad)))
     hi = min(n_last - 1, int(np.floor((t + radius) / step_rad)))
@@ -236,17 +273,19 @@ def _cover(covered, k, t, radius, step_rad, seg_len):
         covered[n_last] = True
 
 
-@njit(cache=True, nogil=True)
+@njit(**NO_REFCOUNT)
 def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts, centres,
-                     radii, margin_m, lip, step_rad, certified, vertex_clr):
-    """Run the greedy binary search of :func:`shortcut_indices` (see there), in one kernel."""
+                     radii, margin_m, lip, step_rad, certified, vertex_clr, keep, seg, ok_iv, clr_iv, ends_clr,
+                     covered, queue, q_full, chain, body_w):
+    """
+    Run the greedy binary search of :func:`shortcut_indices` (see there), in one kernel.
+
+    The kept indices into keep (m,) int64; returns their count.  Scratch: seg (2, dof), one
+    interval's certificate ok_iv (1,) bool, clr_iv (1,) and ends_clr (2,) (``certify_segments``), the
+    quick test's covered and queue (:func:`_quick_segment_kernel`), the motion scratch q_full,
+    chain, body_w (``motion.motion_scratch``).
+    """
     m = pts.shape[0]
-    keep = np.empty(m, np.int64)
-    seg = np.empty((2, pts.shape[1]))
-    ok_iv = np.zeros(1, np.bool_)
-    clr_iv = np.zeros(1)
-    ends_clr = np.empty(2)
-    q_full, chain, body_w = motion_scratch(q_template, lengths, body)
     n_keep = 1
     keep[0] = 0
     i = 0
@@ -265,19 +304,21 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                         need = iv_clr[k]
                 threshold = max(margin_m, need)
                 if certified:
-                    seg[0] = pts[i]
-                    seg[1] = pts[j]
+                    for a in range(pts.shape[1]):
+                        seg[0, a] = pts[i, a]
+                        seg[1, a] = pts[j, a]
                     ends_clr[0] = vertex_clr[i]
                     ends_clr[1] = vertex_clr[j]
                     certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts, centres,
-                                     radii, threshold, lip, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr)
+                                     radii, threshold, lip, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr,
+                                     q_full, chain, body_w)
                     vertex_clr[i] = ends_clr[0]
                     vertex_clr[j] = ends_clr[1]
                     good = ok_iv[0]
                 else:
-                    good = _quick_segment_ok(pts, i, j, vertex_clr, q_template, planned, lengths, checked,
-                                             body, verts, starts, centres, radii, threshold, lip, step_rad,
-                                             q_full, chain, body_w)
+                    good = _quick_segment_kernel(pts, i, j, vertex_clr, q_template, planned, lengths, checked,
+                                                 body, verts, starts, centres, radii, threshold, lip, step_rad,
+                                                 q_full, chain, body_w, covered, queue)
             if good:
                 lo = j
             else:
@@ -288,7 +329,7 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
         keep[n_keep] = lo
         n_keep += 1
         i = lo
-    return keep[:n_keep].copy()
+    return n_keep
 
 
 # ---------------------------------------------------------------------- spline
@@ -554,7 +595,7 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
 
 def warm_up() -> None:
     """
-    Compile (or load from numba's cache) this module's kernels: the spline and the shortcut pass.
+    Compile (or load from numba's cache) this module's kernels: the spline, the bounds' snap and the shortcut pass.
 
     On a made-up three-link arm (planned joints 1 and 2) and one square obstacle, with the
     argument types of a plan; a coarse warm-up plan may not reach them (a straight shortcut
@@ -566,6 +607,7 @@ def warm_up() -> None:
               np.array([1, 2], dtype=np.int64), square.copy(), square + 6.0, np.array([0, 4], dtype=np.int64),
               np.array([[6.0, 6.0]]), np.array([1.0]))
     pts = np.radians([[0.0, 0.0], [5.0, 5.0], [10.0, 5.0], [15.0, 0.0]])
+    snap_to_bounds(pts, np.zeros(2), np.ones(2), (False, True))
     iv_clr = np.ones(len(pts) - 1)
     for certified in (False, True):
-        _shortcut_kernel(pts, iv_clr, 0.07, *arrays, 0.02, 4.5, QUICK_STEP_RAD, certified, np.full(len(pts), np.nan))
+        _shortcut(pts, iv_clr, 0.07, arrays, 0.02, 4.5, QUICK_STEP_RAD, certified, np.full(len(pts), np.nan))

@@ -75,6 +75,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numba import njit
 
+from .collision import NO_REFCOUNT
 from .motion import MotionValidator
 
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
@@ -363,23 +364,17 @@ def hermite_coefficients(x, y, slopes, k, c0, c1):
         c1[col] = (sl - slopes[k, col]) / h - t
 
 
-@njit(cache=True, nogil=True)
-def _hermite_on_grid(x, y, slopes, s, refine):
+@njit(**NO_REFCOUNT)
+def _hermite_on_grid(x, y, slopes, s, refine, q, d1, d2, d3, c0, c1):
     """
     Evaluate the cubic through the knots with these slopes on the refined grid s (G,), G = (M-1)·refine + 1.
 
-    Returns (q, its first and second derivatives (G, n), its third derivative per grid
-    segment (G-1, n)); SciPy's ``CubicHermiteSpline`` coefficients, evaluated in its local
-    power basis.
+    Fills q, its first and second derivatives (G, n), its third derivative per grid segment
+    (G-1, n); SciPy's ``CubicHermiteSpline`` coefficients, evaluated in its local power
+    basis (scratch c0, c1 (n,)).
     """
     m, n = y.shape
     g = s.shape[0]
-    q = np.empty((g, n))
-    d1 = np.empty((g, n))
-    d2 = np.empty((g, n))
-    d3 = np.empty((g - 1, n))
-    c0 = np.empty(n)
-    c1 = np.empty(n)
     for k in range(m - 1):
         hermite_coefficients(x, y, slopes, k, c0, c1)
         for r in range(refine + (1 if k == m - 2 else 0)):
@@ -392,7 +387,6 @@ def _hermite_on_grid(x, y, slopes, s, refine):
                 d2[j, col] = 6.0 * c0[col] * z + 2.0 * c1[col]
                 if j < g - 1:
                     d3[j, col] = 6.0 * c0[col]
-    return q, d1, d2, d3
 
 
 @njit(cache=True, nogil=True)
@@ -426,13 +420,13 @@ def _grid(ds, refine):
     return s_knots, s
 
 
-@njit(cache=True, nogil=True)
 def _spline_on_grid(p, ds, refine):
     """Return the not-a-knot spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
     s_knots, s = _grid(ds, refine)
-    q, d1, d2, d3 = _hermite_on_grid(s_knots, p, not_a_knot_slopes(s_knots, p), s, refine)
-    for k in range(p.shape[0]):
-        q[k * refine] = p[k]
+    g, n = s.shape[0], p.shape[1]
+    q, d1, d2, d3 = np.empty((g, n)), np.empty((g, n)), np.empty((g, n)), np.empty((g - 1, n))
+    _hermite_on_grid(s_knots, p, not_a_knot_slopes(s_knots, p), s, refine, q, d1, d2, d3, np.empty(n), np.empty(n))
+    q[::refine] = p                     # the samples exactly
     return s, q, d1, d2, d3
 
 
@@ -602,11 +596,17 @@ def _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k_next):
     return a
 
 
-@njit(cache=True, nogil=True)
 def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
-    """Compute the controllable sets K_i = [0, k_i]: the x_i from which x_N = x_end is reachable."""
+    """Return the controllable sets' k (G,): K_i = [0, k_i], the x_i from which x_N = x_end is reachable."""
+    k = np.empty(xv.shape[0])
+    _backward_into(k, a_row, b_row, c_row, kappa, xv, delta, float(x_end))
+    return k
+
+
+@njit(**NO_REFCOUNT)
+def _backward_into(k, a_row, b_row, c_row, kappa, xv, delta, x_end):
+    """:func:`_backward` into k (G,)."""
     m = xv.shape[0]
-    k = np.empty(m)
     k[m - 1] = min(x_end, xv[m - 1])
     limited = False
     for i in range(m - 2, -1, -1):
@@ -617,20 +617,18 @@ def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
         else:                       # the feasible x_i form an interval [0, k_i]
             k[i] = _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k[i + 1])
         limited = k[i] < xv[i]
-    return k
 
 
-@njit(cache=True, nogil=True)
-def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
+@njit(**NO_REFCOUNT)
+def _forward(x, a_row, b_row, c_row, kappa, xv, delta, k, x0):
     """
-    Greedy forward pass: the largest admissible x_{i+1} ∈ K_{i+1} at every step, x (G,).
+    Greedy forward pass: the largest admissible x_{i+1} ∈ K_{i+1} at every step, into x (G,).
 
     :func:`_bounds`' upper bound and g, by a loop of its own: the values only, half the
     divisions (the lower bounds are not needed).  An x_i outside [0, xv[i]] or violating a
     constraint on x alone (not reached: x_i ∈ K_i) is followed by 0.
     """
     m = xv.shape[0]
-    x = np.empty(m)
     x[0] = x0
     for i in range(m - 1):
         xi = x[i]
@@ -654,7 +652,6 @@ def _forward(a_row, b_row, c_row, kappa, xv, delta, k, x0):
                     else:
                         g = max(g, abs(rest) - cc)
         x[i + 1] = 0.0 if g > 0.0 else max(hi, 0.0)     # lo ≤ hi up to rounding: x_i ∈ K_i
-    return x
 
 
 def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: float = 1e-3) -> float:
@@ -705,20 +702,19 @@ _ROUNDING_ROUNDS = 8
 _EPS = float(np.finfo(float).eps)
 
 
-@njit(cache=True, nogil=True)
-def _timed_forward(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
+@njit(**NO_REFCOUNT)
+def _timed_forward(x, dt, t, per, a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
     """
-    Run the forward pass from x0 (clipped to K_0) to rest, and time it.
+    Run the forward pass from x0 (clipped to K_0) to rest, and time it; returns ok.
 
-    Returns (x (G,), grid durations dt (G-1,) s, sample times t (M,) s, sample intervals
-    (M-1,) s, ok): ``dt = 2 Δ / (ṡ_i + ṡ_{i+1})``; each sample interval the sum of its
+    Fills x (G,), the grid durations dt (G-1,) s, the sample times t (M,) s and the sample
+    intervals per (M-1,) s: ``dt = 2 Δ / (ṡ_i + ṡ_{i+1})``; each sample interval the sum of its
     ``refine`` grid durations in order, the times their running sum from 0 (NumPy's row sums
     and ``cumsum`` for ``refine`` ≤ 7); ok False when a stretch has ṡ = 0 at both ends.
     """
-    x = _forward(a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
+    _forward(x, a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
     g = x.shape[0]
     x[g - 1] = 0.0
-    dt = np.empty(g - 1)
     ok = True
     prev = np.sqrt(x[0])
     for j in range(g - 1):
@@ -729,8 +725,6 @@ def _timed_forward(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
         dt[j] = 2.0 * ds[j] / den if den > 0.0 else np.inf
         prev = nxt
     m = (g - 1) // refine + 1
-    per = np.empty(m - 1)
-    t = np.empty(m)
     t[0] = 0.0
     for k_s in range(m - 1):
         acc = dt[k_s * refine]
@@ -738,7 +732,7 @@ def _timed_forward(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
             acc += dt[k_s * refine + r]
         per[k_s] = acc
         t[k_s + 1] = t[k_s] + acc
-    return x, dt, t, per, ok
+    return ok
 
 
 def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
@@ -748,7 +742,10 @@ def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
     Returns (x (G,), grid durations dt (G-1,) s, sample times (M,) s, 0 first, sample
     intervals (M-1,) s).  Raises ValueError where ṡ = 0 at both ends of a grid segment.
     """
-    x, dt, t, per, ok = _timed_forward(a_row, b_row, c_row, kappa, xv, ds, k, float(x0), int(refine))
+    g = xv.shape[0]
+    m = (g - 1) // refine + 1
+    x, dt, t, per = np.empty(g), np.empty(g - 1), np.empty(m), np.empty(m - 1)
+    ok = _timed_forward(x, dt, t, per, a_row, b_row, c_row, kappa, xv, ds, k, float(x0), int(refine))
     if not ok:
         raise ValueError("path: a stretch cannot be followed at any speed within the limits")
     if refine > _SEQUENTIAL_SUM_MAX:        # NumPy's pairwise row sums
