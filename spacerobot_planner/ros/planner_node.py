@@ -397,7 +397,7 @@ class PlannerNode(LifecycleNode):
     def _publish_outcome(self, req, outcome):
         """Publish an ok outcome (the worker thread, just after it was stamped): trajectories, then visuals."""
         if outcome.publication.sent:
-            arm, att = conv.publication_msgs(outcome.publication)
+            arm, att = conv.publication_payloads(outcome.publication)     # serialized: no message objects
             if arm is not None:
                 self._pubs["traj"].publish(arm)
             if att is not None:
