@@ -376,8 +376,6 @@ class PlannerNode(LifecycleNode):
         """Submit a request to the session (see ``CaptureSession.submit``); bound a client's wait for joint_states."""
         idle = not self.session.planning
         req = self.session.submit(req, **kw)
-        if idle and req.gen and not req.waiting:
-            time.sleep(YIELD_AFTER_SUBMIT_S)    # the worker thread takes it now
         if req.gen:
             self.diagnostics.accepted()         # a good request: the input status is OK again
         if req.waiting and req.on_done is not None:
@@ -385,6 +383,8 @@ class PlannerNode(LifecycleNode):
             if self._waiting_timer is not None:
                 self.destroy_timer(self._waiting_timer)
             self._waiting_timer = self.create_timer(timeout_s, lambda: self._joint_states_timeout(req, timeout_s))
+        if idle and req.gen and not req.waiting:
+            time.sleep(YIELD_AFTER_SUBMIT_S)    # the worker thread takes it now (the input status already OK)
         return req
 
     def _joint_states_timeout(self, req, timeout_s):
