@@ -181,6 +181,32 @@ def test_trajectory_msg_points_equal_a_plain_build_and_survive_serialization():
     assert list(back.points) == oracle and len(back.points[0].effort) == 0
 
 
+@pytest.mark.parametrize("joints,k", [(("j0", "j1", "j2"), 57), (("shoulder", "elbow"), 1), (("attitude",), 12),
+                                      (("attitude",), 0)])
+def test_serialized_trajectory_is_the_message_a_subscriber_gets(joints, k):
+    """The bytes the node publishes deserialize (as a subscriber does) into the message a plain build gives."""
+    from rclpy.serialization import deserialize_message
+    from trajectory_msgs.msg import JointTrajectory
+    from spacerobot_planner.adapters import TrajectoryPart
+    from spacerobot_planner.session import Publication
+    rng = np.random.default_rng(11 + k)
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(1e-3, 0.4, max(k - 1, 0)))])[:k]
+    if k > 4:
+        t[3], t[4] = 1.0000000005, 2.0000000015       # half-ns ties
+    q, v, a = rng.normal(size=(3, k, len(joints)))
+    part = TrajectoryPart(joints, t, q, v, a)
+    raw = conv.trajectory_cdr(part, conv.ns_to_time(7 * 10 ** 9 + 5), "world")
+    back = deserialize_message(raw, JointTrajectory)
+    assert list(back.points) == _oracle_points(t, q, v, a) and back.joint_names == list(joints)
+    assert (back.header.stamp.sec, back.header.stamp.nanosec, back.header.frame_id) == (7, 5, "world")
+    assert all(len(p.effort) == 0 for p in back.points)
+    # what the node publishes: these bytes (checked once at import: this machine's rmw), else the messages
+    pub = Publication(9 * 10 ** 9, part, None)
+    arm, att = conv.publication_payloads(pub)
+    assert att is None and conv._PUBLISH_SERIALIZED
+    assert deserialize_message(arm, JointTrajectory) == conv.publication_msgs(pub)[0]
+
+
 def _fake_result(grid, rng, cspace=None, field=None):
     from types import SimpleNamespace
     occ = rng.uniform(size=grid.shape) < 0.2

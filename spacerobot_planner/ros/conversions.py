@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import array
 import math
+from types import SimpleNamespace
 
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
@@ -41,6 +42,7 @@ __all__ = [
     "duration_to_s", "s_to_duration", "ns_to_time", "time_to_ns", "potential_slice_values", "obstacle_slice_values",
     "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result", "predicted_drift_msg",
     "split_trajectory_msg", "plan_visuals", "GridSlices", "slice_axes_and_point", "publication_msgs",
+    "publication_payloads", "trajectory_cdr",
     "OBSTACLE", "UNREACHABLE",
 ]
 
@@ -575,4 +577,133 @@ def publication_msgs(publication) -> tuple:
         return None, None
     stamp = ns_to_time(publication.stamp_ns)
     return tuple(None if part is None else trajectory_to_msg(part, stamp)
+                 for part in (publication.arm, publication.attitude))
+
+
+# ------------------------------------------------------------------ trajectories as serialized bytes
+#: a trajectory's per-point columns, in a point's order
+_ROWS = ("positions_rad", "velocities_rad_s", "accelerations_rad_s2")
+#: CDR's encapsulation header: plain CDR, little endian (what rmw_fastrtps and rmw_cyclonedds write)
+_CDR_LE = b"\x00\x01\x00\x00"
+
+
+def _cdr_point_layout(start: int, n: int) -> tuple:
+    """
+    Return (offsets, size) of one JointTrajectoryPoint of ``n`` joints serialized at payload offset ``start``.
+
+    ``offsets``: byte offsets from the point's start of the positions', velocities' and
+    accelerations' (count, first value), then of effort's count (empty), sec and nanosec
+    (CDR: each primitive aligned to its size from the payload's start; no values, no padding).
+    """
+    o, offs = start, []
+    for _ in range(3):
+        o += -o % 4
+        count = o
+        o += 4
+        if n:
+            o += -o % 8
+        offs.append((count - start, o - start))
+        o += 8 * n
+    o += -o % 4
+    offs.append(o - start)                   # effort: count 0
+    offs.append(o + 4 - start)               # time_from_start.sec
+    offs.append(o + 8 - start)               # time_from_start.nanosec
+    return tuple(offs), o + 12 - start
+
+
+def _cdr_string(out: bytearray, text: str) -> None:
+    """Append a CDR string (aligned count with the NUL, the bytes, the NUL)."""
+    out.extend(b"\0" * (-(len(out) - 4) % 4))
+    raw = text.encode()
+    out.extend(np.uint32(len(raw) + 1).tobytes())
+    out.extend(raw + b"\0")
+
+
+def trajectory_cdr(traj, stamp=None, frame_id: str = "") -> bytes:
+    """
+    Return :func:`trajectory_to_msg`'s message serialized (CDR, as a publisher sends it), made from the arrays.
+
+    ``traj``: a Trajectory or ``adapters.TrajectoryPart`` (joint_names, times_s (K,), positions,
+    velocities, accelerations (K, n)); ``stamp``: builtin_interfaces/Time or None (zero).  A
+    publisher sends these bytes as they are (``Publisher.publish(bytes)``): no message objects,
+    no per-point conversion.  Checked once: rclpy deserializes it into that message
+    (:data:`_PUBLISH_SERIALIZED`).
+    """
+    out = bytearray(_CDR_LE)
+    out.extend(np.array([0 if stamp is None else stamp.sec], "<i4").tobytes())
+    out.extend(np.array([0 if stamp is None else stamp.nanosec], "<u4").tobytes())
+    _cdr_string(out, frame_id)
+    names = list(traj.joint_names)
+    out.extend(b"\0" * (-(len(out) - 4) % 4))
+    out.extend(np.uint32(len(names)).tobytes())
+    for name in names:
+        _cdr_string(out, name)
+    out.extend(b"\0" * (-(len(out) - 4) % 4))
+    rows = [np.ascontiguousarray(getattr(traj, f), dtype="<f8").reshape(len(traj.times_s), len(names))
+            for f in _ROWS]
+    k, n = rows[0].shape
+    out.extend(np.uint32(k).tobytes())
+    sec, nsec = _sec_nanosec(traj.times_s)
+    start = len(out) - 4
+    # every point after the first starts at the same offset modulo 8: one layout for all of them
+    first, first_size = _cdr_point_layout(start, n)
+    rest, size = _cdr_point_layout(start + first_size, n)
+    buf = np.zeros(first_size + (k - 1) * size if k else 0, np.uint8)
+    for lo, hi, layout, width in ((0, min(k, 1), first, first_size), (1, k, rest, size)):
+        if hi <= lo:
+            continue
+        pts = buf[(0 if lo == 0 else first_size):][:(hi - lo) * width].reshape(hi - lo, width)
+        for (count, values), x in zip(layout[:3], rows):
+            pts[:, count:count + 4] = np.frombuffer(np.uint32(n).tobytes(), np.uint8)
+            pts[:, values:values + 8 * n] = x[lo:hi].view(np.uint8).reshape(hi - lo, 8 * n)
+        pts[:, layout[4]:layout[4] + 4] = sec[lo:hi].astype("<i4")[:, None].view(np.uint8)
+        pts[:, layout[5]:layout[5] + 4] = nsec[lo:hi].astype("<u4")[:, None].view(np.uint8)
+    return bytes(out) + buf.tobytes()
+
+
+def _serialized_matches() -> bool:
+    """
+    Tell whether :func:`trajectory_cdr`'s bytes are :func:`trajectory_to_msg`'s messages.
+
+    rclpy deserializes them (as a subscriber does) into messages equal to those, on a few
+    shapes (rclpy's own serialization leaves its padding bytes and a few trailing bytes
+    uninitialised: not comparable byte for byte).
+    """
+    try:
+        from rclpy.serialization import deserialize_message
+    except ImportError:          # no rclpy serialization: messages are published
+        return False
+    rng = np.random.default_rng(0)
+    for k, names, frame in ((3, ("a",), ""), (2, ("shoulder", "elbow"), "world"), (0, ("j0", "j1", "j2"), "ab"),
+                            (5, ("x1", "y22", "z333"), ""), (1, ("attitude",), "map")):
+        t = SimpleNamespace(joint_names=tuple(names), times_s=np.cumsum(rng.uniform(0.1, 1.0, k)),
+                            **{f: rng.normal(size=(k, len(names))) for f in _ROWS})
+        stamp = Time(sec=1_700_000_000 + k, nanosec=123_456_789)
+        try:
+            if deserialize_message(trajectory_cdr(t, stamp, frame), JointTrajectory) != \
+                    trajectory_to_msg(t, stamp, frame):
+                return False
+        except Exception:        # noqa: BLE001 - any doubt: messages
+            return False
+    return True
+
+
+#: the node publishes :func:`trajectory_cdr`'s bytes (:func:`_serialized_matches`), else the messages of
+#: :func:`trajectory_to_msg`
+_PUBLISH_SERIALIZED = _serialized_matches()
+
+
+def publication_payloads(publication) -> tuple:
+    """
+    Return what a publisher sends for :func:`publication_msgs`: (arm, attitude), each the serialized message (bytes).
+
+    The same messages, serialized from the arrays (:func:`trajectory_cdr`) where that was checked
+    to match rclpy's serialization, else the messages themselves; None as there.
+    """
+    if not _PUBLISH_SERIALIZED:
+        return publication_msgs(publication)
+    if publication is None:
+        return None, None
+    stamp = ns_to_time(publication.stamp_ns)
+    return tuple(None if part is None else trajectory_cdr(part, stamp)
                  for part in (publication.arm, publication.attitude))
