@@ -415,9 +415,13 @@ def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locke
                         occ[base_flat + t] = _link_hits(ex, ey, bx, by, obs_verts, obs_starts, obs_centres,
                                                         obs_radii, body_w, check_body, margin_m)
             if n_known > 0:
+                kb = base_flat % n_known                # known_hit[(base_flat + t) % n_known], one division a row
                 for t in range(row_len):
-                    if known_hit[(base_flat + t) % n_known]:
+                    if known_hit[kb]:
                         occ[base_flat + t] = True
+                    kb += 1
+                    if kb == n_known:
+                        kb = 0
 
 
 @njit(parallel=True, cache=True, nogil=True)
