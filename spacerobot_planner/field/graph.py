@@ -236,12 +236,10 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     for r in range(rows):                    # positions, order and coordinates
         for j in range(last):
             if pos[f] == _REACHED:
-                if (par + j) % 2 == 0:
-                    k = k_red
-                    k_red += 1
-                else:
-                    k = k_black
-                    k_black += 1
+                black = (par + j) & 1            # coordinates are >= 0: the parity, without a branch
+                k = k_black if black else k_red
+                k_red += 1 - black
+                k_black += black
                 pos[f] = k
                 order[k] = f
                 for a in range(ndim - 1):
@@ -253,11 +251,12 @@ def _node_tables(occ_flat, code, shape, goal_flat):
         for a in range(ndim - 1):
             par += lead[a]
     nbr = np.empty((n, deg), np.uint32)     # unsigned: no negative-index wrap-around in the kernels
+    none = np.uint32(n)
     for k in range(n):
         f = order[k]
         for d in range(deg):
             g = _grid_nbr(code, f, d, shape, strides)
-            nbr[k, d] = n if g < 0 or pos[g] >= _BLOCKED else pos[g]
+            nbr[k, d] = none if g < 0 else min(pos[g], none)     # the marks are above every position
     return order, coords, nbr
 
 
