@@ -204,7 +204,7 @@ def _galerkin(nbr, wt, diag, n, red, agg, cnbr, cwt, cdiag, nc, unit):
     rrows = red
     for i in range(n):
         c = agg[i]
-        cdiag[c] += deg if unit else diag[i]
+        s = deg if unit else diag[i]     # the row's diagonal less its weights inside the aggregate
         for d in range(deg):
             j = nbr[i, d]
             if j >= n:
@@ -214,10 +214,11 @@ def _galerkin(nbr, wt, diag, n, red, agg, cnbr, cwt, cdiag, nc, unit):
             cj = agg[j]
             w = 1.0 if unit else wt[i, d]
             if cj == c:
-                cdiag[c] -= w
+                s -= w
             else:
                 cnbr[c, d] = cj
                 cwt[c, d] += w
+        cdiag[c] += s                # the weights are small integers: every sum exact, in any order
     return rrows
 
 
