@@ -352,6 +352,20 @@ def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locke
             if stop[0] != 0:
                 return
             base_flat = row * row_len
+            kb0 = base_flat % n_known if n_known > 0 else 0     # known_hit[(base_flat + t) % n_known]
+            full = n_known > 0                  # the body table occupies the whole row: no test
+            kb = kb0
+            for t in range(row_len if full else 0):
+                if not known_hit[kb]:
+                    full = False
+                    break
+                kb += 1
+                if kb == n_known:
+                    kb = 0
+            if full:
+                for t in range(row_len):
+                    occ[base_flat + t] = True
+                continue
             rem = row
             for d in range(ndim - 2, -1, -1):
                 k = rem % shape[d]
@@ -415,9 +429,13 @@ def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locke
                         occ[base_flat + t] = _link_hits(ex, ey, bx, by, obs_verts, obs_starts, obs_centres,
                                                         obs_radii, body_w, check_body, margin_m)
             if n_known > 0:
+                kb = kb0
                 for t in range(row_len):
-                    if known_hit[(base_flat + t) % n_known]:
+                    if known_hit[kb]:
                         occ[base_flat + t] = True
+                    kb += 1
+                    if kb == n_known:
+                        kb = 0
 
 
 @njit(parallel=True, cache=True, nogil=True)

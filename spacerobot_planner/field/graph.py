@@ -149,9 +149,10 @@ def _bfs(occ_flat, code, shape, goal_flat):
     return dist, order[:tail]
 
 
-#: :func:`_node_tables`' marks in ``pos`` (above any position: a graph has < 2**32 - 2 nodes).
+#: :func:`_node_tables`' marks in ``pos`` (above any position: a graph has < 2**32 - 3 nodes).
 _UNSEEN = np.uint32(0xFFFFFFFF)
-_REACHED = np.uint32(0xFFFFFFFE)
+_BLOCKED = np.uint32(0xFFFFFFFE)
+_REACHED = np.uint32(0xFFFFFFFD)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -162,18 +163,22 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     occ_flat bool (prod(shape),), code: the grid's face codes (:func:`grid_codes`, cut edges
     marked), goal_flat int64 (k,) distinct free flat nodes.  order int64 (N,): the goal nodes,
     then the reached nodes with an even coordinate sum ("red"), then the odd ones, each in
-    grid order; coords int64 (N, ndim); nbr uint32 (N, 2 ndim): position in ``order`` of
+    grid order; coords int32 (N, ndim); nbr uint32 (N, 2 ndim): position in ``order`` of
     each node's face neighbours, N for walls, obstacles and nodes not reached.
 
-    Three passes and one grid-sized table (``pos``, uint32): a flood fill from the goal
-    (marks), the grid in C order by rows of the last axis (positions and coordinates,
-    no divisions: a row's coordinate sum is counted once per row), the neighbour table.
+    One grid-sized table (``pos``, uint32: obstacles marked as it is filled, so that the
+    flood reads one table) and four passes: a flood fill from the goal (marks), the grid in
+    C order by rows of the last axis twice (the red nodes counted, then positions and
+    coordinates, no divisions: a row's coordinate sum is counted once per row), the
+    neighbour table.
     """
     n_grid = occ_flat.size
     ndim = shape.size
     deg = 2 * ndim
     strides = grid_strides(shape)
-    pos = np.full(n_grid, _UNSEEN, np.uint32)
+    pos = np.empty(n_grid, np.uint32)
+    for f in range(n_grid):
+        pos[f] = _BLOCKED if occ_flat[f] else _UNSEEN
     queue = np.empty(n_grid, np.int64)       # the flood's queue, then the order
     tail = 0
     for g in goal_flat:
@@ -186,16 +191,23 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     while head < tail:
         f = queue[head]
         head += 1
-        for d in range(deg):
-            g = _grid_nbr(code, f, d, shape, strides)
-            if g < 0 or occ_flat[g] or pos[g] != _UNSEEN:
-                continue
-            pos[g] = _REACHED
-            queue[tail] = g
-            tail += 1
+        for a in range(ndim):                # _grid_nbr's rule, both directions from one code
+            c = code[f, a]
+            if not c & _LOW_NONE:
+                g = f + (shape[a] - 1) * strides[a] if c & _LOW_WRAP else f - strides[a]
+                if pos[g] == _UNSEEN:
+                    pos[g] = _REACHED
+                    queue[tail] = g
+                    tail += 1
+            if not c & _HIGH_NONE:
+                g = f - (shape[a] - 1) * strides[a] if c & _HIGH_WRAP else f + strides[a]
+                if pos[g] == _UNSEEN:
+                    pos[g] = _REACHED
+                    queue[tail] = g
+                    tail += 1
     n = tail
     order = queue[:n]
-    coords = np.empty((n, ndim), np.int64)
+    coords = np.empty((n, ndim), np.int32)   # int32: half the bytes to write, and for the multigrid to read
     for k in range(n_goal):
         for a in range(ndim):
             coords[k, a] = (order[k] // strides[a]) % shape[a]
@@ -224,12 +236,10 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     for r in range(rows):                    # positions, order and coordinates
         for j in range(last):
             if pos[f] == _REACHED:
-                if (par + j) % 2 == 0:
-                    k = k_red
-                    k_red += 1
-                else:
-                    k = k_black
-                    k_black += 1
+                black = (par + j) & 1            # coordinates are >= 0: the parity, without a branch
+                k = k_black if black else k_red
+                k_red += 1 - black
+                k_black += black
                 pos[f] = k
                 order[k] = f
                 for a in range(ndim - 1):
@@ -241,11 +251,12 @@ def _node_tables(occ_flat, code, shape, goal_flat):
         for a in range(ndim - 1):
             par += lead[a]
     nbr = np.empty((n, deg), np.uint32)     # unsigned: no negative-index wrap-around in the kernels
+    none = np.uint32(n)
     for k in range(n):
         f = order[k]
         for d in range(deg):
             g = _grid_nbr(code, f, d, shape, strides)
-            nbr[k, d] = n if g < 0 or pos[g] == _UNSEEN else pos[g]
+            nbr[k, d] = none if g < 0 else min(pos[g], none)     # the marks are above every position
     return order, coords, nbr
 
 
@@ -295,7 +306,7 @@ class NodeGraph:
         of them), then the others with an even coordinate sum ("red"), then the odd ones
         ("black"), each in grid order (memory locality; the multigrid smoother's order).
     nbr: uint32 (N, 2 ndim) neighbour positions in ``order``; N = none (see module doc).
-    coords: int64 (N, ndim) grid coordinates.
+    coords: int32 (N, ndim) grid coordinates.
     shape, periodic: the grid's.
     """
 

@@ -143,11 +143,11 @@ def _aggregates(coords, shape, cell_id):
     """
     Aggregate one level by index blocks: node (i, j, …) joins cell (i // 2, j // 2, …).
 
-    coords int64 (n, ndim) of a level on a grid of ``shape`` (the coarse grid's, each axis
+    coords int32 or int64 (n, ndim) of a level on a grid of ``shape`` (the coarse grid's, each axis
     halved rounding up); cell_id int64 scratch, at least prod(shape) entries, all -1 on entry
     and on return.  The coarse nodes are numbered red first, then black (parity of their
     coordinate sum), each in the order of their first fine node.  Returns ``(agg uint32 (n,),
-    ccoords int64 (nc, ndim), red)``: each node's coarse node, the coarse coordinates and the
+    ccoords (nc, ndim) of coords' type, red)``: each node's coarse node, the coarse coordinates and the
     number of red coarse nodes.
     """
     n, ndim = coords.shape
@@ -170,7 +170,7 @@ def _aggregates(coords, shape, cell_id):
             if par % 2 == 0:
                 red += 1
     new = np.empty(nc, np.int64)            # met order -> red first, then black
-    ccoords = np.empty((nc, ndim), np.int64)
+    ccoords = np.empty((nc, ndim), coords.dtype)
     k_red = 0
     k_black = red
     for c in range(nc):
@@ -216,7 +216,7 @@ def _galerkin(nbr, wt, diag, n, red, agg, cnbr, cwt, cdiag, nc, unit):
     rrows = red
     for i in range(n):
         c = agg[i]
-        cdiag[c] += deg if unit else diag[i]
+        s = deg if unit else diag[i]     # the row's diagonal less its weights inside the aggregate
         for d in range(deg):
             j = nbr[i, d]
             if j >= n:
@@ -226,10 +226,11 @@ def _galerkin(nbr, wt, diag, n, red, agg, cnbr, cwt, cdiag, nc, unit):
             cj = agg[j]
             w = 1.0 if unit else wt[i, d]
             if cj == c:
-                cdiag[c] -= w
+                s -= w
             else:
                 cnbr[c, d] = cj
                 cwt[c, d] += w
+        cdiag[c] += s                # the weights are small integers: every sum exact, in any order
     return rrows
 
 
@@ -238,7 +239,7 @@ def _levels(nb0, red0, coords, shape, stop):
     """
     Aggregate the fine level (``nb0`` uint32 (n, deg), red rows first) down to the coarsest.
 
-    coords int64 (n, ndim), shape int64 (ndim,): the fine grid.  First the aggregates of
+    coords int32 or int64 (n, ndim), shape int64 (ndim,): the fine grid.  First the aggregates of
     every level (from the coordinates alone), then the packed arrays, each coarse level
     written in place from the one below.  Returns ``(sizes, off, nbr, wt, inv_diag, diag,
     agg, red, rrows, dense, stopped)`` (see the module doc; the fine level's rows of nbr
@@ -359,7 +360,9 @@ class Hierarchy:
         ``stop``: a termination flag, polled between levels (raises :class:`Stopped`).
         """
         n, deg = nbr.shape
-        coords = np.ascontiguousarray(coords, dtype=np.int64)
+        # the node graph's int32 (half the bytes to read) as it is, any other integer type as int64
+        coords = np.asarray(coords)
+        coords = np.ascontiguousarray(coords, dtype=None if coords.dtype == np.int32 else np.int64)
         red, in_order = _red_rows(coords)
         self.in_order = bool(in_order)
         if in_order:                            # already red rows first (the node graph's order)
