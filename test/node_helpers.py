@@ -417,8 +417,13 @@ class Graph:
 
 
 def diag_values(status) -> dict:
-    """Return a DiagnosticStatus's key/values as a dict of strings."""
-    return {kv.key: kv.value for kv in status.values}
+    """
+    Return a DiagnosticStatus's key/values as a dict of strings.
+
+    None (``Graph.status`` before any /diagnostics message arrived) has none: a wait on a
+    value keeps waiting instead of raising.
+    """
+    return {} if status is None else {kv.key: kv.value for kv in status.values}
 
 
 def diag_list(status, key):
