@@ -462,6 +462,39 @@ def _path_model(p, refine: int):
     return s, idx, q, d1, d2, d3
 
 
+#: the path models of the last few paths timed (:func:`_modelled_path`): the chain's re-timings under
+#: lowered scaling factors, and its joined candidates, time the same paths again
+_MODELS_KEPT = 4
+_models: dict = {}
+
+
+def _modelled_path(path_rad, max_step_rad: float, refine: int):
+    """
+    Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
+
+    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,)):
+    they depend on the path alone, not on the limits, and the last ``_MODELS_KEPT`` are kept,
+    found again by the path's exact values (the same arrays: the same trajectories bit for
+    bit).  The returned arrays are shared: never written (not flagged read-only: the kernels
+    would be compiled again for read-only arrays).
+    """
+    a = np.ascontiguousarray(path_rad, dtype=float)
+    key = (a.shape, a.tobytes(), max_step_rad, refine) if a.ndim == 2 else None
+    hit = _models.get(key) if key is not None else None
+    if hit is not None:
+        return hit
+    p = densify_path(a, max_step_rad)
+    model = None
+    if len(p) > 1:
+        s, _, qg, d1, d2, d3 = _path_model(p, refine)
+        model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s))
+    if key is not None:
+        while len(_models) >= _MODELS_KEPT:
+            _models.pop(next(iter(_models)), None)
+        _models[key] = (p, model)
+    return p, model
+
+
 @njit(cache=True, nogil=True)
 def _constraint(i, end, r, var, a_row, b_row, c_row, kappa, inv):
     """
@@ -1002,7 +1035,9 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
             tangent, backwards, or too fast to stay within the limits and stop at the goal).
 
     """
-    p = densify_path(path_rad, max_step_rad)
+    refine = int(grid_refinement)
+    p, model = _modelled_path(path_rad, float(max_step_rad), refine)
+    p = p.copy()                        # the trajectory's own positions (the model's are shared)
     n = p.shape[1]
     vmax = _check_limits("max_velocity", max_velocity_rad_s, n)
     amax = _check_limits("max_acceleration", max_acceleration_rad_s2, n)
@@ -1031,11 +1066,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                           zero.copy() if wheel is not None else None,
                           None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
 
-    refine = int(grid_refinement)
-    s, idx, qg, d1, d2, d3 = _path_model(p, refine)
-    d1, d2, d3 = np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3)
-    ds = np.diff(s)
-    g_n = len(s)
+    qg, d1, d2, d3, ds = model
+    g_n = len(qg)
     # velocity type x = ṡ² ≤ xv, the acceleration rows' κ and limits: see _constraint_rows
     xv, kappa, c_row = _constraint_rows(d1, d3, ds, vmax, amax)
     a_row, b_row = d1, d2
@@ -1458,6 +1490,12 @@ def _controller_states(t, q, v, a, fields, ts, pos, vel, acc):
             acc[i, j] = ddp / (dur * dur)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _nan_max(top, x):
+    """max(top, x), NaN once either is (as NumPy's max)."""
+    return x if top == top and (x > top or x != x) else top
+
+
 @njit(**NO_REFCOUNT)
 def _controller_peaks(t, q, v, a, u, vlim, alim, c):
     """
@@ -1466,41 +1504,41 @@ def _controller_peaks(t, q, v, a, u, vlim, alim, c):
     Sampled at ``t_k + (t_k+1 - t_k) · u`` on every segment k and at the last point's time
     (u (S,): fractions of a segment, from 0): the values :func:`_controller_states` gives
     there (fields 3), without the (K, n) arrays.  t (M ≥ 2,), q, v, a (M, n); vlim, alim
-    (n,); c (6, n) scratch.  Returns (peak velocity ratio, peak acceleration ratio, the times
-    increase strictly); NaN where a ratio is.
+    (n,); c (8, n) scratch.  Returns (peak velocity ratio, peak acceleration ratio, the times
+    increase strictly); NaN where a ratio is.  Each joint's peak |value| is divided once by
+    its limit (a division by a positive number keeps the order: the same maximum).
     """
     m, n = q.shape
     for k in range(m - 1):
         if t[k + 1] - t[k] <= 0.0:
             return 0.0, 0.0, False
-    top_v, top_a = -np.inf, -np.inf
+    for j in range(n):                  # at the last point's time: that point
+        c[6, j] = abs(v[m - 1, j])
+        c[7, j] = abs(a[m - 1, j])
     k, k_coef = 0, -1
     for seg in range(m - 1):
-        for i in range(u.shape[0] + (1 if seg == m - 2 else 0)):
-            s = t[seg] + (t[seg + 1] - t[seg]) * u[i] if i < u.shape[0] else t[m - 1]
-            inside = not (s < t[0] or s >= t[m - 1])
-            dur, x = 1.0, 0.0
-            if inside:
-                k = _segment_of(t, s, k)
-                dur = t[k + 1] - t[k]
-                x = (s - t[k]) / dur
-                if k != k_coef:
-                    k_coef = k
-                    _segment_coefficients(q, v, a, 3, k, dur, c)
+        t0, h = t[seg], t[seg + 1] - t[seg]
+        for i in range(u.shape[0]):
+            s = t0 + h * u[i]
+            if s < t[0] or s >= t[m - 1]:       # (rounding) held: the last point's values at its time
+                for j in range(n):
+                    c[6, j] = _nan_max(c[6, j], abs(v[m - 1, j]) if s == t[m - 1] else 0.0)
+                    c[7, j] = _nan_max(c[7, j], abs(a[m - 1, j]) if s == t[m - 1] else 0.0)
+                continue
+            k = _segment_of(t, s, k)
+            dur = t[k + 1] - t[k]
+            x = (s - t[k]) / dur
+            if k != k_coef:
+                k_coef = k
+                _segment_coefficients(q, v, a, 3, k, dur, c)
             for j in range(n):
-                if inside:
-                    p, dp, ddp = _horner(c, j, x)
-                    vj = dp / dur
-                    aj = ddp / (dur * dur)
-                else:
-                    vj = v[m - 1, j] if s == t[m - 1] else 0.0
-                    aj = a[m - 1, j] if s == t[m - 1] else 0.0
-                rv = abs(vj) / vlim[j]
-                ra = abs(aj) / alim[j]
-                if top_v == top_v and (rv > top_v or rv != rv):
-                    top_v = rv
-                if top_a == top_a and (ra > top_a or ra != ra):
-                    top_a = ra
+                p, dp, ddp = _horner(c, j, x)
+                c[6, j] = _nan_max(c[6, j], abs(dp / dur))
+                c[7, j] = _nan_max(c[7, j], abs(ddp / (dur * dur)))
+    top_v, top_a = -np.inf, -np.inf
+    for j in range(n):
+        top_v = _nan_max(top_v, c[6, j] / vlim[j])
+        top_a = _nan_max(top_a, c[7, j] / alim[j])
     return top_v, top_a, True
 
 
@@ -1584,7 +1622,7 @@ def controller_peaks(times_s, positions, velocities, accelerations, fractions, v
         np.ascontiguousarray(times_s, dtype=float), q, np.ascontiguousarray(velocities, dtype=float),
         np.ascontiguousarray(accelerations, dtype=float), np.ascontiguousarray(fractions, dtype=float),
         np.ascontiguousarray(vlim, dtype=float), np.ascontiguousarray(alim, dtype=float),
-        np.empty((6, q.shape[1])))
+        np.empty((8, q.shape[1])))
     if not ok:
         raise ValueError("sample_points: times must increase strictly")
     return float(peak_v), float(peak_a)
