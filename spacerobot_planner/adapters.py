@@ -44,7 +44,7 @@ from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import HorizonPassed, Trajectory, resample, sample_points
+from .trajectory import HorizonPassed, Trajectory, controller_peaks, resample
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
@@ -303,20 +303,19 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
 
     The motion is joint_trajectory_controller's interpolation of ``traj``'s points
     (``trajectory.sample_points``: quintic segments with positions, velocities and
-    accelerations), sampled ``samples_per_segment`` times per segment; the ratios are the
+    accelerations), sampled ``samples_per_segment`` times per segment and at the end
+    (``trajectory.controller_peaks``); the ratios are the
     largest over the planned joints of |v| / (max velocity × velocity scaling) and
     |a| / (max acceleration × acceleration scaling) (1.0: at the limit).
     """
     vmax, amax = scenario.joint_limits.planned(scenario.robot)
     vlim = vmax * scenario.joint_limits.velocity_scaling
     alim = amax * scenario.joint_limits.acceleration_scaling
-    t = np.asarray(traj.times_s, dtype=float)
-    if len(t) < 2:
+    if len(traj.times_s) < 2:
         return 0.0, 0.0
     u = np.linspace(0.0, 1.0, samples_per_segment, endpoint=False)
-    fine = np.append((t[:-1, None] + np.diff(t)[:, None] * u[None, :]).ravel(), t[-1])
-    _, v, a = sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, fine)
-    return float(np.max(np.abs(v) / vlim)), float(np.max(np.abs(a) / alim))
+    return controller_peaks(traj.times_s, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, u,
+                            vlim, alim)
 
 
 def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,

@@ -46,7 +46,8 @@ class DriftCheck:
     n_checked: int
 
 
-def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: int = 12, motions=None) -> DriftCheck:
+def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: int = 12, motions=None,
+                  response=None) -> DriftCheck:
     """
     Check the free-floating motion along ``path_rad`` against the inertially fixed scene.
 
@@ -59,7 +60,8 @@ def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: in
     it is split (the path is straight between its rows) and the drift recomputed.
 
     ``motions``: the scene's ``motion.MotionValidator`` (its checker is used; one is made
-    when None).
+    when None).  ``response``: :func:`free_floating_response` of ``path_rad`` when the caller
+    has it (its first round; the grasp point does not enter the drift).
     """
     chk = CollisionChecker(robot, scene) if motions is None else motions.checker
     lengths = np.asarray(robot.link_lengths_m, dtype=float)
@@ -67,8 +69,8 @@ def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: in
     p = np.atleast_2d(np.asarray(path_rad, dtype=float))
     margin = chk.margin_m
     n_eval = 0
-    for _ in range(max_rounds + 1):
-        resp = free_floating_response(robot, masses, p)
+    for r in range(max_rounds + 1):
+        resp = response if r == 0 and response is not None else free_floating_response(robot, masses, p)
         c = chk.clearance_shifted_m(resp.q_full_rad, resp.body_position_m)
         n_eval += len(c)
         hit = np.flatnonzero(~(c > margin))
@@ -197,7 +199,7 @@ def reaction_report(robot, masses: MassProperties, scene, path_rad, trajectory=N
         grasp_point_m = scene.target.grasp_point_m
     along = trajectory.positions_rad if trajectory is not None else np.asarray(path_rad, dtype=float)
     resp = free_floating_response(robot, masses, along, grasp_point_m)
-    drift = check_drifted(robot, masses, scene, along, motions=motions)
+    drift = check_drifted(robot, masses, scene, along, motions=motions, response=resp)
     com = system_com_m(robot, masses, robot.full(along))
     held_disp = float(np.linalg.norm(com[-1] - com[0]))
     held_tip = com[0] - com[-1] + robot.tip_position(robot.full(along[-1]))

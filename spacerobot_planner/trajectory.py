@@ -80,7 +80,7 @@ from .motion import MotionValidator
 
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
-           "horizon_index", "HorizonPassed", "sample_points"]
+           "horizon_index", "HorizonPassed", "sample_points", "controller_peaks"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -460,6 +460,39 @@ def _path_model(p, refine: int):
     d3 = np.zeros((len(s) - 1, p.shape[1]))
     q[idx] = p
     return s, idx, q, d1, d2, d3
+
+
+#: the path models of the last few paths timed (:func:`_modelled_path`): the chain's re-timings under
+#: lowered scaling factors, and its joined candidates, time the same paths again
+_MODELS_KEPT = 4
+_models: dict = {}
+
+
+def _modelled_path(path_rad, max_step_rad: float, refine: int):
+    """
+    Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
+
+    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,)):
+    they depend on the path alone, not on the limits, and the last ``_MODELS_KEPT`` are kept,
+    found again by the path's exact values (the same arrays: the same trajectories bit for
+    bit).  The returned arrays are shared: never written (not flagged read-only: the kernels
+    would be compiled again for read-only arrays).
+    """
+    a = np.ascontiguousarray(path_rad, dtype=float)
+    key = (a.shape, a.tobytes(), max_step_rad, refine) if a.ndim == 2 else None
+    hit = _models.get(key) if key is not None else None
+    if hit is not None:
+        return hit
+    p = densify_path(a, max_step_rad)
+    model = None
+    if len(p) > 1:
+        s, _, qg, d1, d2, d3 = _path_model(p, refine)
+        model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s))
+    if key is not None:
+        while len(_models) >= _MODELS_KEPT:
+            _models.pop(next(iter(_models)), None)
+        _models[key] = (p, model)
+    return p, model
 
 
 @njit(cache=True, nogil=True)
@@ -1002,7 +1035,9 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
             tangent, backwards, or too fast to stay within the limits and stop at the goal).
 
     """
-    p = densify_path(path_rad, max_step_rad)
+    refine = int(grid_refinement)
+    p, model = _modelled_path(path_rad, float(max_step_rad), refine)
+    p = p.copy()                        # the trajectory's own positions (the model's are shared)
     n = p.shape[1]
     vmax = _check_limits("max_velocity", max_velocity_rad_s, n)
     amax = _check_limits("max_acceleration", max_acceleration_rad_s2, n)
@@ -1031,11 +1066,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                           zero.copy() if wheel is not None else None,
                           None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
 
-    refine = int(grid_refinement)
-    s, idx, qg, d1, d2, d3 = _path_model(p, refine)
-    d1, d2, d3 = np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3)
-    ds = np.diff(s)
-    g_n = len(s)
+    qg, d1, d2, d3, ds = model
+    g_n = len(qg)
     # velocity type x = ṡ² ≤ xv, the acceleration rows' κ and limits: see _constraint_rows
     xv, kappa, c_row = _constraint_rows(d1, d3, ds, vmax, amax)
     a_row, b_row = d1, d2
@@ -1371,6 +1403,57 @@ def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizo
                         traj.velocities_rad_s[k].copy())
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _segment_of(t, s, k):
+    """Return the segment [t_k, t_k+1) of the time s (t (M,) increasing, t[0] ≤ s < t[M-1]), searched from k."""
+    m = t.shape[0]
+    if s != s:                          # NaN: NumPy's searchsorted puts it last
+        return m - 2
+    if k >= 0 and t[k] <= s and (k == m - 2 or s < t[k + 1]):
+        return k                        # the last k with t[k] <= s, as the bisection finds it
+    lo, hi = 0, m
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if t[mid] <= s:
+            lo = mid + 1
+        else:
+            hi = mid
+    return min(max(lo - 1, 0), m - 2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _segment_coefficients(q, v, a, fields, k, dur, c):
+    """Fill c (6, n) with segment k's polynomial in the normalised time (``fields`` as :func:`_controller_states`)."""
+    for j in range(q.shape[1]):
+        d = q[k + 1, j] - q[k, j]
+        c[0, j] = q[k, j]
+        if fields == 1:
+            c[1, j] = d
+        else:
+            w0, w1 = dur * v[k, j], dur * v[k + 1, j]
+            c[1, j] = w0
+            if fields == 2:
+                c[2, j] = 3.0 * d - 2.0 * w0 - w1
+                c[3, j] = -2.0 * d + w0 + w1
+            else:
+                b0, b1 = dur * dur * a[k, j], dur * dur * a[k + 1, j]
+                c[2, j] = 0.5 * b0
+                c[3, j] = 10.0 * d - 6.0 * w0 - 4.0 * w1 - 1.5 * b0 + 0.5 * b1
+                c[4, j] = -15.0 * d + 8.0 * w0 + 7.0 * w1 + 1.5 * b0 - b1
+                c[5, j] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _horner(c, j, x):
+    """Return (p, p', p'') of column j of the polynomial c (6, n) at x (Horner's rule with its derivatives)."""
+    p, dp, ddp = c[5, j], 0.0, 0.0
+    for r in range(4, -1, -1):
+        ddp = ddp * x + 2.0 * dp
+        dp = dp * x + p
+        p = p * x + c[r, j]
+    return p, dp, ddp
+
+
 @njit(cache=True, nogil=True)
 def _controller_states(t, q, v, a, fields, ts, pos, vel, acc):
     """
@@ -1394,47 +1477,69 @@ def _controller_states(t, q, v, a, fields, ts, pos, vel, acc):
                 vel[i, j] = v[m - 1, j] if s == t[m - 1] and fields >= 2 else 0.0
                 acc[i, j] = a[m - 1, j] if s == t[m - 1] and fields == 3 else 0.0
             continue
-        if s != s:                      # NaN: NumPy's searchsorted puts it last
-            k = m - 2
-        else:                           # the last k with t[k] <= s (the segment [t_k, t_k+1))
-            lo, hi = 0, m
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if t[mid] <= s:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            k = min(max(lo - 1, 0), m - 2)
+        k = _segment_of(t, s, -1)
         dur = t[k + 1] - t[k]
         x = (s - t[k]) / dur
         if k != k_coef:                 # the segment's coefficients (kept while ts stay in it)
             k_coef = k
-            for j in range(n):
-                d = q[k + 1, j] - q[k, j]
-                c[0, j] = q[k, j]
-                if fields == 1:
-                    c[1, j] = d
-                else:
-                    w0, w1 = dur * v[k, j], dur * v[k + 1, j]
-                    c[1, j] = w0
-                    if fields == 2:
-                        c[2, j] = 3.0 * d - 2.0 * w0 - w1
-                        c[3, j] = -2.0 * d + w0 + w1
-                    else:
-                        b0, b1 = dur * dur * a[k, j], dur * dur * a[k + 1, j]
-                        c[2, j] = 0.5 * b0
-                        c[3, j] = 10.0 * d - 6.0 * w0 - 4.0 * w1 - 1.5 * b0 + 0.5 * b1
-                        c[4, j] = -15.0 * d + 8.0 * w0 + 7.0 * w1 + 1.5 * b0 - b1
-                        c[5, j] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
+            _segment_coefficients(q, v, a, fields, k, dur, c)
         for j in range(n):
-            p, dp, ddp = c[5, j], 0.0, 0.0
-            for r in range(4, -1, -1):
-                ddp = ddp * x + 2.0 * dp
-                dp = dp * x + p
-                p = p * x + c[r, j]
+            p, dp, ddp = _horner(c, j, x)
             pos[i, j] = p
             vel[i, j] = dp / dur
             acc[i, j] = ddp / (dur * dur)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nan_max(top, x):
+    """max(top, x), NaN once either is (as NumPy's max)."""
+    return x if top == top and (x > top or x != x) else top
+
+
+@njit(**NO_REFCOUNT)
+def _controller_peaks(t, q, v, a, u, vlim, alim, c):
+    """
+    Peak |velocity| / vlim and |acceleration| / alim of the quintic interpolation of the points.
+
+    Sampled at ``t_k + (t_k+1 - t_k) · u`` on every segment k and at the last point's time
+    (u (S,): fractions of a segment, from 0): the values :func:`_controller_states` gives
+    there (fields 3), without the (K, n) arrays.  t (M ≥ 2,), q, v, a (M, n); vlim, alim
+    (n,); c (8, n) scratch.  Returns (peak velocity ratio, peak acceleration ratio, the times
+    increase strictly); NaN where a ratio is.  Each joint's peak |value| is divided once by
+    its limit (a division by a positive number keeps the order: the same maximum).
+    """
+    m, n = q.shape
+    for k in range(m - 1):
+        if t[k + 1] - t[k] <= 0.0:
+            return 0.0, 0.0, False
+    for j in range(n):                  # at the last point's time: that point
+        c[6, j] = abs(v[m - 1, j])
+        c[7, j] = abs(a[m - 1, j])
+    k, k_coef = 0, -1
+    for seg in range(m - 1):
+        t0, h = t[seg], t[seg + 1] - t[seg]
+        for i in range(u.shape[0]):
+            s = t0 + h * u[i]
+            if s < t[0] or s >= t[m - 1]:       # (rounding) held: the last point's values at its time
+                for j in range(n):
+                    c[6, j] = _nan_max(c[6, j], abs(v[m - 1, j]) if s == t[m - 1] else 0.0)
+                    c[7, j] = _nan_max(c[7, j], abs(a[m - 1, j]) if s == t[m - 1] else 0.0)
+                continue
+            k = _segment_of(t, s, k)
+            dur = t[k + 1] - t[k]
+            x = (s - t[k]) / dur
+            if k != k_coef:
+                k_coef = k
+                _segment_coefficients(q, v, a, 3, k, dur, c)
+            for j in range(n):
+                p, dp, ddp = _horner(c, j, x)
+                c[6, j] = _nan_max(c[6, j], abs(dp / dur))
+                c[7, j] = _nan_max(c[7, j], abs(ddp / (dur * dur)))
+    top_v, top_a = -np.inf, -np.inf
+    for j in range(n):
+        top_v = _nan_max(top_v, c[6, j] / vlim[j])
+        top_a = _nan_max(top_a, c[7, j] / alim[j])
+    return top_v, top_a, True
 
 
 def sample_points(times_s, positions, velocities, accelerations, t_s):
@@ -1495,3 +1600,29 @@ def sample_points(times_s, positions, velocities, accelerations, t_s):
     if scalar:
         return pos[0], vel[0], acc[0]
     return pos, vel, acc
+
+
+def controller_peaks(times_s, positions, velocities, accelerations, fractions, vlim, alim) -> tuple:
+    """
+    Peak ratios of the controller's quintic interpolation of points to the limits, sampled.
+
+    The motion :func:`sample_points` gives (positions, velocities and accelerations) at
+    ``t_k + (t_k+1 - t_k) · f`` for each segment k and each f of ``fractions`` (S,) in [0, 1),
+    and at the last point's time: (max |velocity| / vlim, max |acceleration| / alim) over
+    those times and the joints (vlim, alim (n,)), by one kernel without the sampled arrays;
+    NaN where a ratio is.  At least two points.
+
+    Raises
+    ------
+        ValueError: times that do not increase strictly.
+
+    """
+    q = np.ascontiguousarray(positions, dtype=float)
+    peak_v, peak_a, ok = _controller_peaks(
+        np.ascontiguousarray(times_s, dtype=float), q, np.ascontiguousarray(velocities, dtype=float),
+        np.ascontiguousarray(accelerations, dtype=float), np.ascontiguousarray(fractions, dtype=float),
+        np.ascontiguousarray(vlim, dtype=float), np.ascontiguousarray(alim, dtype=float),
+        np.empty((8, q.shape[1])))
+    if not ok:
+        raise ValueError("sample_points: times must increase strictly")
+    return float(peak_v), float(peak_a)

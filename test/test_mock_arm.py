@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import BPoly, CubicHermiteSpline
 
-from spacerobot_planner.trajectory import sample_points
+from spacerobot_planner.trajectory import controller_peaks, sample_points
 
 CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config", "paper_3dof.yaml")
 #: a ROS time of today's order (s): the float rounding of the stamps is part of what is tested
@@ -111,6 +111,24 @@ def test_sample_points_matches_independent_splines(seed, fields):
     for g, w, what in zip(got, want, ("positions", "velocities", "accelerations")):
         assert g.shape == (len(ts), 3)
         np.testing.assert_allclose(g, w, rtol=0, atol=1e-9 * max(1.0, np.abs(w).max()), err_msg=what)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_controller_peaks_are_the_sampled_motions_peaks(seed):
+    """controller_peaks: the peak ratios of the quintic motion at t_k + Δt_k·f and the end, against the oracle."""
+    rng = np.random.default_rng(seed)
+    t, q, v, a = smooth_points(rng, m=9, t_first=rng.uniform(0.0, 50.0))
+    vlim, alim = rng.uniform(0.5, 2.0, 3), rng.uniform(0.5, 4.0, 3)
+    u = np.linspace(0.0, 1.0, 16, endpoint=False)
+    ts = np.append((t[:-1, None] + np.diff(t)[:, None] * u[None, :]).ravel(), t[-1])
+    peak_v, peak_a = controller_peaks(t, q, v, a, u, vlim, alim)
+    _, vel, acc = oracle(t, q, v, a)(ts)
+    assert peak_v == pytest.approx(np.max(np.abs(vel) / vlim), rel=1e-9)
+    assert peak_a == pytest.approx(np.max(np.abs(acc) / alim), rel=1e-9)
+    _, vel, acc = sample_points(t, q, v, a, ts)            # the same arithmetic: the same numbers
+    assert (peak_v, peak_a) == (np.max(np.abs(vel) / vlim), np.max(np.abs(acc) / alim))
+    with pytest.raises(ValueError, match="increase strictly"):
+        controller_peaks(np.r_[t[:3], t[2], t[4:]], q, v, a, u, vlim, alim)
 
 
 @pytest.mark.parametrize("seed", range(3))
