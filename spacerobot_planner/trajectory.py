@@ -462,36 +462,19 @@ def _path_model(p, refine: int):
     return s, idx, q, d1, d2, d3
 
 
-#: the path models of the last few paths timed (:func:`_modelled_path`): the chain's re-timings under
-#: lowered scaling factors, and its joined candidates, time the same paths again
-_MODELS_KEPT = 4
-_models: dict = {}
-
-
 def _modelled_path(path_rad, max_step_rad: float, refine: int):
     """
     Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
 
-    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,)):
-    they depend on the path alone, not on the limits, and the last ``_MODELS_KEPT`` are kept,
-    found again by the path's exact values (the same arrays: the same trajectories bit for
-    bit).  The returned arrays are shared: never written (not flagged read-only: the kernels
-    would be compiled again for read-only arrays).
+    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,)).
+    Computed for every call: a memo of the last paths (the chain's re-timings time the same
+    path again) saved about 50 us a replan, not worth a module-level cache of shared arrays.
     """
-    a = np.ascontiguousarray(path_rad, dtype=float)
-    key = (a.shape, a.tobytes(), max_step_rad, refine) if a.ndim == 2 else None
-    hit = _models.get(key) if key is not None else None
-    if hit is not None:
-        return hit
-    p = densify_path(a, max_step_rad)
+    p = densify_path(np.ascontiguousarray(path_rad, dtype=float), max_step_rad)
     model = None
     if len(p) > 1:
         s, _, qg, d1, d2, d3 = _path_model(p, refine)
         model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s))
-    if key is not None:
-        while len(_models) >= _MODELS_KEPT:
-            _models.pop(next(iter(_models)), None)
-        _models[key] = (p, model)
     return p, model
 
 
@@ -1037,7 +1020,6 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     """
     refine = int(grid_refinement)
     p, model = _modelled_path(path_rad, float(max_step_rad), refine)
-    p = p.copy()                        # the trajectory's own positions (the model's are shared)
     n = p.shape[1]
     vmax = _check_limits("max_velocity", max_velocity_rad_s, n)
     amax = _check_limits("max_acceleration", max_acceleration_rad_s2, n)
