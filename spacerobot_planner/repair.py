@@ -92,6 +92,9 @@ def _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, s
     """
     :func:`_sheet_edges` into ``found`` (large enough); returns (edges found, edges tested).
 
+    A node's edges start at the same coordinates: its clearance, measured by the first of its
+    tests, starts the others (``motion.segment_free_from``), the same value.
+
     Scratch: the motion test's (``motion.motion_scratch``), qa and qb (ndim,), coords int64 (3, ndim),
     seen bool (nodes,) all False, queue int64 (nodes,), clr_ends (2,).
     """
@@ -111,6 +114,7 @@ def _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, s
         for a in range(ndim):
             c[a] = (f // strides[a]) % shape[a]
             qa[a] = lower[a] + c[a] * step[a]
+        clr_ends[0] = np.nan                    # the clearance at qa: measured by the node's first test
         for a in range(ndim):
             k = _along(c[a], 1, shape[a], periodic[a])
             if k < 0:
@@ -122,7 +126,6 @@ def _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, s
                 qb[b] = qa[b]
             qb[a] += step[a]
             tests += 1
-            clr_ends[0] = np.nan                # nothing known: motion.segment_free
             if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
                                      obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
                                      clr_ends):
