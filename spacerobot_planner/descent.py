@@ -115,7 +115,7 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
     the nearest node whose log u is strictly above f's.
 
     Writes the nodes after f up to it into ``path`` and returns their count (0: none).  Scratch
-    (:func:`_walk_scratch`): box_nodes int64 (3, (2 radius + 1)^ndim) (each box node's parent, flat
+    (:func:`_walk_valid`'s): box_nodes int64 (3, (2 radius + 1)^ndim) (each box node's parent, flat
     node and the queue), off and c0 int64 (ndim,), qa and qb (ndim,), clr_ends (2,).
     """
     ndim = shape.size
@@ -191,6 +191,7 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
     return 0
 
 
+@nb.njit(cache=True, nogil=True)
 def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
                   planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
     """
@@ -203,33 +204,31 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     coordinates (not across a seam), so the clearance measured there starts the next step's
     test (``motion.segment_free_from``): each node is measured once.
 
-    Returns (number of nodes, status).
+    Returns (number of nodes, status).  :func:`_walk_valid` with its scratch.
     """
+    ndim = shape.size
+    box = (2 * detour_steps + 1) ** ndim
+    q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     return _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
                        planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
-                       seg_step_rad, grid_strides(shape), *motion_scratch(q_template, lengths, body),
-                       *_walk_scratch(shape.size, detour_steps))
-
-
-def _walk_scratch(ndim: int, detour_steps: int) -> tuple:
-    """
-    Return :func:`_walk_valid`'s scratch arrays past the motion test's.
-
-    (qa, qb (ndim,), coord int64 (ndim,), candidates int64 (4, 2 ndim) (flat node, axis, direction,
-    index along the axis), their log u (2 ndim,), the detour's nodes int64 (box,), clr_ends (2,),
-    the detour's box nodes int64 (3, box), off and c0 int64 (ndim,)); box = (2 detour_steps + 1)^ndim.
-    """
-    box = (2 * detour_steps + 1) ** ndim
-    return (np.empty(ndim), np.empty(ndim), np.empty(ndim, np.int64), np.empty((4, 2 * ndim), np.int64),
-            np.empty(2 * ndim), np.empty(box, np.int64), np.empty(2), np.empty((3, box), np.int64),
-            np.empty(ndim, np.int64), np.empty(ndim, np.int64))
+                       seg_step_rad, grid_strides(shape), q_full, pts, body_w, np.empty(ndim), np.empty(ndim),
+                       np.empty(ndim, np.int64), np.empty((4, 2 * ndim), np.int64), np.empty(2 * ndim),
+                       np.empty(box, np.int64), np.empty(2), np.empty((3, box), np.int64), np.empty(ndim, np.int64),
+                       np.empty(ndim, np.int64))
 
 
 @nb.njit(**NO_REFCOUNT)
 def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
                 planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
                 strides, q_full, pts, body_w, qa, qb, coord, cand, cand_v, detour, clr_ends, box_nodes, off, c0):
-    """:func:`_ascend_valid` with the grid's strides and the scratch given (:func:`_walk_scratch`)."""
+    """
+    Run :func:`_ascend_valid` with the grid's strides and the scratch given.
+
+    Scratch past the motion test's (``motion.motion_scratch``): qa, qb (ndim,), coord int64 (ndim,),
+    the candidates int64 (4, 2 ndim) (flat node, axis, direction, index along the axis), their log u
+    (2 ndim,), the detour's nodes int64 (box,), clr_ends (2,), the detour's box nodes int64 (3, box),
+    off and c0 int64 (ndim,); box = (2 detour_steps + 1)^ndim.
+    """
     ndim = shape.size
     cand_f = cand[0]
     cand_a = cand[1]
