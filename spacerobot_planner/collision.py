@@ -23,8 +23,13 @@ from .scene import pack_polygons
 #: with array arguments inside a loop (a clearance per sample, a constraint test per grid point)
 #: increments and decrements every array's count atomically, which numba's pruning does not
 #: remove across loops: half of the trajectory's backward pass.  The same arithmetic, bit for
-#: bit.  Such a kernel is called from Python or from another such kernel: called from a kernel
-#: with NRT, it was measured as slow as before.
+#: bit.  Such a kernel is called from Python, from another such kernel, or once from a kernel
+#: that allocates its scratch (``cspace._fill_rows``).  Its helpers without options of their own
+#: (``config_clearance``, ``motion.segment_free_from``) take their caller's; numba keeps one
+#: compiled version per signature, in the process and in its cache, so a helper compiled first
+#: for a loop with NRT keeps its counting for every caller: every loop over such a helper is one
+#: of these kernels (``_clearances_into``: the warm-up's first clearance compiles
+#: ``config_clearance``).
 NO_REFCOUNT = {"cache": True, "nogil": True, "_nrt": False}
 
 __all__ = ["CollisionChecker"]
