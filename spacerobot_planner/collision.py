@@ -23,8 +23,13 @@ from .scene import pack_polygons
 #: with array arguments inside a loop (a clearance per sample, a constraint test per grid point)
 #: increments and decrements every array's count atomically, which numba's pruning does not
 #: remove across loops: half of the trajectory's backward pass.  The same arithmetic, bit for
-#: bit.  Such a kernel is called from Python or from another such kernel: called from a kernel
-#: with NRT, it was measured as slow as before.
+#: bit.  Such a kernel is called from Python, from another such kernel, or once from a kernel
+#: that allocates its scratch (``cspace._fill_rows``).  Its helpers without options of their own
+#: (``config_clearance``, ``motion.segment_free_from``) take their caller's; numba keeps one
+#: compiled version per signature, in the process and in its cache, so a helper compiled first
+#: for a loop with NRT keeps its counting for every caller: every loop over such a helper is one
+#: of these kernels (``_clearances_into``: the warm-up's first clearance compiles
+#: ``config_clearance``).
 NO_REFCOUNT = {"cache": True, "nogil": True, "_nrt": False}
 
 __all__ = ["CollisionChecker"]
@@ -285,26 +290,37 @@ def config_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, obs_
 
 @njit(cache=True, nogil=True)
 def _batch_clearance(q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres, obs_radii):
-    n = q_full.shape[0]
-    out = np.empty(n)
-    pts = np.empty((lengths.shape[0] + 1, 2))
-    body_w = np.empty_like(body)
-    for i in range(n):
+    """Clearance of each full configuration q_full[i], (N,) m (:func:`_clearances_into` with its scratch)."""
+    out = np.empty(q_full.shape[0])
+    _clearances_into(out, q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres, obs_radii,
+                     np.empty((lengths.shape[0] + 1, 2)), np.empty_like(body))
+    return out
+
+
+@njit(**NO_REFCOUNT)
+def _clearances_into(out, q_full, lengths, checked, body, obs_verts, obs_starts, obs_centres, obs_radii, pts,
+                     body_w):
+    """:func:`_batch_clearance` into out (N,); scratch pts (n_links + 1, 2), body_w like body."""
+    for i in range(q_full.shape[0]):
         out[i] = config_clearance(q_full[i], lengths, checked, body, obs_verts, obs_starts, obs_centres,
                                   obs_radii, pts, body_w)
-    return out
 
 
 @njit(cache=True, nogil=True)
 def _batch_clearance_shifted(q_full, shift, lengths, checked, body, verts, starts, centres, radii):
     """Clearance of each configuration q_full[k] with the obstacles shifted by −shift[k], (K,) m."""
-    k_n = q_full.shape[0]
-    out = np.empty(k_n)
-    pts = np.empty((lengths.shape[0] + 1, 2))
-    body_w = np.empty_like(body)
-    shifted = np.empty_like(verts)
-    shifted_centres = np.empty_like(centres)
-    for k in range(k_n):
+    out = np.empty(q_full.shape[0])
+    _shifted_clearances_into(out, q_full, shift, lengths, checked, body, verts, starts, centres, radii,
+                             np.empty((lengths.shape[0] + 1, 2)), np.empty_like(body), np.empty_like(verts),
+                             np.empty_like(centres))
+    return out
+
+
+@njit(**NO_REFCOUNT)
+def _shifted_clearances_into(out, q_full, shift, lengths, checked, body, verts, starts, centres, radii, pts, body_w,
+                             shifted, shifted_centres):
+    """:func:`_batch_clearance_shifted` into out (K,); scratch pts, body_w, shifted like verts and centres."""
+    for k in range(q_full.shape[0]):
         for v in range(verts.shape[0]):
             shifted[v, 0] = verts[v, 0] - shift[k, 0]
             shifted[v, 1] = verts[v, 1] - shift[k, 1]
@@ -313,7 +329,6 @@ def _batch_clearance_shifted(q_full, shift, lengths, checked, body, verts, start
             shifted_centres[p, 1] = centres[p, 1] - shift[k, 1]
         out[k] = config_clearance(q_full[k], lengths, checked, body, shifted, starts, shifted_centres, radii,
                                   pts, body_w)
-    return out
 
 
 # ------------------------------------------------------------------ public API

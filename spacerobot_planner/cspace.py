@@ -36,7 +36,7 @@ from numba import njit, prange
 
 import math
 
-from .collision import (link_points, point_segment_dist2, rotate_body, links_hit_body,
+from .collision import (NO_REFCOUNT, link_points, point_segment_dist2, rotate_body, links_hit_body,
                         links_hit_polygons, point_in_polygon, segment_hits_polygons,
                         segment_polygon_within)
 from .scene import pack_polygons
@@ -324,6 +324,24 @@ def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locke
 
     Along the last axis, which must be the chain's last joint (see the module doc).
     Arguments as for ``_occupancy_kernel``; ``stop`` is polled before every row.
+    :func:`_fill_rows_into` with its scratch.
+    """
+    max_iv = 4 * (obs_verts.shape[0] + body.shape[0]) + 1
+    _fill_rows_into(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locked, lengths, checked, body,
+                    obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body, known_hit, eps_rad, stop,
+                    q_locked.copy(), np.empty((lengths.shape[0] + 1, 2)), np.empty_like(body),
+                    np.empty((max_iv, 2)), np.zeros(shape[shape.shape[0] - 1], np.bool_))
+
+
+@njit(**NO_REFCOUNT)
+def _fill_rows_into(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locked, lengths, checked,
+                    body, obs_verts, obs_starts, obs_centres, obs_radii, margin_m, check_body,
+                    known_hit, eps_rad, stop, q_full, pts, body_w, ivals, unsure):
+    """
+    Run :func:`_fill_rows` with its scratch given.
+
+    q_full (n_joints,) starting as ``q_locked``, pts (n_links + 1, 2), body_w like body, ivals
+    (4 (obstacle vertices + body vertices) + 1, 2), unsure bool (row length,) all False.
     """
     ndim = shape.shape[0]
     row_len = shape[ndim - 1]
@@ -338,16 +356,10 @@ def _fill_rows(occ, row_start, row_stop, shape, lower, step, axis_joint, q_locke
             last_checked = True
     length = lengths[last]
     n_poly = obs_radii.shape[0]
-    max_iv = 4 * (obs_verts.shape[0] + body.shape[0]) + 1
     lo = lower[ndim - 1]
     st = step[ndim - 1]
     e = eps_rad / st
     if True:
-        q_full = q_locked.copy()
-        pts = np.empty((lengths.shape[0] + 1, 2))
-        body_w = np.empty_like(body)
-        ivals = np.empty((max_iv, 2))
-        unsure = np.zeros(row_len, np.bool_)
         for row in range(row_start, row_stop):
             if stop[0] != 0:
                 return

@@ -17,7 +17,8 @@ import numpy as np
 
 from .field import Field, bfs_distance
 from .field.graph import grid_strides
-from .motion import motion_scratch, segment_free, segment_free_from
+from .collision import NO_REFCOUNT
+from .motion import motion_scratch, segment_free_from
 
 # status codes of the kernels
 _REACHED, _STUCK, _TOO_LONG, _BLOCKED = 0, 1, 2, 3
@@ -103,28 +104,32 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
         m += 1
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_REFCOUNT)
 def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_template, planned, lengths,
             checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
-            path):
+            path, box_nodes, off, c0, qa, qb, clr_ends):
     """
     Search breadth-first for a detour to a higher node.
 
     Breadth-first over motions that pass, within ``radius`` index steps of node ``f`` per axis, to
     the nearest node whose log u is strictly above f's.
 
-    Writes the nodes after f up to it into ``path`` and returns their count (0: none).
+    Writes the nodes after f up to it into ``path`` and returns their count (0: none).  Scratch
+    (:func:`_walk_valid`'s): box_nodes int64 (3, (2 radius + 1)^ndim) (each box node's parent, flat
+    node and the queue), off and c0 int64 (ndim,), qa and qb (ndim,), clr_ends (2,).
     """
     ndim = shape.size
     side = 2 * radius + 1
     box = 1
     for a in range(ndim):
         box *= side
-    parent = np.full(box, -2, np.int64)       # -2 unseen; box index of the parent
-    flat_of = np.empty(box, np.int64)
-    queue = np.empty(box, np.int64)
-    off = np.zeros(ndim, np.int64)
-    c0 = np.empty(ndim, np.int64)
+    parent = box_nodes[0]
+    flat_of = box_nodes[1]
+    queue = box_nodes[2]
+    for t in range(box):
+        parent[t] = -2                          # -2 unseen; box index of the parent
+    for a in range(ndim):
+        off[a] = 0
     for a in range(ndim):
         c0[a] = (f // strides[a]) % shape[a]
     centre = 0
@@ -134,8 +139,6 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
     flat_of[centre] = f
     queue[0] = centre
     head, tail = 0, 1
-    qa = np.empty(ndim)
-    qb = np.empty(ndim)
     here = log_u_flat[f]
     while head < tail:
         bi = queue[head]
@@ -165,8 +168,10 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
                 for b in range(ndim):
                     qb[b] = qa[b]
                 qb[a] += d * step[a]
-                if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
-                                    obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
+                clr_ends[0] = np.nan                # nothing known: motion.segment_free
+                if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
+                                         obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
+                                         clr_ends):
                     continue
                 parent[nb_box] = bi
                 flat_of[nb_box] = h
@@ -199,21 +204,38 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     coordinates (not across a seam), so the clearance measured there starts the next step's
     test (``motion.segment_free_from``): each node is measured once.
 
-    Returns (number of nodes, status).
+    Returns (number of nodes, status).  :func:`_walk_valid` with its scratch.
     """
-    strides = grid_strides(shape)
     ndim = shape.size
+    box = (2 * detour_steps + 1) ** ndim
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
-    qa = np.empty(ndim)
-    qb = np.empty(ndim)
-    coord = np.empty(ndim, np.int64)
-    cand_f = np.empty(2 * ndim, np.int64)
-    cand_v = np.empty(2 * ndim)
-    cand_a = np.empty(2 * ndim, np.int64)
-    cand_d = np.empty(2 * ndim, np.int64)
-    cand_n = np.empty(2 * ndim, np.int64)
-    detour = np.empty((2 * detour_steps + 1) ** ndim, np.int64)
-    clr_ends = np.full(2, np.nan)        # [0] the clearance at the current node once measured; [1] the next
+    return _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
+                       planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
+                       seg_step_rad, grid_strides(shape), q_full, pts, body_w, np.empty(ndim), np.empty(ndim),
+                       np.empty(ndim, np.int64), np.empty((4, 2 * ndim), np.int64), np.empty(2 * ndim),
+                       np.empty(box, np.int64), np.empty(2), np.empty((3, box), np.int64), np.empty(ndim, np.int64),
+                       np.empty(ndim, np.int64))
+
+
+@nb.njit(**NO_REFCOUNT)
+def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
+                planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
+                strides, q_full, pts, body_w, qa, qb, coord, cand, cand_v, detour, clr_ends, box_nodes, off, c0):
+    """
+    Run :func:`_ascend_valid` with the grid's strides and the scratch given.
+
+    Scratch past the motion test's (``motion.motion_scratch``): qa, qb (ndim,), coord int64 (ndim,),
+    the candidates int64 (4, 2 ndim) (flat node, axis, direction, index along the axis), their log u
+    (2 ndim,), the detour's nodes int64 (box,), clr_ends (2,), the detour's box nodes int64 (3, box),
+    off and c0 int64 (ndim,); box = (2 detour_steps + 1)^ndim.
+    """
+    ndim = shape.size
+    cand_f = cand[0]
+    cand_a = cand[1]
+    cand_d = cand[2]
+    cand_n = cand[3]
+    clr_ends[0] = np.nan                 # [0] the clearance at the current node once measured; [1] the next
+    clr_ends[1] = np.nan
     m = 0
     out[m] = f
     m += 1
@@ -268,7 +290,7 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
             n = 0 if detour_steps == 0 else _detour(
                 log_u_flat, shape, periodic, strides, f, detour_steps, lower, step, q_template,
                 planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
-                seg_step_rad, q_full, pts, body_w, detour)
+                seg_step_rad, q_full, pts, body_w, detour, box_nodes, off, c0, qa, qb, clr_ends)
             if n == 0 or m + n > out.size:
                 return m, _BLOCKED
             for i in range(n):

@@ -24,7 +24,8 @@ import numpy as np
 from .descent import _along
 from .field import solve_field
 from .field.graph import grid_strides
-from .motion import motion_scratch, segment_free
+from .collision import NO_REFCOUNT
+from .motion import motion_scratch, segment_free_from
 
 #: The most edge motions one repair tests beyond the box around the blocked node (a few ms;
 #: a repair round at 36³ costs about 10 to 20 ms: on the repairing scenes of ``bench scenes``
@@ -32,7 +33,7 @@ from .motion import motion_scratch, segment_free
 MAX_TESTS = 2_000
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(**NO_REFCOUNT)
 def _push_box(f, radius, shape, strides, periodic, seen, queue, tail, c0, off):
     """Append the unseen nodes within ``radius`` index steps of flat node ``f`` to ``queue``; returns the new tail."""
     ndim = shape.size
@@ -61,7 +62,6 @@ def _push_box(f, radius, shape, strides, periodic, seen, queue, tail, c0, off):
     return tail
 
 
-@nb.njit(cache=True, nogil=True)
 def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
                  lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
     """
@@ -74,19 +74,38 @@ def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, st
     """
     ndim = shape.size
     n = occ_flat.size
-    strides = grid_strides(shape)
-    q_full, pts, body_w = motion_scratch(q_template, lengths, body)
-    qa = np.empty(ndim)
-    qb = np.empty(ndim)
-    c = np.empty(ndim, np.int64)
-    c0 = np.empty(ndim, np.int64)
-    off = np.empty(ndim, np.int64)
-    seen = np.zeros(n, np.bool_)
-    queue = np.empty(n, np.int64)
+    # every node taken tests at most ndim edges; beyond the box, none is taken after max_tests
+    most = ndim * ((2 * radius + 1) ** ndim + max_tests + 1)
+    found = np.empty((most, 2), np.int64)
+    k, tests = _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
+                             lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
+                             grid_strides(shape), *motion_scratch(q_template, lengths, body), np.empty(ndim),
+                             np.empty(ndim), np.empty((3, ndim), np.int64), np.zeros(n, np.bool_),
+                             np.empty(n, np.int64), np.empty(2), found)
+    return found[:k].copy(), tests
+
+
+@nb.njit(**NO_REFCOUNT)
+def _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
+                  lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
+                  strides, q_full, pts, body_w, qa, qb, coords, seen, queue, clr_ends, found):
+    """
+    :func:`_sheet_edges` into ``found`` (large enough); returns (edges found, edges tested).
+
+    A node's edges start at the same coordinates: its clearance, measured by the first of its
+    tests, starts the others (``motion.segment_free_from``), the same value.
+
+    Scratch: the motion test's (``motion.motion_scratch``), qa and qb (ndim,), coords int64 (3, ndim),
+    seen bool (nodes,) all False, queue int64 (nodes,), clr_ends (2,).
+    """
+    ndim = shape.size
+    c = coords[0]
+    c0 = coords[1]
+    off = coords[2]
     seeds = tail = _push_box(centre, radius, shape, strides, periodic, seen, queue, 0, c0, off)
     head = 0
     tests = 0
-    found = []
+    k_found = 0
     while head < tail and (head < seeds or tests < max_tests):    # the box around the centre: all
         f = queue[head]
         head += 1
@@ -95,6 +114,7 @@ def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, st
         for a in range(ndim):
             c[a] = (f // strides[a]) % shape[a]
             qa[a] = lower[a] + c[a] * step[a]
+        clr_ends[0] = np.nan                    # the clearance at qa: measured by the node's first test
         for a in range(ndim):
             k = _along(c[a], 1, shape[a], periodic[a])
             if k < 0:
@@ -106,16 +126,15 @@ def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, st
                 qb[b] = qa[b]
             qb[a] += step[a]
             tests += 1
-            if not segment_free(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
-                                obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w):
-                found.append((min(f, g), max(f, g)))
+            if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
+                                     obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
+                                     clr_ends):
+                found[k_found, 0] = min(f, g)
+                found[k_found, 1] = max(f, g)
+                k_found += 1
                 tail = _push_box(f, 1, shape, strides, periodic, seen, queue, tail, c0, off)
                 tail = _push_box(g, 1, shape, strides, periodic, seen, queue, tail, c0, off)
-    out = np.empty((len(found), 2), np.int64)
-    for t in range(len(found)):
-        out[t, 0] = found[t][0]
-        out[t, 1] = found[t][1]
-    return out, tests
+    return k_found, tests
 
 
 def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: int = 2,
