@@ -52,6 +52,7 @@ from .config import load_scenario
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .planner import Planner
+from .field import warm_up_rare as field_warm_up_rare
 from .repair import warm_up as repair_warm_up
 from .smoothing import warm_up as smoothing_warm_up
 from .termination import Termination, stall
@@ -334,6 +335,7 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
             break
     smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
     repair_warm_up()            # a coarse plan seldom repairs
+    field_warm_up_rare()        # nor needs a breadth-first search or a second band
     out = {"coarse_s": time.perf_counter() - t0}
     if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:
         t1 = time.perf_counter()

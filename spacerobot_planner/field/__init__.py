@@ -74,10 +74,10 @@ import numpy as np
 
 from ..termination import Termination
 from . import harmonic, paper
-from .graph import NodeGraph, bfs_distance, node_graph, validate_problem
+from .graph import NodeGraph, bfs, bfs_distance, node_graph, validate_problem
 
 __all__ = ["Field", "SOLVERS", "DEFAULT_SOLVER", "DEFAULT_BUDGET_S", "solve_field",
-           "bfs_distance", "node_graph", "validate_problem", "NodeGraph", "warm_up"]
+           "bfs_distance", "node_graph", "validate_problem", "NodeGraph", "warm_up", "warm_up_rare"]
 
 SOLVERS = ("log_harmonic", "gauss_seidel")
 DEFAULT_SOLVER = "log_harmonic"
@@ -234,15 +234,42 @@ def _compile_once() -> None:
         solve_field(occ, (True, False), [(5, 6)], budget_s=600.0)
 
 
+def _warm_problem(shape, block):
+    occ = np.zeros(shape, dtype=bool)
+    occ[block] = True
+    return occ
+
+
+#: (occupancy, periodic, goal) of the warm-ups: a 2-D and a 3-D grid with an obstacle block
+_WARM_PROBLEMS = ((_warm_problem((40, 41), np.s_[10:20, 5:30]), (False, False), (39, 40)),
+                  (_warm_problem((12, 13, 13), np.s_[3:6, 2:10, 2:10]), (True, False, False), (11, 12, 12)))
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the field kernels on small 2-D and 3-D grids."""
-    occ2 = np.zeros((40, 41), dtype=bool)
-    occ2[10:20, 5:30] = True
-    occ3 = np.zeros((12, 13, 13), dtype=bool)
-    occ3[3:6, 2:10, 2:10] = True
-    for occ, per, goal in ((occ2, (False, False), (39, 40)), (occ3, (True, False, False), (11, 12, 12))):
+    for occ, per, goal in _WARM_PROBLEMS:
         solve_field(occ, per, [goal])
         solve_field(occ, per, [goal], solver="gauss_seidel", max_sweeps=5)
+    warm_up_rare()
+
+
+def warm_up_rare() -> None:
+    """
+    Compile (or load) the field kernels that only some plans reach, on small 2-D and 3-D grids.
+
+    The breadth-first search of the disconnected diagnosis and of a retried grid (with cut
+    edges), and a later band's window (a solve of one band does not reach it): without
+    this, the first plan that needs one loads or compiles it.
+    """
+    for occ, per, goal in _WARM_PROBLEMS:
+        problem = validate_problem(occ, per, [goal])
+        bfs(*problem)
+        bfs(*problem, cut_edges=np.array([[0, 1]], dtype=np.int64))
+        graph = node_graph(*problem)
+        known = np.zeros(graph.size, np.bool_)
+        known[:graph.n_goal] = True
+        harmonic._steps_from_known(graph.nbr, np.arange(graph.n_goal, graph.size, dtype=np.int64), known,
+                                   np.full(graph.size + 1, -1, np.int64), harmonic.WINDOW_STEPS)
 
 
 # --------------------------------------------------------------------------
