@@ -79,11 +79,6 @@ WARM_UP_TIMEOUT_S = 300.0
 #: controller's) takes it meanwhile instead of waiting for them.  Measured with
 #: ``bench latency`` (load 9, 2 cores): send -> arrival 2.7 -> 2.0 ms median, p90 7.6 -> 2.5 ms, s
 YIELD_AFTER_SEND_S = 0.0003
-#: after a request is queued for an idle worker the executor thread lets go of the interpreter this
-#: long: the worker thread, woken by it, chooses the start and sends the job to the planning process
-#: meanwhile, instead of after the executor's next turn (its wait set rebuilt in Python).  Measured
-#: with ``bench latency`` (2 cores, 3 rounds each): js_to_planning 3.1/2.6/2.9 -> 2.1/2.6/2.5 ms median, s
-YIELD_AFTER_SUBMIT_S = 0.0003
 
 
 class PlannerNode(LifecycleNode):
@@ -374,7 +369,6 @@ class PlannerNode(LifecycleNode):
 
     def _submit(self, req, **kw):
         """Submit a request to the session (see ``CaptureSession.submit``); bound a client's wait for joint_states."""
-        idle = not self.session.planning
         req = self.session.submit(req, **kw)
         if req.gen:
             self.diagnostics.accepted()         # a good request: the input status is OK again
@@ -383,8 +377,6 @@ class PlannerNode(LifecycleNode):
             if self._waiting_timer is not None:
                 self.destroy_timer(self._waiting_timer)
             self._waiting_timer = self.create_timer(timeout_s, lambda: self._joint_states_timeout(req, timeout_s))
-        if idle and req.gen and not req.waiting:
-            time.sleep(YIELD_AFTER_SUBMIT_S)    # the worker thread takes it now (the input status already OK)
         return req
 
     def _joint_states_timeout(self, req, timeout_s):
