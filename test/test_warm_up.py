@@ -22,7 +22,7 @@ _CHECK = r"""
 import json, sys
 import numba
 import numpy as np
-from spacerobot_planner.bench.scenes import random_scenario
+from spacerobot_planner.bench.scenes import plan_problems
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.planner import Planner
 from spacerobot_planner.worker import warm_up
@@ -42,18 +42,8 @@ def signatures():
 
 warm_up(Planner(load_scenario(f"{sys.argv[3]}/config/paper_{dof}dof.yaml")))
 before = signatures()
-rng = np.random.default_rng([0, dof])
-codes, repaired, banded, planned = {}, 0, 0, 0
-while planned < count:
-    sc, start = random_scenario(rng, dof)
-    if start is None:
-        continue
-    planner = Planner(sc)
-    try:
-        goal = planner.goal_from_target()
-    except ValueError:
-        continue
-    planned += 1
+codes, repaired, banded = {}, 0, 0
+for _, (_, start, planner, goal) in zip(range(count), plan_problems(np.random.default_rng([0, dof]), dof)):
     res = planner.plan(start, goal)
     codes[str(res.code)] = codes.get(str(res.code), 0) + 1
     repaired += bool(res.solver_stats.get("repairs"))

@@ -83,6 +83,29 @@ def random_scenario(rng, dof: int):
     return sc, (q[int(np.argmax(ok))] if ok.any() else None)
 
 
+def plan_problems(rng, dof: int, skipped: Counter | None = None, **planner_kw):
+    """
+    Yield (scenario, start_rad, planner, goal_rad) of random scenes (:func:`random_scenario`) without end.
+
+    A draw with no free start or an unreachable target is skipped (counted in ``skipped`` by
+    reason, ``no_free_start`` / ``goal_unreachable``); ``planner_kw`` go to the Planner.
+    """
+    while True:
+        sc, start = random_scenario(rng, dof)
+        if start is None:
+            if skipped is not None:
+                skipped["no_free_start"] += 1
+            continue
+        planner = Planner(sc, **planner_kw)
+        try:
+            goal = planner.goal_from_target()
+        except ValueError:
+            if skipped is not None:
+                skipped["goal_unreachable"] += 1
+            continue
+        yield sc, start, planner, goal
+
+
 def _stats(values_s) -> dict:
     v = np.asarray(values_s, dtype=float)
     med = float(np.median(v))
@@ -110,18 +133,10 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
     planned = []
     scenes = []                 # (total s, draw number, result) of every planned scene
     grid_label = ""
+    problems = plan_problems(rng, dof, drawn, **solver_kw)
     while sum(codes.values()) < count:
-        sc, start = random_scenario(rng, dof)
+        sc, start, planner, goal = next(problems)
         grid_label = sc.grid.label()
-        if start is None:
-            drawn["no_free_start"] += 1
-            continue
-        planner = Planner(sc, **solver_kw)
-        try:
-            goal = planner.goal_from_target()
-        except ValueError:
-            drawn["goal_unreachable"] += 1
-            continue
         if prof is not None:
             with prof:
                 res = planner.plan(start, goal)
