@@ -44,7 +44,7 @@ from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import HorizonPassed, Trajectory, controller_peaks, resample
+from .trajectory import Trajectory, controller_peaks, resample
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
@@ -292,7 +292,7 @@ def _retimed(scenario, args, certify: bool) -> tuple:
         try:
             got, chosen = _time_and_resample(replace(scenario, joint_limits=limits), *args, certify=certify,
                                              chosen=chosen)
-        except (ValueError, HorizonPassed):
+        except ValueError:
             break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
     return got, first
 

@@ -79,17 +79,6 @@ def point_segment_dist2(px, py, ax, ay, bx, by):
 
 
 @njit(cache=True, nogil=True)
-def segment_segment_distance(ax, ay, bx, by, cx, cy, dx, dy):
-    """Distance between segments AB and CD (0 when they intersect)."""
-    if segments_intersect(ax, ay, bx, by, cx, cy, dx, dy):
-        return 0.0
-    return np.sqrt(min(min(point_segment_dist2(ax, ay, cx, cy, dx, dy),
-                           point_segment_dist2(bx, by, cx, cy, dx, dy)),
-                       min(point_segment_dist2(cx, cy, ax, ay, bx, by),
-                           point_segment_dist2(dx, dy, ax, ay, bx, by))))
-
-
-@njit(cache=True, nogil=True)
 def point_in_polygon(px, py, verts, start, stop):
     """Even–odd ray test: True when P lies strictly inside polygon verts[start:stop]."""
     inside = False
@@ -110,7 +99,7 @@ def segment_polygon_distance(ax, ay, bx, by, verts, start, stop):
     """
     Distance from segment AB to polygon verts[start:stop] (0 if touching or inside).
 
-    The smallest of :func:`segment_segment_distance` over the edges, by squared distances
+    The smallest segment-to-edge distance over the edges (0 where AB crosses one), by squared distances
     and one square root (a correctly rounded square root is monotone: the same value); each
     vertex's squared distance to AB is computed once, for both of its edges.
     """

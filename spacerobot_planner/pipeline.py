@@ -559,8 +559,7 @@ class PlanRun:
             starts = self.candidates(self.plan_start, grid, cs.occupied)
             if len(starts) == 0:
                 return                   # descend_and_repair says so, after the solve
-            dist = field_bfs(*validate_problem(cs.occupied, grid.periodic, goal_nodes))[0]
-            joined = bool(np.any(dist.reshape(grid.shape)[tuple(starts.T)] >= 0))
+            joined = bool(np.any(bfs_distance(cs.occupied, grid.periodic, goal_nodes)[tuple(starts.T)] >= 0))
         if not joined:
             self.fld = None
             raise self.no_field_path_failure(cs, None, frozenset(), frozenset(), 0)

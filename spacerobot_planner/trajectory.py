@@ -467,8 +467,6 @@ def _modelled_path(path_rad, max_step_rad: float, refine: int):
     Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
 
     :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,)).
-    Computed for every call: a memo of the last paths (the chain's re-timings time the same
-    path again) saved about 50 us a replan, not worth a module-level cache of shared arrays.
     """
     p = densify_path(np.ascontiguousarray(path_rad, dtype=float), max_step_rad)
     model = None

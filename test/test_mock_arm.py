@@ -125,7 +125,9 @@ def test_controller_peaks_are_the_sampled_motions_peaks(seed):
     _, vel, acc = oracle(t, q, v, a)(ts)
     assert peak_v == pytest.approx(np.max(np.abs(vel) / vlim), rel=1e-9)
     assert peak_a == pytest.approx(np.max(np.abs(acc) / alim), rel=1e-9)
-    _, vel, acc = sample_points(t, q, v, a, ts)            # the same arithmetic: the same numbers
+    # not an oracle (they share the segment search and the Horner evaluation): the controller
+    # check and the sampled points the mock arm follows agree to the bit
+    _, vel, acc = sample_points(t, q, v, a, ts)
     assert (peak_v, peak_a) == (np.max(np.abs(vel) / vlim), np.max(np.abs(acc) / alim))
     with pytest.raises(ValueError, match="increase strictly"):
         controller_peaks(np.r_[t[:3], t[2], t[4:]], q, v, a, u, vlim, alim)

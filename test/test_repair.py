@@ -96,6 +96,7 @@ def test_sheet_edges_collide_and_follow_the_sheet(wall):
                         radius=max(grid.shape), max_tests=0)             # every edge of the grid
     assert len(every) > 50, "the wall should cross many grid edges"
     seed = int(every[len(every) // 2][0])
+    assert _edge_clearance(sc, *map(int, every[len(every) // 2])) < MARGIN_M + TOL_M    # the seed, by the oracle
     node = tuple(int(v) for v in np.unravel_index(seed, grid.shape))
     found = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=1,
                         max_tests=10 ** 6)
@@ -124,6 +125,7 @@ def test_the_box_around_the_node_is_searched_whatever_the_count(wall):
     grid, occ = sc.grid, cs.occupied
     every = sheet_edges(occ, grid.periodic, (0, 0, 0), motions, grid.lower_rad, grid.step_rad,
                         radius=max(grid.shape), max_tests=0)
+    assert _edge_clearance(sc, *map(int, every[0])) < MARGIN_M + TOL_M          # the seed, by the oracle
     node = tuple(int(v) for v in np.unravel_index(int(every[0][0]), grid.shape))
     few = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2, max_tests=0)
     more = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2)
