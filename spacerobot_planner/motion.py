@@ -442,8 +442,8 @@ class MotionValidator:
         keyed by the rows' bytes) and a later check of an interval with the same two rows bit
         for bit reuses it: the grid path of a replan shares every interval but its first with
         the plan before, and a start's join checked by :meth:`segment_ok` (``keep``) is the first interval
-        of its grid path.  The intervals not kept are checked by :func:`check_kernel`, one call
-        per run of consecutive ones.  Returns what :meth:`check` returns, except ``n_checked``:
+        of its grid path.  The intervals not kept are checked by :meth:`check`, one call per run
+        of consecutive ones.  Returns what :meth:`check` returns, except ``n_checked``:
         the clearance evaluations this call made.
         """
         p = np.ascontiguousarray(path_rad, dtype=float)
@@ -476,15 +476,13 @@ class MotionValidator:
                 k += 1
             hi = todo[k] + 1            # intervals lo .. hi - 1: rows lo .. hi
             k += 1
-            vc = vertex_clr[lo:hi + 1].copy()
-            _, _, n_run, ok_run, clr_run = check_kernel(
-                p[lo:hi + 1], self.lower_rad, self.upper_rad, self._periodic_mask, *self.kernel_arrays,
-                float(self.checker.margin_m), self.lipschitz_m_per_rad, self.step_rad, 1e-6, True, vc)
-            n += int(n_run)
-            interval_ok[lo:hi] = ok_run
-            interval_clr[lo:hi] = clr_run
-            vertex_clr[lo:hi + 1] = vc
-            oks, clrs, vcs = ok_run.tolist(), clr_run.tolist(), vc.tolist()
+            run = self.check(p[lo:hi + 1], vertex_clearance_m=vertex_clr[lo:hi + 1])    # its own copy
+            n += run.n_checked
+            interval_ok[lo:hi] = run.interval_ok
+            interval_clr[lo:hi] = run.interval_clearance_m
+            vertex_clr[lo:hi + 1] = run.vertex_clearance_m
+            oks, clrs, vcs = (run.interval_ok.tolist(), run.interval_clearance_m.tolist(),
+                              run.vertex_clearance_m.tolist())
             for j in range(hi - lo):
                 if len(kept) >= KEPT_INTERVALS:
                     kept.pop(next(iter(kept)))              # the oldest out
