@@ -21,9 +21,10 @@ copies of the one-line wrap (cspace, descent kernels).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
-__all__ = ["TWO_PI", "wrap_angle_rad", "wrap_rad", "difference_rad", "distance_rad", "interpolate_rad",
-           "unwrap_path", "nearest_turn_rad", "align_to_state", "within_bounds", "deg_text"]
+__all__ = ["TWO_PI", "wrap_angle_rad", "wrap_angle_scalar_rad", "wrap_rad", "difference_rad", "distance_rad",
+           "interpolate_rad", "unwrap_path", "nearest_turn_rad", "align_to_state", "within_bounds", "deg_text"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -31,6 +32,12 @@ TWO_PI = 2.0 * np.pi
 def wrap_angle_rad(angle_rad):
     """Angles wrapped to [-π, π): scalars or arrays of any shape."""
     return (np.asarray(angle_rad, dtype=float) + np.pi) % TWO_PI - np.pi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def wrap_angle_scalar_rad(angle_rad):
+    """:func:`wrap_angle_rad` of one float inside a numba kernel (the same rule and operations)."""
+    return (angle_rad + np.pi) % TWO_PI - np.pi
 
 
 def _mask(periodic, n: int) -> np.ndarray:

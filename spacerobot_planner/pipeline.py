@@ -36,9 +36,9 @@ import numpy as np
 
 from .contact import leave_contact
 from .field import bfs_distance, validate_problem
-from .field.graph import _next_coord, bfs as field_bfs
+from .field.graph import _next_coord, bfs as field_bfs, grid_strides
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
-from .joint_space import TWO_PI, align_to_state, deg_text, nearest_turn_rad, unwrap_path
+from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path, wrap_angle_scalar_rad
 from .motion import MotionValidator
 from .repair import sheet_edges
 from .results import STAGES, Code, PlanResult
@@ -114,10 +114,8 @@ def _near_free_nodes(q_rad, lower_rad, step_rad, shape, periodic, occupied_flat,
     vals = np.empty((ndim, 4), np.int64)         # each axis' distinct in-range indices, ascending
     dsq = np.empty((ndim, 4))                    # their squared differences to q
     counts = np.zeros(ndim, np.int64)
-    strides = np.empty(ndim, np.int64)
-    total = 1
+    strides = grid_strides(shape)
     for a in range(ndim - 1, -1, -1):
-        strides[a] = total
         base = np.int64(math.floor((q_rad[a] - lower_rad[a]) / step_rad[a]))
         for o in range(-1, 3):
             v = base + o
@@ -139,9 +137,8 @@ def _near_free_nodes(q_rad, lower_rad, step_rad, shape, periodic, occupied_flat,
         for j in range(counts[a]):
             d = (lower_rad[a] + vals[a, j] * step_rad[a]) - q_rad[a]
             if periodic[a]:
-                d = (d + np.pi) % TWO_PI - np.pi
+                d = wrap_angle_scalar_rad(d)
             dsq[a, j] = d * d
-        total *= shape[a]
     n_all = 1
     for a in range(ndim):
         n_all *= counts[a]
