@@ -12,7 +12,8 @@ Coarse levels aggregate the unknowns by index blocks: node (i, j, …) joins agg
 prolongation P the coarse operator Pᵀ A P is again a face-neighbour operator (a weight per
 direction and a diagonal), so every level is stored like the fine one.  Blocks follow the
 grid's periodic wrap, so the attitude seam needs nothing special.  The coarsest level (at
-most ``COARSEST_NODES`` unknowns) is solved by a dense Cholesky factor.
+most ``COARSEST_NODES`` unknowns; a whole problem of at most ``DIRECT_NODES``) is solved by a
+dense Cholesky factor.
 
 One preconditioner application is a symmetric V-cycle (forward Gauss–Seidel before the
 coarse correction, backward after; the correction scaled by ``boost``, 1.8 on a 2-D grid
@@ -41,8 +42,14 @@ import time
 import numba as nb
 import numpy as np
 
-#: Stop coarsening at this many unknowns and solve that level directly.
-COARSEST_NODES = 100
+#: Stop coarsening at this many unknowns and solve that level directly.  Its dense triangular
+#: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a tenth to a
+#: quarter of a band's CG time on the paper's grids; at 30 the extra levels cost next to nothing
+#: and the iterations are the same (2 more of 1 060 over 125 random 2-DOF bands).
+COARSEST_NODES = 30
+#: A problem of at most this many unknowns is not coarsened: its fine level is the coarsest,
+#: solved directly in one iteration (the small bands of narrow passages).
+DIRECT_NODES = 100
 #: Gauss–Seidel sweeps before and after the coarse correction on the coarse levels.
 COARSE_SWEEPS = 2
 #: The scale of the coarse correction (plain aggregation under-corrects), by grid dimension
@@ -258,7 +265,7 @@ def _levels(nb0, red0, coords, shape, stop):
     for a in range(shape.size):
         ncell *= (shape[a] + 1) // 2
     cell_id = np.full(ncell, -1, np.int64)  # the first coarse grid is the largest
-    while size > COARSEST_NODES and np.any(shape > 1):
+    while size > COARSEST_NODES and n > DIRECT_NODES and np.any(shape > 1):
         if stop[0] != 0:
             stopped = True
             break
