@@ -43,9 +43,9 @@ import numba as nb
 import numpy as np
 
 #: Stop coarsening at this many unknowns and solve that level directly.  Its dense triangular
-#: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a tenth to a
-#: quarter of a band's CG time on the paper's grids; at 30 the extra levels cost next to nothing
-#: and the iterations are the same (2 more of 1 060 over 125 random 2-DOF bands).
+#: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a third of
+#: a 200-node band's time (0.61x at 30) and nothing on the paper's first bands; the extra levels
+#: cost next to nothing and the iterations are the same (1 067 vs 1 062 over 125 random 2-DOF bands).
 COARSEST_NODES = 30
 #: A problem of at most this many unknowns is not coarsened: its fine level is the coarsest,
 #: solved directly in one iteration (the small bands of narrow passages).
