@@ -29,7 +29,6 @@ import functools
 import math
 import time
 import traceback as _traceback
-from contextlib import contextmanager
 
 import numba as nb
 import numpy as np
@@ -180,6 +179,21 @@ def _grid_arrays(grid):
             np.asarray(grid.shape, dtype=np.int64), np.asarray(grid.periodic, dtype=np.bool_))
 
 
+class _StageTimer:
+    """:meth:`PlanRun.stage`'s context manager: the time spent in its block added to ``timings[name]``."""
+
+    __slots__ = ("timings", "name", "t")
+
+    def __init__(self, timings: dict, name: str):
+        self.timings, self.name = timings, name
+
+    def __enter__(self) -> None:
+        self.t = time.perf_counter()
+
+    def __exit__(self, *exc) -> None:
+        self.timings[self.name] += time.perf_counter() - self.t
+
+
 def refined(grid):
     """Return the grid with twice the cells along every axis (``cspace.GridSpec``)."""
     return grid.with_cells(tuple(2 * int(c) for c in grid.cells))
@@ -226,14 +240,9 @@ class PlanRun:
         self.level = 0                             # refinements of the grid now tried
 
     # ---------------------------------------------------------------- helpers
-    @contextmanager
-    def stage(self, name: str):
+    def stage(self, name: str) -> "_StageTimer":
         """Add the time spent in the ``with`` block to ``timings_s[name]``."""
-        t = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.timings[name] += time.perf_counter() - t
+        return _StageTimer(self.timings, name)
 
     def say(self, text: str) -> None:
         if self.progress is not None:
@@ -573,8 +582,9 @@ class PlanRun:
         if hit:
             self.timings["field"] = before
             self.cached.append("field")
-            self.say(f"field: cached ({fld.solver})")
-        else:
+            if self.progress is not None:
+                self.say(f"field: cached ({fld.solver})")
+        elif self.progress is not None:
             self.say(f"field ({fld.solver}): {1e3 * spent:.1f} ms, {fld.sweeps} "
                      f"{'sweeps' if fld.solver == 'gauss_seidel' else 'iterations'}, residual "
                      f"{fld.residual:.2e}" + ("" if fld.converged else f"; NOT converged: {fld.left}"))
@@ -807,9 +817,10 @@ class PlanRun:
         self.check_cancel()
         if sm is None:
             raise Fail(Code.PATH_INVALID, "no smoothed path passed the dense collision check")
-        self.say(f"smoothing ({sm.method}, {sm.refinements} refinements): "
-                 f"{1e3 * self.timings['smoothing']:.1f} ms; {len(sm.path_rad)} samples, length "
-                 f"{sm.length_rad:.3f} rad, min clearance {sm.min_clearance_m:.4f} m")
+        if self.progress is not None:
+            self.say(f"smoothing ({sm.method}, {sm.refinements} refinements): "
+                     f"{1e3 * self.timings['smoothing']:.1f} ms; {len(sm.path_rad)} samples, length "
+                     f"{sm.length_rad:.3f} rad, min clearance {sm.min_clearance_m:.4f} m")
         return sm
 
     def full_path(self, smooth) -> np.ndarray:
@@ -831,13 +842,15 @@ class PlanRun:
                                                   motions=self.validator)
             except ValueError as e:
                 raise Fail(Code.INVALID_INPUT, str(e)) from None
-            self.say(f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points "
-                     f"({1e3 * self.timings['trajectory']:.1f} ms)")
+            if self.progress is not None:
+                self.say(f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points "
+                         f"({1e3 * self.timings['trajectory']:.1f} ms)")
             if reaction is not None and not reaction.ok:
                 return self.result(Code.REACTION_REFUSED, reaction.reason, smooth=smooth, path=path,
                                    trajectory=traj, reaction=reaction)
         res = self.result(Code.OK, None, smooth=smooth, path=path, trajectory=traj, reaction=reaction)
-        self.say(f"total {1e3 * res.timings_s['total']:.1f} ms")
+        if self.progress is not None:
+            self.say(f"total {1e3 * res.timings_s['total']:.1f} ms")
         return res
 
     def run(self, start_rad, goal_rad) -> PlanResult:

@@ -26,7 +26,7 @@ from numba import njit
 
 from .collision import NO_REFCOUNT, config_clearance
 from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
-from .trajectory import hermite_coefficients, not_a_knot_slopes
+from .trajectory import arc_lengths_rad, chord_lengths_rad, hermite_coefficients, not_a_knot_slopes
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
            "spline_through", "smooth_path", "warm_up", "DEFAULT_MAX_STEP_RAD"]
@@ -68,7 +68,7 @@ def path_length_rad(path_rad) -> float:
     p = np.asarray(path_rad, dtype=float)
     if len(p) < 2:
         return 0.0
-    return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+    return float(np.sum(chord_lengths_rad(p)))
 
 
 def densify_polyline(points_rad, max_step_rad: float) -> np.ndarray:
@@ -172,8 +172,7 @@ def _shortcut(pts, iv_clr, cap, kernel_arrays, margin_m, lip, step_rad, certifie
     keep = np.empty(m, np.int64)
     # the quick test's samples of a segment: at most its length / step + 1, and no chord is longer
     # than the polyline (its length with a margin far above the rounding of either)
-    n_samples = int(math.ceil(float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))) * (1.0 + 1e-9)
-                              / step_rad)) + 2
+    n_samples = int(math.ceil(float(np.sum(chord_lengths_rad(pts))) * (1.0 + 1e-9) / step_rad)) + 2
     n_keep = _shortcut_kernel(pts, iv_clr, cap, *kernel_arrays, margin_m, lip, step_rad, certified, vertex_clr,
                               keep, np.empty((2, dof)), np.zeros(1, np.bool_), np.zeros(1), np.empty(2),
                               np.empty(n_samples, np.bool_), np.empty((2 * n_samples + 1, 2), np.int64),
@@ -333,10 +332,6 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
 
 
 # ---------------------------------------------------------------------- spline
-def _polyline_param(pts):
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-
-
 def _polyline_at(pts, t_pts, t):
     """Points of the polyline (vertices pts at arc lengths t_pts) at arc lengths t."""
     out = np.empty((len(t), pts.shape[1]))
@@ -364,22 +359,22 @@ def _spline_samples(knots_rad, max_step_rad):
     knot_param[i + 1] (the last sample: the last interval).  Knots closer than 1e-12 rad to
     the previous one are dropped (the chord-length parameter must increase strictly).
     """
-    k = np.asarray(knots_rad, dtype=float)
+    k = np.ascontiguousarray(knots_rad, dtype=float)
     if len(k) > 1:       # the chord-length parameter must increase strictly
-        step = np.linalg.norm(np.diff(k, axis=0), axis=1)
-        keep = np.concatenate([[True], step > 1e-12])
-        if not keep[-1]:
-            keep[np.flatnonzero(keep)[-1]] = False
-            keep[-1] = True
-        k = k[keep] if keep.sum() >= 2 else k[[0, -1]]
-    s = _polyline_param(k)
+        moves = chord_lengths_rad(k) > 1e-12
+        if not moves.all():
+            keep = np.concatenate([[True], moves])
+            if not keep[-1]:
+                keep[np.flatnonzero(keep)[-1]] = False
+                keep[-1] = True
+            k = k[keep] if keep.sum() >= 2 else k[[0, -1]]
+    s = arc_lengths_rad(k)
     if len(k) == 1 or s[-1] <= 1e-12:
         return k[[0, -1]].copy(), s[[0, -1]], s[[0, -1]].copy(), np.zeros(2, np.int64)
     if len(k) == 2:
         dense = densify_polyline(k, max_step_rad)
-        u = _polyline_param(dense)
+        u = arc_lengths_rad(dense)
         return dense, s, u, np.zeros(len(dense), np.int64)
-    k = np.ascontiguousarray(k)
     q, u, iv = _spline_kernel(s, k, float(max_step_rad))
     q[0], q[-1] = k[0], k[-1]
     return q, s, u, iv
@@ -430,13 +425,13 @@ def _spline_kernel(s, y, max_step_rad):
         total = int(np.ceil(total * largest / max_step_rad * 1.05)) + 1
 
 
-def _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified):
+def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified):
     """
     Spline through polyline points at arc lengths t_knots, refined where it collides.
 
+    ``t_poly``: the polyline's arc length at each vertex (``trajectory.arc_lengths_rad``).
     Returns (samples, knots, check, rounds) of the first clean spline, or None.
     """
-    t_poly = _polyline_param(poly)
     t_vertices = t_poly
     t_knots = np.unique(t_knots)
     for rounds in range(max_rounds + 1):
@@ -529,6 +524,43 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
                       chk.n_checked)
 
 
+@njit(cache=True, nogil=True)
+def _median(x):
+    """Return ``np.median`` of a 1-D float array (numba's: the middle value, or the mean of the middle two)."""
+    return np.median(x)
+
+
+@njit(cache=True, nogil=True)
+def _stretch_knots(t, spacing):
+    """
+    Return knot parameters along a polyline: each stretch t[k] .. t[k + 1] evenly split, about ``spacing`` apart.
+
+    t (m ≥ 2,) increasing arc lengths of the polyline's vertices.  Stretch k gets
+    ``np.linspace(t[k], t[k + 1], max(2, ⌈(t[k + 1] - t[k]) / max(spacing, 1e-9)⌉ + 1))``
+    by NumPy's arithmetic (i·step + start, the end exact; (i / div)·delta where the step
+    is 0), and the stretches follow one another, ends repeated: NumPy's concatenation of
+    those linspaces, (Σ counts,).
+    """
+    sp = max(spacing, 1e-9)
+    counts = np.empty(t.shape[0] - 1, np.int64)
+    total = 0
+    for k in range(t.shape[0] - 1):
+        counts[k] = max(2, int(np.ceil((t[k + 1] - t[k]) / sp)) + 1)
+        total += counts[k]
+    out = np.empty(total)
+    r = 0
+    for k in range(t.shape[0] - 1):
+        a = t[k]
+        delta = t[k + 1] - a
+        div = counts[k] - 1
+        step = delta / div
+        for i in range(div):
+            out[r + i] = (i * step if step != 0.0 else (i / div) * delta) + a
+        out[r + div] = t[k + 1]
+        r += div + 1
+    return out
+
+
 def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad, max_rounds, cancel,
             certified, waypoint_check=None):
     """
@@ -540,9 +572,9 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
 
     See :func:`smooth_path`.
     """
-    w = np.asarray(waypoints_rad, dtype=float)
+    w = np.ascontiguousarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
-    steps = np.linalg.norm(np.diff(w, axis=0), axis=1)
+    steps = chord_lengths_rad(w)
     if len(w) < 2 or not np.all(steps > 1e-12):
         rows = [w[0]]                   # drop repeated rows, keep the exact ends
         for r in w[1:-1]:
@@ -553,7 +585,7 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
         elif len(rows) > 1:
             rows[-1] = w[-1]
         w = np.array(rows)
-        steps = np.linalg.norm(np.diff(w, axis=0), axis=1)
+        steps = chord_lengths_rad(w)
         waypoint_check = None           # a check of other rows
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
         return ends, ends.copy(), "polyline", 0, None
@@ -563,19 +595,16 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
             keep_idx = shortcut_indices(v, w, keep_clearance_m=keep_clearance_m, certified=certified,
                                         polyline_check=waypoint_check)
             sc = w[keep_idx]
-            t_sc = _polyline_param(sc)
+            t_sc = arc_lengths_rad(sc)
             # knots: the shortcut vertices plus points about two grid steps apart on
             # long straight stretches, so corners are rounded but not cut
-            spacing = knot_stride * np.median(steps)
-            extra = [np.linspace(a, b, max(2, int(np.ceil((b - a) / max(spacing, 1e-9))) + 1))
-                     for a, b in zip(t_sc[:-1], t_sc[1:])]
-            yield "shortcut_spline", sc, np.concatenate(extra)
-        t_w = np.concatenate([[0.0], np.cumsum(steps)])        # _polyline_param(w)
+            yield "shortcut_spline", sc, t_sc, _stretch_knots(t_sc, knot_stride * _median(steps))
+        t_w = arc_lengths_rad(w)
         stride_idx = np.unique(np.concatenate([np.arange(0, len(w), max(1, knot_stride)), [len(w) - 1]]))
-        yield "spline", w, t_w[stride_idx]
+        yield "spline", w, t_w, t_w[stride_idx]
 
-    for method, poly, t_knots in attempts():
-        res = _refined_spline(v, poly, t_knots, max_step_rad, max_rounds, cancel, certified)
+    for method, poly, t_poly, t_knots in attempts():
+        res = _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified)
         if res is not None:
             samples, knots, chk, rounds = res
             known = None if chk.vertex_clearance_m is None else chk.vertex_clearance_m.copy()
@@ -595,13 +624,14 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
 
 def warm_up() -> None:
     """
-    Compile (or load from numba's cache) this module's kernels: the spline, the bounds' snap and the shortcut pass.
+    Compile (or load from numba's cache) this module's kernels: spline, knots, bounds' snap and the shortcut pass.
 
     On a made-up three-link arm (planned joints 1 and 2) and one square obstacle, with the
     argument types of a plan; a coarse warm-up plan may not reach them (a straight shortcut
     needs no spline).
     """
     _spline_samples(np.radians([[0.0, 0.0], [20.0, 10.0], [40.0, 5.0], [55.0, -3.0]]), DEFAULT_MAX_STEP_RAD)
+    _stretch_knots(np.array([0.0, 0.1, 0.3]), 2 * _median(np.array([0.1, 0.2])))
     square = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
     arrays = (np.zeros(3), np.array([1, 2], dtype=np.int64), np.array([1.4, 2.0, 2.0]),
               np.array([1, 2], dtype=np.int64), square.copy(), square + 6.0, np.array([0, 4], dtype=np.int64),

@@ -80,7 +80,8 @@ from .motion import MotionValidator
 
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
-           "horizon_index", "HorizonPassed", "sample_points", "controller_peaks"]
+           "horizon_index", "HorizonPassed", "sample_points", "controller_peaks", "chord_lengths_rad",
+           "arc_lengths_rad"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -404,13 +405,21 @@ def _chords(p):
 
 
 @njit(cache=True, nogil=True)
+def _running_sum(ds):
+    """Return 0 and the running sums of ds (K,): (K + 1,), in order (NumPy's ``concatenate([[0], cumsum(ds)])``)."""
+    m = ds.shape[0] + 1
+    out = np.empty(m)
+    out[0] = 0.0
+    for k in range(m - 1):
+        out[k + 1] = out[k] + ds[k]
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _grid(ds, refine):
     """Return the knots' chord lengths (M,) and the grid's s (G,), G = (M-1)·refine + 1, knots exact."""
     m = ds.shape[0] + 1
-    s_knots = np.empty(m)
-    s_knots[0] = 0.0
-    for k in range(m - 1):
-        s_knots[k + 1] = s_knots[k] + ds[k]
+    s_knots = _running_sum(ds)
     s = np.empty((m - 1) * refine + 1)
     for k in range(m - 1):
         s[k * refine] = s_knots[k]
@@ -435,6 +444,28 @@ def _spline_on_grid(p, ds, refine):
 _SEQUENTIAL_SUM_MAX = 7
 
 
+def chord_lengths_rad(p) -> np.ndarray:
+    """
+    Return the Euclidean length of each step of a path p (M ≥ 1, n): (M-1,), rad.
+
+    NumPy's ``np.linalg.norm(np.diff(p, axis=0), axis=1)`` bit for bit, by :func:`_chords` up to
+    ``_SEQUENTIAL_SUM_MAX`` joints (NumPy's row sums are plain left-to-right sums there).
+    """
+    p = np.ascontiguousarray(p, dtype=float)
+    if p.shape[1] <= _SEQUENTIAL_SUM_MAX and len(p) >= 1:
+        return _chords(p)
+    return np.linalg.norm(np.diff(p, axis=0), axis=1)
+
+
+def arc_lengths_rad(p) -> np.ndarray:
+    """
+    Return the path's length up to each row of p (M ≥ 1, n): (M,), rad, 0 first.
+
+    NumPy's ``concatenate([[0.0], cumsum(chord_lengths)])`` bit for bit (:func:`chord_lengths_rad`).
+    """
+    return _running_sum(chord_lengths_rad(p))
+
+
 def _path_model(p, refine: int):
     """
     Fit the cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
@@ -445,10 +476,7 @@ def _path_model(p, refine: int):
     SciPy's not-a-knot ``CubicSpline``, by the kernels above from 3 samples on.
     """
     idx = np.arange(len(p)) * refine
-    if p.shape[1] <= _SEQUENTIAL_SUM_MAX:
-        ds = _chords(p)
-    else:
-        ds = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    ds = chord_lengths_rad(p)
     if len(p) >= 3:
         s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine)
         return s, idx, q, d1, d2, d3

@@ -6,7 +6,7 @@ import pytest
 from oracles import shortest_grid_path
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.motion import MotionValidator, check_path
-from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, densify_polyline,
+from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, _median, _stretch_knots, densify_polyline,
                                           path_length_rad, shortcut_indices, smooth_path,
                                           spline_through)
 from spacerobot_planner.joint_space import unwrap_path
@@ -221,3 +221,21 @@ def test_kept_interval_checks_equal_a_fresh_check_bit_for_bit(sc2, chk2):
         assert kept.check_kept(path).n_checked == 0               # every interval kept now
         outcomes.update(fresh.interval_ok.tolist())
     assert outcomes == {True, False}                               # both kinds of interval seen
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_shortcut_knots_are_numpys_linspaces(seed):
+    # the shortcut spline's knots: per stretch of the shortcut polyline, NumPy's linspace about
+    # knot_stride times the median waypoint step apart, concatenated (the rule as it was written)
+    rng = np.random.default_rng(seed)
+    for k in range(300):
+        steps = rng.uniform(1e-6, 1.0, int(rng.integers(2, 30))) * 10.0 ** rng.uniform(-3, 1)
+        if k % 5 == 0:
+            steps[-1] = steps[0]                                 # ties in the median
+        t = np.concatenate([[0.0], np.cumsum(rng.uniform(1e-6, 2.0, int(rng.integers(1, 12))))])
+        stride = int(rng.integers(1, 4))
+        spacing = stride * np.median(steps)
+        assert stride * _median(steps) == spacing
+        ref = np.concatenate([np.linspace(a, b, max(2, int(np.ceil((b - a) / max(spacing, 1e-9))) + 1))
+                              for a, b in zip(t[:-1], t[1:])])
+        np.testing.assert_array_equal(_stretch_knots(t, stride * _median(steps)), ref)

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
 
-from spacerobot_planner.trajectory import _path_model, _rounding_margins, densify_path
+from spacerobot_planner.trajectory import (_path_model, _rounding_margins, arc_lengths_rad, chord_lengths_rad,
+                                           densify_path)
 
 EPS = float(np.finfo(float).eps)
 SLACK = 1e-10
@@ -128,3 +129,16 @@ def test_rounding_margins_are_the_array_formulation_bit_for_bit(seed):
     ref_acc, ref_vel = _margins_numpy(t, dt, p, np.abs(d1[0]) * np.sqrt(x[0]), amax, refine)
     assert acc.tobytes() == ref_acc.tobytes() and vel.tobytes() == ref_vel.tobytes()
     assert grown == (not (np.all(ref_acc <= m_acc) and np.all(ref_vel <= m_vel)))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_chord_and_arc_lengths_are_numpys_row_norms_and_running_sums(seed):
+    # NumPy's formulation, which every caller used before (path lengths, the chord parameters
+    # of the splines): the same values bit for bit, below and above 7 joints
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        m, n = int(rng.integers(1, 40)), int(rng.integers(1, 10))
+        p = rng.normal(size=(m, n)) * 10.0 ** rng.uniform(-4, 2)
+        chords = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        np.testing.assert_array_equal(chord_lengths_rad(p), chords)
+        np.testing.assert_array_equal(arc_lengths_rad(p), np.concatenate([[0.0], np.cumsum(chords)]))
