@@ -14,8 +14,10 @@ Two forms of periodic values:
   the smoothing, the trajectory and the motion checks work on).
 
 Every function takes ``periodic`` as a sequence of bools, one per column; arrays
-broadcast over leading axes.  No numba here: the hot loops have their own inline
-copies of the one-line wrap (cspace, descent kernels).
+broadcast over leading axes.  The path functions run small numba kernels
+(``_wrap_rows``, ``_unwrap_rows``, ``_turn_rows``) that do NumPy's operations element by
+element, in NumPy's order (a plan calls them a few times: the same values, without the
+temporaries).
 """
 
 from __future__ import annotations
@@ -41,10 +43,51 @@ def wrap_angle_scalar_rad(angle_rad):
 
 
 def _mask(periodic, n: int) -> np.ndarray:
-    per = np.asarray(periodic, dtype=bool).reshape(-1)
+    per = np.ascontiguousarray(periodic, dtype=bool).reshape(-1)
     if per.shape != (n,):
         raise ValueError(f"periodic: expected {n} flags (one per joint), got {per.shape[0]}")
     return per
+
+
+@njit(cache=True, nogil=True)
+def _wrap_rows(q, lower_rad, per):
+    """:func:`wrap_rad` in place on the rows of q (k, n): lower + (q - lower) mod 2π on the periodic columns."""
+    for r in range(q.shape[0]):
+        for a in range(q.shape[1]):
+            if per[a]:
+                q[r, a] = lower_rad[a] + (q[r, a] - lower_rad[a]) % TWO_PI
+
+
+@njit(cache=True, nogil=True)
+def _unwrap_rows(q, per):
+    """
+    Run :func:`unwrap_path` in place on q (M ≥ 2, n).
+
+    On each periodic column the row-to-row differences wrapped into [-π, π), their running sum from
+    the first, added to the first row (NumPy's diff, cumsum and sum, in that order).
+    """
+    for a in range(q.shape[1]):
+        if not per[a]:
+            continue
+        first = q[0, a]
+        prev = first
+        total = 0.0
+        for k in range(1, q.shape[0]):
+            now = q[k, a]
+            step = wrap_angle_scalar_rad(now - prev)
+            total = step if k == 1 else total + step
+            q[k, a] = first + total
+            prev = now
+
+
+@njit(cache=True, nogil=True)
+def _turn_rows(p, reference_rad, per):
+    """Shift the periodic columns of p (M, n) by the whole turns that bring row 0 nearest ``reference_rad`` (n,)."""
+    for a in range(p.shape[1]):
+        if per[a]:
+            shift = TWO_PI * np.rint((reference_rad[a] - p[0, a]) / TWO_PI)
+            for k in range(p.shape[0]):
+                p[k, a] = p[k, a] + shift
 
 
 def wrap_rad(q_rad, periodic, lower_rad) -> np.ndarray:
@@ -53,10 +96,13 @@ def wrap_rad(q_rad, periodic, lower_rad) -> np.ndarray:
 
     Returns a new array.
     """
-    q = np.array(q_rad, dtype=float, copy=True)
-    per = _mask(periodic, q.shape[-1])
-    lo = np.broadcast_to(np.asarray(lower_rad, dtype=float), (q.shape[-1],))
-    q[..., per] = lo[per] + (q[..., per] - lo[per]) % TWO_PI
+    q = np.array(q_rad, dtype=float, copy=True, order="C")
+    n = q.shape[-1]
+    per = _mask(periodic, n)
+    lo = np.asarray(lower_rad, dtype=float)
+    if lo.shape != (n,):
+        lo = np.broadcast_to(lo, (n,))
+    _wrap_rows(q.reshape(-1, n), np.ascontiguousarray(lo), per)
     return q
 
 
@@ -94,11 +140,12 @@ def unwrap_path(path_rad, periodic) -> np.ndarray:
 
     The first row is kept exactly; bounded columns are untouched.  Returns a new array.
     """
-    q = np.array(path_rad, dtype=float, copy=True)
-    per = _mask(periodic, q.shape[-1])
-    if len(q) > 1 and per.any():
-        step = wrap_angle_rad(np.diff(q[:, per], axis=0))
-        q[1:, per] = q[0, per] + np.cumsum(step, axis=0)
+    q = np.array(path_rad, dtype=float, copy=True, order="C")
+    if q.ndim != 2:
+        raise ValueError(f"unwrap_path: expected an (M, n) path, got shape {q.shape}")
+    per = _mask(periodic, q.shape[1])
+    if len(q) > 1:
+        _unwrap_rows(q, per)
     return q
 
 
@@ -111,10 +158,11 @@ def nearest_turn_rad(value_rad, reference_rad, periodic) -> np.ndarray:
     (n,) → (n,).
     """
     v = np.array(value_rad, dtype=float, copy=True)
-    per = _mask(periodic, v.shape[-1])
-    ref = np.asarray(reference_rad, dtype=float)
-    turns = np.round((ref[..., per] - v[..., per]) / TWO_PI)
-    v[..., per] = v[..., per] + TWO_PI * turns
+    if v.ndim != 1:
+        raise ValueError(f"nearest_turn_rad: expected an (n,) value, got shape {v.shape}")
+    per = _mask(periodic, v.shape[0])
+    ref = np.ascontiguousarray(np.broadcast_to(np.asarray(reference_rad, dtype=float), v.shape))
+    _turn_rows(v.reshape(1, -1), ref, per)
     return v
 
 
@@ -140,14 +188,12 @@ def align_to_state(path_rad, state_rad, periodic, tol_rad: float = 1e-6) -> np.n
         ValueError: the path does not start at the state (up to whole turns).
 
     """
-    p = np.array(path_rad, dtype=float, copy=True)
-    s = np.asarray(state_rad, dtype=float)
+    p = np.array(path_rad, dtype=float, copy=True, order="C")
+    s = np.ascontiguousarray(state_rad, dtype=float)
     if p.ndim != 2 or len(p) == 0 or s.shape != (p.shape[1],):
         raise ValueError(f"align_to_state: expected an (M, n) path and an (n,) state, got {p.shape} "
                          f"and {s.shape}")
-    per = _mask(periodic, p.shape[1])
-    turns = np.round((s[per] - p[0, per]) / TWO_PI)
-    p[:, per] += TWO_PI * turns
+    _turn_rows(p, s, _mask(periodic, p.shape[1]))
     gap = np.abs(p[0] - s)
     if np.any(gap > tol_rad):
         k = int(np.argmax(gap))

@@ -14,6 +14,7 @@ in the paper's 2-DOF case) keep the value in ``locked_rad``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -112,6 +113,11 @@ class PlanarArm:
         object.__setattr__(self, "locked_rad", locked)
         if any(not 0 <= k < n for k in self.checked_links):
             raise ValueError("checked_links: link indices out of range")
+        # the planned joints' bounds and flags, made once and never written (the properties hand out
+        # copies; writeable, as the kernels that read them are compiled for)
+        for attr, values, dtype in (("_planned_lower", lo, float), ("_planned_upper", hi, float),
+                                    ("_planned_periodic", self.periodic, bool)):
+            object.__setattr__(self, attr, np.array([values[j] for j in planned], dtype=dtype))
 
     # ------------------------------------------------------------------ joints
     @property
@@ -129,11 +135,11 @@ class PlanarArm:
 
     @property
     def planned_lower_rad(self) -> np.ndarray:
-        return np.asarray(self.lower_rad, dtype=float)[list(self.planned_joints)]
+        return self._planned_lower.copy()
 
     @property
     def planned_upper_rad(self) -> np.ndarray:
-        return np.asarray(self.upper_rad, dtype=float)[list(self.planned_joints)]
+        return self._planned_upper.copy()
 
     @property
     def planned_periodic(self) -> tuple:
@@ -157,15 +163,15 @@ class PlanarArm:
         if q.shape != (self.dof,):
             raise ValueError(f"{name}: expected {self.dof} joint values "
                              f"({', '.join(self.planned_names)}), got shape {q.shape}")
-        lo, hi = self.planned_lower_rad, self.planned_upper_rad
-        for k, j in enumerate(self.planned_joints):
+        lo, hi = self._planned_lower, self._planned_upper
+        for k, (j, x, low, high) in enumerate(zip(self.planned_joints, q.tolist(), lo.tolist(), hi.tolist())):
             jn = self.joint_names[j]
-            if not np.isfinite(q[k]):
+            if not math.isfinite(x):
                 raise ValueError(f"{name}: joint '{jn}' is {q[k]} (not a finite number)")
-            if not self.periodic[j] and not (lo[k] - 1e-9 <= q[k] <= hi[k] + 1e-9):
+            if not self.periodic[j] and not (low - 1e-9 <= x <= high + 1e-9):
                 raise ValueError(f"{name}: joint '{jn}' = {np.degrees(q[k]):.3f}° is outside its "
                                  f"bounds [{np.degrees(lo[k]):.1f}°, {np.degrees(hi[k]):.1f}°]")
-        return wrap_rad(q, self.planned_periodic, lo)
+        return wrap_rad(q, self._planned_periodic, lo)
 
     # -------------------------------------------------------------- kinematics
     def forward_kinematics(self, q_full) -> np.ndarray:
