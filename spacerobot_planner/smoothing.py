@@ -609,7 +609,7 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
             samples, knots, chk, rounds = res
             known = None if chk.vertex_clearance_m is None else chk.vertex_clearance_m.copy()
             for k, end in ((0, w[0]), (-1, w[-1])):
-                if known is not None and not np.array_equal(samples[k], end):
+                if known is not None and not (samples[k] == end).all():
                     known[k] = np.nan           # moved: evaluated again
             samples[0], samples[-1] = w[0], w[-1]
             return samples, knots, method, rounds, known
