@@ -43,10 +43,16 @@ def wrap_angle_scalar_rad(angle_rad):
 
 
 def _mask(periodic, n: int) -> np.ndarray:
-    per = np.ascontiguousarray(periodic, dtype=bool).reshape(-1)
+    per = np.array(periodic, dtype=bool).reshape(-1)         # a writeable copy (the kernels' signature)
     if per.shape != (n,):
         raise ValueError(f"periodic: expected {n} flags (one per joint), got {per.shape[0]}")
     return per
+
+
+def _row(values, n: int) -> np.ndarray:
+    """Return ``values`` (one per joint, or one for all) as a new (n,) float array (the kernels' signature)."""
+    v = np.array(values, dtype=float)
+    return v if v.shape == (n,) else np.array(np.broadcast_to(v, (n,)))
 
 
 @njit(cache=True, nogil=True)
@@ -99,10 +105,7 @@ def wrap_rad(q_rad, periodic, lower_rad) -> np.ndarray:
     q = np.array(q_rad, dtype=float, copy=True, order="C")
     n = q.shape[-1]
     per = _mask(periodic, n)
-    lo = np.asarray(lower_rad, dtype=float)
-    if lo.shape != (n,):
-        lo = np.broadcast_to(lo, (n,))
-    _wrap_rows(q.reshape(-1, n), np.ascontiguousarray(lo), per)
+    _wrap_rows(q.reshape(-1, n), _row(lower_rad, n), per)
     return q
 
 
@@ -160,9 +163,7 @@ def nearest_turn_rad(value_rad, reference_rad, periodic) -> np.ndarray:
     v = np.array(value_rad, dtype=float, copy=True)
     if v.ndim != 1:
         raise ValueError(f"nearest_turn_rad: expected an (n,) value, got shape {v.shape}")
-    per = _mask(periodic, v.shape[0])
-    ref = np.ascontiguousarray(np.broadcast_to(np.asarray(reference_rad, dtype=float), v.shape))
-    _turn_rows(v.reshape(1, -1), ref, per)
+    _turn_rows(v.reshape(1, -1), _row(reference_rad, v.shape[0]), _mask(periodic, v.shape[0]))
     return v
 
 
@@ -189,7 +190,7 @@ def align_to_state(path_rad, state_rad, periodic, tol_rad: float = 1e-6) -> np.n
 
     """
     p = np.array(path_rad, dtype=float, copy=True, order="C")
-    s = np.ascontiguousarray(state_rad, dtype=float)
+    s = np.array(state_rad, dtype=float)
     if p.ndim != 2 or len(p) == 0 or s.shape != (p.shape[1],):
         raise ValueError(f"align_to_state: expected an (M, n) path and an (n,) state, got {p.shape} "
                          f"and {s.shape}")

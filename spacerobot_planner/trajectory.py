@@ -453,7 +453,7 @@ def chord_lengths_rad(p) -> np.ndarray:
     """
     p = np.ascontiguousarray(p, dtype=float)
     if p.shape[1] <= _SEQUENTIAL_SUM_MAX and len(p) >= 1:
-        return _chords(p)
+        return _chords(p if p.flags.writeable else p.copy())      # one kernel signature
     return np.linalg.norm(np.diff(p, axis=0), axis=1)
 
 
