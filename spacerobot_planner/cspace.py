@@ -96,7 +96,7 @@ class GridSpec:
 
     @property
     def n_nodes(self) -> int:
-        return int(np.prod(self.shape))
+        return math.prod(self.shape)
 
     @property
     def step_rad(self) -> np.ndarray:

@@ -488,7 +488,7 @@ class MotionValidator:
                     kept.pop(next(iter(kept)))              # the oldest out
                 kept[keys[lo + j]] = (oks[j], clrs[j], vcs[j], vcs[j + 1])
         # check_kernel's smallest interval clearance: NaN if one is NaN
-        return PathCheck(bool(interval_ok.all()), interval_ok, float(np.min(interval_clr)), n, interval_clr,
+        return PathCheck(bool(interval_ok.all()), interval_ok, float(interval_clr.min()), n, interval_clr,
                          vertex_clr)
 
     def first_bad_segment(self, points_rad, step_rad: float | None = None) -> int:

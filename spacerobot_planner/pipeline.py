@@ -218,9 +218,8 @@ class PlanRun:
         self.sc = planner.scenario
         self.robot = self.sc.robot
         self.checker = planner._checker
-        #: the scene's motion validator at this plan's certified step; the descent's quick test
+        #: the scene's motion validator at this plan's certified step
         self.validator = MotionValidator.of(planner._validator, settings.verify_step_rad)
-        self.motions = self.validator.segment_test()
         self.cancel = Termination.of(cancel)       # the run's one termination token
         self.progress = progress
         self.timings = {k: 0.0 for k in STAGES}
@@ -240,6 +239,11 @@ class PlanRun:
         self.level = 0                             # refinements of the grid now tried
 
     # ---------------------------------------------------------------- helpers
+    @functools.cached_property
+    def motions(self):
+        """The descent's quick segment test (``MotionValidator.segment_test``), made when a walk or repair needs it."""
+        return self.validator.segment_test()
+
     def stage(self, name: str) -> "_StageTimer":
         """Add the time spent in the ``with`` block to ``timings_s[name]``."""
         return _StageTimer(self.timings, name)

@@ -148,7 +148,8 @@ class PlanarArm:
     def full(self, q) -> np.ndarray:
         """Planned configuration(s) ``q`` (dof or N×dof) → full ones (n_joints or N×n_joints)."""
         q = np.asarray(q, dtype=float)
-        out = np.broadcast_to(self.locked_rad, q.shape[:-1] + (self.n_joints,)).copy()
+        out = np.empty(q.shape[:-1] + (self.n_joints,))
+        out[...] = self.locked_rad
         out[..., list(self.planned_joints)] = q
         return out
 

@@ -575,7 +575,7 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
     w = np.ascontiguousarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
     steps = chord_lengths_rad(w)
-    if len(w) < 2 or not np.all(steps > 1e-12):
+    if len(w) < 2 or not (steps > 1e-12).all():
         rows = [w[0]]                   # drop repeated rows, keep the exact ends
         for r in w[1:-1]:
             if np.linalg.norm(r - rows[-1]) > 1e-12:
