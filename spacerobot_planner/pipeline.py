@@ -241,7 +241,7 @@ class PlanRun:
     # ---------------------------------------------------------------- helpers
     @functools.cached_property
     def motions(self):
-        """The descent's quick segment test (``MotionValidator.segment_test``), made when a walk or repair needs it."""
+        """Return the descent's quick segment test (``MotionValidator.segment_test``), made when a walk needs it."""
         return self.validator.segment_test()
 
     def stage(self, name: str) -> "_StageTimer":
