@@ -80,10 +80,6 @@ class GridSpec:
         for i in range(n):
             if not self.upper_rad[i] > self.lower_rad[i]:
                 raise ValueError(f"grid: axis {i} upper bound must exceed its lower bound")
-        # the nodes' origin and spacing as arrays, made once for config_of (never written)
-        lower = np.asarray(self.lower_rad)
-        object.__setattr__(self, "_lower", lower)
-        object.__setattr__(self, "_step", (np.asarray(self.upper_rad) - lower) / np.asarray(self.cells))
 
     @property
     def ndim(self) -> int:
@@ -100,7 +96,7 @@ class GridSpec:
 
     @property
     def step_rad(self) -> np.ndarray:
-        return self._step.copy()
+        return (np.asarray(self.upper_rad) - np.asarray(self.lower_rad)) / np.asarray(self.cells)
 
     def axis_values_rad(self, axis: int) -> np.ndarray:
         """Joint values of the nodes along one axis, rad."""
@@ -108,7 +104,8 @@ class GridSpec:
 
     def config_of(self, node) -> np.ndarray:
         """Return the configuration(s) (rad) of node index/indices: (ndim,) → (ndim,), (N, ndim) → (N, ndim)."""
-        return self._lower + np.asarray(node) * self._step
+        node = np.asarray(node)
+        return np.asarray(self.lower_rad) + node * self.step_rad
 
     def node_of(self, q) -> tuple:
         """
