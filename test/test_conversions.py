@@ -207,6 +207,29 @@ def test_serialized_trajectory_is_the_message_a_subscriber_gets(joints, k):
     assert deserialize_message(arm, JointTrajectory) == conv.publication_msgs(pub)[0]
 
 
+@pytest.mark.parametrize("statuses,stamp,hw", [
+    ([], None, ""),
+    ([("p", DiagnosticStatus.ERROR, "failed: " + "x" * 5000, {"reason": "x" * 5000}),
+      ("i", DiagnosticStatus.OK, "inputs ok", {})], (1_700_000_000, 999_999_999), "spacerobot_planner"),
+    ([("node: planner", b"\x01", "ünïcode ✓ planned", {"goal_deg": [1.5, -2.25, 3.0], "repairs": 0, "a\0b": "c\0d",
+                                                         "empty": ""}),
+      ("node: input", DiagnosticStatus.STALE, "", {"rejected_total": 7})], (0, 1), "h"),
+])
+def test_serialized_diagnostics_are_the_message_a_subscriber_gets(statuses, stamp, hw):
+    """The bytes the node publishes on /diagnostics deserialize into what a subscriber gets of the plain build."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.serialization import deserialize_message, serialize_message
+    from builtin_interfaces.msg import Time
+    stamp = None if stamp is None else Time(sec=stamp[0], nanosec=stamp[1])
+    got = deserialize_message(conv.diagnostic_cdr(statuses, stamp, hw), DiagnosticArray)
+    want = deserialize_message(serialize_message(conv.diagnostic_array(statuses, stamp, hw)), DiagnosticArray)
+    assert got == want
+    assert [st.name for st in got.status] == [name for name, *_ in statuses]
+    assert [len(st.values) for st in got.status] == [len(v) for *_, v in statuses]
+    assert conv._PUBLISH_SERIALIZED and conv.diagnostic_payload(statuses, stamp, hw) == \
+        conv.diagnostic_cdr(statuses, stamp, hw)
+
+
 def _fake_result(grid, rng, cspace=None, field=None):
     from types import SimpleNamespace
     occ = rng.uniform(size=grid.shape) < 0.2

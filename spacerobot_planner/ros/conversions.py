@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import array
 import math
+import struct
 from types import SimpleNamespace
 
 import numpy as np
@@ -42,7 +43,7 @@ __all__ = [
     "duration_to_s", "s_to_duration", "ns_to_time", "time_to_ns", "potential_slice_values", "obstacle_slice_values",
     "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result", "predicted_drift_msg",
     "split_trajectory_msg", "plan_visuals", "GridSlices", "slice_axes_and_point", "publication_msgs",
-    "publication_payloads", "trajectory_cdr",
+    "publication_payloads", "trajectory_cdr", "diagnostic_cdr", "diagnostic_payload",
     "OBSTACLE", "UNREACHABLE",
 ]
 
@@ -611,12 +612,28 @@ def _cdr_point_layout(start: int, n: int) -> tuple:
     return tuple(offs), o + 12 - start
 
 
+#: a CDR count or length: uint32, little endian
+_CDR_U32 = struct.Struct("<I").pack
+#: the zero bytes that align the payload (after the encapsulation header) to 4 bytes, by what is missing
+_CDR_PAD4 = (b"", b"\0", b"\0\0", b"\0\0\0")
+
+
+def _cdr_count(out: bytearray, n: int) -> None:
+    """Append a sequence's element count (uint32, aligned to 4 from the payload's start)."""
+    out += _CDR_PAD4[-(len(out) - 4) % 4]
+    out += _CDR_U32(n)
+
+
 def _cdr_string(out: bytearray, text: str) -> None:
-    """Append a CDR string (aligned count with the NUL, the bytes, the NUL)."""
-    out.extend(b"\0" * (-(len(out) - 4) % 4))
-    raw = text.encode()
-    out.extend(np.uint32(len(raw) + 1).tobytes())
-    out.extend(raw + b"\0")
+    """
+    Append a CDR string (aligned count with the NUL, the bytes, the NUL).
+
+    Up to its first NUL character, as rclpy converts a message's string (a C string).
+    """
+    raw = text.encode().partition(b"\0")[0]
+    _cdr_count(out, len(raw) + 1)
+    out += raw
+    out += b"\0"
 
 
 def trajectory_cdr(traj, stamp=None, frame_id: str = "") -> bytes:
@@ -629,20 +646,15 @@ def trajectory_cdr(traj, stamp=None, frame_id: str = "") -> bytes:
     no per-point conversion.  Checked once: rclpy deserializes it into that message
     (:data:`_PUBLISH_SERIALIZED`).
     """
-    out = bytearray(_CDR_LE)
-    out.extend(np.array([0 if stamp is None else stamp.sec], "<i4").tobytes())
-    out.extend(np.array([0 if stamp is None else stamp.nanosec], "<u4").tobytes())
-    _cdr_string(out, frame_id)
+    out = _cdr_header(stamp, frame_id)
     names = list(traj.joint_names)
-    out.extend(b"\0" * (-(len(out) - 4) % 4))
-    out.extend(np.uint32(len(names)).tobytes())
+    _cdr_count(out, len(names))
     for name in names:
         _cdr_string(out, name)
-    out.extend(b"\0" * (-(len(out) - 4) % 4))
     rows = [np.ascontiguousarray(getattr(traj, f), dtype="<f8").reshape(len(traj.times_s), len(names))
             for f in _ROWS]
     k, n = rows[0].shape
-    out.extend(np.uint32(k).tobytes())
+    _cdr_count(out, k)
     sec, nsec = _sec_nanosec(traj.times_s)
     start = len(out) - 4
     # every point after the first starts at the same offset modulo 8: one layout for all of them
@@ -661,18 +673,58 @@ def trajectory_cdr(traj, stamp=None, frame_id: str = "") -> bytes:
     return bytes(out) + buf.tobytes()
 
 
+def _cdr_header(stamp, frame_id: str) -> bytearray:
+    """Return a payload's encapsulation header and its std_msgs/Header (``stamp``: Time or None: zero)."""
+    out = bytearray(_CDR_LE)
+    out += struct.pack("<iI", 0 if stamp is None else stamp.sec, 0 if stamp is None else stamp.nanosec)
+    _cdr_string(out, frame_id)
+    return out
+
+
+def diagnostic_cdr(statuses, stamp=None, hardware_id: str = "") -> bytes:
+    """
+    Return :func:`diagnostic_array`'s message serialized (CDR, as a publisher sends it), made from the statuses.
+
+    ``statuses``, ``stamp``, ``hardware_id``: as for :func:`diagnostic_array`.  No message objects
+    (a KeyValue each); checked once: rclpy deserializes it into that message (:data:`_PUBLISH_SERIALIZED`).
+    """
+    out = _cdr_header(stamp, "")
+    _cdr_count(out, len(statuses))
+    for name, level, message, values in statuses:
+        out += level if isinstance(level, bytes) else bytes([int(level)])
+        _cdr_string(out, name)
+        _cdr_string(out, message)
+        _cdr_string(out, hardware_id)
+        _cdr_count(out, len(values))
+        for key, value in values.items():
+            _cdr_string(out, str(key))
+            _cdr_string(out, str(value))
+    return bytes(out)
+
+
 def _serialized_matches() -> bool:
     """
-    Tell whether :func:`trajectory_cdr`'s bytes are :func:`trajectory_to_msg`'s messages.
+    Tell whether :func:`trajectory_cdr`'s and :func:`diagnostic_cdr`'s bytes are the messages they stand for.
 
-    rclpy deserializes them (as a subscriber does) into messages equal to those, on a few
-    shapes (rclpy's own serialization leaves its padding bytes and a few trailing bytes
-    uninitialised: not comparable byte for byte).
+    rclpy deserializes them (as a subscriber does) into messages equal to those of
+    :func:`trajectory_to_msg` and into what a subscriber gets of :func:`diagnostic_array`'s (a
+    string up to a NUL), on a few shapes (rclpy's own serialization leaves its padding bytes
+    and a few trailing bytes uninitialised: not comparable byte for byte).
     """
     try:
-        from rclpy.serialization import deserialize_message
+        from rclpy.serialization import deserialize_message, serialize_message
     except ImportError:          # no rclpy serialization: messages are published
         return False
+    for statuses, stamp, hw in (([], None, ""), ([("n", DiagnosticStatus.WARN, "m", {})], Time(sec=3, nanosec=4), "h"),
+                                ([("node: planner", b"\x02", "failed: ü ✓", {"a": 1, "bb": "x\0y", "ccc": ""}),
+                                  ("node: input", DiagnosticStatus.OK, "", {"k": [1.5, "z"]})],
+                                 Time(sec=1_700_000_000, nanosec=999_999_999), "hw")):
+        try:
+            if deserialize_message(diagnostic_cdr(statuses, stamp, hw), DiagnosticArray) != \
+                    deserialize_message(serialize_message(diagnostic_array(statuses, stamp, hw)), DiagnosticArray):
+                return False
+        except Exception:        # noqa: BLE001 - any doubt: messages
+            return False
     rng = np.random.default_rng(0)
     for k, names, frame in ((3, ("a",), ""), (2, ("shoulder", "elbow"), "world"), (0, ("j0", "j1", "j2"), "ab"),
                             (5, ("x1", "y22", "z333"), ""), (1, ("attitude",), "map")):
@@ -688,9 +740,14 @@ def _serialized_matches() -> bool:
     return True
 
 
-#: the node publishes :func:`trajectory_cdr`'s bytes (:func:`_serialized_matches`), else the messages of
-#: :func:`trajectory_to_msg`
+#: the node publishes :func:`trajectory_cdr`'s and :func:`diagnostic_cdr`'s bytes (:func:`_serialized_matches`),
+#: else the messages of :func:`trajectory_to_msg` and :func:`diagnostic_array`
 _PUBLISH_SERIALIZED = _serialized_matches()
+
+
+def diagnostic_payload(statuses, stamp=None, hardware_id: str = ""):
+    """Return what a publisher sends for :func:`diagnostic_array`: its bytes (:func:`diagnostic_cdr`) or the message."""
+    return (diagnostic_cdr if _PUBLISH_SERIALIZED else diagnostic_array)(statuses, stamp, hardware_id)
 
 
 def publication_payloads(publication) -> tuple:

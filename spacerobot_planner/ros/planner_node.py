@@ -443,8 +443,8 @@ class PlannerNode(LifecycleNode):
         if pub is None or self.session.closing:
             return
         try:
-            pub.publish(conv.diagnostic_array(self.diagnostics.statuses(self.get_name(), self.state),
-                                              self.get_clock().now().to_msg(), NODE_NAME))
+            pub.publish(conv.diagnostic_payload(self.diagnostics.statuses(self.get_name(), self.state),
+                                                self.get_clock().now().to_msg(), NODE_NAME))
         except Exception:              # noqa: BLE001 - context shutting down
             pass
 
