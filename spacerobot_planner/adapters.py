@@ -44,7 +44,7 @@ from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import Trajectory, controller_peaks, resample
+from .trajectory import Resampled, Trajectory, controller_peaks, resample
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
@@ -359,15 +359,18 @@ def _certified(scenario, got: Processed, args) -> Processed | None:
     (the dense points, not split); None when the certification added points back or failed (the
     published points would not be the ones whose interpolation was checked).
     """
-    motions, time_step_s = args[5], args[6]
+    motions = args[5]
     if got.join_stamp_ns is None and reaction_matters(scenario):
         got = replace(got, reaction=_reaction(scenario, got, args))
         if got.refused is not None:
             return _stopped(got)
-    rs = resample(got.dense, motions, time_step_s=time_step_s)
-    if not rs.ok or not np.array_equal(rs.indices, got.indices):
+    # the round's points are resample's selection of these dense points (time_step_s, the path
+    # tolerance): resample(got.dense, motions) would select them again and certify their polyline,
+    # keeping them when it passes at once, adding points back (or failing) otherwise
+    check = MotionValidator.of(motions).check(got.dense.positions_rad[got.indices])
+    if not check.ok:
         return None
-    return _finished(scenario, got, rs)
+    return _finished(scenario, got, Resampled(got.trajectory, got.indices, check, 0))
 
 
 def _reaction(scenario, got: Processed, args):
