@@ -211,8 +211,8 @@ def test_serialized_trajectory_is_the_message_a_subscriber_gets(joints, k):
     ([], None, ""),
     ([("p", DiagnosticStatus.ERROR, "failed: " + "x" * 5000, {"reason": "x" * 5000}),
       ("i", DiagnosticStatus.OK, "inputs ok", {})], (1_700_000_000, 999_999_999), "spacerobot_planner"),
-    ([("node: planner", b"\x01", "ünïcode ✓ planned", {"goal_deg": [1.5, -2.25, 3.0], "repairs": 0, "a\0b": "c\0d",
-                                                         "empty": ""}),
+    ([("node: planner", b"\x01", "ünïcode ✓ planned",
+       {"goal_deg": [1.5, -2.25, 3.0], "repairs": 0, "a\0b": "c\0d", "empty": ""}),
       ("node: input", DiagnosticStatus.STALE, "", {"rejected_total": 7})], (0, 1), "h"),
 ])
 def test_serialized_diagnostics_are_the_message_a_subscriber_gets(statuses, stamp, hw):
