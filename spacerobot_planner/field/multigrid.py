@@ -25,6 +25,12 @@ and so exact) inside the float64 CG: half the bytes of every pass over the level
 bound the cost from about 100 000 unknowns; a preconditioner's precision does not change
 what CG converges to, and it costs no iterations on the paper's grids.
 
+Where the band is compact (:func:`.structured.fine_layout`'s rule: its bounding box has few
+cells per unknown, at most axis 0 periodic and of even length) the fine level lives on the
+box's cells instead (:mod:`.structured`): its sweeps, product and residual read neighbours at
+fixed offsets, in vector loops (:func:`_spcg`, :func:`_svcycle`: the same CG and V-cycle,
+the same iterations); the coarse levels are the same.
+
 Levels are packed into flat arrays: level l owns rows ``off[l] .. off[l] + size[l]`` plus
 one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that stands for "no neighbour".
 Neighbour tables and aggregate maps are unsigned (uint32): an index of a signed type makes
@@ -42,6 +48,8 @@ import time
 import numba as nb
 import numpy as np
 
+from . import structured
+
 #: Stop coarsening at this many unknowns and solve that level directly.  Its dense triangular
 #: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a third of
 #: a 200-node band's time (0.61x at 30) and nothing on the paper's first bands; the extra levels
@@ -58,6 +66,8 @@ COARSE_SWEEPS = 2
 #: (11 % fewer than 1.8 on random scenes, 1 of 16 on the paper's 36³, 1 of 18 at 72³); the
 #: 4-D servicer's 16⁴: 1.4 (15 iterations, 18 at 1.8), and above.
 BOOST = {1: 1.8, 2: 1.8, 3: 1.5, 4: 1.4}
+#: :func:`solve`'s routes for the fine level.
+ROUTES = ("auto", "graph", "structured")
 
 
 def boost_of(ndim: int) -> float:
@@ -379,6 +389,8 @@ class Hierarchy:
             nb0, _, _, coords, self.fine_of_input, _ = _by_parity(
                 np.ascontiguousarray(nbr, dtype=np.int64), np.zeros((n, deg)), np.zeros(n), coords)
             nb0 = nb0.astype(np.uint32)
+        #: the fine level's coordinates, in its rows' order
+        self.coords = coords
         # the fine level on its own: unit weights, diagonal deg, uint32 neighbours
         self.nb0 = nb0
         # per level: red rows (first), and the rows to restrict: after a sweep (red rows, then
@@ -751,33 +763,150 @@ def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, 
     for i in range(n):
         p[i] = xs[i]
     it = 0
-    while it < max_iter:
-        if stop[0] != 0:
-            break
-        if deadline > 0.0 and _now() > deadline:
-            break
+    while it < max_iter and not _halted(stop, deadline):
         it += 1
         pq = _matvec0_dot(nb0, p, q, n, deg)
         if not pq > 0.0:
             break
-        alpha = rz / pq
-        res = _subtract_max(r, q, alpha, n)
-        if res < tol or stop[0] != 0:
-            for i in range(n):
-                u[i] += alpha * p[i]
+        alpha, res, done = _descend(r, q, u, p, rz / pq, tol, n, stop)
+        if done:
             break
         rz_new = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, r, xs, bs, ws,
                          sweeps, boost, coarse_sweeps, stop)
-        beta = rz_new / rz
-        rz = rz_new
-        for i in range(n):           # u's step along the old p, then the new p: one pass over p
+        rz = _turn(u, p, xs, alpha, rz, rz_new, n)
+    return it, res
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _halted(stop, deadline):
+    """Return whether CG stops before its next iteration: the termination flag is set, or ``deadline`` has passed."""
+    return stop[0] != 0 or (deadline > 0.0 and _now() > deadline)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _descend(r, q, u, p, alpha, tol, n, stop):
+    """
+    Take CG's step along p (q = A p): r -= alpha q; return ``(alpha, largest |r|, done)`` (first n entries).
+
+    done: the residual is below ``tol`` or the termination flag ``stop`` is set: u has then
+    taken its step (u += alpha p), else it is left to :func:`_turn`.
+    """
+    res = _subtract_max(r, q, alpha, n)
+    if res < tol or stop[0] != 0:
+        for i in range(n):
             u[i] += alpha * p[i]
-            p[i] = xs[i] + beta * p[i]
+        return alpha, res, True
+    return alpha, res, False
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _turn(u, p, z, alpha, rz, rz_new, n):
+    """
+    Turn CG to its new direction from the preconditioned residual z (rz_new = r · z): return rz_new.
+
+    u's step along the old p (u += alpha p), then the new p = z + (rz_new / rz) p: one pass
+    over p (first n entries).
+    """
+    beta = rz_new / rz
+    for i in range(n):
+        u[i] += alpha * p[i]
+        p[i] = z[i] + beta * p[i]
+    return rz_new
+
+
+# --------------------------------------------------------------------------
+# the structured fine level (:mod:`.structured`): the same V-cycle and CG on cells
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg, off,
+             sizes, chol, chol_t, rf, xf, res, x, b, r, sweeps, boost, coarse_sweeps, stop):
+    """
+    :func:`_vcycle` with the fine level on cells (:mod:`.structured`): compute xf = M^-1 rf; return rf · xf.
+
+    rf float64 (2, H): the CG residual on the cells (read only); xf float32 (2, H); res float64
+    (H,): scratch, 0 outside the layout's ranges; the rest as :func:`_vcycle`'s (x, b, r: the
+    packed coarse levels', from level 1).  Only the clean red-black case (:func:`.structured.fine_layout`):
+    the red half-sweep from 0 and the black one, ``sweeps - 1`` more pairs, the red residuals
+    restricted, and after the coarse correction (red cells: the black ones are set, not read)
+    ``sweeps`` pairs black then red.  ``stop`` is polled where :func:`_vcycle` polls it.
+    """
+    deg = ranges.shape[2] - 2
+    inv_deg = 1.0 / deg
+    structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
+    structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
+    for _ in range(sweeps - 1):
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg)
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
+    if stop[0] != 0:
+        return 0.0
+    cb = off[1]
+    bc = b[cb:off[2]]
+    structured.restrict_red(rf, xf, res, gather, bc, ranges, nranges, cut_red, deg)
+    bc[sizes[1]] = 0.0
+    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 1, boost,
+                  coarse_sweeps)
+    if stop[0] != 0:
+        return 0.0
+    structured.prolong_red(xf, x[cb:off[2]], aggr, ranges, nranges, boost)
+    for _ in range(sweeps - 1):
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg)
+    s_black = structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
+    return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg) + s_black
+
+
+@nb.njit(cache=True, nogil=True)
+def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt64, diag64, inv_diag64, agg,
+          off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, coarse_sweeps, deadline, stop):
+    """
+    :func:`_pcg` with the fine level on cells (:mod:`.structured`; rhs, u float64 (2, H), 0 off the unknowns).
+
+    The same iteration, stop rule (the largest residual below ``tol``), deadline and
+    termination flag as :func:`_pcg`, on vectors of the layout's cells (the other cells stay
+    0); its dot products in :data:`.structured.LANES` accumulators.  Returns (iterations,
+    final max residual); u is updated in place.
+    """
+    half = mask.shape[1]
+    cells = 2 * half
+    total = off[-1]
+    wt, diag, inv_diag, chol_t = _single_levels(off, wt64, diag64, inv_diag64, chol)
+    xs = np.zeros(total, np.float32)
+    bs = np.zeros(total, np.float32)
+    ws = np.zeros(total, np.float32)
+    xf = np.zeros((2, half), np.float32)
+    res_red = np.zeros(half)
+    r = np.zeros((2, half))
+    p = np.zeros((2, half))
+    q = np.zeros((2, half))
+    rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
+    deg = ranges.shape[2] - 2
+    structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
+    rl[:] = rhs.reshape(-1)
+    res = _subtract_max(rl, ql, 1.0, cells)
+    if res < tol:
+        return 0, res
+    rz = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg,
+                  off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost, coarse_sweeps, stop)
+    for i in range(cells):
+        pl[i] = xl[i]
+    it = 0
+    while it < max_iter and not _halted(stop, deadline):
+        it += 1
+        pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
+        if not pq > 0.0:
+            break
+        alpha, res, done = _descend(rl, ql, ul, pl, rz / pq, tol, cells, stop)
+        if done:
+            break
+        rz_new = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag,
+                          inv_diag, agg, off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost,
+                          coarse_sweeps, stop)
+        rz = _turn(ul, pl, xl, alpha, rz, rz_new, cells)
     return it, res
 
 
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=None, stop=None,
-          coarse_sweeps=COARSE_SWEEPS):
+          coarse_sweeps=COARSE_SWEEPS, route="auto"):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -788,10 +917,15 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     (``time.perf_counter()`` seconds, 0 = none), or when the termination flag ``stop``
     (``termination.Termination.flag``, int64 (1,); None = never) is set: then the
     result is partial and the caller must not keep it.  ``boost``: the coarse correction's
-    scale (None: :func:`boost_of` the grid's dimension).
+    scale (None: :func:`boost_of` the grid's dimension).  ``route``: "auto", the fine level on
+    the grid's cells where :func:`.structured.fine_layout`'s rule says so (else on the node
+    graph); "graph", on the node graph always; "structured", on the cells wherever they can
+    hold it, whatever its size (the tests' and the warm-up's).
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
+    if route not in ROUTES:
+        raise ValueError(f"route: expected one of {ROUTES}, got {route!r}")
     nbr = np.asarray(nbr)
     n = nbr.shape[0]
     if n == 0:
@@ -800,16 +934,29 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         h = Hierarchy(nbr, coords, shape, stop)
     except Stopped:
         return np.zeros(n), 0, np.inf
+    if boost is None:
+        boost = boost_of(len(shape))
+    if stop is None:
+        stop = np.zeros(1, np.int64)
+    layout = None
+    if route == "auto":
+        layout = structured.fine_layout(h, shape, sweeps)
+    elif route == "structured":
+        layout = structured.fine_layout(h, shape, sweeps, max_cells_per_unknown=np.inf, min_unknowns=0)
+    if layout is not None:
+        rows = None if h.in_order else h.fine_of_input     # each input's fine row
+        u = np.zeros((2, layout.half))
+        it, res = _spcg(layout.mask, layout.ranges, layout.nranges, layout.cut_red, layout.cut_black, layout.aggr,
+                        layout.gather, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
+                        h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
+                        float(boost), int(coarse_sweeps), float(deadline), stop)
+        return layout.from_cells(u, rows), int(it), float(res)
     b = np.zeros(n + 1)
     if h.in_order:                  # the node graph's order: no renumbering to undo
         b[:n] = rhs
     else:
         b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
-    if boost is None:
-        boost = boost_of(len(shape))
-    if stop is None:
-        stop = np.zeros(1, np.int64)
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps),
                    float(boost), int(coarse_sweeps), float(deadline), stop)

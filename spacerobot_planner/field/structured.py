@@ -1,0 +1,459 @@
+"""
+The multigrid's fine level on a structured grid: the band's bounding box, red and black cells apart.
+
+The node graph's fine level (:mod:`.multigrid`) reads every neighbour through a table of
+indices.  On a box of grid cells the neighbours are at fixed offsets instead, so a sweep,
+a matrix-vector product and the residual are plain vector loops; the price is the box's
+cells that are not unknowns (walls, obstacles, known nodes, the ghost layer), which every
+loop also visits.  It pays where the box has at most :data:`MAX_CELLS_PER_UNKNOWN` cells per
+unknown (the big first band of a plan); :func:`fine_layout` holds the rule.
+
+The layout.  The unknowns' bounding box (a periodic axis whole: it must be axis 0, of even
+length) and one ghost layer on every side; axes 1.. padded to an odd length, so that every
+C-order stride is odd and the colour of a cell (the parity of its coordinate sum) is the
+parity of its flat index ``f`` (offset by ``base`` in {2, 3}, so that red, an even
+coordinate sum, is an even ``f``: the graph's red).  A cell's values live at ``v[f % 2, f // 2]``
+of a (2, H) array: a red cell k reads the black half at ``k + (s - 1) / 2`` and
+``k - (s + 1) / 2`` for each stride s (a black cell: ``k + (s + 1) / 2`` and
+``k - (s - 1) / 2``).  A float32 mask is 1 at the unknowns and 0 elsewhere: every loop
+multiplies by it, so the other cells stay 0 and read as the graph's "no neighbour".  The
+periodic axis 0 is three loop ranges (its first slab, the middle, its last slab); the end
+slabs read across the seam, ``(N0 - 1)·S0`` away.  A cut edge (a face neighbour in the box
+that is an unknown, where the graph says none: a wall between them) is a short list per
+colour, taken back out after the vector loop.
+
+Level 1 and below stay the graph's levels (:class:`.multigrid.Hierarchy`), linked to the
+cells by each red cell's aggregate (the prolongation) and each level-1 node's red cells
+(the restriction, a gather in the graph's row order: the same float32 sums as the graph's
+scatter).  The black residuals are 0 after the V-cycle's black half-sweep, as on the graph.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+#: The structured fine level is used where the box (ghosts and padding included) has at most
+#: this many cells per unknown.  Whole solves (layout built, interleaved with the graph's route,
+#: random 3-D bands): 0.82-0.95x at 1.5-1.63 cells per unknown, about even (0.90-1.10x) at 1.7-1.8;
+#: per CG iteration 1.2-1.4x faster at 1.15-1.5, 1.1x at 1.8, 0.75x at 3.3.
+MAX_CELLS_PER_UNKNOWN = 1.6
+#: ... and has at least this many unknowns: a smaller problem takes the graph's route without a
+#: look at its box (the look costs 3 us, 5 % of a 200-node band's solve; every sampled band
+#: under 6 000 unknowns had more than 2 cells per unknown).
+MIN_UNKNOWNS = 1000
+#: The grid dimensions with structured kernels (the degrees 4 and 6 are spelled out).
+DIMENSIONS = (2, 3)
+#: Independent accumulators of a dot product (a fixed order: the same bits every run).
+LANES = 8
+
+
+class Layout:
+    """
+    The structured fine level of one problem (see the module docstring).
+
+    half: H, the length of each colour's half; ``cell`` int64 (n,): each fine row's index in
+    a flattened (2, H) array; ``mask`` float32 (2, H); ``ranges`` int64 (2, 3, 2 + deg):
+    per colour the loop ranges of half indices ``[k0, k1)`` and the other colour's offset per
+    direction (``2a`` the − neighbour along axis a, ``2a + 1`` the +), ``nranges`` of them (1,
+    or 3 with a periodic axis 0); ``cut_red`` / ``cut_black`` int64 (k, 2): a cut edge's cell
+    and its neighbour (half indices); ``aggr`` uint32 (H,): each red cell's level-1 node
+    (others: level 1's dummy row); ``gather`` int64 (level-1 nodes, 2^(ndim-1)): each level-1
+    node's red cells in fine row order, padded with ``H - 1`` (a red cell outside every range:
+    its residual stays 0).  ``cells``: the box's cells.
+    """
+
+    def __init__(self, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather, cells):
+        """Hold the arrays of :func:`_build`."""
+        self.cell, self.mask, self.ranges, self.nranges = cell, mask, ranges, int(nranges)
+        self.cut_red, self.cut_black, self.aggr, self.gather = cut_red, cut_black, aggr, gather
+        self.half = int(mask.shape[1])
+        self.cells = int(cells)
+
+    def to_cells(self, values, rows=None):
+        """Return float64 (2, H): ``values`` (n,) of the fine rows (or of the inputs at fine ``rows``) on the cells."""
+        v = np.zeros((2, self.half))
+        v.reshape(-1)[self.cell if rows is None else self.cell[rows]] = values
+        return v
+
+    def from_cells(self, v, rows=None):
+        """Return the fine rows' values (n,) of ``v`` (2, H) (or the inputs' values, fine ``rows`` of them)."""
+        return v.reshape(-1)[self.cell if rows is None else self.cell[rows]]
+
+
+def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, min_unknowns=MIN_UNKNOWNS):
+    """
+    Return the structured fine level of a problem (a :class:`Layout`), or None: the graph's route.
+
+    The rule (one place): a structured fine level where the grid has 2 or 3 dimensions
+    (:data:`DIMENSIONS`), the problem has coarse levels (more than one level), the V-cycle
+    smooths (``sweeps`` ≥ 1), at most axis 0 is periodic (an edge crosses its seam) and then of
+    even length (an odd one puts two cells of one colour side by side), and the problem has at
+    least ``min_unknowns`` unknowns and its box at most ``max_cells_per_unknown`` cells per
+    unknown.  h: the problem's :class:`.multigrid.Hierarchy` (its fine rows, coordinates and
+    level 1); shape: the grid's.  The fine rows' neighbours follow the node graph's
+    convention (``nb0[i, 2a + (0|1)]`` the −/+ face neighbour along axis a, or none), as
+    :func:`.multigrid.solve` requires: a neighbour that is none where the box holds an unknown
+    is a cut edge.
+    """
+    nb0 = h.nb0
+    n = nb0.shape[0]
+    ndim = h.coords.shape[1]
+    if n < min_unknowns or ndim not in DIMENSIONS or h.levels < 2 or sweeps < 1 or h.rrows[0] != h.red[0]:
+        return None
+    shape = np.asarray(shape, np.int64)
+    ok, lo, padded, strides, base, periodic0 = _box(nb0, h.coords, shape)
+    cells = int(padded[0] * strides[0])
+    if not ok or cells > max_cells_per_unknown * n:
+        return None
+    ok, *arrays = _build(nb0, h.coords, shape, lo, padded, strides, base, periodic0, h.agg[:n], int(h.red[0]),
+                         int(h.sizes[1]))
+    return Layout(*arrays, cells) if ok else None
+
+
+# --------------------------------------------------------------------------
+# the layout, in O(n)
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _box(nb0, coords, shape):
+    """
+    Return the box of the unknowns: ``(ok, lo, padded, strides, base, periodic0)``.
+
+    nb0 uint32 (n, deg): the fine neighbours (n = none); coords (n, ndim); shape int64 (ndim,).
+    lo int64 (ndim,): the box's lowest coordinates (the ghost layer below them); padded: the
+    box's extent with its ghosts (axes 1.. odd); strides: its C-order strides (odd); base:
+    the flat index's offset (its parity is the colour's); periodic0: an edge crosses axis
+    0's seam (the box then spans the axis).  ``ok`` False: an edge crosses another axis'
+    seam, or axis 0's of odd length (the graph's route).
+    """
+    n, ndim = coords.shape
+    lo = np.empty(ndim, np.int64)
+    hi = np.empty(ndim, np.int64)
+    wraps = np.zeros(ndim, np.bool_)
+    for a in range(ndim):
+        col = coords[:, a]
+        low = high = col[0]
+        for i in range(n):
+            low = min(low, col[i])
+            high = max(high, col[i])
+        lo[a] = low
+        hi[a] = high
+        end = shape[a] - 1
+        if low == 0 or high == end:      # the neighbour below 0 (above the last) is across the seam
+            below = nb0[:, 2 * a]
+            above = nb0[:, 2 * a + 1]
+            for i in range(n):
+                if (col[i] == 0 and below[i] < n) or (col[i] == end and above[i] < n):
+                    wraps[a] = True
+                    break
+    padded = np.empty(ndim, np.int64)
+    strides = np.ones(ndim, np.int64)
+    ok = not (wraps[0] and shape[0] % 2 == 1)
+    for a in range(1, ndim):
+        ok = ok and not wraps[a]
+    if wraps[0]:
+        lo[0] = 0
+        hi[0] = shape[0] - 1
+    base = 2
+    for a in range(ndim):
+        padded[a] = hi[a] - lo[a] + 3
+        if a > 0 and padded[a] % 2 == 0:
+            padded[a] += 1
+        base += lo[a]
+    base = 2 + (base + ndim) % 2       # f = base + sum((c - lo + 1) * stride): f and sum(c) of one parity
+    for a in range(ndim - 2, -1, -1):
+        strides[a] = strides[a + 1] * padded[a + 1]
+    return ok, lo, padded, strides, base, wraps[0]
+
+
+@nb.njit(cache=True, nogil=True)
+def _half_range(colour, f0, f1):
+    """Return the half indices ``[k0, k1)`` of the cells of ``colour`` (0 red, 1 black) with flat index in [f0, f1)."""
+    if colour == 0:
+        return (f0 + 1) // 2, (f1 + 1) // 2
+    return f0 // 2, f1 // 2
+
+
+@nb.njit(cache=True, nogil=True)
+def _half_offset(colour, step):
+    """Return the half-index offset of the other colour's cell ``step`` (odd) flat cells away."""
+    return (step - 1) // 2 if colour == 0 else (step + 1) // 2
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _neighbour(f, d, steps, periodic0, seam, c0, last0):
+    """Return the flat index of the cell ``f``'s neighbour ``d`` (axis 0 coordinate c0, last0 its end: the seam)."""
+    if periodic0 and d == 0 and c0 == 0:
+        return f + seam
+    if periodic0 and d == 1 and c0 == last0:
+        return f - seam
+    return f + steps[d]
+
+
+@nb.njit(cache=True, nogil=True)
+def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, coarse_nodes):
+    """
+    Build the layout of :func:`_box`'s box: ``(ok, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather)``.
+
+    nb0 uint32 (n, deg), coords (n, ndim): the fine rows, the first ``red`` of them red; agg
+    uint32 (n,): each row's level-1 node, ``coarse_nodes`` of them.  See :class:`Layout` for
+    the arrays.  ``ok`` False: two rows on one cell, a red row on a black cell, or a level-1
+    node with more red cells than a block holds (the graph's route).
+    """
+    n, deg = nb0.shape
+    ndim = coords.shape[1]
+    total = base + padded[0] * strides[0] + 4
+    total += total % 2
+    half = total // 2
+    flat = np.empty(n, np.int64)
+    cell = np.empty(n, np.int64)
+    mask = np.zeros((2, half), np.float32)
+    mflat = mask.reshape(-1)
+    ranges = np.zeros((2, 3, 2 + deg), np.int64)
+    aggr = np.full(half, coarse_nodes, np.uint32)
+    width = 1 << (ndim - 1)
+    gather = np.full((coarse_nodes, width), half - 1, np.int64)
+    none = np.empty((0, 2), np.int64)
+    failed = (False, flat, mask, ranges, 0, none, none, aggr, gather)
+    for i in range(n):
+        f = base
+        for a in range(ndim):
+            f += (coords[i, a] - lo[a] + 1) * strides[a]
+        flat[i] = f
+        cell[i] = (f & 1) * half + (f >> 1)
+        if mflat[cell[i]] != 0.0 or (i < red) != (f & 1 == 0):
+            return failed
+        mflat[cell[i]] = 1.0
+    seam = (padded[0] - 3) * strides[0]      # axis 0's seam: slab 1 to slab N0
+    steps = np.empty(deg, np.int64)
+    for d in range(deg):
+        steps[d] = strides[d // 2] if d % 2 == 1 else -strides[d // 2]
+    cut_at = np.empty(n * deg, np.int64)     # the cut edges, i · deg + d (written only where met)
+    ncut = 0
+    for i in range(n):
+        f = flat[i]
+        for d in range(deg):
+            if nb0[i, d] < n:
+                continue                     # the face neighbour it names (the graph's convention)
+            g = _neighbour(f, d, steps, periodic0, seam, coords[i, 0], shape[0] - 1)
+            if mflat[(g & 1) * half + (g >> 1)] != 0.0:     # an unknown on the other side of a wall
+                cut_at[ncut] = i * deg + d
+                ncut += 1
+    counts = np.zeros(2, np.int64)
+    for e in range(ncut):
+        counts[flat[cut_at[e] // deg] & 1] += 1
+    cut_red = np.empty((counts[0], 2), np.int64)
+    cut_black = np.empty((counts[1], 2), np.int64)
+    counts[:] = 0
+    for e in range(ncut):
+        i, d = cut_at[e] // deg, cut_at[e] % deg
+        f = flat[i]
+        g = _neighbour(f, d, steps, periodic0, seam, coords[i, 0], shape[0] - 1)
+        cuts = cut_red if f & 1 == 0 else cut_black
+        cuts[counts[f & 1], 0] = f >> 1
+        cuts[counts[f & 1], 1] = g >> 1
+        counts[f & 1] += 1
+    first = base + strides[0]                # the first interior slab's flat index ...
+    last = base + (padded[0] - 1) * strides[0]   # ... and the end of the last one
+    nranges = 3 if periodic0 else 1
+    for colour in range(2):
+        for r in range(nranges):
+            f0, f1 = first, last
+            if periodic0:
+                f0 = first if r == 0 else first + strides[0] if r == 1 else last - strides[0]
+                f1 = first + strides[0] if r == 0 else last - strides[0] if r == 1 else last
+            k0, k1 = _half_range(colour, f0, f1)
+            ranges[colour, r, 0] = k0
+            ranges[colour, r, 1] = max(k0, k1)
+            for d in range(deg):
+                step = steps[d]
+                if periodic0 and d == 0 and r == 0:
+                    step = seam
+                elif periodic0 and d == 1 and r == 2:
+                    step = -seam
+                ranges[colour, r, 2 + d] = _half_offset(colour, step)
+    filled = np.zeros(coarse_nodes, np.int64)
+    for i in range(red):                     # in row order: the graph's restriction adds them so
+        c = agg[i]
+        if filled[c] == width:
+            return failed
+        aggr[flat[i] >> 1] = c
+        gather[c, filled[c]] = flat[i] >> 1
+        filled[c] += 1
+    return True, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather
+
+
+# --------------------------------------------------------------------------
+# kernels: one colour's cells, range by range (vector loops at fixed offsets)
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True, inline="always")
+def _views(a, b, c, xs, k0, k1, o, deg):
+    """
+    Return views of the cells [k0, k1): of ``a``, ``b`` and ``c``, and of their neighbours in ``xs``.
+
+    The neighbours: one view per direction (the offsets ``o``); with deg 4 the last two are
+    unused.
+    """
+    s0 = xs[k0 + o[0]:k1 + o[0]]
+    s1 = xs[k0 + o[1]:k1 + o[1]]
+    s2 = xs[k0 + o[2]:k1 + o[2]]
+    s3 = xs[k0 + o[3]:k1 + o[3]]
+    s4 = s0 if deg == 4 else xs[k0 + o[4]:k1 + o[4]]
+    s5 = s1 if deg == 4 else xs[k0 + o[5]:k1 + o[5]]
+    return a[k0:k1], b[k0:k1], c[k0:k1], s0, s1, s2, s3, s4, s5
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _sweep_range(xt, xs, b, m, k0, k1, o, deg, inv_deg):
+    """xt[k] = (b[k] + the other colour's neighbours xs) · inv_deg · m[k] for k in [k0, k1)."""
+    t, bb, mm, s0, s1, s2, s3, s4, s5 = _views(xt, b, m, xs, k0, k1, o, deg)
+    if deg == 4:
+        for i in range(k1 - k0):
+            t[i] = (bb[i] + (s0[i] + s1[i] + s2[i] + s3[i])) * inv_deg * mm[i]
+    else:
+        for i in range(k1 - k0):
+            t[i] = (bb[i] + (s0[i] + s1[i] + s2[i] + s3[i] + s4[i] + s5[i])) * inv_deg * mm[i]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _product_range(pt, ps, qt, m, k0, k1, o, deg, fdeg):
+    """qt[k] = (deg · pt[k] − the other colour's neighbours ps) · m[k] for k in [k0, k1)."""
+    p, q, mm, s0, s1, s2, s3, s4, s5 = _views(pt, qt, m, ps, k0, k1, o, deg)
+    if deg == 4:
+        for i in range(k1 - k0):
+            q[i] = (fdeg * p[i] - (s0[i] + s1[i] + s2[i] + s3[i])) * mm[i]
+    else:
+        for i in range(k1 - k0):
+            q[i] = (fdeg * p[i] - (s0[i] + s1[i] + s2[i] + s3[i] + s4[i] + s5[i])) * mm[i]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _residual_range(bt, xt, xs, rt, k0, k1, o, deg, fdeg):
+    """rt[k] = bt[k] − deg · xt[k] + the other colour's neighbours xs, for k in [k0, k1)."""
+    t, bb, out, s0, s1, s2, s3, s4, s5 = _views(xt, bt, rt, xs, k0, k1, o, deg)
+    if deg == 4:
+        for i in range(k1 - k0):
+            out[i] = bb[i] - fdeg * t[i] + (s0[i] + s1[i] + s2[i] + s3[i])
+    else:
+        for i in range(k1 - k0):
+            out[i] = bb[i] - fdeg * t[i] + (s0[i] + s1[i] + s2[i] + s3[i] + s4[i] + s5[i])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _dot_range(a, b, k0, k1):
+    """Return sum a[k] · b[k] over k in [k0, k1), in :data:`LANES` accumulators (a fixed order)."""
+    x = a[k0:k1]
+    y = b[k0:k1]
+    n = k1 - k0
+    main = n - n % LANES
+    a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
+    for i in range(0, main, LANES):
+        a0 += x[i] * y[i]
+        a1 += x[i + 1] * y[i + 1]
+        a2 += x[i + 2] * y[i + 2]
+        a3 += x[i + 3] * y[i + 3]
+        a4 += x[i + 4] * y[i + 4]
+        a5 += x[i + 5] * y[i + 5]
+        a6 += x[i + 6] * y[i + 6]
+        a7 += x[i + 7] * y[i + 7]
+    for i in range(main, n):
+        a0 += x[i] * y[i]
+    return ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7))
+
+
+@nb.njit(cache=True, nogil=True)
+def first_red(x, b, m, ranges, nranges, inv_deg):
+    """Run the red half-sweep from x = 0 (its neighbours are black zeros): x[0] = b[0] · inv_deg · m[0]."""
+    xr = x[0]
+    br = b[0]
+    mr = m[0]
+    for r in range(nranges):
+        k0, k1 = ranges[0, r, 0], ranges[0, r, 1]
+        t = xr[k0:k1]
+        bb = br[k0:k1]
+        mm = mr[k0:k1]
+        for i in range(k1 - k0):
+            t[i] = bb[i] * inv_deg * mm[i]
+
+
+@nb.njit(cache=True, nogil=True)
+def half_sweep(x, b, m, ranges, nranges, cut, colour, deg, inv_deg):
+    """
+    One colour's Gauss–Seidel half-sweep: x[colour] from b and the other colour's x.
+
+    x float32 (2, H): the V-cycle's; b float64 (2, H): its right-hand side; m: the mask;
+    cut: the colour's cut edges (their neighbour is taken back out after the vector loop).
+    """
+    xt = x[colour]
+    xs = x[1 - colour]
+    for r in range(nranges):
+        _sweep_range(xt, xs, b[colour], m[colour], ranges[colour, r, 0], ranges[colour, r, 1],
+                     ranges[colour, r, 2:], deg, inv_deg)
+    for e in range(cut.shape[0]):
+        k = cut[e, 0]
+        xt[k] = xt[k] - xs[cut[e, 1]] * inv_deg
+
+
+@nb.njit(cache=True, nogil=True)
+def half_sweep_dot(x, b, m, ranges, nranges, cut, colour, deg, inv_deg):
+    """:func:`half_sweep`; return sum b · x over the colour's cells (the new x, in :data:`LANES` accumulators)."""
+    half_sweep(x, b, m, ranges, nranges, cut, colour, deg, inv_deg)
+    s = 0.0
+    for r in range(nranges):
+        s += _dot_range(b[colour], x[colour], ranges[colour, r, 0], ranges[colour, r, 1])
+    return s
+
+
+@nb.njit(cache=True, nogil=True)
+def product_dot(p, q, m, ranges, nranges, cut_red, cut_black, deg):
+    """Compute q = A p on the cells (float64 (2, H) each); return p · q (:data:`LANES` accumulators per range)."""
+    fdeg = float(deg)
+    s = 0.0
+    for colour in range(2):
+        pt = p[colour]
+        qt = q[colour]
+        ps = p[1 - colour]
+        for r in range(nranges):
+            _product_range(pt, ps, qt, m[colour], ranges[colour, r, 0], ranges[colour, r, 1], ranges[colour, r, 2:],
+                           deg, fdeg)
+        cut = cut_red if colour == 0 else cut_black
+        for e in range(cut.shape[0]):
+            qt[cut[e, 0]] += ps[cut[e, 1]]
+        for r in range(nranges):
+            s += _dot_range(pt, qt, ranges[colour, r, 0], ranges[colour, r, 1])
+    return s
+
+
+@nb.njit(cache=True, nogil=True)
+def restrict_red(b, x, res, gather, bc, ranges, nranges, cut_red, deg):
+    """
+    Restrict the red cells' residual to level 1: bc[c] = the residuals of level-1 node c's red cells.
+
+    b float64 (2, H), x float32 (2, H): the fine right-hand side and iterate (after the
+    black half-sweep: the black residuals are 0); res float64 (H,): scratch, 0 outside the
+    ranges; bc float32 (level-1 nodes,): summed in the graph's row order (:class:`Layout`'s
+    gather), rounded to float32 at each step as the graph's restriction is.
+    """
+    fdeg = float(deg)
+    for r in range(nranges):
+        _residual_range(b[0], x[0], x[1], res, ranges[0, r, 0], ranges[0, r, 1], ranges[0, r, 2:], deg, fdeg)
+    xs = x[1]
+    for e in range(cut_red.shape[0]):
+        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    nc, width = gather.shape
+    for c in range(nc):
+        t = np.float32(0.0)
+        for j in range(width):
+            t = np.float32(np.float64(t) + res[gather[c, j]])
+        bc[c] = t
+
+
+@nb.njit(cache=True, nogil=True)
+def prolong_red(x, xc, aggr, ranges, nranges, boost):
+    """Add ``boost`` times level 1's correction xc to the red cells (x float32 (2, H); others read xc's dummy 0)."""
+    xr = x[0]
+    for r in range(nranges):
+        k0, k1 = ranges[0, r, 0], ranges[0, r, 1]
+        t = xr[k0:k1]
+        ag = aggr[k0:k1]
+        for i in range(k1 - k0):
+            t[i] += boost * xc[ag[i]]
