@@ -1,0 +1,163 @@
+"""
+The multigrid's fine level on the grid's cells (field/structured.py) against its fine level on the node graph.
+
+Each problem is built here from the grid's definition (``oracles.face_neighbours``): the
+unknowns (a window of free nodes, not always the whole grid), their known neighbours' values,
+periodic axes and cut edges; the Laplacian as a SciPy matrix from the same definition.  The
+two routes of ``multigrid.solve`` must give the same solution (1e-9 relative), within one
+CG iteration of each other, meet the residual they report on the grid's own Laplacian and
+agree with SciPy's direct solve.  The rule that picks the route is checked against the box
+of cells counted here.
+"""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from oracles import face_neighbours
+from spacerobot_planner.field import multigrid, structured
+
+
+def _problem(shape, periodic, seed, obstacles=0.15, window=None, cuts=0.0):
+    """
+    Return ``(nbr, coords, rhs, A)``: a Dirichlet problem on a grid, in multigrid.solve's form.
+
+    Free nodes (``obstacles`` of them blocked at random) inside ``window`` (a bool grid; None:
+    all) are the unknowns, the free nodes outside it are known (random values in [0.5, 1]),
+    a corner node is a known 1; a fraction ``cuts`` of the face edges is cut.  Only the
+    unknowns joined to a known node are kept (the solve's precondition), in a random order.
+    A: the Laplacian on them (2 ndim on the diagonal, -1 per face edge between unknowns).
+    """
+    rng = np.random.default_rng(seed)
+    shape = tuple(shape)
+    deg = 2 * len(shape)
+    free = rng.random(shape) >= obstacles
+    free[(0,) * len(shape)] = True
+    unknown = free & (np.ones(shape, bool) if window is None else window)
+    unknown[(0,) * len(shape)] = False
+    known_value = np.where(free & ~unknown, rng.uniform(0.5, 1.0, shape), 0.0).ravel()
+    known_value[0] = 1.0
+    flat_nbr = face_neighbours(shape, periodic).reshape(deg, -1)
+    if cuts:
+        edges = [(p, q) for p in range(flat_nbr.shape[1]) for q in flat_nbr[1::2, p] if q >= 0]
+        chosen = rng.random(len(edges)) < cuts
+        flat_nbr = face_neighbours(shape, periodic, np.array(edges, np.int64)[chosen]).reshape(deg, -1)
+    cells = np.flatnonzero(unknown.ravel())
+    index = np.full(flat_nbr.shape[1], -1)
+    index[cells] = np.arange(cells.size)
+    rows, cols, rhs = [], [], np.zeros(cells.size)
+    for d in range(deg):
+        j = flat_nbr[d, cells]
+        inner = (j >= 0) & (index[np.maximum(j, 0)] >= 0)
+        rows.append(np.flatnonzero(inner))
+        cols.append(index[j[inner]])
+        rhs += np.where(j >= 0, known_value[np.maximum(j, 0)], 0.0)
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    lap = sp.csr_matrix((np.full(rows.size, -1.0), (rows, cols)), shape=(cells.size,) * 2) + deg * sp.identity(
+        cells.size, format="csr")
+    # only the unknowns joined to a known node
+    _, labels = sp.csgraph.connected_components(lap, directed=False)
+    keep = np.isin(labels, np.unique(labels[rhs > 0]))
+    order = rng.permutation(np.flatnonzero(keep))
+    local = np.full(cells.size, order.size)
+    local[order] = np.arange(order.size)
+    nbr = np.full((order.size, deg), order.size, np.int64)
+    for d in range(deg):
+        j = flat_nbr[d, cells[order]]
+        ok = (j >= 0) & (index[np.maximum(j, 0)] >= 0)
+        nbr[ok, d] = local[index[j[ok]]]
+    coords = np.array(np.unravel_index(cells[order], shape), np.int64).T
+    return nbr, coords, rhs[order], lap[order][:, order]
+
+
+def _diamond(shape, centre, radius):
+    """Return the grid nodes within ``radius`` face steps of ``centre`` (no wrap), bool of the grid's shape."""
+    return sum(np.abs(g - c) for g, c in zip(np.indices(shape), centre)) <= radius
+
+
+PROBLEMS = {
+    "2-D": dict(shape=(61, 47), periodic=(False, False), seed=1),
+    "2-D, periodic axis 0": dict(shape=(40, 37), periodic=(True, False), seed=2),
+    "2-D, cut edges": dict(shape=(52, 45), periodic=(False, False), seed=3, cuts=0.05),
+    "2-D, a window": dict(shape=(80, 70), periodic=(False, False), seed=4, window=_diamond((80, 70), (45, 30), 24)),
+    "3-D, periodic axis 0": dict(shape=(16, 13, 12), periodic=(True, False, False), seed=5),
+    "3-D, periodic axis 0, cut edges": dict(shape=(14, 12, 11), periodic=(True, False, False), seed=6, cuts=0.04),
+    "3-D, a window across the seam": dict(shape=(18, 15, 14), periodic=(True, False, False), seed=7,
+                                          window=np.roll(_diamond((18, 15, 14), (9, 7, 7), 9), 9, axis=0)),
+}
+
+
+@pytest.mark.parametrize("name", list(PROBLEMS))
+def test_the_cells_route_gives_the_graph_routes_solution(name):
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    assert structured.fine_layout(h, shape, 1, max_cells_per_unknown=np.inf, min_unknowns=0) is not None
+    tol = 1e-10
+    xs, its_s, res_s = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured")
+    xg, its_g, res_g = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="graph")
+    assert res_s < tol and res_g < tol
+    assert abs(its_s - its_g) <= 1, (its_s, its_g)
+    assert np.max(np.abs(xs - xg)) <= 1e-9 * np.max(np.abs(xg))
+    true_res = np.max(np.abs(rhs - A @ xs))
+    assert true_res < tol, f"true residual {true_res:.3g}, reported {res_s:.3g}"
+    direct = spla.spsolve(A.tocsc(), rhs)
+    assert np.max(np.abs(xs - direct)) < 1e-6 * np.max(np.abs(direct))
+    again = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured")
+    assert np.array_equal(xs, again[0]) and again[1] == its_s, "the same problem gave other bits"
+
+
+def _box_cells(coords, shape, periodic_axis0):
+    """Count the cells of the structured box: the unknowns' extent + 2 ghosts per axis, axes 1.. rounded up to odd."""
+    lo, hi = coords.min(axis=0), coords.max(axis=0)
+    if periodic_axis0:
+        lo[0], hi[0] = 0, shape[0] - 1
+    extent = hi - lo + 3
+    extent[1:] += 1 - extent[1:] % 2
+    return int(np.prod(extent))
+
+
+def _thin_band(shape):
+    """Return the nodes within two steps of the grid's diagonal: a band whose box is mostly empty."""
+    i, j = np.indices(shape)
+    return np.abs(i - j) <= 2
+
+
+RULE_CASES = [
+    # (problem, expected: the cells route)
+    (dict(shape=(61, 47), periodic=(False, False), seed=11), True),
+    (dict(shape=(26, 23, 21), periodic=(True, False, False), seed=12, obstacles=0.1), True),
+    (dict(shape=(300, 300), periodic=(False, False), seed=13, obstacles=0.0, window=_thin_band((300, 300))), False),
+    (dict(shape=(20, 20), periodic=(False, False), seed=14), False),                  # too few unknowns
+    (dict(shape=(40, 38), periodic=(False, True), seed=15, obstacles=0.05), False),    # periodic axis 1
+    (dict(shape=(39, 40), periodic=(True, False), seed=16, obstacles=0.05), False),    # odd periodic axis 0
+    (dict(shape=(7, 7, 6, 6), periodic=(False,) * 4, seed=17, obstacles=0.05), False),  # 4-D
+]
+
+
+@pytest.mark.parametrize("case, expected", RULE_CASES)
+def test_the_rule_picks_the_cells_route_where_the_box_is_compact(case, expected):
+    nbr, coords, rhs, _ = _problem(**case)
+    shape = case["shape"]
+    n = len(rhs)
+    wraps = case["periodic"][0] and np.any(nbr[coords[:, 0] == 0, 0] < n)
+    compact = _box_cells(coords, shape, wraps) <= structured.MAX_CELLS_PER_UNKNOWN * n
+    supported = (len(shape) in (2, 3) and n >= structured.MIN_UNKNOWNS and not any(case["periodic"][1:])
+                 and not (case["periodic"][0] and shape[0] % 2))
+    assert (supported and compact) == expected, "the case does not test what it says"
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    layout = structured.fine_layout(h, shape, 1)
+    assert (layout is not None) == expected
+    if layout is not None:
+        assert layout.cells == _box_cells(coords, shape, wraps)
+    # solve's "auto" route is the rule's: the same bits as the route it picks
+    x_auto, its_auto, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10)
+    x_pick, its_pick, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10,
+                                          route="structured" if expected else "graph")
+    assert np.array_equal(x_auto, x_pick) and its_auto == its_pick
+
+
+def test_an_unknown_route_is_refused():
+    with pytest.raises(ValueError, match="route"):
+        multigrid.solve(np.zeros((0, 4), np.int64), np.zeros((0, 2), np.int64), (3, 3), np.zeros(0), route="cells")
