@@ -763,7 +763,9 @@ def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, 
     for i in range(n):
         p[i] = xs[i]
     it = 0
-    while it < max_iter and not _halted(stop, deadline):
+    while it < max_iter:
+        if stop[0] != 0 or (deadline > 0.0 and _now() > deadline):      # polled before every iteration
+            break
         it += 1
         pq = _matvec0_dot(nb0, p, q, n, deg)
         if not pq > 0.0:
@@ -775,12 +777,6 @@ def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, 
                          sweeps, boost, coarse_sweeps, stop)
         rz = _turn(u, p, xs, alpha, rz, rz_new, n)
     return it, res
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _halted(stop, deadline):
-    """Return whether CG stops before its next iteration: the termination flag is set, or ``deadline`` has passed."""
-    return stop[0] != 0 or (deadline > 0.0 and _now() > deadline)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -887,10 +883,11 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         return 0, res
     rz = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg,
                   off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost, coarse_sweeps, stop)
-    for i in range(cells):
-        pl[i] = xl[i]
+    pl[:] = xl
     it = 0
-    while it < max_iter and not _halted(stop, deadline):
+    while it < max_iter:
+        if stop[0] != 0 or (deadline > 0.0 and _now() > deadline):      # polled before every iteration
+            break
         it += 1
         pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
         if not pq > 0.0:
