@@ -50,9 +50,10 @@ COMPAT = ()
 #: (within a layer the graph is acyclic).  Every core module is in one.
 LAYERS = (
     ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft", "overlap")),
-    ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.oracle",
-                "field.paper", "descent", "repair", "contact", "smoothing", "ik", "redundant", "results", "trajectory",
-                "reaction", "timing", "replanning", "settings", "problem", "free_floating_capture")),
+    ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.structured",
+                "field.oracle", "field.paper", "descent", "repair", "contact", "smoothing", "ik", "redundant",
+                "results", "trajectory", "reaction", "timing", "replanning", "settings", "problem",
+                "free_floating_capture")),
     ("pipeline", ("pipeline", "adapters")),
     ("planner", ("planner",)),
     ("session and boundary", ("config", "free_floating", "worker", "session", "offline", "")),
