@@ -108,6 +108,17 @@ def test_the_cells_route_gives_the_graph_routes_solution(name):
     assert np.array_equal(xs, again[0]) and again[1] == its_s, "the same problem gave other bits"
 
 
+@pytest.mark.parametrize("name", ["2-D, cut edges", "3-D, periodic axis 0"])
+def test_more_sweeps_on_the_cells_give_the_graph_routes_solution(name):
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    xs, its_s, res_s = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=2, route="structured")
+    xg, its_g, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=2, route="graph")
+    assert res_s < 1e-10 and abs(its_s - its_g) <= 1, (its_s, its_g)
+    assert np.max(np.abs(xs - xg)) <= 1e-9 * np.max(np.abs(xg))
+    assert np.max(np.abs(rhs - A @ xs)) < 1e-10
+
+
 def _box_cells(coords, shape, periodic_axis0):
     """Count the cells of the structured box: the unknowns' extent + 2 ghosts per axis, axes 1.. rounded up to odd."""
     lo, hi = coords.min(axis=0), coords.max(axis=0)

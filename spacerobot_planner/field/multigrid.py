@@ -770,7 +770,7 @@ def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, 
         pq = _matvec0_dot(nb0, p, q, n, deg)
         if not pq > 0.0:
             break
-        alpha, res, done = _descend(r, q, u, p, rz / pq, tol, n, stop)
+        alpha, res, done = _descend(r, q, u, p, rz, pq, tol, n, stop)
         if done:
             break
         rz_new = _vcycle(nb0, red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, r, xs, bs, ws,
@@ -780,13 +780,14 @@ def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, 
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _descend(r, q, u, p, alpha, tol, n, stop):
+def _descend(r, q, u, p, rz, pq, tol, n, stop):
     """
-    Take CG's step along p (q = A p): r -= alpha q; return ``(alpha, largest |r|, done)`` (first n entries).
+    Take CG's step along p (q = A p, pq = p · q): alpha = rz / pq, r -= alpha q; return ``(alpha, largest |r|, done)``.
 
     done: the residual is below ``tol`` or the termination flag ``stop`` is set: u has then
-    taken its step (u += alpha p), else it is left to :func:`_turn`.
+    taken its step (u += alpha p), else it is left to :func:`_turn`.  Over the first n entries.
     """
+    alpha = rz / pq
     res = _subtract_max(r, q, alpha, n)
     if res < tol or stop[0] != 0:
         for i in range(n):
@@ -892,7 +893,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
         if not pq > 0.0:
             break
-        alpha, res, done = _descend(rl, ql, ul, pl, rz / pq, tol, cells, stop)
+        alpha, res, done = _descend(rl, ql, ul, pl, rz, pq, tol, cells, stop)
         if done:
             break
         rz_new = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag,
