@@ -33,6 +33,8 @@ STEPS = (
     ("band solve (multigrid)", "bands (harmonic.solve)", "spacerobot_planner.field.multigrid", "solve"),
     ("hierarchy set-up", "band solve (multigrid)", "spacerobot_planner.field.multigrid", "Hierarchy.__init__"),
     ("PCG iterations", "band solve (multigrid)", "spacerobot_planner.field.multigrid", "_pcg"),
+    ("fine level on cells: layout", "band solve (multigrid)", "spacerobot_planner.field.structured", "fine_layout"),
+    ("PCG iterations on cells", "band solve (multigrid)", "spacerobot_planner.field.multigrid", "_spcg"),
     ("ascent check", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "ascent_defects"),
     ("ascent repair", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "_repair_ascent"),
     ("descent", "", "spacerobot_planner.planner", "descend"),
