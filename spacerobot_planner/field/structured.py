@@ -26,6 +26,10 @@ Level 1 and below stay the graph's levels (:class:`.multigrid.Hierarchy`), linke
 cells by each red cell's aggregate (the prolongation) and each level-1 node's red cells
 (the restriction, a gather in the graph's row order: the same float32 sums as the graph's
 scatter).  The black residuals are 0 after the V-cycle's black half-sweep, as on the graph.
+
+Editing this module: numba's cache keys the kernels of :mod:`.multigrid` that inline these
+(``_spcg``, ``_svcycle``) on multigrid.py's own time stamp, so after an edit here delete the
+cached kernels (``field/__pycache__/*.nbi``, ``*.nbc``) or touch multigrid.py.
 """
 from __future__ import annotations
 
