@@ -112,6 +112,8 @@ def test_the_cells_route_gives_the_graph_routes_solution(name):
 def test_more_sweeps_on_the_cells_give_the_graph_routes_solution(name):
     nbr, coords, rhs, A = _problem(**PROBLEMS[name])
     shape = PROBLEMS[name]["shape"]
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    assert structured.fine_layout(h, shape, 2, max_cells_per_unknown=np.inf, min_unknowns=0) is not None
     xs, its_s, res_s = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=2, route="structured")
     xg, its_g, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=2, route="graph")
     assert res_s < 1e-10 and abs(its_s - its_g) <= 1, (its_s, its_g)
@@ -172,3 +174,19 @@ def test_the_rule_picks_the_cells_route_where_the_box_is_compact(case, expected)
 def test_an_unknown_route_is_refused():
     with pytest.raises(ValueError, match="route"):
         multigrid.solve(np.zeros((0, 4), np.int64), np.zeros((0, 2), np.int64), (3, 3), np.zeros(0), route="cells")
+
+
+def test_the_warm_up_problem_takes_the_cells_route(monkeypatch):
+    """``field._compile_once`` compiles the cells' kernels only if its problem's first band takes that route."""
+    from spacerobot_planner import field as F
+    calls = []
+    real = multigrid._spcg
+
+    def counted(*args):
+        calls.append(args[0].size)
+        return real(*args)
+
+    monkeypatch.setattr(multigrid, "_spcg", counted)
+    occ, per, goal = F._WARM_PROBLEMS[0]
+    F.solve_field(occ, per, [goal], budget_s=600.0)
+    assert calls, "the warm-up problem's bands all took the node graph's route"

@@ -52,8 +52,9 @@ from . import structured
 
 #: Stop coarsening at this many unknowns and solve that level directly.  Its dense triangular
 #: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a third of
-#: a 200-node band's time (0.61x at 30) and nothing on the paper's first bands; the extra levels
-#: cost next to nothing and the iterations are the same (1 067 vs 1 062 over 125 random 2-DOF bands).
+#: a 200-node band's time (at 30 it takes 0.61 of the time) and nothing on the paper's first bands;
+#: the extra levels cost next to nothing and the iterations hardly change (1 067 vs 1 062, 0.5 %
+#: more, over 125 random 2-DOF bands; 1 134 vs 1 132 over 110 3-DOF bands).
 COARSEST_NODES = 30
 #: A problem of at most this many unknowns is not coarsened: its fine level is the coarsest,
 #: solved directly in one iteration (the small bands of narrow passages).
@@ -860,7 +861,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
 
     The same iteration, stop rule (the largest residual below ``tol``), deadline and
     termination flag as :func:`_pcg`, on vectors of the layout's cells (the other cells stay
-    0); its dot products in :data:`.structured.LANES` accumulators.  Returns (iterations,
+    0); its dot products in 8 accumulators.  Returns (iterations,
     final max residual); u is updated in place.
     """
     half = mask.shape[1]
@@ -918,7 +919,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     scale (None: :func:`boost_of` the grid's dimension).  ``route``: "auto", the fine level on
     the grid's cells where :func:`.structured.fine_layout`'s rule says so (else on the node
     graph); "graph", on the node graph always; "structured", on the cells wherever they can
-    hold it, whatever its size (the tests' and the warm-up's).
+    hold it, whatever its size (the tests').
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """

@@ -27,8 +27,8 @@ cells by each red cell's aggregate (the prolongation) and each level-1 node's re
 (the restriction, a gather in the graph's row order: the same float32 sums as the graph's
 scatter).  The black residuals are 0 after the V-cycle's black half-sweep, as on the graph.
 
-Editing this module: numba's cache keys the kernels of :mod:`.multigrid` that inline these
-(``_spcg``, ``_svcycle``) on multigrid.py's own time stamp, so after an edit here delete the
+Editing this module: numba's cache keys the kernels of :mod:`.multigrid` that call these (and
+link them in: ``_spcg``, ``_svcycle``) on multigrid.py's own time stamp, so after an edit here delete the
 cached kernels (``field/__pycache__/*.nbi``, ``*.nbc``) or touch multigrid.py.
 """
 from __future__ import annotations
@@ -36,10 +36,12 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .graph import grid_strides
+
 #: The structured fine level is used where the box (ghosts and padding included) has at most
 #: this many cells per unknown.  Whole solves (layout built, interleaved with the graph's route,
-#: random 3-D bands): 0.82-0.95x at 1.5-1.63 cells per unknown, about even (0.90-1.10x) at 1.7-1.8;
-#: per CG iteration 1.2-1.4x faster at 1.15-1.5, 1.1x at 1.8, 0.75x at 3.3.
+#: random 3-D bands; time on the cells / time on the graph): 0.82-0.95 at 1.5-1.63 cells per
+#: unknown, 0.90-1.10 at 1.7-1.8; per CG iteration 0.71-0.83 at 1.15-1.5, 0.9 at 1.8, 1.33 at 3.3.
 MAX_CELLS_PER_UNKNOWN = 1.6
 #: ... and has at least this many unknowns: a smaller problem takes the graph's route without a
 #: look at its box (the look costs 3 us, 5 % of a 200-node band's solve; every sampled band
@@ -47,8 +49,6 @@ MAX_CELLS_PER_UNKNOWN = 1.6
 MIN_UNKNOWNS = 1000
 #: The grid dimensions with structured kernels (the degrees 4 and 6 are spelled out).
 DIMENSIONS = (2, 3)
-#: Independent accumulators of a dot product (a fixed order: the same bits every run).
-LANES = 8
 
 
 class Layout:
@@ -150,7 +150,6 @@ def _box(nb0, coords, shape):
                     wraps[a] = True
                     break
     padded = np.empty(ndim, np.int64)
-    strides = np.ones(ndim, np.int64)
     ok = not (wraps[0] and shape[0] % 2 == 1)
     for a in range(1, ndim):
         ok = ok and not wraps[a]
@@ -164,9 +163,7 @@ def _box(nb0, coords, shape):
             padded[a] += 1
         base += lo[a]
     base = 2 + (base + ndim) % 2       # f = base + sum((c - lo + 1) * stride): f and sum(c) of one parity
-    for a in range(ndim - 2, -1, -1):
-        strides[a] = strides[a + 1] * padded[a + 1]
-    return ok, lo, padded, strides, base, wraps[0]
+    return ok, lo, padded, grid_strides(padded), base, wraps[0]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -344,13 +341,13 @@ def _residual_range(bt, xt, xs, rt, k0, k1, o, deg, fdeg):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _dot_range(a, b, k0, k1):
-    """Return sum a[k] · b[k] over k in [k0, k1), in :data:`LANES` accumulators (a fixed order)."""
+    """Return sum a[k] · b[k] over k in [k0, k1), in 8 accumulators (a fixed order: the same bits every run)."""
     x = a[k0:k1]
     y = b[k0:k1]
     n = k1 - k0
-    main = n - n % LANES
+    main = n - n % 8
     a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
-    for i in range(0, main, LANES):
+    for i in range(0, main, 8):
         a0 += x[i] * y[i]
         a1 += x[i + 1] * y[i + 1]
         a2 += x[i + 2] * y[i + 2]
@@ -399,7 +396,7 @@ def half_sweep(x, b, m, ranges, nranges, cut, colour, deg, inv_deg):
 
 @nb.njit(cache=True, nogil=True)
 def half_sweep_dot(x, b, m, ranges, nranges, cut, colour, deg, inv_deg):
-    """:func:`half_sweep`; return sum b · x over the colour's cells (the new x, in :data:`LANES` accumulators)."""
+    """:func:`half_sweep`; return sum b · x over the colour's cells (the new x, in 8 accumulators)."""
     half_sweep(x, b, m, ranges, nranges, cut, colour, deg, inv_deg)
     s = 0.0
     for r in range(nranges):
@@ -409,7 +406,7 @@ def half_sweep_dot(x, b, m, ranges, nranges, cut, colour, deg, inv_deg):
 
 @nb.njit(cache=True, nogil=True)
 def product_dot(p, q, m, ranges, nranges, cut_red, cut_black, deg):
-    """Compute q = A p on the cells (float64 (2, H) each); return p · q (:data:`LANES` accumulators per range)."""
+    """Compute q = A p on the cells (float64 (2, H) each); return p · q (8 accumulators per range)."""
     fdeg = float(deg)
     s = 0.0
     for colour in range(2):
