@@ -427,6 +427,14 @@ def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int
 
 
 # ------------------------------------------------------------------ diagnostics
+def _level_byte(level) -> bytes:
+    """Return a status level (DiagnosticStatus.OK/WARN/ERROR/STALE: one byte, or its int) as the one byte sent."""
+    b = level if isinstance(level, bytes) else bytes([int(level)])
+    if len(b) != 1:
+        raise ValueError(f"level: expected one byte, got {level!r}")
+    return b
+
+
 def diagnostic_array(statuses, stamp=None, hardware_id: str = "") -> DiagnosticArray:
     """
     Build a DiagnosticArray of ``[(name, level, message, values dict)]``; ``level`` is DiagnosticStatus.OK/WARN/ERROR.
@@ -438,7 +446,7 @@ def diagnostic_array(statuses, stamp=None, hardware_id: str = "") -> DiagnosticA
         arr.header.stamp = stamp
     for name, level, message, values in statuses:
         st = DiagnosticStatus()
-        st.level = level if isinstance(level, bytes) else bytes([int(level)])
+        st.level = _level_byte(level)
         st.name = name
         st.message = message
         st.hardware_id = hardware_id
@@ -644,7 +652,7 @@ def trajectory_cdr(traj, stamp=None, frame_id: str = "") -> bytes:
     velocities, accelerations (K, n)); ``stamp``: builtin_interfaces/Time or None (zero).  A
     publisher sends these bytes as they are (``Publisher.publish(bytes)``): no message objects,
     no per-point conversion.  Checked once: rclpy deserializes it into that message
-    (:data:`_PUBLISH_SERIALIZED`).
+    (:data:`_TRAJECTORIES_SERIALIZED`).
     """
     out = _cdr_header(stamp, frame_id)
     names = list(traj.joint_names)
@@ -686,12 +694,12 @@ def diagnostic_cdr(statuses, stamp=None, hardware_id: str = "") -> bytes:
     Return :func:`diagnostic_array`'s message serialized (CDR, as a publisher sends it), made from the statuses.
 
     ``statuses``, ``stamp``, ``hardware_id``: as for :func:`diagnostic_array`.  No message objects
-    (a KeyValue each); checked once: rclpy deserializes it into that message (:data:`_PUBLISH_SERIALIZED`).
+    (a KeyValue each); checked once: rclpy deserializes it into that message (:data:`_DIAGNOSTICS_SERIALIZED`).
     """
     out = _cdr_header(stamp, "")
     _cdr_count(out, len(statuses))
     for name, level, message, values in statuses:
-        out += level if isinstance(level, bytes) else bytes([int(level)])
+        out += _level_byte(level)
         _cdr_string(out, name)
         _cdr_string(out, message)
         _cdr_string(out, hardware_id)
@@ -702,14 +710,13 @@ def diagnostic_cdr(statuses, stamp=None, hardware_id: str = "") -> bytes:
     return bytes(out)
 
 
-def _serialized_matches() -> bool:
+def _diagnostics_match() -> bool:
     """
-    Tell whether :func:`trajectory_cdr`'s and :func:`diagnostic_cdr`'s bytes are the messages they stand for.
+    Tell whether :func:`diagnostic_cdr`'s bytes are the message they stand for.
 
-    rclpy deserializes them (as a subscriber does) into messages equal to those of
-    :func:`trajectory_to_msg` and into what a subscriber gets of :func:`diagnostic_array`'s (a
-    string up to a NUL), on a few shapes (rclpy's own serialization leaves its padding bytes
-    and a few trailing bytes uninitialised: not comparable byte for byte).
+    rclpy deserializes them (as a subscriber does) into what a subscriber gets of
+    :func:`diagnostic_array`'s message (a string up to a NUL), on a few shapes (rclpy's own
+    serialization leaves its padding bytes uninitialised: not comparable byte for byte).
     """
     try:
         from rclpy.serialization import deserialize_message, serialize_message
@@ -725,6 +732,21 @@ def _serialized_matches() -> bool:
                 return False
         except Exception:        # noqa: BLE001 - any doubt: messages
             return False
+    return True
+
+
+def _trajectories_match() -> bool:
+    """
+    Tell whether :func:`trajectory_cdr`'s bytes are the messages they stand for.
+
+    rclpy deserializes them (as a subscriber does) into messages equal to those of
+    :func:`trajectory_to_msg`, on a few shapes (rclpy's own serialization leaves a few
+    trailing bytes uninitialised: not comparable byte for byte).
+    """
+    try:
+        from rclpy.serialization import deserialize_message
+    except ImportError:          # no rclpy serialization: messages are published
+        return False
     rng = np.random.default_rng(0)
     for k, names, frame in ((3, ("a",), ""), (2, ("shoulder", "elbow"), "world"), (0, ("j0", "j1", "j2"), "ab"),
                             (5, ("x1", "y22", "z333"), ""), (1, ("attitude",), "map")):
@@ -740,14 +762,15 @@ def _serialized_matches() -> bool:
     return True
 
 
-#: the node publishes :func:`trajectory_cdr`'s and :func:`diagnostic_cdr`'s bytes (:func:`_serialized_matches`),
-#: else the messages of :func:`trajectory_to_msg` and :func:`diagnostic_array`
-_PUBLISH_SERIALIZED = _serialized_matches()
+#: the node publishes :func:`trajectory_cdr`'s bytes (:func:`_trajectories_match`), else :func:`trajectory_to_msg`'s
+_TRAJECTORIES_SERIALIZED = _trajectories_match()
+#: the node publishes :func:`diagnostic_cdr`'s bytes (:func:`_diagnostics_match`), else :func:`diagnostic_array`'s
+_DIAGNOSTICS_SERIALIZED = _diagnostics_match()
 
 
 def diagnostic_payload(statuses, stamp=None, hardware_id: str = ""):
     """Return what a publisher sends for :func:`diagnostic_array`: its bytes (:func:`diagnostic_cdr`) or the message."""
-    return (diagnostic_cdr if _PUBLISH_SERIALIZED else diagnostic_array)(statuses, stamp, hardware_id)
+    return (diagnostic_cdr if _DIAGNOSTICS_SERIALIZED else diagnostic_array)(statuses, stamp, hardware_id)
 
 
 def publication_payloads(publication) -> tuple:
@@ -757,7 +780,7 @@ def publication_payloads(publication) -> tuple:
     The same messages, serialized from the arrays (:func:`trajectory_cdr`) where that was checked
     to match rclpy's serialization, else the messages themselves; None as there.
     """
-    if not _PUBLISH_SERIALIZED:
+    if not _TRAJECTORIES_SERIALIZED:
         return publication_msgs(publication)
     if publication is None:
         return None, None

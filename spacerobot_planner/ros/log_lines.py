@@ -2,9 +2,10 @@
 A node's log lines at rcutils' cost: rclpy's logger less its look-up of the caller on every line.
 
 rclpy's ``RcutilsLogger.log`` finds the frame that called it on every line
-(``rcutils_logger.CallerId``: ``inspect.getframeinfo`` three times and ``os.path.realpath``
-twice, which stat and read the caller's source file): 0.3-0.5 ms a line measured in the
-planner node's worker thread, where a cached replan's whole record and send takes 0.5 ms.
+(``rcutils_logger``'s caller search: ``inspect.getframeinfo`` and ``os.path.realpath`` for
+each frame it walks, and a ``CallerId``, which stat and read the source files): 0.3-0.5 ms a
+line measured with Kilted's rclpy 9 in the planner node's worker thread, where a cached
+replan's whole record and send takes 0.5 ms.
 rcutils itself (the console line and /rosout) takes a few microseconds.  :class:`LogLines`
 hands rcutils the very arguments rclpy's logger hands it (severity, the logger's name, the
 text, the calling frame's ``CallerId``: function, file, line), the ``CallerId`` of each
@@ -42,7 +43,7 @@ class LogLines:
         Returns whether it was logged (the logger is enabled for the severity).
         """
         if _EMIT is None or _ENABLED is None:
-            return self.logger.log(text, severity)
+            return self._by_the_logger(severity, text)
         name = self.logger.name
         if not _ENABLED(name, severity):
             return False
@@ -53,3 +54,16 @@ class LogLines:
             caller = self._callers[site] = CallerId(frame)
         _EMIT(severity, name, text, caller.function_name, caller.file_path, caller.line_number)
         return True
+
+    def _by_the_logger(self, severity: LoggingSeverity, text: str) -> bool:
+        """Log through the logger's own method of the severity (rclpy ties a call site to one severity)."""
+        log = self.logger
+        if severity >= LoggingSeverity.FATAL:
+            return log.fatal(text)
+        if severity >= LoggingSeverity.ERROR:
+            return log.error(text)
+        if severity >= LoggingSeverity.WARN:
+            return log.warning(text)
+        if severity >= LoggingSeverity.INFO:
+            return log.info(text)
+        return log.debug(text)
