@@ -13,8 +13,9 @@ Two forms of periodic values:
 - *unwrapped*: continuous along a path (no 2π jumps), possibly outside the range (what
   the smoothing, the trajectory and the motion checks work on).
 
-Every function takes ``periodic`` as a sequence of bools, one per column; arrays
-broadcast over leading axes.  The path functions run small numba kernels
+Every function takes ``periodic`` as a sequence of bools, one per column.  ``wrap_rad`` and
+``wrap_angle_rad`` take arrays of any leading axes; ``nearest_turn_rad`` one (n,) value;
+``unwrap_path`` and ``align_to_state`` an (M, n) path (others are refused).  The path functions run small numba kernels
 (``_wrap_rows``, ``_unwrap_rows``, ``_turn_rows``) that do NumPy's operations element by
 element, in NumPy's order (a plan calls them a few times: the same values, without the
 temporaries).

@@ -113,8 +113,7 @@ class PlanarArm:
         object.__setattr__(self, "locked_rad", locked)
         if any(not 0 <= k < n for k in self.checked_links):
             raise ValueError("checked_links: link indices out of range")
-        # the planned joints' bounds and flags, made once and never written (the properties hand out
-        # copies; writeable, as the kernels that read them are compiled for)
+        # the planned joints' bounds and flags, made once and never written (the properties hand out copies)
         for attr, values, dtype in (("_planned_lower", lo, float), ("_planned_upper", hi, float),
                                     ("_planned_periodic", self.periodic, bool)):
             object.__setattr__(self, attr, np.array([values[j] for j in planned], dtype=dtype))

@@ -432,7 +432,6 @@ def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, 
     ``t_poly``: the polyline's arc length at each vertex (``trajectory.arc_lengths_rad``).
     Returns (samples, knots, check, rounds) of the first clean spline, or None.
     """
-    t_vertices = t_poly
     t_knots = np.unique(t_knots)
     for rounds in range(max_rounds + 1):
         if cancel is not None and cancel.is_set():
@@ -454,7 +453,7 @@ def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, 
                 if not 0 <= j < len(t_knots) - 1:
                     continue
                 ta, tb = t_knots[j], t_knots[j + 1]
-                inner = t_vertices[(t_vertices > ta + 1e-12) & (t_vertices < tb - 1e-12)]
+                inner = t_poly[(t_poly > ta + 1e-12) & (t_poly < tb - 1e-12)]
                 if j == iv or len(inner):
                     new_t.extend(inner if len(inner) else [0.5 * (ta + tb)])
         if not new_t:

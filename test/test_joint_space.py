@@ -73,3 +73,34 @@ def test_nearest_turn_and_bounds():
     assert np.isclose(v[0], 0.1 + 2 * math.pi) and v[1] == 0.1
     q = np.array([[5.0, 1.0], [5.0, 4.0]])
     assert within_bounds(q, LOWER, -LOWER, PER).tolist() == [True, False]
+
+
+def test_the_path_kernels_give_numpys_values_bit_for_bit():
+    """wrap_rad, unwrap_path, nearest_turn_rad and align_to_state against the NumPy formulas, written here."""
+    from spacerobot_planner import joint_space as js
+    rng = np.random.default_rng(19)
+    two_pi = 2.0 * np.pi
+    for _ in range(300):
+        n = int(rng.integers(1, 6))
+        per = rng.random(n) < 0.6
+        lo = rng.uniform(-4.0, 1.0, n)
+        q = rng.uniform(-20.0, 20.0, (int(rng.integers(1, 30)), n))
+        q[0, 0] = lo[0] + 3 * two_pi                             # a value on the wrap's edge
+        want = q.copy()
+        want[:, per] = lo[per] + (q[:, per] - lo[per]) % two_pi
+        assert np.array_equal(js.wrap_rad(q, per, lo), want)
+        path = np.cumsum(rng.normal(0.0, 1.5, (int(rng.integers(2, 40)), n)), axis=0)
+        path[1:, per] += two_pi * rng.integers(-2, 3, (len(path) - 1, int(per.sum())))
+        want = path.copy()
+        step = (np.diff(path[:, per], axis=0) + np.pi) % two_pi - np.pi
+        want[1:, per] = path[0, per] + np.cumsum(step, axis=0)
+        assert np.array_equal(js.unwrap_path(path, per), want)
+        ref = rng.uniform(-30.0, 30.0, n)
+        v = path[0]
+        want = v.copy()
+        want[per] = v[per] + two_pi * np.round((ref[per] - v[per]) / two_pi)
+        assert np.array_equal(js.nearest_turn_rad(v, ref, per), want)
+        state = path[0] + np.where(per, two_pi * rng.integers(-3, 4, n), 0.0)
+        want = path.copy()
+        want[:, per] += two_pi * np.round((state[per] - path[0, per]) / two_pi)
+        assert np.array_equal(js.align_to_state(path, state, per), want)
