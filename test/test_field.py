@@ -400,9 +400,11 @@ occ[40:140, 60:70] = True
 for _ in range(2):                       # the heap grows to the solve's peak
     F.solve_field(occ, (False, False), [(170, 170)])
 kept = F.keep_heap()
-before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
-F.solve_field(occ, (False, False), [(170, 170)])
-faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before
+faults = []
+for _ in range(5):
+    before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+    F.solve_field(occ, (False, False), [(170, 170)])
+    faults.append(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before)
 print(json.dumps({"kept": kept, "again": F.keep_heap(), "faults": faults, "pages": 8 * int((~occ).sum()) * 8 // 4096}))
 """
 
@@ -415,7 +417,10 @@ def test_the_field_keeps_freed_memory_for_the_next_solve():
     cluster), on the solving thread alone: its page faults are counted by the kernel
     (``ru_minflt`` of ``RUSAGE_THREAD``), the oracle, and are far fewer than the pages of the
     float64 vectors over the graph that a solve allocates (the field, CG's four, the V-cycle's
-    three: 8, about 500 pages here; without the kept heap a solve faults ~900).
+    three: 8, about 500 pages here; without the kept heap every solve faults ~900).  The fewest
+    faults of five solves in a row: on a loaded machine the kernel may take back a kept page now
+    and then (CI once counted 198 in one solve, where a quiet machine counts 0 or 1), which is
+    not the heap's doing.
     """
     import json
     import os
@@ -433,4 +438,4 @@ def test_the_field_keeps_freed_memory_for_the_next_solve():
     if not got["kept"]:
         pytest.skip("not glibc")
     assert got["again"]                  # once per process, the same answer
-    assert got["faults"] < got["pages"] // 4, got
+    assert min(got["faults"]) < got["pages"] // 4, got
