@@ -462,11 +462,13 @@ def _fill_rows_parallel(occ, n_rows, *args):
 ROWS_PARALLEL_NODES = 300_000
 
 
-def _occupancy(shape, lower, step, axis_joint, *rest, token=None):
+def _occupancy(shape, lower, step, axis_joint, *rest, token=None, parallel=None):
     """
     Use the row kernel where the last axis is the chain's last joint, else node by node.
 
     ``token``: the termination token (None: never); raises Cancelled when it stopped the kernel.
+    ``parallel``: the row kernel's form, parallel or one thread (None: parallel from
+    ``ROWS_PARALLEL_NODES`` nodes).
     """
     token = Termination.of(token)
     stop = token.flag
@@ -478,7 +480,7 @@ def _occupancy(shape, lower, step, axis_joint, *rest, token=None):
         occ = np.zeros(n_nodes, dtype=np.bool_)
         n_rows = n_nodes // int(shape[-1])
         args = (shape, lower, step, axis_joint, *rest, ROW_EPS_RAD, stop)
-        if n_nodes >= ROWS_PARALLEL_NODES:
+        if n_nodes >= ROWS_PARALLEL_NODES if parallel is None else parallel:
             _fill_rows_parallel(occ, n_rows, *args)
         else:
             _fill_rows(occ, 0, n_rows, *args)
@@ -512,7 +514,7 @@ def body_occupancy(robot, grid: GridSpec, margin_m: float, token=None) -> np.nda
 
 
 def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
-                 body_table: np.ndarray | None = None, token=None) -> CSpace:
+                 body_table: np.ndarray | None = None, token=None, parallel: bool | None = None) -> CSpace:
     """
     Occupancy of every node of ``grid`` for ``robot`` among ``scene``'s obstacles.
 
@@ -530,6 +532,9 @@ def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
         The plan's termination token (``termination.Termination``; None: never set),
         polled by the kernels row by row.  Raises ``termination.Cancelled`` when it is
         set before the build ends: nothing partial is returned.
+    parallel
+        Fill the rows on all threads or on one (None: on all from ``ROWS_PARALLEL_NODES``
+        nodes; :func:`warm_up` loads the parallel form on a small grid).
 
     """
     if grid.ndim != robot.dof:
@@ -548,6 +553,18 @@ def build_cspace(robot, scene, grid: GridSpec, extra_margin_m: float = 0.0,
         np.asarray(grid.step_rad, dtype=float), np.asarray(robot.planned_joints, dtype=np.int64),
         np.asarray(robot.locked_rad, dtype=float), np.asarray(robot.link_lengths_m, dtype=float),
         np.asarray(robot.checked_links, dtype=np.int64), np.ascontiguousarray(robot.body_polygon_m),
-        verts, starts, centres, radii, margin, body_table is None, known, token=token)
+        verts, starts, centres, radii, margin, body_table is None, known, token=token, parallel=parallel)
     seconds = time.perf_counter() - t0
     return CSpace(grid=grid, occupied=occ.reshape(grid.shape), margin_m=margin, seconds=seconds)
+
+
+def warm_up(robot, scene, grid: GridSpec) -> None:
+    """
+    Compile (or load from numba's cache) both forms of the row kernel on ``grid`` (a coarse one).
+
+    A plan's own grid reaches one form only (the parallel one from ``ROWS_PARALLEL_NODES``
+    nodes): a refinement to a finer grid would otherwise compile the other (seconds) inside
+    the plan.
+    """
+    for parallel in (False, True):
+        build_cspace(robot, scene, grid, parallel=parallel)

@@ -38,6 +38,7 @@ import numpy as np
 
 from .collision import CollisionChecker
 from .cspace import GridSpec, body_occupancy, build_cspace
+from .cspace import warm_up as cspace_warm_up
 from .descent import descend
 from .field import solve_field
 from .field import warm_up as field_warm_up
@@ -403,6 +404,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
     for start, goal in zip(free[:-1:2], free[1::2]):
         if planner.plan(start, goal).ok:
             break
+    cspace_warm_up(coarse.robot, coarse.scene, coarse.grid)     # the row kernel's form a refinement reaches
     field_warm_up()             # the solver kernels a coarse grid does not reach
     smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
     repair_warm_up()            # a coarse plan seldom repairs

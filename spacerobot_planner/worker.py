@@ -49,6 +49,7 @@ from typing import Callable
 import numpy as np
 
 from .config import load_scenario
+from .cspace import warm_up as cspace_warm_up
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .planner import Planner
@@ -333,6 +334,7 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
         if coarse.plan(a, b).ok:
             start = a
             break
+    cspace_warm_up(coarse.scenario.robot, coarse.scenario.scene, coarse.scenario.grid)   # a refinement's rows
     smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
     repair_warm_up()            # a coarse plan seldom repairs
     field_warm_up_rare()        # nor needs a breadth-first search or a second band
