@@ -608,6 +608,7 @@ class PlanRun:
         """
         grid, s = cs.grid, self.s
         blocked, cut = frozenset(), frozenset()
+        base = fld                       # every repaired field starts its iterations from this one
         repairs = 0
         start_ok = {}                    # grid node -> whether the straight segment from the start passes
         start = self.plan_start
@@ -665,7 +666,7 @@ class PlanRun:
                     blocked = blocked | {node}
                     self.say(f"repair: {stuck.reason}; blocking node {node} and re-solving the field")
                 repairs += 1
-                fld = self.resolve(cs, key, goal_nodes, blocked, cut)
+                fld = self.resolve(cs, key, goal_nodes, blocked, cut, base)
                 continue
             if path is None:
                 if collide:
@@ -701,7 +702,7 @@ class PlanRun:
             repairs += 1
             self.say(f"repair: segment {deg_text(wp[bad])} → {deg_text(wp[bad + 1])} collides; "
                      f"blocking node {node} and re-solving the field")
-            fld = self.resolve(cs, key, goal_nodes, blocked, cut)
+            fld = self.resolve(cs, key, goal_nodes, blocked, cut, base)
         raise AssertionError("unreachable")
 
     def descend(self, grid, fld, key, blocked, cut, node):
@@ -749,12 +750,17 @@ class PlanRun:
             raise Refine(Code.PATH_INVALID, f"{done} on the grid {grid.label()} gave no verified grid path; "
                          "a finer grid is tried instead of more repairs", f"{done}, then a finer grid")
 
-    def resolve(self, cs, key, goal_nodes, blocked, cut):
-        """Return the field with ``blocked`` nodes and ``cut`` edges taken out (cached by them)."""
+    def resolve(self, cs, key, goal_nodes, blocked, cut, base):
+        """
+        Return the field with ``blocked`` nodes and ``cut`` edges taken out (cached by them).
+
+        Solved from the field under ``key`` (``base``, before any repair) as its guess: a function
+        of the key, the nodes and the edges alone, whichever repairs came before.
+        """
         rkey = key + (tuple(sorted(blocked)), tuple(sorted(cut)))
         hit = rkey in self.p._fields
         with self.stage("repair"):
-            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel)
+            fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel, guess=base)
         if not hit and "field" in self.cached:
             self.cached.remove("field")
         return fld

@@ -320,13 +320,15 @@ class Planner:
         return (cspace_key, tuple(map(tuple, np.asarray(goal_nodes).tolist())), settings.solver,
                 settings.field_tolerance, settings.field_budget_s)
 
-    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None):
+    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None,
+               guess=None):
         """
         Return the field under ``key`` (solved and stored when absent).
 
         The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``.
         ``token``: the plan's termination token; a solve it stops raises
-        ``termination.Cancelled`` and stores nothing.
+        ``termination.Cancelled`` and stores nothing.  ``guess``: a field of the same grid and
+        goal whose values the log_harmonic solve starts from (``solve_field``'s guess).
         """
         fld = self._fields.get(key)
         if fld is not None:
@@ -339,7 +341,8 @@ class Planner:
         self._test_stall("field", token)
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,
                           tol=settings.field_tolerance, budget_s=settings.field_budget_s,
-                          cut_edges=edges if len(edges) else None, token=token)
+                          cut_edges=edges if len(edges) else None, token=token,
+                          guess=None if guess is None or settings.solver != "log_harmonic" else guess.log_u)
         self._remember(self._fields, key, fld, 16)
         return fld
 

@@ -85,3 +85,26 @@ def test_the_solve_meets_its_residual_and_matches_a_direct_solve(shape, periodic
     assert np.max(np.abs(x - direct)) < 1e-6 * np.max(np.abs(direct))
     again = multigrid.solve(nbr, coords, shape, rhs, tol=tol)[0]
     assert np.array_equal(x, again), "the same problem gave other bits"
+
+
+@pytest.mark.parametrize("route", ["graph", "structured"])
+def test_a_guess_is_only_where_the_iterations_start(route):
+    """
+    The initial guess ``x0`` changes where the iterations start, not where they stop.
+
+    From the solution itself the solve takes no iteration; from a wrong guess it meets the same
+    residual on the grid's own Laplacian; a guess of another length is refused.
+    """
+    shape = (16, 12, 14)
+    nbr, coords, rhs, A = _grid_problem(shape, (True, False, False), 2, obstacle_fraction=0.0)
+    tol = 1e-10
+    x, its, _ = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route)
+    again, its0, res0 = multigrid.solve(nbr, coords, shape, rhs, tol=tol, x0=x, route=route)
+    assert its0 == 0 and res0 < tol and np.array_equal(again, x)
+    wrong = np.random.default_rng(5).random(len(rhs))
+    y, its1, res1 = multigrid.solve(nbr, coords, shape, rhs, tol=tol, x0=wrong, route=route)
+    assert its1 > 0 and res1 < tol and np.max(np.abs(rhs - A @ y)) < tol
+    near = x + 1e-6 * wrong
+    assert 0 < multigrid.solve(nbr, coords, shape, rhs, tol=tol, x0=near, route=route)[1] < its
+    with pytest.raises(ValueError, match="x0"):
+        multigrid.solve(nbr, coords, shape, rhs, x0=x[1:], route=route)

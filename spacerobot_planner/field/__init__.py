@@ -30,7 +30,8 @@ band by band of scale:
    values are again of order one; solved and kept the same way.  Every band keeps at
    least the neighbours of its largest known value (a harmonic value is ≥ 1/2n of its
    largest neighbour), so the bands end; a typical scene needs one to three, a maze one
-   per six decades.
+   per six decades.  Its iterations start from the values the bands before it left
+   below their floors (right to about 1e-4 of its scale), not from 0.
 3. A check that every non-goal node has a strictly higher face neighbour.  Where rounding
    made two neighbours equal, a repair lowers the later one by 1e-9 in log u (in
    decreasing order of value from the goal, so every node ends strictly below the
@@ -152,7 +153,7 @@ def _paper(occ, per, goals, tol, max_sweeps, t0, token):
 
 
 def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *, tol=None,
-                max_sweeps=None, budget_s=None, cancel=None, cut_edges=None, token=None) -> Field:
+                max_sweeps=None, budget_s=None, cancel=None, cut_edges=None, token=None, guess=None) -> Field:
     """
     Solve the harmonic field (see the package doc).
 
@@ -180,6 +181,11 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         The plan's termination token (``termination.Termination``; None: never set):
         polled inside the kernels.  Raises ``termination.Cancelled`` once it is set
         (no field: a partial one is never returned).
+    guess
+        Optional: log_harmonic starts each band's iterations from this ``log_u`` (a field of the
+        same grid and goal, e.g. the one before a repair cut a few edges) instead of from 0.
+        The field stops at the same residuals, so it is as precise; it is not bit for bit the
+        field solved without a guess (equal to the solver's precision).
 
     Raises ValueError naming a malformed argument or an unknown solver.
 
@@ -207,7 +213,12 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         stats = {"bands": 0}
         return Field(graph.scatter(log_u[:-1]), occ, per, goals, "oracle", 0, 0.0, True,
                      time.perf_counter() - t0, "", stats)
-    log_u, stats = harmonic.solve(graph, budget, cancel=cancel, token=token)
+    if guess is not None:
+        guess = np.asarray(guess, dtype=float)
+        if guess.shape != occ.shape:
+            raise ValueError(f"guess: a log_u of the grid's shape {occ.shape} expected, got {guess.shape}")
+        guess = np.append(guess.reshape(-1)[graph.order], -np.inf)     # the graph's nodes, the dummy last
+    log_u, stats = harmonic.solve(graph, budget, cancel=cancel, token=token, guess=guess)
     left = stats.pop("left")
     return Field(graph.scatter(log_u[:-1]), occ, per, goals, "log_harmonic",
                  int(stats.pop("iterations")), float(stats.pop("residual")),

@@ -905,7 +905,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
 
 
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=None, stop=None,
-          coarse_sweeps=COARSE_SWEEPS, route="auto"):
+          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -919,7 +919,8 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     scale (None: :func:`boost_of` the grid's dimension).  ``route``: "auto", the fine level on
     the grid's cells where :func:`.structured.fine_layout`'s rule says so (else on the node
     graph); "graph", on the node graph always; "structured", on the cells wherever they can
-    hold it, whatever its size (the tests').
+    hold it, whatever its size (the tests').  ``x0``: float (n,), the initial guess (None: 0); the
+    stop rule is the same from any guess, so a guess near the solution saves iterations only.
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
@@ -929,6 +930,10 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     n = nbr.shape[0]
     if n == 0:
         return np.zeros(0), 0, 0.0
+    if x0 is not None:
+        x0 = np.asarray(x0, dtype=float)
+        if x0.shape != (n,):
+            raise ValueError(f"x0: expected shape ({n},), got {x0.shape}")
     try:
         h = Hierarchy(nbr, coords, shape, stop)
     except Stopped:
@@ -944,7 +949,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         layout = structured.fine_layout(h, shape, sweeps, max_cells_per_unknown=np.inf, min_unknowns=0)
     if layout is not None:
         rows = None if h.in_order else h.fine_of_input     # each input's fine row
-        u = np.zeros((2, layout.half))
+        u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)
         it, res = _spcg(layout.mask, layout.ranges, layout.nranges, layout.cut_red, layout.cut_black, layout.aggr,
                         layout.gather, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
@@ -956,6 +961,11 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     else:
         b[h.fine_of_input] = rhs
     x = np.zeros(n + 1)
+    if x0 is not None:
+        if h.in_order:
+            x[:n] = x0
+        else:
+            x[h.fine_of_input] = x0
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps),
                    float(boost), int(coarse_sweeps), float(deadline), stop)
