@@ -270,8 +270,11 @@ def _initial(prior, window, log_scale):
     Return a band's initial guess from ``prior`` (log u over the graph, float64 (N + 1,)) on its ``window``.
 
     On the band's scale (divided by ``exp(log_scale)``) and at most 1, the band's largest
-    value (its known values are at most 1 on that scale): float64 (m,), 0 where the prior is -inf.
+    value (its known values are at most 1 on that scale): float64 (m,), 0 where the prior is -inf;
+    None (start from 0) for a band without a known value.
     """
+    if not math.isfinite(log_scale):
+        return None
     return np.exp(np.minimum(prior[window] - log_scale, 0.0))
 
 
