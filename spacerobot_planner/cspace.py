@@ -480,7 +480,9 @@ def _occupancy(shape, lower, step, axis_joint, *rest, token=None, parallel=None)
         occ = np.zeros(n_nodes, dtype=np.bool_)
         n_rows = n_nodes // int(shape[-1])
         args = (shape, lower, step, axis_joint, *rest, ROW_EPS_RAD, stop)
-        if n_nodes >= ROWS_PARALLEL_NODES if parallel is None else parallel:
+        if parallel is None:
+            parallel = n_nodes >= ROWS_PARALLEL_NODES
+        if parallel:
             _fill_rows_parallel(occ, n_rows, *args)
         else:
             _fill_rows(occ, 0, n_rows, *args)

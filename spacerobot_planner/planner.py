@@ -342,7 +342,7 @@ class Planner:
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,
                           tol=settings.field_tolerance, budget_s=settings.field_budget_s,
                           cut_edges=edges if len(edges) else None, token=token,
-                          guess=None if guess is None or settings.solver != "log_harmonic" else guess.log_u)
+                          guess=None if guess is None else guess.log_u)
         self._remember(self._fields, key, fld, 16)
         return fld
 

@@ -276,8 +276,14 @@ def test_a_repaired_field_solved_from_the_field_before_the_cuts_matches_the_orac
         assert warm.sweeps < cold.sweeps, (warm.sweeps, cold.sweeps)
         again = F.solve_field(occ, per, [goal], cut_edges=np.array(cuts), guess=before.log_u)
         assert np.array_equal(warm.log_u, again.log_u), "the same problem and guess gave other bits"
-    with pytest.raises(ValueError, match="guess"):
+    with pytest.raises(ValueError, match="guess.*shape"):
         F.solve_field(occ, per, [goal], guess=before.log_u[1:])
+    with pytest.raises(ValueError, match="guess.*shape"):          # whatever the solver
+        F.solve_field(occ, per, [goal], solver="gauss_seidel", guess=before.log_u[1:])
+    nan = before.log_u.copy()
+    nan[start] = np.nan
+    with pytest.raises(ValueError, match="guess: 1 NaN"):
+        F.solve_field(occ, per, [goal], guess=nan)
 
 
 def test_solve_field_errors():

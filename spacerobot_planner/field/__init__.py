@@ -182,10 +182,12 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         polled inside the kernels.  Raises ``termination.Cancelled`` once it is set
         (no field: a partial one is never returned).
     guess
-        Optional: log_harmonic starts each band's iterations from this ``log_u`` (a field of the
-        same grid and goal, e.g. the one before a repair cut a few edges) instead of from 0.
-        The field stops at the same residuals, so it is as precise; it is not bit for bit the
-        field solved without a guess (equal to the solver's precision).
+        Optional ``log_u`` of the grid's shape (no NaN): a field of the same grid and goal, e.g.
+        the one before a repair cut a few edges.  log_harmonic starts its first band's
+        iterations from it instead of from 0 (the later bands start from the bands before
+        them, see :func:`.harmonic.solve`); the other solvers do not use it.  The field stops
+        at the same residuals, so it is as precise; it is not bit for bit the field solved
+        without a guess (equal to the solver's precision).
 
     Raises ValueError naming a malformed argument or an unknown solver.
 
@@ -196,6 +198,12 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
     if solver not in SOLVERS + INTERNAL_SOLVERS:
         raise ValueError(f"solver: unknown solver {solver!r}; expected one of {list(SOLVERS)}")
     occ, per, goals = validate_problem(occupied, periodic, goal_nodes)
+    if guess is not None:
+        guess = np.asarray(guess, dtype=float)
+        if guess.shape != occ.shape:
+            raise ValueError(f"guess: a log_u of the grid's shape {occ.shape} expected, got {guess.shape}")
+        if np.isnan(guess).any():
+            raise ValueError(f"guess: {int(np.isnan(guess).sum())} NaN value(s); a log_u holds numbers and -inf")
     token = Termination.of(token)
     token.check()
     if solver == "gauss_seidel":
@@ -214,9 +222,6 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
         return Field(graph.scatter(log_u[:-1]), occ, per, goals, "oracle", 0, 0.0, True,
                      time.perf_counter() - t0, "", stats)
     if guess is not None:
-        guess = np.asarray(guess, dtype=float)
-        if guess.shape != occ.shape:
-            raise ValueError(f"guess: a log_u of the grid's shape {occ.shape} expected, got {guess.shape}")
         guess = np.append(guess.reshape(-1)[graph.order], -np.inf)     # the graph's nodes, the dummy last
     log_u, stats = harmonic.solve(graph, budget, cancel=cancel, token=token, guess=guess)
     left = stats.pop("left")
