@@ -10,6 +10,8 @@ capture posture of the target), so some scenes end before the field (``goal_unre
 ``goal_in_collision``): the code counts say how many.
 
 ``--profile`` adds the per-step profile (``bench/profile.py``), the mean per scene.
+The CG iterations of each answer's field (median, p90, max, sum) and the repairs are counts,
+the same on any machine: a change to the field compares by them where times drift.
 
 Scenes are drawn until ``count`` of them have a free start and a reachable capture
 posture (the draws that did not are counted: ``no_free_start``, ``goal_unreachable``).
@@ -161,6 +163,7 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
         rows.append({"stage": k, "grid": grid_label, "dof": dof, "seed": seed, **st})
     print("codes: " + ", ".join(f"{c} {n}" for c, n in codes.most_common())
           + "; draws skipped: " + (", ".join(f"{c} {n}" for c, n in drawn.most_common()) or "none"))
+    rows += _iteration_rows([r for _, _, r in scenes], grid_label, dof, seed)
     rows.append({"stage": "codes", "grid": grid_label, "dof": dof, "seed": seed, "codes": dict(codes),
                  "skipped_draws": dict(drawn)})
     rows += _slowest_rows(scenes, slowest, grid_label, dof, seed)
@@ -170,6 +173,25 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
         rows += [{"stage": "profile", "grid": grid_label, "dof": dof, "seed": seed, **r} for r in prof_rows]
     rows += _oracle_rows(planned[:n_oracle], grid_label, dof, seed)
     return rows
+
+
+def _iteration_rows(results, grid_label, dof, seed) -> list:
+    """
+    Print and return the CG iterations of each answer's field (``solver_stats['sweeps']``), and the repairs.
+
+    Counts, not times: the same on any machine, so a change to the field's iterations can be
+    compared across runs where the machine's speed drifts.
+    """
+    its = np.array([r.solver_stats["sweeps"] for r in results
+                    if r.solver == "log_harmonic" and "sweeps" in r.solver_stats], dtype=float)
+    repairs = sum(int(r.solver_stats.get("repairs", 0)) for r in results)
+    if not its.size:
+        return []
+    print(f"field CG iterations (each answer's field, {its.size} scenes): median {np.median(its):.0f}, "
+          f"p90 {np.percentile(its, 90):.0f}, max {its.max():.0f}, sum {its.sum():.0f}; repairs {repairs}")
+    return [{"stage": "field_iterations", "grid": grid_label, "dof": dof, "seed": seed, "count": int(its.size),
+             "median": float(np.median(its)), "p90": float(np.percentile(its, 90)), "max": float(its.max()),
+             "sum": int(its.sum()), "repairs": repairs}]
 
 
 def _slowest_rows(scenes, n, grid_label, dof, seed) -> list:
