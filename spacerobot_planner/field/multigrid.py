@@ -955,18 +955,13 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
                         float(boost), int(coarse_sweeps), float(deadline), stop)
         return layout.from_cells(u, rows), int(it), float(res)
+    rows = slice(0, n) if h.in_order else h.fine_of_input     # each input's fine row (in order: no renumbering)
     b = np.zeros(n + 1)
-    if h.in_order:                  # the node graph's order: no renumbering to undo
-        b[:n] = rhs
-    else:
-        b[h.fine_of_input] = rhs
+    b[rows] = rhs
     x = np.zeros(n + 1)
     if x0 is not None:
-        if h.in_order:
-            x[:n] = x0
-        else:
-            x[h.fine_of_input] = x0
+        x[rows] = x0
     it, res = _pcg(h.nb0, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps),
                    float(boost), int(coarse_sweeps), float(deadline), stop)
-    return (x[:n] if h.in_order else x[h.fine_of_input]), int(it), float(res)
+    return x[rows], int(it), float(res)
