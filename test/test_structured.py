@@ -190,3 +190,55 @@ def test_the_warm_up_problem_takes_the_cells_route(monkeypatch):
     occ, per, goal = F._WARM_PROBLEMS[0]
     F.solve_field(occ, per, [goal], budget_s=600.0)
     assert calls, "the warm-up problem's bands all took the node graph's route"
+
+
+def _level1_coords(coords):
+    """Return level 1's nodes: the distinct fine coordinates halved (the multigrid's 2^d blocks), (m, ndim)."""
+    return np.unique(np.asarray(coords) // 2, axis=0)
+
+
+@pytest.mark.parametrize("name", list(PROBLEMS))
+def test_level_1_on_its_cells_computes_the_graph_levels_values(name):
+    """Level 1 on cells is a layout of the same float32 arithmetic: the same bits as level 1 on the node graph."""
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    layout = structured.fine_layout(h, shape, 1, max_cells_per_unknown=np.inf, min_unknowns=0)
+    coarse = structured.coarse_layout(h, shape, layout, max_cells_per_unknown=np.inf)
+    n = len(rhs)
+    wraps = PROBLEMS[name]["periodic"][0] and np.any(nbr[coords[:, 0] == 0, 0] < n)
+    # level 1 on cells where its rows of one colour are never neighbours: no odd periodic axis 0 at level 1
+    assert (coarse is not None) == (not wraps or (shape[0] // 2) % 2 == 0)
+    if coarse is not None:
+        assert coarse.cell.size == len(_level1_coords(coords))
+    x_cells, its_cells, res_cells = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="structured")
+    x_graph, its_graph, res_graph = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="structured",
+                                                    coarse_cells=False)
+    assert np.array_equal(x_cells, x_graph) and its_cells == its_graph and res_cells == res_graph
+    assert np.max(np.abs(rhs - A @ x_cells)) < 1e-10
+
+
+@pytest.mark.parametrize("case, expected", [
+    (dict(shape=(61, 47), periodic=(False, False), seed=11), True),
+    (dict(shape=(40, 37), periodic=(True, False), seed=18, obstacles=0.05), True),                  # level 1: 20
+    (dict(shape=(28, 23, 21), periodic=(True, False, False), seed=12, obstacles=0.1), True),        # level 1: 14
+    (dict(shape=(26, 23, 21), periodic=(True, False, False), seed=12, obstacles=0.1), False),       # level 1: 13
+    (dict(shape=(300, 300), periodic=(False, False), seed=13, obstacles=0.0, window=_thin_band((300, 300))), False),
+])
+def test_the_rule_puts_level_1_on_cells_where_its_colours_alternate_and_its_box_is_compact(case, expected):
+    nbr, coords, rhs, _ = _problem(**case)
+    shape = case["shape"]
+    n = len(rhs)
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    layout = structured.fine_layout(h, shape, 1, max_cells_per_unknown=np.inf, min_unknowns=0)
+    assert layout is not None
+    wraps = case["periodic"][0] and np.any(nbr[coords[:, 0] == 0, 0] < n)
+    shape1 = tuple((s + 1) // 2 for s in shape)
+    level1 = _level1_coords(coords)
+    compact = _box_cells(level1, shape1, wraps) <= structured.MAX_COARSE_CELLS_PER_UNKNOWN * len(level1)
+    alternate = not wraps or shape1[0] % 2 == 0
+    assert (compact and alternate) == expected, "the case does not test what it says"
+    coarse = structured.coarse_layout(h, shape, layout)
+    assert (coarse is not None) == expected
+    if coarse is not None:
+        assert coarse.cells == _box_cells(level1, shape1, wraps)

@@ -34,6 +34,7 @@ STEPS = (
     ("hierarchy set-up", "band solve (multigrid)", "spacerobot_planner.field.multigrid", "Hierarchy.__init__"),
     ("PCG iterations", "band solve (multigrid)", "spacerobot_planner.field.multigrid", "_pcg"),
     ("fine level on cells: layout", "band solve (multigrid)", "spacerobot_planner.field.structured", "fine_layout"),
+    ("level 1 on cells: layout", "band solve (multigrid)", "spacerobot_planner.field.structured", "coarse_layout"),
     ("PCG iterations on cells", "band solve (multigrid)", "spacerobot_planner.field.multigrid", "_spcg"),
     ("ascent check", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "ascent_defects"),
     ("ascent repair", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "_repair_ascent"),

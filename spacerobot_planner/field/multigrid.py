@@ -260,8 +260,9 @@ def _levels(nb0, red0, coords, shape, stop):
     coords int32 or int64 (n, ndim), shape int64 (ndim,): the fine grid.  First the aggregates of
     every level (from the coordinates alone), then the packed arrays, each coarse level
     written in place from the one below.  Returns ``(sizes, off, nbr, wt, inv_diag, diag,
-    agg, red, rrows, dense, stopped)`` (see the module doc; the fine level's rows of nbr
-    and wt are left unset: its kernels read ``nb0`` and unit weights); ``dense``: the
+    agg, red, rrows, coords1, dense, stopped)`` (see the module doc; the fine level's rows of nbr
+    and wt are left unset: its kernels read ``nb0`` and unit weights); ``coords1``: level 1's
+    coordinates (its rows', of coords' type; no rows without a level 1); ``dense``: the
     coarsest level's matrix, for its Cholesky factor; ``stopped``: the termination flag
     ``stop`` was seen set between levels (nothing else is valid).
     """
@@ -276,6 +277,7 @@ def _levels(nb0, red0, coords, shape, stop):
     for a in range(shape.size):
         ncell *= (shape[a] + 1) // 2
     cell_id = np.full(ncell, -1, np.int64)  # the first coarse grid is the largest
+    coords1 = coords[:0].copy()
     while size > COARSEST_NODES and n > DIRECT_NODES and np.any(shape > 1):
         if stop[0] != 0:
             stopped = True
@@ -286,6 +288,7 @@ def _levels(nb0, red0, coords, shape, stop):
             break
         if len(size_list) == 1:
             aggs[0] = agg
+            coords1 = ccoords
         else:
             aggs.append(agg)
         reds.append(red)
@@ -309,7 +312,7 @@ def _levels(nb0, red0, coords, shape, stop):
     red = np.empty(levels, np.int64)
     rrows = np.empty(levels, np.int64)
     if stopped:
-        return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, np.zeros((0, 0)), True
+        return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, coords1, np.zeros((0, 0)), True
     for lv in range(levels):
         a, m = off[lv], sizes[lv]
         red[lv] = reds[lv]
@@ -318,7 +321,7 @@ def _levels(nb0, red0, coords, shape, stop):
         if lv == 0:
             continue             # the fine level reads nb0 (unit weights, diagonal deg)
         if stop[0] != 0:
-            return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, np.zeros((0, 0)), True
+            return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, coords1, np.zeros((0, 0)), True
         b, mb = off[lv - 1], sizes[lv - 1]
         if lv == 1:
             rrows[0] = _galerkin(nb0, wt, diag, n, red0, aggs[0], nbr[a:a + m], wt[a:a + m], diag[a:a + m], m,
@@ -341,7 +344,7 @@ def _levels(nb0, red0, coords, shape, stop):
     else:
         a = off[levels - 1]
         dense = _coarsest_matrix(nbr[a:a + m], wt[a:a + m], diag[a:a + m])
-    return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, dense, stopped
+    return sizes, off, nbr, wt, inv_diag, diag, agg, red, rrows, coords1, dense, stopped
 
 
 @nb.njit(cache=True, nogil=True)
@@ -398,10 +401,11 @@ class Hierarchy:
         # black) the black residuals are zero unless two black rows are neighbours (across an
         # odd periodic seam): the red ones only
         (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, self.red, self.rrows,
-         dense, stopped) = _levels(nb0, red, coords, np.asarray(shape, np.int64),
-                                   np.zeros(1, np.int64) if stop is None else stop)
+         self.coords1, dense, stopped) = _levels(nb0, red, coords, np.asarray(shape, np.int64),
+                                                 np.zeros(1, np.int64) if stop is None else stop)
         if stopped:
             raise Stopped()
+        # coords1: level 1's coordinates, in its rows' order (its cells: :func:`.structured.coarse_layout`)
         self.levels = int(self.sizes.size)
         # SPD: every unknown is connected to the goal, a Dirichlet node
         self.chol = np.linalg.cholesky(dense)
@@ -816,8 +820,43 @@ def _turn(u, p, z, alpha, rz, rz_new, n):
 # the structured fine level (:mod:`.structured`): the same V-cycle and CG on cells
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
+def _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr, wt,
+                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg):
+    """
+    :func:`_coarse_cycle` from level 1 with level 1 on its cells (:class:`.structured.Coarse`): x1 = M1^-1 b1.
+
+    x1, b1 float32 (2, H1): level 1's iterate and right-hand side on its cells; r1 float64
+    (H1,): scratch, 0 outside the ranges; the rest as :func:`_coarse_cycle`'s (level 2 and
+    below on the graph).  The same steps as the graph's clean red-black level: the red
+    half-sweep from 0, the black one, ``coarse_sweeps - 1`` more pairs; the red residuals
+    restricted; after the coarse correction (red cells) ``coarse_sweeps`` pairs black then red.
+    """
+    structured.weighted_first_red(x1, b1, c_idg, c_ranges, c_nranges)
+    structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 1, deg)
+    for _ in range(coarse_sweeps - 1):
+        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 0, deg)
+        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 1, deg)
+    c2 = off[2]
+    bc = b[c2:off[3]]
+    structured.weighted_restrict_red(b1, x1, c_wts, c_diag, r1, c_gather, bc, c_ranges, c_nranges, deg)
+    bc[sizes[2]] = 0.0
+    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 2, boost,
+                  coarse_sweeps)
+    xc = x[c2:off[3]]
+    xr = x1[0]
+    for rg in range(c_nranges):
+        k0, k1 = c_ranges[0, rg, 0], c_ranges[0, rg, 1]
+        for k in range(k0, k1):
+            xr[k] += boost * xc[c_aggr[k]]
+    for _ in range(coarse_sweeps):
+        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 1, deg)
+        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 0, deg)
+
+
+@nb.njit(cache=True, nogil=True)
 def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg, off,
-             sizes, chol, chol_t, rf, xf, res, x, b, r, sweeps, boost, coarse_sweeps, stop):
+             sizes, chol, chol_t, rf, xf, res, x, b, r, sweeps, boost, coarse_sweeps, stop, c_on, c_at, c_wts,
+             c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1):
     """
     :func:`_vcycle` with the fine level on cells (:mod:`.structured`): compute xf = M^-1 rf; return rf · xf.
 
@@ -827,6 +866,9 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     the red half-sweep from 0 and the black one, ``sweeps - 1`` more pairs, the red residuals
     restricted, and after the coarse correction (red cells: the black ones are set, not read)
     ``sweeps`` pairs black then red.  ``stop`` is polled where :func:`_vcycle` polls it.
+    ``c_on``: level 1 is on its cells too (``c_*``: a :class:`.structured.Coarse`'s arrays, x1,
+    b1, r1 its scratch, :func:`_level1_cells`), else on the graph; ``c_at``: level 1's index of
+    each level-1 row (its cell, or its row in the packed vectors' level 1).
     """
     deg = ranges.shape[2] - 2
     inv_deg = 1.0 / deg
@@ -838,14 +880,22 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     if stop[0] != 0:
         return 0.0
     cb = off[1]
-    bc = b[cb:off[2]]
-    structured.restrict_red(rf, xf, res, gather, bc, ranges, nranges, cut_red, deg)
-    bc[sizes[1]] = 0.0
-    _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 1, boost,
-                  coarse_sweeps)
+    if c_on:
+        structured.restrict_red(rf, xf, res, gather, c_at, b1.reshape(-1), ranges, nranges, cut_red, deg)
+        _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr,
+                      wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
+    else:
+        bc = b[cb:off[2]]
+        structured.restrict_red(rf, xf, res, gather, c_at, bc, ranges, nranges, cut_red, deg)
+        bc[sizes[1]] = 0.0
+        _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 1, boost,
+                      coarse_sweeps)
     if stop[0] != 0:
         return 0.0
-    structured.prolong_red(xf, x[cb:off[2]], aggr, ranges, nranges, boost)
+    if c_on:
+        structured.prolong_red(xf, x1.reshape(-1), c_fine_aggr, ranges, nranges, boost)
+    else:
+        structured.prolong_red(xf, x[cb:off[2]], aggr, ranges, nranges, boost)
     for _ in range(sweeps - 1):
         structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
         structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg)
@@ -855,14 +905,15 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
 
 @nb.njit(cache=True, nogil=True)
 def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt64, diag64, inv_diag64, agg,
-          off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, coarse_sweeps, deadline, stop):
+          off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, coarse_sweeps, deadline, stop, c_on, c_at, c_wts,
+          c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr):
     """
     :func:`_pcg` with the fine level on cells (:mod:`.structured`; rhs, u float64 (2, H), 0 off the unknowns).
 
     The same iteration, stop rule (the largest residual below ``tol``), deadline and
     termination flag as :func:`_pcg`, on vectors of the layout's cells (the other cells stay
-    0); its dot products in 8 accumulators.  Returns (iterations,
-    final max residual); u is updated in place.
+    0); its dot products in 8 accumulators.  ``c_on``, ``c_*``: level 1 on its cells too
+    (:func:`_svcycle`).  Returns (iterations, final max residual); u is updated in place.
     """
     half = mask.shape[1]
     cells = 2 * half
@@ -876,6 +927,9 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     r = np.zeros((2, half))
     p = np.zeros((2, half))
     q = np.zeros((2, half))
+    x1 = np.zeros(c_diag.shape, np.float32)
+    b1 = np.zeros(c_diag.shape, np.float32)
+    r1 = np.zeros(c_diag.shape[1])
     rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
     deg = ranges.shape[2] - 2
     structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
@@ -884,7 +938,8 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     if res < tol:
         return 0, res
     rz = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg,
-                  off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost, coarse_sweeps, stop)
+                  off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost, coarse_sweeps, stop, c_on, c_at,
+                  c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1)
     pl[:] = xl
     it = 0
     while it < max_iter:
@@ -899,13 +954,26 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
             break
         rz_new = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag,
                           inv_diag, agg, off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost,
-                          coarse_sweeps, stop)
+                          coarse_sweeps, stop, c_on, c_at, c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr,
+                          c_gather, c_fine_aggr, x1, b1, r1)
         rz = _turn(ul, pl, xl, alpha, rz, rz_new, cells)
     return it, res
 
 
+def _coarse_args(coarse, h):
+    """Return :func:`_spcg`'s level-1 arguments (``c_on`` .. ``c_fine_aggr``): ``coarse``'s, or the graph's level 1."""
+    if coarse is not None:
+        return (True, coarse.cell, coarse.wts, coarse.diag, coarse.inv_diag, coarse.ranges, coarse.nranges,
+                coarse.aggr, coarse.gather, coarse.fine_aggr)
+    deg = h.nbr.shape[1]
+    none32 = np.zeros((2, 1), np.float32)
+    return (False, np.arange(int(h.sizes[1]), dtype=np.int64), np.zeros((deg, 2, 1), np.float32), none32, none32,
+            np.zeros((2, 3, 2 + deg), np.int64), 0, np.zeros(1, np.uint32), np.zeros((1, 1), np.int64),
+            np.zeros(1, np.uint32))
+
+
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=None, stop=None,
-          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None):
+          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -919,7 +987,11 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     scale (None: :func:`boost_of` the grid's dimension).  ``route``: "auto", the fine level on
     the grid's cells where :func:`.structured.fine_layout`'s rule says so (else on the node
     graph); "graph", on the node graph always; "structured", on the cells wherever they can
-    hold it, whatever its size (the tests').  ``x0``: float (n,), the initial guess (None: 0); the
+    hold it, whatever its size (the tests').  ``coarse_cells``: with the fine level on cells,
+    level 1 on its cells too where :func:`.structured.coarse_layout`'s rule says so (with route
+    "structured": wherever they can hold it); False: on the node graph (the tests').  The same
+    values either way: level 1's cells compute its rows' float32 values in the graph's order.
+    ``x0``: float (n,), the initial guess (None: 0); the
     stop rule is the same from any guess, so a guess near the solution saves iterations only.
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
@@ -950,10 +1022,14 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     if layout is not None:
         rows = None if h.in_order else h.fine_of_input     # each input's fine row
         u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)
+        coarse = None
+        if coarse_cells:
+            coarse = structured.coarse_layout(h, shape, layout, **({} if route == "auto" else
+                                                                   {"max_cells_per_unknown": np.inf}))
         it, res = _spcg(layout.mask, layout.ranges, layout.nranges, layout.cut_red, layout.cut_black, layout.aggr,
                         layout.gather, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
-                        float(boost), int(coarse_sweeps), float(deadline), stop)
+                        float(boost), int(coarse_sweeps), float(deadline), stop, *_coarse_args(coarse, h))
         return layout.from_cells(u, rows), int(it), float(res)
     rows = slice(0, n) if h.in_order else h.fine_of_input     # each input's fine row (in order: no renumbering)
     b = np.zeros(n + 1)
