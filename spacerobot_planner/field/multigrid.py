@@ -16,8 +16,9 @@ most ``COARSEST_NODES`` unknowns; a whole problem of at most ``DIRECT_NODES``) i
 dense Cholesky factor.
 
 One preconditioner application is a symmetric V-cycle (forward Gauss–Seidel before the
-coarse correction, backward after; the correction scaled by ``boost``, 1.8 on a 2-D grid
-and less in more dimensions (:data:`BOOST`), as plain aggregation under-corrects) inside
+coarse correction, backward after: one sweep each on a 2-D grid's fine level, two on a 3-D
+one's (:data:`SWEEPS`); the correction scaled by ``boost``, 1.8 on a 2-D grid and less in
+more dimensions (:data:`BOOST`), as plain aggregation under-corrects) inside
 conjugate gradients: about two iterations per decade of residual on the paper's scenes.
 Each level is renumbered red nodes first, then black.
 The V-cycle runs in float32 (its vectors and the coarse weights, which are small integers
@@ -61,19 +62,37 @@ COARSEST_NODES = 30
 DIRECT_NODES = 100
 #: Gauss–Seidel sweeps before and after the coarse correction on the coarse levels.
 COARSE_SWEEPS = 2
+#: Gauss–Seidel sweeps before and after the coarse correction on the fine level, by grid
+#: dimension (:func:`sweeps_of`; 4: and above).  3-D: 2 (random scenes' bands, 40 scenes: 946 ->
+#: 690 iterations, the time of bands of at least 1 000 unknowns 0.95x, of smaller ones 0.92x;
+#: the paper's 36³ 15 -> 12 iterations, 0.95x, 72³ 17 -> 14, 0.97x); 2-D: 1 (2 sweeps: 13 %
+#: fewer iterations, 3 % more time, the fine level being the larger part of a 2-D V-cycle).
+SWEEPS = {1: 1, 2: 1, 3: 2, 4: 1}
 #: The scale of the coarse correction (plain aggregation under-corrects), by grid dimension
-#: (:func:`boost_of`): the fewest CG iterations on the bands of the paper's scenes and of
-#: random ones (`bench scenes`' family).  2-D: 1.8 (1.6 costs 5 % more iterations); 3-D: 1.5
-#: (11 % fewer than 1.8 on random scenes, 1 of 16 on the paper's 36³, 1 of 18 at 72³); the
-#: 4-D servicer's 16⁴: 1.4 (15 iterations, 18 at 1.8), and above.
-BOOST = {1: 1.8, 2: 1.8, 3: 1.5, 4: 1.4}
+#: and fine sweeps (:func:`boost_of`): the fewest CG iterations on the bands of the paper's
+#: scenes and of random ones (`bench scenes`' family).  2-D: 1.8 (1.6 costs 5 % more
+#: iterations); 3-D with one sweep: 1.5 (11 % fewer than 1.8 on random scenes, 1 of 16 on the
+#: paper's 36³, 1 of 18 at 72³), with two: 1.7 (random scenes: 1.3, 1.5, 1.9 took 7 %, 2 %
+#: and 1 % more time); the 4-D servicer's 16⁴: 1.4 (15 iterations, 18 at 1.8), and above.
+BOOST = {(1, 1): 1.8, (2, 1): 1.8, (3, 1): 1.5, (3, 2): 1.7, (4, 1): 1.4}
 #: :func:`solve`'s routes for the fine level.
 ROUTES = ("auto", "graph", "structured")
 
 
-def boost_of(ndim: int) -> float:
-    """Return the coarse correction's scale for a grid of ``ndim`` dimensions (:data:`BOOST`)."""
-    return BOOST[min(int(ndim), 4)]
+def sweeps_of(ndim: int) -> int:
+    """Return the fine level's Gauss–Seidel sweeps for a grid of ``ndim`` dimensions (:data:`SWEEPS`)."""
+    return SWEEPS[min(int(ndim), 4)]
+
+
+def boost_of(ndim: int, sweeps: int | None = None) -> float:
+    """
+    Return the coarse correction's scale for a grid of ``ndim`` dimensions and ``sweeps`` fine sweeps (:data:`BOOST`).
+
+    sweeps None: :func:`sweeps_of`; a number of sweeps not tuned for: the dimension's own.
+    """
+    d = min(int(ndim), 4)
+    s = sweeps_of(d) if sweeps is None else int(sweeps)
+    return BOOST.get((d, s), BOOST[(d, sweeps_of(d))])
 
 
 # --------------------------------------------------------------------------
@@ -972,7 +991,7 @@ def _coarse_args(coarse, h):
             np.zeros(1, np.uint32))
 
 
-def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=1, boost=None, stop=None,
+def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=None, boost=None, stop=None,
           coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
@@ -983,8 +1002,10 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     is below ``tol``, after ``max_iter`` iterations or at ``deadline``
     (``time.perf_counter()`` seconds, 0 = none), or when the termination flag ``stop``
     (``termination.Termination.flag``, int64 (1,); None = never) is set: then the
-    result is partial and the caller must not keep it.  ``boost``: the coarse correction's
-    scale (None: :func:`boost_of` the grid's dimension).  ``route``: "auto", the fine level on
+    result is partial and the caller must not keep it.  ``sweeps``: the fine level's
+    Gauss–Seidel sweeps before and after the coarse correction (None: :func:`sweeps_of` the
+    grid's dimension); ``boost``: the coarse correction's scale (None: :func:`boost_of` the
+    grid's dimension and the sweeps).  ``route``: "auto", the fine level on
     the grid's cells where :func:`.structured.fine_layout`'s rule says so (else on the node
     graph); "graph", on the node graph always; "structured", on the cells wherever they can
     hold it, whatever its size (the tests').  ``coarse_cells``: with the fine level on cells,
@@ -1010,8 +1031,10 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         h = Hierarchy(nbr, coords, shape, stop)
     except Stopped:
         return np.zeros(n), 0, np.inf
+    if sweeps is None:
+        sweeps = sweeps_of(len(shape))
     if boost is None:
-        boost = boost_of(len(shape))
+        boost = boost_of(len(shape), sweeps)
     if stop is None:
         stop = np.zeros(1, np.int64)
     layout = None
