@@ -508,47 +508,29 @@ def _matvec0_dot(nb0, p, q, n, deg):
     return s
 
 
+#: The bits of float64's +inf (a |value|'s bits above it: NaN) and the mask of its sign bit.
+_INF_BITS = 0x7FF0000000000000
+_ABS_BITS = 0x7FFFFFFFFFFFFFFF
+
+
 @nb.njit(cache=True, nogil=True)
 def _subtract_max(r, q, c, n):
     """
-    Compute r -= c q over the first n entries; return the largest |r| among them.
+    Compute r -= c q over the first n entries; return the largest |r| among them (NaN skipped).
 
-    The maximum in 8 independent lanes (a maximum is exact in any order: the same value as one
-    running maximum), so the loop is not one chain of dependent comparisons: 7-10 us less per
-    CG iteration on the paper's first bands.
+    The maximum is taken over the |r| bits as integers (the order of non-negative float64
+    values is their bits' order, so it is the same value): an integer maximum is a vector
+    reduction, a float one is a chain of dependent comparisons (25 000 entries: 17 -> 8 us).
     """
-    main = n - n % 8
-    m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = 0.0
-    for i in range(0, main, 8):
-        v0 = r[i] - c * q[i]
-        v1 = r[i + 1] - c * q[i + 1]
-        v2 = r[i + 2] - c * q[i + 2]
-        v3 = r[i + 3] - c * q[i + 3]
-        v4 = r[i + 4] - c * q[i + 4]
-        v5 = r[i + 5] - c * q[i + 5]
-        v6 = r[i + 6] - c * q[i + 6]
-        v7 = r[i + 7] - c * q[i + 7]
-        r[i] = v0
-        r[i + 1] = v1
-        r[i + 2] = v2
-        r[i + 3] = v3
-        r[i + 4] = v4
-        r[i + 5] = v5
-        r[i + 6] = v6
-        r[i + 7] = v7
-        m0 = max(m0, abs(v0))
-        m1 = max(m1, abs(v1))
-        m2 = max(m2, abs(v2))
-        m3 = max(m3, abs(v3))
-        m4 = max(m4, abs(v4))
-        m5 = max(m5, abs(v5))
-        m6 = max(m6, abs(v6))
-        m7 = max(m7, abs(v7))
-    for i in range(main, n):
-        v = r[i] - c * q[i]
-        r[i] = v
-        m0 = max(m0, abs(v))
-    return max(max(max(m0, m1), max(m2, m3)), max(max(m4, m5), max(m6, m7)))
+    bits = r.view(np.int64)
+    m = 0
+    for i in range(n):
+        r[i] = r[i] - c * q[i]
+        b = bits[i] & _ABS_BITS
+        m = max(m, b if b <= _INF_BITS else 0)
+    out = np.empty(1, np.int64)
+    out[0] = m
+    return out.view(np.float64)[0]
 
 
 @nb.njit(cache=True, nogil=True)
