@@ -297,9 +297,35 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     steps = np.empty(deg, np.int64)
     for d in range(deg):
         steps[d] = strides[d // 2] if d % 2 == 1 else -strides[d // 2]
-    cut_at = np.empty(n * deg, np.int64)     # the cut edges, i · deg + d (written only where met)
+    first = base + strides[0]                # the first interior slab's flat index ...
+    last = base + (padded[0] - 1) * strides[0]   # ... and the end of the last one
+    nranges = 3 if periodic0 else 1
+    for colour in range(2):
+        for r in range(nranges):
+            f0, f1 = first, last
+            if periodic0:
+                f0 = first if r == 0 else first + strides[0] if r == 1 else last - strides[0]
+                f1 = first + strides[0] if r == 0 else last - strides[0] if r == 1 else last
+            k0, k1 = _half_range(colour, f0, f1)
+            ranges[colour, r, 0] = k0
+            ranges[colour, r, 1] = max(k0, k1)
+            for d in range(deg):
+                step = steps[d]
+                if periodic0 and d == 0 and r == 0:
+                    step = seam
+                elif periodic0 and d == 1 and r == 2:
+                    step = -seam
+                ranges[colour, r, 2 + d] = _half_offset(colour, step)
+    # the cut edges, i · deg + d: only rows with fewer graph neighbours than unknown cells around them
+    around = _neighbour_counts(mask, ranges, nranges, deg)
+    cut_at = np.empty(n * deg, np.int64)     # (written only where met)
     ncut = 0
     for i in range(n):
+        named = 0
+        for d in range(deg):
+            named += nb0[i, d] < n
+        if named == around[cell[i]]:
+            continue
         f = flat[i]
         for d in range(deg):
             if nb0[i, d] < n:
@@ -322,25 +348,6 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
         cuts[counts[f & 1], 0] = f >> 1
         cuts[counts[f & 1], 1] = g >> 1
         counts[f & 1] += 1
-    first = base + strides[0]                # the first interior slab's flat index ...
-    last = base + (padded[0] - 1) * strides[0]   # ... and the end of the last one
-    nranges = 3 if periodic0 else 1
-    for colour in range(2):
-        for r in range(nranges):
-            f0, f1 = first, last
-            if periodic0:
-                f0 = first if r == 0 else first + strides[0] if r == 1 else last - strides[0]
-                f1 = first + strides[0] if r == 0 else last - strides[0] if r == 1 else last
-            k0, k1 = _half_range(colour, f0, f1)
-            ranges[colour, r, 0] = k0
-            ranges[colour, r, 1] = max(k0, k1)
-            for d in range(deg):
-                step = steps[d]
-                if periodic0 and d == 0 and r == 0:
-                    step = seam
-                elif periodic0 and d == 1 and r == 2:
-                    step = -seam
-                ranges[colour, r, 2 + d] = _half_offset(colour, step)
     filled = np.zeros(coarse_nodes, np.int64)
     for i in range(red):                     # in row order: the graph's restriction adds them so
         c = agg[i]
@@ -350,6 +357,30 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
         gather[c, filled[c]] = flat[i] >> 1
         filled[c] += 1
     return True, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather
+
+
+@nb.njit(cache=True, nogil=True)
+def _neighbour_counts(mask, ranges, nranges, deg):
+    """
+    Return float32 (2 H,): each cell's unknown face neighbours in the box (the other colour's mask at its offsets).
+
+    Over the layout's ranges (so across axis 0's seam where it is periodic), flattened as
+    the cells' ``v[f % 2, f // 2]``; 0 outside the ranges.
+    """
+    out = np.zeros(mask.shape, np.float32)
+    for colour in range(2):
+        ms = mask[1 - colour]
+        for r in range(nranges):
+            k0, k1 = ranges[colour, r, 0], ranges[colour, r, 1]
+            s0, s1, s2, s3, s4, s5 = _neighbour_views(ms, k0, k1, ranges[colour, r, 2:], deg)
+            t = out[colour, k0:k1]
+            if deg == 4:
+                for i in range(k1 - k0):
+                    t[i] = s0[i] + s1[i] + s2[i] + s3[i]
+            else:
+                for i in range(k1 - k0):
+                    t[i] = s0[i] + s1[i] + s2[i] + s3[i] + s4[i] + s5[i]
+    return out.reshape(-1)
 
 
 @nb.njit(cache=True, nogil=True)
