@@ -86,12 +86,28 @@ class Layout:
     def to_cells(self, values, rows=None):
         """Return float64 (2, H): ``values`` (n,) of the fine rows (or of the inputs at fine ``rows``) on the cells."""
         v = np.zeros((2, self.half))
-        v.reshape(-1)[self.cell if rows is None else self.cell[rows]] = values
+        _put(v.reshape(-1), self.cell if rows is None else self.cell[rows], np.asarray(values, dtype=float))
         return v
 
     def from_cells(self, v, rows=None):
         """Return the fine rows' values (n,) of ``v`` (2, H) (or the inputs' values, fine ``rows`` of them)."""
-        return v.reshape(-1)[self.cell if rows is None else self.cell[rows]]
+        return _take(v.reshape(-1), self.cell if rows is None else self.cell[rows])
+
+
+@nb.njit(cache=True, nogil=True)
+def _put(out, at, values):
+    """out[at] = values (at int64 (n,), values float64 (n,)): NumPy's fancy assignment in one loop."""
+    for i in range(at.size):
+        out[at[i]] = values[i]
+
+
+@nb.njit(cache=True, nogil=True)
+def _take(v, at):
+    """Return v[at] (float64 (n,)): NumPy's fancy indexing in one loop."""
+    out = np.empty(at.size)
+    for i in range(at.size):
+        out[i] = v[at[i]]
+    return out
 
 
 def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, min_unknowns=MIN_UNKNOWNS):
