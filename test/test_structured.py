@@ -85,6 +85,11 @@ PROBLEMS = {
     "3-D, periodic axis 0, cut edges": dict(shape=(14, 12, 11), periodic=(True, False, False), seed=6, cuts=0.04),
     "3-D, a window across the seam": dict(shape=(18, 15, 14), periodic=(True, False, False), seed=7,
                                           window=np.roll(_diamond((18, 15, 14), (9, 7, 7), 9), 9, axis=0)),
+    # level 1 on cells too (an even periodic axis at level 1): cut edges, a window across the seam
+    "3-D, periodic axis 0 of 16, cut edges": dict(shape=(16, 12, 11), periodic=(True, False, False), seed=8,
+                                                  cuts=0.04),
+    "3-D, a window across the seam, 20": dict(shape=(20, 15, 14), periodic=(True, False, False), seed=9,
+                                              window=np.roll(_diamond((20, 15, 14), (10, 7, 7), 9), 10, axis=0)),
 }
 
 
@@ -110,12 +115,13 @@ def test_the_cells_route_gives_the_graph_routes_solution(name):
 
 @pytest.mark.parametrize("name", ["2-D, cut edges", "3-D, periodic axis 0"])
 def test_more_sweeps_on_the_cells_give_the_graph_routes_solution(name):
+    sweeps = multigrid.sweeps_of(len(PROBLEMS[name]["shape"])) + 1      # more than the grid's own
     nbr, coords, rhs, A = _problem(**PROBLEMS[name])
     shape = PROBLEMS[name]["shape"]
     h = multigrid.Hierarchy(nbr, coords, shape)
-    assert structured.fine_layout(h, shape, 2, max_cells_per_unknown=np.inf, min_unknowns=0) is not None
-    xs, its_s, res_s = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=2, route="structured")
-    xg, its_g, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=2, route="graph")
+    assert structured.fine_layout(h, shape, sweeps, max_cells_per_unknown=np.inf, min_unknowns=0) is not None
+    xs, its_s, res_s = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=sweeps, route="structured")
+    xg, its_g, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, sweeps=sweeps, route="graph")
     assert res_s < 1e-10 and abs(its_s - its_g) <= 1, (its_s, its_g)
     assert np.max(np.abs(xs - xg)) <= 1e-9 * np.max(np.abs(xg))
     assert np.max(np.abs(rhs - A @ xs)) < 1e-10
@@ -176,6 +182,13 @@ def test_an_unknown_route_is_refused():
         multigrid.solve(np.zeros((0, 4), np.int64), np.zeros((0, 2), np.int64), (3, 3), np.zeros(0), route="cells")
 
 
+@pytest.mark.parametrize("route", ["structured", "graph"])
+def test_a_right_hand_side_of_another_length_is_refused(route):
+    nbr, coords, rhs, _ = _problem(**PROBLEMS["2-D"])
+    with pytest.raises(ValueError, match="rhs"):
+        multigrid.solve(nbr, coords, PROBLEMS["2-D"]["shape"], rhs[:-5], route=route)
+
+
 def test_the_warm_up_problem_takes_the_cells_route(monkeypatch):
     """``field._compile_once`` compiles the cells' kernels only if its problem's first band takes that route."""
     from spacerobot_planner import field as F
@@ -204,7 +217,9 @@ def test_level_1_on_its_cells_computes_the_graph_levels_values(name):
     shape = PROBLEMS[name]["shape"]
     h = multigrid.Hierarchy(nbr, coords, shape)
     layout = structured.fine_layout(h, shape, 1, max_cells_per_unknown=np.inf, min_unknowns=0)
-    coarse = structured.coarse_layout(h, shape, layout, max_cells_per_unknown=np.inf)
+    coarse = structured.coarse_layout(h, shape, layout, multigrid.COARSE_SWEEPS, max_cells_per_unknown=np.inf)
+    assert structured.coarse_layout(h, shape, layout, 0, max_cells_per_unknown=np.inf) is None, \
+        "level 1 on cells without coarse sweeps (the cells' steps start with one)"
     n = len(rhs)
     wraps = PROBLEMS[name]["periodic"][0] and np.any(nbr[coords[:, 0] == 0, 0] < n)
     # level 1 on cells where its rows of one colour are never neighbours: no odd periodic axis 0 at level 1
@@ -238,7 +253,7 @@ def test_the_rule_puts_level_1_on_cells_where_its_colours_alternate_and_its_box_
     compact = _box_cells(level1, shape1, wraps) <= structured.MAX_COARSE_CELLS_PER_UNKNOWN * len(level1)
     alternate = not wraps or shape1[0] % 2 == 0
     assert (compact and alternate) == expected, "the case does not test what it says"
-    coarse = structured.coarse_layout(h, shape, layout)
+    coarse = structured.coarse_layout(h, shape, layout, multigrid.COARSE_SWEEPS)
     assert (coarse is not None) == expected
     if coarse is not None:
         assert coarse.cells == _box_cells(level1, shape1, wraps)

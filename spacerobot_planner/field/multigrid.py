@@ -518,6 +518,9 @@ def _subtract_max(r, q, c, n):
     """
     Compute r -= c q over the first n entries; return the largest |r| among them (NaN skipped).
 
+    NaN skipped as before: a residual all NaN reads 0, so a caller keeps NaN out of CG's
+    inputs (``solve_field`` checks its guess).
+
     The maximum is taken over the |r| bits as integers (the order of non-negative float64
     values is their bits' order, so it is the same value): an integer maximum is a vector
     reduction, a float one is a chain of dependent comparisons (25 000 entries: 17 -> 8 us).
@@ -843,12 +846,7 @@ def _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x
     bc[sizes[2]] = 0.0
     _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 2, boost,
                   coarse_sweeps)
-    xc = x[c2:off[3]]
-    xr = x1[0]
-    for rg in range(c_nranges):
-        k0, k1 = c_ranges[0, rg, 0], c_ranges[0, rg, 1]
-        for k in range(k0, k1):
-            xr[k] += boost * xc[c_aggr[k]]
+    structured.prolong_red(x1, x[c2:off[3]], c_aggr, c_ranges, c_nranges, boost)
     for _ in range(coarse_sweeps):
         structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 1, deg)
         structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 0, deg)
@@ -1005,6 +1003,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     n = nbr.shape[0]
     if n == 0:
         return np.zeros(0), 0, 0.0
+    rhs = np.asarray(rhs, dtype=float)
+    if rhs.shape != (n,):
+        raise ValueError(f"rhs: expected shape ({n},), got {rhs.shape}")
     if x0 is not None:
         x0 = np.asarray(x0, dtype=float)
         if x0.shape != (n,):
@@ -1029,8 +1030,8 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)
         coarse = None
         if coarse_cells:
-            coarse = structured.coarse_layout(h, shape, layout, **({} if route == "auto" else
-                                                                   {"max_cells_per_unknown": np.inf}))
+            coarse = structured.coarse_layout(h, shape, layout, coarse_sweeps, **(
+                {} if route == "auto" else {"max_cells_per_unknown": np.inf}))
         it, res = _spcg(layout.mask, layout.ranges, layout.nranges, layout.cut_red, layout.cut_black, layout.aggr,
                         layout.gather, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),

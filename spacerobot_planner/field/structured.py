@@ -86,7 +86,7 @@ class Layout:
     def to_cells(self, values, rows=None):
         """Return float64 (2, H): ``values`` (n,) of the fine rows (or of the inputs at fine ``rows``) on the cells."""
         v = np.zeros((2, self.half))
-        _put(v.reshape(-1), self.cell if rows is None else self.cell[rows], np.asarray(values, dtype=float))
+        _put(v.reshape(-1), self.cell if rows is None else self.cell[rows], np.ascontiguousarray(values, dtype=float))
         return v
 
     def from_cells(self, v, rows=None):
@@ -136,7 +136,7 @@ def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, m
     if not ok or cells > max_cells_per_unknown * n:
         return None
     ok, *arrays = _build(nb0, h.coords, shape, lo, padded, strides, base, periodic0, h.agg[:n], int(h.red[0]),
-                         int(h.sizes[1]))
+                         int(h.sizes[1]), True)
     return Layout(*arrays, cells) if ok else None
 
 
@@ -153,7 +153,7 @@ class Coarse:
     dummy row); ``gather`` int64 (level-2 rows, 2^(ndim-1)): each level-2 row's red cells in
     level 1's row order, padded with ``H - 1`` (a red cell outside every range).
     ``fine_aggr`` uint32 (the fine layout's H,): each fine red cell's level-1 cell (a flat
-    index of the (2, H) array; others: red cell ``H - 1``, which stays 0).  ``cells``: the
+    index of level 1's (2, H) array; others: level 1's red cell ``H - 1``, which stays 0).  ``cells``: the
     box's cells.
     """
 
@@ -166,11 +166,13 @@ class Coarse:
         self.cells = int(cells)
 
 
-def coarse_layout(h, shape, layout, max_cells_per_unknown=MAX_COARSE_CELLS_PER_UNKNOWN):
+def coarse_layout(h, shape, layout, coarse_sweeps, max_cells_per_unknown=MAX_COARSE_CELLS_PER_UNKNOWN):
     """
     Return level 1 of hierarchy ``h`` on cells (a :class:`Coarse`), or None: it stays on the node graph.
 
-    The rule (one place): the fine level is on cells (``layout``, a :class:`Layout`), level 1
+    The rule (one place): the fine level is on cells (``layout``, a :class:`Layout`), the
+    coarse levels are smoothed (``coarse_sweeps`` ≥ 1: the cells run the graph's red-black
+    steps, which start with a sweep), level 1
     is not the coarsest (``h`` has at least 3 levels), no two of its rows of one colour are
     neighbours (an odd periodic axis 0 at level 1, whose rows the graph then sweeps one by
     one in order) and its box has at most ``max_cells_per_unknown`` cells per row.  Level 1's
@@ -179,7 +181,7 @@ def coarse_layout(h, shape, layout, max_cells_per_unknown=MAX_COARSE_CELLS_PER_U
     diagonal copied from the graph's level 1, so a sweep over it computes the same float32
     values as the graph's sweep over its rows.
     """
-    if layout is None or h.levels < 3 or h.rrows[1] != h.red[1]:
+    if layout is None or coarse_sweeps < 1 or h.levels < 3 or h.rrows[1] != h.red[1]:
         return None
     a, m = int(h.off[1]), int(h.sizes[1])
     shape1 = (np.asarray(shape, np.int64) + 1) // 2
@@ -191,7 +193,7 @@ def coarse_layout(h, shape, layout, max_cells_per_unknown=MAX_COARSE_CELLS_PER_U
         return None
     ok, cell, mask, ranges, nranges, _, _, aggr, gather = _build(nb1, coords1, shape1, lo, padded, strides, base,
                                                                  periodic0, h.agg[a:a + m], int(h.red[1]),
-                                                                 int(h.sizes[2]))
+                                                                 int(h.sizes[2]), False)
     if not ok:
         return None
     wts, diag, inv_diag, fine_aggr = _coarse_arrays(cell, h.wt[a:a + m], h.diag[a:a + m], h.inv_diag[a:a + m],
@@ -276,13 +278,14 @@ def _neighbour(f, d, steps, periodic0, seam, c0, last0):
 
 
 @nb.njit(cache=True, nogil=True)
-def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, coarse_nodes):
+def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, coarse_nodes, find_cuts):
     """
     Build the layout of :func:`_box`'s box: ``(ok, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather)``.
 
     nb0 uint32 (n, deg), coords (n, ndim): the fine rows, the first ``red`` of them red; agg
     uint32 (n,): each row's level-1 node, ``coarse_nodes`` of them.  See :class:`Layout` for
-    the arrays.  ``ok`` False: two rows on one cell, a red row on a black cell, or a level-1
+    the arrays; ``find_cuts`` False: no cut edges looked for (none returned: level 1's cells
+    carry their weights instead).  ``ok`` False: two rows on one cell, a red row on a black cell, or a level-1
     node with more red cells than a block holds (the graph's route).
     """
     n, deg = nb0.shape
@@ -336,7 +339,7 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     around = _neighbour_counts(mask, ranges, nranges, deg)
     cut_at = np.empty(n * deg, np.int64)     # (written only where met)
     ncut = 0
-    for i in range(n):
+    for i in range(n if find_cuts else 0):
         named = 0
         for d in range(deg):
             named += nb0[i, d] < n
@@ -592,12 +595,17 @@ def restrict_red(b, x, res, gather, at, bc, ranges, nranges, cut_red, deg):
     xs = x[1]
     for e in range(cut_red.shape[0]):
         res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
-    nc, width = gather.shape
-    for c in range(nc):
-        t = np.float32(0.0)
-        for j in range(width):
-            t = np.float32(np.float64(t) + res[gather[c, j]])
-        bc[at[c]] = t
+    for c in range(gather.shape[0]):
+        bc[at[c]] = _gathered(res, gather, c)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _gathered(res, gather, c):
+    """Return row c's restricted residual: its cells' ``res`` in ``gather[c]``'s order, rounded to float32 each step."""
+    t = np.float32(0.0)
+    for j in range(gather.shape[1]):
+        t = np.float32(np.float64(t) + res[gather[c, j]])
+    return t
 
 
 @nb.njit(cache=True, nogil=True)
@@ -679,8 +687,8 @@ def weighted_restrict_red(b, x, w, diag, res, gather, bc, ranges, nranges, deg):
 
     b, x, diag float32 (2, H), w float32 (deg, 2, H) (after the black half-sweep: the black
     residuals are 0); res float64 (H,): scratch, 0 outside the ranges; bc float32 (level-2
-    rows,): summed in level 1's row order (:class:`Coarse`'s gather), rounded to float32 at
-    each step, as the graph's restriction adds them.
+    rows + 1, the dummy last: not written): summed in level 1's row order (:class:`Coarse`'s
+    gather), rounded to float32 at each step, as the graph's restriction adds them.
     """
     xs = x[1]
     for r in range(nranges):
@@ -698,9 +706,5 @@ def weighted_restrict_red(b, x, w, diag, res, gather, bc, ranges, nranges, deg):
             for i in range(k1 - k0):
                 out[i] = (bb[i] - dg[i] * t[i]) + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i]
                                                              + w3[i] * s3[i] + w4[i] * s4[i] + w5[i] * s5[i])
-    nc, width = gather.shape
-    for c in range(nc):
-        t = np.float32(0.0)
-        for j in range(width):
-            t = np.float32(np.float64(t) + res[gather[c, j]])
-        bc[c] = t
+    for c in range(gather.shape[0]):
+        bc[c] = _gathered(res, gather, c)
