@@ -96,7 +96,21 @@ class GridSpec:
 
     @property
     def step_rad(self) -> np.ndarray:
-        return (np.asarray(self.upper_rad) - np.asarray(self.lower_rad)) / np.asarray(self.cells)
+        """Node spacing per axis, rad, float64 (ndim,): a new array each call (computed once per grid)."""
+        return self._arrays()[1].copy()
+
+    def _arrays(self) -> tuple:
+        """Return ``(lower_rad, step_rad)`` as float64 arrays, computed once per grid (never handed out)."""
+        held = self.__dict__.get("_held_arrays")
+        if held is None:
+            lower = np.asarray(self.lower_rad, dtype=float)
+            held = (lower, (np.asarray(self.upper_rad) - lower) / np.asarray(self.cells))
+            object.__setattr__(self, "_held_arrays", held)
+        return held
+
+    def __getstate__(self):
+        """Pickle the fields only, not the arrays held (a grid's bytes are the same whether it was used or not)."""
+        return {k: v for k, v in self.__dict__.items() if k != "_held_arrays"}
 
     def axis_values_rad(self, axis: int) -> np.ndarray:
         """Joint values of the nodes along one axis, rad."""
@@ -104,8 +118,8 @@ class GridSpec:
 
     def config_of(self, node) -> np.ndarray:
         """Return the configuration(s) (rad) of node index/indices: (ndim,) → (ndim,), (N, ndim) → (N, ndim)."""
-        node = np.asarray(node)
-        return np.asarray(self.lower_rad) + node * self.step_rad
+        lower, step = self._arrays()
+        return lower + np.asarray(node) * step
 
     def node_of(self, q) -> tuple:
         """

@@ -59,11 +59,6 @@ __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES"
            "timed_motion"]
 
 
-def _scene_geometry_key(scene: Scene) -> tuple:
-    polys = tuple(np.asarray(p, dtype=float).tobytes() for p in scene.obstacle_polygons_m)
-    return polys, float(scene.safety_margin_m)
-
-
 class Planner:
     """
     Harmonic-potential planner with cached C-space and fields.
@@ -142,7 +137,7 @@ class Planner:
     def set_scene(self, scene: Scene) -> None:
         """Replace the scene; the caches go only when geometry or margin changed."""
         with self._lock:
-            if _scene_geometry_key(scene) != _scene_geometry_key(self.scenario.scene):
+            if scene.geometry_key() != self.scenario.scene.geometry_key():
                 self._cspaces.clear()
                 self._fields.clear()
                 self._goal_nodes.clear()
@@ -254,7 +249,7 @@ class Planner:
         The free-floating capture's field guides (``pipeline.PlanRun.field_guide``): the scene
         as the drifted body sees it at the end of the motion.
         """
-        key = _scene_geometry_key(scene)
+        key = scene.geometry_key()
         sub = self._apparent.get(key)
         if sub is None:
             sub = Planner(self.scenario.with_scene(scene), settings=replace(self.settings, trajectory=False))
@@ -293,7 +288,7 @@ class Planner:
         """
         sc = self.scenario
         margin = float(sc.scene.safety_margin_m + extra_m)
-        key = (_scene_geometry_key(sc.scene), grid, float(extra_m))
+        key = (sc.scene.geometry_key(), grid, float(extra_m))
         cs = self._cspaces.get(key)
         if cs is not None:
             return cs, key, True

@@ -102,8 +102,27 @@ class Scene:
     def __post_init__(self):
         if not (np.isfinite(self.safety_margin_m) and self.safety_margin_m >= 0.0):
             raise ValueError(f"safety_margin_m: must be a finite number ≥ 0, got {self.safety_margin_m}")
-        polys = tuple(validate_polygon(p, f"obstacles[{i}]") for i, p in enumerate(self.debris_m))
+        # the scene's own copies: a caller's array changed later does not change the scene (nor its geometry key)
+        polys = tuple(np.array(validate_polygon(p, f"obstacles[{i}]")) for i, p in enumerate(self.debris_m))
         object.__setattr__(self, "debris_m", polys)
+
+    def geometry_key(self) -> tuple:
+        """
+        Return what the C-space depends on, as a hashable key: the obstacles' vertex bytes and the margin.
+
+        Computed once per scene (a scene never changes: its polygons are its own copies, its
+        target's outline follows from numbers), not on every plan.
+        """
+        key = self.__dict__.get("_geometry_key")
+        if key is None:
+            key = (tuple(np.asarray(p, dtype=float).tobytes() for p in self.obstacle_polygons_m),
+                   float(self.safety_margin_m))
+            object.__setattr__(self, "_geometry_key", key)
+        return key
+
+    def __getstate__(self):
+        """Pickle the fields only, not the key held (a scene's bytes are the same whether it was planned on or not)."""
+        return {k: v for k, v in self.__dict__.items() if k != "_geometry_key"}
 
     @property
     def obstacle_polygons_m(self) -> list:
