@@ -11,7 +11,7 @@ from oracles import dense_samples, link3_and_normal_deg, shapely_depth, wrap_dif
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.cspace import build_cspace
 from spacerobot_planner.planner import CODES, STAGES, Planner
-from spacerobot_planner.scene import Target
+from spacerobot_planner.scene import Scene, Target
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"
 HALF_DEG = np.radians(0.5)
@@ -144,6 +144,25 @@ def test_set_scene_keeps_cache_only_for_same_geometry(sc3):
     pl.set_scene(sc3.scene.with_margin(0.03))
     moved = pl.plan(sc3.start_rad, sc3.goal_rad)
     assert moved.cspace is not first.cspace and "cspace" not in moved.cached
+
+
+def test_a_scene_keeps_its_own_obstacles_and_its_cache_key(sc3):
+    """A debris array its caller changes after making the scene changes neither the scene nor its C-space."""
+    square = np.array([[1.5, -2.3], [1.8, -2.3], [1.8, -2.0], [1.5, -2.0]])
+    scene = Scene(target=sc3.scene.target, debris_m=(square,), safety_margin_m=sc3.scene.safety_margin_m)
+    pl = Planner(replace(sc3, scene=scene))
+    first = pl.plan(sc3.start_rad, sc3.goal_rad)
+    key, made = scene.geometry_key(), square.copy()
+    square += 0.4                                          # the caller's array, after the scene was made
+    assert np.array_equal(scene.debris_m[0], made) and scene.geometry_key() == key
+    again = pl.plan(sc3.start_rad, sc3.goal_rad)
+    assert again.cspace is first.cspace
+    moved = Scene(target=sc3.scene.target, debris_m=(square,), safety_margin_m=sc3.scene.safety_margin_m)
+    assert moved.geometry_key() != key
+    pl.set_scene(moved)
+    assert pl.plan(sc3.start_rad, sc3.goal_rad).cspace is not first.cspace
+    fresh = build_cspace(sc3.robot, moved, sc3.grid, extra_margin_m=pl.grid_extra_margin_m)
+    assert np.array_equal(pl.plan(sc3.start_rad, sc3.goal_rad).cspace.occupied, fresh.occupied)
 
 
 def test_target_move_rebuilds_cspace_on_the_kept_body_table(sc3):
