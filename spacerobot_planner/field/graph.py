@@ -44,6 +44,13 @@ def grid_strides(shape):
 
 
 @nb.njit(cache=True, nogil=True)
+def put_at(out, at, vals):
+    """out[at] = vals (at int64 (k,), vals float64 (k,)): NumPy's fancy assignment in one loop."""
+    for k in range(at.size):
+        out[at[k]] = vals[k]
+
+
+@nb.njit(cache=True, nogil=True)
 def grid_codes(shape, periodic):
     """
     Each grid node's face code per axis: uint8 (prod(shape), ndim), bits ``_LOW_*`` / ``_HIGH_*``.

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..termination import Termination
 from . import multigrid
-from .graph import NodeGraph, ascent_defects
+from .graph import NodeGraph, ascent_defects, put_at
 
 #: Each band's linear solve stops at this largest residual (its known values are ≤ 1).
 RESIDUAL_TOL = 1e-10
@@ -137,13 +137,6 @@ def _keep(x, floor, window, known, steps):
                 far = steps[i]
             k += 1
     return kept[:k], vals[:k], far
-
-
-@nb.njit(cache=True, nogil=True)
-def _scatter(out, at, vals):
-    """out[at] = vals (at int64 (k,), vals float64 (k,))."""
-    for k in range(at.size):
-        out[at[k]] = vals[k]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -382,7 +375,7 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             continue                 # only when the deadline stopped the band: caught above
         np.log(vals, out=vals)       # NumPy's log, as ever (math.log differs in the last bit)
         vals += log_scale
-        _scatter(log_u, kept, vals)
+        put_at(log_u, kept, vals)
         window_steps = WINDOW_STEPS if steps is None else max(WINDOW_STEPS, 2 * int(far))
         active = _unknown(active, known)
     unsolved = int(active.size)

@@ -43,7 +43,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .graph import grid_strides
+from .graph import grid_strides, put_at
 
 #: The structured fine level is used where the box (ghosts and padding included) has at most
 #: this many cells per unknown.  Whole solves (layout built, interleaved with the graph's route,
@@ -86,19 +86,12 @@ class Layout:
     def to_cells(self, values, rows=None):
         """Return float64 (2, H): ``values`` (n,) of the fine rows (or of the inputs at fine ``rows``) on the cells."""
         v = np.zeros((2, self.half))
-        _put(v.reshape(-1), self.cell if rows is None else self.cell[rows], np.ascontiguousarray(values, dtype=float))
+        put_at(v.reshape(-1), self.cell if rows is None else self.cell[rows], np.ascontiguousarray(values, dtype=float))
         return v
 
     def from_cells(self, v, rows=None):
         """Return the fine rows' values (n,) of ``v`` (2, H) (or the inputs' values, fine ``rows`` of them)."""
         return _take(v.reshape(-1), self.cell if rows is None else self.cell[rows])
-
-
-@nb.njit(cache=True, nogil=True)
-def _put(out, at, values):
-    """out[at] = values (at int64 (n,), values float64 (n,)): NumPy's fancy assignment in one loop."""
-    for i in range(at.size):
-        out[at[i]] = values[i]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -336,7 +329,7 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
                     step = -seam
                 ranges[colour, r, 2 + d] = _half_offset(colour, step)
     # the cut edges, i · deg + d: only rows with fewer graph neighbours than unknown cells around them
-    around = _neighbour_counts(mask, ranges, nranges, deg)
+    around = _neighbour_counts(mask, ranges, nranges, deg) if find_cuts else mflat     # (unread without cuts)
     cut_at = np.empty(n * deg, np.int64)     # (written only where met)
     ncut = 0
     for i in range(n if find_cuts else 0):
