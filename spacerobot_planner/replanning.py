@@ -8,16 +8,19 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
 1. When the plan begins (:func:`plan_start`), the new plan starts at the executing
    trajectory's point ``horizon_s`` ahead (the *horizon point*): the arm will get there
    on the trajectory it already follows while the plan is computed.  This needs the arm
-   to follow that trajectory: a measured joint state at most ``MAX_STATE_AGE_S`` old
-   must lie within ``follow_tolerance_rad`` of where the trajectory (or the one it
-   joined, before its start) had the arm at the measurement's time, interpolated as a
-   spline (the dense trajectory) or linearly between the published points; a state
-   taken before the trajectory started counts when it is at its first point (the
-   controller holds the start until the stamp; under load the first joint_states after
-   a start arrive late); otherwise (no recent joint_states, a controller that
-   stopped, an arm pushed away) the plan starts from the measured state, at rest, as for
-   an arm standing still.  (A still arm is told from a following one only once the
-   trajectory has moved by more than the tolerance: just after it started, it joins.)
+   to follow that trajectory: the last measured joint state must lie within
+   ``follow_tolerance_rad`` of where the trajectory (or the one it joined, before its
+   start) had the arm at the measurement's time, interpolated as a spline (the dense
+   trajectory) or linearly between the published points.  A state taken before the
+   trajectory started counts when it is at its first point (the controller holds the
+   start until the stamp; under load the first joint_states after a start arrive late)
+   and is at most ``MAX_STATE_AGE_S`` old: an older one shows nothing moving.  An older
+   state taken while the trajectory moved is the last sign there is, and it joins (the
+   node's session first waits a moment for a newer one: a loaded executor delivers
+   states late, while the controller goes on).  Otherwise (a controller that stopped, an
+   arm pushed away) the plan starts from the measured state, at rest, as for an arm
+   standing still.  (A still arm is told from a following one only once the trajectory
+   has moved by more than the tolerance: just after it started, it joins.)
 2. When the plan is done (:func:`joined_motion`), the published trajectory starts at the
    executing one's next published point (the *join*: an exact state of the executing
    trajectory, position and velocity, that the controller has been sent) and follows
@@ -55,7 +58,7 @@ from .timing import timed_motion
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
-           "MAX_STATE_AGE_S", "BLEND_SAMPLES", "START_LEAD_S"]
+           "MAX_STATE_AGE_S", "STATE_WAIT_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
 #: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
 #: transit: a controller that gets one after its start catches up with a velocity step); the node's
@@ -66,8 +69,12 @@ BLEND_SAMPLES = (8, 24)
 #: a turn at the horizon point smaller than this (rad) is left as it is
 MIN_CORNER_RAD = float(np.radians(1.0))
 
-#: a joint state older than this (s) does not show that the arm follows its trajectory
+#: a joint state older than this (s) taken before the trajectory's start does not show that the arm
+#: follows it; the node's session waits up to ``STATE_WAIT_S`` for a newer one before it plans
 MAX_STATE_AGE_S = 0.5
+#: how long (s) the node's session waits for a joint state at most ``MAX_STATE_AGE_S`` old before a
+#: plan starts while a trajectory executes (MoveIt's wait for the current state is 1 s)
+STATE_WAIT_S = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,7 +191,8 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     Returns
     -------
         (start_rad (n,), Join or None, why): ``why`` says in words why the plan does not
-        join (None when it joins, or when there is nothing to join).
+        join, or what a join on a state older than ``MAX_STATE_AGE_S`` assumes (None when
+        it joins on a recent state, or when there is nothing to join).
 
     """
     q = np.asarray(measured_rad, dtype=float).copy()
@@ -192,12 +200,13 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
         return q, None, None
     traj = executing.trajectory
     age_s = 1e-9 * (int(now_ns) - int(measured_ns))
-    if age_s > MAX_STATE_AGE_S:
-        return q, None, (f"the last joint_states is {age_s:.2f} s old (no sign that the arm follows its "
-                         f"trajectory): planned from it, at rest")
+    stale = age_s > MAX_STATE_AGE_S
     # before the (oldest kept) trajectory's start the controller holds its first point (a
     # controller holds the start until the stamp): a state there is consistent with following
     before_start = measured_ns < executing.first_start_ns()
+    if stale and before_start:
+        return q, None, (f"the last joint_states is {age_s:.2f} s old, from before the trajectory started (no "
+                         "sign that the arm follows it): planned from it, at rest")
     off = min((np.abs(difference_rad(q, executing.expected_at(measured_ns, lin), periodic)) for lin in (False, True)),
               key=lambda d: float(d.max()))
     if float(off.max()) > follow_tolerance_rad:
@@ -210,7 +219,11 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
                          f"{np.degrees(off[j]):.2f}° from it): planned from the measured state, at rest")
     h = horizon_index(traj, executing.time_s(now_ns), horizon_s)
     join = Join(executing, h, float(horizon_s))
-    return join.start_rad, join, None
+    # a late state taken on the moving trajectory is the last sign there is: the arm followed it
+    # then (a controller keeps following; under load the states arrive late)
+    why = (f"the last joint_states is {age_s:.2f} s old; it had the arm on its trajectory: joined it, "
+           "assuming the arm still follows") if stale else None
+    return join.start_rad, join, why
 
 
 def _turn_rad(path, i):

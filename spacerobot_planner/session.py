@@ -60,7 +60,7 @@ import numpy as np
 
 from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process
 from .motion import MotionValidator
-from .replanning import Executing, plan_start
+from .replanning import MAX_STATE_AGE_S, STATE_WAIT_S, Executing, plan_start
 from .scene import Target
 from .settings import SessionSettings
 from .trajectory import HorizonPassed
@@ -233,6 +233,7 @@ class CaptureSession:
         self.closing = False             # stop() runs
         self.joint_q = None              # latest planned-joint positions (raw, unwrapped), rad
         self.joint_ns = 0                # its ROS time, ns
+        self._state_wanted = False       # the worker waits for a recent joint state (_arm_state)
         self.executing: Executing | None = None      # the trajectory last sent to the arm
         self.activity = "idle"           # "idle" or "planning"
         self.last_result = None          # PlanResult of the last ok plan
@@ -302,6 +303,8 @@ class CaptureSession:
         with self.lock:
             self.joint_q = np.asarray(q_rad, dtype=float)
             self.joint_ns = int(stamp_ns)
+            if self._state_wanted:
+                self.lock.notify_all()
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self._replace_pending(waiting)
@@ -510,10 +513,9 @@ class CaptureSession:
         Its own start, or the arm's state, or (the arm moving on the last trajectory) the point
         ``horizon_s`` ahead on it; attempts after a failed join: :data:`RETRY`.
         """
-        with self.lock:
-            if req.start_rad is not None:
-                return req.start_rad, None
-            q, q_ns, ex = self.joint_q.copy(), self.joint_ns, self.executing
+        if req.start_rad is not None:
+            return req.start_rad, None
+        q, q_ns, ex = self._arm_state(req)
         s = req.settings
         horizon_s = float(s.horizon_s) * (2.0 if req.attempt == 1 else 1.0)
         if req.attempt == 2 and ex is not None and horizon_s > 0.0:
@@ -525,6 +527,35 @@ class CaptureSession:
         if why is not None:
             self.log("warning", f"plan #{req.gen}: {why}")
         return start, join
+
+    def _arm_state(self, req: Request):
+        """
+        Return (q_rad (n,), its stamp ns, the executing trajectory or None) for a plan's start.
+
+        While a trajectory executes and the last joint state is older than
+        ``replanning.MAX_STATE_AGE_S``, the worker thread first waits up to
+        ``replanning.STATE_WAIT_S`` for a newer one (an executor loaded by a stream of requests
+        delivers them late; the controller goes on meanwhile); a newer request, a cancel or a
+        stop ends the wait.
+        """
+        waited_from = time.monotonic()
+        with self.lock:
+            while True:
+                q_ns, ex, now = self.joint_ns, self.executing, self.now_ns()
+                stale = ex is not None and ex.running_at(now) and now - q_ns > MAX_STATE_AGE_S * 1e9
+                left = waited_from + STATE_WAIT_S - time.monotonic()
+                if not stale or left <= 0.0 or threading.current_thread() is not self.worker \
+                        or req.cancelled or self._stop or (req.gen != self.gen and not req.keep):
+                    break
+                self._state_wanted = True
+                self.lock.wait(min(left, 0.1))
+            self._state_wanted = False
+            q = self.joint_q.copy()
+        waited_s = time.monotonic() - waited_from
+        if waited_s >= 0.01:
+            self.log("info", f"plan #{req.gen}: waited {waited_s:.2f} s for a recent joint_states "
+                     f"({'got one' if not stale else 'none came'})")
+        return q, q_ns, ex
 
     def _superseded_by(self, req: Request) -> Outcome | None:
         with self.lock:

@@ -41,7 +41,7 @@ def test_a_following_arm_starts_the_plan_on_its_trajectory(executing):
     np.testing.assert_array_equal(start, traj.positions_rad[join.horizon_index])
 
 
-@pytest.mark.parametrize("case", ["pushed_away", "stale", "before_start", "finished", "no_horizon"])
+@pytest.mark.parametrize("case", ["pushed_away", "stale_before_start", "before_start", "finished", "no_horizon"])
 def test_otherwise_the_plan_starts_at_the_measured_state(executing, case):
     _, ex = executing
     traj = ex.trajectory
@@ -50,8 +50,9 @@ def test_otherwise_the_plan_starts_at_the_measured_state(executing, case):
     measured_ns, horizon = now - S // 100, 1.0
     if case == "pushed_away":
         q[2] += np.radians(3.0)
-    elif case == "stale":
-        measured_ns = now - S
+    elif case == "stale_before_start":                # at its first point, but 0.6 s before a start 0.05 s ago
+        now, measured_ns = ex.start_ns + S // 20, ex.start_ns - 6 * S // 10
+        q = traj.positions_rad[0].copy()
     elif case == "before_start":                      # the trajectory began 0.05 s ago
         now, measured_ns = ex.start_ns + S // 20, ex.start_ns - S // 10
     elif case == "finished":
@@ -62,9 +63,33 @@ def test_otherwise_the_plan_starts_at_the_measured_state(executing, case):
     start, join, why = plan_start(ex, now, q, measured_ns, horizon, np.radians(2.0), PERIODIC)
     assert join is None
     np.testing.assert_array_equal(start, q)
-    expect = {"pushed_away": "elbow 3.00°", "stale": "1.00 s old", "before_start": "since the trajectory started",
+    expect = {"pushed_away": "elbow 3.00°", "stale_before_start": "0.65 s old, from before the trajectory started",
+              "before_start": "since the trajectory started",
               "finished": None, "no_horizon": None}[case]
     assert (why is None) if expect is None else (expect in why), why
+
+
+def test_a_late_state_taken_on_the_moving_trajectory_joins_and_says_so(executing):
+    """
+    A loaded executor delivers joint_states late while the controller goes on.
+
+    The last one, 1 s old, had the arm on its trajectory then: the plan joins at the horizon from
+    now, and the warning names the state's age; the same late state 3° off plans from it at rest.
+    """
+    _, ex = executing
+    traj = ex.trajectory
+    t_now = 0.5 * traj.duration_s
+    now = ex.start_ns + int(t_now * S)
+    measured_ns = now - S
+    q = ex.expected_at(measured_ns) + np.radians(0.5)
+    start, join, why = plan_start(ex, now, q, measured_ns, 1.0, np.radians(2.0), PERIODIC)
+    assert join is not None and "1.00 s old" in why and "joined it" in why, why
+    assert traj.times_s[join.horizon_index] >= t_now + 1.0 > traj.times_s[join.horizon_index - 1]
+    np.testing.assert_array_equal(start, traj.positions_rad[join.horizon_index])
+    q[0] += np.radians(3.0)
+    start, join, why = plan_start(ex, now, q, measured_ns, 1.0, np.radians(2.0), PERIODIC)
+    assert join is None and "does not follow its trajectory" in why, why
+    np.testing.assert_array_equal(start, q)
 
 
 @pytest.mark.parametrize("joined", [False, True], ids=["from_rest", "joined"])

@@ -11,12 +11,15 @@ parameterisation or the join.
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
+import pytest
 from node_helpers import angle_err_deg, scene_params, wait_at_goal
 from test_action import _tip_m
 
+from spacerobot_planner.replanning import STATE_WAIT_S
 from spacerobot_planner.scene import Target
 
 VMAX_DEG_S = [30.0, 60.0, 60.0]
@@ -97,6 +100,56 @@ def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph):
     # no position jump either: no step faster than the velocity limits
     step = np.abs(np.diff(q, axis=0)) / np.diff(t)[:, None]
     assert np.all(step <= np.radians(VMAX_DEG_S) * (1.0 + ACC_TOL)), np.degrees(step.max(axis=0))
+
+
+class _Silenced:
+    """The mock arm's joint_states publisher, with its messages dropped while ``quiet`` is set."""
+
+    def __init__(self, pub):
+        self.pub, self.quiet = pub, threading.Event()
+
+    def publish(self, msg):
+        if not self.quiet.is_set():
+            self.pub.publish(msg)
+
+
+@pytest.mark.parametrize("silence_s", [0.9, 2.2], ids=["states_resume_within_the_wait", "none_within_the_wait"])
+def test_late_joint_states_while_the_arm_follows_still_join(graph, silence_s):
+    """
+    A loaded executor delivers joint_states late while the controller goes on (seen in the flood test).
+
+    The arm keeps following its trajectory, its joint_states stop for ``silence_s``, and a new
+    target comes 0.6 s into the silence: the node waits for a recent state and joins (or, none
+    within the wait, joins on the late one, saying so).  A plan from rest at the late state would
+    start where the arm no longer is: the graph's controller check (the mock arm's own history at
+    the stamp) refuses it when the graph closes.
+    """
+    g = graph(_moderate(**{"replan.horizon_s": 2.5}))
+    lines = []
+    logged = g.planner.session.log
+    g.planner.session.log = lambda level, text: (lines.append(text), logged(level, text))
+    g.arm.pub = _Silenced(g.arm.pub)
+    g.send_target()
+    g.wait(lambda: g.arm.executing and g.n_trajs() >= 1, 30, "the first trajectory executing")
+    g.wait(lambda: g.arm.executing and float(np.degrees(np.max(np.abs(g.arm.state(
+        g.arm.get_clock().now().nanoseconds)[1])))) > 10.0, 30, "the arm moving faster than 10°/s")
+    g.arm.pub.quiet.set()
+    t0 = time.monotonic()
+    time.sleep(0.6)
+    g.send_target(-3.0, -2.8)
+    time.sleep(max(0.0, silence_s - (time.monotonic() - t0)))
+    g.arm.pub.quiet.clear()
+    g.wait(lambda: g.n_trajs() >= 2, 30, "the second trajectory")
+    goal2 = g.planner.last_result.goal_rad.copy()
+    joined = g.planner_values_for_goal(goal2)["joined_moving_arm"]
+    assert joined.startswith("yes"), (joined, lines)
+    text = "\n".join(lines)
+    assert "for a recent joint_states" in text, text
+    if silence_s > 0.6 + STATE_WAIT_S:
+        assert "none came" in text and "assuming the arm still follows" in text, text
+    else:
+        assert "got one" in text, text
+    wait_at_goal(g, 30)
 
 
 def test_a_drifting_target_is_followed_to_the_grasp(graph):

@@ -314,3 +314,50 @@ def test_refused_while_not_accepting(flat, backend):
     assert ses.submit("target", target=ses.target, on_done=done.append).gen == 0
     assert done[0].code == "cancelled" and done[0].reason == "the node is not active"
     assert isinstance(ses.target, Target)
+
+
+@pytest.mark.parametrize("fresh", [True, False], ids=["a_recent_state_comes", "none_comes"])
+def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, fresh):
+    """
+    The worker thread waits (up to ``replanning.STATE_WAIT_S``) for a recent joint state.
+
+    The trajectory executes, the last joint state (on it) is 0.7 s old.  When a recent one comes
+    during the wait, 3° off the trajectory (the arm was stopped), the plan starts there at rest;
+    when none comes, the plan joins the trajectory on the late state and the warning names its age.
+    """
+    import threading
+    import time
+
+    from spacerobot_planner.replanning import STATE_WAIT_S
+    clock = Clock()
+    be = ThreadBackend(scenario_from_params(flat))
+    try:
+        ses, ex = _executing(flat, be, clock)
+        clock.t = ex.start_ns + S
+        late_ns = clock.t - 7 * S // 10
+        ses.joint_state(ex.expected_at(late_ns), late_ns)
+        stopped = ex.expected_at(clock.t) + np.radians([0.0, 3.0, 0.0])
+        done = threading.Event()
+        outcomes = []
+        ses.start(be, thread=True)                     # the worker thread, as in the node
+        t0 = time.monotonic()
+        ses.submit("moved target", target=_target(ses, -3.22, -2.65),
+                   on_done=lambda out: (outcomes.append(out), done.set()))
+        if fresh:
+            time.sleep(0.2)
+            ses.joint_state(stopped, clock.t)
+        assert done.wait(60), "no outcome"
+        waited = time.monotonic() - t0
+    finally:
+        ses.stop()
+    out, = outcomes
+    assert out.ok, out.reason
+    text = "\n".join(t for _, t in ses.log_lines)
+    if fresh:
+        assert out.values["joined_moving_arm"].startswith("no"), out.values
+        np.testing.assert_allclose(out.trajectory.positions_rad[0], stopped, atol=1e-12)
+        assert not np.any(out.trajectory.velocities_rad_s[0])
+        assert "got one" in text and "does not follow its trajectory" in text, text
+    else:
+        assert out.values["joined_moving_arm"].startswith("yes"), out.values
+        assert waited >= STATE_WAIT_S and "none came" in text and "0.70 s old" in text, text
