@@ -15,9 +15,9 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    trajectory started counts when it is at its first point (the controller holds the
    start until the stamp; under load the first joint_states after a start arrive late)
    and is at most ``MAX_STATE_AGE_S`` old: an older one shows nothing moving.  An older
-   state taken while the trajectory moved is the last sign there is, and it joins (the
-   node's session first waits a moment for a newer one: a loaded executor delivers
-   states late, while the controller goes on).  Otherwise (a controller that stopped, an
+   state taken while the trajectory moved is the last sign there is, and it joins (when
+   the states come as a stream, the node's session first waits a moment for a newer one:
+   a loaded executor delivers states late, while the controller goes on).  Otherwise (a controller that stopped, an
    arm pushed away) the plan starts from the measured state, at rest, as for an arm
    standing still.  (A still arm is told from a following one only once the trajectory
    has moved by more than the tolerance: just after it started, it joins.)

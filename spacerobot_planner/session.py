@@ -233,6 +233,7 @@ class CaptureSession:
         self.closing = False             # stop() runs
         self.joint_q = None              # latest planned-joint positions (raw, unwrapped), rad
         self.joint_ns = 0                # its ROS time, ns
+        self.joint_prev_ns = 0           # the ROS time of the joint state before it, ns (0: none)
         self._state_wanted = False       # the worker waits for a recent joint state (_arm_state)
         self.executing: Executing | None = None      # the trajectory last sent to the arm
         self.activity = "idle"           # "idle" or "planning"
@@ -302,7 +303,7 @@ class CaptureSession:
         """Take the arm's measured planned-joint positions (rad) at ROS time ``stamp_ns``."""
         with self.lock:
             self.joint_q = np.asarray(q_rad, dtype=float)
-            self.joint_ns = int(stamp_ns)
+            self.joint_prev_ns, self.joint_ns = self.joint_ns, int(stamp_ns)
             if self._state_wanted:
                 self.lock.notify_all()
             waiting, self._waiting = self._waiting, None
@@ -532,17 +533,20 @@ class CaptureSession:
         """
         Return (q_rad (n,), its stamp ns, the executing trajectory or None) for a plan's start.
 
-        While a trajectory executes and the last joint state is older than
-        ``replanning.MAX_STATE_AGE_S``, the worker thread first waits up to
-        ``replanning.STATE_WAIT_S`` for a newer one (an executor loaded by a stream of requests
-        delivers them late; the controller goes on meanwhile); a newer request, a cancel or a
-        stop ends the wait.
+        While a trajectory executes and the joint states came as a stream (the last two at most
+        ``replanning.MAX_STATE_AGE_S`` apart) but the last is older than that, the worker thread
+        first waits up to ``replanning.STATE_WAIT_S`` for a newer one: an executor loaded by a
+        stream of requests delivers them late, while the controller goes on.  (A state
+        published once, ``ros2 topic pub --once``, is no stream: nothing is waited for.)  A
+        newer request, a cancel or a stop ends the wait.
         """
         waited_from = time.monotonic()
+        age_ns = MAX_STATE_AGE_S * 1e9
         with self.lock:
             while True:
                 q_ns, ex, now = self.joint_ns, self.executing, self.now_ns()
-                stale = ex is not None and ex.running_at(now) and now - q_ns > MAX_STATE_AGE_S * 1e9
+                stale = ex is not None and ex.running_at(now) and now - q_ns > age_ns \
+                    and 0 < self.joint_prev_ns and q_ns - self.joint_prev_ns <= age_ns
                 left = waited_from + STATE_WAIT_S - time.monotonic()
                 if not stale or left <= 0.0 or threading.current_thread() is not self.worker \
                         or req.cancelled or self._stop or (req.gen != self.gen and not req.keep):

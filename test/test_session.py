@@ -316,14 +316,16 @@ def test_refused_while_not_accepting(flat, backend):
     assert isinstance(ses.target, Target)
 
 
-@pytest.mark.parametrize("fresh", [True, False], ids=["a_recent_state_comes", "none_comes"])
-def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, fresh):
+@pytest.mark.parametrize("case", ["a_recent_state_comes", "none_comes", "published_once"])
+def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, case):
     """
     The worker thread waits (up to ``replanning.STATE_WAIT_S``) for a recent joint state.
 
-    The trajectory executes, the last joint state (on it) is 0.7 s old.  When a recent one comes
-    during the wait, 3° off the trajectory (the arm was stopped), the plan starts there at rest;
-    when none comes, the plan joins the trajectory on the late state and the warning names its age.
+    The trajectory executes; the joint states came as a stream (20 ms apart), the last one (on
+    the trajectory) 0.7 s ago.  When a recent one comes during the wait, 3° off the trajectory
+    (the arm was stopped), the plan starts there at rest; when none comes, the plan joins the
+    trajectory on the late state and the warning names its age.  A state published once (before
+    the trajectory started) is no stream: nothing is waited for, the plan starts there at rest.
     """
     import threading
     import time
@@ -335,7 +337,10 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, f
         ses, ex = _executing(flat, be, clock)
         clock.t = ex.start_ns + S
         late_ns = clock.t - 7 * S // 10
-        ses.joint_state(ex.expected_at(late_ns), late_ns)
+        if case != "published_once":
+            for t_ns in (late_ns - S // 50, late_ns):
+                ses.joint_state(ex.expected_at(t_ns), t_ns)
+        once = ses.joint_q.copy()
         stopped = ex.expected_at(clock.t) + np.radians([0.0, 3.0, 0.0])
         done = threading.Event()
         outcomes = []
@@ -343,7 +348,7 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, f
         t0 = time.monotonic()
         ses.submit("moved target", target=_target(ses, -3.22, -2.65),
                    on_done=lambda out: (outcomes.append(out), done.set()))
-        if fresh:
+        if case == "a_recent_state_comes":
             time.sleep(0.2)
             ses.joint_state(stopped, clock.t)
         assert done.wait(60), "no outcome"
@@ -353,11 +358,15 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, f
     out, = outcomes
     assert out.ok, out.reason
     text = "\n".join(t for _, t in ses.log_lines)
-    if fresh:
+    if case == "a_recent_state_comes":
         assert out.values["joined_moving_arm"].startswith("no"), out.values
         np.testing.assert_allclose(out.trajectory.positions_rad[0], stopped, atol=1e-12)
         assert not np.any(out.trajectory.velocities_rad_s[0])
         assert "got one" in text and "does not follow its trajectory" in text, text
-    else:
+    elif case == "none_comes":
         assert out.values["joined_moving_arm"].startswith("yes"), out.values
         assert waited >= STATE_WAIT_S and "none came" in text and "0.70 s old" in text, text
+    else:
+        assert out.values["joined_moving_arm"].startswith("no"), out.values
+        np.testing.assert_allclose(out.trajectory.positions_rad[0], once, atol=1e-12)
+        assert "for a recent joint_states" not in text and "from before the trajectory started" in text, text
