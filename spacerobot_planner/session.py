@@ -557,8 +557,8 @@ class CaptureSession:
             q = self.joint_q.copy()
         waited_s = time.monotonic() - waited_from
         if waited_s >= 0.01:
-            self.log("info", f"plan #{req.gen}: waited {waited_s:.2f} s for a recent joint_states "
-                     f"({'got one' if not stale else 'none came'})")
+            how = "got one" if not stale else "none came" if left <= 0.0 else "the request ended meanwhile"
+            self.log("info", f"plan #{req.gen}: waited {waited_s:.2f} s for a recent joint_states ({how})")
         return q, q_ns, ex
 
     def _superseded_by(self, req: Request) -> Outcome | None:
