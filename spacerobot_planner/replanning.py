@@ -16,11 +16,12 @@ arm from rest where it happens to be: the velocity would jump at the switch.  In
    start until the stamp; under load the first joint_states after a start arrive late)
    and is at most ``MAX_STATE_AGE_S`` old: an older one shows nothing moving.  An older
    state taken while the trajectory moved is the last sign there is, and it joins (when
-   the states come as a stream, the node's session first waits a moment for a newer one:
-   a loaded executor delivers states late, while the controller goes on).  Otherwise (a controller that stopped, an
-   arm pushed away) the plan starts from the measured state, at rest, as for an arm
-   standing still.  (A still arm is told from a following one only once the trajectory
-   has moved by more than the tolerance: just after it started, it joins.)
+   the states come as a stream, the node's session first waits a moment for a newer one,
+   ``STATE_WAIT_S``: a loaded executor delivers states late, while the controller goes
+   on).  Otherwise (a controller that stopped, an arm pushed away) the plan starts from
+   the measured state, at rest, as for an arm standing still.  (A still arm is told from
+   a following one only once the trajectory has moved by more than the tolerance: just
+   after it started, it joins.)
 2. When the plan is done (:func:`joined_motion`), the published trajectory starts at the
    executing one's next published point (the *join*: an exact state of the executing
    trajectory, position and velocity, that the controller has been sent) and follows
@@ -131,10 +132,10 @@ class Executing:
         """
         Record a trajectory joined to this one at ``start_ns``.
 
-        The chain of the trajectories it replaced is kept back to the one on which any
-        joint state that can still count (``MAX_STATE_AGE_S``, and a join is at most a
-        published points' spacing ahead) was taken: links whose successor started over
-        2 s before are cut.
+        The chain of the trajectories it replaced is kept back to the one on which a late
+        joint state was taken (``MAX_STATE_AGE_S + STATE_WAIT_S``, and a join is at most a
+        published points' spacing ahead): links whose successor started over 2 s before
+        are cut, and an older state reads as one from before the trajectory started.
         """
         keep, link = [], self
         horizon_ns = int(start_ns) - 2 * 1_000_000_000
@@ -205,7 +206,7 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     # controller holds the start until the stamp): a state there is consistent with following
     before_start = measured_ns < executing.first_start_ns()
     if stale and before_start:
-        return q, None, (f"the last joint_states is {age_s:.2f} s old, from before the trajectory started (no "
+        return q, None, (f"the last joint_states is {age_s:.2f} s old and from before the trajectory started (no "
                          "sign that the arm follows it): planned from it, at rest")
     off = min((np.abs(difference_rad(q, executing.expected_at(measured_ns, lin), periodic)) for lin in (False, True)),
               key=lambda d: float(d.max()))
@@ -221,8 +222,8 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
     join = Join(executing, h, float(horizon_s))
     # a late state taken on the moving trajectory is the last sign there is: the arm followed it
     # then (a controller keeps following; under load the states arrive late)
-    why = (f"the last joint_states is {age_s:.2f} s old; it had the arm on its trajectory: joined it, "
-           "assuming the arm still follows") if stale else None
+    why = (f"the last joint_states is {age_s:.2f} s old; it had the arm on its trajectory: planned from the "
+           "trajectory, assuming the arm still follows it") if stale else None
     return join.start_rad, join, why
 
 

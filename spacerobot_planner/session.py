@@ -416,6 +416,7 @@ class CaptureSession:
                 req.cancelled = reason
                 if self.backend is not None:
                     self.backend.cancel(req.gen)
+                self.lock.notify_all()          # a wait for a joint state ends (_arm_state)
 
     def drop(self, why: str) -> None:
         """Cancel everything queued or being planned."""
@@ -429,6 +430,7 @@ class CaptureSession:
                 self._active.cancelled = why
                 if self.backend is not None:
                     self.backend.cancel(self._active.gen)
+                self.lock.notify_all()          # a wait for a joint state ends (_arm_state)
 
     @property
     def planning(self) -> bool:
@@ -533,32 +535,45 @@ class CaptureSession:
         """
         Return (q_rad (n,), its stamp ns, the executing trajectory or None) for a plan's start.
 
-        While a trajectory executes and the joint states came as a stream (the last two at most
-        ``replanning.MAX_STATE_AGE_S`` apart) but the last is older than that, the worker thread
-        first waits up to ``replanning.STATE_WAIT_S`` for a newer one: an executor loaded by a
-        stream of requests delivers them late, while the controller goes on.  (A state
+        While a trajectory executes and the joint states come as a stream (the last two at most
+        ``replanning.MAX_STATE_AGE_S`` apart) but the last is late (older than that, and at most
+        ``MAX_STATE_AGE_S + STATE_WAIT_S`` old: an older one is a stream that stopped), the worker
+        thread first waits up to ``replanning.STATE_WAIT_S`` for a newer one: an executor loaded
+        by a stream of requests delivers them late, while the controller goes on.  (A state
         published once, ``ros2 topic pub --once``, is no stream: nothing is waited for.)  A
-        newer request, a cancel or a stop ends the wait.
+        newer request, a cancel or a stop ends the wait; so does the trajectory's end.
         """
+        recent_ns = int(MAX_STATE_AGE_S * 1e9)
+        late_ns = int((MAX_STATE_AGE_S + STATE_WAIT_S) * 1e9)
         waited_from = time.monotonic()
-        age_ns = MAX_STATE_AGE_S * 1e9
+        waited, why = False, ""
         with self.lock:
+            first_ns = self.joint_ns
             while True:
                 q_ns, ex, now = self.joint_ns, self.executing, self.now_ns()
-                stale = ex is not None and ex.running_at(now) and now - q_ns > age_ns \
-                    and 0 < self.joint_prev_ns and q_ns - self.joint_prev_ns <= age_ns
-                left = waited_from + STATE_WAIT_S - time.monotonic()
-                if not stale or left <= 0.0 or threading.current_thread() is not self.worker \
-                        or req.cancelled or self._stop or (req.gen != self.gen and not req.keep):
+                if q_ns > first_ns:
+                    why = "got one"
                     break
-                self._state_wanted = True
+                stream = self.joint_prev_ns > 0 and 0 < q_ns - self.joint_prev_ns <= recent_ns
+                if not (ex is not None and ex.running_at(now) and stream and recent_ns < now - q_ns
+                        and threading.current_thread() is self.worker):
+                    why = "the trajectory ended meanwhile" if ex is not None and not ex.running_at(now) else \
+                        "none came"
+                    break
+                left = waited_from + STATE_WAIT_S - time.monotonic()
+                if left <= 0.0 or now - q_ns > late_ns:
+                    why = "none came"
+                    break
+                if req.cancelled or self._stop or (req.gen != self.gen and not req.keep):
+                    why = "the request ended meanwhile"
+                    break
+                waited = self._state_wanted = True
                 self.lock.wait(min(left, 0.1))
             self._state_wanted = False
             q = self.joint_q.copy()
-        waited_s = time.monotonic() - waited_from
-        if waited_s >= 0.01:
-            how = "got one" if not stale else "none came" if left <= 0.0 else "the request ended meanwhile"
-            self.log("info", f"plan #{req.gen}: waited {waited_s:.2f} s for a recent joint_states ({how})")
+        if waited:
+            self.log("info", f"plan #{req.gen}: waited {time.monotonic() - waited_from:.2f} s for a newer "
+                     f"joint_states ({why})")
         return q, q_ns, ex
 
     def _superseded_by(self, req: Request) -> Outcome | None:

@@ -63,7 +63,7 @@ def test_otherwise_the_plan_starts_at_the_measured_state(executing, case):
     start, join, why = plan_start(ex, now, q, measured_ns, horizon, np.radians(2.0), PERIODIC)
     assert join is None
     np.testing.assert_array_equal(start, q)
-    expect = {"pushed_away": "elbow 3.00°", "stale_before_start": "0.65 s old, from before the trajectory started",
+    expect = {"pushed_away": "elbow 3.00°", "stale_before_start": "0.65 s old and from before the trajectory started",
               "before_start": "since the trajectory started",
               "finished": None, "no_horizon": None}[case]
     assert (why is None) if expect is None else (expect in why), why
@@ -83,7 +83,7 @@ def test_a_late_state_taken_on_the_moving_trajectory_joins_and_says_so(executing
     measured_ns = now - S
     q = ex.expected_at(measured_ns) + np.radians(0.5)
     start, join, why = plan_start(ex, now, q, measured_ns, 1.0, np.radians(2.0), PERIODIC)
-    assert join is not None and "1.00 s old" in why and "joined it" in why, why
+    assert join is not None and "1.00 s old" in why and "assuming the arm still follows it" in why, why
     assert traj.times_s[join.horizon_index] >= t_now + 1.0 > traj.times_s[join.horizon_index - 1]
     np.testing.assert_array_equal(start, traj.positions_rad[join.horizon_index])
     q[0] += np.radians(3.0)

@@ -316,27 +316,30 @@ def test_refused_while_not_accepting(flat, backend):
     assert isinstance(ses.target, Target)
 
 
-@pytest.mark.parametrize("case", ["a_recent_state_comes", "none_comes", "published_once"])
+@pytest.mark.parametrize("case", ["a_newer_state_comes", "none_comes", "published_once", "stream_stopped"])
 def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, case):
     """
-    The worker thread waits (up to ``replanning.STATE_WAIT_S``) for a recent joint state.
+    The worker thread waits (up to ``replanning.STATE_WAIT_S``) for a newer joint state.
 
     The trajectory executes; the joint states came as a stream (20 ms apart), the last one (on
-    the trajectory) 0.7 s ago.  When a recent one comes during the wait, 3° off the trajectory
+    the trajectory) 0.7 s ago.  When a newer one comes during the wait, 3° off the trajectory
     (the arm was stopped), the plan starts there at rest; when none comes, the plan joins the
     trajectory on the late state and the warning names its age.  A state published once (before
-    the trajectory started) is no stream: nothing is waited for, the plan starts there at rest.
+    the trajectory started) is no stream, and a stream whose last state is 1.6 s old stopped:
+    nothing is waited for (the first plans from the state at rest, the second joins on it).
     """
     import threading
     import time
 
     from spacerobot_planner.replanning import STATE_WAIT_S
     clock = Clock()
-    be = ThreadBackend(scenario_from_params(flat))
+    paper = load_params_file(os.path.join(CONFIG, "paper_3dof.yaml"))     # the paper's limits: a 25 s motion
+    paper["grid.cells"] = flat["grid.cells"]
+    be = ThreadBackend(scenario_from_params(paper))
     try:
-        ses, ex = _executing(flat, be, clock)
-        clock.t = ex.start_ns + S
-        late_ns = clock.t - 7 * S // 10
+        ses, ex = _executing(paper, be, clock)
+        clock.t = ex.start_ns + 2 * S
+        late_ns = clock.t - (16 if case == "stream_stopped" else 7) * S // 10
         if case != "published_once":
             for t_ns in (late_ns - S // 50, late_ns):
                 ses.joint_state(ex.expected_at(t_ns), t_ns)
@@ -348,8 +351,11 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, c
         t0 = time.monotonic()
         ses.submit("moved target", target=_target(ses, -3.22, -2.65),
                    on_done=lambda out: (outcomes.append(out), done.set()))
-        if case == "a_recent_state_comes":
-            time.sleep(0.2)
+        if case == "a_newer_state_comes":
+            deadline = time.monotonic() + 30
+            while not ses._state_wanted:               # the worker waits: then the state comes
+                assert time.monotonic() < deadline, "the worker never waited"
+                time.sleep(0.002)
             ses.joint_state(stopped, clock.t)
         assert done.wait(60), "no outcome"
         waited = time.monotonic() - t0
@@ -358,15 +364,18 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, c
     out, = outcomes
     assert out.ok, out.reason
     text = "\n".join(t for _, t in ses.log_lines)
-    if case == "a_recent_state_comes":
+    if case == "a_newer_state_comes":
         assert out.values["joined_moving_arm"].startswith("no"), out.values
         np.testing.assert_allclose(out.trajectory.positions_rad[0], stopped, atol=1e-12)
         assert not np.any(out.trajectory.velocities_rad_s[0])
-        assert "got one" in text and "does not follow its trajectory" in text, text
+        assert "(got one)" in text and "does not follow its trajectory" in text, text
     elif case == "none_comes":
         assert out.values["joined_moving_arm"].startswith("yes"), out.values
-        assert waited >= STATE_WAIT_S and "none came" in text and "0.70 s old" in text, text
-    else:
+        assert waited >= STATE_WAIT_S and "(none came)" in text and "0.70 s old" in text, text
+    elif case == "published_once":
         assert out.values["joined_moving_arm"].startswith("no"), out.values
         np.testing.assert_allclose(out.trajectory.positions_rad[0], once, atol=1e-12)
-        assert "for a recent joint_states" not in text and "from before the trajectory started" in text, text
+        assert "for a newer joint_states" not in text and "from before the trajectory started" in text, text
+    else:
+        assert out.values["joined_moving_arm"].startswith("yes"), out.values
+        assert "for a newer joint_states" not in text and "1.60 s old" in text, text
