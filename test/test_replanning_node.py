@@ -123,7 +123,10 @@ def test_late_joint_states_while_the_arm_follows_still_join(graph, silence_s):
     start where the arm no longer is: the graph's controller check (the mock arm's own history at
     the stamp) refuses it when the graph closes.
     """
-    g = graph(_moderate(**{"replan.horizon_s": 2.5}))
+    # half the moderate limits: a first motion of about 10 s, so that the late plan (up to 1.5 s
+    # after the last state, plus a loaded machine's delays) still has its horizon on it
+    g = graph(_moderate(**{"replan.horizon_s": 2.5, "trajectory.max_velocity_deg_s": [v / 2 for v in VMAX_DEG_S],
+                           "trajectory.max_acceleration_deg_s2": [a / 2 for a in AMAX_DEG_S2]}))
     lines = []
     logged = g.planner.session.log
     g.planner.session.log = lambda level, text: (lines.append(text), logged(level, text))
@@ -143,7 +146,9 @@ def test_late_joint_states_while_the_arm_follows_still_join(graph, silence_s):
     g.wait(lambda: g.n_trajs() >= 2, 30, "the second trajectory")
     goal2 = g.planner.last_result.goal_rad.copy()
     joined = g.planner_values_for_goal(goal2)["joined_moving_arm"]
-    assert joined.startswith("yes"), (joined, lines)
+    # on the trajectory the arm follows (its end, too, if a loaded machine let the horizon pass);
+    # never "no (the arm at rest)" at the late state
+    assert joined.startswith("yes") or joined.startswith("no (from the end"), (joined, lines)
     if silence_s > 2.0:
         text = "\n".join(lines)
         assert "assuming the arm still follows it" in text, text
