@@ -70,11 +70,11 @@ BLEND_SAMPLES = (8, 24)
 #: a turn at the horizon point smaller than this (rad) is left as it is
 MIN_CORNER_RAD = float(np.radians(1.0))
 
-#: a joint state older than this (s) taken before the trajectory's start does not show that the arm
-#: follows it; the node's session waits up to ``STATE_WAIT_S`` for a newer one before it plans
+#: a joint state older than this (s) is late: taken before the trajectory's start, it does not show
+#: that the arm follows it; the node's session first waits up to ``STATE_WAIT_S`` for a newer one
 MAX_STATE_AGE_S = 0.5
-#: how long (s) the node's session waits for a joint state at most ``MAX_STATE_AGE_S`` old before a
-#: plan starts while a trajectory executes (MoveIt's wait for the current state is 1 s)
+#: how long (s) the node's session waits for a newer joint state than a late one from a stream before
+#: a plan starts while a trajectory executes (MoveIt's wait for the current state is 1 s)
 STATE_WAIT_S = 1.0
 
 

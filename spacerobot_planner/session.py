@@ -564,7 +564,7 @@ class CaptureSession:
                 if left <= 0.0 or now - q_ns > late_ns:
                     why = "none came"
                     break
-                if req.cancelled or self._stop or (req.gen != self.gen and not req.keep):
+                if self._superseded_by(req) is not None:      # (the lock is re-entrant)
                     why = "the request ended meanwhile"
                     break
                 waited = self._state_wanted = True

@@ -51,6 +51,15 @@ def put_at(out, at, vals):
 
 
 @nb.njit(cache=True, nogil=True)
+def take_at(v, at):
+    """Return v[at] (float64 (k,), at int64 (k,)): NumPy's fancy indexing in one loop."""
+    out = np.empty(at.size)
+    for k in range(at.size):
+        out[k] = v[at[k]]
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
 def grid_codes(shape, periodic):
     """
     Each grid node's face code per axis: uint8 (prod(shape), ndim), bits ``_LOW_*`` / ``_HIGH_*``.

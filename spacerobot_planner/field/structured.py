@@ -43,7 +43,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .graph import grid_strides, put_at
+from .graph import grid_strides, put_at, take_at
 
 #: The structured fine level is used where the box (ghosts and padding included) has at most
 #: this many cells per unknown.  Whole solves (layout built, interleaved with the graph's route,
@@ -91,16 +91,7 @@ class Layout:
 
     def from_cells(self, v, rows=None):
         """Return the fine rows' values (n,) of ``v`` (2, H) (or the inputs' values, fine ``rows`` of them)."""
-        return _take(v.reshape(-1), self.cell if rows is None else self.cell[rows])
-
-
-@nb.njit(cache=True, nogil=True)
-def _take(v, at):
-    """Return v[at] (float64 (n,)): NumPy's fancy indexing in one loop."""
-    out = np.empty(at.size)
-    for i in range(at.size):
-        out[i] = v[at[i]]
-    return out
+        return take_at(v.reshape(-1), self.cell if rows is None else self.cell[rows])
 
 
 def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, min_unknowns=MIN_UNKNOWNS):
