@@ -22,7 +22,8 @@ carries the very trajectory the node publishes:
    and, where it exceeds a limit, steps 1 to 3 run again with the scaling factors lowered by the
    overshoot (a few percent longer, within the limits as the arm really moves); a joined plan's
    paths (the corner and its blends) are made once and the re-timings time the one the first
-   round chose (the others only when it cannot be entered at the arm's speed);
+   round chose (the others only when it cannot be entered at the arm's speed); every path's
+   spline model is made once for all rounds (``trajectory.shared_path_models``);
 5. **split** -- the attitude joint (the robot's first, the spacecraft's) for the attitude
    control system, the arm joints for the arm's controller (:class:`TrajectoryPart`,
    None for a group that is not planned); both None when nothing moves more than
@@ -44,7 +45,7 @@ from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import Resampled, Trajectory, controller_peaks, resample
+from .trajectory import Resampled, Trajectory, controller_peaks, resample, shared_path_models
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
@@ -236,6 +237,14 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
             arm's speed.
 
     """
+    with shared_path_models():          # the re-timings time the same paths: each modelled once
+        return _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
+                             from_end_at_rest)
+
+
+def _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
+                  from_end_at_rest) -> Processed:
+    """:func:`post_process`'s chain (its arguments, in order)."""
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
     # a join's paths (the continuation, the corner and its certified blends) do not depend on the
     # limits: made once, the re-timings only time them (HorizonPassed: the arm is past the horizon)

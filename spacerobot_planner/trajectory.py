@@ -70,6 +70,8 @@ operation, so the trajectories are the same bit for bit as the array code they r
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -490,17 +492,51 @@ def _path_model(p, refine: int):
     return s, idx, q, d1, d2, d3
 
 
+#: the models :func:`shared_path_models` keeps: None outside it
+_SHARED_MODELS: ContextVar[dict | None] = ContextVar("shared_path_models", default=None)
+
+
+@contextmanager
+def shared_path_models():
+    """
+    Within it, :func:`time_parameterize` models each path once: the re-timings of one path share its model.
+
+    The densified path and its spline on the grid (a tenth to a third of a parameterisation)
+    do not depend on the limits: a chain that times the same path again under lowered
+    scaling factors (``adapters.post_process``) makes them once.  Keyed by the path's
+    values, the densification step and the grid refinement, so a different path gets its
+    own; the models are dropped on leaving (nothing outlives the chain).  The trajectories
+    are the same, bit for bit.
+    """
+    token = _SHARED_MODELS.set({})
+    try:
+        yield
+    finally:
+        _SHARED_MODELS.reset(token)
+
+
 def _modelled_path(path_rad, max_step_rad: float, refine: int):
     """
     Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
 
-    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,)).
+    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,));
+    within :func:`shared_path_models`, made once per path (the arrays are only read).
     """
-    p = densify_path(np.ascontiguousarray(path_rad, dtype=float), max_step_rad)
+    path = np.ascontiguousarray(path_rad, dtype=float)
+    shared = _SHARED_MODELS.get()
+    key = None
+    if shared is not None:
+        key = (path.shape, path.tobytes(), float(max_step_rad), int(refine))
+        got = shared.get(key)
+        if got is not None:
+            return got[0].copy(), got[1]         # the positions go into a Trajectory: its own
+    p = densify_path(path, max_step_rad)
     model = None
     if len(p) > 1:
         s, _, qg, d1, d2, d3 = _path_model(p, refine)
         model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s))
+    if key is not None:
+        shared[key] = (p.copy(), model)          # not the positions returned (nor the caller's path)
     return p, model
 
 

@@ -14,7 +14,7 @@ from scipy.interpolate import CubicSpline
 from oracles import check_trajectory, dense_samples, toppra_duration_s
 from paper_paths import joint_limits, new_path_from
 from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.trajectory import densify_path, resample, sample, time_parameterize
+from spacerobot_planner.trajectory import densify_path, resample, sample, shared_path_models, time_parameterize
 
 VMAX = np.radians([5.0, 15.0, 15.0])
 AMAX = np.radians([5.0, 20.0, 20.0])
@@ -120,6 +120,30 @@ def test_scaling_factors_scale_time_exactly(paper_scenario, paper_path):
             time_parameterize(path, vmax, amax, velocity_scaling=bad)
         with pytest.raises(ValueError, match="acceleration_scaling"):
             time_parameterize(path, vmax, amax, acceleration_scaling=bad)
+
+
+def test_re_timings_that_share_a_path_model_keep_to_each_path_and_its_limits(paper_scenario, paper_path):
+    """
+    Within shared_path_models (the chain's re-timings), every timing is that of its own path and limits.
+
+    The same path under lowered scaling factors is 1/k slower (the exact relation) and within
+    the lowered limits (the independent check); another path of the same shape is timed on its
+    own samples, not the first one's model; changing one trajectory's positions changes no other.
+    """
+    sc, path = paper_scenario(3), paper_path(3)
+    vmax, amax = joint_limits(sc)
+    other = path.copy()
+    other[1:-1] += np.radians(0.5) * np.sin(np.linspace(0.0, np.pi, len(path)))[1:-1, None]
+    with shared_path_models():
+        base = time_parameterize(path, vmax, amax)
+        base.positions_rad[:] = 0.0                       # a caller's change to its trajectory
+        slow = time_parameterize(path, vmax, amax, velocity_scaling=0.5, acceleration_scaling=0.25)
+        moved = time_parameterize(other, vmax, amax)
+    alone = time_parameterize(path, vmax, amax)
+    np.testing.assert_allclose(slow.times_s, 2.0 * alone.times_s, rtol=1e-9)
+    check_trajectory(slow, path, 0.5 * vmax, 0.25 * amax)
+    check_trajectory(moved, other, vmax, amax)
+    assert not np.array_equal(moved.positions_rad, slow.positions_rad)
 
 
 def test_moving_start_continues_an_executing_trajectory(paper_scenario, paper_path):
