@@ -11,7 +11,9 @@ new start (C-space and field from cache).  The baseline is the paper's plain
 Gauss–Seidel (Φ0 = 1, goal 0, stop at change < 1e-6) on the same occupancy and
 goal nodes, measured in the same run; on grids above 500 000 nodes its sweeps are
 capped (``--baseline-max-sweeps``, default 400) and the row says so: the ratio is
-then a lower bound.  Prints a table, then one JSON object per line.
+then a lower bound.  Prints a table of medians, the tails (median, p90 and max) of the
+whole plan, the field and the cached replan, then one JSON object per line (those rows
+with ``p90_s``, ``max_s``, ``min_s`` and ``plans``).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from ..config import load_scenario
 from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
 from ..planner import Planner
 from .profile import StepProfile, print_rows
+from .timing import tail_stats
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 CASES = (("2dof", 180), ("2dof", 360), ("2dof", 720), ("3dof", 36), ("3dof", 72), ("3dof", 120))
@@ -77,6 +80,12 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
     def med(stage):
         return float(np.median([r.timings_s[stage] for r in runs]))
 
+    def tails(results, stage):
+        """p90_s, max_s, min_s and the count of a stage over ``results`` (the median is the row's seconds)."""
+        st = tail_stats([r.timings_s[stage] for r in results], count_key="plans")
+        del st["median_s"]
+        return st
+
     replans = [planner.plan(_new_start(sc, planner), sc.goal_rad) for _ in range(max(3, repeats))]
     replan_s = float(np.median([r.timings_s["total"] for r in replans]))
     assert all("field" in r.cached for r in replans if r.ok)
@@ -91,7 +100,7 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
     common = {"grid": label, "scene": f"paper_{scene}", "solver": res.solver}
     rows = [
         {"stage": "cspace", **common, "seconds": med("cspace"), "baseline_seconds": None, "ratio": None},
-        {"stage": "field", **common, "seconds": field_s, "baseline_seconds": base_s,
+        {"stage": "field", **common, "seconds": field_s, **tails(runs, "field"), "baseline_seconds": base_s,
          "ratio": base_s / field_s if field_s > 0 else None,
          "sweeps": res.solver_stats.get("sweeps"), "bands": res.solver_stats.get("bands"),
          "converged": res.solver_stats.get("converged"), "baseline_sweeps": int(base.sweeps),
@@ -100,11 +109,13 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
         {"stage": "smoothing+verify", **common, "seconds": med("smoothing") + med("verify"),
          "baseline_seconds": None, "ratio": None},
         {"stage": "trajectory", **common, "seconds": med("trajectory"), "baseline_seconds": None, "ratio": None},
-        {"stage": "total", **common, "seconds": med("total"), "baseline_seconds": None, "ratio": None,
+        {"stage": "total", **common, "seconds": med("total"), **tails(runs, "total"), "baseline_seconds": None,
+         "ratio": None,
          "ok": res.ok, "path_length_rad": res.path_length_rad if res.ok else None,
          "min_clearance_m": res.min_clearance_m if res.ok else None, "smoothing": res.smoothing,
          "repairs": res.solver_stats.get("repairs")},
-        {"stage": "replan_cached", **common, "seconds": replan_s, "baseline_seconds": None, "ratio": None},
+        {"stage": "replan_cached", **common, "seconds": replan_s, **tails(replans, "total"), "baseline_seconds": None,
+         "ratio": None},
     ]
     return rows
 
@@ -170,6 +181,16 @@ def main(argv=None) -> int:
               f"{1e3 * r['trajectory']['seconds']:>7.1f}"
               f"{1e3 * r['total']['seconds']:>10.1f}{1e3 * r['replan_cached']['seconds']:>9.2f}"
               f"{1e3 * f['baseline_seconds']:>9.0f}{capped}{f['ratio']:>8.1f}  {path}", flush=True)
+    print("tails, ms: median / p90 / max over the plans (one plan above "
+          f"{BIG_GRID_NODES:,} nodes)")
+    for scene, cells in cases:
+        r = {row["stage"]: row for row in all_rows if row["scene"] == f"paper_{scene}"
+             and row["grid"] == _scenario(scene, cells).grid.label()}
+
+        def tail(row):
+            return f"{1e3 * row['seconds']:.2f} / {1e3 * row['p90_s']:.2f} / {1e3 * row['max_s']:.2f}"
+        print(f"  {scene:<5}{r['total']['grid']:>12}  whole plan {tail(r['total'])}  field {tail(r['field'])}  "
+              f"cached replan {tail(r['replan_cached'])} ({r['replan_cached']['plans']} replans)")
     if args.profile:
         for scene, cells in cases:
             all_rows += profile_case(scene, cells, args.solver, args.repeats)
