@@ -106,8 +106,8 @@ def _ascend(log_u_flat, is_goal_flat, shape, periodic, f, out):
 
 @nb.njit(**NO_REFCOUNT)
 def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_template, planned, lengths,
-            checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
-            path, box_nodes, off, c0, qa, qb, clr_ends):
+            checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m, q_full, pts,
+            body_w, path, box_nodes, off, c0, qa, qb, clr_ends):
     """
     Search breadth-first for a detour to a higher node.
 
@@ -170,8 +170,8 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
                 qb[a] += d * step[a]
                 clr_ends[0] = np.nan                # nothing known: motion.segment_free
                 if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                                         obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
-                                         clr_ends):
+                                         obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m, q_full, pts,
+                                         body_w, clr_ends):
                     continue
                 parent[nb_box] = bi
                 flat_of[nb_box] = h
@@ -193,7 +193,8 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
 
 @nb.njit(cache=True, nogil=True)
 def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
-                  planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
+                  planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
+                  reach_m):
     """
     Walk as :func:`_ascend` does, but only along motions that pass the motion test.
 
@@ -211,8 +212,8 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     return _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
                        planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
-                       seg_step_rad, grid_strides(shape), q_full, pts, body_w, np.empty(ndim), np.empty(ndim),
-                       np.empty(ndim, np.int64), np.empty((4, 2 * ndim), np.int64), np.empty(2 * ndim),
+                       seg_step_rad, reach_m, grid_strides(shape), q_full, pts, body_w, np.empty(ndim),
+                       np.empty(ndim), np.empty(ndim, np.int64), np.empty((4, 2 * ndim), np.int64), np.empty(2 * ndim),
                        np.empty(box, np.int64), np.empty(2), np.empty((3, box), np.int64), np.empty(ndim, np.int64),
                        np.empty(ndim, np.int64))
 
@@ -220,7 +221,8 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
 @nb.njit(**NO_REFCOUNT)
 def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
                 planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
-                strides, q_full, pts, body_w, qa, qb, coord, cand, cand_v, detour, clr_ends, box_nodes, off, c0):
+                reach_m, strides, q_full, pts, body_w, qa, qb, coord, cand, cand_v, detour, clr_ends, box_nodes, off,
+                c0):
     """
     Run :func:`_ascend_valid` with the grid's strides and the scratch given.
 
@@ -279,7 +281,7 @@ def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, 
             else:
                 qb[a] = lower[a] + cand_n[t] * step[a]   # the neighbour node itself
             if segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, obs_centres,
-                                 obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w, clr_ends):
+                                 obs_radii, threshold_m, seg_step_rad, reach_m, q_full, pts, body_w, clr_ends):
                 f = cand_f[t]
                 out[m] = f
                 m += 1
@@ -290,7 +292,7 @@ def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, 
             n = 0 if detour_steps == 0 else _detour(
                 log_u_flat, shape, periodic, strides, f, detour_steps, lower, step, q_template,
                 planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
-                seg_step_rad, q_full, pts, body_w, detour, box_nodes, off, c0, qa, qb, clr_ends)
+                seg_step_rad, reach_m, q_full, pts, body_w, detour, box_nodes, off, c0, qa, qb, clr_ends)
             if n == 0 or m + n > out.size:
                 return m, _BLOCKED
             for i in range(n):

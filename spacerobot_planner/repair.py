@@ -63,7 +63,7 @@ def _push_box(f, radius, shape, strides, periodic, seen, queue, tail, c0, off):
 
 
 def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
-                 lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad):
+                 lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m):
     """
     Return (colliding edges int64 (k, 2) flat node pairs (smaller first), edges tested).
 
@@ -79,7 +79,7 @@ def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, st
     found = np.empty((most, 2), np.int64)
     k, tests = _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
                              lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
-                             grid_strides(shape), *motion_scratch(q_template, lengths, body), np.empty(ndim),
+                             reach_m, grid_strides(shape), *motion_scratch(q_template, lengths, body), np.empty(ndim),
                              np.empty(ndim), np.empty((3, ndim), np.int64), np.zeros(n, np.bool_),
                              np.empty(n, np.int64), np.empty(2), found)
     return found[:k].copy(), tests
@@ -87,7 +87,7 @@ def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, st
 
 @nb.njit(**NO_REFCOUNT)
 def _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
-                  lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
+                  lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m,
                   strides, q_full, pts, body_w, qa, qb, coords, seen, queue, clr_ends, found):
     """
     :func:`_sheet_edges` into ``found`` (large enough); returns (edges found, edges tested).
@@ -127,8 +127,8 @@ def _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, s
             qb[a] += step[a]
             tests += 1
             if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                                     obs_centres, obs_radii, threshold_m, seg_step_rad, q_full, pts, body_w,
-                                     clr_ends):
+                                     obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m, q_full, pts,
+                                     body_w, clr_ends):
                 found[k_found, 0] = min(f, g)
                 found[k_found, 1] = max(f, g)
                 k_found += 1
@@ -166,7 +166,7 @@ def warm_up() -> None:
     square = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
     arrays = (np.zeros(3), np.array([1, 2], dtype=np.int64), np.array([1.4, 2.0, 2.0]),
               np.array([1, 2], dtype=np.int64), square.copy(), square + 3.0, np.array([0, 4], dtype=np.int64),
-              np.array([[3.0, 3.0]]), np.array([1.0]), 0.02, 0.05)
+              np.array([[3.0, 3.0]]), np.array([1.0]), 0.02, 0.05, np.array([4.0, 2.0]))
     occ = np.zeros((6, 6), np.bool_)
     _sheet_edges(occ.ravel(), np.array(occ.shape, np.int64), np.array([True, False]), 14, 1, 100,
                  np.radians([-180.0, -150.0]), np.radians([60.0, 60.0]), *arrays)

@@ -5,7 +5,8 @@ The spline kernel against scipy's ``CubicSpline`` (not-a-knot); the quick shortc
 (ends first, bisection, clearance balls) against evaluating every sample of the quick test
 with ``CollisionChecker.clearance_m`` (itself checked against shapely in test_collision.py);
 the shortcut pass given the polyline's certified check against the pass that checks it
-itself.
+itself; the walk's and the repair's segment test (samples proven free skipped) against
+evaluating every one of its samples.
 """
 
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 from scipy.interpolate import CubicSpline
 
 from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.motion import QUICK_STEP_RAD, MotionValidator, motion_scratch
+from spacerobot_planner.motion import QUICK_STEP_RAD, MotionValidator, motion_scratch, segment_free_from
 from spacerobot_planner.scene import Scene
 from spacerobot_planner.smoothing import (DEFAULT_MAX_STEP_RAD, _quick_segment_ok, _spline_samples,
                                           shortcut_indices, spline_through)
@@ -97,6 +98,45 @@ def test_quick_shortcut_test_answers_as_every_sample(scenario):
                 assert known[e] == chk.clearance_m(q)
         answers.append(got)
     assert 50 < sum(answers) < len(answers) - 50          # both answers exercised
+
+
+def test_segment_test_answers_as_every_sample(scenario):
+    """
+    motion.segment_free_from skips the samples a measured one proves free: the verdict of measuring them all.
+
+    Random segments and grid edges (one joint moving 10°, the walk's and the repair's), near
+    the debris and away from them, with the start's clearance known or not; the oracle
+    measures every sample k/n of the segment with CollisionChecker.clearance_m (checked
+    against shapely in test_collision.py).  The clearances it hands on are those of the ends.
+    """
+    chk = CollisionChecker(scenario.robot, scenario.scene)
+    arrays = MotionValidator(chk).segment_test().arrays()
+    scratch = motion_scratch(arrays[0], chk.lengths, chk.body)
+    rng = np.random.default_rng(11)
+    lo, hi = scenario.robot.planned_lower_rad, scenario.robot.planned_upper_rad
+    dof = scenario.robot.dof
+    answers = []
+    for i in range(600):
+        a = rng.uniform(lo, hi)
+        if i % 2:
+            b = a.copy()
+            b[rng.integers(dof)] += rng.choice([-1.0, 1.0]) * np.radians(10.0)
+        else:
+            b = a + rng.normal(scale=rng.choice([0.05, 0.3, 1.0]), size=dof)
+        b = np.clip(b, lo, hi)
+        threshold = chk.margin_m + rng.choice([0.0, 0.02, 0.05])
+        ends = np.full(2, np.nan)
+        if rng.random() < 0.5:
+            ends[0] = chk.clearance_m(a)
+        got = segment_free_from(a, b, *arrays[:9], threshold, QUICK_STEP_RAD, arrays[11], *scratch, ends)
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / QUICK_STEP_RAD)))
+        q = np.vstack([a + (k / n) * (b - a) for k in range(n)] + [b])
+        want = bool(np.all(chk.clearance_m(q) > threshold))
+        assert got == want, (a, b, threshold)
+        assert ends[0] == chk.clearance_m(a)
+        assert np.isnan(ends[1]) or ends[1] == chk.clearance_m(b)
+        answers.append(got)
+    assert 100 < sum(answers) < len(answers) - 100          # both answers exercised
 
 
 def _staircase():
