@@ -150,6 +150,7 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
         g = flat_of[bi]
         for a in range(ndim):
             qa[a] = lower[a] + ((c0[a] + off[a]) % shape[a] if periodic[a] else c0[a] + off[a]) * step[a]
+        clr_ends[0] = np.nan                    # the clearance at qa: measured by the node's first test
         for a in range(ndim):
             for d in (-1, 1):
                 o = off[a] + d
@@ -168,7 +169,6 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
                 for b in range(ndim):
                     qb[b] = qa[b]
                 qb[a] += d * step[a]
-                clr_ends[0] = np.nan                # nothing known: motion.segment_free
                 if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
                                          obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m, q_full, pts,
                                          body_w, clr_ends):
