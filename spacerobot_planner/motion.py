@@ -43,6 +43,10 @@ __all__ = ["PathCheck", "MotionValidator", "check_path", "first_bad_segment", "l
 
 DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the certified checks
 QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of candidates
+#: the quick test proves a sample free only this far beyond what the Lipschitz bound gives (m):
+#: far above the rounding of a clearance (about 1e-15 m), as the clearance's own bounds
+#: (``collision._pair_bound``)
+ROUNDING_SLACK_M = 1e-9
 #: interval certificates a validator keeps (``MotionValidator.check_kept``), oldest out first
 KEPT_INTERVALS = 4096
 
@@ -271,9 +275,11 @@ def segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts
     the last one qb itself: every one's clearance above ``threshold_m``.  A sample is measured
     unless a measured one before it proves it free: from clearance c at sample k, no point of
     a checked link comes nearer than c − D·(j − k)/n at sample j, D = Σ_a reach_m[a]·|qb_a − qa_a|
-    (:func:`joint_reach_m`), so the samples with D·(j − k)/n ≤ 0.999 (c − threshold_m) are
-    skipped (the factor: a margin no rounding of a clearance reaches).  The same verdict as
-    measuring every sample, with fewer measurements away from obstacles.  ``clr_ends`` (2,), m:
+    (:func:`joint_reach_m`), so the samples with D·(j − k)/n ≤ 0.999 (c − threshold_m) −
+    ``ROUNDING_SLACK_M`` are skipped (a margin, relative and absolute, that no rounding of a
+    clearance or of a sample's position reaches: without the absolute part a segment an ulp
+    long could pass on a clearance 10⁻¹⁵ m from the threshold).  The same verdict as measuring
+    every sample, with fewer measurements away from obstacles.  ``clr_ends`` (2,), m:
     [0] the clearance at qa (NaN: measured, then stored there, so a walk trying several
     neighbours measures its node once); [1] set to the clearance at qb, NaN when qb was not
     measured (the test stopped before it, or skipped it): the next step's [0].
@@ -306,10 +312,10 @@ def segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts
             clr_ends[1] = c
         if not c > threshold_m:
             return False
-        free = 0.999 * (c - threshold_m)          # > 0: the samples within it of k are free
+        free = 0.999 * (c - threshold_m) - ROUNDING_SLACK_M     # the samples within it of k are free
         if free >= span_m:
             return True                           # every later sample (D ≥ the distance of any)
-        k += 1 + int(free * n / span_m)           # the first sample not proven free
+        k += 1 + (int(free * n / span_m) if free > 0.0 else 0)  # the first sample not proven free
     return True
 
 

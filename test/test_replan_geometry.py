@@ -104,10 +104,13 @@ def test_segment_test_answers_as_every_sample(scenario):
     """
     motion.segment_free_from skips the samples a measured one proves free: the verdict of measuring them all.
 
-    Random segments and grid edges (one joint moving 10°, the walk's and the repair's), near
-    the debris and away from them, with the start's clearance known or not; the oracle
-    measures every sample k/n of the segment with CollisionChecker.clearance_m (checked
-    against shapely in test_collision.py).  The clearances it hands on are those of the ends.
+    Random segments, grid edges (one joint moving 10°, the walk's and the repair's) and
+    segments an ulp long, near the debris and away from them, with the start's clearance known
+    or not; thresholds at the margin and above it, and at a sample's own clearance and the
+    floats next to it (where a sample proven free without its margin would flip the verdict).
+    The oracle measures every sample k/n of the segment with CollisionChecker.clearance_m
+    (checked against shapely in test_collision.py).  The clearances it hands on are those of
+    the ends.
     """
     chk = CollisionChecker(scenario.robot, scenario.scene)
     arrays = MotionValidator(chk).segment_test().arrays()
@@ -116,27 +119,63 @@ def test_segment_test_answers_as_every_sample(scenario):
     lo, hi = scenario.robot.planned_lower_rad, scenario.robot.planned_upper_rad
     dof = scenario.robot.dof
     answers = []
-    for i in range(600):
+    for i in range(900):
         a = rng.uniform(lo, hi)
-        if i % 2:
-            b = a.copy()
+        b = a.copy()
+        if i % 3 == 0:
             b[rng.integers(dof)] += rng.choice([-1.0, 1.0]) * np.radians(10.0)
-        else:
+        elif i % 3 == 1:
             b = a + rng.normal(scale=rng.choice([0.05, 0.3, 1.0]), size=dof)
+        else:
+            j = rng.integers(dof)
+            b[j] = np.nextafter(b[j], rng.choice([-np.inf, np.inf]))
         b = np.clip(b, lo, hi)
-        threshold = chk.margin_m + rng.choice([0.0, 0.02, 0.05])
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / QUICK_STEP_RAD)))
+        q = np.vstack([a + (k / n) * (b - a) for k in range(n)] + [b])
+        clr = chk.clearance_m(q)
+        if rng.random() < 0.5:
+            threshold = chk.margin_m + rng.choice([0.0, 0.02, 0.05])
+        else:                                   # at a sample's clearance, or the float next to it
+            threshold = np.nextafter(clr[rng.integers(len(clr))], rng.choice([-np.inf, np.inf, 0.0]))
         ends = np.full(2, np.nan)
         if rng.random() < 0.5:
             ends[0] = chk.clearance_m(a)
         got = segment_free_from(a, b, *arrays[:9], threshold, QUICK_STEP_RAD, arrays[11], *scratch, ends)
-        n = max(1, int(np.ceil(np.linalg.norm(b - a) / QUICK_STEP_RAD)))
-        q = np.vstack([a + (k / n) * (b - a) for k in range(n)] + [b])
-        want = bool(np.all(chk.clearance_m(q) > threshold))
+        want = bool(np.all(clr > threshold))
         assert got == want, (a, b, threshold)
         assert ends[0] == chk.clearance_m(a)
         assert np.isnan(ends[1]) or ends[1] == chk.clearance_m(b)
         answers.append(got)
-    assert 100 < sum(answers) < len(answers) - 100          # both answers exercised
+    assert 150 < sum(answers) < len(answers) - 150          # both answers exercised
+
+
+def test_segments_an_ulp_long_are_not_passed_on_rounding(paper_scenario):
+    """
+    A segment an ulp long whose end's clearance is rounded below the bound is measured, not passed.
+
+    Where the clearances of two configurations an ulp apart differ by more than the bound on the
+    motion between them (rounding, about 1e-15 m), the end is measured, not proven free: with the
+    threshold at the end's own clearance the segment fails, as every sample measured says.
+    """
+    sc = paper_scenario(3)
+    chk = CollisionChecker(sc.robot, sc.scene)
+    arrays = MotionValidator(chk).segment_test().arrays()
+    rng = np.random.default_rng(3)
+    m = 40_000
+    a = rng.uniform(sc.robot.planned_lower_rad, sc.robot.planned_upper_rad, size=(m, sc.robot.dof))
+    axis = rng.integers(sc.robot.dof, size=m)
+    b = a.copy()
+    b[np.arange(m), axis] = np.nextafter(a[np.arange(m), axis], np.where(rng.random(m) < 0.5, -np.inf, np.inf))
+    ca, cb = chk.clearance_m(a), chk.clearance_m(b)
+    bound = np.abs(b - a) @ np.array([sum(sc.robot.link_lengths_m[j:]) for j in sc.robot.planned_joints])
+    hits = np.flatnonzero((ca - cb) * 0.999 > bound)       # beyond the Lipschitz bound: rounding
+    if not len(hits):
+        pytest.skip("no pair whose clearances differ by more than the bound on this machine's rounding")
+    scratch = motion_scratch(arrays[0], chk.lengths, chk.body)
+    for i in hits[:20]:
+        ends = np.full(2, np.nan)
+        got = segment_free_from(a[i], b[i], *arrays[:9], float(cb[i]), QUICK_STEP_RAD, arrays[11], *scratch, ends)
+        assert not got and ends[1] == cb[i], (a[i], b[i])
 
 
 def _staircase():

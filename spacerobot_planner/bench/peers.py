@@ -146,6 +146,15 @@ def bench_scene(scene: str, cells: int, runs: int, time_limit_s: float) -> list:
     step = Planner(sc).settings.verify_step_rad
     validator = MotionValidator.for_scene(sc.robot, sc.scene, step_rad=step)
     peer = OmplProblem(validator, step)
+    try:
+        return _bench_runs(scene, sc, validator, peer, runs, time_limit_s)
+    finally:
+        peer.close()
+        gc.collect()
+
+
+def _bench_runs(scene: str, sc, validator, peer, runs: int, time_limit_s: float) -> list:
+    """:func:`bench_scene`'s runs: this planner's fresh plan and cached replan, and ``peer``'s, interleaved."""
     cached = Planner(sc)
     cached.plan(sc.start_rad, sc.goal_rad)
     new_start = _new_start(sc, cached)
@@ -164,8 +173,6 @@ def bench_scene(scene: str, cells: int, runs: int, time_limit_s: float) -> list:
         lengths.append(float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1))))
         if not validator.check(path).ok:
             grazing += 1
-    peer.close()
-    gc.collect()
     label = sc.grid.label()
     o, r, p = _pcts(ours), _pcts(replans), _pcts(rrt)
     row = {"stage": "peers", "scene": f"paper_{scene}", "grid": label, "runs": runs,
