@@ -11,7 +11,9 @@ capture posture of the target), so some scenes end before the field (``goal_unre
 
 ``--profile`` adds the per-step profile (``bench/profile.py``), the mean per scene.
 The CG iterations of each answer's field (median, p90, max, sum) and the repairs are counts,
-the same on any machine: a change to the field compares by them where times drift.
+the same on any machine: a change to the field compares by them where times drift.  The
+answers' digest (:func:`_digest_rows`: codes, paths, fields and repairs) says whether a
+change that should plan the same does.
 
 Scenes are drawn until ``count`` of them have a free start and a reachable capture
 posture (the draws that did not are counted: ``no_free_start``, ``goal_unreachable``).
@@ -27,6 +29,7 @@ a sparse direct solve, band by band, to a double's precision).  One JSON object 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 from collections import Counter
@@ -164,6 +167,7 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
     print("codes: " + ", ".join(f"{c} {n}" for c, n in codes.most_common())
           + "; draws skipped: " + (", ".join(f"{c} {n}" for c, n in drawn.most_common()) or "none"))
     rows += _iteration_rows([r for _, _, r in scenes], grid_label, dof, seed)
+    rows += _digest_rows([r for _, _, r in scenes], grid_label, dof, seed)
     rows.append({"stage": "codes", "grid": grid_label, "dof": dof, "seed": seed, "codes": dict(codes),
                  "skipped_draws": dict(drawn)})
     rows += _slowest_rows(scenes, slowest, grid_label, dof, seed)
@@ -192,6 +196,29 @@ def _iteration_rows(results, grid_label, dof, seed) -> list:
     return [{"stage": "field_iterations", "grid": grid_label, "dof": dof, "seed": seed, "count": int(its.size),
              "median": float(np.median(its)), "p90": float(np.percentile(its, 90)), "max": float(its.max()),
              "sum": int(its.sum()), "repairs": repairs}]
+
+
+def _digest_rows(results, grid_label, dof, seed) -> list:
+    """
+    Print and return a digest of the answers: each one's code, path, field and repairs, in order.
+
+    SHA-256 (its first 16 hex digits) of every result's code, ``path_rad`` and field ``log_u``
+    bytes and its repair counts (repairs, cut edges, blocked nodes, CG iterations).  A change
+    meant to plan the same (a faster kernel with the same verdicts) shows the same digest for
+    the same ``--seed`` and ``--count``; a change of the answers changes it.
+    """
+    h = hashlib.sha256()
+    for r in results:
+        h.update(str(r.code).encode())
+        if r.ok:
+            h.update(np.ascontiguousarray(r.path_rad, dtype=float).tobytes())
+        if r.field is not None:
+            h.update(np.ascontiguousarray(r.field.log_u, dtype=float).tobytes())
+        h.update(repr([r.solver_stats.get(k) for k in ("repairs", "cut_edges", "blocked_nodes", "sweeps")]).encode())
+    digest = h.hexdigest()[:16]
+    print(f"answers digest (codes, paths, fields, repairs of the {len(results)} scenes): {digest}")
+    return [{"stage": "answers_digest", "grid": grid_label, "dof": dof, "seed": seed, "count": len(results),
+             "digest": digest}]
 
 
 def _slowest_rows(scenes, n, grid_label, dof, seed) -> list:
