@@ -168,10 +168,12 @@ def main(argv=None) -> int:
             f"{'traj':>7}{'total':>10}{'replan':>9}{'GS base':>10}{'ratio':>8}  path")
     print(head + "\n" + "-" * len(head) + "   (times in ms)")
     all_rows = []
+    by_case = []                     # each case's rows by stage, for the tails
     for scene, cells in cases:
         rows = bench_case(scene, cells, args.solver, args.repeats, args.baseline_max_sweeps)
         all_rows += rows
         r = {row["stage"]: row for row in rows}
+        by_case.append((scene, r))
         f = r["field"]
         capped = "*" if f["baseline_capped"] else " "
         path = (f"{r['total']['path_length_rad']:.2f} rad, clr {r['total']['min_clearance_m']:.3f} m"
@@ -183,12 +185,10 @@ def main(argv=None) -> int:
               f"{1e3 * f['baseline_seconds']:>9.0f}{capped}{f['ratio']:>8.1f}  {path}", flush=True)
     print("tails, ms: median / p90 / max over the plans (one plan above "
           f"{BIG_GRID_NODES:,} nodes)")
-    for scene, cells in cases:
-        r = {row["stage"]: row for row in all_rows if row["scene"] == f"paper_{scene}"
-             and row["grid"] == _scenario(scene, cells).grid.label()}
 
-        def tail(row):
-            return f"{1e3 * row['seconds']:.2f} / {1e3 * row['p90_s']:.2f} / {1e3 * row['max_s']:.2f}"
+    def tail(row):
+        return f"{1e3 * row['seconds']:.2f} / {1e3 * row['p90_s']:.2f} / {1e3 * row['max_s']:.2f}"
+    for scene, r in by_case:
         print(f"  {scene:<5}{r['total']['grid']:>12}  whole plan {tail(r['total'])}  field {tail(r['field'])}  "
               f"cached replan {tail(r['replan_cached'])} ({r['replan_cached']['plans']} replans)")
     if args.profile:
