@@ -294,13 +294,14 @@ def warm_up_rare() -> None:
 # --------------------------------------------------------------------------
 # the heap
 # --------------------------------------------------------------------------
-#: :func:`keep_heap`: blocks up to this many bytes come from the heap (glibc's default: 128 KiB,
-#: rising to 32 MiB, the most that every 64-bit glibc accepts) ...
-MMAP_THRESHOLD_BYTES = 32 << 20
-#: ... and free memory at the heap's top is given back to the system above this many bytes.
-TRIM_THRESHOLD_BYTES = 256 << 20
+#: :func:`keep_heap`: every block comes from the heap (glibc's ``mmap`` of blocks off: its
+#: threshold rises to 32 MiB at most, and a 120³ solve has blocks above it), and free memory at
+#: the heap's top is given back to the system only above this many bytes (glibc's default:
+#: 128 KiB); a 120³ solve frees about 400 MiB.
+TRIM_THRESHOLD_BYTES = 1 << 30
 _M_TRIM_THRESHOLD = -1          # glibc's mallopt parameters (malloc.h)
-_M_MMAP_THRESHOLD = -3
+_M_MMAP_MAX = -4
+_GLIBC_HEAP_VARIABLES = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
 _HEAP = {"kept": None}
 
 
@@ -309,19 +310,22 @@ def keep_heap() -> bool:
     Keep freed memory in the process heap, so that a solve does not page-fault its arrays in afresh.
 
     Every solve allocates its arrays anew (the node graph, the band problems, the multigrid
-    levels, the conjugate-gradient vectors: megabytes at 181², a hundred at 72³).  glibc's
-    malloc serves a block above its mmap threshold by a fresh ``mmap`` and gives it back to
-    the system when it is freed, and trims the top of the heap once more than its trim
-    threshold is free there; either way the next solve touches new pages, each a page fault
-    with a zeroing (about 6 µs each on the project's virtual machine; ~900 a solve at 181²,
-    ~15 000 at 72³: a fifth to a third of the field's time).
+    levels, the conjugate-gradient vectors: megabytes at 181², a hundred at 72³, several
+    hundred at 120³).  glibc's malloc serves a block above its mmap threshold by a fresh
+    ``mmap`` and gives it back to the system when it is freed, and trims the top of the heap
+    once more than its trim threshold is free there; either way the next solve touches new
+    pages, each a page fault with a zeroing (about 6 µs each on the project's virtual machine;
+    ~900 a solve at 181², ~15 000 at 72³: a fifth to a third of the field's time).
 
-    This raises both thresholds (``MMAP_THRESHOLD_BYTES``, ``TRIM_THRESHOLD_BYTES``), once per
-    process (the first log_harmonic solve does): freed memory stays in the heap for the
-    next solve.  It is what real-time ROS 2 nodes do for the same reason; the cost is a
-    process that keeps the heap of its largest solve.  A process-wide setting of the C
-    library: applied only on glibc, and not where the user set glibc's own
-    ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_``.  Returns whether it is applied.
+    This serves every block from the heap (``mmap`` off for blocks: glibc's mmap threshold
+    can rise to 32 MiB at most, and a 120³ solve has blocks above it, which faulted ~50 000
+    pages a solve, a quarter of its time) and raises the trim threshold
+    (``TRIM_THRESHOLD_BYTES``), once per process (the first log_harmonic solve does): freed
+    memory stays in the heap for the next solve.  It is what real-time ROS 2 nodes do for the
+    same reason; the cost is a process that keeps the heap of its largest solve (up to the
+    trim threshold).  A process-wide setting of the C library: applied only on glibc, and not
+    where the user set glibc's own ``MALLOC_MMAP_MAX_``, ``MALLOC_MMAP_THRESHOLD_`` or
+    ``MALLOC_TRIM_THRESHOLD_``.  Returns whether it is applied.
     """
     if _HEAP["kept"] is None:
         _HEAP["kept"] = _mallopt_thresholds()
@@ -331,7 +335,7 @@ def keep_heap() -> bool:
 def _mallopt_thresholds() -> bool:
     if not sys.platform.startswith("linux"):
         return False
-    if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
+    if any(name in os.environ for name in _GLIBC_HEAP_VARIABLES):
         return False
     try:
         libc = ctypes.CDLL(None)           # the process's own symbols: the C library it runs on
@@ -341,5 +345,4 @@ def _mallopt_thresholds() -> bool:
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
-        mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+    return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
