@@ -433,7 +433,7 @@ if sys.argv[1] == "2d":
     occ = np.zeros((180, 181), dtype=bool)
     occ[40:140, 60:70] = True
     per, goal = (False, False), (170, 170)
-else:                                    # 729 000 nodes, three bands: blocks above 32 MiB
+else:                                    # 729 000 nodes, six bands: blocks above 32 MiB
     occ = np.zeros((90, 90, 90), dtype=bool)
     per, goal = (False, False, False), (89, 89, 89)
 for _ in range(2):                       # the heap grows to the solve's peak
