@@ -8,8 +8,8 @@ Grids: 2-DOF 180² (181×181), 360², 720²; 3-DOF 36³, 72³, 120³.  Per case,
 JIT warm-up: C-space, field, descent, smoothing + verify and total of a fresh plan
 (no cache), the median over ``--repeats`` fresh planners (at most 3 on grids above
 500 000 nodes), each plan's planner and result dropped before the next (as a node's
-planner drops a field it evicts, so the heap it held serves the next plan; the first plan
-pays for the heap's growth: the max); then a replan with only a new start (C-space and
+planner drops a field it evicts, so the heap it held serves the next plan; the first
+plans pay for the heap's growth, two of them at 120³); then a replan with only a new start (C-space and
 field from cache).  The baseline is the paper's plain
 Gauss–Seidel (Φ0 = 1, goal 0, stop at change < 1e-6) on the same occupancy and
 goal nodes, measured in the same run; on grids above 500 000 nodes its sweeps are
@@ -166,6 +166,8 @@ def main(argv=None) -> int:
                     help=f"cap of the Gauss–Seidel baseline on grids above {BIG_GRID_NODES:,} nodes")
     ap.add_argument("--profile", action="store_true", help="also print the per-step profile of each case")
     args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats: expected at least 1, got {args.repeats}")
     cases = _parse_cases(args.cases)
     t0 = time.perf_counter()
     warm_up(args.solver)

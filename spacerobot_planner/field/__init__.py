@@ -295,13 +295,17 @@ def warm_up_rare() -> None:
 # the heap
 # --------------------------------------------------------------------------
 #: :func:`keep_heap`: every block comes from the heap (glibc's ``mmap`` of blocks off: its
-#: threshold rises to 32 MiB at most, and a 120³ solve has blocks above it), and free memory at
-#: the heap's top is given back to the system only above this many bytes (glibc's default:
-#: 128 KiB); a 120³ solve frees about 400 MiB.
-TRIM_THRESHOLD_BYTES = 1 << 30
+#: automatic threshold stops at 32 MiB, some releases refuse a higher one, and a 120³ solve has
+#: blocks above it), and free memory at the heap's top is given back to the system only above
+#: this many bytes (glibc's default: 128 KiB; mallopt takes a C int, so this is the most it
+#: accepts): a 120³ solve frees about 400 MiB there, one on 4 million nodes (the default
+#: ``planner.max_grid_nodes``) above 1 GiB.
+TRIM_THRESHOLD_BYTES = 2**31 - 1
 _M_TRIM_THRESHOLD = -1          # glibc's mallopt parameters (malloc.h)
 _M_MMAP_MAX = -4
 _GLIBC_HEAP_VARIABLES = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+#: ... and their names in ``GLIBC_TUNABLES`` (``glibc.malloc.<name>=...``)
+_GLIBC_HEAP_TUNABLES = ("glibc.malloc.mmap_max", "glibc.malloc.mmap_threshold", "glibc.malloc.trim_threshold")
 _HEAP = {"kept": None}
 
 
@@ -317,15 +321,25 @@ def keep_heap() -> bool:
     pages, each a page fault with a zeroing (about 6 µs each on the project's virtual machine;
     ~900 a solve at 181², ~15 000 at 72³: a fifth to a third of the field's time).
 
-    This serves every block from the heap (``mmap`` off for blocks: glibc's mmap threshold
-    can rise to 32 MiB at most, and a 120³ solve has blocks above it, which faulted ~50 000
+    This serves every block from the heap (``mmap`` off for blocks: glibc's automatic mmap
+    threshold stops at 32 MiB, and a 120³ solve has blocks above it, which faulted ~50 000
     pages a solve, a quarter of its time) and raises the trim threshold
     (``TRIM_THRESHOLD_BYTES``), once per process (the first log_harmonic solve does): freed
     memory stays in the heap for the next solve.  It is what real-time ROS 2 nodes do for the
-    same reason; the cost is a process that keeps the heap of its largest solve (up to the
-    trim threshold).  A process-wide setting of the C library: applied only on glibc, and not
-    where the user set glibc's own ``MALLOC_MMAP_MAX_``, ``MALLOC_MMAP_THRESHOLD_`` or
-    ``MALLOC_TRIM_THRESHOLD_``.  Returns whether it is applied.
+    same reason; the cost is a process that keeps the heap of its largest solve (the threshold
+    caps only what is freed at the heap's top; memory freed below a block still in use stays
+    in the process however large).
+
+    It serves the solves of the process's main thread (the node's planning process, the CLI,
+    the benchmarks).  glibc gives every other thread that allocates an arena of its own, built
+    of 64 MiB heaps that it maps and gives back whole, and maps a block above 64 MiB there
+    whatever the setting: a solve on such a thread (``planner.separate_process: false``, a
+    Dask worker's task) still faults its largest blocks afresh.
+
+    A process-wide setting of the C library: applied only on glibc, and not where the user
+    set glibc's own ``MALLOC_MMAP_MAX_``, ``MALLOC_MMAP_THRESHOLD_`` or
+    ``MALLOC_TRIM_THRESHOLD_``, or their tunables in ``GLIBC_TUNABLES``.  Returns whether it
+    is applied.
     """
     if _HEAP["kept"] is None:
         _HEAP["kept"] = _mallopt_thresholds()
@@ -336,6 +350,9 @@ def _mallopt_thresholds() -> bool:
     if not sys.platform.startswith("linux"):
         return False
     if any(name in os.environ for name in _GLIBC_HEAP_VARIABLES):
+        return False
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if any(name in tunables for name in _GLIBC_HEAP_TUNABLES):
         return False
     try:
         libc = ctypes.CDLL(None)           # the process's own symbols: the C library it runs on
