@@ -7,7 +7,8 @@ periodic axes and cut edges; the Laplacian as a SciPy matrix from the same defin
 two routes of ``multigrid.solve`` must give the same solution (1e-9 relative), within one
 CG iteration of each other, meet the residual they report on the grid's own Laplacian and
 agree with SciPy's direct solve.  The rule that picks the route is checked against the box
-of cells counted here.
+of cells counted here.  Level 1 as a K-cycle's (``kcycle``) must give the V-cycle's solution
+and SciPy's as well, and run where its rule says (3-D problems of ``KCYCLE_MIN_UNKNOWNS``).
 """
 
 import numpy as np
@@ -257,3 +258,50 @@ def test_the_rule_puts_level_1_on_cells_where_its_colours_alternate_and_its_box_
     assert (coarse is not None) == expected
     if coarse is not None:
         assert coarse.cells == _box_cells(level1, shape1, wraps)
+
+
+@pytest.mark.parametrize("name", ["2-D", "2-D, cut edges", "3-D, periodic axis 0 of 16, cut edges",
+                                  "3-D, a window across the seam, 20"])
+def test_the_k_cycle_gives_the_v_cycles_solution(name):
+    """
+    Level 1 as a K-cycle's (two CG steps there, flexible CG outside).
+
+    The V-cycle's solution (other bits), SciPy's, the residual it reports, the same bits again.
+    """
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    layout = structured.fine_layout(h, shape, multigrid.sweeps_of(len(shape)), max_cells_per_unknown=np.inf,
+                                    min_unknowns=0)
+    assert structured.coarse_layout(h, shape, layout, multigrid.COARSE_SWEEPS, max_cells_per_unknown=np.inf) \
+        is not None, "level 1 is not on cells: the K-cycle would not run"
+    tol = 1e-10
+    xk, its_k, res_k = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured", kcycle=True)
+    xv, its_v, res_v = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured", kcycle=False)
+    assert res_k < tol and res_v < tol
+    assert not np.array_equal(xk, xv), "the K-cycle did not run (the V-cycle's bits)"
+    assert np.max(np.abs(xk - xv)) <= 1e-9 * np.max(np.abs(xv))
+    true_res = np.max(np.abs(rhs - A @ xk))
+    assert true_res < tol, f"true residual {true_res:.3g}, reported {res_k:.3g}"
+    direct = spla.spsolve(A.tocsc(), rhs)
+    assert np.max(np.abs(xk - direct)) < 1e-6 * np.max(np.abs(direct))
+    again = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured", kcycle=True)
+    assert np.array_equal(xk, again[0]) and again[1] == its_k, "the same problem gave other bits"
+
+
+@pytest.mark.parametrize("case, k_cycle", [
+    (dict(shape=(52, 52, 52), periodic=(False, False, False), seed=21), True),      # 3-D, ~119 000 unknowns
+    (dict(shape=(40, 40, 40), periodic=(False, False, False), seed=22), False),     # 3-D, ~54 000
+    (dict(shape=(380, 380), periodic=(False, False), seed=23), False),              # 2-D, ~123 000
+])
+def test_the_rule_runs_the_k_cycle_on_big_3d_problems(case, k_cycle):
+    """``solve``'s own choice: the K-cycle's bits on a 3-D problem of ``KCYCLE_MIN_UNKNOWNS`` or more, else the V's."""
+    nbr, coords, rhs, A = _problem(**case)
+    shape = case["shape"]
+    assert (len(rhs) >= multigrid.KCYCLE_MIN_UNKNOWNS) == (len(shape) == 2 or k_cycle), "the case's size"
+    x, its, res = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10)
+    chosen = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, kcycle=k_cycle)
+    other = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, kcycle=not k_cycle)
+    assert np.array_equal(x, chosen[0]) and its == chosen[1]
+    assert not np.array_equal(x, other[0]), "both cycles gave the same bits: the case tests nothing"
+    assert np.max(np.abs(rhs - A @ x)) < 1e-10

@@ -26,6 +26,11 @@ and so exact) inside the float64 CG: half the bytes of every pass over the level
 bound the cost from about 100 000 unknowns; a preconditioner's precision does not change
 what CG converges to, and it costs no iterations on the paper's grids.
 
+On a big 3-D band (:func:`kcycle_of`: at least :data:`KCYCLE_MIN_UNKNOWNS` unknowns, level 1 on
+its cells) level 1 is a K-cycle's (:func:`_level1_kcycle`): two CG steps there, each
+preconditioned by the V-cycle from level 1, and the outer CG flexible (the preconditioner is
+then not a fixed linear map): 120³'s first band 16 -> 11 iterations, 0.86x the time.
+
 Where the band is compact (:func:`.structured.fine_layout`'s rule: its bounding box has few
 cells per unknown, at most axis 0 periodic and of even length) the fine level lives on the
 box's cells instead (:mod:`.structured`): its sweeps, product and residual read neighbours at
@@ -77,11 +82,31 @@ SWEEPS = {1: 1, 2: 1, 3: 2, 4: 1}
 BOOST = {(1, 1): 1.8, (2, 1): 1.8, (3, 1): 1.5, (3, 2): 1.7, (4, 1): 1.4}
 #: :func:`solve`'s routes for the fine level.
 ROUTES = ("auto", "graph", "structured")
+#: Level 1 as a K-cycle's (:func:`_level1_kcycle`: two CG steps there, each preconditioned by
+#: the V-cycle from level 1) on a 3-D grid whose fine level has at least this many unknowns,
+#: where level 1 is on its cells (:func:`kcycle_of`, the rule).  Each iteration then costs
+#: a second pass over level 1 and below, two level-1 products and a fine dot product more, and
+#: fewer iterations are needed.  First bands of the paper's 3-DOF scene (solve alone, medians):
+#: 72³ 14 -> 10 iterations, 25.6-27.0 -> 24.4-25.1 ms; 100³ 14 -> 10, 92-94 -> 81-87 ms; 120³
+#: 16 -> 11, 193-202 -> 169 ms; but 36³ 12 -> 10 iterations, 2.7 -> 2.9-3.0 ms, and on 2-D
+#: grids, where level 1 is a quarter of the fine level, no gain: 181² 17 -> 13 iterations, 2.2
+#: -> 2.4 ms; 720² 23 -> 15, 50.5-51.6 -> 50.1-58 ms.
+KCYCLE_MIN_UNKNOWNS = 100_000
 
 
 def sweeps_of(ndim: int) -> int:
     """Return the fine level's Gauss–Seidel sweeps for a grid of ``ndim`` dimensions (:data:`SWEEPS`)."""
     return SWEEPS[min(int(ndim), 4)]
+
+
+def kcycle_of(n_unknowns: int, ndim: int, coarse) -> bool:
+    """
+    Return whether a problem runs level 1 as a K-cycle's (:data:`KCYCLE_MIN_UNKNOWNS`).
+
+    n_unknowns: its fine level's; ndim: the grid's dimensions; coarse: its level 1 on
+    cells (:func:`.structured.coarse_layout`), or None.
+    """
+    return coarse is not None and int(ndim) >= 3 and int(n_unknowns) >= KCYCLE_MIN_UNKNOWNS
 
 
 def boost_of(ndim: int, sweeps: int | None = None) -> float:
@@ -853,9 +878,51 @@ def _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x
 
 
 @nb.njit(cache=True, nogil=True)
+def _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, kc, kv, kw, red, rrows,
+                   nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg):
+    """
+    Level 1 of a K-cycle on its cells: two CG steps on A₁ x1 = b1, each preconditioned by :func:`_level1_cells`.
+
+    Notay's K-cycle at level 1 only (see :data:`KCYCLE_MIN_UNKNOWNS`): c = M₁⁻¹ b1, v = A₁ c,
+    then d = M₁⁻¹ (b1 − (c·b1 / c·v) v), w = A₁ d, and x1 = the combination of c and d that
+    minimises the A₁-norm of the error over the two (Notay and Vassilevski, "Recursive
+    Krylov-based multigrid cycles", 2008: two inner iterations, no skip test).  The V-cycle
+    below level 1 is unchanged.  x1, b1 float32
+    (2, H1) as :func:`_level1_cells`' (b1 is overwritten with the residual after the first step);
+    kc, kv, kw float32 (2, H1): scratch (c, v, w).  Every vector is 0 off level 1's rows (their
+    diagonal, weights and right-hand side are 0), so the dot products run over the whole arrays,
+    in 8 float64 accumulators (:func:`.structured.dot_all`).
+    """
+    _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr, wt,
+                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
+    xf, bf, cf, vf = x1.reshape(-1), b1.reshape(-1), kc.reshape(-1), kv.reshape(-1)
+    cf[:] = xf
+    rho1 = structured.weighted_product_dot(kc, kv, c_wts, c_diag, c_ranges, c_nranges, deg)
+    if not rho1 > 0.0:
+        return
+    a1 = structured.dot_all(cf, bf) / rho1
+    for i in range(bf.size):
+        bf[i] = bf[i] - a1 * vf[i]
+    _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr, wt,
+                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
+    beta = structured.weighted_product_dot(x1, kw, c_wts, c_diag, c_ranges, c_nranges, deg)
+    gamma = structured.dot_all(xf, vf)
+    a2 = structured.dot_all(xf, bf)
+    rho2 = beta - gamma * gamma / rho1
+    if not rho2 > 0.0:           # d adds nothing A₁-independent of c (in float32): x1 = the first step's
+        for i in range(xf.size):
+            xf[i] = a1 * cf[i]
+        return
+    sc = a1 - gamma * a2 / (rho1 * rho2)
+    sd = a2 / rho2
+    for i in range(xf.size):
+        xf[i] = sc * cf[i] + sd * xf[i]
+
+
+@nb.njit(cache=True, nogil=True)
 def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg, off,
              sizes, chol, chol_t, rf, xf, res, x, b, r, sweeps, boost, coarse_sweeps, stop, c_on, c_at, c_wts,
-             c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1):
+             c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw):
     """
     :func:`_vcycle` with the fine level on cells (:mod:`.structured`): compute xf = M^-1 rf; return rf · xf.
 
@@ -867,7 +934,8 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     ``sweeps`` pairs black then red.  ``stop`` is polled where :func:`_vcycle` polls it.
     ``c_on``: level 1 is on its cells too (``c_*``: a :class:`.structured.Coarse`'s arrays, x1,
     b1, r1 its scratch, :func:`_level1_cells`), else on the graph; ``c_at``: level 1's index of
-    each level-1 row (its cell, or its row in the packed vectors' level 1).
+    each level-1 row (its cell, or its row in the packed vectors' level 1).  ``kcyc`` (with ``c_on``):
+    level 1 by :func:`_level1_kcycle` (kc, kv, kw its scratch).
     """
     deg = ranges.shape[2] - 2
     inv_deg = 1.0 / deg
@@ -881,8 +949,13 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     cb = off[1]
     if c_on:
         structured.restrict_red(rf, xf, res, gather, c_at, b1.reshape(-1), ranges, nranges, cut_red, deg)
-        _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr,
-                      wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
+        if kcyc:
+            _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, kc, kv, kw, red,
+                           rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost,
+                           coarse_sweeps, deg)
+        else:
+            _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr,
+                          wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
     else:
         bc = b[cb:off[2]]
         structured.restrict_red(rf, xf, res, gather, c_at, bc, ranges, nranges, cut_red, deg)
@@ -905,14 +978,18 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
 @nb.njit(cache=True, nogil=True)
 def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt64, diag64, inv_diag64, agg,
           off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, coarse_sweeps, deadline, stop, c_on, c_at, c_wts,
-          c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr):
+          c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, kcyc):
     """
     :func:`_pcg` with the fine level on cells (:mod:`.structured`; rhs, u float64 (2, H), 0 off the unknowns).
 
     The same iteration, stop rule (the largest residual below ``tol``), deadline and
     termination flag as :func:`_pcg`, on vectors of the layout's cells (the other cells stay
     0); its dot products in 8 accumulators.  ``c_on``, ``c_*``: level 1 on its cells too
-    (:func:`_svcycle`).  Returns (iterations, final max residual); u is updated in place.
+    (:func:`_svcycle`).  ``kcyc`` (with ``c_on``): level 1 as a K-cycle's (:func:`_level1_kcycle`),
+    a preconditioner that is not a fixed linear map, so CG's new
+    direction is the flexible one (β = z·(r − r_old) / rz_old = −α z·q / rz_old, q = A p;
+    Notay 2000); else the usual β = z·r / rz_old.  Returns (iterations, final max residual);
+    u is updated in place.
     """
     half = mask.shape[1]
     cells = 2 * half
@@ -929,6 +1006,11 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     x1 = np.zeros(c_diag.shape, np.float32)
     b1 = np.zeros(c_diag.shape, np.float32)
     r1 = np.zeros(c_diag.shape[1])
+    kshape = c_diag.shape if kcyc else (2, 1)
+    kc = np.zeros(kshape, np.float32)
+    kv = np.zeros(kshape, np.float32)
+    kw = np.zeros(kshape, np.float32)
+    kcyc = kcyc and c_on
     rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
     deg = ranges.shape[2] - 2
     structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
@@ -938,7 +1020,8 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         return 0, res
     rz = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg,
                   off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost, coarse_sweeps, stop, c_on, c_at,
-                  c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1)
+                  c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv,
+                  kw)
     pl[:] = xl
     it = 0
     while it < max_iter:
@@ -954,8 +1037,12 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         rz_new = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag,
                           inv_diag, agg, off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost,
                           coarse_sweeps, stop, c_on, c_at, c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr,
-                          c_gather, c_fine_aggr, x1, b1, r1)
-        rz = _turn(ul, pl, xl, alpha, rz, rz_new, cells)
+                          c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw)
+        if kcyc:         # flexible: z · r_old = rz_new + alpha z · q
+            rz = _turn(ul, pl, xl, alpha, rz, -alpha * structured.dot_all(xl, ql), cells)
+            rz = rz_new
+        else:
+            rz = _turn(ul, pl, xl, alpha, rz, rz_new, cells)
     return it, res
 
 
@@ -972,7 +1059,7 @@ def _coarse_args(coarse, h):
 
 
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=None, boost=None, stop=None,
-          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True):
+          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True, kcycle=None):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -992,6 +1079,8 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     level 1 on its cells too where :func:`.structured.coarse_layout`'s rule says so (with route
     "structured": wherever they can hold it); False: on the node graph (the tests').  The same
     values either way: level 1's cells compute its rows' float32 values in the graph's order.
+    ``kcycle``: level 1 as a K-cycle's (:func:`_level1_kcycle`); None: where :func:`kcycle_of`
+    says so; True: wherever level 1 is on its cells (the tests'); False: never.
     ``x0``: float (n,), the initial guess (None: 0); the
     stop rule is the same from any guess, so a guess near the solution saves iterations only.
 
@@ -1035,7 +1124,8 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         it, res = _spcg(layout.mask, layout.ranges, layout.nranges, layout.cut_red, layout.cut_black, layout.aggr,
                         layout.gather, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
-                        float(boost), int(coarse_sweeps), float(deadline), stop, *_coarse_args(coarse, h))
+                        float(boost), int(coarse_sweeps), float(deadline), stop, *_coarse_args(coarse, h),
+                        kcycle_of(n, len(shape), coarse) if kcycle is None else bool(kcycle) and coarse is not None)
         return layout.from_cells(u, rows), int(it), float(res)
     rows = slice(0, n) if h.in_order else h.fine_of_input     # each input's fine row (in order: no renumbering)
     b = np.zeros(n + 1)

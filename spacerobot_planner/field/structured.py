@@ -692,3 +692,39 @@ def weighted_restrict_red(b, x, w, diag, res, gather, bc, ranges, nranges, deg):
                                                              + w3[i] * s3[i] + w4[i] * s4[i] + w5[i] * s5[i])
     for c in range(gather.shape[0]):
         bc[c] = _gathered(res, gather, c)
+
+
+@nb.njit(cache=True, nogil=True)
+def weighted_product_dot(p, q, w, diag, ranges, nranges, deg):
+    """
+    Compute q = A₁ p on level 1's cells (diag · p − Σ_d w_d p_d); return p · q.
+
+    p, q, diag float32 (2, H), w float32 (deg, 2, H) (:class:`Coarse`; q written over the
+    ranges, 0 off the level's rows, where diag and the weights are 0).  The neighbour sum in
+    float32 as :func:`weighted_half_sweep` takes it; p · q in 8 accumulators per range.
+    """
+    s = 0.0
+    for colour in range(2):
+        ps = p[1 - colour]
+        for r in range(nranges):
+            k0, k1 = ranges[colour, r, 0], ranges[colour, r, 1]
+            s0, s1, s2, s3, s4, s5, w0, w1, w2, w3, w4, w5 = _weighted_sum(w, colour, k0, k1, ps,
+                                                                           ranges[colour, r, 2:], deg)
+            t = q[colour, k0:k1]
+            pp = p[colour, k0:k1]
+            dg = diag[colour, k0:k1]
+            if deg == 4:
+                for i in range(k1 - k0):
+                    t[i] = dg[i] * pp[i] - (w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i] + w3[i] * s3[i])
+            else:
+                for i in range(k1 - k0):
+                    t[i] = dg[i] * pp[i] - (w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i] + w3[i] * s3[i]
+                                            + w4[i] * s4[i] + w5[i] * s5[i])
+            s += _dot_range(p[colour], q[colour], k0, k1)
+    return s
+
+
+@nb.njit(cache=True, nogil=True)
+def dot_all(a, b):
+    """Return sum a · b over two flat arrays of one length, in 8 accumulators (:func:`_dot_range`'s order)."""
+    return _dot_range(a, b, 0, a.size)
