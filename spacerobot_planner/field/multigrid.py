@@ -29,7 +29,7 @@ what CG converges to, and it costs no iterations on the paper's grids.
 On a big 3-D band (:func:`kcycle_of`: at least :data:`KCYCLE_MIN_UNKNOWNS` unknowns, level 1 on
 its cells) level 1 is a K-cycle's (:func:`_level1_kcycle`): two CG steps there, each
 preconditioned by the V-cycle from level 1, and the outer CG flexible (the preconditioner is
-then not a fixed linear map): 120³'s first band 16 -> 11 iterations, 0.86x the time.
+then not a fixed linear map): 120³'s first band 16 -> 11 iterations, its plans 0.91x the time.
 
 Where the band is compact (:func:`.structured.fine_layout`'s rule: its bounding box has few
 cells per unknown, at most axis 0 periodic and of even length) the fine level lives on the
@@ -86,12 +86,13 @@ ROUTES = ("auto", "graph", "structured")
 #: the V-cycle from level 1) on a 3-D grid whose fine level has at least this many unknowns,
 #: where level 1 is on its cells (:func:`kcycle_of`, the rule).  Each iteration then costs
 #: a second pass over level 1 and below, two level-1 products and a fine dot product more, and
-#: fewer iterations are needed.  First bands of the paper's 3-DOF scene (solve alone, medians):
-#: 72³ 14 -> 10 iterations, 25.6-27.0 -> 24.4-25.1 ms; 100³ 14 -> 10, 92-94 -> 81-87 ms; 120³
-#: 16 -> 11, 193-202 -> 169 ms; but 36³ 12 -> 10 iterations, 2.7 -> 2.9-3.0 ms, and on 2-D
-#: grids, where level 1 is a quarter of the fine level, no gain: 181² 17 -> 13 iterations, 2.2
-#: -> 2.4 ms; 720² 23 -> 15, 50.5-51.6 -> 50.1-58 ms.
-KCYCLE_MIN_UNKNOWNS = 100_000
+#: fewer iterations are needed.  The paper's 3-DOF scene, fresh plans, K-cycle against V-cycle
+#: interleaved in one process (whole plan, medians): 120³ (first band 1.16 million unknowns,
+#: 16 -> 11 iterations) 258 -> 234 ms, 100³ (668 000, 14 -> 10) 118 -> 112 ms, but 72³ (254 000,
+#: 14 -> 10) 38.4 -> 37.5 and 44.4 -> 44.5 ms with a longer tail (p90 57 against 53 ms).  The
+#: first band alone at 36³: 12 -> 10 iterations, 2.7 -> 3.0 ms.  On 2-D grids, where level 1 is
+#: a quarter of the fine level, no gain: 720² 23 -> 15 iterations, 50.5-51.6 -> 50.1-58 ms.
+KCYCLE_MIN_UNKNOWNS = 500_000
 
 
 def sweeps_of(ndim: int) -> int:
