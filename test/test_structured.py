@@ -280,6 +280,9 @@ def test_the_k_cycle_gives_the_v_cycles_solution(name):
     xv, its_v, res_v = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured", kcycle=False)
     assert res_k < tol and res_v < tol
     assert not np.array_equal(xk, xv), "the K-cycle did not run (the V-cycle's bits)"
+    # the K-cycle is there to save iterations: never more than the V-cycle's on these problems
+    # (CG's flexible beta with the wrong sign takes 2-9 more than the V-cycle here)
+    assert its_k <= its_v, (its_k, its_v)
     assert np.max(np.abs(xk - xv)) <= 1e-9 * np.max(np.abs(xv))
     true_res = np.max(np.abs(rhs - A @ xk))
     assert true_res < tol, f"true residual {true_res:.3g}, reported {res_k:.3g}"
@@ -311,3 +314,90 @@ def test_the_rule_runs_the_k_cycle_on_big_3d_problems(case, k_cycle, monkeypatch
     assert np.array_equal(x, chosen[0]) and its == chosen[1]
     assert not np.array_equal(x, other[0]), "both cycles gave the same bits: the case tests nothing"
     assert np.max(np.abs(rhs - A @ x)) < 1e-10
+
+
+def _level1_operator(h):
+    """Return level 1's matrix as SciPy's, from the hierarchy's graph rows (float64 weights and diagonal)."""
+    a, m = int(h.off[1]), int(h.sizes[1])
+    nb, w = h.nbr[a:a + m], h.wt[a:a + m]
+    rows, cols = np.nonzero(nb < m)
+    return sp.csr_matrix((-w[rows, cols], (rows, nb[rows, cols])), shape=(m, m)) + sp.diags(h.diag[a:a + m])
+
+
+@pytest.mark.parametrize("name", ["2-D", "3-D, periodic axis 0 of 16, cut edges", "3-D, a window across the seam, 20"])
+def test_the_k_cycles_level_1_is_the_best_combination_of_its_two_v_cycles(name):
+    """
+    ``_level1_kcycle``'s x1 against a Galerkin projection computed here.
+
+    c = V₁ b and d = V₁ r̃ (the V-cycle from level 1, ``_level1_cells``), r̃ = b − (c·b / c·A₁c) A₁c,
+    and x = the A₁-orthogonal projection of A₁⁻¹ b on span{c, d}: a 2 × 2 system in float64,
+    with A₁ the graph's level-1 rows as a SciPy matrix (not the cells' product).
+    """
+    nbr, coords, rhs, _ = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    layout = structured.fine_layout(h, shape, multigrid.sweeps_of(len(shape)), max_cells_per_unknown=np.inf,
+                                    min_unknowns=0)
+    coarse = structured.coarse_layout(h, shape, layout, multigrid.COARSE_SWEEPS, max_cells_per_unknown=np.inf)
+    assert coarse is not None and h.levels >= 3
+    wt, diag, inv_diag, chol_t = multigrid._single_levels(h.off, h.wt, h.diag, h.inv_diag, h.chol)
+    total = int(h.off[-1])
+    c_args = multigrid._coarse_args(coarse, h)[2:9]          # c_wts .. c_gather
+    deg = h.nbr.shape[1]
+    boost = multigrid.boost_of(len(shape))
+    A1 = _level1_operator(h)
+    cell = coarse.cell
+    rng = np.random.default_rng(5)
+
+    def on_cells(v):
+        out = np.zeros(coarse.diag.shape, np.float32)
+        out.reshape(-1)[cell] = v
+        return out
+
+    def v_cycle(b):
+        x1 = np.zeros(coarse.diag.shape, np.float32)
+        multigrid._level1_cells(*c_args, x1, on_cells(b), np.zeros(coarse.half), h.red, h.rrows, h.nbr, wt, diag,
+                                inv_diag, h.agg, h.off, h.sizes, h.chol, chol_t, np.zeros(total, np.float32),
+                                np.zeros(total, np.float32), np.zeros(total, np.float32), boost,
+                                multigrid.COARSE_SWEEPS, deg)
+        return x1.reshape(-1)[cell].astype(float)
+
+    for trial in range(3):
+        b = rng.standard_normal(A1.shape[0]).astype(np.float32).astype(float)
+        c = v_cycle(b)
+        r_t = b - (c @ b) / (c @ (A1 @ c)) * (A1 @ c)
+        d = v_cycle(r_t.astype(np.float32).astype(float))
+        basis = np.stack([c, d], axis=1)
+        coef = np.linalg.solve(basis.T @ (A1 @ basis), basis.T @ b)
+        expected = basis @ coef
+        x1 = np.zeros(coarse.diag.shape, np.float32)
+        scratch = [np.zeros(coarse.diag.shape, np.float32) for _ in range(3)]
+        multigrid._level1_kcycle(*c_args, x1, on_cells(b), np.zeros(coarse.half), *scratch, h.red, h.rrows, h.nbr,
+                                 wt, diag, inv_diag, h.agg, h.off, h.sizes, h.chol, chol_t,
+                                 np.zeros(total, np.float32), np.zeros(total, np.float32),
+                                 np.zeros(total, np.float32), boost, multigrid.COARSE_SWEEPS, deg)
+        got = x1.reshape(-1)[cell].astype(float)
+        assert np.max(np.abs(got - expected)) <= 1e-5 * np.max(np.abs(expected)), (name, trial)
+        off_rows = np.ones(x1.size, bool)
+        off_rows[cell] = False
+        assert not np.any(x1.reshape(-1)[off_rows]), "a value off level 1's rows"
+
+
+@pytest.mark.parametrize("name", ["2-D", "3-D, periodic axis 0 of 16, cut edges"])
+@pytest.mark.parametrize("scale", [1e-25, 1e25, 1e30])
+def test_the_k_cycle_solves_problems_far_from_unit_scale(name, scale):
+    """
+    A right-hand side of 1e25 (or 1e-25, 1e30) solves as one of 1: its dot products multiply in float64.
+
+    In float32 the level-1 products of values about 1e25 overflow: the 2-D problem then
+    stopped after one iteration with its residual unchanged, the 3-D one at 1e30 above
+    its tolerance.
+    """
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    unit = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="structured", kcycle=True)
+    tol = 1e-10 * scale
+    x, its, res = multigrid.solve(nbr, coords, shape, rhs * scale, tol=tol, route="structured", kcycle=True)
+    assert np.all(np.isfinite(x)) and res < tol
+    assert np.max(np.abs(rhs * scale - A @ x)) < tol
+    assert its <= unit[1] + 1, (its, unit[1])

@@ -85,13 +85,13 @@ ROUTES = ("auto", "graph", "structured")
 #: Level 1 as a K-cycle's (:func:`_level1_kcycle`: two CG steps there, each preconditioned by
 #: the V-cycle from level 1) on a 3-D grid whose fine level has at least this many unknowns,
 #: where level 1 is on its cells (:func:`kcycle_of`, the rule).  Each iteration then costs
-#: a second pass over level 1 and below, two level-1 products and a fine dot product more, and
-#: fewer iterations are needed.  The paper's 3-DOF scene, fresh plans, K-cycle against V-cycle
+#: a second pass over level 1 and below, two level-1 products, five level-1 dot products and
+#: one fine one more, and fewer iterations are needed.  The paper's 3-DOF scene, fresh plans, K-cycle against V-cycle
 #: interleaved in one process (whole plan, medians): 120³ (first band 1.16 million unknowns,
 #: 16 -> 11 iterations) 258 -> 234 ms, 100³ (668 000, 14 -> 10) 118 -> 112 ms, but 72³ (254 000,
 #: 14 -> 10) 38.4 -> 37.5 and 44.4 -> 44.5 ms with a longer tail (p90 57 against 53 ms).  The
 #: first band alone at 36³: 12 -> 10 iterations, 2.7 -> 3.0 ms.  On 2-D grids, where level 1 is
-#: a quarter of the fine level, no gain: 720² 23 -> 15 iterations, 50.5-51.6 -> 50.1-58 ms.
+#: a quarter of the fine level, no gain: 720² 23 -> 15 iterations, 50.5-51.6 -> 56.2-57.0 ms.
 KCYCLE_MIN_UNKNOWNS = 500_000
 
 

@@ -479,23 +479,28 @@ def _residual_range(bt, xt, xs, rt, k0, k1, o, deg, fdeg):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _dot_range(a, b, k0, k1):
-    """Return sum a[k] · b[k] over k in [k0, k1), in 8 accumulators (a fixed order: the same bits every run)."""
+    """
+    Return sum a[k] · b[k] over k in [k0, k1), in 8 accumulators (a fixed order: the same bits every run).
+
+    Each product in float64 (two float32 values would otherwise multiply in float32, which
+    overflows from about 1e19 each and underflows below about 1e-19).
+    """
     x = a[k0:k1]
     y = b[k0:k1]
     n = k1 - k0
     main = n - n % 8
     a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
     for i in range(0, main, 8):
-        a0 += x[i] * y[i]
-        a1 += x[i + 1] * y[i + 1]
-        a2 += x[i + 2] * y[i + 2]
-        a3 += x[i + 3] * y[i + 3]
-        a4 += x[i + 4] * y[i + 4]
-        a5 += x[i + 5] * y[i + 5]
-        a6 += x[i + 6] * y[i + 6]
-        a7 += x[i + 7] * y[i + 7]
+        a0 += np.float64(x[i]) * np.float64(y[i])
+        a1 += np.float64(x[i + 1]) * np.float64(y[i + 1])
+        a2 += np.float64(x[i + 2]) * np.float64(y[i + 2])
+        a3 += np.float64(x[i + 3]) * np.float64(y[i + 3])
+        a4 += np.float64(x[i + 4]) * np.float64(y[i + 4])
+        a5 += np.float64(x[i + 5]) * np.float64(y[i + 5])
+        a6 += np.float64(x[i + 6]) * np.float64(y[i + 6])
+        a7 += np.float64(x[i + 7]) * np.float64(y[i + 7])
     for i in range(main, n):
-        a0 += x[i] * y[i]
+        a0 += np.float64(x[i]) * np.float64(y[i])
     return ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7))
 
 
