@@ -494,3 +494,45 @@ def test_the_field_keeps_freed_memory_for_the_next_solve(problem, solves):
         pytest.skip("not glibc")
     assert got["again"]                  # once per process, the same answer
     assert min(got["faults"]) < got["bound"], got
+
+
+@pytest.mark.parametrize("shape, periodic, max_steps", [
+    ((30, 26), (True, False), 5),
+    ((12, 11, 10), (True, False, False), 4),
+    ((12, 11, 10), (True, False, False), 0),        # no limit
+])
+def test_a_later_bands_window_counts_steps_as_a_breadth_first_search(shape, periodic, max_steps):
+    """``harmonic._steps_from_known`` against a breadth-first search over the grid's face neighbours written here."""
+    from spacerobot_planner.field import harmonic
+    from spacerobot_planner.field.graph import node_graph, validate_problem
+    rng = np.random.default_rng(len(shape) * 10 + max_steps)
+    occ = rng.random(shape) < 0.2
+    goal = np.unravel_index(np.flatnonzero(~occ.ravel())[0], shape)
+    g = node_graph(*validate_problem(occ, periodic, [goal]))
+    known = rng.random(g.size) < 0.05
+    known[:g.n_goal] = True
+    active = np.flatnonzero(~known).astype(np.int64)
+    mark = np.full(g.size + 1, -1, np.int32)
+    got = harmonic._steps_from_known(g.nbr, active, known, mark, max_steps)
+    assert np.all(mark == -1), "the scratch is not left as it came"
+    # the oracle: breadth-first from the known nodes, through the active ones, on the flat grid
+    flat_nbr = face_neighbours(shape, periodic).reshape(2 * len(shape), -1)
+    state = np.full(occ.size, -2)                   # -2: neither active nor known
+    state[g.order[active]] = -1                     # -1: active, not reached
+    known_flat = set(g.order[known].tolist())
+    frontier = [f for f in g.order[active] if any(j >= 0 and j in known_flat for j in flat_nbr[:, f])]
+    for f in frontier:
+        state[f] = 1
+    steps = 1
+    while frontier:
+        nxt = []
+        for f in frontier:
+            for j in flat_nbr[:, f]:
+                if j >= 0 and state[j] == -1:
+                    state[j] = steps + 1
+                    nxt.append(j)
+        frontier, steps = nxt, steps + 1
+    far = (1 << 40) if max_steps == 0 else max_steps + 1
+    want = state[g.order[active]]
+    want = np.where((want < 0) | (want > far), far, want)
+    assert np.array_equal(got, want)

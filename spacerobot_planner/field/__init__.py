@@ -288,7 +288,7 @@ def warm_up_rare() -> None:
         known = np.zeros(graph.size, np.bool_)
         known[:graph.n_goal] = True
         harmonic._steps_from_known(graph.nbr, np.arange(graph.n_goal, graph.size, dtype=np.int64), known,
-                                   np.full(graph.size + 1, -1, np.int64), harmonic.WINDOW_STEPS)
+                                   np.full(graph.size + 1, -1, np.int32), harmonic.WINDOW_STEPS)
 
 
 # --------------------------------------------------------------------------
