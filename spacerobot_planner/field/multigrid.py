@@ -29,7 +29,7 @@ what CG converges to, and it costs no iterations on the paper's grids.
 On a big 3-D band (:func:`kcycle_of`: at least :data:`KCYCLE_MIN_UNKNOWNS` unknowns, level 1 on
 its cells) level 1 is a K-cycle's (:func:`_level1_kcycle`): two CG steps there, each
 preconditioned by the V-cycle from level 1, and the outer CG flexible (the preconditioner is
-then not a fixed linear map): 120³'s first band 16 -> 11 iterations, its plans 0.91x the time.
+then not a fixed linear map): 120³'s first band 16 -> 11 iterations, its plans 0.82-0.91x the time.
 
 Where the band is compact (:func:`.structured.fine_layout`'s rule: its bounding box has few
 cells per unknown, at most axis 0 periodic and of even length) the fine level lives on the
