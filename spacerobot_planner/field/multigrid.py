@@ -86,8 +86,8 @@ ROUTES = ("auto", "graph", "structured")
 #: the V-cycle from level 1) on a 3-D grid whose fine level has at least this many unknowns,
 #: where level 1 is on its cells (:func:`kcycle_of`, the rule).  Each iteration then costs
 #: a second pass over level 1 and below, two level-1 products, five level-1 dot products and
-#: one fine one more, and fewer iterations are needed.  The paper's 3-DOF scene, fresh plans, K-cycle against V-cycle
-#: interleaved in one process (whole plan, medians): 120³ (first band 1.16 million unknowns,
+#: one fine one more, and fewer iterations are needed.  The paper's 3-DOF scene, fresh plans,
+#: K-cycle against V-cycle interleaved in one process (whole plan, medians): 120³ (first band 1.16 million unknowns,
 #: 16 -> 11 iterations) 258 -> 234 ms, 100³ (668 000, 14 -> 10) 118 -> 112 ms, but 72³ (254 000,
 #: 14 -> 10) 38.4 -> 37.5 and 44.4 -> 44.5 ms with a longer tail (p90 57 against 53 ms).  The
 #: first band alone at 36³: 12 -> 10 iterations, 2.7 -> 3.0 ms.  On 2-D grids, where level 1 is
@@ -834,10 +834,11 @@ def _descend(r, q, u, p, rz, pq, tol, n, stop):
 @nb.njit(cache=True, nogil=True, inline="always")
 def _turn(u, p, z, alpha, rz, rz_new, n):
     """
-    Turn CG to its new direction from the preconditioned residual z (rz_new = r · z): return rz_new.
+    Turn CG to its new direction from the preconditioned residual z: return rz_new.
 
     u's step along the old p (u += alpha p), then the new p = z + (rz_new / rz) p: one pass
-    over p (first n entries).
+    over p (first n entries).  rz_new: β's numerator, r · z (the flexible CG of
+    :func:`_spcg` passes its own).
     """
     beta = rz_new / rz
     for i in range(n):
@@ -888,18 +889,18 @@ def _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, 
     then d = M₁⁻¹ (b1 − (c·b1 / c·v) v), w = A₁ d, and x1 = the combination of c and d that
     minimises the A₁-norm of the error over the two (Notay and Vassilevski, "Recursive
     Krylov-based multigrid cycles", 2008: two inner iterations, no skip test).  The V-cycle
-    below level 1 is unchanged.  x1, b1 float32
-    (2, H1) as :func:`_level1_cells`' (b1 is overwritten with the residual after the first step);
-    kc, kv, kw float32 (2, H1): scratch (c, v, w).  Every vector is 0 off level 1's rows (their
+    below level 1 is unchanged.  x1, b1 float32 (2, H1) as :func:`_level1_cells`' (b1 is
+    overwritten with the residual after the first step); kc, kv, kw float32 (2, H1): scratch
+    (c, v, w; c is the first V-cycle's own output array).  Every vector is 0 off level 1's rows (their
     diagonal, weights and right-hand side are 0), so the dot products run over the whole arrays,
     in 8 float64 accumulators (:func:`.structured.dot_all`).
     """
-    _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr, wt,
+    _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, kc, b1, r1, red, rrows, nbr, wt,
                   diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
     xf, bf, cf, vf = x1.reshape(-1), b1.reshape(-1), kc.reshape(-1), kv.reshape(-1)
-    cf[:] = xf
     rho1 = structured.weighted_product_dot(kc, kv, c_wts, c_diag, c_ranges, c_nranges, deg)
-    if not rho1 > 0.0:
+    if not rho1 > 0.0:           # c is 0 (b1 is): x1 = c
+        xf[:] = cf
         return
     a1 = structured.dot_all(cf, bf) / rho1
     for i in range(bf.size):
@@ -1007,11 +1008,11 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     x1 = np.zeros(c_diag.shape, np.float32)
     b1 = np.zeros(c_diag.shape, np.float32)
     r1 = np.zeros(c_diag.shape[1])
+    kcyc = kcyc and c_on
     kshape = c_diag.shape if kcyc else (2, 1)
     kc = np.zeros(kshape, np.float32)
     kv = np.zeros(kshape, np.float32)
     kw = np.zeros(kshape, np.float32)
-    kcyc = kcyc and c_on
     rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
     deg = ranges.shape[2] - 2
     structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
@@ -1039,11 +1040,9 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
                           inv_diag, agg, off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost,
                           coarse_sweeps, stop, c_on, c_at, c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr,
                           c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw)
-        if kcyc:         # flexible: z · r_old = rz_new + alpha z · q
-            rz = _turn(ul, pl, xl, alpha, rz, -alpha * structured.dot_all(xl, ql), cells)
-            rz = rz_new
-        else:
-            rz = _turn(ul, pl, xl, alpha, rz, rz_new, cells)
+        # beta's numerator: z · r, or the flexible z · (r − r_old) = −alpha z · q (r_old = r + alpha q)
+        _turn(ul, pl, xl, alpha, rz, -alpha * structured.dot_all(xl, ql) if kcyc else rz_new, cells)
+        rz = rz_new
     return it, res
 
 
@@ -1126,7 +1125,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
                         layout.gather, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
                         float(boost), int(coarse_sweeps), float(deadline), stop, *_coarse_args(coarse, h),
-                        kcycle_of(n, len(shape), coarse) if kcycle is None else bool(kcycle) and coarse is not None)
+                        kcycle_of(n, len(shape), coarse) if kcycle is None else bool(kcycle))
         return layout.from_cells(u, rows), int(it), float(res)
     rows = slice(0, n) if h.in_order else h.fine_of_input     # each input's fine row (in order: no renumbering)
     b = np.zeros(n + 1)
