@@ -37,6 +37,7 @@ from typing import Callable
 import numpy as np
 
 from .collision import CollisionChecker
+from .contact import warm_up as contact_warm_up
 from .cspace import GridSpec, body_occupancy, build_cspace
 from .cspace import warm_up as cspace_warm_up
 from .descent import descend
@@ -406,6 +407,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
     field_warm_up()             # the solver kernels a coarse grid does not reach
     smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
     repair_warm_up()            # a coarse plan seldom repairs
+    contact_warm_up(coarse.robot, coarse.scene)     # nor starts in contact
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
         # the free-floating capture's attitude kernel (numba)
         attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))

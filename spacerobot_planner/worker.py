@@ -49,6 +49,7 @@ from typing import Callable
 import numpy as np
 
 from .config import load_scenario
+from .contact import warm_up as contact_warm_up
 from .cspace import warm_up as cspace_warm_up
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
@@ -337,6 +338,7 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
     cspace_warm_up(coarse.scenario.robot, coarse.scenario.scene, coarse.scenario.grid)   # a refinement's rows
     smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
     repair_warm_up()            # a coarse plan seldom repairs
+    contact_warm_up(coarse.scenario.robot, coarse.scenario.scene)     # nor starts in contact
     field_warm_up_rare()        # nor needs a breadth-first search or a second band
     out = {"coarse_s": time.perf_counter() - t0}
     if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:

@@ -334,6 +334,29 @@ def shapely_depth(robot, scene, q):
     return best
 
 
+def shapely_penetration(robot, scene, q, spacing_m=2.5e-4):
+    """
+    Return how deep the checked links reach into the posed body or an obstacle (shapely), metres.
+
+    Each link sampled every ``spacing_m`` at most; the samples GEOS finds inside a polygon,
+    their largest distance to its boundary (0 when none is inside): within ``spacing_m / 2``.
+    """
+    import shapely
+    from shapely.geometry import Polygon
+    q_full = robot.full(q)
+    pts = arm_points(robot, q_full)
+    best = 0.0
+    for poly in (Polygon(p) for p in _polygons(robot, scene, q_full[0])):
+        for k in robot.checked_links:
+            a, b = pts[k], pts[k + 1]
+            n = int(np.ceil(np.linalg.norm(b - a) / spacing_m)) + 1
+            xy = a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
+            inside = shapely.contains_xy(poly, xy[:, 0], xy[:, 1])
+            if inside.any():
+                best = max(best, float(shapely.distance(poly.exterior, shapely.points(xy[inside])).max()))
+    return best
+
+
 def inside_target_or_margin(robot, scene, q_full, body_pos, n=200):
     """
     Return per configuration whether links 2-3 come within the margin of the target's body.

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from oracles import dense_samples, link3_and_normal_deg, shapely_depth, wrap_diff
+from oracles import dense_samples, link3_and_normal_deg, shapely_depth, shapely_penetration, wrap_diff
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.cspace import build_cspace
 from spacerobot_planner.planner import CODES, STAGES, Planner
@@ -629,6 +629,42 @@ def test_target_moved_into_the_captured_posture_is_left(paper_scenario, dof, d_m
     assert free and clr > sc.scene.safety_margin_m
     assert np.allclose(wrap_diff(rest[-1], sc0.start_rad), 0.0, atol=1e-12)
     assert res.to_json_dict()["exit"]["certified"] is False
+
+
+@pytest.mark.parametrize("dof", [2, 3])
+def test_penetration_depths_meet_a_shapely_oracle_on_random_postures(dof):
+    """
+    The exit's penetration depth (``contact.penetration_depths_m``) against GEOS's geometry.
+
+    Random scenes of the ``bench scenes`` family and random postures, many of them with a link
+    inside the spacecraft body (turned by the attitude) or an obstacle: each depth within
+    1.2 mm of the oracle's (the kernel samples links every 2 mm, within 1 mm; the oracle every
+    0.25 mm), and 0 exactly where no link enters a polygon.  Scenes with a
+    self-intersecting obstacle (about 2 in 100 of the family) are passed over: GEOS has no
+    inside for them, the kernel the even-odd one.
+    """
+    from shapely.geometry import Polygon
+    from spacerobot_planner.bench.scenes import random_scenario
+    from spacerobot_planner.contact import penetration_depth_m, penetration_depths_m
+    rng = np.random.default_rng([41, dof])
+    inside = outside = 0
+    for _ in range(14):
+        sc, _start = random_scenario(rng, dof)
+        if not all(Polygon(p).is_valid for p in sc.scene.obstacle_polygons_m):
+            continue
+        chk = CollisionChecker(sc.robot, sc.scene)
+        qs = rng.uniform(sc.robot.planned_lower_rad, sc.robot.planned_upper_rad, size=(25, dof))
+        got = penetration_depths_m(chk, qs)
+        for q, depth in zip(qs, got):
+            ref = shapely_penetration(sc.robot, sc.scene, q)
+            assert abs(depth - ref) < 1.2e-3, (q, depth, ref)
+            if ref == 0.0:
+                assert depth == 0.0, (q, depth)
+                outside += 1
+            else:
+                inside += 1
+        assert penetration_depth_m(chk, qs[0]) == got[0]          # one posture: the same value
+    assert inside >= 40 and outside >= 40, (inside, outside)
 
 
 def test_deep_start_collision_still_refused(paper_scenario):
