@@ -20,11 +20,14 @@ found without randomness:
    720, i.e. 0.5°, for one; 180 × 180 for two; 48³ for three), every sample checked
    exactly (bounds, ``CollisionChecker``);
 2. a local refinement around the best samples (the ``REFINE_PEAKS`` highest local maxima
-   of the feasible samples): golden-section search between the neighbouring samples for
-   r = 1, bounded Nelder–Mead within one sample step for r ≥ 2.  Infeasible postures count
-   as −∞ (so a search runs up to a feasibility boundary when the manipulability rises
-   towards it), and the refinement keeps the best feasible posture it evaluated: it can
-   only improve on the sweep.
+   of the feasible samples): a nested grid between the neighbouring samples for r = 1
+   (``_REFINE_POINTS`` postures at once, the bracket narrowed to the best one's neighbours,
+   down to ``_REFINE_TOL_RAD``: ten vectorised rounds where a golden-section search took 39
+   single postures; the 4-joint scenario's IK for 31 targets 31.9 -> 12.0 ms median, never a
+   less manipulable posture), bounded Nelder–Mead within one sample step for r ≥ 2.
+   Infeasible postures count as −∞ (so a search runs up to a feasibility boundary when the
+   manipulability rises towards it), and the refinement keeps the best feasible posture it
+   evaluated: it can only improve on the sweep.
 
 :func:`most_manipulable_arm` is the target-free advice for the same chains (the paper's
 "where should the target sit"): the arm joints maximising manipulability, the first
@@ -53,9 +56,10 @@ REFINE_PEAKS = 3
 #: a posture is collision-free when its clearance exceeds the safety margin by this, metres
 #: (so that an independent check with other rounding agrees at a refined boundary)
 CLEARANCE_SLACK_M = 1e-9
-#: golden-section search stops when its bracket is this narrow, rad
-_GOLDEN_TOL_RAD = 1e-10
-_INVPHI = (math.sqrt(5.0) - 1.0) / 2.0
+#: the one-joint refinement (:func:`_nested_grid`) samples its bracket at this many postures at once ...
+_REFINE_POINTS = 17
+#: ... and stops when its bracket is this narrow, rad
+_REFINE_TOL_RAD = 1e-10
 
 
 @dataclass(frozen=True)
@@ -207,6 +211,21 @@ class _Evaluator:
         w = self.robot.manipulability(flat)
         return flat.reshape(shape), clr.reshape(shape[:2]), w.reshape(shape[:2]), valid.reshape(shape[:2])
 
+    def best_of(self, s, branch: int, best: dict) -> np.ndarray:
+        """
+        Return one branch's scores at swept values s (N, r): manipulability, or −∞ where not collision-free.
+
+        ``best`` (keys w, q, clr) takes the best of them when it beats ``best["w"]`` (the first of equals).
+        """
+        q, clr, w, valid = self.evaluate(s)
+        with np.errstate(invalid="ignore"):
+            ok = valid[branch] & (clr[branch] > self.margin_m + CLEARANCE_SLACK_M)
+        vals = np.where(ok, w[branch], -math.inf)
+        i = int(np.argmax(vals))
+        if vals[i] > best["w"]:
+            best.update(w=float(vals[i]), q=q[branch, i], clr=float(clr[branch, i]))
+        return vals
+
     def score(self, s, branch: int) -> tuple:
         """Return (manipulability or −∞ when not collision-free, q_full, clearance) of one branch at one s."""
         q, clr, w, valid = self.evaluate(np.atleast_2d(s))
@@ -241,19 +260,17 @@ def _local_maxima(score: np.ndarray, periodic) -> np.ndarray:
     return idx[np.argsort(-score.ravel()[idx], kind="stable")]
 
 
-def _golden(f, lo: float, hi: float) -> None:
-    """Golden-section search for the largest f on [lo, hi] (f records what it sees; nothing returned)."""
-    x1, x2 = hi - _INVPHI * (hi - lo), lo + _INVPHI * (hi - lo)
-    f1, f2 = f(x1), f(x2)
-    while hi - lo > _GOLDEN_TOL_RAD:
-        if f1 >= f2:
-            hi, x2, f2 = x2, x1, f1
-            x1 = hi - _INVPHI * (hi - lo)
-            f1 = f(x1)
-        else:
-            lo, x1, f1 = x1, x2, f2
-            x2 = lo + _INVPHI * (hi - lo)
-            f2 = f(x2)
+def _nested_grid(f, lo: float, hi: float) -> None:
+    """
+    Search [lo, hi] for the largest f: ``_REFINE_POINTS`` samples, then the bracket between the best one's neighbours.
+
+    ``f``: values (N,) at points (N,) (it records what it sees; nothing returned); the first
+    of equal largest values leads; until the bracket is ``_REFINE_TOL_RAD`` narrow.
+    """
+    while hi - lo > _REFINE_TOL_RAD:
+        xs = np.linspace(lo, hi, _REFINE_POINTS)
+        i = int(np.argmax(f(xs)))
+        lo, hi = float(xs[max(i - 1, 0)]), float(xs[min(i + 1, _REFINE_POINTS - 1)])
 
 
 def redundant_grasp(robot, scene, grasp_point_m, approach_angle_rad: float, free_only: bool = True,
@@ -330,7 +347,7 @@ def redundant_grasp(robot, scene, grasp_point_m, approach_angle_rad: float, free
                     lo, hi = max(lo, float(robot.lower_rad[j])), min(hi, float(robot.upper_rad[j]))
                 box.append((lo, hi))
             if r == 1:
-                _golden(lambda x: f(np.array([x])), *box[0])
+                _nested_grid(lambda xs, k=k, best=best: ev.best_of(xs[:, None], k, best), *box[0])
             else:
                 def cost(x, f=f):
                     val = f(x)
@@ -339,7 +356,7 @@ def redundant_grasp(robot, scene, grasp_point_m, approach_angle_rad: float, free
                 from scipy.optimize import minimize    # SciPy loaded only where it is used (start-up)
                 minimize(cost, s0, method="Nelder-Mead", bounds=box,
                          options={"xatol": 1e-9, "fatol": 1e-12, "maxiter": 200 * r})
-        refine = "golden-section search" if r == 1 else "Nelder-Mead"
+        refine = "a nested grid" if r == 1 else "Nelder-Mead"
         out.append(RedundantPosture(best["q"], float(best["w"]), float(best["clr"]), True, (1, -1)[k],
                                     f"{swept_text} on branch {'+' if k == 0 else '−'}, "
                                     + ("its best local maximum" if len(peaks) == 1 else

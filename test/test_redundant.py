@@ -126,7 +126,7 @@ def test_the_4_joint_scenario_grasps_with_the_most_manipulable_free_posture():
     robot = sc.robot
     assert robot.checked_links == (1, 2, 3)           # the wrist link is checked too
     sol = check_grasp_against_brute_force(robot, sc.scene)
-    assert "swept 720 values of the attitude" in sol.method and "golden-section" in sol.method
+    assert "swept 720 values of the attitude" in sol.method and "nested grid" in sol.method
     # the planner's goal from the target is that posture and says how it was chosen
     chosen = Planner(sc).capture_goal()
     np.testing.assert_array_equal(chosen.q_full, sol.q_full)
