@@ -155,7 +155,7 @@ def test_five_joints(target):
     robot = chain((1.4, 1.2, 1.2, 1.0, 0.8))
     scene = Scene(target=target, safety_margin_m=0.02)
     sol = check_grasp_against_brute_force(robot, scene)
-    assert "swept 180×180 values of (j0, j1)" in sol.method and "Nelder-Mead" in sol.method
+    assert "swept 180×180 values of (j0, j1)" in sol.method and "nested grid" in sol.method
 
 
 def test_debris_pushes_the_choice_to_a_free_posture():
