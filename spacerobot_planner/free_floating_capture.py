@@ -33,9 +33,9 @@ once per path row and midpoint, each cosine once per pair of links, and step 3's
 and gaps once per approach offset (its bisection of the edge of reach needs the postures
 only): in half the time (the capture scene's replans 145-170 -> 69-77 ms; refusals, which
 scan every family, 0.9-1.2 -> 0.4-0.6 s), the same plans to the bit on the 14 scenes it was
-measured on (and the same attitude changes on 1 000 random paths) as the kernel that
-evaluated every Simpson point afresh: a row's end point is now the row itself, not the
-previous row plus the step.  No ROS imports.
+measured on as the kernel that evaluated every Simpson point afresh.  A row's end point is
+now the row itself, not the previous row plus the step: the same attitude changes on smooth
+paths, within 4e-15 on rows drawn at random.  No ROS imports.
 """
 
 from __future__ import annotations
