@@ -36,7 +36,6 @@ from ..config import load_scenario
 from ..contact import penetration_depths_m
 from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
 from ..planner import Planner
-from ..settings import PlannerSettings
 from .profile import StepProfile, print_rows
 from .timing import tail_stats
 
@@ -103,6 +102,7 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
     # ... and from starts in contact (the arm touching the body or an obstacle: the exit stage first)
     in_contact = [planner.plan(q, sc.goal_rad) for q in contact_starts(sc, max(3, repeats))]
     contact = [r.timings_s for r in in_contact if r.ok]
+    contact_failed = len(in_contact) - len(contact)          # their times are not in the row's tails
     # the paper's Gauss–Seidel on the same problem
     cap = baseline_cap if big else None
     t0 = time.perf_counter()
@@ -134,7 +134,8 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
     if contact:
         rows.append({"stage": "replan_contact", **common, "seconds": float(np.median([t["total"] for t in contact])),
                      **tails(contact, "total"), "exit_seconds": float(np.median([t["exit"] for t in contact])),
-                     "exit_max_s": float(max(t["exit"] for t in contact)), "baseline_seconds": None, "ratio": None})
+                     "exit_max_s": float(max(t["exit"] for t in contact)), "failed": contact_failed,
+                     "baseline_seconds": None, "ratio": None})
     return rows
 
 
@@ -143,12 +144,12 @@ def contact_starts(sc, count: int, seed: int = 0, most_draws: int = 200_000) -> 
     Return up to ``count`` starts in contact: within the safety margin, no deeper than the planner allows.
 
     Seeded draws over the planned joints' bounds, kept where the clearance is at most the
-    scene's margin and the links reach at most ``planner.max_start_penetration_m`` (its
-    default) into the body or an obstacle: each plan from one first leaves the contact (the
-    exit stage), the rest as a cached replan.
+    scene's margin and the links reach at most the scenario's
+    ``planner.max_start_penetration_m`` into the body or an obstacle: each plan from one first
+    leaves the contact (the exit stage), the rest as a cached replan.
     """
     chk = CollisionChecker(sc.robot, sc.scene)
-    deepest = PlannerSettings().max_start_penetration_m
+    deepest = sc.planner_settings.max_start_penetration_m
     rng = np.random.default_rng(seed)
     lo, hi = sc.robot.planned_lower_rad, sc.robot.planned_upper_rad
     found = []
@@ -247,9 +248,10 @@ def main(argv=None) -> int:
               f"cached replan {tail(r['replan_cached'])} ({r['replan_cached']['plans']} replans)")
         if "replan_contact" in r:
             c = r["replan_contact"]
+            failed = f"; {c['failed']} more failed, not counted" if c["failed"] else ""
             print(f"  {scene:<5}{r['total']['grid']:>12}  cached replan from a start in contact {tail(c)} "
                   f"({c['plans']} replans; their exit stage {1e3 * c['exit_seconds']:.2f} ms median, "
-                  f"{1e3 * c['exit_max_s']:.2f} max)")
+                  f"{1e3 * c['exit_max_s']:.2f} max{failed})")
     if args.profile:
         for scene, cells in cases:
             all_rows += profile_case(scene, cells, args.solver, args.repeats)
