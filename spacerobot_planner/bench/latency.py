@@ -28,6 +28,10 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   start begins with a velocity step);
 - ``--load N`` runs N busy-loop processes meanwhile (a loaded machine).
 
+The node is built as ``main()`` builds it (``freeze_start_up``: its start-up frozen out of the
+garbage collector's reach once configured), so a full collection of this process's some 10⁵
+start-up objects does not hold a trajectory back as it would not under ``ros2 run``.
+
 Median, p90 and max of ``--repeats`` after one warm-up plan.  Prints a table and one JSON
 object per line.  ``python -m spacerobot_planner.bench latency [--cells 36] [--repeats 7] [--load N]``
 """
