@@ -561,15 +561,14 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         # the brackets (the smallest amplitude along each direction), the coarse path's length at
         # the interpolated root; refined on the final path only when certified, shortest first
         candidates = []
-        for d_i, d in enumerate(dirs):
-            f = delta[d_i] - need
-            for a_i in range(len(amps) - 1):
-                if not (inside[d_i, a_i] and inside[d_i, a_i + 1]) or f[a_i] * f[a_i + 1] > 0.0:
-                    continue
-                w = f[a_i] / (f[a_i] - f[a_i + 1]) if f[a_i] != f[a_i + 1] else 0.0
-                approx = _family(base(s_coarse), (amps[a_i] + w * (amps[a_i + 1] - amps[a_i])) * d, s_coarse, harm)
-                candidates.append((float(np.sum(np.linalg.norm(np.diff(approx, axis=0), axis=1))), d_i, a_i))
-                break
+        f_all = delta - need
+        bracket = inside[:, :-1] & inside[:, 1:] & ~(f_all[:, :-1] * f_all[:, 1:] > 0.0)    # (D, A - 1)
+        firsts = bracket.argmax(axis=1)                          # each direction's first bracket
+        for d_i in np.flatnonzero(bracket.any(axis=1)):
+            d, f, a_i = dirs[d_i], f_all[d_i], int(firsts[d_i])
+            w = f[a_i] / (f[a_i] - f[a_i + 1]) if f[a_i] != f[a_i + 1] else 0.0
+            approx = _family(base(s_coarse), (amps[a_i] + w * (amps[a_i + 1] - amps[a_i])) * d, s_coarse, harm)
+            candidates.append((float(np.sum(np.linalg.norm(np.diff(approx, axis=0), axis=1))), int(d_i), a_i))
         candidates.sort()
         n_candidates += len(candidates)
         search_s += time.perf_counter() - t_s
