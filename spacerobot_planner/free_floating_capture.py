@@ -551,11 +551,15 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         coef = dirs[:, None] * amps[None, :, None, None]                       # (D, A, m, H)
         paths = _family(base(s_coarse), coef, s_coarse, harm)                 # (D, A, K, m)
         inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))          # (D, A)
-        flat = paths.reshape(-1, len(s_coarse), len(arm))
-        delta = _attitude_changes(np.ascontiguousarray(_full(start_full, flat)), pair, inertia)
-        delta = delta.reshape(inside.shape)
         if not inside.any():
             continue
+        # the attitude change of the paths within the joint bounds only (the others are no
+        # candidates and no part of the reach): nan elsewhere
+        within = np.flatnonzero(inside.ravel())
+        flat = paths.reshape(-1, len(s_coarse), len(arm))
+        delta = np.full(inside.size, np.nan)
+        delta[within] = _attitude_changes(np.ascontiguousarray(_full(start_full, flat[within])), pair, inertia)
+        delta = delta.reshape(inside.shape)
         r = reach.get(post.branch, (math.inf, -math.inf))
         reach[post.branch] = (min(r[0], float(delta[inside].min())), max(r[1], float(delta[inside].max())))
         # the brackets (the smallest amplitude along each direction), the coarse path's length at
