@@ -11,7 +11,9 @@ apart, and only allowed when the start is inside by at most ``max_penetration_m`
 
 The penetration depth is a numba kernel (``_depths_into``): every candidate of a step in one
 call, about 9 us a posture (the NumPy loop it replaced took 350 us, so a walk out of a deep
-contact took up to 70 ms, the same depths to the bit).
+contact took up to 70 ms; the same depths to the bit on 4 800 random postures of random
+scenes; a link's length is sqrt(dx² + dy²), one ulp from NumPy's norm at times, which could
+move the 2 mm sample count only where length / 2 mm is within an ulp of an integer).
 
 Configurations are planned-joint vectors (rad); lengths in metres.
 """

@@ -549,7 +549,8 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         need = post.attitude_change_rad
         t_s = time.perf_counter()
         coef = dirs[:, None] * amps[None, :, None, None]                       # (D, A, m, H)
-        paths = _family(base(s_coarse), coef, s_coarse, harm)                 # (D, A, K, m)
+        base_coarse = base(s_coarse)                                          # (K, m)
+        paths = _family(base_coarse, coef, s_coarse, harm)                    # (D, A, K, m)
         inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))          # (D, A)
         if not inside.any():
             continue
@@ -571,7 +572,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         for d_i in np.flatnonzero(bracket.any(axis=1)):
             d, f, a_i = dirs[d_i], f_all[d_i], int(firsts[d_i])
             w = f[a_i] / (f[a_i] - f[a_i + 1]) if f[a_i] != f[a_i + 1] else 0.0
-            approx = _family(base(s_coarse), (amps[a_i] + w * (amps[a_i + 1] - amps[a_i])) * d, s_coarse, harm)
+            approx = _family(base_coarse, (amps[a_i] + w * (amps[a_i + 1] - amps[a_i])) * d, s_coarse, harm)
             candidates.append((float(np.sum(np.linalg.norm(np.diff(approx, axis=0), axis=1))), int(d_i), a_i))
         candidates.sort()
         n_candidates += len(candidates)

@@ -56,7 +56,7 @@ from .smoothing import warm_up as smoothing_warm_up
 from .termination import stall
 from .timing import timed_motion, trajectory_limits_known
 
-__all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES", "warm_up",
+__all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES", "warm_up", "warm_up_unreached",
            "timed_motion"]
 
 
@@ -384,6 +384,20 @@ class Planner:
         return replace(result, trajectory=traj, reaction=reaction, timings_s=timings)
 
 
+def warm_up_unreached(coarse: Scenario) -> None:
+    """
+    Compile (or load from numba's cache) the kernels a plan on the ``coarse`` scenario may not reach.
+
+    The C-space row kernel's other form (a refinement reaches it), the spline and shortcut
+    kernels, a repair's, a start in contact's (the exit stage).  Both warm-ups run it
+    (:func:`warm_up`, ``worker.warm_up``).
+    """
+    cspace_warm_up(coarse.robot, coarse.scene, coarse.grid)
+    smoothing_warm_up()
+    repair_warm_up()
+    contact_warm_up(coarse.robot, coarse.scene)
+
+
 def warm_up(scenario: Scenario, cells: int = 6) -> float:
     """
     Compile (or load from numba's cache) every kernel a plan uses; return the seconds.
@@ -403,11 +417,8 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
     for start, goal in zip(free[:-1:2], free[1::2]):
         if planner.plan(start, goal).ok:
             break
-    cspace_warm_up(coarse.robot, coarse.scene, coarse.grid)     # the row kernel's form a refinement reaches
+    warm_up_unreached(coarse)
     field_warm_up()             # the solver kernels a coarse grid does not reach
-    smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
-    repair_warm_up()            # a coarse plan seldom repairs
-    contact_warm_up(coarse.robot, coarse.scene)     # nor starts in contact
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
         # the free-floating capture's attitude kernel (numba)
         attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))

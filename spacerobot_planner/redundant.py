@@ -228,12 +228,6 @@ class _Evaluator:
             best.update(w=float(vals[i]), q=q[branch, i], clr=float(clr[branch, i]))
         return vals
 
-    def score(self, s, branch: int) -> tuple:
-        """Return (manipulability or −∞ when not collision-free, q_full, clearance) of one branch at one s."""
-        q, clr, w, valid = self.evaluate(np.atleast_2d(s))
-        ok = bool(valid[branch, 0]) and clr[branch, 0] > self.margin_m + CLEARANCE_SLACK_M
-        return (float(w[branch, 0]) if ok else -math.inf), q[branch, 0], float(clr[branch, 0])
-
 
 def _sweep_axes(robot, joints, per_axis: int) -> list:
     """Sample each swept joint: one turn for a periodic joint (end excluded), else its bounds included."""
@@ -333,10 +327,7 @@ def redundant_grasp(robot, scene, grasp_point_m, approach_angle_rad: float, free
         best = {"w": -math.inf}
 
         def f(s, k=k, best=best):
-            val, qk, ck = ev.score(s, k)
-            if val > best["w"]:
-                best.update(w=val, q=qk, clr=ck)
-            return val
+            return float(ev.best_of(np.atleast_2d(s), k, best)[0])
 
         peaks = _local_maxima(score, periodic)[:REFINE_PEAKS]
         for i in peaks:

@@ -50,14 +50,10 @@ from typing import Callable
 import numpy as np
 
 from .config import load_scenario
-from .contact import warm_up as contact_warm_up
-from .cspace import warm_up as cspace_warm_up
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
-from .planner import Planner
+from .planner import Planner, warm_up_unreached
 from .field import warm_up_rare as field_warm_up_rare
-from .repair import warm_up as repair_warm_up
-from .smoothing import warm_up as smoothing_warm_up
 from .termination import Termination, stall
 
 __all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
@@ -339,11 +335,8 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
         if coarse.plan(a, b).ok:
             start = a
             break
-    cspace_warm_up(coarse.scenario.robot, coarse.scenario.scene, coarse.scenario.grid)   # a refinement's rows
-    smoothing_warm_up()         # the spline and shortcut kernels a coarse plan may not reach
-    repair_warm_up()            # a coarse plan seldom repairs
-    contact_warm_up(coarse.scenario.robot, coarse.scenario.scene)     # nor starts in contact
-    field_warm_up_rare()        # nor needs a breadth-first search or a second band
+    warm_up_unreached(coarse.scenario)
+    field_warm_up_rare()        # nor does a coarse plan need a breadth-first search or a second band
     out = {"coarse_s": time.perf_counter() - t0}
     if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:
         t1 = time.perf_counter()
