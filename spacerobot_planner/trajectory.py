@@ -772,6 +772,10 @@ def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: fl
     return sd / float(np.linalg.norm(d1[0]))
 
 
+#: the longest trajectory, s: builtin_interfaces/Duration (a point's ``time_from_start``) holds
+#: whole seconds in an int32.  Longer is refused (a limit set near 0 by mistake), never published
+#: with times that wrap around.
+MAX_DURATION_S = float(2**31 - 1)
 #: rounding effects on the finite differences up to this fraction of a limit are not
 #: given a margin (the test tolerance and every consumer are far coarser)
 _ROUNDING_SLACK = 1e-10
@@ -1076,8 +1080,10 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     Raises
     ------
         ValueError: bad shapes, NaN, non-positive limits, a scaling factor outside
-            (0, 1], or a start velocity the path cannot be followed with (across the
-            tangent, backwards, or too fast to stay within the limits and stop at the goal).
+            (0, 1], a start velocity the path cannot be followed with (across the
+            tangent, backwards, or too fast to stay within the limits and stop at the goal),
+            or limits so low that the trajectory would last longer than
+            :data:`MAX_DURATION_S` (the reason names the limit that holds it back).
 
     """
     refine = int(grid_refinement)
@@ -1157,8 +1163,25 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         labels += ["wheel_momentum", "wheel_torque"]
     else:
         h_w = tau_w = None
-    return Trajectory(names, t, p, vel, acc, vmax, amax, sd, np.array(labels)[best], ratio, h_w, tau_w,
+    active = np.array(labels)[best]
+    if not t[-1] <= MAX_DURATION_S:
+        raise ValueError(_too_long(t, active))
+    return Trajectory(names, t, p, vel, acc, vmax, amax, sd, active, ratio, h_w, tau_w,
                       None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
+
+
+def _too_long(times_s, active_limit) -> str:
+    """Return why a trajectory longer than :data:`MAX_DURATION_S` is refused: its length and what holds it back."""
+    share = {}
+    for label, d in zip(active_limit[:-1], np.diff(times_s)):
+        share[str(label)] = share.get(str(label), 0.0) + float(d)
+    label = max(share, key=share.get)
+    kind, _, joint = label.partition(":")
+    what = (f"the {kind} limit of joint '{joint}' (or its scaling factor)" if joint else
+            {"wheel_momentum": "the wheel momentum limit", "wheel_torque": "the wheel torque limit"}.get(kind, kind))
+    return (f"the limits make this trajectory last {times_s[-1]:.4g} s, longer than a trajectory message can "
+            f"hold ({MAX_DURATION_S:.0f} s); {what} holds it back for {100.0 * share[label] / times_s[-1]:.0f} % "
+            "of that time and is too low")
 
 
 def finite_differences(times_s, positions_rad, start_velocity_rad_s=None):

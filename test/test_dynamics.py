@@ -102,6 +102,27 @@ def test_wheel_limits_hold_on_the_trajectory(dof, paper_scenario, paper_path):
     assert np.max(np.abs(tau_f)) > 10 * tau_max and free.duration_s < traj.duration_s
 
 
+def test_a_wheel_momentum_limit_near_zero_is_refused_by_name(paper_scenario, paper_path):
+    """
+    The wheel's momentum limit makes the motion last more than a trajectory message holds.
+
+    Oracle: the momentum h = H(q) q̇ integrates over time to the path integral of H(q) dq, the
+    same whatever the timing (the test's own wheel load, summed on the joint-limited
+    trajectory); with |h| ≤ h_max the motion lasts at least that integral / h_max.
+    """
+    sc, path = paper_scenario(3), paper_path(3)
+    robot = sc.robot
+    vmax, amax = joint_limits(sc)
+    free = time_parameterize(path, vmax, amax, robot.planned_names)
+    qd = np.zeros((len(free), 3))
+    qd[:, list(robot.planned_joints)] = free.velocities_rad_s
+    h, _ = wheel_load(robot, REF, robot.full(free.positions_rad), qd, np.zeros_like(qd))
+    impulse = float(np.sum(0.5 * (np.abs(h[1:]) + np.abs(h[:-1])) * np.diff(free.times_s)))    # N·m·s·s
+    h_max = impulse / (4.0 * (2.0 ** 31 - 1))        # at least four times what a message holds
+    with pytest.raises(ValueError, match="longer than a trajectory message can hold .*the wheel momentum limit"):
+        time_parameterize(path, vmax, amax, robot.planned_names, wheel=WheelModel(robot, REF, h_max, None))
+
+
 @pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
 def test_without_wheel_limits_the_trajectory_is_the_joint_limited_one(dof, paper_scenario, paper_path):
     sc, path = paper_scenario(dof), paper_path(dof)

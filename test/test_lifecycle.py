@@ -124,13 +124,21 @@ def _js(g):
 
 
 @pytest.mark.parametrize("path, refused, fragment", [
-    ([], Transition.TRANSITION_ACTIVATE, "'activate' refused: the node is 'unconfigured'; possible now: configure"),
-    ([], Transition.TRANSITION_DEACTIVATE, "'deactivate' refused: the node is 'unconfigured'"),
+    ([], Transition.TRANSITION_ACTIVATE,
+     "'activate' (id 3, from inactive) refused: the node is 'unconfigured'; possible now: configure (id 1), "
+     "shutdown (id 5)"),
+    ([], Transition.TRANSITION_DEACTIVATE, "'deactivate' (id 4, from active) refused: the node is 'unconfigured'"),
+    ([], Transition.TRANSITION_ACTIVE_SHUTDOWN,      # the label of id 5 too, which is possible now
+     "'shutdown' (id 7, from active) refused: the node is 'unconfigured'; possible now: configure (id 1), "
+     "shutdown (id 5)"),
     ([Transition.TRANSITION_CONFIGURE], Transition.TRANSITION_CONFIGURE,
-     "'configure' refused: the node is 'inactive'; possible now: cleanup, activate, shutdown"),
+     "'configure' (id 1, from unconfigured) refused: the node is 'inactive'; possible now: cleanup (id 2), "
+     "activate (id 3), shutdown (id 6)"),
     ([Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE], Transition.TRANSITION_CLEANUP,
-     "'cleanup' refused: the node is 'active'; possible now: deactivate, shutdown"),
-], ids=["activate_unconfigured", "deactivate_unconfigured", "configure_twice", "cleanup_active"])
+     "'cleanup' (id 2, from inactive) refused: the node is 'active'; possible now: deactivate (id 4), "
+     "shutdown (id 7)"),
+], ids=["activate_unconfigured", "deactivate_unconfigured", "active_shutdown_unconfigured", "configure_twice",
+        "cleanup_active"])
 def test_out_of_order_transition_is_refused_with_a_reason(manual, capfd, path, refused, fragment):
     g = manual
     for t in path:

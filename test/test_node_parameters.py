@@ -79,6 +79,75 @@ def test_rejected_values_name_the_parameter(graph):
     assert g.planner.get_parameter("safety_margin_m").value == 0.02
 
 
+def test_what_ros2_param_set_sends_is_taken_or_refused_by_name(graph):
+    """
+    `ros2 param set` sends `1` as an integer and `[90, 180, 180]` as an integer array.
+
+    Oracle: the parameter services a `ros2 param` user calls (set, then get through the node).
+    A whole number for a double is that double; an undeclared name is refused naming it (rclpy
+    says "Invalid access to undeclared parameter(s): []"), and the closest declared name.
+    """
+    g = graph(scene_params("3dof"), with_arm=False)
+
+    def set_one(name, value):
+        req = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        return _call(g, "spacerobot_planner", SetParameters, "set_parameters", req).results[0]
+
+    r = set_one("planner.field_budget_s", 7)
+    assert r.successful, r.reason
+    got = g.planner.get_parameter("planner.field_budget_s")
+    assert got.type_ == Parameter.Type.DOUBLE and got.value == 7.0
+    r = set_one("trajectory.max_velocity_deg_s", [90, 180, 180])
+    assert r.successful, r.reason
+    got = g.planner.get_parameter("trajectory.max_velocity_deg_s")
+    assert got.type_ == Parameter.Type.DOUBLE_ARRAY and list(got.value) == [90.0, 180.0, 180.0]
+    assert g.planner.session.scenario.joint_limits is not None
+    # the range still holds for a whole number (the node's reason, not rclpy's)
+    r = set_one("safety_margin_m", 3)
+    assert not r.successful and r.reason == "safety_margin_m: 3.0 is above the maximum 1.0", r.reason
+    # an integer parameter given a fraction is still refused by name
+    r = set_one("planner.max_grid_nodes", 1.5)
+    assert not r.successful and r.reason.startswith("planner.max_grid_nodes: expected an integer"), r.reason
+    r = set_one("safety_margn_m", 0.05)
+    assert not r.successful and r.reason == ("'safety_margn_m': not a parameter of this node; did you mean "
+                                             "'safety_margin_m'? (`ros2 param list` shows them)"), r.reason
+    g.wait(lambda: "safety_margn_m" in g.status("input").message, 5, "the input status names it")
+    assert g.planner.get_parameter("safety_margin_m").value == 0.02
+
+
+def test_limits_too_low_for_a_trajectory_message_are_refused_by_name(graph):
+    """
+    Velocity limits near 0 (a slip of `ros2 param set`): the plan answers invalid_input, nothing is published.
+
+    0.001°/s scaled by 1e-6 on the paper's 3-DOF path would take about 1e11 s (its attitude alone
+    turns by more than 200°: at least 200 / 1e-9 s), more than a trajectory message's int32 seconds
+    hold; published, its times wrapped around to negative values.  Then the limits are raised and the
+    node plans and publishes again, times that start at 0 and increase.
+    """
+    from node_helpers import diag_values
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    g = graph(scene_params("3dof", **{"trajectory.max_velocity_deg_s": [0.001] * 3,
+                                      "trajectory.max_velocity_scaling_factor": 1e-6}), with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_target()
+
+    def code():
+        st = g.status("planner")
+        return None if st is None else diag_values(st).get("code")
+    g.wait(lambda: code() == "invalid_input", 60, "the planner status invalid_input")
+    reason = diag_values(g.status("planner"))["reason"]
+    assert "longer than a trajectory message can hold" in reason and "velocity limit of joint" in reason, reason
+    assert g.n_trajs() == 0
+    assert g.planner.set_parameters([Parameter("trajectory.max_velocity_scaling_factor", value=1.0)])[0].successful
+    g.wait(lambda: g.n_trajs() >= 1, 60, "a trajectory once the limits are raised")
+    with g.lock:
+        msg = g.trajs[-1][1]
+    t = [p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points]
+    assert t[0] >= 0.0 and all(b > a for a, b in zip(t, t[1:])), t[:5]
+
+
 def test_a_change_is_validated_once_and_applied_once(graph, monkeypatch):
     """
     Nav2's parameter handler: one scenario built per change, one application (through the service too).

@@ -56,6 +56,27 @@ def test_limits_hold_for_any_path_and_limits(seed, scale, speed):
     check_trajectory(traj, path, vmax, amax)
 
 
+def test_a_trajectory_longer_than_a_message_holds_is_refused_naming_its_limit():
+    """
+    A joint limit near 0 (a slip of the finger) makes the motion last more than a message holds.
+
+    Oracle: joint 'a' moves 1 rad, so at v rad/s the motion lasts at least 1 / v s; a
+    trajectory message's ``time_from_start`` holds at most 2^31 - 1 whole seconds.
+    """
+    path = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, -0.2]])
+    limit_s = 2.0 ** 31 - 1
+    slow = VMAX.copy()
+    slow[0] = 1.0 / (2.0 * limit_s)                  # at least twice what a message holds
+    with pytest.raises(ValueError, match=r"longer than a trajectory message can hold \(2147483647 s\); "
+                                         r"the velocity limit of joint 'a' \(or its scaling factor\) holds it "
+                                         r"back for (99|100) % of that time"):
+        time_parameterize(path, slow, AMAX, ("a", "b", "c"))
+    slow[0] = 2.0 / limit_s                          # at least half of what a message holds: kept
+    traj = time_parameterize(path, slow, AMAX, ("a", "b", "c"))
+    assert 0.5 * limit_s <= traj.duration_s <= limit_s
+    assert np.all(np.diff(traj.times_s) > 0.0)
+
+
 def test_start_equals_goal_gives_one_point():
     traj = time_parameterize(np.zeros((5, 2)), VMAX[:2], AMAX[:2])
     assert len(traj) == 1 and traj.duration_s == 0.0

@@ -35,7 +35,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..scene import Target
-from ..trajectory import Trajectory
+from ..trajectory import MAX_DURATION_S, Trajectory
 
 __all__ = [
     "pose_to_target", "quaternion_to_yaw", "yaw_to_quaternion", "target_to_pose",
@@ -62,11 +62,15 @@ def _sec_nanosec(t_s):
     """
     Return (sec, nanosec) of times in seconds (a float or an array): the nearest ns, ties to even.
 
-    ValueError for a time that is not finite.
+    ValueError for a time that is not finite or beyond what builtin_interfaces/Duration holds
+    (``trajectory.MAX_DURATION_S``: the time parameterisation refuses longer trajectories).
     """
     t = np.asarray(t_s, dtype=np.float64)
     if not np.all(np.isfinite(t)):
         raise ValueError(f"time_from_start: not finite ({t_s} s)")
+    if np.any(np.abs(t) > MAX_DURATION_S):
+        raise ValueError(f"time_from_start: {float(np.max(np.abs(t))):.4g} s is more than a message holds "
+                         f"({MAX_DURATION_S:.0f} s)")
     return np.divmod(np.rint(t * 1e9).astype(np.int64), 1_000_000_000)
 
 

@@ -78,9 +78,15 @@ class LifecycleInterface:
         names = [t[1] for t in self.available()]
         if (label and label in names) or (not label and any(t[0] == transition_id for t in self.available())):
             return None
-        want = label or _NAMES.get(transition_id, f"transition {transition_id}")
-        reason = (f"lifecycle: '{want}' refused: the node is '{self.state}'; possible now: "
-                  f"{', '.join(names) or 'none'}")
+        known = {t[0]: t for t in TRANSITIONS}.get(transition_id)
+        if label:
+            want = f"'{label}'"
+        elif known is None:
+            want = f"transition id {transition_id}"
+        else:                    # by id alone: which one (three ids are 'shutdown', each from its own state)
+            want = f"'{known[1]}' (id {transition_id}, from {STATES[known[2]]})"
+        possible = ", ".join(f"{t[1]} (id {t[0]})" for t in self.available())
+        reason = f"lifecycle: {want} refused: the node is '{self.state}'; possible now: {possible or 'none'}"
         self.node.get_logger().error(reason)
         return reason
 

@@ -3,7 +3,9 @@ The planner node's parameter handler (Nav2's pattern): a change is validated onc
 
 rclpy calls three hooks per change: the node's ``set_parameters*`` (here
 :meth:`ParameterHandler.precheck`, before rclpy's descriptor checks, whose type errors are
-enum numbers: the node's own reason goes to the log and ``/diagnostics``), the
+enum numbers and whose undeclared-parameter error names none: the node's own reason goes to
+the log and ``/diagnostics``; a whole number for a double is made a double before it,
+``parameters.as_declared``), the
 on-set callback (accept or refuse) and the post-set callback (apply).  The first
 validation's result (the merged parameters and the scenario built from them, or the
 reason) is kept for the same parameters and reused by the others; the post-set callback
@@ -17,6 +19,7 @@ spacecraft, a grid over ``planner.max_grid_nodes``).
 
 from __future__ import annotations
 
+import difflib
 import threading
 
 from rcl_interfaces.msg import SetParametersResult
@@ -69,6 +72,7 @@ class ParameterHandler:
         self._reject, self._apply = reject, apply
         self._lock = threading.Lock()
         self._checked = None        # (base params, key, (merged, scenario) or ValueError)
+        self._declared = node.has_parameter
         node.add_on_set_parameters_callback(self._on_set)
         node.add_post_set_parameters_callback(self._post_set)
 
@@ -107,6 +111,12 @@ class ParameterHandler:
     def precheck(self, parameters) -> SetParametersResult | None:
         """Return the refusal of a change with the node's own reason, or None when it passes."""
         try:
+            for p in parameters:
+                if not self._declared(p.name):
+                    close = difflib.get_close_matches(p.name, list(self.params), n=1, cutoff=0.6)
+                    raise ValueError(f"'{p.name}': not a parameter of this node"
+                                     + (f"; did you mean '{close[0]}'?" if close else "")
+                                     + " (`ros2 param list` shows them)")
             self.validate(parameters)
         except ValueError as e:
             self._reject(f"parameter rejected: {e}")

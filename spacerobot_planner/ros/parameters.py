@@ -16,7 +16,7 @@ from rclpy.parameter import Parameter
 from ..config import PARAMETERS, ROS_PARAMETERS, check_value
 
 __all__ = ["PLANNER_PARAMETERS", "MOCK_ARM_PARAMETERS", "descriptor_for", "params_to_overrides",
-           "check_choice", "CHOICES", "declare_checked", "ROS_PARAMETERS"]
+           "check_choice", "CHOICES", "declare_checked", "as_declared", "ROS_PARAMETERS"]
 
 _PTYPE = {
     "double": ParameterType.PARAMETER_DOUBLE, "integer": ParameterType.PARAMETER_INTEGER,
@@ -86,6 +86,27 @@ def _normalise(spec, value):
     if spec.type == "double":
         return float(value)
     return value
+
+
+def as_declared(parameters) -> list:
+    """
+    Return ``parameters`` (rclpy Parameters) with a whole number given for a double as a double.
+
+    ``ros2 param set /spacerobot_planner safety_margin_m 1`` sends an integer, and ``[90, 180]``
+    an integer array: for a double (array) of the schema they become the double (array) the
+    parameter is declared with (as :func:`_normalise` does with start values), where rclpy
+    would refuse them with enum numbers.  Everything else is passed on as it is.
+    """
+    out = []
+    for p in parameters:
+        spec = SPECS.get(p.name)
+        kind = None if spec is None else spec.type
+        if kind == "double" and p.type_ == Parameter.Type.INTEGER:
+            p = Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+        elif kind == "double_array" and p.type_ == Parameter.Type.INTEGER_ARRAY:
+            p = Parameter(p.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in p.value])
+        out.append(p)
+    return out
 
 
 def declare_checked(node, names, specs: dict | None = None) -> dict:

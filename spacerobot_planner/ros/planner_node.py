@@ -68,7 +68,7 @@ from .inputs import Inputs
 from .lifecycle import LifecycleInterface
 from .log_lines import LogLines
 from .parameter_handler import NO_REPLAN, ParameterHandler, check_runtime
-from .parameters import PLANNER_PARAMETERS, declare_checked, params_to_overrides
+from .parameters import PLANNER_PARAMETERS, as_declared, declare_checked, params_to_overrides
 from .pending import PendingAnswers
 
 __all__ = ["PlannerNode", "main", "spin_until_shutdown", "params_to_overrides", "GRID_QOS", "Outcome"]
@@ -213,7 +213,10 @@ class PlannerNode(LifecycleNode):
                                          info=log.info)
             # this process's kernels (time parameterisation, certification), while the child warms up
             lo, hi = self.robot.planned_lower_rad, self.robot.planned_upper_rad
-            post_process(scenario, np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8))
+            try:
+                post_process(scenario, np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8))
+            except ValueError as e:     # limits no motion can keep to: every plan says so too
+                log.warning(f"configure: the trajectory warm-up was refused ({e}); plans will be too")
             if backend.wait_ready(WARM_UP_TIMEOUT_S) is None:
                 raise RuntimeError(f"no warm-up within {WARM_UP_TIMEOUT_S} s")
         except Exception as e:      # noqa: BLE001 - a failed configure, with the reason
@@ -324,14 +327,15 @@ class PlannerNode(LifecycleNode):
 
     # ------------------------------------------------------------------ parameters
     def set_parameters_atomically(self, parameter_list):
-        """As rclpy's (the ``~/set_parameters`` service calls it), with the handler's precheck first."""
+        """As rclpy's (the ``~/set_parameters`` service calls it): whole numbers as doubles, then the precheck."""
+        parameter_list = as_declared(parameter_list)
         refused = self.param_handler.precheck(parameter_list)
         return refused if refused is not None else super().set_parameters_atomically(parameter_list)
 
     def set_parameters(self, parameter_list):
-        """As rclpy's, with the handler's precheck first for each parameter."""
+        """As rclpy's, whole numbers as doubles, the handler's precheck first for each parameter."""
         out = []
-        for p in parameter_list:
+        for p in as_declared(parameter_list):
             refused = self.param_handler.precheck([p])
             out.extend([refused] if refused is not None else super().set_parameters([p]))
         return out
