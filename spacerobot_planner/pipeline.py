@@ -498,6 +498,13 @@ class PlanRun:
                 return f"{finer.label()} not tried: {finer.n_nodes:,} nodes, above {name} = {limit:,}"
         return ""
 
+    def start_text(self) -> str:
+        """Return the plan's start for a reason: after a way out of contact, where it ends and where it began."""
+        if self.plan_start is self.start:
+            return f"the start {deg_text(self.start)}"
+        return (f"the start {deg_text(self.plan_start)} (where the way out of contact from "
+                f"{deg_text(self.start)} ends)")
+
     def unresolved(self, tried, stop: str) -> Fail:
         """Return the answer when no grid tried gave a path: the finest grid's code, and what was tried."""
         last = tried[-1][1]
@@ -506,7 +513,7 @@ class PlanRun:
         if self.fld is not None and not self.fld.converged:
             stop += (f"; the last field did not converge within planner.field_budget_s = "
                      f"{self.s.field_budget_s:g} s")
-        ends = f"the start {deg_text(self.plan_start)} and the goal {deg_text(self.goal)}"
+        ends = f"{self.start_text()} and the goal {deg_text(self.goal)}"
         if last.code == Code.DISCONNECTED:
             step = deg_text(self.cs.grid.step_rad).replace("(", "").replace(")°", "")
             return Fail(last.code, f"{ends} are not joined on the grids {grids} ({what}); {stop}; a passage "
@@ -625,7 +632,7 @@ class PlanRun:
             with self.stage("descent"):
                 starts = self.candidates(start, grid, fld.occupied)
             if len(starts) == 0:
-                raise Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is "
+                raise Fail(Code.PATH_INVALID, f"every grid node near {self.start_text()} is "
                            f"blocked (grid {grid.label()}, margin {cs.margin_m:.3f} m)",
                            "every grid node near the start is blocked")
             reach = np.isfinite(fld.log_u[tuple(starts.T)])       # fld.reachable at these nodes
@@ -672,7 +679,7 @@ class PlanRun:
                 if collide:
                     reasons.insert(0, f"the straight segment from the start to each of the grid nodes "
                                    f"{', '.join(collide[:3])} collides")
-                raise Fail(Code.PATH_INVALID, f"no grid path from the start {deg_text(start)} on the grid "
+                raise Fail(Code.PATH_INVALID, f"no grid path from {self.start_text()} on the grid "
                            f"{grid.label()}: " + "; ".join(reasons[:3]),
                            (f"after {_count(repairs, 'repair')}, " if repairs else "") + "no grid path from the start"
                            + (": every straight segment to a nearby free node collides" if not stuck else ""))
@@ -780,11 +787,11 @@ class PlanRun:
         start_nodes = self.candidates(start, grid, occ)
         where = f"the grid {grid.label()}, grid margin {cs.margin_m:.3f} m"
         if len(start_nodes) == 0:
-            return Fail(Code.PATH_INVALID, f"every grid node near the start {deg_text(start)} is an "
+            return Fail(Code.PATH_INVALID, f"every grid node near {self.start_text()} is an "
                         f"obstacle on {where}", "every grid node near the start is an obstacle")
         dist = bfs_distance(occ, grid.periodic, goal_nodes)
         if np.all(dist[tuple(start_nodes.T)] < 0):
-            return Fail(Code.DISCONNECTED, f"the start {deg_text(start)} and the goal {deg_text(self.goal)} "
+            return Fail(Code.DISCONNECTED, f"{self.start_text()} and the goal {deg_text(self.goal)} "
                         f"lie in separate free regions of {where}",
                         f"separate free regions (grid margin {cs.margin_m:.3f} m)")
         if fld is None:                  # check_joined: no field, no repairs; its goal nodes separated

@@ -57,7 +57,12 @@ from .termination import stall
 from .timing import timed_motion, trajectory_limits_known
 
 __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES", "warm_up", "warm_up_unreached",
-           "timed_motion"]
+           "timed_motion", "GRASP_ROOM_M"]
+
+#: a capture posture must clear the safety margin by more than this, m: one that sits on it
+#: (a margin equal to the handle's length; its clearance only rounds above) leaves no motion
+#: that reaches it, and is refused as such rather than planned on grid after grid
+GRASP_ROOM_M = 1e-9
 
 
 class Planner:
@@ -220,6 +225,12 @@ class Planner:
             clr = ", ".join(f"{s.clearance_m:.3f} m" for s in every)
             raise ValueError(f"every capture posture for the grasp point {gp} m collides "
                              f"(clearances {clr}; margin {sc.scene.safety_margin_m} m)")
+        margin = sc.scene.safety_margin_m
+        free = [s for s in free if s.clearance_m > margin + GRASP_ROOM_M]
+        if not free:
+            raise ValueError(f"every capture posture for the grasp point {gp} m sits on the safety margin "
+                             f"(its clearance is the margin, {margin:g} m, to within {GRASP_ROOM_M:g} m): no room "
+                             f"to approach it; a safety_margin_m below {margin:g} m allows the grasp")
         errs = [math.degrees(approach_error_rad(sc.robot, sc.scene.target, s.q_full)) for s in free]
         good = [s for s, e in zip(free, errs) if e <= bound]
         if good:

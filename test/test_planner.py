@@ -221,6 +221,24 @@ def test_goal_out_of_reach(sc3):
     assert not res.ok and res.code == "goal_unreachable" and "reach" in res.reason
 
 
+@pytest.mark.parametrize("dof", [2, 3])
+def test_a_grasp_on_the_safety_margin_is_refused_as_such(dof, sc2, sc3):
+    """
+    A safety margin equal to the handle's side leaves the grasp no room.
+
+    Oracle: the scene's geometry (``Target``): the grasp point lies the handle's side beyond
+    the target body's face, so the tip's clearance at the grasp is that side, the margin,
+    and it only rounds above it.  A margin a little smaller plans (a verified path).
+    """
+    sc = sc2 if dof == 2 else sc3
+    side = sc.scene.target.handle_side_m
+    res = Planner(sc.with_scene(sc.scene.with_margin(0.99 * side))).plan(sc.start_rad)
+    assert res.ok, res.reason
+    res = Planner(sc.with_scene(sc.scene.with_margin(side))).plan(sc.start_rad)
+    assert res.code == "goal_unreachable" and "sits on the safety margin" in res.reason, (res.code, res.reason)
+    assert res.timings_s.get("field", 0.0) == 0.0          # refused before any grid is built
+
+
 def test_goal_from_target_is_papers_branch(planner3):
     q = np.degrees(planner3.goal_from_target())
     assert np.allclose(q, [160.9, 32.3, 76.8], atol=0.2)
@@ -629,6 +647,27 @@ def test_target_moved_into_the_captured_posture_is_left(paper_scenario, dof, d_m
     assert free and clr > sc.scene.safety_margin_m
     assert np.allclose(wrap_diff(rest[-1], sc0.start_rad), 0.0, atol=1e-12)
     assert res.to_json_dict()["exit"]["certified"] is False
+
+
+def test_an_answer_after_a_way_out_of_contact_names_both_starts(sc2):
+    """
+    The arm starts in contact (the target moved onto the captured arm) on the far side of a wall.
+
+    The answer names where the way out ends (the plan's start) and where the arm was: a user
+    reading only the first would not recognise their start.  The wall: a debris block on the
+    elbow's circle that link 2 cannot sweep past (as in ``test_disconnected_regions``).
+    """
+    q_cap, sc = _captured_then_moved(sc2, 0.10)
+    shoulder = 1.4 * np.array([np.cos(np.radians(160.7)), np.sin(np.radians(160.7))])
+    c = shoulder + 2.0 * np.array([np.cos(np.radians(245.0)), np.sin(np.radians(245.0))])
+    block = c + 0.15 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    sc = replace(sc.with_scene(Scene(target=sc.scene.target, debris_m=(block,),
+                                     safety_margin_m=sc.scene.safety_margin_m)), grid=sc2.grid_with_cells(90))
+    assert not CollisionChecker(sc.robot, sc.scene).is_free(q_cap)
+    res = Planner(sc).plan(q_cap, sc2.start_rad)
+    assert res.code == "disconnected", (res.code, res.reason)
+    arm_deg = ", ".join(f"{v:.1f}" for v in np.degrees(q_cap))
+    assert f"(where the way out of contact from ({arm_deg})° ends)" in res.reason, res.reason
 
 
 @pytest.mark.parametrize("dof", [2, 3])
