@@ -39,10 +39,13 @@ from .collision import NO_REFCOUNT, CollisionChecker, config_clearance
 from .joint_space import unwrap_path, within_bounds
 
 __all__ = ["PathCheck", "MotionValidator", "check_path", "first_bad_segment", "lipschitz_m_per_rad", "joint_reach_m",
-           "certify_segments", "SegmentTest", "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD"]
+           "certify_segments", "SegmentTest", "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD", "quick_step_rad",
+           "narrowest_obstacle_m"]
 
 DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the certified checks
 QUICK_STEP_RAD = float(np.radians(1.0))           # spacing of the quick test of candidates
+#: ... at the finest (a scene with an obstacle narrower than a 1° sweep: :func:`quick_step_rad`)
+QUICK_STEP_MIN_RAD = float(np.radians(0.1))
 #: the quick test proves a sample free only this far beyond what the Lipschitz bound gives (m):
 #: far above the rounding of a clearance (about 1e-15 m), as the clearance's own bounds
 #: (``collision._pair_bound``)
@@ -204,6 +207,46 @@ def lipschitz_m_per_rad(robot) -> float:
     beyond planned joint j.
     """
     return float(np.sqrt(np.sum(joint_reach_m(robot) ** 2)))
+
+
+def narrowest_obstacle_m(checker) -> float:
+    """
+    Return the narrowest obstacle's width with the safety margin on both sides, m (inf: none).
+
+    An obstacle's width: its convex hull's smallest extent across (the least, over the
+    directions normal to a line through two of its vertices, of the spread of its vertices).
+    """
+    verts, starts = checker.verts, checker.starts
+    narrowest = np.inf
+    for p in range(len(starts) - 1):
+        v = verts[starts[p]:starts[p + 1]]
+        d = (v[None, :, :] - v[:, None, :]).reshape(-1, 2)          # every vertex pair's direction
+        d = d[np.hypot(d[:, 0], d[:, 1]) > 0.0]
+        if not len(d):
+            continue
+        normals = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.hypot(d[:, 0], d[:, 1])[:, None]
+        across = v @ normals.T                                        # (vertices, directions)
+        narrowest = min(narrowest, float(np.min(across.max(axis=0) - across.min(axis=0))))
+    return narrowest + 2.0 * float(checker.margin_m)
+
+
+def quick_step_rad(checker) -> float:
+    """
+    Return the quick test's sample spacing on this scene, rad (:data:`QUICK_STEP_RAD` or finer).
+
+    Between two samples Δq apart no point of the arm moves more than Σ_j r_j |Δq_j| ≤
+    |r| |Δq| (:func:`joint_reach_m`); an obstacle narrower than that can pass between two
+    samples unseen.  Its C-space image is then a sheet thinner than a grid step that no grid
+    node marks (a small piece of debris): the descent, testing its steps this way, walks into
+    it, and the certified check finds it edge by edge, one repair each.  So the step is made
+    small enough that no point moves farther than :func:`narrowest_obstacle_m` between two
+    samples, down to :data:`QUICK_STEP_MIN_RAD`.  The skipping of samples the Lipschitz bound
+    proves free keeps a finer step cheap away from obstacles.
+    """
+    sweep = float(np.linalg.norm(joint_reach_m(checker.robot)))
+    if sweep <= 0.0:
+        return QUICK_STEP_RAD
+    return float(np.clip(narrowest_obstacle_m(checker) / sweep, QUICK_STEP_MIN_RAD, QUICK_STEP_RAD))
 
 
 def joint_reach_m(robot) -> np.ndarray:
@@ -380,6 +423,7 @@ class MotionValidator:
         self._periodic_mask = np.array(self.periodic, dtype=bool)
         self._with_step = {}          # the validators of other steps (with_step), made once
         self._kept = {}               # an interval's two rows (bytes) -> its certificate (check_kept)
+        self._quick_step_rad = None   # the quick test's spacing on this scene (segment_test), made once
         #: what the certified walk (``certify_segments``) needs of the robot and the scene
         self.kernel_arrays = (np.asarray(robot.locked_rad, dtype=float),
                               np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
@@ -543,6 +587,14 @@ class MotionValidator:
             return self.check_kept(seg).ok
         return self.check(seg, step_rad=step_rad).ok
 
-    def segment_test(self, step_rad: float = QUICK_STEP_RAD) -> SegmentTest:
-        """Return what a numba kernel needs to run the quick :func:`segment_free` on this scene."""
+    def segment_test(self, step_rad: float | None = None) -> SegmentTest:
+        """
+        Return what a numba kernel needs to run the quick :func:`segment_free` on this scene.
+
+        ``step_rad``: its sample spacing; None: the scene's (:func:`quick_step_rad`).
+        """
+        if step_rad is None:
+            if self._quick_step_rad is None:
+                self._quick_step_rad = quick_step_rad(self.checker)
+            step_rad = self._quick_step_rad
         return SegmentTest.of(self.checker, step_rad)

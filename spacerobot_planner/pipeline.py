@@ -658,20 +658,10 @@ class PlanRun:
                 reasons.append(gp.reason)
             if path is None and stuck is not None and attempt < s.max_repairs:
                 self.may_repair(grid, repairs, cut, blocked)
-                # every way up from that node collides: cut the colliding grid edges around it
-                # (the node itself when they are cut already) and re-solve
+                # every way up from that node collides
                 node = tuple(int(v) for v in stuck.nodes[-1])
-                with self.stage("repair"):
-                    edges = self.colliding_edges(grid, fld, key, blocked, node,
-                                                 REPAIR_RADIUS + min(repairs, REPAIR_WIDENING))
-                new = {(int(a), int(b)) for a, b in edges} - cut
-                if new:
-                    cut = cut | new
-                    self.say(f"repair: {stuck.reason}; cutting {len(new)} colliding grid edge(s) "
-                             "around it and re-solving the field")
-                else:
-                    blocked = blocked | {node}
-                    self.say(f"repair: {stuck.reason}; blocking node {node} and re-solving the field")
+                blocked, cut, done = self.cut_or_block(grid, fld, key, blocked, cut, node, repairs)
+                self.say(f"repair: {stuck.reason}; {done} and re-solving the field")
                 repairs += 1
                 fld = self.resolve(cs, key, goal_nodes, blocked, cut, base)
                 continue
@@ -705,10 +695,10 @@ class PlanRun:
             self.may_repair(grid, repairs, cut, blocked)
             clr = [self.checker.clearance_m(nodes_rad[c]) for c in cand]
             node = tuple(int(v) for v in path.nodes[cand[int(np.argmin(clr))]])
-            blocked = blocked | {node}
+            blocked, cut, done = self.cut_or_block(grid, fld, key, blocked, cut, node, repairs)
             repairs += 1
             self.say(f"repair: segment {deg_text(wp[bad])} → {deg_text(wp[bad + 1])} collides; "
-                     f"blocking node {node} and re-solving the field")
+                     f"{done} and re-solving the field")
             fld = self.resolve(cs, key, goal_nodes, blocked, cut, base)
         raise AssertionError("unreachable")
 
@@ -731,6 +721,24 @@ class PlanRun:
             gp.nodes.flags.writeable = False
             self.p._remember(self.p._walks if gp.reached else self.p._failed_walks, dkey, gp, 256)
         return gp
+
+    def cut_or_block(self, grid, fld, key, blocked, cut, node, repairs: int) -> tuple:
+        """
+        Return ``(blocked, cut, what was done)`` after one repair at grid node ``node``.
+
+        The colliding grid edges around it and their sheet are cut (:meth:`colliding_edges`,
+        within ``REPAIR_RADIUS`` steps, one more per repair before, up to ``REPAIR_WIDENING``);
+        where they are all cut already, the node itself is blocked.  The one rule of both
+        repairs: a descent that every way on collides, and a grid path whose straight segment
+        does (an obstacle thinner than a grid step, e.g. a small piece of debris, is a sheet
+        of such edges that no node marks: blocking one node per repair did not get past it).
+        """
+        with self.stage("repair"):
+            edges = self.colliding_edges(grid, fld, key, blocked, node, REPAIR_RADIUS + min(repairs, REPAIR_WIDENING))
+        new = {(int(a), int(b)) for a, b in edges} - cut
+        if new:
+            return blocked, cut | new, f"cutting {len(new)} colliding grid edge(s) around node {node}"
+        return blocked | {node}, cut, f"blocking node {node}"
 
     def colliding_edges(self, grid, fld, key, blocked, node, radius: int) -> np.ndarray:
         """
