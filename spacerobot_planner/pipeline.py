@@ -39,7 +39,7 @@ from .field.graph import _next_coord, bfs as field_bfs, grid_strides
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
 from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path, wrap_angle_scalar_rad
 from .motion import MotionValidator
-from .repair import sheet_edges
+from .repair import MAX_TESTS, sheet_edges
 from .results import STAGES, Code, PlanResult
 from .smoothing import SmoothPath, path_length_rad, smooth_path
 from .spacecraft import free_floating_response
@@ -55,6 +55,11 @@ __all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits
 #: to them (``repair.sheet_edges``).
 REPAIR_RADIUS = 2
 REPAIR_WIDENING = 3
+#: ... and follows their sheet for up to ``repair.MAX_TESTS`` tested edges, twice as many with each
+#: repair of the same plan, up to 2^REPAIR_DOUBLINGS times as many: a long thin wall (a sliver of
+#: debris) is a sheet of thousands of edges, which 2 000 tests a repair cut a hundred at a time
+#: (30 repairs at 72³, then path_invalid after 5 s, where a path kept 51 mm; now 5 repairs at 36³)
+REPAIR_DOUBLINGS = 5
 
 
 class Fail(Exception):
@@ -727,33 +732,36 @@ class PlanRun:
         Return ``(blocked, cut, what was done)`` after one repair at grid node ``node``.
 
         The colliding grid edges around it and their sheet are cut (:meth:`colliding_edges`,
-        within ``REPAIR_RADIUS`` steps, one more per repair before, up to ``REPAIR_WIDENING``);
+        within ``REPAIR_RADIUS`` steps, one more per repair before, up to ``REPAIR_WIDENING``; the
+        sheet followed for twice as many tested edges per repair before, ``REPAIR_DOUBLINGS``);
         where they are all cut already, the node itself is blocked.  The one rule of both
         repairs: a descent that every way on collides, and a grid path whose straight segment
         does (an obstacle thinner than a grid step, e.g. a small piece of debris, is a sheet
         of such edges that no node marks: blocking one node per repair did not get past it).
         """
         with self.stage("repair"):
-            edges = self.colliding_edges(grid, fld, key, blocked, node, REPAIR_RADIUS + min(repairs, REPAIR_WIDENING))
+            edges = self.colliding_edges(grid, fld, key, blocked, node, REPAIR_RADIUS + min(repairs, REPAIR_WIDENING),
+                                         MAX_TESTS << min(repairs, REPAIR_DOUBLINGS))
         new = {(int(a), int(b)) for a, b in edges} - cut
         if new:
             return blocked, cut | new, f"cutting {len(new)} colliding grid edge(s) around node {node}"
         return blocked | {node}, cut, f"blocking node {node}"
 
-    def colliding_edges(self, grid, fld, key, blocked, node, radius: int) -> np.ndarray:
+    def colliding_edges(self, grid, fld, key, blocked, node, radius: int, max_tests: int = MAX_TESTS) -> np.ndarray:
         """
         Return the colliding grid edges within ``radius`` of ``node`` and their sheet (``repair.sheet_edges``), cached.
 
         On the field under ``key`` with the ``blocked`` nodes (its occupancy; cut edges do not
-        change it): a pure function of those, the node and the radius, so kept by the planner
-        (``Planner._colliding``) for the next plan that repairs the same way (a replan from a
-        nearby start walks into the same blocked node).  (k, 2) int64, read-only.
+        change it): a pure function of those, the node, the radius and the sheet's budget of
+        tested edges (``max_tests``), so kept by the planner (``Planner._colliding``) for the
+        next plan that repairs the same way (a replan from a nearby start walks into the same
+        blocked node).  (k, 2) int64, read-only.
         """
-        ekey = (key, tuple(sorted(blocked)), node, int(radius))
+        ekey = (key, tuple(sorted(blocked)), node, int(radius), int(max_tests))
         edges = self.p._colliding.get(ekey)
         if edges is None:
             edges = sheet_edges(fld.occupied, grid.periodic, node, self.motions, grid.lower_rad,
-                                grid.step_rad, radius=radius)
+                                grid.step_rad, radius=radius, max_tests=max_tests)
             edges.flags.writeable = False
             self.p._remember(self.p._colliding, ekey, edges, 64)
         return edges
