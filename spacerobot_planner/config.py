@@ -129,8 +129,10 @@ PARAMETERS = (
               "not certified); deeper: start_in_collision. 0: always start_in_collision, metres.",
               False, 0.0, 1.0),
     ParamSpec("grasp.max_approach_error_deg", "double", 5.0,
-              "Largest angle between link 3 and the handle's inward normal accepted for a goal from the "
-              "target (the attitude locked: position-only IK); above it goal_unreachable, degrees.",
+              "Largest angle between the last link and the handle's inward normal accepted for a goal from "
+              "the target: the perpendicular grasp first, else the least tilt within it (whole degrees) "
+              "where that one is out of reach or not clear; with the attitude locked (position-only IK) the "
+              "angle the posture gives; above it goal_unreachable, degrees.",
               False, 0.0, 180.0),
     # ---- trajectory (time parameterisation), per joint in robot.joint_names
     ParamSpec("trajectory.max_velocity_deg_s", "double_array", [5.0, 15.0, 15.0],

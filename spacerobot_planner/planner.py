@@ -212,21 +212,31 @@ class Planner:
         sc, bound = self.scenario, self.settings.max_approach_error_deg
         if sc.scene.target is None:
             raise ValueError("no goal given and the scene has no target")
-        try:
-            every = grasp_ik(sc.robot, sc.scene, free_only=False)
-        except ValueError as e:
-            raise ValueError(f"no capture posture: {e}") from None
         gp = np.round(sc.scene.target.grasp_point_m, 3).tolist()
-        if not every:
-            raise ValueError(f"the target's grasp point {gp} m is out of the arm's reach "
-                             f"(no inverse-kinematics solution within the joint bounds)")
-        free = [s for s in every if s.free]
-        if not free:
-            clr = ", ".join(f"{s.clearance_m:.3f} m" for s in every)
-            raise ValueError(f"every capture posture for the grasp point {gp} m collides "
-                             f"(clearances {clr}; margin {sc.scene.safety_margin_m} m)")
         margin = sc.scene.safety_margin_m
-        free = [s for s in free if s.clearance_m > margin + GRASP_ROOM_M]
+        found, free = [], []             # the branches of each approach angle tried; the clear ones
+        for offset_deg in self._approach_offsets_deg(bound):
+            psi = None if offset_deg == 0.0 else sc.scene.target.approach_angle_rad + math.radians(offset_deg)
+            try:
+                every = grasp_ik(sc.robot, sc.scene, free_only=False, approach_angle_rad=psi)
+            except ValueError as e:
+                raise ValueError(f"no capture posture: {e}") from None
+            found += every
+            free = [s for s in every if s.free and s.clearance_m > margin + GRASP_ROOM_M]
+            if free and offset_deg != 0.0:
+                free = [replace(s, method=f"{s.method}; {offset_deg:+.3g}° off the handle's normal (the "
+                                "perpendicular grasp out of reach or not clear)") for s in free]
+            if free:
+                break
+        tried = (f" at approach angles within ±{bound:g}° of the handle's normal (grasp.max_approach_error_deg)"
+                 if len(self._approach_offsets_deg(bound)) > 1 else "")
+        if not found:
+            raise ValueError(f"the target's grasp point {gp} m is out of the arm's reach "
+                             f"(no inverse-kinematics solution within the joint bounds{tried})")
+        if not free and not any(s.free for s in found):
+            clr = ", ".join(f"{s.clearance_m:.3f} m" for s in found[:6])
+            raise ValueError(f"every capture posture for the grasp point {gp} m collides{tried} "
+                             f"(clearances {clr}; margin {margin} m)")
         if not free:
             raise ValueError(f"every capture posture for the grasp point {gp} m sits on the safety margin "
                              f"(its clearance is the margin, {margin:g} m, to within {GRASP_ROOM_M:g} m): no room "
@@ -238,6 +248,26 @@ class Planner:
         raise ValueError(f"no capture posture grasps the handle perpendicularly: link 3 meets it "
                          f"{min(errs):.1f}° off its normal, above grasp.max_approach_error_deg = "
                          f"{bound:g}°; {self._attitude_advice()}")
+
+    def _approach_is_free(self) -> bool:
+        """Tell whether the IK meets a given approach angle (position-only where 3 joints have a fixed attitude)."""
+        robot = self.scenario.robot
+        return robot.n_joints != 3 or 0 in robot.planned_joints
+
+    def _approach_offsets_deg(self, bound: float) -> list:
+        """
+        Return the approach angles to try, off the handle's normal, degrees: 0 first, then ±1, ±2, … ±bound.
+
+        The perpendicular grasp where it is in reach and clear; else the least tilt within
+        ``grasp.max_approach_error_deg`` that is (a redundant arm whose perpendicular posture
+        leaves its joint bounds a few degrees off it).  One angle only where the IK is
+        position-only.
+        """
+        if bound <= 0.0 or not self._approach_is_free():
+            return [0.0]
+        last = bound * (1.0 - 1e-9)           # the bound itself, a rounding inside it
+        steps = [float(k) for k in range(1, int(math.ceil(last))) if k < last] + [last]
+        return [0.0] + [sign * k for k in steps for sign in (1.0, -1.0)]
 
     def _attitude_advice(self) -> str:
         """Which attitude (joint 1) would allow a perpendicular grasp, for a reason text."""

@@ -196,7 +196,8 @@ def test_diagnostics_describe_only_the_last_finished_request(graph):
     failed = g.status("planner")
     fv = diag_values(failed)
     assert fv["code"] == "goal_unreachable"
-    assert fv["reason"].endswith("(no inverse-kinematics solution within the joint bounds)"), fv["reason"]
+    assert fv["reason"].endswith("(no inverse-kinematics solution within the joint bounds at approach angles "
+                                 "within ±5° of the handle's normal (grasp.max_approach_error_deg))"), fv["reason"]
     assert failed.message.endswith(fv["reason"]) and "..." not in failed.message
     assert g.level("input") == DiagnosticStatus.OK
     # 2. rejected input: the input status, with its age; the planner status is unchanged

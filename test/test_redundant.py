@@ -229,6 +229,37 @@ def test_no_redundancy_and_interleaved_locked_joints():
         assert ref_clearance(robot5, scene, s.q, range(1, 5)) > scene.safety_margin_m
 
 
+def test_a_tilted_grasp_within_the_tolerance_where_no_perpendicular_one_is_in_bounds():
+    """
+    The 4-joint servicer, a target whose perpendicular grasp leaves the joint bounds (a stress test's case).
+
+    The planner tries the perpendicular grasp, then tilts within grasp.max_approach_error_deg (5°)
+    in whole degrees.  Oracle: the test's own self-motion (3 600 attitudes) and clearance: no
+    posture in bounds and clear of the 0.05 m margin grasps perpendicularly, one grasps at the
+    tilt the planner chose; with a 1° tolerance the answer is goal_unreachable, saying what it tried
+    (it had said "out of the arm's reach" with any tolerance).
+    """
+    sc = load_scenario(S4)
+    scene = Scene(target=Target(center_m=(2.757826, 3.698642), yaw_rad=1.221912), safety_margin_m=0.05)
+    sc = sc.with_scene(scene)
+    robot, target = sc.robot, scene.target
+    start = np.array([2.326925, 0.787949, 0.482547, -2.522416])
+
+    def clear_postures(tilt_deg):
+        q, inb = own_self_motion(robot, target.grasp_point_m, target.approach_angle_rad + math.radians(tilt_deg), 3600)
+        return [row for row in q[inb] if ref_clearance(robot, scene, row[list(robot.planned_joints)]) > 0.05]
+
+    res = Planner(sc).plan(start)
+    assert res.ok, res.reason
+    assert 0.5 < res.approach_error_deg <= 5.0, res.approach_error_deg
+    assert not clear_postures(0.0)
+    assert clear_postures(np.sign(wrap_diff(np.sum(robot.full(res.goal_rad)), target.approach_angle_rad))
+                          * round(res.approach_error_deg))
+    refused = Planner(sc, max_approach_error_deg=1.0).plan(start)
+    assert refused.code == "goal_unreachable", refused.reason
+    assert "at approach angles within ±1° of the handle's normal" in refused.reason, refused.reason
+
+
 def test_out_of_reach_and_too_few_planned_joints():
     robot = chain((1.4, 1.6, 1.4, 1.0))
     far = Scene(target=Target(center_m=(9.0, 0.0)), safety_margin_m=0.02)
