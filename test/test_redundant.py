@@ -260,6 +260,28 @@ def test_a_tilted_grasp_within_the_tolerance_where_no_perpendicular_one_is_in_bo
     assert "at approach angles within ±1° of the handle's normal" in refused.reason, refused.reason
 
 
+def test_a_goal_whose_nearest_grid_nodes_are_cut_off_joins_a_farther_one():
+    """
+    The 4-joint servicer's grid steps 22.5°: a goal near the target had none of its 8 nearest free nodes joinable.
+
+    The answer was path_invalid ("no free grid node near the goal is joined to it"; the finer grid
+    above planner.max_refined_nodes) where a path keeping 83 mm exists (a stress test's RRT, checked
+    every 0.05°).  Now the rest of the goal's window of nodes is tried.  Oracle: the path sampled
+    every 0.25°, the test's own clearance (``ref_clearance``) above the margin, the ends exact.
+    """
+    sc = load_scenario(S4)
+    scene = Scene(target=Target(center_m=(-2.891514, 0.518069), yaw_rad=-1.793523),
+                  safety_margin_m=0.05)
+    sc = sc.with_scene(scene)
+    start = np.array([-2.359939, 2.088851, -1.271815, -1.933338])
+    res = Planner(sc).plan(start)
+    assert res.ok, res.reason
+    assert np.array_equal(res.path_rad[0], res.start_rad)
+    assert np.allclose(wrap_diff(res.path_rad[-1], res.goal_rad), 0.0, atol=1e-12)
+    clr = min(ref_clearance(sc.robot, scene, row) for row in dense_samples(res.path_rad, math.radians(0.25)))
+    assert clr > 0.05, clr
+
+
 def test_out_of_reach_and_too_few_planned_joints():
     robot = chain((1.4, 1.6, 1.4, 1.0))
     far = Scene(target=Target(center_m=(9.0, 0.0)), safety_margin_m=0.02)
