@@ -20,7 +20,7 @@ from .collision import CollisionChecker
 from .joint_space import TWO_PI, wrap_angle_rad, wrap_rad
 from .redundant import most_manipulable_arm, redundant_grasp
 
-__all__ = ["IKSolution", "grasp_ik", "capture_posture", "CapturePosture", "approach_error_rad",
+__all__ = ["IKSolution", "grasp_ik", "meets_approach_angle", "capture_posture", "CapturePosture", "approach_error_rad",
            "perpendicular_attitudes"]
 
 
@@ -80,6 +80,16 @@ def _fit_to_bounds(robot, q_full):
     return out
 
 
+def meets_approach_angle(robot) -> bool:
+    """
+    Tell whether :func:`grasp_ik` meets a given approach angle.
+
+    Every chain but the 3-joint one with its attitude locked, whose IK is position-only: the
+    posture then gives its own angle.
+    """
+    return robot.n_joints != 3 or 0 in robot.planned_joints
+
+
 def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_only: bool = True):
     """
     All IK branches reaching the grasp pose, best manipulability first.
@@ -116,7 +126,7 @@ def grasp_ik(robot, scene, grasp_point_m=None, approach_angle_rad=None, free_onl
                 for sol in redundant_grasp(robot, scene, p, float(approach_angle_rad), free_only=free_only)]
     l1, l2, l3 = (float(v) for v in robot.link_lengths_m)
     candidates = []
-    if 0 in robot.planned_joints:
+    if meets_approach_angle(robot):
         # full pose: the elbow point follows from the approach angle
         psi = float(approach_angle_rad)
         elbow = p - l3 * np.array([np.cos(psi), np.sin(psi)])

@@ -243,7 +243,7 @@ def quick_step_rad(checker) -> float:
     samples, down to :data:`QUICK_STEP_MIN_RAD`.  The skipping of samples the Lipschitz bound
     proves free keeps a finer step cheap away from obstacles.
     """
-    sweep = float(np.linalg.norm(joint_reach_m(checker.robot)))
+    sweep = lipschitz_m_per_rad(checker.robot)
     if sweep <= 0.0:
         return QUICK_STEP_RAD
     return float(np.clip(narrowest_obstacle_m(checker) / sweep, QUICK_STEP_MIN_RAD, QUICK_STEP_RAD))

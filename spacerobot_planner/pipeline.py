@@ -60,6 +60,9 @@ REPAIR_WIDENING = 3
 #: debris) is a sheet of thousands of edges, which 2 000 tests a repair cut a hundred at a time
 #: (30 repairs at 72³, then path_invalid after 5 s, where a path kept 51 mm; now 5 repairs at 36³)
 REPAIR_DOUBLINGS = 5
+#: the start and the goal are joined to (at most) this many of their nearest free grid nodes
+#: (``PlanRun.candidates``); the goal to the rest of its window where none of them joins
+NEAR_NODES = 8
 
 
 class Fail(Exception):
@@ -291,7 +294,7 @@ class PlanRun:
         with self.stage("verify"):
             return self.validator.segment_ok(a, b, keep=keep)
 
-    def candidates(self, q, grid, occupied, max_count: int = 8) -> np.ndarray:
+    def candidates(self, q, grid, occupied, max_count: int = NEAR_NODES) -> np.ndarray:
         """
         Free grid nodes near q, nearest first: (k ≤ max_count, dof) int64.
 
@@ -546,8 +549,8 @@ class PlanRun:
         """
         Free grid nodes near the goal joined to it by a certified segment (≤ 4), cached.
 
-        The 8 nearest free nodes first (offsets -1 .. 2 of the goal's cell per axis), the first
-        4 that pass; where none does, the window's other free nodes, nearest first (a goal
+        The ``NEAR_NODES`` nearest free nodes first (offsets -1 .. 2 of the goal's cell per axis),
+        the first 4 that pass; where none does, the window's other free nodes, nearest first (a goal
         close to the target on a coarse grid: 22.5° steps on the 4-joint servicer's, where
         every one of the 8 nearest was cut off and the answer was path_invalid).
         """
@@ -557,7 +560,7 @@ class PlanRun:
             nodes = []
             near = self.candidates(self.goal, cs.grid, cs.occupied, max_count=4 ** cs.grid.ndim)
             for k, n in enumerate(near):          # nearest first, the first 4 that pass
-                if k == 8 and nodes:
+                if k == NEAR_NODES and nodes:
                     break
                 if self.segment_ok(cs.grid.config_of(n), self.goal):
                     nodes.append(n)

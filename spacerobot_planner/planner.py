@@ -44,7 +44,7 @@ from .descent import descend
 from .field import solve_field
 from .field import warm_up as field_warm_up
 from .free_floating_capture import attitude_changes_rad
-from .ik import approach_error_rad, grasp_ik, perpendicular_attitudes
+from .ik import approach_error_rad, grasp_ik, meets_approach_angle, perpendicular_attitudes
 from .motion import MotionValidator
 from .pipeline import PlanRun
 from .problem import Scenario
@@ -215,7 +215,8 @@ class Planner:
         gp = np.round(sc.scene.target.grasp_point_m, 3).tolist()
         margin = sc.scene.safety_margin_m
         found, free = [], []             # the branches of each approach angle tried; the clear ones
-        for offset_deg in self._approach_offsets_deg(bound):
+        offsets = self._approach_offsets_deg(bound)
+        for offset_deg in offsets:
             psi = None if offset_deg == 0.0 else sc.scene.target.approach_angle_rad + math.radians(offset_deg)
             try:
                 every = grasp_ik(sc.robot, sc.scene, free_only=False, approach_angle_rad=psi)
@@ -229,7 +230,7 @@ class Planner:
             if free:
                 break
         tried = (f" at approach angles within ±{bound:g}° of the handle's normal (grasp.max_approach_error_deg)"
-                 if len(self._approach_offsets_deg(bound)) > 1 else "")
+                 if len(offsets) > 1 else "")
         if not found:
             raise ValueError(f"the target's grasp point {gp} m is out of the arm's reach "
                              f"(no inverse-kinematics solution within the joint bounds{tried})")
@@ -249,11 +250,6 @@ class Planner:
                          f"{min(errs):.1f}° off its normal, above grasp.max_approach_error_deg = "
                          f"{bound:g}°; {self._attitude_advice()}")
 
-    def _approach_is_free(self) -> bool:
-        """Tell whether the IK meets a given approach angle (position-only where 3 joints have a fixed attitude)."""
-        robot = self.scenario.robot
-        return robot.n_joints != 3 or 0 in robot.planned_joints
-
     def _approach_offsets_deg(self, bound: float) -> list:
         """
         Return the approach angles to try, off the handle's normal, degrees: 0 first, then ±1, ±2, … ±bound.
@@ -263,7 +259,7 @@ class Planner:
         leaves its joint bounds a few degrees off it).  One angle only where the IK is
         position-only.
         """
-        if bound <= 0.0 or not self._approach_is_free():
+        if bound <= 0.0 or not meets_approach_angle(self.scenario.robot):
             return [0.0]
         last = bound * (1.0 - 1e-9)           # the bound itself, a rounding inside it
         steps = [float(k) for k in range(1, int(math.ceil(last))) if k < last] + [last]
@@ -272,7 +268,7 @@ class Planner:
     def _attitude_advice(self) -> str:
         """Which attitude (joint 1) would allow a perpendicular grasp, for a reason text."""
         sc = self.scenario
-        if sc.robot.n_joints != 3 or 0 in sc.robot.planned_joints:
+        if meets_approach_angle(sc.robot):
             return "no attitude change can help (the attitude is planned already)"
         atts = perpendicular_attitudes(sc.robot, sc.scene)
         free = [a for a, ok in atts if ok]

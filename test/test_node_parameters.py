@@ -111,7 +111,8 @@ def test_what_ros2_param_set_sends_is_taken_or_refused_by_name(graph):
     r = set_one("safety_margn_m", 0.05)
     assert not r.successful and r.reason == ("'safety_margn_m': not a parameter of this node; did you mean "
                                              "'safety_margin_m'? (`ros2 param list` shows them)"), r.reason
-    g.wait(lambda: "safety_margn_m" in g.status("input").message, 5, "the input status names it")
+    g.wait(lambda: g.status("input") is not None and "safety_margn_m" in g.status("input").message, 10,
+           "the input status names it")
     assert g.planner.get_parameter("safety_margin_m").value == 0.02
 
 
