@@ -63,6 +63,10 @@ REPAIR_DOUBLINGS = 5
 #: the start and the goal are joined to (at most) this many of their nearest free grid nodes
 #: (``PlanRun.candidates``); the goal to the rest of its window where none of them joins
 NEAR_NODES = 8
+#: a refined grid has twice the cells per joint, or, where that grid is above the node limits,
+#: the most cells one common factor gives within them: never less than this factor (a grid
+#: barely finer than one that failed is not worth its solve)
+MIN_REFINEMENT = 1.25
 
 
 class Fail(Exception):
@@ -202,9 +206,30 @@ class _StageTimer:
         self.timings[self.name] += time.perf_counter() - self.t
 
 
-def refined(grid):
-    """Return the grid with twice the cells along every axis (``cspace.GridSpec``)."""
-    return grid.with_cells(tuple(2 * int(c) for c in grid.cells))
+def scaled_grid(grid, factor: float):
+    """Return ``grid`` with its cells per joint times ``factor`` (> 1), rounded down, at least one more."""
+    return grid.with_cells(tuple(max(int(c) + 1, int(math.floor(factor * int(c)))) for c in grid.cells))
+
+
+def refined(grid, max_nodes: int | None = None):
+    """
+    Return the grid a refinement of ``grid`` tries (``cspace.GridSpec``), or None.
+
+    Twice the cells along every axis; where that grid has more than ``max_nodes`` nodes, the
+    cells times the largest common factor in [``MIN_REFINEMENT``, 2) whose grid has at most
+    ``max_nodes`` (:func:`scaled_grid`; a 4-joint 16x17x17x17 grid: 25x26x26x26, 439 400
+    nodes within 500 000, where the doubled one has 1.15 million); None where even
+    ``MIN_REFINEMENT`` times the cells is above ``max_nodes``.
+    """
+    if max_nodes is None or scaled_grid(grid, 2.0).n_nodes <= max_nodes:
+        return scaled_grid(grid, 2.0)
+    if scaled_grid(grid, MIN_REFINEMENT).n_nodes > max_nodes:
+        return None
+    lo, hi = MIN_REFINEMENT, 2.0        # n_nodes grows with the factor: the largest within the limit
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if scaled_grid(grid, mid).n_nodes <= max_nodes else (lo, mid)
+    return scaled_grid(grid, lo)
 
 
 class PlanRun:
@@ -443,10 +468,10 @@ class PlanRun:
 
         The scenario's grid first, with the extra grid margin and then without.  Where that
         grid does not join start and goal (``disconnected``), leaves no verified grid path
-        (``path_invalid``), or its repairs pile up (``refine_after_repairs``), the grid with
-        twice the cells per joint at the safety margin, up to ``max_refinements`` times,
-        while it stays within ``max_grid_nodes`` and ``max_refined_nodes``
-        (:meth:`refinement_refused`).  The answer
+        (``path_invalid``), or its repairs pile up (``refine_after_repairs``), a finer grid
+        at the safety margin (:func:`refined`: twice the cells per joint, or as many more as
+        ``max_grid_nodes`` and ``max_refined_nodes`` allow, at least ``MIN_REFINEMENT``
+        times), up to ``max_refinements`` times (:meth:`refinement_refused`).  The answer
         after the last grid says which grids were tried and why no finer one was.
         """
         grid, level, tried = self.sc.grid, 0, []
@@ -473,7 +498,7 @@ class PlanRun:
             stop = self.refinement_refused(grid)
             if stop:
                 raise self.unresolved(tried, stop)
-            grid, level = refined(grid), level + 1
+            grid, level = self.finer(grid), level + 1
             self.say(f"refining the grid to {grid.label()}")
 
     def grid_margins(self, level: int = 0) -> tuple:
@@ -490,21 +515,27 @@ class PlanRun:
 
     def refinement_refused(self, grid) -> str:
         """
-        Return '' when the grid after ``grid`` (twice the cells) may be tried, else why not.
+        Return '' when a grid finer than ``grid`` may be tried (:meth:`finer`), else why not.
 
-        Refused beyond ``max_refinements`` and above ``max_grid_nodes`` or
-        ``max_refined_nodes``: counts, not the clock, so the same input gives the same
-        answer (each field solve has the budget ``field_budget_s`` of one solve, as on the
-        first grid).
+        Refused beyond ``max_refinements``, and where not even ``MIN_REFINEMENT`` times the
+        cells per joint is within ``max_grid_nodes`` and ``max_refined_nodes``: counts, not
+        the clock, so the same input gives the same answer (each field solve has the budget
+        ``field_budget_s`` of one solve, as on the first grid).
         """
-        s, finer = self.s, refined(grid)
+        s = self.s
         if self.level >= s.max_refinements:
             return f"no finer grid tried (planner.max_refinements = {s.max_refinements})"
-        for name, limit in (("planner.max_grid_nodes", s.max_grid_nodes),
-                            ("max_refined_nodes", s.max_refined_nodes)):
-            if finer.n_nodes > limit:
-                return f"{finer.label()} not tried: {finer.n_nodes:,} nodes, above {name} = {limit:,}"
-        return ""
+        if self.finer(grid) is not None:
+            return ""
+        doubled, least = refined(grid), scaled_grid(grid, MIN_REFINEMENT)
+        name, limit = min((("planner.max_grid_nodes", s.max_grid_nodes),
+                           ("max_refined_nodes", s.max_refined_nodes)), key=lambda nl: nl[1])
+        return (f"{doubled.label()} not tried: {doubled.n_nodes:,} nodes, above {name} = {limit:,}, "
+                f"as is {least.label()} ({MIN_REFINEMENT:g} times the cells per joint, {least.n_nodes:,} nodes)")
+
+    def finer(self, grid):
+        """Return the refined grid to try after ``grid`` within the node limits (:func:`refined`), or None."""
+        return refined(grid, min(self.s.max_grid_nodes, self.s.max_refined_nodes))
 
     def start_text(self) -> str:
         """Return the plan's start for a reason: after a way out of contact, where it ends and where it began."""

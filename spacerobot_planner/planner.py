@@ -18,8 +18,9 @@ segments certified on the exact geometry.  Grid paths: the grid is built with a 
 extra margin (``grid_extra_margin_m``) so grid paths keep away from obstacles; the
 certification uses the scene's true margin.  When that grid separates start and goal
 (or leaves no grid path), the planner tries again without the extra margin, then on a grid
-with twice the cells per joint (``max_refinements``, within ``max_grid_nodes`` and
-``max_refined_nodes``; docs/field.md, "the refinement rule") before it answers.  When the
+with twice the cells per joint, or as many more as ``max_grid_nodes`` and
+``max_refined_nodes`` allow (``max_refinements``; docs/field.md, "the refinement rule"),
+before it answers.  When the
 straight segment between two nodes of the descent collides, the colliding grid edges are
 cut (or the node blocked) and the field re-solved ("repair").
 

@@ -54,12 +54,15 @@ class PlannerSettings:
         max_step_rad: spacing of the returned samples (≤ 0.5°).
         verify_step_rad: largest spacing of the certified collision checks along the path.
         max_repairs: edge-cutting / node-blocking re-solves allowed on one grid.
-        max_refinements: how many times a plan may double the grid's cells per joint where
-            a grid does not join start and goal or gives no verified path (0: never).
+        max_refinements: how many times a plan may refine the grid (twice the cells per
+            joint, or as many more as the node limits allow, at least 1.25 times:
+            ``pipeline.refined``) where a grid does not join start and goal or gives no
+            verified path (0: never).
         refine_after_repairs: on a grid that a finer one may follow, refine after this many
             repairs instead of repairing further.
         max_refined_nodes: a refined grid is tried only up to this many nodes (72³ is
-            389 017; a 4-joint grid doubled from 16 cells, 1.15 million, is not).
+            389 017; a 4-joint grid of 16 cells per joint is refined to 25, 439 400 nodes,
+            not doubled, 1.15 million).
         max_start_penetration_m: a start whose links reach at most this deep into an
             obstacle is walked out of the contact first (0: refuse as start_in_collision).
         max_approach_error_deg: largest angle between link 3 and the handle's inward

@@ -126,3 +126,49 @@ def test_no_refinement_beyond_the_node_budget_and_the_reason_says_so(sc2):
     res = Planner(sc, max_refinements=3, max_refined_nodes=91 * 91).plan(sc.start_rad, sc.goal_rad)
     assert "46x46 and 91x91" in res.reason and "181x181 not tried" in res.reason
     assert "max_refined_nodes = 8,281" in res.reason
+
+
+def test_where_the_doubled_grid_is_above_the_node_limit_the_finest_grid_within_it_is_tried(sc2):
+    # the slot of the first test needs a grid finer than 4°; 181x181 (2°) is above the limit,
+    # 158x158 (157 cells, 2.29°) is the finest grid with one common factor of the cells within it
+    scene = Scene(target=sc2.scene.target, debris_m=slot_walls(sc2.robot, START, 0.08, 0.6),
+                  safety_margin_m=MARGIN_M)
+    sc = replace(sc2.with_scene(scene), grid=sc2.grid_with_cells(90))
+    res = Planner(sc, max_refined_nodes=25_000).plan(START, sc2.goal_rad)
+    assert res.ok, res.reason
+    assert res.solver_stats["refinements"] == 1 and res.solver_stats["grid"] == "158x158"
+    assert res.cspace.grid.n_nodes <= 25_000 < 159 * 159
+    dense = dense_samples(res.path_rad, np.radians(0.5))
+    assert min(ref_clearance(sc.robot, scene, q) for q in dense) > MARGIN_M
+    assert np.array_equal(res.path_rad[0], START)
+
+    # below 1.25 times the cells (113x113) nothing finer is tried, and the reason says so
+    res = Planner(sc, max_refined_nodes=112 * 112).plan(START, sc2.goal_rad)
+    assert res.code in ("disconnected", "path_invalid"), res.reason
+    assert "181x181 not tried" in res.reason and "as is 113x113" in res.reason, res.reason
+    assert "max_refined_nodes = 12,544" in res.reason
+    honest_reason(res.reason, res.solver)
+
+
+@pytest.mark.parametrize("cells, periodic, limit", [((16, 16, 16, 16), (True, False, False, False), 500_000),
+                                                    ((36, 36, 36), (True, False, False), 300_000),
+                                                    ((90, 90), (False, False), 25_000),
+                                                    ((7, 9), (True, True), 200)])
+def test_the_refined_grid_is_the_finest_within_the_node_limit(sc2, cells, periodic, limit):
+    from spacerobot_planner.cspace import GridSpec
+    from spacerobot_planner.pipeline import refined
+    dof = len(cells)
+    grid = GridSpec(cells=cells, periodic=periodic, lower_rad=(-math.pi,) * dof, upper_rad=(math.pi,) * dof)
+
+    def nodes(c):                      # the test's own count: cells on periodic axes, cells + 1 else
+        return math.prod(n if p else n + 1 for n, p in zip(c, periodic))
+    # brute force over common factors 1.25 ... 2 in steps of 1e-4 (cells rounded down, one more at least)
+    best = None
+    for f in np.arange(1.25, 2.0 + 1e-9, 1e-4):
+        c = tuple(max(n + 1, int(math.floor(f * n))) for n in cells)
+        if nodes(c) <= limit and (best is None or nodes(c) > nodes(best)):
+            best = c
+    got = refined(grid, limit)
+    assert got.cells == best and got.n_nodes == nodes(best) <= limit
+    assert refined(grid).cells == tuple(2 * n for n in cells)
+    assert refined(grid, nodes(tuple(max(n + 1, int(1.25 * n)) for n in cells)) - 1) is None
