@@ -282,6 +282,47 @@ def test_a_goal_whose_nearest_grid_nodes_are_cut_off_joins_a_farther_one():
     assert clr > 0.05, clr
 
 
+@pytest.mark.parametrize("center, yaw, debris, start", [
+    ((-2.057189, 1.934301), -2.121767,
+     (((1.968334, 2.783663), (1.868493, 2.929086), (1.726568, 2.998248), (1.587617, 2.997777)),
+      ((2.261165, -0.389963), (1.939623, -0.178445), (1.757713, -0.590655)),
+      ((-0.288245, 2.856874), (-0.081226, 2.484904), (0.09307, 2.56833)),
+      ((2.01342, -4.070797), (1.744693, -3.97656), (1.375741, -4.228994), (1.426691, -4.628736))),
+     (-2.224866, 1.334314, -0.141314, -1.928366)),
+    ((-4.195112, 0.719948), -1.366596,
+     (((-0.766936, 1.911286), (-1.237595, 1.764887), (-1.180299, 1.617974), (-0.926475, 1.531711)),
+      ((0.089443, -3.046157), (0.026241, -3.572199), (0.186471, -3.442758)),
+      ((3.642957, 0.094332), (2.819386, 0.131234), (2.723614, -0.196944), (3.644985, -0.417745))),
+     (0.35144, -1.130418, 2.459799, -2.173989)),
+])
+def test_the_most_manipulable_capture_posture_keeps_room_to_be_reached(center, yaw, debris, start):
+    """
+    The redundant arm's most manipulable grasp lay on the safety margin (1e-9 m above it): no certified motion left it.
+
+    Two of a stress test's random 4-joint scenes (margin 0.05 m) where the self-motion's
+    manipulability rises towards an obstacle: the search ran up to the clearance boundary and
+    the plan answered path_invalid on both grids ("no free grid node near the goal is joined to
+    it").  Oracle: the test's own geometry (``ref_clearance`` every 0.25°, ``arm_points``): a
+    path clear of the margin from the exact start to a goal that grasps the handle within
+    grasp.max_approach_error_deg and clears the margin by a millimetre.
+    """
+    sc = load_scenario(S4)
+    scene = Scene(target=Target(center_m=center, yaw_rad=yaw), debris_m=tuple(np.array(d) for d in debris),
+                  safety_margin_m=0.05)
+    sc = sc.with_scene(scene)
+    res = Planner(sc).plan(np.array(start))
+    assert res.ok, res.reason
+    assert np.array_equal(res.path_rad[0], res.start_rad)
+    assert np.allclose(wrap_diff(res.start_rad, np.array(start)), 0.0, atol=1e-12)
+    assert np.allclose(wrap_diff(res.path_rad[-1], res.goal_rad), 0.0, atol=1e-12)
+    assert np.linalg.norm(arm_points(sc.robot, res.goal_rad)[-1] - scene.target.grasp_point_m) < 1e-9
+    approach = abs(wrap_diff(np.sum(sc.robot.full(res.goal_rad)), scene.target.approach_angle_rad))
+    assert math.degrees(approach) <= sc.planner_settings.max_approach_error_deg + 1e-9
+    assert ref_clearance(sc.robot, scene, res.goal_rad) > 0.05 + 0.999e-3
+    clr = min(ref_clearance(sc.robot, scene, row) for row in dense_samples(res.path_rad, math.radians(0.25)))
+    assert clr > 0.05, clr
+
+
 def test_out_of_reach_and_too_few_planned_joints():
     robot = chain((1.4, 1.6, 1.4, 1.0))
     far = Scene(target=Target(center_m=(9.0, 0.0)), safety_margin_m=0.02)
