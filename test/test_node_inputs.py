@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -60,6 +61,22 @@ def test_refused_start_value_is_one_line_and_a_nonzero_exit(ros_args, fragments)
     for frag in fragments:
         assert frag in lines[0], lines[0]
     assert lines[0].startswith("planner_node: "), lines[0]
+
+
+@pytest.mark.parametrize("text", [
+    "/**:\n  ros__parameters:\n    safety_margin_m: [0.02\n",
+    "/**:\n  ros__parameters:\n    robot.upper_deg: [180, 180.0, 180.0]\n",
+], ids=["yaml_syntax", "mixed_list"])
+def test_a_params_file_rcl_cannot_parse_is_one_line_and_a_nonzero_exit(tmp_path, text):
+    """A file that rcl refuses inside ``rclpy.init``: one line naming the file, not a traceback."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    proc = _run_node("--params-file", str(bad))
+    err = proc.stderr
+    assert proc.returncode != 0, f"exit {proc.returncode}\n{err}"
+    assert "Traceback" not in err, err
+    ours = [line for line in err.splitlines() if line.startswith("planner_node: ")]     # after rcl's own [ERROR]
+    assert len(ours) == 1 and str(bad) in ours[0] and "line" in ours[0], err
 
 
 def test_refused_override_raises_value_error_and_the_context_shuts_down_cleanly():
@@ -111,11 +128,14 @@ def test_shipped_files_have_only_namespace_independent_sections(name):
 
 
 # ================================================================== 6. a goal before any joint_states
-def test_goal_without_start_before_joint_states_says_so_then_aborts(graph):
+@pytest.mark.parametrize("sim_time", [False, True], ids=["wall_time", "sim_time_without_clock"])
+def test_goal_without_start_before_joint_states_says_so_then_aborts(graph, sim_time):
+    """The wait ends after joint_states_timeout_s of wall time, also under use_sim_time with no /clock published."""
     from action_msgs.msg import GoalStatus
     from spacerobot_planner_interfaces.action import PlanCapture
     from node_helpers import scene_params
-    g = graph(scene_params("3dof", joint_states_timeout_s=1.0), with_arm=False)     # no joint_states at all
+    extra = {"use_sim_time": True} if sim_time else {}
+    g = graph(scene_params("3dof", joint_states_timeout_s=1.0, **extra), with_arm=False)   # no joint_states at all
     desc = g.planner.describe_parameter("joint_states_timeout_s")
     assert desc.floating_point_range and "seconds" in desc.description
     goal = PlanCapture.Goal()
@@ -149,6 +169,30 @@ def test_goal_waiting_for_joint_states_plans_when_they_arrive(graph):
     status, res, _ = g.goal_result(handle, timeout=60)
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
     assert feedback[0] == "waiting_for_joint_states" and "cspace" in feedback, feedback
+
+
+def test_a_best_effort_joint_states_driver_is_heard(graph):
+    """A driver publishing joint_states with the sensor-data QoS (best effort), as many do: heard and planned from."""
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof"), with_arm=False)
+    pub = g.drv.create_publisher(JointState, "joint_states", qos_profile_sensor_data)
+    g.wait(lambda: pub.get_subscription_count() >= 1, 30, "the planner's joint_states subscription matching "
+           "a best-effort publisher")
+    robot = g.scenario.robot
+    start = robot.full(g.scenario.start_rad)
+    msg = joint_state_msg(robot.joint_names, start)
+    with g.lock:                 # the graph's reliable recorder does not hear it: the arm's state, for its checks
+        g.states.append((time.monotonic(), msg))
+    g.wait(lambda: pub.publish(msg) or g.planner.session.joint_q is not None, 30, "the best-effort joint state taken")
+    g.send_target()
+    g.wait(lambda: g.n_trajs() >= 1, 60, "a trajectory")
+    with g.lock:
+        first = g.trajs[0][1]
+    want = [start[list(robot.joint_names).index(n)] for n in first.joint_names]    # it starts where the arm is
+    assert np.allclose(first.points[0].positions, want, atol=1e-9), (list(first.points[0].positions), want)
 
 
 def test_joint_states_timeout_default():

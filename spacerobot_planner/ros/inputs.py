@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 
 from ..overlap import target_overlap_reason
@@ -37,12 +39,19 @@ class Inputs:
     def subscribe(self) -> list:
         """Create the subscriptions (activate); return them."""
         node = self.node
-        subs = [node.create_subscription(PoseStamped, "target_pose", self.on_target, 10),
-                node.create_subscription(JointState, "joint_states", self.on_joint_state, 10),
-                node.create_subscription(JointState, "goal_joint_state", self.on_goal_joint_state, 10)]
+        # states: best effort matches both reliable and best-effort (sensor-data) drivers; the
+        # latest state is all that counts.  qos_overrides.<topic>.subscription.* may change it.
+        states_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+        overridable = QoSOverridingOptions.with_default_policies()
+        subs = [node.create_subscription(PoseStamped, "target_pose", self.on_target, 10,
+                                         qos_overriding_options=overridable),
+                node.create_subscription(JointState, "joint_states", self.on_joint_state, states_qos,
+                                         qos_overriding_options=overridable),
+                node.create_subscription(JointState, "goal_joint_state", self.on_goal_joint_state, 10,
+                                         qos_overriding_options=overridable)]
         topic = node.param_handler.params["attitude_topic"]
         if topic:
-            subs.append(node.create_subscription(PoseStamped, topic, self.on_attitude, 10))
+            subs.append(node.create_subscription(PoseStamped, topic, self.on_attitude, states_qos))
         return subs
 
     def target_from_pose(self, msg: PoseStamped, what: str) -> Target:

@@ -73,7 +73,12 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
 
     signal.signal(signal.SIGTERM, interrupt)          # while the node starts: stop at once
     try:
-        with rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO):
+        try:
+            init = rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        except RuntimeError as e:     # rcl refused the arguments: a params file that does not parse, a bad rule
+            print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
+            return 1
+        with init:
             try:
                 node = make_node()
             except (ValueError, RuntimeError, ParameterException) as e:

@@ -48,6 +48,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import OccupancyGrid
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.logging import LoggingSeverity
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -110,7 +111,8 @@ class PlannerNode(LifecycleNode):
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides,
                          automatically_declare_parameters_from_overrides=True,
                          enable_communication_interface=False, **kwargs)
-        self._log_name = node_name
+        self._log_name = self.get_logger().name       # the remapped name and namespace (robot1.other_name)
+        self._steady_clock = Clock(clock_type=ClockType.STEADY_TIME)
         self._log_lines = LogLines(self.get_logger())     # _log's lines (rclpy's logger: ~0.4 ms a line)
         others = declare_checked(self, PLANNER_PARAMETERS)      # ValueError: the parameter and why
         for line in unknown_parameters(others):                 # typos, named with the closest name
@@ -386,7 +388,9 @@ class PlannerNode(LifecycleNode):
             timeout_s = float(self._params["joint_states_timeout_s"])
             if self._waiting_timer is not None:
                 self.destroy_timer(self._waiting_timer)
-            self._waiting_timer = self.create_timer(timeout_s, lambda: self._joint_states_timeout(req, timeout_s))
+            # a client's wait: wall time (a ROS-time timer never fires under use_sim_time without /clock)
+            self._waiting_timer = self.create_timer(timeout_s, lambda: self._joint_states_timeout(req, timeout_s),
+                                                    clock=self._steady_clock)
         return req
 
     def _joint_states_timeout(self, req, timeout_s):
@@ -447,8 +451,11 @@ class PlannerNode(LifecycleNode):
         if pub is None or self.session.closing:
             return
         try:
-            pub.publish(conv.diagnostic_payload(self.diagnostics.statuses(self.get_name(), self.state),
-                                                self.get_clock().now().to_msg(), NODE_NAME))
+            # the namespace too (robot1.spacerobot_planner; no '/': rqt_robot_monitor and the aggregator
+            # split names on it): two robots' planners share /diagnostics
+            name = self._log_name
+            pub.publish(conv.diagnostic_payload(self.diagnostics.statuses(name, self.state),
+                                                self.get_clock().now().to_msg(), name))
         except Exception:              # noqa: BLE001 - context shutting down
             pass
 
