@@ -82,14 +82,31 @@ def apparent_scene(scene, attitude_change_rad, body_position_m):
                  safety_margin_m=scene.safety_margin_m)
 
 
+def circular_band_deg(angles_deg) -> tuple:
+    """
+    Return (lo, hi), degrees, lo ≤ hi: the shortest arc of the circle holding every angle.
+
+    Where the angles straddle ±180° (+176.2 ... +180 and -180 ... -174.5) the arc is +176.2° to
+    +185.5°, not -180° to +178.3°.  ``lo`` lies in [-180, 180); ``hi - lo`` < 360.
+    """
+    a = np.sort(np.mod(np.asarray(angles_deg, dtype=float) + 180.0, 360.0) - 180.0)
+    gaps = np.diff(np.r_[a, a[0] + 360.0])               # the gap after each angle, round the circle
+    k = int(np.argmax(gaps))                              # the arc is the circle less its largest gap
+    lo = a[(k + 1) % len(a)]
+    return float(lo), float(lo + 360.0 - gaps[k])
+
+
 #: the path family and its search (see :func:`plan_capture`): samples of the coarse scan, the
 #: sine harmonics per arm joint, the scanned amplitudes (rad), the scanned directions of the
 #: coefficient space (seeded, so the plan is deterministic), the candidates certified at most, the
 #: capture postures' approach offsets (fractions of grasp.max_approach_error_deg), and whether the
 #: offset is solved for as a free parameter (step 3), whether the field's guide is used (step 2);
-#: the bench turns those off to measure without them
+#: the bench turns those off to measure without them.  The offsets reach the tolerance's edge
+#: (0.999: a grasp point at the edge of reach has capture postures only 4.5-5° off the normal,
+#: and was refused as "out of the arm's reach")
 SEARCH = {"coarse_samples": 61, "harmonics": 2, "max_amplitude_rad": math.radians(180.0), "amplitudes": 31,
-          "directions": 96, "seed": 0, "max_checks": 400, "approach_fractions": (0.0, -0.5, 0.5, -0.9, 0.9),
+          "directions": 96, "seed": 0, "max_checks": 400,
+          "approach_fractions": (0.0, -0.5, 0.5, -0.9, 0.9, -0.999, 0.999),
           "approach_as_parameter": True, "field_guide": True}
 
 
@@ -482,7 +499,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         # the approach tolerance as a free parameter: the end posture whose attitude change the
         # base path itself makes (no correction needed), where one exists within the tolerance
         s_mid = np.linspace(0.0, 1.0, 801)
-        fracs = np.linspace(-0.95, 0.95, 20)
+        fracs = np.linspace(-0.999, 0.999, 20)       # up to the tolerance's edge, as SEARCH's
         front = []
         at_offset = {}            # approach fraction -> its capture postures (both branches; pure)
         gaps = {}                 # (fraction, branch, kind) -> gap (pure: each computed once)
@@ -634,11 +651,14 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
     for b in sorted({p.branch for p in postures}, key=str):
         nd = [v for bb, v in needed if bb == b]
         ach = [(lo_, hi_) for bb, lo_, hi_ in achievable if bb == b]
-        need_text = (f"{nd[0]:+.1f}°" if len(nd) == 1 else f"{min(nd):+.1f}° to {max(nd):+.1f}°")
-        other = nd[0] - math.copysign(360.0, nd[0])
+        lo_n, hi_n = circular_band_deg(nd)
+        turn = -math.copysign(360.0, lo_n + hi_n)         # the same changes the other way round
+
+        def band(a, b):
+            return f"{a:+.1f}°" if round(a, 1) == round(b, 1) else f"{a:+.1f}° to {b:+.1f}°"
         ach_text = (f"{ach[0][0]:+.1f}° to {ach[0][1]:+.1f}°" if ach else "none within the joint bounds")
-        parts.append(f"{names[b]}: needs {need_text} (or {other:+.1f}° the other way round), the arm's "
-                     f"motions achieve {ach_text}")
+        parts.append(f"{names[b]}: needs {band(lo_n, hi_n)} (or {band(lo_n + turn, hi_n + turn)} the other way "
+                     f"round), the arm's motions achieve {ach_text}")
     what = "; ".join(parts)
     if not postures:
         reason = (f"free floating: the grasp pose at {np.round(scene.target.grasp_point_m, 3).tolist()} m is "

@@ -24,6 +24,7 @@ from spacerobot_planner.config import load_scenario
 from spacerobot_planner.motion import MotionValidator
 from spacerobot_planner.planner import Planner
 from spacerobot_planner.ros import conversions as conv
+from spacerobot_planner.scene import Scene, Target
 from spacerobot_planner.session import Publication, result_values
 from spacerobot_planner.tools.cli import main
 
@@ -229,3 +230,71 @@ def test_the_node_publishes_the_arm_only_and_returns_the_predicted_drift(graph):
     assert float(values["free_floating_body_displacement_m"]) == pytest.approx(np.linalg.norm(body), abs=1e-3)
     assert float(values["free_floating_attitude_change_deg"]) == pytest.approx(
         math.degrees(q_end[0] - drift.points[0].positions[0]), abs=1e-3)
+
+
+def test_a_grasp_reached_only_near_the_approach_tolerance_is_not_called_out_of_reach():
+    """
+    Capture postures exist only 4.7-5° off the handle's normal: the refusal said "out of the arm's reach".
+
+    A stress test's scene (margin 0.02 m).  Oracle: the test's own capture postures (two-link IK of
+    the attitude link and the shoulder, the body moved so that the system's CoM stays where the
+    start puts it, ``bodies_world`` and ``mass_table``): some exist within the tolerance, so the
+    answer may refuse the motion but not the reach.
+    """
+    from oracles import bodies_world, mass_table
+    sc = load_scenario(FF)
+    debris = ([[0.646105, 1.754086], [0.678661, 1.488955], [1.399894, 1.355318], [1.525359, 1.59161]],
+              [[-2.341996, -0.05209], [-2.349971, -0.005431], [-3.030182, 0.103235], [-2.939286, -0.38699]],
+              [[-1.117485, -3.084818], [-1.638841, -2.663033], [-1.942772, -2.800012], [-2.056511, -2.970519],
+               [-1.215191, -3.449622]])
+    scene = Scene(target=Target(center_m=(1.186416, 2.930793), yaw_rad=1.448424),
+                  debris_m=tuple(np.array(d) for d in debris), safety_margin_m=0.02)
+    sc = sc.with_scene(scene)
+    start = np.array([-1.286675, -0.960622])
+    m, _ = mass_table(sc.masses)
+
+    def com(q_full, body):
+        c, _ = bodies_world(sc.robot, q_full[None, :], np.asarray(body, dtype=float)[None, :])
+        return m @ c[0] / m.sum()
+
+    c0 = com(sc.robot.full(start), (0.0, 0.0))
+    l0, l1, l2 = sc.robot.link_lengths_m
+    tol = sc.planner_settings.max_approach_error_deg
+    found = []
+    for off in np.arange(-tol + 1e-3, tol, 0.01):
+        psi = scene.target.approach_angle_rad + math.radians(off)
+        wrist = np.asarray(scene.target.grasp_point_m) - l2 * np.array([math.cos(psi), math.sin(psi)])
+        for bend in (1.0, -1.0):
+            body = np.zeros(2)
+            for _ in range(60):                 # the body where the CoM stays put, the IK from it
+                w = wrist - body
+                c = (w @ w - l0 ** 2 - l1 ** 2) / (2 * l0 * l1)
+                if abs(c) > 1.0:
+                    break
+                t1 = bend * math.acos(c)
+                t0 = math.atan2(w[1], w[0]) - math.atan2(l1 * math.sin(t1), l0 + l1 * math.cos(t1))
+                q = np.array([t0, t1, psi - t0 - t1])
+                body = body + (c0 - com(q, body))
+            else:
+                tip = arm_points(sc.robot, q)[-1] + body
+                assert np.linalg.norm(tip - scene.target.grasp_point_m) < 1e-9
+                found.append(off)
+    assert found and min(abs(f) for f in found) > 0.9 * tol, found     # only near the tolerance's edge
+    res = Planner(sc).plan(start)
+    assert not res.ok and "out of the arm's reach" not in res.reason, res.reason
+
+
+def test_the_attitude_change_a_refusal_names_is_the_shortest_arc_holding_every_need():
+    """Needs straddling ±180° make one short arc (+176.2° to +185.5°), not -180° to +178.3°; oracle: brute force."""
+    from spacerobot_planner.free_floating_capture import circular_band_deg
+    rng = np.random.default_rng(3)
+    cases = [[-180.0, 178.3, 176.2, -174.5], [250.7], [10.0, 20.0, 350.0], [-90.0, 90.0]]
+    cases += [list(rng.uniform(-180.0, 180.0, int(rng.integers(1, 6))) + rng.uniform(-30, 30)) for _ in range(200)]
+    for angles in cases:
+        lo, hi = circular_band_deg(angles)
+        # the test's own: for each angle as the arc's start, the arc reaching every other one anticlockwise
+        a = np.asarray(angles, dtype=float)
+        spans = [max((b - s) % 360.0 for b in a) for s in a]
+        assert hi - lo == pytest.approx(min(spans), abs=1e-9), (angles, lo, hi)
+        assert -180.0 <= lo < 180.0
+        assert all((x - lo) % 360.0 <= hi - lo + 1e-9 or (x - lo) % 360.0 > 360.0 - 1e-9 for x in a), (angles, lo, hi)
