@@ -195,6 +195,33 @@ def test_a_best_effort_joint_states_driver_is_heard(graph):
     assert np.allclose(first.points[0].positions, want, atol=1e-9), (list(first.points[0].positions), want)
 
 
+def test_joint_states_on_another_clock_are_said_so_and_taken_at_their_arrival(graph, capfd):
+    """A driver on sim time (stamps near 100 s) and a planner on wall time: a warning naming the clocks, a plan."""
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof"), with_arm=False)
+    capfd.readouterr()
+    robot = g.scenario.robot
+    start = robot.full(g.scenario.start_rad)
+    msg = joint_state_msg(robot.joint_names, start)
+    msg.header.stamp.sec = 100
+    with g.lock:                 # the arm's state, for the graph's checks of what a controller sees
+        g.states.append((time.monotonic(), msg))
+    g.pub_js.publish(msg)
+    err = ""
+    t0 = time.monotonic()
+    while "joint_states are stamped" not in err:
+        err += capfd.readouterr().err
+        assert time.monotonic() - t0 < 30, err[-2000:]
+        time.sleep(0.05)
+    line = next(x for x in err.splitlines() if "joint_states are stamped" in x)
+    assert "s behind this node's clock" in line and "use_sim_time: false" in line and "same clock" in line, line
+    off = float(line.split("stamped ")[1].split(" s ")[0])
+    assert abs(off - (time.time() - 100.0)) < 60.0, line            # the test's own clock difference
+    g.send_target()
+    g.wait(lambda: g.n_trajs() >= 1, 60, "a trajectory from the state")
+
+
 def test_joint_states_timeout_default():
     from spacerobot_planner.config import spec_default
     assert spec_default("joint_states_timeout_s") == 10.0

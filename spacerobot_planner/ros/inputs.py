@@ -6,7 +6,10 @@ The planner node's input topics: messages checked and turned into the session's 
   bounds when the attitude is planned, is invalid input: ``overlap.py``); one within
   ``replan.target_tolerance_*`` of the current target is no new request;
 - ``goal_joint_state`` (JointState): a joint goal of the planned joints;
-- ``joint_states`` (JointState): the arm's state, stamped (its header, else the arrival);
+- ``joint_states`` (JointState): the arm's state, stamped (its header, else the arrival; a
+  header more than ``CLOCK_MISMATCH_S`` from this node's clock at arrival is another clock's,
+  a driver on sim time and a planner not or the other way round: the arrival, and a warning
+  at most every ``CLOCK_WARNING_PERIOD_S``);
 - ``attitude_topic`` when set (PoseStamped of the spacecraft body in the planning frame):
   its yaw stands for the attitude joint in joint_states that lack it (a real servicer's).
 
@@ -14,6 +17,8 @@ A bad message is rejected through the node (log, rate-limited per topic, and /di
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -26,7 +31,14 @@ from ..scene import Target
 from ..session import target_why
 from . import conversions as conv
 
-__all__ = ["Inputs"]
+__all__ = ["Inputs", "CLOCK_MISMATCH_S"]
+
+#: a joint_states header stamped further than this from the node's clock at arrival, s, is on
+#: another clock (wall time against sim time: 1.8e9 s); its stamp made a late state look
+#: "1796299619.64 s old" and joins fail
+CLOCK_MISMATCH_S = 60.0
+#: ... said at most this often, s
+CLOCK_WARNING_PERIOD_S = 30.0
 
 
 class Inputs:
@@ -35,6 +47,7 @@ class Inputs:
     def __init__(self, node):
         self.node = node
         self.attitude = None        # rad: the latest yaw on attitude_topic (joint_states without it)
+        self._clock_warned = -float("inf")     # monotonic s of the last clock-mismatch warning
 
     def subscribe(self) -> list:
         """Create the subscriptions (activate); return them."""
@@ -105,7 +118,26 @@ class Inputs:
                 reason += f"; no attitude received on '{topic}' yet"
             node._reject("joint_states", "invalid_input", reason)
             return
-        node.session.joint_state(q, conv.time_to_ns(msg.header.stamp) or node.get_clock().now().nanoseconds)
+        now_ns, stamp_ns = node.get_clock().now().nanoseconds, conv.time_to_ns(msg.header.stamp)
+        if stamp_ns and abs(now_ns - stamp_ns) > CLOCK_MISMATCH_S * 1e9:
+            self._clock_mismatch(now_ns, stamp_ns)
+            stamp_ns = 0
+        node.session.joint_state(q, stamp_ns or now_ns)
+
+    def _clock_mismatch(self, now_ns: int, stamp_ns: int) -> None:
+        """Warn (at most every CLOCK_WARNING_PERIOD_S of wall time) that joint_states are stamped on another clock."""
+        t = time.monotonic()
+        if t < self._clock_warned + CLOCK_WARNING_PERIOD_S:
+            return
+        self._clock_warned = t
+        node = self.node
+        off = 1e-9 * (stamp_ns - now_ns)
+        sim = node.get_parameter("use_sim_time").value
+        node.get_logger().warning(
+            f"joint_states are stamped {abs(off):.2f} s {'ahead of' if off > 0 else 'behind'} this node's clock "
+            f"(use_sim_time: {str(bool(sim)).lower()}): do the driver and the planner use the same clock? Their "
+            f"stamps are ignored (the arrival time is used), and a controller on the other clock will not run "
+            f"the trajectories, stamped on this one")
 
     def on_attitude(self, msg: PoseStamped):
         """Take the spacecraft body's pose (``attitude_topic``): its yaw is the attitude joint (position ignored)."""
