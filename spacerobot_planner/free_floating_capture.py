@@ -664,9 +664,9 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         reason = (f"free floating: the grasp pose at {np.round(scene.target.grasp_point_m, 3).tolist()} m is "
                   "out of the arm's reach (no capture posture)")
     elif not n_candidates:
-        reason = (f"free floating: no arm motion turns the spacecraft by the attitude change the capture needs "
-                  f"({what}; single motions of the families: quintic or the field's path plus {harm} sine "
-                  f"terms per joint, within the joint bounds)")
+        reason = (f"free floating: no arm motion tried turns the spacecraft by the attitude change the capture "
+                  f"needs ({what}; tried: single motions, quintic or the field's path plus {harm} sine terms per "
+                  f"joint, within the joint bounds; motions that loop to turn the spacecraft further are not)")
     else:
         reason = (f"free floating: {n_candidates} arm motions turn the spacecraft by the needed attitude change "
                   f"({what}), but the {n_checked} certified come within the safety margin in the inertial "

@@ -201,7 +201,7 @@ def free_floating_rows(n_starts: int, seed: int = 0) -> list:
         ok = [r for r in got if r["grasp"]]
         rows.append({"stage": "reaction", "grid": f"free_floating_capture, {n_starts} random targets and starts",
                      "method": method, "grasps": len(ok), "starts": n_starts,
-                     "refused_out_of_range": sum("no arm motion turns" in (r["reason"] or "") for r in got),
+                     "refused_out_of_range": sum("no arm motion tried turns" in (r["reason"] or "") for r in got),
                      "refused_collisions": sum("come within the safety margin" in (r["reason"] or "") for r in got),
                      "median_plan_s": float(np.median([r["plan_s"] for r in got])),
                      "median_duration_s": float(np.median([r["duration_s"] for r in ok])) if ok else None,
