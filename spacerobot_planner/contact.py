@@ -22,13 +22,14 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
 
 from .collision import NO_REFCOUNT, CollisionChecker, link_points, point_in_polygon, point_segment_dist2, rotate_body
 from .joint_space import deg_text
+from .scene import Scene
 
 __all__ = ["penetration_depth_m", "penetration_depths_m", "signed_distance_m", "Exit", "leave_contact"]
 
@@ -143,7 +144,7 @@ class Exit:
 
 def leave_contact(motions, start_rad, *, max_penetration_m: float,
                   room_m: float = 0.01, step_rad: float = math.radians(0.25),
-                  max_length_rad: float = math.radians(30.0)) -> Exit:
+                  max_length_rad: float = math.radians(30.0), hit: str = "an obstacle") -> Exit:
     """
     Walk from a colliding ``start_rad`` to a posture with clearance ≥ margin + ``room_m``.
 
@@ -153,7 +154,8 @@ def leave_contact(motions, start_rad, *, max_penetration_m: float,
     3^dof − 1 directions of the joint-space grid, with the largest signed distance, and
     must increase it; joint bounds are kept.  Refused (``ok`` False) when the start is
     deeper than ``max_penetration_m``, when no direction increases the signed distance,
-    or after ``max_length_rad``.
+    or after ``max_length_rad``.  ``hit``: what the start's links reach into, for the reason
+    (:func:`what_is_hit`).
     """
     checker = motions.checker
     q = np.asarray(start_rad, dtype=float)
@@ -166,7 +168,7 @@ def leave_contact(motions, start_rad, *, max_penetration_m: float,
     path, sds = [q.copy()], [sd0]
     if depth > max_penetration_m:
         return Exit(False, np.array(path), depth, np.array(sds),
-                    f"the links reach {depth:.3f} m into an obstacle, more than "
+                    f"the links reach {depth:.3f} m into {hit}, more than "
                     f"planner.max_start_penetration_m = {max_penetration_m} m")
     n_steps = int(math.ceil(max_length_rad / step_rad))
     for _ in range(n_steps):
@@ -192,6 +194,33 @@ def leave_contact(motions, start_rad, *, max_penetration_m: float,
     return Exit(False, np.array(path), depth, np.array(sds),
                 f"no free posture within {math.degrees(max_length_rad):.0f}° of joint motion "
                 f"(clearance {max(sds[-1], 0.0):.3f} m after it)")
+
+
+def what_is_hit(robot, scene, q_rad) -> str:
+    """
+    Name what posture ``q_rad`` (planned joints, rad) comes within the safety margin of, for a reason.
+
+    "the spacecraft body", "the target body", "debris polygon k" (k: its index in the scene's
+    obstacles), joined with "and"; "an obstacle" when none is.  Each is the scene's checker with
+    that obstacle alone (the spacecraft body is in every one: an obstacle is named where its
+    clearance is below the body's, or the body is clear).
+    """
+    q = np.asarray(q_rad, dtype=float)
+    margin = scene.safety_margin_m
+    alone = Scene(target=None, debris_m=(), safety_margin_m=margin)     # the spacecraft body only
+
+    def clearance(sc) -> float:
+        return float(CollisionChecker(robot, sc).clearance_m(q))
+
+    body = clearance(alone)
+    names = ["the spacecraft body"] if not body > margin else []
+    others = ([("the target body", replace(alone, target=scene.target))] if scene.target is not None else [])
+    others += [(f"debris polygon {k}", replace(alone, debris_m=(poly,))) for k, poly in enumerate(scene.debris_m)]
+    for name, sc in others:
+        d = clearance(sc)
+        if not d > margin and (d < body or body > margin):
+            names.append(name)
+    return " and ".join(names) or "an obstacle"
 
 
 def warm_up(robot, scene) -> None:

@@ -33,7 +33,7 @@ import traceback as _traceback
 import numba as nb
 import numpy as np
 
-from .contact import leave_contact
+from .contact import leave_contact, what_is_hit
 from .field import bfs_distance, validate_problem
 from .field.graph import _next_coord, bfs as field_bfs, grid_strides
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
@@ -451,14 +451,18 @@ class PlanRun:
             return
         refusal = (f"the start {deg_text(self.start)} is in collision: clearance {clr_s:.3f} m, the "
                    f"safety margin is {margin} m")
+        hit = what_is_hit(self.robot, self.sc.scene, self.start)
         with self.stage("exit"):
-            ex = leave_contact(self.validator, self.start, max_penetration_m=self.s.max_start_penetration_m)
+            ex = leave_contact(self.validator, self.start, max_penetration_m=self.s.max_start_penetration_m, hit=hit)
         self.penetration_m = ex.start_penetration_m
         if not ex.ok:
-            raise Fail(Code.START_IN_COLLISION, f"{refusal}; no way out: {ex.reason}")
+            movable = [h for h in hit.split(" and ") if h not in ("the spacecraft body", "an obstacle")]
+            hint = (f"move {' and '.join(movable).replace('the target body', 'the target')} away from the arm, or "
+                    "plan from another start" if movable else "plan from another start")
+            raise Fail(Code.START_IN_COLLISION, f"{refusal}; no way out: {ex.reason} ({hint})")
         self.exit_path = ex.path_rad
         self.plan_start = self.robot.validate_q(ex.path_rad[-1], "exit")
-        self.say(f"exit: the start touches an obstacle ({ex.start_penetration_m:.3f} m deep); "
+        self.say(f"exit: the start touches {hit} ({ex.start_penetration_m:.3f} m deep); "
                  f"{len(ex.path_rad) - 1} steps out to {deg_text(ex.path_rad[-1])}, clearance "
                  f"{ex.signed_distance_m[-1]:.3f} m (not certified)")
 
@@ -920,7 +924,7 @@ class PlanRun:
             except ValueError as e:
                 raise Fail(Code.INVALID_INPUT, str(e)) from None
             if self.progress is not None:
-                self.say(f"trajectory: {traj.duration_s:.2f} s, {len(traj)} points "
+                self.say(f"trajectory (time-optimal): {traj.duration_s:.2f} s, {len(traj)} points "
                          f"({1e3 * self.timings['trajectory']:.1f} ms)")
             if reaction is not None and not reaction.ok:
                 return self.result(Code.REACTION_REFUSED, reaction.reason, smooth=smooth, path=path,

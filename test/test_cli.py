@@ -197,7 +197,7 @@ def test_servicer_json_has_trajectory_and_reaction(tmp_path, capsys):
     # samples on a faster motion (below)
     rt = len(d["trajectory_resampled"]["times_s"])
     assert rt < len(t) and rt <= t[-1] / 0.25 + 100
-    assert "trajectory:" in out and "reaction (held)" in out
+    assert "published trajectory (" in out and "reaction (held)" in out
     # the paper's config keeps the paper's assumption: no wheel limits, a faster motion
     js2 = tmp_path / "p.json"
     assert run(["--params-file", P3, "--json", str(js2), "--quiet"], capsys)[0] == 0

@@ -797,6 +797,10 @@ def test_deep_start_collision_still_refused(paper_scenario):
     q_cap, sc = _captured_then_moved(sc0, 0.20)             # link 3 10 cm inside the body
     res = Planner(sc).plan(q_cap, sc0.start_rad)
     assert res.code == "start_in_collision" and "planner.max_start_penetration_m" in res.reason
+    # what the arm reaches into, and what to do: the target (moved onto the captured arm here, the
+    # scene's only obstacle; the test's own depth into it is beyond the 5 cm walked out of)
+    assert sc.scene.debris_m == () and shapely_depth(sc.robot, sc.scene, q_cap) > 0.05
+    assert "m into the target body" in res.reason and "(move the target away from the arm" in res.reason, res.reason
     off = Planner(sc, max_start_penetration_m=0.0).plan(Planner(sc0).goal_from_target(), sc0.start_rad)
     assert off.code == "start_in_collision"
     _, touching = _captured_then_moved(sc0, 0.10)
