@@ -103,7 +103,9 @@ PARAMETERS = (
               "obstacle or the body, metres.",
               False, 0.0, 1.0),
     ParamSpec("grid.cells", "integer_array", [36, 36, 36],
-              "C-space cells per planned joint.", False, 2, 4096, True),
+              "C-space cells per planned joint (a bounded joint has one grid node more than its cells, a "
+              "periodic one as many: [36, 36, 36] with the attitude periodic is the 36x37x37 grid).",
+              False, 2, 4096, True),
     ParamSpec("scenario.start_deg", "double_array", [-90.0, 135.0, 90.0],
               "Start posture of the planned joints, degrees (CLI and mock arm).", False),
     ParamSpec("scenario.goal_deg", "double_array", [160.7, 32.8, 76.5],
@@ -153,7 +155,7 @@ PARAMETERS = (
               "stamp-to-arrival time measured on a loaded machine (load 5, in-process graphs) was 0.26 s "
               "(python -m spacerobot_planner.bench latency --load N reports the margin), seconds.",
               False, 0.0, 10.0),
-    # ---- the spacecraft's reaction (spacecraft.py, reaction.py; shared/reference/free-floating.md)
+    # ---- the spacecraft's reaction (spacecraft.py, reaction.py)
     ParamSpec("dynamics.body_mass_kg", "double", 2000.0,
               "Spacecraft body mass (with the massless link 1), kg.", False, 1e-6, 1e12),
     ParamSpec("dynamics.body_inertia_kgm2", "double", 1080.0,

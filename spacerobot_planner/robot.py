@@ -1,7 +1,7 @@
 """
 The space robot: a planar serial chain whose first joint is the spacecraft attitude.
 
-Conventions (see ``shared/reference/paper-scenarios.md``): planar world (x, y) in
+Conventions (the project's notes on the paper's scenes, kept outside this repository): planar world (x, y) in
 metres with the origin at the spacecraft centre of mass; joint angles in radians,
 counter-clockwise from +x; joint k's angle is relative to link k-1, so link k points
 at the cumulative sum θ1 + … + θk.  Joint 1 is the "virtual" attitude joint at the

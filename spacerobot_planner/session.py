@@ -728,8 +728,10 @@ class CaptureSession:
                  f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
                  f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
                  f"{', '.join(res.cached) or 'none'}); clearance {res.min_clearance_m:.3f} m; "
-                 f"trajectory {len(traj)} points, {traj.duration_s:.2f} s, joined to the moving arm: "
-                 f"{joined}; stamped {1e-9 * (stamp - now):.3f} s ahead; request→trajectory {1e3 * latency:.1f} ms")
+                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s, joined to the moving arm: {joined}; "
+                    f"stamped {1e-9 * (stamp - now):.3f} s ahead" if outcome.publication.sent else
+                    "no trajectory published")
+                 + f"; request→trajectory {1e3 * latency:.1f} ms")
         return outcome
 
     def _failure(self, req: Request, code: str, reason: str, res=None, tb=None) -> Outcome:

@@ -6,8 +6,9 @@ massless offset fixed in the body, links 2… the arm) is given masses: the spac
 body (mass, inertia about its centre, which is the chain's origin) and each link (mass
 and inertia about its centre, at mid-link).  Positions here are relative to the
 spacecraft body centre with inertial axes (the absolute angles φ_k = θ1 + … + θk);
-the planning frame is the body-centred frame at the start of the motion.  Numbers:
-``shared/reference/free-floating.md``.
+the planning frame is the body-centred frame at the start of the motion.  Numbers: the
+project's notes on the free-floating servicer (kept outside this repository; every number is
+in ``config/servicer_3dof.yaml``).
 
 - **Momentum map.** With no external force the system centre of mass (CoM) stays put
   and the angular momentum about it, h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇, is linear in

@@ -25,6 +25,7 @@ from ..collision import CollisionChecker
 from ..config import load_params_file, load_scenario, scenario_from_params, spec_default
 from ..cspace import build_cspace
 from ..ik import capture_posture, grasp_ik
+from ..joint_space import wrap_angle_rad
 
 _DEFAULT_PARAMS = Path(__file__).resolve().parents[2] / "config" / "paper_3dof.yaml"
 
@@ -125,7 +126,8 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
                     if phase == "executing" and not arm.executing:
                         err = _wrapped_err_deg(robot, arm.positions, res.goal_rad)
                         if err < 0.5:
-                            print(f"[demo] reached the goal: {np.round(np.degrees(arm.positions), 2).tolist()}° "
+                            shown = np.where(robot.periodic, wrap_angle_rad(arm.positions), arm.positions)
+                            print(f"[demo] reached the goal: {np.round(np.degrees(shown), 2).tolist()}° "
                                   f"(error {err:.3f}°) after {time.monotonic() - t_start:.1f} s")
                             rc, reason = 0, None
                             break
