@@ -200,22 +200,23 @@ def plot_plan(res, scenario, path, dpi: int = 110) -> None:
             nodes = nodes[np.random.default_rng(0).choice(len(nodes), 6000, replace=False)]
         pts = np.degrees(grid.config_of(nodes))
         ax3.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=2, c=pts[:, 0], cmap="Greys", alpha=0.25,
-                    depthshade=False)
+                    depthshade=False, label="obstacle surface (incl. margin)")
         lo, per = robot.planned_lower_rad, robot.planned_periodic
         if len(res.grid_path_rad):
             g = np.degrees(wrap_for_plot(res.grid_path_rad, lo, per))
-            ax3.plot(g[:, 0], g[:, 1], g[:, 2], ".", color=_GRID, ms=4)
+            ax3.plot(g[:, 0], g[:, 1], g[:, 2], ".", color=_GRID, ms=4, label="grid path (descent)")
         if len(res.path_rad):
             p = np.degrees(wrap_for_plot(res.path_rad, lo, per))
-            ax3.plot(p[:, 0], p[:, 1], p[:, 2], "-", color=_PATH, lw=2.5)
+            ax3.plot(p[:, 0], p[:, 1], p[:, 2], "-", color=_PATH, lw=2.5, label="smoothed path")
         s = np.degrees(res.start_rad)
-        ax3.scatter(*s, color=_START, s=60, edgecolor="k", depthshade=False)
+        ax3.scatter(*s, color=_START, s=60, edgecolor="k", depthshade=False, label="start")
         if res.goal_rad is not None:
             ax3.scatter(*np.degrees(res.goal_rad), color=_GOAL, s=140, marker="*", edgecolor="k",
-                        depthshade=False)
+                        depthshade=False, label="goal")
+        ax3.legend(loc="upper left", fontsize=6, framealpha=0.6)
         ax3.set_xlabel(f"{names[0]} [deg]")
         ax3.set_ylabel(f"{names[1]} [deg]")
-        ax3.set_zlabel(f"{names[2]} [deg]")
+        ax3.set_zlabel(f"{names[2]} [deg]", labelpad=2)
         ax3.set_title(f"C-space {grid.label()}: obstacle surface, path", fontsize=10)
         # potential: slice through the goal's θ1
         ax = fig.add_subplot(gs[0, 1])
