@@ -110,7 +110,7 @@ def test_unreachable_target_exit_2(tmp_path, capsys):
     (["--goal-deg", "0", "0", "400"], "--goal-deg"),
     (["--goal-deg", "0", "0", "nan"], "--goal-deg"),
     (["--solver", "magic"], "--solver"),
-    (["--cells", "1"], "grid.cells"),
+    (["--cells", "1"], "--cells: 1 is below the minimum 2"),
     (["--cells", "10", "10"], "--cells"),
     (["--tolerance", "-1"], "planner.field_tolerance"),
     (["--start-deg", "a", "b", "c"], "--start-deg"),

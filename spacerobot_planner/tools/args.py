@@ -28,7 +28,10 @@ def with_cells(scenario, cells: list):
     """Return the scenario on a grid of ``cells`` (``--cells``: one value for all joints, or one per joint)."""
     dof = scenario.robot.dof
     full = list(cells) * dof if len(cells) == 1 else list(cells)
-    check_value("grid.cells", full)
+    try:
+        check_value("grid.cells", full)
+    except ValueError as e:           # the option the user typed, not the file's field
+        raise ValueError(f"--cells: {str(e).removeprefix('grid.cells: ')}") from None
     if len(full) != dof:
         raise ValueError(f"--cells: expected 1 or {dof} values, got {len(cells)}")
     return scenario.with_grid(scenario.grid_with_cells(full))

@@ -38,7 +38,7 @@ __all__ = ["main", "build_parser"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = Parser(prog="spacerobot-plan", description=__doc__.strip().split("\n\n")[0],
+    ap = Parser(prog="spacerobot-plan", description=__doc__.strip().split("\n\n")[0].replace("``", ""),
                 formatter_class=argparse.RawDescriptionHelpFormatter,
                 epilog="spacerobot-plan envelope --help: capture envelope maps over target poses "
                        "(docs/envelope.md)")
