@@ -314,7 +314,7 @@ def test_the_command_writes_the_table_parquet_and_maps(tmp_path, capsys):
     (["--x-m", "-3", "-2", "1"], "--x-m"),
     (["--starts-deg", "1", "2", "3"], "--starts-deg"),
     (["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "--workers"),
-    (["--cells", "0"], "grid.cells"),
+    (["--cells", "0"], "--cells: 0 is below the minimum 2"),
 ])
 def test_bad_input_exits_1_naming_the_flag(extra, named, tmp_path, capsys):
     argv = ["envelope", "--params-file", str(P2), "--x-m", "-3.27", "-3.02", "2", "--y-m", "-2.6", "-2.6", "1",
