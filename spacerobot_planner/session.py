@@ -525,10 +525,14 @@ class CaptureSession:
             horizon_s = max(horizon_s, ex.trajectory.duration_s - ex.time_s(self.now_ns()))
         if req.attempt >= 3:
             horizon_s = 0.0
-        start, join, why = plan_start(ex, self.now_ns(), q, q_ns, horizon_s, float(s.follow_tolerance_rad),
+        now = self.now_ns()
+        start, join, why = plan_start(ex, now, q, q_ns, horizon_s, float(s.follow_tolerance_rad),
                                       req.scenario.robot.planned_periodic)
         if why is not None:
             self.log("warning", f"plan #{req.gen}: {why}")
+        elif join is None and now - q_ns > MAX_STATE_AGE_S * 1e9:     # a driver gone, or a state sent once
+            self.log("info", f"plan #{req.gen}: from the last joint_states, {1e-9 * (now - q_ns):.1f} s old "
+                     "(none newer came)")
         return start, join
 
     def _arm_state(self, req: Request):

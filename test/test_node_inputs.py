@@ -222,6 +222,27 @@ def test_joint_states_on_another_clock_are_said_so_and_taken_at_their_arrival(gr
     g.wait(lambda: g.n_trajs() >= 1, 60, "a trajectory from the state")
 
 
+def test_a_plan_from_an_old_joint_state_says_how_old(graph, capfd):
+    """One joint state, then silence (a driver gone, or `ros2 topic pub --once`): the plan says the state's age."""
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+    t_sent = time.monotonic()
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner.session.joint_q is not None, 30, "the joint state taken")
+    time.sleep(1.5)
+    capfd.readouterr()
+    g.send_target()
+    g.wait(lambda: g.n_trajs() >= 1, 60, "a trajectory")
+    t_plan = time.monotonic()
+    err = capfd.readouterr().err
+    line = next((x for x in err.splitlines() if "from the last joint_states, " in x), None)
+    assert line is not None, err[-2000:]
+    age = float(line.split("from the last joint_states, ")[1].split(" s old")[0])
+    assert 1.4 <= age <= t_plan - t_sent + 0.1, (line, t_plan - t_sent)       # the test's own clock
+
+
 def test_joint_states_timeout_default():
     from spacerobot_planner.config import spec_default
     assert spec_default("joint_states_timeout_s") == 10.0
