@@ -238,7 +238,7 @@ class Planner:
         if not free and not any(s.free for s in found):
             clr = ", ".join(f"{s.clearance_m:.3f} m" for s in found[:6])
             raise ValueError(f"every capture posture for the grasp point {gp} m collides{tried} "
-                             f"(clearances {clr}; margin {margin} m)")
+                             f"(clearances {clr}; margin {margin:g} m)")
         if not free:
             raise ValueError(f"every capture posture for the grasp point {gp} m sits on the safety margin "
                              f"(its clearance is the margin, {margin:g} m, to within {GRASP_ROOM_M:g} m): no room "

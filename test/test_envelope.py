@@ -315,6 +315,8 @@ def test_the_command_writes_the_table_parquet_and_maps(tmp_path, capsys):
     (["--starts-deg", "1", "2", "3"], "--starts-deg"),
     (["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "--workers"),
     (["--cells", "0"], "--cells: 0 is below the minimum 2"),
+    (["--x-m", "-3.27", "-3.27", "3"], "--x-m: 3 values asked for between equal ends"),
+    (["--x-m", "-3", "-2", "100000", "--y-m", "-3", "-2", "1000"], "more than one sweep holds"),
 ])
 def test_bad_input_exits_1_naming_the_flag(extra, named, tmp_path, capsys):
     argv = ["envelope", "--params-file", str(P2), "--x-m", "-3.27", "-3.02", "2", "--y-m", "-2.6", "-2.6", "1",

@@ -83,6 +83,9 @@ def axis_values(lo: float, hi: float, count: int, name: str) -> tuple:
     if count == 1 and lo != hi:
         raise ValueError(f"{name}: one value asked for between two different ends ({lo} and {hi}); "
                          "give the same value twice, or a count ≥ 2")
+    if count > 1 and lo == hi:
+        raise ValueError(f"{name}: {int(count)} values asked for between equal ends ({lo}); "
+                         "give a count of 1, or two different ends")
     return tuple(float(v) for v in np.linspace(lo, hi, int(count)))
 
 

@@ -38,7 +38,7 @@ __all__ = ["main", "build_parser"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = Parser(prog="spacerobot-plan envelope", description=__doc__.strip().split("\n\n")[0],
+    ap = Parser(prog="spacerobot-plan envelope", description=__doc__.strip().split("\n\n")[0].replace("``", ""),
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--params-file", required=True, help="ROS 2 parameter file (any scenario, any acs.mode)")
     ap.add_argument("--x-m", type=float, nargs=3, required=True, metavar=("X0", "X1", "NX"),
@@ -63,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-plots", action="store_true", help="no PNG maps")
     ap.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
     return ap
+
+
+#: the most poses one sweep plans (its rows and pose ids are held in memory)
+MAX_POSES = 50_000_000
 
 
 def _count(value: float, flag: str) -> int:
@@ -96,6 +100,9 @@ def main(argv=None) -> int:
         else:
             raise ValueError("--starts-deg: no start given and the file has no scenario.start_deg")
         grid = PoseGrid(xs, ys, yaws, tuple(tuple(s) for s in starts))
+        if grid.n_poses > MAX_POSES:
+            raise ValueError(f"--x-m/--y-m/--yaw-deg/--starts-deg: {grid.n_poses} poses, more than one sweep "
+                             f"holds ({MAX_POSES}); split it into several sweeps")
         spec = sweep_spec(args.params_file, scenario.grid.cells, grid)
         parquet = {"auto": None, "yes": True, "no": False}[args.parquet]
         if not args.quiet:
