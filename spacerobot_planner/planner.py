@@ -215,6 +215,12 @@ class Planner:
             raise ValueError("no goal given and the scene has no target")
         gp = np.round(sc.scene.target.grasp_point_m, 3).tolist()
         margin = sc.scene.safety_margin_m
+        side = sc.scene.target.handle_side_m
+        if margin >= side:     # the tip at the grasp is the handle's length from the target body
+            raise ValueError(f"every capture posture for the grasp point {gp} m sits on the safety margin or "
+                             f"within it: the tip at the grasp is the handle's length (target.handle_side_m = "
+                             f"{side:g} m) from the target body, and safety_margin_m = {margin:g} m is not below "
+                             f"it; a safety_margin_m below {side:g} m allows the grasp")
         found, free = [], []             # the branches of each approach angle tried; the clear ones
         offsets = self._approach_offsets_deg(bound)
         for offset_deg in offsets:

@@ -234,9 +234,11 @@ def test_a_grasp_on_the_safety_margin_is_refused_as_such(dof, sc2, sc3):
     side = sc.scene.target.handle_side_m
     res = Planner(sc.with_scene(sc.scene.with_margin(0.99 * side))).plan(sc.start_rad)
     assert res.ok, res.reason
-    res = Planner(sc.with_scene(sc.scene.with_margin(side))).plan(sc.start_rad)
-    assert res.code == "goal_unreachable" and "sits on the safety margin" in res.reason, (res.code, res.reason)
-    assert res.timings_s.get("field", 0.0) == 0.0          # refused before any grid is built
+    for margin in (side, 1.2 * side):        # on it, and beyond it (the tip's clearance is below the margin)
+        res = Planner(sc.with_scene(sc.scene.with_margin(margin))).plan(sc.start_rad)
+        assert res.code == "goal_unreachable" and "sits on the safety margin" in res.reason, (res.code, res.reason)
+        assert "target.handle_side_m" in res.reason and f"{margin:g} m is not below" in res.reason, res.reason
+        assert res.timings_s.get("field", 0.0) == 0.0          # refused before any grid is built
 
 
 def test_goal_from_target_is_papers_branch(planner3):
