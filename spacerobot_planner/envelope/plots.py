@@ -147,7 +147,8 @@ def plot_envelope(rows, scenario: Scenario, grid: PoseGrid, out_dir, dpi: int = 
             ok = int(np.sum(codes == CODES.index("ok")))
             _overlay(ax, scenario, grid.starts_rad[s], grid.yaw_deg[a])
             handles = [Patch(color=CODE_COLOURS[k], label=CODES[k]) for k in present]
-            ax.legend(handles=handles + ax.get_legend_handles_labels()[0], fontsize=7, loc="best")
+            ax.legend(handles=handles + ax.get_legend_handles_labels()[0], fontsize=7, loc="upper center",
+                      bbox_to_anchor=(0.5, -0.12), ncol=3)      # below the map: "best" could cover cells
             ax.set_title(f"feasibility: {ok} of {nx * ny} poses ok", fontsize=10)
             _panel_limits(ax, xe, ye, body)
             for ax, (col, label, vals) in zip(flat[1:], panels):
