@@ -18,9 +18,11 @@ carries the very trajectory the node publishes:
    when that certification fails the dense trajectory is kept;
 4. **the controller's motion** -- joint_trajectory_controller interpolates the published
    points (quintic segments), which overshoots the time-optimal profile's piecewise-constant
-   accelerations by up to about a quarter: that motion is sampled (:func:`controller_overshoot`)
-   and, where it exceeds a limit, steps 1 to 3 run again with the scaling factors lowered by the
-   overshoot (a few percent longer, within the limits as the arm really moves); a joined plan's
+   accelerations by up to about a quarter (and, the attitude held, a wheel torque limit by up to
+   about a third): that motion is sampled (:func:`controller_overshoot`,
+   :func:`controller_wheel_overshoot`) and, where it exceeds a limit, steps 1 to 3 run again with
+   the scaling factors lowered by the overshoot (a few percent longer, within the limits as the
+   arm really moves); a joined plan's
    paths (the corner and its blends) are made once and the re-timings time the one the first
    round chose (the others only when it cannot be entered at the arm's speed); every path's
    spline model is made once for all rounds (``trajectory.shared_path_models``);
@@ -43,12 +45,12 @@ import numpy as np
 
 from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
-from .spacecraft import free_floating_response
+from .spacecraft import free_floating_response, wheel_load
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import Resampled, Trajectory, controller_peaks, resample, shared_path_models
+from .trajectory import Resampled, Trajectory, controller_peaks, resample, sample_points, shared_path_models
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
-           "controller_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
+           "controller_overshoot", "controller_wheel_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
 RESAMPLE_STEP_S = 0.25
@@ -283,27 +285,33 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
     :class:`Processed` of the last round, that of the first).
     """
-    limits = scenario.joint_limits
+    limits, acs = scenario.joint_limits, scenario.acs
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
     first = got
     for _ in range(CONTROLLER_RETIMES):
         if got.refused is not None or limits is None:
             break
-        over_v, over_a = controller_overshoot(got.trajectory, scenario)
-        if over_v <= 1.0 + CONTROLLER_TOL and over_a <= 1.0 + CONTROLLER_TOL:
+        over = controller_overshoot(got.trajectory, scenario) + controller_wheel_overshoot(got.trajectory, scenario)
+        if max(over) <= 1.0 + CONTROLLER_TOL:
             break
-        # only the factor that overshoots (a slower velocity limit could not enter a joined path at
+        # only the factors that overshoot (a slower velocity limit could not enter a joined path at
         # the arm's speed)
-        if over_v > 1.0 + CONTROLLER_TOL:
-            limits = replace(limits, velocity_scaling=limits.velocity_scaling / over_v * CONTROLLER_SHRINK)
-        if over_a > 1.0 + CONTROLLER_TOL:
-            limits = replace(limits, acceleration_scaling=limits.acceleration_scaling / over_a * CONTROLLER_SHRINK)
+        lowered = [_lowered(scale, peak) for scale, peak in zip(
+            (limits.velocity_scaling, limits.acceleration_scaling, acs.wheel_momentum_scaling,
+             acs.wheel_torque_scaling), over)]
+        limits = replace(limits, velocity_scaling=lowered[0], acceleration_scaling=lowered[1])
+        acs = replace(acs, wheel_momentum_scaling=lowered[2], wheel_torque_scaling=lowered[3])
         try:
-            got, chosen = _time_and_resample(replace(scenario, joint_limits=limits), *args, certify=certify,
-                                             chosen=chosen)
+            got, chosen = _time_and_resample(replace(scenario, joint_limits=limits, acs=acs), *args,
+                                             certify=certify, chosen=chosen)
         except ValueError:
             break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
     return got, first
+
+
+def _lowered(scaling: float, peak: float) -> float:
+    """Return a scaling factor lowered by the controller's overshoot ``peak`` (a peak ratio; kept within the limit)."""
+    return scaling / peak * CONTROLLER_SHRINK if peak > 1.0 + CONTROLLER_TOL else scaling
 
 
 def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
@@ -325,6 +333,30 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
     u = np.linspace(0.0, 1.0, samples_per_segment, endpoint=False)
     return controller_peaks(traj.times_s, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, u,
                             vlim, alim)
+
+
+def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
+    """
+    Return the peak (wheel momentum, wheel torque) over the scenario's wheel limits of the controller's motion.
+
+    The wheels take the arm's reaction as the arm really moves: joint_trajectory_controller's
+    interpolation of ``traj``'s points (``trajectory.sample_points``), sampled
+    ``samples_per_segment`` times per segment and at the end, not only the points the time
+    parameterisation kept within the limits (the quintics between them overshoot a torque limit
+    that binds by up to about a third).  The ratios are max |h_wheel| / ``acs.max_wheel_momentum_Nms``
+    and max |τ_wheel| / ``acs.max_wheel_torque_Nm`` (``spacecraft.wheel_load``; 1.0: at the
+    limit); 0.0 for a limit not set, and both 0.0 unless the attitude is held.
+    """
+    acs = scenario.acs
+    if acs.mode != "held" or not acs.has_wheel_limits or len(traj.times_s) < 2:
+        return 0.0, 0.0
+    t = np.asarray(traj.times_s, dtype=float)
+    u = np.linspace(0.0, 1.0, samples_per_segment, endpoint=False)
+    at = np.append((t[:-1, None] + np.diff(t)[:, None] * u).ravel(), t[-1])
+    q, v, a = sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, at)
+    h, tau = wheel_load(scenario.robot, scenario.masses, q, v, a)
+    return tuple(float(np.max(np.abs(x))) / limit if limit > 0.0 else 0.0
+                 for x, limit in ((h, acs.max_wheel_momentum_Nms), (tau, acs.max_wheel_torque_Nm)))
 
 
 def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,

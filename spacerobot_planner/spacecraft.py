@@ -105,6 +105,11 @@ class AcsSettings:
         max_wheel_momentum_Nms, max_wheel_torque_Nm: wheel limits, 0 = no limit.
         position_tolerance_m: free floating: largest acceptable tip miss, metres.
         compensate_drift: free floating: plan for the predicted drift (:func:`plan_free_floating`).
+        wheel_momentum_scaling, wheel_torque_scaling: the fractions of the wheel limits the time
+            parameterisation keeps to (not parameters: the chain after the path lowers them where
+            the controller's interpolation of the published points overshoots a limit, as it
+            lowers the joint limits' scaling factors, ``adapters.controller_wheel_overshoot``);
+            the reaction's verdict judges the limits themselves.
 
     """
 
@@ -113,6 +118,16 @@ class AcsSettings:
     max_wheel_torque_Nm: float = 0.0
     position_tolerance_m: float = 0.02
     compensate_drift: bool = False
+    wheel_momentum_scaling: float = 1.0
+    wheel_torque_scaling: float = 1.0
+
+    @property
+    def timed_wheel_limits(self) -> tuple:
+        """(momentum N·m·s, torque N·m) the time parameterisation keeps to: None, None unless the attitude is held."""
+        if self.mode != "held":
+            return None, None
+        return (self.max_wheel_momentum_Nms * self.wheel_momentum_scaling,
+                self.max_wheel_torque_Nm * self.wheel_torque_scaling)
 
     @property
     def has_wheel_limits(self) -> bool:
@@ -339,11 +354,11 @@ def wheel_load(robot, masses: MassProperties, positions_rad, velocities_rad_s, a
     Wheel momentum h_wheel = −H·q̇ (M,) N·m·s and torque dh_wheel/dt (M,) N·m at the points of a
     trajectory over the planned joints ((M, dof) each; locked joints at rest).
     """
-    qf = robot.full(positions_rad)
-    qd = _planned_rates(robot, velocities_rad_s)
-    qdd = _planned_rates(robot, accelerations_rad_s2)
-    return (-angular_momentum_Nms(robot, masses, qf, qd),
-            -momentum_rate_Nm(robot, masses, qf, qd, qdd))
+    cl, m, inertia = _tables(robot, masses)
+    shape, (qf, qd, qdd) = _rows(robot.full(positions_rad), _planned_rates(robot, velocities_rad_s),
+                                 _planned_rates(robot, accelerations_rad_s2))
+    h, rate = _momentum_rows(cl, m, inertia, qf, qd, qdd, True)        # both in one pass
+    return -_shaped(h, shape), -_shaped(rate, shape)
 
 
 # ----------------------------------------------------------------- free floating

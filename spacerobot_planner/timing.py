@@ -93,8 +93,7 @@ def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed
     """:func:`plan_motion`'s trajectory (the wheel limits in the time-optimal parameterisation)."""
     robot, acs = scenario.robot, scenario.acs
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
-    limits = (acs.max_wheel_momentum_Nms, acs.max_wheel_torque_Nm) if acs.mode == "held" else (None, None)
-    wheel = WheelModel(robot, scenario.masses, *limits)
+    wheel = WheelModel(robot, scenario.masses, *acs.timed_wheel_limits)
     return time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
                              start_path_speed=start_path_speed, wheel=wheel)
@@ -121,7 +120,8 @@ def reaction_of(scenario, path_rad, traj, state_rad=None, motions=None) -> React
     Return the reaction report :func:`timed_motion` gives with ``traj`` (its trajectory of ``path_rad``).
 
     For a trajectory from ``timed_motion(..., report=False)`` with the same path, state and a
-    scenario that differs at most in its scaling factors (the report does not read them).
+    scenario that differs at most in its scaling factors, the joints' or the wheels' (the report
+    does not read them: it judges the limits themselves).
     """
     path = np.asarray(path_rad, dtype=float)
     if state_rad is not None:

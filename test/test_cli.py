@@ -196,7 +196,7 @@ def test_servicer_json_has_trajectory_and_reaction(tmp_path, capsys):
     # (unless dense neighbours) and a few more where the path bends; far fewer than the dense
     # samples on a faster motion (below)
     rt = len(d["trajectory_resampled"]["times_s"])
-    assert rt < len(t) and rt <= t[-1] / 0.25 + 100
+    assert rt < len(t) and rt <= d["trajectory_resampled"]["times_s"][-1] / 0.25 + 100
     assert "published trajectory (" in out and "reaction (held)" in out
     # the paper's config keeps the paper's assumption: no wheel limits, a faster motion
     js2 = tmp_path / "p.json"
