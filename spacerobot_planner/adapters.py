@@ -13,9 +13,10 @@ carries the very trajectory the node publishes:
 2. **reaction** -- the spacecraft's verdict on it (free floating, wheel limits); a refused
    trajectory stops the chain (``Processed.refused``);
 3. **resample and certify** -- a subset of the dense points at most ``time_step_s``
-   apart and within 0.1° of the dense path, the polyline through them certified on the
-   exact geometry with the scene's ``motion.MotionValidator`` (``trajectory.resample``);
-   when that certification fails the dense trajectory is kept;
+   apart and within 0.1° of the dense path; the motion the controller makes of them (its
+   quintics, sampled: ``trajectory.controller_check``) certified on the exact geometry with
+   the scene's ``motion.MotionValidator`` (``trajectory.resample``); when that certification
+   fails the dense trajectory is kept;
 4. **the controller's motion** -- joint_trajectory_controller interpolates the published
    points (quintic segments), which overshoots the time-optimal profile's piecewise-constant
    accelerations by up to about a quarter (and, the attitude held, a wheel torque limit by up to
@@ -47,7 +48,8 @@ from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response, wheel_load
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import Resampled, Trajectory, controller_peaks, resample, sample_points, shared_path_models
+from .trajectory import (Resampled, Trajectory, controller_check, controller_motion, controller_peaks, resample,
+                         shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "controller_wheel_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
@@ -340,7 +342,7 @@ def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: 
     Return the peak (wheel momentum, wheel torque) over the scenario's wheel limits of the controller's motion.
 
     The wheels take the arm's reaction as the arm really moves: joint_trajectory_controller's
-    interpolation of ``traj``'s points (``trajectory.sample_points``), sampled
+    interpolation of ``traj``'s points (``trajectory.controller_motion``), sampled
     ``samples_per_segment`` times per segment and at the end, not only the points the time
     parameterisation kept within the limits (the quintics between them overshoot a torque limit
     that binds by up to about a third).  The ratios are max |h_wheel| / ``acs.max_wheel_momentum_Nms``
@@ -350,11 +352,7 @@ def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: 
     acs = scenario.acs
     if acs.mode != "held" or not acs.has_wheel_limits or len(traj.times_s) < 2:
         return 0.0, 0.0
-    t = np.asarray(traj.times_s, dtype=float)
-    u = np.linspace(0.0, 1.0, samples_per_segment, endpoint=False)
-    at = np.append((t[:-1, None] + np.diff(t)[:, None] * u).ravel(), t[-1])
-    q, v, a = sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, at)
-    h, tau = wheel_load(scenario.robot, scenario.masses, q, v, a)
+    h, tau = wheel_load(scenario.robot, scenario.masses, *controller_motion(traj, samples_per_segment))
     return tuple(float(np.max(np.abs(x))) / limit if limit > 0.0 else 0.0
                  for x, limit in ((h, acs.max_wheel_momentum_Nms), (tau, acs.max_wheel_torque_Nm)))
 
@@ -406,9 +404,9 @@ def _certified(scenario, got: Processed, args) -> Processed | None:
         if got.refused is not None:
             return _stopped(got)
     # the round's points are resample's selection of these dense points (time_step_s, the path
-    # tolerance): resample(got.dense, motions) would select them again and certify their polyline,
-    # keeping them when it passes at once, adding points back (or failing) otherwise
-    check = MotionValidator.of(motions).check(got.dense.positions_rad[got.indices])
+    # tolerance): resample(got.dense, motions) would select them again and certify the controller's
+    # motion through them, keeping them when it passes at once, adding points back (or failing) otherwise
+    check, _ = controller_check(got.trajectory, motions)
     if not check.ok:
         return None
     return _finished(scenario, got, Resampled(got.trajectory, got.indices, check, 0))

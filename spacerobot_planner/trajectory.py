@@ -83,7 +83,7 @@ from .motion import MotionValidator
 __all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
            "horizon_index", "HorizonPassed", "sample_points", "controller_peaks", "chord_lengths_rad",
-           "arc_lengths_rad"]
+           "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -1220,14 +1220,15 @@ def limit_ratios(times_s, positions_rad, velocities, accelerations, vmax, amax):
 @dataclass(frozen=True, eq=False)
 class Resampled:
     """
-    A resampled trajectory and the certification of the polyline through its points.
+    A resampled trajectory and the certification of the controller's motion through its points.
 
     Attributes
     ----------
         trajectory: the kept points (a subset of the dense trajectory's: exact states).
         indices: (K,) their indices in the dense trajectory (0 and M-1 included).
-        check: ``motion.PathCheck`` of the polyline through ``trajectory.positions_rad``
-            on the exact geometry (None when no checker was given).
+        check: ``motion.PathCheck`` of the controller's motion through ``trajectory``'s
+            points (:func:`controller_check`) on the exact geometry (None when no checker was
+            given).
         refinements: rounds in which points were added back where the check failed.
 
     """
@@ -1301,9 +1302,10 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
     ``path_tolerance_rad`` (Euclidean, joint space) of the straight segment joining them
     (when given).  With a ``checker`` (the scene's ``motion.MotionValidator``, or its
     ``collision.CollisionChecker``: then the bounds of ``checker.robot`` and the default
-    step) the polyline through the kept points is certified on the exact geometry; where
-    an interval fails, the dense point in its middle is added back, until it passes or
-    only dense intervals fail.
+    step) the motion a controller makes of the kept points (:func:`controller_check`: its
+    quintics, not the chords between the points) is certified on the exact geometry; where
+    a segment fails, the dense point in its middle is added back, until it passes or only
+    dense segments fail.
 
     Args:
         traj: a dense trajectory from :func:`time_parameterize`.
@@ -1337,10 +1339,10 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
     if checker is not None:
         motions = MotionValidator.of(checker)
         while True:
-            check = motions.check(q[idx])
+            check, seg_ok = controller_check(traj.subset(idx), motions)
             if check.ok or rounds >= max_rounds:
                 break
-            bad = np.flatnonzero(~check.interval_ok)
+            bad = np.flatnonzero(~seg_ok)
             mids = [(idx[b] + idx[b + 1]) // 2 for b in bad if idx[b + 1] - idx[b] > 1]
             if not mids:
                 break
@@ -1667,6 +1669,45 @@ def sample_points(times_s, positions, velocities, accelerations, t_s):
     if scalar:
         return pos[0], vel[0], acc[0]
     return pos, vel, acc
+
+
+#: the controller's motion between two published points is certified as the polyline through
+#: this many samples of it per segment (:func:`controller_check`): the quintic then lies within
+#: about 1/64 of its deviation from the segment's chord (of ≤ 0.1°, the resampling's tolerance)
+#: of a certified polyline
+CONTROLLER_SAMPLES = 8
+
+
+def controller_motion(traj: Trajectory, samples_per_segment: int = CONTROLLER_SAMPLES) -> tuple:
+    """
+    Sample the motion joint_trajectory_controller makes of a trajectory's points (:func:`sample_points`).
+
+    At ``samples_per_segment`` (S) evenly spaced times of each segment, from its first point
+    (exact: the point itself), and at the last point: (positions, velocities, accelerations),
+    each (S (M - 1) + 1, dof), rad, rad/s, rad/s²; the trajectory's own point when M = 1.
+    """
+    t = np.asarray(traj.times_s, dtype=float)
+    if len(t) < 2:
+        return traj.positions_rad.copy(), traj.velocities_rad_s.copy(), traj.accelerations_rad_s2.copy()
+    u = np.arange(samples_per_segment) / samples_per_segment
+    at = np.append((t[:-1, None] + np.diff(t)[:, None] * u).ravel(), t[-1])
+    return sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, at)
+
+
+def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTROLLER_SAMPLES) -> tuple:
+    """
+    Certify the arm's motion as the controller moves it through ``traj``'s points, on the exact geometry.
+
+    The polyline through :func:`controller_motion`'s samples, checked by ``motions`` (the scene's
+    ``motion.MotionValidator``): the curve, not the chords between the points (a quintic bulges
+    off its chord, up to about 2 mm towards an obstacle on the paper-family scenes).  Returns
+    (``motion.PathCheck`` of that polyline, segment_ok bool (M - 1,): each segment's samples
+    passed).
+    """
+    check = MotionValidator.of(motions).check(controller_motion(traj, samples_per_segment)[0])
+    seg_ok = np.asarray(check.interval_ok, dtype=bool).reshape(-1, samples_per_segment).all(axis=1) \
+        if len(traj.times_s) > 1 else np.zeros(0, bool)
+    return check, seg_ok
 
 
 def controller_peaks(times_s, positions, velocities, accelerations, fractions, vlim, alim) -> tuple:

@@ -9,9 +9,9 @@ factors; a moving start; resampling and its certification (oracles in test/oracl
 import numpy as np
 import pytest
 from hypothesis import example, given, settings, strategies as st
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import BPoly, CubicSpline
 
-from oracles import check_trajectory, dense_samples, toppra_duration_s
+from oracles import check_trajectory, dense_samples, shapely_clearance, toppra_duration_s
 from paper_paths import joint_limits, new_path_from
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.trajectory import densify_path, resample, sample, shared_path_models, time_parameterize
@@ -225,12 +225,62 @@ def test_resampled_trajectory_is_short_exact_and_certified(dof, paper_scenario, 
         check_trajectory(sub, path, vmax, amax, dense=False)          # the limits hold between kept points too
         if kw.get("time_step_s"):
             assert np.max(np.diff(sub.times_s)) <= kw["time_step_s"] + 1e-12
-        # oracle: the polyline through the kept points, sampled at 0.1°, clears the margin
+        # oracle: the polyline through the kept points, sampled at 0.1°, clears the margin, and so
+        # does the controller's motion through them (SciPy's quintic, 40 samples per segment)
         fine = dense_samples(sub.positions_rad, np.radians(0.1))
         assert np.all(checker.clearance_m(fine) > sc.scene.safety_margin_m)
+        assert np.all(checker.clearance_m(_quintic_samples(sub, 40)) > sc.scene.safety_margin_m)
     if dof == 3:
         traj_s = time_parameterize(path, vmax, amax)
         assert 10 <= len(resample(traj_s, checker).trajectory) <= 200 and traj_s.duration_s > 20.0
+
+
+def _quintic_samples(traj, per_segment):
+    """(K, dof) the controller's motion through the points (SciPy's quintic: position, velocity, acceleration)."""
+    t = np.asarray(traj.times_s)
+    fine = np.linspace(t[0], t[-1], per_segment * (len(t) - 1) + 1)
+    return np.stack([BPoly.from_derivatives(t, np.stack([traj.positions_rad[:, d], traj.velocities_rad_s[:, d],
+                                                         traj.accelerations_rad_s2[:, d]], axis=1)[:, :, None].tolist(),
+                                            orders=5)(fine)[:, 0] for d in range(traj.positions_rad.shape[1])], axis=1)
+
+
+@pytest.mark.parametrize("bulge_deg", [-4.0, -1.0, 0.5, 1.0, 2.0, 4.0, 8.0])
+def test_the_certification_is_of_the_controllers_curve_not_the_chord(paper_scenario, paper_path, bulge_deg):
+    """
+    Two points near the paper 2-DOF path's closest approach, their chord clear by 67 mm.
+
+    With end velocities across the chord (bulge_deg: about how far the controller's quintic
+    bulges off it, > 0 towards the obstacle) the controller's motion nears the obstacle.
+    Oracle: shapely's clearance of SciPy's quintic through the two points; resample's verdict
+    (two points: nothing to add back) must agree with it wherever it is 2 mm or more from the
+    safety margin.  Certifying the chord alone passed every one of them.
+    """
+    from dataclasses import replace
+    from spacerobot_planner.motion import MotionValidator
+    sc, path = paper_scenario(2), paper_path(2)
+    vmax, amax = joint_limits(sc)
+    traj = time_parameterize(path, vmax, amax)
+    clr = np.array([shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad])
+    k = int(np.argmin(clr))
+    pair = traj.subset([max(k - 3, 0), min(k + 3, len(traj) - 1)])
+    chord = np.diff(pair.positions_rad, axis=0)[0]
+    across = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)
+    mid = pair.positions_rad.mean(axis=0)
+    towards = 1.0 if shapely_clearance(sc.robot, sc.scene, mid + 0.02 * across) < clr[k] else -1.0
+    v = towards * np.radians(bulge_deg) * 4.0 / np.diff(pair.times_s)[0] * across
+    bent = replace(pair, velocities_rad_s=np.stack([v, -v]), accelerations_rad_s2=np.zeros((2, 2)))
+    oracle = min(shapely_clearance(sc.robot, sc.scene, q) for q in _quintic_samples(bent, 400))
+    margin = sc.scene.safety_margin_m
+    got = resample(bent, MotionValidator.for_scene(sc.robot, sc.scene), time_step_s=10.0)
+    assert len(got.trajectory) == 2
+    if oracle >= margin + 2e-3:
+        assert got.ok, f"a clear curve refused: oracle clearance {oracle:.4f} m"
+    elif oracle <= margin - 2e-3:
+        assert not got.ok, f"a curve into the margin certified: oracle clearance {oracle:.4f} m"
+    if bulge_deg >= 4.0:
+        assert oracle <= margin - 2e-3          # the case the chord's certification missed
+    if bulge_deg < 0.0:
+        assert oracle >= margin + 2e-3
 
 
 def test_resampling_adds_points_back_where_the_chord_collides(paper_scenario, paper_path):
