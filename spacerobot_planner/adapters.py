@@ -443,7 +443,27 @@ def _finished(scenario, got: Processed, rs) -> Processed:
         drift = None if arm is None else predicted_drift(scenario, dense, idx)
     clr = float(rs.check.min_clearance_m) if rs.ok and rs.check is not None else float("nan")
     return replace(got, trajectory=traj, indices=idx, certified=rs.ok, min_clearance_m=clr, arm=arm,
-                   attitude=att, predicted_drift=drift)
+                   attitude=att, predicted_drift=drift, reaction=_published_peaks(scenario, got.reaction, traj))
+
+
+def _published_peaks(scenario, reaction, traj: Trajectory):
+    """
+    Return ``reaction`` with its wheel peaks those of the motion the arm makes of the published points.
+
+    The report's peaks are at the dense points, which a re-timing keeps below the lowered wheel
+    limits; the arm, moved by the controller through the published points, comes up to the
+    limits (:func:`controller_wheel_overshoot`): the larger of the two is reported.  ``reaction``
+    as it is without wheel limits or a report.
+    """
+    if reaction is None or reaction.peak_wheel_torque_Nm is None:
+        return reaction
+    over_h, over_tau = controller_wheel_overshoot(traj, scenario)
+    if over_h == 0.0 and over_tau == 0.0:
+        return reaction
+    acs = scenario.acs
+    return replace(reaction, peak_wheel_momentum_Nms=max(reaction.peak_wheel_momentum_Nms,
+                                                         over_h * acs.max_wheel_momentum_Nms),
+                   peak_wheel_torque_Nm=max(reaction.peak_wheel_torque_Nm, over_tau * acs.max_wheel_torque_Nm))
 
 
 def predicted_drift(scenario, dense: Trajectory, indices) -> TrajectoryPart:
