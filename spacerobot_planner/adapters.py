@@ -259,10 +259,10 @@ def _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, 
     # the re-timing rounds need only the published points (the certification cannot change them
     # when it passes at once) and, from rest, not the reaction report (the same path; the verdict
     # is the accepted round's): certify and report the accepted round alone ...
-    got, first = _retimed(scenario, args, certify=False)
+    got, first, wheel_over = _retimed(scenario, args, certify=False)
     if got.refused is not None:
         return got
-    done = _certified(scenario, got, args)
+    done = _certified(scenario, got, args, wheel_over)
     if done is not None and done.refused is None:
         return done
     # a refusal of the first round is where the reported chain stops: that round, as it would
@@ -285,17 +285,20 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times.
     A join's re-timings time the path the first round chose (``replanning.timed_join``).
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
-    :class:`Processed` of the last round, that of the first).
+    :class:`Processed` of the last round, that of the first, the last round's
+    :func:`controller_wheel_overshoot` when it was checked, else None).
     """
     limits, acs = scenario.joint_limits, scenario.acs
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
-    first = got
+    first, wheel_over = got, None
     for _ in range(CONTROLLER_RETIMES):
         if got.refused is not None or limits is None:
             break
-        over = controller_overshoot(got.trajectory, scenario) + controller_wheel_overshoot(got.trajectory, scenario)
+        wheel_over = controller_wheel_overshoot(got.trajectory, scenario)
+        over = controller_overshoot(got.trajectory, scenario) + wheel_over
         if max(over) <= 1.0 + CONTROLLER_TOL:
             break
+        wheel_over = None            # the round is timed again
         # only the factors that overshoot (a slower velocity limit could not enter a joined path at
         # the arm's speed)
         lowered = [_lowered(scale, peak) for scale, peak in zip(
@@ -308,7 +311,7 @@ def _retimed(scenario, args, certify: bool) -> tuple:
                                              certify=certify, chosen=chosen)
         except ValueError:
             break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
-    return got, first
+    return got, first, wheel_over
 
 
 def _lowered(scaling: float, peak: float) -> float:
@@ -389,11 +392,12 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s)), chosen
 
 
-def _certified(scenario, got: Processed, args) -> Processed | None:
+def _certified(scenario, got: Processed, args, wheel_over=None) -> Processed | None:
     """
     Certify (and from rest report) an uncertified round (``_time_and_resample(certify=False)``).
 
-    ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns the finished
+    ``args``: :func:`_time_and_resample`'s arguments after the scenario; ``wheel_over``: the
+    round's :func:`controller_wheel_overshoot` when known (None: computed).  Returns the finished
     :class:`Processed`; when the reaction refuses, the refused round as a reported round stops
     (the dense points, not split); None when the certification added points back or failed (the
     published points would not be the ones whose interpolation was checked).
@@ -409,7 +413,7 @@ def _certified(scenario, got: Processed, args) -> Processed | None:
     check, _ = controller_check(got.trajectory, motions)
     if not check.ok:
         return None
-    return _finished(scenario, got, Resampled(got.trajectory, got.indices, check, 0))
+    return _finished(scenario, got, Resampled(got.trajectory, got.indices, check, 0), wheel_over)
 
 
 def _reaction(scenario, got: Processed, args):
@@ -432,8 +436,12 @@ def _stopped(got: Processed) -> Processed:
     return replace(got, trajectory=got.dense, indices=np.arange(len(got.dense)))
 
 
-def _finished(scenario, got: Processed, rs) -> Processed:
-    """Return ``got`` with the resampled points ``rs`` (the dense ones when not certified), split."""
+def _finished(scenario, got: Processed, rs, wheel_over=None) -> Processed:
+    """
+    Return ``got`` with the resampled points ``rs`` (the dense ones when not certified), split.
+
+    ``wheel_over``: :func:`controller_wheel_overshoot` of ``rs.trajectory`` when known (None: computed).
+    """
     dense = got.dense
     traj, idx = (rs.trajectory, rs.indices) if rs.ok else (dense, np.arange(len(dense)))
     arm, att = split_parts(traj, scenario.robot.joint_names[0])
@@ -443,21 +451,22 @@ def _finished(scenario, got: Processed, rs) -> Processed:
         drift = None if arm is None else predicted_drift(scenario, dense, idx)
     clr = float(rs.check.min_clearance_m) if rs.ok and rs.check is not None else float("nan")
     return replace(got, trajectory=traj, indices=idx, certified=rs.ok, min_clearance_m=clr, arm=arm,
-                   attitude=att, predicted_drift=drift, reaction=_published_peaks(scenario, got.reaction, traj))
+                   attitude=att, predicted_drift=drift,
+                   reaction=_published_peaks(scenario, got.reaction, traj, wheel_over if rs.ok else None))
 
 
-def _published_peaks(scenario, reaction, traj: Trajectory):
+def _published_peaks(scenario, reaction, traj: Trajectory, wheel_over=None):
     """
     Return ``reaction`` with its wheel peaks those of the motion the arm makes of the published points.
 
     The report's peaks are at the dense points, which a re-timing keeps below the lowered wheel
     limits; the arm, moved by the controller through the published points, comes up to the
-    limits (:func:`controller_wheel_overshoot`): the larger of the two is reported.  ``reaction``
-    as it is without wheel limits or a report.
+    limits (:func:`controller_wheel_overshoot`, or ``wheel_over`` when it is known): the larger
+    of the two is reported.  ``reaction`` as it is without wheel limits or a report.
     """
     if reaction is None or reaction.peak_wheel_torque_Nm is None:
         return reaction
-    over_h, over_tau = controller_wheel_overshoot(traj, scenario)
+    over_h, over_tau = controller_wheel_overshoot(traj, scenario) if wheel_over is None else wheel_over
     if over_h == 0.0 and over_tau == 0.0:
         return reaction
     acs = scenario.acs
