@@ -290,15 +290,19 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     """
     limits, acs = scenario.joint_limits, scenario.acs
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
-    first, wheel_over = got, None
-    for _ in range(CONTROLLER_RETIMES):
+    first, wheel_over, joined = got, None, args[8] is not None
+    for round_ in range(CONTROLLER_RETIMES + 1):
         if got.refused is not None or limits is None:
             break
         wheel_over = controller_wheel_overshoot(got.trajectory, scenario)
         over = controller_overshoot(got.trajectory, scenario) + wheel_over
         if max(over) <= 1.0 + CONTROLLER_TOL:
             break
-        wheel_over = None            # the round is timed again
+        if round_ == CONTROLLER_RETIMES:
+            if joined:                # the session plans again (a longer horizon, the executing end)
+                raise ValueError(f"{_overshoot_text(over)} after {CONTROLLER_RETIMES} re-timings")
+            break                     # from rest: as it is (not seen on the paper-family scenes)
+        wheel_over = None             # the round is timed again
         # only the factors that overshoot (a slower velocity limit could not enter a joined path at
         # the arm's speed)
         lowered = [_lowered(scale, peak) for scale, peak in zip(
@@ -309,9 +313,22 @@ def _retimed(scenario, args, certify: bool) -> tuple:
         try:
             got, chosen = _time_and_resample(replace(scenario, joint_limits=limits, acs=acs), *args,
                                              certify=certify, chosen=chosen)
-        except ValueError:
-            break            # (joined) the slower motion cannot enter the path at the arm's speed: as it is
+        except ValueError as e:
+            # (joined) the slower motion cannot enter the path at the arm's speed: never published
+            # over the limits (the session plans again: a longer horizon, the executing end)
+            raise ValueError(f"{_overshoot_text(over)}, and a slower motion cannot be entered at the "
+                             f"arm's speed ({e})") from e
     return got, first, wheel_over
+
+
+#: the quantities :func:`_retimed`'s overshoot ratios measure, in order
+_OVERSHOOT_NAMES = ("joint velocity", "joint acceleration", "wheel momentum", "wheel torque")
+
+
+def _overshoot_text(over) -> str:
+    """Say which limit the controller's motion exceeds most, and by how much (``over``: the ratios of _retimed)."""
+    k = int(np.argmax(over))
+    return f"as the controller moves the arm, its {_OVERSHOOT_NAMES[k]} reaches {over[k]:.3f} times its limit"
 
 
 def _lowered(scaling: float, peak: float) -> float:

@@ -234,6 +234,30 @@ def _turn_rad(path, i):
     return 0.0 if n <= 0.0 else float(np.arccos(np.clip(d0 @ d1 / n, -1.0, 1.0)))
 
 
+def _check_turn_at_join(c, path):
+    """
+    Refuse a join at the horizon point itself where the new path turns off the arm's direction.
+
+    The timing starts along the path's first direction at the arm's path speed: with executing
+    path before the horizon point that direction is the arm's and the corner is blended after
+    it; with none (the executing trajectory's points are sparse, or the lead reaches the
+    horizon) it is the new path's, and the arm's velocity would step (reverse, for a path back)
+    at the switch.  ``c``: the ``trajectory.Continuation``; ``path`` (M, n): ``c.join(new)``.
+    ValueError beyond :data:`MIN_CORNER_RAD` (the session plans again: a longer horizon, the
+    executing trajectory's end); an arm at rest turns freely.
+    """
+    v = np.asarray(c.start_velocity_rad_s, dtype=float)
+    d = path[1] - path[0] if len(path) > 1 else np.zeros_like(v)
+    nv, nd = float(np.linalg.norm(v)), float(np.linalg.norm(d))
+    if nv <= 1e-9 or nd <= 0.0:
+        return
+    turn = float(np.arccos(np.clip(v @ d / (nv * nd), -1.0, 1.0)))
+    if turn > MIN_CORNER_RAD:
+        raise ValueError(f"the join is the horizon point itself and the new path leaves it "
+                         f"{np.degrees(turn):.1f}° off the arm's direction: no executing path before the "
+                         f"turn to blend it in (the arm's velocity would step)")
+
+
 def _corner_blends(path, corner, first, step_rad):
     """
     Candidate paths.
@@ -298,6 +322,8 @@ def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = ST
     Raises
     ------
         trajectory.HorizonPassed: the arm is already past the horizon point.
+        ValueError: the join is the horizon point itself and the new path leaves it off the
+            arm's direction (:func:`_check_turn_at_join`).
 
     """
     motions = None if checker is None else MotionValidator.of(checker)
@@ -308,6 +334,8 @@ def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = ST
     stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
     path = c.join(new)                      # the prefix's rows, then the new path's
     corner = len(c.prefix_rad) - 1          # the horizon point's row
+    if corner == 0:
+        _check_turn_at_join(c, path)
     candidates = [path]
     if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:
         motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)

@@ -222,3 +222,68 @@ def test_at_the_horizon_of_the_end_a_remainder_then_the_new_motion(executing):
     assert np.all(np.abs(traj.velocities_rad_s[0] - old.velocities_rad_s[c.index]) <= 1e-3 * vmax)
     np.testing.assert_array_equal(traj.positions_rad[-1], back[-1])
     check_trajectory(traj, np.vstack([traj.positions_rad[0], back[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
+
+
+# the servicer's slow, wheel-limited trajectories: published points seconds apart
+SERVICER_JOINS = [((11.0, -18.0, -37.0), 0.1, "back"), ((-16.0, -6.0, -38.0), 0.4, "same"),
+                  ((11.0, -18.0, -37.0), 0.1, "same"), ((5.0, -10.0, -20.0), 0.1, "same"),
+                  ((-16.0, -6.0, -38.0), 0.1, "same"), ((0.0, 0.0, 0.0), 0.1, "other")]
+
+
+def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel_limits():
+    """
+    Replans joined to servicer_3dof trajectories (wheels 50 N·m·s, 0.5 N·m), as the node joins them.
+
+    Each is either published (joined) with the executing trajectory's state at the join (its
+    velocity, exact at a published point: within 6 %, direction within 3°) and the wheels'
+    load of the controller's motion within the limits (SciPy's quintic, the test's momentum
+    sum), or refused with ValueError, which the node answers by planning again (a longer
+    horizon, the executing trajectory's end).  Before: 45 of 48 such joins stepped the velocity
+    (17 reversed it: a path back, joined at the horizon point itself), and 7 of 48 drove the
+    wheel torque to 1.15-1.37 times its limit (a re-timing that could not be entered was
+    dropped and the over-limit round published).
+    """
+    import os
+    from scipy.interpolate import BPoly
+    from oracles import wheel_load
+    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.planner import Planner
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "servicer_3dof.yaml"))
+    robot, planner = sc.robot, Planner(sc)
+    published, refused = 0, 0
+    for offset_deg, frac, goal in SERVICER_JOINS:
+        start = sc.start_rad + np.radians(offset_deg)
+        first = post_process(sc, planner.plan(start, sc.goal_rad).path_rad, start_rad=start)
+        ex = Executing(first.dense, first.indices, 100 * S)
+        now = ex.start_ns + int(frac * ex.trajectory.duration_s * S)
+        q_from, join, why = plan_start(ex, now, ex.expected_at(now - S // 100), now - S // 100, 1.0,
+                                       np.radians(2.0), robot.planned_periodic)
+        assert join is not None, why
+        res = planner.plan(q_from, {"back": start, "same": sc.goal_rad,
+                                    "other": sc.goal_rad + np.radians([-30.0, 5.0, 10.0])}[goal])
+        assert res.ok, res.reason
+        try:
+            out = post_process(sc, res.path_rad, join=join, now_ns=now + S // 4, lead_s=0.65)
+        except ValueError:
+            refused += 1
+            continue
+        published += 1
+        traj, k = out.trajectory, out.continuation.index
+        v_ex, v0 = ex.trajectory.velocities_rad_s[k], traj.velocities_rad_s[0]
+        np.testing.assert_allclose(traj.positions_rad[0], ex.trajectory.positions_rad[k], atol=1e-9)
+        assert np.linalg.norm(v0 - v_ex) <= 0.06 * np.linalg.norm(v_ex), (offset_deg, frac, goal, v_ex, v0)
+        assert v0 @ v_ex >= np.cos(np.radians(3.0)) * np.linalg.norm(v0) * np.linalg.norm(v_ex)
+        t = traj.times_s
+        fine = np.linspace(t[0], t[-1], 40 * len(t))
+        motion = [[p(fine)[:, 0], p.derivative(1)(fine)[:, 0], p.derivative(2)(fine)[:, 0]] for p in (
+            BPoly.from_derivatives(t, np.stack([traj.positions_rad[:, j], traj.velocities_rad_s[:, j],
+                                                traj.accelerations_rad_s2[:, j]], 1)[:, :, None].tolist(), orders=5)
+            for j in range(robot.dof))]
+        q, v, a = (np.array(x).T for x in zip(*motion))
+        qd, qdd = np.zeros((len(q), robot.n_joints)), np.zeros((len(q), robot.n_joints))
+        qd[:, list(robot.planned_joints)], qdd[:, list(robot.planned_joints)] = v, a
+        h, tau = wheel_load(robot, sc.masses, robot.full(q), qd, qdd)
+        assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3), \
+            (offset_deg, frac, goal, np.max(np.abs(tau)))
+    assert published >= 2 and refused >= 2, (published, refused)
