@@ -59,6 +59,7 @@ from .timing import timed_motion
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
+           "stopping_join",
            "MAX_STATE_AGE_S", "STATE_WAIT_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
 #: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
@@ -69,6 +70,9 @@ START_LEAD_S = 0.1
 BLEND_SAMPLES = (8, 24)
 #: a turn at the horizon point smaller than this (rad) is left as it is
 MIN_CORNER_RAD = float(np.radians(1.0))
+#: :func:`stopping_join` finds a stop the arm makes under this fraction of its acceleration and
+#: wheel torque limits
+STOP_ROOM = 0.5
 
 #: a joint state older than this (s) is late: taken before the trajectory's start, it does not show
 #: that the arm follows it; the node's session first waits up to ``STATE_WAIT_S`` for a newer one
@@ -159,12 +163,15 @@ class Join:
         executing: the trajectory the arm follows.
         horizon_index: its point where the new plan starts.
         horizon_s: the horizon it was chosen with, s.
+        stop: the arm stops there on the executing path (:func:`stopping_join`) and the new path
+            starts from rest, instead of going through it at speed.
 
     """
 
     executing: Executing
     horizon_index: int
     horizon_s: float
+    stop: bool = False
 
     @property
     def start_rad(self) -> np.ndarray:
@@ -334,6 +341,8 @@ def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = ST
     stamp_ns = ex.start_ns + int(round(1e9 * c.join_time_s))
     path = c.join(new)                      # the prefix's rows, then the new path's
     corner = len(c.prefix_rad) - 1          # the horizon point's row
+    if join.stop:                           # no corner: the arm stops there (timed_join)
+        return JoinedPaths(join, c, new, stamp_ns, (path,))
     if corner == 0:
         _check_turn_at_join(c, path)
     candidates = [path]
@@ -401,6 +410,9 @@ def timed_join(scenario, paths: JoinedPaths, checker=None, chosen: int | None = 
     """
     motions = None if checker is None else MotionValidator.of(checker)
     c, ex = paths.continuation, paths.join.executing
+    if paths.join.stop:
+        after, reaction = timed_motion(scenario, paths.new_rad, motions=motions)
+        return _stop_at_horizon(scenario, c).then(after), reaction, None
     try:
         return _fastest(scenario, paths, motions, chosen)
     except ValueError:
@@ -411,6 +423,59 @@ def timed_join(scenario, paths: JoinedPaths, checker=None, chosen: int | None = 
         rest = replace(rest, times_s=rest.times_s - rest.times_s[0])
         after, reaction = timed_motion(scenario, paths.new_rad, motions=motions)
         return rest.then(after), reaction, None
+
+
+def _stop_at_horizon(scenario, c):
+    """
+    Return the arm brought to rest at the horizon point along the executing path, from the join's speed.
+
+    ``c``: the join's ``trajectory.Continuation``; its prefix (the executing path from the join
+    to the horizon point) timed from ``c.start_path_speed`` to rest under the scenario's limits
+    (the wheels' too): the same path and speed at the join, a new timing that brakes.
+    ValueError when the prefix is a single point or too short to stop on.
+    """
+    if len(c.prefix_rad) < 2:
+        raise ValueError("the join is the stopping point itself: no executing path to stop on")
+    stop, _ = timed_motion(scenario, c.prefix_rad, start_path_speed=c.start_path_speed, report=False)
+    return stop
+
+
+def stopping_join(scenario, join: Join, now_ns: int, lead_s: float) -> Join:
+    """
+    Return a join where the arm stops on the executing path as soon as the limits allow.
+
+    From the executing trajectory's first published point at least ``lead_s`` after ``now_ns``
+    (where the join will be) and from the next (where it will be when the plan runs late):
+    the nearest point at or after ``join.horizon_index`` that the arm can stop at along the
+    executing path from its speed there under the scenario's acceleration and wheel torque
+    limits scaled by ``STOP_ROOM`` (the chain re-times the stop with the limits lowered by the
+    controller's overshoot), found by trying points in doubling steps; the executing
+    trajectory's end when none before it.  The new plan starts there from rest
+    (``Join.stop``): for a new path that cannot be entered at speed (it turns back, or the arm,
+    slowed by weak wheels, cannot brake within the horizon), sooner than waiting for the
+    executing trajectory's end.
+    """
+    ex = join.executing
+    traj = ex.trajectory
+    last = len(traj) - 1
+    limits, acs = scenario.joint_limits, scenario.acs
+    if limits is not None:         # room for the chain's re-timings (the controller's overshoot)
+        scenario = replace(scenario, acs=replace(acs, wheel_torque_scaling=acs.wheel_torque_scaling * STOP_ROOM),
+                           joint_limits=replace(limits,
+                                                acceleration_scaling=limits.acceleration_scaling * STOP_ROOM))
+    pub = np.asarray(ex.published)
+    later = pub[traj.times_s[pub] >= ex.time_s(now_ns) + lead_s]
+    stop = join.horizon_index
+    for j in (later[:2] if len(later) else [last]):     # the join, or the next point when the plan runs late
+        stop, step = max(stop, int(j) + 1), 1
+        while stop < last:
+            try:
+                timed_motion(scenario, traj.positions_rad[j:stop + 1], start_path_speed=float(traj.path_speed[j]),
+                             report=False)
+                break
+            except ValueError:
+                stop, step = min(last, stop + step), 2 * step
+    return Join(ex, min(stop, last), join.horizon_s, stop=True)
 
 
 def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):

@@ -25,8 +25,9 @@ and its answers into messages; everything between is here:
 - **retries**: when a joined plan cannot be published (it took longer than the horizon,
   the new path cannot be entered at the arm's speed, or the join is less than
   ``start_lead_s`` ahead when it would be published) it is planned again with twice the
-  horizon, then from the executing trajectory's end, then from the measured state at
-  rest (:data:`RETRY`).
+  horizon, then stopping on the executing path as soon as the limits allow
+  (``replanning.stopping_join``), then from the executing trajectory's end, then from the
+  measured state at rest (:data:`RETRY`).
 - **the stamp**: every published trajectory starts at least ``start_lead_s`` after it is
   published: a trajectory from rest is stamped now + the lead just before it is
   published; a joined one carries the join's time, checked then to be still at least the
@@ -60,7 +61,7 @@ import numpy as np
 
 from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process
 from .motion import MotionValidator
-from .replanning import MAX_STATE_AGE_S, STATE_WAIT_S, Executing, plan_start
+from .replanning import MAX_STATE_AGE_S, STATE_WAIT_S, Executing, plan_start, stopping_join
 from .scene import Target
 from .settings import SessionSettings
 from .trajectory import HorizonPassed
@@ -77,7 +78,10 @@ WAITING_STAGE = "waiting_for_joint_states"
 #: machine (three test workers, a target flood), s
 CHAIN_ALLOWANCE_S = 0.3
 #: what a further attempt does after a join failed (index = the attempt)
-RETRY = ("", "with twice the horizon", "from the end of the executing trajectory", "from the measured state, at rest")
+RETRY = ("", "with twice the horizon", "stopping on the executing path as soon as the limits allow",
+         "from the end of the executing trajectory", "from the measured state, at rest")
+#: the attempt that starts from the executing trajectory's end, at rest (RETRY)
+FROM_THE_END = 3
 
 
 @dataclass(eq=False)
@@ -521,13 +525,16 @@ class CaptureSession:
         q, q_ns, ex = self._arm_state(req)
         s = req.settings
         horizon_s = float(s.horizon_s) * (2.0 if req.attempt == 1 else 1.0)
-        if req.attempt == 2 and ex is not None and horizon_s > 0.0:
+        if req.attempt == FROM_THE_END and ex is not None and horizon_s > 0.0:
             horizon_s = max(horizon_s, ex.trajectory.duration_s - ex.time_s(self.now_ns()))
-        if req.attempt >= 3:
+        if req.attempt > FROM_THE_END:
             horizon_s = 0.0
         now = self.now_ns()
         start, join, why = plan_start(ex, now, q, q_ns, horizon_s, float(s.follow_tolerance_rad),
                                       req.scenario.robot.planned_periodic)
+        if join is not None and req.attempt == FROM_THE_END - 1:     # stop on the executing path, then go
+            join = stopping_join(req.scenario, join, now, float(s.start_lead_s) + CHAIN_ALLOWANCE_S)
+            start = join.start_rad
         if why is not None:
             self.log("warning", f"plan #{req.gen}: {why}")
         elif join is None and now - q_ns > MAX_STATE_AGE_S * 1e9:     # a driver gone, or a state sent once
@@ -654,7 +661,7 @@ class CaptureSession:
         try:
             processed = post_process(sc, res.path_rad, start_rad=start_raw, join=join, now_ns=self.now_ns(),
                                      lead_s=float(req.settings.start_lead_s) + CHAIN_ALLOWANCE_S,
-                                     motions=self.motions(sc.scene), from_end_at_rest=req.attempt == 2)
+                                     motions=self.motions(sc.scene), from_end_at_rest=req.attempt == FROM_THE_END)
         except HorizonPassed:
             return Outcome("retry", f"the plan took longer than the {join.horizon_s:g} s horizon")
         except ValueError as e:
@@ -682,7 +689,8 @@ class CaptureSession:
         joined = ("no (from the end of the executing trajectory, at rest)" if c is None and join is not None
                   else "no (the arm at rest)") if c is None else (
             f"yes, {c.join_time_s:.3f} s into the executing trajectory at "
-            f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s")
+            f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s"
+            + (f", stopping on its path {c.prefix_rad.shape[0] - 1} points on" if join.stop else ""))
         latency = time.perf_counter() - req.t_request
         values = {
             "goal_deg": np.round(np.degrees(res.goal_rad), 3).tolist(),

@@ -224,6 +224,23 @@ def test_at_the_horizon_of_the_end_a_remainder_then_the_new_motion(executing):
     check_trajectory(traj, np.vstack([traj.positions_rad[0], back[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
 
 
+def _controller_wheel_load(sc, traj):
+    """(h, tau) of the wheels along the controller's motion through ``traj``'s points (SciPy's quintic)."""
+    from scipy.interpolate import BPoly
+    from oracles import wheel_load
+    robot = sc.robot
+    t = traj.times_s
+    fine = np.linspace(t[0], t[-1], 40 * len(t))
+    motion = [[p(fine)[:, 0], p.derivative(1)(fine)[:, 0], p.derivative(2)(fine)[:, 0]] for p in (
+        BPoly.from_derivatives(t, np.stack([traj.positions_rad[:, j], traj.velocities_rad_s[:, j],
+                                            traj.accelerations_rad_s2[:, j]], 1)[:, :, None].tolist(), orders=5)
+        for j in range(robot.dof))]
+    q, v, a = (np.array(x).T for x in zip(*motion))
+    qd, qdd = np.zeros((len(q), robot.n_joints)), np.zeros((len(q), robot.n_joints))
+    qd[:, list(robot.planned_joints)], qdd[:, list(robot.planned_joints)] = v, a
+    return wheel_load(robot, sc.masses, robot.full(q), qd, qdd)
+
+
 # the servicer's slow, wheel-limited trajectories: published points seconds apart
 SERVICER_JOINS = [((11.0, -18.0, -37.0), 0.1, "back"), ((-16.0, -6.0, -38.0), 0.4, "same"),
                   ((11.0, -18.0, -37.0), 0.1, "same"), ((5.0, -10.0, -20.0), 0.1, "same"),
@@ -244,8 +261,6 @@ def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel
     dropped and the over-limit round published).
     """
     import os
-    from scipy.interpolate import BPoly
-    from oracles import wheel_load
     from spacerobot_planner.adapters import post_process
     from spacerobot_planner.config import load_scenario
     from spacerobot_planner.planner import Planner
@@ -274,16 +289,56 @@ def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel
         np.testing.assert_allclose(traj.positions_rad[0], ex.trajectory.positions_rad[k], atol=1e-9)
         assert np.linalg.norm(v0 - v_ex) <= 0.06 * np.linalg.norm(v_ex), (offset_deg, frac, goal, v_ex, v0)
         assert v0 @ v_ex >= np.cos(np.radians(3.0)) * np.linalg.norm(v0) * np.linalg.norm(v_ex)
-        t = traj.times_s
-        fine = np.linspace(t[0], t[-1], 40 * len(t))
-        motion = [[p(fine)[:, 0], p.derivative(1)(fine)[:, 0], p.derivative(2)(fine)[:, 0]] for p in (
-            BPoly.from_derivatives(t, np.stack([traj.positions_rad[:, j], traj.velocities_rad_s[:, j],
-                                                traj.accelerations_rad_s2[:, j]], 1)[:, :, None].tolist(), orders=5)
-            for j in range(robot.dof))]
-        q, v, a = (np.array(x).T for x in zip(*motion))
-        qd, qdd = np.zeros((len(q), robot.n_joints)), np.zeros((len(q), robot.n_joints))
-        qd[:, list(robot.planned_joints)], qdd[:, list(robot.planned_joints)] = v, a
-        h, tau = wheel_load(robot, sc.masses, robot.full(q), qd, qdd)
+        h, tau = _controller_wheel_load(sc, traj)
         assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3), \
             (offset_deg, frac, goal, np.max(np.abs(tau)))
     assert published >= 2 and refused >= 2, (published, refused)
+
+
+def test_a_servicer_replan_back_stops_on_the_executing_path_and_goes_back():
+    """
+    The session's third try (``stopping_join``): stop on the executing path as soon as the limits allow.
+
+    servicer_3dof, at 10 % of a 241 s motion, a new goal back at its start: the new path cannot be
+    entered at speed (it turns back; weak wheels brake slowly).  Published: the executing state at
+    the join, the executing path to the stopping point, at rest there (44 s after the join: the
+    wheels brake slowly, but not the 215 s of motion left), then the new path from rest to its
+    goal; the wheels' load of the controller's motion within the limits (SciPy's quintic, the
+    test's momentum sum).
+    """
+    import os
+    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.planner import Planner
+    from spacerobot_planner.replanning import stopping_join
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "servicer_3dof.yaml"))
+    robot, planner = sc.robot, Planner(sc)
+    start = sc.start_rad + np.radians([11.0, -18.0, -37.0])
+    first = post_process(sc, planner.plan(start, sc.goal_rad).path_rad, start_rad=start)
+    ex = Executing(first.dense, first.indices, 100 * S)
+    old = ex.trajectory
+    now = ex.start_ns + int(0.1 * old.duration_s * S)
+    _, join, _ = plan_start(ex, now, ex.expected_at(now - S // 100), now - S // 100, 1.0, np.radians(2.0),
+                            robot.planned_periodic)
+    stop = stopping_join(sc, join, now, 0.65)
+    assert stop.stop and join.horizon_index <= stop.horizon_index < len(old) - 1
+    res = planner.plan(stop.start_rad, start)
+    assert res.ok, res.reason
+    out = post_process(sc, res.path_rad, join=stop, now_ns=now + S // 4, lead_s=0.65)
+    traj, c = out.trajectory, out.continuation
+    assert out.certified and out.refused is None
+    np.testing.assert_array_equal(traj.positions_rad[0], old.positions_rad[c.index])
+    v_ex, v0 = old.velocities_rad_s[c.index], traj.velocities_rad_s[0]
+    assert np.linalg.norm(v_ex) > 0 and np.linalg.norm(v0 - v_ex) <= 0.06 * np.linalg.norm(v_ex)
+    at_stop = np.flatnonzero(np.all(np.abs(traj.positions_rad - old.positions_rad[stop.horizon_index]) <= 1e-9,
+                                    axis=1))
+    assert len(at_stop) == 1 and np.all(np.abs(traj.velocities_rad_s[at_stop[0]]) <= 1e-9)
+    k = int(at_stop[0])
+    stop_s = traj.times_s[k]
+    assert stop_s < 0.25 * (old.duration_s - old.times_s[c.index]), stop_s      # not at the executing end
+    on = old.positions_rad[c.index:stop.horizon_index + 1]
+    gap = np.min(np.linalg.norm(traj.positions_rad[:k, None, :] - on[None], axis=2), axis=1)
+    assert np.all(gap <= np.max(np.linalg.norm(np.diff(on, axis=0), axis=1)))   # on the executing path
+    np.testing.assert_allclose(traj.positions_rad[-1], start, atol=1e-9)
+    h, tau = _controller_wheel_load(sc, traj)
+    assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3)
