@@ -436,8 +436,12 @@ def _stop_at_horizon(scenario, c):
     """
     if len(c.prefix_rad) < 2:
         raise ValueError("the join is the stopping point itself: no executing path to stop on")
-    stop, _ = timed_motion(scenario, c.prefix_rad, start_path_speed=c.start_path_speed, report=False)
-    return stop
+    return _braked(scenario, c.prefix_rad, c.start_path_speed)
+
+
+def _braked(scenario, path_rad, path_speed: float):
+    """Return ``path_rad`` timed from ``path_speed`` (rad/s along it) to rest; ValueError when too short to stop on."""
+    return timed_motion(scenario, path_rad, start_path_speed=path_speed, report=False)[0]
 
 
 def stopping_join(scenario, join: Join, now_ns: int, lead_s: float) -> Join:
@@ -470,8 +474,7 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float) -> Join:
         stop, step = max(stop, int(j) + 1), 1
         while stop < last:
             try:
-                timed_motion(scenario, traj.positions_rad[j:stop + 1], start_path_speed=float(traj.path_speed[j]),
-                             report=False)
+                _braked(scenario, traj.positions_rad[j:stop + 1], float(traj.path_speed[j]))
                 break
             except ValueError:
                 stop, step = min(last, stop + step), 2 * step

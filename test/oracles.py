@@ -14,6 +14,9 @@ Geometry
 Paths and trajectories
     Dense linear samples, the wrapped difference of angles, TOPP-RA's time-optimal
     duration, velocity and acceleration limits by finite differences of the positions.
+The controller's motion
+    joint_trajectory_controller's interpolation of published points rebuilt with SciPy
+    (``BPoly.from_derivatives`` quintics, ``CubicHermiteSpline``, ``np.interp``).
 Dynamics
     Momentum sums about the system's centre of mass from the joint points by finite
     differences, the wheel's momentum and torque, a free-floating simulator.
@@ -26,6 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
+from scipy.interpolate import BPoly, CubicHermiteSpline
 
 
 # ===================================================================== grids
@@ -580,3 +584,63 @@ def simulate_free_floating(robot, mp, path, sub=4):
     c, _ = bodies_world(robot, q, np.zeros((len(q), 2)))
     com = np.einsum("b,kbd->kd", m, c) / m.sum()
     return q[::sub], (com[0] - com)[::sub]
+
+
+# ---------------------------------------------------------------- the controller's motion
+def controller_interpolation(t, q, v=None, a=None):
+    """
+    Return f(times) → (positions, velocities, accelerations), each (K, n), built without sample_points.
+
+    Per joint: a quintic Hermite (BPoly.from_derivatives) with accelerations, a cubic Hermite
+    (CubicHermiteSpline) with velocities, np.interp with positions only; the first point held
+    before, the last after, at rest (at the last point's time: that point).
+    """
+    t, q = np.asarray(t, float), np.asarray(q, float)
+    n = q.shape[1]
+    if a is not None:
+        polys = [BPoly.from_derivatives(t, np.stack([q[:, j], v[:, j], a[:, j]], axis=1)) for j in range(n)]
+    elif v is not None:
+        polys = [CubicHermiteSpline(t, q[:, j], v[:, j]) for j in range(n)]
+    else:
+        polys = None
+
+    def f(ts):
+        ts = np.atleast_1d(np.asarray(ts, float))
+        if len(t) == 1:
+            pos = np.tile(q[0], (len(ts), 1))
+            vel, acc = np.zeros_like(pos), np.zeros_like(pos)
+        elif polys is None:
+            pos = np.stack([np.interp(ts, t, q[:, j]) for j in range(n)], axis=1)
+            k = np.clip(np.searchsorted(t, ts, side="right") - 1, 0, len(t) - 2)
+            vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k])[:, None]
+            acc = np.zeros_like(pos)
+        else:
+            tc = np.clip(ts, t[0], t[-1])
+            pos = np.stack([p(tc) for p in polys], axis=1)
+            vel = np.stack([p(tc, 1) for p in polys], axis=1)
+            acc = np.stack([p(tc, 2) for p in polys], axis=1)
+        out = (ts < t[0]) | (ts > t[-1])
+        vel[out], acc[out] = 0.0, 0.0
+        pos[ts < t[0]], pos[ts > t[-1]] = q[0], q[-1]
+        end = ts == t[-1]
+        vel[end] = 0.0 if v is None else v[-1]
+        acc[end] = 0.0 if a is None else a[-1]
+        return pos, vel, acc
+    return f
+
+
+def controller_motion(traj, n_samples):
+    """(positions, velocities, accelerations), each (n_samples, dof): the controller's motion, evenly over time."""
+    t = np.asarray(traj.times_s, float)
+    f = controller_interpolation(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2)
+    return f(np.linspace(t[0], t[-1], n_samples))
+
+
+def controller_wheel_load(scenario, traj, n_samples):
+    """(h, tau) of the wheels, (n_samples,) each: :func:`wheel_load` of :func:`controller_motion`."""
+    robot = scenario.robot
+    q, v, a = controller_motion(traj, n_samples)
+    idx = list(robot.planned_joints)
+    qd, qdd = np.zeros((len(q), robot.n_joints)), np.zeros((len(q), robot.n_joints))
+    qd[:, idx], qdd[:, idx] = v, a
+    return wheel_load(robot, scenario.masses, robot.full(q), qd, qdd)

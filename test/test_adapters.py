@@ -13,28 +13,15 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.interpolate import BPoly
 
+from oracles import controller_motion, controller_wheel_load
 from spacerobot_planner.adapters import post_process
 from spacerobot_planner.settings import JointLimits
 
 
-def _controller_motion(traj):
-    """(positions, velocities, accelerations), each (K, dof): the quintic through the points, sampled densely."""
-    t = np.asarray(traj.times_s)
-    fine = np.linspace(t[0], t[-1], 40 * len(t))
-    out = []
-    for j in range(traj.positions_rad.shape[1]):
-        derivs = np.stack([traj.positions_rad[:, j], traj.velocities_rad_s[:, j], traj.accelerations_rad_s2[:, j]],
-                          axis=1)
-        poly = BPoly.from_derivatives(t, derivs[:, :, None].tolist(), orders=5)
-        out.append([poly(fine)[:, 0], poly.derivative(1)(fine)[:, 0], poly.derivative(2)(fine)[:, 0]])
-    return tuple(np.array(x).T for x in zip(*out))
-
-
 def _controller_peaks(traj):
     """(dof,) peak |velocity| and |acceleration| of the quintic through the points, per joint."""
-    _, v, a = _controller_motion(traj)
+    _, v, a = controller_motion(traj, 40 * len(traj.times_s))
     return np.max(np.abs(v), axis=0), np.max(np.abs(a), axis=0)
 
 
@@ -112,21 +99,15 @@ def test_the_controllers_motion_keeps_the_wheel_limits(offset_deg):
     reached up to a third above its limit (40 random starts: 39 above it).  The chain's
     reaction report gives the peaks of that motion (it gave those of the re-timed points).
     """
-    from oracles import wheel_load
     from spacerobot_planner.config import load_scenario
     from spacerobot_planner.planner import Planner
     sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "servicer_3dof.yaml"))
-    robot = sc.robot
     start = sc.start_rad + np.radians(offset_deg)
     res = Planner(sc).plan(start, sc.goal_rad)
     assert res.ok, res.reason
     out = post_process(sc, res.path_rad, start_rad=start)
     assert out.refused is None and out.certified
-    q, v, a = _controller_motion(out.trajectory)
-    idx = list(robot.planned_joints)
-    qf, qd, qdd = robot.full(q), np.zeros((len(q), robot.n_joints)), np.zeros((len(q), robot.n_joints))
-    qd[:, idx], qdd[:, idx] = v, a
-    h, tau = wheel_load(robot, sc.masses, qf, qd, qdd)
+    h, tau = controller_wheel_load(sc, out.trajectory, 40 * len(out.trajectory.times_s))
     h_ratio = np.max(np.abs(h)) / sc.acs.max_wheel_momentum_Nms
     tau_ratio = np.max(np.abs(tau)) / sc.acs.max_wheel_torque_Nm
     assert h_ratio <= 1.0 + 2e-3, f"wheel momentum over its limit: {h_ratio:.4f}"

@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 import pytest
-from scipy.interpolate import BPoly, CubicHermiteSpline
 
+from oracles import controller_interpolation as oracle
 from spacerobot_planner.trajectory import controller_peaks, sample_points
 
 CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config", "paper_3dof.yaml")
@@ -34,48 +34,6 @@ START = np.radians([-90.0, 135.0, 90.0])
 
 
 # ---------------------------------------------------------------- oracles
-def oracle(t, q, v=None, a=None):
-    """
-    Return f(times) → (positions, velocities, accelerations), each (K, n), built without sample_points.
-
-    Per joint: a quintic Hermite (BPoly.from_derivatives) with accelerations, a cubic Hermite
-    (CubicHermiteSpline) with velocities, np.interp with positions only; the first point held
-    before, the last after, at rest (at the last point's time: that point).
-    """
-    t, q = np.asarray(t, float), np.asarray(q, float)
-    n = q.shape[1]
-    if a is not None:
-        polys = [BPoly.from_derivatives(t, np.stack([q[:, j], v[:, j], a[:, j]], axis=1)) for j in range(n)]
-    elif v is not None:
-        polys = [CubicHermiteSpline(t, q[:, j], v[:, j]) for j in range(n)]
-    else:
-        polys = None
-
-    def f(ts):
-        ts = np.atleast_1d(np.asarray(ts, float))
-        if len(t) == 1:
-            pos = np.tile(q[0], (len(ts), 1))
-            vel, acc = np.zeros_like(pos), np.zeros_like(pos)
-        elif polys is None:
-            pos = np.stack([np.interp(ts, t, q[:, j]) for j in range(n)], axis=1)
-            k = np.clip(np.searchsorted(t, ts, side="right") - 1, 0, len(t) - 2)
-            vel = (q[k + 1] - q[k]) / (t[k + 1] - t[k])[:, None]
-            acc = np.zeros_like(pos)
-        else:
-            tc = np.clip(ts, t[0], t[-1])
-            pos = np.stack([p(tc) for p in polys], axis=1)
-            vel = np.stack([p(tc, 1) for p in polys], axis=1)
-            acc = np.stack([p(tc, 2) for p in polys], axis=1)
-        out = (ts < t[0]) | (ts > t[-1])
-        vel[out], acc[out] = 0.0, 0.0
-        pos[ts < t[0]], pos[ts > t[-1]] = q[0], q[-1]
-        end = ts == t[-1]
-        vel[end] = 0.0 if v is None else v[-1]
-        acc[end] = 0.0 if a is None else a[-1]
-        return pos, vel, acc
-    return f
-
-
 def quintic_by_hand(t0, t1, p0, v0, a0, p1, v1, a1, ts):
     """One joint's quintic segment: its six coefficients solved from the end conditions (numpy.linalg)."""
     def rows(s):

@@ -9,7 +9,7 @@ test's own finite differences).
 import numpy as np
 import pytest
 
-from oracles import check_trajectory, shapely_clearance
+from oracles import check_trajectory, controller_wheel_load, shapely_clearance
 from paper_paths import joint_limits, new_path_from
 
 from spacerobot_planner.pipeline import timed_motion
@@ -224,23 +224,6 @@ def test_at_the_horizon_of_the_end_a_remainder_then_the_new_motion(executing):
     check_trajectory(traj, np.vstack([traj.positions_rad[0], back[-1]]), vmax, amax, v0=traj.velocities_rad_s[0])
 
 
-def _controller_wheel_load(sc, traj):
-    """(h, tau) of the wheels along the controller's motion through ``traj``'s points (SciPy's quintic)."""
-    from scipy.interpolate import BPoly
-    from oracles import wheel_load
-    robot = sc.robot
-    t = traj.times_s
-    fine = np.linspace(t[0], t[-1], 40 * len(t))
-    motion = [[p(fine)[:, 0], p.derivative(1)(fine)[:, 0], p.derivative(2)(fine)[:, 0]] for p in (
-        BPoly.from_derivatives(t, np.stack([traj.positions_rad[:, j], traj.velocities_rad_s[:, j],
-                                            traj.accelerations_rad_s2[:, j]], 1)[:, :, None].tolist(), orders=5)
-        for j in range(robot.dof))]
-    q, v, a = (np.array(x).T for x in zip(*motion))
-    qd, qdd = np.zeros((len(q), robot.n_joints)), np.zeros((len(q), robot.n_joints))
-    qd[:, list(robot.planned_joints)], qdd[:, list(robot.planned_joints)] = v, a
-    return wheel_load(robot, sc.masses, robot.full(q), qd, qdd)
-
-
 # the servicer's slow, wheel-limited trajectories: published points seconds apart
 SERVICER_JOINS = [((11.0, -18.0, -37.0), 0.1, "back"), ((-16.0, -6.0, -38.0), 0.4, "same"),
                   ((11.0, -18.0, -37.0), 0.1, "same"), ((5.0, -10.0, -20.0), 0.1, "same"),
@@ -289,7 +272,7 @@ def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel
         np.testing.assert_allclose(traj.positions_rad[0], ex.trajectory.positions_rad[k], atol=1e-9)
         assert np.linalg.norm(v0 - v_ex) <= 0.06 * np.linalg.norm(v_ex), (offset_deg, frac, goal, v_ex, v0)
         assert v0 @ v_ex >= np.cos(np.radians(3.0)) * np.linalg.norm(v0) * np.linalg.norm(v_ex)
-        h, tau = _controller_wheel_load(sc, traj)
+        h, tau = controller_wheel_load(sc, traj, 40 * len(traj.times_s))
         assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3), \
             (offset_deg, frac, goal, np.max(np.abs(tau)))
     assert published >= 2 and refused >= 2, (published, refused)
@@ -340,5 +323,5 @@ def test_a_servicer_replan_back_stops_on_the_executing_path_and_goes_back():
     gap = np.min(np.linalg.norm(traj.positions_rad[:k, None, :] - on[None], axis=2), axis=1)
     assert np.all(gap <= np.max(np.linalg.norm(np.diff(on, axis=0), axis=1)))   # on the executing path
     np.testing.assert_allclose(traj.positions_rad[-1], start, atol=1e-9)
-    h, tau = _controller_wheel_load(sc, traj)
+    h, tau = controller_wheel_load(sc, traj, 40 * len(traj.times_s))
     assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3)

@@ -9,9 +9,10 @@ factors; a moving start; resampling and its certification (oracles in test/oracl
 import numpy as np
 import pytest
 from hypothesis import example, given, settings, strategies as st
-from scipy.interpolate import BPoly, CubicSpline
+from scipy.interpolate import CubicSpline
 
-from oracles import check_trajectory, dense_samples, shapely_clearance, toppra_duration_s
+from oracles import (check_trajectory, controller_motion, dense_samples, shapely_clearance,
+                     toppra_duration_s)
 from paper_paths import joint_limits, new_path_from
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.trajectory import densify_path, resample, sample, shared_path_models, time_parameterize
@@ -226,22 +227,14 @@ def test_resampled_trajectory_is_short_exact_and_certified(dof, paper_scenario, 
         if kw.get("time_step_s"):
             assert np.max(np.diff(sub.times_s)) <= kw["time_step_s"] + 1e-12
         # oracle: the polyline through the kept points, sampled at 0.1°, clears the margin, and so
-        # does the controller's motion through them (SciPy's quintic, 40 samples per segment)
+        # does the controller's motion through them (SciPy's quintic, 20 samples per segment, shapely)
         fine = dense_samples(sub.positions_rad, np.radians(0.1))
         assert np.all(checker.clearance_m(fine) > sc.scene.safety_margin_m)
-        assert np.all(checker.clearance_m(_quintic_samples(sub, 40)) > sc.scene.safety_margin_m)
+        curve = controller_motion(sub, 20 * (len(sub) - 1) + 1)[0]
+        assert min(shapely_clearance(sc.robot, sc.scene, q) for q in curve) > sc.scene.safety_margin_m
     if dof == 3:
         traj_s = time_parameterize(path, vmax, amax)
         assert 10 <= len(resample(traj_s, checker).trajectory) <= 200 and traj_s.duration_s > 20.0
-
-
-def _quintic_samples(traj, per_segment):
-    """(K, dof) the controller's motion through the points (SciPy's quintic: position, velocity, acceleration)."""
-    t = np.asarray(traj.times_s)
-    fine = np.linspace(t[0], t[-1], per_segment * (len(t) - 1) + 1)
-    return np.stack([BPoly.from_derivatives(t, np.stack([traj.positions_rad[:, d], traj.velocities_rad_s[:, d],
-                                                         traj.accelerations_rad_s2[:, d]], axis=1)[:, :, None].tolist(),
-                                            orders=5)(fine)[:, 0] for d in range(traj.positions_rad.shape[1])], axis=1)
 
 
 @pytest.mark.parametrize("bulge_deg", [-4.0, -1.0, 0.5, 1.0, 2.0, 4.0, 8.0])
@@ -269,7 +262,7 @@ def test_the_certification_is_of_the_controllers_curve_not_the_chord(paper_scena
     towards = 1.0 if shapely_clearance(sc.robot, sc.scene, mid + 0.02 * across) < clr[k] else -1.0
     v = towards * np.radians(bulge_deg) * 4.0 / np.diff(pair.times_s)[0] * across
     bent = replace(pair, velocities_rad_s=np.stack([v, -v]), accelerations_rad_s2=np.zeros((2, 2)))
-    oracle = min(shapely_clearance(sc.robot, sc.scene, q) for q in _quintic_samples(bent, 400))
+    oracle = min(shapely_clearance(sc.robot, sc.scene, q) for q in controller_motion(bent, 401)[0])
     margin = sc.scene.safety_margin_m
     got = resample(bent, MotionValidator.for_scene(sc.robot, sc.scene), time_step_s=10.0)
     assert len(got.trajectory) == 2
