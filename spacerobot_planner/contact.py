@@ -196,12 +196,12 @@ def leave_contact(motions, start_rad, *, max_penetration_m: float,
                 f"(clearance {max(sds[-1], 0.0):.3f} m after it)")
 
 
-def what_is_hit(robot, scene, q_rad) -> str:
+def what_is_hit(robot, scene, q_rad) -> tuple:
     """
     Name what posture ``q_rad`` (planned joints, rad) comes within the safety margin of, for a reason.
 
-    "the spacecraft body", "the target body", "debris polygon k" (k: its index in the scene's
-    obstacles), joined with "and"; "an obstacle" when none is.  Each is the scene's checker with
+    A tuple of "the spacecraft body", "the target body", "debris polygon k" (k: its index in the
+    scene's obstacles); empty when none is alone.  Each is the scene's checker with
     that obstacle alone (the spacecraft body is in every one: an obstacle is named where its
     clearance is below the body's, or the body is clear).
     """
@@ -220,7 +220,7 @@ def what_is_hit(robot, scene, q_rad) -> str:
         d = clearance(sc)
         if not d > margin and (d < body or body > margin):
             names.append(name)
-    return " and ".join(names) or "an obstacle"
+    return tuple(names)
 
 
 def warm_up(robot, scene) -> None:

@@ -451,12 +451,13 @@ class PlanRun:
             return
         refusal = (f"the start {deg_text(self.start)} is in collision: clearance {clr_s:.3f} m, the "
                    f"safety margin is {margin} m")
-        hit = what_is_hit(self.robot, self.sc.scene, self.start)
+        names = what_is_hit(self.robot, self.sc.scene, self.start)
+        hit = " and ".join(names) or "an obstacle"
         with self.stage("exit"):
             ex = leave_contact(self.validator, self.start, max_penetration_m=self.s.max_start_penetration_m, hit=hit)
         self.penetration_m = ex.start_penetration_m
         if not ex.ok:
-            movable = [h for h in hit.split(" and ") if h not in ("the spacecraft body", "an obstacle")]
+            movable = [h for h in names if h != "the spacecraft body"]
             hint = (f"move {' and '.join(movable).replace('the target body', 'the target')} away from the arm, or "
                     "plan from another start" if movable else "plan from another start")
             raise Fail(Code.START_IN_COLLISION, f"{refusal}; no way out: {ex.reason} ({hint})")
