@@ -22,8 +22,9 @@ carries the very trajectory the node publishes:
    accelerations by up to about a quarter (and, the attitude held, a wheel torque limit by up to
    about a third): that motion is sampled (:func:`controller_overshoot`,
    :func:`controller_wheel_overshoot`) and, where it exceeds a limit, steps 1 to 3 run again with
-   the scaling factors lowered by the overshoot (a few percent longer, within the limits as the
-   arm really moves); a joined plan's
+   that limit lowered by the overshoot along the stretch where it happened (the segment and its
+   neighbours: ``trajectory.Lowering``; the rest of the path keeps its limits, and a joined arm
+   keeps its speed), within the limits as the arm really moves; a joined plan's
    paths (the corner and its blends) are made once and the re-timings time the one the first
    round chose (the others only when it cannot be entered at the arm's speed); every path's
    spline model is made once for all rounds (``trajectory.shared_path_models``);
@@ -48,11 +49,13 @@ from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response, wheel_load
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import (Resampled, Trajectory, controller_check, controller_motion, controller_peaks, resample,
-                         shared_path_models)
+from .trajectory import (Lowering, Resampled, Trajectory, controller_check, controller_motion, controller_peaks,
+                         resample, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
-           "controller_overshoot", "controller_wheel_overshoot", "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
+           "controller_overshoot", "controller_wheel_overshoot", "controller_load", "overshot_stretches",
+           "segment_overshoots",
+           "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
 RESAMPLE_STEP_S = 0.25
@@ -60,10 +63,12 @@ RESAMPLE_STEP_S = 0.25
 AT_GOAL_TOL_RAD = 1e-4
 #: the controller's interpolation may exceed a limit by this fraction (sampling of its peak)
 CONTROLLER_TOL = 1e-3
-#: at most this many re-timings with lowered scaling factors when the controller's motion overshoots
+#: at most this many re-timings with lowered limits when the controller's motion overshoots
 CONTROLLER_RETIMES = 4
-#: each re-timing lowers the scaling factors a little more than the overshoot (converges in 1-2)
+#: each re-timing lowers a limit a little more than its overshoot there (converges in 1-2)
 CONTROLLER_SHRINK = 0.99
+#: ... and tapers the lowering back to the full limit by this fraction of the limit per segment
+LOWERING_TAPER = 0.0025
 
 
 @dataclass(frozen=True, eq=False)
@@ -281,20 +286,22 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     Run steps 1 to 4 of the chain: time, react, resample (certified when ``certify``), re-time.
 
     The controller interpolates the published points (quintic segments): its motion is
-    checked against the limits; where it overshoots, the chain runs again with the scaling
-    factors lowered by the overshoot (MoveIt's scaling factors), at most CONTROLLER_RETIMES times.
+    checked against the limits; where it overshoots, the chain runs again with the limits it
+    exceeds lowered by the overshoot along the stretches where it did (:func:`overshot_stretches`),
+    at most CONTROLLER_RETIMES times.
     A join's re-timings time the path the first round chose (``replanning.timed_join``).
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
     :class:`Processed` of the last round, that of the first, the last round's
     :func:`controller_wheel_overshoot` when it was checked, else None).
     """
-    limits, acs = scenario.joint_limits, scenario.acs
+    limits = scenario.joint_limits
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
     first, wheel_over, joined = got, None, args[8] is not None
     for round_ in range(CONTROLLER_RETIMES + 1):
         if got.refused is not None or limits is None:
             break
-        wheel_over = controller_wheel_overshoot(got.trajectory, scenario)
+        load = controller_load(got.trajectory, scenario) if _wheels_limited(scenario) else None
+        wheel_over = controller_wheel_overshoot(got.trajectory, scenario, load=load)
         over = controller_overshoot(got.trajectory, scenario) + wheel_over
         if max(over) <= 1.0 + CONTROLLER_TOL:
             break
@@ -303,15 +310,11 @@ def _retimed(scenario, args, certify: bool) -> tuple:
                 raise ValueError(f"{_overshoot_text(over)} after {CONTROLLER_RETIMES} re-timings")
             break                     # from rest: as it is (not seen on the paper-family scenes)
         wheel_over = None             # the round is timed again
-        # only the factors that overshoot (a slower velocity limit could not enter a joined path at
-        # the arm's speed)
-        lowered = [_lowered(scale, peak) for scale, peak in zip(
-            (limits.velocity_scaling, limits.acceleration_scaling, acs.wheel_momentum_scaling,
-             acs.wheel_torque_scaling), over)]
-        limits = replace(limits, velocity_scaling=lowered[0], acceleration_scaling=lowered[1])
-        acs = replace(acs, wheel_momentum_scaling=lowered[2], wheel_torque_scaling=lowered[3])
+        # only the limits that overshoot, only where (lowered everywhere, a joined path could not be
+        # entered at the arm's speed: its start sits at the velocity bound)
+        limits = replace(limits, lowered=limits.lowered + overshot_stretches(got.trajectory, scenario, load=load))
         try:
-            got, chosen = _time_and_resample(replace(scenario, joint_limits=limits, acs=acs), *args,
+            got, chosen = _time_and_resample(replace(scenario, joint_limits=limits), *args,
                                              certify=certify, chosen=chosen)
         except ValueError as e:
             # (joined) the slower motion cannot enter the path at the arm's speed: never published
@@ -319,6 +322,11 @@ def _retimed(scenario, args, certify: bool) -> tuple:
             raise ValueError(f"{_overshoot_text(over)}, and a slower motion cannot be entered at the "
                              f"arm's speed ({e})") from e
     return got, first, wheel_over
+
+
+def _wheels_limited(scenario) -> bool:
+    """Tell whether the wheels' load of the controller's motion is checked (the attitude held, a wheel limit set)."""
+    return scenario.acs.mode == "held" and scenario.acs.has_wheel_limits
 
 
 #: the quantities :func:`_retimed`'s overshoot ratios measure, in order
@@ -331,9 +339,75 @@ def _overshoot_text(over) -> str:
     return f"as the controller moves the arm, its {_OVERSHOOT_NAMES[k]} reaches {over[k]:.3f} times its limit"
 
 
-def _lowered(scaling: float, peak: float) -> float:
-    """Return a scaling factor lowered by the controller's overshoot ``peak`` (a peak ratio; kept within the limit)."""
-    return scaling / peak * CONTROLLER_SHRINK if peak > 1.0 + CONTROLLER_TOL else scaling
+def overshot_stretches(traj: Trajectory, scenario, samples_per_segment: int = 16, load=None) -> tuple:
+    """
+    Return where the controller's motion of ``traj`` overshoots a limit, and by how much: ``trajectory.Lowering``s.
+
+    A segment of ``traj``'s points (from a point to the next) whose controller's motion exceeds
+    a limit by more than ``CONTROLLER_TOL`` (:func:`segment_overshoots`) has that limit lowered
+    to CONTROLLER_SHRINK over the overshoot; the segments around it taper back to the full
+    limit by ``LOWERING_TAPER`` per segment (a step in a limit is a step in the time-optimal
+    acceleration, which the controller's quintics overshoot in turn: lowered on the segment
+    alone, the overshoot moved to its neighbours, and took three to four re-timings where a
+    lowering of the whole path took two).  One stretch per run of lowered segments; timed again
+    within them (``JointLimits.lowered``), the rest of the path keeps its limits.  ``load``:
+    :func:`controller_load` of the same, when known.
+    """
+    over = segment_overshoots(traj, scenario, samples_per_segment, load)
+    core = np.where(over > 1.0 + CONTROLLER_TOL, CONTROLLER_SHRINK / np.maximum(over, 1e-300), 1.0)
+    f = np.ones_like(core)
+    seg = np.arange(len(core))
+    for col in range(core.shape[1]):
+        for k in np.flatnonzero(core[:, col] < 1.0):
+            np.minimum(f[:, col], core[k, col] + LOWERING_TAPER * np.abs(seg - k), out=f[:, col])
+    low = np.any(f < 1.0, axis=1)
+    if not low.any():
+        return ()
+    # one stretch per run of lowered segments
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], low, [False]]).astype(np.int8)))
+    q = traj.positions_rad
+    return tuple(Lowering(q[a:b + 1].copy(), f[a:b].copy()) for a, b in zip(edges[::2], edges[1::2]))
+
+
+def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16, load=None) -> np.ndarray:
+    """
+    Return each segment's peak ratios of the controller's motion to the limits, (M - 1, 4).
+
+    Columns: joint velocity, joint acceleration (the largest over the planned joints, over the
+    limits times the scaling factors, as :func:`controller_overshoot`), wheel momentum, wheel
+    torque (over the limits, as :func:`controller_wheel_overshoot`; 0 where not held or not
+    set); each over ``samples_per_segment`` samples of the segment (``trajectory.controller_motion``)
+    and its end point.  ``load``: :func:`controller_load` of the same, when known.
+    """
+    m = len(traj.times_s)
+    if m < 2:
+        return np.zeros((0, 4))
+    q, v, a, h, tau = load or controller_load(traj, scenario, samples_per_segment)
+    vmax, amax = scenario.joint_limits.planned(scenario.robot)
+    r = np.zeros((len(q), 4))
+    r[:, 0] = np.max(np.abs(v) / (vmax * scenario.joint_limits.velocity_scaling), axis=1)
+    r[:, 1] = np.max(np.abs(a) / (amax * scenario.joint_limits.acceleration_scaling), axis=1)
+    acs = scenario.acs
+    for col, x, limit in ((2, h, acs.max_wheel_momentum_Nms), (3, tau, acs.max_wheel_torque_Nm)):
+        if x is not None and limit is not None and limit > 0.0:
+            r[:, col] = np.abs(x) / limit
+    s = samples_per_segment
+    seg = r[:-1].reshape(m - 1, s, 4).max(axis=1)
+    return np.maximum(seg, r[s::s])          # and each segment's end point
+
+
+def controller_load(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
+    """
+    Return the controller's motion of ``traj`` and the wheels' load along it, sampled.
+
+    (positions, velocities, accelerations) as ``trajectory.controller_motion`` gives them,
+    then the wheel momentum and torque at those samples (``spacecraft.wheel_load``), both None
+    unless the attitude is held and a wheel limit set.
+    """
+    q, v, a = controller_motion(traj, samples_per_segment)
+    if not _wheels_limited(scenario):
+        return q, v, a, None, None
+    return (q, v, a, *wheel_load(scenario.robot, scenario.masses, q, v, a))
 
 
 def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
@@ -357,7 +431,7 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
                             vlim, alim)
 
 
-def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
+def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16, load=None) -> tuple:
     """
     Return the peak (wheel momentum, wheel torque) over the scenario's wheel limits of the controller's motion.
 
@@ -367,12 +441,13 @@ def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: 
     parameterisation kept within the limits (the quintics between them overshoot a torque limit
     that binds by up to about a third).  The ratios are max |h_wheel| / ``acs.max_wheel_momentum_Nms``
     and max |τ_wheel| / ``acs.max_wheel_torque_Nm`` (``spacecraft.wheel_load``; 1.0: at the
-    limit); 0.0 for a limit not set, and both 0.0 unless the attitude is held.
+    limit); 0.0 for a limit not set, and both 0.0 unless the attitude is held.  ``load``:
+    :func:`controller_load` of the same, when known.
     """
     acs = scenario.acs
-    if acs.mode != "held" or not acs.has_wheel_limits or len(traj.times_s) < 2:
+    if not _wheels_limited(scenario) or len(traj.times_s) < 2:
         return 0.0, 0.0
-    h, tau = wheel_load(scenario.robot, scenario.masses, *controller_motion(traj, samples_per_segment))
+    h, tau = (load or controller_load(traj, scenario, samples_per_segment))[3:]
     return tuple(float(np.max(np.abs(x))) / limit if limit > 0.0 else 0.0
                  for x, limit in ((h, acs.max_wheel_momentum_Nms), (tau, acs.max_wheel_torque_Nm)))
 

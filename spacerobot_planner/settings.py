@@ -124,6 +124,9 @@ class JointLimits:
         max_acceleration_rad_s2: (n,) acceleration limit per joint, rad/s², > 0.
         velocity_scaling, acceleration_scaling: factors in (0, 1] on every limit
             (MoveIt's max_velocity_scaling_factor, max_acceleration_scaling_factor).
+        lowered: ``trajectory.Lowering`` stretches of the path where the limits (the joints'
+            and the wheels') are lower still: the chain's re-timings, where the controller's
+            interpolation overshot them (``adapters``); not a parameter, () from a file.
         A scenario without them (``Scenario.joint_limits`` None) plans paths, not trajectories.
 
     """
@@ -132,6 +135,7 @@ class JointLimits:
     max_acceleration_rad_s2: tuple
     velocity_scaling: float = 1.0
     acceleration_scaling: float = 1.0
+    lowered: tuple = ()
 
     def __post_init__(self):
         set_ = object.__setattr__

@@ -96,7 +96,7 @@ def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed
     wheel = WheelModel(robot, scenario.masses, *acs.timed_wheel_limits)
     return time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
-                             start_path_speed=start_path_speed, wheel=wheel)
+                             start_path_speed=start_path_speed, wheel=wheel, lowered=scenario.joint_limits.lowered)
 
 
 def _report(scenario, path_rad, traj, motions=None) -> ReactionReport:
@@ -178,4 +178,5 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
         return motion.trajectory, motion.reaction
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
-                             acceleration_scaling=as_, start_path_speed=start_path_speed), None
+                             acceleration_scaling=as_, start_path_speed=start_path_speed,
+                             lowered=scenario.joint_limits.lowered), None

@@ -80,7 +80,7 @@ from numba import njit
 from .collision import NO_REFCOUNT
 from .motion import MotionValidator
 
-__all__ = ["Trajectory", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
+__all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
            "horizon_index", "HorizonPassed", "sample_points", "controller_peaks", "chord_lengths_rad",
            "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES"]
@@ -1042,11 +1042,95 @@ def _limit_or_inf(v):
     return np.inf if v is None or not v > 0.0 else float(v)
 
 
+#: :class:`Lowering`'s factors, in order (the limits they lower)
+LOWERED_LIMITS = ("velocity", "acceleration", "wheel momentum", "wheel torque")
+
+
+@dataclass(frozen=True, eq=False)
+class Lowering:
+    """
+    Limits lowered along a stretch of a path: where the controller's motion overshot them.
+
+    A path that holds only the first point of a segment has it lowered from there to its end,
+    one that holds only the last from its start (a trajectory joined of two timed paths); a
+    path that holds neither has it as it is.
+
+    Attributes
+    ----------
+        points_rad: (K + 1, n) consecutive points of a trajectory of the path (which are samples
+            of it: ``densify_path``'s, unwrapped as timed), K ≥ 1.
+        factors: (K, 4) in (0, 1]: for each segment between two of the points, the fractions of
+            the velocity, acceleration, wheel momentum and wheel torque limits
+            (:data:`LOWERED_LIMITS`) it is timed within.  Stretches that overlap multiply.
+
+    """
+
+    points_rad: np.ndarray
+    factors: np.ndarray
+
+
+def _lowered_factors(p, refine: int, lowered) -> np.ndarray | None:
+    """
+    Return each grid point's factors on the limits, (G, 4), G = (M - 1)·refine + 1; None when none is lowered.
+
+    p: (M, n) the path's samples; ``lowered``: :class:`Lowering` stretches, their points matched
+    on the samples bit for bit (a trajectory's points are the samples themselves).
+    """
+    if not lowered:
+        return None
+    m, n = p.shape
+    rows = np.dtype((np.void, 8 * n))
+    pv = np.ascontiguousarray(p, dtype=np.float64).view(rows).ravel()
+    order = np.argsort(pv, kind="stable")
+    spv = pv[order]
+    starts, ends, logs = [], [], []
+    for zone in lowered:
+        qv = np.ascontiguousarray(zone.points_rad, dtype=np.float64).view(rows).ravel()
+        at = np.minimum(np.searchsorted(spv, qv), m - 1)
+        idx = np.where(spv[at] == qv, order[at], -1)        # each point's sample, -1: not on this path
+        a, b = idx[:-1], idx[1:]
+        on = (a >= 0) | (b >= 0)
+        a, b = np.where(a >= 0, a, 0)[on], np.where(b >= 0, b, m - 1)[on]
+        starts.append(np.minimum(a, b) * refine)
+        ends.append(np.maximum(a, b) * refine + 1)
+        logs.append(np.log(np.asarray(zone.factors, dtype=np.float64)[on]))
+    starts = np.concatenate(starts)
+    if not starts.size:
+        return None
+    step = np.zeros(((m - 1) * refine + 2, 4))            # the log factors' differences along the grid
+    np.add.at(step, starts, np.concatenate(logs))
+    np.subtract.at(step, np.concatenate(ends), np.concatenate(logs))
+    return np.exp(np.cumsum(step[:-1], axis=0))
+
+
+def _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low):
+    """
+    Return the passes' constraint rows (a_row, b_row, c_row, kappa, xv) with the wheel's and the lowering.
+
+    xv (G,), c_row (G, n), kappa (G-1, n): :func:`_constraint_rows`' joint rows; d1, d2 (G, n) q', q'';
+    g, gp (G,) the wheel's H·q' and its derivative along the path (None: no wheel); h_max, tau_max
+    its limits (inf: none); low (G, 4) or None: :func:`_lowered_factors`.
+    """
+    if low is not None:
+        xv = xv * low[:, 0] ** 2
+        c_row = c_row * low[:, 1:2]
+    if g is None:
+        return d1, d2, np.ascontiguousarray(c_row), kappa, xv
+    h_at = h_max if low is None else h_max * low[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xv = np.minimum(xv, (h_at / np.abs(g)) ** 2)
+    tau_at = np.full(len(g), tau_max) if low is None else tau_max * low[:, 3]
+    return (np.ascontiguousarray(np.hstack([d1, g[:, None]])), np.ascontiguousarray(np.hstack([d2, gp[:, None]])),
+            np.ascontiguousarray(np.hstack([c_row, tau_at[:, None]])),
+            np.ascontiguousarray(np.hstack([kappa, np.zeros((len(g) - 1, 1))])), xv)
+
+
 def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joint_names=None, *,
                       velocity_scaling: float = 1.0, acceleration_scaling: float = 1.0,
                       start_path_speed: float | None = None, start_velocity_rad_s=None,
                       wheel=None, max_step_rad: float = np.radians(0.5),
-                      grid_refinement: int = 2, start_speed_tolerance: float = 1e-3) -> Trajectory:
+                      grid_refinement: int = 2, start_speed_tolerance: float = 1e-3,
+                      lowered: tuple = ()) -> Trajectory:
     """
     Time-optimal parameterisation of a joint path within joint (and wheel) limits.
 
@@ -1072,6 +1156,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         start_speed_tolerance: a start speed above the largest admissible one by at most
             this fraction is lowered to it (a path re-fitted through the same samples moves
             the velocity bound by a hair); more is refused.
+        lowered: :class:`Lowering` stretches, where the limits are lower still (the chain's
+            re-timings, where the controller's interpolation overshot them).
 
     Returns
     -------
@@ -1120,18 +1206,20 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     g_n = len(qg)
     # velocity type x = ṡ² ≤ xv, the acceleration rows' κ and limits: see _constraint_rows
     xv, kappa, c_row = _constraint_rows(d1, d3, ds, vmax, amax)
-    a_row, b_row = d1, d2
+    low = _lowered_factors(p, refine, lowered)          # (G, 4) or None
     g = gp = None
     if wheel is not None:
         g, gp = wheel.path_terms(qg, d1, d2)
-        with np.errstate(divide="ignore"):
-            xv = np.minimum(xv, (h_max / np.abs(g)) ** 2)
-        a_row = np.ascontiguousarray(np.hstack([d1, g[:, None]]))
-        b_row = np.ascontiguousarray(np.hstack([d2, gp[:, None]]))
-        c_row = np.ascontiguousarray(np.hstack([c_row, np.full((g_n, 1), tau_max)]))
-        kappa = np.ascontiguousarray(np.hstack([kappa, np.zeros((g_n - 1, 1))]))
-
-    k = _backward(a_row, b_row, c_row, kappa, xv, ds, 0.0)
+    rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
+    k = _backward(*rows[:5], ds, 0.0)
+    free = 1                         # a moving start keeps this many grid points' limits from the lowering
+    while low is not None and sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance) and free < g_n:
+        low = low.copy()             # the arm's speed is given: lowered only where it can be entered
+        low[:free] = 1.0
+        rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
+        k = _backward(*rows[:5], ds, 0.0)
+        free *= 2
+    a_row, b_row, c_row, kappa, xv = rows
     x0 = sd0 * sd0
     if sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance):
         raise ValueError(f"start_path_speed: {sd0:.6g} rad/s along the path is faster than the limits "
@@ -1151,7 +1239,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         m_acc = np.maximum(m_acc, np.minimum(2.0 * acc_m, 0.9 * amax))
         m_vel = np.maximum(m_vel, np.minimum(2.0 * vel_m, 0.9))
         c_used = c_row.copy()
-        c_used[:, :n] = amax - m_acc
+        c_used[:, :n] = np.maximum(c_row[:, :n] - m_acc, 0.1 * c_row[:, :n])
         xv_used = np.ascontiguousarray(xv * (1.0 - m_vel) ** 2)
         k = _backward(a_row, b_row, c_used, kappa, xv_used, ds, 0.0)
     empty = np.zeros(0)

@@ -319,7 +319,8 @@ def test_servicer_trajectory_keeps_the_wheel_limits(graph):
 
     The wheel momentum and torque of the planned trajectory, recomputed in the test from forward
     kinematics (test_dynamics' momentum sum), stay within the file's limits, and /diagnostics
-    reports the reaction.
+    reports the reaction: its peak torque is the controller's motion's, within the chain's
+    tolerance of the limit (``adapters.CONTROLLER_TOL``, 0.1 %: the quintics sampled).
     """
     from node_helpers import diag_values
     from test_dynamics import _load_oracle
@@ -338,7 +339,7 @@ def test_servicer_trajectory_keeps_the_wheel_limits(graph):
     assert np.max(np.abs(h)) <= 50.0 * (1 + 1e-6) and np.max(np.abs(tau)) <= 0.5 * (1 + 1e-6)
     g.wait(lambda: "peak_wheel_momentum_Nms" in diag_values(g.status("planner")), 10, "the reaction")
     pv = diag_values(g.status("planner"))
-    assert float(pv["peak_wheel_torque_Nm"]) <= 0.5 + 1e-9 and pv["acs_mode"] == "held"
+    assert float(pv["peak_wheel_torque_Nm"]) <= 0.5 * (1 + 1e-3) and pv["acs_mode"] == "held"
 
 
 def _params_file(flat, path):
