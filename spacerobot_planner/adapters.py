@@ -50,7 +50,7 @@ from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response, wheel_load
 from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import (Lowering, Resampled, Trajectory, controller_check, controller_motion, controller_peaks,
-                         resample, shared_path_models)
+                         resample, segment_acceleration_peaks, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "controller_wheel_overshoot", "controller_load", "overshot_stretches",
@@ -288,13 +288,14 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     The controller interpolates the published points (quintic segments): its motion is
     checked against the limits; where it overshoots, the chain runs again with the limits it
     exceeds lowered by the overshoot along the stretches where it did (:func:`overshot_stretches`),
-    at most CONTROLLER_RETIMES times.
+    and at the last of at most CONTROLLER_RETIMES re-timings along the whole path (the scaling
+    factors, as MoveIt's: a stretch's lowering that moved the overshoot on does not go on forever).
     A join's re-timings time the path the first round chose (``replanning.timed_join``).
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
     :class:`Processed` of the last round, that of the first, the last round's
     :func:`controller_wheel_overshoot` when it was checked, else None).
     """
-    limits = scenario.joint_limits
+    limits, acs = scenario.joint_limits, scenario.acs
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
     first, wheel_over, joined = got, None, args[8] is not None
     for round_ in range(CONTROLLER_RETIMES + 1):
@@ -310,11 +311,19 @@ def _retimed(scenario, args, certify: bool) -> tuple:
                 raise ValueError(f"{_overshoot_text(over)} after {CONTROLLER_RETIMES} re-timings")
             break                     # from rest: as it is (not seen on the paper-family scenes)
         wheel_over = None             # the round is timed again
-        # only the limits that overshoot, only where (lowered everywhere, a joined path could not be
-        # entered at the arm's speed: its start sits at the velocity bound)
-        limits = replace(limits, lowered=limits.lowered + overshot_stretches(got.trajectory, scenario, load=load))
+        if round_ < CONTROLLER_RETIMES - 1:
+            # only the limits that overshoot, only where (lowered everywhere, a joined path could not
+            # be entered at the arm's speed: its start sits at the velocity bound)
+            stretches = overshot_stretches(got.trajectory, scenario, load=load)
+            limits = replace(limits, lowered=limits.lowered + stretches)
+        else:                         # the last re-timing: the whole path, as the stretches have not done it
+            lowered = [_lowered(scale, peak) for scale, peak in zip(
+                (limits.velocity_scaling, limits.acceleration_scaling, acs.wheel_momentum_scaling,
+                 acs.wheel_torque_scaling), over)]
+            limits = replace(limits, velocity_scaling=lowered[0], acceleration_scaling=lowered[1])
+            acs = replace(acs, wheel_momentum_scaling=lowered[2], wheel_torque_scaling=lowered[3])
         try:
-            got, chosen = _time_and_resample(replace(scenario, joint_limits=limits), *args,
+            got, chosen = _time_and_resample(replace(scenario, joint_limits=limits, acs=acs), *args,
                                              certify=certify, chosen=chosen)
         except ValueError as e:
             # (joined) the slower motion cannot enter the path at the arm's speed: never published
@@ -322,6 +331,11 @@ def _retimed(scenario, args, certify: bool) -> tuple:
             raise ValueError(f"{_overshoot_text(over)}, and a slower motion cannot be entered at the "
                              f"arm's speed ({e})") from e
     return got, first, wheel_over
+
+
+def _lowered(scaling: float, peak: float) -> float:
+    """Return a scaling factor lowered by the controller's overshoot ``peak`` (a peak ratio; kept within the limit)."""
+    return scaling / peak * CONTROLLER_SHRINK if peak > 1.0 + CONTROLLER_TOL else scaling
 
 
 def _wheels_limited(scenario) -> bool:
@@ -377,7 +391,8 @@ def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16
     limits times the scaling factors, as :func:`controller_overshoot`), wheel momentum, wheel
     torque (over the limits, as :func:`controller_wheel_overshoot`; 0 where not held or not
     set); each over ``samples_per_segment`` samples of the segment (``trajectory.controller_motion``)
-    and its end point.  ``load``: :func:`controller_load` of the same, when known.
+    and its end point, the acceleration exact (``trajectory.segment_acceleration_peaks``).
+    ``load``: :func:`controller_load` of the same, when known.
     """
     m = len(traj.times_s)
     if m < 2:
@@ -386,14 +401,17 @@ def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16
     vmax, amax = scenario.joint_limits.planned(scenario.robot)
     r = np.zeros((len(q), 4))
     r[:, 0] = np.max(np.abs(v) / (vmax * scenario.joint_limits.velocity_scaling), axis=1)
-    r[:, 1] = np.max(np.abs(a) / (amax * scenario.joint_limits.acceleration_scaling), axis=1)
+    alim = amax * scenario.joint_limits.acceleration_scaling
+    r[:, 1] = np.max(np.abs(a) / alim, axis=1)
     acs = scenario.acs
     for col, x, limit in ((2, h, acs.max_wheel_momentum_Nms), (3, tau, acs.max_wheel_torque_Nm)):
         if x is not None and limit is not None and limit > 0.0:
             r[:, col] = np.abs(x) / limit
     s = samples_per_segment
-    seg = r[:-1].reshape(m - 1, s, 4).max(axis=1)
-    return np.maximum(seg, r[s::s])          # and each segment's end point
+    seg = np.maximum(r[:-1].reshape(m - 1, s, 4).max(axis=1), r[s::s])      # and each segment's end point
+    # the acceleration exact: its peak near a point falls between the samples
+    seg[:, 1] = np.maximum(seg[:, 1], np.max(segment_acceleration_peaks(traj) / alim, axis=1))
+    return seg
 
 
 def controller_load(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
@@ -419,7 +437,8 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
     accelerations), sampled ``samples_per_segment`` times per segment and at the end
     (``trajectory.controller_peaks``); the ratios are the
     largest over the planned joints of |v| / (max velocity × velocity scaling) and
-    |a| / (max acceleration × acceleration scaling) (1.0: at the limit).
+    |a| / (max acceleration × acceleration scaling) (1.0: at the limit); the acceleration exact
+    (its extrema inside each segment too).
     """
     vmax, amax = scenario.joint_limits.planned(scenario.robot)
     vlim = vmax * scenario.joint_limits.velocity_scaling

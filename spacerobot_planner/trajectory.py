@@ -83,7 +83,8 @@ from .motion import MotionValidator
 __all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
            "horizon_index", "HorizonPassed", "sample_points", "controller_peaks", "chord_lengths_rad",
-           "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES"]
+           "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES",
+           "segment_acceleration_peaks"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -1051,9 +1052,11 @@ class Lowering:
     """
     Limits lowered along a stretch of a path: where the controller's motion overshot them.
 
-    A path that holds only the first point of a segment has it lowered from there to its end,
-    one that holds only the last from its start (a trajectory joined of two timed paths); a
-    path that holds neither has it as it is.
+    A segment is lowered on a path that holds both its points in that order; where the stretch's
+    points leave the path after two or more of them in order (or reach it so: a trajectory
+    joined of two timed paths), the path from the last of them to its end (from its start to
+    the first).  Points a path holds out of order (a path back over some of the same samples)
+    lower nothing there.
 
     Attributes
     ----------
@@ -1083,24 +1086,43 @@ def _lowered_factors(p, refine: int, lowered) -> np.ndarray | None:
     pv = np.ascontiguousarray(p, dtype=np.float64).view(rows).ravel()
     order = np.argsort(pv, kind="stable")
     spv = pv[order]
-    starts, ends, logs = [], [], []
+    f, hit = np.ones(((m - 1) * refine + 1, 4)), False
     for zone in lowered:
         qv = np.ascontiguousarray(zone.points_rad, dtype=np.float64).view(rows).ravel()
         at = np.minimum(np.searchsorted(spv, qv), m - 1)
         idx = np.where(spv[at] == qv, order[at], -1)        # each point's sample, -1: not on this path
-        a, b = idx[:-1], idx[1:]
-        on = (a >= 0) | (b >= 0)
-        a, b = np.where(a >= 0, a, 0)[on], np.where(b >= 0, b, m - 1)[on]
-        starts.append(np.minimum(a, b) * refine)
-        ends.append(np.maximum(a, b) * refine + 1)
-        logs.append(np.log(np.asarray(zone.factors, dtype=np.float64)[on]))
-    starts = np.concatenate(starts)
-    if not starts.size:
-        return None
-    step = np.zeros(((m - 1) * refine + 2, 4))            # the log factors' differences along the grid
-    np.add.at(step, starts, np.concatenate(logs))
-    np.subtract.at(step, np.concatenate(ends), np.concatenate(logs))
-    return np.exp(np.cumsum(step[:-1], axis=0))
+        found = np.flatnonzero(idx >= 0)
+        if not found.size:
+            continue
+        inside = (idx[:-1] >= 0) & (idx[1:] > idx[:-1])    # a segment between two points in this path's order
+        pair = np.flatnonzero(inside)
+        a, b = idx[pair], idx[pair + 1]
+        first, last = int(found[0]), int(found[-1])
+        if first > 0 and first < len(inside) and inside[first]:
+            a, b, pair = np.r_[0, a], np.r_[idx[first], b], np.r_[first - 1, pair]      # from before the start
+        if last < len(idx) - 1 and last > 0 and inside[last - 1]:
+            a, b, pair = np.r_[a, idx[last]], np.r_[b, m - 1], np.r_[pair, last]        # on past the end
+        if not pair.size:
+            continue
+        f *= _stretch_factors(len(f), a * refine, b * refine, np.asarray(zone.factors, dtype=np.float64)[pair])
+        hit = True
+    return f if hit else None
+
+
+def _stretch_factors(g_n: int, lo, hi, fac) -> np.ndarray:
+    """
+    Return one stretch's factors on the grid, (G, 4): ``fac[k]`` on grid points lo[k]..hi[k], 1 elsewhere.
+
+    lo, hi int (K,) grid indices, lo < hi, segments in order (they meet at most at their ends, where
+    the lower of the two factors holds); fac (K, 4).
+    """
+    out = np.ones((g_n, 4))
+    count = np.maximum(hi - lo - 1, 0)                    # each segment's points strictly inside
+    first = np.repeat(lo + 1 - (np.cumsum(count) - count), count)
+    out[np.arange(int(count.sum())) + first] = np.repeat(fac, count, axis=0)
+    np.minimum.at(out, lo, fac)
+    np.minimum.at(out, hi, fac)
+    return out
 
 
 def _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low):
@@ -1600,6 +1622,22 @@ def _segment_coefficients(q, v, a, fields, k, dur, c):
                 c[5, j] = 6.0 * d - 3.0 * w0 - 3.0 * w1 - 0.5 * b0 + 0.5 * b1
 
 
+@njit(cache=True, nogil=True)
+def _unit_roots(qa, qb, qc):
+    """Return the roots of qa x² + qb x + qc inside (0, 1): a tuple of two, 0.0 where there is none."""
+    r0 = r1 = 0.0
+    if qa == 0.0:
+        if qb != 0.0:
+            r0 = -qc / qb
+    else:
+        disc = qb * qb - 4.0 * qa * qc
+        if disc >= 0.0:
+            w = -0.5 * (qb + math.copysign(math.sqrt(disc), qb))
+            r0 = w / qa
+            r1 = qc / w if w != 0.0 else 0.0
+    return (r0 if 0.0 < r0 < 1.0 else 0.0), (r1 if 0.0 < r1 < 1.0 else 0.0)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _horner(c, j, x):
     """Return (p, p', p'') of column j of the polynomial c (6, n) at x (Horner's rule with its derivatives)."""
@@ -1660,7 +1698,9 @@ def _controller_peaks(t, q, v, a, u, vlim, alim, c):
 
     Sampled at ``t_k + (t_k+1 - t_k) · u`` on every segment k and at the last point's time
     (u (S,): fractions of a segment, from 0): the values :func:`_controller_states` gives
-    there (fields 3), without the (K, n) arrays.  t (M ≥ 2,), q, v, a (M, n); vlim, alim
+    there (fields 3), without the (K, n) arrays; the acceleration also at its extrema inside
+    each segment (the roots of the quintic's third derivative), where a peak near a point
+    falls between samples (0.15 % above 16 of them on the paper 3-DOF path).  t (M ≥ 2,), q, v, a (M, n); vlim, alim
     (n,); c (8, n) scratch.  Returns (peak velocity ratio, peak acceleration ratio, the times
     increase strictly); NaN where a ratio is.  Each joint's peak |value| is divided once by
     its limit (a division by a positive number keeps the order: the same maximum).
@@ -1692,11 +1732,50 @@ def _controller_peaks(t, q, v, a, u, vlim, alim, c):
                 p, dp, ddp = _horner(c, j, x)
                 c[6, j] = _nan_max(c[6, j], abs(dp / dur))
                 c[7, j] = _nan_max(c[7, j], abs(ddp / (dur * dur)))
+        if seg != k_coef:
+            k_coef = seg
+            _segment_coefficients(q, v, a, 3, seg, h, c)
+        for j in range(n):              # and the acceleration's extrema between the samples: exact
+            for x in _unit_roots(60.0 * c[5, j], 24.0 * c[4, j], 6.0 * c[3, j]):
+                p, dp, ddp = _horner(c, j, x)
+                c[7, j] = _nan_max(c[7, j], abs(ddp / (h * h)))
     top_v, top_a = -np.inf, -np.inf
     for j in range(n):
         top_v = _nan_max(top_v, c[6, j] / vlim[j])
         top_a = _nan_max(top_a, c[7, j] / alim[j])
     return top_v, top_a, True
+
+
+@njit(cache=True, nogil=True)
+def _segment_acceleration_peaks(t, q, v, a, out, c):
+    """
+    Fill out (M - 1, n) with each segment's peak |acceleration| of the quintic interpolation, exact.
+
+    At the segment's ends and its extrema inside (the roots of the third derivative); t (M,)
+    increasing strictly, q, v, a (M, n), c (8, n) scratch.
+    """
+    m, n = q.shape
+    for k in range(m - 1):
+        h = t[k + 1] - t[k]
+        _segment_coefficients(q, v, a, 3, k, h, c)
+        for j in range(n):
+            top = max(abs(a[k, j]), abs(a[k + 1, j]))
+            for x in _unit_roots(60.0 * c[5, j], 24.0 * c[4, j], 6.0 * c[3, j]):
+                if x > 0.0:
+                    top = max(top, abs(_horner(c, j, x)[2] / (h * h)))
+            out[k, j] = top
+
+
+def segment_acceleration_peaks(traj: "Trajectory") -> np.ndarray:
+    """Return each segment's peak |acceleration| (M - 1, n), rad/s², of the controller's quintics, exact."""
+    q = np.ascontiguousarray(traj.positions_rad, dtype=float)
+    out = np.zeros((max(len(q) - 1, 0), q.shape[1]))
+    if len(q) > 1:
+        _segment_acceleration_peaks(np.ascontiguousarray(traj.times_s, dtype=float), q,
+                                    np.ascontiguousarray(traj.velocities_rad_s, dtype=float),
+                                    np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float), out,
+                                    np.empty((8, q.shape[1])))
+    return out
 
 
 def sample_points(times_s, positions, velocities, accelerations, t_s):

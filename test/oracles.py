@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
-from scipy.interpolate import BPoly, CubicHermiteSpline
+from scipy.interpolate import BPoly, CubicHermiteSpline, PPoly
 
 
 # ===================================================================== grids
@@ -587,6 +587,23 @@ def simulate_free_floating(robot, mp, path, sub=4):
 
 
 # ---------------------------------------------------------------- the controller's motion
+def quintic_acceleration_peaks(t, q, v, a):
+    """
+    Return per joint (n,) the largest |acceleration| of the quintic Hermite through the points, exact.
+
+    SciPy's BPoly.from_derivatives as a PPoly: its second derivative at the knots and where the
+    third derivative vanishes (``PPoly.roots``), not sampled.
+    """
+    t, q = np.asarray(t, float), np.asarray(q, float)
+    peaks = []
+    for j in range(q.shape[1]):
+        pp = PPoly.from_bernstein_basis(BPoly.from_derivatives(t, np.stack([q[:, j], v[:, j], a[:, j]], axis=1)))
+        roots = pp.derivative(3).roots(extrapolate=False)
+        at = np.concatenate([t, roots[np.isfinite(roots)]])
+        peaks.append(float(np.max(np.abs(pp.derivative(2)(at)))))
+    return np.array(peaks)
+
+
 def controller_interpolation(t, q, v=None, a=None):
     """
     Return f(times) → (positions, velocities, accelerations), each (K, n), built without sample_points.

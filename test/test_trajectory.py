@@ -15,7 +15,8 @@ from oracles import (check_trajectory, controller_motion, dense_samples, shapely
                      toppra_duration_s)
 from paper_paths import joint_limits, new_path_from
 from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.trajectory import densify_path, resample, sample, shared_path_models, time_parameterize
+from spacerobot_planner.trajectory import (Lowering, densify_path, resample, sample, shared_path_models,
+                                           time_parameterize)
 
 VMAX = np.radians([5.0, 15.0, 15.0])
 AMAX = np.radians([5.0, 20.0, 20.0])
@@ -35,6 +36,61 @@ def test_straight_line_is_trapezoidal_and_fast():
     # joint 0 is the bottleneck: 1 rad at 5°/s with 5°/s² → 1/v + v/a
     ideal = 1.0 / VMAX[0] + VMAX[0] / AMAX[0]
     assert ideal <= traj.duration_s <= 1.1 * ideal
+
+
+def _one_joint_time_s(length, v, a, s1, s2, v2, n=200_000):
+    """Return the time-optimal time of a 1-D motion over ``length``, rest to rest, v ≤ v2 on [s1, s2]: ∫ ds / v."""
+    s = (np.arange(n) + 0.5) * (length / n)              # midpoints: 1/v is integrable at the ends
+    lim = np.minimum.reduce([np.full(n, v), np.sqrt(2 * a * s), np.sqrt(2 * a * (length - s)),
+                             np.sqrt(v2 ** 2 + 2 * a * np.clip(s1 - s, 0, None) + 2 * a * np.clip(s - s2, 0, None))])
+    return float(np.sum(length / n / lim))
+
+
+def test_a_lowered_stretch_is_timed_within_its_limits_and_the_rest_within_its_own():
+    """
+    ``time_parameterize(lowered=...)``: the limits lowered between two points of a trajectory, nowhere else.
+
+    A straight line on which joint 0 binds (1 rad at 5°/s, 5°/s²); its velocity limit halved from
+    the point a third of the way to the one two thirds of the way.  Oracle: the finite
+    differences of the output's positions over its times (at most half the limit there, the
+    full limit reached outside), and the time-optimal time of that 1-D motion by quadrature
+    (cruise, brake into the stretch, half speed, speed up again), within 1 %.
+    """
+    path = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, -0.2]])
+    first = time_parameterize(path, VMAX, AMAX)
+    q0 = first.positions_rad[:, 0]
+    i, j = int(np.argmin(np.abs(q0 - 1 / 3))), int(np.argmin(np.abs(q0 - 2 / 3)))
+    low = Lowering(first.positions_rad[i:j + 1], np.tile([0.5, 1.0, 1.0, 1.0], (j - i, 1)))
+    traj = time_parameterize(path, VMAX, AMAX, lowered=(low,))
+    check_trajectory(traj, path, VMAX, AMAX)
+    q, t = traj.positions_rad[:, 0], traj.times_s
+    v = np.diff(q) / np.diff(t)
+    mid = 0.5 * (q[1:] + q[:-1])
+    inside = (mid > q0[i]) & (mid < q0[j])
+    assert np.max(v[inside]) <= 0.5 * VMAX[0] * (1 + 1e-6)
+    assert np.max(v[~inside]) >= 0.99 * VMAX[0]
+    expect = _one_joint_time_s(1.0, VMAX[0], AMAX[0], q0[i], q0[j], 0.5 * VMAX[0])
+    assert expect <= traj.duration_s * (1 + 1e-6) and traj.duration_s <= 1.01 * expect, (traj.duration_s, expect)
+
+
+def test_a_path_back_over_the_same_samples_is_not_lowered_by_a_stretch_of_the_path_out():
+    """
+    A stretch lowers the path whose points it holds in their order, not a path back through them.
+
+    A stop on the executing path and the new path back over it share samples: the chain's
+    stretches (from the published points of such a trajectory) matched on positions alone
+    lowered the way back too, and a servicer_3dof replan's re-timings grew 268 s to 1 916 s
+    before the session gave up on them.  Here: the lowered path out is slower, the path back
+    (its samples reversed) timed exactly as without the stretch.
+    """
+    out = densify_path(np.array([[0.0, 0.0, 0.0], [1.0, 0.5, -0.2], [1.2, 1.0, 0.3]]))
+    first = time_parameterize(out, VMAX, AMAX)
+    n = len(first.times_s)
+    low = Lowering(first.positions_rad[n // 4:3 * n // 4], np.tile([0.5, 0.5, 1.0, 1.0], (3 * n // 4 - n // 4 - 1, 1)))
+    assert time_parameterize(out, VMAX, AMAX, lowered=(low,)).duration_s > 1.2 * first.duration_s
+    back = first.positions_rad[::-1]
+    plain, lowered = time_parameterize(back, VMAX, AMAX), time_parameterize(back, VMAX, AMAX, lowered=(low,))
+    np.testing.assert_array_equal(lowered.times_s, plain.times_s)
 
 
 @pytest.mark.parametrize("seed", range(6))
