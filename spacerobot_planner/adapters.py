@@ -50,11 +50,10 @@ from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response, wheel_load
 from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import (Lowering, Resampled, Trajectory, controller_check, controller_motion, controller_peaks,
-                         resample, segment_acceleration_peaks, shared_path_models)
+                         resample, sample_points, segment_acceleration_peaks, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
-           "controller_overshoot", "controller_wheel_overshoot", "controller_load", "overshot_stretches",
-           "segment_overshoots",
+           "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
@@ -69,6 +68,8 @@ CONTROLLER_RETIMES = 4
 CONTROLLER_SHRINK = 0.99
 #: ... and tapers the lowering back to the full limit by this fraction of the limit per segment
 LOWERING_TAPER = 0.0025
+#: the wheels' load is sampled twice as finely in the segments within this fraction of a wheel limit
+WHEEL_REFINE_BAND = 0.005
 
 
 @dataclass(frozen=True, eq=False)
@@ -301,8 +302,8 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     for round_ in range(CONTROLLER_RETIMES + 1):
         if got.refused is not None or limits is None:
             break
-        load = controller_load(got.trajectory, scenario) if _wheels_limited(scenario) else None
-        wheel_over = controller_wheel_overshoot(got.trajectory, scenario, load=load)
+        per_segment = segment_overshoots(got.trajectory, scenario) if _wheels_limited(scenario) else None
+        wheel_over = _wheel_peaks(per_segment)
         over = controller_overshoot(got.trajectory, scenario) + wheel_over
         if max(over) <= 1.0 + CONTROLLER_TOL:
             break
@@ -314,7 +315,7 @@ def _retimed(scenario, args, certify: bool) -> tuple:
         if round_ < CONTROLLER_RETIMES - 1:
             # only the limits that overshoot, only where (lowered everywhere, a joined path could not
             # be entered at the arm's speed: its start sits at the velocity bound)
-            stretches = overshot_stretches(got.trajectory, scenario, load=load)
+            stretches = overshot_stretches(got.trajectory, scenario, per_segment=per_segment)
             limits = replace(limits, lowered=limits.lowered + stretches)
         else:                         # the last re-timing: the whole path, as the stretches have not done it
             lowered = [_lowered(scale, peak) for scale, peak in zip(
@@ -353,7 +354,7 @@ def _overshoot_text(over) -> str:
     return f"as the controller moves the arm, its {_OVERSHOOT_NAMES[k]} reaches {over[k]:.3f} times its limit"
 
 
-def overshot_stretches(traj: Trajectory, scenario, samples_per_segment: int = 16, load=None) -> tuple:
+def overshot_stretches(traj: Trajectory, scenario, samples_per_segment: int = 16, per_segment=None) -> tuple:
     """
     Return where the controller's motion of ``traj`` overshoots a limit, and by how much: ``trajectory.Lowering``s.
 
@@ -364,10 +365,10 @@ def overshot_stretches(traj: Trajectory, scenario, samples_per_segment: int = 16
     acceleration, which the controller's quintics overshoot in turn: lowered on the segment
     alone, the overshoot moved to its neighbours, and took three to four re-timings where a
     lowering of the whole path took two).  One stretch per run of lowered segments; timed again
-    within them (``JointLimits.lowered``), the rest of the path keeps its limits.  ``load``:
-    :func:`controller_load` of the same, when known.
+    within them (``JointLimits.lowered``), the rest of the path keeps its limits.
+    ``per_segment``: :func:`segment_overshoots` of the same, when known.
     """
-    over = segment_overshoots(traj, scenario, samples_per_segment, load)
+    over = segment_overshoots(traj, scenario, samples_per_segment) if per_segment is None else per_segment
     core = np.where(over > 1.0 + CONTROLLER_TOL, CONTROLLER_SHRINK / np.maximum(over, 1e-300), 1.0)
     f = np.ones_like(core)
     seg = np.arange(len(core))
@@ -383,49 +384,59 @@ def overshot_stretches(traj: Trajectory, scenario, samples_per_segment: int = 16
     return tuple(Lowering(q[a:b + 1].copy(), f[a:b].copy()) for a, b in zip(edges[::2], edges[1::2]))
 
 
-def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16, load=None) -> np.ndarray:
+def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16) -> np.ndarray:
     """
     Return each segment's peak ratios of the controller's motion to the limits, (M - 1, 4).
 
     Columns: joint velocity, joint acceleration (the largest over the planned joints, over the
     limits times the scaling factors, as :func:`controller_overshoot`), wheel momentum, wheel
-    torque (over the limits, as :func:`controller_wheel_overshoot`; 0 where not held or not
-    set); each over ``samples_per_segment`` samples of the segment (``trajectory.controller_motion``)
-    and its end point, the acceleration exact (``trajectory.segment_acceleration_peaks``).
-    ``load``: :func:`controller_load` of the same, when known.
+    torque (over the limits; 0 unless the attitude is held and the limit set; the load by
+    ``spacecraft.wheel_load``); each over ``samples_per_segment`` samples of the segment
+    (``trajectory.controller_motion``) and its end point; the acceleration exact
+    (``trajectory.segment_acceleration_peaks``); the wheels' load twice as finely in the segments
+    within ``WHEEL_REFINE_BAND`` of a limit (its peak falls between 16 samples by up to 0.2 %).
     """
     m = len(traj.times_s)
     if m < 2:
         return np.zeros((0, 4))
-    q, v, a, h, tau = load or controller_load(traj, scenario, samples_per_segment)
+    s = samples_per_segment
+    q, v, a = controller_motion(traj, s)
     vmax, amax = scenario.joint_limits.planned(scenario.robot)
     r = np.zeros((len(q), 4))
     r[:, 0] = np.max(np.abs(v) / (vmax * scenario.joint_limits.velocity_scaling), axis=1)
     alim = amax * scenario.joint_limits.acceleration_scaling
     r[:, 1] = np.max(np.abs(a) / alim, axis=1)
-    acs = scenario.acs
-    for col, x, limit in ((2, h, acs.max_wheel_momentum_Nms), (3, tau, acs.max_wheel_torque_Nm)):
-        if x is not None and limit is not None and limit > 0.0:
-            r[:, col] = np.abs(x) / limit
-    s = samples_per_segment
+    limits = _wheel_limits(scenario)
+    if limits is not None:
+        r[:, 2:] = np.abs(np.stack(wheel_load(scenario.robot, scenario.masses, q, v, a), axis=1)) / limits
     seg = np.maximum(r[:-1].reshape(m - 1, s, 4).max(axis=1), r[s::s])      # and each segment's end point
     # the acceleration exact: its peak near a point falls between the samples
     seg[:, 1] = np.maximum(seg[:, 1], np.max(segment_acceleration_peaks(traj) / alim, axis=1))
+    if limits is not None:
+        near = np.flatnonzero(np.max(seg[:, 2:], axis=1) > 1.0 - WHEEL_REFINE_BAND)
+        if near.size:                # the midpoints between the samples
+            t = traj.times_s
+            at = (t[near, None] + np.diff(t)[near, None] * ((np.arange(s) + 0.5) / s)).ravel()
+            fine = sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, at)
+            load = np.abs(np.stack(wheel_load(scenario.robot, scenario.masses, *fine), axis=1)) / limits
+            seg[near, 2:] = np.maximum(seg[near, 2:], load.reshape(near.size, s, 2).max(axis=1))
     return seg
 
 
-def controller_load(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
-    """
-    Return the controller's motion of ``traj`` and the wheels' load along it, sampled.
-
-    (positions, velocities, accelerations) as ``trajectory.controller_motion`` gives them,
-    then the wheel momentum and torque at those samples (``spacecraft.wheel_load``), both None
-    unless the attitude is held and a wheel limit set.
-    """
-    q, v, a = controller_motion(traj, samples_per_segment)
+def _wheel_limits(scenario):
+    """Return the wheel momentum and torque limits (2,) the controller's motion is held to (inf: none), or None."""
     if not _wheels_limited(scenario):
-        return q, v, a, None, None
-    return (q, v, a, *wheel_load(scenario.robot, scenario.masses, q, v, a))
+        return None
+    acs = scenario.acs
+    return np.array([x if x is not None and x > 0.0 else np.inf
+                     for x in (acs.max_wheel_momentum_Nms, acs.max_wheel_torque_Nm)])
+
+
+def _wheel_peaks(per_segment) -> tuple:
+    """Return (wheel momentum, wheel torque) peak ratios from :func:`segment_overshoots`' rows (None: not checked)."""
+    if per_segment is None or not len(per_segment):
+        return 0.0, 0.0
+    return float(np.max(per_segment[:, 2])), float(np.max(per_segment[:, 3]))
 
 
 def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
@@ -450,25 +461,22 @@ def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 
                             vlim, alim)
 
 
-def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16, load=None) -> tuple:
+def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
     """
     Return the peak (wheel momentum, wheel torque) over the scenario's wheel limits of the controller's motion.
 
     The wheels take the arm's reaction as the arm really moves: joint_trajectory_controller's
     interpolation of ``traj``'s points (``trajectory.controller_motion``), sampled
-    ``samples_per_segment`` times per segment and at the end, not only the points the time
-    parameterisation kept within the limits (the quintics between them overshoot a torque limit
-    that binds by up to about a third).  The ratios are max |h_wheel| / ``acs.max_wheel_momentum_Nms``
-    and max |τ_wheel| / ``acs.max_wheel_torque_Nm`` (``spacecraft.wheel_load``; 1.0: at the
-    limit); 0.0 for a limit not set, and both 0.0 unless the attitude is held.  ``load``:
-    :func:`controller_load` of the same, when known.
+    ``samples_per_segment`` times per segment and at the end (twice as finely near a limit:
+    :func:`segment_overshoots`), not only the points the time parameterisation kept within the
+    limits (the quintics between them overshoot a torque limit that binds by up to about a
+    third).  The ratios are max |h_wheel| / ``acs.max_wheel_momentum_Nms`` and max |τ_wheel| /
+    ``acs.max_wheel_torque_Nm`` (``spacecraft.wheel_load``; 1.0: at the limit); 0.0 for a limit
+    not set, and both 0.0 unless the attitude is held.
     """
-    acs = scenario.acs
-    if not _wheels_limited(scenario) or len(traj.times_s) < 2:
+    if not _wheels_limited(scenario):
         return 0.0, 0.0
-    h, tau = (load or controller_load(traj, scenario, samples_per_segment))[3:]
-    return tuple(float(np.max(np.abs(x))) / limit if limit > 0.0 else 0.0
-                 for x, limit in ((h, acs.max_wheel_momentum_Nms), (tau, acs.max_wheel_torque_Nm)))
+    return _wheel_peaks(segment_overshoots(traj, scenario, samples_per_segment))
 
 
 def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
