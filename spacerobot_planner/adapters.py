@@ -50,7 +50,7 @@ from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response, wheel_load
 from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import (Lowering, Resampled, Trajectory, controller_check, controller_motion, controller_peaks,
-                         resample, sample_points, segment_acceleration_peaks, shared_path_models)
+                         resample, sample_points, segment_peaks, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
@@ -396,29 +396,22 @@ def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16
     torque (over the limits; 0 unless the attitude is held and the limit set; the load by
     ``spacecraft.wheel_load``); each over ``samples_per_segment`` samples of the segment
     (``trajectory.controller_motion``) and its end point; the acceleration exact
-    (``trajectory.segment_acceleration_peaks``); the wheels' load twice as finely in the segments
+    (``trajectory.segment_peaks``); the wheels' load twice as finely in the segments
     within ``WHEEL_REFINE_BAND`` of a limit (its peak falls between 16 samples by up to 0.2 %).
     """
     m = len(traj.times_s)
     if m < 2:
         return np.zeros((0, 4))
     s = samples_per_segment
-    q, v, a = controller_motion(traj, s)
     vmax, amax = scenario.joint_limits.planned(scenario.robot)
-    vlim, alim = vmax * scenario.joint_limits.velocity_scaling, amax * scenario.joint_limits.acceleration_scaling
-
-    def per_segment(x):              # (K, c) samples -> (M - 1, c): each segment's largest, its end point's too
-        x = np.abs(x)
-        return np.maximum(x[:-1].reshape(m - 1, s, -1).max(axis=1), x[s::s])
-
     seg = np.zeros((m - 1, 4))
-    seg[:, 0] = np.max(per_segment(v) / vlim, axis=1)
-    # the acceleration exact: its peak near a point falls between the samples
-    seg[:, 1] = np.max(np.maximum(per_segment(a), segment_acceleration_peaks(traj)) / alim, axis=1)
+    # joints: one kernel, the acceleration exact (its peak near a point falls between the samples)
+    seg[:, :2] = segment_peaks(traj, np.arange(s) / s, vmax * scenario.joint_limits.velocity_scaling,
+                               amax * scenario.joint_limits.acceleration_scaling)
     limits = _wheel_limits(scenario)
     if limits is not None:
-        seg[:, 2:] = per_segment(np.stack(wheel_load(scenario.robot, scenario.masses, q, v, a), axis=1)) / limits
-    if limits is not None:
+        load = np.abs(np.stack(wheel_load(scenario.robot, scenario.masses, *controller_motion(traj, s)), axis=1))
+        seg[:, 2:] = np.maximum(load[:-1].reshape(m - 1, s, 2).max(axis=1), load[s::s]) / limits
         near = np.flatnonzero(np.max(seg[:, 2:], axis=1) > 1.0 - WHEEL_REFINE_BAND)
         if near.size:                # the midpoints between the samples
             t = traj.times_s

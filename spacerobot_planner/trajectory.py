@@ -84,7 +84,7 @@ __all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_paramete
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
            "horizon_index", "HorizonPassed", "sample_points", "controller_peaks", "chord_lengths_rad",
            "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES",
-           "segment_acceleration_peaks"]
+           "segment_peaks"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -1747,34 +1747,48 @@ def _controller_peaks(t, q, v, a, u, vlim, alim, c):
 
 
 @njit(cache=True, nogil=True)
-def _segment_acceleration_peaks(t, q, v, a, out, c):
+def _segment_peaks(t, q, v, a, u, vlim, alim, out, c):
     """
-    Fill out (M - 1, n) with each segment's peak |acceleration| of the quintic interpolation, exact.
+    Fill out (M - 1, 2) with each segment's peak |velocity| / vlim and |acceleration| / alim of the quintics.
 
-    At the segment's ends and its extrema inside (the roots of the third derivative); t (M,)
-    increasing strictly, q, v, a (M, n), c (8, n) scratch.
+    The largest over the joints; at the segment's ends, at ``t_k + (t_k+1 - t_k) · u`` (u (S,) in
+    [0, 1)) and, the acceleration exact, at its extrema inside (the roots of the third
+    derivative).  t (M,) increasing strictly, q, v, a (M, n), vlim, alim (n,), c (8, n) scratch.
     """
     m, n = q.shape
     for k in range(m - 1):
         h = t[k + 1] - t[k]
         _segment_coefficients(q, v, a, 3, k, h, c)
+        top_v = top_a = 0.0
         for j in range(n):
-            top = max(abs(a[k, j]), abs(a[k + 1, j]))
+            top_v = max(top_v, abs(v[k, j]) / vlim[j], abs(v[k + 1, j]) / vlim[j])
+            top_a = max(top_a, abs(a[k, j]) / alim[j], abs(a[k + 1, j]) / alim[j])
+            for i in range(u.shape[0]):
+                dp, ddp = _horner(c, j, u[i])[1:]
+                top_v = max(top_v, abs(dp / h) / vlim[j])
+                top_a = max(top_a, abs(ddp / (h * h)) / alim[j])
             for x in _unit_roots(60.0 * c[5, j], 24.0 * c[4, j], 6.0 * c[3, j]):
                 if x > 0.0:
-                    top = max(top, abs(_horner(c, j, x)[2] / (h * h)))
-            out[k, j] = top
+                    top_a = max(top_a, abs(_horner(c, j, x)[2] / (h * h)) / alim[j])
+        out[k, 0] = top_v
+        out[k, 1] = top_a
 
 
-def segment_acceleration_peaks(traj: "Trajectory") -> np.ndarray:
-    """Return each segment's peak |acceleration| (M - 1, n), rad/s², of the controller's quintics, exact."""
+def segment_peaks(traj: "Trajectory", fractions, vlim, alim) -> np.ndarray:
+    """
+    Return each segment's peak velocity and acceleration ratios (M - 1, 2) of the controller's quintics.
+
+    |velocity| / vlim sampled at ``fractions`` (S,) of each segment and its ends, |acceleration| /
+    alim exact (also at its extrema inside); the largest over the joints (vlim, alim (n,)).
+    """
     q = np.ascontiguousarray(traj.positions_rad, dtype=float)
-    out = np.zeros((max(len(q) - 1, 0), q.shape[1]))
+    out = np.zeros((max(len(q) - 1, 0), 2))
     if len(q) > 1:
-        _segment_acceleration_peaks(np.ascontiguousarray(traj.times_s, dtype=float), q,
-                                    np.ascontiguousarray(traj.velocities_rad_s, dtype=float),
-                                    np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float), out,
-                                    np.empty((8, q.shape[1])))
+        _segment_peaks(np.ascontiguousarray(traj.times_s, dtype=float), q,
+                       np.ascontiguousarray(traj.velocities_rad_s, dtype=float),
+                       np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float),
+                       np.ascontiguousarray(fractions, dtype=float), np.ascontiguousarray(vlim, dtype=float),
+                       np.ascontiguousarray(alim, dtype=float), out, np.empty((8, q.shape[1])))
     return out
 
 

@@ -19,12 +19,13 @@ import math
 import os
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from oracles import controller_interpolation as oracle, quintic_acceleration_peaks
-from spacerobot_planner.trajectory import controller_peaks, sample_points
+from spacerobot_planner.trajectory import controller_peaks, sample_points, segment_peaks
 
 CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config", "paper_3dof.yaml")
 #: a ROS time of today's order (s): the float rounding of the stamps is part of what is tested
@@ -95,6 +96,29 @@ def test_controller_peaks_are_the_sampled_motions_peaks(seed):
     assert peak_v == np.max(np.abs(vel) / vlim) and peak_a >= np.max(np.abs(acc) / alim)
     with pytest.raises(ValueError, match="increase strictly"):
         controller_peaks(np.r_[t[:3], t[2], t[4:]], q, v, a, u, vlim, alim)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_segment_peaks_are_each_segments_sampled_and_exact_peaks(seed):
+    """
+    segment_peaks (the chain's per-segment ratios, where it lowers the limits): each segment's alone.
+
+    Oracle: SciPy's quintics (``oracles.controller_interpolation``) sampled at the same fractions
+    and the segment's ends for the velocity, and the exact acceleration peak of that segment
+    (``oracles.quintic_acceleration_peaks`` on its two points) where it is above the samples'.
+    """
+    rng = np.random.default_rng(20 + seed)
+    t, q, v, a = smooth_points(rng, m=9, t_first=rng.uniform(0.0, 50.0))
+    vlim, alim = rng.uniform(0.5, 2.0, 3), rng.uniform(0.5, 4.0, 3)
+    u = np.linspace(0.0, 1.0, 16, endpoint=False)
+    traj = SimpleNamespace(times_s=t, positions_rad=q, velocities_rad_s=v, accelerations_rad_s2=a)
+    got = segment_peaks(traj, u, vlim, alim)
+    f = oracle(t, q, v, a)
+    for k in range(len(t) - 1):
+        _, vel, acc = f(np.r_[t[k] + (t[k + 1] - t[k]) * u, t[k + 1]])
+        exact = quintic_acceleration_peaks(t[k:k + 2], q[k:k + 2], v[k:k + 2], a[k:k + 2])
+        want = [np.max(np.abs(vel) / vlim), max(np.max(np.abs(acc) / alim), np.max(exact / alim))]
+        np.testing.assert_allclose(got[k], want, rtol=1e-9, err_msg=f"segment {k}")
 
 
 @pytest.mark.parametrize("seed", range(3))
