@@ -20,8 +20,8 @@ carries the very trajectory the node publishes:
 4. **the controller's motion** -- joint_trajectory_controller interpolates the published
    points (quintic segments), which overshoots the time-optimal profile's piecewise-constant
    accelerations by up to about a quarter (and, the attitude held, a wheel torque limit by up to
-   about a third): that motion is sampled (:func:`controller_overshoot`,
-   :func:`controller_wheel_overshoot`) and, where it exceeds a limit, steps 1 to 3 run again with
+   about a third): that motion is sampled (:func:`segment_overshoots`,
+   :func:`controller_overshoot`) and, where it exceeds a limit, steps 1 to 3 run again with
    that limit lowered by the overshoot along the stretch where it happened (the segment and its
    neighbours: ``trajectory.Lowering``; the rest of the path keeps its limits, and a joined arm
    keeps its speed), within the limits as the arm really moves; a joined plan's
@@ -49,8 +49,8 @@ from .motion import MotionValidator
 from .replanning import START_LEAD_S, joined_paths, timed_join
 from .spacecraft import free_floating_response, wheel_load
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import (Lowering, Resampled, Trajectory, controller_check, controller_motion, controller_peaks,
-                         resample, sample_points, segment_peaks, shared_path_models)
+from .trajectory import (Lowering, Resampled, Trajectory, controller_check, controller_motion, resample,
+                         sample_points, segment_peaks, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
@@ -302,9 +302,9 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     for round_ in range(CONTROLLER_RETIMES + 1):
         if got.refused is not None or limits is None:
             break
-        per_segment = segment_overshoots(got.trajectory, scenario) if _wheels_limited(scenario) else None
-        wheel_over = _wheel_peaks(per_segment)
-        over = controller_overshoot(got.trajectory, scenario) + wheel_over
+        per_segment = segment_overshoots(got.trajectory, scenario)
+        over = controller_overshoot(per_segment)
+        wheel_over = over[2:]
         if max(over) <= 1.0 + CONTROLLER_TOL:
             break
         if round_ == CONTROLLER_RETIMES:
@@ -392,7 +392,7 @@ def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16
     Return each segment's peak ratios of the controller's motion to the limits, (M - 1, 4).
 
     Columns: joint velocity, joint acceleration (the largest over the planned joints, over the
-    limits times the scaling factors, as :func:`controller_overshoot`), wheel momentum, wheel
+    limits times the scaling factors), wheel momentum, wheel
     torque (over the limits; 0 unless the attitude is held and the limit set; the load by
     ``spacecraft.wheel_load``); each over ``samples_per_segment`` samples of the segment
     (``trajectory.controller_motion``) and its end point; the acceleration exact
@@ -431,33 +431,16 @@ def _wheel_limits(scenario):
                      for x in (acs.max_wheel_momentum_Nms, acs.max_wheel_torque_Nm)])
 
 
-def _wheel_peaks(per_segment) -> tuple:
-    """Return (wheel momentum, wheel torque) peak ratios from :func:`segment_overshoots`' rows (None: not checked)."""
-    if per_segment is None or not len(per_segment):
-        return 0.0, 0.0
-    return float(np.max(per_segment[:, 2])), float(np.max(per_segment[:, 3]))
-
-
-def controller_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
+def controller_overshoot(per_segment) -> tuple:
     """
-    Return the peak (velocity, acceleration) over the scenario's limits of the controller's motion.
+    Return the peaks (joint velocity, joint acceleration, wheel momentum, wheel torque) over their limits.
 
-    The motion is joint_trajectory_controller's interpolation of ``traj``'s points
-    (``trajectory.sample_points``: quintic segments with positions, velocities and
-    accelerations), sampled ``samples_per_segment`` times per segment and at the end
-    (``trajectory.controller_peaks``); the ratios are the
-    largest over the planned joints of |v| / (max velocity × velocity scaling) and
-    |a| / (max acceleration × acceleration scaling) (1.0: at the limit); the acceleration exact
-    (its extrema inside each segment too).
+    From :func:`segment_overshoots`' rows (M - 1, 4): the largest of each column (0.0 without
+    segments; NaN where a ratio is).
     """
-    vmax, amax = scenario.joint_limits.planned(scenario.robot)
-    vlim = vmax * scenario.joint_limits.velocity_scaling
-    alim = amax * scenario.joint_limits.acceleration_scaling
-    if len(traj.times_s) < 2:
-        return 0.0, 0.0
-    u = np.linspace(0.0, 1.0, samples_per_segment, endpoint=False)
-    return controller_peaks(traj.times_s, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, u,
-                            vlim, alim)
+    if not len(per_segment):
+        return 0.0, 0.0, 0.0, 0.0
+    return tuple(float(x) for x in np.max(per_segment, axis=0))
 
 
 def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: int = 16) -> tuple:
@@ -475,7 +458,7 @@ def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: 
     """
     if not _wheels_limited(scenario):
         return 0.0, 0.0
-    return _wheel_peaks(segment_overshoots(traj, scenario, samples_per_segment))
+    return controller_overshoot(segment_overshoots(traj, scenario, samples_per_segment))[2:]
 
 
 def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,

@@ -106,10 +106,11 @@ class AcsSettings:
         position_tolerance_m: free floating: largest acceptable tip miss, metres.
         compensate_drift: free floating: plan for the predicted drift (:func:`plan_free_floating`).
         wheel_momentum_scaling, wheel_torque_scaling: the fractions of the wheel limits the time
-            parameterisation keeps to (not parameters: the chain after the path lowers them where
-            the controller's interpolation of the published points overshoots a limit, as it
-            lowers the joint limits' scaling factors, ``adapters.controller_wheel_overshoot``);
-            the reaction's verdict judges the limits themselves.
+            parameterisation keeps to along the whole path (not parameters: the chain after the
+            path lowers them, with the joint limits' scaling factors, in its last re-timing when
+            lowered stretches (``JointLimits.lowered``) have not brought the controller's motion
+            within the limits, and ``replanning.stopping_join`` for room to brake); the
+            reaction's verdict judges the limits themselves.
 
     """
 

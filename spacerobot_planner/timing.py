@@ -120,8 +120,9 @@ def reaction_of(scenario, path_rad, traj, state_rad=None, motions=None) -> React
     Return the reaction report :func:`timed_motion` gives with ``traj`` (its trajectory of ``path_rad``).
 
     For a trajectory from ``timed_motion(..., report=False)`` with the same path, state and a
-    scenario that differs at most in its scaling factors, the joints' or the wheels' (the report
-    does not read them: it judges the limits themselves).
+    scenario that differs at most in its scaling factors, the joints' or the wheels', and its
+    lowered stretches (``JointLimits.lowered``; the report does not read them: it judges the
+    limits themselves).
     """
     path = np.asarray(path_rad, dtype=float)
     if state_rad is not None:

@@ -82,7 +82,7 @@ from .motion import MotionValidator
 
 __all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
-           "horizon_index", "HorizonPassed", "sample_points", "controller_peaks", "chord_lengths_rad",
+           "horizon_index", "HorizonPassed", "sample_points", "chord_lengths_rad",
            "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES",
            "segment_peaks"]
 
@@ -1691,61 +1691,6 @@ def _nan_max(top, x):
     return x if top == top and (x > top or x != x) else top
 
 
-@njit(**NO_REFCOUNT)
-def _controller_peaks(t, q, v, a, u, vlim, alim, c):
-    """
-    Peak |velocity| / vlim and |acceleration| / alim of the quintic interpolation of the points.
-
-    Sampled at ``t_k + (t_k+1 - t_k) · u`` on every segment k and at the last point's time
-    (u (S,): fractions of a segment, from 0): the values :func:`_controller_states` gives
-    there (fields 3), without the (K, n) arrays; the acceleration also at its extrema inside
-    each segment (the roots of the quintic's third derivative), where a peak near a point
-    falls between samples (0.15 % above 16 of them on the paper 3-DOF path).  t (M ≥ 2,), q, v, a (M, n); vlim, alim
-    (n,); c (8, n) scratch.  Returns (peak velocity ratio, peak acceleration ratio, the times
-    increase strictly); NaN where a ratio is.  Each joint's peak |value| is divided once by
-    its limit (a division by a positive number keeps the order: the same maximum).
-    """
-    m, n = q.shape
-    for k in range(m - 1):
-        if t[k + 1] - t[k] <= 0.0:
-            return 0.0, 0.0, False
-    for j in range(n):                  # at the last point's time: that point
-        c[6, j] = abs(v[m - 1, j])
-        c[7, j] = abs(a[m - 1, j])
-    k, k_coef = 0, -1
-    for seg in range(m - 1):
-        t0, h = t[seg], t[seg + 1] - t[seg]
-        for i in range(u.shape[0]):
-            s = t0 + h * u[i]
-            if s < t[0] or s >= t[m - 1]:       # (rounding) held: the last point's values at its time
-                for j in range(n):
-                    c[6, j] = _nan_max(c[6, j], abs(v[m - 1, j]) if s == t[m - 1] else 0.0)
-                    c[7, j] = _nan_max(c[7, j], abs(a[m - 1, j]) if s == t[m - 1] else 0.0)
-                continue
-            k = _segment_of(t, s, k)
-            dur = t[k + 1] - t[k]
-            x = (s - t[k]) / dur
-            if k != k_coef:
-                k_coef = k
-                _segment_coefficients(q, v, a, 3, k, dur, c)
-            for j in range(n):
-                p, dp, ddp = _horner(c, j, x)
-                c[6, j] = _nan_max(c[6, j], abs(dp / dur))
-                c[7, j] = _nan_max(c[7, j], abs(ddp / (dur * dur)))
-        if seg != k_coef:
-            k_coef = seg
-            _segment_coefficients(q, v, a, 3, seg, h, c)
-        for j in range(n):              # and the acceleration's extrema between the samples: exact
-            for x in _unit_roots(60.0 * c[5, j], 24.0 * c[4, j], 6.0 * c[3, j]):
-                p, dp, ddp = _horner(c, j, x)
-                c[7, j] = _nan_max(c[7, j], abs(ddp / (h * h)))
-    top_v, top_a = -np.inf, -np.inf
-    for j in range(n):
-        top_v = _nan_max(top_v, c[6, j] / vlim[j])
-        top_a = _nan_max(top_a, c[7, j] / alim[j])
-    return top_v, top_a, True
-
-
 @njit(cache=True, nogil=True)
 def _segment_peaks(t, q, v, a, u, vlim, alim, out, c):
     """
@@ -1753,25 +1698,31 @@ def _segment_peaks(t, q, v, a, u, vlim, alim, out, c):
 
     The largest over the joints; at the segment's ends, at ``t_k + (t_k+1 - t_k) · u`` (u (S,) in
     [0, 1)) and, the acceleration exact, at its extrema inside (the roots of the third
-    derivative).  t (M,) increasing strictly, q, v, a (M, n), vlim, alim (n,), c (8, n) scratch.
+    derivative).  t (M,), q, v, a (M, n), vlim, alim (n,), c (8, n) scratch; NaN where a ratio is.
+    Returns False (out not filled) when the times do not increase strictly.
     """
     m, n = q.shape
+    for k in range(m - 1):
+        if not t[k + 1] - t[k] > 0.0:
+            return False
     for k in range(m - 1):
         h = t[k + 1] - t[k]
         _segment_coefficients(q, v, a, 3, k, h, c)
         top_v = top_a = 0.0
         for j in range(n):
-            top_v = max(top_v, abs(v[k, j]) / vlim[j], abs(v[k + 1, j]) / vlim[j])
-            top_a = max(top_a, abs(a[k, j]) / alim[j], abs(a[k + 1, j]) / alim[j])
+            for e in (k, k + 1):
+                top_v = _nan_max(top_v, abs(v[e, j]) / vlim[j])
+                top_a = _nan_max(top_a, abs(a[e, j]) / alim[j])
             for i in range(u.shape[0]):
                 dp, ddp = _horner(c, j, u[i])[1:]
-                top_v = max(top_v, abs(dp / h) / vlim[j])
-                top_a = max(top_a, abs(ddp / (h * h)) / alim[j])
+                top_v = _nan_max(top_v, abs(dp / h) / vlim[j])
+                top_a = _nan_max(top_a, abs(ddp / (h * h)) / alim[j])
             for x in _unit_roots(60.0 * c[5, j], 24.0 * c[4, j], 6.0 * c[3, j]):
                 if x > 0.0:
-                    top_a = max(top_a, abs(_horner(c, j, x)[2] / (h * h)) / alim[j])
+                    top_a = _nan_max(top_a, abs(_horner(c, j, x)[2] / (h * h)) / alim[j])
         out[k, 0] = top_v
         out[k, 1] = top_a
+    return True
 
 
 def segment_peaks(traj: "Trajectory", fractions, vlim, alim) -> np.ndarray:
@@ -1779,16 +1730,21 @@ def segment_peaks(traj: "Trajectory", fractions, vlim, alim) -> np.ndarray:
     Return each segment's peak velocity and acceleration ratios (M - 1, 2) of the controller's quintics.
 
     |velocity| / vlim sampled at ``fractions`` (S,) of each segment and its ends, |acceleration| /
-    alim exact (also at its extrema inside); the largest over the joints (vlim, alim (n,)).
+    alim exact (also at its extrema inside: the quintic's acceleration is a cubic, whose peak near
+    a point falls between samples, 0.15 % above 16 of them on the paper 3-DOF path); the largest
+    over the joints (vlim, alim (n,)); NaN where a ratio is.
+
+    Raises
+    ------
+        ValueError: times that do not increase strictly.
+
     """
     q = np.ascontiguousarray(traj.positions_rad, dtype=float)
     out = np.zeros((max(len(q) - 1, 0), 2))
-    if len(q) > 1:
-        _segment_peaks(np.ascontiguousarray(traj.times_s, dtype=float), q,
-                       np.ascontiguousarray(traj.velocities_rad_s, dtype=float),
-                       np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float),
-                       np.ascontiguousarray(fractions, dtype=float), np.ascontiguousarray(vlim, dtype=float),
-                       np.ascontiguousarray(alim, dtype=float), out, np.empty((8, q.shape[1])))
+    given = (traj.times_s, q, traj.velocities_rad_s, traj.accelerations_rad_s2, fractions, vlim, alim)
+    arrays = [np.ascontiguousarray(x, dtype=float) for x in given]
+    if len(q) > 1 and not _segment_peaks(*arrays, out, np.empty((8, q.shape[1]))):
+        raise ValueError("sample_points: times must increase strictly")
     return out
 
 
@@ -1889,29 +1845,3 @@ def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTR
     seg_ok = np.asarray(check.interval_ok, dtype=bool).reshape(-1, samples_per_segment).all(axis=1) \
         if len(traj.times_s) > 1 else np.zeros(0, bool)
     return check, seg_ok
-
-
-def controller_peaks(times_s, positions, velocities, accelerations, fractions, vlim, alim) -> tuple:
-    """
-    Peak ratios of the controller's quintic interpolation of points to the limits, sampled.
-
-    The motion :func:`sample_points` gives (positions, velocities and accelerations) at
-    ``t_k + (t_k+1 - t_k) · f`` for each segment k and each f of ``fractions`` (S,) in [0, 1),
-    and at the last point's time: (max |velocity| / vlim, max |acceleration| / alim) over
-    those times and the joints (vlim, alim (n,)), by one kernel without the sampled arrays;
-    NaN where a ratio is.  At least two points.
-
-    Raises
-    ------
-        ValueError: times that do not increase strictly.
-
-    """
-    q = np.ascontiguousarray(positions, dtype=float)
-    peak_v, peak_a, ok = _controller_peaks(
-        np.ascontiguousarray(times_s, dtype=float), q, np.ascontiguousarray(velocities, dtype=float),
-        np.ascontiguousarray(accelerations, dtype=float), np.ascontiguousarray(fractions, dtype=float),
-        np.ascontiguousarray(vlim, dtype=float), np.ascontiguousarray(alim, dtype=float),
-        np.empty((8, q.shape[1])))
-    if not ok:
-        raise ValueError("sample_points: times must increase strictly")
-    return float(peak_v), float(peak_a)

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from oracles import controller_interpolation as oracle, quintic_acceleration_peaks
-from spacerobot_planner.trajectory import controller_peaks, sample_points, segment_peaks
+from spacerobot_planner.trajectory import sample_points, segment_peaks
 
 CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config", "paper_3dof.yaml")
 #: a ROS time of today's order (s): the float rounding of the stamps is part of what is tested
@@ -73,35 +73,9 @@ def test_sample_points_matches_independent_splines(seed, fields):
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_controller_peaks_are_the_sampled_motions_peaks(seed):
-    """
-    controller_peaks: the peak ratios of the quintic motion at t_k + Δt_k·f and the end, against the oracle.
-
-    The acceleration's also at its extrema between those times: SciPy's exact peak
-    (``oracles.quintic_acceleration_peaks``) where it is above the samples'.
-    """
-    rng = np.random.default_rng(seed)
-    t, q, v, a = smooth_points(rng, m=9, t_first=rng.uniform(0.0, 50.0))
-    vlim, alim = rng.uniform(0.5, 2.0, 3), rng.uniform(0.5, 4.0, 3)
-    u = np.linspace(0.0, 1.0, 16, endpoint=False)
-    ts = np.append((t[:-1, None] + np.diff(t)[:, None] * u[None, :]).ravel(), t[-1])
-    peak_v, peak_a = controller_peaks(t, q, v, a, u, vlim, alim)
-    _, vel, acc = oracle(t, q, v, a)(ts)
-    assert peak_v == pytest.approx(np.max(np.abs(vel) / vlim), rel=1e-9)
-    exact = np.max(quintic_acceleration_peaks(t, q, v, a) / alim)
-    assert peak_a == pytest.approx(max(np.max(np.abs(acc) / alim), exact), rel=1e-9)
-    # not an oracle (they share the segment search and the Horner evaluation): the controller
-    # check and the sampled points the mock arm follows agree to the bit
-    _, vel, acc = sample_points(t, q, v, a, ts)
-    assert peak_v == np.max(np.abs(vel) / vlim) and peak_a >= np.max(np.abs(acc) / alim)
-    with pytest.raises(ValueError, match="increase strictly"):
-        controller_peaks(np.r_[t[:3], t[2], t[4:]], q, v, a, u, vlim, alim)
-
-
-@pytest.mark.parametrize("seed", range(4))
 def test_segment_peaks_are_each_segments_sampled_and_exact_peaks(seed):
     """
-    segment_peaks (the chain's per-segment ratios, where it lowers the limits): each segment's alone.
+    segment_peaks (the chain's controller check, and where it lowers the limits): each segment's alone.
 
     Oracle: SciPy's quintics (``oracles.controller_interpolation``) sampled at the same fractions
     and the segment's ends for the velocity, and the exact acceleration peak of that segment
@@ -119,6 +93,9 @@ def test_segment_peaks_are_each_segments_sampled_and_exact_peaks(seed):
         exact = quintic_acceleration_peaks(t[k:k + 2], q[k:k + 2], v[k:k + 2], a[k:k + 2])
         want = [np.max(np.abs(vel) / vlim), max(np.max(np.abs(acc) / alim), np.max(exact / alim))]
         np.testing.assert_allclose(got[k], want, rtol=1e-9, err_msg=f"segment {k}")
+    with pytest.raises(ValueError, match="increase strictly"):
+        segment_peaks(SimpleNamespace(times_s=np.r_[t[:3], t[2], t[4:]], positions_rad=q, velocities_rad_s=v,
+                                      accelerations_rad_s2=a), u, vlim, alim)
 
 
 @pytest.mark.parametrize("seed", range(3))
