@@ -79,12 +79,13 @@ from numba import njit
 
 from .collision import NO_REFCOUNT
 from .motion import MotionValidator
+from .spacecraft import _sample_momentum, _tables
 
 __all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
            "horizon_index", "HorizonPassed", "sample_points", "chord_lengths_rad",
            "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES",
-           "segment_peaks"]
+           "segment_peaks", "segment_wheel_peaks"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -1845,3 +1846,107 @@ def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTR
     seg_ok = np.asarray(check.interval_ok, dtype=bool).reshape(-1, samples_per_segment).all(axis=1) \
         if len(traj.times_s) > 1 else np.zeros(0, bool)
     return check, seg_ok
+
+
+@njit(cache=True, nogil=True)
+def _load_at(cl, m, inertia, c, dur, x, joints, qf, qdf, qddf, r, v, a):
+    """Return (|h|, |dh/dt|) at x in [0, 1] of the quintic segment c (6, dof) (:func:`_segment_coefficients`)."""
+    for j in range(joints.size):
+        p, dp, ddp = _horner(c, j, x)
+        qf[joints[j]] = p
+        qdf[joints[j]] = dp / dur
+        qddf[joints[j]] = ddp / (dur * dur)
+    h, rate = _sample_momentum(cl, m, inertia, qf, qdf, qddf, r, v, a)
+    return abs(h), abs(rate)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _vertex(f, i, step):
+    """
+    Return the fraction of a segment where the parabola through samples i - 1, i, i + 1 of f peaks.
+
+    f (S + 1,) the samples at fractions k · step, i in [1, S - 1]; -1.0 where the three do not
+    bend down (no peak between them).
+    """
+    bend = f[i - 1] - 2.0 * f[i] + f[i + 1]
+    if not bend < 0.0:
+        return -1.0
+    return (i + 0.5 * (f[i - 1] - f[i + 1]) / bend) * step
+
+
+@njit(cache=True, nogil=True)
+def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, out, c):
+    """
+    Fill out (M - 1, 2) with each segment's peak |h_wheel| and |τ_wheel| of the controller's quintics.
+
+    At ``samples`` + 1 evenly spaced fractions of each segment (its ends included) and, for
+    each of the two, at the vertex of the parabola through the largest sample and its two
+    neighbours (the peak between samples).  t (M,), q, v, a (M, dof) the planned joints,
+    which are ``joints`` (dof,) of the full configuration ``q_full`` (n,) (the locked joints'
+    positions; at rest); cl, m, inertia: ``spacecraft._tables``; c (6, dof) scratch.  NaN where a
+    load is.  Returns False (out not filled) when the times do not increase strictly.
+    """
+    mpts = t.shape[0]
+    for k in range(mpts - 1):
+        if not t[k + 1] - t[k] > 0.0:
+            return False
+    n = q_full.shape[0]
+    qf = q_full.copy()
+    qdf = np.zeros(n)
+    qddf = np.zeros(n)
+    r, vb, ab = np.empty((n + 1, 2)), np.empty((n + 1, 2)), np.empty((n + 1, 2))
+    fh = np.empty(samples + 1)
+    ft = np.empty(samples + 1)
+    step = 1.0 / samples
+    for k in range(mpts - 1):
+        dur = t[k + 1] - t[k]
+        _segment_coefficients(q, v, a, 3, k, dur, c)
+        top_h = top_t = 0.0
+        ih = it = 0
+        for i in range(samples + 1):
+            fh[i], ft[i] = _load_at(cl, m, inertia, c, dur, i * step, joints, qf, qdf, qddf, r, vb, ab)
+            if fh[i] > top_h:
+                top_h, ih = fh[i], i
+            if ft[i] > top_t:
+                top_t, it = ft[i], i
+            top_h = _nan_max(top_h, fh[i])
+            top_t = _nan_max(top_t, ft[i])
+        if samples >= 2 and top_h == top_h and top_t == top_t:
+            for f, i in ((fh, ih), (ft, it)):
+                x = _vertex(f, min(max(i, 1), samples - 1), step)
+                if 0.0 < x < 1.0:
+                    h, tau = _load_at(cl, m, inertia, c, dur, x, joints, qf, qdf, qddf, r, vb, ab)
+                    top_h = _nan_max(top_h, h)
+                    top_t = _nan_max(top_t, tau)
+        out[k, 0] = top_h
+        out[k, 1] = top_t
+    return True
+
+
+def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> np.ndarray:
+    """
+    Return each segment's peak wheel momentum |h_wheel| (N·m·s) and torque |τ_wheel| (N·m), (M - 1, 2).
+
+    The load (``spacecraft.wheel_load``) of the motion joint_trajectory_controller makes of
+    ``traj``'s points (its quintic between two points, :func:`sample_points`), with the attitude held: at
+    ``samples_per_segment`` + 1 evenly spaced times of each segment (its ends included) and
+    where the parabola through the largest of them and its neighbours peaks (a peak between
+    samples: up to 0.2 % above 16 of them on the servicer's trajectories).  One pass, no arrays
+    of samples.
+
+    Raises
+    ------
+        ValueError: times that do not increase strictly.
+
+    """
+    cl, m, inertia = _tables(robot, masses)
+    q = np.ascontiguousarray(traj.positions_rad, dtype=float)
+    out = np.zeros((max(len(q) - 1, 0), 2))
+    if len(q) < 2:
+        return out
+    given = (traj.times_s, q, traj.velocities_rad_s, traj.accelerations_rad_s2)
+    arrays = [np.ascontiguousarray(x, dtype=float) for x in given]
+    if not _segment_wheel_peaks(*arrays, int(samples_per_segment), np.asarray(robot.planned_joints, np.int64),
+                                robot.full(q[0]), cl, m, inertia, out, np.zeros((6, q.shape[1]))):
+        raise ValueError("segment_wheel_peaks: times must increase strictly")
+    return out

@@ -5,6 +5,8 @@ The oracle builds the body and link centres, velocities and accelerations of the
 as stacked arrays (the textbook sums: centre of link k = Σ_{j<k} L_j e_j + L_k/2 e_k, the
 angular momentum about the system CoM h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇ and its rate), and
 the momentum map from a central difference of h in the joint rates (h is linear in them).
+The same sums judge ``trajectory.segment_wheel_peaks`` (the wheels' load of the controller's
+quintics, per segment) on SciPy's quintics sampled densely.
 """
 
 import numpy as np
@@ -13,7 +15,11 @@ import pytest
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.spacecraft import (angular_momentum_Nms, momentum_map, momentum_rate_Nm, wheel_load,
                                            MassProperties)
+from spacerobot_planner.trajectory import segment_wheel_peaks
 from pathlib import Path
+from types import SimpleNamespace
+
+from oracles import controller_interpolation
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"
 
@@ -92,3 +98,53 @@ def test_momentum_sums_match_the_stacked_oracle(name):
     h_l, r_l = _oracle(lengths, m_all, i_all, qf, qd_l, qdd_l)
     np.testing.assert_allclose(hw, -h_l, rtol=0, atol=1e-12 * max(1.0, np.max(np.abs(h_l))))
     np.testing.assert_allclose(tw, -r_l, rtol=0, atol=1e-12 * max(1.0, np.max(np.abs(r_l))))
+
+
+@pytest.mark.parametrize("name,seed", [("servicer_3dof.yaml", 0), ("servicer_3dof.yaml", 1),
+                                       ("servicer_4joint.yaml", 2)])
+def test_segment_wheel_peaks_are_each_segments_peak_load(name, seed):
+    """
+    segment_wheel_peaks (the chain's wheel check of the controller's motion): each segment's peak |h|, |dh/dt|.
+
+    Oracle: SciPy's quintics through the points (``oracles.controller_interpolation``) sampled 512
+    times per segment, the load by the stacked sums above; the kernel's peak within 1e-4 of that
+    (below it by at most 1e-4, above it by no more than a smooth load rises between the samples).  16 samples alone miss
+    the peak by more on these segments (the test would catch a kernel without its peak search).
+    """
+    sc = load_scenario(CONFIG / name)
+    robot = sc.robot
+    dof = len(robot.planned_joints)
+    rng = np.random.default_rng(40 + seed)
+    m = 12
+    t = rng.uniform(0.0, 30.0) + np.concatenate([[0.0], np.cumsum(rng.uniform(0.3, 1.5, m - 1))])
+    amp, w, ph = rng.uniform(0.2, 1.0, dof), rng.uniform(0.5, 2.0, dof), rng.uniform(0, 2 * np.pi, dof)
+    q = rng.normal(size=dof) + amp * np.sin(w * t[:, None] + ph)
+    v = amp * w * np.cos(w * t[:, None] + ph)
+    a = -amp * w ** 2 * np.sin(w * t[:, None] + ph)
+    traj = SimpleNamespace(times_s=t, positions_rad=q, velocities_rad_s=v, accelerations_rad_s2=a)
+    got = segment_wheel_peaks(robot, sc.masses, traj, 16)
+    assert got.shape == (m - 1, 2)
+    f = controller_interpolation(t, q, v, a)
+    lengths = np.asarray(robot.link_lengths_m, dtype=float)
+    m_all = np.r_[sc.masses.body_mass_kg, sc.masses.link_masses_kg]
+    i_all = np.r_[sc.masses.body_inertia_kgm2, sc.masses.link_inertias_kgm2]
+    planned = list(robot.planned_joints)
+    coarse_miss = 0.0
+    for k in range(m - 1):
+        ts = t[k] + (t[k + 1] - t[k]) * np.linspace(0.0, 1.0, 513)
+        pos, vel, acc = f(ts)
+        qf = np.tile(robot.full(q[0]), (len(ts), 1))
+        qdf, qddf = np.zeros_like(qf), np.zeros_like(qf)
+        qf[:, planned], qdf[:, planned], qddf[:, planned] = pos, vel, acc
+        load = np.abs(np.stack(_oracle(lengths, m_all, i_all, qf, qdf, qddf), axis=1))      # (513, 2)
+        want = load.max(axis=0)
+        scale = np.abs(load).max(axis=0) + 1e-12
+        assert np.all(got[k] >= want - 1e-4 * scale), f"segment {k}: {got[k]} below the peak {want}"
+        # between two of the 513 samples a smooth load rises at most |f''| Δ² / 8 above them
+        between = np.abs(np.diff(load, 2, axis=0)).max(axis=0) / 8.0
+        assert np.all(got[k] <= want + between + 1e-9 * scale), f"segment {k}: {got[k]} above the peak {want}"
+        coarse_miss = max(coarse_miss, float(np.max((want - load[::32].max(axis=0)) / scale)))
+    assert coarse_miss > 1e-4
+    with pytest.raises(ValueError, match="increase strictly"):
+        segment_wheel_peaks(robot, sc.masses, SimpleNamespace(times_s=np.r_[t[:3], t[2], t[4:]], positions_rad=q,
+                                                              velocities_rad_s=v, accelerations_rad_s2=a))
