@@ -1078,52 +1078,119 @@ def _lowered_factors(p, refine: int, lowered) -> np.ndarray | None:
     Return each grid point's factors on the limits, (G, 4), G = (M - 1)·refine + 1; None when none is lowered.
 
     p: (M, n) the path's samples; ``lowered``: :class:`Lowering` stretches, their points matched
-    on the samples bit for bit (a trajectory's points are the samples themselves).
+    on the samples bit for bit (a trajectory's points are the samples themselves).  One kernel
+    (:func:`_zone_factors`) for all the stretches.
     """
     if not lowered:
         return None
     m, n = p.shape
-    rows = np.dtype((np.void, 8 * n))
-    pv = np.ascontiguousarray(p, dtype=np.float64).view(rows).ravel()
-    order = np.argsort(pv, kind="stable")
-    spv = pv[order]
-    f, hit = np.ones(((m - 1) * refine + 1, 4)), False
-    for zone in lowered:
-        qv = np.ascontiguousarray(zone.points_rad, dtype=np.float64).view(rows).ravel()
-        at = np.minimum(np.searchsorted(spv, qv), m - 1)
-        idx = np.where(spv[at] == qv, order[at], -1)        # each point's sample, -1: not on this path
-        found = np.flatnonzero(idx >= 0)
-        if not found.size:
-            continue
-        inside = (idx[:-1] >= 0) & (idx[1:] > idx[:-1])    # a segment between two points in this path's order
-        pair = np.flatnonzero(inside)
-        a, b = idx[pair], idx[pair + 1]
-        first, last = int(found[0]), int(found[-1])
-        if first > 0 and first < len(inside) and inside[first]:
-            a, b, pair = np.r_[0, a], np.r_[idx[first], b], np.r_[first - 1, pair]      # from before the start
-        if last < len(idx) - 1 and last > 0 and inside[last - 1]:
-            a, b, pair = np.r_[a, idx[last]], np.r_[b, m - 1], np.r_[pair, last]        # on past the end
-        if not pair.size:
-            continue
-        f *= _stretch_factors(len(f), a * refine, b * refine, np.asarray(zone.factors, dtype=np.float64)[pair])
-        hit = True
+    bits = np.ascontiguousarray(p, dtype=np.float64).view(np.int64)
+    pts = np.ascontiguousarray(np.concatenate([np.asarray(z.points_rad, dtype=np.float64) for z in lowered]))
+    fac = np.ascontiguousarray(np.concatenate([np.asarray(z.factors, dtype=np.float64).reshape(-1, 4)
+                                               for z in lowered]))
+    starts = np.cumsum([0] + [len(z.points_rad) for z in lowered]).astype(np.int64)
+    f = np.ones(((m - 1) * refine + 1, 4))
+    hit = _zone_factors(bits, int(refine), pts.view(np.int64).reshape(-1, n), starts, fac, f)
     return f if hit else None
 
 
-def _stretch_factors(g_n: int, lo, hi, fac) -> np.ndarray:
-    """
-    Return one stretch's factors on the grid, (G, 4): ``fac[k]`` on grid points lo[k]..hi[k], 1 elsewhere.
+@njit(cache=True, nogil=True)
+def _row_hashes(bits):
+    """Return a hash (int64 (M,)) of each row of bits (M, n): its float64 bit patterns mixed (wrapping products)."""
+    m, n = bits.shape
+    h = np.empty(m, np.int64)
+    for i in range(m):
+        x = np.int64(0x2545F4914F6CDD1D)
+        for j in range(n):
+            x = (x ^ bits[i, j]) * np.int64(0x100000001B3)
+            x ^= x >> 29
+        h[i] = x
+    return h
 
-    lo, hi int (K,) grid indices, lo < hi, segments in order (they meet at most at their ends, where
-    the lower of the two factors holds); fac (K, 4).
+
+@njit(cache=True, nogil=True)
+def _zone_factors(bits, refine, pts, starts, fac, f):
     """
-    out = np.ones((g_n, 4))
-    count = np.maximum(hi - lo - 1, 0)                    # each segment's points strictly inside
-    first = np.repeat(lo + 1 - (np.cumsum(count) - count), count)
-    out[np.arange(int(count.sum())) + first] = np.repeat(fac, count, axis=0)
-    np.minimum.at(out, lo, fac)
-    np.minimum.at(out, hi, fac)
-    return out
+    Multiply f (G, 4) by every stretch's factors on the grid; return whether one matched the path.
+
+    bits int64 (M, n): the path's samples' float64 bit patterns; pts int64 (P, n): the stretches'
+    points' bit patterns, stretch z at rows ``starts[z]:starts[z + 1]``; fac (P - Z, 4): their
+    segments' factors, stretch z at rows ``starts[z] - z:starts[z + 1] - z - 1``.  A point is
+    the path's first sample with the same bits (the smallest index).  A segment between two
+    matched points, the later further along the path, is lowered on the grid points between
+    them; the first matched point's segment before it, when its own next segment is on the path,
+    from the path's start (the stretch reached the path there), and the last's after it from
+    the path's end (it left there); the grid points strictly inside a segment take its factors
+    (in order: a later segment's over an earlier one's), its two ends the lower of theirs and
+    any other segment's ending there.
+    """
+    m, n = bits.shape
+    g_n = f.shape[0]
+    h = _row_hashes(bits)
+    order = np.argsort(h, kind="mergesort")        # equal hashes in index order: the first match is the smallest
+    sh = h[order]
+    qh = _row_hashes(pts)
+    hit = False
+    out = np.empty((g_n, 4))
+    for z in range(starts.size - 1):
+        z0, z1 = starts[z], starts[z + 1]
+        k_n = z1 - z0
+        idx = np.full(k_n, -1, np.int64)
+        for i in range(k_n):
+            at = np.searchsorted(sh, qh[z0 + i])
+            while at < m and sh[at] == qh[z0 + i]:
+                r = order[at]
+                same = True
+                for j in range(n):
+                    if bits[r, j] != pts[z0 + i, j]:
+                        same = False
+                        break
+                if same:
+                    idx[i] = r
+                    break
+                at += 1
+        first = last = -1
+        for i in range(k_n):
+            if idx[i] >= 0:
+                if first < 0:
+                    first = i
+                last = i
+        if first < 0:
+            continue
+        # the segments: (lo, hi, factor row) in order
+        lo = np.empty(k_n + 1, np.int64)
+        hi = np.empty(k_n + 1, np.int64)
+        row = np.empty(k_n + 1, np.int64)
+        s_n = 0
+        f_row0 = z0 - z                          # the stretch's first factor row
+        if 0 < first < k_n - 1 and idx[first + 1] > idx[first]:
+            lo[s_n], hi[s_n], row[s_n] = 0, idx[first], f_row0 + first - 1      # from before the start
+            s_n += 1
+        for i in range(k_n - 1):
+            if idx[i] >= 0 and idx[i + 1] > idx[i]:
+                lo[s_n], hi[s_n], row[s_n] = idx[i], idx[i + 1], f_row0 + i
+                s_n += 1
+        if 0 < last < k_n - 1 and idx[last] > idx[last - 1] >= 0:
+            lo[s_n], hi[s_n], row[s_n] = idx[last], m - 1, f_row0 + last            # on past the end
+            s_n += 1
+        if s_n == 0:
+            continue
+        out[:, :] = 1.0
+        for k in range(s_n):
+            for gi in range(lo[k] * refine + 1, hi[k] * refine):
+                for c in range(4):
+                    out[gi, c] = fac[row[k], c]
+        for ends in (lo, hi):
+            for k in range(s_n):
+                gi = ends[k] * refine
+                for c in range(4):
+                    if fac[row[k], c] < out[gi, c]:
+                        out[gi, c] = fac[row[k], c]
+        for gi in range(g_n):
+            for c in range(4):
+                f[gi, c] *= out[gi, c]
+        hit = True
+    return hit
 
 
 def _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low):
