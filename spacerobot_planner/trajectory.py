@@ -1303,9 +1303,9 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
     k = _backward(*rows[:5], ds, 0.0)
     free = 1                         # a moving start keeps this many grid points' limits from the lowering
-    while low is not None and sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance) and free < g_n:
+    while low is not None and sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance) and free < 2 * g_n:
         low = low.copy()             # the arm's speed is given: lowered only where it can be entered
-        low[:free] = 1.0
+        low[:free] = 1.0             # (at last the whole path: the limits themselves)
         rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
         k = _backward(*rows[:5], ds, 0.0)
         free *= 2

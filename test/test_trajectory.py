@@ -93,6 +93,28 @@ def test_a_path_back_over_the_same_samples_is_not_lowered_by_a_stretch_of_the_pa
     np.testing.assert_array_equal(lowered.times_s, plain.times_s)
 
 
+def test_a_moving_start_is_kept_from_a_stretch_it_cannot_enter_however_far_ahead():
+    """
+    A moving arm's speed is given: where a stretch ahead leaves no way to brake for it, that stretch is not lowered.
+
+    1 rad along joint 0 (2 rad/s, 1 rad/s²), the arm entering at 1.3 rad/s (stopping takes 0.845
+    rad); the acceleration lowered to 0.3 over the last 30 % of the path would need the arm at
+    most at 0.42 rad/s by 0.7 rad, 0.755 rad of braking: it cannot enter.  The time
+    parameterisation keeps more and more of the path from the lowering, from the start, until
+    the arm's speed enters: here the whole path (the stretch lies beyond the first 256 of its
+    401 grid points, where that search used to end and refuse).  Oracle: the timing without
+    the stretch, bit for bit; a slower arm (0.5 rad/s) is lowered there (slower than without).
+    """
+    path = np.column_stack([np.linspace(0.0, 1.0, 201), np.zeros(201)])
+    vmax, amax = np.array([2.0, 2.0]), np.array([1.0, 1.0])
+    low = Lowering(path[140:], np.tile([1.0, 0.3, 1.0, 1.0], (60, 1)))
+    plain = time_parameterize(path, vmax, amax, start_path_speed=1.3)
+    kept = time_parameterize(path, vmax, amax, start_path_speed=1.3, lowered=(low,))
+    np.testing.assert_array_equal(kept.times_s, plain.times_s)
+    slow = time_parameterize(path, vmax, amax, start_path_speed=0.5, lowered=(low,))
+    assert slow.duration_s > time_parameterize(path, vmax, amax, start_path_speed=0.5).duration_s * 1.05
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_curved_paths_obey_limits(seed):
     rng = np.random.default_rng(seed)
