@@ -107,9 +107,10 @@ class AcsSettings:
         compensate_drift: free floating: plan for the predicted drift (:func:`plan_free_floating`).
         wheel_momentum_scaling, wheel_torque_scaling: the fractions of the wheel limits the time
             parameterisation keeps to along the whole path (not parameters: the chain after the
-            path lowers them, with the joint limits' scaling factors, in its last re-timing when
-            lowered stretches (``JointLimits.lowered``) have not brought the controller's motion
-            within the limits, and ``replanning.stopping_join`` for room to brake); the
+            path lowers them, with the joint limits' scaling factors, from its fourth re-timing on
+            (up to three times) when lowered stretches (``JointLimits.lowered``) have not brought
+            the controller's motion within the limits, and ``replanning.stopping_join`` for room to
+            brake); the
             reaction's verdict judges the limits themselves.
 
     """

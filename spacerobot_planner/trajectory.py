@@ -1072,6 +1072,16 @@ class Lowering:
     points_rad: np.ndarray
     factors: np.ndarray
 
+    def __post_init__(self):
+        """Refuse what the matching cannot read: K + 1 ≥ 2 points (rows), K rows of 4 factors in (0, 1]."""
+        p, f = np.asarray(self.points_rad, dtype=float), np.asarray(self.factors, dtype=float)
+        if p.ndim != 2 or len(p) < 2:
+            raise ValueError(f"Lowering: points_rad must be (K + 1, n) with K >= 1, got shape {p.shape}")
+        if f.shape != (len(p) - 1, 4):
+            raise ValueError(f"Lowering: factors must be ({len(p) - 1}, 4) for {len(p)} points, got shape {f.shape}")
+        if not np.all((f > 0.0) & (f <= 1.0)):
+            raise ValueError("Lowering: factors must lie in (0, 1]")
+
 
 def _lowered_factors(p, refine: int, lowered) -> np.ndarray | None:
     """
@@ -1084,26 +1094,31 @@ def _lowered_factors(p, refine: int, lowered) -> np.ndarray | None:
     if not lowered:
         return None
     m, n = p.shape
-    bits = np.ascontiguousarray(p, dtype=np.float64).view(np.int64)
+    for z in lowered:
+        if np.shape(z.points_rad)[1] != n:
+            raise ValueError(f"lowered: a stretch of {np.shape(z.points_rad)[1]} joints on a path of {n}")
+    bits = np.ascontiguousarray(p, dtype=np.float64).view(np.uint64)
     pts = np.ascontiguousarray(np.concatenate([np.asarray(z.points_rad, dtype=np.float64) for z in lowered]))
     fac = np.ascontiguousarray(np.concatenate([np.asarray(z.factors, dtype=np.float64).reshape(-1, 4)
                                                for z in lowered]))
     starts = np.cumsum([0] + [len(z.points_rad) for z in lowered]).astype(np.int64)
     f = np.ones(((m - 1) * refine + 1, 4))
-    hit = _zone_factors(bits, int(refine), pts.view(np.int64).reshape(-1, n), starts, fac, f)
+    hit = _zone_factors(bits, int(refine), pts.view(np.uint64).reshape(-1, n), starts, fac, f)
     return f if hit else None
 
 
 @njit(cache=True, nogil=True)
 def _row_hashes(bits):
-    """Return a hash (int64 (M,)) of each row of bits (M, n): its float64 bit patterns mixed (wrapping products)."""
+    """Return a hash (uint64 (M,)) of each row of bits (M, n) uint64: the bit patterns mixed (products mod 2^64)."""
     m, n = bits.shape
-    h = np.empty(m, np.int64)
+    h = np.empty(m, np.uint64)
+    mult = np.uint64(0x100000001B3)
+    shift = np.uint64(29)
     for i in range(m):
-        x = np.int64(0x2545F4914F6CDD1D)
+        x = np.uint64(0x2545F4914F6CDD1D)
         for j in range(n):
-            x = (x ^ bits[i, j]) * np.int64(0x100000001B3)
-            x ^= x >> 29
+            x = (x ^ bits[i, j]) * mult
+            x ^= x >> shift
         h[i] = x
     return h
 
@@ -1113,7 +1128,7 @@ def _zone_factors(bits, refine, pts, starts, fac, f):
     """
     Multiply f (G, 4) by every stretch's factors on the grid; return whether one matched the path.
 
-    bits int64 (M, n): the path's samples' float64 bit patterns; pts int64 (P, n): the stretches'
+    bits uint64 (M, n): the path's samples' float64 bit patterns; pts uint64 (P, n): the stretches'
     points' bit patterns, stretch z at rows ``starts[z]:starts[z + 1]``; fac (P - Z, 4): their
     segments' factors, stretch z at rows ``starts[z] - z:starts[z + 1] - z - 1``.  A point is
     the path's first sample with the same bits (the smallest index).  A segment between two
@@ -1941,6 +1956,11 @@ def _vertex(f, i, step):
     return (i + 0.5 * (f[i - 1] - f[i + 1]) / bend) * step
 
 
+#: :func:`segment_wheel_peaks` also searches between the samples around each local maximum of the
+#: samples within this fraction of their largest (where a second hump may peak higher between them)
+PEAK_SEARCH_BAND = 0.05
+
+
 @njit(cache=True, nogil=True)
 def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, out, c):
     """
@@ -1948,7 +1968,8 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
 
     At ``samples`` + 1 evenly spaced fractions of each segment (its ends included) and, for
     each of the two, at the vertex of the parabola through the largest sample and its two
-    neighbours (the peak between samples).  t (M,), q, v, a (M, dof) the planned joints,
+    neighbours, and around every other local maximum within :data:`PEAK_SEARCH_BAND` of it (the
+    peak between samples).  t (M,), q, v, a (M, dof) the planned joints,
     which are ``joints`` (dof,) of the full configuration ``q_full`` (n,) (the locked joints'
     positions; at rest); cl, m, inertia: ``spacecraft._tables``; c (6, dof) scratch.  NaN where a
     load is.  Returns False (out not filled) when the times do not increase strictly.
@@ -1979,12 +2000,19 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
             top_h = _nan_max(top_h, fh[i])
             top_t = _nan_max(top_t, ft[i])
         if samples >= 2 and top_h == top_h and top_t == top_t:
-            for f, i in ((fh, ih), (ft, it)):
-                x = _vertex(f, min(max(i, 1), samples - 1), step)
-                if 0.0 < x < 1.0:
-                    h, tau = _load_at(cl, m, inertia, c, dur, x, joints, qf, qdf, qddf, r, vb, ab)
-                    top_h = _nan_max(top_h, h)
-                    top_t = _nan_max(top_t, tau)
+            for f, i_top, top in ((fh, ih, top_h), (ft, it, top_t)):
+                # around the largest sample (its neighbours within the segment at an end) and every
+                # other local maximum within PEAK_SEARCH_BAND of it (a second hump may be the higher)
+                for i in range(1, samples):
+                    near = i == min(max(i_top, 1), samples - 1) or (
+                        f[i] >= f[i - 1] and f[i] >= f[i + 1] and f[i] >= (1.0 - PEAK_SEARCH_BAND) * top)
+                    if not near:
+                        continue
+                    x = _vertex(f, i, step)
+                    if 0.0 < x < 1.0:
+                        h, tau = _load_at(cl, m, inertia, c, dur, x, joints, qf, qdf, qddf, r, vb, ab)
+                        top_h = _nan_max(top_h, h)
+                        top_t = _nan_max(top_t, tau)
         out[k, 0] = top_h
         out[k, 1] = top_t
     return True
@@ -1997,8 +2025,9 @@ def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> n
     The load (``spacecraft.wheel_load``) of the motion joint_trajectory_controller makes of
     ``traj``'s points (its quintic between two points, :func:`sample_points`), with the attitude held: at
     ``samples_per_segment`` + 1 evenly spaced times of each segment (its ends included) and
-    where the parabola through the largest of them and its neighbours peaks (a peak between
-    samples: up to 0.2 % above 16 of them on the servicer's trajectories).  One pass, no arrays
+    where the parabola through the largest of them and its neighbours peaks, and through every
+    other local maximum within 5 % of it (a peak between samples: up to 0.4 % of a limit above 16
+    of them on the servicer's trajectories).  One pass, no arrays
     of samples.
 
     Raises
@@ -2006,6 +2035,8 @@ def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> n
         ValueError: times that do not increase strictly.
 
     """
+    if int(samples_per_segment) < 1:
+        raise ValueError(f"samples_per_segment: must be at least 1, got {samples_per_segment}")
     cl, m, inertia = _tables(robot, masses)
     q = np.ascontiguousarray(traj.positions_rad, dtype=float)
     out = np.zeros((max(len(q) - 1, 0), 2))

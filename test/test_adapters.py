@@ -55,7 +55,7 @@ def test_from_rest_the_controllers_motion_keeps_the_limits_on_random_scenes():
 
     30 plans of ``bench scenes``' 2-DOF family (seeded): where lowering the limits along stretches
     and then once along the whole path still left the controller's quintics over a limit, the chain
-    published them as they were: 2 of these 30 at 1.0023 and 1.0072 x the acceleration limit.  Oracle
+    published them as they were: one of these 30 at 1.0070 x the acceleration limit.  Oracle
     as above (SciPy's quintics, 40 samples per point, the scenario's limits and scaling factors).
     """
     from spacerobot_planner.bench.scenes import plan_problems

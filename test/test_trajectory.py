@@ -93,6 +93,19 @@ def test_a_path_back_over_the_same_samples_is_not_lowered_by_a_stretch_of_the_pa
     np.testing.assert_array_equal(lowered.times_s, plain.times_s)
 
 
+def test_a_stretch_the_timing_cannot_read_is_refused():
+    """A Lowering without K + 1 ≥ 2 points and K rows of 4 factors in (0, 1], or of other joints: ValueError."""
+    pts = np.column_stack([np.linspace(0.0, 1.0, 5), np.zeros(5)])
+    bad = ((pts, np.full((3, 4), 0.5), "factors"), (pts[:1], np.full((0, 4), 0.5), "points"),
+           (pts, np.full((4, 4), 1.5), r"\(0, 1\]"), (pts, np.full((4, 4), np.nan), r"\(0, 1\]"))
+    for points, factors, what in bad:
+        with pytest.raises(ValueError, match=what):
+            Lowering(points, factors)
+    low = Lowering(np.column_stack([pts, pts[:, :1]]), np.full((4, 4), 0.5))
+    with pytest.raises(ValueError, match="joints"):
+        time_parameterize(pts, np.ones(2), np.ones(2), lowered=(low,))
+
+
 def test_a_moving_start_is_kept_from_a_stretch_it_cannot_enter_however_far_ahead():
     """
     A moving arm's speed is given: where a stretch ahead leaves no way to brake for it, that stretch is not lowered.
