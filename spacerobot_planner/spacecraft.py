@@ -110,8 +110,7 @@ class AcsSettings:
             path lowers them, with the joint limits' scaling factors, from its fourth re-timing on
             (up to three times) when lowered stretches (``JointLimits.lowered``) have not brought
             the controller's motion within the limits, and ``replanning.stopping_join`` for room to
-            brake); the
-            reaction's verdict judges the limits themselves.
+            brake); the reaction's verdict judges the limits themselves.
 
     """
 

@@ -1781,13 +1781,10 @@ def _segment_peaks(t, q, v, a, u, vlim, alim, out, c):
 
     The largest over the joints; at the segment's ends, at ``t_k + (t_k+1 - t_k) · u`` (u (S,) in
     [0, 1)) and, the acceleration exact, at its extrema inside (the roots of the third
-    derivative).  t (M,), q, v, a (M, n), vlim, alim (n,), c (8, n) scratch; NaN where a ratio is.
-    Returns False (out not filled) when the times do not increase strictly.
+    derivative).  t (M,) increasing strictly (:func:`_require_increasing`), q, v, a (M, n), vlim,
+    alim (n,), c (8, n) scratch; NaN where a ratio is.
     """
     m, n = q.shape
-    for k in range(m - 1):
-        if not t[k + 1] - t[k] > 0.0:
-            return False
     for k in range(m - 1):
         h = t[k + 1] - t[k]
         _segment_coefficients(q, v, a, 3, k, h, c)
@@ -1805,7 +1802,6 @@ def _segment_peaks(t, q, v, a, u, vlim, alim, out, c):
                     top_a = _nan_max(top_a, abs(_horner(c, j, x)[2] / (h * h)) / alim[j])
         out[k, 0] = top_v
         out[k, 1] = top_a
-    return True
 
 
 def segment_peaks(traj: "Trajectory", fractions, vlim, alim) -> np.ndarray:
@@ -1824,11 +1820,17 @@ def segment_peaks(traj: "Trajectory", fractions, vlim, alim) -> np.ndarray:
     """
     q = np.ascontiguousarray(traj.positions_rad, dtype=float)
     out = np.zeros((max(len(q) - 1, 0), 2))
+    _require_increasing(traj.times_s, "segment_peaks")
     given = (traj.times_s, q, traj.velocities_rad_s, traj.accelerations_rad_s2, fractions, vlim, alim)
-    arrays = [np.ascontiguousarray(x, dtype=float) for x in given]
-    if len(q) > 1 and not _segment_peaks(*arrays, out, np.empty((8, q.shape[1]))):
-        raise ValueError("sample_points: times must increase strictly")
+    if len(q) > 1:
+        _segment_peaks(*[np.ascontiguousarray(x, dtype=float) for x in given], out, np.empty((8, q.shape[1])))
     return out
+
+
+def _require_increasing(times_s, who: str) -> None:
+    """Raise ValueError (naming ``who``) unless the times (M,) increase strictly (NaN does not)."""
+    if not np.all(np.diff(np.asarray(times_s, dtype=float)) > 0.0):
+        raise ValueError(f"{who}: times must increase strictly")
 
 
 def sample_points(times_s, positions, velocities, accelerations, t_s):
@@ -1868,8 +1870,7 @@ def sample_points(times_s, positions, velocities, accelerations, t_s):
     q = np.asarray(positions, dtype=float)
     if t.ndim != 1 or len(t) == 0 or q.ndim != 2 or q.shape[0] != len(t):
         raise ValueError(f"sample_points: times {t.shape} and positions {q.shape} must be (M,) and (M, n)")
-    if np.any(np.diff(t) <= 0.0):
-        raise ValueError("sample_points: times must increase strictly")
+    _require_increasing(t, "sample_points")
     v = None if velocities is None else np.asarray(velocities, dtype=float)
     a = None if accelerations is None else np.asarray(accelerations, dtype=float)
     for name, arr in (("velocities", v), ("accelerations", a)):
@@ -1971,13 +1972,10 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
     neighbours, and around every other local maximum within :data:`PEAK_SEARCH_BAND` of it (the
     peak between samples).  t (M,), q, v, a (M, dof) the planned joints,
     which are ``joints`` (dof,) of the full configuration ``q_full`` (n,) (the locked joints'
-    positions; at rest); cl, m, inertia: ``spacecraft._tables``; c (6, dof) scratch.  NaN where a
-    load is.  Returns False (out not filled) when the times do not increase strictly.
+    positions; at rest); cl, m, inertia: ``spacecraft._tables``; c (6, dof) scratch; t increasing
+    strictly (:func:`_require_increasing`).  NaN where a load is.
     """
     mpts = t.shape[0]
-    for k in range(mpts - 1):
-        if not t[k + 1] - t[k] > 0.0:
-            return False
     n = q_full.shape[0]
     qf = q_full.copy()
     qdf = np.zeros(n)
@@ -2015,7 +2013,6 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
                         top_t = _nan_max(top_t, tau)
         out[k, 0] = top_h
         out[k, 1] = top_t
-    return True
 
 
 def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> np.ndarray:
@@ -2023,12 +2020,12 @@ def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> n
     Return each segment's peak wheel momentum |h_wheel| (N·m·s) and torque |τ_wheel| (N·m), (M - 1, 2).
 
     The load (``spacecraft.wheel_load``) of the motion joint_trajectory_controller makes of
-    ``traj``'s points (its quintic between two points, :func:`sample_points`), with the attitude held: at
-    ``samples_per_segment`` + 1 evenly spaced times of each segment (its ends included) and
-    where the parabola through the largest of them and its neighbours peaks, and through every
-    other local maximum within 5 % of it (a peak between samples: up to 0.4 % of a limit above 16
-    of them on the servicer's trajectories).  One pass, no arrays
-    of samples.
+    ``traj``'s points (its quintic between two points, :func:`sample_points`), with the attitude
+    held: at ``samples_per_segment`` + 1 evenly spaced times of each segment (its ends included)
+    and where the parabola through the largest of them and its neighbours peaks, and through
+    every other local maximum within :data:`PEAK_SEARCH_BAND` of it (a peak between samples: up
+    to 0.4 % of a limit above 16 of them on the servicer's trajectories).  One pass, no arrays of
+    samples.
 
     Raises
     ------
@@ -2042,9 +2039,9 @@ def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> n
     out = np.zeros((max(len(q) - 1, 0), 2))
     if len(q) < 2:
         return out
+    _require_increasing(traj.times_s, "segment_wheel_peaks")
     given = (traj.times_s, q, traj.velocities_rad_s, traj.accelerations_rad_s2)
-    arrays = [np.ascontiguousarray(x, dtype=float) for x in given]
-    if not _segment_wheel_peaks(*arrays, int(samples_per_segment), np.asarray(robot.planned_joints, np.int64),
-                                robot.full(q[0]), cl, m, inertia, out, np.zeros((6, q.shape[1]))):
-        raise ValueError("segment_wheel_peaks: times must increase strictly")
+    _segment_wheel_peaks(*[np.ascontiguousarray(x, dtype=float) for x in given], int(samples_per_segment),
+                         np.asarray(robot.planned_joints, np.int64), robot.full(q[0]), cl, m, inertia, out,
+                         np.zeros((6, q.shape[1])))
     return out
