@@ -8,8 +8,9 @@ stage that accepts a motion (the joins to the exact start and goal, the grid pat
 shortcuts, the spline, the trajectory's points) asks this module.
 
 The certified check: along a segment, configurations are tested at most ``step`` apart
-and, near obstacles, closer, so that consecutive clearance balls overlap (a Lipschitz
-bound on how fast a checked link moves per radian of joint motion): the *whole*
+and, near obstacles, closer, so that consecutive clearance balls overlap (a bound on how
+far a checked link moves along the segment, :func:`sweep_m`: per joint, so a motion of
+the wrist alone steps by the wrist's reach, not the whole arm's): the *whole*
 segment, not only the samples, keeps clearance above the threshold.  The quick test
 (``certified=False``) samples at a fixed step only: for choosing among candidates,
 never for what is returned.
@@ -39,7 +40,7 @@ from .collision import NO_REFCOUNT, CollisionChecker, config_clearance
 from .joint_space import unwrap_path, within_bounds
 
 __all__ = ["PathCheck", "MotionValidator", "check_path", "first_bad_segment", "lipschitz_m_per_rad", "joint_reach_m",
-           "certify_segments", "SegmentTest", "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD", "quick_step_rad",
+           "certify_segments", "sweep_m", "SegmentTest", "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD", "quick_step_rad",
            "narrowest_obstacle_m"]
 
 DEFAULT_VERIFY_STEP_RAD = float(np.radians(0.5))  # largest spacing of the certified checks
@@ -80,17 +81,36 @@ class PathCheck:
     vertex_clearance_m: np.ndarray = None
 
 
+@njit(cache=True, nogil=True, inline="always")
+def sweep_m(qa, qb, reach_m):
+    """
+    Return the most a checked point moves along the straight segment qa → qb (planned joints, rad), m.
+
+    D = Σ_j reach_m[j]·|Δq_j| (:func:`joint_reach_m`: no point of a checked link moves faster
+    than reach_m[j] per radian of planned joint j, relative to the obstacles and the body).
+    The one Lipschitz rule of every walk along a segment (:func:`certify_segments`,
+    :func:`segment_free_from`, ``smoothing._quick_segment_kernel``): per unit of joint-space
+    length it is at most :func:`lipschitz_m_per_rad` (Cauchy–Schwarz), and along a grid edge,
+    where one joint moves, it is that joint's reach alone.
+    """
+    span = 0.0
+    for j in range(reach_m.shape[0]):
+        span += reach_m[j] * abs(qb[j] - qa[j])
+    return span
+
+
 @njit(**NO_REFCOUNT)
 def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
-                     threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad,
+                     threshold_m, reach_m, max_step_rad, min_step_rad,
                      interval_ok, interval_clr, certified, vertex_clr, q_full, pts, body_w):
     """
     Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
 
-    At a sample with clearance c the open ball of radius (c - threshold)/L in joint
-    space is free (no point of a checked link moves faster than L m/rad), so the
-    next sample goes at most that far (and at most max_step_rad).  An interval
-    fails where c ≤ threshold or the certified step falls below min_step_rad.
+    On an interval of joint-space length ℓ no point of a checked link moves faster than
+    D/ℓ m per rad of it (D: :func:`sweep_m`, ``reach_m`` (dof,) :func:`joint_reach_m`), so
+    from a sample with clearance c the interval is free for (c - threshold)·ℓ/D on either
+    side, and the next sample goes at most that far (less 0.1 %, and at most max_step_rad).
+    An interval fails where c ≤ threshold or the certified step falls below min_step_rad.
     With ``certified`` false the samples go ``max_step_rad`` apart whatever the
     clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
 
@@ -110,6 +130,8 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
             d = points[i + 1, a] - points[i, a]
             seg_len += d * d
         seg_len = np.sqrt(seg_len)
+        span = sweep_m(points[i], points[i + 1], reach_m)
+        rad_per_m = seg_len / span if span > 0.0 else 0.0     # rad of the segment per m of motion (0: no length)
         t = 0.0
         ok = True
         best = np.inf
@@ -136,7 +158,7 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
                 break
             if t >= seg_len:
                 break
-            step = 0.999 * (c - threshold_m) / lipschitz_m_per_rad if certified else max_step_rad
+            step = 0.999 * (c - threshold_m) * rad_per_m if certified else max_step_rad
             if step < min_step_rad:
                 ok = False
                 break
@@ -147,7 +169,7 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
 
 
 def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts,
-                 starts, centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, certified,
+                 starts, centres, radii, threshold_m, reach_m, max_step_rad, min_step_rad, certified,
                  vertex_clr):
     """
     Run :meth:`MotionValidator.check` on M ≥ 2 rows: :func:`certify_segments` and the bounds, in one call.
@@ -161,7 +183,7 @@ def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, le
     interval_ok = np.empty(m, np.bool_)
     interval_clr = np.empty(m)
     ok, best, n = _check_rows(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body,
-                              verts, starts, centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad,
+                              verts, starts, centres, radii, threshold_m, reach_m, max_step_rad,
                               min_step_rad, certified, vertex_clr, interval_ok, interval_clr,
                               *motion_scratch(q_template, lengths, body))
     return ok, best, n, interval_ok, interval_clr
@@ -169,12 +191,12 @@ def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, le
 
 @njit(**NO_REFCOUNT)
 def _check_rows(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts, starts,
-                centres, radii, threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, certified, vertex_clr,
+                centres, radii, threshold_m, reach_m, max_step_rad, min_step_rad, certified, vertex_clr,
                 interval_ok, interval_clr, q_full, pts, body_w):
     """:func:`check_kernel` into interval_ok, interval_clr (M-1,), with the scratch given; (ok, best, n)."""
     m = points.shape[0] - 1
     n = certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
-                         threshold_m, lipschitz_m_per_rad, max_step_rad, min_step_rad, interval_ok,
+                         threshold_m, reach_m, max_step_rad, min_step_rad, interval_ok,
                          interval_clr, certified, vertex_clr, q_full, pts, body_w)
     ok = True
     best = np.inf
@@ -255,8 +277,8 @@ def joint_reach_m(robot) -> np.ndarray:
 
     No point of a checked link moves faster than r_j per radian of joint j relative to the
     obstacles and the body, so over a joint-space step Δq no point moves more than
-    Σ_j r_j |Δq_j| (the Lipschitz bounds of :func:`lipschitz_m_per_rad` and
-    :func:`segment_free_from`).  float64 (dof,).
+    Σ_j r_j |Δq_j| (:func:`sweep_m`, the rule of every walk along a segment; at most
+    :func:`lipschitz_m_per_rad` times |Δq|).  float64 (dof,).
     """
     lengths = np.asarray(robot.link_lengths_m, dtype=float)
     return np.array([lengths[j:].sum() for j in robot.planned_joints], dtype=float)
@@ -329,11 +351,10 @@ def segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts
     """
     dof = qa.shape[0]
     d2 = 0.0
-    span_m = 0.0                 # D: the most a checked point moves over the whole segment, m
     for a in range(dof):
         d = qb[a] - qa[a]
         d2 += d * d
-        span_m += reach_m[a] * abs(d)
+    span_m = sweep_m(qa, qb, reach_m)      # D, m
     n = max(1, int(np.ceil(np.sqrt(d2) / step_rad)))
     clr_ends[1] = np.nan
     k = 0
@@ -429,7 +450,8 @@ class MotionValidator:
                               np.asarray(robot.planned_joints, dtype=np.int64), checker.lengths,
                               checker.checked, checker.body, checker.verts, checker.starts, checker.centres,
                               checker.radii)
-        self.lipschitz_m_per_rad = lipschitz_m_per_rad(robot)
+        #: r_j per planned joint, m (:func:`joint_reach_m`): the certified walk's Lipschitz rule (:func:`sweep_m`)
+        self.reach_m = joint_reach_m(robot)
 
     @classmethod
     def for_scene(cls, robot, scene, step_rad: float = DEFAULT_VERIFY_STEP_RAD) -> "MotionValidator":
@@ -479,8 +501,8 @@ class MotionValidator:
         Certified check of the piecewise-linear path through the rows of ``path_rad``.
 
         Along every interval, samples are at most ``step_rad`` (default the validator's)
-        apart and close enough that their clearance balls overlap (Lipschitz bound of the
-        arm), so the *whole* interval, not only the samples, keeps clearance above the
+        apart and close enough that their clearance balls overlap (:func:`sweep_m`'s bound
+        of the interval), so the *whole* interval, not only the samples, keeps clearance above the
         safety margin (and at least ``required_clearance_m`` if given).  Bounded joints
         must stay within bounds at the rows (then also between them).  ``certified=False``:
         a quick test at samples ``step_rad`` apart only (for candidates; never for what
@@ -506,7 +528,7 @@ class MotionValidator:
                                  f"got shape {vertex_clr.shape}")
         ok, best, n, interval_ok, interval_clr = check_kernel(
             p, self.lower_rad, self.upper_rad, self._periodic_mask, *self.kernel_arrays, float(threshold),
-            self.lipschitz_m_per_rad, step, float(min_step_rad), bool(certified), vertex_clr)
+            self.reach_m, step, float(min_step_rad), bool(certified), vertex_clr)
         return PathCheck(bool(ok), interval_ok, float(best), int(n), interval_clr, vertex_clr)
 
     def check_kept(self, path_rad) -> PathCheck:

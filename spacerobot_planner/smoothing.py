@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from .collision import NO_REFCOUNT, config_clearance
-from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch
+from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch, sweep_m
 from .trajectory import arc_lengths_rad, chord_lengths_rad, hermite_coefficients, not_a_knot_slopes
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
@@ -163,17 +163,17 @@ def shortcut_indices(motions, points_rad, lower_rad=None, upper_rad=None, period
     vertex_clr = np.full(len(pts), np.nan) if known is None else np.array(known, dtype=float)
     # a segment between two in-bounds points stays in bounds (the bounds are a box)
     return _shortcut(pts, polyline_check.interval_clearance_m, v.margin_m + keep_clearance_m, v.kernel_arrays,
-                     v.margin_m, v.lipschitz_m_per_rad, v.step_rad, bool(certified), vertex_clr)
+                     v.margin_m, v.reach_m, v.step_rad, bool(certified), vertex_clr)
 
 
-def _shortcut(pts, iv_clr, cap, kernel_arrays, margin_m, lip, step_rad, certified, vertex_clr) -> np.ndarray:
+def _shortcut(pts, iv_clr, cap, kernel_arrays, margin_m, reach_m, step_rad, certified, vertex_clr) -> np.ndarray:
     """Run :func:`_shortcut_kernel` with its scratch (``kernel_arrays``: ``MotionValidator.kernel_arrays``)."""
     m, dof = pts.shape
     keep = np.empty(m, np.int64)
     # the quick test's samples of a segment: at most its length / step + 1, and no chord is longer
     # than the polyline (its length with a margin far above the rounding of either)
     n_samples = int(math.ceil(float(np.sum(chord_lengths_rad(pts))) * (1.0 + 1e-9) / step_rad)) + 2
-    n_keep = _shortcut_kernel(pts, iv_clr, cap, *kernel_arrays, margin_m, lip, step_rad, certified, vertex_clr,
+    n_keep = _shortcut_kernel(pts, iv_clr, cap, *kernel_arrays, margin_m, reach_m, step_rad, certified, vertex_clr,
                               keep, np.empty((2, dof)), np.zeros(1, np.bool_), np.zeros(1), np.empty(2),
                               np.empty(n_samples, np.bool_), np.empty((2 * n_samples + 1, 2), np.int64),
                               *motion_scratch(kernel_arrays[0], kernel_arrays[2], kernel_arrays[4]))
@@ -181,18 +181,18 @@ def _shortcut(pts, iv_clr, cap, kernel_arrays, margin_m, lip, step_rad, certifie
 
 
 def _quick_segment_ok(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts, starts,
-                      centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w):
+                      centres, radii, threshold_m, reach_m, step_rad, q_full, pts, body_w):
     """Run :func:`_quick_segment_kernel` with its scratch (``covered``, ``queue``)."""
     seg_len = float(np.linalg.norm(points[j] - points[i]))
     n = max(1, int(math.ceil(seg_len * (1.0 + 1e-9) / step_rad))) + 1
     return _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts,
-                                 starts, centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w,
+                                 starts, centres, radii, threshold_m, reach_m, step_rad, q_full, pts, body_w,
                                  np.empty(n + 1, np.bool_), np.empty((2 * n + 1, 2), np.int64))
 
 
 @njit(**NO_REFCOUNT)
 def _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths, checked, body, verts, starts,
-                          centres, radii, threshold_m, lip, step_rad, q_full, pts, body_w, covered, queue):
+                          centres, radii, threshold_m, reach_m, step_rad, q_full, pts, body_w, covered, queue):
     """
     Quick test of the straight segment points[i] → points[j]: clearance > threshold at its samples.
 
@@ -200,7 +200,8 @@ def _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths
     lengths k·step_rad below the length, and the end.  Evaluated ends first, then by
     bisection (coarse to fine, as OMPL's discrete motion validator), so a segment that
     collides is usually rejected after a few evaluations; a sample within the clearance ball
-    (c - threshold)/L of an evaluated one (the Lipschitz bound ``lip``, m per rad, less 0.1 %)
+    (c - threshold)·ℓ/D of an evaluated one (ℓ the segment's joint-space length, D
+    ``motion.sweep_m`` with ``reach_m``: the most a checked point moves along it; less 0.1 %)
     passes without being evaluated.  The answer is that of evaluating every sample.  The
     ends' clearances are read from ``vertex_clr`` where known (not NaN) and written there
     when evaluated.  Scratch: ``covered`` (≥ n_last + 1,) bool and ``queue`` (≥ 2 n_last + 1, 2)
@@ -212,6 +213,8 @@ def _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths
         d = points[j, a] - points[i, a]
         seg_len += d * d
     seg_len = np.sqrt(seg_len)
+    span = sweep_m(points[i], points[j], reach_m)
+    rad_per_m = seg_len / span if span > 0.0 else 0.0       # rad of the segment per m of motion (0: no length)
     n_last = max(1, int(np.ceil(seg_len / step_rad)))        # samples 0 .. n_last (the end)
     if n_last + 1 > covered.shape[0] or 2 * n_last + 1 > queue.shape[0]:
         raise ValueError("_quick_segment_kernel: scratch too small for the segment")
@@ -232,7 +235,7 @@ def _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths
             vertex_clr[v] = c
         if not c > threshold_m:
             return False
-        _cover(covered, n_last, k, 0.0 if e == 0 else seg_len, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+        _cover(covered, n_last, k, 0.0 if e == 0 else seg_len, 0.999 * (c - threshold_m) * rad_per_m, step_rad, seg_len)
     queue[tail, 0] = 0
     queue[tail, 1] = n_last
     tail += 1
@@ -251,7 +254,7 @@ def _quick_segment_kernel(points, i, j, vertex_clr, q_template, planned, lengths
             c = config_clearance(q_full, lengths, checked, body, verts, starts, centres, radii, pts, body_w)
             if not c > threshold_m:
                 return False
-            _cover(covered, n_last, k, t, 0.999 * (c - threshold_m) / lip, step_rad, seg_len)
+            _cover(covered, n_last, k, t, 0.999 * (c - threshold_m) * rad_per_m, step_rad, seg_len)
         queue[tail, 0] = lo
         queue[tail, 1] = k
         queue[tail + 1, 0] = k
@@ -274,7 +277,7 @@ def _cover(covered, n_last, k, t, radius, step_rad, seg_len):
 
 @njit(**NO_REFCOUNT)
 def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, body, verts, starts, centres,
-                     radii, margin_m, lip, step_rad, certified, vertex_clr, keep, seg, ok_iv, clr_iv, ends_clr,
+                     radii, margin_m, reach_m, step_rad, certified, vertex_clr, keep, seg, ok_iv, clr_iv, ends_clr,
                      covered, queue, q_full, chain, body_w):
     """
     Run the greedy binary search of :func:`shortcut_indices` (see there), in one kernel.
@@ -309,14 +312,14 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                     ends_clr[0] = vertex_clr[i]
                     ends_clr[1] = vertex_clr[j]
                     certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts, centres,
-                                     radii, threshold, lip, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr,
+                                     radii, threshold, reach_m, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr,
                                      q_full, chain, body_w)
                     vertex_clr[i] = ends_clr[0]
                     vertex_clr[j] = ends_clr[1]
                     good = ok_iv[0]
                 else:
                     good = _quick_segment_kernel(pts, i, j, vertex_clr, q_template, planned, lengths, checked,
-                                                 body, verts, starts, centres, radii, threshold, lip, step_rad,
+                                                 body, verts, starts, centres, radii, threshold, reach_m, step_rad,
                                                  q_full, chain, body_w, covered, queue)
             if good:
                 lo = j
@@ -638,5 +641,6 @@ def warm_up() -> None:
     pts = np.radians([[0.0, 0.0], [5.0, 5.0], [10.0, 5.0], [15.0, 0.0]])
     snap_to_bounds(pts, np.zeros(2), np.ones(2), (False, True))
     iv_clr = np.ones(len(pts) - 1)
+    reach_m = np.array([4.0, 2.0])
     for certified in (False, True):
-        _shortcut(pts, iv_clr, 0.07, arrays, 0.02, 4.5, QUICK_STEP_RAD, certified, np.full(len(pts), np.nan))
+        _shortcut(pts, iv_clr, 0.07, arrays, 0.02, reach_m, QUICK_STEP_RAD, certified, np.full(len(pts), np.nan))

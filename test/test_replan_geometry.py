@@ -89,7 +89,7 @@ def test_quick_shortcut_test_answers_as_every_sample(scenario):
         known = np.full(2, np.nan)
         if rng.random() < 0.5:                  # an end's clearance already known
             known[0] = chk.clearance_m(a)
-        got = _quick_segment_ok(pts, 0, 1, known, *v.kernel_arrays, threshold, v.lipschitz_m_per_rad,
+        got = _quick_segment_ok(pts, 0, 1, known, *v.kernel_arrays, threshold, v.reach_m,
                                 QUICK_STEP_RAD, *scratch)
         want = _every_sample_ok(chk, a, b, threshold, QUICK_STEP_RAD)
         assert got == want, (a, b, threshold)
