@@ -495,12 +495,13 @@ def _in_the_arms_state(dense: Trajectory, paths) -> Trajectory:
     """
     Return a joined trajectory whose first point has the executing trajectory's velocity and acceleration at the join.
 
-    The time parameterisation starts along the joined path's own tangent (a spline re-fitted
-    through the executing path's samples: up to 0.6 % off the arm's velocity on the paper
-    3-DOF scene, up to 30 % on servicer_3dof with a two-row prefix); the controller, switching
-    at the join, would step the arm's velocity by that.  The first point takes the state the arm
-    is in; the controller's quintic from there to the second point is what the chain checks
-    and certifies (the overshoot, the collisions), as every other segment.
+    The time parameterisation starts along the arm's own direction (``replanning.start_tangent``:
+    the joined path's spline clamped to it) at the arm's path speed, so the velocity is the
+    arm's up to the speed's rounding; its acceleration is the time-optimal profile's, not the
+    arm's (the executing trajectory may be braking where the new one speeds up).  The first
+    point takes the state the arm is in, exactly; the controller's quintic from there to the
+    second point is what the chain checks and certifies (the overshoot, the collisions), as
+    every other segment.
     """
     ex, k = paths.join.executing.trajectory, paths.continuation.index
     vel, acc = dense.velocities_rad_s.copy(), dense.accelerations_rad_s2.copy()

@@ -58,7 +58,8 @@ def scenario_joint_limits(scenario):
     return vmax, amax, limits.velocity_scaling, limits.acceleration_scaling
 
 
-def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None, motions=None) -> Motion:
+def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None, start_tangent=None,
+                motions=None) -> Motion:
     """
     Time-parameterise a planned path with the scenario's limits and report the reaction.
 
@@ -72,7 +73,7 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
     Args:
         scenario: ``problem.Scenario`` (robot, scene, masses, acs, joint_limits).
         path_rad: (M, dof) the planned path (unwrapped, exact ends).
-        start_velocity_rad_s, start_path_speed: a moving start (see
+        start_velocity_rad_s, start_path_speed, start_tangent: a moving start (see
             ``trajectory.time_parameterize``); default at rest.
         motions: the scene's ``motion.MotionValidator``, for the drift check (made when None).
 
@@ -85,18 +86,19 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
         ValueError: bad limits or a start velocity the path cannot be followed with.
 
     """
-    traj = _wheel_timed(scenario, path_rad, start_velocity_rad_s, start_path_speed)
+    traj = _wheel_timed(scenario, path_rad, start_velocity_rad_s, start_path_speed, start_tangent)
     return Motion(traj, _report(scenario, path_rad, traj, motions))
 
 
-def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed=None):
+def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed=None, start_tangent=None):
     """:func:`plan_motion`'s trajectory (the wheel limits in the time-optimal parameterisation)."""
     robot, acs = scenario.robot, scenario.acs
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     wheel = WheelModel(robot, scenario.masses, *acs.timed_wheel_limits)
     return time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
-                             start_path_speed=start_path_speed, wheel=wheel, lowered=scenario.joint_limits.lowered)
+                             start_path_speed=start_path_speed, start_tangent=start_tangent, wheel=wheel,
+                             lowered=scenario.joint_limits.lowered)
 
 
 def _report(scenario, path_rad, traj, motions=None) -> ReactionReport:
@@ -136,7 +138,7 @@ def trajectory_limits_known(scenario) -> bool:
 
 
 def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0,
-                 motions=None, report: bool = True):
+                 motions=None, report: bool = True, start_tangent=None):
     """
     Run the last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
 
@@ -155,6 +157,8 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
             when None and needed).
         report: False: the same trajectory, the report left out (None; :func:`reaction_of`
             makes it later, e.g. for the one of several re-timings that is kept).
+        start_tangent: (dof,) the direction the path leaves its start along (the arm's
+            velocity over ``start_path_speed``; ``trajectory.time_parameterize``), or None.
 
     Returns
     -------
@@ -173,11 +177,12 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
     if reaction is None:
         reaction = reaction_matters(scenario)
     if reaction and not report:
-        return _wheel_timed(scenario, path, start_path_speed=start_path_speed), None
+        return _wheel_timed(scenario, path, start_path_speed=start_path_speed, start_tangent=start_tangent), None
     if reaction:
-        motion = plan_motion(scenario, path, start_path_speed=start_path_speed, motions=motions)
+        motion = plan_motion(scenario, path, start_path_speed=start_path_speed, start_tangent=start_tangent,
+                             motions=motions)
         return motion.trajectory, motion.reaction
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_path_speed=start_path_speed,
-                             lowered=scenario.joint_limits.lowered), None
+                             start_tangent=start_tangent, lowered=scenario.joint_limits.lowered), None

@@ -284,7 +284,8 @@ def not_a_knot_slopes(x, y):
     M ≥ 4: SciPy's ``CubicSpline`` system (the same rows), solved by LAPACK's ``gtsv``
     elimination (tridiagonal, partial pivoting); the matrix is the same for every column, so
     it is eliminated once and the columns' right-hand sides follow it.  The one not-a-knot
-    solve of the package: the trajectory's path model and the smoothed path's spline.
+    solve of the package (:func:`_spline_slopes`): the trajectory's path model and the smoothed
+    path's spline.
     """
     m, n = y.shape
     dx = x[1:] - x[:-1]
@@ -298,6 +299,33 @@ def not_a_knot_slopes(x, y):
             out[1, col] = s0 + c * dx[0]
             out[2, col] = s1 + c * dx[1]
         return out
+    return _spline_slopes(x, y, y[0], False)
+
+
+@njit(cache=True, nogil=True)
+def clamped_start_slopes(x, y, start_slope):
+    """
+    Return the knot slopes (M, n) of the cubic spline through (x (M,), y (M, n)), M ≥ 3, leaving at ``start_slope``.
+
+    The first derivative at x[0] is ``start_slope`` (n,) (clamped), the end is not-a-knot: SciPy's
+    ``CubicSpline(x, y, bc_type=((1, start_slope), "not-a-knot"))``, by :func:`_spline_slopes`.
+    A path that must leave its start along a given direction (a replan joined to a moving arm:
+    the arm's velocity over its path speed).
+    """
+    return _spline_slopes(x, y, start_slope, True)
+
+
+@njit(cache=True, nogil=True)
+def _spline_slopes(x, y, start_slope, clamped):
+    """
+    Solve SciPy's ``CubicSpline`` system for the knot slopes (M ≥ 3, n): not-a-knot at the end.
+
+    At the start not-a-knot, or (``clamped``) the first slope is ``start_slope`` (n,), SciPy's
+    ``bc_type`` ``(1, start_slope)`` row.  LAPACK's ``gtsv`` elimination (tridiagonal, partial
+    pivoting), the matrix eliminated once for every column.
+    """
+    m, n = y.shape
+    dx = x[1:] - x[:-1]
     d = np.empty(m)
     du = np.empty(m - 1)
     dl = np.empty(m - 1)
@@ -313,11 +341,17 @@ def not_a_knot_slopes(x, y):
         dl[i - 1] = dx[i]
         for col in range(n):
             b[i, col] = 3.0 * (dx[i] * sl[i - 1, col] + dx[i - 1] * sl[i, col])
-    w = x[2] - x[0]
-    d[0] = dx[1]
-    du[0] = w
-    for col in range(n):
-        b[0, col] = ((dx[0] + 2.0 * w) * dx[1] * sl[0, col] + dx[0] ** 2 * sl[1, col]) / w
+    if clamped:                         # the slope itself
+        d[0] = 1.0
+        du[0] = 0.0
+        for col in range(n):
+            b[0, col] = start_slope[col]
+    else:
+        w = x[2] - x[0]
+        d[0] = dx[1]
+        du[0] = w
+        for col in range(n):
+            b[0, col] = ((dx[0] + 2.0 * w) * dx[1] * sl[0, col] + dx[0] ** 2 * sl[1, col]) / w
     w = x[m - 1] - x[m - 3]
     d[m - 1] = dx[m - 3]
     dl[m - 2] = w
@@ -433,12 +467,18 @@ def _grid(ds, refine):
     return s_knots, s
 
 
-def _spline_on_grid(p, ds, refine):
-    """Return the not-a-knot spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`."""
+def _spline_on_grid(p, ds, refine, start_slope=None):
+    """
+    Return the spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`.
+
+    Not-a-knot; with ``start_slope`` (n,) its first derivative at the start is that (clamped).
+    """
     s_knots, s = _grid(ds, refine)
     g, n = s.shape[0], p.shape[1]
     q, d1, d2, d3 = np.empty((g, n)), np.empty((g, n)), np.empty((g, n)), np.empty((g - 1, n))
-    _hermite_on_grid(s_knots, p, not_a_knot_slopes(s_knots, p), s, refine, q, d1, d2, d3, np.empty(n), np.empty(n))
+    slopes = (not_a_knot_slopes(s_knots, p) if start_slope is None
+              else clamped_start_slopes(s_knots, p, start_slope))
+    _hermite_on_grid(s_knots, p, slopes, s, refine, q, d1, d2, d3, np.empty(n), np.empty(n))
     q[::refine] = p                     # the samples exactly
     return s, q, d1, d2, d3
 
@@ -470,19 +510,20 @@ def arc_lengths_rad(p) -> np.ndarray:
     return _running_sum(chord_lengths_rad(p))
 
 
-def _path_model(p, refine: int):
+def _path_model(p, refine: int, start_slope=None):
     """
     Fit the cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
 
     Returns (s, idx, q, d1, d2, d3): grid chord lengths s (G,), the grid indices of the
     samples idx (M,), the spline's q, q', q'' at the grid points (G, n) (q[idx] == p
     exactly) and its q''' per grid segment (G-1, n) (constant on each spline piece).
-    SciPy's not-a-knot ``CubicSpline``, by the kernels above from 3 samples on.
+    SciPy's not-a-knot ``CubicSpline``, by the kernels above from 3 samples on; with
+    ``start_slope`` (n,) float64, its derivative at the start clamped to it (from 3 samples on).
     """
     idx = np.arange(len(p)) * refine
     ds = chord_lengths_rad(p)
     if len(p) >= 3:
-        s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine)
+        s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine, start_slope)
         return s, idx, q, d1, d2, d3
     s_knots, s = _grid(ds, refine)          # a straight segment
     chord = (p[1] - p[0]) / ds[0]
@@ -517,25 +558,27 @@ def shared_path_models():
         _SHARED_MODELS.reset(token)
 
 
-def _modelled_path(path_rad, max_step_rad: float, refine: int):
+def _modelled_path(path_rad, max_step_rad: float, refine: int, start_slope=None):
     """
     Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
 
-    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,));
-    within :func:`shared_path_models`, made once per path (the arrays are only read).
+    :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,);
+    ``start_slope``: the start's clamped derivative or None); within :func:`shared_path_models`,
+    made once per path and start (the arrays are only read).
     """
     path = np.ascontiguousarray(path_rad, dtype=float)
     shared = _SHARED_MODELS.get()
     key = None
     if shared is not None:
-        key = (path.shape, path.tobytes(), float(max_step_rad), int(refine))
+        key = (path.shape, path.tobytes(), float(max_step_rad), int(refine),
+               None if start_slope is None else start_slope.tobytes())
         got = shared.get(key)
         if got is not None:
             return got[0].copy(), got[1]         # the positions go into a Trajectory: its own
     p = densify_path(path, max_step_rad)
     model = None
     if len(p) > 1:
-        s, _, qg, d1, d2, d3 = _path_model(p, refine)
+        s, _, qg, d1, d2, d3 = _path_model(p, refine, start_slope)
         model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s))
     if key is not None:
         shared[key] = (p.copy(), model)          # not the positions returned (nor the caller's path)
@@ -732,6 +775,29 @@ def _forward(x, a_row, b_row, c_row, kappa, xv, delta, k, x0):
                     else:
                         g = max(g, abs(rest) - cc)
         x[i + 1] = 0.0 if g > 0.0 else max(hi, 0.0)     # lo ≤ hi up to rounding: x_i ∈ K_i
+
+
+#: the largest angle between a clamped start tangent and the path's first step, rad
+MAX_START_TANGENT_TURN_RAD = float(np.radians(30.0))
+
+
+def _check_start_tangent(tangent, path_rad) -> None:
+    """Refuse a start tangent (n,) that the path (M, n) cannot leave its start along (ValueError)."""
+    p = np.asarray(path_rad, dtype=float)
+    n = p.shape[1] if p.ndim == 2 else -1
+    if tangent.shape != (n,) or not np.all(np.isfinite(tangent)):
+        raise ValueError(f"start_tangent: expected {n} finite values (one per path column), got {tangent.tolist()}")
+    norm = float(np.linalg.norm(tangent))
+    if not 0.5 <= norm <= 2.0:
+        raise ValueError(f"start_tangent: its length is {norm:.4g}; the derivative with respect to the chord "
+                         f"length is about 1 (0.5 to 2)")
+    moved = np.flatnonzero(np.any(p[1:] != p[0], axis=1))
+    if moved.size:                      # the path's first step (densified: the same direction)
+        step = p[moved[0] + 1] - p[0]
+        turn = float(np.arccos(np.clip(tangent @ step / (norm * float(np.linalg.norm(step))), -1.0, 1.0)))
+        if turn > MAX_START_TANGENT_TURN_RAD:
+            raise ValueError(f"start_tangent: {np.degrees(turn):.1f}° off the path's first step (at most "
+                             f"{np.degrees(MAX_START_TANGENT_TURN_RAD):g}°)")
 
 
 def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: float = 1e-3) -> float:
@@ -1232,7 +1298,7 @@ def _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low):
 
 def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joint_names=None, *,
                       velocity_scaling: float = 1.0, acceleration_scaling: float = 1.0,
-                      start_path_speed: float | None = None, start_velocity_rad_s=None,
+                      start_path_speed: float | None = None, start_velocity_rad_s=None, start_tangent=None,
                       wheel=None, max_step_rad: float = np.radians(0.5),
                       grid_refinement: int = 2, start_speed_tolerance: float = 1e-3,
                       lowered: tuple = ()) -> Trajectory:
@@ -1251,6 +1317,14 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         start_velocity_rad_s: (n,) instead of ``start_path_speed``: a start joint
             velocity, projected on the path's start tangent (it must lie along it, see
             :func:`start_path_speed_from_velocity`).
+        start_tangent: (n,) the path's derivative at its start with respect to its chord
+            length (about unit length, pointing along the path's first step: within
+            :data:`MAX_START_TANGENT_TURN_RAD`), or None: the path's spline leaves its start
+            along it (clamped) instead of its own not-a-knot tangent.  A replan joined to a
+            moving arm gives the arm's velocity over its path speed, so that the start velocity
+            ``q'(0) · start_path_speed`` is the arm's (a few rows of executing path before a
+            corner fit a tangent up to 7 % off it, which the controller's first quintic turned
+            into an acceleration peak up to 1.9 times the limit).
         wheel: optional ``spacecraft.WheelModel``; adds the wheel momentum
             (``|H·q'| ṡ ≤ max_momentum_Nms``) and torque
             (``|d(H·q')/ds ṡ² + H·q' s̈| ≤ max_torque_Nm``) constraints (a None or 0
@@ -1278,7 +1352,13 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
 
     """
     refine = int(grid_refinement)
-    p, model = _modelled_path(path_rad, float(max_step_rad), refine)
+    tangent = None
+    if start_tangent is not None:
+        if start_velocity_rad_s is not None:
+            raise ValueError("start_tangent: give it with start_path_speed, not start_velocity_rad_s")
+        tangent = np.array(start_tangent, dtype=float).reshape(-1)
+        _check_start_tangent(tangent, path_rad)
+    p, model = _modelled_path(path_rad, float(max_step_rad), refine, tangent)
     n = p.shape[1]
     vmax = _check_limits("max_velocity", max_velocity_rad_s, n)
     amax = _check_limits("max_acceleration", max_acceleration_rad_s2, n)
@@ -1625,10 +1705,11 @@ def continuation(traj: Trajectory, t_s: float, horizon_s: float = 1.0, *, horizo
     The new trajectory starts at the first point of ``traj`` at or after ``t_s`` (the
     join, an exact state: position, velocity, path speed) and follows ``traj``'s path to
     the point ``horizon_s`` later, where the new plan starts.  Time-parameterising
-    ``c.join(new_path)`` with ``start_path_speed=c.start_path_speed`` gives a trajectory
-    continuous in position and velocity at the join (the velocity up to the projection on
-    the re-fitted tangent, a relative change of the order of the squared sample spacing),
-    within the limits; it raises ``ValueError`` when the new path turns too sharply after
+    ``c.join(new_path)`` with ``start_path_speed=c.start_path_speed`` and
+    ``start_tangent=c.start_velocity_rad_s / c.start_path_speed`` (``replanning.start_tangent``)
+    gives a trajectory continuous in position and velocity at the join (without the tangent,
+    the velocity is projected on a re-fitted one: up to 7 % off where a few rows of executing
+    path lead to a corner), within the limits; it raises ``ValueError`` when the new path turns too sharply after
     the horizon to be entered at that speed (take a longer horizon).
 
     Args:

@@ -159,6 +159,16 @@ def test_the_joined_trajectory_continues_the_executing_one(executing, frac):
     assert min(shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad[::3]) > sc.scene.safety_margin_m
 
 
+def _following_at(ex, frac):
+    """Return (now ns, start, join) of a replan with the arm on ``ex`` at ``frac`` of its duration (1 s horizon)."""
+    old = ex.trajectory
+    t = frac * old.duration_s
+    now = ex.start_ns + int(t * S)
+    start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, t)], now, 1.0,
+                                np.radians(2.0), PERIODIC)
+    return now, start, join
+
+
 def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing):
     """
     The planner's path from the horizon point to a target 10 cm away leaves it in another direction.
@@ -171,10 +181,7 @@ def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing
     sc, ex = executing
     old = ex.trajectory
     vmax, amax = joint_limits(sc)
-    t = 0.5 * old.duration_s
-    now = ex.start_ns + int(t * S)
-    start, join, _ = plan_start(ex, now, old.positions_rad[np.searchsorted(old.times_s, t)], now, 1.0,
-                                np.radians(2.0), PERIODIC)
+    now, start, join = _following_at(ex, 0.5)
     moved = sc.with_scene(sc.scene.with_target(Target(center_m=(-3.17, -2.60), yaw_rad=0.0)))
     res = Planner(moved).plan(start)
     assert res.ok
@@ -189,6 +196,36 @@ def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing
                      v0=traj.velocities_rad_s[0])
     clr = min(shapely_clearance(sc.robot, moved.scene, q) for q in traj.positions_rad)
     assert clr > moved.scene.safety_margin_m
+
+
+@pytest.mark.parametrize("turn_deg", [3.0, 6.0])
+def test_a_join_a_few_rows_before_a_turn_starts_in_the_arms_direction(executing, turn_deg):
+    """
+    A joined trajectory starts with the arm's velocity, a few rows before a corner too.
+
+    The plan took most of the horizon: three rows of executing path lie between the join and the
+    new path, which leaves the horizon point ``turn_deg`` off the arm's direction.  The joined
+    trajectory starts with the arm's velocity: its direction exactly (the velocity the test reads
+    at the join on the executing trajectory), its size within the timing's start tolerance (1e-3).
+    A spline re-fitted through those rows and the corner left at 0.39 % and 0.77 % off it.  The
+    motion keeps to the limits (the test's finite differences) and clear of the scene (shapely).
+    """
+    sc, ex = executing
+    old = ex.trajectory
+    vmax, amax = joint_limits(sc)
+    now, start, join = _following_at(ex, 0.4)
+    u = old.velocities_rad_s[join.horizon_index] / np.linalg.norm(old.velocities_rad_s[join.horizon_index])
+    w = np.cross(u, [0.0, 0.0, 1.0])
+    turned = np.cos(np.radians(turn_deg)) * u + np.sin(np.radians(turn_deg)) * w / np.linalg.norm(w)
+    new = start + np.linspace(0.0, 0.3, 120)[:, None] * turned
+    traj, _, _, c = joined_motion(sc, join, new, now + int(0.75 * S), lead_s=0.02)
+    assert len(c.prefix_rad) == 3
+    v_arm, v = old.velocities_rad_s[c.index], traj.velocities_rad_s[0]
+    across = np.linalg.norm(v - (v @ v_arm) / (v_arm @ v_arm) * v_arm)
+    assert across <= 1e-9 * np.linalg.norm(v_arm)
+    assert abs(np.linalg.norm(v) / np.linalg.norm(v_arm) - 1.0) <= 1e-3
+    check_trajectory(traj, np.vstack([traj.positions_rad[0], new[-1]]), vmax, amax, v0=v)
+    assert min(shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad[::3]) > sc.scene.safety_margin_m
 
 
 def test_a_plan_that_took_longer_than_the_horizon_is_refused(executing):

@@ -300,6 +300,37 @@ def test_start_velocities_that_cannot_be_followed_are_refused():
         time_parameterize(short, vmax, amax, start_path_speed=0.9)    # cannot stop within 0.05 rad
 
 
+def test_a_start_tangent_sets_the_start_velocity_and_bad_ones_are_refused():
+    """
+    The path leaves its start along ``start_tangent``; bad tangents are refused.
+
+    The first velocity is the tangent times the path speed, off the path's own (not-a-knot)
+    tangent; the path still passes through every sample and the limits hold (the test's finite
+    differences).  A tangent of the wrong length, not finite, too long or short, or turned away
+    from the path is refused, naming it.
+    """
+    rng = np.random.default_rng(7)
+    path = _spline_path(rng, scale=0.3)
+    d = path[1] - path[0]
+    u = d / np.linalg.norm(d)
+    w = np.cross(u, [0.0, 0.0, 1.0])
+    tangent = np.cos(np.radians(4.0)) * u + np.sin(np.radians(4.0)) * w / np.linalg.norm(w)
+    speed = 0.02
+    own = time_parameterize(path, VMAX, AMAX, start_path_speed=speed)
+    clamped = time_parameterize(path, VMAX, AMAX, start_path_speed=speed, start_tangent=tangent)
+    np.testing.assert_allclose(clamped.velocities_rad_s[0], speed * tangent, rtol=0, atol=1e-12)
+    assert np.linalg.norm(own.velocities_rad_s[0] - speed * tangent) > 0.05 * speed
+    dense = densify_path(path)
+    np.testing.assert_array_equal(clamped.positions_rad, dense)
+    check_trajectory(clamped, path, VMAX, AMAX, v0=clamped.velocities_rad_s[0])
+    for bad, what in (([1.0, 0.0], "3 finite values"), ([np.nan, 0.0, 0.0], "finite"), (3.0 * u, "length"),
+                      (-u, "off the path's first step"), (w / np.linalg.norm(w), "off the path's first step")):
+        with pytest.raises(ValueError, match=f"start_tangent.*{what}"):
+            time_parameterize(path, VMAX, AMAX, start_path_speed=speed, start_tangent=bad)
+    with pytest.raises(ValueError, match="start_tangent"):
+        time_parameterize(path, VMAX, AMAX, start_velocity_rad_s=speed * u, start_tangent=u)
+
+
 @pytest.mark.parametrize("dof", [2, 3], ids=["paper_2dof", "paper_3dof"])
 def test_resampled_trajectory_is_short_exact_and_certified(dof, paper_scenario, paper_path):
     sc, path = paper_scenario(dof), paper_path(dof)

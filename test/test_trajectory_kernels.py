@@ -1,7 +1,8 @@
 """
 Tests of trajectory.py's numba kernels against independent formulations.
 
-The spline on the reachability grid against SciPy's not-a-knot ``CubicSpline``; densifying and
+The spline on the reachability grid against SciPy's ``CubicSpline`` (not-a-knot, and with a clamped
+start); densifying and
 the rounding margins against the array (NumPy) formulation they replaced, which they must
 reproduce bit for bit (the published trajectories do not change with the kernels).
 """
@@ -11,7 +12,7 @@ import pytest
 from scipy.interpolate import CubicSpline
 
 from spacerobot_planner.trajectory import (_path_model, _rounding_margins, arc_lengths_rad, chord_lengths_rad,
-                                           densify_path)
+                                           clamped_start_slopes, densify_path)
 
 EPS = float(np.finfo(float).eps)
 SLACK = 1e-10
@@ -40,6 +41,35 @@ def test_spline_on_the_grid_is_scipys_not_a_knot_spline(seed):
     mid = 0.5 * (s[:-1] + s[1:])
     ref3 = cs(mid, 3)
     np.testing.assert_allclose(d3, ref3, rtol=0, atol=1e-6 * (np.max(np.abs(ref3)) + 1.0))
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_a_clamped_start_is_scipys_spline_with_that_first_derivative(seed):
+    """
+    The path model leaving its start along a given derivative is SciPy's clamped spline.
+
+    SciPy's ``CubicSpline`` with the boundary condition ``((1, slope), "not-a-knot")`` (3 knots
+    included: no parabola then).
+    """
+    rng = np.random.default_rng(100 + seed)
+    m = 3 if seed < 3 else int(rng.integers(4, 50))
+    n, refine = int(rng.integers(1, 5)), int(rng.integers(1, 5))
+    p = _random_path(rng, m, n)
+    knots = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    first = (p[1] - p[0]) / knots[1]
+    slope = first + rng.normal(0.0, 0.2, n)             # off the first chord, as an arm's velocity can be
+    cs = CubicSpline(knots, p, axis=0, bc_type=((1, slope), "not-a-knot"))
+    got = clamped_start_slopes(knots, p, slope)
+    np.testing.assert_allclose(got, cs(knots, 1), rtol=0, atol=1e-9 * (np.max(np.abs(got)) + 1.0))
+    assert np.array_equal(got[0], slope)
+    s, idx, q, d1, d2, d3 = _path_model(p, refine, slope)
+    np.testing.assert_array_equal(q[idx], p)
+    np.testing.assert_array_equal(d1[0], slope)
+    np.testing.assert_allclose(q, cs(s), rtol=0, atol=1e-10 * (np.max(np.abs(p)) + 1.0))
+    ref = cs(s, 2)
+    np.testing.assert_allclose(d2, ref, rtol=0, atol=1e-7 * (np.max(np.abs(ref)) + 1.0))
+    # the not-a-knot start differs: the clamp is not a no-op
+    assert np.max(np.abs(_path_model(p, refine)[3][0] - slope)) > 1e-3
 
 
 def _densify_numpy(path, max_step):
