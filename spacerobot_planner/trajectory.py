@@ -785,16 +785,18 @@ def _check_start_tangent(tangent, path_rad) -> None:
     """Refuse a start tangent (n,) that the path (M, n) cannot leave its start along (ValueError)."""
     p = np.asarray(path_rad, dtype=float)
     n = p.shape[1] if p.ndim == 2 else -1
-    if tangent.shape != (n,) or not np.all(np.isfinite(tangent)):
+    if tangent.shape != (n,) or not math.isfinite(float(tangent @ tangent)):
         raise ValueError(f"start_tangent: expected {n} finite values (one per path column), got {tangent.tolist()}")
-    norm = float(np.linalg.norm(tangent))
+    norm = math.sqrt(float(tangent @ tangent))
     if not 0.5 <= norm <= 2.0:
         raise ValueError(f"start_tangent: its length is {norm:.4g}; the derivative with respect to the chord "
                          f"length is about 1 (0.5 to 2)")
-    moved = np.flatnonzero(np.any(p[1:] != p[0], axis=1))
-    if moved.size:                      # the path's first step (densified: the same direction)
-        step = p[moved[0] + 1] - p[0]
-        turn = float(np.arccos(np.clip(tangent @ step / (norm * float(np.linalg.norm(step))), -1.0, 1.0)))
+    k = 1                               # the path's first step (densified: the same direction)
+    while k < len(p) and np.array_equal(p[k], p[0]):
+        k += 1
+    if k < len(p):
+        step = p[k] - p[0]
+        turn = math.acos(min(1.0, max(-1.0, float(tangent @ step) / (norm * math.sqrt(float(step @ step))))))
         if turn > MAX_START_TANGENT_TURN_RAD:
             raise ValueError(f"start_tangent: {np.degrees(turn):.1f}° off the path's first step (at most "
                              f"{np.degrees(MAX_START_TANGENT_TURN_RAD):g}°)")
