@@ -152,6 +152,8 @@ class Processed:
             the earliest stamp (see :func:`starts_at_the_end`); else None.
         predicted_drift: free floating: :func:`predicted_drift` at the published points (not
             published: nothing commands the attitude); else None.
+        retimings: how many times the path was timed again because the controller's motion of
+            the points overshot a limit (step 4; 0: the first timing was kept).
 
     """
 
@@ -167,6 +169,7 @@ class Processed:
     continuation: object = None
     not_before_ns: int | None = None
     predicted_drift: TrajectoryPart | None = None
+    retimings: int = 0
 
     @property
     def refused(self) -> str | None:
@@ -297,13 +300,14 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     WHOLE_PATH_RETIMES times.
     A join's re-timings time the path the first round chose (``replanning.timed_join``).
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
-    :class:`Processed` of the last round, that of the first, the last round's
-    :func:`controller_wheel_overshoot` when it was checked, else None).
+    :class:`Processed` of the last round (its ``retimings`` counted), that of the first, the last
+    round's :func:`controller_wheel_overshoot` when it was checked, else None).
     """
     limits, acs = scenario.joint_limits, scenario.acs
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
     first, wheel_over, joined = got, None, args[8] is not None
     last = CONTROLLER_RETIMES - 1 + WHOLE_PATH_RETIMES
+    retimings = 0
     for round_ in range(last + 1):
         if got.refused is not None or limits is None:
             break
@@ -336,7 +340,8 @@ def _retimed(scenario, args, certify: bool) -> tuple:
             # over the limits (the session plans again: a longer horizon, the executing end)
             raise ValueError(f"{_overshoot_text(over)}, and a slower motion cannot be entered at the "
                              f"arm's speed ({e})") from e
-    return got, first, wheel_over
+        retimings += 1
+    return (replace(got, retimings=retimings) if retimings else got), first, wheel_over     # (first is got: none)
 
 
 def _lowered(scaling: float, peak: float) -> float:

@@ -698,6 +698,7 @@ class CaptureSession:
             "trajectory_duration_s": f"{traj.duration_s:.3f}",
             "trajectory_points": len(traj),
             "trajectory_dense_points": len(processed.dense),
+            "trajectory_retimings": processed.retimings,
             "joined_moving_arm": joined,
             "cached": ",".join(res.cached) or "none",
             "solver": res.solver,
@@ -740,9 +741,9 @@ class CaptureSession:
                  f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
                  f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
                  f"{', '.join(res.cached) or 'none'}); clearance {res.min_clearance_m:.3f} m; "
-                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s, joined to the moving arm: {joined}; "
-                    f"stamped {1e-9 * (stamp - now):.3f} s ahead" if outcome.publication.sent else
-                    "no trajectory published")
+                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed, stamps)}, "
+                    f"joined to the moving arm: {joined}; stamped {1e-9 * (stamp - now):.3f} s ahead"
+                    if outcome.publication.sent else "no trajectory published")
                  + f"; request→trajectory {1e3 * latency:.1f} ms")
         return outcome
 
@@ -752,6 +753,17 @@ class CaptureSession:
         if res is not None and res.goal_rad is not None:
             values["goal_deg"] = np.round(np.degrees(res.goal_rad), 3).tolist()
         return Outcome(code, reason, res, values=values)
+
+
+def _chain_text(processed: Processed, stamps) -> str:
+    """Return ' (chain 3.1 ms, timed again twice for the controller)': the chain's time and re-timings, for the log."""
+    parts = []
+    if stamps and "chain" in stamps and "received" in stamps:
+        parts.append(f"chain {1e3 * (stamps['chain'] - stamps['received']):.1f} ms")
+    n = processed.retimings
+    if n:
+        parts.append("timed again " + {1: "once", 2: "twice"}.get(n, f"{n} times") + " for the controller's overshoot")
+    return f" ({', '.join(parts)})" if parts else ""
 
 
 def result_values(res, reaction) -> dict:

@@ -49,6 +49,41 @@ def test_the_controllers_interpolation_of_the_published_points_keeps_the_limits(
     np.testing.assert_allclose(traj.positions_rad[-1], paper_path(3)[-1], atol=1e-9)
 
 
+@pytest.mark.parametrize("vmax_deg_s, amax_deg_s2", LIMITS, ids=["moderate", "fast"])
+@pytest.mark.parametrize("dof", [2, 3])
+def test_the_retimings_count_says_why_the_first_timing_was_not_published(
+        paper_scenario, paper_path, dof, vmax_deg_s, amax_deg_s2):
+    """
+    ``Processed.retimings`` counts the timings after the first, each for the controller's overshoot.
+
+    The first timing's points (the time-optimal trajectory from rest, resampled as the chain does)
+    moved by the controller (the test's quintics) overshoot a limit by more than the chain's
+    tolerance exactly when the chain timed the path again; with none, the published points are
+    that first timing's.
+    """
+    from spacerobot_planner.adapters import RESAMPLE_STEP_S
+    from spacerobot_planner.trajectory import resample
+    sc = paper_scenario(dof)
+    idx = list(sc.robot.planned_joints)
+    n = sc.robot.n_joints
+    vmax, amax = np.radians((vmax_deg_s * n)[:n]), np.radians((amax_deg_s2 * n)[:n])
+    sc = replace(sc, joint_limits=JointLimits(vmax, amax))
+    out = post_process(sc, paper_path(dof), start_rad=sc.start_rad)
+    dense, _ = timed_motion(sc, paper_path(dof), sc.start_rad)
+    first = resample(dense, None, time_step_s=RESAMPLE_STEP_S).trajectory
+    vpk, apk = _controller_peaks(first)
+    over = max(float(np.max(vpk / vmax[idx])), float(np.max(apk / amax[idx])))
+    print(f"\n{dof}-DOF: the first timing's controller motion at {over:.4f} x a limit; "
+          f"timed again {out.retimings} times")
+    if out.retimings == 0:
+        assert over <= 1.0 + 2e-3
+        np.testing.assert_array_equal(out.trajectory.times_s, first.times_s)
+        np.testing.assert_array_equal(out.trajectory.positions_rad, first.positions_rad)
+    else:
+        assert over > 1.0 + 1e-3
+        assert out.trajectory.duration_s > first.duration_s
+
+
 def test_from_rest_the_controllers_motion_keeps_the_limits_on_random_scenes():
     """
     From rest, the published points' controller motion keeps the joint limits on the random family's plans.
