@@ -392,16 +392,17 @@ def timed_join(scenario, paths: JoinedPaths, checker=None, chosen: int | None = 
     """
     Time a joined plan's paths (:func:`joined_paths`) under the scenario's limits.
 
-    The fastest of ``paths.candidates`` that can be entered at the join's speed; with
-    ``chosen`` (a candidate's index, the one an earlier timing picked) that candidate alone,
-    the others only when it cannot be entered.  When none can and the horizon point is the
+    The fastest of ``paths.candidates`` that can be entered at the join's speed (leaving the
+    join along the arm's direction, else along their own tangents: :func:`_fastest`); with
+    ``chosen`` (a timing's index, the one an earlier timing picked) that timing alone, the
+    others only when it cannot be entered.  When none can and the horizon point is the
     executing trajectory's end (its goal, at rest): that trajectory's remainder, then the
     new path from rest.
 
     Returns
     -------
-        (trajectory.Trajectory, reaction.ReactionReport or None, the candidate's index or None
-        for the remainder and the new motion).
+        (trajectory.Trajectory, reaction.ReactionReport or None, the timing's index (:func:`_fastest`)
+        or None for the remainder and the new motion).
 
     Raises
     ------
@@ -498,25 +499,40 @@ def start_tangent(c) -> np.ndarray | None:
 
 def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):
     """
-    (trajectory, reaction, index) of the fastest candidate of ``paths`` (``chosen`` alone when it times).
+    (trajectory, reaction, index) of the fastest timing of ``paths``' candidates (``chosen`` alone when it times).
 
-    ValueError when none can be entered at the join's speed.
+    Timing i < K (the candidates' count) leaves the join along the arm's own direction
+    (:func:`start_tangent`); only where none of those can be entered at the arm's speed, timing
+    K + i leaves it along candidate i's re-fitted tangent (a path turning just after the join,
+    which the arm's direction would take too sharply at its speed; the published first point
+    still has the arm's velocity: ``adapters._in_the_arms_state``, the controller's quintic from
+    it checked as every other).  ValueError when none can be entered at the join's speed.
     """
-    best, err = None, None
-    order = [chosen] if chosen is not None else []
-    order += [i for i in range(len(paths.candidates)) if i != chosen]
+    k = len(paths.candidates)
     speed, tangent = paths.continuation.start_path_speed, start_tangent(paths.continuation)
-    for i in order:
+
+    def timing(j):
+        return timed_motion(scenario, paths.candidates[j % k], start_path_speed=speed,
+                            start_tangent=tangent if j < k else None, motions=motions)
+
+    err = None
+    if chosen is not None:
         try:
-            got = timed_motion(scenario, paths.candidates[i], start_path_speed=speed, start_tangent=tangent,
-                               motions=motions)
+            return (*timing(chosen), chosen)
         except ValueError as e:
-            err = err or e
-            continue
-        if i == chosen:
-            return (*got, i)
-        if best is None or got[0].duration_s < best[0][0].duration_s:
-            best = (got, i)
-    if best is None:
-        raise err
-    return (*best[0], best[1])
+            err = e
+    for group in ((range(k),) if tangent is None else (range(k), range(k, 2 * k))):
+        best = None
+        for j in group:
+            if j == chosen:
+                continue
+            try:
+                got = timing(j)
+            except ValueError as e:
+                err = err or e
+                continue
+            if best is None or got[0].duration_s < best[0][0].duration_s:
+                best = (got, j)
+        if best is not None:
+            return (*best[0], best[1])
+    raise err

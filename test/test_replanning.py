@@ -228,6 +228,44 @@ def test_a_join_a_few_rows_before_a_turn_starts_in_the_arms_direction(executing,
     assert min(shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad[::3]) > sc.scene.safety_margin_m
 
 
+def test_a_turn_too_sharp_for_the_arms_direction_is_entered_along_the_paths_own_tangent(executing):
+    """
+    Where no candidate can be entered leaving the join along the arm's direction, the chain times it along its own.
+
+    Three rows before a 20° turn at the arm's speed, every candidate (the corner and its blends)
+    leaving along the arm's direction asks for a slower arm; along the spline's own tangent one
+    can be entered.  The published trajectory starts exactly in the arm's state (position,
+    velocity, acceleration), and the controller's motion through its points (the test's quintics)
+    keeps the limits and the scene's margin (shapely).
+    """
+    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.replanning import joined_paths, start_tangent
+    sc, ex = executing
+    old = ex.trajectory
+    vmax, amax = joint_limits(sc)
+    now, start, join = _following_at(ex, 0.4)
+    u = old.velocities_rad_s[join.horizon_index] / np.linalg.norm(old.velocities_rad_s[join.horizon_index])
+    w = np.cross(u, [0.0, 0.0, 1.0])
+    turned = np.cos(np.radians(20.0)) * u + np.sin(np.radians(20.0)) * w / np.linalg.norm(w)
+    new = start + np.linspace(0.0, 0.3, 120)[:, None] * turned
+    later = now + int(0.75 * S)
+    paths = joined_paths(sc, join, new, later, lead_s=0.02)
+    c = paths.continuation
+    for cand in paths.candidates:
+        with pytest.raises(ValueError, match="start_path_speed"):
+            timed_motion(sc, cand, start_path_speed=c.start_path_speed, start_tangent=start_tangent(c))
+    out = post_process(sc, new, join=join, now_ns=later, lead_s=0.02)
+    traj = out.trajectory
+    assert out.continuation is not None and len(out.continuation.prefix_rad) == 3
+    for got, want in ((traj.positions_rad[0], old.positions_rad[c.index]),
+                      (traj.velocities_rad_s[0], old.velocities_rad_s[c.index]),
+                      (traj.accelerations_rad_s2[0], old.accelerations_rad_s2[c.index])):
+        np.testing.assert_array_equal(got, want)
+    q, v, a = controller_motion(traj, 40 * len(traj.times_s))
+    assert np.max(np.abs(v) / vmax) <= 1.0 + 2e-3 and np.max(np.abs(a) / amax) <= 1.0 + 2e-3
+    assert min(shapely_clearance(sc.robot, sc.scene, p) for p in q[::5]) > sc.scene.safety_margin_m
+
+
 def test_a_plan_that_took_longer_than_the_horizon_is_refused(executing):
     sc, ex = executing
     old = ex.trajectory

@@ -1,8 +1,8 @@
 """
 Benchmarks.
 
-``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,reaction,redundant,startup,cancel,envelope,
-peers,coldstart,all} [options]``.
+``python -m spacerobot_planner.bench {cspace,field,plan,scenes,latency,chain,reaction,redundant,startup,cancel,
+envelope,peers,coldstart,all} [options]``.
 
 Every benchmark warms the JIT first, prints a readable table, and one JSON object per
 line (``stage``, ``grid``, ``solver``, ``seconds``, ...) so runs can be compared.
@@ -14,8 +14,8 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHES = ("cspace", "field", "plan", "scenes", "latency", "reaction", "redundant", "startup", "cancel", "envelope",
-           "peers", "coldstart")
+BENCHES = ("cspace", "field", "plan", "scenes", "latency", "chain", "reaction", "redundant", "startup", "cancel",
+           "envelope", "peers", "coldstart")
 
 
 def main(argv=None) -> int:
