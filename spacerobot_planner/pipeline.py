@@ -41,7 +41,7 @@ from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path
 from .motion import MotionValidator
 from .repair import MAX_TESTS, sheet_edges
 from .results import STAGES, Code, PlanResult
-from .smoothing import SmoothPath, path_length_rad, smooth_path
+from .smoothing import SmoothPath, path_length_rad, smooth_path, start_direction
 from .spacecraft import free_floating_response
 from .termination import Cancelled, Termination
 from .timing import timed_motion, trajectory_limits_known
@@ -245,8 +245,10 @@ class PlanRun:
 
     """
 
-    def __init__(self, planner, settings, cancel, progress):
+    def __init__(self, planner, settings, cancel, progress, start_tangent=None):
         self.p = planner
+        self.start_tangent_given = start_tangent  # the direction to leave the start along (check_inputs)
+        self.start_tangent = None
         self.s = settings
         self.sc = planner.scenario
         self.robot = self.sc.robot
@@ -344,6 +346,10 @@ class PlanRun:
             self.start_given = np.asarray(start_rad, dtype=float)
             self.start = robot.validate_q(self.start_given, "start")
         except (ValueError, TypeError) as e:
+            raise Fail(Code.INVALID_INPUT, str(e)) from None
+        try:
+            self.start_tangent = start_direction(self.start_tangent_given, robot.dof)
+        except ValueError as e:
             raise Fail(Code.INVALID_INPUT, str(e)) from None
         clr_s = self.start_clearance_m = self.checker.clearance_m(self.start)
         if not clr_s > margin and not self.s.max_start_penetration_m > 0.0:
@@ -893,9 +899,11 @@ class PlanRun:
         s = self.s
         with self.stage("smoothing"):
             self.p._test_stall("smoothing", self.cancel)
+            # a start tangent is the arm's direction at the start: not that of an exit stretch's end
             sm = smooth_path(self.validator, waypoints, shortcut=s.shortcut,
                              keep_clearance_m=s.shortcut_keep_clearance_m, max_step_rad=s.max_step_rad,
-                             cancel=self.cancel, waypoint_check=self.waypoint_check)
+                             cancel=self.cancel, waypoint_check=self.waypoint_check,
+                             start_tangent=self.start_tangent if len(self.exit_path) == 0 else None)
         self.check_cancel()
         if sm is None:
             raise Fail(Code.PATH_INVALID, "no smoothed path passed the dense collision check")

@@ -397,7 +397,7 @@ class Planner:
 
     # ------------------------------------------------------------------- plan
     def plan(self, start_rad, goal_rad=None, cancel: threading.Event | None = None,
-             progress: Callable[[str], None] | None = None) -> PlanResult:
+             progress: Callable[[str], None] | None = None, start_tangent=None) -> PlanResult:
         """
         Plan from ``start_rad`` to ``goal_rad`` (default: :meth:`goal_from_target`).
 
@@ -410,9 +410,13 @@ class Planner:
         with ``is_set()`` (e.g. a ``threading.Event``) is polled between steps only.
         A cancelled plan returns code ``cancelled`` and leaves the caches with complete
         entries only (what finished before the cancel is kept and reused).
+
+        ``start_tangent``: (dof,) the direction the arm moves in at the start (a replan from a
+        moving arm: its velocity), or None: the smoothed path leaves the start along it
+        (``smoothing.smooth_path``); bad values answer ``invalid_input``.
         """
         with self._lock:
-            return PlanRun(self, self.settings, cancel, progress).run(start_rad, goal_rad)
+            return PlanRun(self, self.settings, cancel, progress, start_tangent).run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:
         """Run the trajectory stage on an existing ok result (e.g. a drift-compensated plan)."""

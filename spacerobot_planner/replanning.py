@@ -179,6 +179,22 @@ class Join:
         return self.executing.trajectory.positions_rad[self.horizon_index].copy()
 
 
+def join_direction(join: Join | None) -> np.ndarray | None:
+    """
+    Return the direction a plan starting at ``join``'s horizon point leaves it along: the arm's there (unit), or None.
+
+    The executing trajectory's velocity at the horizon point: the new path leaves it as the arm
+    arrives (``Planner.plan(start_tangent=...)``), so the joined path has no corner there for
+    the arm to slow down for.  None without a join, for a join that stops there
+    (:func:`stopping_join`) and where the arm passes the point at rest.
+    """
+    if join is None or join.stop:
+        return None
+    v = join.executing.trajectory.velocities_rad_s[join.horizon_index]
+    speed = float(np.linalg.norm(v))
+    return v / speed if speed > 0.0 else None
+
+
 def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_ns: int, horizon_s: float,
                follow_tolerance_rad: float, periodic):
     """
@@ -241,28 +257,29 @@ def _turn_rad(path, i):
     return 0.0 if n <= 0.0 else float(np.arccos(np.clip(d0 @ d1 / n, -1.0, 1.0)))
 
 
-def _check_turn_at_join(c, path):
+def _turn_refusal(c, path) -> str | None:
     """
-    Refuse a join at the horizon point itself where the new path turns off the arm's direction.
+    Return why a join at the horizon point itself may not leave it along the new path's own tangent, or None.
 
-    The timing starts along the path's first direction at the arm's path speed: with executing
-    path before the horizon point that direction is the arm's and the corner is blended after
-    it; with none (the executing trajectory's points are sparse, or the lead reaches the
-    horizon) it is the new path's, and the arm's velocity would step (reverse, for a path back)
-    at the switch.  ``c``: the ``trajectory.Continuation``; ``path`` (M, n): ``c.join(new)``.
-    ValueError beyond :data:`MIN_CORNER_RAD` (the session plans again: a longer horizon, the
-    executing trajectory's end); an arm at rest turns freely.
+    A timing along its own tangent (``_fastest``'s second choice) starts along the path's first
+    direction at the arm's path speed: with executing path before the horizon point that
+    direction is the arm's and the corner is blended after it; with none (the executing
+    trajectory's points are sparse, or the lead reaches the horizon) it is the new path's, and
+    the arm's velocity would step (reverse, for a path back) at the switch.  ``c``: the
+    ``trajectory.Continuation``; ``path`` (M, n): ``c.join(new)``.  The reason where the first
+    step turns more than :data:`MIN_CORNER_RAD`; None for an arm at rest, which turns freely.
     """
     v = np.asarray(c.start_velocity_rad_s, dtype=float)
     d = path[1] - path[0] if len(path) > 1 else np.zeros_like(v)
     nv, nd = float(np.linalg.norm(v)), float(np.linalg.norm(d))
     if nv <= 1e-9 or nd <= 0.0:
-        return
+        return None
     turn = float(np.arccos(np.clip(v @ d / (nv * nd), -1.0, 1.0)))
     if turn > MIN_CORNER_RAD:
-        raise ValueError(f"the join is the horizon point itself and the new path leaves it "
-                         f"{np.degrees(turn):.1f}° off the arm's direction: no executing path before the "
-                         f"turn to blend it in (the arm's velocity would step)")
+        return (f"the join is the horizon point itself and the new path leaves it {np.degrees(turn):.1f}° off "
+                f"the arm's direction: no executing path before the turn to blend it in (the arm's velocity "
+                f"would step)")
+    return None
 
 
 def _corner_blends(path, corner, first, step_rad):
@@ -306,6 +323,9 @@ class JoinedPaths:
         stamp_ns: ROS time of the join (the trajectory's stamp), ns.
         candidates: the joined path with its corner at the horizon point first, then its
             certified corner blends (each (K, n), rad).
+        turn_refusal: why the candidates may only leave the join along the arm's direction (a
+            join at the horizon point itself, where the new path turns off it: :func:`_turn_refusal`),
+            or None.
 
     """
 
@@ -314,6 +334,7 @@ class JoinedPaths:
     new_rad: np.ndarray
     stamp_ns: int
     candidates: tuple
+    turn_refusal: str | None = None
 
 
 def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = START_LEAD_S,
@@ -329,8 +350,6 @@ def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = ST
     Raises
     ------
         trajectory.HorizonPassed: the arm is already past the horizon point.
-        ValueError: the join is the horizon point itself and the new path leaves it off the
-            arm's direction (:func:`_check_turn_at_join`).
 
     """
     motions = None if checker is None else MotionValidator.of(checker)
@@ -343,8 +362,7 @@ def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = ST
     corner = len(c.prefix_rad) - 1          # the horizon point's row
     if join.stop:                           # no corner: the arm stops there (timed_join)
         return JoinedPaths(join, c, new, stamp_ns, (path,))
-    if corner == 0:
-        _check_turn_at_join(c, path)
+    turn = _turn_refusal(c, path) if corner == 0 else None
     candidates = [path]
     if 0 < corner < len(path) - 1 and _turn_rad(path, corner) > MIN_CORNER_RAD:
         motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
@@ -352,7 +370,7 @@ def joined_paths(scenario, join: Join, path_rad, now_ns: int, lead_s: float = ST
             piece = cand[a - 1:len(cand) - (len(path) - b) + 2]
             if motions.check(piece).ok:
                 candidates.append(cand)
-    return JoinedPaths(join, c, new, stamp_ns, tuple(candidates))
+    return JoinedPaths(join, c, new, stamp_ns, tuple(candidates), turn)
 
 
 def joined_motion(scenario, join: Join, path_rad, now_ns: int, lead_s: float = START_LEAD_S, checker=None):
@@ -521,7 +539,8 @@ def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):
             return (*timing(chosen), chosen)
         except ValueError as e:
             err = e
-    for group in ((range(k),) if tangent is None else (range(k), range(k, 2 * k))):
+    own = paths.turn_refusal is None            # the own tangents may be taken (the velocity does not step)
+    for group in ((range(k),) if tangent is None else (range(k), range(k, 2 * k)) if own else (range(k),)):
         best = None
         for j in group:
             if j == chosen:
@@ -535,4 +554,6 @@ def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):
                 best = (got, j)
         if best is not None:
             return (*best[0], best[1])
+    if not own:
+        raise ValueError(f"{paths.turn_refusal}; leaving along the arm's direction: {err}")
     raise err

@@ -61,7 +61,7 @@ import numpy as np
 
 from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process
 from .motion import MotionValidator
-from .replanning import MAX_STATE_AGE_S, STATE_WAIT_S, Executing, plan_start, stopping_join
+from .replanning import MAX_STATE_AGE_S, STATE_WAIT_S, Executing, join_direction, plan_start, stopping_join
 from .scene import Target
 from .settings import SessionSettings
 from .trajectory import HorizonPassed
@@ -611,8 +611,8 @@ class CaptureSession:
         if changed:                           # the state changes at once; a flood is not echoed
             self.activity = "planning"
         sc = req.scenario
-        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, stall_s=float(req.settings.test_stall_s),
-                                   stages=req.on_progress is not None)
+        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, start_tangent=join_direction(join),
+                                   stall_s=float(req.settings.test_stall_s), stages=req.on_progress is not None)
         announced = []
 
         def announce():

@@ -26,10 +26,11 @@ from numba import njit
 
 from .collision import NO_REFCOUNT, config_clearance
 from .motion import DEFAULT_VERIFY_STEP_RAD, QUICK_STEP_RAD, MotionValidator, certify_segments, motion_scratch, sweep_m
-from .trajectory import arc_lengths_rad, chord_lengths_rad, hermite_coefficients, not_a_knot_slopes
+from .trajectory import (arc_lengths_rad, chord_lengths_rad, clamped_start_slopes, hermite_coefficients,
+                         not_a_knot_slopes)
 
 __all__ = ["SmoothPath", "path_length_rad", "densify_polyline", "shortcut_indices",
-           "spline_through", "smooth_path", "warm_up", "DEFAULT_MAX_STEP_RAD"]
+           "spline_through", "smooth_path", "start_direction", "warm_up", "DEFAULT_MAX_STEP_RAD"]
 
 DEFAULT_MAX_STEP_RAD = float(np.radians(0.5))     # spacing of the returned samples
 
@@ -343,18 +344,20 @@ def _polyline_at(pts, t_pts, t):
     return out
 
 
-def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD):
+def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD, start_tangent=None):
     """
     Cubic spline (chord-length parameter, not-a-knot ends) through (k, dof) knots.
 
     Returns (samples (M, dof), knot_param (k,), sample_param (M,)): samples ≤
-    max_step_rad apart, the first and last knot reproduced exactly.
+    max_step_rad apart, the first and last knot reproduced exactly.  ``start_tangent``:
+    (dof,) a unit direction the spline leaves its first knot along (its derivative there,
+    clamped; from 3 knots on), or None.
     """
-    q, s, u, _ = _spline_samples(knots_rad, max_step_rad)
+    q, s, u, _ = _spline_samples(knots_rad, max_step_rad, start_tangent)
     return q, s, u
 
 
-def _spline_samples(knots_rad, max_step_rad):
+def _spline_samples(knots_rad, max_step_rad, start_tangent=None):
     """
     Return :func:`spline_through`'s (samples, knot_param, sample_param) and each sample's knot interval.
 
@@ -378,16 +381,20 @@ def _spline_samples(knots_rad, max_step_rad):
         dense = densify_polyline(k, max_step_rad)
         u = arc_lengths_rad(dense)
         return dense, s, u, np.zeros(len(dense), np.int64)
-    q, u, iv = _spline_kernel(s, k, float(max_step_rad))
+    clamped = start_tangent is not None
+    slope = np.ascontiguousarray(start_tangent if clamped else k[0], dtype=float)
+    q, u, iv = _spline_kernel(s, k, float(max_step_rad), slope, clamped)
     q[0], q[-1] = k[0], k[-1]
     return q, s, u, iv
 
 
 @njit(cache=True, nogil=True)
-def _spline_kernel(s, y, max_step_rad):
+def _spline_kernel(s, y, max_step_rad, start_slope, clamped):
     """
     Sample the not-a-knot cubic spline through y (n ≥ 3, dof) at the chord parameters s (n,).
 
+    With ``clamped`` its derivative at the start is ``start_slope`` (dof,) instead
+    (``trajectory.clamped_start_slopes``).
     At N equally spaced parameters from s[0] to s[-1] (``np.linspace``'s), N = ⌈s[-1] /
     max_step_rad⌉ + 1 at first and, while two consecutive samples are farther apart than
     ``max_step_rad`` (Euclidean), N·(largest step / max_step_rad)·1.05 + 1.  Each sample is the
@@ -396,7 +403,7 @@ def _spline_kernel(s, y, max_step_rad):
     interval of each (N,)).
     """
     n, dof = y.shape
-    m = not_a_knot_slopes(s, y)
+    m = clamped_start_slopes(s, y, start_slope) if clamped else not_a_knot_slopes(s, y)
     c0 = np.empty((n - 1, dof))
     c1 = np.empty((n - 1, dof))
     for i in range(n - 1):
@@ -428,12 +435,13 @@ def _spline_kernel(s, y, max_step_rad):
         total = int(np.ceil(total * largest / max_step_rad * 1.05)) + 1
 
 
-def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified):
+def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified, start_tangent=None):
     """
     Spline through polyline points at arc lengths t_knots, refined where it collides.
 
-    ``t_poly``: the polyline's arc length at each vertex (``trajectory.arc_lengths_rad``).
-    Returns (samples, knots, check, rounds) of the first clean spline, or None.
+    ``t_poly``: the polyline's arc length at each vertex (``trajectory.arc_lengths_rad``);
+    ``start_tangent``: as :func:`spline_through`'s.  Returns (samples, knots, check, rounds) of
+    the first clean spline, or None.
     """
     t_knots = np.unique(t_knots)
     for rounds in range(max_rounds + 1):
@@ -441,7 +449,7 @@ def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, 
             return None
         knots = _polyline_at(poly, t_poly, t_knots)
         # vertices map exactly onto themselves (np.interp is exact at its nodes)
-        samples, s_knots, s_samples = spline_through(knots, max_step_rad)
+        samples, s_knots, s_samples = spline_through(knots, max_step_rad, start_tangent)
         samples = snap_to_bounds(samples, v.lower_rad, v.upper_rad, v.periodic)
         chk = v.check(samples, certified=certified)
         if chk.ok:
@@ -470,7 +478,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
                 max_step_rad: float = DEFAULT_MAX_STEP_RAD,
                 verify_step_rad: float | None = None,
                 quick_step_rad: float = QUICK_STEP_RAD,
-                max_rounds: int = 12, cancel=None, waypoint_check=None) -> SmoothPath | None:
+                max_rounds: int = 12, cancel=None, waypoint_check=None, start_tangent=None) -> SmoothPath | None:
     """
     Smooth a polyline into a dense path whose certified check passed.
 
@@ -489,6 +497,10 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
         waypoint_check: the certified check (``MotionValidator.check``) of these very
             waypoints, if the caller made one: the shortcut pass uses its interval and vertex
             clearances instead of checking the polyline again.
+        start_tangent: (dof,) the direction the path must leave its start along (a plan from
+            a moving arm: its velocity), or None.  The splines are clamped to it (their
+            derivative by the chord length: its unit vector); the polyline, the last resort,
+            is not.
 
     Returns
     -------
@@ -504,8 +516,9 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
 
     """
     v = _validator(motions, lower_rad, upper_rad, periodic, verify_step_rad)
+    start_tangent = start_direction(start_tangent, np.shape(waypoints_rad)[-1])
     first = _smooth(v.with_step(quick_step_rad), waypoints_rad, shortcut, knot_stride,
-                    keep_clearance_m, max_step_rad, max_rounds, cancel, False, waypoint_check)
+                    keep_clearance_m, max_step_rad, max_rounds, cancel, False, waypoint_check, start_tangent)
     if first is not None:
         path, knots, method, rounds, quick = first
         chk = v.check(path, vertex_clearance_m=quick)     # the quick check's vertices reused
@@ -515,7 +528,7 @@ def smooth_path(motions, waypoints_rad, lower_rad=None, upper_rad=None, periodic
     if cancel is not None and cancel.is_set():
         return None
     again = _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad,
-                    max_rounds, cancel, True, waypoint_check)
+                    max_rounds, cancel, True, waypoint_check, start_tangent)
     if again is None:
         return None
     path, knots, method, rounds, known = again
@@ -563,8 +576,19 @@ def _stretch_knots(t, spacing):
     return out
 
 
+def start_direction(direction, dof: int):
+    """Return a start direction (dof,) as a unit vector, None for None (ValueError naming ``start_tangent``)."""
+    if direction is None:
+        return None
+    d = np.array(direction, dtype=float).reshape(-1)
+    norm = float(np.linalg.norm(d)) if d.shape == (dof,) else math.nan
+    if not (math.isfinite(norm) and norm > 0.0):
+        raise ValueError(f"start_tangent: expected {dof} finite values, not all 0, got {d.tolist()}")
+    return d / norm
+
+
 def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_rad, max_rounds, cancel,
-            certified, waypoint_check=None):
+            certified, waypoint_check=None, start_tangent=None):
     """
     Choose a path with tests at the step of ``v`` (certified or quick).
 
@@ -606,7 +630,7 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
         yield "spline", w, t_w, t_w[stride_idx]
 
     for method, poly, t_poly, t_knots in attempts():
-        res = _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified)
+        res = _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified, start_tangent)
         if res is not None:
             samples, knots, chk, rounds = res
             known = None if chk.vertex_clearance_m is None else chk.vertex_clearance_m.copy()

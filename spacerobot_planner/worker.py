@@ -76,7 +76,8 @@ class PlanJob:
     joints, rad; joint_goal: (dof,) rad or None (then the goal is the target's IK);
     stall_s, stall_stage, stall_polls: test aid (see the module docstring), seconds;
     stages: False sends only the first Progress (the job began), not one per stage (no one
-    follows them: each is a message the plan pays for).
+    follows them: each is a message the plan pays for); start_tangent: (dof,) the direction
+    the arm moves in at the start, or None (``Planner.plan``).
     """
 
     gen: int
@@ -92,9 +93,10 @@ class PlanJob:
     stall_stage: str = "start"
     stall_polls: bool = True
     stages: bool = True
+    start_tangent: np.ndarray | None = None
 
     @classmethod
-    def for_scenario(cls, gen: int, scenario, start_rad, joint_goal=None, **test) -> "PlanJob":
+    def for_scenario(cls, gen: int, scenario, start_rad, joint_goal=None, start_tangent=None, **test) -> "PlanJob":
         """
         Return the job of planning ``scenario`` from ``start_rad``.
 
@@ -105,7 +107,7 @@ class PlanJob:
         return cls(gen=gen, scene=scenario.scene, grid=scenario.grid, solver=s.solver,
                    field_tolerance=float(s.field_tolerance), max_grid_nodes=int(s.max_grid_nodes),
                    start_rad=np.asarray(start_rad, dtype=float), joint_goal=joint_goal,
-                   field_budget_s=float(s.field_budget_s), **test)
+                   field_budget_s=float(s.field_budget_s), start_tangent=start_tangent, **test)
 
 
 @dataclass(frozen=True)
@@ -247,7 +249,8 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
     if job.stall_stage != "start" and job.stall_s > 0:
         planner.test_stall = (job.stall_stage, float(job.stall_s), bool(job.stall_polls), stalling)
     try:
-        return PlanDone(job.gen, planner.plan(job.start_rad, goal, cancel=token, progress=say))
+        return PlanDone(job.gen, planner.plan(job.start_rad, goal, cancel=token, progress=say,
+                                              start_tangent=job.start_tangent))
     finally:
         planner.test_stall = None
 

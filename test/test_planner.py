@@ -810,6 +810,34 @@ def test_deep_start_collision_still_refused(paper_scenario):
 
 
 # ------------------------------------------------------------------ trajectory stage
+@pytest.mark.parametrize("turn_deg", [20.0, 90.0, 150.0])
+def test_a_plan_given_the_arms_direction_leaves_its_start_along_it(planner3, sc3, plan3, turn_deg):
+    """
+    A replan from a moving arm leaves its start along the arm's direction (``start_tangent``).
+
+    Directions ``turn_deg`` off the path the plan takes from rest: the first step of the path
+    is within 1.5° of the given direction, the path ends exactly at start and goal, and every
+    dense sample of its polyline keeps the scene's margin (shapely).  A direction of the wrong
+    length or all zero answers invalid_input, naming it.
+    """
+    from oracles import shapely_clearance
+    own = plan3.path_rad[1] - plan3.path_rad[0]
+    own /= np.linalg.norm(own)
+    w = np.cross(own, [0.0, 0.0, 1.0])
+    d = np.cos(np.radians(turn_deg)) * own + np.sin(np.radians(turn_deg)) * w / np.linalg.norm(w)
+    res = planner3.plan(sc3.start_rad, sc3.goal_rad, start_tangent=3.0 * d)     # any length: its direction
+    assert res.ok, res.reason
+    p = res.path_rad
+    first = (p[1] - p[0]) / np.linalg.norm(p[1] - p[0])
+    assert np.degrees(np.arccos(np.clip(first @ d, -1.0, 1.0))) < 1.5
+    np.testing.assert_array_equal(p[0], sc3.start_rad)
+    np.testing.assert_allclose(wrap_diff(p[-1], sc3.goal_rad), 0.0, atol=1e-9)
+    assert min(shapely_clearance(sc3.robot, sc3.scene, q) for q in dense_samples(p)[::3]) > sc3.scene.safety_margin_m
+    for bad in ([0.0, 0.0, 0.0], [1.0, 0.0], [np.nan, 1.0, 0.0]):
+        out = planner3.plan(sc3.start_rad, sc3.goal_rad, start_tangent=bad)
+        assert out.code == "invalid_input" and "start_tangent" in out.reason
+
+
 def test_result_carries_a_trajectory_aligned_to_the_raw_state(planner3, sc3):
     raw = sc3.start_rad + np.array([4 * np.pi, 0.0, 0.0])       # joint_states: two turns on
     res = planner3.plan(raw, sc3.goal_rad)

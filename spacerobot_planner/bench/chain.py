@@ -8,7 +8,8 @@ as the node does (``adapters.post_process``: the executing trajectory, its publi
 then, at ``--starts`` instants spread over it, for each plan time in ``--took`` (s, of the
 1 s horizon), the arm following it: the replan starts at the horizon point
 (``replanning.plan_start``), its path to the same goal is planned with the scene's cached
-C-space and field, and the chain joins it to the moving arm (``post_process(join=...)``, the
+C-space and field, leaving the horizon point along the arm's direction
+(``replanning.join_direction``), and the chain joins it to the moving arm (``post_process(join=...)``, the
 session's lead: ``trajectory.start_lead_s`` + ``session.CHAIN_ALLOWANCE_S``).
 
 Printed per scene: the joined chains (published on the first try, refused: the session would
@@ -33,7 +34,7 @@ from ..adapters import post_process
 from ..config import load_scenario
 from ..motion import MotionValidator
 from ..planner import Planner
-from ..replanning import Executing, joined_motion, plan_start
+from ..replanning import Executing, join_direction, joined_motion, plan_start
 from ..session import CHAIN_ALLOWANCE_S
 from ..settings import SessionSettings
 from ..trajectory import HorizonPassed
@@ -81,7 +82,7 @@ def bench_scene(name: str, starts: int, took_s, repeats: int) -> dict:
         start, join, _ = plan_start(ex, now, q_now, now, settings.horizon_s, settings.follow_tolerance_rad, periodic)
         if join is None:
             continue
-        res = planner.plan(start, sc.goal_rad)
+        res = planner.plan(start, sc.goal_rad, start_tangent=join_direction(join))     # as the session plans it
         if not res.ok:
             errors += 1
             continue
