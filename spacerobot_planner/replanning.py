@@ -540,7 +540,8 @@ def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):
         except ValueError as e:
             err = e
     own = paths.turn_refusal is None            # the own tangents may be taken (the velocity does not step)
-    for group in ((range(k),) if tangent is None else (range(k), range(k, 2 * k)) if own else (range(k),)):
+    groups = [range(k)] if tangent is None or not own else [range(k), range(k, 2 * k)]
+    for group in groups:
         best = None
         for j in group:
             if j == chosen:

@@ -756,7 +756,7 @@ class CaptureSession:
 
 
 def _chain_text(processed: Processed, stamps) -> str:
-    """Return ' (chain 3.1 ms, timed again twice for the controller)': the chain's time and re-timings, for the log."""
+    """Return the log's ' (chain 3.1 ms, timed again twice for the controller's overshoot)', or ''."""
     parts = []
     if stamps and "chain" in stamps and "received" in stamps:
         parts.append(f"chain {1e3 * (stamps['chain'] - stamps['received']):.1f} ms")

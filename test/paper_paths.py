@@ -11,6 +11,13 @@ def joint_limits(sc):
             np.radians(sc.params["trajectory.max_acceleration_deg_s2"])[idx])
 
 
+def turned(u, turn_deg):
+    """Return the unit 3-vector ``turn_deg`` off ``u`` (3,), in the plane of ``u`` and ``u`` × z."""
+    u = np.asarray(u, dtype=float) / np.linalg.norm(u)
+    w = np.cross(u, [0.0, 0.0, 1.0])
+    return np.cos(np.radians(turn_deg)) * u + np.sin(np.radians(turn_deg)) * w / np.linalg.norm(w)
+
+
 def new_path_from(a, turn_deg=(20.0, -15.0, 10.0)):
     """Return a smooth 3-joint path from ``a`` (exactly) to ``a + turn_deg``, rad, 200 points: a replan's new path."""
     goal = a + np.radians(turn_deg)

@@ -821,10 +821,8 @@ def test_a_plan_given_the_arms_direction_leaves_its_start_along_it(planner3, sc3
     length or all zero answers invalid_input, naming it.
     """
     from oracles import shapely_clearance
-    own = plan3.path_rad[1] - plan3.path_rad[0]
-    own /= np.linalg.norm(own)
-    w = np.cross(own, [0.0, 0.0, 1.0])
-    d = np.cos(np.radians(turn_deg)) * own + np.sin(np.radians(turn_deg)) * w / np.linalg.norm(w)
+    from paper_paths import turned
+    d = turned(plan3.path_rad[1] - plan3.path_rad[0], turn_deg)
     res = planner3.plan(sc3.start_rad, sc3.goal_rad, start_tangent=3.0 * d)     # any length: its direction
     assert res.ok, res.reason
     p = res.path_rad

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from oracles import check_trajectory, controller_motion, controller_wheel_load, shapely_clearance
-from paper_paths import joint_limits, new_path_from
+from paper_paths import joint_limits, new_path_from, turned
 
 from spacerobot_planner.pipeline import timed_motion
 from spacerobot_planner.replanning import BLEND_SAMPLES, Executing, joined_motion, plan_start
@@ -169,6 +169,11 @@ def _following_at(ex, frac):
     return now, start, join
 
 
+def _line_from(start, direction):
+    """Return a new path: 0.3 rad straight from ``start`` along the unit ``direction``, 120 rows."""
+    return start + np.linspace(0.0, 0.3, 120)[:, None] * direction
+
+
 def test_a_replan_to_a_moved_target_does_not_stop_at_the_horizon_point(executing):
     """
     The planner's path from the horizon point to a target 10 cm away leaves it in another direction.
@@ -214,10 +219,7 @@ def test_a_join_a_few_rows_before_a_turn_starts_in_the_arms_direction(executing,
     old = ex.trajectory
     vmax, amax = joint_limits(sc)
     now, start, join = _following_at(ex, 0.4)
-    u = old.velocities_rad_s[join.horizon_index] / np.linalg.norm(old.velocities_rad_s[join.horizon_index])
-    w = np.cross(u, [0.0, 0.0, 1.0])
-    turned = np.cos(np.radians(turn_deg)) * u + np.sin(np.radians(turn_deg)) * w / np.linalg.norm(w)
-    new = start + np.linspace(0.0, 0.3, 120)[:, None] * turned
+    new = _line_from(start, turned(old.velocities_rad_s[join.horizon_index], turn_deg))
     traj, _, _, c = joined_motion(sc, join, new, now + int(0.75 * S), lead_s=0.02)
     assert len(c.prefix_rad) == 3
     v_arm, v = old.velocities_rad_s[c.index], traj.velocities_rad_s[0]
@@ -244,10 +246,7 @@ def test_a_turn_too_sharp_for_the_arms_direction_is_entered_along_the_paths_own_
     old = ex.trajectory
     vmax, amax = joint_limits(sc)
     now, start, join = _following_at(ex, 0.4)
-    u = old.velocities_rad_s[join.horizon_index] / np.linalg.norm(old.velocities_rad_s[join.horizon_index])
-    w = np.cross(u, [0.0, 0.0, 1.0])
-    turned = np.cos(np.radians(20.0)) * u + np.sin(np.radians(20.0)) * w / np.linalg.norm(w)
-    new = start + np.linspace(0.0, 0.3, 120)[:, None] * turned
+    new = _line_from(start, turned(old.velocities_rad_s[join.horizon_index], 20.0))
     later = now + int(0.75 * S)
     paths = joined_paths(sc, join, new, later, lead_s=0.02)
     c = paths.continuation

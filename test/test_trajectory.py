@@ -13,7 +13,7 @@ from scipy.interpolate import CubicSpline
 
 from oracles import (check_trajectory, controller_motion, dense_samples, shapely_clearance,
                      toppra_duration_s)
-from paper_paths import joint_limits, new_path_from
+from paper_paths import joint_limits, new_path_from, turned
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.trajectory import (Lowering, densify_path, resample, sample, shared_path_models,
                                            time_parameterize)
@@ -311,10 +311,9 @@ def test_a_start_tangent_sets_the_start_velocity_and_bad_ones_are_refused():
     """
     rng = np.random.default_rng(7)
     path = _spline_path(rng, scale=0.3)
-    d = path[1] - path[0]
-    u = d / np.linalg.norm(d)
-    w = np.cross(u, [0.0, 0.0, 1.0])
-    tangent = np.cos(np.radians(4.0)) * u + np.sin(np.radians(4.0)) * w / np.linalg.norm(w)
+    u = (path[1] - path[0]) / np.linalg.norm(path[1] - path[0])
+    tangent = turned(u, 4.0)
+    w = turned(u, 90.0)
     speed = 0.02
     own = time_parameterize(path, VMAX, AMAX, start_path_speed=speed)
     clamped = time_parameterize(path, VMAX, AMAX, start_path_speed=speed, start_tangent=tangent)
@@ -324,7 +323,7 @@ def test_a_start_tangent_sets_the_start_velocity_and_bad_ones_are_refused():
     np.testing.assert_array_equal(clamped.positions_rad, dense)
     check_trajectory(clamped, path, VMAX, AMAX, v0=clamped.velocities_rad_s[0])
     for bad, what in (([1.0, 0.0], "3 finite values"), ([np.nan, 0.0, 0.0], "finite"), (3.0 * u, "length"),
-                      (-u, "off the path's first step"), (w / np.linalg.norm(w), "off the path's first step")):
+                      (-u, "off the path's first step"), (w, "off the path's first step")):
         with pytest.raises(ValueError, match=f"start_tangent.*{what}"):
             time_parameterize(path, VMAX, AMAX, start_path_speed=speed, start_tangent=bad)
     with pytest.raises(ValueError, match="start_tangent"):

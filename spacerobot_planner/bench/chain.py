@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -38,23 +37,22 @@ from ..replanning import Executing, join_direction, joined_motion, plan_start
 from ..session import CHAIN_ALLOWANCE_S
 from ..settings import SessionSettings
 from ..trajectory import HorizonPassed
-from .timing import tail_stats
+from .timing import median_s, tail_stats
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 S = 1_000_000_000            # ns per s
 
 
 def _median_s(fn, repeats: int):
-    """Return (the median wall time of ``repeats`` calls of ``fn()``, s; the last call's result or exception)."""
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+    """Return (``timing.median_s`` of ``fn``, s; the last call's result, or the refusal it raised)."""
+    out = []
+
+    def call():
         try:
-            out = fn()
+            out.append(fn())
         except (ValueError, HorizonPassed) as e:
-            out = e
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), out
+            out.append(e)
+    return median_s(call, repeats), out[-1]
 
 
 def _reason(e: Exception) -> str:
