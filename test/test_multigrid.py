@@ -108,3 +108,23 @@ def test_a_guess_is_only_where_the_iterations_start(route):
     assert 0 < multigrid.solve(nbr, coords, shape, rhs, tol=tol, x0=near, route=route)[1] < its
     with pytest.raises(ValueError, match="x0"):
         multigrid.solve(nbr, coords, shape, rhs, x0=x[1:], route=route)
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 5, 15, 30, 68, 100])
+def test_the_coarsest_factor_is_lapacks_cholesky(m):
+    """The coarsest level's factor (``_cholesky``, in the set-up kernel) against NumPy's LAPACK on SPD matrices."""
+    rng = np.random.default_rng(m)
+    for _ in range(5):
+        b = rng.standard_normal((m, m))
+        a = b @ b.T + m * np.eye(m)                  # symmetric positive definite, well conditioned
+        low = multigrid._cholesky(a)
+        ref = np.linalg.cholesky(a)
+        assert np.array_equal(low, np.tril(low))
+        assert np.allclose(low, ref, rtol=1e-12, atol=1e-12)
+        assert np.allclose(low @ low.T, a, rtol=1e-12, atol=1e-12 * m)
+
+
+def test_a_matrix_that_is_not_positive_definite_is_refused():
+    """A pivot at or below zero is an error, not a NaN factor."""
+    with pytest.raises(ValueError, match="not positive definite"):
+        multigrid._cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))
