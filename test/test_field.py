@@ -87,6 +87,24 @@ def test_field_matches_the_direct_solve_to_relative_precision(name):
     _assert_matches_the_oracle(F.solve_field(occ, per, goals), occ, per, goals)
 
 
+def test_a_band_whose_window_would_hold_most_of_its_nodes_is_solved_whole():
+    """
+    A room behind a one-node corridor from the goal: band 1 keeps the corridor, band 2 is the room.
+
+    The window of band 2 (32 steps from the corridor's mouth) holds three quarters of the room
+    and its far side is not negligible: it is solved on the whole room at once (two bands; a
+    window and then the wider one made three), and matches the direct solve.
+    """
+    occ = np.ones((40, 40), bool)
+    occ[:14, 20] = False             # the corridor, one node wide
+    occ[14:, :] = False              # the room
+    goals = [(1, 20)]
+    f = F.solve_field(occ, (False, False), goals)
+    assert f.converged and f.stats["bands"] == 2
+    _assert_matches_the_oracle(f, occ, (False, False), goals)
+    _assert_valid_ascent(f, occ, (False, False), goals)
+
+
 @pytest.mark.parametrize("scene", [mazes.seam_scene_2d(n0=181, n1=41), mazes.seam_scene_3d(n0=35, n1=23, n2=21)],
                          ids=["2d_181_periodic", "3d_35_periodic"])
 def test_odd_periodic_counts_match_the_direct_solve(scene):

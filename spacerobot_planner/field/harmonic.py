@@ -27,6 +27,12 @@ BAND_FLOOR = 1e-6
 WINDOW_STEPS = 32
 #: ... negligible: below BAND_FLOOR times this.
 WINDOW_NEGLIGIBLE = 1e-4
+#: A window of more than this fraction of the unknown nodes is not taken: the band solves them
+#: all.  Such a window saves at most that fraction of the band's work, and where its outer layers
+#: are not negligible the band is solved again on a window twice as wide (most often the whole
+#: rest): on 200 random scenes per DOF (`bench scenes`' family) 731 -> 701 band solves and 3.7 %
+#: fewer node-iterations at 3-DOF, 1 079 -> 945 and 7.4 % fewer at 2-DOF, the same paths bit for bit.
+WINDOW_WHOLE_FRACTION = 0.5
 #: The ascent repair lowers a node to this much (in log u) below the neighbour it follows.
 REPAIR_STEP = 1e-9
 
@@ -355,7 +361,8 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             if scratch is None:
                 scratch = np.full(n + 1, -1, np.int32)
             steps = _steps_from_known(nbr, active, known, scratch, window_steps)
-            whole = steps.max() <= window_steps
+            whole = (steps.max() <= window_steps
+                     or np.count_nonzero(steps <= window_steps) > WINDOW_WHOLE_FRACTION * active.size)
         inside = None if whole else steps <= window_steps
         window = active if whole else active[inside]
         steps_w = _NO_STEPS if steps is None else steps if whole else steps[inside]    # the window's
