@@ -134,9 +134,9 @@ def _keep(x, floor, window, known, steps):
     Return the band's values to keep: those at or above ``floor``.
 
     x float64 (m,) the band's solution on ``window`` int64 (m,) (graph nodes); marks them
-    ``known``.  steps int64 (m,) each window node's face steps from a known node, or empty.
-    Returns ``(kept int64 (k,) graph nodes, their values float64 (k,), the most steps
-    among them (0 without steps))``.
+    ``known``.  steps int64 (m,) each window node's face steps from a known node (counted up
+    to the window's steps + 1: :func:`_steps_from_known`), or empty.  Returns ``(kept int64 (k,)
+    graph nodes, their values float64 (k,), the most steps among them (0 without steps))``.
     """
     m = x.size
     kept = np.empty(m, np.int64)
