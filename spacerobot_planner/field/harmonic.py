@@ -361,9 +361,10 @@ def solve(graph: NodeGraph, budget_s: float, residual_tol: float = RESIDUAL_TOL,
             if scratch is None:
                 scratch = np.full(n + 1, -1, np.int32)
             steps = _steps_from_known(nbr, active, known, scratch, window_steps)
-            whole = (steps.max() <= window_steps
-                     or np.count_nonzero(steps <= window_steps) > WINDOW_WHOLE_FRACTION * active.size)
-        inside = None if whole else steps <= window_steps
+            inside = steps <= window_steps
+            # every active node within the window's steps, or most of them: the band takes them all
+            whole = np.count_nonzero(inside) > WINDOW_WHOLE_FRACTION * active.size
+        inside = None if whole else inside
         window = active if whole else active[inside]
         steps_w = _NO_STEPS if steps is None else steps if whole else steps[inside]    # the window's
         sub, rhs, log_scale = _band_problem(nbr, window, known, log_u)

@@ -415,7 +415,7 @@ def _cholesky(a):
 
     The coarsest level's (at most :data:`DIRECT_NODES` rows), in the kernel that builds it:
     LAPACK's through NumPy cost 30-80 us per band inside a plan (its code cold in the cache),
-    against 5 us in a loop; this one 1-3 us at 15-30 rows, 25 us at 68.  Column by column:
+    against 4-6 us at 18-30 rows in a loop; this one 1-3 us at 15-30 rows, 25 us at 68.  Column by column:
     entry (i, j) from the products of rows i and j before column j, summed in four
     interleaved partial sums (a fixed order, so the same bits on any machine).  Reads the
     lower triangle of ``a``.  Raises ValueError where a pivot is not positive (or is NaN).
