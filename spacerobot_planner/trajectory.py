@@ -731,8 +731,31 @@ def _backward_into(k, a_row, b_row, c_row, kappa, xv, delta, x_end):
     """:func:`_backward` into k (G,)."""
     m = xv.shape[0]
     k[m - 1] = min(x_end, xv[m - 1])
-    limited = False
-    for i in range(m - 2, -1, -1):
+    _backward_below(k, a_row, b_row, c_row, kappa, xv, delta, m - 2, False)
+
+
+@njit(**NO_REFCOUNT)
+def _backward_from(k, a_row, b_row, c_row, kappa, xv, delta, x_end, top):
+    """
+    Redo :func:`_backward_into` from grid point ``top`` down: the rows changed at ``top`` and below only.
+
+    k (G,) holds the pass on rows that equal these above ``top`` (its k_{top+1..} stand: k_i depends
+    on rows i and i + 1 and on k_{i+1} alone); k_top .. k_0 are computed again, each as the whole
+    pass computes it (the same test first where k_{i+1} was not limited): the same values to the bit
+    in top + 1 steps instead of G.  ``top`` ≥ G - 1: the whole pass.
+    """
+    m = xv.shape[0]
+    if top >= m - 1:
+        _backward_into(k, a_row, b_row, c_row, kappa, xv, delta, x_end)
+    elif top >= 0:
+        _backward_below(k, a_row, b_row, c_row, kappa, xv, delta, top,
+                        top < m - 2 and k[top + 1] < xv[top + 1])
+
+
+@njit(**NO_REFCOUNT)
+def _backward_below(k, a_row, b_row, c_row, kappa, xv, delta, top, limited):
+    """The backward pass's steps i = top .. 0 into k, from k_{top+1}; ``limited``: k_{top+1} < xv_{top+1}."""
+    for i in range(top, -1, -1):
         # after a limited k_{i+1} (runs of them: where the acceleration limits bind), Newton's
         # first step is the test itself (f(xv[i]) ≤ 0 is admission): the same k_i either way
         if not limited and _admits(i, xv[i], a_row, b_row, c_row, kappa, xv, delta, k[i + 1]):
@@ -1401,10 +1424,15 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     k = _backward(*rows[:5], ds, 0.0)
     free = 1                         # a moving start keeps this many grid points' limits from the lowering
     while low is not None and sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance) and free < 2 * g_n:
-        low = low.copy()             # the arm's speed is given: lowered only where it can be entered
-        low[:free] = 1.0             # (at last the whole path: the limits themselves)
-        rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
-        k = _backward(*rows[:5], ds, 0.0)
+        # the arm's speed is given: lowered only where it can be entered (at last the whole path:
+        # the limits themselves); a grid point's rows follow its own factors, so the pass is
+        # redone from the last point whose factors this round raises (none: k stands)
+        raised = np.flatnonzero((low[:free] != 1.0).any(axis=1))
+        low = low.copy()
+        low[:free] = 1.0
+        if raised.size:
+            rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
+            _backward_from(k, *rows[:5], ds, 0.0, int(raised[-1]))
         free *= 2
     a_row, b_row, c_row, kappa, xv = rows
     x0 = sd0 * sd0

@@ -4,15 +4,17 @@ Tests of trajectory.py's numba kernels against independent formulations.
 The spline on the reachability grid against SciPy's ``CubicSpline`` (not-a-knot, and with a clamped
 start); densifying and
 the rounding margins against the array (NumPy) formulation they replaced, which they must
-reproduce bit for bit (the published trajectories do not change with the kernels).
+reproduce bit for bit (the published trajectories do not change with the kernels); the backward
+pass redone from the grid points whose limits changed against the whole pass on the new limits.
 """
 
 import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
 
-from spacerobot_planner.trajectory import (_path_model, _rounding_margins, arc_lengths_rad, chord_lengths_rad,
-                                           clamped_start_slopes, densify_path)
+from spacerobot_planner.trajectory import (_backward, _backward_from, _constraint_rows, _path_model, _rounding_margins,
+                                           _rows, arc_lengths_rad, chord_lengths_rad, clamped_start_slopes,
+                                           densify_path)
 
 EPS = float(np.finfo(float).eps)
 SLACK = 1e-10
@@ -172,3 +174,41 @@ def test_chord_and_arc_lengths_are_numpys_row_norms_and_running_sums(seed):
         chords = np.linalg.norm(np.diff(p, axis=0), axis=1)
         np.testing.assert_array_equal(chord_lengths_rad(p), chords)
         np.testing.assert_array_equal(arc_lengths_rad(p), np.concatenate([[0.0], np.cumsum(chords)]))
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_a_backward_pass_redone_below_the_changed_rows_is_the_whole_pass_bit_for_bit(seed):
+    """
+    ``_backward_from``: after the limits change at grid points ``top`` and below only (a joined
+    timing raising the lowering where the arm's speed must be entered), redoing the pass from
+    ``top`` down gives the whole pass on the new limits to the bit; with a wheel (its momentum
+    and torque rows) and without, lowerings at random stretches, ``top`` anywhere (the last
+    point: the whole pass; below every change: nothing redone).
+    """
+    rng = np.random.default_rng(300 + seed)
+    m, n, refine = int(rng.integers(3, 80)), int(rng.integers(1, 4)), int(rng.integers(1, 4))
+    p = _random_path(rng, m, n)
+    s, _, q, d1, d2, d3 = _path_model(p, refine)
+    d1, d2, d3, ds = (np.ascontiguousarray(a) for a in (d1, d2, d3, np.diff(s)))
+    vmax, amax = rng.uniform(0.2, 2.0, n), rng.uniform(0.2, 2.0, n)
+    xv, kappa, c_row = _constraint_rows(d1, d3, ds, vmax, amax)
+    g_n = len(s)
+    wheel = seed % 2 == 1
+    g = rng.normal(0.0, 1.0, g_n) if wheel else None
+    gp = rng.normal(0.0, 1.0, g_n) if wheel else None
+    h_max, tau_max = (rng.uniform(0.5, 3.0), rng.uniform(0.5, 3.0)) if wheel else (np.inf, np.inf)
+    low = np.ones((g_n, 4))
+    for _ in range(3):                                   # lowered stretches
+        a = int(rng.integers(0, g_n))
+        b = int(rng.integers(a, g_n)) + 1
+        low[a:b] = np.minimum(low[a:b], rng.uniform(0.3, 1.0, 4))
+    k = _backward(*_rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)[:5], ds, 0.0)
+    for free in (1, 2, 5, g_n // 2, g_n - 1, g_n, g_n + 3):
+        changed = np.flatnonzero((low[:free] != 1.0).any(axis=1))
+        low = low.copy()
+        low[:free] = 1.0
+        rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
+        whole = _backward(*rows[:5], ds, 0.0)
+        top = int(changed[-1]) if changed.size else -1
+        _backward_from(k, *rows[:5], ds, 0.0, top)
+        np.testing.assert_array_equal(k, whole)
