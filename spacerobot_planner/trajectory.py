@@ -722,39 +722,29 @@ def _largest_feasible(i, a_row, b_row, c_row, kappa, xv, delta, k_next):
 def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
     """Return the controllable sets' k (G,): K_i = [0, k_i], the x_i from which x_N = x_end is reachable."""
     k = np.empty(xv.shape[0])
-    _backward_into(k, a_row, b_row, c_row, kappa, xv, delta, float(x_end))
+    _backward_from(k, a_row, b_row, c_row, kappa, xv, delta, float(x_end), xv.shape[0] - 1)
     return k
-
-
-@njit(**NO_REFCOUNT)
-def _backward_into(k, a_row, b_row, c_row, kappa, xv, delta, x_end):
-    """:func:`_backward` into k (G,)."""
-    m = xv.shape[0]
-    k[m - 1] = min(x_end, xv[m - 1])
-    _backward_below(k, a_row, b_row, c_row, kappa, xv, delta, m - 2, False)
 
 
 @njit(**NO_REFCOUNT)
 def _backward_from(k, a_row, b_row, c_row, kappa, xv, delta, x_end, top):
     """
-    Redo :func:`_backward_into` from grid point ``top`` down: the rows changed at ``top`` and below only.
+    The backward pass (:func:`_backward`) into k (G,), from grid point ``top`` down.
 
-    k (G,) holds the pass on rows that equal these above ``top`` (its k_{top+1..} stand: k_i depends
-    on rows i and i + 1 and on k_{i+1} alone); k_top .. k_0 are computed again, each as the whole
-    pass computes it (the same test first where k_{i+1} was not limited): the same values to the bit
-    in top + 1 steps instead of G.  ``top`` ≥ G - 1: the whole pass.
+    ``top`` ≥ G - 1: the whole pass.  Else the rows changed at ``top`` and below only: k holds the
+    pass on rows that equal these above ``top``, and its k_{top+1..} stand (k_i depends on rows i
+    and i + 1 and on k_{i+1} alone); k_top .. k_0 are computed again, each as the whole pass
+    computes it (the same test first where k_{i+1} was not limited): the same values to the bit in
+    top + 1 steps instead of G (a joined timing raising the lowering where the arm's speed must be
+    entered, :func:`time_parameterize`).
     """
     m = xv.shape[0]
     if top >= m - 1:
-        _backward_into(k, a_row, b_row, c_row, kappa, xv, delta, x_end)
-    elif top >= 0:
-        _backward_below(k, a_row, b_row, c_row, kappa, xv, delta, top,
-                        top < m - 2 and k[top + 1] < xv[top + 1])
-
-
-@njit(**NO_REFCOUNT)
-def _backward_below(k, a_row, b_row, c_row, kappa, xv, delta, top, limited):
-    """The backward pass's steps i = top .. 0 into k, from k_{top+1}; ``limited``: k_{top+1} < xv_{top+1}."""
+        k[m - 1] = min(x_end, xv[m - 1])
+        top = m - 2
+        limited = False
+    else:
+        limited = top < m - 2 and k[top + 1] < xv[top + 1]
     for i in range(top, -1, -1):
         # after a limited k_{i+1} (runs of them: where the acceleration limits bind), Newton's
         # first step is the test itself (f(xv[i]) ≤ 0 is admission): the same k_i either way
