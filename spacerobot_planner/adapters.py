@@ -46,7 +46,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .motion import MotionValidator
-from .replanning import START_LEAD_S, joined_paths, timed_join
+from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, timed_join
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import (Lowering, Resampled, Trajectory, controller_check, resample, segment_peaks,
@@ -54,7 +54,7 @@ from .trajectory import (Lowering, Resampled, Trajectory, controller_check, resa
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
-           "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD"]
+           "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD", "warm_up"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
 RESAMPLE_STEP_S = 0.25
@@ -256,6 +256,36 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
     with shared_path_models():          # the re-timings time the same paths: each modelled once
         return _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
                              from_end_at_rest)
+
+
+def warm_up(scenario, horizon_s: float = 1.0, follow_tolerance_rad: float = 0.035) -> None:
+    """
+    Load the chain's kernels (numba's cache, else compiled) before a user's plan meets them: two chains.
+
+    One from rest along a straight path through the middle of the joint ranges, and one joined to
+    it while the arm moves (``replanning.plan_start`` ``horizon_s`` ahead, the arm on the trajectory;
+    a new path from the join on to the first's end, a little off it): a joined replan's own kernels
+    (the start tangent's spline, the joins' turns) otherwise loaded in the middle of the first joined
+    replan, some 7 ms of it.  Raises ValueError when the scenario's limits refuse the first chain
+    (every plan's chain would refuse too); the joined chain's own refusals are no matter here.
+    """
+    robot = scenario.robot
+    lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
+    first = post_process(scenario, np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8))
+    dense = first.dense
+    if len(dense) < 2:
+        return
+    ex = Executing(dense, np.asarray(first.indices), 0)
+    now = int(0.3e9 * dense.duration_s)
+    q = ex.expected_at(now)
+    start, join, _ = plan_start(ex, now, q, now, horizon_s, follow_tolerance_rad, robot.planned_periodic)
+    if join is None:
+        return
+    end = np.clip(dense.positions_rad[-1] + 0.02 * (hi - lo), lo, hi)
+    try:
+        post_process(scenario, np.linspace(start, end, 6), join=join, now_ns=now, lead_s=0.0)
+    except ValueError:
+        pass
 
 
 def _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,

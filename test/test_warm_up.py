@@ -18,16 +18,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
-_CHECK = r"""
-import json, sys
+#: each spacerobot_planner kernel's signatures in this process (numba's own record): the scripts' oracle
+_SIGNATURES = r"""
+import sys
 import numba
-import numpy as np
-from spacerobot_planner.bench.scenes import plan_problems
-from spacerobot_planner.config import load_scenario
-from spacerobot_planner.planner import Planner
-from spacerobot_planner.worker import warm_up
-
-dof, count = int(sys.argv[1]), int(sys.argv[2])
 
 
 def signatures():
@@ -38,8 +32,17 @@ def signatures():
                 if isinstance(obj, numba.core.dispatcher.Dispatcher) and obj.__module__ == name:
                     out[f"{name}.{obj.py_func.__name__}"] = {str(s) for s in obj.signatures}
     return out
+"""
 
+_CHECK = _SIGNATURES + r"""
+import json
+import numpy as np
+from spacerobot_planner.bench.scenes import plan_problems
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.planner import Planner
+from spacerobot_planner.worker import warm_up
 
+dof, count = int(sys.argv[1]), int(sys.argv[2])
 warm_up(Planner(load_scenario(f"{sys.argv[3]}/config/paper_{dof}dof.yaml")))
 before = signatures()
 codes, repaired, banded, refined = {}, 0, 0, 0
@@ -68,3 +71,81 @@ def test_random_plans_after_the_warm_up_meet_no_kernel_signature_it_did_not_load
     assert out["banded"] > 0, out
     assert (out["codes"].get("disconnected", 0) if dof == 2 else min(out["repaired"], out["refined"])) > 0, out
     assert not out["new"], f"kernels loaded or compiled after the warm-up: {out['new']}"
+
+
+_JOINED_INPUTS = r"""
+import pickle, sys
+from pathlib import Path
+import numpy as np
+from spacerobot_planner.adapters import post_process
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.planner import Planner
+from spacerobot_planner.replanning import Executing, join_direction, plan_start
+from spacerobot_planner.settings import SessionSettings
+
+S = 1_000_000_000
+sc = load_scenario(Path(sys.argv[2]) / "config" / sys.argv[3])
+settings = SessionSettings()
+planner = Planner(sc)
+first = planner.plan(sc.start_rad, sc.goal_rad)
+published = post_process(sc, first.path_rad, start_rad=sc.start_rad)
+ex = Executing(published.dense, published.indices, 100 * S)
+calls = [(first.path_rad, {"start_rad": sc.start_rad})]
+for frac in np.linspace(0.05, 0.85, 10):
+    now = ex.start_ns + int(frac * published.dense.duration_s * S)
+    q = ex.expected_at(now)
+    start, join, _ = plan_start(ex, now, q, now, settings.horizon_s, settings.follow_tolerance_rad,
+                                sc.robot.planned_periodic)
+    if join is None:
+        continue
+    res = planner.plan(start, sc.goal_rad, start_tangent=join_direction(join))
+    if res.ok:
+        for took_s in (0.01, 0.25):
+            calls.append((res.path_rad, {"join": join, "now_ns": now + int(took_s * S), "lead_s": 0.3}))
+with open(sys.argv[1], "wb") as f:
+    pickle.dump((sc, calls), f)
+"""
+
+_JOINED_CHAINS = _SIGNATURES + r"""
+import json, pickle
+from spacerobot_planner.adapters import post_process, warm_up
+from spacerobot_planner.trajectory import HorizonPassed
+
+with open(sys.argv[1], "rb") as f:
+    sc, calls = pickle.load(f)
+warm_up(sc)                         # the node's configure
+before = signatures()
+joined = 0
+for path, kw in calls:
+    try:
+        out = post_process(sc, path, **kw)
+        joined += out.continuation is not None
+    except (ValueError, HorizonPassed):
+        pass
+after = signatures()
+new = {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())}
+print(json.dumps({"chains": len(calls), "joined": joined, "new": new}))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("config", ["paper_3dof.yaml", "servicer_3dof.yaml"])
+def test_joined_chains_after_the_nodes_chain_warm_up_meet_no_kernel_signature_it_did_not_load(config, tmp_path):
+    """
+    The node's process (``adapters.warm_up`` at configure) has loaded every kernel a joined replan's chain runs.
+
+    The paths and joins come from a planning process of their own (as in the node: the plans are
+    the child's), replans joined to the scene's plan at ten instants of it, each chained twice
+    (the plan taking 10 ms and 250 ms); the chains then run in a fresh process after the warm-up.
+    Oracle: numba's record of each kernel's signatures before and after them.
+    """
+    inputs = tmp_path / "joined.pkl"
+    r = subprocess.run([sys.executable, "-c", _JOINED_INPUTS, str(inputs), str(ROOT), config], cwd=ROOT,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    r = subprocess.run([sys.executable, "-c", _JOINED_CHAINS, str(inputs)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["joined"] >= 5, out          # the chains joined the moving arm
+    assert not out["new"], f"kernels loaded or compiled in a joined replan's chain after the warm-up: {out['new']}"

@@ -57,7 +57,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from ..adapters import post_process
+from ..adapters import warm_up as warm_up_chain
 from ..config import NODE_NAME, scenario_from_params, session_settings_from_params, unknown_parameters
 from ..session import CaptureSession, Outcome
 from ..worker import make_backend
@@ -213,10 +213,9 @@ class PlannerNode(LifecycleNode):
         try:
             backend = self._make_backend(scenario, self._params["planner.separate_process"], log=log.warning,
                                          info=log.info)
-            # this process's kernels (time parameterisation, certification), while the child warms up
-            lo, hi = self.robot.planned_lower_rad, self.robot.planned_upper_rad
+            # this process's kernels (the chain from rest and joined to a moving arm), while the child warms up
             try:
-                post_process(scenario, np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8))
+                warm_up_chain(scenario)
             except ValueError as e:     # limits no motion can keep to: every plan says so too
                 log.warning(f"configure: the trajectory warm-up was refused ({e}); plans will be too")
             if backend.wait_ready(WARM_UP_TIMEOUT_S) is None:
