@@ -55,6 +55,7 @@ from .joint_space import wrap_angle_rad
 from .reaction import DriftCheck, check_drifted
 from .scene import Scene, Target
 from .spacecraft import FreeFloatingResponse, MassProperties, free_floating_response, system_com_m
+from .spacecraft import _momentum_map_row, _momentum_tables  # noqa: PLC2701 - the momentum's one rule
 
 __all__ = ["apparent_scene", "captures_free_floating", "check_capture_scenario", "FreeFloatingCapture",
            "CapturePostureFF", "capture_postures", "attitude_changes_rad", "plan_capture", "SEARCH"]
@@ -111,34 +112,6 @@ SEARCH = {"coarse_samples": 61, "harmonics": 2, "max_amplitude_rad": math.radian
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _momenta(q, pair, inertia, phi, cosines, h):
-    """
-    Fill h (n,) with H_i = Σ_{k≥i} g_k at the joint angles q (n,) (see :func:`_attitude_profiles`).
-
-    Scratch phi (n,) and cosines (n, n) (its diagonal 1): each cosine once per pair, as
-    cos(φ_k − φ_j) = cos(φ_j − φ_k) to the bit (the negated argument is exact, cos is even in
-    libm) and cos(0) = 1.
-    """
-    n = q.shape[0]
-    acc = 0.0
-    for j in range(n):
-        acc += q[j]
-        phi[j] = acc
-    for kk in range(1, n):
-        for j in range(kk):
-            c = math.cos(phi[kk] - phi[j])
-            cosines[kk, j] = c
-            cosines[j, kk] = c
-    hsum = 0.0
-    for i in range(n - 1, -1, -1):
-        v = inertia[i]
-        for j in range(n):
-            v += pair[j, i] * cosines[i, j]
-        hsum += v
-        h[i] = hsum
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _rate(h, q0, q1):
     """Return the attitude's rate per unit path step −Σ_{i>0} H_i (q1_i − q0_i) / H_0."""
     num = 0.0
@@ -152,30 +125,29 @@ def _attitude_profiles(paths, pair, inertia):
     """
     Attitude change (rad) at every row of each full-joint path of ``paths`` (B, K, n): (B, K).
 
-    The paths are straight between rows.  The momentum row at q: g_k = Σ_j pair[j, k]
-    cos(φ_k − φ_j) + inertia[k] is the angular momentum per unit rate of the absolute angle
-    φ_k (about the system's centre of mass), and H_i = Σ_{k≥i} g_k; free floating
+    The paths are straight between rows.  The momentum row at q (``spacecraft._momentum_map_row``):
+    g_k = Σ_j pair[j, k] cos(φ_k − φ_j) + inertia[k] is the angular momentum per unit rate of the
+    absolute angle φ_k (about the system's centre of mass), and H_i = Σ_{k≥i} g_k; free floating
     dθ1 = −Σ_{i>0} H_i dθ_i / H_0, Simpson's rule per row step: H at the rows (each row's
     once, the end of one step and the start of the next) and at the steps' midpoints.
     """
     nb, nk, n = paths.shape
     out = np.zeros((nb, nk))
-    phi = np.empty(n)
-    cosines = np.ones((n, n))
+    w = np.empty((4, n))
     h_row = np.empty(n)
     h_mid = np.empty(n)
     h_next = np.empty(n)
     mid = np.empty(n)
     for b in range(nb):
         total = 0.0
-        _momenta(paths[b, 0], pair, inertia, phi, cosines, h_row)
+        _momentum_map_row(pair, inertia, paths[b, 0], w, h_row)
         for k in range(nk - 1):
             q0 = paths[b, k]
             q1 = paths[b, k + 1]
             for j in range(n):
                 mid[j] = q0[j] + 0.5 * (q1[j] - q0[j])
-            _momenta(mid, pair, inertia, phi, cosines, h_mid)
-            _momenta(q1, pair, inertia, phi, cosines, h_next)
+            _momentum_map_row(pair, inertia, mid, w, h_mid)
+            _momentum_map_row(pair, inertia, q1, w, h_next)
             step = _rate(h_row, q0, q1)
             step += 4.0 * _rate(h_mid, q0, q1)
             step += _rate(h_next, q0, q1)
@@ -199,21 +171,6 @@ def _com_coefficients(robot, masses):
     return np.asarray(masses.link_masses_kg, dtype=float) @ coef / masses.total_mass_kg
 
 
-def _pair_tables(robot, masses):
-    """(pair (n, n), inertia per absolute angle (n,)) of the momentum row (see :func:`_attitude_changes`)."""
-    masses.check_robot(robot)
-    n = robot.n_joints
-    lengths = np.asarray(robot.link_lengths_m, dtype=float)
-    coef = (np.tril(np.ones((n, n)), -1) + 0.5 * np.eye(n)) * lengths[None, :]   # link centres
-    a = np.vstack([np.zeros((1, n)), coef])                                       # body first
-    m = np.concatenate([[masses.body_mass_kg], masses.link_masses_kg])
-    ma = m @ a
-    pair = a.T @ (m[:, None] * a) - np.outer(ma, ma) / m.sum()
-    inertia = np.array(masses.link_inertias_kgm2, dtype=float)
-    inertia[0] += masses.body_inertia_kgm2                                        # the body turns with θ1
-    return np.ascontiguousarray(pair), inertia
-
-
 def attitude_changes_rad(robot, masses: MassProperties, paths_full_rad) -> np.ndarray:
     """
     Free-floating attitude change of full-joint paths, rad: (K, n) → float, (B, K, n) → (B,).
@@ -222,7 +179,7 @@ def attitude_changes_rad(robot, masses: MassProperties, paths_full_rad) -> np.nd
     same quadrature as ``spacecraft.free_floating_response`` in a numba kernel.
     """
     p = np.asarray(paths_full_rad, dtype=float)
-    pair, inertia = _pair_tables(robot, masses)
+    pair, inertia = _momentum_tables(robot, masses)
     out = _attitude_changes(np.ascontiguousarray(np.atleast_3d(p) if p.ndim == 3 else p[None]), pair, inertia)
     return out if p.ndim == 3 else float(out[0])
 
@@ -467,7 +424,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
     dirs = _directions(len(arm), harm, SEARCH["directions"], SEARCH["seed"])
     amps = np.linspace(0.0, SEARCH["max_amplitude_rad"], SEARCH["amplitudes"])
     s_coarse = np.linspace(0.0, 1.0, SEARCH["coarse_samples"])
-    pair, inertia = _pair_tables(robot, masses)
+    pair, inertia = _momentum_tables(robot, masses)
     periodic = np.asarray(robot.periodic)[arm]
 
     def arm_end(post):

@@ -171,97 +171,106 @@ def system_com_m(robot, masses: MassProperties, q_full) -> np.ndarray:
     return np.einsum("b,...bd->...d", b["m"], b["r"]) / b["m"].sum()
 
 
-@njit(cache=True, nogil=True)
-def _sample_momentum(cl, m, inertia, q, qd, qdd, r, v, a):
+def _momentum_tables(robot, masses):
     """
-    (h, dh/dt) of one sample: q, qd, qdd (n,) full joints (qdd None: no rate, 0.0).
+    Return (pair (n, n), inertia (n,)): the angular momentum's coefficients, the one rule of it.
 
-    ``r``, ``v``, ``a``: (n + 1, 2) scratch (the body, row 0, and the link centres).  The sums
-    of :func:`_bodies` and the CoM formulas, per sample.
+    With φ the absolute angles (the joint angles' running sums), e_k = (cos φ_k, sin φ_k) and the
+    link centres r_b = Σ_k a[b, k] e_k (``_tables``; the body's centre, row 0, at the origin):
+    h = Σ_b m_b (r_b − r̄) × (ṙ_b − r̄̇) + Σ I φ̇ = Σ_ij pair[i, j] cos(φ_i − φ_j) φ̇_j + Σ_j inertia[j] φ̇_j,
+    pair = aᵀ diag(m) a − (aᵀm)(aᵀm)ᵀ / Σm (symmetric) and inertia the links' with the body's
+    on the first (the body turns with φ_1).
+    """
+    cl, m, inertia_b = _tables(robot, masses)
+    a = np.vstack([np.zeros((1, cl.shape[1])), cl])
+    ma = m @ a
+    pair = a.T @ (m[:, None] * a) - np.outer(ma, ma) / m.sum()
+    inertia = inertia_b[1:].copy()
+    inertia[0] += inertia_b[0]
+    return np.ascontiguousarray(pair), inertia
+
+
+@njit(cache=True, nogil=True)
+def _momentum_coefficients(pair, inertia, q, w):
+    """
+    Fill w (4, n) at the sample q (n,) full joints: w[0], w[1] cos, sin of φ − φ_1; w[2] A; w[3] B.
+
+    A_j = inertia[j] + Σ_i pair[i, j] C_ij and B_j = Σ_i pair[i, j] S_ij with C_ij = cos(φ_i − φ_j),
+    S_ij = sin(φ_i − φ_j) (:func:`_momentum_tables`): h = Σ_j A_j φ̇_j and dh/dt = Σ_j (A_j φ̈_j + B_j φ̇_j²)
+    (the terms in φ̇_i φ̇_j, i ≠ j, cancel: S is antisymmetric, pair symmetric).  Each pair i < j once.
     """
     n = q.shape[0]
-    phi = phid = phidd = 0.0
-    for d in range(2):
-        r[0, d] = v[0, d] = a[0, d] = 0.0
-    for k in range(n):
-        r[k + 1, 0] = r[k + 1, 1] = v[k + 1, 0] = v[k + 1, 1] = a[k + 1, 0] = a[k + 1, 1] = 0.0
-    h_spin = 0.0
-    rate_spin = 0.0
+    psi = 0.0                       # φ_j − φ_1: the differences alone matter (no sine of the attitude)
     for j in range(n):
-        phi += q[j]
-        phid += qd[j]
-        c, s = np.cos(phi), np.sin(phi)
-        if qdd is not None:
-            phidd += qdd[j]
-            ax = -phidd * s - phid * phid * c
-            ay = phidd * c - phid * phid * s
-            rate_spin += inertia[j + 1] * phidd
-            if j == 0:
-                rate_spin += inertia[0] * phidd
-        h_spin += inertia[j + 1] * phid
-        if j == 0:
-            h_spin += inertia[0] * phid
-        for k in range(j, n):           # link k's centre: Σ_{j ≤ k} cl[k, j] e_j
-            w = cl[k, j]
-            r[k + 1, 0] += w * c
-            r[k + 1, 1] += w * s
-            v[k + 1, 0] -= w * phid * s
-            v[k + 1, 1] += w * phid * c
-            if qdd is not None:
-                a[k + 1, 0] += w * ax
-                a[k + 1, 1] += w * ay
-    mt = 0.0
-    rx = ry = vx = vy = axm = aym = 0.0
-    for b in range(n + 1):
-        mt += m[b]
-        rx += m[b] * r[b, 0]
-        ry += m[b] * r[b, 1]
-        vx += m[b] * v[b, 0]
-        vy += m[b] * v[b, 1]
-        axm += m[b] * a[b, 0]
-        aym += m[b] * a[b, 1]
-    rx /= mt
-    ry /= mt
-    vx /= mt
-    vy /= mt
-    axm /= mt
-    aym /= mt
-    h = 0.0
-    rate = 0.0
-    for b in range(n + 1):
-        dx, dy = r[b, 0] - rx, r[b, 1] - ry
-        h += m[b] * (dx * (v[b, 1] - vy) - dy * (v[b, 0] - vx))
-        rate += m[b] * (dx * (a[b, 1] - aym) - dy * (a[b, 0] - axm))
-    return h + h_spin, rate + rate_spin
+        if j > 0:
+            psi += q[j]
+        w[0, j] = np.cos(psi) if j > 0 else 1.0
+        w[1, j] = np.sin(psi) if j > 0 else 0.0
+        w[2, j] = inertia[j] + pair[j, j]
+        w[3, j] = 0.0
+    for j in range(1, n):
+        cj, sj = w[0, j], w[1, j]
+        for i in range(j):
+            p = pair[i, j]
+            pc = p * (w[0, i] * cj + w[1, i] * sj)
+            ps = p * (w[1, i] * cj - w[0, i] * sj)
+            w[2, j] += pc
+            w[2, i] += pc
+            w[3, j] += ps
+            w[3, i] -= ps
 
 
 @njit(cache=True, nogil=True)
-def _momentum_rows(cl, m, inertia, q, qd, qdd, with_rate):
-    """(h (N,), dh/dt (N,)) of the rows of q, qd, qdd (N, n); dh/dt zeros unless ``with_rate``."""
-    nb = q.shape[1] + 1
-    r, v, a = np.empty((nb, 2)), np.empty((nb, 2)), np.empty((nb, 2))
-    h = np.empty(q.shape[0])
-    rate = np.zeros(q.shape[0])
-    for i in range(q.shape[0]):
-        if with_rate:
-            h[i], rate[i] = _sample_momentum(cl, m, inertia, q[i], qd[i], qdd[i], r, v, a)
-        else:
-            h[i], _ = _sample_momentum(cl, m, inertia, q[i], qd[i], None, r, v, a)
+def _sample_momentum(pair, inertia, q, qd, qdd, w):
+    """
+    (h, dh/dt) of one sample: q, qd, qdd (n,) full joints (qdd None: no rate, 0.0); w (4, n) scratch.
+
+    :func:`_momentum_coefficients` and the absolute rates φ̇, φ̈ (the joint rates' running sums).
+    """
+    _momentum_coefficients(pair, inertia, q, w)
+    h = rate = 0.0
+    pd = pdd = 0.0
+    for j in range(q.shape[0]):
+        pd += qd[j]
+        h += w[2, j] * pd
+        if qdd is not None:
+            pdd += qdd[j]
+            rate += w[2, j] * pdd + w[3, j] * pd * pd
     return h, rate
 
 
 @njit(cache=True, nogil=True)
-def _momentum_map_rows(cl, m, inertia, q):
+def _momentum_rows(pair, inertia, q, qd, qdd, with_rate):
+    """(h (N,), dh/dt (N,)) of the rows of q, qd, qdd (N, n); dh/dt zeros unless ``with_rate``."""
+    w = np.empty((4, q.shape[1]))
+    h = np.empty(q.shape[0])
+    rate = np.zeros(q.shape[0])
+    for i in range(q.shape[0]):
+        if with_rate:
+            h[i], rate[i] = _sample_momentum(pair, inertia, q[i], qd[i], qdd[i], w)
+        else:
+            h[i], _ = _sample_momentum(pair, inertia, q[i], qd[i], None, w)
+    return h, rate
+
+
+@njit(cache=True, nogil=True)
+def _momentum_map_row(pair, inertia, q, w, h):
+    """Fill h (n,) with the momentum map's row at q (n,) full joints: H_k = Σ_{j ≥ k} A_j (w (4, n) scratch)."""
+    _momentum_coefficients(pair, inertia, q, w)
+    acc = 0.0
+    for k in range(q.shape[0] - 1, -1, -1):
+        acc += w[2, k]
+        h[k] = acc
+
+
+@njit(cache=True, nogil=True)
+def _momentum_map_rows(pair, inertia, q):
     """H (N, n) of the rows of q (N, n): row i, column k is h at q[i] with unit rate of joint k."""
     nq, n = q.shape
-    r, v, a = np.empty((n + 1, 2)), np.empty((n + 1, 2)), np.empty((n + 1, 2))
-    unit = np.zeros(n)
+    w = np.empty((4, n))
     out = np.empty((nq, n))
     for i in range(nq):
-        for k in range(n):
-            unit[k] = 1.0
-            out[i, k], _ = _sample_momentum(cl, m, inertia, q[i], unit, None, r, v, a)
-            unit[k] = 0.0
+        _momentum_map_row(pair, inertia, q[i], w, out[i])
     return out
 
 
@@ -279,25 +288,25 @@ def _shaped(x, shape):
 
 def angular_momentum_Nms(robot, masses: MassProperties, q_full, qd_full) -> np.ndarray:
     """Return h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇ about the system CoM: (...,) N·m·s."""
-    cl, m, inertia = _tables(robot, masses)
+    pair, inertia = _momentum_tables(robot, masses)
     shape, (q, qd) = _rows(q_full, qd_full)
-    h, _ = _momentum_rows(cl, m, inertia, q, qd, qd, False)
+    h, _ = _momentum_rows(pair, inertia, q, qd, qd, False)
     return _shaped(h, shape)
 
 
 def momentum_rate_Nm(robot, masses: MassProperties, q_full, qd_full, qdd_full) -> np.ndarray:
     """dh/dt = Σ m (r − r̄) × (r̈ − r̄̈) + Σ I φ̈ (the cross term ṙ × ṙ vanishes): (...,) N·m."""
-    cl, m, inertia = _tables(robot, masses)
+    pair, inertia = _momentum_tables(robot, masses)
     shape, (q, qd, qdd) = _rows(q_full, qd_full, qdd_full)
-    _, rate = _momentum_rows(cl, m, inertia, q, qd, qdd, True)
+    _, rate = _momentum_rows(pair, inertia, q, qd, qdd, True)
     return _shaped(rate, shape)
 
 
 def momentum_map(robot, masses: MassProperties, q_full) -> np.ndarray:
     """Return the row H(q) with h = H · q̇: (n,) or (N, n), N·m·s per rad/s (kg·m²)."""
-    cl, m, inertia = _tables(robot, masses)
+    pair, inertia = _momentum_tables(robot, masses)
     q = np.asarray(q_full, dtype=float)
-    rows = _momentum_map_rows(cl, m, inertia, np.ascontiguousarray(q.reshape(-1, q.shape[-1])))
+    rows = _momentum_map_rows(pair, inertia, np.ascontiguousarray(q.reshape(-1, q.shape[-1])))
     return rows.reshape(q.shape)
 
 
@@ -355,10 +364,10 @@ def wheel_load(robot, masses: MassProperties, positions_rad, velocities_rad_s, a
     Wheel momentum h_wheel = −H·q̇ (M,) N·m·s and torque dh_wheel/dt (M,) N·m at the points of a
     trajectory over the planned joints ((M, dof) each; locked joints at rest).
     """
-    cl, m, inertia = _tables(robot, masses)
+    pair, inertia = _momentum_tables(robot, masses)
     shape, (qf, qd, qdd) = _rows(robot.full(positions_rad), _planned_rates(robot, velocities_rad_s),
                                  _planned_rates(robot, accelerations_rad_s2))
-    h, rate = _momentum_rows(cl, m, inertia, qf, qd, qdd, True)        # both in one pass
+    h, rate = _momentum_rows(pair, inertia, qf, qd, qdd, True)        # both in one pass
     return -_shaped(h, shape), -_shaped(rate, shape)
 
 

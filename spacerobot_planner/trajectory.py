@@ -79,7 +79,7 @@ from numba import njit
 
 from .collision import NO_REFCOUNT
 from .motion import MotionValidator
-from .spacecraft import _sample_momentum, _tables
+from .spacecraft import _momentum_tables, _sample_momentum
 
 __all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_parameterize", "finite_differences", "sample",
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
@@ -2033,14 +2033,14 @@ def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTR
 
 
 @njit(cache=True, nogil=True)
-def _load_at(cl, m, inertia, c, dur, x, joints, qf, qdf, qddf, r, v, a):
+def _load_at(pair, inertia, c, dur, x, joints, qf, qdf, qddf, w):
     """Return (|h|, |dh/dt|) at x in [0, 1] of the quintic segment c (6, dof) (:func:`_segment_coefficients`)."""
     for j in range(joints.size):
         p, dp, ddp = _horner(c, j, x)
         qf[joints[j]] = p
         qdf[joints[j]] = dp / dur
         qddf[joints[j]] = ddp / (dur * dur)
-    h, rate = _sample_momentum(cl, m, inertia, qf, qdf, qddf, r, v, a)
+    h, rate = _sample_momentum(pair, inertia, qf, qdf, qddf, w)
     return abs(h), abs(rate)
 
 
@@ -2064,7 +2064,7 @@ PEAK_SEARCH_BAND = 0.05
 
 
 @njit(cache=True, nogil=True)
-def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, out, c):
+def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, pair, inertia, out, c):
     """
     Fill out (M - 1, 2) with each segment's peak |h_wheel| and |τ_wheel| of the controller's quintics.
 
@@ -2073,7 +2073,7 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
     neighbours, and around every other local maximum within :data:`PEAK_SEARCH_BAND` of it (the
     peak between samples).  t (M,), q, v, a (M, dof) the planned joints,
     which are ``joints`` (dof,) of the full configuration ``q_full`` (n,) (the locked joints'
-    positions; at rest); cl, m, inertia: ``spacecraft._tables``; c (6, dof) scratch; t increasing
+    positions; at rest); pair, inertia: ``spacecraft._momentum_tables``; c (6, dof) scratch; t increasing
     strictly (:func:`_require_increasing`).  NaN where a load is.
     """
     mpts = t.shape[0]
@@ -2081,7 +2081,7 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
     qf = q_full.copy()
     qdf = np.zeros(n)
     qddf = np.zeros(n)
-    r, vb, ab = np.empty((n + 1, 2)), np.empty((n + 1, 2)), np.empty((n + 1, 2))
+    w = np.empty((4, n))
     fh = np.empty(samples + 1)
     ft = np.empty(samples + 1)
     step = 1.0 / samples
@@ -2091,7 +2091,7 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
         top_h = top_t = 0.0
         ih = it = 0
         for i in range(samples + 1):
-            fh[i], ft[i] = _load_at(cl, m, inertia, c, dur, i * step, joints, qf, qdf, qddf, r, vb, ab)
+            fh[i], ft[i] = _load_at(pair, inertia, c, dur, i * step, joints, qf, qdf, qddf, w)
             if fh[i] > top_h:
                 top_h, ih = fh[i], i
             if ft[i] > top_t:
@@ -2109,7 +2109,7 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, cl, m, inertia, ou
                         continue
                     x = _vertex(f, i, step)
                     if 0.0 < x < 1.0:
-                        h, tau = _load_at(cl, m, inertia, c, dur, x, joints, qf, qdf, qddf, r, vb, ab)
+                        h, tau = _load_at(pair, inertia, c, dur, x, joints, qf, qdf, qddf, w)
                         top_h = _nan_max(top_h, h)
                         top_t = _nan_max(top_t, tau)
         out[k, 0] = top_h
@@ -2135,7 +2135,7 @@ def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> n
     """
     if int(samples_per_segment) < 1:
         raise ValueError(f"samples_per_segment: must be at least 1, got {samples_per_segment}")
-    cl, m, inertia = _tables(robot, masses)
+    pair, inertia = _momentum_tables(robot, masses)
     q = np.ascontiguousarray(traj.positions_rad, dtype=float)
     out = np.zeros((max(len(q) - 1, 0), 2))
     if len(q) < 2:
@@ -2143,6 +2143,6 @@ def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> n
     _require_increasing(traj.times_s, "segment_wheel_peaks")
     given = (traj.times_s, q, traj.velocities_rad_s, traj.accelerations_rad_s2)
     _segment_wheel_peaks(*[np.ascontiguousarray(x, dtype=float) for x in given], int(samples_per_segment),
-                         np.asarray(robot.planned_joints, np.int64), robot.full(q[0]), cl, m, inertia, out,
+                         np.asarray(robot.planned_joints, np.int64), robot.full(q[0]), pair, inertia, out,
                          np.zeros((6, q.shape[1])))
     return out
