@@ -729,7 +729,7 @@ def _backward(a_row, b_row, c_row, kappa, xv, delta, x_end):
 @njit(**NO_REFCOUNT)
 def _backward_from(k, a_row, b_row, c_row, kappa, xv, delta, x_end, top):
     """
-    The backward pass (:func:`_backward`) into k (G,), from grid point ``top`` down.
+    Run the backward pass (:func:`_backward`) into k (G,), from grid point ``top`` down.
 
     ``top`` ≥ G - 1: the whole pass.  Else the rows changed at ``top`` and below only: k holds the
     pass on rows that equal these above ``top``, and its k_{top+1..} stand (k_i depends on rows i

@@ -179,6 +179,8 @@ def test_chord_and_arc_lengths_are_numpys_row_norms_and_running_sums(seed):
 @pytest.mark.parametrize("seed", range(16))
 def test_a_backward_pass_redone_below_the_changed_rows_is_the_whole_pass_bit_for_bit(seed):
     """
+    A backward pass redone from the highest grid point whose limits changed is the whole pass.
+
     ``_backward_from``: after the limits change at grid points ``top`` and below only (a joined
     timing raising the lowering where the arm's speed must be entered), redoing the pass from
     ``top`` down gives the whole pass on the new limits to the bit; with a wheel (its momentum
