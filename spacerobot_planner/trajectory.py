@@ -549,7 +549,8 @@ def shared_path_models():
     scaling factors (``adapters.post_process``) makes them once.  Keyed by the path's
     values, the densification step and the grid refinement, so a different path gets its
     own; the models are dropped on leaving (nothing outlives the chain).  The trajectories
-    are the same, bit for bit.
+    are the same, bit for bit.  So are :func:`segment_wheel_peaks`' peaks of a segment the
+    chain met before (:class:`_PeakMemo`).
     """
     token = _SHARED_MODELS.set({})
     try:
@@ -2064,7 +2065,54 @@ PEAK_SEARCH_BAND = 0.05
 
 
 @njit(cache=True, nogil=True)
-def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, pair, inertia, out, c):
+def _segment_row(t, q, v, a, k, row, bits):
+    """
+    Fill row (1 + 6 dof,) with segment k's duration and its ends' q, v, a; return a hash of its bits (uint64).
+
+    What a controller segment's motion depends on (its quintic, :func:`_segment_coefficients`): two
+    segments with the same row, bit for bit, move the same.  ``bits``: row's own memory as uint64 (a
+    NumPy view made by the caller: numba's ``view`` of an array the kernel allocated let go of its
+    memory early).
+    """
+    dof = q.shape[1]
+    row[0] = t[k + 1] - t[k]
+    for j in range(dof):
+        row[1 + j] = q[k, j]
+        row[1 + dof + j] = q[k + 1, j]
+        row[1 + 2 * dof + j] = v[k, j]
+        row[1 + 3 * dof + j] = v[k + 1, j]
+        row[1 + 4 * dof + j] = a[k, j]
+        row[1 + 5 * dof + j] = a[k + 1, j]
+    h = np.uint64(0x2545F4914F6CDD1D)
+    mult = np.uint64(0x100000001B3)
+    shift = np.uint64(29)
+    for i in range(bits.size):
+        h = (h ^ bits[i]) * mult
+        h ^= h >> shift
+    return h
+
+
+@njit(cache=True, nogil=True)
+def _memo_slot(keys, row_bits, used, h, bits):
+    """Return the memo's slot of a row (its bits, hash h): its own (found: the same bits) or the free one it takes."""
+    mask = np.uint64(keys.size - 1)
+    slot = np.int64(h & mask)
+    while used[slot]:
+        if keys[slot] == h:
+            same = True
+            for i in range(bits.size):
+                if row_bits[slot, i] != bits[i]:
+                    same = False
+                    break
+            if same:
+                return slot
+        slot = (slot + 1) & np.int64(mask)
+    return slot
+
+
+@njit(cache=True, nogil=True)
+def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, pair, inertia, out, c, keys, row_bits, vals, used,
+                         count, row, bits):
     """
     Fill out (M - 1, 2) with each segment's peak |h_wheel| and |τ_wheel| of the controller's quintics.
 
@@ -2074,7 +2122,10 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, pair, inertia, out
     peak between samples).  t (M,), q, v, a (M, dof) the planned joints,
     which are ``joints`` (dof,) of the full configuration ``q_full`` (n,) (the locked joints'
     positions; at rest); pair, inertia: ``spacecraft._momentum_tables``; c (6, dof) scratch; t increasing
-    strictly (:func:`_require_increasing`).  NaN where a load is.
+    strictly (:func:`_require_increasing`).  NaN where a load is.  keys, row_bits, vals, used, count: a
+    memo of segments met before (:class:`_PeakMemo`; size 0: none): a segment whose row
+    (:func:`_segment_row`) it holds, bit for bit, takes its peaks; one it does not is added while the
+    memo is at most half full.  row (1 + 6 dof,) scratch, bits its uint64 view.
     """
     mpts = t.shape[0]
     n = q_full.shape[0]
@@ -2085,7 +2136,17 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, pair, inertia, out
     fh = np.empty(samples + 1)
     ft = np.empty(samples + 1)
     step = 1.0 / samples
+    memo = keys.size > 0
+    slot = np.int64(0)
+    h_row = np.uint64(0)
     for k in range(mpts - 1):
+        if memo:
+            h_row = _segment_row(t, q, v, a, k, row, bits)
+            slot = _memo_slot(keys, row_bits, used, h_row, bits)
+            if used[slot]:
+                out[k, 0] = vals[slot, 0]
+                out[k, 1] = vals[slot, 1]
+                continue
         dur = t[k + 1] - t[k]
         _segment_coefficients(q, v, a, 3, k, dur, c)
         top_h = top_t = 0.0
@@ -2114,6 +2175,51 @@ def _segment_wheel_peaks(t, q, v, a, samples, joints, q_full, pair, inertia, out
                         top_t = _nan_max(top_t, tau)
         out[k, 0] = top_h
         out[k, 1] = top_t
+        if memo and 2 * (count[0] + 1) <= keys.size:
+            used[slot] = True
+            keys[slot] = h_row
+            row_bits[slot, :] = bits
+            vals[slot, 0] = top_h
+            vals[slot, 1] = top_t
+            count[0] += 1
+
+
+class _PeakMemo:
+    """
+    :func:`segment_wheel_peaks`' memo within :func:`shared_path_models`: each segment's peaks, by its row.
+
+    A chain's re-timings lower the limits along stretches: most of the re-timed trajectory's
+    segments are the last round's, bit for bit (the servicer's: a third of them in the second
+    round, 97 % in the third), and their quintics' loads need not be sampled again.  Open
+    addressing over ``slots`` (a power of two), at most half of them used.
+    """
+
+    def __init__(self, slots: int, width: int):
+        self.keys = np.zeros(slots, np.uint64)
+        self.row_bits = np.zeros((slots, width), np.uint64)
+        self.vals = np.zeros((slots, 2))
+        self.used = np.zeros(slots, np.bool_)
+        self.count = np.zeros(1, np.int64)
+
+    def arrays(self) -> tuple:
+        return self.keys, self.row_bits, self.vals, self.used, self.count
+
+
+#: no memo (outside :func:`shared_path_models`)
+_NO_MEMO = _PeakMemo(0, 1)
+
+
+def _peak_memo(ident: tuple, segments: int, width: int) -> _PeakMemo:
+    """Return the chain's memo of wheel peaks for ``ident`` (the tables, the locked joints, the samples), else none."""
+    shared = _SHARED_MODELS.get()
+    if shared is None:
+        return _NO_MEMO
+    key = ("segment_wheel_peaks",) + ident
+    memo = shared.get(key)
+    if memo is None:
+        slots = 1 << max(10, int(8 * segments).bit_length())
+        memo = shared[key] = _PeakMemo(slots, width)
+    return memo
 
 
 def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> np.ndarray:
@@ -2142,7 +2248,11 @@ def segment_wheel_peaks(robot, masses, traj, samples_per_segment: int = 16) -> n
         return out
     _require_increasing(traj.times_s, "segment_wheel_peaks")
     given = (traj.times_s, q, traj.velocities_rad_s, traj.accelerations_rad_s2)
+    q_full = robot.full(q[0])
+    memo = _peak_memo((pair.tobytes(), inertia.tobytes(), q_full.tobytes(), int(samples_per_segment)),
+                      len(q) - 1, 1 + 6 * q.shape[1])
+    row = np.zeros(1 + 6 * q.shape[1])
     _segment_wheel_peaks(*[np.ascontiguousarray(x, dtype=float) for x in given], int(samples_per_segment),
-                         np.asarray(robot.planned_joints, np.int64), robot.full(q[0]), pair, inertia, out,
-                         np.zeros((6, q.shape[1])))
+                         np.asarray(robot.planned_joints, np.int64), q_full, pair, inertia, out,
+                         np.zeros((6, q.shape[1])), *memo.arrays(), row, row.view(np.uint64))
     return out

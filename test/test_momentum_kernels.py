@@ -148,3 +148,40 @@ def test_segment_wheel_peaks_are_each_segments_peak_load(name, seed):
     with pytest.raises(ValueError, match="increase strictly"):
         segment_wheel_peaks(robot, sc.masses, SimpleNamespace(times_s=np.r_[t[:3], t[2], t[4:]], positions_rad=q,
                                                               velocities_rad_s=v, accelerations_rad_s2=a))
+
+
+def test_a_chains_memo_of_segment_wheel_peaks_gives_each_segment_its_own_peaks():
+    """
+    Within ``shared_path_models`` (a chain) segment_wheel_peaks keeps each segment's peaks by its row.
+
+    A re-timed trajectory sharing most segments with the last one (here: the same points, one
+    point's acceleration and one duration changed, then the points shifted in time by a constant)
+    gets, segment for segment, what a call without the memo computes, bit for bit: the changed
+    segments their own peaks (a memo keyed without the accelerations or the durations would hand
+    them the old ones), the others theirs.
+    """
+    from spacerobot_planner.trajectory import shared_path_models
+
+    sc = load_scenario(CONFIG / "servicer_3dof.yaml")
+    robot = sc.robot
+    dof = len(robot.planned_joints)
+    rng = np.random.default_rng(77)
+    m = 30
+    t = np.round(1024 * np.concatenate([[0.0], np.cumsum(rng.uniform(0.3, 1.5, m - 1))])) / 1024   # shifts exact
+    amp, w, ph = rng.uniform(0.2, 1.0, dof), rng.uniform(0.5, 2.0, dof), rng.uniform(0, 2 * np.pi, dof)
+    q = amp * np.sin(w * t[:, None] + ph)
+    v = amp * w * np.cos(w * t[:, None] + ph)
+    a = -amp * w ** 2 * np.sin(w * t[:, None] + ph)
+    first = SimpleNamespace(times_s=t, positions_rad=q, velocities_rad_s=v, accelerations_rad_s2=a)
+    a2 = a.copy()
+    a2[7] *= 1.3
+    t2 = t.copy()
+    t2[20:] += 0.25                                     # segment 19 lasts longer, the later ones move in time
+    second = SimpleNamespace(times_s=t2 + 3.0, positions_rad=q, velocities_rad_s=v, accelerations_rad_s2=a2)
+    alone = [segment_wheel_peaks(robot, sc.masses, tr) for tr in (first, second)]
+    with shared_path_models():
+        chained = [segment_wheel_peaks(robot, sc.masses, tr) for tr in (first, second, second)]
+    for got, want in zip(chained, alone + alone[1:]):
+        np.testing.assert_array_equal(got, want)
+    changed = np.flatnonzero(np.any(alone[0] != alone[1], axis=1))
+    assert set(changed) == {6, 7, 19}, changed
