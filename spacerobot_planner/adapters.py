@@ -292,6 +292,9 @@ def _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, 
                   from_end_at_rest) -> Processed:
     """:func:`post_process`'s chain (its arguments, in order)."""
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
+    if len(motions.periodic) != np.shape(path_rad)[-1]:
+        raise ValueError(f"motions: a validator of {len(motions.periodic)} planned joints for a path of "
+                         f"{np.shape(path_rad)[-1]} (the scenario's own validator expected)")
     # a join's paths (the continuation, the corner and its certified blends) do not depend on the
     # limits: made once, the re-timings only time them (HorizonPassed: the arm is past the horizon)
     paths = None

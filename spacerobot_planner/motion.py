@@ -495,6 +495,20 @@ class MotionValidator:
         return within_bounds(q_rad, self.lower_rad, self.upper_rad, self.periodic, tol_rad)
 
     # ---------------------------------------------------------------- motions
+    def _rows(self, path_rad) -> np.ndarray:
+        """
+        Return ``path_rad`` as contiguous float64 rows (M, dof) of this validator's planned joints.
+
+        ValueError for another shape: the kernels write each row into the robot's configuration
+        by the planned joints' indices, unchecked (a path of another robot's joints would write
+        past it).
+        """
+        p = np.ascontiguousarray(path_rad, dtype=float)
+        if p.ndim != 2 or p.shape[1] != len(self.periodic) or len(p) == 0:
+            raise ValueError(f"path_rad: rows of this validator's {len(self.periodic)} planned joints expected, "
+                             f"got shape {p.shape}")
+        return p
+
     def check(self, path_rad, *, step_rad: float | None = None, required_clearance_m: float | None = None,
               min_step_rad: float = 1e-6, certified: bool = True, vertex_clearance_m=None) -> PathCheck:
         """
@@ -512,7 +526,7 @@ class MotionValidator:
         """
         checker = self.checker
         step = self.step_rad if step_rad is None else float(step_rad)
-        p = np.ascontiguousarray(path_rad, dtype=float)
+        p = self._rows(path_rad)
         threshold = checker.margin_m if required_clearance_m is None else max(checker.margin_m,
                                                                               required_clearance_m)
         if len(p) == 1:
@@ -544,7 +558,7 @@ class MotionValidator:
         of consecutive ones.  Returns what :meth:`check` returns, except ``n_checked``:
         the clearance evaluations this call made.
         """
-        p = np.ascontiguousarray(path_rad, dtype=float)
+        p = self._rows(path_rad)
         m = len(p) - 1
         if m < 1:
             return self.check(p)

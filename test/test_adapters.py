@@ -186,3 +186,33 @@ def test_the_controllers_motion_keeps_the_wheel_limits(offset_deg):
     # the report (the node's /diagnostics) gives the peaks of that motion, not of the points
     np.testing.assert_allclose([out.reaction.peak_wheel_momentum_Nms, out.reaction.peak_wheel_torque_Nm],
                                [np.max(np.abs(h)), np.max(np.abs(tau))], rtol=2e-3)
+
+
+def test_another_robots_validator_is_refused_by_name_not_run():
+    """
+    A validator of another robot's joints (``post_process(motions=...)``, ``MotionValidator.check``) is a ValueError.
+
+    Its kernels write each row into that robot's configuration by its planned joints' indices,
+    unchecked: a 3-joint path checked by a 4-joint validator read and wrote past its arrays (a heap
+    corrupted, a crash later, seen in a bench harness).  Now the chain and the check name the
+    mismatch and run nothing.
+    """
+    from pathlib import Path
+
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.motion import MotionValidator
+
+    config = Path(__file__).resolve().parent.parent / "config"
+    paper, other = load_scenario(config / "paper_3dof.yaml"), load_scenario(config / "servicer_4joint.yaml")
+    assert len(paper.robot.planned_periodic) != len(other.robot.planned_periodic)
+    lo, hi = paper.robot.planned_lower_rad, paper.robot.planned_upper_rad
+    path = np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8)
+    validator = MotionValidator.for_scene(other.robot, other.scene)
+    with pytest.raises(ValueError, match="motions: a validator of 4 planned joints for a path of 3"):
+        post_process(paper, path, motions=validator)
+    for rows in (path, path[:1], path[:, :2]):
+        with pytest.raises(ValueError, match="rows of this validator's 4 planned joints"):
+            validator.check(rows)
+        with pytest.raises(ValueError, match="rows of this validator's 4 planned joints"):
+            validator.check_kept(rows)
+    assert post_process(paper, path).trajectory is not None       # its own validator: as ever
