@@ -585,3 +585,40 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
     assert PLAN_CANCELLED_AT_SHUTDOWN.search(text), text[-2000:]
     assert not pid_alive(kids[0]), "the planning process outlived the node"
     assert dt < PROMPT_BOUND_S, f"the node took {dt:.2f} s to exit after SIGINT\n{text[-2000:]}"
+
+
+def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress():
+    """
+    A log line of the session's worker while rclpy's context shutdown holds the context's lock returns at once.
+
+    rclpy's context shutdown destroys the nodes holding the context's lock, and the node's destroy
+    waits for its worker: a worker log line that asked ``context.ok()`` then waited for the thread
+    that waited for it (5 s, and the worker outlived the node: seen under load, a Ctrl-C during a
+    plan, ``test_context_shutdown_during_long_plan_main_path``).  Here the test holds the lock as the
+    shutdown does while the worker thread logs: the line goes to stderr and the thread ends.
+    """
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides({**scene_params("3dof"),
+                                                                             "autostart": False}))
+    took = []
+
+    def log_a_line():
+        t0 = time.monotonic()
+        node._log("info", "a line from the worker")
+        took.append(time.monotonic() - t0)
+
+    worker = threading.Thread(target=log_a_line, name="worker-like")
+    held, node.session.worker = node.session.worker, worker
+    try:
+        with ctx._lock:                  # as Context.shutdown holds it while it destroys the nodes
+            worker.start()
+            worker.join(3.0)
+            stuck = worker.is_alive()
+        worker.join(10.0)
+    finally:
+        node.session.worker = held
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    assert not stuck, "the worker's log line waited for the context's lock"
+    assert took and took[0] < 1.0, took

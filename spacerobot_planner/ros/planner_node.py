@@ -83,6 +83,9 @@ WARM_UP_TIMEOUT_S = 300.0
 #: controller's) takes it meanwhile instead of waiting for them.  Measured with
 #: ``bench latency`` (load 9, 2 cores): send -> arrival 2.7 -> 2.0 ms median, p90 7.6 -> 2.5 ms, s
 YIELD_AFTER_SEND_S = 0.0003
+#: the worker thread's log lines wait at most this long for the rclpy context's lock, s
+#: (:meth:`PlannerNode._context_ok_soon`)
+CONTEXT_WAIT_S = 0.05
 #: the severities of ``_log``'s levels (any other level: info)
 _SEVERITY = {"error": LoggingSeverity.ERROR, "warning": LoggingSeverity.WARN}
 
@@ -467,10 +470,29 @@ class PlannerNode(LifecycleNode):
         needs (the worker would wait for the thread that waits for it).
         """
         in_worker = threading.current_thread() is self.session.worker
-        if not (in_worker and self.session.closing) and self.context.ok():
+        if (self.context.ok() if not in_worker else not self.session.closing and self._context_ok_soon()):
             self._log_lines.log(_SEVERITY.get(level, LoggingSeverity.INFO), text)
         else:
             print(f"[{level.upper()}] [{self._log_name}]: {text}", file=sys.stderr)
+
+    def _context_ok_soon(self) -> bool:
+        """
+        Return ``context.ok()`` for the worker thread, false when its lock is not free within ``CONTEXT_WAIT_S``.
+
+        The shutdown may take the context's lock after the worker saw the session open: rclpy's
+        context shutdown destroys the nodes holding it, and the node's destroy waits for the worker
+        (up to 5 s, and the worker then outlived the node: seen under load, a Ctrl-C during a plan).
+        Other holders (the executor's ``ok()`` each spin) hold it for microseconds.
+        """
+        lock = getattr(self.context, "_lock", None)        # rclpy's Context: an RLock
+        if lock is None:
+            return self.context.ok()
+        if not lock.acquire(timeout=CONTEXT_WAIT_S):
+            return False
+        try:
+            return self.context.ok()
+        finally:
+            lock.release()
 
     # ------------------------------------------------------------------ shutdown
     def destroy_node(self):
