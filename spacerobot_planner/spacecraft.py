@@ -33,6 +33,7 @@ with the reaction on); no geometry, no ROS.
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from dataclasses import dataclass
@@ -171,6 +172,7 @@ def system_com_m(robot, masses: MassProperties, q_full) -> np.ndarray:
     return np.einsum("b,...bd->...d", b["m"], b["r"]) / b["m"].sum()
 
 
+@functools.lru_cache(maxsize=32)
 def _momentum_tables(robot, masses):
     """
     Return (pair (n, n), inertia (n,)): the angular momentum's coefficients, the one rule of it.
@@ -179,7 +181,8 @@ def _momentum_tables(robot, masses):
     link centres r_b = Σ_k a[b, k] e_k (``_tables``; the body's centre, row 0, at the origin):
     h = Σ_b m_b (r_b − r̄) × (ṙ_b − r̄̇) + Σ I φ̇ = Σ_ij pair[i, j] cos(φ_i − φ_j) φ̇_j + Σ_j inertia[j] φ̇_j,
     pair = aᵀ diag(m) a − (aᵀm)(aᵀm)ᵀ / Σm (symmetric) and inertia the links' with the body's
-    on the first (the body turns with φ_1).
+    on the first (the body turns with φ_1).  Kept per robot and masses (every timing and check of a
+    chain asks): read them, never write them.
     """
     cl, m, inertia_b = _tables(robot, masses)
     a = np.vstack([np.zeros((1, cl.shape[1])), cl])
@@ -349,12 +352,11 @@ class WheelModel:
 
         g = H·q′ (G,) and g′ = d(H·q′)/ds (G,), so h_wheel = −g ṡ and τ_wheel = −(g′ ṡ² + g s̈).
         """
-        qf = self.robot.full(q_rad)
-        d1 = _planned_rates(self.robot, dq_ds)
-        d2 = _planned_rates(self.robot, d2q_ds2)
-        g = angular_momentum_Nms(self.robot, self.masses, qf, d1)
-        gp = momentum_rate_Nm(self.robot, self.masses, qf, d1, d2)
-        return g, gp
+        pair, inertia = _momentum_tables(self.robot, self.masses)
+        shape, (qf, d1, d2) = _rows(self.robot.full(q_rad), _planned_rates(self.robot, dq_ds),
+                                    _planned_rates(self.robot, d2q_ds2))
+        g, gp = _momentum_rows(pair, inertia, qf, d1, d2, True)        # both in one pass
+        return _shaped(g, shape), _shaped(gp, shape)
 
 
 def wheel_load(robot, masses: MassProperties, positions_rad, velocities_rad_s, accelerations_rad_s2):
