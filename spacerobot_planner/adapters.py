@@ -47,6 +47,7 @@ import numpy as np
 
 from .motion import MotionValidator
 from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, timed_join
+from .settings import SessionSettings
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import (Lowering, Resampled, Trajectory, controller_check, resample, segment_peaks,
@@ -258,12 +259,12 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
                              from_end_at_rest)
 
 
-def warm_up(scenario, horizon_s: float = 1.0, follow_tolerance_rad: float = 0.035) -> None:
+def warm_up(scenario) -> None:
     """
     Load the chain's kernels (numba's cache, else compiled) before a user's plan meets them: two chains.
 
     One from rest along a straight path through the middle of the joint ranges, and one joined to
-    it while the arm moves (``replanning.plan_start`` ``horizon_s`` ahead, the arm on the trajectory;
+    it while the arm moves (``replanning.plan_start`` with the session's defaults, the arm on the trajectory;
     a new path from the join on to the first's end, a little off it): a joined replan's own kernels
     (the start tangent's spline, the joins' turns) otherwise loaded in the middle of the first joined
     replan, some 7 ms of it.  Raises ValueError when the scenario's limits refuse the first chain
@@ -278,7 +279,8 @@ def warm_up(scenario, horizon_s: float = 1.0, follow_tolerance_rad: float = 0.03
     ex = Executing(dense, np.asarray(first.indices), 0)
     now = int(0.3e9 * dense.duration_s)
     q = ex.expected_at(now)
-    start, join, _ = plan_start(ex, now, q, now, horizon_s, follow_tolerance_rad, robot.planned_periodic)
+    s = SessionSettings()
+    start, join, _ = plan_start(ex, now, q, now, s.horizon_s, s.follow_tolerance_rad, robot.planned_periodic)
     if join is None:
         return
     end = np.clip(dense.positions_rad[-1] + 0.02 * (hi - lo), lo, hi)

@@ -1189,19 +1189,25 @@ def _lowered_factors(p, refine: int, lowered) -> np.ndarray | None:
     return f if hit else None
 
 
-@njit(cache=True, nogil=True)
-def _row_hashes(bits):
-    """Return a hash (uint64 (M,)) of each row of bits (M, n) uint64: the bit patterns mixed (products mod 2^64)."""
-    m, n = bits.shape
-    h = np.empty(m, np.uint64)
+@njit(cache=True, nogil=True, inline="always")
+def _bits_hash(bits):
+    """Return a hash (uint64) of the bit patterns bits (n,) uint64: mixed by products mod 2^64."""
     mult = np.uint64(0x100000001B3)
     shift = np.uint64(29)
+    x = np.uint64(0x2545F4914F6CDD1D)
+    for j in range(bits.size):
+        x = (x ^ bits[j]) * mult
+        x ^= x >> shift
+    return x
+
+
+@njit(cache=True, nogil=True)
+def _row_hashes(bits):
+    """Return a hash (uint64 (M,)) of each row of bits (M, n) uint64 (:func:`_bits_hash`)."""
+    m = bits.shape[0]
+    h = np.empty(m, np.uint64)
     for i in range(m):
-        x = np.uint64(0x2545F4914F6CDD1D)
-        for j in range(n):
-            x = (x ^ bits[i, j]) * mult
-            x ^= x >> shift
-        h[i] = x
+        h[i] = _bits_hash(bits[i])
     return h
 
 
@@ -2070,9 +2076,8 @@ def _segment_row(t, q, v, a, k, row, bits):
     Fill row (1 + 6 dof,) with segment k's duration and its ends' q, v, a; return a hash of its bits (uint64).
 
     What a controller segment's motion depends on (its quintic, :func:`_segment_coefficients`): two
-    segments with the same row, bit for bit, move the same.  ``bits``: row's own memory as uint64 (a
-    NumPy view made by the caller: numba's ``view`` of an array the kernel allocated let go of its
-    memory early).
+    segments with the same row, bit for bit, move the same.  ``bits``: row's own memory as uint64 (the
+    caller's NumPy view of it).
     """
     dof = q.shape[1]
     row[0] = t[k + 1] - t[k]
@@ -2083,13 +2088,7 @@ def _segment_row(t, q, v, a, k, row, bits):
         row[1 + 3 * dof + j] = v[k + 1, j]
         row[1 + 4 * dof + j] = a[k, j]
         row[1 + 5 * dof + j] = a[k + 1, j]
-    h = np.uint64(0x2545F4914F6CDD1D)
-    mult = np.uint64(0x100000001B3)
-    shift = np.uint64(29)
-    for i in range(bits.size):
-        h = (h ^ bits[i]) * mult
-        h ^= h >> shift
-    return h
+    return _bits_hash(bits)
 
 
 @njit(cache=True, nogil=True)

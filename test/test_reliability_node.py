@@ -601,24 +601,16 @@ def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress():
     rclpy.init(context=ctx)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides({**scene_params("3dof"),
                                                                              "autostart": False}))
-    took = []
-
-    def log_a_line():
-        t0 = time.monotonic()
-        node._log("info", "a line from the worker")
-        took.append(time.monotonic() - t0)
-
-    worker = threading.Thread(target=log_a_line, name="worker-like")
+    worker = threading.Thread(target=node._log, args=("info", "a line from the worker"), name="worker-like")
     held, node.session.worker = node.session.worker, worker
     try:
         with ctx._lock:                  # as Context.shutdown holds it while it destroys the nodes
             worker.start()
-            worker.join(3.0)
+            worker.join(60.0)            # before: it waits for the lock, held until this block ends
             stuck = worker.is_alive()
-        worker.join(10.0)
+        worker.join(60.0)
     finally:
         node.session.worker = held
         node.destroy_node()
         rclpy.shutdown(context=ctx)
     assert not stuck, "the worker's log line waited for the context's lock"
-    assert took and took[0] < 1.0, took
