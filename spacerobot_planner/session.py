@@ -631,8 +631,8 @@ class CaptureSession:
             if req.on_progress is not None:
                 req.on_progress(p)
 
-        # the job goes first: the announcement is made at its first progress (the planning process
-        # has begun), in parallel with the plan, or else once the backend answered
+        # the job goes first: the announcement is made at its first progress (the backend's, once
+        # the job is handed over: in parallel with the plan), or else once the backend answered
         out = self.backend.run(job, progress=progress) if self.backend is not None else None
         stamps["received"] = time.perf_counter()
         announce()

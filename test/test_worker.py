@@ -100,6 +100,36 @@ def test_a_job_without_stages_reports_only_that_it_began(backend):
         np.testing.assert_array_equal(outs[False].result.path_rad, outs[True].result.path_rad)
 
 
+def test_a_job_without_stages_gets_no_message_from_the_process_before_its_outcome(backend, monkeypatch):
+    """
+    The planning process answers a job without stages with its outcome alone.
+
+    The job's start is the backend's own report (``worker.began``): a message from the process
+    in the middle of a replan only woke the node's waiting thread.  What came over the socket
+    is counted at the backend's receiving end; a job with stages still gets its Progress.
+    """
+    sc, b = backend
+    got = []
+    recv = b._recv
+
+    def counting(gen=None):
+        msg = recv(gen)
+        got.append(type(msg).__name__)
+        return msg
+
+    monkeypatch.setattr(b, "_recv", counting)
+    for gen, stages in ((21, False), (22, True), (23, False)):
+        got.clear()
+        seen = []
+        out = b.run(_job(sc, gen, stages=stages), progress=lambda p: seen.append(p.stage))
+        assert isinstance(out, PlanDone) and out.result.ok, out
+        assert seen[0] == "cspace"
+        if stages:
+            assert got.count("Progress") >= 1 and got[-1] == "PlanDone", got
+        else:
+            assert got == ["PlanDone"] and seen == ["cspace"], (got, seen)
+
+
 def test_jobs_of_the_same_settings_keep_the_goal_and_a_new_target_or_scene_takes_its_own():
     """
     A replan (the same scene bytes) reuses the applied settings and goal.
