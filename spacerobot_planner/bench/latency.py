@@ -12,7 +12,10 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   acceleration limits allow in that time);
 - ``js_*``: where ``latency_joint_state`` goes (the session's stamps, ``session.Outcome.stamps``):
   ``js_to_planning`` (the joint state and the ``~/replan`` call through the executor, the
-  session's queue, the start on the executing trajectory), ``js_plan_round_trip`` (the job to
+  session's queue, the start on the executing trajectory; in two: ``js_to_request``, up to the
+  session's request from the service callback, the bench's own wait for the node to hold the
+  joint state included, and ``js_request_to_planning``, the session's worker thread woken and
+  the start decided), ``js_plan_round_trip`` (the job to
   the planning process and its answer back; ``js_plan_in_process``: the plan itself, its
   ``timings_s``), ``js_chain`` (``adapters.post_process``), ``js_record_and_send`` (the record,
   the stamp, the messages, the trajectories published), ``js_sent_to_arrival`` (the driver's
@@ -175,12 +178,12 @@ def _run(args) -> int:
     if not args.no_moving:
         rows.append(_moving(args, flat, margins))
     rows.append(_margin_row(margins, sc.grid.label(), args))
-    print(f"{'stage':<22}{'grid':<12}{'median ms':>10}{'p90 ms':>9}{'max ms':>9}{'aim ms':>8}")
+    print(f"{'stage':<24}{'grid':<12}{'median ms':>10}{'p90 ms':>9}{'max ms':>9}{'aim ms':>8}")
     for r in rows:
         if "seconds" not in r:
             continue
         aim = "" if r["aim_s"] is None else f"{1e3 * r['aim_s']:.0f}"
-        print(f"{r['stage']:<22}{r['grid']:<12}{1e3 * r['seconds']:>10.1f}{1e3 * r['p90_s']:>9.1f}"
+        print(f"{r['stage']:<24}{r['grid']:<12}{1e3 * r['seconds']:>10.1f}{1e3 * r['p90_s']:>9.1f}"
               f"{1e3 * r['max_s']:>9.1f}{aim:>8}")
     for r in rows:
         if r["stage"] == "stamp_margin":
@@ -267,7 +270,8 @@ def _stats(vals) -> dict:
 
 
 #: the parts of latency_joint_state (see the module docstring), in order
-_PARTS = ("js_to_planning", "js_plan_round_trip", "js_plan_in_process", "js_chain", "js_record_and_send",
+_PARTS = ("js_to_planning", "js_to_request", "js_request_to_planning",
+          "js_plan_round_trip", "js_plan_in_process", "js_chain", "js_record_and_send",
           "js_sent_to_arrival", "js_after_sent")
 
 
@@ -289,7 +293,9 @@ def _parts(node, t0: float, arrival: float, timeout_s: float = 5.0) -> dict | No
         if time.perf_counter() > end:
             return None
         time.sleep(0.001)
-    return {"js_to_planning": st["planning"] - t0, "js_plan_round_trip": st["received"] - st["planning"],
+    return {"js_to_planning": st["planning"] - t0, "js_to_request": st["request"] - t0,
+            "js_request_to_planning": st["planning"] - st["request"],
+            "js_plan_round_trip": st["received"] - st["planning"],
             "js_plan_in_process": float(out.result.timings_s["total"]), "js_chain": st["chain"] - st["received"],
             "js_record_and_send": st["sent"] - st["chain"], "js_sent_to_arrival": arrival - st["sent"],
             "js_after_sent": st["published"] - st["sent"]}
