@@ -11,6 +11,7 @@ of cells counted here.  Level 1 as a K-cycle's (``kcycle``) must give the V-cycl
 and SciPy's as well, and run where its rule says (3-D problems of ``KCYCLE_MIN_UNKNOWNS`` or more).
 """
 
+import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -401,3 +402,32 @@ def test_the_k_cycle_solves_problems_far_from_unit_scale(name, scale):
     assert np.all(np.isfinite(x)) and res < tol
     assert np.max(np.abs(rhs * scale - A @ x)) < tol
     assert its <= unit[1] + 1, (its, unit[1])
+
+
+@pytest.mark.parametrize("name", list(PROBLEMS))
+def test_the_cells_loops_on_all_threads_give_the_same_bits_and_scipys_solution(name):
+    """
+    The fine level's vector loops over chunks on numba's threads (``chunk_cells``, large grids) change no bit.
+
+    Chunks of 37 cells (boundaries inside every loop range, across the seam), with numba's
+    threads as they are and with one: the one-thread solution bit for bit and its iterations,
+    the residual met on the grid's own Laplacian, SciPy's direct solve; with level 1 as a
+    K-cycle's too where it is on its cells (the flexible CG's other update).
+    """
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    tol = 1e-10
+    direct = spla.spsolve(A.tocsc(), rhs)
+    threads = numba.get_num_threads()
+    for kcycle in (False, True):
+        one = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured", kcycle=kcycle, chunk_cells=0)
+        for n_threads in sorted({1, threads}):
+            numba.set_num_threads(n_threads)
+            try:
+                many = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="structured", kcycle=kcycle,
+                                       chunk_cells=37)
+            finally:
+                numba.set_num_threads(threads)
+            assert np.array_equal(many[0], one[0]) and many[1] == one[1] and many[2] == one[2], (kcycle, n_threads)
+        assert np.max(np.abs(rhs - A @ one[0])) < tol
+        assert np.max(np.abs(one[0] - direct)) < 1e-6 * np.max(np.abs(direct))

@@ -94,6 +94,13 @@ ROUTES = ("auto", "graph", "structured")
 #: first band alone at 36³: 12 -> 10 iterations, 2.7 -> 3.0 ms.  On 2-D grids, where level 1 is
 #: a quarter of the fine level, no gain: 720² 23 -> 15 iterations, 50.5-51.6 -> 56.2-57.0 ms.
 KCYCLE_MIN_UNKNOWNS = 500_000
+#: The fine level on cells runs its vector loops on all cores from this many cells on (numba's
+#: threads, chunks of PARALLEL_CHUNK cells: the same values, the dot products in one thread in
+#: their fixed order).  The paper 3-DOF scene's first band on 2 cores, one thread against two
+#: (median of 5, ms): 36³ (43 k cells) 3.5 / 4.0, 48³ (99 k) 9.5 / 8.9, 60³ (184 k) 19.2 / 15.6,
+#: 72³ 39 / 28; 2-D 362² (101 k) 12.8 / 12.8.
+PARALLEL_MIN_CELLS = 150_000
+PARALLEL_CHUNK = 16_384
 
 
 def sweeps_of(ndim: int) -> int:
@@ -602,6 +609,40 @@ def _subtract_max(r, q, c, n):
     return out.view(np.float64)[0]
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _subtract_max_chunks(r, q, c, n, chunk):
+    """:func:`_subtract_max` over chunks of ``chunk`` entries in parallel: the same values, the same maximum."""
+    count = (n + chunk - 1) // chunk
+    part = np.zeros(count)
+    for j in nb.prange(count):
+        k0 = j * chunk
+        k1 = min(n, k0 + chunk)
+        part[j] = _subtract_max(r[k0:k1], q[k0:k1], c, k1 - k0)
+    m = 0.0
+    for j in range(count):
+        m = max(m, part[j])
+    return m
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _step_chunks(u, p, alpha, n, chunk):
+    """Add alpha p to u over chunks in parallel (:func:`_descend`'s last step): the same values."""
+    for j in nb.prange((n + chunk - 1) // chunk):
+        k1 = min(n, (j + 1) * chunk)
+        for i in range(j * chunk, k1):
+            u[i] += alpha * p[i]
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _turn_chunks(u, p, z, alpha, beta, n, chunk):
+    """Add alpha p to u, then set p = z + beta p (:func:`_turn`'s pass) over chunks in parallel: the same values."""
+    for j in nb.prange((n + chunk - 1) // chunk):
+        k1 = min(n, (j + 1) * chunk)
+        for i in range(j * chunk, k1):
+            u[i] += alpha * p[i]
+            p[i] = z[i] + beta * p[i]
+
+
 @nb.njit(cache=True, nogil=True)
 def _dot(a, b, n):
     """Return sum_i a[i] * b[i] over the first n entries, in a fixed order (the same bits every run)."""
@@ -964,7 +1005,7 @@ def _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, 
 @nb.njit(cache=True, nogil=True)
 def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg, off,
              sizes, chol, chol_t, rf, xf, res, x, b, r, sweeps, boost, coarse_sweeps, stop, c_on, c_at, c_wts,
-             c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw):
+             c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw, chunks):
     """
     :func:`_vcycle` with the fine level on cells (:mod:`.structured`): compute xf = M^-1 rf; return rf · xf.
 
@@ -981,16 +1022,23 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     """
     deg = ranges.shape[2] - 2
     inv_deg = 1.0 / deg
-    structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
-    structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
+    par = chunks.shape[1] > 0
+    if par:
+        structured.first_red_chunks(xf, rf, mask, chunks, inv_deg)
+    else:
+        structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
+    _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_black, 1, deg, inv_deg)
     for _ in range(sweeps - 1):
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg)
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
+        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_red, 0, deg, inv_deg)
+        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_black, 1, deg, inv_deg)
     if stop[0] != 0:
         return 0.0
     cb = off[1]
     if c_on:
-        structured.restrict_red(rf, xf, res, gather, c_at, b1.reshape(-1), ranges, nranges, cut_red, deg)
+        if par:
+            structured.restrict_red_chunks(rf, xf, res, gather, c_at, b1.reshape(-1), ranges, chunks, cut_red, deg)
+        else:
+            structured.restrict_red(rf, xf, res, gather, c_at, b1.reshape(-1), ranges, nranges, cut_red, deg)
         if kcyc:
             _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, kc, kv, kw, red,
                            rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost,
@@ -1000,27 +1048,44 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
                           wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
     else:
         bc = b[cb:off[2]]
-        structured.restrict_red(rf, xf, res, gather, c_at, bc, ranges, nranges, cut_red, deg)
+        if par:
+            structured.restrict_red_chunks(rf, xf, res, gather, c_at, bc, ranges, chunks, cut_red, deg)
+        else:
+            structured.restrict_red(rf, xf, res, gather, c_at, bc, ranges, nranges, cut_red, deg)
         bc[sizes[1]] = 0.0
         _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 1, boost,
                       coarse_sweeps)
     if stop[0] != 0:
         return 0.0
-    if c_on:
-        structured.prolong_red(xf, x1.reshape(-1), c_fine_aggr, ranges, nranges, boost)
+    xc, pa = (x1.reshape(-1), c_fine_aggr) if c_on else (x[cb:off[2]], aggr)
+    if par:
+        structured.prolong_red_chunks(xf, xc, pa, chunks, boost)
     else:
-        structured.prolong_red(xf, x[cb:off[2]], aggr, ranges, nranges, boost)
+        structured.prolong_red(xf, xc, pa, ranges, nranges, boost)
     for _ in range(sweeps - 1):
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg)
+        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_black, 1, deg, inv_deg)
+        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_red, 0, deg, inv_deg)
+    if par:
+        s_black = structured.half_sweep_dot_chunks(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, deg, inv_deg)
+        return structured.half_sweep_dot_chunks(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, deg,
+                                                inv_deg) + s_black
     s_black = structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
     return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg) + s_black
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut, colour, deg, inv_deg):
+    """One colour's half-sweep on the cells: over ``chunks`` in parallel when ``par`` (the same values)."""
+    if par:
+        structured.half_sweep_chunks(xf, rf, mask, ranges, chunks, cut, colour, deg, inv_deg)
+    else:
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut, colour, deg, inv_deg)
 
 
 @nb.njit(cache=True, nogil=True)
 def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt64, diag64, inv_diag64, agg,
           off, sizes, chol, rhs, u, tol, max_iter, sweeps, boost, coarse_sweeps, deadline, stop, c_on, c_at, c_wts,
-          c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, kcyc):
+          c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, kcyc, chunk):
     """
     :func:`_pcg` with the fine level on cells (:mod:`.structured`; rhs, u float64 (2, H), 0 off the unknowns).
 
@@ -1055,7 +1120,13 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     kw = np.zeros(kshape, np.float32)
     rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
     deg = ranges.shape[2] - 2
-    structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
+    # chunk > 0: the fine level's vector loops over chunks of that many cells, on all cores
+    chunks = structured.chunks_of(ranges, nranges, chunk) if chunk > 0 else np.zeros((2, 0, 3), np.int64)
+    par = chunks.shape[1] > 0
+    if par:
+        structured.product_dot_chunks(u, q, mask, ranges, nranges, chunks, cut_red, cut_black, deg)
+    else:
+        structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
     rl[:] = rhs.reshape(-1)
     res = _subtract_max(rl, ql, 1.0, cells)
     if res < tol:
@@ -1063,25 +1134,39 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     rz = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg,
                   off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost, coarse_sweeps, stop, c_on, c_at,
                   c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv,
-                  kw)
+                  kw, chunks)
     pl[:] = xl
     it = 0
     while it < max_iter:
         if stop[0] != 0 or (deadline > 0.0 and _now() > deadline):      # polled before every iteration
             break
         it += 1
-        pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
+        if par:
+            pq = structured.product_dot_chunks(p, q, mask, ranges, nranges, chunks, cut_red, cut_black, deg)
+        else:
+            pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
         if not pq > 0.0:
             break
-        alpha, res, done = _descend(rl, ql, ul, pl, rz, pq, tol, cells, stop)
+        if par:
+            alpha = rz / pq
+            res = _subtract_max_chunks(rl, ql, alpha, cells, chunk)
+            done = res < tol or stop[0] != 0
+            if done:
+                _step_chunks(ul, pl, alpha, cells, chunk)
+        else:
+            alpha, res, done = _descend(rl, ql, ul, pl, rz, pq, tol, cells, stop)
         if done:
             break
         rz_new = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag,
                           inv_diag, agg, off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost,
                           coarse_sweeps, stop, c_on, c_at, c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr,
-                          c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw)
+                          c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw, chunks)
         # beta's numerator: z · r, or the flexible z · (r − r_old) = −alpha z · q (r_old = r + alpha q)
-        _turn(ul, pl, xl, alpha, rz, -alpha * structured.dot_all(xl, ql) if kcyc else rz_new, cells)
+        num = -alpha * structured.dot_all(xl, ql) if kcyc else rz_new
+        if par:
+            _turn_chunks(ul, pl, xl, alpha, num / rz, cells, chunk)
+        else:
+            _turn(ul, pl, xl, alpha, rz, num, cells)
         rz = rz_new
     return it, res
 
@@ -1099,7 +1184,7 @@ def _coarse_args(coarse, h):
 
 
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=None, boost=None, stop=None,
-          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True, kcycle=None):
+          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True, kcycle=None, chunk_cells=None):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -1123,6 +1208,11 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     says so; True: wherever level 1 is on its cells (the tests'); False: never.
     ``x0``: float (n,), the initial guess (None: 0); the
     stop rule is the same from any guess, so a guess near the solution saves iterations only.
+    ``chunk_cells``: with the fine level on cells, its vector loops (sweeps, products, the
+    residual, the restriction, the prolongation, CG's updates) over chunks of that many cells
+    on all of numba's threads, 0 in one thread; the same values either way (the dot products
+    stay in one thread, in their order).  None: :data:`PARALLEL_CHUNK` from
+    :data:`PARALLEL_MIN_CELLS` cells on (the tests' other values).
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
@@ -1165,7 +1255,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
                         layout.gather, h.red, h.rrows, h.nbr, h.wt, h.diag, h.inv_diag, h.agg, h.off, h.sizes,
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
                         float(boost), int(coarse_sweeps), float(deadline), stop, *_coarse_args(coarse, h),
-                        kcycle_of(n, len(shape), coarse) if kcycle is None else bool(kcycle))
+                        kcycle_of(n, len(shape), coarse) if kcycle is None else bool(kcycle),
+                        (PARALLEL_CHUNK if 2 * layout.half >= PARALLEL_MIN_CELLS else 0) if chunk_cells is None
+                        else int(chunk_cells))
         return layout.from_cells(u, rows), int(it), float(res)
     rows = slice(0, n) if h.in_order else h.fine_of_input     # each input's fine row (in order: no renumbering)
     b = np.zeros(n + 1)

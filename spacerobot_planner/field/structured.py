@@ -34,6 +34,12 @@ on the graph cost about 75 us of a 180 us V-cycle on the paper's 2-D band (gathe
 its index table); on cells the paper bands' whole solves took 0.85x (2-D) and 0.92x (3-D),
 random scenes' first bands 0.84x and 0.93x (medians).
 
+On a large box (:data:`.multigrid.PARALLEL_MIN_CELLS`) the fine level's vector loops run on all of
+numba's threads (the ``*_chunks`` kernels: each colour's ranges cut into chunks of
+:data:`.multigrid.PARALLEL_CHUNK` cells, :func:`chunks_of`): every cell's value is computed as in one
+thread, and the dot products stay in one thread in their order, so the solve gives the same bits
+on any number of threads.
+
 Editing this module: numba's cache keys the kernels of :mod:`.multigrid` that call these (and
 link them in: ``_spcg``, ``_svcycle``) on multigrid.py's own time stamp, so after an edit here delete the
 cached kernels (``field/__pycache__/*.nbi``, ``*.nbc``) or touch multigrid.py.
@@ -504,19 +510,21 @@ def _dot_range(a, b, k0, k1):
     return ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7))
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _first_red_range(x, b, m, k0, k1, inv_deg):
+    """x[0, k] = b[0, k] · inv_deg · m[0, k] for k in [k0, k1)."""
+    t = x[0, k0:k1]
+    bb = b[0, k0:k1]
+    mm = m[0, k0:k1]
+    for i in range(k1 - k0):
+        t[i] = bb[i] * inv_deg * mm[i]
+
+
 @nb.njit(cache=True, nogil=True)
 def first_red(x, b, m, ranges, nranges, inv_deg):
     """Run the red half-sweep from x = 0 (its neighbours are black zeros): x[0] = b[0] · inv_deg · m[0]."""
-    xr = x[0]
-    br = b[0]
-    mr = m[0]
     for r in range(nranges):
-        k0, k1 = ranges[0, r, 0], ranges[0, r, 1]
-        t = xr[k0:k1]
-        bb = br[k0:k1]
-        mm = mr[k0:k1]
-        for i in range(k1 - k0):
-            t[i] = bb[i] * inv_deg * mm[i]
+        _first_red_range(x, b, m, ranges[0, r, 0], ranges[0, r, 1], inv_deg)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -597,16 +605,20 @@ def _gathered(res, gather, c):
     return t
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _prolong_range(x, xc, aggr, k0, k1, boost):
+    """x[0, k] += boost · xc[aggr[k]] for k in [k0, k1)."""
+    t = x[0, k0:k1]
+    ag = aggr[k0:k1]
+    for i in range(k1 - k0):
+        t[i] += boost * xc[ag[i]]
+
+
 @nb.njit(cache=True, nogil=True)
 def prolong_red(x, xc, aggr, ranges, nranges, boost):
     """Add ``boost`` times level 1's correction xc to the red cells (x float32 (2, H); others read xc's dummy 0)."""
-    xr = x[0]
     for r in range(nranges):
-        k0, k1 = ranges[0, r, 0], ranges[0, r, 1]
-        t = xr[k0:k1]
-        ag = aggr[k0:k1]
-        for i in range(k1 - k0):
-            t[i] += boost * xc[ag[i]]
+        _prolong_range(x, xc, aggr, ranges[0, r, 0], ranges[0, r, 1], boost)
 
 
 # --------------------------------------------------------------------------
@@ -733,3 +745,132 @@ def weighted_product_dot(p, q, w, diag, ranges, nranges, deg):
 def dot_all(a, b):
     """Return sum a · b over two flat arrays of one length, in 8 accumulators (:func:`_dot_range`'s order)."""
     return _dot_range(a, b, 0, a.size)
+
+
+# --------------------------------------------------------------------------
+# the fine level's vector loops on all cores (large boxes): the same values, split in chunks
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def chunks_of(ranges, nranges, chunk):
+    """
+    Return each colour's loop ranges split into chunks of at most ``chunk`` cells: int64 (2, k, 3) (range, k0, k1).
+
+    Colours with fewer chunks are padded with empty ones (k0 = k1).
+    """
+    most = 0
+    for colour in range(2):
+        count = 0
+        for r in range(nranges):
+            count += (ranges[colour, r, 1] - ranges[colour, r, 0] + chunk - 1) // chunk
+        most = max(most, count)
+    out = np.zeros((2, most, 3), np.int64)
+    for colour in range(2):
+        j = 0
+        for r in range(nranges):
+            k0, k1 = ranges[colour, r, 0], ranges[colour, r, 1]
+            while k0 < k1:
+                out[colour, j, 0] = r
+                out[colour, j, 1] = k0
+                out[colour, j, 2] = min(k1, k0 + chunk)
+                k0 += chunk
+                j += 1
+    return out
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def half_sweep_chunks(x, b, m, ranges, chunks, cut, colour, deg, inv_deg):
+    """:func:`half_sweep` over ``chunks[colour]`` (:func:`chunks_of`), the chunks in parallel: the same values."""
+    xt = x[colour]
+    xs = x[1 - colour]
+    bt = b[colour]
+    mt = m[colour]
+    ch = chunks[colour]
+    for j in nb.prange(ch.shape[0]):
+        r = ch[j, 0]
+        _sweep_range(xt, xs, bt, mt, ch[j, 1], ch[j, 2], ranges[colour, r, 2:], deg, inv_deg)
+    for e in range(cut.shape[0]):
+        k = cut[e, 0]
+        xt[k] = xt[k] - xs[cut[e, 1]] * inv_deg
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _product_chunks(p, q, m, ranges, chunks, colour, deg, fdeg):
+    """One colour of q = A p over its chunks, in parallel (cut edges not taken out)."""
+    pt = p[colour]
+    qt = q[colour]
+    ps = p[1 - colour]
+    mt = m[colour]
+    ch = chunks[colour]
+    for j in nb.prange(ch.shape[0]):
+        r = ch[j, 0]
+        _product_range(pt, ps, qt, mt, ch[j, 1], ch[j, 2], ranges[colour, r, 2:], deg, fdeg)
+
+
+@nb.njit(cache=True, nogil=True)
+def product_dot_chunks(p, q, m, ranges, nranges, chunks, cut_red, cut_black, deg):
+    """:func:`product_dot` with the product's loops over chunks in parallel: the same values, the same sum."""
+    fdeg = float(deg)
+    s = 0.0
+    for colour in range(2):
+        _product_chunks(p, q, m, ranges, chunks, colour, deg, fdeg)
+        qt = q[colour]
+        ps = p[1 - colour]
+        cut = cut_red if colour == 0 else cut_black
+        for e in range(cut.shape[0]):
+            qt[cut[e, 0]] += ps[cut[e, 1]]
+        for r in range(nranges):
+            s += _dot_range(p[colour], qt, ranges[colour, r, 0], ranges[colour, r, 1])
+    return s
+
+
+@nb.njit(cache=True, nogil=True)
+def half_sweep_dot_chunks(x, b, m, ranges, nranges, chunks, cut, colour, deg, inv_deg):
+    """:func:`half_sweep_dot` with the sweep over chunks in parallel: the same values, the same sum."""
+    half_sweep_chunks(x, b, m, ranges, chunks, cut, colour, deg, inv_deg)
+    s = 0.0
+    for r in range(nranges):
+        s += _dot_range(b[colour], x[colour], ranges[colour, r, 0], ranges[colour, r, 1])
+    return s
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def first_red_chunks(x, b, m, chunks, inv_deg):
+    """:func:`first_red` over the red chunks, in parallel: the same values."""
+    ch = chunks[0]
+    for j in nb.prange(ch.shape[0]):
+        _first_red_range(x, b, m, ch[j, 1], ch[j, 2], inv_deg)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _residual_chunks(b, x, res, ranges, chunks, deg):
+    """Put the red cells' residual into ``res`` over the red chunks, in parallel (cut edges not taken out)."""
+    fdeg = float(deg)
+    ch = chunks[0]
+    for j in nb.prange(ch.shape[0]):
+        r = ch[j, 0]
+        _residual_range(b[0], x[0], x[1], res, ch[j, 1], ch[j, 2], ranges[0, r, 2:], deg, fdeg)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _gather_all(res, gather, at, bc):
+    """bc[at[c]] = :func:`_gathered` for every level-1 row c, in parallel (each row its own sum, in its order)."""
+    for c in nb.prange(gather.shape[0]):
+        bc[at[c]] = _gathered(res, gather, c)
+
+
+@nb.njit(cache=True, nogil=True)
+def restrict_red_chunks(b, x, res, gather, at, bc, ranges, chunks, cut_red, deg):
+    """:func:`restrict_red` with its loops in parallel: the same values."""
+    _residual_chunks(b, x, res, ranges, chunks, deg)
+    xs = x[1]
+    for e in range(cut_red.shape[0]):
+        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    _gather_all(res, gather, at, bc)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def prolong_red_chunks(x, xc, aggr, chunks, boost):
+    """:func:`prolong_red` over the red chunks, in parallel: the same values."""
+    ch = chunks[0]
+    for j in nb.prange(ch.shape[0]):
+        _prolong_range(x, xc, aggr, ch[j, 1], ch[j, 2], boost)
