@@ -95,10 +95,11 @@ ROUTES = ("auto", "graph", "structured")
 #: a quarter of the fine level, no gain: 720² 23 -> 15 iterations, 50.5-51.6 -> 56.2-57.0 ms.
 KCYCLE_MIN_UNKNOWNS = 500_000
 #: The fine level on cells runs its vector loops on all cores from this many cells on (numba's
-#: threads, chunks of PARALLEL_CHUNK cells: the same values, the dot products in one thread in
-#: their fixed order).  The paper 3-DOF scene's first band on 2 cores, one thread against two
-#: (median of 5, ms): 36³ (43 k cells) 3.5 / 4.0, 48³ (99 k) 9.5 / 8.9, 60³ (184 k) 19.2 / 15.6,
-#: 72³ 39 / 28; 2-D 362² (101 k) 12.8 / 12.8.
+#: threads, chunks of PARALLEL_CHUNK cells; the dot products per chunk, then over the chunks in
+#: their order: the same bits on any number of threads).  The paper 3-DOF scene's first band on
+#: 2 cores, one thread against two (median of 5, ms; the dot products still in one thread):
+#: 36³ (43 k cells) 3.5 / 4.0, 48³ (99 k) 9.5 / 8.9, 60³ (184 k) 19.2 / 15.6, 72³ 39 / 28 (26 with
+#: the dot products on both); 2-D 362² (101 k) 12.8 / 12.8.
 PARALLEL_MIN_CELLS = 150_000
 PARALLEL_CHUNK = 16_384
 
@@ -1066,9 +1067,8 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
         _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_black, 1, deg, inv_deg)
         _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_red, 0, deg, inv_deg)
     if par:
-        s_black = structured.half_sweep_dot_chunks(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, deg, inv_deg)
-        return structured.half_sweep_dot_chunks(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, deg,
-                                                inv_deg) + s_black
+        s_black = structured.half_sweep_dot_chunks(xf, rf, mask, ranges, chunks, cut_black, 1, deg, inv_deg)
+        return structured.half_sweep_dot_chunks(xf, rf, mask, ranges, chunks, cut_red, 0, deg, inv_deg) + s_black
     s_black = structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
     return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg) + s_black
 
@@ -1124,7 +1124,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     chunks = structured.chunks_of(ranges, nranges, chunk) if chunk > 0 else np.zeros((2, 0, 3), np.int64)
     par = chunks.shape[1] > 0
     if par:
-        structured.product_dot_chunks(u, q, mask, ranges, nranges, chunks, cut_red, cut_black, deg)
+        structured.product_dot_chunks(u, q, mask, ranges, chunks, cut_red, cut_black, deg)
     else:
         structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
     rl[:] = rhs.reshape(-1)
@@ -1142,7 +1142,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
             break
         it += 1
         if par:
-            pq = structured.product_dot_chunks(p, q, mask, ranges, nranges, chunks, cut_red, cut_black, deg)
+            pq = structured.product_dot_chunks(p, q, mask, ranges, chunks, cut_red, cut_black, deg)
         else:
             pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
         if not pq > 0.0:
@@ -1162,7 +1162,9 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
                           coarse_sweeps, stop, c_on, c_at, c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr,
                           c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw, chunks)
         # beta's numerator: z · r, or the flexible z · (r − r_old) = −alpha z · q (r_old = r + alpha q)
-        num = -alpha * structured.dot_all(xl, ql) if kcyc else rz_new
+        num = rz_new
+        if kcyc:
+            num = -alpha * (structured.dot_all_chunks(xl, ql, chunk) if par else structured.dot_all(xl, ql))
         if par:
             _turn_chunks(ul, pl, xl, alpha, num / rz, cells, chunk)
         else:
@@ -1209,9 +1211,10 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     ``x0``: float (n,), the initial guess (None: 0); the
     stop rule is the same from any guess, so a guess near the solution saves iterations only.
     ``chunk_cells``: with the fine level on cells, its vector loops (sweeps, products, the
-    residual, the restriction, the prolongation, CG's updates) over chunks of that many cells
-    on all of numba's threads, 0 in one thread; the same values either way (the dot products
-    stay in one thread, in their order).  None: :data:`PARALLEL_CHUNK` from
+    residual, the restriction, the prolongation, CG's updates and dot products) over chunks of
+    that many cells on all of numba's threads, 0 in one thread; the dot products are summed per
+    chunk and then over the chunks in order, so a chunk size gives the same bits on any number
+    of threads (and other bits than one thread's order).  None: :data:`PARALLEL_CHUNK` from
     :data:`PARALLEL_MIN_CELLS` cells on (the tests' other values).
 
     Returns ``(x float64 (n,), iterations, largest residual)``.

@@ -37,8 +37,8 @@ random scenes' first bands 0.84x and 0.93x (medians).
 On a large box (:data:`.multigrid.PARALLEL_MIN_CELLS`) the fine level's vector loops run on all of
 numba's threads (the ``*_chunks`` kernels: each colour's ranges cut into chunks of
 :data:`.multigrid.PARALLEL_CHUNK` cells, :func:`chunks_of`): every cell's value is computed as in one
-thread, and the dot products stay in one thread in their order, so the solve gives the same bits
-on any number of threads.
+thread, and a dot product is summed per chunk, then over the chunks in their order, so the solve
+gives the same bits on any number of threads.
 
 Editing this module: numba's cache keys the kernels of :mod:`.multigrid` that call these (and
 link them in: ``_spcg``, ``_svcycle``) on multigrid.py's own time stamp, so after an edit here delete the
@@ -806,9 +806,32 @@ def _product_chunks(p, q, m, ranges, chunks, colour, deg, fdeg):
         _product_range(pt, ps, qt, mt, ch[j, 1], ch[j, 2], ranges[colour, r, 2:], deg, fdeg)
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _dot_chunks(a, b, ch):
+    """Return sum a · b over the cells of chunks ``ch`` (k, 3): per chunk in parallel, then in the chunks' order."""
+    part = np.zeros(ch.shape[0])
+    for j in nb.prange(ch.shape[0]):
+        part[j] = _dot_range(a, b, ch[j, 1], ch[j, 2])
+    s = 0.0
+    for j in range(ch.shape[0]):
+        s += part[j]
+    return s
+
+
 @nb.njit(cache=True, nogil=True)
-def product_dot_chunks(p, q, m, ranges, nranges, chunks, cut_red, cut_black, deg):
-    """:func:`product_dot` with the product's loops over chunks in parallel: the same values, the same sum."""
+def dot_all_chunks(a, b, chunk):
+    """Return sum a · b over two flat arrays of one length, in chunks of ``chunk`` (:func:`_dot_chunks`' order)."""
+    count = (a.size + chunk - 1) // chunk
+    ch = np.zeros((count, 3), np.int64)
+    for j in range(count):
+        ch[j, 1] = j * chunk
+        ch[j, 2] = min(a.size, (j + 1) * chunk)
+    return _dot_chunks(a, b, ch)
+
+
+@nb.njit(cache=True, nogil=True)
+def product_dot_chunks(p, q, m, ranges, chunks, cut_red, cut_black, deg):
+    """:func:`product_dot` with its loops over chunks in parallel: the same q; p · q summed per chunk, then in order."""
     fdeg = float(deg)
     s = 0.0
     for colour in range(2):
@@ -818,19 +841,15 @@ def product_dot_chunks(p, q, m, ranges, nranges, chunks, cut_red, cut_black, deg
         cut = cut_red if colour == 0 else cut_black
         for e in range(cut.shape[0]):
             qt[cut[e, 0]] += ps[cut[e, 1]]
-        for r in range(nranges):
-            s += _dot_range(p[colour], qt, ranges[colour, r, 0], ranges[colour, r, 1])
+        s += _dot_chunks(p[colour], qt, chunks[colour])
     return s
 
 
 @nb.njit(cache=True, nogil=True)
-def half_sweep_dot_chunks(x, b, m, ranges, nranges, chunks, cut, colour, deg, inv_deg):
-    """:func:`half_sweep_dot` with the sweep over chunks in parallel: the same values, the same sum."""
+def half_sweep_dot_chunks(x, b, m, ranges, chunks, cut, colour, deg, inv_deg):
+    """:func:`half_sweep_dot` over chunks in parallel: the same x; b · x summed per chunk, then in order."""
     half_sweep_chunks(x, b, m, ranges, chunks, cut, colour, deg, inv_deg)
-    s = 0.0
-    for r in range(nranges):
-        s += _dot_range(b[colour], x[colour], ranges[colour, r, 0], ranges[colour, r, 1])
-    return s
+    return _dot_chunks(b[colour], x[colour], chunks[colour])
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
