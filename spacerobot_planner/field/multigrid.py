@@ -934,7 +934,7 @@ def _turn(u, p, z, alpha, rz, rz_new, n):
 # --------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
 def _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr, wt,
-                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg):
+                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg, c_chunks):
     """
     :func:`_coarse_cycle` from level 1 with level 1 on its cells (:class:`.structured.Coarse`): x1 = M1^-1 b1.
 
@@ -943,27 +943,49 @@ def _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x
     below on the graph).  The same steps as the graph's clean red-black level: the red
     half-sweep from 0, the black one, ``coarse_sweeps - 1`` more pairs; the red residuals
     restricted; after the coarse correction (red cells) ``coarse_sweeps`` pairs black then red.
+    ``c_chunks``: level 1's cells in chunks (:func:`.structured.chunks_of`), its loops then in
+    parallel (the same values); none (shape (2, 0, 3)): in one thread.
     """
-    structured.weighted_first_red(x1, b1, c_idg, c_ranges, c_nranges)
-    structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 1, deg)
+    par = c_chunks.shape[1] > 0
+    if par:
+        structured.weighted_first_red_chunks(x1, b1, c_idg, c_chunks)
+    else:
+        structured.weighted_first_red(x1, b1, c_idg, c_ranges, c_nranges)
+    _weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, c_chunks, par, 1, deg)
     for _ in range(coarse_sweeps - 1):
-        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 0, deg)
-        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 1, deg)
+        _weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, c_chunks, par, 0, deg)
+        _weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, c_chunks, par, 1, deg)
     c2 = off[2]
     bc = b[c2:off[3]]
-    structured.weighted_restrict_red(b1, x1, c_wts, c_diag, r1, c_gather, bc, c_ranges, c_nranges, deg)
+    if par:
+        structured.weighted_restrict_red_chunks(b1, x1, c_wts, c_diag, r1, c_gather, bc, c_ranges, c_chunks, deg)
+    else:
+        structured.weighted_restrict_red(b1, x1, c_wts, c_diag, r1, c_gather, bc, c_ranges, c_nranges, deg)
     bc[sizes[2]] = 0.0
     _coarse_cycle(red, rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, 2, boost,
                   coarse_sweeps)
-    structured.prolong_red(x1, x[c2:off[3]], c_aggr, c_ranges, c_nranges, boost)
+    if par:
+        structured.prolong_red_chunks(x1, x[c2:off[3]], c_aggr, c_chunks, boost)
+    else:
+        structured.prolong_red(x1, x[c2:off[3]], c_aggr, c_ranges, c_nranges, boost)
     for _ in range(coarse_sweeps):
-        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 1, deg)
-        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, 0, deg)
+        _weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, c_chunks, par, 1, deg)
+        _weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, c_chunks, par, 0, deg)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, c_chunks, par, colour, deg):
+    """One colour's half-sweep on level 1's cells: over ``c_chunks`` in parallel when ``par`` (the same values)."""
+    if par:
+        structured.weighted_half_sweep_chunks(x1, b1, c_wts, c_idg, c_ranges, c_chunks, colour, deg)
+    else:
+        structured.weighted_half_sweep(x1, b1, c_wts, c_idg, c_ranges, c_nranges, colour, deg)
 
 
 @nb.njit(cache=True, nogil=True)
 def _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, kc, kv, kw, red, rrows,
-                   nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg):
+                   nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg,
+                   c_chunks):
     """
     Level 1 of a K-cycle on its cells: two CG steps on A₁ x1 = b1, each preconditioned by :func:`_level1_cells`.
 
@@ -978,7 +1000,7 @@ def _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, 
     in 8 float64 accumulators (:func:`.structured.dot_all`).
     """
     _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, kc, b1, r1, red, rrows, nbr, wt,
-                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
+                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg, c_chunks)
     xf, bf, cf, vf = x1.reshape(-1), b1.reshape(-1), kc.reshape(-1), kv.reshape(-1)
     rho1 = structured.weighted_product_dot(kc, kv, c_wts, c_diag, c_ranges, c_nranges, deg)
     if not rho1 > 0.0:           # c is 0 (b1 is): x1 = c
@@ -988,7 +1010,7 @@ def _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, 
     for i in range(bf.size):
         bf[i] = bf[i] - a1 * vf[i]
     _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr, wt,
-                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
+                  diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg, c_chunks)
     beta = structured.weighted_product_dot(x1, kw, c_wts, c_diag, c_ranges, c_nranges, deg)
     gamma = structured.dot_all(xf, vf)
     a2 = structured.dot_all(xf, bf)
@@ -1006,7 +1028,8 @@ def _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, 
 @nb.njit(cache=True, nogil=True)
 def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg, off,
              sizes, chol, chol_t, rf, xf, res, x, b, r, sweeps, boost, coarse_sweeps, stop, c_on, c_at, c_wts,
-             c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw, chunks):
+             c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw, chunks,
+             c_chunks):
     """
     :func:`_vcycle` with the fine level on cells (:mod:`.structured`): compute xf = M^-1 rf; return rf · xf.
 
@@ -1043,10 +1066,11 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
         if kcyc:
             _level1_kcycle(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, kc, kv, kw, red,
                            rrows, nbr, wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost,
-                           coarse_sweeps, deg)
+                           coarse_sweeps, deg, c_chunks)
         else:
             _level1_cells(c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, x1, b1, r1, red, rrows, nbr,
-                          wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg)
+                          wt, diag, inv_diag, agg, off, sizes, chol, chol_t, x, b, r, boost, coarse_sweeps, deg,
+                          c_chunks)
     else:
         bc = b[cb:off[2]]
         if par:
@@ -1123,6 +1147,9 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     # chunk > 0: the fine level's vector loops over chunks of that many cells, on all cores
     chunks = structured.chunks_of(ranges, nranges, chunk) if chunk > 0 else np.zeros((2, 0, 3), np.int64)
     par = chunks.shape[1] > 0
+    # level 1 on its cells: its loops in chunks of an eighth as many (its box is about an eighth)
+    c_chunks = structured.chunks_of(c_ranges, c_nranges, max(1, chunk // 8)) if par and c_on else \
+        np.zeros((2, 0, 3), np.int64)
     if par:
         structured.product_dot_chunks(u, q, mask, ranges, chunks, cut_red, cut_black, deg)
     else:
@@ -1134,7 +1161,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     rz = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag, inv_diag, agg,
                   off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost, coarse_sweeps, stop, c_on, c_at,
                   c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr, c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv,
-                  kw, chunks)
+                  kw, chunks, c_chunks)
     pl[:] = xl
     it = 0
     while it < max_iter:
@@ -1160,7 +1187,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         rz_new = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag,
                           inv_diag, agg, off, sizes, chol, chol_t, r, xf, res_red, xs, bs, ws, sweeps, boost,
                           coarse_sweeps, stop, c_on, c_at, c_wts, c_diag, c_idg, c_ranges, c_nranges, c_aggr,
-                          c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw, chunks)
+                          c_gather, c_fine_aggr, x1, b1, r1, kcyc, kc, kv, kw, chunks, c_chunks)
         # beta's numerator: z · r, or the flexible z · (r − r_old) = −alpha z · q (r_old = r + alpha q)
         num = rz_new
         if kcyc:

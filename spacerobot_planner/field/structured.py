@@ -641,16 +641,21 @@ def _weighted_sum(w, colour, k0, k1, xs, o, deg):
     return s0, s1, s2, s3, s4, s5, w0, w1, w2, w3, w4, w5
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _weighted_first_red_range(x, b, inv_diag, k0, k1):
+    """x[0, k] = b[0, k] · inv_diag[0, k] for k in [k0, k1)."""
+    t = x[0, k0:k1]
+    bb = b[0, k0:k1]
+    ig = inv_diag[0, k0:k1]
+    for i in range(k1 - k0):
+        t[i] = bb[i] * ig[i]
+
+
 @nb.njit(cache=True, nogil=True)
 def weighted_first_red(x, b, inv_diag, ranges, nranges):
     """Run level 1's red half-sweep from x = 0 (its neighbours are black zeros): x[0] = b[0] · inv_diag[0]."""
     for r in range(nranges):
-        k0, k1 = ranges[0, r, 0], ranges[0, r, 1]
-        t = x[0, k0:k1]
-        bb = b[0, k0:k1]
-        ig = inv_diag[0, k0:k1]
-        for i in range(k1 - k0):
-            t[i] = bb[i] * ig[i]
+        _weighted_first_red_range(x, b, inv_diag, ranges[0, r, 0], ranges[0, r, 1])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -663,22 +668,25 @@ def weighted_half_sweep(x, b, w, inv_diag, ranges, nranges, colour, deg):
     (``multigrid._row``, whose value numba widens to float64), so each cell gets the graph's
     float32 value.
     """
-    xt = x[colour]
-    xs = x[1 - colour]
     for r in range(nranges):
-        k0, k1 = ranges[colour, r, 0], ranges[colour, r, 1]
-        s0, s1, s2, s3, s4, s5, w0, w1, w2, w3, w4, w5 = _weighted_sum(w, colour, k0, k1, xs, ranges[colour, r, 2:],
-                                                                       deg)
-        t = xt[k0:k1]
-        bb = b[colour, k0:k1]
-        ig = inv_diag[colour, k0:k1]
-        if deg == 4:
-            for i in range(k1 - k0):
-                t[i] = (bb[i] + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i] + w3[i] * s3[i])) * ig[i]
-        else:
-            for i in range(k1 - k0):
-                t[i] = (bb[i] + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i] + w3[i] * s3[i]
-                                           + w4[i] * s4[i] + w5[i] * s5[i])) * ig[i]
+        _weighted_sweep_range(x, b, w, inv_diag, colour, ranges[colour, r, 0], ranges[colour, r, 1],
+                              ranges[colour, r, 2:], deg)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _weighted_sweep_range(x, b, w, inv_diag, colour, k0, k1, o, deg):
+    """:func:`weighted_half_sweep` over the cells [k0, k1) of ``colour`` (offsets ``o``)."""
+    s0, s1, s2, s3, s4, s5, w0, w1, w2, w3, w4, w5 = _weighted_sum(w, colour, k0, k1, x[1 - colour], o, deg)
+    t = x[colour, k0:k1]
+    bb = b[colour, k0:k1]
+    ig = inv_diag[colour, k0:k1]
+    if deg == 4:
+        for i in range(k1 - k0):
+            t[i] = (bb[i] + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i] + w3[i] * s3[i])) * ig[i]
+    else:
+        for i in range(k1 - k0):
+            t[i] = (bb[i] + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i] + w3[i] * s3[i]
+                                       + w4[i] * s4[i] + w5[i] * s5[i])) * ig[i]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -691,24 +699,28 @@ def weighted_restrict_red(b, x, w, diag, res, gather, bc, ranges, nranges, deg):
     rows + 1, the dummy last: not written): summed in level 1's row order (:class:`Coarse`'s
     gather), rounded to float32 at each step, as the graph's restriction adds them.
     """
-    xs = x[1]
     for r in range(nranges):
-        k0, k1 = ranges[0, r, 0], ranges[0, r, 1]
-        s0, s1, s2, s3, s4, s5, w0, w1, w2, w3, w4, w5 = _weighted_sum(w, 0, k0, k1, xs, ranges[0, r, 2:], deg)
-        out = res[k0:k1]
-        bb = b[0, k0:k1]
-        t = x[0, k0:k1]
-        dg = diag[0, k0:k1]
-        if deg == 4:
-            for i in range(k1 - k0):
-                out[i] = (bb[i] - dg[i] * t[i]) + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i]
-                                                             + w3[i] * s3[i])
-        else:
-            for i in range(k1 - k0):
-                out[i] = (bb[i] - dg[i] * t[i]) + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i]
-                                                             + w3[i] * s3[i] + w4[i] * s4[i] + w5[i] * s5[i])
+        _weighted_residual_range(b, x, w, diag, res, ranges[0, r, 0], ranges[0, r, 1], ranges[0, r, 2:], deg)
     for c in range(gather.shape[0]):
         bc[c] = _gathered(res, gather, c)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _weighted_residual_range(b, x, w, diag, res, k0, k1, o, deg):
+    """Put level 1's red residuals of the cells [k0, k1) into ``res`` (:func:`weighted_restrict_red`'s first loop)."""
+    s0, s1, s2, s3, s4, s5, w0, w1, w2, w3, w4, w5 = _weighted_sum(w, 0, k0, k1, x[1], o, deg)
+    out = res[k0:k1]
+    bb = b[0, k0:k1]
+    t = x[0, k0:k1]
+    dg = diag[0, k0:k1]
+    if deg == 4:
+        for i in range(k1 - k0):
+            out[i] = (bb[i] - dg[i] * t[i]) + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i]
+                                                         + w3[i] * s3[i])
+    else:
+        for i in range(k1 - k0):
+            out[i] = (bb[i] - dg[i] * t[i]) + np.float64(w0[i] * s0[i] + w1[i] * s1[i] + w2[i] * s2[i]
+                                                         + w3[i] * s3[i] + w4[i] * s4[i] + w5[i] * s5[i])
 
 
 @nb.njit(cache=True, nogil=True)
@@ -893,3 +905,34 @@ def prolong_red_chunks(x, xc, aggr, chunks, boost):
     ch = chunks[0]
     for j in nb.prange(ch.shape[0]):
         _prolong_range(x, xc, aggr, ch[j, 1], ch[j, 2], boost)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def weighted_first_red_chunks(x, b, inv_diag, chunks):
+    """:func:`weighted_first_red` over the red chunks, in parallel: the same values."""
+    ch = chunks[0]
+    for j in nb.prange(ch.shape[0]):
+        _weighted_first_red_range(x, b, inv_diag, ch[j, 1], ch[j, 2])
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def weighted_half_sweep_chunks(x, b, w, inv_diag, ranges, chunks, colour, deg):
+    """:func:`weighted_half_sweep` over the colour's chunks, in parallel: the same values."""
+    ch = chunks[colour]
+    for j in nb.prange(ch.shape[0]):
+        _weighted_sweep_range(x, b, w, inv_diag, colour, ch[j, 1], ch[j, 2], ranges[colour, ch[j, 0], 2:], deg)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _weighted_residual_chunks(b, x, w, diag, res, ranges, chunks, deg):
+    """Put level 1's red residuals into ``res`` over the red chunks, in parallel."""
+    ch = chunks[0]
+    for j in nb.prange(ch.shape[0]):
+        _weighted_residual_range(b, x, w, diag, res, ch[j, 1], ch[j, 2], ranges[0, ch[j, 0], 2:], deg)
+
+
+@nb.njit(cache=True, nogil=True)
+def weighted_restrict_red_chunks(b, x, w, diag, res, gather, bc, ranges, chunks, deg):
+    """:func:`weighted_restrict_red` with its loops in parallel: the same values."""
+    _weighted_residual_chunks(b, x, w, diag, res, ranges, chunks, deg)
+    _gather_all(res, gather, np.arange(gather.shape[0]), bc)
