@@ -368,6 +368,26 @@ def test_the_node_graphs_neighbours_are_the_grids(shape, periodic):
     assert np.array_equal(g.coords, np.array(np.unravel_index(g.order, shape)).T)
 
 
+def test_a_large_node_graphs_neighbours_are_the_grids():
+    """
+    The table of a graph large enough to be filled on all of numba's threads, against the oracle.
+
+    ``graph.PARALLEL_MIN_NODES`` nodes and more (the table in chunks): every node's neighbours
+    the oracle's positions in the graph, or none.
+    """
+    from spacerobot_planner.field.graph import PARALLEL_MIN_NODES, node_graph, validate_problem
+    shape, periodic = (72, 48, 40), (True, False, False)
+    occ = np.random.default_rng(4).random(shape) < 0.2
+    goal = tuple(int(k) for k in np.argwhere(~occ)[0])
+    g = node_graph(*validate_problem(occ, periodic, [goal]))
+    assert g.size >= PARALLEL_MIN_NODES
+    assert np.array_equal(np.sort(g.order), np.flatnonzero(connected(occ, periodic, [goal]).ravel()))
+    pos = np.full(occ.size, g.size)
+    pos[g.order] = np.arange(g.size)
+    want = face_neighbours(shape, periodic).reshape(2 * len(shape), -1)[:, g.order]
+    assert np.array_equal(g.nbr.T, np.where(want < 0, g.size, pos[np.maximum(want, 0)]))
+
+
 @pytest.mark.parametrize("shape, periodic, in_order", [((31, 23), (True, False), True),
                                                        ((9, 8, 7), (True, False, True), False),
                                                        ((300,), (True,), True),
