@@ -125,6 +125,10 @@ PARAMETERS = (
     ParamSpec("planner.max_grid_nodes", "integer", 4_000_000,
               "Refuse grids with more nodes than this (memory budget), before allocating.",
               False, 4, 200_000_000),
+    ParamSpec("planner.max_threads", "integer", 0,
+              "Most threads a plan's parallel kernels use (the C-space rows; on large grids the field's "
+              "loops and the node graph's table); 0: numba's (one per core, or NUMBA_NUM_THREADS). "
+              "A plan is the same bit for bit on any number.", False, 0, 4096),
     ParamSpec("planner.max_start_penetration_m", "double", 0.05,
               "A start posture whose links reach at most this deep into an obstacle (e.g. holding the "
               "grasp after the target moved) is first walked out along increasing clearance (reported, "
@@ -478,6 +482,7 @@ def scenario_from_params(params: dict) -> Scenario:
 #: parameters (``PARAMETERS``) → ``settings.PlannerSettings`` fields
 _PLANNER_SETTINGS = {"planner.solver": "solver", "planner.field_tolerance": "field_tolerance",
                      "planner.field_budget_s": "field_budget_s", "planner.max_grid_nodes": "max_grid_nodes",
+                     "planner.max_threads": "max_threads",
                      "planner.max_start_penetration_m": "max_start_penetration_m",
                      "grasp.max_approach_error_deg": "max_approach_error_deg"}
 

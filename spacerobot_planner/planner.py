@@ -64,6 +64,25 @@ __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES"
 #: (a margin equal to the handle's length; its clearance only rounds above) leaves no motion
 #: that reaches it, and is refused as such rather than planned on grid after grid
 GRASP_ROOM_M = 1e-9
+#: per thread: the number :func:`use_threads` last set there (absent: none, numba's own holds)
+_THREADS_SET = threading.local()
+
+
+def use_threads(most: int) -> None:
+    """
+    Let the calling thread's parallel kernels use at most ``most`` threads (0: numba's own number).
+
+    numba's number is the calling thread's own; its thread pool starts where a number is set
+    or a parallel kernel first runs, so a thread that never asks for fewer sets nothing (a plan
+    on a small grid starts no pool).
+    """
+    most = int(most)
+    if most == getattr(_THREADS_SET, "most", 0):
+        return
+    import numba
+    limit = numba.config.NUMBA_NUM_THREADS
+    numba.set_num_threads(limit if most <= 0 else min(most, limit))
+    _THREADS_SET.most = most
 
 
 class Planner:
@@ -416,6 +435,7 @@ class Planner:
         (``smoothing.smooth_path``); bad values answer ``invalid_input``.
         """
         with self._lock:
+            use_threads(self.settings.max_threads)
             return PlanRun(self, self.settings, cancel, progress, start_tangent).run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:

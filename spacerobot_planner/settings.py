@@ -46,6 +46,8 @@ class PlannerSettings:
         field_tolerance: gauss_seidel's stopping tolerance (largest change per sweep).
         field_budget_s: wall-time budget of one field solve (log_harmonic), seconds.
         max_grid_nodes: refuse larger grids (before allocating).
+        max_threads: the most threads a plan's parallel kernels use (``planner.use_threads``); 0:
+            numba's own number (one per core, or ``NUMBA_NUM_THREADS``).
         grid_extra_margin_m: added to the safety margin for the grid only, metres (the
             planner retries at 0 before answering ``disconnected``).
         shortcut: try a shortcut spline before the paper's every-second-node spline.
@@ -77,6 +79,7 @@ class PlannerSettings:
     field_tolerance: float = 1e-6
     field_budget_s: float = DEFAULT_BUDGET_S
     max_grid_nodes: int = 4_000_000
+    max_threads: int = 0
     grid_extra_margin_m: float = 0.02
     shortcut: bool = True
     shortcut_keep_clearance_m: float = 0.05
@@ -106,7 +109,7 @@ class PlannerSettings:
             set_(self, name, _positive(name, getattr(self, name), allow_zero=True))
         for name in ("max_step_rad", "verify_step_rad"):
             set_(self, name, _positive(name, getattr(self, name)))
-        for name in ("max_repairs", "max_refinements", "refine_after_repairs", "max_refined_nodes"):
+        for name in ("max_repairs", "max_refinements", "refine_after_repairs", "max_refined_nodes", "max_threads"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < 0:
                 raise ValueError(f"{name}: must be an integer ≥ 0, got {v!r}")

@@ -93,6 +93,7 @@ class PlanJob:
     joint_goal: np.ndarray | None
     stall_s: float = 0.0
     field_budget_s: float = 5.0
+    max_threads: int = 0
     stall_stage: str = "start"
     stall_polls: bool = True
     stages: bool = True
@@ -103,14 +104,15 @@ class PlanJob:
         """
         Return the job of planning ``scenario`` from ``start_rad``.
 
-        Its scene and grid, and its solver, tolerance, budget and grid limit
+        Its scene and grid, and its solver, tolerance, budget, grid limit and threads
         (``Scenario.planner_settings``); ``test``: the stall fields.
         """
         s = scenario.planner_settings
         return cls(gen=gen, scene=scenario.scene, grid=scenario.grid, solver=s.solver,
                    field_tolerance=float(s.field_tolerance), max_grid_nodes=int(s.max_grid_nodes),
                    start_rad=np.asarray(start_rad, dtype=float), joint_goal=joint_goal,
-                   field_budget_s=float(s.field_budget_s), start_tangent=start_tangent, **test)
+                   field_budget_s=float(s.field_budget_s), max_threads=int(s.max_threads), start_tangent=start_tangent,
+                   **test)
 
 
 @dataclass(frozen=True)
@@ -182,7 +184,7 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
     nothing: the scene's checker and the target's goal stay (:func:`_target_goal`).
     """
     key = pickle.dumps((job.scene, job.grid, job.solver, job.field_tolerance, job.field_budget_s,
-                        job.max_grid_nodes), protocol=pickle.HIGHEST_PROTOCOL)
+                        job.max_grid_nodes, job.max_threads), protocol=pickle.HIGHEST_PROTOCOL)
     held = _APPLIED.get(planner)
     if held is not None and held[0] == key and held[2] == _state(planner):
         return key
@@ -193,7 +195,7 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
     if (planner.solver, planner.field_tolerance, planner.settings.field_budget_s) != \
             (job.solver, job.field_tolerance, job.field_budget_s):
         planner.set_solver(job.solver, job.field_tolerance, job.field_budget_s)
-    planner.max_grid_nodes = job.max_grid_nodes
+    planner.configure(max_grid_nodes=job.max_grid_nodes, max_threads=job.max_threads)
     _APPLIED[planner] = (key, None, _state(planner))
     return key
 
@@ -201,7 +203,7 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
 def _state(planner) -> tuple:
     """Return what a change of the planner outside a job changes: its scenario (by identity), solver, limits."""
     return (planner.scenario, planner.solver, planner.field_tolerance, planner.settings.field_budget_s,
-            planner.max_grid_nodes)
+            planner.max_grid_nodes, planner.settings.max_threads)
 
 
 def _target_goal(planner, key: bytes) -> np.ndarray:

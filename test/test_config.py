@@ -126,3 +126,51 @@ def test_planner_settings_come_from_the_parameters_and_name_bad_values(paper_sce
     before = pl.settings
     pl.max_grid_nodes = 1000
     assert pl.settings is not before and pl.settings.max_grid_nodes == 1000 and before.max_grid_nodes != 1000
+
+
+def test_planner_max_threads_caps_the_planning_threads_kernels_and_changes_no_bit():
+    """
+    ``planner.max_threads`` reaches the plan (in the thread that plans) and the job; the plans are equal.
+
+    The paper 3-DOF scene at 60³ (its first band above ``multigrid.PARALLEL_MIN_CELLS``: the field's
+    loops on numba's threads): planned with one thread, with numba's own number, and as a planning
+    process's job with one, the same path and field bit for bit; numba's count in the planning
+    thread follows the setting, and goes back when it is 0; a negative one is refused by name.
+    """
+    import threading
+
+    import numba
+
+    from spacerobot_planner.config import settings_from_params
+    from spacerobot_planner.planner import Planner
+    from spacerobot_planner.worker import PlanJob, run_job
+    from spacerobot_planner.termination import Termination
+
+    with pytest.raises(ValueError, match="max_threads"):
+        settings_from_params({"planner.max_threads": -1})
+    params = dict(load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml")).params, **{"grid.cells": [60, 60, 60]})
+    out = {}
+
+    def plan_in_a_thread():
+        for most in (1, 0):
+            sc = scenario_from_params(dict(params, **{"planner.max_threads": most}))
+            assert sc.planner_settings.max_threads == most
+            res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+            out[most] = (res, numba.get_num_threads())
+        sc = scenario_from_params(dict(params, **{"planner.max_threads": 1}))
+        job = PlanJob.for_scenario(1, sc, sc.start_rad, sc.goal_rad)
+        assert job.max_threads == 1
+        planner = Planner(scenario_from_params(params))
+        done = run_job(planner, job, Termination())
+        out["job"] = (done.result, numba.get_num_threads(), planner.settings.max_threads)
+
+    t = threading.Thread(target=plan_in_a_thread)
+    t.start()
+    t.join(600)
+    assert not t.is_alive()
+    one, zero, (job_res, job_threads, job_setting) = out[1], out[0], out["job"]
+    assert one[1] == 1 and zero[1] == numba.config.NUMBA_NUM_THREADS and job_threads == 1 and job_setting == 1
+    for res in (zero[0], job_res):
+        assert res.ok and one[0].ok
+        assert np.array_equal(res.path_rad, one[0].path_rad)
+        assert np.array_equal(res.field.log_u, one[0].field.log_u)
