@@ -1042,7 +1042,9 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     ``c_on``: level 1 is on its cells too (``c_*``: a :class:`.structured.Coarse`'s arrays, x1,
     b1, r1 its scratch, :func:`_level1_cells`), else on the graph; ``c_at``: level 1's index of
     each level-1 row (its cell, or its row in the packed vectors' level 1).  ``kcyc`` (with ``c_on``):
-    level 1 by :func:`_level1_kcycle` (kc, kv, kw its scratch).
+    level 1 by :func:`_level1_kcycle` (kc, kv, kw its scratch).  ``chunks``, ``c_chunks``: the fine
+    level's and level 1's cells in chunks (:func:`.structured.chunks_of`), their loops then on
+    numba's threads; none (shape (2, 0, 3)): in one thread.
     """
     deg = ranges.shape[2] - 2
     inv_deg = 1.0 / deg
@@ -1119,8 +1121,9 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     (:func:`_svcycle`).  ``kcyc`` (with ``c_on``): level 1 as a K-cycle's (:func:`_level1_kcycle`),
     a preconditioner that is not a fixed linear map, so CG's new
     direction is the flexible one (β = z·(r − r_old) / rz_old = −α z·q / rz_old, q = A p;
-    Notay 2000); else the usual β = z·r / rz_old.  Returns (iterations, final max residual);
-    u is updated in place.
+    Notay 2000); else the usual β = z·r / rz_old.  ``chunk`` > 0: the loops over the cells in
+    chunks of that many on numba's threads (:func:`solve`'s ``chunk_cells``).  Returns (iterations,
+    final max residual); u is updated in place.
     """
     half = mask.shape[1]
     cells = 2 * half
