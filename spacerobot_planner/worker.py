@@ -465,9 +465,9 @@ class ThreadBackend:
 
     def run(self, job: PlanJob, progress=None):
         self._cancel.clear()
-        if progress is not None:
-            progress(began(job))
         try:
+            if progress is not None:
+                progress(began(job))
             out = run_job(self.planner, job, self._cancel, progress)
         except Exception as e:     # noqa: BLE001 - report to the node, keep serving
             return _crash(job.gen, e)
