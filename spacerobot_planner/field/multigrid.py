@@ -627,21 +627,18 @@ def _subtract_max_chunks(r, q, c, n, chunk):
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _step_chunks(u, p, alpha, n, chunk):
-    """Add alpha p to u over chunks in parallel (:func:`_descend`'s last step): the same values."""
+    """:func:`_step` over chunks of ``chunk`` entries in parallel: the same values."""
     for j in nb.prange((n + chunk - 1) // chunk):
-        k1 = min(n, (j + 1) * chunk)
-        for i in range(j * chunk, k1):
-            u[i] += alpha * p[i]
+        k0, k1 = j * chunk, min(n, (j + 1) * chunk)
+        _step(u[k0:k1], p[k0:k1], alpha, k1 - k0)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def _turn_chunks(u, p, z, alpha, beta, n, chunk):
-    """Add alpha p to u, then set p = z + beta p (:func:`_turn`'s pass) over chunks in parallel: the same values."""
+def _turn_chunks(u, p, z, alpha, rz, rz_new, n, chunk):
+    """:func:`_turn` over chunks of ``chunk`` entries in parallel: the same values."""
     for j in nb.prange((n + chunk - 1) // chunk):
-        k1 = min(n, (j + 1) * chunk)
-        for i in range(j * chunk, k1):
-            u[i] += alpha * p[i]
-            p[i] = z[i] + beta * p[i]
+        k0, k1 = j * chunk, min(n, (j + 1) * chunk)
+        _turn(u[k0:k1], p[k0:k1], z[k0:k1], alpha, rz, rz_new, k1 - k0)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -907,10 +904,16 @@ def _descend(r, q, u, p, rz, pq, tol, n, stop):
     alpha = rz / pq
     res = _subtract_max(r, q, alpha, n)
     if res < tol or stop[0] != 0:
-        for i in range(n):
-            u[i] += alpha * p[i]
+        _step(u, p, alpha, n)
         return alpha, res, True
     return alpha, res, False
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _step(u, p, alpha, n):
+    """Add alpha p to u over the first n entries (CG's step along p)."""
+    for i in range(n):
+        u[i] += alpha * p[i]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -1196,7 +1199,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         if kcyc:
             num = -alpha * (structured.dot_all_chunks(xl, ql, chunk) if par else structured.dot_all(xl, ql))
         if par:
-            _turn_chunks(ul, pl, xl, alpha, num / rz, cells, chunk)
+            _turn_chunks(ul, pl, xl, alpha, rz, num, cells, chunk)
         else:
             _turn(ul, pl, xl, alpha, rz, num, cells)
         rz = rz_new
