@@ -276,7 +276,8 @@ def _node_tables(occ_flat, code, shape, goal_flat):
 
 #: :func:`_node_tables` fills its neighbour table on all of numba's threads from this many nodes on
 #: (each node's row on its own: the same table; numba reads the value when it compiles the kernel).
-#: The paper 3-DOF scene's table, one thread against two: 72³ 1.8 / 1.2 ms, 120³ 9.3 / 5.2 ms.
+#: The paper 3-DOF scene's table, one thread against two (the kernel alone, median of 7): 72³ 1.8 / 1.2 ms,
+#: 120³ 9.3 / 5.2 ms.
 PARALLEL_MIN_NODES = 100_000
 
 
