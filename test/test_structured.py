@@ -147,7 +147,8 @@ def test_the_layouts_cut_edges_are_the_graphs_missing_face_neighbours_in_one_thr
     assert expected, "the problem has no cut edge between unknowns"
     half = one.half
     for layout in layouts:
-        got = {(int(k), half + int(j)) for k, j in layout.cut_red} | {(half + int(k), int(j)) for k, j in layout.cut_black}
+        got = ({(int(k), half + int(j)) for k, j in layout.cut_red}
+               | {(half + int(k), int(j)) for k, j in layout.cut_black})
         assert got == expected
         assert np.array_equal(np.flatnonzero(layout.mask.reshape(-1)), np.sort(one.cell))
         for a, b in zip((one.cell, one.mask, one.ranges, one.cut_red, one.cut_black, one.aggr, one.gather),

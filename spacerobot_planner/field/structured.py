@@ -326,7 +326,7 @@ def _place_chunks(coords, lo, strides, base, half, red, flat, cell, mflat, chunk
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _short_row(i, nb0, around, cell):
-    """Return whether row ``i`` names fewer face neighbours than there are unknown cells around its cell (a cut edge)."""
+    """Return whether row ``i`` names fewer face neighbours than unknown cells lie around its cell (a cut edge)."""
     n, deg = nb0.shape
     named = 0
     for d in range(deg):
@@ -336,7 +336,7 @@ def _short_row(i, nb0, around, cell):
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _short_rows_chunks(nb0, around, cell, chunk):
-    """Return (bool (n,): :func:`_short_row` of every row, int64: how many per chunk of ``chunk`` rows), on the threads."""
+    """Return (bool (n,): :func:`_short_row` of each row, int64: how many per chunk of ``chunk`` rows), on the threads."""
     n = nb0.shape[0]
     count = (n + chunk - 1) // chunk
     short = np.zeros(n, np.bool_)
@@ -353,7 +353,11 @@ def _short_rows_chunks(nb0, around, cell, chunk):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _row_cuts(i, nb0, mflat, flat, steps, periodic0, seam, c0, last0, half, cut_at, ncut):
-    """Append row ``i``'s cut edges (``i · deg + d``: an unknown cell where the graph names none) at ``cut_at[ncut:]``; return the new count."""
+    """
+    Append row ``i``'s cut edges at ``cut_at[ncut:]``; return the new count.
+
+    A cut edge ``i · deg + d``: an unknown cell in direction d where the graph names no neighbour.
+    """
     n, deg = nb0.shape
     f = flat[i]
     for d in range(deg):
