@@ -336,7 +336,7 @@ def _short_row(i, nb0, around, cell):
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _short_rows_chunks(nb0, around, cell, chunk):
-    """Return (bool (n,): :func:`_short_row` of each row, int64: how many per chunk of ``chunk`` rows), on the threads."""
+    """Return (bool (n,): :func:`_short_row` of each row, int64: how many per chunk of ``chunk`` rows), threaded."""
     n = nb0.shape[0]
     count = (n + chunk - 1) // chunk
     short = np.zeros(n, np.bool_)
