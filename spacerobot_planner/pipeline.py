@@ -40,6 +40,7 @@ from .free_floating_capture import apparent_scene, captures_free_floating, check
 from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path, wrap_angle_scalar_rad
 from .motion import MotionValidator
 from .repair import MAX_TESTS, sheet_edges
+from . import swept
 from .results import STAGES, Code, PlanResult
 from .smoothing import SmoothPath, path_length_rad, smooth_path, start_direction
 from .spacecraft import free_floating_response
@@ -789,18 +790,47 @@ class PlanRun:
         The colliding grid edges around it and their sheet are cut (:meth:`colliding_edges`,
         within ``REPAIR_RADIUS`` steps, one more per repair before, up to ``REPAIR_WIDENING``; the
         sheet followed for twice as many tested edges per repair before, ``REPAIR_DOUBLINGS``);
-        where they are all cut already, the node itself is blocked.  The one rule of both
+        where they are all cut already, the node itself is blocked.  A plan's first repair on a
+        grid cuts every colliding edge along the axes but the last (:meth:`swept_edges`: the
+        obstacles thinner than a grid step are then cut everywhere at once, not one sheet per
+        repair and field solve) and those within ``REPAIR_RADIUS`` steps of the node (its box
+        only: the sheet's tests along the last axis wait for a second repair).  The one rule of both
         repairs: a descent that every way on collides, and a grid path whose straight segment
         does (an obstacle thinner than a grid step, e.g. a small piece of debris, is a sheet
         of such edges that no node marks: blocking one node per repair did not get past it).
         """
+        everywhere = repairs == 0 and swept.applies(self.motions, grid.ndim)
         with self.stage("repair"):
-            edges = self.colliding_edges(grid, fld, key, blocked, node, REPAIR_RADIUS + min(repairs, REPAIR_WIDENING),
-                                         MAX_TESTS << min(repairs, REPAIR_DOUBLINGS))
+            if everywhere:
+                # every colliding edge along the axes but the last, and the box around the node
+                edges = np.vstack([self.swept_edges(grid, fld, key),
+                                   self.colliding_edges(grid, fld, key, blocked, node, REPAIR_RADIUS, 0)])
+            else:
+                edges = self.colliding_edges(grid, fld, key, blocked, node,
+                                             REPAIR_RADIUS + min(repairs, REPAIR_WIDENING),
+                                             MAX_TESTS << min(repairs, REPAIR_DOUBLINGS))
         new = {(int(a), int(b)) for a, b in edges} - cut
         if new:
-            return blocked, cut | new, f"cutting {len(new)} colliding grid edge(s) around node {node}"
+            where = "off the last axis and around" if everywhere else "around"
+            return blocked, cut | new, f"cutting {len(new)} colliding grid edge(s) {where} node {node}"
         return blocked | {node}, cut, f"blocking node {node}"
+
+    def swept_edges(self, grid, fld, key) -> np.ndarray:
+        """
+        Return every colliding grid edge along the axes but the last (``swept.swept_edges``), cached.
+
+        Between the free nodes of the field under ``key`` (a plan's first repair: no node blocked
+        yet); a pure function of the key, kept by the planner with the sheet searches' edges.
+        (k, 2) int64, read-only.
+        """
+        ekey = (key, "swept")
+        edges = self.p._colliding.get(ekey)
+        if edges is None:
+            edges = swept.swept_edges(fld.occupied, grid.periodic, grid.lower_rad, grid.step_rad, self.motions,
+                                      token=self.cancel)
+            edges.flags.writeable = False
+            self.p._remember(self.p._colliding, ekey, edges, 64)
+        return edges
 
     def colliding_edges(self, grid, fld, key, blocked, node, radius: int, max_tests: int = MAX_TESTS) -> np.ndarray:
         """

@@ -54,6 +54,7 @@ from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
 from .settings import PlannerSettings
 from .smoothing import warm_up as smoothing_warm_up
+from .swept import warm_up as swept_warm_up
 from .termination import stall
 from .timing import timed_motion, trajectory_limits_known
 
@@ -457,12 +458,13 @@ def warm_up_unreached(coarse: Scenario) -> None:
     Compile (or load from numba's cache) the kernels a plan on the ``coarse`` scenario may not reach.
 
     The C-space row kernel's other form (a refinement reaches it), the spline and shortcut
-    kernels, a repair's, a start in contact's (the exit stage).  Both warm-ups run it
-    (:func:`warm_up`, ``worker.warm_up``).
+    kernels, a repair's (the sheet search, the swept edges), a start in contact's (the exit
+    stage).  Both warm-ups run it (:func:`warm_up`, ``worker.warm_up``).
     """
     cspace_warm_up(coarse.robot, coarse.scene, coarse.grid)
     smoothing_warm_up()
     repair_warm_up()
+    swept_warm_up(coarse.robot, coarse.scene, coarse.grid)
     contact_warm_up(coarse.robot, coarse.scene)
 
 

@@ -395,6 +395,23 @@ def link3_and_normal_deg(robot, target, q_full):
 
 
 # ===================================================== paths and trajectories
+def edge_clearance(sc, a, b, step_rad=math.radians(0.25)) -> float:
+    """
+    Return the least clearance (``ref_clearance``) at dense samples of the straight motion between grid nodes a and b.
+
+    a, b: flat node indices of ``sc.grid``; samples at most ``step_rad`` apart (across a periodic
+    seam: one step the short way).
+    """
+    grid = sc.grid
+    qa = grid.config_of(np.array(np.unravel_index(a, grid.shape)))
+    qb = grid.config_of(np.array(np.unravel_index(b, grid.shape)))
+    d = qb - qa
+    per = np.asarray(grid.periodic)
+    d[per] = (d[per] + math.pi) % (2 * math.pi) - math.pi
+    k = max(1, int(math.ceil(np.max(np.abs(d)) / step_rad)))
+    return min(ref_clearance(sc.robot, sc.scene, qa + t * d) for t in np.linspace(0.0, 1.0, k + 1))
+
+
 def wrap_diff(a, b=0.0):
     """Return a - b wrapped into [-π, π)."""
     return (np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from oracles import face_neighbours, ref_clearance
+from oracles import edge_clearance, face_neighbours
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.cspace import build_cspace
@@ -47,18 +47,6 @@ def wall():
     cs = build_cspace(sc.robot, scene, sc.grid)
     motions = MotionValidator(CollisionChecker(sc.robot, scene)).segment_test()
     return sc, cs, motions
-
-
-def _edge_clearance(sc, a, b) -> float:
-    """Least clearance at dense samples of the straight motion between grid nodes a and b (flat)."""
-    grid = sc.grid
-    qa = grid.config_of(np.array(np.unravel_index(a, grid.shape)))
-    qb = grid.config_of(np.array(np.unravel_index(b, grid.shape)))
-    d = qb - qa
-    per = np.asarray(grid.periodic)
-    d[per] = (d[per] + math.pi) % (2 * math.pi) - math.pi        # across the seam: one step
-    k = max(1, int(math.ceil(np.max(np.abs(d)) / ORACLE_STEP_RAD)))
-    return min(ref_clearance(sc.robot, sc.scene, qa + t * d) for t in np.linspace(0.0, 1.0, k + 1))
 
 
 def _box(flat, shape, periodic, radius):
@@ -96,7 +84,7 @@ def test_sheet_edges_collide_and_follow_the_sheet(wall):
                         radius=max(grid.shape), max_tests=0)             # every edge of the grid
     assert len(every) > 50, "the wall should cross many grid edges"
     seed = int(every[len(every) // 2][0])
-    assert _edge_clearance(sc, *map(int, every[len(every) // 2])) < MARGIN_M + TOL_M    # the seed, by the oracle
+    assert edge_clearance(sc, *map(int, every[len(every) // 2])) < MARGIN_M + TOL_M    # the seed, by the oracle
     node = tuple(int(v) for v in np.unravel_index(seed, grid.shape))
     found = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=1,
                         max_tests=10 ** 6)
@@ -105,7 +93,7 @@ def test_sheet_edges_collide_and_follow_the_sheet(wall):
     # every edge found joins free face neighbours and collides (within the tolerance)
     for a, b in got:
         assert not occ_flat[a] and not occ_flat[b] and b in nbr[:, a]
-        assert _edge_clearance(sc, a, b) < MARGIN_M + TOL_M
+        assert edge_clearance(sc, a, b) < MARGIN_M + TOL_M
     # the search followed the sheet beyond the box around the node
     box2 = _box(seed, grid.shape, grid.periodic, 2)
     assert any(a not in box2 or b not in box2 for a, b in got)
@@ -117,7 +105,7 @@ def test_sheet_edges_collide_and_follow_the_sheet(wall):
     rng = np.random.default_rng(0)
     for i in rng.choice(len(candidates), size=min(120, len(candidates)), replace=False):
         a, b = candidates[i]
-        assert _edge_clearance(sc, a, b) > MARGIN_M - TOL_M, f"edge {a}-{b} collides but was not found"
+        assert edge_clearance(sc, a, b) > MARGIN_M - TOL_M, f"edge {a}-{b} collides but was not found"
 
 
 def test_the_box_around_the_node_is_searched_whatever_the_count(wall):
@@ -125,7 +113,7 @@ def test_the_box_around_the_node_is_searched_whatever_the_count(wall):
     grid, occ = sc.grid, cs.occupied
     every = sheet_edges(occ, grid.periodic, (0, 0, 0), motions, grid.lower_rad, grid.step_rad,
                         radius=max(grid.shape), max_tests=0)
-    assert _edge_clearance(sc, *map(int, every[0])) < MARGIN_M + TOL_M          # the seed, by the oracle
+    assert edge_clearance(sc, *map(int, every[0])) < MARGIN_M + TOL_M          # the seed, by the oracle
     node = tuple(int(v) for v in np.unravel_index(int(every[0][0]), grid.shape))
     few = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2, max_tests=0)
     more = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2)
@@ -135,7 +123,7 @@ def test_the_box_around_the_node_is_searched_whatever_the_count(wall):
     box = _up_edges(_box(flat, grid.shape, grid.periodic, 2), occ.ravel(), nbr)
     few_set = {tuple(e) for e in few.tolist()}
     for a, b in sorted(box - few_set):
-        assert _edge_clearance(sc, a, b) > MARGIN_M - TOL_M, f"edge {a}-{b} near the node collides, not found"
+        assert edge_clearance(sc, a, b) > MARGIN_M - TOL_M, f"edge {a}-{b} near the node collides, not found"
     # the same input, the same edges in the same order
     again = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2)
     np.testing.assert_array_equal(again, more)

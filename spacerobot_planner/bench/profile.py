@@ -39,6 +39,7 @@ STEPS = (
     ("ascent check", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "ascent_defects"),
     ("ascent repair", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "_repair_ascent"),
     ("descent", "", "spacerobot_planner.planner", "descend"),
+    ("repair: swept edges", "", "spacerobot_planner.swept", "swept_edges"),
     ("repair: colliding edges", "", "spacerobot_planner.pipeline", "sheet_edges"),
     ("repair: re-solve", "", "spacerobot_planner.pipeline", "PlanRun.resolve"),
     ("retried grid: joined check", "", "spacerobot_planner.pipeline", "PlanRun.check_joined"),
