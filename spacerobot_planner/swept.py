@@ -15,8 +15,10 @@ and, for j ≥ 1, the body stay put).  In the frame of the turning links, every 
 for j ≥ 1, the body) turns by −Δ about P.  Where both ends of the edge are clear, the motion
 collides only if the links come within the margin m of the region an obstacle's boundary
 sweeps, and every point p of it sweeps an arc whose chord from p to its turned copy lies in
-the convex hull H of the polygon and its turned copy; the arc is no farther than its sagitta
-r (1 − cos Δ/2) from the chord (r: the point's distance from P).  So the edge collides only
+the convex hull H of the polygon and its turned copy (of a non-convex polygon: of each edge
+and its turned copy, so that no concavity is filled); the arc is no farther than its sagitta
+r (1 − cos Δ/2) from the chord (r: the point's distance from P, at most the turning links'
+reach: a polygon beyond it is left out).  So the edge collides only
 if, at its lower node, the turning links come within m + s of some H (s: the largest
 sagitta), a test the C-space's row kernel (``cspace._fill_rows``) makes for every node of
 the grid with the hulls as its polygons: one set of hulls per value of the axes before the
@@ -28,6 +30,11 @@ are the ones a sheet search would cut, on every axis but the last.
 
 The last axis (the joint that turns the last link alone) is left to the sheet search: its
 pivot moves with every other joint, so it would take a set of hulls per row.
+
+The rows and the tests run on numba's threads (each row, each edge on its own; the edges
+sorted at the end: the same edges on any number of threads).  Editing ``cspace._fill_rows``:
+numba's cache keeps :func:`_candidates` compiled against the old one (delete this module's
+cached kernels, ``__pycache__/swept*.nbi``, ``*.nbc``).
 """
 from __future__ import annotations
 
