@@ -721,7 +721,7 @@ class PlanRun:
                 self.may_repair(grid, repairs, cut, blocked)
                 # every way up from that node collides
                 node = tuple(int(v) for v in stuck.nodes[-1])
-                blocked, cut, done = self.cut_or_block(grid, fld, key, blocked, cut, node, repairs)
+                blocked, cut, done = self.cut_or_block(grid, fld, key, blocked, cut, node, repairs, base)
                 self.say(f"repair: {stuck.reason}; {done} and re-solving the field")
                 repairs += 1
                 fld = self.resolve(cs, key, goal_nodes, blocked, cut, base)
@@ -756,7 +756,7 @@ class PlanRun:
             self.may_repair(grid, repairs, cut, blocked)
             clr = [self.checker.clearance_m(nodes_rad[c]) for c in cand]
             node = tuple(int(v) for v in path.nodes[cand[int(np.argmin(clr))]])
-            blocked, cut, done = self.cut_or_block(grid, fld, key, blocked, cut, node, repairs)
+            blocked, cut, done = self.cut_or_block(grid, fld, key, blocked, cut, node, repairs, base)
             repairs += 1
             self.say(f"repair: segment {deg_text(wp[bad])} → {deg_text(wp[bad + 1])} collides; "
                      f"{done} and re-solving the field")
@@ -783,9 +783,12 @@ class PlanRun:
             self.p._remember(self.p._walks if gp.reached else self.p._failed_walks, dkey, gp, 256)
         return gp
 
-    def cut_or_block(self, grid, fld, key, blocked, cut, node, repairs: int) -> tuple:
+    def cut_or_block(self, grid, fld, key, blocked, cut, node, repairs: int, base) -> tuple:
         """
         Return ``(blocked, cut, what was done)`` after one repair at grid node ``node``.
+
+        ``fld``: the field the descent was blocked on (``key`` the field before the plan's
+        repairs, ``base``).
 
         The colliding grid edges around it and their sheet are cut (:meth:`colliding_edges`,
         within ``REPAIR_RADIUS`` steps, one more per repair before, up to ``REPAIR_WIDENING``; the
@@ -803,7 +806,7 @@ class PlanRun:
         with self.stage("repair"):
             if everywhere:
                 # every colliding edge along the axes but the last, and the box around the node
-                edges = np.vstack([self.swept_edges(grid, fld, key),
+                edges = np.vstack([self.swept_edges(grid, base, key),
                                    self.colliding_edges(grid, fld, key, blocked, node, REPAIR_RADIUS, 0)])
             else:
                 edges = self.colliding_edges(grid, fld, key, blocked, node,
@@ -815,18 +818,18 @@ class PlanRun:
             return blocked, cut | new, f"cutting {len(new)} colliding grid edge(s) {where} node {node}"
         return blocked | {node}, cut, f"blocking node {node}"
 
-    def swept_edges(self, grid, fld, key) -> np.ndarray:
+    def swept_edges(self, grid, base, key) -> np.ndarray:
         """
         Return every colliding grid edge along the axes but the last (``swept.swept_edges``), cached.
 
-        Between the free nodes of the field under ``key`` (a plan's first repair: no node blocked
-        yet); a pure function of the key, kept by the planner with the sheet searches' edges.
-        (k, 2) int64, read-only.
+        Between the free nodes of ``base``, the field under ``key`` (before any repair: its
+        C-space's free nodes); a pure function of the key, kept by the planner with the sheet
+        searches' edges.  (k, 2) int64, read-only.
         """
         ekey = (key, "swept")
         edges = self.p._colliding.get(ekey)
         if edges is None:
-            edges = swept.swept_edges(fld.occupied, grid.periodic, grid.lower_rad, grid.step_rad, self.motions,
+            edges = swept.swept_edges(base.occupied, grid.periodic, grid.lower_rad, grid.step_rad, self.motions,
                                       token=self.cancel)
             edges.flags.writeable = False
             self.p._remember(self.p._colliding, ekey, edges, 64)
