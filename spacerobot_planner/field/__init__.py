@@ -138,10 +138,11 @@ class Field:
         return mask
 
 
-def _paper(occ, per, goals, tol, max_sweeps, t0, token):
+def _paper(occ, per, goals, tol, max_sweeps, t0, token, cut_edges=None):
     tol = 1e-6 if tol is None else float(tol)
     max_sweeps = 200_000 if max_sweeps is None else int(max_sweeps)
-    phi, sweeps, change = paper.gauss_seidel_phi(occ, per, goals, 1.0, tol, max_sweeps, stop=token.flag)
+    phi, sweeps, change = paper.gauss_seidel_phi(occ, per, goals, 1.0, tol, max_sweeps, stop=token.flag,
+                                                 cut_edges=cut_edges)
     token.check()
     with np.errstate(divide="ignore"):
         log_u = np.log(np.clip(1.0 - phi, 0.0, None))
@@ -207,9 +208,7 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
     token = Termination.of(token)
     token.check()
     if solver == "gauss_seidel":
-        if cut_edges is not None and len(cut_edges):
-            raise ValueError("cut_edges: the paper's gauss_seidel works on the full grid, without cut edges")
-        return _paper(occ, per, goals, tol, max_sweeps, t0, token)
+        return _paper(occ, per, goals, tol, max_sweeps, t0, token, cut_edges)
     budget = DEFAULT_BUDGET_S if budget_s is None else float(budget_s)
     if not (math.isfinite(budget) and budget > 0.0):
         raise ValueError(f"budget_s: must be a positive number of seconds, got {budget_s!r}")

@@ -106,25 +106,29 @@ def _grid_nbr(code, f, d, shape, strides):
 
 
 @nb.njit(cache=True, nogil=True)
-def grid_neighbours(shape, periodic):
+def grid_neighbours(shape, periodic, cut_edges=None):
     """
     Flat index of each grid node's 2n face neighbours, -1 beyond a wall.
 
     shape int64 (ndim,), periodic bool (ndim,).  Returns int64 (prod(shape), 2 ndim):
     column 2a + (0|1) = the (-|+) neighbour along axis a, wrapping on periodic axes.
+    ``cut_edges``: int (k, 2) flat node pairs of face neighbours with a wall between them
+    (each end reads -1 there), or None.
     """
     n = 1
     for a in range(shape.size):
         n *= shape[a]
     out = np.empty((n, 2 * shape.size), np.int64)
-    fill_grid_neighbours(shape, periodic, out)
+    code = grid_codes(shape, periodic)
+    if cut_edges is not None and len(cut_edges):
+        _cut_edges(code, shape, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
+    _neighbours_of(code, shape, out)
     return out
 
 
 @nb.njit(cache=True, nogil=True)
-def fill_grid_neighbours(shape, periodic, out):
-    """:func:`grid_neighbours` into ``out`` (prod(shape), 2 ndim), any signed integer type."""
-    code = grid_codes(shape, periodic)
+def _neighbours_of(code, shape, out):
+    """Fill ``out`` (prod(shape), 2 ndim) with each node's face neighbours by the face codes ``code`` (-1: none)."""
     strides = grid_strides(shape)
     for f in range(out.shape[0]):
         for d in range(out.shape[1]):

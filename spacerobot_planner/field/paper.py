@@ -45,14 +45,16 @@ def _sweeps(phi, fixed, gnbr, phi0, tol, max_sweeps, stop):
 
 
 def gauss_seidel_phi(occ, per, goals, phi0: float = 1.0, tol: float = 1e-6, max_sweeps: int = 200_000,
-                     stop=None):
+                     stop=None, cut_edges=None):
     """
     (Φ on the grid, sweeps, last largest change) for a validated problem.
 
     ``stop``: a termination flag (int64 (1,), None = never), polled before every sweep;
     when it stopped the sweeps the result is partial (the caller checks its token).
+    ``cut_edges``: int (k, 2) flat node pairs of face neighbours with a wall between them (a
+    repair's: each end reads Φ0 there, as beyond a bounded axis), or None.
     """
-    gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_))
+    gnbr = grid_neighbours(np.array(occ.shape, np.int64), np.array(per, np.bool_), cut_edges)
     phi = np.full(occ.size, float(phi0))
     fixed = occ.ravel().copy()
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape)
