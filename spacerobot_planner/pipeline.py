@@ -787,9 +787,6 @@ class PlanRun:
         """
         Return ``(blocked, cut, what was done)`` after one repair at grid node ``node``.
 
-        ``fld``: the field the descent was blocked on (``key`` the field before the plan's
-        repairs, ``base``).
-
         The colliding grid edges around it and their sheet are cut (:meth:`colliding_edges`,
         within ``REPAIR_RADIUS`` steps, one more per repair before, up to ``REPAIR_WIDENING``; the
         sheet followed for twice as many tested edges per repair before, ``REPAIR_DOUBLINGS``);
@@ -801,6 +798,8 @@ class PlanRun:
         repairs: a descent that every way on collides, and a grid path whose straight segment
         does (an obstacle thinner than a grid step, e.g. a small piece of debris, is a sheet
         of such edges that no node marks: blocking one node per repair did not get past it).
+        ``fld``: the field the descent was blocked on; ``base``: the field before the plan's
+        repairs, under ``key``.
         """
         everywhere = repairs == 0 and swept.applies(self.motions, grid.ndim)
         with self.stage("repair"):
