@@ -166,6 +166,7 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
         rows.append({"stage": k, "grid": grid_label, "dof": dof, "seed": seed, **st})
     print("codes: " + ", ".join(f"{c} {n}" for c, n in codes.most_common())
           + "; draws skipped: " + (", ".join(f"{c} {n}" for c, n in drawn.most_common()) or "none"))
+    rows.append(_aim_row(per_stage["total"], grid_label, dof, seed))
     rows += _iteration_rows([r for _, _, r in scenes], grid_label, dof, seed)
     rows += _digest_rows([r for _, _, r in scenes], grid_label, dof, seed)
     rows.append({"stage": "codes", "grid": grid_label, "dof": dof, "seed": seed, "codes": dict(codes),
@@ -177,6 +178,23 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
         rows += [{"stage": "profile", "grid": grid_label, "dof": dof, "seed": seed, **r} for r in prof_rows]
     rows += _oracle_rows(planned[:n_oracle], grid_label, dof, seed)
     return rows
+
+
+#: Issue 19's aims for the family: the whole plan's max at most this many times its median, ...
+AIM_MAX_OVER_MEDIAN = 3.0
+#: ... and no plan (3-DOF) above this, s.
+AIM_MOST_S = 0.030
+
+
+def _aim_row(totals_s, grid_label, dof, seed) -> dict:
+    """Print and return the whole plans against the aims: max / median and how many plans took longer than 30 ms."""
+    st = _stats(totals_s)
+    above = int(np.count_nonzero(np.asarray(totals_s) > AIM_MOST_S))
+    print(f"aims: max / median {st['max_over_median']:.1f} (at most {AIM_MAX_OVER_MEDIAN:g}); "
+          f"{above} of {st['count']} plans above {1e3 * AIM_MOST_S:g} ms"
+          + (" (the aim at 3-DOF: none)" if dof == 3 else ""))
+    return {"stage": "aims", "grid": grid_label, "dof": dof, "seed": seed, "max_over_median": st["max_over_median"],
+            "above_s": AIM_MOST_S, "plans_above": above}
 
 
 def _iteration_rows(results, grid_label, dof, seed) -> list:
