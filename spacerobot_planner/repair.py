@@ -62,6 +62,31 @@ def _push_box(f, radius, shape, strides, periodic, seen, queue, tail, c0, off):
     return tail
 
 
+@nb.njit(**NO_REFCOUNT, inline="always")
+def edge_up(f, a, c_a, shape, strides, periodic, occ_flat):
+    """Return the free node one step up axis ``a`` from flat node ``f`` (coordinate ``c_a`` on it), else -1."""
+    k = _along(c_a, 1, shape[a], periodic[a])
+    if k < 0:
+        return -1
+    g = f + (k - c_a) * strides[a]
+    return -1 if occ_flat[g] else g
+
+
+@nb.njit(**NO_REFCOUNT, inline="always")
+def motion_up_free(qa, qb, a, step, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                   threshold_m, seg_step_rad, reach_m, q_full, pts, body_w, clr_ends):
+    """
+    Return the quick test's verdict on the motion from ``qa`` one step up axis ``a`` (``motion.segment_free_from``).
+
+    The grid edge's motion (across a periodic seam too: the motion itself); qb: scratch, set to its end.
+    """
+    for b in range(qa.shape[0]):
+        qb[b] = qa[b]
+    qb[a] += step[a]
+    return segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
+                             threshold_m, seg_step_rad, reach_m, q_full, pts, body_w, clr_ends)
+
+
 def _sheet_edges(occ_flat, shape, periodic, centre, radius, max_tests, lower, step, q_template, planned,
                  lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m):
     """
@@ -116,19 +141,13 @@ def _sheet_search(occ_flat, shape, periodic, centre, radius, max_tests, lower, s
             qa[a] = lower[a] + c[a] * step[a]
         clr_ends[0] = np.nan                    # the clearance at qa: measured by the node's first test
         for a in range(ndim):
-            k = _along(c[a], 1, shape[a], periodic[a])
-            if k < 0:
+            g = edge_up(f, a, c[a], shape, strides, periodic, occ_flat)
+            if g < 0:
                 continue
-            g = f + (k - c[a]) * strides[a]
-            if occ_flat[g]:
-                continue
-            for b in range(ndim):
-                qb[b] = qa[b]
-            qb[a] += step[a]
             tests += 1
-            if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts,
-                                     obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m, q_full, pts,
-                                     body_w, clr_ends):
+            if not motion_up_free(qa, qb, a, step, q_template, planned, lengths, checked, body, verts, starts,
+                                  obs_centres, obs_radii, threshold_m, seg_step_rad, reach_m, q_full, pts, body_w,
+                                  clr_ends):
                 found[k_found, 0] = min(f, g)
                 found[k_found, 1] = max(f, g)
                 k_found += 1

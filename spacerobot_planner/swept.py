@@ -45,9 +45,9 @@ import numpy as np
 
 from .collision import NO_REFCOUNT, CollisionChecker, link_points, rotate_body
 from .cspace import ROW_EPS_RAD, _fill_rows, build_cspace
-from .descent import _along
 from .field.graph import grid_strides
-from .motion import MotionValidator, segment_free_from
+from .motion import MotionValidator
+from .repair import edge_up, motion_up_free
 from .termination import Termination
 
 #: Added to the candidates' margin (beyond the sagitta), m: no rounding of a hull reaches it.
@@ -278,8 +278,8 @@ def _tested(cand, occ, shape, periodic, axis, lower, step, strides, q_template, 
     """
     Append to ``found`` (from row k) each candidate's edge up ``axis`` between free nodes whose motion collides.
 
-    The candidates among the flat nodes [f0, f1).  The quick test at the scene's margin
-    (``motion.segment_free_from``, as the sheet search tests an edge); flat node pairs, the
+    The candidates among the flat nodes [f0, f1).  The quick test at the scene's margin, as the
+    sheet search tests an edge (``repair.edge_up``, ``repair.motion_up_free``); flat node pairs, the
     smaller first.  Returns the new row count.  Scratch: the test's (q_full, pts, body_w), qa, qb
     (ndim,), clr (2,).
     """
@@ -287,20 +287,14 @@ def _tested(cand, occ, shape, periodic, axis, lower, step, strides, q_template, 
     for f in range(f0, f1):
         if not cand[f] or occ[f]:
             continue
-        ca = (f // strides[axis]) % shape[axis]
-        up = _along(ca, 1, shape[axis], periodic[axis])
-        if up < 0:
-            continue
-        g = f + (up - ca) * strides[axis]
-        if occ[g]:
+        g = edge_up(f, axis, (f // strides[axis]) % shape[axis], shape, strides, periodic, occ)
+        if g < 0:
             continue
         for a in range(ndim):
             qa[a] = lower[a] + ((f // strides[a]) % shape[a]) * step[a]
-            qb[a] = qa[a]
-        qb[axis] += step[axis]                          # across a periodic seam too: the motion itself
         clr[0] = np.nan
-        if not segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
-                                 threshold_m, seg_step_rad, reach_m, q_full, pts, body_w, clr):
+        if not motion_up_free(qa, qb, axis, step, q_template, planned, lengths, checked, body, verts, starts,
+                              centres, radii, threshold_m, seg_step_rad, reach_m, q_full, pts, body_w, clr):
             found[k, 0] = min(f, g)
             found[k, 1] = max(f, g)
             k += 1

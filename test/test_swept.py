@@ -6,8 +6,9 @@ The exhaustive search tests every grid edge of the grid with the repair's own ed
 every axis but the last, by another route (the candidates from hulls of the swept obstacles,
 then the same test).  The scenes: two 1 cm slats a coarse grid misses, and random scenes of
 ``bench scenes``' family (convex and non-convex debris, the margins 0, 2 and 5 cm), 2- and
-3-joint, on coarse grids.  Each edge found is also judged by the plain-Python distances of
-test/oracles.py at dense samples: its motion comes within the margin.
+3-joint, on coarse grids.  The exhaustive search shares the edge test with what it checks, so
+the oracle of test/oracles.py (plain-Python distances at dense samples) judges samples of both
+sides: edges found come within the margin, edges left out near an obstacle stay clear of it.
 """
 
 import math
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from oracles import edge_clearance
+from oracles import edge_clearance, ref_clearance
 from spacerobot_planner.bench.scenes import random_scenario
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
@@ -96,6 +97,29 @@ def test_swept_edges_are_every_colliding_edge_along_the_axes_but_the_last(name):
     rng = np.random.default_rng(0)
     for a, b in found[rng.permutation(len(found))[:12]]:      # a sample judged by the oracle
         assert edge_clearance(sc, int(a), int(b)) < sc.scene.safety_margin_m + TOL_M
+    # and edges it left out, off the last axis, whose ends are near an obstacle: clear by the oracle
+    free = np.flatnonzero(~occ.reshape(-1))
+    judged = 0
+    for f in rng.permutation(free):
+        if judged == 8:
+            break
+        coord = np.array(np.unravel_index(f, grid.shape))
+        axis = int(rng.integers(0, grid.ndim - 1))
+        up = coord.copy()
+        up[axis] += 1
+        if grid.periodic[axis]:
+            up[axis] %= grid.shape[axis]
+        elif up[axis] >= grid.shape[axis]:
+            continue
+        g = int(np.ravel_multi_index(tuple(up), grid.shape))
+        edge = (min(int(f), g), max(int(f), g))
+        if occ.reshape(-1)[g] or edge in expected:
+            continue
+        if min(ref_clearance(sc.robot, sc.scene, grid.config_of(c)) for c in (coord, up)) > 0.6:
+            continue                        # far from every obstacle at both ends: not worth the dense samples
+        assert edge_clearance(sc, *edge) > sc.scene.safety_margin_m - TOL_M, f"edge {edge} collides, not found"
+        judged += 1
+    assert judged == 8
 
 
 def test_the_wall_and_random_scenes_have_edges_to_find():

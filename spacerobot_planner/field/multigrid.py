@@ -94,8 +94,14 @@ ROUTES = ("auto", "graph", "structured")
 #: first band alone at 36³: 12 -> 10 iterations, 2.7 -> 3.0 ms.  On 2-D grids, where level 1 is
 #: a quarter of the fine level, no gain: 720² 23 -> 15 iterations, 50.5-51.6 -> 56.2-57.0 ms.
 KCYCLE_MIN_UNKNOWNS = 500_000
-#: The loops on cells on all cores: :data:`.structured.PARALLEL_MIN_CELLS` (their rule, with the figures).
-PARALLEL_MIN_CELLS, PARALLEL_CHUNK = structured.PARALLEL_MIN_CELLS, structured.PARALLEL_CHUNK
+#: The fine level on cells runs its vector loops on all cores from this many cells on (numba's
+#: threads, chunks of PARALLEL_CHUNK cells; the dot products per chunk, then over the chunks in
+#: their order: the same bits on any number of threads).  The paper 3-DOF scene's first band on
+#: 2 cores, one thread against two (median of 5, ms; the dot products still in one thread):
+#: 36³ (43 k cells) 3.5 / 4.0, 48³ (99 k) 9.5 / 8.9, 60³ (184 k) 19.2 / 15.6, 72³ 39 / 28 (26 with
+#: the dot products on both); 2-D 362² (101 k) 12.8 / 12.8.
+PARALLEL_MIN_CELLS = 150_000
+PARALLEL_CHUNK = 16_384
 
 
 def sweeps_of(ndim: int) -> int:
@@ -1241,8 +1247,8 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     residual, the restriction, the prolongation, CG's updates and dot products) over chunks of
     that many cells on all of numba's threads, 0 in one thread; the dot products are summed per
     chunk and then over the chunks in order, so a chunk size gives the same bits on any number
-    of threads (and other bits than one thread's order); the layout's rows too (the same layout).
-    None: :func:`.structured.chunk_cells_for`'s rule (the tests' other values).
+    of threads (and other bits than one thread's order).  None: :data:`PARALLEL_CHUNK` from
+    :data:`PARALLEL_MIN_CELLS` cells on (the tests' other values).
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
@@ -1271,10 +1277,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         stop = np.zeros(1, np.int64)
     layout = None
     if route == "auto":
-        layout = structured.fine_layout(h, shape, sweeps, chunk_cells=chunk_cells)
+        layout = structured.fine_layout(h, shape, sweeps)
     elif route == "structured":
-        layout = structured.fine_layout(h, shape, sweeps, max_cells_per_unknown=np.inf, min_unknowns=0,
-                                        chunk_cells=chunk_cells)
+        layout = structured.fine_layout(h, shape, sweeps, max_cells_per_unknown=np.inf, min_unknowns=0)
     if layout is not None:
         rows = None if h.in_order else h.fine_of_input     # each input's fine row
         u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)
@@ -1287,7 +1292,8 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
                         float(boost), int(coarse_sweeps), float(deadline), stop, *_coarse_args(coarse, h),
                         kcycle_of(n, len(shape), coarse) if kcycle is None else bool(kcycle),
-                        structured.chunk_cells_for(layout.cells, chunk_cells))
+                        (PARALLEL_CHUNK if 2 * layout.half >= PARALLEL_MIN_CELLS else 0) if chunk_cells is None
+                        else int(chunk_cells))
         return layout.from_cells(u, rows), int(it), float(res)
     rows = slice(0, n) if h.in_order else h.fine_of_input     # each input's fine row (in order: no renumbering)
     b = np.zeros(n + 1)

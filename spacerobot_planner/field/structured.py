@@ -34,9 +34,9 @@ on the graph cost about 75 us of a 180 us V-cycle on the paper's 2-D band (gathe
 its index table); on cells the paper bands' whole solves took 0.85x (2-D) and 0.92x (3-D),
 random scenes' first bands 0.84x and 0.93x (medians).
 
-On a large box (:data:`PARALLEL_MIN_CELLS`) the fine level's vector loops run on all of
+On a large box (:data:`.multigrid.PARALLEL_MIN_CELLS`) the fine level's vector loops run on all of
 numba's threads (the ``*_chunks`` kernels: each colour's ranges cut into chunks of
-:data:`PARALLEL_CHUNK` cells, :func:`chunks_of`): every cell's value is computed as in one
+:data:`.multigrid.PARALLEL_CHUNK` cells, :func:`chunks_of`): every cell's value is computed as in one
 thread, and a dot product is summed per chunk, then over the chunks in their order, so the solve
 gives the same bits on any number of threads.
 
@@ -65,26 +65,6 @@ MIN_UNKNOWNS = 1000
 MAX_COARSE_CELLS_PER_UNKNOWN = 2.0
 #: The grid dimensions with structured kernels (the degrees 4 and 6 are spelled out).
 DIMENSIONS = (2, 3)
-#: A box of this many cells and more runs its loops on all of numba's threads, in chunks of
-#: PARALLEL_CHUNK cells (the layout's rows: as many rows; the dot products summed per chunk, then
-#: over the chunks in their order: the same bits on any number of threads).  The paper 3-DOF
-#: scene's first band on 2 cores, one thread against two (median of 5, ms; the dot products still
-#: in one thread): 36³ (43 k cells) 3.5 / 4.0, 48³ (99 k) 9.5 / 8.9, 60³ (184 k) 19.2 / 15.6, 72³
-#: 39 / 28 (26 with the dot products on both); 2-D 362² (101 k) 12.8 / 12.8.
-PARALLEL_MIN_CELLS = 150_000
-PARALLEL_CHUNK = 16_384
-
-
-def chunk_cells_for(cells, chunk_cells=None) -> int:
-    """
-    Return the chunk of a box of ``cells`` cells's loops: 0 (one thread) or the cells (rows) per chunk on the threads.
-
-    The rule (one place): :data:`PARALLEL_CHUNK` from :data:`PARALLEL_MIN_CELLS` cells on;
-    ``chunk_cells`` not None: that (the tests force small chunks, or one thread with 0).
-    """
-    if chunk_cells is not None:
-        return int(chunk_cells)
-    return PARALLEL_CHUNK if cells >= PARALLEL_MIN_CELLS else 0
 
 
 class Layout:
@@ -120,8 +100,7 @@ class Layout:
         return take_at(v.reshape(-1), self.cell if rows is None else self.cell[rows])
 
 
-def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, min_unknowns=MIN_UNKNOWNS,
-                chunk_cells=None):
+def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, min_unknowns=MIN_UNKNOWNS):
     """
     Return the structured fine level of a problem (a :class:`Layout`), or None: the graph's route.
 
@@ -134,8 +113,7 @@ def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, m
     level 1); shape: the grid's.  The fine rows' neighbours follow the node graph's
     convention (``nb0[i, 2a + (0|1)]`` the −/+ face neighbour along axis a, or none), as
     :func:`.multigrid.solve` requires: a neighbour that is none where the box holds an unknown
-    is a cut edge.  ``chunk_cells``: as :func:`chunk_cells_for`'s (the layout's rows on numba's
-    threads in chunks of that many: the same layout).
+    is a cut edge.
     """
     nb0 = h.nb0
     n = nb0.shape[0]
@@ -148,7 +126,7 @@ def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, m
     if not ok or cells > max_cells_per_unknown * n:
         return None
     ok, *arrays = _build(nb0, h.coords, shape, lo, padded, strides, base, periodic0, h.agg[:n], int(h.red[0]),
-                         int(h.sizes[1]), True, chunk_cells_for(cells, chunk_cells))
+                         int(h.sizes[1]), True)
     return Layout(*arrays, cells) if ok else None
 
 
@@ -205,7 +183,7 @@ def coarse_layout(h, shape, layout, coarse_sweeps, max_cells_per_unknown=MAX_COA
         return None
     ok, cell, mask, ranges, nranges, _, _, aggr, gather = _build(nb1, coords1, shape1, lo, padded, strides, base,
                                                                  periodic0, h.agg[a:a + m], int(h.red[1]),
-                                                                 int(h.sizes[2]), False, 0)
+                                                                 int(h.sizes[2]), False)
     if not ok:
         return None
     wts, diag, inv_diag, fine_aggr = _coarse_arrays(cell, h.wt[a:a + m], h.diag[a:a + m], h.inv_diag[a:a + m],
@@ -289,89 +267,8 @@ def _neighbour(f, d, steps, periodic0, seam, c0, last0):
     return f + steps[d]
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _place_rows(coords, lo, strides, base, half, red, flat, cell, mflat, i0, i1):
-    """
-    Place rows [i0, i1) on their cells: their flat index and cell, the mask 1 there.
-
-    Returns how many of them sit on a cell already taken or of the other colour (a red row,
-    ``i < red``, on a black cell): none in a layout (rows on the threads may race to a cell
-    taken twice, which only a layout that is wrong anyway would have).
-    """
-    ndim = coords.shape[1]
-    wrong = 0
-    for i in range(i0, i1):
-        f = base
-        for a in range(ndim):
-            f += (coords[i, a] - lo[a] + 1) * strides[a]
-        flat[i] = f
-        c = (f & 1) * half + (f >> 1)
-        cell[i] = c
-        wrong += (mflat[c] != 0.0) + ((i < red) != (f & 1 == 0))
-        mflat[c] = 1.0
-    return wrong
-
-
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _place_chunks(coords, lo, strides, base, half, red, flat, cell, mflat, chunk):
-    """:func:`_place_rows` for every row, in chunks of ``chunk`` rows on numba's threads; returns the wrong ones."""
-    n = coords.shape[0]
-    count = (n + chunk - 1) // chunk
-    wrong = np.zeros(count, np.int64)
-    for j in nb.prange(count):
-        wrong[j] = _place_rows(coords, lo, strides, base, half, red, flat, cell, mflat, j * chunk,
-                               min(n, (j + 1) * chunk))
-    return wrong.sum()
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _short_row(i, nb0, around, cell):
-    """Return whether row ``i`` names fewer face neighbours than unknown cells lie around its cell (a cut edge)."""
-    n, deg = nb0.shape
-    named = 0
-    for d in range(deg):
-        named += nb0[i, d] < n
-    return named != around[cell[i]]
-
-
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _short_rows_chunks(nb0, around, cell, chunk):
-    """Return (bool (n,): :func:`_short_row` of each row, int64: how many per chunk of ``chunk`` rows), threaded."""
-    n = nb0.shape[0]
-    count = (n + chunk - 1) // chunk
-    short = np.zeros(n, np.bool_)
-    counts = np.zeros(count, np.int64)
-    for j in nb.prange(count):
-        k = 0
-        for i in range(j * chunk, min(n, (j + 1) * chunk)):
-            if _short_row(i, nb0, around, cell):
-                short[i] = True
-                k += 1
-        counts[j] = k
-    return short, counts
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _row_cuts(i, nb0, mflat, flat, steps, periodic0, seam, c0, last0, half, cut_at, ncut):
-    """
-    Append row ``i``'s cut edges at ``cut_at[ncut:]``; return the new count.
-
-    A cut edge ``i · deg + d``: an unknown cell in direction d where the graph names no neighbour.
-    """
-    n, deg = nb0.shape
-    f = flat[i]
-    for d in range(deg):
-        if nb0[i, d] < n:
-            continue                     # the face neighbour it names (the graph's convention)
-        g = _neighbour(f, d, steps, periodic0, seam, c0, last0)
-        if mflat[(g & 1) * half + (g >> 1)] != 0.0:     # an unknown on the other side of a wall
-            cut_at[ncut] = i * deg + d
-            ncut += 1
-    return ncut
-
-
 @nb.njit(cache=True, nogil=True)
-def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, coarse_nodes, find_cuts, chunk):
+def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, coarse_nodes, find_cuts):
     """
     Build the layout of :func:`_box`'s box: ``(ok, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather)``.
 
@@ -379,9 +276,7 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     uint32 (n,): each row's level-1 node, ``coarse_nodes`` of them.  See :class:`Layout` for
     the arrays; ``find_cuts`` False: no cut edges looked for (none returned: level 1's cells
     carry their weights instead).  ``ok`` False: two rows on one cell, a red row on a black cell, or a level-1
-    node with more red cells than a block holds (the graph's route).  ``chunk`` > 0: the rows placed and
-    the cut edges looked for in chunks of that many rows on numba's threads (:func:`_place_chunks`,
-    :func:`_short_rows_chunks`), the same arrays; 0: in one thread.
+    node with more red cells than a block holds (the graph's route).
     """
     n, deg = nb0.shape
     ndim = coords.shape[1]
@@ -398,12 +293,15 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     gather = np.full((coarse_nodes, width), half - 1, np.int64)
     none = np.empty((0, 2), np.int64)
     failed = (False, flat, mask, ranges, 0, none, none, aggr, gather)
-    if chunk > 0:
-        placed = _place_chunks(coords, lo, strides, base, half, red, flat, cell, mflat, chunk)
-    else:
-        placed = _place_rows(coords, lo, strides, base, half, red, flat, cell, mflat, 0, n)
-    if placed:
-        return failed
+    for i in range(n):
+        f = base
+        for a in range(ndim):
+            f += (coords[i, a] - lo[a] + 1) * strides[a]
+        flat[i] = f
+        cell[i] = (f & 1) * half + (f >> 1)
+        if mflat[cell[i]] != 0.0 or (i < red) != (f & 1 == 0):
+            return failed
+        mflat[cell[i]] = 1.0
     seam = (padded[0] - 3) * strides[0]      # axis 0's seam: slab 1 to slab N0
     steps = np.empty(deg, np.int64)
     for d in range(deg):
@@ -431,20 +329,20 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     around = _neighbour_counts(mask, ranges, nranges, deg) if find_cuts else mflat     # (unread without cuts)
     cut_at = np.empty(n * deg, np.int64)     # (written only where met)
     ncut = 0
-    if find_cuts and chunk > 0:              # the rows that may have one marked on the threads, then those in order
-        short, counts = _short_rows_chunks(nb0, around, cell, chunk)
-        for j in range(counts.size):
-            if counts[j] == 0:
-                continue
-            for i in range(j * chunk, min(n, (j + 1) * chunk)):
-                if short[i]:
-                    ncut = _row_cuts(i, nb0, mflat, flat, steps, periodic0, seam, coords[i, 0], shape[0] - 1, half,
-                                     cut_at, ncut)
-    else:
-        for i in range(n if find_cuts else 0):
-            if _short_row(i, nb0, around, cell):
-                ncut = _row_cuts(i, nb0, mflat, flat, steps, periodic0, seam, coords[i, 0], shape[0] - 1, half,
-                                 cut_at, ncut)
+    for i in range(n if find_cuts else 0):
+        named = 0
+        for d in range(deg):
+            named += nb0[i, d] < n
+        if named == around[cell[i]]:
+            continue
+        f = flat[i]
+        for d in range(deg):
+            if nb0[i, d] < n:
+                continue                     # the face neighbour it names (the graph's convention)
+            g = _neighbour(f, d, steps, periodic0, seam, coords[i, 0], shape[0] - 1)
+            if mflat[(g & 1) * half + (g >> 1)] != 0.0:     # an unknown on the other side of a wall
+                cut_at[ncut] = i * deg + d
+                ncut += 1
     counts = np.zeros(2, np.int64)
     for e in range(ncut):
         counts[flat[cut_at[e] // deg] & 1] += 1
