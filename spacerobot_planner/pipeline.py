@@ -103,6 +103,13 @@ def _count(n: int, word: str) -> str:
     return f"{n} {word}" + ("" if n == 1 else "s")
 
 
+def _repair_limit(max_repairs: int) -> str:
+    """Return the reason's note that the repairs' limit, not the grid, ended a plan that could repair further."""
+    if max_repairs == 0:
+        return " (no repair tried: planner.max_repairs = 0)"
+    return f" (planner.max_repairs = {max_repairs} reached)"
+
+
 def _repairs_text(repairs: int, cut, blocked) -> str:
     """Return '3 repairs (12 cut edges, 1 blocked node)'."""
     return (f"{_count(repairs, 'repair')} ({_count(len(cut), 'cut edge')}, "
@@ -344,8 +351,8 @@ class PlanRun:
         """
         robot, margin = self.robot, self.sc.scene.safety_margin_m
         try:
-            self.start_given = np.asarray(start_rad, dtype=float)
-            self.start = robot.validate_q(self.start_given, "start")
+            self.start = robot.validate_q(start_rad, "start")
+            self.start_given = np.asarray(start_rad, dtype=float)     # numbers: validate_q says so
         except (ValueError, TypeError) as e:
             raise Fail(Code.INVALID_INPUT, str(e)) from None
         try:
@@ -370,7 +377,7 @@ class PlanRun:
                      f"{chosen.manipulability:.3f} m² ({chosen.method})")
         else:
             try:
-                self.goal = robot.validate_q(np.asarray(goal_rad, dtype=float), "goal")
+                self.goal = robot.validate_q(goal_rad, "goal")
             except (ValueError, TypeError) as e:
                 raise Fail(Code.INVALID_INPUT, str(e)) from None
         clr_g, self.approach_error_deg = self.p.goal_clearance_and_approach(self.goal)
@@ -730,10 +737,12 @@ class PlanRun:
                 if collide:
                     reasons.insert(0, f"the straight segment from the start to each of the grid nodes "
                                    f"{', '.join(collide[:3])} collides")
+                limit = _repair_limit(s.max_repairs) if stuck is not None else ""   # a repair could go on
                 raise Fail(Code.PATH_INVALID, f"no grid path from {self.start_text()} on the grid "
-                           f"{grid.label()}: " + "; ".join(reasons[:3]),
+                           f"{grid.label()}: " + "; ".join(reasons[:3]) + limit,
                            (f"after {_count(repairs, 'repair')}, " if repairs else "") + "no grid path from the start"
-                           + (": every straight segment to a nearby free node collides" if not stuck else ""))
+                           + (": every straight segment to a nearby free node collides" if not stuck else "")
+                           + limit)
             nodes_rad = grid.config_of(path.nodes)
             self.grid_path = nodes_rad
             wp = unwrap_path(np.vstack([start, nodes_rad, self.goal]), self.periodic)
@@ -749,10 +758,11 @@ class PlanRun:
             goal_set = {tuple(g) for g in goal_nodes}
             cand = [c for c in cand if tuple(path.nodes[c]) not in goal_set]
             if not cand or attempt == s.max_repairs:
+                limit = _repair_limit(s.max_repairs) if cand else ""
                 raise Fail(Code.PATH_INVALID, f"the straight segment between grid nodes "
                            f"{deg_text(wp[bad])} and {deg_text(wp[bad + 1])} collides and the grid "
-                           f"path could not be repaired ({_count(repairs, 'repair')}, grid {grid.label()})",
-                           f"{_count(repairs, 'repair')}, a grid path whose straight segments collide")
+                           f"path could not be repaired ({_count(repairs, 'repair')}, grid {grid.label()}){limit}",
+                           f"{_count(repairs, 'repair')}, a grid path whose straight segments collide{limit}")
             self.may_repair(grid, repairs, cut, blocked)
             clr = [self.checker.clearance_m(nodes_rad[c]) for c in cand]
             node = tuple(int(v) for v in path.nodes[cand[int(np.argmin(clr))]])

@@ -157,9 +157,16 @@ class PlanarArm:
         Check a planned configuration: right length, finite, within bounds.
 
         Periodic joints are wrapped into their range (that is the same posture, not a
-        clamp); any other violation raises ``ValueError`` naming the joint.
+        clamp); any other violation raises ``ValueError`` naming ``name`` and the joint (values
+        that are not numbers: ``name`` and what was given).
         """
-        q = np.asarray(q, dtype=float)
+        try:
+            q = np.asarray(q, dtype=float)
+        except (ValueError, TypeError):
+            given = q.tolist() if isinstance(q, np.ndarray) else q
+            text = repr(given)
+            raise ValueError(f"{name}: expected {self.dof} joint values ({', '.join(self.planned_names)}) as "
+                             f"numbers, rad; got {text if len(text) <= 60 else text[:57] + '...'}") from None
         if q.shape != (self.dof,):
             raise ValueError(f"{name}: expected {self.dof} joint values "
                              f"({', '.join(self.planned_names)}), got shape {q.shape}")

@@ -285,6 +285,15 @@ def test_invalid_goal(planner3, sc3):
     assert res.code == "invalid_input" and "goal" in res.reason and "elbow" in res.reason
 
 
+@pytest.mark.parametrize("value", ["abc", [1.0, "x", 2.0], {"attitude": 1.0}, np.array(["a", "b", "c"])])
+def test_a_start_or_goal_that_is_not_numbers_is_named(planner3, sc3, value):
+    """What is not a number answers invalid_input naming the start or the goal and what was given, no numpy repr."""
+    for res, name in ((planner3.plan(value, sc3.goal_rad), "start"), (planner3.plan(sc3.start_rad, value), "goal")):
+        assert res.code == "invalid_input", (name, res.code, res.reason)
+        assert res.reason.startswith(f"{name}: expected 3 joint values"), res.reason
+        assert "np." not in res.reason and "array(" not in res.reason and "dtype" not in res.reason, res.reason
+
+
 def test_grid_budget_refused_before_allocating(sc3):
     big = replace(sc3, grid=sc3.grid_with_cells(400))          # 400 × 401 × 401 nodes
     res = Planner(big, max_grid_nodes=4_000_000).plan(sc3.start_rad, sc3.goal_rad)
@@ -884,3 +893,13 @@ def test_a_plan_that_repairs_answers_a_clear_path_with_either_solver(solver):
     assert res.solver_stats["repairs"] >= 1 and res.solver_stats["cut_edges"] > 0
     clearance = min(ref_clearance(sc.robot, sc.scene, q) for q in dense_samples(res.path_rad, np.radians(0.25)))
     assert clearance > sc.scene.safety_margin_m - 1e-6
+
+
+def test_a_plan_stopped_by_the_repair_limit_says_so():
+    """With repairs off, the scene above answers path_invalid naming planner.max_repairs, not the grid alone."""
+    gen = plan_problems(np.random.default_rng([0, 3]), 3)
+    for _ in range(14):
+        sc, start, _, goal = next(gen)
+    res = Planner(sc, max_repairs=0, max_refinements=0).plan(start, goal)
+    assert res.code == "path_invalid", (res.code, res.reason)
+    assert "no repair tried: planner.max_repairs = 0" in res.reason, res.reason
