@@ -1,0 +1,289 @@
+"""
+Issue 19's speed aims, measured in one run: ``python -m spacerobot_planner.bench aims [--skip NAMES] [--quick]``.
+
+Runs the benchmarks that the aims name, each as its own ``main`` in this process
+(``coldstart`` starts processes of its own), reads the JSON rows each prints, and prints
+every aim against its limit as measured in this run: ``met``, ``missed``, or ``not run``
+(its benchmark skipped with ``--skip``, or unavailable: OMPL's wheel for ``peers``, ROS 2's
+for ``latency``; the reason is printed).  The machine's speed drifts between runs (the
+project's VM swings by a fifth within minutes), so an aim's verdict is only ever taken from
+figures of one run, and the paper's Gauss–Seidel times (``bench plan``'s baseline, in the
+same run) are printed beside them as the run's yardstick.
+
+The benchmarks, in order: ``plan`` (the paper scenes at 181², 36³, 72³ and 120³; their fresh
+plans, cached replans and the field against the Gauss–Seidel baseline), ``peers`` (OMPL's
+RRTConnect + simplify on the paper scenes), ``scenes`` (200 random scenes per DOF),
+``latency`` (the node: joint state → trajectory) and ``coldstart`` (``spacerobot-plan`` in a
+fresh process).  ``--quick`` runs each with fewer repeats (a smoke run: its verdicts are
+rougher).  Each benchmark's own output is written to ``--log`` (default: not kept) and
+its time is printed as it ends.  Prints a table, then one JSON object per aim::
+
+    {"stage": "aim", "aim": "...", "bench": "plan", "value": 7.01, "unit": "ms",
+     "limit": 5.0, "at_most": true, "met": false}
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+#: the benchmarks the aims read, in the order they run
+BENCHES = ("plan", "peers", "scenes", "latency", "coldstart")
+
+#: each benchmark's arguments: (full run, --quick run)
+ARGS = {
+    "plan": (["--cases", "2dof:180,3dof:36,3dof:72,3dof:120", "--repeats", "15"],
+             ["--cases", "2dof:180,3dof:36,3dof:72,3dof:120", "--repeats", "3"]),
+    "peers": (["--runs", "20"], ["--runs", "5"]),
+    "scenes": (["--dof", "2,3", "--count", "200", "--oracle", "0"], ["--dof", "2,3", "--count", "40", "--oracle", "0"]),
+    "latency": (["--repeats", "30", "--no-moving"], ["--repeats", "8", "--no-moving"]),
+    "coldstart": (["--runs", "5"], ["--runs", "2"]),
+}
+
+
+def _row(rows, **match) -> dict | None:
+    """Return the first row whose items include ``match``, or None."""
+    for r in rows:
+        if all(r.get(k) == v for k, v in match.items()):
+            return r
+    return None
+
+
+def _get(key: str, scale: float = 1.0, **match) -> Callable[[list], float | None]:
+    """Return a reader of ``row[key] * scale`` from the first row that matches (None: no such row or value)."""
+    def pick(rows):
+        r = _row(rows, **match)
+        v = None if r is None else r.get(key)
+        return None if v is None else float(v) * scale
+    return pick
+
+
+@dataclass(frozen=True)
+class Aim:
+    """
+    One of issue 19's aims.
+
+    name: what is measured, for people; bench: the benchmark whose rows hold it; pick: its
+    figure from those rows (in ``unit``), None when they do not hold it; limit and at_most:
+    met when the figure is at most (else at least) the limit.
+    """
+
+    name: str
+    bench: str
+    pick: Callable[[list], float | None]
+    limit: float
+    unit: str
+    at_most: bool = True
+
+    def verdict(self, value: float | None) -> bool | None:
+        """Return whether ``value`` meets the aim (None: not measured)."""
+        if value is None or not math.isfinite(value):
+            return None
+        return value <= self.limit if self.at_most else value >= self.limit
+
+
+_G2, _G3, _G72, _G120 = "181x181", "36x37x37", "72x73x73", "120x121x121"
+
+#: The aims, as issue 19 states them (one place).
+AIMS = (
+    Aim("paper 2-DOF 181², whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G2), 5.0, "ms"),
+    Aim("paper 3-DOF 36³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G3), 10.0, "ms"),
+    Aim("paper 2-DOF plan / RRTConnect + simplify (medians)", "peers",
+        _get("plan_over_rrt", stage="peers", scene="paper_2dof"), 1.0, "×"),
+    Aim("paper 3-DOF plan / RRTConnect + simplify (medians)", "peers",
+        _get("plan_over_rrt", stage="peers", scene="paper_3dof"), 1.0, "×"),
+    Aim("paper 2-DOF cached replan (median)", "plan", _get("seconds", 1e3, stage="replan_cached", grid=_G2),
+        1.0, "ms"),
+    Aim("paper 3-DOF cached replan (median)", "plan", _get("seconds", 1e3, stage="replan_cached", grid=_G3),
+        1.0, "ms"),
+    Aim("node: joint state → trajectory (median)", "latency",
+        _get("seconds", 1e3, stage="latency_joint_state"), 5.0, "ms"),
+    Aim("paper 3-DOF 72³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G72), 40.0, "ms"),
+    Aim("paper 3-DOF 120³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G120),
+        300.0, "ms"),
+    Aim("field against the paper's Gauss–Seidel, 181²", "plan", _get("ratio", stage="field", grid=_G2), 100.0,
+        "×", at_most=False),
+    Aim("field against the paper's Gauss–Seidel, 36³", "plan", _get("ratio", stage="field", grid=_G3), 20.0,
+        "×", at_most=False),
+    Aim("random 2-DOF scenes: max / median of the plans", "scenes", _get("max_over_median", stage="aims", dof=2),
+        3.0, "×"),
+    Aim("random 3-DOF scenes: max / median of the plans", "scenes", _get("max_over_median", stage="aims", dof=3),
+        3.0, "×"),
+    Aim("random 3-DOF scenes: plans above 30 ms", "scenes", _get("plans_above", stage="aims", dof=3), 0.0, "plans"),
+    Aim("cold start of spacerobot-plan, paper 3-DOF (median)", "coldstart",
+        _get("median_s", case="spacerobot-plan"), 0.5, "s"),
+)
+
+
+def evaluate(rows_by_bench: dict, aims=AIMS) -> list:
+    """
+    Return one JSON row per aim from the benchmarks' rows.
+
+    rows_by_bench: benchmark name → its JSON rows (a benchmark not run: absent).  Each row:
+    ``stage`` "aim", the aim's ``name`` (as ``aim``), ``bench``, ``value`` (None: not
+    measured), ``unit``, ``limit``, ``at_most`` and ``met`` (None: not measured).
+    """
+    out = []
+    for a in aims:
+        rows = rows_by_bench.get(a.bench)
+        value = None if rows is None else a.pick(rows)
+        out.append({"stage": "aim", "aim": a.name, "bench": a.bench, "value": value, "unit": a.unit,
+                    "limit": a.limit, "at_most": a.at_most, "met": a.verdict(value)})
+    return out
+
+
+def _json_rows(text: str) -> list:
+    """Return the JSON objects among the lines of ``text``."""
+    rows = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("{"):
+            try:
+                obj = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(obj, dict):
+                rows.append(obj)
+    return rows
+
+
+@contextlib.contextmanager
+def _captured_stderr():
+    """
+    Send the process's stderr to a temporary file; yield a reader of what was written.
+
+    File descriptor 2: Python's and the C libraries' own (ROS 2's logging) alike.
+    """
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield lambda: (tmp.seek(0), tmp.read().decode(errors="replace"))[1]
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def run_bench(name: str, argv: list, log) -> tuple:
+    """
+    Run benchmark ``name``'s ``main(argv)`` with its output captured; return ``(rows, why not)``.
+
+    rows: its JSON rows, or None when it did not run (then ``why not`` says why: not importable,
+    a non-zero status or an exception, or the line it printed instead of rows, e.g. a skip).
+    Its standard output and its stderr (the C libraries' too: the node's ROS 2 log) go to ``log``
+    (a text file, or None: not kept).
+    """
+    import importlib
+    try:
+        mod = importlib.import_module(f"spacerobot_planner.bench.{name}")
+    except ImportError as e:
+        return None, f"not importable here: {e}"
+    buf = io.StringIO()
+    failed = ""
+    with _captured_stderr() as err:
+        try:
+            with contextlib.redirect_stdout(buf):
+                rc = mod.main(list(argv))
+        except Exception as e:            # one benchmark's failure leaves the others' verdicts
+            rc, failed = 1, f"{type(e).__name__}: {e}"
+        err_text = err()
+    out_text = buf.getvalue()
+    if log is not None:
+        log.write(f"===== bench {name} {' '.join(argv)}\n{out_text}\n----- stderr\n{err_text}\n")
+        log.flush()
+    if rc:
+        last = failed or next((ln for ln in reversed((out_text + err_text).splitlines()) if ln.strip()), "")
+        return None, f"exited with status {rc}" + (f": {last.strip()}" if last else "")
+    rows = _json_rows(out_text)
+    if not rows:
+        first = next((ln for ln in out_text.splitlines() if ln.strip()), "no output")
+        return None, first.strip()
+    return rows, ""
+
+
+def _fmt(value, unit: str) -> str:
+    if value is None:
+        return "-"
+    if unit == "plans":
+        return f"{value:.0f}"
+    return f"{value:.2f} {unit}" if unit != "×" else f"{value:.2f}×"
+
+
+def print_table(aims_rows: list, why_not: dict, yardstick: str) -> None:
+    """Print the aims: measured, limit, verdict (and why an aim was not measured)."""
+    print(f"\nbench aims: issue 19's aims, each measured in this run{yardstick}")
+    head = f"{'aim':<54}{'measured':>12}{'limit':>12}  verdict"
+    print(head + "\n" + "-" * len(head))
+    for r in aims_rows:
+        limit = ("≤ " if r["at_most"] else "≥ ") + _fmt(r["limit"], r["unit"])
+        verdict = {True: "met", False: "missed", None: "not run"}[r["met"]]
+        if r["met"] is None and r["bench"] in why_not:
+            verdict += f" (bench {r['bench']}: {why_not[r['bench']]})"
+        print(f"{r['aim']:<54}{_fmt(r['value'], r['unit']):>12}{limit:>12}  {verdict}")
+    met = sum(r["met"] is True for r in aims_rows)
+    measured = sum(r["met"] is not None for r in aims_rows)
+    print(f"{met} of {measured} measured aims met ({len(aims_rows) - measured} not run)")
+
+
+def _yardstick(rows_by_bench: dict) -> str:
+    """Return ' (the paper's Gauss–Seidel: ... ms at 181², ... at 36³)' from bench plan's rows, or ''."""
+    rows = rows_by_bench.get("plan") or []
+    parts = []
+    for grid, label in ((_G2, "181²"), (_G3, "36³")):
+        r = _row(rows, stage="field", grid=grid)
+        if r is not None and r.get("baseline_seconds"):
+            parts.append(f"{1e3 * r['baseline_seconds']:.0f} ms at {label}")
+    return f" (the paper's Gauss–Seidel, the run's yardstick: {', '.join(parts)})" if parts else ""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="bench aims", description=__doc__.strip().split("\n\n")[0])
+    ap.add_argument("--skip", default="", help=f"comma list of benchmarks not to run ({', '.join(BENCHES)})")
+    ap.add_argument("--quick", action="store_true", help="fewer repeats: a smoke run, rougher verdicts")
+    ap.add_argument("--log", default=None, help="write each benchmark's own output to this file")
+    args = ap.parse_args(argv)
+    skip = {s.strip() for s in args.skip.split(",") if s.strip()}
+    unknown = skip - set(BENCHES)
+    if unknown:
+        ap.error(f"--skip: unknown benchmark(s) {', '.join(sorted(unknown))}; choose from {', '.join(BENCHES)}")
+    rows_by_bench, why_not = {}, {}
+    log = open(args.log, "w", encoding="utf-8") if args.log else None
+    try:
+        print(f"bench aims: {', '.join(b for b in BENCHES if b not in skip)}"
+              f"{' (--quick)' if args.quick else ''} on {os.cpu_count()} cores (load {os.getloadavg()[0]:.1f})",
+              flush=True)
+        for name in BENCHES:
+            if name in skip:
+                why_not[name] = "skipped (--skip)"
+                continue
+            t0 = time.perf_counter()
+            rows, why = run_bench(name, ARGS[name][1 if args.quick else 0], log)
+            spent = time.perf_counter() - t0
+            if rows is None:
+                why_not[name] = why
+                print(f"  bench {name}: not run ({why}), {spent:.1f} s", flush=True)
+            else:
+                rows_by_bench[name] = rows
+                print(f"  bench {name}: {len(rows)} rows in {spent:.1f} s", flush=True)
+    finally:
+        if log is not None:
+            log.close()
+    out = evaluate(rows_by_bench)
+    print_table(out, why_not, _yardstick(rows_by_bench))
+    for r in out:
+        print(json.dumps(r))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
