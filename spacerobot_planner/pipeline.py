@@ -342,6 +342,21 @@ class PlanRun:
                                 np.ascontiguousarray(occupied, dtype=np.bool_).ravel(), max_count)
 
     # ----------------------------------------------------------------- stages
+    def take_start(self, start_rad) -> None:
+        """Set ``start`` (``robot.validate_q``'s) and ``start_given`` (as given, rad), or raise ``invalid_input``."""
+        try:
+            self.start = self.robot.validate_q(start_rad, "start")
+        except (ValueError, TypeError) as e:
+            raise Fail(Code.INVALID_INPUT, str(e)) from None
+        self.start_given = np.asarray(start_rad, dtype=float)     # numbers: validate_q says so
+
+    def validated_goal(self, goal_rad) -> np.ndarray:
+        """Return the goal validated (``robot.validate_q``), or raise ``invalid_input`` naming what is wrong."""
+        try:
+            return self.robot.validate_q(goal_rad, "goal")
+        except (ValueError, TypeError) as e:
+            raise Fail(Code.INVALID_INPUT, str(e)) from None
+
     def check_inputs(self, start_rad, goal_rad) -> None:
         """
         Start and goal valid and in bounds.
@@ -350,11 +365,7 @@ class PlanRun:
         :meth:`leave_contact`) touching only.
         """
         robot, margin = self.robot, self.sc.scene.safety_margin_m
-        try:
-            self.start = robot.validate_q(start_rad, "start")
-            self.start_given = np.asarray(start_rad, dtype=float)     # numbers: validate_q says so
-        except (ValueError, TypeError) as e:
-            raise Fail(Code.INVALID_INPUT, str(e)) from None
+        self.take_start(start_rad)
         try:
             self.start_tangent = start_direction(self.start_tangent_given, robot.dof)
         except ValueError as e:
@@ -376,10 +387,7 @@ class PlanRun:
             self.say(f"goal from the target's IK: {deg_text(self.goal)}, manipulability "
                      f"{chosen.manipulability:.3f} m² ({chosen.method})")
         else:
-            try:
-                self.goal = robot.validate_q(goal_rad, "goal")
-            except (ValueError, TypeError) as e:
-                raise Fail(Code.INVALID_INPUT, str(e)) from None
+            self.goal = self.validated_goal(goal_rad)
         clr_g, self.approach_error_deg = self.p.goal_clearance_and_approach(self.goal)
         if not clr_g > margin:
             raise Fail(Code.GOAL_IN_COLLISION, f"the goal {deg_text(self.goal)} is in collision: clearance "
@@ -400,12 +408,8 @@ class PlanRun:
         achieve, or the inertial clearance; ``goal_unreachable`` for a chain it does not handle.
         """
         robot, margin = self.robot, self.sc.scene.safety_margin_m
-        try:
-            self.start_given = np.asarray(start_rad, dtype=float)
-            self.start = robot.validate_q(self.start_given, "start")
-            goal = None if goal_rad is None else robot.validate_q(np.asarray(goal_rad, dtype=float), "goal")
-        except (ValueError, TypeError) as e:
-            raise Fail(Code.INVALID_INPUT, str(e)) from None
+        self.take_start(start_rad)
+        goal = None if goal_rad is None else self.validated_goal(goal_rad)
         clr_s = self.checker.clearance_m(self.start)
         if not clr_s > margin:
             raise Fail(Code.START_IN_COLLISION, f"the start {deg_text(self.start)} is in collision: "
@@ -739,7 +743,7 @@ class PlanRun:
                                    f"{', '.join(collide[:3])} collides")
                 limit = _repair_limit(s.max_repairs) if stuck is not None else ""   # a repair could go on
                 raise Fail(Code.PATH_INVALID, f"no grid path from {self.start_text()} on the grid "
-                           f"{grid.label()}: " + "; ".join(reasons[:3]) + limit,
+                           f"{grid.label()}{limit}: " + "; ".join(reasons[:3]),
                            (f"after {_count(repairs, 'repair')}, " if repairs else "") + "no grid path from the start"
                            + (": every straight segment to a nearby free node collides" if not stuck else "")
                            + limit)

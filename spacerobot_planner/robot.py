@@ -24,6 +24,17 @@ from .joint_space import TWO_PI, wrap_rad
 __all__ = ["PlanarArm", "square_polygon", "validate_polygon"]
 
 
+def _plain(value):
+    """Return ``value`` with NumPy arrays and scalars as Python lists and numbers (for a reason's text)."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
 def square_polygon(side_m: float, center_m=(0.0, 0.0), yaw_rad: float = 0.0,
                    corner_first: bool = False) -> np.ndarray:
     """
@@ -162,9 +173,8 @@ class PlanarArm:
         """
         try:
             q = np.asarray(q, dtype=float)
-        except (ValueError, TypeError):
-            given = q.tolist() if isinstance(q, np.ndarray) else q
-            text = repr(given)
+        except (ValueError, TypeError, OverflowError):
+            text = repr(_plain(q))
             raise ValueError(f"{name}: expected {self.dof} joint values ({', '.join(self.planned_names)}) as "
                              f"numbers, rad; got {text if len(text) <= 60 else text[:57] + '...'}") from None
         if q.shape != (self.dof,):

@@ -68,27 +68,78 @@ def test_a_verdict_follows_the_limit_and_its_direction():
     assert out["paper 2-DOF cached replan (median)"]["met"] is None       # no such row: not measured
 
 
-def test_a_benchmark_that_fails_leaves_the_others(monkeypatch, capsys):
-    broken = types.ModuleType("spacerobot_planner.bench.broken")
+def _fake_bench(monkeypatch, name, main):
+    mod = types.ModuleType(f"spacerobot_planner.bench.{name}")
+    mod.main = main
+    monkeypatch.setitem(sys.modules, f"spacerobot_planner.bench.{name}", mod)
 
-    def main(argv):
+
+def test_a_benchmark_that_fails_leaves_the_others(monkeypatch, capsys, tmp_path):
+    def broken(argv):
         print("half a table")
         raise RuntimeError("the machine caught fire")
-    broken.main = main
-    silent = types.ModuleType("spacerobot_planner.bench.silent")
-    silent.main = lambda argv: print("bench silent: skipped: no wheel") or 0
-    monkeypatch.setitem(sys.modules, "spacerobot_planner.bench.broken", broken)
-    monkeypatch.setitem(sys.modules, "spacerobot_planner.bench.silent", silent)
-    rows, why = aims.run_bench("broken", [], None)
-    assert rows is None and "RuntimeError: the machine caught fire" in why
+
+    def refused(argv):
+        import argparse
+        argparse.ArgumentParser(prog="bench refused").parse_args(argv)     # an unknown option: exit 2
+
+    def says_why(argv):
+        raise SystemExit("bench says_why: --cases: expected items like 2dof:180")
+    _fake_bench(monkeypatch, "broken", broken)
+    _fake_bench(monkeypatch, "silent", lambda argv: print("bench silent: skipped: no wheel") or 0)
+    _fake_bench(monkeypatch, "refused", refused)
+    _fake_bench(monkeypatch, "says_why", says_why)
+    with open(tmp_path / "log.txt", "w") as log:
+        rows, why = aims.run_bench("broken", [], log)
+        assert rows is None and why == "raised RuntimeError: the machine caught fire"
+        rows, why = aims.run_bench("refused", ["--nonsense"], log)
+        assert rows is None and why.startswith("exited with status 2") and "--nonsense" in why
+        rows, why = aims.run_bench("says_why", [], log)
+        assert rows is None and why == "exited with status 1: bench says_why: --cases: expected items like 2dof:180"
     rows, why = aims.run_bench("silent", [], None)
     assert rows is None and why == "bench silent: skipped: no wheel"
     rows, why = aims.run_bench("no_such_bench", [], None)
     assert rows is None and "not importable" in why
-    assert capsys.readouterr().out == ""          # the benchmarks' own output is captured, not printed
+    captured = capsys.readouterr()
+    assert captured.out == "" and "nonsense" not in captured.err     # captured, not printed
+    logged = (tmp_path / "log.txt").read_text()
+    assert "half a table" in logged and "Traceback" in logged and "unrecognized arguments: --nonsense" in logged
 
 
-def test_skip_names_only_known_benchmarks(capsys):
+def test_skip_names_only_known_benchmarks(monkeypatch, capsys):
+    def no_bench(name, argv, log):
+        raise AssertionError(f"bench {name} ran")
+    monkeypatch.setattr(aims, "run_bench", no_bench)
     with pytest.raises(SystemExit):
         aims.main(["--skip", "plan,nonsense"])
     assert "nonsense" in capsys.readouterr().err
+
+
+def test_the_aims_name_what_the_benchmarks_print():
+    """
+    The grid labels, options and row names each aim and run relies on, from the benchmarks themselves.
+
+    The paper scenes' grids at the aims' cells; every option in ``ARGS`` one its benchmark takes;
+    the row names of the benchmarks that need a wheel or a node to run (peers, latency) and of
+    coldstart, in their modules' own text.
+    """
+    import inspect
+    import re
+    from spacerobot_planner.bench import coldstart, latency, peers, plan
+    assert {plan._scenario(scene, cells).grid.label() for scene, cells in
+            (("2dof", 180), ("3dof", 36), ("3dof", 72), ("3dof", 120))} == {aims._G2, aims._G3, aims._G72, aims._G120}
+    for name, runs in aims.ARGS.items():
+        module = __import__(f"spacerobot_planner.bench.{name}", fromlist=["main"])
+        takes = set(re.findall(r'add_argument\(\s*"(--[\w-]+)"', inspect.getsource(module)))
+        for argv in runs:
+            assert {a for a in argv if a.startswith("--")} <= takes, (name, argv)
+    assert '"latency_joint_state"' in inspect.getsource(latency)
+    assert '"spacerobot-plan"' in inspect.getsource(coldstart)
+    assert 'f"paper_{scene}"' in inspect.getsource(peers) and ("2dof", 180) in peers.SCENES
+
+
+def test_an_aim_without_a_finite_figure_is_not_measured():
+    plan = [{"stage": "field", "grid": "181x181", "ratio": float("nan")}]
+    out = _by_name(aims.evaluate({"plan": plan}))
+    r = out["field against the paper's Gauss–Seidel, 181²"]
+    assert r["value"] is None and r["met"] is None

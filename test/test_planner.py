@@ -285,12 +285,20 @@ def test_invalid_goal(planner3, sc3):
     assert res.code == "invalid_input" and "goal" in res.reason and "elbow" in res.reason
 
 
-@pytest.mark.parametrize("value", ["abc", [1.0, "x", 2.0], {"attitude": 1.0}, np.array(["a", "b", "c"])])
-def test_a_start_or_goal_that_is_not_numbers_is_named(planner3, sc3, value):
-    """What is not a number answers invalid_input naming the start or the goal and what was given, no numpy repr."""
-    for res, name in ((planner3.plan(value, sc3.goal_rad), "start"), (planner3.plan(sc3.start_rad, value), "goal")):
+@pytest.mark.parametrize("value", ["abc", [np.float64(1.0), "x", 2.0], {"attitude": 1.0}, np.array(["a", "b", "c"])])
+@pytest.mark.parametrize("config", ["paper_3dof", "free_floating_capture"])
+def test_a_start_or_goal_that_is_not_numbers_is_named(value, config):
+    """
+    What is not a number answers invalid_input naming the start or the goal and what was given, no numpy repr.
+
+    The fixed-base route and the free-floating capture's alike.
+    """
+    from spacerobot_planner.config import load_scenario
+    sc = load_scenario(CONFIG / f"{config}.yaml")
+    planner, dof = Planner(sc), sc.robot.dof
+    for res, name in ((planner.plan(value, sc.goal_rad), "start"), (planner.plan(sc.start_rad, value), "goal")):
         assert res.code == "invalid_input", (name, res.code, res.reason)
-        assert res.reason.startswith(f"{name}: expected 3 joint values"), res.reason
+        assert res.reason.startswith(f"{name}: expected {dof} joint values"), res.reason
         assert "np." not in res.reason and "array(" not in res.reason and "dtype" not in res.reason, res.reason
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import io
 import json
 import math
@@ -32,8 +33,12 @@ import os
 import sys
 import tempfile
 import time
+import traceback
 from dataclasses import dataclass
 from typing import Callable
+
+from .latency import JOINT_STATE_AIM_S
+from .scenes import AIM_MAX_OVER_MEDIAN, AIM_MOST_S
 
 #: the benchmarks the aims read, in the order they run
 BENCHES = ("plan", "peers", "scenes", "latency", "coldstart")
@@ -105,7 +110,7 @@ AIMS = (
     Aim("paper 3-DOF cached replan (median)", "plan", _get("seconds", 1e3, stage="replan_cached", grid=_G3),
         1.0, "ms"),
     Aim("node: joint state → trajectory (median)", "latency",
-        _get("seconds", 1e3, stage="latency_joint_state"), 5.0, "ms"),
+        _get("seconds", 1e3, stage="latency_joint_state"), 1e3 * JOINT_STATE_AIM_S, "ms"),
     Aim("paper 3-DOF 72³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G72), 40.0, "ms"),
     Aim("paper 3-DOF 120³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G120),
         300.0, "ms"),
@@ -114,10 +119,11 @@ AIMS = (
     Aim("field against the paper's Gauss–Seidel, 36³", "plan", _get("ratio", stage="field", grid=_G3), 20.0,
         "×", at_most=False),
     Aim("random 2-DOF scenes: max / median of the plans", "scenes", _get("max_over_median", stage="aims", dof=2),
-        3.0, "×"),
+        AIM_MAX_OVER_MEDIAN, "×"),
     Aim("random 3-DOF scenes: max / median of the plans", "scenes", _get("max_over_median", stage="aims", dof=3),
-        3.0, "×"),
-    Aim("random 3-DOF scenes: plans above 30 ms", "scenes", _get("plans_above", stage="aims", dof=3), 0.0, "plans"),
+        AIM_MAX_OVER_MEDIAN, "×"),
+    Aim(f"random 3-DOF scenes: plans above {1e3 * AIM_MOST_S:g} ms", "scenes",
+        _get("plans_above", stage="aims", dof=3), 0.0, "plans"),
     Aim("cold start of spacerobot-plan, paper 3-DOF (median)", "coldstart",
         _get("median_s", case="spacerobot-plan"), 0.5, "s"),
 )
@@ -129,12 +135,15 @@ def evaluate(rows_by_bench: dict, aims=AIMS) -> list:
 
     rows_by_bench: benchmark name → its JSON rows (a benchmark not run: absent).  Each row:
     ``stage`` "aim", the aim's ``name`` (as ``aim``), ``bench``, ``value`` (None: not
-    measured), ``unit``, ``limit``, ``at_most`` and ``met`` (None: not measured).
+    measured: its benchmark not run, or no finite figure in its rows), ``unit``, ``limit``,
+    ``at_most`` and ``met`` (None: not measured).
     """
     out = []
     for a in aims:
         rows = rows_by_bench.get(a.bench)
         value = None if rows is None else a.pick(rows)
+        if value is not None and not math.isfinite(value):
+            value = None                  # strict JSON; not measured
         out.append({"stage": "aim", "aim": a.name, "bench": a.bench, "value": value, "unit": a.unit,
                     "limit": a.limit, "at_most": a.at_most, "met": a.verdict(value)})
     return out
@@ -160,18 +169,25 @@ def _captured_stderr():
     """
     Send the process's stderr to a temporary file; yield a reader of what was written.
 
-    File descriptor 2: Python's and the C libraries' own (ROS 2's logging) alike.
+    File descriptor 2 (the C libraries' writes: ROS 2's logging) and Python's ``sys.stderr`` alike.
     """
-    sys.stderr.flush()
+    if sys.stderr is not None:
+        sys.stderr.flush()
     saved = os.dup(2)
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            yield lambda: (tmp.seek(0), tmp.read().decode(errors="replace"))[1]
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
+    try:
+        with tempfile.TemporaryFile() as tmp, io.StringIO() as py_err:
+            os.dup2(tmp.fileno(), 2)
+
+            def read() -> str:
+                """Return what was written to stderr so far (the C libraries' first, then Python's)."""
+                tmp.flush()
+                tmp.seek(0)
+                return tmp.read().decode(errors="replace") + py_err.getvalue()
+            with contextlib.redirect_stderr(py_err):
+                yield read
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def run_bench(name: str, argv: list, log) -> tuple:
@@ -179,30 +195,34 @@ def run_bench(name: str, argv: list, log) -> tuple:
     Run benchmark ``name``'s ``main(argv)`` with its output captured; return ``(rows, why not)``.
 
     rows: its JSON rows, or None when it did not run (then ``why not`` says why: not importable,
-    a non-zero status or an exception, or the line it printed instead of rows, e.g. a skip).
-    Its standard output and its stderr (the C libraries' too: the node's ROS 2 log) go to ``log``
-    (a text file, or None: not kept).
+    a non-zero status, an exception it raised, or the line it printed instead of rows, e.g. a
+    skip).  Its standard output and its stderr (the C libraries' too: the node's ROS 2 log), and
+    the traceback of an exception, go to ``log`` (a text file, or None: not kept).
     """
-    import importlib
     try:
         mod = importlib.import_module(f"spacerobot_planner.bench.{name}")
     except ImportError as e:
         return None, f"not importable here: {e}"
     buf = io.StringIO()
-    failed = ""
+    said, raised, tb = "", "", ""      # a SystemExit's message; an exception; its traceback
     with _captured_stderr() as err:
         try:
             with contextlib.redirect_stdout(buf):
                 rc = mod.main(list(argv))
+        except SystemExit as e:           # argparse's errors, a bench's own exit
+            rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+            said = "" if isinstance(e.code, int) or e.code is None else str(e.code)
         except Exception as e:            # one benchmark's failure leaves the others' verdicts
-            rc, failed = 1, f"{type(e).__name__}: {e}"
+            rc, raised, tb = 1, f"raised {type(e).__name__}: {e}", traceback.format_exc()
         err_text = err()
     out_text = buf.getvalue()
     if log is not None:
-        log.write(f"===== bench {name} {' '.join(argv)}\n{out_text}\n----- stderr\n{err_text}\n")
+        log.write(f"===== bench {name} {' '.join(argv)}\n{out_text}\n----- stderr\n{err_text}{tb}\n")
         log.flush()
+    if raised:
+        return None, raised
     if rc:
-        last = failed or next((ln for ln in reversed((out_text + err_text).splitlines()) if ln.strip()), "")
+        last = said or next((ln for ln in reversed((out_text + err_text).splitlines()) if ln.strip()), "")
         return None, f"exited with status {rc}" + (f": {last.strip()}" if last else "")
     rows = _json_rows(out_text)
     if not rows:
@@ -212,6 +232,7 @@ def run_bench(name: str, argv: list, log) -> tuple:
 
 
 def _fmt(value, unit: str) -> str:
+    """Return a figure for the table: ``-`` when not measured."""
     if value is None:
         return "-"
     if unit == "plans":
@@ -226,13 +247,17 @@ def print_table(aims_rows: list, why_not: dict, yardstick: str) -> None:
     print(head + "\n" + "-" * len(head))
     for r in aims_rows:
         limit = ("≤ " if r["at_most"] else "≥ ") + _fmt(r["limit"], r["unit"])
-        verdict = {True: "met", False: "missed", None: "not run"}[r["met"]]
-        if r["met"] is None and r["bench"] in why_not:
-            verdict += f" (bench {r['bench']}: {why_not[r['bench']]})"
+        if r["met"] is None:
+            verdict = (f"not run (bench {r['bench']}: {why_not[r['bench']]})" if r["bench"] in why_not
+                       else f"not measured (no figure in bench {r['bench']}'s rows)")
+        else:
+            verdict = "met" if r["met"] else "missed"
         print(f"{r['aim']:<54}{_fmt(r['value'], r['unit']):>12}{limit:>12}  {verdict}")
     met = sum(r["met"] is True for r in aims_rows)
     measured = sum(r["met"] is not None for r in aims_rows)
-    print(f"{met} of {measured} measured aims met ({len(aims_rows) - measured} not run)")
+    not_run = sum(r["met"] is None and r["bench"] in why_not for r in aims_rows)
+    print(f"{met} of {measured} measured aims met ({not_run} not run, {len(aims_rows) - measured - not_run} "
+          "not measured)")
 
 
 def _yardstick(rows_by_bench: dict) -> str:
@@ -268,13 +293,13 @@ def main(argv=None) -> int:
                 continue
             t0 = time.perf_counter()
             rows, why = run_bench(name, ARGS[name][1 if args.quick else 0], log)
-            spent = time.perf_counter() - t0
+            spent_s = time.perf_counter() - t0
             if rows is None:
                 why_not[name] = why
-                print(f"  bench {name}: not run ({why}), {spent:.1f} s", flush=True)
+                print(f"  bench {name}: not run ({why}), {spent_s:.1f} s", flush=True)
             else:
                 rows_by_bench[name] = rows
-                print(f"  bench {name}: {len(rows)} rows in {spent:.1f} s", flush=True)
+                print(f"  bench {name}: {len(rows)} rows in {spent_s:.1f} s", flush=True)
     finally:
         if log is not None:
             log.close()

@@ -4,7 +4,7 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
 - ``latency_target``: a new ``target_pose`` (each repeat a new pose, so the C-space and
   the field are rebuilt) → the ``joint_trajectory`` message (aim < 150 ms at 36³);
 - ``latency_joint_state``: a new ``joint_states`` + ``~/replan`` (C-space and field
-  cached) → the ``joint_trajectory`` message (aim < 20 ms);
+  cached) → the ``joint_trajectory`` message (aim ≤ 5 ms median: issue 19's, :data:`JOINT_STATE_AIM_S`);
 - ``latency_moving``: with the mock arm moving on the node's trajectory (the file's
   limits), a new target (1 cm away) → the ``joint_trajectory`` message; the table also
   gives how many replans were joined to the moving arm and the largest velocity step
@@ -54,6 +54,8 @@ import numpy as np
 from .timing import tail_stats
 
 _PARAMS = Path(__file__).resolve().parent.parent.parent / "config" / "paper_3dof.yaml"
+#: The aim of ``latency_joint_state``'s median, s (issue 19; ``bench aims`` reads it here).
+JOINT_STATE_AIM_S = 0.005
 
 
 def main(argv=None) -> int:
@@ -160,7 +162,7 @@ def _run(args) -> int:
         cached = node.last_result.cached
         grid = sc.grid.label()
         msg_s = _message_times(node, args.repeats)
-        stages = [("latency_target", lat_t, 0.150), ("latency_joint_state", lat_j, 0.020),
+        stages = [("latency_target", lat_t, 0.150), ("latency_joint_state", lat_j, JOINT_STATE_AIM_S),
                   ("message_published", msg_s[0], None), ("message_dense", msg_s[1], None)]
         parts = [p for p in parts if p is not None]
         stages[2:2] = [(name, [p[name] for p in parts], None) for name in _PARTS if parts]
