@@ -29,7 +29,9 @@ def test_the_aims_read_the_rows_bench_plan_and_bench_scenes_print():
     field = next(r for r in plan if r["stage"] == "field" and r["grid"] == "181x181")
     replan = next(r for r in plan if r["stage"] == "replan_cached" and r["grid"] == "181x181")
     family = next(r for r in scenes if r["stage"] == "aims" and r["dof"] == 2)
-    assert out["paper 2-DOF 181², whole plan (median)"]["value"] == pytest.approx(1e3 * total["seconds"])
+    whole = out["paper 2-DOF 181², whole plan (median)"]
+    assert whole["value"] == pytest.approx(1e3 * total["seconds"])
+    assert (whole["p90"], whole["max"]) == pytest.approx((1e3 * total["p90_s"], 1e3 * total["max_s"]))
     assert out["paper 2-DOF cached replan (median)"]["value"] == pytest.approx(1e3 * replan["seconds"])
     assert out["field against the paper's Gauss–Seidel, 181²"]["value"] == pytest.approx(
         field["baseline_seconds"] / field["seconds"])
@@ -66,6 +68,9 @@ def test_a_verdict_follows_the_limit_and_its_direction():
         assert out[name]["value"] == pytest.approx(value), name
         assert out[name]["met"] is met, name
     assert out["paper 2-DOF cached replan (median)"]["met"] is None       # no such row: not measured
+    start = out["cold start of spacerobot-plan, paper 3-DOF (median)"]
+    assert (start["p90"], start["max"]) == pytest.approx((0.49, 0.5))       # the row's tails beside its median
+    assert out["field against the paper's Gauss–Seidel, 181²"]["p90"] is None  # a ratio: no tails
 
 
 def _fake_bench(monkeypatch, name, main):

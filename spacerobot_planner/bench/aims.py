@@ -3,7 +3,8 @@ Issue 19's speed aims, measured in one run: ``python -m spacerobot_planner.bench
 
 Runs the benchmarks that the aims name, each as its own ``main`` in this process
 (``coldstart`` starts processes of its own), reads the JSON rows each prints, and prints
-every aim against its limit as measured in this run: ``met``, ``missed``, or ``not run``
+every aim against its limit as measured in this run (a time: its median, with its p90 and
+max beside it): ``met``, ``missed``, ``not measured``, or ``not run``
 (its benchmark skipped with ``--skip``, or unavailable: OMPL's wheel for ``peers``, ROS 2's
 for ``latency``; the reason is printed).  The machine's speed drifts between runs (the
 project's VM swings by a fifth within minutes), so an aim's verdict is only ever taken from
@@ -35,7 +36,6 @@ import tempfile
 import time
 import traceback
 from dataclasses import dataclass
-from typing import Callable
 
 from .latency import JOINT_STATE_AIM_S
 from .scenes import AIM_MAX_OVER_MEDIAN, AIM_MOST_S
@@ -62,13 +62,41 @@ def _row(rows, **match) -> dict | None:
     return None
 
 
-def _get(key: str, scale: float = 1.0, **match) -> Callable[[list], float | None]:
-    """Return a reader of ``row[key] * scale`` from the first row that matches (None: no such row or value)."""
-    def pick(rows):
-        r = _row(rows, **match)
-        v = None if r is None else r.get(key)
-        return None if v is None else float(v) * scale
-    return pick
+#: the tails a time's row holds beside its median (bench plan's, latency's and coldstart's rows)
+_TAILS = ("p90_s", "max_s")
+
+
+@dataclass(frozen=True)
+class Read:
+    """
+    A figure of a benchmark's rows: ``row[key] * scale`` of the first row whose items include ``match``.
+
+    match: (name, value) pairs; tails: the same row's keys of its p90 and max (in ``key``'s
+    units: :data:`_TAILS` for a time whose median is ``key``), or () for a figure without tails.
+    """
+
+    key: str
+    scale: float = 1.0
+    match: tuple = ()
+    tails: tuple = ()
+
+    def _value(self, row, key: str) -> float | None:
+        v = None if row is None else row.get(key)
+        return None if v is None else float(v) * self.scale
+
+    def __call__(self, rows) -> float | None:
+        """Return the figure, or None: no such row or value."""
+        return self._value(_row(rows, **dict(self.match)), self.key)
+
+    def tail(self, rows) -> tuple:
+        """Return the figure's (p90, max) from its row, each None where the row has none."""
+        row = _row(rows, **dict(self.match))
+        return tuple(self._value(row, k) for k in self.tails) if self.tails else (None, None)
+
+
+def _get(key: str, scale: float = 1.0, tails: tuple = (), **match) -> Read:
+    """Return the :class:`Read` of ``row[key] * scale`` in the first row that matches ``match``."""
+    return Read(key, scale, tuple(match.items()), tuple(tails))
 
 
 @dataclass(frozen=True)
@@ -77,13 +105,13 @@ class Aim:
     One of issue 19's aims.
 
     name: what is measured, for people; bench: the benchmark whose rows hold it; pick: its
-    figure from those rows (in ``unit``), None when they do not hold it; limit and at_most:
-    met when the figure is at most (else at least) the limit.
+    figure from those rows (in ``unit``: a :class:`Read`), None when they do not hold it; limit
+    and at_most: met when the figure is at most (else at least) the limit.
     """
 
     name: str
     bench: str
-    pick: Callable[[list], float | None]
+    pick: Read
     limit: float
     unit: str
     at_most: bool = True
@@ -99,20 +127,23 @@ _G2, _G3, _G72, _G120 = "181x181", "36x37x37", "72x73x73", "120x121x121"
 
 #: The aims, as issue 19 states them (one place).
 AIMS = (
-    Aim("paper 2-DOF 181², whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G2), 5.0, "ms"),
-    Aim("paper 3-DOF 36³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G3), 10.0, "ms"),
+    Aim("paper 2-DOF 181², whole plan (median)", "plan", _get("seconds", 1e3, _TAILS, stage="total", grid=_G2),
+        5.0, "ms"),
+    Aim("paper 3-DOF 36³, whole plan (median)", "plan", _get("seconds", 1e3, _TAILS, stage="total", grid=_G3),
+        10.0, "ms"),
     Aim("paper 2-DOF plan / RRTConnect + simplify (medians)", "peers",
         _get("plan_over_rrt", stage="peers", scene="paper_2dof"), 1.0, "×"),
     Aim("paper 3-DOF plan / RRTConnect + simplify (medians)", "peers",
         _get("plan_over_rrt", stage="peers", scene="paper_3dof"), 1.0, "×"),
-    Aim("paper 2-DOF cached replan (median)", "plan", _get("seconds", 1e3, stage="replan_cached", grid=_G2),
+    Aim("paper 2-DOF cached replan (median)", "plan", _get("seconds", 1e3, _TAILS, stage="replan_cached", grid=_G2),
         1.0, "ms"),
-    Aim("paper 3-DOF cached replan (median)", "plan", _get("seconds", 1e3, stage="replan_cached", grid=_G3),
+    Aim("paper 3-DOF cached replan (median)", "plan", _get("seconds", 1e3, _TAILS, stage="replan_cached", grid=_G3),
         1.0, "ms"),
     Aim("node: joint state → trajectory (median)", "latency",
-        _get("seconds", 1e3, stage="latency_joint_state"), 1e3 * JOINT_STATE_AIM_S, "ms"),
-    Aim("paper 3-DOF 72³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G72), 40.0, "ms"),
-    Aim("paper 3-DOF 120³, whole plan (median)", "plan", _get("seconds", 1e3, stage="total", grid=_G120),
+        _get("seconds", 1e3, _TAILS, stage="latency_joint_state"), 1e3 * JOINT_STATE_AIM_S, "ms"),
+    Aim("paper 3-DOF 72³, whole plan (median)", "plan", _get("seconds", 1e3, _TAILS, stage="total", grid=_G72),
+        40.0, "ms"),
+    Aim("paper 3-DOF 120³, whole plan (median)", "plan", _get("seconds", 1e3, _TAILS, stage="total", grid=_G120),
         300.0, "ms"),
     Aim("field against the paper's Gauss–Seidel, 181²", "plan", _get("ratio", stage="field", grid=_G2), 100.0,
         "×", at_most=False),
@@ -125,7 +156,7 @@ AIMS = (
     Aim(f"random 3-DOF scenes: plans above {1e3 * AIM_MOST_S:g} ms", "scenes",
         _get("plans_above", stage="aims", dof=3), 0.0, "plans"),
     Aim("cold start of spacerobot-plan, paper 3-DOF (median)", "coldstart",
-        _get("median_s", case="spacerobot-plan"), 0.5, "s"),
+        _get("median_s", 1.0, _TAILS, case="spacerobot-plan"), 0.5, "s"),
 )
 
 
@@ -135,17 +166,19 @@ def evaluate(rows_by_bench: dict, aims=AIMS) -> list:
 
     rows_by_bench: benchmark name → its JSON rows (a benchmark not run: absent).  Each row:
     ``stage`` "aim", the aim's ``name`` (as ``aim``), ``bench``, ``value`` (None: not
-    measured: its benchmark not run, or no finite figure in its rows), ``unit``, ``limit``,
-    ``at_most`` and ``met`` (None: not measured).
+    measured: its benchmark not run, or no finite figure in its rows), ``p90`` and ``max`` (a
+    time's tails in the same run, None for a figure without), ``unit``, ``limit``, ``at_most``
+    and ``met`` (None: not measured).
     """
     out = []
     for a in aims:
         rows = rows_by_bench.get(a.bench)
         value = None if rows is None else a.pick(rows)
-        if value is not None and not math.isfinite(value):
-            value = None                  # strict JSON; not measured
-        out.append({"stage": "aim", "aim": a.name, "bench": a.bench, "value": value, "unit": a.unit,
-                    "limit": a.limit, "at_most": a.at_most, "met": a.verdict(value)})
+        p90, most = (None, None) if rows is None else a.pick.tail(rows)
+        # not finite: not measured (and strict JSON)
+        value, p90, most = (v if v is not None and math.isfinite(v) else None for v in (value, p90, most))
+        out.append({"stage": "aim", "aim": a.name, "bench": a.bench, "value": value, "p90": p90, "max": most,
+                    "unit": a.unit, "limit": a.limit, "at_most": a.at_most, "met": a.verdict(value)})
     return out
 
 
@@ -241,9 +274,9 @@ def _fmt(value, unit: str) -> str:
 
 
 def print_table(aims_rows: list, why_not: dict, yardstick: str) -> None:
-    """Print the aims: measured, limit, verdict (and why an aim was not measured)."""
+    """Print the aims: measured (a time: its median, p90 and max), limit, verdict (and why an aim was not measured)."""
     print(f"\nbench aims: issue 19's aims, each measured in this run{yardstick}")
-    head = f"{'aim':<54}{'measured':>12}{'limit':>12}  verdict"
+    head = f"{'aim':<54}{'measured':>12}{'p90':>11}{'max':>11}{'limit':>12}  verdict"
     print(head + "\n" + "-" * len(head))
     for r in aims_rows:
         limit = ("≤ " if r["at_most"] else "≥ ") + _fmt(r["limit"], r["unit"])
@@ -252,7 +285,8 @@ def print_table(aims_rows: list, why_not: dict, yardstick: str) -> None:
                        else f"not measured (no figure in bench {r['bench']}'s rows)")
         else:
             verdict = "met" if r["met"] else "missed"
-        print(f"{r['aim']:<54}{_fmt(r['value'], r['unit']):>12}{limit:>12}  {verdict}")
+        print(f"{r['aim']:<54}{_fmt(r['value'], r['unit']):>12}{_fmt(r['p90'], r['unit']):>11}"
+              f"{_fmt(r['max'], r['unit']):>11}{limit:>12}  {verdict}")
     met = sum(r["met"] is True for r in aims_rows)
     measured = sum(r["met"] is not None for r in aims_rows)
     not_run = sum(r["met"] is None and r["bench"] in why_not for r in aims_rows)
