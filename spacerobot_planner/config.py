@@ -120,7 +120,9 @@ PARAMETERS = (
               False, 1e-14, 1e-1),
     ParamSpec("planner.field_budget_s", "double", 5.0,
               "Wall-time budget of one field solve, seconds. When it ends first the field is still a "
-              "valid ascent field, less accurate where unsolved, and the result says converged: false.",
+              "valid ascent field, less accurate where unsolved, and the result says converged: false. "
+              "It stops the bands' iterations: the set-up before them and the fill after them run to "
+              "their end (tens of ms at 72^3 with the least budget).",
               False, 1e-3, 600.0),
     ParamSpec("planner.max_grid_nodes", "integer", 4_000_000,
               "Refuse grids with more nodes than this (memory budget), before allocating.",
