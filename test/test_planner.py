@@ -903,11 +903,23 @@ def test_a_plan_that_repairs_answers_a_clear_path_with_either_solver(solver):
     assert clearance > sc.scene.safety_margin_m - 1e-6
 
 
-def test_a_plan_stopped_by_the_repair_limit_says_so():
-    """With repairs off, the scene above answers path_invalid naming planner.max_repairs, not the grid alone."""
-    gen = plan_problems(np.random.default_rng([0, 3]), 3)
-    for _ in range(14):
+@pytest.mark.parametrize("seed, index, max_repairs, says", [
+    (0, 13, 0, "no grid path from the start (no repair tried: planner.max_repairs = 0)"),
+    (2, 104, 1, "after 1 repair, no grid path from the start (planner.max_repairs = 1 reached)"),
+    (1, 22, 1, "1 repair, a grid path whose straight segments collide (planner.max_repairs = 1 reached)"),
+])
+def test_a_plan_stopped_by_the_repair_limit_says_so(seed, index, max_repairs, says):
+    """
+    A plan that the repairs' limit stopped answers path_invalid naming planner.max_repairs, not the grid alone.
+
+    Scenes of ``bench scenes``' 3-DOF family that plan with more repairs (on the one grid: no
+    refinement): a walk blocked, and a grid path whose straight segment collides.
+    """
+    gen = plan_problems(np.random.default_rng([seed, 3]), 3)
+    for _ in range(index + 1):
         sc, start, _, goal = next(gen)
-    res = Planner(sc, max_repairs=0, max_refinements=0).plan(start, goal)
+    res = Planner(sc, max_repairs=max_repairs, max_refinements=0).plan(start, goal)
     assert res.code == "path_invalid", (res.code, res.reason)
-    assert "no repair tried: planner.max_repairs = 0" in res.reason, res.reason
+    assert says in res.reason, res.reason
+    more = Planner(sc, max_refinements=0).plan(start, goal)
+    assert more.ok and more.solver_stats["repairs"] > max_repairs, (more.code, more.reason)
