@@ -342,20 +342,17 @@ class PlanRun:
                                 np.ascontiguousarray(occupied, dtype=np.bool_).ravel(), max_count)
 
     # ----------------------------------------------------------------- stages
-    def take_start(self, start_rad) -> None:
-        """Set ``start`` (``robot.validate_q``'s) and ``start_given`` (as given, rad), or raise ``invalid_input``."""
+    def validated_q(self, q_rad, name: str) -> np.ndarray:
+        """Return ``q_rad`` validated (``robot.validate_q``), or raise ``invalid_input`` naming ``name``."""
         try:
-            self.start = self.robot.validate_q(start_rad, "start")
+            return self.robot.validate_q(q_rad, name)
         except (ValueError, TypeError) as e:
             raise Fail(Code.INVALID_INPUT, str(e)) from None
-        self.start_given = np.asarray(start_rad, dtype=float)     # numbers: validate_q says so
 
-    def validated_goal(self, goal_rad) -> np.ndarray:
-        """Return the goal validated (``robot.validate_q``), or raise ``invalid_input`` naming what is wrong."""
-        try:
-            return self.robot.validate_q(goal_rad, "goal")
-        except (ValueError, TypeError) as e:
-            raise Fail(Code.INVALID_INPUT, str(e)) from None
+    def take_start(self, start_rad) -> None:
+        """Set ``start`` (:meth:`validated_q`) and ``start_given`` (as given, rad)."""
+        self.start = self.validated_q(start_rad, "start")
+        self.start_given = np.asarray(start_rad, dtype=float)     # numbers: validate_q says so
 
     def check_inputs(self, start_rad, goal_rad) -> None:
         """
@@ -387,7 +384,7 @@ class PlanRun:
             self.say(f"goal from the target's IK: {deg_text(self.goal)}, manipulability "
                      f"{chosen.manipulability:.3f} m² ({chosen.method})")
         else:
-            self.goal = self.validated_goal(goal_rad)
+            self.goal = self.validated_q(goal_rad, "goal")
         clr_g, self.approach_error_deg = self.p.goal_clearance_and_approach(self.goal)
         if not clr_g > margin:
             raise Fail(Code.GOAL_IN_COLLISION, f"the goal {deg_text(self.goal)} is in collision: clearance "
@@ -409,7 +406,7 @@ class PlanRun:
         """
         robot, margin = self.robot, self.sc.scene.safety_margin_m
         self.take_start(start_rad)
-        goal = None if goal_rad is None else self.validated_goal(goal_rad)
+        goal = None if goal_rad is None else self.validated_q(goal_rad, "goal")
         clr_s = self.checker.clearance_m(self.start)
         if not clr_s > margin:
             raise Fail(Code.START_IN_COLLISION, f"the start {deg_text(self.start)} is in collision: "

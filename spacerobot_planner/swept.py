@@ -147,8 +147,8 @@ def _swept_hulls(verts, starts, centres, radii, body_w, with_body, px, py, c, s,
     turning links do not reach them).  Packed as
     ``scene.pack_polygons``' arrays into hv (vertices), hs (starts), hc (centres), hr (radii)
     (room for every edge's); tmp: scratch (at least 2 × the largest polygon's vertices).
-    Returns ``(polygons written, the largest distance from the pivot of a vertex written, at most
-    reach_m, m)``.
+    Returns ``(polygons written, the largest distance from the pivot of a vertex written (m, at
+    most reach_m))``.
     """
     npoly = starts.size - 1
     total = npoly + (1 if with_body else 0)

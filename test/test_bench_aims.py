@@ -129,13 +129,12 @@ def test_the_aims_name_what_the_benchmarks_print():
     coldstart, in their modules' own text.
     """
     import inspect
-    import re
     from spacerobot_planner.bench import coldstart, latency, peers, plan
+    from test_docs import _flags_of
     assert {plan._scenario(scene, cells).grid.label() for scene, cells in
             (("2dof", 180), ("3dof", 36), ("3dof", 72), ("3dof", 120))} == {aims._G2, aims._G3, aims._G72, aims._G120}
     for name, runs in aims.ARGS.items():
-        module = __import__(f"spacerobot_planner.bench.{name}", fromlist=["main"])
-        takes = set(re.findall(r'add_argument\(\s*"(--[\w-]+)"', inspect.getsource(module)))
+        takes = _flags_of(f"spacerobot_planner.bench.{name}")
         for argv in runs:
             assert {a for a in argv if a.startswith("--")} <= takes, (name, argv)
     assert '"latency_joint_state"' in inspect.getsource(latency)

@@ -19,8 +19,8 @@ fresh process).  ``--quick`` runs each with fewer repeats (a smoke run: its verd
 rougher).  Each benchmark's own output is written to ``--log`` (default: not kept) and
 its time is printed as it ends.  Prints a table, then one JSON object per aim::
 
-    {"stage": "aim", "aim": "...", "bench": "plan", "value": 7.01, "unit": "ms",
-     "limit": 5.0, "at_most": true, "met": false}
+    {"stage": "aim", "aim": "...", "bench": "plan", "value": 7.01, "p90": 8.27, "max": 10.14,
+     "unit": "ms", "limit": 5.0, "at_most": true, "met": false}
 """
 from __future__ import annotations
 

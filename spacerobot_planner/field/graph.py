@@ -105,7 +105,6 @@ def _grid_nbr(code, f, d, shape, strides):
     return f + strides[a]
 
 
-@nb.njit(cache=True, nogil=True)
 def grid_neighbours(shape, periodic, cut_edges=None):
     """
     Flat index of each grid node's 2n face neighbours, -1 beyond a wall.
@@ -115,14 +114,9 @@ def grid_neighbours(shape, periodic, cut_edges=None):
     ``cut_edges``: int (k, 2) flat node pairs of face neighbours with a wall between them
     (each end reads -1 there), or None.
     """
-    n = 1
-    for a in range(shape.size):
-        n *= shape[a]
-    out = np.empty((n, 2 * shape.size), np.int64)
-    code = grid_codes(shape, periodic)
-    if cut_edges is not None and len(cut_edges):
-        _cut_edges(code, shape, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
-    _neighbours_of(code, shape, out)
+    shape = np.asarray(shape, np.int64)
+    out = np.empty((int(np.prod(shape)), 2 * shape.size), np.int64)
+    _neighbours_of(face_codes(shape, periodic, cut_edges), shape, out)
     return out
 
 
@@ -393,6 +387,22 @@ def _cut_edges(code, shape, edges):
                 code[q, d >> 1] |= _LOW_NONE if d & 1 == 0 else _HIGH_NONE
 
 
+def face_codes(shape, periodic, cut_edges=None, token=None) -> np.ndarray:
+    """
+    Return the grid's face codes (:func:`grid_codes`) with the grid edges ``cut_edges`` walled off.
+
+    shape int64 (ndim,); periodic: one bool per axis; cut_edges: int (k, 2) flat node pairs of
+    face neighbours (a wall between the two), or None.  ``token``: a termination token checked
+    after the codes (raises ``termination.Cancelled``), or None.
+    """
+    code = grid_codes(shape, np.array(periodic, np.bool_))
+    if token is not None:
+        token.check()
+    if cut_edges is not None and len(cut_edges):
+        _cut_edges(code, shape, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
+    return code
+
+
 def bfs(occ, per, goals, cut_edges=None, token=None):
     """
     Return (dist, BFS order, face codes) of a validated problem.
@@ -403,11 +413,7 @@ def bfs(occ, per, goals, cut_edges=None, token=None):
     the passes (raises ``termination.Cancelled``).
     """
     shape = np.array(occ.shape, np.int64)
-    code = grid_codes(shape, np.array(per, np.bool_))
-    if token is not None:
-        token.check()
-    if cut_edges is not None and len(cut_edges):
-        _cut_edges(code, shape, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
+    code = face_codes(shape, per, cut_edges, token)
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
     dist, order = _bfs(occ.ravel(), code, shape, goal_flat)
     return dist, order, code
@@ -423,10 +429,7 @@ def node_graph(occ, per, goals, cut_edges=None, token=None) -> NodeGraph:
     """
     token = Termination.of(token)
     shape = np.array(occ.shape, np.int64)
-    code = grid_codes(shape, np.array(per, np.bool_))
-    token.check()
-    if cut_edges is not None and len(cut_edges):
-        _cut_edges(code, shape, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
+    code = face_codes(shape, per, cut_edges, token)
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
     order, coords, nbr = _node_tables(occ.ravel(), code, shape, goal_flat)
     token.check()
