@@ -43,6 +43,64 @@ def grid_strides(shape):
     return strides
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def coord_sum(coords, i):
+    """
+    Return the sum of row ``i`` of ``coords`` (n, ndim) (its parity is the node's colour).
+
+    Spelled out for 2 and 3 dimensions: a per-row loop over a dimension known only at run
+    time is not unrolled by LLVM, which made the set-up's row loops 2-3x slower (the branch
+    is the same for every row, so a loop around this call is compiled once per dimension).
+    The kernels of :mod:`.multigrid` and :mod:`.structured` inline this and the two below:
+    numba's cache keys them on their own module's time stamp, so after an edit here delete
+    the cached kernels (``field/__pycache__/*.nbi``, ``*.nbc``).
+    """
+    nd = coords.shape[1]
+    if nd == 3:
+        return coords[i, 0] + coords[i, 1] + coords[i, 2]
+    if nd == 2:
+        return coords[i, 0] + coords[i, 1]
+    s = 0
+    for a in range(nd):
+        s += coords[i, a]
+    return s
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def strided_sum(coords, i, strides, shift):
+    """
+    Return ``Σ_a (coords[i, a] >> shift) · strides[a]``: a flat index (``shift`` 1: of the node's block).
+
+    coords (n, ndim) non-negative, strides int64 (ndim,).  Spelled out for 2 and 3 dimensions
+    (see :func:`coord_sum`).
+    """
+    nd = coords.shape[1]
+    if nd == 3:
+        return ((coords[i, 0] >> shift) * strides[0] + (coords[i, 1] >> shift) * strides[1]
+                + (coords[i, 2] >> shift) * strides[2])
+    if nd == 2:
+        return (coords[i, 0] >> shift) * strides[0] + (coords[i, 1] >> shift) * strides[1]
+    f = 0
+    for a in range(nd):
+        f += (coords[i, a] >> shift) * strides[a]
+    return f
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def named_neighbours(nbr, i, none):
+    """Return how many of row ``i``'s neighbours ``nbr`` (n, deg) are below ``none`` (spelled out for deg 4 and 6)."""
+    deg = nbr.shape[1]
+    if deg == 6:
+        return ((nbr[i, 0] < none) + (nbr[i, 1] < none) + (nbr[i, 2] < none) + (nbr[i, 3] < none)
+                + (nbr[i, 4] < none) + (nbr[i, 5] < none))
+    if deg == 4:
+        return (nbr[i, 0] < none) + (nbr[i, 1] < none) + (nbr[i, 2] < none) + (nbr[i, 3] < none)
+    k = 0
+    for d in range(deg):
+        k += nbr[i, d] < none
+    return k
+
+
 @nb.njit(cache=True, nogil=True)
 def put_at(out, at, vals):
     """out[at] = vals (at int64 (k,), vals float64 (k,)): NumPy's fancy assignment in one loop."""

@@ -56,6 +56,7 @@ import numba as nb
 import numpy as np
 
 from . import structured
+from .graph import coord_sum, grid_strides, strided_sum
 
 #: Stop coarsening at this many unknowns and solve that level directly.  Its dense triangular
 #: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a third of
@@ -179,14 +180,11 @@ def _by_parity(nbr, wt, diag, coords):
 @nb.njit(cache=True, nogil=True)
 def _red_rows(coords):
     """Return ``(red, in_order)``: the number of red nodes (even coordinate sum) and whether they come first."""
-    n, ndim = coords.shape
+    n = coords.shape[0]
     red = 0
     in_order = True
     for i in range(n):
-        par = 0
-        for a in range(ndim):
-            par += coords[i, a]
-        if par % 2 == 0:
+        if coord_sum(coords, i) % 2 == 0:
             if red < i:
                 in_order = False
             red += 1
@@ -225,12 +223,11 @@ def _aggregates(coords, shape, cell_id):
     n, ndim = coords.shape
     first = np.empty(n, np.int64)           # a node of each cell, in the order the cells are met
     cell = np.empty(n, np.int64)            # each node's cell (a flat index on the coarse grid)
+    strides = grid_strides(shape)
     nc = 0
     red = 0
     for i in range(n):
-        f = 0
-        for a in range(ndim):
-            f = f * shape[a] + (coords[i, a] >> 1)      # coordinates are >= 0: // 2
+        f = strided_sum(coords, i, strides, 1)          # coordinates are >= 0: >> 1 is // 2
         cell[i] = f
         if cell_id[f] < 0:
             cell_id[f] = nc

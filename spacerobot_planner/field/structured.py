@@ -49,7 +49,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .graph import grid_strides, put_at, take_at
+from .graph import grid_strides, named_neighbours, put_at, strided_sum, take_at
 
 #: The structured fine level is used where the box (ghosts and padding included) has at most
 #: this many cells per unknown.  Whole solves (layout built, interleaved with the graph's route,
@@ -293,10 +293,11 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     gather = np.full((coarse_nodes, width), half - 1, np.int64)
     none = np.empty((0, 2), np.int64)
     failed = (False, flat, mask, ranges, 0, none, none, aggr, gather)
+    f_origin = base                          # the flat index of coordinates 0 (off the box where lo > 1)
+    for a in range(ndim):
+        f_origin += (1 - lo[a]) * strides[a]
     for i in range(n):
-        f = base
-        for a in range(ndim):
-            f += (coords[i, a] - lo[a] + 1) * strides[a]
+        f = f_origin + strided_sum(coords, i, strides, 0)
         flat[i] = f
         cell[i] = (f & 1) * half + (f >> 1)
         if mflat[cell[i]] != 0.0 or (i < red) != (f & 1 == 0):
@@ -330,10 +331,7 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     cut_at = np.empty(n * deg, np.int64)     # (written only where met)
     ncut = 0
     for i in range(n if find_cuts else 0):
-        named = 0
-        for d in range(deg):
-            named += nb0[i, d] < n
-        if named == around[cell[i]]:
+        if named_neighbours(nb0, i, n) == around[cell[i]]:
             continue
         f = flat[i]
         for d in range(deg):
