@@ -390,6 +390,38 @@ def test_the_node_graphs_neighbours_are_the_grids(shape, periodic):
     assert np.array_equal(g.coords, np.array(np.unravel_index(g.order, shape)).T)
 
 
+@pytest.mark.parametrize("seed", range(40))
+def test_the_node_graph_holds_the_goal_connected_nodes_of_random_grids(seed):
+    """
+    The graph's nodes against the oracle's components on random grids: 1 to 4 axes, any of them periodic.
+
+    The flood runs along the last axis and seeds the neighbouring rows: grids of up to 40 nodes a
+    row, up to half of them obstacles, a fifth of the face edges cut (along the last axis too,
+    and across its seam where it is periodic), one to three goals, which come first.
+    """
+    from spacerobot_planner.field.graph import node_graph, validate_problem
+    rng = np.random.default_rng(1000 + seed)
+    ndim = 1 + seed % 4
+    shape = tuple(int(k) for k in rng.integers(2, (40, 14, 7, 5)[ndim - 1] + 1, ndim))
+    periodic = tuple(bool(b) for b in rng.random(ndim) < 0.5)
+    occ = rng.random(shape) < rng.uniform(0.0, 0.5)
+    free = np.argwhere(~occ)
+    if not len(free):
+        occ.flat[0] = False
+        free = np.argwhere(~occ)
+    goals = free[rng.choice(len(free), size=min(len(free), int(rng.integers(1, 4))), replace=False)]
+    full = face_neighbours(shape, periodic).reshape(2 * ndim, -1)
+    edges = {tuple(sorted((p, int(full[d, p])))) for d in range(2 * ndim) for p in range(occ.size) if full[d, p] >= 0}
+    edges = sorted(e for e in edges if e[0] != e[1])
+    pick = rng.random(len(edges)) < 0.2
+    cuts = np.array([e for e, cut in zip(edges, pick) if cut], np.int64).reshape(-1, 2)
+    g = node_graph(*validate_problem(occ, periodic, [tuple(int(k) for k in q) for q in goals]), cut_edges=cuts)
+    conn = connected(occ, periodic, goals, cuts).ravel()
+    assert np.array_equal(np.sort(g.order), np.flatnonzero(conn))
+    assert g.n_goal == len(goals)
+    assert np.array_equal(np.sort(g.order[:g.n_goal]), np.sort(np.ravel_multi_index(tuple(goals.T), shape)))
+
+
 def test_a_large_node_graphs_neighbours_are_the_grids():
     """
     The table of a graph large enough to be filled on all of numba's threads, against the oracle.

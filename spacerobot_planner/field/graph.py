@@ -239,7 +239,7 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     each node's face neighbours, N for walls, obstacles and nodes not reached.
 
     One grid-sized table (``pos``, uint32: obstacles marked as it is filled, so that the
-    flood reads one table) and four passes: a flood fill from the goal (marks), the grid in
+    flood reads one table) and four passes: a flood fill from the goal (marks: :func:`_flood`), the grid in
     C order by rows of the last axis twice (the red nodes counted, then positions and
     coordinates, no divisions: a row's coordinate sum is counted once per row), the
     neighbour table.
@@ -251,34 +251,16 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     pos = np.empty(n_grid, np.uint32)
     for f in range(n_grid):
         pos[f] = _BLOCKED if occ_flat[f] else _UNSEEN
-    queue = np.empty(n_grid, np.int64)       # the flood's queue, then the order
-    tail = 0
+    order = np.empty(n_grid, np.int64)       # the goal nodes, the flood's stack, then the order
+    n_goal = 0
     for g in goal_flat:
         if pos[g] == _UNSEEN:
-            pos[g] = tail
-            queue[tail] = g
-            tail += 1
-    n_goal = tail
-    head = 0
-    while head < tail:
-        f = queue[head]
-        head += 1
-        for a in range(ndim):                # _grid_nbr's rule, both directions from one code
-            c = code[f, a]
-            if not c & _LOW_NONE:
-                g = f + (shape[a] - 1) * strides[a] if c & _LOW_WRAP else f - strides[a]
-                if pos[g] == _UNSEEN:
-                    pos[g] = _REACHED
-                    queue[tail] = g
-                    tail += 1
-            if not c & _HIGH_NONE:
-                g = f - (shape[a] - 1) * strides[a] if c & _HIGH_WRAP else f + strides[a]
-                if pos[g] == _UNSEEN:
-                    pos[g] = _REACHED
-                    queue[tail] = g
-                    tail += 1
+            pos[g] = n_goal
+            order[n_goal] = g
+            n_goal += 1
+    tail = n_goal + _flood(pos, code, shape, order[:n_goal], order[n_goal:])
     n = tail
-    order = queue[:n]
+    order = order[:n]
     coords = np.empty((n, ndim), np.int32)   # int32: half the bytes to write, and for the multigrid to read
     for k in range(n_goal):
         for a in range(ndim):
@@ -328,6 +310,123 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     else:
         _neighbour_rows(nbr, order, pos, code, shape, strides, 0, n)
     return order, coords, nbr
+
+
+#: :func:`_flood`'s mark of a free node on its stack (each is pushed at most once; its run marks it ``_REACHED``).
+_SEEDED = np.uint32(0xFFFFFFFC)
+
+
+@nb.njit(cache=True, nogil=True)
+def _flood(pos, code, shape, goals, stack):
+    """
+    Mark ``_REACHED`` in ``pos`` every free node joined to the goal nodes; return how many (the goals not counted).
+
+    pos uint32 (prod(shape),): ``_UNSEEN`` at the free nodes, ``_BLOCKED`` at obstacles, the goal
+    nodes (``goals`` int64 (k,), flat) marked with their positions (below k); code uint8
+    (prod(shape), ndim): the grid's face codes (:func:`grid_codes`, cut edges marked); stack:
+    int64 scratch, at least one entry per free node.
+
+    A scanline fill along the last axis (stride 1).  A seed taken from the stack grows into its
+    run: every node joined to it along that axis that is unseen or seeded, each marked.  Then
+    each neighbouring row of the run (along every other axis, on both sides) gets a seed where
+    a stretch of unseen nodes starts or a cut along the last axis splits one: the stretch's run
+    takes the rest.  A node is seeded once (``_SEEDED``), so the stack never holds more than
+    the free nodes.  The same nodes as a breadth-first flood by :func:`_grid_nbr`'s edges,
+    read along rows: at 120³ (1.16 million nodes) 8.4 ms against the breadth-first flood's
+    20.7, whose wave missed the cache at every node.  The face codes' rule is written out here,
+    not called: numba kept its reference counting of an inlined helper's array arguments
+    inside these loops (an atomic operation each, ten times the time).
+    """
+    ndim = shape.size
+    last = ndim - 1
+    length = shape[last]                    # a row's nodes (the last axis)
+    strides = grid_strides(shape)
+    cf = code.reshape(code.size)            # node f's code along axis a at f · ndim + a
+    top = 0
+    for g in goals:                         # the goal nodes' face neighbours
+        for a in range(ndim):
+            c = cf[g * ndim + a]
+            span = (shape[a] - 1) * strides[a]
+            if not c & _LOW_NONE:
+                h = g + span if c & _LOW_WRAP else g - strides[a]
+                if pos[h] == _UNSEEN:
+                    pos[h] = _SEEDED
+                    stack[top] = h
+                    top += 1
+            if not c & _HIGH_NONE:
+                h = g - span if c & _HIGH_WRAP else g + strides[a]
+                if pos[h] == _UNSEEN:
+                    pos[h] = _SEEDED
+                    stack[top] = h
+                    top += 1
+    reached = 0
+    while top > 0:
+        top -= 1
+        f = stack[top]
+        if pos[f] != _SEEDED:
+            continue                        # a run took it after it was seeded
+        pos[f] = _REACHED
+        k = 1                               # the run: ``down`` nodes below f, k in all (cyclic)
+        down = 0
+        for side in range(2):               # above f, then below it
+            none, wrap, step = (_HIGH_NONE, _HIGH_WRAP, 1) if side == 0 else (_LOW_NONE, _LOW_WRAP, -1)
+            g = f
+            while True:
+                c = cf[g * ndim + last]
+                if c & none:
+                    break
+                h = g - step * (length - 1) if c & wrap else g + step
+                v = pos[h]
+                if v != _UNSEEN and v != _SEEDED:
+                    break
+                pos[h] = _REACHED
+                g = h
+                k += 1
+                down += side
+        reached += k
+        row = f - f % length                # the row's first node
+        s = f - row - down                  # the run's first coordinate along the row (cyclic)
+        if s < 0:
+            s += length
+        for part in range(2):               # the run as one or two intervals of the row
+            if part == 0:
+                lo, hi = row + s, row + min(s + k, length)
+            elif s + k > length:
+                lo, hi = row, row + s + k - length
+            else:
+                break
+            for a in range(last):
+                st = strides[a]
+                span = (shape[a] - 1) * st
+                c0 = cf[lo * ndim + a]      # the wrap bits are the same along the row
+                for side in range(2):
+                    if side == 0:
+                        none = _LOW_NONE
+                        off = span if c0 & _LOW_WRAP else -st
+                    else:
+                        none = _HIGH_NONE
+                        off = -span if c0 & _HIGH_WRAP else st
+                    unseen = 0              # (a vector loop: most neighbouring rows are done)
+                    for h in range(lo + off, hi + off):
+                        unseen += pos[h] == _UNSEEN
+                    if unseen == 0:
+                        continue
+                    joined = False          # the last node met is open and joined along the row
+                    for g in range(lo, hi):
+                        if cf[g * ndim + a] & none:
+                            joined = False
+                            continue
+                        h = g + off
+                        v = pos[h]
+                        if v == _UNSEEN:
+                            if not joined or cf[h * ndim + last] & _LOW_NONE:
+                                pos[h] = _SEEDED
+                                stack[top] = h
+                                top += 1
+                            joined = True
+                        else:
+                            joined = v == _SEEDED
+    return reached
 
 
 #: :func:`_node_tables` fills its neighbour table on all of numba's threads from this many nodes on
