@@ -5,15 +5,19 @@ For each grid (2-D 181^2, 361^2, 721^2 of the paper's 2-DOF scene; 3-D
 36x37x37, 72x73x73, 120x121x121 of the 3-DOF scene, axis 0 periodic) it builds
 the C-space, then times every field solver after a JIT warm-up, with the
 paper's Gauss-Seidel (Phi0 = 1, stop at change < 1e-6) measured in the same
-run as the baseline.  On grids above ``--gs-cap-nodes`` nodes the baseline is
-capped at ``--gs-cap-sweeps`` sweeps (said in the output: its time is then a
-lower bound and so is every ratio).  ``descent_ok_fraction`` is the share of
-goal-connected free nodes from which steepest descent reaches the goal.
+run as the baseline.  Each solver runs ``--repeats`` times on grids up to 100 000
+nodes, ``--large-repeats`` times above: the table gives the median, p90 and max of
+its times, the ratio the baseline's median over the solver's.  On grids above
+``--gs-cap-nodes`` nodes the baseline is capped at ``--gs-cap-sweeps`` sweeps
+(said in the output: its time is then a lower bound and so is every ratio).
+``descent_ok_fraction`` is the share of goal-connected free nodes from which
+steepest descent reaches the goal.
 
-Prints a table and one JSON object per line::
+Prints a table and one JSON object per line (times in seconds; ``seconds`` the median)::
 
-    {"stage": "field", "grid": "181x181", "solver": ..., "seconds": ...,
-     "baseline_seconds": ..., "ratio": ..., "sweeps": ..., "descent_ok_fraction": ...}
+    {"stage": "field", "grid": "181x181", "solver": ..., "seconds": ..., "p90_s": ...,
+     "min_s": ..., "max_s": ..., "runs": ..., "baseline_seconds": ..., "ratio": ...,
+     "sweeps": ..., "descent_ok_fraction": ...}
 """
 from __future__ import annotations
 
@@ -26,6 +30,7 @@ import numpy as np
 from .. import field as F
 from ..field.harmonic import BAND_FLOOR
 from ..descent import descend, reaches_goal_mask
+from .timing import tail_stats
 
 GRIDS_2D = (180, 360, 720)           # cells; bounded axes give cells + 1 nodes
 GRIDS_3D = (36, 72, 120)
@@ -64,12 +69,9 @@ def _runs(args, n_nodes):
 
 
 def _time_solver(occ, per, goal, solver, kwargs, repeats):
-    best = None
-    for _ in range(repeats):
-        f = F.solve_field(occ, per, [goal], solver=solver, **kwargs)
-        if best is None or f.seconds < best.seconds:
-            best = f
-    return best
+    """Return the first of ``repeats`` fields of a solver and the tails of their times (``tail_stats``)."""
+    fields = [F.solve_field(occ, per, [goal], solver=solver, **kwargs) for _ in range(repeats)]
+    return fields[0], tail_stats([f.seconds for f in fields], median_key="seconds")
 
 
 def _warm_up():
@@ -86,8 +88,8 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--grids", default="all", help="'all', '2d', '3d', 'small' (181^2 and 36x37x37) "
                     "or a comma list of cells, e.g. '180,36'")
-    ap.add_argument("--repeats", type=int, default=3, help="timed runs per solver on grids up to 100k nodes "
-                    "(best kept); 1 above")
+    ap.add_argument("--repeats", type=int, default=5, help="timed runs per solver on grids up to 100k nodes")
+    ap.add_argument("--large-repeats", type=int, default=3, help="timed runs per solver on larger grids")
     ap.add_argument("--gs-cap-nodes", type=int, default=400_000,
                     help="cap the paper baseline on grids with more nodes than this")
     ap.add_argument("--gs-cap-sweeps", type=int, default=3000, help="baseline sweep cap on those grids")
@@ -110,8 +112,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     _warm_up()
     print(f"# JIT warm-up {time.perf_counter() - t0:.1f} s")
-    header = (f"{'grid':>12} {'solver':>14} {'ms':>10} {'base ms':>10} {'ratio':>8} {'sweeps':>7} "
-              f"{'conv':>5} {'residual':>9} {'descent ok':>10}  note")
+    header = (f"{'grid':>12} {'solver':>14} {'ms':>10} {'p90 ms':>10} {'max ms':>10} {'base ms':>10} {'ratio':>8} "
+              f"{'sweeps':>7} {'conv':>5} {'residual':>9} {'descent ok':>10}  note")
     print(header)
     records = []
     for kind, cells in cases:
@@ -119,14 +121,14 @@ def main(argv=None) -> int:
         occ, per, goal, start, source = _scene_problem(path, cells)
         grid = "x".join(str(n) for n in occ.shape)
         connected = F.bfs_distance(occ, per, [goal]) >= 0
-        repeats = args.repeats if occ.size <= 100_000 else 1
+        repeats = max(1, args.repeats if occ.size <= 100_000 else args.large_repeats)
         baseline = None
         for label, solver, kwargs in _runs(args, occ.size):
-            f = _time_solver(occ, per, goal, solver, kwargs, repeats)
+            f, times = _time_solver(occ, per, goal, solver, kwargs, repeats)
             ok = reaches_goal_mask(f)[connected].mean()
             notes = []
             if solver == "gauss_seidel":
-                baseline = f
+                baseline = times
                 if "max_sweeps" in kwargs and not f.converged:
                     notes.append(f"CAPPED at {kwargs['max_sweeps']} sweeps: baseline time and ratios are "
                                  "lower bounds")
@@ -136,8 +138,8 @@ def main(argv=None) -> int:
             if not walk.reached:
                 notes.append(f"descent from the scenario start {tuple(int(x) for x in start)} fails: "
                              f"{walk.reason}")
-            rec = {"stage": "field", "grid": grid, "solver": label, "seconds": f.seconds,
-                   "baseline_seconds": baseline.seconds, "ratio": baseline.seconds / f.seconds,
+            rec = {"stage": "field", "grid": grid, "solver": label, **times,
+                   "baseline_seconds": baseline["seconds"], "ratio": baseline["seconds"] / times["seconds"],
                    "sweeps": f.sweeps, "converged": bool(f.converged), "residual": f.residual,
                    "descent_ok_fraction": float(ok),
                    # share of goal-connected nodes with u below the first band's floor
@@ -146,7 +148,8 @@ def main(argv=None) -> int:
             if notes:
                 rec["note"] = "; ".join(notes)
             records.append(rec)
-            print(f"{grid:>12} {label:>14} {1e3 * f.seconds:10.2f} {1e3 * baseline.seconds:10.1f} "
+            print(f"{grid:>12} {label:>14} {1e3 * times['seconds']:10.2f} {1e3 * times['p90_s']:10.2f} "
+                  f"{1e3 * times['max_s']:10.2f} {1e3 * baseline['seconds']:10.1f} "
                   f"{rec['ratio']:8.1f} {f.sweeps:7d} {str(f.converged):>5} {f.residual:9.1e} "
                   f"{ok:10.4f}  {'; '.join(notes)}", flush=True)
     for rec in records:
