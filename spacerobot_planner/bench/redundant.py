@@ -6,7 +6,7 @@ Redundant chains: the capture posture's cost, and the 4-joint grid resolution.
 
 1. The grasp IK of ``config/servicer_4joint.yaml`` (one swept joint) and of a 5-joint
    variant (links 1.4 / 1.2 / 1.2 / 1.0 / 0.8 m: two swept joints) on the paper's target:
-   median time over ``--repeats`` after a warm-up, the manipulability chosen, and a
+   median and largest time over ``--repeats`` after a warm-up, the manipulability chosen, and a
    brute-force sweep 4× denser per swept joint (no refinement) for comparison.
 2. Plans of ``config/servicer_4joint.yaml`` at each ``--cells`` resolution, on the paper's
    target and ``--targets`` seeded random targets (centre 3.0–4.6 m from the spacecraft,
@@ -35,7 +35,7 @@ from ..planner import Planner
 from ..redundant import SWEEP_VALUES, redundant_grasp
 from ..robot import PlanarArm
 from ..scene import Target
-from .timing import median_s
+from .timing import tail_stats
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 
@@ -54,14 +54,18 @@ def ik_rows(sc, repeats: int) -> list:
     for label, robot in (("4 joints", sc.robot), ("5 joints", five_joint(sc.robot))):
         grasp_ik(robot, sc.scene)                                          # warm-up (numba)
         sols = grasp_ik(robot, sc.scene)
-        seconds = median_s(lambda robot=robot: grasp_ik(robot, sc.scene), repeats)
+        times = []
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            grasp_ik(robot, sc.scene)
+            times.append(time.perf_counter() - t0)
         r = robot.dof - 3
         dense = 4 * SWEEP_VALUES[r]
         t0 = time.perf_counter()
         brute = redundant_grasp(robot, sc.scene, t.grasp_point_m, t.approach_angle_rad, sweep_values=dense)
         brute_s = time.perf_counter() - t0
         best = sols[0] if sols else None
-        rows.append({"stage": "redundant_ik", "grid": label, "seconds": seconds,
+        rows.append({"stage": "redundant_ik", "grid": label, **tail_stats(times, median_key="seconds"),
                      "manipulability_m2": None if best is None else best.manipulability,
                      "q_deg": None if best is None else np.degrees(best.q_full).round(3).tolist(),
                      "method": None if best is None else best.method,
@@ -121,9 +125,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     sc = load_scenario(CONFIG / "servicer_4joint.yaml")
     rows = ik_rows(sc, args.repeats)
-    print(f"{'chain':10} {'IK [ms]':>8} {'w [m²]':>8} {'dense w':>8} {'dense [ms]':>10}  method")
+    print(f"{'chain':10} {'IK [ms]':>8} {'max':>8} {'w [m²]':>8} {'dense w':>8} {'dense [ms]':>10}  method")
     for r in rows:
-        print(f"{r['grid']:10} {1e3 * r['seconds']:8.1f} {r['manipulability_m2']:8.4f} "
+        print(f"{r['grid']:10} {1e3 * r['seconds']:8.1f} {1e3 * r['max_s']:8.1f} {r['manipulability_m2']:8.4f} "
               f"{r['dense_manipulability_m2']:8.4f} {1e3 * r['dense_seconds']:10.1f}  {r['method']}")
     targets = random_targets(sc, args.targets, args.seed)
     res_rows = resolution_rows(sc, args.cells, targets)
