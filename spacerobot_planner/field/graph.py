@@ -258,8 +258,7 @@ def _node_tables(occ_flat, code, shape, goal_flat):
             pos[g] = n_goal
             order[n_goal] = g
             n_goal += 1
-    tail = n_goal + _flood(pos, code, shape, order[:n_goal], order[n_goal:])
-    n = tail
+    n = n_goal + _flood(pos, code, shape, order[:n_goal], order[n_goal:])
     order = order[:n]
     coords = np.empty((n, ndim), np.int32)   # int32: half the bytes to write, and for the multigrid to read
     for k in range(n_goal):
@@ -332,10 +331,11 @@ def _flood(pos, code, shape, goals, stack):
     a stretch of unseen nodes starts or a cut along the last axis splits one: the stretch's run
     takes the rest.  A node is seeded once (``_SEEDED``), so the stack never holds more than
     the free nodes.  The same nodes as a breadth-first flood by :func:`_grid_nbr`'s edges,
-    read along rows: at 120³ (1.16 million nodes) 8.4 ms against the breadth-first flood's
-    20.7, whose wave missed the cache at every node.  The face codes' rule is written out here,
-    not called: numba kept its reference counting of an inlined helper's array arguments
-    inside these loops (an atomic operation each, ten times the time).
+    read along rows: at 120³ (1.16 million nodes) 8.0 ms against the breadth-first flood's
+    17.1 (medians of 15; max 8.2 and 19.3), whose wave missed the cache at every node.  The
+    face codes' rule is written out here, not called: numba kept its reference counting of an
+    inlined helper's array arguments inside these loops (an atomic operation each, ten times
+    the time).
     """
     ndim = shape.size
     last = ndim - 1
