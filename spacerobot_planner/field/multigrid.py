@@ -311,8 +311,8 @@ def _levels(nb0, red0, coords, shape, stop):
     coords int32 or int64 (n, ndim), shape int64 (ndim,): the fine grid.  First the aggregates of
     every level (from the coordinates alone), then the packed arrays, each coarse level
     written in place from the one below.  Returns ``(sizes, off, nbr, wt, inv_diag, diag,
-    agg, red, rrows, coords1, chol, stopped)`` (see the module doc; the fine level's rows of nbr
-    and wt are left unset: its kernels read ``nb0`` and unit weights); ``coords1``: level 1's
+    agg, red, rrows, coords1, chol, stopped)`` (see the module doc; the fine level's rows of nbr,
+    wt, diag and inv_diag are left unset: its kernels read ``nb0`` and unit weights); ``coords1``: level 1's
     coordinates (its rows', of coords' type; no rows without a level 1); ``chol``: the
     coarsest level's Cholesky factor (:func:`_cholesky`); ``stopped``: the termination flag
     ``stop`` was seen set between levels (nothing else is valid).
@@ -357,8 +357,10 @@ def _levels(nb0, red0, coords, shape, stop):
         total = 0
     nbr = np.empty((total, deg), np.uint32)
     wt = np.empty((total, deg))
-    diag = np.ones(total)
-    inv_diag = np.ones(total)
+    diag = np.empty(total)       # the fine level's rows unset (its kernels read nb0), the rest 1: each
+    inv_diag = np.empty(total)   # coarse level's rows are written below, its dummy row keeps diagonal 1
+    diag[off[1] - 1:] = 1.0
+    inv_diag[off[1] - 1:] = 1.0
     agg = np.zeros(total, np.uint32)
     red = np.empty(levels, np.int64)
     rrows = np.empty(levels, np.int64)
@@ -1129,9 +1131,12 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     cells = 2 * half
     total = off[-1]
     wt, diag, inv_diag, chol_t = _single_levels(off, wt64, diag64, inv_diag64, chol)
-    xs = np.zeros(total, np.float32)
-    bs = np.zeros(total, np.float32)
-    ws = np.zeros(total, np.float32)
+    xs = np.empty(total, np.float32)        # the coarse levels' rows (the fine level is on the cells)
+    bs = np.empty(total, np.float32)
+    ws = np.empty(total, np.float32)
+    xs[off[1]:] = 0.0
+    bs[off[1]:] = 0.0
+    ws[off[1]:] = 0.0
     xf = np.zeros((2, half), np.float32)
     res_red = np.zeros(half)
     r = np.zeros((2, half))
