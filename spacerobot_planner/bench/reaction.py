@@ -7,7 +7,7 @@ Per scene (the planner's path, the config's joint limits): the time-optimal dura
 when ``toppra`` is installed (a test dependency), TOPP-RA's on the same samples (grid 16×
 finer); the wheel momentum and torque peaks with the attitude held; durations with the
 momentum limit, the torque limit and both; the free-floating attitude change, body
-displacement and tip miss; resampled point counts; the median time of
+displacement and tip miss; resampled point counts; the times (median, p90, max of ``--repeats`` calls) of
 ``time_parameterize`` and ``reaction_report``; and the largest joint acceleration (and
 velocity) over the limit *between* the points when a controller interpolates them as
 ros2_control's joint_trajectory_controller does (cubic from positions and velocities,
@@ -51,7 +51,7 @@ from ..planner import Planner
 from ..reaction import reaction_report
 from ..spacecraft import MassProperties, WheelModel
 from ..trajectory import resample, time_parameterize
-from .timing import median_s
+from .timing import call_times_s, tail_stats
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 
@@ -247,11 +247,13 @@ def main(argv=None) -> int:
             for kind in ("cubic", "quintic"):
                 ra, rv = interpolated_ratios(tr, kind == "quintic")
                 row[f"{kind}_{label}_max_acc_ratio"], row[f"{kind}_{label}_max_vel_ratio"] = ra, rv
-        row["seconds"] = median_s(lambda: time_parameterize(path, vmax, amax), args.repeats)
-        row["seconds_with_wheel"] = median_s(
-            lambda: time_parameterize(path, vmax, amax, wheel=WheelModel(robot, masses, *args.wheel)), args.repeats)
-        row["seconds_reaction_report"] = median_s(
-            lambda: reaction_report(robot, masses, sc.scene, path, traj), args.repeats)
+        wheel = WheelModel(robot, masses, *args.wheel)
+        for key, fn in (("seconds", lambda: time_parameterize(path, vmax, amax)),
+                        ("seconds_with_wheel", lambda: time_parameterize(path, vmax, amax, wheel=wheel)),
+                        ("seconds_reaction_report", lambda: reaction_report(robot, masses, sc.scene, path, traj))):
+            st = tail_stats(call_times_s(fn, args.repeats), median_key=key, count_key=f"{key}_runs")
+            row.update({key: st[key], **{f"{key}_{k[:-2]}": st[k] for k in ("p90_s", "min_s", "max_s")},
+                        f"{key}_runs": st[f"{key}_runs"]})
         rows.append(row)
     print(f"{'scene':12} {'T [s]':>8} {'TOPP-RA':>8} {'h peak':>7} {'τ peak':>7} {'T h/τ/both [s]':>22} "
           f"{'ff Δθ1':>7} {'ff miss':>8} {'pts':>9} {'tp ms':>6}")
@@ -262,6 +264,12 @@ def main(argv=None) -> int:
               f"{r['duration_torque_limit_s']:.2f}/{r['duration_both_limit_s']:.2f} "
               f"{r['ff_attitude_change_deg']:6.2f}° {r['ff_tip_miss_m']:7.3f}m "
               f"{r['points']:4d}→{r['resampled_points']:<4d} {1e3 * r['seconds']:6.1f}")
+    print(f"times, ms (median / p90 / max of {args.repeats}): time_parameterize, with the wheel limits, "
+          "reaction_report")
+    for r in rows:
+        print(f"  {r['grid']:12} " + "; ".join(
+            f"{1e3 * r[key]:.2f} / {1e3 * r[f'{key}_p90']:.2f} / {1e3 * r[f'{key}_max']:.2f}"
+            for key in ("seconds", "seconds_with_wheel", "seconds_reaction_report")))
     print("between the points, interpolated as joint_trajectory_controller does (largest |a| / limit, "
           "|v| / limit):")
     for r in rows:
@@ -269,7 +277,8 @@ def main(argv=None) -> int:
             f"{kind} {label} {r[f'{kind}_{label}_max_acc_ratio']:.3f} / {r[f'{kind}_{label}_max_vel_ratio']:.3f}"
             for label in ("dense", "published") for kind in ("cubic", "quintic")))
     red = redundant_row(args.repeats)
-    print(f"servicer_4joint (held): plan {1e3 * red['plan_seconds']:.0f} ms, attitude change "
+    print(f"servicer_4joint (held): plan {1e3 * red['plan_seconds']:.0f} ms (p90 {1e3 * red['p90_s']:.0f}, "
+          f"max {1e3 * red['max_s']:.0f} of {red['plans']}), attitude change "
           f"{red['attitude_change_deg']:.1f}°, tip error {1e3 * red['tip_error_m']:.3f} mm planned / "
           f"{1e3 * red['held_tip_miss_m']:.1f} mm inertial, approach error {red['approach_error_deg']:.2e}°, "
           f"trajectory {red['duration_s']:.1f} s (wheel peaks {red['peak_wheel_momentum_Nms']:.1f} N·m·s, "
@@ -319,13 +328,13 @@ def redundant_row(repeats: int) -> dict:
         t0 = time.perf_counter()
         res = Planner(sc, reaction=True).plan(sc.start_rad)
         plans.append((time.perf_counter() - t0, res))
-    seconds = float(np.median([t for t, _ in plans]))
+    times = tail_stats([t for t, _ in plans], median_key="plan_seconds", count_key="plans")
     res = plans[-1][1]
     if not res.ok:
         raise RuntimeError(f"servicer_4joint: no plan ({res.code}): {res.reason}")
     robot, path, rep = sc.robot, res.path_rad, res.reaction
     tip = robot.tip_position(robot.full(path[-1]))
-    return {"stage": "reaction", "grid": "servicer_4joint", "cells": list(sc.grid.cells), "plan_seconds": seconds,
+    return {"stage": "reaction", "grid": "servicer_4joint", "cells": list(sc.grid.cells), **times,
             "timings_s": {k: float(v) for k, v in res.timings_s.items()},
             "attitude_change_deg": float(np.degrees(path[-1, 0] - path[0, 0])),
             "tip_error_m": float(np.linalg.norm(tip - sc.scene.target.grasp_point_m)),

@@ -6,17 +6,22 @@ import time
 
 import numpy as np
 
-__all__ = ["median_s", "tail_stats"]
+__all__ = ["call_times_s", "median_s", "tail_stats"]
 
 
-def median_s(fn, repeats: int) -> float:
-    """Return the median wall time of ``repeats`` calls of ``fn()``, seconds."""
+def call_times_s(fn, repeats: int) -> list:
+    """Return the wall time of each of ``repeats`` calls of ``fn()``, seconds."""
     out = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
         out.append(time.perf_counter() - t0)
-    return float(np.median(out))
+    return out
+
+
+def median_s(fn, repeats: int) -> float:
+    """Return the median wall time of ``repeats`` calls of ``fn()``, seconds."""
+    return float(np.median(call_times_s(fn, repeats)))
 
 
 def tail_stats(values_s, median_key: str = "median_s", count_key: str = "runs") -> dict:
