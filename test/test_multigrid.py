@@ -9,6 +9,7 @@ random order, and one small enough to be its own coarsest level.
 """
 
 import itertools
+import time
 
 import numpy as np
 import pytest
@@ -128,3 +129,24 @@ def test_a_matrix_that_is_not_positive_definite_is_refused():
     """A pivot at or below zero is an error, not a NaN factor."""
     with pytest.raises(ValueError, match="not positive definite"):
         multigrid._cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))
+
+
+@pytest.mark.parametrize("route", ["graph", "structured"])
+def test_a_deadline_stops_the_iterations_on_pythons_clock(route):
+    """
+    ``deadline`` is a ``time.perf_counter()`` instant, read inside the solve's kernels.
+
+    One already passed stops the solve before its first iteration, with the residual it
+    started from (what it returns is still the grid's own Laplacian applied to its iterate);
+    one an hour ahead lets it finish, with the same bits as no deadline.
+    """
+    shape = (16, 12, 14)
+    nbr, coords, rhs, A = _grid_problem(shape, (True, False, False), 2, obstacle_fraction=0.0)
+    tol = 1e-10
+    x, its, res = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route)
+    late, its_late, res_late = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route,
+                                               deadline=time.perf_counter())
+    assert its > 0 and its_late == 0 and res_late > tol
+    assert res_late == pytest.approx(np.max(np.abs(rhs - A @ late)))
+    ahead = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route, deadline=time.perf_counter() + 3600.0)
+    assert ahead[1] == its and np.array_equal(ahead[0], x)
