@@ -205,9 +205,11 @@ PARAMETERS = (
               "Period of the /diagnostics heartbeat (changes are published at once), seconds.",
               False, 0.01, 3600.0),
     ParamSpec("planner.separate_process", "bool", True,
-              "Run the planning core in a child process driven by the worker thread (the numba "
-              "kernels hold the GIL; a process keeps the executor responsive and lets shutdown "
-              "stop a long solve).", True),
+              "Run the planning core in a child process driven by the worker thread: the plans' "
+              "Python steps do not share the executor's interpreter lock, a stage that does not answer "
+              "a cancel is killed without the node, and the process keeps its heap for large grids. "
+              "false: in the worker thread (a cached replan about 1 ms sooner; its kernels run without "
+              "the interpreter lock).", True),
     ParamSpec("mock_arm.rate_hz", "double", 50.0,
               "mock_arm_node: joint_states publishing rate, Hz (its parameter 'rate_hz').", False, 0.1, 1000.0),
     # ---- planner node (ROS side)
