@@ -19,8 +19,12 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   the planning process and its answer back; ``js_plan_in_process``: the plan itself, its
   ``timings_s``), ``js_chain`` (``adapters.post_process``), ``js_record_and_send`` (the record,
   the stamp, the messages, the trajectories published), ``js_sent_to_arrival`` (the driver's
-  subscriber has it: the visuals and the log line that follow in the worker thread hold the
+  subscriber has its bytes: the visuals and the log line that follow in the worker thread hold the
   interpreter meanwhile), and ``js_after_sent`` (the publish hook's rest: the visuals);
+- ``subscriber_deserialize``: what a Python subscriber then spends turning the bytes into a
+  ``JointTrajectory`` (rclpy's message objects: about 0.6 ms for 100 points).  A trajectory
+  "arrives" when its subscriber has the bytes (a raw subscription): a controller in C++ has
+  its message microseconds later, and this conversion is no part of the planner's latency;
 - ``message``: the chain after the path (``adapters.post_process``: time parameterisation,
   resample + certify, split) and the published messages for the last plan, and the
   messages of the dense trajectory for comparison;
@@ -109,7 +113,7 @@ def _run(args) -> int:
     ex.add_node(node)
     ex.add_node(drv)
     got = _Arrivals(node, drv, margins)
-    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
+    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10, raw=True)
     pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
     pub_js = drv.create_publisher(JointState, "joint_states", 10)
     cli = drv.create_client(Trigger, "/spacerobot_planner/replan")
@@ -163,6 +167,7 @@ def _run(args) -> int:
         grid = sc.grid.label()
         msg_s = _message_times(node, args.repeats)
         stages = [("latency_target", lat_t, 0.150), ("latency_joint_state", lat_j, JOINT_STATE_AIM_S),
+                  ("subscriber_deserialize", got.deserialize_s, None),
                   ("message_published", msg_s[0], None), ("message_dense", msg_s[1], None)]
         parts = [p for p in parts if p is not None]
         stages[2:2] = [(name, [p[name] for p in parts], None) for name in _PARTS if parts]
@@ -206,24 +211,34 @@ class _Arrivals:
     """
     A joint_trajectory subscriber's callback: arrival times (perf_counter, s).
 
-    With ``margins`` (a list) also each message's (stamp - arrival, stamp + duration - arrival)
-    in ROS time (``clock_node``'s clock), s.
+    Given a message, or its bytes (a raw subscription: the arrival is taken before rclpy turns
+    them into a message, which ``deserialize_s`` times).  With ``margins`` (a list) also each
+    message's (stamp - arrival, stamp + duration - arrival) in ROS time (``clock_node``'s
+    clock), s.
     """
 
     def __init__(self, node, clock_node=None, margins=None):
         self.node = node
         self.clock_node, self.margins = clock_node, margins
         self.times = []
+        self.deserialize_s = []
         self.cond = threading.Condition()
 
     def __call__(self, msg):
+        arrival = time.perf_counter()
+        now_s = None if self.margins is None else 1e-9 * self.clock_node.get_clock().now().nanoseconds
+        if isinstance(msg, bytes):
+            from rclpy.serialization import deserialize_message
+            from trajectory_msgs.msg import JointTrajectory
+            t0 = time.perf_counter()
+            msg = deserialize_message(msg, JointTrajectory)
+            self.deserialize_s.append(time.perf_counter() - t0)
         if self.margins is not None and msg.points:
-            now_s = 1e-9 * self.clock_node.get_clock().now().nanoseconds
             stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
             end = msg.points[-1].time_from_start
             self.margins.append((stamp_s - now_s, stamp_s + end.sec + 1e-9 * end.nanosec - now_s))
         with self.cond:
-            self.times.append(time.perf_counter())
+            self.times.append(arrival)
             self.cond.notify_all()
 
     def __len__(self):
