@@ -50,13 +50,11 @@ machine is quiet.
 from __future__ import annotations
 
 import math
+import sys
 import time
 
 import numba as nb
 import numpy as np
-from llvmlite import ir
-from numba.core import cgutils
-from numba.extending import intrinsic
 
 from . import structured
 from .graph import coord_sum, grid_strides, strided_sum
@@ -830,30 +828,25 @@ def _single_levels(off, wt, diag, inv_diag, chol):
     return wt32, diag32, inv_diag32, chol_t
 
 
-#: ``time.perf_counter``'s clock is CLOCK_MONOTONIC (Linux): the solve's deadline checks read it
-#: without the interpreter (:func:`_now`); elsewhere they ask Python for it
-_MONOTONIC_PERF_COUNTER = (getattr(time, "CLOCK_MONOTONIC", None) is not None
+#: ``time.perf_counter``'s clock is CLOCK_MONOTONIC (Linux) and a ``struct timespec`` two int64
+#: (a 64-bit build): the solve's deadline checks read it without the interpreter (:func:`_now`);
+#: elsewhere they ask Python for it
+_MONOTONIC_PERF_COUNTER = (getattr(time, "CLOCK_MONOTONIC", None) is not None and sys.maxsize > 2**32
                            and time.get_clock_info("perf_counter").implementation == "clock_gettime(CLOCK_MONOTONIC)")
 
 
-@intrinsic
-def _clock_gettime(typingctx, buf):
-    """``clock_gettime(CLOCK_MONOTONIC, buf)`` of the C library, into int64 buf (2,): seconds, nanoseconds."""
-    def codegen(context, builder, signature, args):
-        data = context.make_array(signature.args[0])(context, builder, args[0]).data
-        i32 = ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(i32, [i32, ir.IntType(8).as_pointer()]),
-                                            "clock_gettime")
-        return builder.call(fn, [ir.Constant(i32, time.CLOCK_MONOTONIC), builder.bitcast(data, fn.args[1].type)])
-    return nb.types.int32(buf), codegen
+#: the C library's ``clock_gettime(clock, struct timespec *)``, called by its symbol (numba caches the call)
+_clock_gettime = nb.types.ExternalFunction("clock_gettime", nb.types.int32(nb.types.int32, nb.types.voidptr))
+#: ``time.perf_counter``'s clock id (0 where it is not CLOCK_MONOTONIC: not read)
+_CLOCK = int(time.CLOCK_MONOTONIC) if _MONOTONIC_PERF_COUNTER else 0
 
 
 if _MONOTONIC_PERF_COUNTER:
     @nb.njit(cache=True, nogil=True)
     def _now():
         """Return ``time.perf_counter()``, s: the C library's monotonic clock, read without the GIL (40 ns)."""
-        ts = np.empty(2, np.int64)
-        _clock_gettime(ts)
+        ts = np.empty(2, np.int64)          # struct timespec: seconds, nanoseconds (64-bit Linux)
+        _clock_gettime(_CLOCK, ts.ctypes)
         return ts[0] + 1e-9 * ts[1]
 else:
     @nb.njit(cache=True)
