@@ -368,7 +368,7 @@ def _moving(args, flat, margins) -> dict:
     for n in (node, arm, drv):
         ex.add_node(n)
     got, states = _Arrivals(node, drv, margins), []
-    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10)
+    drv.create_subscription(JointTrajectory, "joint_trajectory", got, 10, raw=True)
     drv.create_subscription(JointState, "joint_states", states.append, 100)
     pub_t = drv.create_publisher(PoseStamped, "target_pose", 10)
     spin = threading.Thread(target=ex.spin, daemon=True)

@@ -35,7 +35,7 @@ from ..planner import Planner
 from ..redundant import SWEEP_VALUES, redundant_grasp
 from ..robot import PlanarArm
 from ..scene import Target
-from .timing import tail_stats
+from .timing import call_times_s, tail_stats
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 
@@ -54,11 +54,7 @@ def ik_rows(sc, repeats: int) -> list:
     for label, robot in (("4 joints", sc.robot), ("5 joints", five_joint(sc.robot))):
         grasp_ik(robot, sc.scene)                                          # warm-up (numba)
         sols = grasp_ik(robot, sc.scene)
-        times = []
-        for _ in range(max(1, repeats)):
-            t0 = time.perf_counter()
-            grasp_ik(robot, sc.scene)
-            times.append(time.perf_counter() - t0)
+        times = call_times_s(lambda robot=robot: grasp_ik(robot, sc.scene), max(1, repeats))
         r = robot.dof - 3
         dense = 4 * SWEEP_VALUES[r]
         t0 = time.perf_counter()
