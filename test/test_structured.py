@@ -475,3 +475,53 @@ def test_the_cells_loops_on_all_threads_give_the_same_bits_on_any_number_of_them
         assert np.max(np.abs(x - one[0])) <= 1e-9 * np.max(np.abs(one[0]))
         assert np.max(np.abs(rhs - A @ x)) < tol
         assert np.max(np.abs(x - direct)) < 1e-6 * np.max(np.abs(direct))
+
+
+@pytest.mark.parametrize("name", list(PROBLEMS))
+def test_the_coarse_levels_built_beside_the_layout_give_the_same_bits(name):
+    """
+    A large problem's coarse levels are built on a second thread while its fine level's cells are laid out.
+
+    ``beside=True`` forces it on these small problems: the same bits, iterations and residual as
+    the set-up in one thread, on both routes' rules ("auto" picks the node graph for some), and the
+    residual met on the grid's own Laplacian; the layout made without the coarse levels is the one
+    made with them, array for array.
+    """
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    tol = 1e-10
+    for route in ("structured", "auto"):
+        one = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route, beside=False)
+        two = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route, beside=True)
+        assert np.array_equal(one[0], two[0]) and one[1:] == two[1:], route
+        assert np.max(np.abs(rhs - A @ two[0])) < tol
+    h = multigrid.Hierarchy(nbr, coords, shape)
+    alone = multigrid._fine_layout_alone(h.nb0, h.coords, h.shape, h.red0, np.inf)
+    with_levels = structured.fine_layout(h, shape, 1, max_cells_per_unknown=np.inf, min_unknowns=0)
+    assert (alone is None) == (with_levels is None)
+    if alone is not None:
+        for key, value in vars(with_levels).items():
+            assert np.array_equal(getattr(alone, key), value), key
+
+
+def test_the_rule_builds_the_coarse_levels_beside_on_large_problems_with_threads_allowed(monkeypatch):
+    monkeypatch.setattr(multigrid, "BESIDE_MIN_UNKNOWNS", 500)
+    threads = numba.get_num_threads()
+    assert not multigrid.beside_of(499)
+    assert multigrid.beside_of(500) == (threads > 1)
+    numba.set_num_threads(1)            # planner.max_threads 1: one thread
+    try:
+        assert not multigrid.beside_of(10**9)
+    finally:
+        numba.set_num_threads(threads)
+    # the rule's choice is what runs: a second thread is started exactly where it says so
+    nbr, coords, rhs, _ = _problem(**PROBLEMS["2-D"])
+    started = []
+    real = multigrid._Beside.__init__
+
+    def spy(self, fn, *args):
+        started.append(fn)
+        real(self, fn, *args)
+    monkeypatch.setattr(multigrid._Beside, "__init__", spy)
+    multigrid.solve(nbr, coords, PROBLEMS["2-D"]["shape"], rhs, route="structured")
+    assert len(started) == int(multigrid.beside_of(len(nbr)))

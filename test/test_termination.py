@@ -139,8 +139,9 @@ def test_multigrid_cg_stops_itself_on_a_set_flag():
     args = _first_band(_maze_problem())
     _, its, _ = multigrid.solve(*args, tol=1e-10)
     assert its > 0
-    _, its, _ = multigrid.solve(*args, tol=1e-10, stop=_set().flag)
-    assert its == 0, "CG iterated although its flag was set"
+    for beside in (False, True):        # the coarse levels in this thread, or on a second one
+        x, its, res = multigrid.solve(*args, tol=1e-10, stop=_set().flag, beside=beside)
+        assert its == 0 and res == np.inf and not np.any(x), f"CG iterated although its flag was set ({beside})"
 
 
 def test_a_set_flag_stops_the_multigrid_set_up_before_it_builds_its_levels():

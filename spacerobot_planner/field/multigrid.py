@@ -42,15 +42,18 @@ one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that stands for "no ne
 Neighbour tables and aggregate maps are unsigned (uint32): an index of a signed type makes
 numba test it for a negative wrap-around at every load, which doubled the cost of a sweep.
 
-Every kernel runs on one thread.  A two-thread fine level (from 100 000 unknowns) was
+Every kernel of the node graph's levels runs on one thread.  A two-thread fine level (from 100 000 unknowns) was
 2–4× *slower* on the project's shared two-core machine under load (its threads wait for
 each other at every colour of every sweep), and gains at most the second core when the
-machine is quiet.
+machine is quiet.  The fine level on cells runs its vector loops on all cores from
+:data:`PARALLEL_MIN_CELLS` cells on, and a large problem's set-up builds its coarse levels on a
+second thread while its fine level's cells are laid out (:data:`BESIDE_MIN_UNKNOWNS`).
 """
 from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 
 import numba as nb
@@ -104,6 +107,14 @@ KCYCLE_MIN_UNKNOWNS = 500_000
 #: the dot products on both); 2-D 362² (101 k) 12.8 / 12.8.
 PARALLEL_MIN_CELLS = 150_000
 PARALLEL_CHUNK = 16_384
+#: A problem of at least this many unknowns builds its coarse levels (:func:`_levels`) on a second
+#: thread while its fine level's cells are laid out (:func:`.structured.laid_out`; :func:`beside_of`,
+#: the rule).  The paper 3-DOF scene's first band alone, the two set-ups alternating (median of 41,
+#: 15 or 5): 36³ (31 901 unknowns) 1.01x the time, 48³ (76 752) 0.97-0.98x, 60³ (145 437) 1.03-1.05x,
+#: 72³ (254 460) 0.94-0.99x, 120³ (1.16 M) 0.84x; with the fine level's loops in one thread, 60³ 0.96x
+#: and 72³ 0.92x: numba's threads, which spin a while after a parallel loop, hold the second core
+#: then.  2-D 181²: 1.01-1.05x.
+BESIDE_MIN_UNKNOWNS = 200_000
 
 
 def sweeps_of(ndim: int) -> int:
@@ -462,7 +473,7 @@ class Stopped(Exception):
 class Hierarchy:
     """The packed levels of one problem (see the module docstring)."""
 
-    def __init__(self, nbr, coords, shape, stop=None):
+    def __init__(self, nbr, coords, shape, stop=None, coarsen=True):
         """
         Set up the levels from the fine grid.
 
@@ -472,6 +483,8 @@ class Hierarchy:
         ``in_order``: it is the identity (the input came red rows first; ``fine_of_input`` is
         then None).
         ``stop``: a termination flag, polled between levels (raises :class:`Stopped`).
+        ``coarsen`` False: the fine level alone (``nb0``, ``coords``, ``red0``); :meth:`coarsen`
+        builds the rest (meanwhile another thread may start on the fine level: :func:`solve`).
         """
         n, deg = nbr.shape
         # the node graph's int32 (half the bytes to read) as it is, any other integer type as int64
@@ -490,11 +503,19 @@ class Hierarchy:
         self.coords = coords
         # the fine level on its own: unit weights, diagonal deg, uint32 neighbours
         self.nb0 = nb0
+        #: the fine level's red rows (its first ones)
+        self.red0 = int(red)
+        self.shape = np.asarray(shape, np.int64)
+        if coarsen:
+            self.coarsen(stop)
+
+    def coarsen(self, stop=None):
+        """Build the coarse levels (see :meth:`__init__`; ``stop``: raises :class:`Stopped`)."""
         # per level: red rows (first), and the rows to restrict: after a sweep (red rows, then
         # black) the black residuals are zero unless two black rows are neighbours (across an
         # odd periodic seam): the red ones only
         (self.sizes, self.off, self.nbr, self.wt, self.inv_diag, self.diag, self.agg, self.red, self.rrows,
-         self.coords1, chol, stopped) = _levels(nb0, red, coords, np.asarray(shape, np.int64),
+         self.coords1, chol, stopped) = _levels(self.nb0, self.red0, self.coords, self.shape,
                                                 np.zeros(1, np.int64) if stop is None else stop)
         if stopped:
             raise Stopped()
@@ -1243,8 +1264,54 @@ def _coarse_args(coarse, h):
             np.zeros(1, np.uint32))
 
 
+def beside_of(n_unknowns: int) -> bool:
+    """
+    Return whether a problem builds its coarse levels on a second thread while its fine level's cells are laid out.
+
+    The rule (:data:`BESIDE_MIN_UNKNOWNS`): a problem of that many unknowns, and numba allowed
+    more than one thread (``planner.max_threads``: :func:`numba.get_num_threads` in this thread).
+    """
+    return int(n_unknowns) >= BESIDE_MIN_UNKNOWNS and nb.get_num_threads() > 1
+
+
+class _Beside:
+    """Run ``fn(*args)`` on a thread of its own; :meth:`result` waits for it: its result, or raises its exception."""
+
+    def __init__(self, fn, *args):
+        self._out = None
+        self._error = None
+
+        def run():
+            try:
+                self._out = fn(*args)
+            except BaseException as e:     # noqa: BLE001 - raised in result(), in the solve's thread
+                self._error = e
+        self._thread = threading.Thread(target=run, name="field-beside", daemon=True)
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._out
+
+
+def _fine_layout_alone(nb0, coords, shape, red0, max_cells_per_unknown):
+    """
+    Return :func:`.structured.laid_out` of a fine level from its own level-1 aggregates, without its coarse levels.
+
+    The aggregates :func:`_levels` makes first (:func:`_aggregates` of the same coordinates on
+    the same halved grid: the same arrays), so that the layout runs while :func:`_levels`
+    builds the coarse levels on another thread.
+    """
+    half = (shape + 1) // 2
+    agg, ccoords, _ = _aggregates(coords, half, np.full(int(np.prod(half)), -1, np.int64))
+    return structured.laid_out(nb0, coords, shape, red0, agg, ccoords.shape[0], max_cells_per_unknown)
+
+
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=None, boost=None, stop=None,
-          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True, kcycle=None, chunk_cells=None):
+          coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True, kcycle=None, chunk_cells=None,
+          beside=None):
     """
     Solve ``A x = rhs`` on n unknowns (see the module doc) by multigrid-preconditioned CG.
 
@@ -1274,6 +1341,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     chunk and then over the chunks in order, so a chunk size gives the same bits on any number
     of threads (and other bits than one thread's order).  None: :data:`PARALLEL_CHUNK` from
     :data:`PARALLEL_MIN_CELLS` cells on (the tests' other values).
+    ``beside``: build the coarse levels on a second thread while the fine level's cells are
+    laid out (the same arrays); None: where :func:`beside_of` says so; True / False: always /
+    never (the tests').
 
     Returns ``(x float64 (n,), iterations, largest residual)``.
     """
@@ -1290,21 +1360,29 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         x0 = np.asarray(x0, dtype=float)
         if x0.shape != (n,):
             raise ValueError(f"x0: expected shape ({n},), got {x0.shape}")
-    try:
-        h = Hierarchy(nbr, coords, shape, stop)
-    except Stopped:
-        return np.zeros(n), 0, np.inf
     if sweeps is None:
         sweeps = sweeps_of(len(shape))
     if boost is None:
         boost = boost_of(len(shape), sweeps)
+    max_cells, min_unknowns = ((structured.MAX_CELLS_PER_UNKNOWN, structured.MIN_UNKNOWNS) if route == "auto"
+                               else (np.inf, 0))
+    h = Hierarchy(nbr, coords, shape, coarsen=False)
+    built = None
+    try:
+        if route != "graph" and structured.may_lay_out(n, len(shape), sweeps, min_unknowns) and (
+                beside_of(n) if beside is None else bool(beside)):
+            coarsening = _Beside(h.coarsen, stop)         # the coarse levels on a second thread, meanwhile
+            built = (_fine_layout_alone(h.nb0, h.coords, h.shape, h.red0, max_cells),)  # the fine level's cells
+            coarsening.result()
+        else:
+            h.coarsen(stop)
+    except Stopped:
+        return np.zeros(n), 0, np.inf
     if stop is None:
         stop = np.zeros(1, np.int64)
     layout = None
-    if route == "auto":
-        layout = structured.fine_layout(h, shape, sweeps)
-    elif route == "structured":
-        layout = structured.fine_layout(h, shape, sweeps, max_cells_per_unknown=np.inf, min_unknowns=0)
+    if route != "graph":
+        layout = structured.fine_layout(h, shape, sweeps, max_cells, min_unknowns, built=built)
     if layout is not None:
         rows = None if h.in_order else h.fine_of_input     # each input's fine row
         u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)

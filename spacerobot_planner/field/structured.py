@@ -100,7 +100,8 @@ class Layout:
         return take_at(v.reshape(-1), self.cell if rows is None else self.cell[rows])
 
 
-def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, min_unknowns=MIN_UNKNOWNS):
+def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, min_unknowns=MIN_UNKNOWNS,
+                built=None):
     """
     Return the structured fine level of a problem (a :class:`Layout`), or None: the graph's route.
 
@@ -114,19 +115,40 @@ def fine_layout(h, shape, sweeps, max_cells_per_unknown=MAX_CELLS_PER_UNKNOWN, m
     convention (``nb0[i, 2a + (0|1)]`` the −/+ face neighbour along axis a, or none), as
     :func:`.multigrid.solve` requires: a neighbour that is none where the box holds an unknown
     is a cut edge.
+    ``built``: ``(laid_out(...),)`` of the same fine level, made while ``h`` coarsened
+    (:func:`.multigrid.solve`: from the fine level's own level-1 aggregates, the same arrays), or
+    None: laid out here.
     """
     nb0 = h.nb0
     n = nb0.shape[0]
-    ndim = h.coords.shape[1]
-    if n < min_unknowns or ndim not in DIMENSIONS or h.levels < 2 or sweeps < 1 or h.rrows[0] != h.red[0]:
+    if not may_lay_out(n, h.coords.shape[1], sweeps, min_unknowns) or h.levels < 2 or h.rrows[0] != h.red[0]:
         return None
+    if built is not None:
+        return built[0]
+    return laid_out(nb0, h.coords, shape, h.red0, h.agg[:n], int(h.sizes[1]), max_cells_per_unknown)
+
+
+def may_lay_out(n: int, ndim: int, sweeps: int, min_unknowns: int = MIN_UNKNOWNS) -> bool:
+    """Tell whether :func:`fine_layout`'s rule can hold for ``n`` unknowns (what it asks before the coarse levels)."""
+    return n >= min_unknowns and ndim in DIMENSIONS and sweeps >= 1
+
+
+def laid_out(nb0, coords, shape, red0: int, agg, coarse_nodes: int, max_cells_per_unknown) -> "Layout | None":
+    """
+    Return the fine level on its box's cells (:func:`fine_layout`'s arrays), or None where they cannot hold it.
+
+    nb0 uint32 (n, deg), coords (n, ndim), ``red0``: the fine level (:class:`.multigrid.Hierarchy`'s,
+    red rows first); agg uint32 (n,): each row's level-1 row, of ``coarse_nodes``; the box at most
+    ``max_cells_per_unknown`` cells per unknown.
+    """
+    n = nb0.shape[0]
     shape = np.asarray(shape, np.int64)
-    ok, lo, padded, strides, base, periodic0 = _box(nb0, h.coords, shape)
+    ok, lo, padded, strides, base, periodic0 = _box(nb0, coords, shape)
     cells = int(padded[0] * strides[0])
     if not ok or cells > max_cells_per_unknown * n:
         return None
-    ok, *arrays = _build(nb0, h.coords, shape, lo, padded, strides, base, periodic0, h.agg[:n], int(h.red[0]),
-                         int(h.sizes[1]), True)
+    ok, *arrays = _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, int(red0),
+                         int(coarse_nodes), True)
     return Layout(*arrays, cells) if ok else None
 
 
