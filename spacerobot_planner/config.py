@@ -129,8 +129,9 @@ PARAMETERS = (
               False, 4, 200_000_000),
     ParamSpec("planner.max_threads", "integer", 0,
               "Most threads a plan's parallel kernels use (the C-space rows; on large grids the field's "
-              "loops and the node graph's table); 0: numba's (one per core, or NUMBA_NUM_THREADS). "
-              "A plan is the same bit for bit on any number.", False, 0, 4096),
+              "loops and the node graph's table; 1 also keeps a large band's set-up in one thread); 0: "
+              "numba's (one per core, or NUMBA_NUM_THREADS). A plan is the same bit for bit on any number.",
+              False, 0, 4096),
     ParamSpec("planner.max_start_penetration_m", "double", 0.05,
               "A start posture whose links reach at most this deep into an obstacle (e.g. holding the "
               "grasp after the target moved) is first walked out along increasing clearance (reported, "
