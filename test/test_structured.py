@@ -483,25 +483,34 @@ def test_the_coarse_levels_built_beside_the_layout_give_the_same_bits(name):
     A large problem's coarse levels are built on a second thread while its fine level's cells are laid out.
 
     ``beside=True`` forces it on these small problems: the same bits, iterations and residual as
-    the set-up in one thread, on both routes' rules ("auto" picks the node graph for some), and the
-    residual met on the grid's own Laplacian; the layout made without the coarse levels is the one
-    made with them, array for array.
+    the set-up in one thread (route "structured", and "auto", which leaves the problems under
+    ``structured.MIN_UNKNOWNS`` on the node graph either way), and the residual met on the grid's
+    own Laplacian, with the rows in a random order and red first; the layout made without the
+    coarse levels is the one made with them, array for array.
     """
     nbr, coords, rhs, A = _problem(**PROBLEMS[name])
     shape = PROBLEMS[name]["shape"]
     tol = 1e-10
-    for route in ("structured", "auto"):
-        one = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route, beside=False)
-        two = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route=route, beside=True)
-        assert np.array_equal(one[0], two[0]) and one[1:] == two[1:], route
-        assert np.max(np.abs(rhs - A @ two[0])) < tol
-    h = multigrid.Hierarchy(nbr, coords, shape)
-    alone = multigrid._fine_layout_alone(h.nb0, h.coords, h.shape, h.red0, np.inf)
-    with_levels = structured.fine_layout(h, shape, 1, max_cells_per_unknown=np.inf, min_unknowns=0)
-    assert (alone is None) == (with_levels is None)
-    if alone is not None:
-        for key, value in vars(with_levels).items():
-            assert np.array_equal(getattr(alone, key), value), key
+    # the rows in a random order (the set-up renumbers them red first) and red first already (the node graph's)
+    red_first = np.argsort(coords.sum(axis=1) % 2, kind="stable")
+    row_of = np.append(np.argsort(red_first), len(red_first))       # old row -> new row; "none" stays
+    for nbr_, coords_, rhs_, A_ in ((nbr, coords, rhs, A),
+                                    (row_of[nbr[red_first]], coords[red_first], rhs[red_first],
+                                     A[red_first][:, red_first])):
+        for route in ("structured", "auto"):
+            one = multigrid.solve(nbr_, coords_, shape, rhs_, tol=tol, route=route, beside=False)
+            two = multigrid.solve(nbr_, coords_, shape, rhs_, tol=tol, route=route, beside=True)
+            assert np.array_equal(one[0], two[0]) and one[1:] == two[1:], route
+            assert np.max(np.abs(rhs_ - A_ @ two[0])) < tol
+        h = multigrid.Hierarchy(nbr_, coords_, shape)
+        alone = multigrid._fine_layout_alone(h.nb0, h.coords, h.shape, h.red0, np.inf)
+        rule = dict(max_cells_per_unknown=np.inf, min_unknowns=0)
+        split = structured.fine_layout(h, shape, 1, built=(alone,), **rule)
+        serial = structured.fine_layout(h, shape, 1, **rule)
+        assert (split is None) == (serial is None)
+        if serial is not None:
+            for key, value in vars(serial).items():
+                assert np.array_equal(getattr(split, key), value), key
 
 
 def test_the_rule_builds_the_coarse_levels_beside_on_large_problems_with_threads_allowed(monkeypatch):

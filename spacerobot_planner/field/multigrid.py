@@ -484,7 +484,8 @@ class Hierarchy:
         then None).
         ``stop``: a termination flag, polled between levels (raises :class:`Stopped`).
         ``coarsen`` False: the fine level alone (``nb0``, ``coords``, ``red0``); :meth:`coarsen`
-        builds the rest (meanwhile another thread may start on the fine level: :func:`solve`).
+        builds the rest (meanwhile another thread may start on the fine level: :func:`solve`),
+        and takes the ``stop`` flag then (here it is not used).
         """
         n, deg = nbr.shape
         # the node graph's int32 (half the bytes to read) as it is, any other integer type as int64
@@ -1289,8 +1290,12 @@ class _Beside:
         self._thread = threading.Thread(target=run, name="field-beside", daemon=True)
         self._thread.start()
 
-    def result(self):
+    def join(self) -> None:
+        """Wait for the thread to end."""
         self._thread.join()
+
+    def result(self):
+        self.join()
         if self._error is not None:
             raise self._error
         return self._out
@@ -1366,13 +1371,18 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         boost = boost_of(len(shape), sweeps)
     max_cells, min_unknowns = ((structured.MAX_CELLS_PER_UNKNOWN, structured.MIN_UNKNOWNS) if route == "auto"
                                else (np.inf, 0))
+    if stop is not None and stop[0] != 0:
+        return np.zeros(n), 0, np.inf           # as the set-up would stop at its first level
     h = Hierarchy(nbr, coords, shape, coarsen=False)
     built = None
     try:
         if route != "graph" and structured.may_lay_out(n, len(shape), sweeps, min_unknowns) and (
                 beside_of(n) if beside is None else bool(beside)):
             coarsening = _Beside(h.coarsen, stop)         # the coarse levels on a second thread, meanwhile
-            built = (_fine_layout_alone(h.nb0, h.coords, h.shape, h.red0, max_cells),)  # the fine level's cells
+            try:
+                built = (_fine_layout_alone(h.nb0, h.coords, h.shape, h.red0, max_cells),)  # the fine cells
+            finally:
+                coarsening.join()                         # (no thread left running, whatever happened here)
             coarsening.result()
         else:
             h.coarsen(stop)
