@@ -109,11 +109,11 @@ PARALLEL_MIN_CELLS = 150_000
 PARALLEL_CHUNK = 16_384
 #: A problem of at least this many unknowns builds its coarse levels (:func:`_levels`) on a second
 #: thread while its fine level's cells are laid out (:func:`.structured.laid_out`; :func:`beside_of`,
-#: the rule).  The paper 3-DOF scene's first band alone, the two set-ups alternating (median of 41,
-#: 15 or 5): 36³ (31 901 unknowns) 1.01x the time, 48³ (76 752) 0.97-0.98x, 60³ (145 437) 1.03-1.05x,
-#: 72³ (254 460) 0.94-0.99x, 120³ (1.16 M) 0.84x; with the fine level's loops in one thread, 60³ 0.96x
-#: and 72³ 0.92x: numba's threads, which spin a while after a parallel loop, hold the second core
-#: then.  2-D 181²: 1.01-1.05x.
+#: the rule).  The paper 3-DOF scene's first band alone, the two set-ups alternating (ratios of
+#: medians of 41, 15 or 5; tails in docs/benchmarks.md, ninth sitting): 36³ (31 901 unknowns) 1.01x
+#: the time, 48³ (76 752) 0.95-0.98x, 60³ (145 437) 1.03-1.05x, 72³ (254 460) 0.94-0.95x, 120³ (1.16 M)
+#: 0.84x; with the fine level's loops in one thread, 60³ 0.96x and 72³ 0.92x: numba's threads, which
+#: spin a while after a parallel loop, hold the second core then.  2-D 181²: 1.03-1.05x.
 BESIDE_MIN_UNKNOWNS = 200_000
 
 
