@@ -127,6 +127,7 @@ class Planner:
         self._checker = CollisionChecker(scenario.robot, scenario.scene)
         self._validator = MotionValidator(self._checker)    # the scene's motion validator
         self._last_goal = None           # (scenario, checker, goal bytes, its clearance, approach error)
+        self._capture = None             # (scenario, approach bound, IKSolution or the ValueError's text)
         #: test aid: (stage, seconds, polls, on_start) -- that stage ("cspace", "field":
         #: before its kernels, when not cached; "descent", "smoothing") calls
         #: ``on_start(stage)`` (or None) and spends ``seconds``, answering the termination
@@ -229,8 +230,26 @@ class Planner:
         Raises ValueError with a reason when there is no target, the grasp pose is out of
         reach, every branch collides, or no branch meets the handle near perpendicular
         (the reason then names the attitudes that would, from the 3-joint IK).
+
+        Kept while the scenario (by identity) and ``max_approach_error_deg`` are the same: a
+        replan to the same target does not solve its IK again (its arrays read-only), nor
+        find again that it has no capture posture.
         """
         sc, bound = self.scenario, self.settings.max_approach_error_deg
+        held = self._capture
+        if held is None or held[0] is not sc or held[1] != bound:
+            try:
+                found = self._capture_goal(sc, bound)
+                found.q.flags.writeable = found.q_full.flags.writeable = False
+            except ValueError as e:
+                found = str(e)
+            held = self._capture = (sc, bound, found)
+        if isinstance(held[2], str):
+            raise ValueError(held[2])
+        return held[2]
+
+    def _capture_goal(self, sc, bound):
+        """:meth:`capture_goal`, found (``sc``: the scenario, ``bound``: ``max_approach_error_deg``)."""
         if sc.scene.target is None:
             raise ValueError("no goal given and the scene has no target")
         gp = np.round(sc.scene.target.grasp_point_m, 3).tolist()

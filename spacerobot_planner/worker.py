@@ -171,8 +171,8 @@ def _progress_of(text: str):
     return None
 
 
-#: planner -> (the settings key of the last job applied to it, the target's goal then or None,
-#: the planner's state after it: see :func:`_state`)
+#: planner -> (the settings key of the last job applied to it, the planner's state after it: see
+#: :func:`_state`)
 _APPLIED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
@@ -181,12 +181,12 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
     Give ``planner`` the job's scene, grid, solver and limits; return their key (bytes).
 
     A job with the settings of the last one applied (a replan: the same bytes) changes
-    nothing: the scene's checker and the target's goal stay (:func:`_target_goal`).
+    nothing: the scene's checker and the target's goal (``Planner.capture_goal``) stay.
     """
     key = pickle.dumps((job.scene, job.grid, job.solver, job.field_tolerance, job.field_budget_s,
                         job.max_grid_nodes, job.max_threads), protocol=pickle.HIGHEST_PROTOCOL)
     held = _APPLIED.get(planner)
-    if held is not None and held[0] == key and held[2] == _state(planner):
+    if held is not None and held == (key, _state(planner)):
         return key
     _APPLIED.pop(planner, None)
     planner.set_scene(job.scene)
@@ -196,7 +196,7 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
             (job.solver, job.field_tolerance, job.field_budget_s):
         planner.set_solver(job.solver, job.field_tolerance, job.field_budget_s)
     planner.configure(max_grid_nodes=job.max_grid_nodes, max_threads=job.max_threads)
-    _APPLIED[planner] = (key, None, _state(planner))
+    _APPLIED[planner] = (key, _state(planner))
     return key
 
 
@@ -204,16 +204,6 @@ def _state(planner) -> tuple:
     """Return what a change of the planner outside a job changes: its scenario (by identity), solver, limits."""
     return (planner.scenario, planner.solver, planner.field_tolerance, planner.settings.field_budget_s,
             planner.max_grid_nodes, planner.settings.max_threads)
-
-
-def _target_goal(planner, key: bytes) -> np.ndarray:
-    """Return the target's goal (``Planner.goal_from_target``), kept while the settings key is the same."""
-    held = _APPLIED.get(planner)
-    if held is not None and held[0] == key and held[1] is not None and held[2] == _state(planner):
-        return held[1].copy()
-    goal = planner.goal_from_target()          # ValueError: not kept
-    _APPLIED[planner] = (key, goal.copy(), _state(planner))
-    return goal
 
 
 STALL_STAGES = ("start", "cspace", "field", "descent", "smoothing")
@@ -256,11 +246,11 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
     if job.stall_stage == "start" and job.stall_s > 0:
         stalling("start")
         stall(token, job.stall_s, job.stall_polls)
-    key = _apply_settings(planner, job)
+    _apply_settings(planner, job)
     goal = job.joint_goal
     if goal is None and not captures_free_floating(planner.scenario, False):   # free floating: the pipeline's
         try:
-            goal = _target_goal(planner, key)
+            goal = planner.goal_from_target()
         except ValueError as e:
             return PlanError(job.gen, "goal_unreachable", f"target: {e}")
     if job.stall_stage != "start" and job.stall_s > 0:

@@ -635,6 +635,42 @@ def test_random_targets_under_locked_attitude_grasp_perpendicular_or_say_which_a
     assert accepted >= 1 and refused >= 5 and advised >= 1, (accepted, refused, advised)
 
 
+def test_a_kept_planner_finds_the_capture_goal_a_fresh_one_finds(sc2):
+    """
+    The target's capture goal is kept between plans and renewed with the scene and the bound.
+
+    One planner follows random targets (``set_scene``) and approach bounds (``configure``),
+    asked twice each time; every answer (the goal's bits, or the refusal's text) is a fresh
+    planner's for the same scenario and bound, and the posture meets the handle within the bound
+    (oracle: the link's angle to the handle's normal from the test's own geometry).  The kept
+    goal's arrays cannot be written by a caller.
+    """
+    rng = np.random.default_rng(5)
+    kept = Planner(sc2)
+    answers = set()
+
+    def answer(pl):
+        try:
+            return pl.goal_from_target().tobytes()
+        except ValueError as e:
+            return str(e)
+    for k in range(12):
+        r, a, yaw = rng.uniform(2.5, 5.5), rng.uniform(-np.pi, np.pi), rng.uniform(-np.pi, np.pi)
+        scene = sc2.scene.with_target(Target(center_m=(r * np.cos(a), r * np.sin(a)), yaw_rad=yaw))
+        kept.set_scene(scene)
+        for bound in (20.0, 5.0, 0.0, 20.0):         # the same bound on a new scene, then changed on it
+            kept.configure(max_approach_error_deg=bound)
+            want = answer(Planner(sc2.with_scene(scene), max_approach_error_deg=bound))
+            assert answer(kept) == want and answer(kept) == want, (k, bound)
+            answers.add(isinstance(want, str))
+            if isinstance(want, bytes):
+                goal = kept.goal_from_target()
+                assert link3_and_normal_deg(sc2.robot, scene.target, sc2.robot.full(goal)) <= bound + 1e-9
+                with pytest.raises(ValueError, match="read-only"):
+                    kept.capture_goal().q[0] = 0.0
+    assert answers == {True, False}                 # both goals and refusals were kept and renewed
+
+
 # ---------------------------------------------------------------- obstacles thinner than a grid step
 def test_the_narrowest_obstacle_is_its_convex_hulls_least_width():
     """

@@ -146,7 +146,7 @@ def test_jobs_of_the_same_settings_keep_the_goal_and_a_new_target_or_scene_takes
         tip = sc.robot.tip_position(sc.robot.full(out.result.path_rad[-1]))
         return float(np.linalg.norm(tip - scene.target.grasp_point_m))
 
-    calls = {"goal_from_target": 0, "set_scene": 0}
+    calls = {"_capture_goal": 0, "set_scene": 0}          # _capture_goal: the IK solved
 
     def counted(name):
         method = getattr(b.planner, name)
@@ -159,14 +159,14 @@ def test_jobs_of_the_same_settings_keep_the_goal_and_a_new_target_or_scene_takes
     for name in calls:
         setattr(b.planner, name, counted(name))
     first = b.run(_job(sc, 1))
-    assert calls["goal_from_target"] == 1
+    assert calls["_capture_goal"] == 1
     done = dict(calls)
     again = b.run(dataclasses.replace(_job(sc, 2), start_rad=first.result.path_rad[len(first.result.path_rad) // 2]))
     assert calls == done                                   # the replan: no new scene, no new goal
     np.testing.assert_array_equal(again.result.path_rad[-1], first.result.path_rad[-1])
     assert tip_miss(again, sc.scene) < 1e-6
     assert tip_miss(b.run(_job(dataclasses.replace(sc, scene=moved), 3)), moved) < 1e-6
-    assert calls["goal_from_target"] == done["goal_from_target"] + 1 and calls["set_scene"] > done["set_scene"]
+    assert calls["_capture_goal"] == done["_capture_goal"] + 1 and calls["set_scene"] > done["set_scene"]
     b.planner.set_scene(sc.scene)                          # outside any job: the next job applies its own
     assert tip_miss(b.run(_job(dataclasses.replace(sc, scene=moved), 4)), moved) < 1e-6
     assert b.planner.scenario.scene.target.center_m == moved.target.center_m
