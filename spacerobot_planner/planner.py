@@ -261,7 +261,7 @@ class Planner:
                              f"{side:g} m) from the target body, and safety_margin_m = {margin:g} m is not below "
                              f"it; a safety_margin_m below {side:g} m allows the grasp")
         found, free = [], []             # the branches of each approach angle tried; the clear ones
-        offsets = self._approach_offsets_deg(bound)
+        offsets = self._approach_offsets_deg(sc, bound)
         for offset_deg in offsets:
             psi = None if offset_deg == 0.0 else sc.scene.target.approach_angle_rad + math.radians(offset_deg)
             try:
@@ -294,26 +294,27 @@ class Planner:
             return good[0]
         raise ValueError(f"no capture posture grasps the handle perpendicularly: link 3 meets it "
                          f"{min(errs):.1f}° off its normal, above grasp.max_approach_error_deg = "
-                         f"{bound:g}°; {self._attitude_advice()}")
+                         f"{bound:g}°; {self._attitude_advice(sc)}")
 
-    def _approach_offsets_deg(self, bound: float) -> list:
+    @staticmethod
+    def _approach_offsets_deg(sc, bound: float) -> list:
         """
-        Return the approach angles to try, off the handle's normal, degrees: 0 first, then ±1, ±2, … ±bound.
+        Return the approach angles to try in scenario ``sc``, off the handle's normal, degrees: 0, ±1, ±2, … ±bound.
 
         The perpendicular grasp where it is in reach and clear; else the least tilt within
         ``grasp.max_approach_error_deg`` that is (a redundant arm whose perpendicular posture
         leaves its joint bounds a few degrees off it).  One angle only where the IK is
         position-only.
         """
-        if bound <= 0.0 or not meets_approach_angle(self.scenario.robot):
+        if bound <= 0.0 or not meets_approach_angle(sc.robot):
             return [0.0]
         last = bound * (1.0 - 1e-9)           # the bound itself, a rounding inside it
         steps = [float(k) for k in range(1, int(math.ceil(last))) if k < last] + [last]
         return [0.0] + [sign * k for k in steps for sign in (1.0, -1.0)]
 
-    def _attitude_advice(self) -> str:
-        """Which attitude (joint 1) would allow a perpendicular grasp, for a reason text."""
-        sc = self.scenario
+    @staticmethod
+    def _attitude_advice(sc) -> str:
+        """Which attitude (joint 1) would allow a perpendicular grasp in scenario ``sc``, for a reason text."""
         if meets_approach_angle(sc.robot):
             return "no attitude change can help (the attitude is planned already)"
         atts = perpendicular_attitudes(sc.robot, sc.scene)
