@@ -20,7 +20,8 @@ VENV_ABS := $(abspath $(VENV))
 all: test
 
 # 1. the wheels; 2. the interface package (CMake, into the venv prefix, as colcon would);
-# 3. this package (editable) and its ament layout; 4. numba's cache of each scenario file's route
+# 3. this package (editable) and its ament layout; 4. numba's cache of each scenario file's route and
+# the package's bytecode (worker --warm-cache)
 $(STAMP): requirements.txt setup.py setup.cfg package.xml $(IFACE)/CMakeLists.txt $(IFACE)/package.xml \
 		$(wildcard $(IFACE)/action/*.action)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)

@@ -11,8 +11,8 @@ Packaging of spacerobot_planner (ament_python: colcon and pip).
   (``setup.py develop``) runs it too.
 - ``warm_numba_cache``: it runs ``python -m spacerobot_planner.worker --warm-cache`` on the
   scenario files of ``config/`` in the installed tree, so numba's cache (``__pycache__/*.nbi``, ``*.nbc``)
-  sits next to the installed sources and the first start loads the kernels instead of
-  compiling them.
+  and the package's bytecode (``*.pyc``) sit next to the installed sources and the first start
+  loads the kernels instead of compiling them.
 """
 
 import filecmp
@@ -57,8 +57,9 @@ class warm_numba_cache(Command):
     what is missing or stale.
     Skipped with ``--root`` (a staged install such as a wheel build: the files move
     afterwards) and when ``SPACEROBOT_PLANNER_WARM_CACHE=0``.  A failure is reported
-    and does not fail the install (the first start then compiles).  The cache files are
-    listed in the install record (colcon's ``install.log``).
+    and does not fail the install (the first start then compiles).  The cache files and the
+    package's bytecode (written by the warm-up also where ``PYTHONDONTWRITEBYTECODE`` kept
+    ``install_lib`` from it) are listed in the install record (colcon's ``install.log``).
     """
 
     description = "compile the numba kernels into the installed package's __pycache__"
@@ -94,7 +95,8 @@ class warm_numba_cache(Command):
             print(f"{self.get_command_name()}: WARNING: the warm-up failed (exit {r.returncode}); "
                   "the first start will compile the kernels", file=sys.stderr)
         pkg = os.path.join(install_dir, PACKAGE)
-        self.outputs = sorted(glob(os.path.join(pkg, "**", "__pycache__", "*.nb[ic]"), recursive=True))
+        self.outputs = sorted(p for pattern in ("*.nb[ic]", "*.pyc")       # numba's cache, the bytecode
+                              for p in glob(os.path.join(pkg, "**", "__pycache__", pattern), recursive=True))
 
     def get_outputs(self):
         return self.outputs

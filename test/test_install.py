@@ -70,7 +70,7 @@ print(json.dumps({"file": spacerobot_planner.__file__, "ok": res.ok, "has_trajec
 @pytest.mark.slow
 def test_setup_py_install_leaves_a_valid_numba_cache_in_the_installed_tree(tmp_path):
     """
-    The numba cache that `setup.py install` leaves is valid.
+    The numba cache that `setup.py install` leaves is valid, and the bytecode beside it.
 
     `setup.py install` as colcon runs it, then a fresh process importing the installed copy plans
     the paper's 3-DOF target with every kernel loaded from numba's cache.
@@ -91,6 +91,12 @@ def test_setup_py_install_leaves_a_valid_numba_cache_in_the_installed_tree(tmp_p
     assert cache, "no numba cache in the installed tree:\n" + r.stdout[-2000:]
     recorded = set((build / "install.log").read_text().split())
     assert {str(p) for p in cache} <= recorded, "the cache files are not in the install record"
+    # the bytecode of every installed module beside it (a start under PYTHONDONTWRITEBYTECODE, as
+    # here, would compile the package again every time), recorded too
+    modules = sorted((site / PKG).rglob("*.py"))
+    pyc = [p.parent / "__pycache__" / f"{p.stem}.{sys.implementation.cache_tag}.pyc" for p in modules]
+    assert modules and all(p.is_file() for p in pyc), [str(p) for p in pyc if not p.is_file()][:5]
+    assert {str(p) for p in pyc} <= recorded, "the bytecode is not in the install record"
     before = {p: p.stat().st_mtime_ns for p in cache}
     check_env = dict(env, PYTHONPATH=str(site))
     r = subprocess.run([sys.executable, "-c", _CACHE_CHECK, str(ROOT / "config/paper_3dof.yaml")], cwd=site,

@@ -1,5 +1,10 @@
 """
-Cold start of ``spacerobot-plan``: a fresh process, numba's cache filled, to the first plan.
+Cold start of ``spacerobot-plan``: a fresh process, its caches filled, to the first plan.
+
+The caches a second start of any install finds: numba's (the warm-up run below fills it) and
+Python's bytecode of the package (``worker.compile_package`` first: an interpreter started with
+``PYTHONDONTWRITEBYTECODE`` set, as on this project's VM and CI, would never write it, and every
+start would compile the package's sources again, about 0.12 s).
 
 Runs ``python -m spacerobot_planner.tools.cli --params-file FILE --quiet`` (the console
 script's code) ``--runs`` times as a new process each, and in the same run, interleaved,
@@ -75,6 +80,8 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=7)
     args = ap.parse_args(argv)
     py = sys.executable
+    from ..worker import compile_package
+    compile_package()
     with tempfile.TemporaryDirectory() as tmp:
         Path(tmp, "one_kernel.py").write_text(_KERNEL)
         kernel_env = dict(os.environ, PYTHONPATH=tmp + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -100,7 +107,8 @@ def main(argv=None) -> int:
                      **tail_stats([p[key] for p in probes])})
     loads = sorted({p["kernel_loads"] for p in probes})
     print(f"bench coldstart: {Path(args.params_file).name}, {args.runs} runs each, interleaved; "
-          f"wall seconds of a fresh process (load {os.getloadavg()[0]:.1f})")
+          f"wall seconds of a fresh process, numba's cache and the package's bytecode filled "
+          f"(load {os.getloadavg()[0]:.1f})")
     print(f"{'case':<40}{'median':>9}{'p90':>9}{'max':>9}")
     for r in rows:
         print(f"{r['case']:<40}{r['median_s']:>9.3f}{r['p90_s']:>9.3f}{r['max_s']:>9.3f}")
