@@ -3,7 +3,7 @@ Cold start of ``spacerobot-plan``: a fresh process, its caches filled, to the fi
 
 The caches a second start of any install finds: numba's (the warm-up run below fills it) and
 Python's bytecode of the package (``worker.compile_package`` first: an interpreter started with
-``PYTHONDONTWRITEBYTECODE`` set, as on this project's VM and CI, would never write it, and every
+``PYTHONDONTWRITEBYTECODE`` set, as on this project's VM (and a CI machine like it), would never write it, and every
 start would compile the package's sources again, about 0.12 s).
 
 Runs ``python -m spacerobot_planner.tools.cli --params-file FILE --quiet`` (the console
