@@ -176,9 +176,9 @@ def _progress_of(text: str):
 _APPLIED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
-def _apply_settings(planner, job: PlanJob) -> bytes:
+def _apply_settings(planner, job: PlanJob) -> None:
     """
-    Give ``planner`` the job's scene, grid, solver and limits; return their key (bytes).
+    Give ``planner`` the job's scene, grid, solver and limits.
 
     A job with the settings of the last one applied (a replan: the same bytes) changes
     nothing: the scene's checker and the target's goal (``Planner.capture_goal``) stay.
@@ -187,7 +187,7 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
                         job.max_grid_nodes, job.max_threads), protocol=pickle.HIGHEST_PROTOCOL)
     held = _APPLIED.get(planner)
     if held is not None and held == (key, _state(planner)):
-        return key
+        return
     _APPLIED.pop(planner, None)
     planner.set_scene(job.scene)
     if planner.scenario.grid != job.grid:
@@ -197,7 +197,6 @@ def _apply_settings(planner, job: PlanJob) -> bytes:
         planner.set_solver(job.solver, job.field_tolerance, job.field_budget_s)
     planner.configure(max_grid_nodes=job.max_grid_nodes, max_threads=job.max_threads)
     _APPLIED[planner] = (key, _state(planner))
-    return key
 
 
 def _state(planner) -> tuple:

@@ -144,6 +144,35 @@ def test_multigrid_cg_stops_itself_on_a_set_flag():
         assert its == 0 and res == np.inf and not np.any(x), f"CG iterated although its flag was set ({beside})"
 
 
+def test_a_flag_set_while_the_coarse_levels_are_built_beside_stops_the_solve(monkeypatch):
+    """
+    The split set-up (coarse levels on a second thread, the fine cells laid out meanwhile) stops too.
+
+    The flag is set by the second thread as its coarse levels begin (``_levels`` polls it between
+    levels): the solve returns nothing, as a stop at the first level does.  A layout that raises
+    is raised in the solve's thread, and the second thread has ended by then either way.
+    """
+    args = _first_band(_maze_problem())
+    flag = np.zeros(1, np.int64)
+    real = multigrid.Hierarchy.coarsen
+
+    def coarsen_stopped(self, stop=None):
+        flag[0] = 1                       # the plan cancelled just as the coarse levels begin
+        return real(self, stop)
+    monkeypatch.setattr(multigrid.Hierarchy, "coarsen", coarsen_stopped)
+    x, its, res = multigrid.solve(*args, tol=1e-10, stop=flag, beside=True)
+    assert its == 0 and res == np.inf and not np.any(x)
+    assert not any(t.name == "field-beside" for t in threading.enumerate())
+    monkeypatch.setattr(multigrid.Hierarchy, "coarsen", real)
+
+    def broken_layout(*a):
+        raise RuntimeError("layout failed")
+    monkeypatch.setattr(multigrid, "_fine_layout_alone", broken_layout)
+    with pytest.raises(RuntimeError, match="layout failed"):
+        multigrid.solve(*args, tol=1e-10, beside=True)
+    assert not any(t.name == "field-beside" for t in threading.enumerate())
+
+
 def test_a_set_flag_stops_the_multigrid_set_up_before_it_builds_its_levels():
     """A set-up stopped before its first level builds nothing: no packed levels, no dense matrix of the fine level."""
     sub, coords, shape, _ = _first_band(_maze_problem())
