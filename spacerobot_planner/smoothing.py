@@ -395,12 +395,15 @@ def _spline_kernel(s, y, max_step_rad, start_slope, clamped):
 
     With ``clamped`` its derivative at the start is ``start_slope`` (dof,) instead
     (``trajectory.clamped_start_slopes``).
-    At N equally spaced parameters from s[0] to s[-1] (``np.linspace``'s), N = ⌈s[-1] /
-    max_step_rad⌉ + 1 at first and, while two consecutive samples are farther apart than
-    ``max_step_rad`` (Euclidean), N·(largest step / max_step_rad)·1.05 + 1.  Each sample is the
-    cubic of its knot interval (the last one's for the last sample), by Horner's rule in the
-    interval's local parameter.  Returns (samples (N, dof), sample parameters (N,), knot
-    interval of each (N,)).
+    Each knot interval i is sampled on its own: at N_i equal parameter steps from s[i] (its
+    knot, exactly y[i]) towards s[i + 1], N_i = ⌈(s[i+1] − s[i]) / max_step_rad⌉ at first and,
+    while two consecutive samples of it (its last with the next knot) are farther apart than
+    ``max_step_rad`` (Euclidean), N_i·(largest step / max_step_rad)·1.05 + 1; the last sample
+    is the last knot.  So every knot is a sample and a stretch where the spline runs faster
+    than its chord parameter (a short interval's overshoot near a corner) is sampled finer
+    without making the rest finer.  Each sample is the cubic of its knot interval by Horner's
+    rule in the interval's local parameter.  Returns (samples (N, dof), sample parameters (N,),
+    knot interval of each (N,): the last sample's is the last interval).
     """
     n, dof = y.shape
     m = clamped_start_slopes(s, y, start_slope) if clamped else not_a_knot_slopes(s, y)
@@ -408,31 +411,50 @@ def _spline_kernel(s, y, max_step_rad, start_slope, clamped):
     c1 = np.empty((n - 1, dof))
     for i in range(n - 1):
         hermite_coefficients(s, y, m, i, c0[i], c1[i])
-    total = max(2, int(np.ceil(s[n - 1] / max_step_rad)) + 1)
-    while True:
-        q = np.empty((total, dof))
-        u = np.empty(total)
-        iv = np.empty(total, np.int64)
-        du = (s[n - 1] - s[0]) / (total - 1)
-        i = 0
-        for r in range(total):
-            u[r] = s[0] + r * du if r < total - 1 else s[n - 1]
-            while i < n - 2 and u[r] >= s[i + 1]:
-                i += 1
+    counts = np.empty(n - 1, np.int64)
+    prev = np.empty(dof)
+    for i in range(n - 1):
+        h = s[i + 1] - s[i]
+        cnt = max(1, int(np.ceil(h / max_step_rad)))
+        while True:
+            largest = 0.0
+            for a in range(dof):
+                prev[a] = y[i, a]
+            for j in range(1, cnt + 1):
+                x = j * (h / cnt)
+                d2 = 0.0
+                for a in range(dof):
+                    v = y[i + 1, a] if j == cnt else ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
+                    d = v - prev[a]
+                    d2 += d * d
+                    prev[a] = v
+                largest = max(largest, np.sqrt(d2))
+            if largest <= max_step_rad:
+                break
+            cnt = int(np.ceil(cnt * largest / max_step_rad * 1.05)) + 1
+        counts[i] = cnt
+    total = 1
+    for i in range(n - 1):
+        total += counts[i]
+    q = np.empty((total, dof))
+    u = np.empty(total)
+    iv = np.empty(total, np.int64)
+    r = 0
+    for i in range(n - 1):
+        h = s[i + 1] - s[i]
+        cnt = counts[i]
+        for j in range(cnt):
+            x = j * (h / cnt)
+            u[r] = s[i] + x
             iv[r] = i
-            x = u[r] - s[i]
             for a in range(dof):
                 q[r, a] = ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
-        largest = 0.0
-        for r in range(total - 1):
-            d2 = 0.0
-            for a in range(dof):
-                d = q[r + 1, a] - q[r, a]
-                d2 += d * d
-            largest = max(largest, np.sqrt(d2))
-        if largest <= max_step_rad:
-            return q, u, iv
-        total = int(np.ceil(total * largest / max_step_rad * 1.05)) + 1
+            r += 1
+    u[r] = s[n - 1]
+    iv[r] = n - 2
+    for a in range(dof):
+        q[r, a] = y[n - 1, a]
+    return q, u, iv
 
 
 def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified, start_tangent=None):

@@ -195,8 +195,11 @@ def test_servicer_json_has_trajectory_and_reaction(tmp_path, capsys):
     # the node's published points (adapters.post_process): at most RESAMPLE_STEP_S (0.25 s) apart
     # (unless dense neighbours) and a few more where the path bends; far fewer than the dense
     # samples on a faster motion (below)
-    rt = len(d["trajectory_resampled"]["times_s"])
-    assert rt < len(t) and rt <= d["trajectory_resampled"]["times_s"][-1] / 0.25 + 100
+    pub_t, dense_t = np.array(d["trajectory_resampled"]["times_s"]), np.array(d["dense_trajectory"]["times_s"])
+    at = np.searchsorted(dense_t, pub_t)
+    np.testing.assert_array_equal(dense_t[at], pub_t)
+    assert np.all((np.diff(pub_t) <= 0.25 + 1e-12) | (np.diff(at) == 1))
+    assert len(pub_t) <= len(dense_t) and len(pub_t) <= pub_t[-1] / 0.25 + 100
     assert "published trajectory (" in out and "reaction (held)" in out
     # the paper's config keeps the paper's assumption: no wheel limits, a faster motion
     js2 = tmp_path / "p.json"

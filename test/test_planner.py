@@ -892,9 +892,10 @@ def test_a_plan_given_the_arms_direction_leaves_its_start_along_it(planner3, sc3
     """
     A replan from a moving arm leaves its start along the arm's direction (``start_tangent``).
 
-    Directions ``turn_deg`` off the path the plan takes from rest: the first step of the path
-    is within 1.5° of the given direction, the path ends exactly at start and goal, and every
-    dense sample of its polyline keeps the scene's margin (shapely).  A direction of the wrong
+    Directions ``turn_deg`` off the path the plan takes from rest: the path's direction at its
+    start (the test's quadratic through its first three samples) is within 1.5° of the given
+    one, the path ends exactly at start and goal, and every dense sample of its polyline keeps
+    the scene's margin (shapely).  A direction of the wrong
     length or all zero answers invalid_input, naming it.
     """
     from oracles import shapely_clearance
@@ -903,7 +904,12 @@ def test_a_plan_given_the_arms_direction_leaves_its_start_along_it(planner3, sc3
     res = planner3.plan(sc3.start_rad, sc3.goal_rad, start_tangent=3.0 * d)     # any length: its direction
     assert res.ok, res.reason
     p = res.path_rad
-    first = (p[1] - p[0]) / np.linalg.norm(p[1] - p[0])
+    # the path's direction at its start: the derivative at 0 of the quadratic through its first
+    # three samples, by their chord lengths (the first step's chord alone turns off it by half
+    # the curve's bend over the step)
+    h1, h2 = np.linalg.norm(p[1] - p[0]), np.linalg.norm(p[2] - p[1])
+    first = -(2 * h1 + h2) / (h1 * (h1 + h2)) * p[0] + (h1 + h2) / (h1 * h2) * p[1] - h1 / (h2 * (h1 + h2)) * p[2]
+    first = first / np.linalg.norm(first)
     assert np.degrees(np.arccos(np.clip(first @ d, -1.0, 1.0))) < 1.5
     np.testing.assert_array_equal(p[0], sc3.start_rad)
     np.testing.assert_allclose(wrap_diff(p[-1], sc3.goal_rad), 0.0, atol=1e-9)

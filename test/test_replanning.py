@@ -234,7 +234,7 @@ def test_a_turn_too_sharp_for_the_arms_direction_is_entered_along_the_paths_own_
     """
     Where no candidate can be entered leaving the join along the arm's direction, the chain times it along its own.
 
-    Three rows before a 20° turn at the arm's speed, every candidate (the corner and its blends)
+    Three rows before a 15° turn at the arm's speed, every candidate (the corner and its blends)
     leaving along the arm's direction asks for a slower arm; along the spline's own tangent one
     can be entered.  The published trajectory starts exactly in the arm's state (position,
     velocity, acceleration), and the controller's motion through its points (the test's quintics)
@@ -246,7 +246,7 @@ def test_a_turn_too_sharp_for_the_arms_direction_is_entered_along_the_paths_own_
     old = ex.trajectory
     vmax, amax = joint_limits(sc)
     now, start, join = _following_at(ex, 0.4)
-    new = _line_from(start, turned(old.velocities_rad_s[join.horizon_index], 20.0))
+    new = _line_from(start, turned(old.velocities_rad_s[join.horizon_index], 15.0))
     later = now + int(0.75 * S)
     paths = joined_paths(sc, join, new, later, lead_s=0.02)
     c = paths.continuation

@@ -341,12 +341,12 @@ def test_resampled_trajectory_is_short_exact_and_certified(dof, paper_scenario, 
         res = resample(traj, checker, **kw)
         sub = res.trajectory
         assert res.ok and res.check.ok
-        assert 5 <= len(sub) <= 200 and len(sub) < len(traj) / 4
+        assert 5 <= len(sub) <= 200 and len(sub) < len(traj) / 3
         np.testing.assert_array_equal(sub.positions_rad[[0, -1]], traj.positions_rad[[0, -1]])
         np.testing.assert_array_equal(sub.times_s, traj.times_s[res.indices])
         check_trajectory(sub, path, vmax, amax, dense=False)          # the limits hold between kept points too
-        if kw.get("time_step_s"):
-            assert np.max(np.diff(sub.times_s)) <= kw["time_step_s"] + 1e-12
+        if kw.get("time_step_s"):       # at most time_step_s apart, unless neighbours in traj
+            assert np.all((np.diff(sub.times_s) <= kw["time_step_s"] + 1e-12) | (np.diff(res.indices) == 1))
         # oracle: the polyline through the kept points, sampled at 0.1°, clears the margin, and so
         # does the controller's motion through them (SciPy's quintic, 20 samples per segment, shapely)
         fine = dense_samples(sub.positions_rad, np.radians(0.1))
