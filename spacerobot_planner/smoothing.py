@@ -348,8 +348,9 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD, start_
     """
     Cubic spline (chord-length parameter, not-a-knot ends) through (k, dof) knots.
 
-    Returns (samples (M, dof), knot_param (k,), sample_param (M,)): samples ≤
-    max_step_rad apart, the first and last knot reproduced exactly.  ``start_tangent``:
+    Returns (samples (M, dof), knot_param (k' ≤ k,), sample_param (M,)): samples ≤
+    max_step_rad apart, every knot a sample (exactly; a knot within ``MIN_KNOT_CHORD_RAD`` of
+    the one before is dropped, never the first or the last).  ``start_tangent``:
     (dof,) a unit direction the spline leaves its first knot along (its derivative there,
     clamped; from 3 knots on), or None.
     """
@@ -357,23 +358,49 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD, start_
     return q, s, u
 
 
+#: A knot closer than this (rad, Euclidean) to the last knot kept before it is dropped: the
+#: not-a-knot spline through two knots a hair apart turns through their difference's arbitrary
+#: direction.  Knots about 1 rad apart with one pair 1e-9 rad apart took up to 330 000 samples (the
+#: spline swinging out and back), 1e-8: 2 400; from 1e-7 on as many as with distinct knots.
+MIN_KNOT_CHORD_RAD = 1e-7
+
+
+def _kept_knots(knots_rad) -> np.ndarray:
+    """
+    Return which knots (k, dof) the spline goes through: (k,) bool.
+
+    The first; then each farther than :data:`MIN_KNOT_CHORD_RAD` from the last one kept; the last
+    knot always (in place of the last one kept when that is too close, unless that is the first).
+    """
+    k = np.asarray(knots_rad, dtype=float)
+    keep = np.ones(len(k), dtype=bool)
+    if len(k) < 2 or np.all(chord_lengths_rad(k) > MIN_KNOT_CHORD_RAD):
+        return keep
+    last = 0
+    for i in range(1, len(k)):
+        if math.sqrt(float(np.sum((k[i] - k[last]) ** 2))) > MIN_KNOT_CHORD_RAD:
+            last = i
+        else:
+            keep[i] = False
+    if not keep[-1]:
+        if last > 0:
+            keep[last] = False
+        keep[-1] = True
+    return keep
+
+
 def _spline_samples(knots_rad, max_step_rad, start_tangent=None):
     """
     Return :func:`spline_through`'s (samples, knot_param, sample_param) and each sample's knot interval.
 
     The knot interval (M,) int64 of sample r is the i with knot_param[i] ≤ sample_param[r] <
-    knot_param[i + 1] (the last sample: the last interval).  Knots closer than 1e-12 rad to
-    the previous one are dropped (the chord-length parameter must increase strictly).
+    knot_param[i + 1] (the last sample: the last interval).  Knots too close to the one before
+    are dropped (:func:`_kept_knots`; knot_param holds the kept ones').
     """
     k = np.ascontiguousarray(knots_rad, dtype=float)
-    if len(k) > 1:       # the chord-length parameter must increase strictly
-        moves = chord_lengths_rad(k) > 1e-12
-        if not moves.all():
-            keep = np.concatenate([[True], moves])
-            if not keep[-1]:
-                keep[np.flatnonzero(keep)[-1]] = False
-                keep[-1] = True
-            k = k[keep] if keep.sum() >= 2 else k[[0, -1]]
+    keep = _kept_knots(k)
+    if not keep.all():
+        k = k[keep]
     s = arc_lengths_rad(k)
     if len(k) == 1 or s[-1] <= 1e-12:
         return k[[0, -1]].copy(), s[[0, -1]], s[[0, -1]].copy(), np.zeros(2, np.int64)
@@ -384,7 +411,6 @@ def _spline_samples(knots_rad, max_step_rad, start_tangent=None):
     clamped = start_tangent is not None
     slope = np.ascontiguousarray(start_tangent if clamped else k[0], dtype=float)
     q, u, iv = _spline_kernel(s, k, float(max_step_rad), slope, clamped)
-    q[0], q[-1] = k[0], k[-1]
     return q, s, u, iv
 
 
@@ -396,9 +422,9 @@ def _spline_kernel(s, y, max_step_rad, start_slope, clamped):
     With ``clamped`` its derivative at the start is ``start_slope`` (dof,) instead
     (``trajectory.clamped_start_slopes``).
     Each knot interval i is sampled on its own: at N_i equal parameter steps from s[i] (its
-    knot, exactly y[i]) towards s[i + 1], N_i = ⌈(s[i+1] − s[i]) / max_step_rad⌉ at first and,
+    knot, y[i] itself) towards s[i + 1], N_i = ⌈(s[i+1] − s[i]) / max_step_rad⌉ at first and,
     while two consecutive samples of it (its last with the next knot) are farther apart than
-    ``max_step_rad`` (Euclidean), N_i·(largest step / max_step_rad)·1.05 + 1; the last sample
+    ``max_step_rad`` (Euclidean), ⌈N_i·(largest step / max_step_rad)·1.05⌉ + 1; the last sample
     is the last knot.  So every knot is a sample and a stretch where the spline runs faster
     than its chord parameter (a short interval's overshoot near a corner) is sampled finer
     without making the rest finer.  Each sample is the cubic of its knot interval by Horner's
@@ -448,7 +474,7 @@ def _spline_kernel(s, y, max_step_rad, start_slope, clamped):
             u[r] = s[i] + x
             iv[r] = i
             for a in range(dof):
-                q[r, a] = ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
+                q[r, a] = y[i, a] if j == 0 else ((c0[i, a] * x + c1[i, a]) * x + m[i, a]) * x + y[i, a]
             r += 1
     u[r] = s[n - 1]
     iv[r] = n - 2
@@ -470,6 +496,9 @@ def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, 
         if cancel is not None and cancel.is_set():
             return None
         knots = _polyline_at(poly, t_poly, t_knots)
+        keep = _kept_knots(knots)      # the spline's knots, so that its knot intervals are these
+        if not keep.all():
+            t_knots, knots = t_knots[keep], knots[keep]
         # vertices map exactly onto themselves (np.interp is exact at its nodes)
         samples, s_knots, s_samples = spline_through(knots, max_step_rad, start_tangent)
         samples = snap_to_bounds(samples, v.lower_rad, v.upper_rad, v.periodic)

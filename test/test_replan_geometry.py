@@ -9,6 +9,8 @@ itself; the walk's and the repair's segment test (samples proven free skipped) a
 evaluating every one of its samples.
 """
 
+import itertools
+
 import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
@@ -68,6 +70,61 @@ def test_spline_is_scipys_not_a_knot_spline_sampled_within_the_step(n_knots):
             fastest = 1.01 * np.linalg.norm(ref(np.linspace(s_knots[i], s_knots[i + 1], 201), 1), axis=1).max()
             h = s_knots[i + 1] - s_knots[i]
             assert len(u) - 1 <= np.ceil(1.05 * fastest * h / DEFAULT_MAX_STEP_RAD) + 1
+
+
+def test_a_clamped_spline_is_scipys_with_that_start_derivative():
+    """With a start tangent the samples are SciPy's spline clamped to it at the start (not-a-knot at the end)."""
+    rng = np.random.default_rng(11)
+    for n_knots in (3, 4, 7):
+        for dof in (2, 3):
+            k = np.cumsum(rng.normal(scale=0.2, size=(n_knots, dof)), axis=0)
+            d = k[1] - k[0] + rng.normal(scale=0.05, size=dof)
+            t = d / np.linalg.norm(d)
+            q, s_knots, s_samples = spline_through(k, start_tangent=t)
+            ref = CubicSpline(_chord_param(k), k, axis=0, bc_type=((1, t), "not-a-knot"))
+            assert np.allclose(q, ref(s_samples), rtol=0, atol=1e-10)
+            assert np.allclose(ref(0.0, 1), t, rtol=0, atol=1e-12)
+            assert np.linalg.norm(np.diff(q, axis=0), axis=1).max() <= DEFAULT_MAX_STEP_RAD
+
+
+def test_each_step_is_within_the_step_where_a_short_interval_runs_fast():
+    """
+    Knots with a short interval between long ones (the spline runs fastest near its ends there).
+
+    Every step within the step, the one into each knot included (where the spline runs into a
+    short interval the last step before it is the largest), the values SciPy's.
+    """
+    for short, turn_deg, long in itertools.product((0.005, 0.01, 0.05), (60.0, 90.0, 120.0), (0.05, 0.3)):
+        c, sn = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+        k = np.array([[0.0, 0.0], [long, 0.0], [long + short, 0.0], [long + short + long * c, long * sn],
+                      [2 * long + short, long * sn + 0.4]])
+        q, s_knots, s_samples = spline_through(k)
+        steps = np.linalg.norm(np.diff(q, axis=0), axis=1)
+        assert steps.max() <= DEFAULT_MAX_STEP_RAD
+        ref = CubicSpline(_chord_param(k), k, axis=0, bc_type="not-a-knot")
+        assert np.allclose(q, ref(s_samples), rtol=0, atol=1e-10)
+
+
+def test_knots_a_hair_apart_do_not_swing_the_spline_out():
+    """
+    Knots closer than MIN_KNOT_CHORD_RAD to the one before are dropped, never the ends.
+
+    A knot 5.6e-12 rad from its predecessor (in an arbitrary direction) made the not-a-knot
+    spline swing millions of radians out (SciPy's spline through them does too): the samples
+    stay about as many as the polyline's length needs, the first and last knot exact.
+    """
+    from spacerobot_planner.smoothing import MIN_KNOT_CHORD_RAD
+    k = np.array([[0.5109625645468612, 0.4252309099879812, 0.10855601724430916],
+                  [1.1194324751558924, -0.9486896934986888, 0.0724153937343155],
+                  [1.1194324751593911, -0.9486896934996678, 0.0724153937385492],
+                  [0.22331450741596715, -1.5922916344829066, 0.6829139555622208]])
+    assert np.linalg.norm(k[2] - k[1]) < MIN_KNOT_CHORD_RAD
+    length = np.linalg.norm(np.diff(k, axis=0), axis=1).sum()
+    for ends in (k, k[::-1], np.vstack([k[:3], k[2] + 1e-9])):     # also the goal a hair past a knot
+        q, s_knots, _ = spline_through(ends)
+        assert len(q) <= 3 * length / DEFAULT_MAX_STEP_RAD + 10
+        assert np.array_equal(q[0], ends[0]) and np.array_equal(q[-1], ends[-1])
+        assert np.linalg.norm(np.diff(q, axis=0), axis=1).max() <= DEFAULT_MAX_STEP_RAD
 
 
 def test_spline_sample_intervals_name_their_knot_interval():
