@@ -10,7 +10,8 @@ not certified (it starts in collision): it is bounded (``max_length_rad``), repo
 apart, and only allowed when the start is inside by at most ``max_penetration_m``.
 
 The penetration depth is a numba kernel (``_depths_into``): every candidate of a step in one
-call, about 9 us a posture (the NumPy loop it replaced took 350 us, so a walk out of a deep
+call, about 8 us a posture (12 us while it visited every link sample, not only those where the
+link crosses a polygon's box; the NumPy loop it replaced took 350 us, so a walk out of a deep
 contact took up to 70 ms; the same depths to the bit on 4 800 random postures of random
 scenes; a link's length is sqrt(dx² + dy²), one ulp from NumPy's norm at times, which could
 move the 2 mm sample count only where length / 2 mm is within an ulp of an integer).
@@ -43,7 +44,9 @@ def _segment_depth(ax, ay, bx, by, n, verts, start, stop):
 
     AB's ``n`` samples ``a + t (b - a)``, t = 0, 1/(n-1), ..., 1 (NumPy's ``linspace``), those in
     the polygon's bounding box tested for inside (even-odd, ``collision.point_in_polygon``);
-    the largest distance from an inside sample to the polygon's edges.
+    the largest distance from an inside sample to the polygon's edges.  Only the samples whose t
+    lies where the line crosses the box (one more on either side, for rounding) are visited:
+    the others are outside it (a link's 750 samples against a box it crosses on a few dozen).
     """
     lox, loy = verts[start, 0], verts[start, 1]
     hix, hiy = lox, loy
@@ -52,7 +55,19 @@ def _segment_depth(ax, ay, bx, by, n, verts, start, stop):
         loy, hiy = min(loy, verts[v, 1]), max(hiy, verts[v, 1])
     step = 1.0 / (n - 1)
     depth = 0.0
-    for i in range(n):
+    # the t where a + t (b - a) is in the box: [t0, t1] (empty: t0 > t1)
+    t0, t1 = 0.0, 1.0
+    for lo, hi, a0, d in ((lox, hix, ax, bx - ax), (loy, hiy, ay, by - ay)):
+        if d != 0.0:
+            ta, tb = (lo - a0) / d, (hi - a0) / d
+            t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
+        elif a0 < lo or a0 > hi:
+            t0 = 2.0
+    if not t0 <= t1:
+        return depth
+    i_lo = max(0, int(math.floor(t0 * (n - 1))) - 1)
+    i_hi = min(n - 1, int(math.ceil(t1 * (n - 1))) + 1)
+    for i in range(i_lo, i_hi + 1):
         t = i * step if i < n - 1 else 1.0
         px, py = ax + t * (bx - ax), ay + t * (by - ay)
         if px < lox or px > hix or py < loy or py > hiy:
