@@ -10,8 +10,9 @@ not certified (it starts in collision): it is bounded (``max_length_rad``), repo
 apart, and only allowed when the start is inside by at most ``max_penetration_m``.
 
 The penetration depth is a numba kernel (``_depths_into``): every candidate of a step in one
-call, about 8 us a posture (12 us while it visited every link sample, not only those where the
-link crosses a polygon's box; the NumPy loop it replaced took 350 us, so a walk out of a deep
+call, about 2.5 us a posture (12 us while it visited every link sample: now only those where the
+link crosses a polygon's box, and of those only where the depth so far can be passed, by the
+distance's Lipschitz bound; the NumPy loop it replaced took 350 us, so a walk out of a deep
 contact took up to 70 ms; the same depths to the bit on 4 800 random postures of random
 scenes; a link's length is sqrt(dx² + dy²), one ulp from NumPy's norm at times, which could
 move the 2 mm sample count only where length / 2 mm is within an ulp of an integer).
@@ -37,16 +38,42 @@ __all__ = ["penetration_depth_m", "penetration_depths_m", "signed_distance_m", "
 _SAMPLE_M = 0.002      # spacing of the link samples of the penetration depth (error ≤ 1 mm)
 
 
+#: the penetration depth's first pass visits every this many link samples (:func:`_segment_depth`)
+_COARSE = 16
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sample_depth(i, n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start, stop):
+    """Return sample i's distance to the polygon's edges when it is inside (``_segment_depth``), else -1."""
+    t = i * step if i < n - 1 else 1.0
+    px, py = ax + t * (bx - ax), ay + t * (by - ay)
+    if px < lox or px > hix or py < loy or py > hiy:
+        return -1.0
+    if not point_in_polygon(px, py, verts, start, stop):
+        return -1.0
+    best = np.inf
+    j = stop - 1
+    for v in range(start, stop):
+        best = min(best, point_segment_dist2(px, py, verts[j, 0], verts[j, 1], verts[v, 0], verts[v, 1]))
+        j = v
+    return np.sqrt(best)
+
+
 @njit(cache=True, nogil=True)
-def _segment_depth(ax, ay, bx, by, n, verts, start, stop):
+def _segment_depth(ax, ay, bx, by, n, verts, start, stop, floor):
     """
-    Return how deep segment AB reaches into polygon verts[start:stop], metres (0: not inside).
+    Return the larger of ``floor`` and how deep segment AB reaches into polygon verts[start:stop], metres.
 
     AB's ``n`` samples ``a + t (b - a)``, t = 0, 1/(n-1), ..., 1 (NumPy's ``linspace``), those in
     the polygon's bounding box tested for inside (even-odd, ``collision.point_in_polygon``);
     the largest distance from an inside sample to the polygon's edges.  Only the samples whose t
     lies where the line crosses the box (one more on either side, for rounding) are visited:
     the others are outside it (a link's 750 samples against a box it crosses on a few dozen).
+    A point's distance to the edges changes by at most the distance it moves (and is at most its
+    distance to any point outside), so first every :data:`_COARSE`-th sample is taken; then, between
+    two of them, the samples only where that bound reaches past the depth so far (less 1e-12 m for
+    rounding), and after an inside sample at distance d none within ``depth − d`` of it: the same
+    result as every sample's.
     """
     lox, loy = verts[start, 0], verts[start, 1]
     hix, hiy = lox, loy
@@ -54,7 +81,8 @@ def _segment_depth(ax, ay, bx, by, n, verts, start, stop):
         lox, hix = min(lox, verts[v, 0]), max(hix, verts[v, 0])
         loy, hiy = min(loy, verts[v, 1]), max(hiy, verts[v, 1])
     step = 1.0 / (n - 1)
-    depth = 0.0
+    depth = floor
+    apart = math.sqrt((bx - ax) ** 2 + (by - ay) ** 2) * step      # between two samples, m
     # the t where a + t (b - a) is in the box: [t0, t1] (empty: t0 > t1)
     t0, t1 = 0.0, 1.0
     for lo, hi, a0, d in ((lox, hix, ax, bx - ax), (loy, hiy, ay, by - ay)):
@@ -67,19 +95,29 @@ def _segment_depth(ax, ay, bx, by, n, verts, start, stop):
         return depth
     i_lo = max(0, int(math.floor(t0 * (n - 1))) - 1)
     i_hi = min(n - 1, int(math.ceil(t1 * (n - 1))) + 1)
-    for i in range(i_lo, i_hi + 1):
-        t = i * step if i < n - 1 else 1.0
-        px, py = ax + t * (bx - ax), ay + t * (by - ay)
-        if px < lox or px > hix or py < loy or py > hiy:
+    m = (i_hi - i_lo + _COARSE - 1) // _COARSE       # blocks; coarse samples i_lo + k·_COARSE and i_hi
+    for k in range(m + 1):
+        depth = max(depth, _sample_depth(min(i_lo + k * _COARSE, i_hi), n, step, ax, ay, bx, by, lox, loy, hix,
+                                         hiy, verts, start, stop))
+    # outside: 0 (the bound from it)
+    d_b = max(_sample_depth(i_lo, n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start, stop), 0.0)
+    for k in range(m):
+        a, b = i_lo + k * _COARSE, min(i_lo + (k + 1) * _COARSE, i_hi)
+        d_a = d_b
+        d_b = max(_sample_depth(b, n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start, stop), 0.0)
+        # the most a sample between a and b can be: within (d_a + d_b + (b - a)·apart) / 2
+        if 0.5 * (d_a + d_b + (b - a) * apart) < depth - 1e-12:
             continue
-        if not point_in_polygon(px, py, verts, start, stop):
-            continue
-        best = np.inf
-        j = stop - 1
-        for v in range(start, stop):
-            best = min(best, point_segment_dist2(px, py, verts[j, 0], verts[j, 1], verts[v, 0], verts[v, 1]))
-            j = v
-        depth = max(depth, np.sqrt(best))
+        i = a + 1
+        while i < b:
+            d = _sample_depth(i, n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start, stop)
+            i += 1
+            if d < 0.0:
+                continue
+            depth = max(depth, d)
+            gap = depth - d - 1e-12
+            if gap > 0.0 and apart > 0.0:
+                i += int(min(gap / apart, float(n)))
     return depth
 
 
@@ -100,9 +138,9 @@ def _depths_into(out, q_full, lengths, checked, body, verts, starts, sample_m, p
             k = checked[c]
             ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
             n = max(2, int(math.ceil(math.sqrt((bx - ax) ** 2 + (by - ay) ** 2) / sample_m)) + 1)
-            depth = max(depth, _segment_depth(ax, ay, bx, by, n, body_w, 0, body_w.shape[0]))
+            depth = _segment_depth(ax, ay, bx, by, n, body_w, 0, body_w.shape[0], depth)
             for p in range(starts.shape[0] - 1):
-                depth = max(depth, _segment_depth(ax, ay, bx, by, n, verts, starts[p], starts[p + 1]))
+                depth = _segment_depth(ax, ay, bx, by, n, verts, starts[p], starts[p + 1], depth)
         out[i] = depth
 
 
