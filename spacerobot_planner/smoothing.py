@@ -365,20 +365,20 @@ def spline_through(knots_rad, max_step_rad: float = DEFAULT_MAX_STEP_RAD, start_
 MIN_KNOT_CHORD_RAD = 1e-7
 
 
-def _kept_knots(knots_rad) -> np.ndarray:
+def _kept_knots(knots_rad, min_chord_rad: float = MIN_KNOT_CHORD_RAD) -> np.ndarray:
     """
-    Return which knots (k, dof) the spline goes through: (k,) bool.
+    Return which rows of a polyline (k, dof) to keep: (k,) bool (the spline's knots by default).
 
-    The first; then each farther than :data:`MIN_KNOT_CHORD_RAD` from the last one kept; the last
-    knot always (in place of the last one kept when that is too close, unless that is the first).
+    The first; then each farther than ``min_chord_rad`` from the last one kept; the last row
+    always (in place of the last one kept when that is too close, unless that is the first).
     """
     k = np.asarray(knots_rad, dtype=float)
     keep = np.ones(len(k), dtype=bool)
-    if len(k) < 2 or np.all(chord_lengths_rad(k) > MIN_KNOT_CHORD_RAD):
+    if len(k) < 2 or np.all(chord_lengths_rad(k) > min_chord_rad):
         return keep
     last = 0
     for i in range(1, len(k)):
-        if math.sqrt(float(np.sum((k[i] - k[last]) ** 2))) > MIN_KNOT_CHORD_RAD:
+        if np.linalg.norm(k[i] - k[last]) > min_chord_rad:
             last = i
         else:
             keep[i] = False
@@ -651,19 +651,11 @@ def _smooth(v, waypoints_rad, shortcut, knot_stride, keep_clearance_m, max_step_
     """
     w = np.ascontiguousarray(waypoints_rad, dtype=float)
     ends = w[[0, -1]].copy()
-    steps = chord_lengths_rad(w)
-    if len(w) < 2 or not (steps > 1e-12).all():
-        rows = [w[0]]                   # drop repeated rows, keep the exact ends
-        for r in w[1:-1]:
-            if np.linalg.norm(r - rows[-1]) > 1e-12:
-                rows.append(r)
-        if np.linalg.norm(w[-1] - rows[-1]) > 1e-12:
-            rows.append(w[-1])
-        elif len(rows) > 1:
-            rows[-1] = w[-1]
-        w = np.array(rows)
-        steps = chord_lengths_rad(w)
+    keep = _kept_knots(w, 1e-12)        # repeated rows dropped, the exact ends kept
+    if not keep.all():
+        w = w[keep]
         waypoint_check = None           # a check of other rows
+    steps = chord_lengths_rad(w)
     if len(w) == 1 or np.linalg.norm(w[-1] - w[0]) <= 1e-12:    # start == goal: two exact rows
         return ends, ends.copy(), "polyline", 0, None
 

@@ -141,6 +141,26 @@ def test_smooth_path_is_verified_and_exact(sc2, chk2, shortcut):
     assert sp.method == ("shortcut_spline" if shortcut else "spline")
 
 
+@pytest.mark.parametrize("shortcut", [True, False])
+def test_repeated_waypoints_are_passed_over_and_the_goal_kept_exact(sc2, chk2, shortcut):
+    """
+    Waypoints repeated exactly or within 1e-13 rad answer as the waypoints without them.
+
+    (A grid node where the exact start or goal sits on it.)  The same path, ends exact (the goal
+    too where it is a hair past the row before it), every step moving, the dense check clear.
+    """
+    w = _detour(sc2)
+    k = len(w) // 2
+    repeated = np.vstack([w[:1], w[:k], w[k - 1:k] + 1e-13, w[k:-1], w[-1:] + 1e-13, w[-1:]])
+    sp = smooth_path(chk2, repeated, *bounds(sc2), shortcut=shortcut)
+    plain = smooth_path(chk2, w, *bounds(sc2), shortcut=shortcut)
+    assert sp is not None and sp.method == plain.method
+    np.testing.assert_array_equal(sp.path_rad, plain.path_rad)
+    assert np.array_equal(sp.path_rad[0], w[0]) and np.array_equal(sp.path_rad[-1], w[-1])
+    assert np.min(np.linalg.norm(np.diff(sp.path_rad, axis=0), axis=1)) > 0.0
+    assert check_path(chk2, sp.path_rad, *bounds(sc2), verify_step_rad=np.radians(0.05)).ok
+
+
 def test_shortcut_keeps_clearance(sc2, chk2):
     w = _detour(sc2)
     margin = sc2.scene.safety_margin_m
