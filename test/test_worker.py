@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from spacerobot_planner.config import load_scenario
-from spacerobot_planner.worker import PlanDone, PlanError, PlanJob, ProcessBackend, ThreadBackend
+from spacerobot_planner.worker import Cancel, PlanDone, PlanError, PlanJob, ProcessBackend, Progress, ThreadBackend
 from conftest import CONFIG_DIR
 
 #: a bound for "promptly" that a loaded 2-core machine meets (the figure itself: ``bench cancel``)
@@ -293,6 +293,48 @@ def test_a_stage_that_does_not_poll_is_the_crash_path(backend, record_property):
     out = b.run(_job(sc, 41))
     assert isinstance(out, PlanDone) and out.result.ok
     assert out.stats["pid"] == b.pid
+
+
+def _next_message(b, within_s: float = 60.0):
+    """Return the planning process's next message; fail when none comes within ``within_s`` (no hang)."""
+    assert b.conn.poll(within_s), f"no message from the planning process within {within_s} s"
+    return b.conn.recv()
+
+
+def test_messages_sent_during_a_job_are_read_during_it_and_a_queued_job_is_planned_after_it(backend):
+    """
+    While a job runs, the planning process still reads its socket.
+
+    A job sent meanwhile waits for the running one and is planned after it; a Cancel of the
+    running job sent after that job stops it at once (the stall polls the token) and leaves
+    the queued one alone.  Driven through the socket itself, as a node that does not wait
+    for each answer would.
+    """
+    sc, b = backend
+    assert b.run(_job(sc, 50)).result.ok            # this scene's caches, whatever ran before
+    pid = b.pid
+    with b._send_lock:
+        b.conn.send(_job(sc, 51, stall_s=120.0))
+    while True:                                      # the first job is in its stall
+        msg = _next_message(b)
+        if isinstance(msg, Progress) and msg.gen == 51 and msg.note == "stall":
+            break
+    t0 = time.monotonic()
+    with b._send_lock:
+        b.conn.send(_job(sc, 52))
+        b.conn.send(Cancel(51))
+    outcomes = []
+    while len(outcomes) < 2:
+        msg = _next_message(b)
+        if isinstance(msg, (PlanDone, PlanError)):
+            outcomes.append((msg, time.monotonic() - t0))
+    (first, dt), (second, _) = outcomes
+    assert isinstance(first, PlanDone) and first.gen == 51 and first.result.code == "cancelled", first
+    assert dt < GENEROUS_S
+    assert isinstance(second, PlanDone) and second.gen == 52 and second.result.ok, second
+    assert second.stats["pid"] == pid and second.stats["jobs"] == first.stats["jobs"] + 1
+    again = b.run(_job(sc, 53))
+    assert isinstance(again, PlanDone) and again.result.ok and again.stats["pid"] == pid
 
 
 def test_the_grace_is_long_enough_for_a_loaded_machine():
