@@ -182,7 +182,8 @@ class CSpace:
 
     @property
     def free_fraction(self) -> float:
-        return float(1.0 - self.occupied.mean())
+        """The share of the grid's nodes that are free, 0..1 (a count: a replan's progress line says it)."""
+        return 1.0 - np.count_nonzero(self.occupied) / self.occupied.size
 
 
 @njit(parallel=True, cache=True, nogil=True)
