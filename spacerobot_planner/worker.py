@@ -425,26 +425,30 @@ class _Listener:
     Who reads the planning process's socket: the main thread while it waits for a job, a reader thread during one.
 
     :meth:`next_job` returns the next job (None: quit): one the reader queued during the last
-    job, else one read by the calling thread, the cancels before it applied; :meth:`listen`
-    lets the reader thread take the messages while the job runs (a Cancel cancels at once,
-    anything else is queued); :meth:`stop_listening` takes the socket back once the job's
-    outcome is sent (a byte on a pipe wakes the reader out of its wait).  End of file on the
-    socket counts as ``None``, as does its failure.
+    job, else one read by the calling thread, the cancels before it applied.  Each job is one
+    turn of the reader's: :meth:`listen` starts it (the reader takes the messages while the job
+    runs: a Cancel cancels at once, anything else is queued), :meth:`stop_listening` ends it once
+    the job's outcome is sent (one byte on a pipe wakes the reader out of its wait; the reader
+    then says it is out of the socket).  Both hand-overs are counted (semaphores, one byte a
+    turn), so a turn that starts and ends before the reader thread runs is still taken in
+    order, and no wake is lost or left over.  The end of the socket (end of file, a failure,
+    a message that cannot be read) counts as ``None``; after it the reader only answers its
+    turns.
     """
 
     def __init__(self, conn, cancel: _GenCancel):
         self.conn, self.cancel = conn, cancel
         self.queued: queue.SimpleQueue = queue.SimpleQueue()
-        self._listening = threading.Event()
-        self._stopped = threading.Event()
-        self._wake_r, self._wake_w = os.pipe()
+        self._turns = threading.Semaphore(0)        # one release per job: the reader's turn begins
+        self._out = threading.Semaphore(0)          # one release per turn: the reader is out of the socket
+        self._wake_r, self._wake_w = os.pipe()      # one byte per turn: it ends
         threading.Thread(target=self._reader, daemon=True, name="planning-reader").start()
 
     def _take(self):
-        """Read one message; None at the end of the socket."""
+        """Read one message; None at the end of the socket (or when a message cannot be read)."""
         try:
             return self.conn.recv()
-        except (EOFError, OSError):
+        except Exception:       # noqa: BLE001 - EOFError, OSError, a message that cannot be unpickled
             return None
 
     def _handle(self, msg) -> bool:
@@ -471,30 +475,25 @@ class _Listener:
             return msg
 
     def listen(self) -> None:
-        self._listening.set()
+        self._turns.release()
 
     def stop_listening(self) -> None:
-        self._listening.clear()
         os.write(self._wake_w, b"x")
-        self._stopped.wait()
-        self._stopped.clear()
+        self._out.acquire()
 
     def _reader(self):
         from multiprocessing.connection import wait
         ended = False
         while True:
-            self._listening.wait()
-            while not ended:
-                ready = wait([self.conn, self._wake_r])
-                if self.conn in ready:
+            self._turns.acquire()
+            while True:
+                ready = wait([self._wake_r] if ended else [self.conn, self._wake_r])
+                if not ended and self.conn in ready:
                     ended = self._handle(self._take())
                 if self._wake_r in ready:
-                    os.read(self._wake_r, 64)
-                    if not self._listening.is_set():
-                        break
-            self._stopped.set()
-            if ended:           # the main thread reads the queued None and quits
-                return
+                    os.read(self._wake_r, 1)
+                    break
+            self._out.release()
 
 
 def _process_stats(planner, counts: dict) -> dict:

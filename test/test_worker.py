@@ -333,8 +333,103 @@ def test_messages_sent_during_a_job_are_read_during_it_and_a_queued_job_is_plann
     assert dt < GENEROUS_S
     assert isinstance(second, PlanDone) and second.gen == 52 and second.result.ok, second
     assert second.stats["pid"] == pid and second.stats["jobs"] == first.stats["jobs"] + 1
-    again = b.run(_job(sc, 53))
-    assert isinstance(again, PlanDone) and again.result.ok and again.stats["pid"] == pid
+    with b._send_lock:                               # and the socket is the main thread's again
+        b.conn.send(_job(sc, 53, stages=False))
+    again = _next_message(b)
+    assert isinstance(again, PlanDone) and again.gen == 53 and again.result.ok and again.stats["pid"] == pid
+
+
+class _SlowOut:
+    """A semaphore whose release then holds its thread for ``hold_s`` (a reader thread preempted right after it)."""
+
+    def __init__(self, sem, hold_s):
+        self.sem, self.hold_s = sem, hold_s
+
+    def release(self):
+        self.sem.release()
+        time.sleep(self.hold_s)
+
+    def acquire(self, *a, **kw):
+        return self.sem.acquire(*a, **kw)
+
+
+def _bounded(fn, within_s=10.0):
+    """Run ``fn()`` in a thread; return its result, or fail when it has not returned within ``within_s`` (no hang)."""
+    out = {}
+    th = threading.Thread(target=lambda: out.setdefault("v", fn()), daemon=True)
+    th.start()
+    th.join(within_s)
+    assert not th.is_alive(), f"{getattr(fn, '__name__', fn)} did not return within {within_s} s"
+    return out.get("v")
+
+
+def test_the_listener_takes_every_turn_even_one_that_ends_before_its_reader_runs():
+    """
+    The planning process's socket hand-over (``worker._Listener``), driven as ``child_main`` drives it.
+
+    Its reader thread is held 50 ms after each turn (as a preempted thread would be), while the
+    main thread runs whole turns meanwhile: each turn must still end (a hand-over by a flag lost
+    them, and the process then hung), messages sent during a turn are read in it (a Cancel
+    applied at once) and the rest in order after it.
+    """
+    from multiprocessing import Pipe
+    from spacerobot_planner.worker import _GenCancel, _Listener
+    here, node = Pipe()
+    cancel = _GenCancel()
+    lis = _Listener(here, cancel)
+    lis._out = _SlowOut(lis._out, 0.05)
+    for k in range(5):                      # five turns back to back, each before the reader is back
+        lis.listen()
+        _bounded(lis.stop_listening)
+    node.send("job 7")
+    assert _bounded(lis.next_job) == "job 7"           # read by the main thread itself
+    cancel.start(7)
+    lis.listen()
+    node.send("job 8")
+    node.send(Cancel(7))
+    t0 = time.monotonic()
+    while not cancel.is_set():                          # applied during the turn
+        assert time.monotonic() - t0 < 10.0, "the Cancel sent during the turn was not applied"
+        time.sleep(0.001)
+    node.send("job 9")
+    _bounded(lis.stop_listening)
+    assert [_bounded(lis.next_job), _bounded(lis.next_job)] == ["job 8", "job 9"]
+    assert cancel.cancelled_upto == 7
+
+
+@pytest.mark.parametrize("end", ["quit", "end of file"])
+def test_the_listener_ends_after_the_jobs_queued_before_a_quit(end):
+    """
+    A quit (``None``) or the socket's end during a job, with a job queued before it: both jobs end, then the quit.
+
+    Every turn still ends after the reader met the end (a reader gone at the end left the next
+    job's turn waiting for ever: the process never exited).
+    """
+    from multiprocessing import Pipe
+    from spacerobot_planner.worker import _GenCancel, _Listener
+    here, node = Pipe()
+    cancel = _GenCancel()
+    lis = _Listener(here, cancel)
+    node.send("job 1")
+    assert _bounded(lis.next_job) == "job 1"
+    cancel.start(1)
+    lis.listen()
+    node.send("job 2")
+    if end == "quit":
+        node.send(None)
+    else:
+        node.close()
+    t0 = time.monotonic()
+    while not cancel.is_set():                          # the running job is cancelled
+        assert time.monotonic() - t0 < 10.0, f"the {end} did not cancel the running job"
+        time.sleep(0.001)
+    _bounded(lis.stop_listening)
+    assert _bounded(lis.next_job) == "job 2"
+    cancel.start(2)
+    assert cancel.is_set()                              # cancelled before it starts
+    lis.listen()
+    _bounded(lis.stop_listening)
+    assert _bounded(lis.next_job) is None
 
 
 def test_the_grace_is_long_enough_for_a_loaded_machine():
