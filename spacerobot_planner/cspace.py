@@ -182,7 +182,7 @@ class CSpace:
 
     @property
     def free_fraction(self) -> float:
-        """The share of the grid's nodes that are free, 0..1 (a count: a replan's progress line says it)."""
+        """Return the share of the grid's nodes that are free, 0..1 (a count: a replan's progress line says it)."""
         return 1.0 - np.count_nonzero(self.occupied) / self.occupied.size
 
 
