@@ -155,7 +155,9 @@ class Outcome:
     start_rad: np.ndarray | None = None
     #: where the request's time went, ``time.perf_counter()`` s: "request" (made), "planning"
     #: (its attempt began: the start chosen), "received" (the backend's answer), "chain" (the
-    #: chain after the path done), "published" (the publish hook returned; ok outcomes)
+    #: chain after the path done), "published" (the publish hook returned; ok outcomes); from a
+    #: planning process also "process_received" and "process_answered" (it had the job, its
+    #: outcome was ready: ``worker.PlanDone.stats``)
     stamps: dict = field(default_factory=dict)
 
     @property
@@ -635,6 +637,10 @@ class CaptureSession:
         # the job is handed over: in parallel with the plan), or else once the backend answered
         out = self.backend.run(job, progress=progress) if self.backend is not None else None
         stamps["received"] = time.perf_counter()
+        if isinstance(out, PlanDone):
+            for name in ("received", "answered"):
+                if f"job_{name}_s" in out.stats:
+                    stamps[f"process_{name}"] = out.stats[f"job_{name}_s"]
         announce()
         dropped = self._superseded_by(req)
         if out is None or dropped is not None:

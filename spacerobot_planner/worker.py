@@ -143,7 +143,9 @@ class PlanDone:
     result: object              # planner.PlanResult (ok or a failure code)
     left_out: tuple = ()        # "cspace"/"field": the same objects as last sent (see _strip_sent)
     #: the planning process after the job: pid, jobs, cancelled (counts) and its cache
-    #: sizes (cspaces, fields, body_tables)
+    #: sizes (cspaces, fields, body_tables); from the planning process also when it had the job
+    #: and its outcome (``job_received_s``, ``job_answered_s``: ``time.perf_counter()`` s, the
+    #: clock every process of the machine shares)
     stats: dict = dc_field(default_factory=dict)
 
 
@@ -401,6 +403,7 @@ def child_main(fd: int) -> None:
     counts = {"jobs": 0, "cancelled": 0}
     while True:
         job = listener.next_job()
+        got_s = time.perf_counter()
         if job is None:
             return
         cancel.start(job.gen)
@@ -409,10 +412,12 @@ def child_main(fd: int) -> None:
             out = run_job(planner, job, cancel, send)
         except Exception as e:     # noqa: BLE001 - report to the node, keep serving
             out = _crash(job.gen, e)
+        done_s = time.perf_counter()
         counts["jobs"] += 1
         if isinstance(out, PlanDone):
             counts["cancelled"] += out.result.code == "cancelled"
-            out = replace(out, stats=_process_stats(planner, counts))
+            out = replace(out, stats={**_process_stats(planner, counts), "job_received_s": got_s,
+                                      "job_answered_s": done_s})
             out = _strip_sent(out, sent)
         ok = send(out)
         listener.stop_listening()

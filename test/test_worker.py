@@ -432,6 +432,24 @@ def test_the_listener_ends_after_the_jobs_queued_before_a_quit(end):
     assert _bounded(lis.next_job) is None
 
 
+def test_the_process_stamps_when_it_had_the_job_and_its_outcome_on_the_callers_clock(backend):
+    """
+    ``PlanDone.stats``' stamps of the planning process read on the node's clock (``time.perf_counter``).
+
+    The job is sent after the node's first reading and the outcome read before its last: the
+    process's two stamps fall between them, in order, as far apart as the plan took at least.
+    """
+    sc, b = backend
+    for gen in (60, 61):                             # a fresh plan of this scene or a cached one, then a cached one
+        t0 = time.perf_counter()
+        out = b.run(_job(sc, gen, stages=False))
+        t1 = time.perf_counter()
+        assert isinstance(out, PlanDone) and out.result.ok, out
+        got, done = out.stats["job_received_s"], out.stats["job_answered_s"]
+        assert t0 <= got <= done <= t1, (t0, got, done, t1)
+        assert done - got >= out.result.timings_s["total"]
+
+
 def test_the_grace_is_long_enough_for_a_loaded_machine():
     assert ProcessBackend.CANCEL_GRACE_S >= 3.0
 

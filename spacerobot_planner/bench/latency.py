@@ -17,8 +17,11 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   joint state included, and ``js_request_to_planning``, the session's worker thread woken and
   the start decided), ``js_plan_round_trip`` (the job to
   the planning process and its answer back; ``js_plan_in_process``: the plan itself, its
-  ``timings_s``), ``js_chain`` (``adapters.post_process``), ``js_record_and_send`` (the record,
-  the stamp, the messages, the trajectories published), ``js_sent_to_arrival`` (the driver's
+  ``timings_s``; with the planning process, in three: ``js_job_to_process``, until the process
+  has the job, ``js_job_in_process``, until its outcome is ready (the plan and the job around
+  it), and ``js_answer_to_node``, until the node has the outcome), ``js_chain``
+  (``adapters.post_process``), ``js_record_and_send`` (the record, the stamp, the messages, the
+  trajectories published), ``js_sent_to_arrival`` (the driver's
   subscriber has its bytes: the visuals and the log line that follow in the worker thread hold the
   interpreter meanwhile), and ``js_after_sent`` (the publish hook's rest: the visuals);
 - ``subscriber_deserialize``: what a Python subscriber then spends turning the bytes into a
@@ -170,7 +173,8 @@ def _run(args) -> int:
                   ("subscriber_deserialize", got.deserialize_s, None),
                   ("message_published", msg_s[0], None), ("message_dense", msg_s[1], None)]
         parts = [p for p in parts if p is not None]
-        stages[2:2] = [(name, [p[name] for p in parts], None) for name in _PARTS if parts]
+        stages[2:2] = [(name, [p[name] for p in parts if name in p], None) for name in _PARTS
+                       if any(name in p for p in parts)]
         for stage, vals, aim in stages:
             rows.append({"stage": stage, "grid": grid, **_stats(vals), "aim_s": aim,
                          "backend": "thread" if args.in_process else "process",
@@ -288,8 +292,8 @@ def _stats(vals) -> dict:
 
 #: the parts of latency_joint_state (see the module docstring), in order
 _PARTS = ("js_to_planning", "js_to_request", "js_request_to_planning",
-          "js_plan_round_trip", "js_plan_in_process", "js_chain", "js_record_and_send",
-          "js_sent_to_arrival", "js_after_sent")
+          "js_plan_round_trip", "js_job_to_process", "js_job_in_process", "js_answer_to_node",
+          "js_plan_in_process", "js_chain", "js_record_and_send", "js_sent_to_arrival", "js_after_sent")
 
 
 def _parts(node, t0: float, arrival: float, timeout_s: float = 5.0) -> dict | None:
@@ -310,12 +314,17 @@ def _parts(node, t0: float, arrival: float, timeout_s: float = 5.0) -> dict | No
         if time.perf_counter() > end:
             return None
         time.sleep(0.001)
-    return {"js_to_planning": st["planning"] - t0, "js_to_request": st["request"] - t0,
-            "js_request_to_planning": st["planning"] - st["request"],
-            "js_plan_round_trip": st["received"] - st["planning"],
-            "js_plan_in_process": float(out.result.timings_s["total"]), "js_chain": st["chain"] - st["received"],
-            "js_record_and_send": st["sent"] - st["chain"], "js_sent_to_arrival": arrival - st["sent"],
-            "js_after_sent": st["published"] - st["sent"]}
+    got = {"js_to_planning": st["planning"] - t0, "js_to_request": st["request"] - t0,
+           "js_request_to_planning": st["planning"] - st["request"],
+           "js_plan_round_trip": st["received"] - st["planning"],
+           "js_plan_in_process": float(out.result.timings_s["total"]), "js_chain": st["chain"] - st["received"],
+           "js_record_and_send": st["sent"] - st["chain"], "js_sent_to_arrival": arrival - st["sent"],
+           "js_after_sent": st["published"] - st["sent"]}
+    if "process_received" in st and "process_answered" in st:      # the planning process's own stamps
+        got.update(js_job_to_process=st["process_received"] - st["planning"],
+                   js_job_in_process=st["process_answered"] - st["process_received"],
+                   js_answer_to_node=st["received"] - st["process_answered"])
+    return got
 
 
 def _message_times(node, repeats):
