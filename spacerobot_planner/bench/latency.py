@@ -111,7 +111,9 @@ def _run(args) -> int:
     # as ``ros2 run`` starts it (main()): what start-up made frozen out of the garbage collector's
     # reach (a full collection of this process walks some 10^5 objects: 60-110 ms, once in ~20 replans)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat), freeze_start_up=True)
-    drv = rclpy.create_node("latency_driver", context=ctx)
+    # the driver shares the node's executor (as planner_node.main's has only the node): no parameter
+    # services and no rosout, the fewest entities a driver needs in the executor's wait set
+    drv = rclpy.create_node("latency_driver", context=ctx, start_parameter_services=False, enable_rosout=False)
     ex = SingleThreadedExecutor(context=ctx)     # as planner_node.main
     ex.add_node(node)
     ex.add_node(drv)
@@ -372,7 +374,7 @@ def _moving(args, flat, margins) -> dict:
     rclpy.init(context=ctx)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat), freeze_start_up=True)
     arm = MockArmNode(context=ctx, parameter_overrides=params_to_overrides(flat, MOCK_ARM_PARAMETERS))
-    drv = rclpy.create_node("latency_moving_driver", context=ctx)
+    drv = rclpy.create_node("latency_moving_driver", context=ctx, start_parameter_services=False, enable_rosout=False)
     ex = SingleThreadedExecutor(context=ctx)
     for n in (node, arm, drv):
         ex.add_node(n)
