@@ -60,7 +60,7 @@ def _sample_depth(i, n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start, 
 
 
 @njit(cache=True, nogil=True)
-def _segment_depth(ax, ay, bx, by, n, verts, start, stop, floor):
+def _segment_depth(ax, ay, bx, by, n, verts, start, stop, floor, coarse):
     """
     Return the larger of ``floor`` and how deep segment AB reaches into polygon verts[start:stop], metres.
 
@@ -73,7 +73,8 @@ def _segment_depth(ax, ay, bx, by, n, verts, start, stop, floor):
     distance to any point outside), so first every :data:`_COARSE`-th sample is taken; then, between
     two of them, the samples only where that bound reaches past the depth so far (less 1e-12 m for
     rounding), and after an inside sample at distance d none within ``depth − d`` of it: the same
-    result as every sample's.
+    result as every sample's.  ``coarse``: scratch, at least ``(n + _COARSE - 1) // _COARSE + 1`` long
+    (the coarse samples' distances, each evaluated once).
     """
     lox, loy = verts[start, 0], verts[start, 1]
     hix, hiy = lox, loy
@@ -96,15 +97,15 @@ def _segment_depth(ax, ay, bx, by, n, verts, start, stop, floor):
     i_lo = max(0, int(math.floor(t0 * (n - 1))) - 1)
     i_hi = min(n - 1, int(math.ceil(t1 * (n - 1))) + 1)
     m = (i_hi - i_lo + _COARSE - 1) // _COARSE       # blocks; coarse samples i_lo + k·_COARSE and i_hi
+    # their distances, 0 outside (the bound from it)
     for k in range(m + 1):
-        depth = max(depth, _sample_depth(min(i_lo + k * _COARSE, i_hi), n, step, ax, ay, bx, by, lox, loy, hix,
-                                         hiy, verts, start, stop))
-    # outside: 0 (the bound from it)
-    d_b = max(_sample_depth(i_lo, n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start, stop), 0.0)
+        d = _sample_depth(min(i_lo + k * _COARSE, i_hi), n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start,
+                          stop)
+        depth = max(depth, d)
+        coarse[k] = max(d, 0.0)
     for k in range(m):
         a, b = i_lo + k * _COARSE, min(i_lo + (k + 1) * _COARSE, i_hi)
-        d_a = d_b
-        d_b = max(_sample_depth(b, n, step, ax, ay, bx, by, lox, loy, hix, hiy, verts, start, stop), 0.0)
+        d_a, d_b = coarse[k], coarse[k + 1]
         # the most a sample between a and b can be: within (d_a + d_b + (b - a)·apart) / 2
         if 0.5 * (d_a + d_b + (b - a) * apart) < depth - 1e-12:
             continue
@@ -122,13 +123,13 @@ def _segment_depth(ax, ay, bx, by, n, verts, start, stop, floor):
 
 
 @njit(**NO_REFCOUNT)
-def _depths_into(out, q_full, lengths, checked, body, verts, starts, sample_m, pts, body_w):
+def _depths_into(out, q_full, lengths, checked, body, verts, starts, sample_m, pts, body_w, coarse):
     """
     Fill out (N,) with the penetration depth of each full configuration q_full[i], metres.
 
     The checked links, each sampled every ``sample_m`` at most, against the body posed at
     the attitude ``q_full[i, 0]`` and the packed obstacles (``scene.pack_polygons``); scratch
-    pts (n_links + 1, 2), body_w like body.
+    pts (n_links + 1, 2), body_w like body, coarse (:func:`_coarse_scratch`).
     """
     for i in range(q_full.shape[0]):
         link_points(q_full[i], lengths, pts)
@@ -138,9 +139,9 @@ def _depths_into(out, q_full, lengths, checked, body, verts, starts, sample_m, p
             k = checked[c]
             ax, ay, bx, by = pts[k, 0], pts[k, 1], pts[k + 1, 0], pts[k + 1, 1]
             n = max(2, int(math.ceil(math.sqrt((bx - ax) ** 2 + (by - ay) ** 2) / sample_m)) + 1)
-            depth = _segment_depth(ax, ay, bx, by, n, body_w, 0, body_w.shape[0], depth)
+            depth = _segment_depth(ax, ay, bx, by, n, body_w, 0, body_w.shape[0], depth, coarse)
             for p in range(starts.shape[0] - 1):
-                depth = _segment_depth(ax, ay, bx, by, n, verts, starts[p], starts[p + 1], depth)
+                depth = _segment_depth(ax, ay, bx, by, n, verts, starts[p], starts[p + 1], depth, coarse)
         out[i] = depth
 
 
@@ -157,8 +158,16 @@ def penetration_depths_m(checker, q) -> np.ndarray:
     q_full = np.ascontiguousarray(checker.robot.full(np.atleast_2d(np.asarray(q, dtype=float))))
     out = np.empty(q_full.shape[0])
     _depths_into(out, q_full, checker.lengths, checker.checked, checker.body, checker.verts, checker.starts,
-                 _SAMPLE_M, np.empty((checker.lengths.shape[0] + 1, 2)), np.empty_like(checker.body))
+                 _SAMPLE_M, np.empty((checker.lengths.shape[0] + 1, 2)), np.empty_like(checker.body),
+                 _coarse_scratch(checker.lengths))
     return out
+
+
+def _coarse_scratch(lengths) -> np.ndarray:
+    """Return :func:`_segment_depth`'s scratch for links of ``lengths`` (m): the longest one's coarse samples."""
+    longest = float(np.max(lengths)) if len(lengths) else 0.0
+    n = max(2, int(math.ceil(longest / _SAMPLE_M)) + 1) + 1      # _depths_into's count, one more for rounding
+    return np.empty((n + _COARSE - 1) // _COARSE + 2)
 
 
 def penetration_depth_m(checker, q) -> float:
