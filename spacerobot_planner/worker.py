@@ -456,15 +456,14 @@ class _Listener:
         except Exception:       # noqa: BLE001 - EOFError, OSError, a message that cannot be unpickled
             return None
 
-    def _handle(self, msg) -> bool:
-        """Apply a Cancel, queue anything else; tell whether the socket has ended (``None``)."""
+    def _apply(self, msg) -> bool:
+        """Apply at once what a message says of the jobs (a Cancel; the end: all cancelled); tell if it is a Cancel."""
         if isinstance(msg, Cancel):
             self.cancel.cancel_upto(msg.gen)
-            return False
+            return True
         if msg is None:
             self.cancel.cancel_upto(1 << 62)
-        self.queued.put(msg)
-        return msg is None
+        return False
 
     def next_job(self):
         while True:
@@ -472,12 +471,8 @@ class _Listener:
                 msg = self.queued.get_nowait()
             except queue.Empty:
                 msg = self._take()
-            if isinstance(msg, Cancel):
-                self.cancel.cancel_upto(msg.gen)
-                continue
-            if msg is None:
-                self.cancel.cancel_upto(1 << 62)
-            return msg
+            if not self._apply(msg):         # (a queued one again: the same cancels)
+                return msg
 
     def listen(self) -> None:
         self._turns.release()
@@ -494,7 +489,10 @@ class _Listener:
             while True:
                 ready = wait([self._wake_r] if ended else [self.conn, self._wake_r])
                 if not ended and self.conn in ready:
-                    ended = self._handle(self._take())
+                    msg = self._take()
+                    if not self._apply(msg):      # anything but a Cancel waits for the job's end
+                        self.queued.put(msg)
+                        ended = msg is None
                 if self._wake_r in ready:
                     os.read(self._wake_r, 1)
                     break

@@ -353,7 +353,7 @@ class _SlowOut:
         return self.sem.acquire(*a, **kw)
 
 
-def _bounded(fn, within_s=10.0):
+def _bounded(fn, within_s=60.0):
     """Run ``fn()`` in a thread; return its result, or fail when it has not returned within ``within_s`` (no hang)."""
     out = {}
     th = threading.Thread(target=lambda: out.setdefault("v", fn()), daemon=True)
@@ -389,7 +389,7 @@ def test_the_listener_takes_every_turn_even_one_that_ends_before_its_reader_runs
     node.send(Cancel(7))
     t0 = time.monotonic()
     while not cancel.is_set():                          # applied during the turn
-        assert time.monotonic() - t0 < 10.0, "the Cancel sent during the turn was not applied"
+        assert time.monotonic() - t0 < 60.0, "the Cancel sent during the turn was not applied"
         time.sleep(0.001)
     node.send("job 9")
     _bounded(lis.stop_listening)
@@ -421,7 +421,7 @@ def test_the_listener_ends_after_the_jobs_queued_before_a_quit(end):
         node.close()
     t0 = time.monotonic()
     while not cancel.is_set():                          # the running job is cancelled
-        assert time.monotonic() - t0 < 10.0, f"the {end} did not cancel the running job"
+        assert time.monotonic() - t0 < 60.0, f"the {end} did not cancel the running job"
         time.sleep(0.001)
     _bounded(lis.stop_listening)
     assert _bounded(lis.next_job) == "job 2"
