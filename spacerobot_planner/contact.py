@@ -12,9 +12,9 @@ apart, and only allowed when the start is inside by at most ``max_penetration_m`
 The penetration depth is a numba kernel (``_depths_into``): every candidate of a step in one
 call, about 2.4 us a posture (12 us while it visited every link sample: now only those where the
 link crosses a polygon's box, and of those only where the depth so far can be passed, by the
-distance's Lipschitz bound, each coarse sample evaluated once; the NumPy loop it replaced took 350 us, so a walk out of a deep
-contact took up to 70 ms; the same depths to the bit on 4 800 random postures of random
-scenes; a link's length is sqrt(dx² + dy²), one ulp from NumPy's norm at times, which could
+distance's Lipschitz bound, each coarse sample evaluated once; the NumPy loop it replaced took
+350 us, so a walk out of a deep contact took up to 70 ms; the same depths to the bit on 4 800
+random postures of random scenes; a link's length is sqrt(dx² + dy²), one ulp from NumPy's norm at times, which could
 move the 2 mm sample count only where length / 2 mm is within an ulp of an integer).
 
 Configurations are planned-joint vectors (rad); lengths in metres.
