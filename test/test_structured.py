@@ -205,10 +205,11 @@ def test_the_rule_picks_the_cells_route_where_the_box_is_compact(case, expected)
     assert (layout is not None) == expected
     if layout is not None:
         assert layout.cells == _box_cells(coords, shape, wraps)
-    # solve's "auto" route is the rule's: the same bits as the route it picks
+    # solve's "auto" route is the rule's: the same bits as the route it picks (a 2-D box whose edges
+    # do not cross a periodic seam: the geometric levels under the cells)
+    pick = ("geometric" if len(shape) == 2 and not wraps else "structured") if expected else "graph"
     x_auto, its_auto, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10)
-    x_pick, its_pick, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10,
-                                          route="structured" if expected else "graph")
+    x_pick, its_pick, _ = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route=pick)
     assert np.array_equal(x_auto, x_pick) and its_auto == its_pick
 
 
@@ -224,20 +225,27 @@ def test_a_right_hand_side_of_another_length_is_refused(route):
         multigrid.solve(nbr, coords, PROBLEMS["2-D"]["shape"], rhs[:-5], route=route)
 
 
-def test_the_warm_up_problem_takes_the_cells_route(monkeypatch):
-    """``field._compile_once`` compiles the cells' kernels only if its problem's first band takes that route."""
+def test_the_warm_up_problems_take_the_cells_routes(monkeypatch):
+    """
+    ``field._compile_once`` compiles the cells' kernels only if its problems' first bands take those routes.
+
+    The 2-D one the geometric levels under the cells (:mod:`.geometric`), the 3-D one the
+    aggregation levels on them (``multigrid._spcg``).
+    """
     from spacerobot_planner import field as F
+    from spacerobot_planner.field import geometric
     calls = []
-    real = multigrid._spcg
+    for module, name in ((multigrid, "_spcg"), (geometric, "_gpcg")):
+        real = getattr(module, name)
 
-    def counted(*args):
-        calls.append(args[0].size)
-        return real(*args)
-
-    monkeypatch.setattr(multigrid, "_spcg", counted)
-    occ, per, goal = F._WARM_PROBLEMS[0]
-    F.solve_field(occ, per, [goal], budget_s=600.0)
-    assert calls, "the warm-up problem's bands all took the node graph's route"
+        def counted(*args, _real=real, _name=name):
+            calls.append(_name)
+            return _real(*args)
+        monkeypatch.setattr(module, name, counted)
+    for occ, per, goal in F._WARM_PROBLEMS:
+        F.solve_field(occ, per, [goal], budget_s=600.0)
+    assert "_spcg" in calls, "no warm-up band took the aggregation levels on cells"
+    assert "_gpcg" in calls, "no warm-up band took the geometric levels"
 
 
 def _level1_coords(coords):
@@ -342,9 +350,10 @@ def test_the_rule_runs_the_k_cycle_on_big_3d_problems(case, k_cycle, monkeypatch
     nbr, coords, rhs, A = _problem(**case)
     shape = case["shape"]
     assert (len(rhs) >= 100_000) == (len(shape) == 2 or k_cycle), "the case's size"
-    x, its, res = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10)
-    chosen = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, kcycle=k_cycle)
-    other = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, kcycle=not k_cycle)
+    # the aggregation levels on cells (a 2-D problem's "auto" takes the geometric levels, which have no K-cycle)
+    x, its, res = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="structured")
+    chosen = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, kcycle=k_cycle, route="structured")
+    other = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, kcycle=not k_cycle, route="structured")
     assert np.array_equal(x, chosen[0]) and its == chosen[1]
     assert not np.array_equal(x, other[0]), "both cycles gave the same bits: the case tests nothing"
     assert np.max(np.abs(rhs - A @ x)) < 1e-10

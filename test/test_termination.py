@@ -19,7 +19,7 @@ import pytest
 from spacerobot_planner import field as F
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.cspace import build_cspace
-from spacerobot_planner.field import harmonic, multigrid, paper
+from spacerobot_planner.field import geometric, harmonic, multigrid, paper
 from spacerobot_planner.field.graph import node_graph, validate_problem
 from spacerobot_planner.planner import Planner, PlannerSettings
 from spacerobot_planner.termination import Cancelled, Termination
@@ -160,7 +160,8 @@ def test_a_flag_set_while_the_coarse_levels_are_built_beside_stops_the_solve(mon
         flag[0] = 1                       # the plan cancelled just as the coarse levels begin
         return real(self, stop)
     monkeypatch.setattr(multigrid.Hierarchy, "coarsen", coarsen_stopped)
-    x, its, res = multigrid.solve(*args, tol=1e-10, stop=flag, beside=True)
+    # the aggregation levels' route (a 2-D band's "auto" takes the geometric levels, built in the solve's thread)
+    x, its, res = multigrid.solve(*args, tol=1e-10, stop=flag, beside=True, route="structured")
     assert its == 0 and res == np.inf and not np.any(x)
     assert not any(t.name == "field-beside" for t in threading.enumerate())
     monkeypatch.setattr(multigrid.Hierarchy, "coarsen", real)
@@ -169,8 +170,23 @@ def test_a_flag_set_while_the_coarse_levels_are_built_beside_stops_the_solve(mon
         raise RuntimeError("layout failed")
     monkeypatch.setattr(multigrid, "_fine_layout_alone", broken_layout)
     with pytest.raises(RuntimeError, match="layout failed"):
-        multigrid.solve(*args, tol=1e-10, beside=True)
+        multigrid.solve(*args, tol=1e-10, beside=True, route="structured")
     assert not any(t.name == "field-beside" for t in threading.enumerate())
+
+
+def test_a_flag_set_while_the_geometric_levels_are_built_stops_the_solve(monkeypatch):
+    """A 2-D band's geometric levels: a flag set during their set-up stops the solve before CG (nothing returned)."""
+    args = _first_band(_maze_problem())
+    flag = np.zeros(1, np.int64)
+    real = geometric.levels
+
+    def levels_stopped(*a):
+        flag[0] = 1                       # the plan cancelled while the levels are built
+        return real(*a)
+    monkeypatch.setattr(geometric, "levels", levels_stopped)
+    x, its, res = multigrid.solve(*args, tol=1e-10, stop=flag)
+    assert flag[0] == 1, "the band did not take the geometric levels"
+    assert its == 0 and res == np.inf and not np.any(x)
 
 
 def test_a_set_flag_stops_the_multigrid_set_up_before_it_builds_its_levels():

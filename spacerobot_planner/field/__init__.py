@@ -237,8 +237,9 @@ def _compile_once() -> None:
     Compile (or load) the route's kernels once per process.
 
     Compile (or load from numba's cache) the route's kernels once per process, on a tiny grid
-    (the multigrid's fine level on the node graph) and a small one (on the grid's cells:
-    :mod:`.structured`), so that no budget pays for it; and keep freed memory in the heap
+    (the multigrid's fine level on the node graph) and small 2-D and 3-D ones (on the grid's
+    cells: :mod:`.geometric`'s levels and :mod:`.structured`'s aggregation levels), so that no
+    budget pays for it; and keep freed memory in the heap
     (:func:`keep_heap`), so that no solve page-faults its arrays in afresh.
     """
     global _COMPILED
@@ -248,8 +249,8 @@ def _compile_once() -> None:
         occ = np.zeros((6, 7), dtype=bool)
         occ[2, 1:5] = True
         solve_field(occ, (True, False), [(5, 6)], budget_s=600.0)
-        occ, per, goal = _WARM_PROBLEMS[0]      # its first band: 1 389 unknowns, 1.3 cells per unknown
-        solve_field(occ, per, [goal], budget_s=600.0)
+        for occ, per, goal in _WARM_PROBLEMS:   # their first bands on cells (2-D: 1 389 unknowns, 1.3 a cell)
+            solve_field(occ, per, [goal], budget_s=600.0)
 
 
 def _warm_problem(shape, block):
@@ -258,9 +259,11 @@ def _warm_problem(shape, block):
     return occ
 
 
-#: (occupancy, periodic, goal) of the warm-ups: a 2-D and a 3-D grid with an obstacle block
+#: (occupancy, periodic, goal) of the warm-ups: a 2-D and a 3-D grid with an obstacle block, each first
+#: band on cells (:func:`_compile_once`): the 2-D one's the geometric levels (1.3 cells per unknown),
+#: the 3-D one's the aggregation levels (2 009 unknowns, 1.57 cells per unknown)
 _WARM_PROBLEMS = ((_warm_problem((40, 41), np.s_[10:20, 5:30]), (False, False), (39, 40)),
-                  (_warm_problem((12, 13, 13), np.s_[3:6, 2:10, 2:10]), (True, False, False), (11, 12, 12)))
+                  (_warm_problem((12, 13, 13), np.s_[4:6, 5:8, 5:8]), (True, False, False), (11, 12, 12)))
 
 
 def warm_up() -> None:

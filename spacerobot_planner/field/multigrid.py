@@ -68,6 +68,8 @@ from .graph import coord_sum, grid_strides, strided_sum
 #: the extra levels cost next to nothing and the iterations hardly change (1 067 vs 1 062, 0.5 %
 #: more, over 125 random 2-DOF bands; 1 134 vs 1 132 over 110 3-DOF bands).
 COARSEST_NODES = 30
+#: :func:`_cholesky`'s semidefinite pivot test: a pivot at most this fraction of its diagonal entry is null.
+NULL_PIVOT = 1e-12
 #: A problem of at most this many unknowns is not coarsened: its fine level is the coarsest,
 #: solved directly in one iteration (the small bands of narrow passages).
 DIRECT_NODES = 100
@@ -87,7 +89,7 @@ SWEEPS = {1: 1, 2: 1, 3: 2, 4: 1}
 #: and 1 % more time); the 4-D servicer's 16⁴: 1.4 (15 iterations, 18 at 1.8), and above.
 BOOST = {(1, 1): 1.8, (2, 1): 1.8, (3, 1): 1.5, (3, 2): 1.7, (4, 1): 1.4}
 #: :func:`solve`'s routes for the fine level.
-ROUTES = ("auto", "graph", "structured")
+ROUTES = ("auto", "graph", "structured", "geometric")
 #: Level 1 as a K-cycle's (:func:`_level1_kcycle`: two CG steps there, each preconditioned by
 #: the V-cycle from level 1) on a 3-D grid whose fine level has at least this many unknowns,
 #: where level 1 is on its cells (:func:`kcycle_of`, the rule).  Each iteration then costs
@@ -428,7 +430,7 @@ def _coarsest_matrix(cn, cw, cd):
 
 
 @nb.njit(cache=True, nogil=True)
-def _cholesky(a):
+def _cholesky(a, semidefinite=False):
     """
     Return the lower Cholesky factor of the symmetric positive definite ``a`` (m, m), float64 (m, m).
 
@@ -438,6 +440,11 @@ def _cholesky(a):
     entry (i, j) from the products of rows i and j before column j, summed in four
     interleaved partial sums (a fixed order, so the same bits on any machine).  Reads the
     lower triangle of ``a``.  Raises ValueError where a pivot is not positive (or is NaN).
+    ``semidefinite``: a pivot at most :data:`NULL_PIVOT` times its diagonal entry instead gives a
+    zero column (its unknown is left at 0 by :func:`.geometric._coarsest`: the factor then solves ``a``
+    on the complement of its null space, a symmetric semidefinite pseudo-inverse), as a geometric
+    coarsest level may need (:mod:`.geometric`: an isolated fine unknown makes its four coarse
+    parents' columns of the prolongation equal).
     """
     m = a.shape[0]
     low = np.zeros((m, m))
@@ -458,6 +465,8 @@ def _cholesky(a):
                 k += 1
             t = a[i, j] - ((s0 + s1) + (s2 + s3))
             if i == j:
+                if semidefinite and not t > NULL_PIVOT * a[j, j]:
+                    break                      # a null column: low[:, j] stays 0
                 if not t > 0.0:
                     raise ValueError("the coarsest level's matrix is not positive definite")
                 low[j, j] = math.sqrt(t)
@@ -1314,6 +1323,23 @@ def _fine_layout_alone(nb0, coords, shape, red0, max_cells_per_unknown):
     return structured.laid_out(nb0, coords, shape, red0, agg, ccoords.shape[0], max_cells_per_unknown)
 
 
+def _solve_geometric(h, layout, rhs, x0, tol, max_iter, deadline, stop, sweeps):
+    """
+    Return :func:`solve`'s ``(x, iterations, largest residual)`` by :mod:`.geometric`'s levels under ``layout``.
+
+    h: the problem's fine level (:class:`Hierarchy`, not coarsened).
+    """
+    rows = None if h.in_order else h.fine_of_input     # each input's fine row
+    u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)
+    lv = geometric.levels(h.nb0, h.coords, h.red0, layout)
+    if stop is None:
+        stop = np.zeros(1, np.int64)
+    elif stop[0] != 0:
+        return np.zeros(h.nb0.shape[0]), 0, np.inf
+    it, res = geometric.pcg(layout, lv, layout.to_cells(rhs, rows), u, tol, max_iter, deadline, stop, sweeps)
+    return layout.from_cells(u, rows), int(it), float(res)
+
+
 def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps=None, boost=None, stop=None,
           coarse_sweeps=COARSE_SWEEPS, route="auto", x0=None, coarse_cells=True, kcycle=None, chunk_cells=None,
           beside=None):
@@ -1329,12 +1355,15 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     result is partial and the caller must not keep it.  ``sweeps``: the fine level's
     Gauss–Seidel sweeps before and after the coarse correction (None: :func:`sweeps_of` the
     grid's dimension); ``boost``: the coarse correction's scale (None: :func:`boost_of` the
-    grid's dimension and the sweeps).  ``route``: "auto", the fine level on
-    the grid's cells where :func:`.structured.fine_layout`'s rule says so (else on the node
-    graph); "graph", on the node graph always; "structured", on the cells wherever they can
-    hold it, whatever its size (the tests').  ``coarse_cells``: with the fine level on cells,
-    level 1 on its cells too where :func:`.structured.coarse_layout`'s rule says so (with route
-    "structured": wherever they can hold it); False: on the node graph (the tests').  The same
+    grid's dimension and the sweeps; unused by the geometric levels).  ``route``: "auto", on a
+    2-D grid :mod:`.geometric`'s levels under the fine level's cells where :func:`.geometric.applies`
+    says so, else the fine level on the grid's cells where :func:`.structured.fine_layout`'s rule
+    says so (else on the node graph); "graph", on the node graph always; "structured", on the
+    cells wherever they can hold it, whatever its size, with the aggregation levels; "geometric",
+    the geometric levels wherever they apply, whatever the size (else as "structured"; the tests').
+    ``coarse_cells``: with the fine level on cells, level 1 on its cells too where
+    :func:`.structured.coarse_layout`'s rule says so (with route "structured": wherever they can
+    hold it); False: on the node graph (the tests').  The same
     values either way: level 1's cells compute its rows' float32 values in the graph's order.
     ``kcycle``: level 1 as a K-cycle's (:func:`_level1_kcycle`); None: where :func:`kcycle_of`
     says so; True: wherever level 1 is on its cells (the tests'); False: never.
@@ -1374,6 +1403,10 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     if stop is not None and stop[0] != 0:
         return np.zeros(n), 0, np.inf           # as the set-up would stop at its first level
     h = Hierarchy(nbr, coords, shape, coarsen=False)
+    if route in ("auto", "geometric") and len(shape) == 2 and structured.may_lay_out(n, 2, sweeps, min_unknowns):
+        layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, max_cells)
+        if geometric.applies(len(shape), layout):
+            return _solve_geometric(h, layout, rhs, x0, tol, max_iter, deadline, stop, sweeps)
     built = None
     try:
         if route != "graph" and structured.may_lay_out(n, len(shape), sweeps, min_unknowns) and (
@@ -1418,3 +1451,6 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps),
                    float(boost), int(coarse_sweeps), float(deadline), stop)
     return x[rows], int(it), float(res)
+
+
+from . import geometric  # noqa: E402  (it reads this module's CG steps and factor: imported last)

@@ -138,7 +138,7 @@ def laid_out(nb0, coords, shape, red0: int, agg, coarse_nodes: int, max_cells_pe
     Return the fine level on its box's cells (:func:`fine_layout`'s arrays), or None where they cannot hold it.
 
     nb0 uint32 (n, deg), coords (n, ndim), ``red0``: the fine level (:class:`.multigrid.Hierarchy`'s,
-    red rows first); agg uint32 (n,): each row's level-1 row, of ``coarse_nodes``; the box at most
+    red rows first); agg uint32 (n,): each row's level-1 row, of ``coarse_nodes`` (0: none); the box at most
     ``max_cells_per_unknown`` cells per unknown.
     """
     n = nb0.shape[0]
@@ -295,7 +295,8 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
     Build the layout of :func:`_box`'s box: ``(ok, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather)``.
 
     nb0 uint32 (n, deg), coords (n, ndim): the fine rows, the first ``red`` of them red; agg
-    uint32 (n,): each row's level-1 node, ``coarse_nodes`` of them.  See :class:`Layout` for
+    uint32 (n,): each row's level-1 node, ``coarse_nodes`` of them (0: no aggregates, ``aggr`` and
+    ``gather`` then unused, as under :mod:`.geometric`'s levels).  See :class:`Layout` for
     the arrays; ``find_cuts`` False: no cut edges looked for (none returned: level 1's cells
     carry their weights instead).  ``ok`` False: two rows on one cell, a red row on a black cell, or a level-1
     node with more red cells than a block holds (the graph's route).
@@ -378,7 +379,7 @@ def _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, red, c
         cuts[counts[f & 1], 1] = g >> 1
         counts[f & 1] += 1
     filled = np.zeros(coarse_nodes, np.int64)
-    for i in range(red):                     # in row order: the graph's restriction adds them so
+    for i in range(red if coarse_nodes > 0 else 0):     # in row order: the graph's restriction adds them so
         c = agg[i]
         if filled[c] == width:
             return failed

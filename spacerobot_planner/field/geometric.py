@@ -1,0 +1,671 @@
+"""
+Geometric multigrid for a 2-D band: bilinear prolongation and Galerkin coarse levels under the fine level's cells.
+
+The aggregation hierarchy of :mod:`.multigrid` prolongs piecewise constant and scales its
+correction up (its ``boost``): on the paper's 2-D first band CG takes 17 iterations for
+the ten decades of its stop.  Here the coarse levels are the fine grid's halved, each node
+of level l + 1 the fine node at twice its index (less one), and the prolongation is
+bilinear: a fine node between two coarse ones takes half of each, one amid four a
+quarter of each.  The coarse operators are Galerkin's (Pᵀ A P), so obstacles, walls,
+windows and cut edges need nothing of their own: they are in A.  Each level below the fine
+one is a 9-point stencil on its box of cells, smoothed by damped Jacobi (vector loops,
+float32, its weight :data:`JACOBI_WEIGHT`); the coarsest (at most :data:`COARSEST_UNKNOWNS`
+unknowns) is solved directly.  The fine level is :mod:`.structured`'s (its cells, red and
+black apart, and its kernels: the same Gauss–Seidel half-sweeps, product and residual).
+One V-cycle: a red and a black half-sweep, the red residuals restricted (the black ones are
+0), the coarse cycle, its correction added to the red cells (the black ones are set, not
+read, by the next half-sweep), a black and a red half-sweep: a symmetric preconditioner for
+CG, with the same stop rule, deadline and termination flag as :func:`.multigrid._spcg`.
+
+Measured on the captured first bands of the paper's 2-DOF scene and of random ones (`bench
+scenes`' family), against the aggregation route on cells in the same process: 9-10
+iterations against 15-17, 0.74x the time at 181² (2.24 against 3.03 ms), 0.63x at 360²
+(10.95 against 17.35 ms), about equal at 720² (63 against 66 ms, where the other route runs
+on both cores).  Where it applies: :func:`applies` (2-D, the cells route's box rule, no edge
+across a periodic seam); :func:`.multigrid.solve` takes this route there.
+
+Coordinates.  A fine row's padded coordinates are ``q = c − lo + 1`` (``lo``: the unknowns'
+lowest coordinates), axis 1 shifted by one more where ``lo0 + lo1`` is odd, so that a red row
+(even coordinate sum) has ``q0 + q1`` even.  The parents of a padded index q: ``(q + 1) / 2``
+(odd q, weight 1), ``q / 2`` and ``q / 2 + 1`` (even q, ½ each).  Level l's box has
+``m = (m_above − 2) // 2 + 3`` cells per axis, its border (index 0 and m − 1) never an unknown.
+Stencil slot k of a node is its neighbour at ``(k // 3 − 1, k % 3 − 1)``.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from . import structured
+from .multigrid import _cholesky, _descend, _now, _turn
+
+#: The coarsest level has at most this many unknowns (a dense factor solves it).
+COARSEST_UNKNOWNS = 64
+#: Damped Jacobi's weight on the coarse levels (0.7: one iteration more on 3 of 7 sampled bands).
+JACOBI_WEIGHT = np.float32(0.8)
+#: Jacobi sweeps on each coarse level before the coarser correction (the first from 0) and after it.
+PRE_SWEEPS = 2
+POST_SWEEPS = 2
+
+
+class Levels:
+    """The coarse levels of one problem (:func:`levels`): the arrays :func:`_gpcg` reads."""
+
+    def __init__(self, one, gather, st, inv, off, shp, idx, low):
+        """Hold :func:`_levels`' and :func:`_transfer`'s arrays."""
+        self.one, self.gather, self.st, self.inv, self.off, self.shp, self.idx, self.low = (
+            one, gather, st, inv, off, shp, idx, low)
+
+
+def applies(ndim: int, layout) -> bool:
+    """
+    Return whether a problem takes this route (the rule, one place).
+
+    A 2-D grid whose fine level lies on cells (``layout``: :func:`.structured.laid_out`'s, or
+    None: the box breaks the cells' rule) with no edge across a periodic seam (one loop range).
+    """
+    return int(ndim) == 2 and layout is not None and layout.nranges == 1
+
+
+def levels(nb0, coords, red0: int, layout) -> Levels:
+    """
+    Return the coarse levels of the fine rows ``nb0`` (uint32 (n, 4), red rows first), ``coords`` (n, 2).
+
+    ``layout``: their cells (:func:`.structured.laid_out`, one loop range).
+    """
+    one, gather, lo0, lo1, s1, m0, m1 = _transfer(coords, layout.cell, int(red0), layout.half)
+    st, inv, off, shp, idx, low = _levels(nb0, coords, lo0, lo1, s1, m0, m1)
+    return Levels(one, gather, st, inv, off, shp, idx, low)
+
+
+def pcg(layout, lv: Levels, rhs, u, tol: float, max_iter: int, deadline: float, stop, sweeps: int):
+    """
+    Run CG preconditioned by this V-cycle on the cells: rhs, u float64 (2, H); return (iterations, max residual).
+
+    u is updated in place; ``deadline`` (``time.perf_counter()`` s, 0: none) and the
+    termination flag ``stop`` (int64 (1,)) as :func:`.multigrid.solve`'s; ``sweeps``: the fine
+    level's red-black sweep pairs before and after the coarse correction.
+    """
+    return _gpcg(layout.mask, layout.ranges, layout.nranges, layout.cut_red, layout.cut_black, lv.one, lv.gather,
+                 lv.st, lv.inv, lv.off, lv.shp, lv.idx, lv.low, rhs, u, float(tol), int(max_iter), float(deadline),
+                 stop, int(sweeps))
+
+
+# --------------------------------------------------------------------------
+# set-up
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _transfer(coords, cell, red, half):
+    """
+    Return the fine level's links to level 1: ``(one, gather, lo0, lo1, s1, m0, m1)``.
+
+    coords (n, 2) of the fine rows, the first ``red`` red; cell (n,): each row's index in the
+    cells' flattened (2, H) (:class:`.structured.Layout`).  one int64 (H,): each red cell's
+    index into [level 1's values (c0 · c1 and a zero), its corner averages]: a coincident cell
+    takes its parent's value, a cell amid four parents their average (others: the zero);
+    gather int64 (c0 · c1, 5): each level-1 node's coincident red cell, then the four red
+    cells at its corners (H − 1, a cell whose residual stays 0, where none); lo0, lo1, s1:
+    the padded coordinates' offsets; m0, m1: the fine box's size.
+    """
+    n = coords.shape[0]
+    lo0 = lo1 = 1 << 40
+    hi0 = hi1 = -(1 << 40)
+    for i in range(n):
+        lo0 = min(lo0, coords[i, 0])
+        hi0 = max(hi0, coords[i, 0])
+        lo1 = min(lo1, coords[i, 1])
+        hi1 = max(hi1, coords[i, 1])
+    s1 = (lo0 + lo1) & 1
+    m0 = hi0 - lo0 + 3
+    m1 = hi1 - lo1 + 3 + s1
+    c0 = (m0 - 2) // 2 + 3
+    c1 = (m1 - 2) // 2 + 3
+    zero = c0 * c1
+    one = np.full(half, zero, np.int64)
+    gather = np.full((c0 * c1, 5), half - 1, np.int64)
+    for i in range(red):
+        q0 = coords[i, 0] - lo0 + 1
+        q1 = coords[i, 1] - lo1 + 1 + s1
+        k = cell[i]
+        if q0 & 1:                      # q1 odd too: coincident
+            j = ((q0 + 1) >> 1) * c1 + ((q1 + 1) >> 1)
+            one[k] = j
+            gather[j, 0] = k
+        else:                           # both even: amid four parents
+            a0, a1 = q0 >> 1, q1 >> 1
+            one[k] = zero + 1 + a0 * c1 + a1
+            for t in range(4):
+                gather[(a0 + (t >> 1)) * c1 + a1 + (t & 1), 4 - t] = k
+    return one, gather, lo0, lo1, s1, m0, m1
+
+
+@nb.njit(cache=True, nogil=True)
+def _fine_edges(nb0, coords, lo0, lo1, s1, m0, m1):
+    """
+    Return the fine box's ``(e0, e1, deficit)``, float64 (m0 + 1, m1 + 1).
+
+    e0, e1: 1 where a row's edge up axis 0 (axis 1) is in the graph; deficit: 4 less the
+    row's edges (its Dirichlet part: walls, obstacles, known nodes and cut edges).
+    """
+    n = nb0.shape[0]
+    e0 = np.zeros((m0 + 1, m1 + 1))
+    e1 = np.zeros((m0 + 1, m1 + 1))
+    dd = np.zeros((m0 + 1, m1 + 1))
+    for i in range(n):
+        p0 = coords[i, 0] - lo0 + 1
+        p1 = coords[i, 1] - lo1 + 1 + s1
+        links = 0
+        for d in range(4):
+            if nb0[i, d] < n:
+                links += 1
+        dd[p0, p1] = 4.0 - links
+        if nb0[i, 1] < n:
+            e0[p0, p1] = 1.0
+        if nb0[i, 3] < n:
+            e1[p0, p1] = 1.0
+    return e0, e1, dd
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _element(centre_a, centre_b, out_a, out_b, ca, cb, w):
+    """
+    Add ``w (ca + cb)`` times edge elements: to both ends' centres, and taken from their entries to each other.
+
+    Views along a row of level-1 edges (K, K + 1): ``centre_a`` / ``out_a`` at K, ``centre_b`` /
+    ``out_b`` at K + 1.
+    """
+    for k in range(ca.size):
+        c = w * (ca[k] + cb[k])
+        centre_a[k] += c
+        centre_b[k] += c
+        out_a[k] -= c
+        out_b[k] -= c
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _row_element(out, i0, nk, ca, cb, w):
+    """Add ``w (ca + cb)`` times the edge element between level-1 columns K and K + 1 of row i0 (K = 1 .. nk)."""
+    _element(out[4, i0, 1:1 + nk], out[4, i0, 2:2 + nk], out[5, i0, 1:1 + nk], out[3, i0, 2:2 + nk], ca, cb, w)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _cross(p0, m0, m1, p1, p2, m2, m3, p3, ca, cb):
+    """
+    Add ``(ca + cb) / 16`` to the p views and take it from the m views (one fine edge pair's cross terms).
+
+    An edge pair between level-1 nodes K and K + 1 in a fine row (column) amid two level-1 rows
+    (columns): the entries between the two rows' (columns') nodes, ± as the element's.
+    """
+    for k in range(ca.size):
+        c = 0.0625 * (ca[k] + cb[k])
+        p0[k] += c
+        m0[k] -= c
+        m1[k] -= c
+        p1[k] += c
+        p2[k] += c
+        m2[k] -= c
+        m3[k] -= c
+        p3[k] += c
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _add(dst, src, w):
+    """Add w · src to dst (2-D views of one shape)."""
+    for i in range(dst.shape[0]):
+        for j in range(dst.shape[1]):
+            dst[i, j] += w * src[i, j]
+
+
+@nb.njit(cache=True, nogil=True)
+def _galerkin_fine(e0, e1, dd, m0, m1):
+    """
+    Return level 1's operator Pᵀ A P, float64 (9, c0 · c1), and (c0, c1), from the fine edges (:func:`_fine_edges`).
+
+    A = Σ over edges (e_p − e_q)(e_p − e_q)ᵀ + Σ_p deficit_p e_p e_pᵀ.  An edge along axis 1 has
+    P_p − P_q = u ⊗ ½ (e_K − e_K+1) (u: its row's parents along axis 0), so the two fine edges
+    of a row over one level-1 edge add ¼ u uᵀ times that edge's element; likewise along axis 0;
+    the deficits add their rows' P_p P_pᵀ, class by class.  Every sum is of multiples of 1/16:
+    the same values as the product computed entry by entry (:func:`_galerkin`).
+    """
+    c0 = (m0 - 2) // 2 + 3
+    c1 = (m1 - 2) // 2 + 3
+    out = np.zeros((9, c0, c1))
+    nk = (m1 - 2) // 2                  # level-1 edges K = 1 .. nk along axis 1 (fine edges from 2K - 1 and 2K)
+    for q0 in range(1, m0 - 1):
+        ca = e1[q0, 1:1 + 2 * nk:2]
+        cb = e1[q0, 2:2 + 2 * nk:2]
+        if q0 & 1:
+            _row_element(out, (q0 + 1) >> 1, nk, ca, cb, 0.25)
+            continue
+        a = q0 >> 1
+        _row_element(out, a, nk, ca, cb, 0.0625)
+        _row_element(out, a + 1, nk, ca, cb, 0.0625)
+        _cross(out[7, a, 1:1 + nk], out[8, a, 1:1 + nk], out[6, a, 2:2 + nk], out[7, a, 2:2 + nk],
+               out[1, a + 1, 1:1 + nk], out[2, a + 1, 1:1 + nk], out[0, a + 1, 2:2 + nk], out[1, a + 1, 2:2 + nk],
+               ca, cb)
+    nk0 = (m0 - 2) // 2                 # level-1 edges K0 = 1 .. nk0 along axis 0
+    no = (m1 - 1) // 2                  # odd columns q1 = 2 I1 - 1
+    ne = (m1 - 2) // 2                  # even columns q1 = 2 b
+    for k0 in range(1, nk0 + 1):
+        ra = e0[2 * k0 - 1]
+        rb = e0[2 * k0]
+        _element(out[4, k0, 1:1 + no], out[4, k0 + 1, 1:1 + no], out[7, k0, 1:1 + no], out[1, k0 + 1, 1:1 + no],
+                 ra[1:1 + 2 * no:2], rb[1:1 + 2 * no:2], 0.25)
+        ea = ra[2:2 + 2 * ne:2]
+        eb = rb[2:2 + 2 * ne:2]
+        for side in range(2):
+            j = 1 + side
+            _element(out[4, k0, j:j + ne], out[4, k0 + 1, j:j + ne], out[7, k0, j:j + ne], out[1, k0 + 1, j:j + ne],
+                     ea, eb, 0.0625)
+        _cross(out[5, k0, 1:1 + ne], out[8, k0, 1:1 + ne], out[2, k0 + 1, 1:1 + ne], out[5, k0 + 1, 1:1 + ne],
+               out[3, k0, 2:2 + ne], out[6, k0, 2:2 + ne], out[0, k0 + 1, 2:2 + ne], out[3, k0 + 1, 2:2 + ne],
+               ea, eb)
+    n0o, n0e, n1o, n1e = (m0 - 1) // 2, (m0 - 2) // 2, (m1 - 1) // 2, (m1 - 2) // 2
+    _add(out[4, 1:1 + n0o, 1:1 + n1o], dd[1:1 + 2 * n0o:2, 1:1 + 2 * n1o:2], 1.0)
+    oe = dd[1:1 + 2 * n0o:2, 2:2 + 2 * n1e:2]              # parents (I0, b), (I0, b + 1)
+    _add(out[4, 1:1 + n0o, 1:1 + n1e], oe, 0.25)
+    _add(out[4, 1:1 + n0o, 2:2 + n1e], oe, 0.25)
+    _add(out[5, 1:1 + n0o, 1:1 + n1e], oe, 0.25)
+    _add(out[3, 1:1 + n0o, 2:2 + n1e], oe, 0.25)
+    eo = dd[2:2 + 2 * n0e:2, 1:1 + 2 * n1o:2]              # parents (a, I1), (a + 1, I1)
+    _add(out[4, 1:1 + n0e, 1:1 + n1o], eo, 0.25)
+    _add(out[4, 2:2 + n0e, 1:1 + n1o], eo, 0.25)
+    _add(out[7, 1:1 + n0e, 1:1 + n1o], eo, 0.25)
+    _add(out[1, 2:2 + n0e, 1:1 + n1o], eo, 0.25)
+    ee = dd[2:2 + 2 * n0e:2, 2:2 + 2 * n1e:2]              # four parents: each pair 1/16
+    for u0 in range(2):
+        for u1 in range(2):
+            for t0 in range(2):
+                for t1 in range(2):
+                    _add(out[(t0 - u0 + 1) * 3 + t1 - u1 + 1, 1 + u0:1 + u0 + n0e, 1 + u1:1 + u1 + n1e], ee, 0.0625)
+    return out.reshape(9, c0 * c1), c0, c1
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _axis_terms(par, u, d, t):
+    """
+    Return ``(I − j, J − I, weight)`` along one axis of a Galerkin product's term (weight 0: no such term).
+
+    A fine index of parity ``par`` (1: odd, 2j − 1; 0: even, 2j), its parent choice ``u``, its
+    neighbour at ``d`` (−1, 0, 1) and that neighbour's parent choice ``t``.
+    """
+    if par:
+        if u > 0:
+            return 0, 0, 0.0
+        if d == 0:
+            return 0, 0, (1.0 if t == 0 else 0.0)
+        return 0, (t - 1 if d == -1 else t), 0.5
+    if d == 0:
+        return u, t - u, 0.25
+    if t > 0:
+        return 0, 0, 0.0
+    return u, (-u if d == -1 else 1 - u), 0.5
+
+
+@nb.njit(cache=True, nogil=True)
+def _galerkin(s, m0, m1):
+    """
+    Return ``(Pᵀ S P float64 (9, c0 · c1), c0, c1)`` of a 9-point operator s (9, m0 · m1).
+
+    Its border rows and columns are no unknowns.  Each term of the product, one stencil slot
+    and one parity class of the fine nodes per axis at a time, is a 2-D strided view update.
+    """
+    c0 = (m0 - 2) // 2 + 3
+    c1 = (m1 - 2) // 2 + 3
+    out = np.zeros((9, c0, c1))
+    for k in range(9):
+        if not np.any(s[k] != 0.0):
+            continue
+        src_all = s[k].reshape(m0, m1)
+        d0 = k // 3 - 1
+        d1 = k % 3 - 1
+        for par0 in range(2):
+            n0 = (m0 - 1) // 2 if par0 else (m0 - 2) // 2       # rows 2j - 1 (odd) or 2j (even), up to m0 - 2
+            f0 = 1 if par0 else 2
+            for par1 in range(2):
+                n1 = (m1 - 1) // 2 if par1 else (m1 - 2) // 2
+                f1 = 1 if par1 else 2
+                src = src_all[f0:f0 + 2 * n0:2, f1:f1 + 2 * n1:2]
+                for u0 in range(2):
+                    for t0 in range(2):
+                        a0, dl0, w0 = _axis_terms(par0, u0, d0, t0)
+                        if w0 == 0.0:
+                            continue
+                        for u1 in range(2):
+                            for t1 in range(2):
+                                a1, dl1, w1 = _axis_terms(par1, u1, d1, t1)
+                                if w1 == 0.0:
+                                    continue
+                                _add(out[(dl0 + 1) * 3 + dl1 + 1, 1 + a0:1 + a0 + n0, 1 + a1:1 + a1 + n1], src,
+                                     w0 * w1)
+    return out.reshape(9, c0 * c1), c0, c1
+
+
+@nb.njit(cache=True, nogil=True)
+def _count(s):
+    """Return the unknowns of a level (its stencils' centres above 0)."""
+    return np.count_nonzero(s[4] > 0.0)
+
+
+@nb.njit(cache=True, nogil=True)
+def _levels(nb0, coords, lo0, lo1, s1, m0, m1):
+    """
+    Return the coarse levels, packed: ``(st, inv, off, shp, idx, low)``.
+
+    st float32 (9, total): each level's stencils from ``off[l]`` (its c0 · c1 cells, then a
+    zero); inv float32 (total,): their centres' inverses (0 off the unknowns); shp (L, 2): the
+    levels' boxes; idx (k,): the coarsest level's unknowns (flat), low (k, k): their matrix's
+    factor (semidefinite: :func:`.multigrid._cholesky`).
+    """
+    e0, e1, dd = _fine_edges(nb0, coords, lo0, lo1, s1, m0, m1)
+    s, c0, c1 = _galerkin_fine(e0, e1, dd, m0, m1)
+    ss = [s]
+    dims = [(c0, c1)]
+    while _count(ss[-1]) > COARSEST_UNKNOWNS and min(dims[-1]) > 4:
+        t, d0, d1 = _galerkin(ss[-1], dims[-1][0], dims[-1][1])
+        ss.append(t)
+        dims.append((d0, d1))
+    nl = len(ss)
+    off = np.zeros(nl + 1, np.int64)
+    shp = np.zeros((nl, 2), np.int64)
+    for lv in range(nl):
+        shp[lv, 0], shp[lv, 1] = dims[lv]
+        off[lv + 1] = off[lv] + dims[lv][0] * dims[lv][1] + 1
+    st = np.zeros((9, off[nl]), np.float32)
+    inv = np.zeros(off[nl], np.float32)
+    for lv in range(nl):
+        m = shp[lv, 0] * shp[lv, 1]
+        for k in range(9):
+            st[k, off[lv]:off[lv] + m] = ss[lv][k]
+        centre = ss[lv][4]
+        for f in range(m):
+            if centre[f] > 0.0:
+                inv[off[lv] + f] = np.float32(1.0 / centre[f])
+    last = ss[nl - 1]
+    w1 = shp[nl - 1, 1]
+    idx = np.flatnonzero(last[4] > 0.0)
+    k = idx.size
+    pos = np.full(last.shape[1], -1, np.int64)
+    pos[idx] = np.arange(k)
+    a = np.zeros((k, k))
+    for r in range(k):
+        f = idx[r]
+        for q in range(9):
+            v = last[q, f]
+            if v != 0.0:
+                a[r, pos[f + (q // 3 - 1) * w1 + q % 3 - 1]] += v
+    return st, inv, off, shp, idx, _cholesky(a, True)
+
+
+# --------------------------------------------------------------------------
+# the coarse levels' kernels (float32, vector loops over each level's box)
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _residual(st, x, b, t, o0, m0, m1):
+    """
+    Write t = b − S x over a level's cells (from ``o0``, m0 × m1), 0 on its border rows and the row after.
+
+    The rows between hold border columns too: their stencils and right-hand sides are 0.
+    """
+    lo = m1 + 1
+    hi = (m0 - 1) * m1 - 1
+    n = hi - lo
+    g = o0 + lo
+    bb = b[g:g + n]
+    tt = t[lo:hi]
+    a0, a1, a2 = st[0, g:g + n], st[1, g:g + n], st[2, g:g + n]
+    a3, a4, a5 = st[3, g:g + n], st[4, g:g + n], st[5, g:g + n]
+    a6, a7, a8 = st[6, g:g + n], st[7, g:g + n], st[8, g:g + n]
+    x0, x1, x2 = x[g - m1 - 1:g - m1 - 1 + n], x[g - m1:g - m1 + n], x[g - m1 + 1:g - m1 + 1 + n]
+    x3, x4, x5 = x[g - 1:g - 1 + n], x[g:g + n], x[g + 1:g + 1 + n]
+    x6, x7, x8 = x[g + m1 - 1:g + m1 - 1 + n], x[g + m1:g + m1 + n], x[g + m1 + 1:g + m1 + 1 + n]
+    for i in range(n):
+        tt[i] = bb[i] - ((((a0[i] * x0[i] + a1[i] * x1[i]) + (a2[i] * x2[i] + a3[i] * x3[i]))
+                          + ((a5[i] * x5[i] + a6[i] * x6[i]) + (a7[i] * x7[i] + a8[i] * x8[i]))) + a4[i] * x4[i])
+    t[:lo] = 0.0
+    t[hi:(m0 + 1) * m1] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _jacobi(st, inv, x, b, t, o0, m0, m1, first):
+    """One damped Jacobi sweep on a level: x = w inv b (``first``: from 0), else x += w inv (b − S x)."""
+    w = JACOBI_WEIGHT
+    lo = m1 + 1
+    hi = (m0 - 1) * m1 - 1
+    n = hi - lo
+    g = o0 + lo
+    xx = x[g:g + n]
+    iv = inv[g:g + n]
+    if first:
+        bb = b[g:g + n]
+        for i in range(n):
+            xx[i] = w * iv[i] * bb[i]
+        return
+    _residual(st, x, b, t, o0, m0, m1)
+    tt = t[lo:hi]
+    for i in range(n):
+        xx[i] += w * iv[i] * tt[i]
+
+
+@nb.njit(cache=True, nogil=True)
+def _restrict(t, b, o1, m0, m1, c0, c1, h):
+    """
+    Write b (the level below, from ``o1``, c0 × c1) = Pᵀ t: the residual t (m0 × m1) weighted fully.
+
+    h: scratch of (m0 + 1) × c1, each fine row weighted along axis 1 first, then the rows.
+    """
+    half = np.float32(0.5)
+    nj = c1 - 2
+    for r in range(m0 + 1):
+        hr = h[r * c1 + 1:r * c1 + 1 + nj]
+        mid = t[r * m1 + 1:r * m1 + 1 + 2 * nj:2]           # fine column 2 J1 - 1
+        left = t[r * m1:r * m1 + 2 * nj:2]                   # 2 J1 - 2
+        right = t[r * m1 + 2:r * m1 + 2 + 2 * nj:2]          # 2 J1
+        for j in range(nj):
+            hr[j] = mid[j] + half * (left[j] + right[j])
+    for j0 in range(1, c0 - 1):
+        out = b[o1 + j0 * c1 + 1:o1 + j0 * c1 + 1 + nj]
+        above = h[(2 * j0 - 2) * c1 + 1:(2 * j0 - 2) * c1 + 1 + nj]
+        mid = h[(2 * j0 - 1) * c1 + 1:(2 * j0 - 1) * c1 + 1 + nj]
+        below = h[(2 * j0) * c1 + 1:(2 * j0) * c1 + 1 + nj]
+        for j in range(nj):
+            out[j] = mid[j] + half * (above[j] + below[j])
+
+
+@nb.njit(cache=True, nogil=True)
+def _prolong(x, o0, m0, m1, o1, c1):
+    """
+    Add P x_below (from ``o1``, rows of c1) to a level's x (from ``o0``, m0 × m1), one parity class at a time.
+
+    Cells off the unknowns take values too: no stencil reads them (their weights are 0) and
+    the next cycle starts them from 0 again.
+    """
+    half = np.float32(0.5)
+    quarter = np.float32(0.25)
+    n_odd = (m1 - 1) // 2                 # columns 2 J1 - 1 up to m1 - 2
+    n_even = (m1 - 2) // 2                # columns 2 J1
+    for p0 in range(1, m0 - 1):
+        row = o0 + p0 * m1
+        xo = x[row + 1:row + 1 + 2 * n_odd:2]
+        xe = x[row + 2:row + 2 + 2 * n_even:2]
+        if p0 & 1:
+            j0 = (p0 + 1) >> 1
+            c = x[o1 + j0 * c1 + 1:o1 + j0 * c1 + 2 + n_odd]
+            for j in range(n_odd):
+                xo[j] += c[j]
+            for j in range(n_even):
+                xe[j] += half * (c[j] + c[j + 1])
+        else:
+            a0 = p0 >> 1
+            c = x[o1 + a0 * c1 + 1:o1 + a0 * c1 + 2 + n_odd]
+            d = x[o1 + (a0 + 1) * c1 + 1:o1 + (a0 + 1) * c1 + 2 + n_odd]
+            for j in range(n_odd):
+                xo[j] += half * (c[j] + d[j])
+            for j in range(n_even):
+                xe[j] += quarter * ((c[j] + c[j + 1]) + (d[j] + d[j + 1]))
+
+
+@nb.njit(cache=True, nogil=True)
+def _coarsest(x, b, o, idx, low, y):
+    """Solve the coarsest level (from ``o``) with its factor: x = A⁺ b on its unknowns (a null column's stays 0)."""
+    k = idx.size
+    for i in range(k):
+        acc = np.float64(b[o + idx[i]])
+        for j in range(i):
+            acc -= low[i, j] * y[j]
+        y[i] = acc / low[i, i] if low[i, i] > 0.0 else 0.0
+    for i in range(k - 1, -1, -1):
+        acc = y[i]
+        for j in range(i + 1, k):
+            acc -= low[j, i] * y[j]
+        y[i] = acc / low[i, i] if low[i, i] > 0.0 else 0.0
+    for i in range(k):
+        x[o + idx[i]] = y[i]
+
+
+@nb.njit(cache=True, nogil=True)
+def _coarse_cycle(st, inv, off, shp, idx, low, x, b, t, y, h):
+    """
+    Compute x = M⁻¹ b from level 1 down (x, b float32 packed by ``off``): a V-cycle of damped Jacobi.
+
+    t, h: scratch of the largest level (:func:`_restrict`'s); y: the coarsest's (float64).
+    """
+    nl = shp.shape[0]
+    for lv in range(nl - 1):
+        o0, m0, m1 = off[lv], shp[lv, 0], shp[lv, 1]
+        _jacobi(st, inv, x, b, t, o0, m0, m1, True)
+        for _ in range(PRE_SWEEPS - 1):
+            _jacobi(st, inv, x, b, t, o0, m0, m1, False)
+        _residual(st, x, b, t, o0, m0, m1)
+        _restrict(t, b, off[lv + 1], m0, m1, shp[lv + 1, 0], shp[lv + 1, 1], h)
+    o = off[nl - 1]
+    x[o:off[nl]] = 0.0
+    _coarsest(x, b, o, idx, low, y)
+    for lv in range(nl - 2, -1, -1):
+        o0, m0, m1 = off[lv], shp[lv, 0], shp[lv, 1]
+        _prolong(x, o0, m0, m1, off[lv + 1], shp[lv + 1, 1])
+        for _ in range(POST_SWEEPS):
+            _jacobi(st, inv, x, b, t, o0, m0, m1, False)
+
+
+# --------------------------------------------------------------------------
+# the fine level (:mod:`.structured`'s cells) and CG
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _restrict_fine(b, x, res, gather, bc, ranges, cut_red):
+    """
+    Write level 1's right-hand side bc = Pᵀ r from the red cells' residuals (the black ones are 0 after a sweep).
+
+    res float64 (H,): scratch, its last entry 0; each level-1 node's coincident red cell and a
+    quarter of its corner cells' (:func:`_transfer`'s gather).
+    """
+    structured._residual_range(b[0], x[0], x[1], res, ranges[0, 0, 0], ranges[0, 0, 1], ranges[0, 0, 2:], 4, 4.0)
+    xs = x[1]
+    for e in range(cut_red.shape[0]):
+        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    for j in range(gather.shape[0]):
+        g = gather[j]
+        bc[j] = np.float32(res[g[0]] + 0.25 * ((res[g[1]] + res[g[2]]) + (res[g[3]] + res[g[4]])))
+
+
+@nb.njit(cache=True, nogil=True)
+def _prolong_fine(x, xc, z, one, c0, c1, ranges):
+    """
+    Add level 1's correction to the red cells: z = [xc, the corner averages], one read a cell (:func:`_transfer`).
+
+    x float32 (2, H); xc: level 1's values (c0 · c1 and a zero); z: scratch of 2 c0 c1 + 1.
+    """
+    m = c0 * c1
+    quarter = np.float32(0.25)
+    z[:m + 1] = xc[:m + 1]
+    for a0 in range(c0 - 1):
+        yr = z[m + 1 + a0 * c1:m + a0 * c1 + c1]
+        u = xc[a0 * c1:a0 * c1 + c1]
+        v = xc[(a0 + 1) * c1:(a0 + 1) * c1 + c1]
+        for j in range(c1 - 1):
+            yr[j] = quarter * ((u[j] + u[j + 1]) + (v[j] + v[j + 1]))
+    t = x[0]
+    for k in range(ranges[0, 0, 0], ranges[0, 0, 1]):
+        t[k] += z[one[k]]
+
+
+@nb.njit(cache=True, nogil=True)
+def _gvcycle(mask, ranges, nranges, cut_red, cut_black, one, gather, st, inv, off, shp, idx, low, rf, xf, res, xc,
+             bc, t, y, h, z, sweeps, stop):
+    """
+    Compute xf = M⁻¹ rf (one V-cycle, see the module doc); return rf · xf.
+
+    rf float64 (2, H): CG's residual on the cells; xf float32 (2, H); ``sweeps`` red-black pairs
+    before and after the coarse correction; ``stop`` polled before it.
+    """
+    inv_deg = 0.25
+    structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
+    structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
+    for _ in range(sweeps - 1):
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, 4, inv_deg)
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
+    if stop[0] != 0:
+        return 0.0
+    _restrict_fine(rf, xf, res, gather, bc, ranges, cut_red)
+    _coarse_cycle(st, inv, off, shp, idx, low, xc, bc, t, y, h)
+    _prolong_fine(xf, xc, z, one, shp[0, 0], shp[0, 1], ranges)
+    for _ in range(sweeps - 1):
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, 4, inv_deg)
+    s_black = structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
+    return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_red, 0, 4, inv_deg) + s_black
+
+
+@nb.njit(cache=True, nogil=True)
+def _gpcg(mask, ranges, nranges, cut_red, cut_black, one, gather, st, inv, off, shp, idx, low, rhs, u, tol, max_iter,
+          deadline, stop, sweeps):
+    """
+    CG on the cells preconditioned by :func:`_gvcycle`, from u: the stop rule of :func:`.multigrid._spcg`.
+
+    rhs, u float64 (2, H) (0 off the unknowns); stops when the largest residual is below
+    ``tol``, after ``max_iter`` iterations, at ``deadline`` or when ``stop[0]`` is set (polled
+    before every iteration, after the update and within the V-cycle).  Returns (iterations,
+    final max residual); u is updated in place.
+    """
+    half = mask.shape[1]
+    cells = 2 * half
+    xf = np.zeros((2, half), np.float32)
+    res = np.zeros(half)
+    r = np.zeros((2, half))
+    p = np.zeros((2, half))
+    q = np.zeros((2, half))
+    total = off[-1]
+    xc = np.zeros(total, np.float32)
+    bc = np.zeros(total, np.float32)
+    big = shp[0, 0] * shp[0, 1] + 2 * shp[0, 1] + 2
+    t = np.zeros(big, np.float32)
+    h = np.zeros(big, np.float32)
+    y = np.zeros(idx.size)
+    z = np.zeros(2 * shp[0, 0] * shp[0, 1] + 1, np.float32)
+    rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
+    structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, 4)
+    rl[:] = rhs.reshape(-1)
+    worst = 0.0
+    for i in range(cells):
+        rl[i] -= ql[i]
+        worst = max(worst, abs(rl[i]))
+    if worst < tol:
+        return 0, worst
+    rz = _gvcycle(mask, ranges, nranges, cut_red, cut_black, one, gather, st, inv, off, shp, idx, low, r, xf, res,
+                  xc, bc, t, y, h, z, sweeps, stop)
+    pl[:] = xl
+    it = 0
+    while it < max_iter:
+        if stop[0] != 0 or (deadline > 0.0 and _now() > deadline):      # polled before every iteration
+            break
+        it += 1
+        pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, 4)
+        if not pq > 0.0:
+            break
+        alpha, worst, done = _descend(rl, ql, ul, pl, rz, pq, tol, cells, stop)
+        if done:
+            break
+        rz_new = _gvcycle(mask, ranges, nranges, cut_red, cut_black, one, gather, st, inv, off, shp, idx, low, r, xf,
+                          res, xc, bc, t, y, h, z, sweeps, stop)
+        rz = _turn(ul, pl, xl, alpha, rz, rz_new, cells)
+    return it, worst

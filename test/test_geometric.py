@@ -1,0 +1,196 @@
+"""
+The geometric coarse levels of a 2-D band (field/geometric.py) against a direct solve and a product built here.
+
+Each problem is ``test_structured``'s (built from the grid's definition: obstacles, a window of
+unknowns, cut edges, the unknowns in a random order) or a maze's first band.  The solve on the
+geometric levels must meet the residual it reports on the grid's own Laplacian, agree with
+SciPy's direct solve, give the same bits twice, and stop where the other routes stop (a guess,
+a deadline).  Level 1's operator must be Galerkin's product Pᵀ A P with the bilinear
+prolongation P written here from its definition (SciPy's sparse product), and so must the
+level below it.  The coarsest level's factor, with a null column, must solve every consistent
+right-hand side.
+"""
+
+import itertools
+import time
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from spacerobot_planner.field import geometric, multigrid, structured
+from test_structured import PROBLEMS, _box_cells, _problem
+from test_termination import _first_band, _maze_problem
+
+TWO_D = [name for name in PROBLEMS if name.startswith("2-D") and "periodic" not in name]
+
+
+def _maze_band():
+    """Return a 181² maze's first band ``(nbr, coords, shape, rhs, A)``, as ``harmonic.solve`` poses it (goal 1)."""
+    sub, coords, shape, rhs = _first_band(_maze_problem())
+    sub = sub.astype(np.int64)
+    n = len(rhs)
+    rows, cols = np.nonzero(sub < n)
+    A = sp.csr_matrix((np.full(rows.size, -1.0), (rows, sub[rows, cols])), shape=(n, n)) + 4 * sp.identity(n)
+    return sub, coords, shape, rhs, A.tocsr()
+
+
+def _case(name):
+    if name == "maze":
+        return _maze_band()
+    nbr, coords, rhs, A = _problem(**PROBLEMS[name])
+    return nbr, coords, PROBLEMS[name]["shape"], rhs, A
+
+
+@pytest.mark.parametrize("name", TWO_D + ["maze"])
+def test_the_geometric_levels_solve_the_grid_problem(name):
+    nbr, coords, shape, rhs, A = _case(name)
+    h = multigrid.Hierarchy(nbr, coords, shape, coarsen=False)
+    layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(len(rhs), np.uint32), 0, np.inf)
+    assert geometric.applies(2, layout), "the problem does not take the geometric levels"
+    tol = 1e-10
+    x, its, res = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="geometric")
+    assert 0 < its and res < tol
+    true_res = np.max(np.abs(rhs - A @ x))
+    assert true_res < tol, f"true residual {true_res:.3g}, reported {res:.3g}"
+    direct = spla.spsolve(A.tocsc(), rhs)
+    assert np.max(np.abs(x - direct)) < 1e-6 * np.max(np.abs(direct))
+    again = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="geometric")
+    assert np.array_equal(x, again[0]) and again[1] == its, "the same problem gave other bits"
+
+
+def test_the_maze_takes_fewer_iterations_than_on_the_aggregation_levels():
+    """What the route is for: bilinear prolongation, Galerkin levels, on a 181² maze's first band."""
+    nbr, coords, shape, rhs, _ = _maze_band()
+    its_geo = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="geometric")[1]
+    its_agg = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="structured")[1]
+    assert its_geo < its_agg, (its_geo, its_agg)
+
+
+def _bilinear(q, m_coarse):
+    """Return P's rows for padded fine coordinates ``q`` (k, 2): (fine row, coarse flat index, weight) lists."""
+    rows, cols, vals = [], [], []
+    for r, (q0, q1) in enumerate(q):
+        along = []
+        for qa in (q0, q1):
+            along.append([((qa + 1) // 2, 1.0)] if qa % 2 else [(qa // 2, 0.5), (qa // 2 + 1, 0.5)])
+        for (i0, w0), (i1, w1) in itertools.product(*along):
+            rows.append(r)
+            cols.append(i0 * m_coarse[1] + i1)
+            vals.append(w0 * w1)
+    return rows, cols, vals
+
+
+def _stencil_matrix(st, shape):
+    """Return a level's 9-point stencils (9, c0 · c1) as a SciPy matrix over its cells."""
+    c0, c1 = shape
+    rows, cols, vals = [], [], []
+    for k in range(9):
+        d = (k // 3 - 1) * c1 + k % 3 - 1
+        f = np.flatnonzero(st[k])
+        rows.append(f)
+        cols.append(f + d)
+        vals.append(st[k][f])
+    rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(c0 * c1,) * 2)
+
+
+@pytest.mark.parametrize("name", ["2-D, cut edges", "2-D, a window", "maze"])
+def test_the_coarse_levels_are_galerkins_product_with_bilinear_prolongation(name):
+    """
+    Level 1 = Pᵀ A P and level 2 = P₁ᵀ (level 1) P₁, P bilinear from the padded coordinates of the module's doc.
+
+    The padded coordinates and P are computed here from the definition; the kernels' stencils
+    must equal the SciPy product entry for entry (sums of multiples of 1/16: exact).
+    """
+    nbr, coords, shape, rhs, A = _case(name)
+    h = multigrid.Hierarchy(nbr, coords, shape, coarsen=False)
+    rows = np.arange(len(rhs)) if h.in_order else np.argsort(h.fine_of_input)   # fine row -> input
+    c = h.coords
+    lo = c.min(axis=0)
+    q = c - lo + 1
+    q[:, 1] += (lo[0] + lo[1]) % 2                       # a red row (even sum) has q0 + q1 even
+    assert np.all((q.sum(axis=1) % 2 == 0) == (c.sum(axis=1) % 2 == 0))
+    m = q.max(axis=0) + 2
+    cshape = (m - 2) // 2 + 3
+    pr, pc, pv = _bilinear(q, cshape)
+    P = sp.csr_matrix((pv, (pr, pc)), shape=(len(rhs), int(np.prod(cshape))))
+    A_rows = A[rows][:, rows]                             # A in the fine rows' order
+    level1 = (P.T @ A_rows @ P).toarray()
+    got1, c0, c1 = geometric._galerkin_fine(*geometric._fine_edges(h.nb0, h.coords, lo[0], lo[1],
+                                                                   (lo[0] + lo[1]) % 2, m[0], m[1]), m[0], m[1])
+    assert (c0, c1) == tuple(cshape)
+    assert np.array_equal(_stencil_matrix(got1, (c0, c1)).toarray(), level1)
+    # the level below, from level 1's stencils: its cells are its padded coordinates
+    unknown = np.flatnonzero(np.diag(level1) > 0)
+    q1 = np.array(np.unravel_index(unknown, (c0, c1))).T
+    c2shape = (np.array([c0, c1]) - 2) // 2 + 3
+    pr, pc, pv = _bilinear(q1, c2shape)
+    P1 = sp.csr_matrix((pv, (pr, pc)), shape=(unknown.size, int(np.prod(c2shape))))
+    level2 = (P1.T @ sp.csr_matrix(level1[np.ix_(unknown, unknown)]) @ P1).toarray()
+    got2, d0, d1 = geometric._galerkin(got1, c0, c1)
+    assert (d0, d1) == tuple(c2shape)
+    assert np.array_equal(_stencil_matrix(got2, (d0, d1)).toarray(), level2)
+
+
+def test_a_semidefinite_coarsest_factor_solves_every_consistent_right_hand_side():
+    """A null column (equal columns of the prolongation) is left at 0: a x = b wherever b is in a's range."""
+    rng = np.random.default_rng(7)
+    for m in (6, 20, 45):
+        b = rng.standard_normal((m, m - 3))
+        a = b @ b.T                                       # rank m - 3: three null directions
+        low = multigrid._cholesky(a, semidefinite=True)
+        assert np.count_nonzero(np.diag(low) > 0) == m - 3
+        rhs = a @ rng.standard_normal(m)                  # in the range
+        x = np.zeros(m)
+        y = np.zeros(m)
+        geometric._coarsest(x, rhs.astype(np.float32), 0, np.arange(m), low, y)
+        assert np.allclose(a @ x, rhs.astype(np.float32), rtol=1e-4, atol=1e-4 * np.max(np.abs(rhs)))
+        with pytest.raises(ValueError, match="not positive definite"):
+            multigrid._cholesky(a)
+
+
+def test_a_guess_and_a_deadline_as_on_the_other_routes():
+    """From the solution no iteration; from a wrong guess the same residual; a passed deadline stops at once."""
+    nbr, coords, shape, rhs, A = _case("2-D, cut edges")
+    tol = 1e-10
+    x, its, _ = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="geometric")
+    again, its0, res0 = multigrid.solve(nbr, coords, shape, rhs, tol=tol, x0=x, route="geometric")
+    assert its0 == 0 and res0 < tol and np.array_equal(again, x)
+    wrong = np.random.default_rng(5).random(len(rhs))
+    y, its1, res1 = multigrid.solve(nbr, coords, shape, rhs, tol=tol, x0=wrong, route="geometric")
+    assert its1 > 0 and res1 < tol and np.max(np.abs(rhs - A @ y)) < tol
+    late, its_late, res_late = multigrid.solve(nbr, coords, shape, rhs, tol=tol, route="geometric",
+                                               deadline=time.perf_counter())
+    assert its > 0 and its_late == 0 and res_late > tol
+    assert res_late == pytest.approx(np.max(np.abs(rhs - A @ late)))
+
+
+@pytest.mark.parametrize("name, geometric_route", [
+    ("2-D", True), ("2-D, cut edges", True),
+    ("2-D, a window", False),                              # a diamond: its box has too many cells per unknown
+    ("2-D, periodic axis 0", False),                       # its edges cross the seam
+    ("3-D, periodic axis 0", False),
+])
+def test_the_rule_takes_the_geometric_levels_for_compact_2d_boxes_without_a_seam(name, geometric_route, monkeypatch):
+    """``solve``'s "auto" builds the geometric levels where the cells' box rule holds on a 2-D grid, no seam edge."""
+    nbr, coords, rhs, _ = _problem(**PROBLEMS[name])
+    shape = PROBLEMS[name]["shape"]
+    n = len(rhs)
+    wraps = PROBLEMS[name]["periodic"][0] and np.any(nbr[coords[:, 0] == 0, 0] < n)
+    compact = _box_cells(coords, shape, wraps) <= structured.MAX_CELLS_PER_UNKNOWN * n
+    assert (len(shape) == 2 and not wraps and compact and n >= structured.MIN_UNKNOWNS) == geometric_route, \
+        "the case does not test what it says"
+    built = []
+    real = geometric.levels
+
+    def counted(*a):
+        built.append(1)
+        return real(*a)
+    monkeypatch.setattr(geometric, "levels", counted)
+    auto = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10)
+    assert bool(built) == geometric_route
+    if geometric_route:
+        geo = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="geometric")
+        assert np.array_equal(auto[0], geo[0]) and auto[1] == geo[1]
