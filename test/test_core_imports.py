@@ -51,6 +51,7 @@ COMPAT = ()
 LAYERS = (
     ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft", "overlap")),
     ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.structured",
+                "field.geometric", "field.krylov",
                 "field.oracle", "field.paper", "descent", "repair", "swept", "contact", "smoothing", "ik", "redundant",
                 "results", "trajectory", "reaction", "timing", "replanning", "settings", "problem",
                 "free_floating_capture")),

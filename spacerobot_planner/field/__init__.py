@@ -22,9 +22,10 @@ route here (``"log_harmonic"``, :mod:`.harmonic`) is accurate *relative* to each
 band by band of scale:
 
 1. Band 1: the whole Dirichlet problem (goal = 1) by conjugate gradients preconditioned
-   by an aggregation-multigrid V-cycle (:mod:`.multigrid`), to a largest residual of
-   1e-10.  Values ≥ 1e-6 are then right to about 1e-4 relative (measured against a
-   direct solve: 1e-5 at most on the paper's scenes) and are kept.
+   by an aggregation-multigrid V-cycle (:mod:`.multigrid`; on a compact 2-D band,
+   geometric coarse levels: :mod:`.geometric`), to a largest residual of 1e-10.  Values
+   ≥ 1e-6 are then right to about 1e-4 relative (measured against a direct solve: 1e-5 at
+   most on the paper's scenes) and are kept.
 2. Band k + 1: the nodes still without a value, as a Dirichlet problem of their own whose
    known neighbours are the kept values, divided by the largest of them, so the band's
    values are again of order one; solved and kept the same way.  Every band keeps at

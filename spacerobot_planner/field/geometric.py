@@ -30,6 +30,10 @@ lowest coordinates), axis 1 shifted by one more where ``lo0 + lo1`` is odd, so t
 (odd q, weight 1), ``q / 2`` and ``q / 2 + 1`` (even q, ½ each).  Level l's box has
 ``m = (m_above − 2) // 2 + 3`` cells per axis, its border (index 0 and m − 1) never an unknown.
 Stencil slot k of a node is its neighbour at ``(k // 3 − 1, k % 3 − 1)``.
+
+Editing :mod:`.structured`'s kernels or :mod:`.krylov`'s CG steps (``_descend``, ``_turn``):
+numba's cache keys this module's kernels, which link them in, on this file's time stamp, so
+delete them (``field/__pycache__/geometric*.nbi``, ``*.nbc``) or touch this file.
 """
 from __future__ import annotations
 
@@ -37,7 +41,7 @@ import numba as nb
 import numpy as np
 
 from . import structured
-from .multigrid import _cholesky, _descend, _now, _turn
+from .krylov import _cholesky, _descend, _now, _turn
 
 #: The coarsest level has at most this many unknowns (a dense factor solves it).
 COARSEST_UNKNOWNS = 64

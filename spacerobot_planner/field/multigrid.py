@@ -35,7 +35,9 @@ Where the band is compact (:func:`.structured.fine_layout`'s rule: its bounding 
 cells per unknown, at most axis 0 periodic and of even length) the fine level lives on the
 box's cells instead (:mod:`.structured`): its sweeps, product and residual read neighbours at
 fixed offsets, in vector loops (:func:`_spcg`, :func:`_svcycle`: the same CG and V-cycle,
-the same iterations); the coarse levels are the same.
+the same iterations); the coarse levels are the same.  On a 2-D grid, where such a band has no
+edge across a periodic seam, the coarse levels are :mod:`.geometric`'s instead (bilinear
+prolongation, Galerkin 9-point levels: 9 CG iterations on the paper's first band instead of 17).
 
 Levels are packed into flat arrays: level l owns rows ``off[l] .. off[l] + size[l]`` plus
 one dummy row (value 0, weight 0) at ``off[l] + size[l]`` that stands for "no neighbour".
@@ -51,16 +53,14 @@ second thread while its fine level's cells are laid out (:data:`BESIDE_MIN_UNKNO
 """
 from __future__ import annotations
 
-import math
-import sys
 import threading
-import time
 
 import numba as nb
 import numpy as np
 
-from . import structured
+from . import geometric, structured
 from .graph import coord_sum, grid_strides, strided_sum
+from .krylov import _cholesky, _descend, _now, _step, _subtract_max, _turn     # CG's steps, shared
 
 #: Stop coarsening at this many unknowns and solve that level directly.  Its dense triangular
 #: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a third of
@@ -68,8 +68,6 @@ from .graph import coord_sum, grid_strides, strided_sum
 #: the extra levels cost next to nothing and the iterations hardly change (1 067 vs 1 062, 0.5 %
 #: more, over 125 random 2-DOF bands; 1 134 vs 1 132 over 110 3-DOF bands).
 COARSEST_NODES = 30
-#: :func:`_cholesky`'s semidefinite pivot test: a pivot at most this fraction of its diagonal entry is null.
-NULL_PIVOT = 1e-12
 #: A problem of at most this many unknowns is not coarsened: its fine level is the coarsest,
 #: solved directly in one iteration (the small bands of narrow passages).
 DIRECT_NODES = 100
@@ -429,52 +427,6 @@ def _coarsest_matrix(cn, cw, cd):
     return dense
 
 
-@nb.njit(cache=True, nogil=True)
-def _cholesky(a, semidefinite=False):
-    """
-    Return the lower Cholesky factor of the symmetric positive definite ``a`` (m, m), float64 (m, m).
-
-    The coarsest level's (at most :data:`DIRECT_NODES` rows), in the kernel that builds it:
-    LAPACK's through NumPy cost 30-80 us per band inside a plan (its code cold in the cache),
-    against 4-6 us at 18-30 rows in a loop; this one 1-3 us at 15-30 rows, 25 us at 68.  Column by column:
-    entry (i, j) from the products of rows i and j before column j, summed in four
-    interleaved partial sums (a fixed order, so the same bits on any machine).  Reads the
-    lower triangle of ``a``.  Raises ValueError where a pivot is not positive (or is NaN).
-    ``semidefinite``: a pivot at most :data:`NULL_PIVOT` times its diagonal entry instead gives a
-    zero column (its unknown is left at 0 by :func:`.geometric._coarsest`: the factor then solves ``a``
-    on the complement of its null space, a symmetric semidefinite pseudo-inverse), as a geometric
-    coarsest level may need (:mod:`.geometric`: an isolated fine unknown makes its four coarse
-    parents' columns of the prolongation equal).
-    """
-    m = a.shape[0]
-    low = np.zeros((m, m))
-    for j in range(m):
-        lj = low[j]
-        for i in range(j, m):
-            li = low[i]
-            s0 = s1 = s2 = s3 = 0.0
-            k = 0
-            while k + 4 <= j:
-                s0 += li[k] * lj[k]
-                s1 += li[k + 1] * lj[k + 1]
-                s2 += li[k + 2] * lj[k + 2]
-                s3 += li[k + 3] * lj[k + 3]
-                k += 4
-            while k < j:
-                s0 += li[k] * lj[k]
-                k += 1
-            t = a[i, j] - ((s0 + s1) + (s2 + s3))
-            if i == j:
-                if semidefinite and not t > NULL_PIVOT * a[j, j]:
-                    break                      # a null column: low[:, j] stays 0
-                if not t > 0.0:
-                    raise ValueError("the coarsest level's matrix is not positive definite")
-                low[j, j] = math.sqrt(t)
-            else:
-                low[i, j] = t / low[j, j]
-    return low
-
-
 class Stopped(Exception):
     """The set-up saw its termination flag set."""
 
@@ -611,34 +563,6 @@ def _matvec0_dot(nb0, p, q, n, deg):
         q[i] = v
         s += p[i] * v
     return s
-
-
-#: The bits of float64's +inf (a |value|'s bits above it: NaN) and the mask of its sign bit.
-_INF_BITS = 0x7FF0000000000000
-_ABS_BITS = 0x7FFFFFFFFFFFFFFF
-
-
-@nb.njit(cache=True, nogil=True)
-def _subtract_max(r, q, c, n):
-    """
-    Compute r -= c q over the first n entries; return the largest |r| among them (NaN skipped).
-
-    NaN skipped as before: a residual all NaN reads 0, so a caller keeps NaN out of CG's
-    inputs (``solve_field`` checks its guess).
-
-    The maximum is taken over the |r| bits as integers (the order of non-negative float64
-    values is their bits' order, so it is the same value): an integer maximum is a vector
-    reduction, a float one is a chain of dependent comparisons (25 000 entries: 17 -> 8 us).
-    """
-    bits = r.view(np.int64)
-    m = 0
-    for i in range(n):
-        r[i] = r[i] - c * q[i]
-        b = bits[i] & _ABS_BITS
-        m = max(m, b if b <= _INF_BITS else 0)
-    out = np.empty(1, np.int64)
-    out[0] = m
-    return out.view(np.float64)[0]
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -859,35 +783,6 @@ def _single_levels(off, wt, diag, inv_diag, chol):
     return wt32, diag32, inv_diag32, chol_t
 
 
-#: ``time.perf_counter``'s clock is CLOCK_MONOTONIC (Linux) and a ``struct timespec`` two int64
-#: (a 64-bit build): the solve's deadline checks read it without the interpreter (:func:`_now`);
-#: elsewhere they ask Python for it
-_MONOTONIC_PERF_COUNTER = (getattr(time, "CLOCK_MONOTONIC", None) is not None and sys.maxsize > 2**32
-                           and time.get_clock_info("perf_counter").implementation == "clock_gettime(CLOCK_MONOTONIC)")
-
-
-#: the C library's ``clock_gettime(clock, struct timespec *)``, called by its symbol (numba caches the call)
-_clock_gettime = nb.types.ExternalFunction("clock_gettime", nb.types.int32(nb.types.int32, nb.types.voidptr))
-#: ``time.perf_counter``'s clock id (0 where it is not CLOCK_MONOTONIC: not read)
-_CLOCK = int(time.CLOCK_MONOTONIC) if _MONOTONIC_PERF_COUNTER else 0
-
-
-if _MONOTONIC_PERF_COUNTER:
-    @nb.njit(cache=True, nogil=True)
-    def _now():
-        """Return ``time.perf_counter()``, s: the C library's monotonic clock, read without the GIL (40 ns)."""
-        ts = np.empty(2, np.int64)          # struct timespec: seconds, nanoseconds (64-bit Linux)
-        _clock_gettime(_CLOCK, ts.ctypes)
-        return ts[0] + 1e-9 * ts[1]
-else:
-    @nb.njit(cache=True)
-    def _now():
-        """Return ``time.perf_counter()``, s (through the interpreter: 2 us and the GIL)."""
-        with nb.objmode(t="float64"):
-            t = time.perf_counter()
-        return t
-
-
 @nb.njit(cache=True, nogil=True)
 def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, rhs, u, tol, max_iter,
          sweeps, boost, coarse_sweeps, deadline, stop):
@@ -944,45 +839,6 @@ def _pcg(nb0, red, rrows, nbr, wt64, diag64, inv_diag64, agg, off, sizes, chol, 
                          sweeps, boost, coarse_sweeps, stop)
         rz = _turn(u, p, xs, alpha, rz, rz_new, n)
     return it, res
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _descend(r, q, u, p, rz, pq, tol, n, stop):
-    """
-    Take CG's step along p (q = A p, pq = p · q): alpha = rz / pq, r -= alpha q; return ``(alpha, largest |r|, done)``.
-
-    done: the residual is below ``tol`` or the termination flag ``stop`` is set: u has then
-    taken its step (u += alpha p), else it is left to :func:`_turn`.  Over the first n entries.
-    """
-    alpha = rz / pq
-    res = _subtract_max(r, q, alpha, n)
-    if res < tol or stop[0] != 0:
-        _step(u, p, alpha, n)
-        return alpha, res, True
-    return alpha, res, False
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _step(u, p, alpha, n):
-    """Add alpha p to u over the first n entries (CG's step along p)."""
-    for i in range(n):
-        u[i] += alpha * p[i]
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _turn(u, p, z, alpha, rz, rz_new, n):
-    """
-    Turn CG to its new direction from the preconditioned residual z: return rz_new.
-
-    u's step along the old p (u += alpha p), then the new p = z + (rz_new / rz) p: one pass
-    over p (first n entries).  rz_new: β's numerator, r · z (the flexible CG of
-    :func:`_spcg` passes its own).
-    """
-    beta = rz_new / rz
-    for i in range(n):
-        u[i] += alpha * p[i]
-        p[i] = z[i] + beta * p[i]
-    return rz_new
 
 
 # --------------------------------------------------------------------------
@@ -1451,6 +1307,3 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
                    h.chol, b, x, float(tol), int(max_iter), int(sweeps),
                    float(boost), int(coarse_sweeps), float(deadline), stop)
     return x[rows], int(it), float(res)
-
-
-from . import geometric  # noqa: E402  (it reads this module's CG steps and factor: imported last)
