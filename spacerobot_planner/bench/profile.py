@@ -38,6 +38,8 @@ STEPS = (
     ("fine level on cells: layout", "band solve (multigrid)", "spacerobot_planner.field.structured", "laid_out"),
     ("level 1 on cells: layout", "band solve (multigrid)", "spacerobot_planner.field.structured", "coarse_layout"),
     ("PCG iterations on cells", "band solve (multigrid)", "spacerobot_planner.field.multigrid", "_spcg"),
+    ("geometric levels: set-up", "band solve (multigrid)", "spacerobot_planner.field.geometric", "levels"),
+    ("PCG iterations, geometric levels", "band solve (multigrid)", "spacerobot_planner.field.geometric", "pcg"),
     ("ascent check", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "ascent_defects"),
     ("ascent repair", "bands (harmonic.solve)", "spacerobot_planner.field.harmonic", "_repair_ascent"),
     ("descent", "", "spacerobot_planner.planner", "descend"),
