@@ -194,3 +194,23 @@ def test_the_rule_takes_the_geometric_levels_for_compact_2d_boxes_without_a_seam
     if geometric_route:
         geo = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="geometric")
         assert np.array_equal(auto[0], geo[0]) and auto[1] == geo[1]
+
+
+def test_a_long_thin_band_takes_the_aggregation_levels():
+    """
+    A band 4 nodes across takes the aggregation levels on cells (their bits).
+
+    Halving stops at a box 4 cells across, where the coarsest level would hold hundreds of
+    unknowns (above ``COARSEST_MOST``): ``levels`` says None.
+    """
+    shape = (4, 2000)
+    nbr, coords, rhs, A = _problem(shape, (False, False), 31, obstacles=0.0)
+    n = len(rhs)
+    assert _box_cells(coords, shape, False) <= structured.MAX_CELLS_PER_UNKNOWN * n, "not compact: tests nothing"
+    h = multigrid.Hierarchy(nbr, coords, shape, coarsen=False)
+    layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, np.inf)
+    assert geometric.applies(2, layout) and geometric.levels(h.nb0, h.coords, h.red0, layout) is None
+    auto = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10)
+    agg = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="structured")
+    assert np.array_equal(auto[0], agg[0]) and auto[1] == agg[1]
+    assert np.max(np.abs(rhs - A @ auto[0])) < 1e-10

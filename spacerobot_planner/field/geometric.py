@@ -43,8 +43,11 @@ import numpy as np
 from . import structured
 from .krylov import _cholesky, _descend, _now, _turn
 
-#: The coarsest level has at most this many unknowns (a dense factor solves it).
+#: The levels are halved until one has at most this many unknowns (a dense factor solves it) ...
 COARSEST_UNKNOWNS = 64
+#: ... or its box is 4 cells across (no halving shrinks it): a long thin band's coarsest level then holds
+#: more, and above this many the band takes the aggregation levels instead (:func:`levels` says None).
+COARSEST_MOST = 128
 #: Damped Jacobi's weight on the coarse levels (0.7: one iteration more on 3 of 7 sampled bands).
 JACOBI_WEIGHT = np.float32(0.8)
 #: Jacobi sweeps on each coarse level before the coarser correction (the first from 0) and after it.
@@ -63,10 +66,12 @@ class Levels:
 
 def applies(ndim: int, layout) -> bool:
     """
-    Return whether a problem takes this route (the rule, one place).
+    Return whether a problem may take this route (the rule, one place, with :func:`levels`).
 
     A 2-D grid whose fine level lies on cells (``layout``: :func:`.structured.laid_out`'s, or
-    None: the box breaks the cells' rule) with no edge across a periodic seam (one loop range).
+    None: the box breaks the cells' rule) with no edge across a periodic seam (one loop range);
+    and then its levels (:func:`levels`) are not None: their coarsest holds at most
+    :data:`COARSEST_MOST` unknowns.
     """
     return int(ndim) == 2 and layout is not None and layout.nranges == 1
 
@@ -75,11 +80,13 @@ def levels(nb0, coords, red0: int, layout) -> Levels:
     """
     Return the coarse levels of the fine rows ``nb0`` (uint32 (n, 4), red rows first), ``coords`` (n, 2).
 
-    ``layout``: their cells (:func:`.structured.laid_out`, one loop range).
+    ``layout``: their cells (:func:`.structured.laid_out`, one loop range).  None where the
+    coarsest level would hold more than :data:`COARSEST_MOST` unknowns (a long thin band: the
+    rule's second half, see :func:`applies`).
     """
     one, gather, lo0, lo1, s1, m0, m1 = _transfer(coords, layout.cell, int(red0), layout.half)
-    st, inv, off, shp, idx, low = _levels(nb0, coords, lo0, lo1, s1, m0, m1)
-    return Levels(one, gather, st, inv, off, shp, idx, low)
+    ok, st, inv, off, shp, idx, low = _levels(nb0, coords, lo0, lo1, s1, m0, m1, COARSEST_MOST)
+    return Levels(one, gather, st, inv, off, shp, idx, low) if ok else None
 
 
 def pcg(layout, lv: Levels, rhs, u, tol: float, max_iter: int, deadline: float, stop, sweeps: int):
@@ -352,9 +359,11 @@ def _count(s):
 
 
 @nb.njit(cache=True, nogil=True)
-def _levels(nb0, coords, lo0, lo1, s1, m0, m1):
+def _levels(nb0, coords, lo0, lo1, s1, m0, m1, most):
     """
-    Return the coarse levels, packed: ``(st, inv, off, shp, idx, low)``.
+    Return the coarse levels, packed: ``(ok, st, inv, off, shp, idx, low)``.
+
+    ok False: no factor, the coarsest level has more than ``most`` unknowns.
 
     st float32 (9, total): each level's stencils from ``off[l]`` (its c0 · c1 cells, then a
     zero); inv float32 (total,): their centres' inverses (0 off the unknowns); shp (L, 2): the
@@ -389,6 +398,8 @@ def _levels(nb0, coords, lo0, lo1, s1, m0, m1):
     w1 = shp[nl - 1, 1]
     idx = np.flatnonzero(last[4] > 0.0)
     k = idx.size
+    if k > most:
+        return False, st, inv, off, shp, idx, np.zeros((0, 0))
     pos = np.full(last.shape[1], -1, np.int64)
     pos[idx] = np.arange(k)
     a = np.zeros((k, k))
@@ -398,7 +409,7 @@ def _levels(nb0, coords, lo0, lo1, s1, m0, m1):
             v = last[q, f]
             if v != 0.0:
                 a[r, pos[f + (q // 3 - 1) * w1 + q % 3 - 1]] += v
-    return st, inv, off, shp, idx, _cholesky(a, True)
+    return True, st, inv, off, shp, idx, _cholesky(a, True)
 
 
 # --------------------------------------------------------------------------

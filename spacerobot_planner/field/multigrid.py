@@ -1179,15 +1179,14 @@ def _fine_layout_alone(nb0, coords, shape, red0, max_cells_per_unknown):
     return structured.laid_out(nb0, coords, shape, red0, agg, ccoords.shape[0], max_cells_per_unknown)
 
 
-def _solve_geometric(h, layout, rhs, x0, tol, max_iter, deadline, stop, sweeps):
+def _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, sweeps):
     """
-    Return :func:`solve`'s ``(x, iterations, largest residual)`` by :mod:`.geometric`'s levels under ``layout``.
+    Return :func:`solve`'s ``(x, iterations, largest residual)`` by :mod:`.geometric`'s levels ``lv`` under ``layout``.
 
     h: the problem's fine level (:class:`Hierarchy`, not coarsened).
     """
     rows = None if h.in_order else h.fine_of_input     # each input's fine row
     u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)
-    lv = geometric.levels(h.nb0, h.coords, h.red0, layout)
     if stop is None:
         stop = np.zeros(1, np.int64)
     elif stop[0] != 0:
@@ -1261,8 +1260,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     h = Hierarchy(nbr, coords, shape, coarsen=False)
     if route in ("auto", "geometric") and len(shape) == 2 and structured.may_lay_out(n, 2, sweeps, min_unknowns):
         layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, max_cells)
-        if geometric.applies(len(shape), layout):
-            return _solve_geometric(h, layout, rhs, x0, tol, max_iter, deadline, stop, sweeps)
+        lv = geometric.levels(h.nb0, h.coords, h.red0, layout) if geometric.applies(len(shape), layout) else None
+        if lv is not None:
+            return _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, sweeps)
     built = None
     try:
         if route != "graph" and structured.may_lay_out(n, len(shape), sweeps, min_unknowns) and (
