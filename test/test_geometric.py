@@ -214,3 +214,57 @@ def test_a_long_thin_band_takes_the_aggregation_levels():
     agg = multigrid.solve(nbr, coords, shape, rhs, tol=1e-10, route="structured")
     assert np.array_equal(auto[0], agg[0]) and auto[1] == agg[1]
     assert np.max(np.abs(rhs - A @ auto[0])) < 1e-10
+
+
+def _coarse_operator(lv):
+    """Return the coarse cycle as a dense matrix over level 1's unknowns (its columns: the cycle of unit vectors)."""
+    m = int(lv.shp[0, 0] * lv.shp[0, 1])
+    unknown = np.flatnonzero(lv.inv[:m] > 0)
+    big = m + 2 * int(lv.shp[0, 1]) + 2
+    out = np.zeros((unknown.size, unknown.size))
+    for j, u in enumerate(unknown):
+        x = np.zeros(lv.off[-1], np.float32)
+        b = np.zeros(lv.off[-1], np.float32)
+        b[u] = 1.0
+        geometric._coarse_cycle(lv.st, lv.inv, lv.off, lv.shp, lv.idx, lv.low, x, b, np.zeros(big, np.float32),
+                                np.zeros(lv.idx.size), np.zeros(big, np.float32))
+        out[:, j] = x[unknown]
+    return out
+
+
+def _levels_of(shape, seed, **kw):
+    nbr, coords, rhs, _ = _problem(shape, (False, False), seed, **kw)
+    h = multigrid.Hierarchy(nbr, coords, shape, coarsen=False)
+    layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(len(rhs), np.uint32), 0, np.inf)
+    return geometric.levels(h.nb0, h.coords, h.red0, layout)
+
+
+@pytest.mark.parametrize("shape, seed, kw", [
+    ((90, 90), 1, dict(obstacles=0.0)),                  # level 2 even both ways: its restriction's last read
+    ((64, 63), 13, dict(obstacles=0.35, cuts=0.02)),
+])
+def test_the_coarse_cycle_is_symmetric(shape, seed, kw):
+    """CG needs a symmetric preconditioner: the coarse cycle's matrix, built column by column, equals its transpose."""
+    lv = _levels_of(shape, seed, **kw)
+    assert lv is not None and lv.shp.shape[0] >= 3
+    b = _coarse_operator(lv)
+    assert np.max(np.abs(b - b.T)) <= 1e-5 * np.max(np.abs(b))
+    assert np.min(np.linalg.eigvalsh((b + b.T) / 2)) > -1e-6 * np.max(np.abs(b))
+
+
+@pytest.mark.parametrize("shape, seed, kw", [
+    ((64, 63), 13, dict(obstacles=0.35, cuts=0.02)),     # positive entries beside obstacles and cut edges
+    ((68, 61), 55, dict(obstacles=0.25, cuts=0.2)),
+    ((80, 70), 4, dict(obstacles=0.15)),
+])
+def test_every_coarse_jacobi_sweep_damps_every_mode(shape, seed, kw):
+    """Each coarse level's Jacobi step M (1 / inv) makes 2 M − S positive definite (NumPy's eigenvalues)."""
+    lv = _levels_of(shape, seed, **kw)
+    for level in range(lv.shp.shape[0] - 1):                # the coarsest is solved, not smoothed
+        c0, c1 = (int(v) for v in lv.shp[level])
+        o = int(lv.off[level])
+        st = lv.st[:, o:o + c0 * c1].astype(float)
+        unknown = np.flatnonzero(lv.inv[o:o + c0 * c1] > 0)
+        s = _stencil_matrix(st, (c0, c1)).toarray()[np.ix_(unknown, unknown)]
+        m = 1.0 / lv.inv[o + unknown].astype(float)
+        assert np.min(np.linalg.eigvalsh(2 * np.diag(m) - s)) > 0, f"level {level + 1}"

@@ -9,9 +9,10 @@ bilinear: a fine node between two coarse ones takes half of each, one amid four 
 quarter of each.  The coarse operators are Galerkin's (Pᵀ A P), so obstacles, walls,
 windows and cut edges need nothing of their own: they are in A.  Each level below the fine
 one is a 9-point stencil on its box of cells, smoothed by damped Jacobi (vector loops,
-float32, its weight :data:`JACOBI_WEIGHT`); the coarsest (at most :data:`COARSEST_UNKNOWNS`
-unknowns) is solved directly.  The fine level is :mod:`.structured`'s (its cells, red and
-black apart, and its kernels: the same Gauss–Seidel half-sweeps, product and residual).
+float32, its weight :data:`JACOBI_WEIGHT`, less on a row whose absolute sum asks it:
+:func:`_levels`); the coarsest (at most :data:`COARSEST_UNKNOWNS` unknowns) is solved directly.
+The fine level is :mod:`.structured`'s (its cells, red and black apart, and its kernels: the
+same Gauss–Seidel half-sweeps, product and residual).
 One V-cycle: a red and a black half-sweep, the red residuals restricted (the black ones are
 0), the coarse cycle, its correction added to the red cells (the black ones are set, not
 read, by the next half-sweep), a black and a red half-sweep: a symmetric preconditioner for
@@ -48,8 +49,13 @@ COARSEST_UNKNOWNS = 64
 #: ... or its box is 4 cells across (no halving shrinks it): a long thin band's coarsest level then holds
 #: more, and above this many the band takes the aggregation levels instead (:func:`levels` says None).
 COARSEST_MOST = 128
-#: Damped Jacobi's weight on the coarse levels (0.7: one iteration more on 3 of 7 sampled bands).
-JACOBI_WEIGHT = np.float32(0.8)
+#: Damped Jacobi's weight on the coarse levels (0.7: one iteration more on 3 of 7 sampled bands) ...
+JACOBI_WEIGHT = 0.8
+#: ... or less, row by row: a row's step is at most this over its absolute sum, so that 2 M − S is
+#: diagonally dominant and every sweep damps every mode (Galerkin's levels have positive entries beside
+#: obstacles and cut edges: Gershgorin bounds on D⁻¹ S up to 2.7 were met, where 0.8 would amplify one;
+#: a level's whole weight lowered to its worst row's doubled the iterations on the paper's 2-D band).
+JACOBI_MOST = 1.9
 #: Jacobi sweeps on each coarse level before the coarser correction (the first from 0) and after it.
 PRE_SWEEPS = 2
 POST_SWEEPS = 2
@@ -69,9 +75,9 @@ def applies(ndim: int, layout) -> bool:
     Return whether a problem may take this route (the rule, one place, with :func:`levels`).
 
     A 2-D grid whose fine level lies on cells (``layout``: :func:`.structured.laid_out`'s, or
-    None: the box breaks the cells' rule) with no edge across a periodic seam (one loop range);
-    and then its levels (:func:`levels`) are not None: their coarsest holds at most
-    :data:`COARSEST_MOST` unknowns.
+    None: the box breaks the cells' rule) with no edge across a periodic seam (one loop range).
+    The rule's second half is the caller's to check: :func:`levels` is not None (the coarsest
+    level holds at most :data:`COARSEST_MOST` unknowns).
     """
     return int(ndim) == 2 and layout is not None and layout.nranges == 1
 
@@ -366,9 +372,11 @@ def _levels(nb0, coords, lo0, lo1, s1, m0, m1, most):
     ok False: no factor, the coarsest level has more than ``most`` unknowns.
 
     st float32 (9, total): each level's stencils from ``off[l]`` (its c0 · c1 cells, then a
-    zero); inv float32 (total,): their centres' inverses (0 off the unknowns); shp (L, 2): the
-    levels' boxes; idx (k,): the coarsest level's unknowns (flat), low (k, k): their matrix's
-    factor (semidefinite: :func:`.multigrid._cholesky`).
+    zero); inv float32 (total,): each row's Jacobi step, :data:`JACOBI_WEIGHT` over its centre or
+    :data:`JACOBI_MOST` over its absolute sum, whichever is less (0 off the unknowns); shp (L, 2):
+    the levels' boxes; idx (k,): the
+    coarsest level's unknowns (flat), low (k, k): their matrix's factor (semidefinite:
+    :func:`.krylov._cholesky`).
     """
     e0, e1, dd = _fine_edges(nb0, coords, lo0, lo1, s1, m0, m1)
     s, c0, c1 = _galerkin_fine(e0, e1, dd, m0, m1)
@@ -393,7 +401,10 @@ def _levels(nb0, coords, lo0, lo1, s1, m0, m1, most):
         centre = ss[lv][4]
         for f in range(m):
             if centre[f] > 0.0:
-                inv[off[lv] + f] = np.float32(1.0 / centre[f])
+                row = 0.0              # the row's absolute sum: 2 M − S diagonally dominant where M ≥ it / 1.9
+                for q in range(9):
+                    row += abs(ss[lv][q, f])
+                inv[off[lv] + f] = np.float32(1.0 / max(centre[f] / JACOBI_WEIGHT, row / JACOBI_MOST))
     last = ss[nl - 1]
     w1 = shp[nl - 1, 1]
     idx = np.flatnonzero(last[4] > 0.0)
@@ -418,7 +429,9 @@ def _levels(nb0, coords, lo0, lo1, s1, m0, m1, most):
 @nb.njit(cache=True, nogil=True)
 def _residual(st, x, b, t, o0, m0, m1):
     """
-    Write t = b − S x over a level's cells (from ``o0``, m0 × m1), 0 on its border rows and the row after.
+    Write t = b − S x over a level's cells (from ``o0``, m0 × m1), 0 on its border rows, the row after and one more.
+
+    (:func:`_restrict` reads up to ``t[(m0 + 1) m1]`` where m0 and m1 are even.)
 
     The rows between hold border columns too: their stencils and right-hand sides are 0.
     """
@@ -438,13 +451,12 @@ def _residual(st, x, b, t, o0, m0, m1):
         tt[i] = bb[i] - ((((a0[i] * x0[i] + a1[i] * x1[i]) + (a2[i] * x2[i] + a3[i] * x3[i]))
                           + ((a5[i] * x5[i] + a6[i] * x6[i]) + (a7[i] * x7[i] + a8[i] * x8[i]))) + a4[i] * x4[i])
     t[:lo] = 0.0
-    t[hi:(m0 + 1) * m1] = 0.0
+    t[hi:(m0 + 1) * m1 + 1] = 0.0
 
 
 @nb.njit(cache=True, nogil=True)
 def _jacobi(st, inv, x, b, t, o0, m0, m1, first):
-    """One damped Jacobi sweep on a level: x = w inv b (``first``: from 0), else x += w inv (b − S x)."""
-    w = JACOBI_WEIGHT
+    """One damped Jacobi sweep on a level: x = inv b (``first``: from 0), else x += inv (b − S x) (inv: weighted)."""
     lo = m1 + 1
     hi = (m0 - 1) * m1 - 1
     n = hi - lo
@@ -454,12 +466,12 @@ def _jacobi(st, inv, x, b, t, o0, m0, m1, first):
     if first:
         bb = b[g:g + n]
         for i in range(n):
-            xx[i] = w * iv[i] * bb[i]
+            xx[i] = iv[i] * bb[i]
         return
     _residual(st, x, b, t, o0, m0, m1)
     tt = t[lo:hi]
     for i in range(n):
-        xx[i] += w * iv[i] * tt[i]
+        xx[i] += iv[i] * tt[i]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -522,7 +534,12 @@ def _prolong(x, o0, m0, m1, o1, c1):
 
 @nb.njit(cache=True, nogil=True)
 def _coarsest(x, b, o, idx, low, y):
-    """Solve the coarsest level (from ``o``) with its factor: x = A⁺ b on its unknowns (a null column's stays 0)."""
+    """
+    Solve the coarsest level (from ``o``) with its factor: x_K = A_KK⁻¹ b_K, x_N = 0.
+
+    K: its unknowns whose pivots are not null, N: those whose are (:func:`.krylov._cholesky`'s
+    semidefinite factor): a symmetric semidefinite generalized inverse of A.
+    """
     k = idx.size
     for i in range(k):
         acc = np.float64(b[o + idx[i]])

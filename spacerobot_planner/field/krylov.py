@@ -24,17 +24,18 @@ def _cholesky(a, semidefinite=False):
     """
     Return the lower Cholesky factor of the symmetric positive definite ``a`` (m, m), float64 (m, m).
 
-    The coarsest level's (at most :data:`.multigrid.DIRECT_NODES` rows), in the kernel that builds it:
+    The coarsest level's (the aggregation levels' at most :data:`.multigrid.DIRECT_NODES` rows, the
+    geometric levels' at most :data:`.geometric.COARSEST_MOST`), in the kernel that builds it:
     LAPACK's through NumPy cost 30-80 us per band inside a plan (its code cold in the cache),
     against 4-6 us at 18-30 rows in a loop; this one 1-3 us at 15-30 rows, 25 us at 68.  Column by column:
     entry (i, j) from the products of rows i and j before column j, summed in four
     interleaved partial sums (a fixed order, so the same bits on any machine).  Reads the
     lower triangle of ``a``.  Raises ValueError where a pivot is not positive (or is NaN).
-    ``semidefinite``: a pivot at most :data:`NULL_PIVOT` times its diagonal entry instead gives a
-    zero column (its unknown is left at 0 by :func:`.geometric._coarsest`: the factor then solves ``a``
-    on the complement of its null space, a symmetric semidefinite pseudo-inverse), as a geometric
-    coarsest level may need (:mod:`.geometric`: an isolated fine unknown makes its four coarse
-    parents' columns of the prolongation equal).
+    ``semidefinite``: a pivot within :data:`NULL_PIVOT` times its diagonal entry of 0 (either
+    side: rounding) instead gives a zero column, its unknown left at 0 by
+    :func:`.geometric._coarsest` (a symmetric semidefinite generalized inverse, [A_KK⁻¹ 0; 0 0]),
+    as a geometric coarsest level may need (an isolated fine unknown makes its four coarse
+    parents' columns of the prolongation equal); a pivot below that, or NaN, still raises.
     """
     m = a.shape[0]
     low = np.zeros((m, m))
@@ -55,7 +56,7 @@ def _cholesky(a, semidefinite=False):
                 k += 1
             t = a[i, j] - ((s0 + s1) + (s2 + s3))
             if i == j:
-                if semidefinite and not t > NULL_PIVOT * a[j, j]:
+                if semidefinite and abs(t) <= NULL_PIVOT * a[j, j]:
                     break                      # a null column: low[:, j] stays 0
                 if not t > 0.0:
                     raise ValueError("the coarsest level's matrix is not positive definite")

@@ -1210,12 +1210,14 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     result is partial and the caller must not keep it.  ``sweeps``: the fine level's
     Gauss–Seidel sweeps before and after the coarse correction (None: :func:`sweeps_of` the
     grid's dimension); ``boost``: the coarse correction's scale (None: :func:`boost_of` the
-    grid's dimension and the sweeps; unused by the geometric levels).  ``route``: "auto", on a
+    grid's dimension and the sweeps).  ``route``: "auto", on a
     2-D grid :mod:`.geometric`'s levels under the fine level's cells where :func:`.geometric.applies`
     says so, else the fine level on the grid's cells where :func:`.structured.fine_layout`'s rule
     says so (else on the node graph); "graph", on the node graph always; "structured", on the
     cells wherever they can hold it, whatever its size, with the aggregation levels; "geometric",
     the geometric levels wherever they apply, whatever the size (else as "structured"; the tests').
+    The geometric levels read ``sweeps`` (the fine level's) and none of ``boost``, ``coarse_sweeps``,
+    ``coarse_cells``, ``kcycle``, ``chunk_cells`` and ``beside``: they run in one thread.
     ``coarse_cells``: with the fine level on cells, level 1 on its cells too where
     :func:`.structured.coarse_layout`'s rule says so (with route "structured": wherever they can
     hold it); False: on the node graph (the tests').  The same
