@@ -182,6 +182,10 @@ def test_the_rule_takes_the_geometric_levels_for_compact_2d_boxes_without_a_seam
     compact = _box_cells(coords, shape, wraps) <= structured.MAX_CELLS_PER_UNKNOWN * n
     assert (len(shape) == 2 and not wraps and compact and n >= structured.MIN_UNKNOWNS) == geometric_route, \
         "the case does not test what it says"
+    if wraps:                                             # refused before its cells are built
+        h = multigrid.Hierarchy(nbr, coords, shape, coarsen=False)
+        args = (h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, np.inf)
+        assert structured.laid_out(*args) is not None and structured.laid_out(*args, seamless=True) is None
     built = []
     real = geometric.levels
 

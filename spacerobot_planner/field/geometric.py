@@ -19,11 +19,12 @@ read, by the next half-sweep), a black and a red half-sweep: a symmetric precond
 CG, with the same stop rule, deadline and termination flag as :func:`.multigrid._spcg`.
 
 Measured on the captured first bands of the paper's 2-DOF scene and of random ones (`bench
-scenes`' family), against the aggregation route on cells in the same process: 9-10
-iterations against 15-17, 0.74x the time at 181² (2.24 against 3.03 ms), 0.63x at 360²
-(10.95 against 17.35 ms), about equal at 720² (63 against 66 ms, where the other route runs
-on both cores).  Where it applies: :func:`applies` (2-D, the cells route's box rule, no edge
-across a periodic seam); :func:`.multigrid.solve` takes this route there.
+scenes`' family), against the aggregation route on cells in the same process (median / max of
+21 solves, 5 at 360² and 720²): 9 iterations against 15-17, 0.73x the time at 181² (2.18 / 2.65
+against 3.00 / 3.39 ms), 0.62x at 360² (10.09 / 10.80 against 16.26 / 17.17 ms), 0.96x at 720²
+(63.35 / 64.49 against 65.97 / 68.01 ms, where the other route runs on both cores).  Where it
+applies: :func:`applies` (2-D, the cells route's box rule, no edge across a periodic seam) and
+:func:`levels`; :func:`.multigrid.solve` takes this route there.
 
 Coordinates.  A fine row's padded coordinates are ``q = c − lo + 1`` (``lo``: the unknowns'
 lowest coordinates), axis 1 shifted by one more where ``lo0 + lo1`` is odd, so that a red row
@@ -42,7 +43,7 @@ import numba as nb
 import numpy as np
 
 from . import structured
-from .krylov import _cholesky, _descend, _now, _turn
+from .krylov import _cholesky, _descend, _now, _subtract_max, _turn
 
 #: The levels are halved until one has at most this many unknowns (a dense factor solves it) ...
 COARSEST_UNKNOWNS = 64
@@ -75,7 +76,8 @@ def applies(ndim: int, layout) -> bool:
     Return whether a problem may take this route (the rule, one place, with :func:`levels`).
 
     A 2-D grid whose fine level lies on cells (``layout``: :func:`.structured.laid_out`'s, or
-    None: the box breaks the cells' rule) with no edge across a periodic seam (one loop range).
+    None: the box breaks the cells' rule, or, laid out ``seamless``, an edge crosses a periodic
+    seam) in one loop range (no edge across the seam).
     The rule's second half is the caller's to check: :func:`levels` is not None (the coarsest
     level holds at most :data:`COARSEST_MOST` unknowns).
     """
@@ -677,10 +679,7 @@ def _gpcg(mask, ranges, nranges, cut_red, cut_black, one, gather, st, inv, off, 
     rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
     structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, 4)
     rl[:] = rhs.reshape(-1)
-    worst = 0.0
-    for i in range(cells):
-        rl[i] -= ql[i]
-        worst = max(worst, abs(rl[i]))
+    worst = _subtract_max(rl, ql, 1.0, cells)
     if worst < tol:
         return 0, worst
     rz = _gvcycle(mask, ranges, nranges, cut_red, cut_black, one, gather, st, inv, off, shp, idx, low, r, xf, res,

@@ -1261,7 +1261,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         return np.zeros(n), 0, np.inf           # as the set-up would stop at its first level
     h = Hierarchy(nbr, coords, shape, coarsen=False)
     if route in ("auto", "geometric") and len(shape) == 2 and structured.may_lay_out(n, 2, sweeps, min_unknowns):
-        layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, max_cells)
+        layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, max_cells, True)
         lv = geometric.levels(h.nb0, h.coords, h.red0, layout) if geometric.applies(len(shape), layout) else None
         if lv is not None:
             return _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, sweeps)

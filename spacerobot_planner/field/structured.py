@@ -133,19 +133,21 @@ def may_lay_out(n: int, ndim: int, sweeps: int, min_unknowns: int = MIN_UNKNOWNS
     return n >= min_unknowns and ndim in DIMENSIONS and sweeps >= 1
 
 
-def laid_out(nb0, coords, shape, red0: int, agg, coarse_nodes: int, max_cells_per_unknown) -> "Layout | None":
+def laid_out(nb0, coords, shape, red0: int, agg, coarse_nodes: int, max_cells_per_unknown,
+             seamless: bool = False) -> "Layout | None":
     """
     Return the fine level on its box's cells (:func:`fine_layout`'s arrays), or None where they cannot hold it.
 
     nb0 uint32 (n, deg), coords (n, ndim), ``red0``: the fine level (:class:`.multigrid.Hierarchy`'s,
     red rows first); agg uint32 (n,): each row's level-1 row, of ``coarse_nodes`` (0: none); the box at most
-    ``max_cells_per_unknown`` cells per unknown.
+    ``max_cells_per_unknown`` cells per unknown.  ``seamless``: None also where an edge crosses
+    axis 0's seam (one loop range, as :mod:`.geometric`'s levels need), before the cells are built.
     """
     n = nb0.shape[0]
     shape = np.asarray(shape, np.int64)
     ok, lo, padded, strides, base, periodic0 = _box(nb0, coords, shape)
     cells = int(padded[0] * strides[0])
-    if not ok or cells > max_cells_per_unknown * n:
+    if not ok or cells > max_cells_per_unknown * n or (seamless and periodic0):
         return None
     ok, *arrays = _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, int(red0),
                          int(coarse_nodes), True)
