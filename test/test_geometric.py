@@ -220,6 +220,52 @@ def test_a_long_thin_band_takes_the_aggregation_levels():
     assert np.max(np.abs(rhs - A @ auto[0])) < 1e-10
 
 
+@pytest.mark.parametrize("name", ["2-D, cut edges", "2-D, a window", "maze"])
+def test_the_fine_transfers_are_the_bilinear_prolongation_and_its_transpose(name):
+    """
+    Restrict by Pᵀ and prolong by P on the red cells, P bilinear.
+
+    Restriction: level 1's right-hand side = Pᵀ r, r the fine residual b − A x on the red rows (the black ones
+    are 0 after a black half-sweep); prolongation: each red unknown gains (P x₁) at its row, no other cell changes.
+    P is written here from the padded coordinates' definition, the residual by SciPy's product.
+    """
+    nbr, coords, shape, rhs, A = _case(name)
+    h = multigrid.Hierarchy(nbr, coords, shape, coarsen=False)
+    n = len(rhs)
+    rows = np.arange(n) if h.in_order else np.argsort(h.fine_of_input)   # fine row -> input
+    layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, np.inf, True)
+    lv = geometric.levels(h.nb0, h.coords, h.red0, layout)
+    c = h.coords
+    lo = c.min(axis=0)
+    q = c - lo + 1
+    q[:, 1] += (lo[0] + lo[1]) % 2
+    c0, c1 = (int(v) for v in lv.shp[0])
+    pr, pc, pv = _bilinear(q, (c0, c1))
+    P = sp.csr_matrix((pv, (pr, pc)), shape=(n, c0 * c1))
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal(n).astype(np.float32)
+    b = rng.standard_normal(n)
+    xf = layout.to_cells(x).astype(np.float32)
+    bf = layout.to_cells(b)
+    r = b - A[rows][:, rows] @ x.astype(np.float64)
+    r[h.red0:] = 0.0
+    res = np.zeros(layout.half + int(lv.tr[1]) + 2)
+    bc = np.zeros(lv.off[-1], np.float32)
+    geometric._restrict_fine(bf, xf, layout.mask, res, bc, layout.ranges, layout.cut_red, lv.tr)
+    want = P.T @ r
+    assert np.allclose(bc[:c0 * c1], want, rtol=1e-6, atol=1e-6 * np.max(np.abs(want)))
+    xc = np.zeros(lv.off[-1], np.float32)
+    xc[:c0 * c1] = rng.standard_normal(c0 * c1)
+    before = xf.copy()
+    geometric._prolong_fine(xf, xc, layout.mask, lv.tr)
+    red = layout.cell[:h.red0]
+    gained = (P @ xc[:c0 * c1].astype(np.float64))[:h.red0]
+    assert np.allclose(xf.reshape(-1)[red] - before.reshape(-1)[red], gained, rtol=1e-5, atol=1e-5)
+    others = np.ones(xf.size, bool)
+    others[red] = False
+    assert np.array_equal(xf.reshape(-1)[others], before.reshape(-1)[others]), "a cell other than a red unknown moved"
+
+
 def _coarse_operator(lv):
     """Return the coarse cycle as a dense matrix over level 1's unknowns (its columns: the cycle of unit vectors)."""
     m = int(lv.shp[0, 0] * lv.shp[0, 1])

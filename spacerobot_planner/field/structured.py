@@ -79,15 +79,19 @@ class Layout:
     and its neighbour (half indices); ``aggr`` uint32 (H,): each red cell's level-1 node
     (others: level 1's dummy row); ``gather`` int64 (level-1 nodes, 2^(ndim-1)): each level-1
     node's red cells in fine row order, padded with ``H - 1`` (a red cell outside every range:
-    its residual stays 0).  ``cells``: the box's cells.
+    its residual stays 0).  ``cells``: the box's cells.  ``base``, ``strides`` (int64 (ndim,)) and
+    ``padded`` (int64 (ndim,)): :func:`_box`'s, so that a cell's flat index is
+    ``base + Σ (c − lo + 1) · strides`` (its half index that over 2).
     """
 
-    def __init__(self, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather, cells):
-        """Hold the arrays of :func:`_build`."""
+    def __init__(self, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather, cells, base=0, strides=None,
+                 padded=None):
+        """Hold the arrays of :func:`_build` and :func:`_box`'s box."""
         self.cell, self.mask, self.ranges, self.nranges = cell, mask, ranges, int(nranges)
         self.cut_red, self.cut_black, self.aggr, self.gather = cut_red, cut_black, aggr, gather
         self.half = int(mask.shape[1])
         self.cells = int(cells)
+        self.base, self.strides, self.padded = int(base), strides, padded
 
     def to_cells(self, values, rows=None):
         """Return float64 (2, H): ``values`` (n,) of the fine rows (or of the inputs at fine ``rows``) on the cells."""
@@ -151,7 +155,7 @@ def laid_out(nb0, coords, shape, red0: int, agg, coarse_nodes: int, max_cells_pe
         return None
     ok, *arrays = _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, int(red0),
                          int(coarse_nodes), True)
-    return Layout(*arrays, cells) if ok else None
+    return Layout(*arrays, cells, base, strides, padded) if ok else None
 
 
 class Coarse:
