@@ -308,37 +308,45 @@ def _galerkin(s, m0, m1):
     """
     Return ``(Pᵀ S P float64 (9, c0 · c1), c0, c1)`` of a 9-point operator s (9, m0 · m1).
 
-    Its border rows and columns are no unknowns.  Each term of the product, one stencil slot
-    and one parity class of the fine nodes per axis at a time, is a 2-D strided view update.
+    Its border rows and columns are no unknowns.  P is bilinear, the product of its two axes'
+    linear prolongations, so the product is taken one axis at a time: along axis 1 (every
+    row: a 9-point operator on m0 × c1), then along axis 0.  Each term, one stencil slot and
+    one parity class of the fine nodes along the axis, is a 2-D strided view update.  Every
+    entry is a sum of dyadic fractions, exact in float64: the same values as the product
+    taken over both axes at once (which cost 1.6x the time: 0.205 against 0.128 ms below the
+    paper's 2-D band's level 1).
     """
     c0 = (m0 - 2) // 2 + 3
     c1 = (m1 - 2) // 2 + 3
-    out = np.zeros((9, c0, c1))
+    half = np.zeros((9, m0, c1))          # along axis 1: slot (d0, J1 − I1) of row i0, column I1
     for k in range(9):
         if not np.any(s[k] != 0.0):
             continue
         src_all = s[k].reshape(m0, m1)
         d0 = k // 3 - 1
         d1 = k % 3 - 1
+        for par1 in range(2):
+            n1 = (m1 - 1) // 2 if par1 else (m1 - 2) // 2       # columns 2j - 1 (odd) or 2j (even), up to m1 - 2
+            f1 = 1 if par1 else 2
+            src = src_all[:, f1:f1 + 2 * n1:2]
+            for u1 in range(2):
+                for t1 in range(2):
+                    a1, dl1, w1 = _axis_terms(par1, u1, d1, t1)
+                    if w1 != 0.0:
+                        _add(half[(d0 + 1) * 3 + dl1 + 1, :, 1 + a1:1 + a1 + n1], src, w1)
+    out = np.zeros((9, c0, c1))
+    for k in range(9):
+        d0 = k // 3 - 1
+        src_all = half[k]
         for par0 in range(2):
             n0 = (m0 - 1) // 2 if par0 else (m0 - 2) // 2       # rows 2j - 1 (odd) or 2j (even), up to m0 - 2
             f0 = 1 if par0 else 2
-            for par1 in range(2):
-                n1 = (m1 - 1) // 2 if par1 else (m1 - 2) // 2
-                f1 = 1 if par1 else 2
-                src = src_all[f0:f0 + 2 * n0:2, f1:f1 + 2 * n1:2]
-                for u0 in range(2):
-                    for t0 in range(2):
-                        a0, dl0, w0 = _axis_terms(par0, u0, d0, t0)
-                        if w0 == 0.0:
-                            continue
-                        for u1 in range(2):
-                            for t1 in range(2):
-                                a1, dl1, w1 = _axis_terms(par1, u1, d1, t1)
-                                if w1 == 0.0:
-                                    continue
-                                _add(out[(dl0 + 1) * 3 + dl1 + 1, 1 + a0:1 + a0 + n0, 1 + a1:1 + a1 + n1], src,
-                                     w0 * w1)
+            src = src_all[f0:f0 + 2 * n0:2, :]
+            for u0 in range(2):
+                for t0 in range(2):
+                    a0, dl0, w0 = _axis_terms(par0, u0, d0, t0)
+                    if w0 != 0.0:
+                        _add(out[(dl0 + 1) * 3 + k % 3, 1 + a0:1 + a0 + n0, :], src, w0)
     return out.reshape(9, c0 * c1), c0, c1
 
 
