@@ -26,7 +26,9 @@ Measured on the captured first bands of the paper's 2-DOF scene and of random on
 scenes`' family), against the aggregation route on cells in the same process (median / max of
 21 solves, 5 at 360² and 720²): 9 iterations against 15-17, 0.73x the time at 181² (2.18 / 2.65
 against 3.00 / 3.39 ms), 0.62x at 360² (10.09 / 10.80 against 16.26 / 17.17 ms), 0.96x at 720²
-(63.35 / 64.49 against 65.97 / 68.01 ms, where the other route runs on both cores).  Where it
+(63.35 / 64.49 against 65.97 / 68.01 ms, where the other route runs on both cores; since then this
+route's loops run on numba's threads too on a large box, :func:`_gpcg`'s ``chunk``: 720² 71.4 -> 57.0
+ms on 2 cores, medians of 5 alternating; and the transfers along the rows took 2.44 -> 2.11 ms at 181²).  Where it
 applies: :func:`applies` (2-D, the cells route's box rule, no edge across a periodic seam) and
 :func:`levels`; :func:`.multigrid.solve` takes this route there.
 
@@ -47,7 +49,7 @@ import numba as nb
 import numpy as np
 
 from . import structured
-from .krylov import _cholesky, _descend, _now, _subtract_max, _turn
+from .krylov import _cholesky, _descend_in, _now, _subtract_max, _turn_in
 
 #: The levels are halved until one has at most this many unknowns (a dense factor solves it) ...
 COARSEST_UNKNOWNS = 64
@@ -104,17 +106,18 @@ def levels(nb0, coords, red0: int, layout) -> Levels:
     return Levels(tr, st, inv, off, shp, idx, low)
 
 
-def pcg(layout, lv: Levels, rhs, u, tol: float, max_iter: int, deadline: float, stop, sweeps: int):
+def pcg(layout, lv: Levels, rhs, u, tol: float, max_iter: int, deadline: float, stop, sweeps: int, chunk: int = 0):
     """
     Run CG preconditioned by this V-cycle on the cells: rhs, u float64 (2, H); return (iterations, max residual).
 
     u is updated in place; ``deadline`` (``time.perf_counter()`` s, 0: none) and the
     termination flag ``stop`` (int64 (1,)) as :func:`.multigrid.solve`'s; ``sweeps``: the fine
-    level's red-black sweep pairs before and after the coarse correction.
+    level's red-black sweep pairs before and after the coarse correction; ``chunk`` > 0: the loops
+    on numba's threads (:func:`_gpcg`).
     """
     return _gpcg(layout.mask, layout.ranges, layout.nranges, layout.cut_red, layout.cut_black, lv.tr, lv.st,
                  lv.inv, lv.off, lv.shp, lv.idx, lv.low, rhs, u, float(tol), int(max_iter), float(deadline), stop,
-                 int(sweeps))
+                 int(sweeps), int(chunk))
 
 
 # --------------------------------------------------------------------------
@@ -418,21 +421,28 @@ def _levels(nb0, coords, lo0, lo1, s1, m0, m1, most):
 # --------------------------------------------------------------------------
 # the coarse levels' kernels (float32, vector loops over each level's box)
 # --------------------------------------------------------------------------
-@nb.njit(cache=True, nogil=True)
-def _residual(st, x, b, t, o0, m0, m1):
+@nb.njit(cache=True, nogil=True, inline="always")
+def _span(mode, st, inv, x, b, t, o0, m1, a, c):
     """
-    Write t = b − S x over a level's cells (from ``o0``, m0 × m1), 0 on its border rows, the row after and one more.
+    One vector loop over a level's flat cells [a, c) (from ``o0``, rows of m1): the coarse kernels' one place.
 
-    (:func:`_restrict` reads up to ``t[(m0 + 1) m1]`` where m0 and m1 are even.)
-
-    The rows between hold border columns too: their stencils and right-hand sides are 0.
+    mode 0: t = b − S x (its residual); 1: x = inv b (a Jacobi sweep from 0); 2: x += inv t (a
+    sweep's update from the residual in t).
     """
-    lo = m1 + 1
-    hi = (m0 - 1) * m1 - 1
-    n = hi - lo
-    g = o0 + lo
+    n = c - a
+    g = o0 + a
+    if mode == 1:
+        xx, iv, bb = x[g:g + n], inv[g:g + n], b[g:g + n]
+        for i in range(n):
+            xx[i] = iv[i] * bb[i]
+        return
+    if mode == 2:
+        xx, iv, tt = x[g:g + n], inv[g:g + n], t[a:c]
+        for i in range(n):
+            xx[i] += iv[i] * tt[i]
+        return
     bb = b[g:g + n]
-    tt = t[lo:hi]
+    tt = t[a:c]
     a0, a1, a2 = st[0, g:g + n], st[1, g:g + n], st[2, g:g + n]
     a3, a4, a5 = st[3, g:g + n], st[4, g:g + n], st[5, g:g + n]
     a6, a7, a8 = st[6, g:g + n], st[7, g:g + n], st[8, g:g + n]
@@ -442,86 +452,150 @@ def _residual(st, x, b, t, o0, m0, m1):
     for i in range(n):
         tt[i] = bb[i] - ((((a0[i] * x0[i] + a1[i] * x1[i]) + (a2[i] * x2[i] + a3[i] * x3[i]))
                           + ((a5[i] * x5[i] + a6[i] * x6[i]) + (a7[i] * x7[i] + a8[i] * x8[i]))) + a4[i] * x4[i])
-    t[:lo] = 0.0
-    t[hi:(m0 + 1) * m1 + 1] = 0.0
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _spans(mode, st, inv, x, b, t, o0, m1, lo, hi, chunk):
+    """:func:`_span` over [lo, hi) in chunks of ``chunk`` cells on numba's threads: the same values."""
+    for j in nb.prange((hi - lo + chunk - 1) // chunk):
+        a = lo + j * chunk
+        _span(mode, st, inv, x, b, t, o0, m1, a, min(hi, a + chunk))
 
 
 @nb.njit(cache=True, nogil=True)
-def _jacobi(st, inv, x, b, t, o0, m0, m1, first):
-    """One damped Jacobi sweep on a level: x = inv b (``first``: from 0), else x += inv (b − S x) (inv: weighted)."""
+def _level_loop(mode, st, inv, x, b, t, o0, m0, m1, chunk):
+    """:func:`_span` over a level's rows between its border rows, in chunks on numba's threads where ``chunk`` > 0."""
     lo = m1 + 1
     hi = (m0 - 1) * m1 - 1
-    n = hi - lo
-    g = o0 + lo
-    xx = x[g:g + n]
-    iv = inv[g:g + n]
-    if first:
-        bb = b[g:g + n]
-        for i in range(n):
-            xx[i] = iv[i] * bb[i]
-        return
-    _residual(st, x, b, t, o0, m0, m1)
-    tt = t[lo:hi]
-    for i in range(n):
-        xx[i] += iv[i] * tt[i]
+    if chunk > 0 and hi - lo > chunk:
+        _spans(mode, st, inv, x, b, t, o0, m1, lo, hi, chunk)
+    else:
+        _span(mode, st, inv, x, b, t, o0, m1, lo, hi)
 
 
 @nb.njit(cache=True, nogil=True)
-def _restrict(t, b, o1, m0, m1, c0, c1, h):
+def _residual(st, x, b, t, o0, m0, m1, chunk=0):
     """
-    Write b (the level below, from ``o1``, c0 × c1) = Pᵀ t: the residual t (m0 × m1) weighted fully.
+    Write t = b − S x over a level's cells (from ``o0``, m0 × m1), 0 on its border rows, the row after and one more.
 
-    h: scratch of (m0 + 1) × c1, each fine row weighted along axis 1 first, then the rows.
+    (:func:`_restrict` reads up to ``t[(m0 + 1) m1]`` where m0 and m1 are even.)
+
+    The rows between hold border columns too: their stencils and right-hand sides are 0.
+    ``chunk``: see :func:`_level_loop`.
+    """
+    _level_loop(0, st, st[4], x, b, t, o0, m0, m1, chunk)
+    t[:m1 + 1] = 0.0
+    t[(m0 - 1) * m1 - 1:(m0 + 1) * m1 + 1] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _jacobi(st, inv, x, b, t, o0, m0, m1, first, chunk=0):
+    """One damped Jacobi sweep on a level: x = inv b (``first``: from 0), else x += inv (b − S x) (inv: weighted)."""
+    if first:
+        _level_loop(1, st, inv, x, b, t, o0, m0, m1, chunk)
+        return
+    _residual(st, x, b, t, o0, m0, m1, chunk)
+    _level_loop(2, st, inv, x, b, t, o0, m0, m1, chunk)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _restrict_rows(t, b, o1, m1, c1, h, r0, r1, j0, j1):
+    """
+    :func:`_restrict`'s rows: the fine rows [r0, r1) weighted along axis 1 into h, or (r0 = r1) level rows [j0, j1).
+
+    Each row on its own: a loop over either kind of row may run in any order.
     """
     half = np.float32(0.5)
     nj = c1 - 2
-    for r in range(m0 + 1):
+    for r in range(r0, r1):
         hr = h[r * c1 + 1:r * c1 + 1 + nj]
         mid = t[r * m1 + 1:r * m1 + 1 + 2 * nj:2]           # fine column 2 J1 - 1
         left = t[r * m1:r * m1 + 2 * nj:2]                   # 2 J1 - 2
         right = t[r * m1 + 2:r * m1 + 2 + 2 * nj:2]          # 2 J1
         for j in range(nj):
             hr[j] = mid[j] + half * (left[j] + right[j])
-    for j0 in range(1, c0 - 1):
-        out = b[o1 + j0 * c1 + 1:o1 + j0 * c1 + 1 + nj]
-        above = h[(2 * j0 - 2) * c1 + 1:(2 * j0 - 2) * c1 + 1 + nj]
-        mid = h[(2 * j0 - 1) * c1 + 1:(2 * j0 - 1) * c1 + 1 + nj]
-        below = h[(2 * j0) * c1 + 1:(2 * j0) * c1 + 1 + nj]
+    for row in range(j0, j1):
+        out = b[o1 + row * c1 + 1:o1 + row * c1 + 1 + nj]
+        above = h[(2 * row - 2) * c1 + 1:(2 * row - 2) * c1 + 1 + nj]
+        mid = h[(2 * row - 1) * c1 + 1:(2 * row - 1) * c1 + 1 + nj]
+        below = h[(2 * row) * c1 + 1:(2 * row) * c1 + 1 + nj]
         for j in range(nj):
             out[j] = mid[j] + half * (above[j] + below[j])
 
 
-@nb.njit(cache=True, nogil=True)
-def _prolong(x, o0, m0, m1, o1, c1):
-    """
-    Add P x_below (from ``o1``, rows of c1) to a level's x (from ``o0``, m0 × m1), one parity class at a time.
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _restrict_par(t, b, o1, m0, m1, c0, c1, h, rows):
+    """:func:`_restrict` with its rows in blocks of ``rows`` on numba's threads: the same values."""
+    for k in nb.prange((m0 + rows) // rows):
+        _restrict_rows(t, b, o1, m1, c1, h, k * rows, min(m0 + 1, (k + 1) * rows), 0, 0)
+    for k in nb.prange((c0 - 2 + rows - 1) // rows):
+        _restrict_rows(t, b, o1, m1, c1, h, 0, 0, 1 + k * rows, min(c0 - 1, 1 + (k + 1) * rows))
 
-    Cells off the unknowns take values too: no stencil reads them (their weights are 0) and
-    the next cycle starts them from 0 again.
+
+@nb.njit(cache=True, nogil=True)
+def _restrict(t, b, o1, m0, m1, c0, c1, h, chunk=0):
     """
+    Write b (the level below, from ``o1``, c0 × c1) = Pᵀ t: the residual t (m0 × m1) weighted fully.
+
+    h: scratch of (m0 + 1) × c1, each fine row weighted along axis 1 first, then the rows.
+    ``chunk`` > 0: rows in blocks of about that many cells on numba's threads where there are two blocks or more.
+    """
+    rows = max(1, chunk // m1) if chunk > 0 else m0 + 1
+    if rows < m0:
+        _restrict_par(t, b, o1, m0, m1, c0, c1, h, rows)
+        return
+    _restrict_rows(t, b, o1, m1, c1, h, 0, m0 + 1, 0, 0)
+    _restrict_rows(t, b, o1, m1, c1, h, 0, 0, 1, c0 - 1)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _prolong_rows(x, o0, m1, o1, c1, p0, p1):
+    """:func:`_prolong`'s fine rows [p0, p1), each on its own."""
     half = np.float32(0.5)
     quarter = np.float32(0.25)
     n_odd = (m1 - 1) // 2                 # columns 2 J1 - 1 up to m1 - 2
     n_even = (m1 - 2) // 2                # columns 2 J1
-    for p0 in range(1, m0 - 1):
-        row = o0 + p0 * m1
+    for q0 in range(p0, p1):
+        row = o0 + q0 * m1
         xo = x[row + 1:row + 1 + 2 * n_odd:2]
         xe = x[row + 2:row + 2 + 2 * n_even:2]
-        if p0 & 1:
-            j0 = (p0 + 1) >> 1
+        if q0 & 1:
+            j0 = (q0 + 1) >> 1
             c = x[o1 + j0 * c1 + 1:o1 + j0 * c1 + 2 + n_odd]
             for j in range(n_odd):
                 xo[j] += c[j]
             for j in range(n_even):
                 xe[j] += half * (c[j] + c[j + 1])
         else:
-            a0 = p0 >> 1
+            a0 = q0 >> 1
             c = x[o1 + a0 * c1 + 1:o1 + a0 * c1 + 2 + n_odd]
             d = x[o1 + (a0 + 1) * c1 + 1:o1 + (a0 + 1) * c1 + 2 + n_odd]
             for j in range(n_odd):
                 xo[j] += half * (c[j] + d[j])
             for j in range(n_even):
                 xe[j] += quarter * ((c[j] + c[j + 1]) + (d[j] + d[j + 1]))
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _prolong_par(x, o0, m0, m1, o1, c1, rows):
+    """:func:`_prolong` with its rows in blocks of ``rows`` on numba's threads: the same values."""
+    for k in nb.prange((m0 - 2 + rows - 1) // rows):
+        _prolong_rows(x, o0, m1, o1, c1, 1 + k * rows, min(m0 - 1, 1 + (k + 1) * rows))
+
+
+@nb.njit(cache=True, nogil=True)
+def _prolong(x, o0, m0, m1, o1, c1, chunk=0):
+    """
+    Add P x_below (from ``o1``, rows of c1) to a level's x (from ``o0``, m0 × m1), one parity class at a time.
+
+    Cells off the unknowns take values too: no stencil reads them (their weights are 0) and
+    the next cycle starts them from 0 again.  ``chunk``: as :func:`_restrict`'s.
+    """
+    rows = max(1, chunk // m1) if chunk > 0 else m0
+    if rows < m0 - 2:
+        _prolong_par(x, o0, m0, m1, o1, c1, rows)
+    else:
+        _prolong_rows(x, o0, m1, o1, c1, 1, m0 - 1)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -548,35 +622,83 @@ def _coarsest(x, b, o, idx, low, y):
 
 
 @nb.njit(cache=True, nogil=True)
-def _coarse_cycle(st, inv, off, shp, idx, low, x, b, t, y, h):
+def _coarse_cycle(st, inv, off, shp, idx, low, x, b, t, y, h, chunk=0):
     """
     Compute x = M⁻¹ b from level 1 down (x, b float32 packed by ``off``): a V-cycle of damped Jacobi.
 
     t, h: scratch of the largest level (:func:`_restrict`'s); y: the coarsest's (float64).
+    ``chunk`` > 0: each level's loops in chunks of that many cells on numba's threads (a level
+    of one chunk in this thread): the same values.
     """
     nl = shp.shape[0]
     for lv in range(nl - 1):
         o0, m0, m1 = off[lv], shp[lv, 0], shp[lv, 1]
-        _jacobi(st, inv, x, b, t, o0, m0, m1, True)
+        _jacobi(st, inv, x, b, t, o0, m0, m1, True, chunk)
         for _ in range(PRE_SWEEPS - 1):
-            _jacobi(st, inv, x, b, t, o0, m0, m1, False)
-        _residual(st, x, b, t, o0, m0, m1)
-        _restrict(t, b, off[lv + 1], m0, m1, shp[lv + 1, 0], shp[lv + 1, 1], h)
+            _jacobi(st, inv, x, b, t, o0, m0, m1, False, chunk)
+        _residual(st, x, b, t, o0, m0, m1, chunk)
+        _restrict(t, b, off[lv + 1], m0, m1, shp[lv + 1, 0], shp[lv + 1, 1], h, chunk)
     o = off[nl - 1]
     x[o:off[nl]] = 0.0
     _coarsest(x, b, o, idx, low, y)
     for lv in range(nl - 2, -1, -1):
         o0, m0, m1 = off[lv], shp[lv, 0], shp[lv, 1]
-        _prolong(x, o0, m0, m1, off[lv + 1], shp[lv + 1, 1])
+        _prolong(x, o0, m0, m1, off[lv + 1], shp[lv + 1, 1], chunk)
         for _ in range(POST_SWEEPS):
-            _jacobi(st, inv, x, b, t, o0, m0, m1, False)
+            _jacobi(st, inv, x, b, t, o0, m0, m1, False, chunk)
 
 
 # --------------------------------------------------------------------------
 # the fine level (:mod:`.structured`'s cells) and CG
 # --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True, inline="always")
+def _red_residual(b, x, mask, res, k0, k1, o):
+    """res[k] = the red cell k's residual b − 4 x + its black neighbours (``o``: their offsets), 0 off the unknowns."""
+    n = k1 - k0
+    bb, xt, mm, out = b[0, k0:k1], x[0, k0:k1], mask[0, k0:k1], res[k0:k1]
+    xs = x[1]
+    n0, n1, n2, n3 = xs[k0 + o[0]:k1 + o[0]], xs[k0 + o[1]:k1 + o[1]], xs[k0 + o[2]:k1 + o[2]], xs[k0 + o[3]:k1 + o[3]]
+    for i in range(n):
+        v = bb[i] - 4.0 * xt[i] + (n0[i] + n1[i] + n2[i] + n3[i])
+        out[i] = v if mm[i] != 0.0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _gather_rows(res, bc, tr, j0, j1):
+    """Level-1 rows [j0, j1) of :func:`_restrict_fine`: five vector reads a row, each row on its own."""
+    base, s0, s1, c1 = tr[0], tr[1], tr[4], tr[6]
+    nj = c1 - 2
+    for row in range(j0, j1):
+        kc = (base + (2 * row - 1) * s0 + 1 - s1) >> 1      # node (row, 1)'s coincident cell (red: f even)
+        ka = (base + (2 * row - 2) * s0 - s1) >> 1          # its corner cells below and above along axis 1 ...
+        kb = (base + 2 * row * s0 - s1) >> 1                # ... in the fine rows on either side
+        mid = res[kc:kc + nj]
+        a_lo, a_hi = res[ka:ka + nj], res[ka + 1:ka + 1 + nj]
+        b_lo, b_hi = res[kb:kb + nj], res[kb + 1:kb + 1 + nj]
+        dst = bc[row * c1 + 1:row * c1 + 1 + nj]
+        for j in range(nj):
+            dst[j] = np.float32(mid[j] + 0.25 * ((a_lo[j] + a_hi[j]) + (b_lo[j] + b_hi[j])))
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _restrict_fine_par(b, x, mask, res, bc, ranges, cut_red, tr, chunk):
+    """:func:`_restrict_fine` with its loops in chunks of ``chunk`` cells (rows) on numba's threads: the same values."""
+    k0, k1 = ranges[0, 0, 0], ranges[0, 0, 1]
+    o = ranges[0, 0, 2:]
+    for j in nb.prange((k1 - k0 + chunk - 1) // chunk):
+        a = k0 + j * chunk
+        _red_residual(b, x, mask, res, a, min(k1, a + chunk), o)
+    xs = x[1]
+    for e in range(cut_red.shape[0]):
+        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    c0 = tr[5]
+    rows = max(1, chunk // tr[6])
+    for k in nb.prange((c0 - 2 + rows - 1) // rows):
+        _gather_rows(res, bc, tr, 1 + k * rows, min(c0 - 1, 1 + (k + 1) * rows))
+
+
 @nb.njit(cache=True, nogil=True)
-def _restrict_fine(b, x, mask, res, bc, ranges, cut_red, tr):
+def _restrict_fine(b, x, mask, res, bc, ranges, cut_red, tr, chunk=0):
     """
     Write level 1's right-hand side bc = Pᵀ r from the red cells' residuals (the black ones are 0 after a sweep).
 
@@ -586,47 +708,27 @@ def _restrict_fine(b, x, mask, res, bc, ranges, cut_red, tr):
     (J0, J1) takes its coincident red cell's residual and a quarter of the four red cells at
     its corners (padded coordinates ``(2 J0 − 1, 2 J1 − 1)`` and ``(2 J0 − 1 ± 1, 2 J1 − 1 ± 1)``):
     along a row of level-1 nodes each of the five is the next red cell of its fine row, so a
-    row is five vector reads.  A cell off the box reads the scratch's zeros.
+    row is five vector reads.  A cell off the box reads the scratch's zeros.  ``chunk`` > 0: on
+    numba's threads (:func:`_restrict_fine_par`).
     """
-    k0, k1 = ranges[0, 0, 0], ranges[0, 0, 1]
-    o = ranges[0, 0, 2:]
-    n = k1 - k0
-    bb, xt, mm, out = b[0, k0:k1], x[0, k0:k1], mask[0, k0:k1], res[k0:k1]
+    if chunk > 0:
+        _restrict_fine_par(b, x, mask, res, bc, ranges, cut_red, tr, chunk)
+        return
+    _red_residual(b, x, mask, res, ranges[0, 0, 0], ranges[0, 0, 1], ranges[0, 0, 2:])
     xs = x[1]
-    n0, n1, n2, n3 = xs[k0 + o[0]:k1 + o[0]], xs[k0 + o[1]:k1 + o[1]], xs[k0 + o[2]:k1 + o[2]], xs[k0 + o[3]:k1 + o[3]]
-    for i in range(n):
-        v = bb[i] - 4.0 * xt[i] + (n0[i] + n1[i] + n2[i] + n3[i])
-        out[i] = v if mm[i] != 0.0 else 0.0
     for e in range(cut_red.shape[0]):
         res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
-    base, s0, s1, c0, c1 = tr[0], tr[1], tr[4], tr[5], tr[6]
-    nj = c1 - 2
-    for j0 in range(1, c0 - 1):
-        kc = (base + (2 * j0 - 1) * s0 + 1 - s1) >> 1       # node (j0, 1)'s coincident cell (red: f even)
-        ka = (base + (2 * j0 - 2) * s0 - s1) >> 1           # its corner cells below and above along axis 1 ...
-        kb = (base + 2 * j0 * s0 - s1) >> 1                 # ... in the fine rows on either side
-        mid = res[kc:kc + nj]
-        a_lo, a_hi = res[ka:ka + nj], res[ka + 1:ka + 1 + nj]
-        b_lo, b_hi = res[kb:kb + nj], res[kb + 1:kb + 1 + nj]
-        dst = bc[j0 * c1 + 1:j0 * c1 + 1 + nj]
-        for j in range(nj):
-            dst[j] = np.float32(mid[j] + 0.25 * ((a_lo[j] + a_hi[j]) + (b_lo[j] + b_hi[j])))
+    _gather_rows(res, bc, tr, 1, tr[5] - 1)
 
 
-@nb.njit(cache=True, nogil=True)
-def _prolong_fine(x, xc, mask, tr):
-    """
-    Add level 1's correction xc (float32, c0 · c1) to the red unknowns of x (float32 (2, H)), a fine row at a time.
-
-    tr: :func:`levels`' links.  A red cell in an odd fine row (padded coordinate q0) sits on a
-    level-1 node, one in an even row amid four; along the row they are the next level-1 nodes
-    (pairs) one after the other.  Cells off the unknowns keep their 0.
-    """
-    base, s0, rows, cols, s1, c1 = tr[0], tr[1], tr[2], tr[3], tr[4], tr[6]
+@nb.njit(cache=True, nogil=True, inline="always")
+def _prolong_fine_rows(x, xc, mask, tr, r0, r1):
+    """Fine rows [r0, r1) of :func:`_prolong_fine`, each on its own."""
+    base, s0, cols, s1, c1 = tr[0], tr[1], tr[3], tr[4], tr[6]
     quarter = np.float32(0.25)
     t = x[0]
     m = mask[0]
-    for p0 in range(1, rows - 1):
+    for p0 in range(r0, r1):
         f0 = base + p0 * s0                       # the row's first cell (padded coordinate q1 = s1)
         k0 = (f0 + 1) >> 1                        # its first red cell ...
         k1 = (f0 + cols + 1) >> 1                 # ... and the end of its red cells
@@ -649,43 +751,91 @@ def _prolong_fine(x, xc, mask, tr):
                     xt[i] += quarter * ((u[i] + u[i + 1]) + (v[i] + v[i + 1]))
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _prolong_fine_par(x, xc, mask, tr, rows):
+    """:func:`_prolong_fine` with its rows in blocks of ``rows`` on numba's threads: the same values."""
+    last = tr[2] - 1
+    for k in nb.prange((last - 1 + rows - 1) // rows):
+        _prolong_fine_rows(x, xc, mask, tr, 1 + k * rows, min(last, 1 + (k + 1) * rows))
+
+
+@nb.njit(cache=True, nogil=True)
+def _prolong_fine(x, xc, mask, tr, chunk=0):
+    """
+    Add level 1's correction xc (float32, c0 · c1) to the red unknowns of x (float32 (2, H)), a fine row at a time.
+
+    tr: :func:`levels`' links.  A red cell in an odd fine row (padded coordinate q0) sits on a
+    level-1 node, one in an even row amid four; along the row they are the next level-1 nodes
+    (pairs) one after the other.  Cells off the unknowns keep their 0.  ``chunk`` > 0: rows
+    in blocks of about that many cells on numba's threads.
+    """
+    if chunk > 0:
+        _prolong_fine_par(x, xc, mask, tr, max(1, 2 * chunk // tr[3]))
+    else:
+        _prolong_fine_rows(x, xc, mask, tr, 1, tr[2] - 1)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _fine_half(xf, rf, mask, ranges, nranges, chunks, cut, colour, inv_deg):
+    """One colour's half-sweep on the fine cells: over ``chunks`` on numba's threads where there are any."""
+    if chunks.shape[1] > 0:
+        structured.half_sweep_chunks(xf, rf, mask, ranges, chunks, cut, colour, 4, inv_deg)
+    else:
+        structured.half_sweep(xf, rf, mask, ranges, nranges, cut, colour, 4, inv_deg)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _fine_half_dot(xf, rf, mask, ranges, nranges, chunks, cut, colour, inv_deg):
+    """:func:`_fine_half`; return rf · xf over the colour (summed per chunk, then in order, where chunked)."""
+    if chunks.shape[1] > 0:
+        return structured.half_sweep_dot_chunks(xf, rf, mask, ranges, chunks, cut, colour, 4, inv_deg)
+    return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut, colour, 4, inv_deg)
+
+
 @nb.njit(cache=True, nogil=True)
 def _gvcycle(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx, low, rf, xf, res, xc, bc, t, y,
-             h, sweeps, stop):
+             h, sweeps, stop, chunks, chunk):
     """
     Compute xf = M⁻¹ rf (one V-cycle, see the module doc); return rf · xf.
 
     rf float64 (2, H): CG's residual on the cells; xf float32 (2, H); ``sweeps`` red-black pairs
-    before and after the coarse correction; ``stop`` polled before it.
+    before and after the coarse correction; ``stop`` polled before it.  ``chunks``
+    (:func:`.structured.chunks_of`, none: shape (2, 0, 3)) and ``chunk`` (0: none): the loops on
+    numba's threads, the fine level's over those chunks, the others' in chunks of that many cells.
     """
     inv_deg = 0.25
-    structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
-    structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
+    if chunks.shape[1] > 0:
+        structured.first_red_chunks(xf, rf, mask, chunks, inv_deg)
+    else:
+        structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
+    _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
     for _ in range(sweeps - 1):
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, 4, inv_deg)
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
+        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, inv_deg)
+        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
     if stop[0] != 0:
         return 0.0
-    _restrict_fine(rf, xf, mask, res, bc, ranges, cut_red, tr)
-    _coarse_cycle(st, inv, off, shp, idx, low, xc, bc, t, y, h)
-    _prolong_fine(xf, xc, mask, tr)
+    _restrict_fine(rf, xf, mask, res, bc, ranges, cut_red, tr, chunk)
+    _coarse_cycle(st, inv, off, shp, idx, low, xc, bc, t, y, h, chunk // 4)
+    _prolong_fine(xf, xc, mask, tr, chunk)
     for _ in range(sweeps - 1):
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut_red, 0, 4, inv_deg)
-    s_black = structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_black, 1, 4, inv_deg)
-    return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_red, 0, 4, inv_deg) + s_black
+        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
+        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, inv_deg)
+    s_black = _fine_half_dot(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
+    return _fine_half_dot(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, inv_deg) + s_black
 
 
 @nb.njit(cache=True, nogil=True)
 def _gpcg(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx, low, rhs, u, tol, max_iter, deadline,
-          stop, sweeps):
+          stop, sweeps, chunk):
     """
     CG on the cells preconditioned by :func:`_gvcycle`, from u: the stop rule of :func:`.multigrid._spcg`.
 
     rhs, u float64 (2, H) (0 off the unknowns); stops when the largest residual is below
     ``tol``, after ``max_iter`` iterations, at ``deadline`` or when ``stop[0]`` is set (polled
     before every iteration, after the update and within the V-cycle).  Returns (iterations,
-    final max residual); u is updated in place.
+    final max residual); u is updated in place.  ``chunk`` > 0: every vector loop in chunks of
+    that many cells on numba's threads (each value as in one thread; the dot products summed per
+    chunk, then in order: the same bits on any number of threads, other bits than ``chunk`` 0's).
     """
     half = mask.shape[1]
     cells = 2 * half
@@ -702,26 +852,35 @@ def _gpcg(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx,
     h = np.zeros(big, np.float32)
     y = np.zeros(idx.size)
     rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
-    structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, 4)
+    par = chunk > 0
+    chunks = structured.chunks_of(ranges, nranges, chunk) if par else np.zeros((2, 0, 3), np.int64)
+    if par:
+        structured.product_dot_chunks(u, q, mask, ranges, chunks, cut_red, cut_black, 4)
+    else:
+        structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, 4)
     rl[:] = rhs.reshape(-1)
     worst = _subtract_max(rl, ql, 1.0, cells)
     if worst < tol:
         return 0, worst
     rz = _gvcycle(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx, low, r, xf, res, xc, bc,
-                  t, y, h, sweeps, stop)
+                  t, y, h, sweeps, stop, chunks, chunk)
     pl[:] = xl
     it = 0
     while it < max_iter:
         if stop[0] != 0 or (deadline > 0.0 and _now() > deadline):      # polled before every iteration
             break
         it += 1
-        pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, 4)
+        if par:
+            pq = structured.product_dot_chunks(p, q, mask, ranges, chunks, cut_red, cut_black, 4)
+        else:
+            pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, 4)
         if not pq > 0.0:
             break
-        alpha, worst, done = _descend(rl, ql, ul, pl, rz, pq, tol, cells, stop)
+        alpha, worst, done = _descend_in(rl, ql, ul, pl, rz, pq, tol, cells, stop, chunk)
         if done:
             break
         rz_new = _gvcycle(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx, low, r, xf, res, xc,
-                          bc, t, y, h, sweeps, stop)
-        rz = _turn(ul, pl, xl, alpha, rz, rz_new, cells)
+                          bc, t, y, h, sweeps, stop, chunks, chunk)
+        _turn_in(ul, pl, xl, alpha, rz, rz_new, cells, chunk)
+        rz = rz_new
     return it, worst

@@ -160,3 +160,56 @@ def _turn(u, p, z, alpha, rz, rz_new, n):
         u[i] += alpha * p[i]
         p[i] = z[i] + beta * p[i]
     return rz_new
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _subtract_max_chunks(r, q, c, n, chunk):
+    """:func:`_subtract_max` over chunks of ``chunk`` entries in parallel: the same values, the same maximum."""
+    count = (n + chunk - 1) // chunk
+    part = np.zeros(count)
+    for j in nb.prange(count):
+        k0 = j * chunk
+        k1 = min(n, k0 + chunk)
+        part[j] = _subtract_max(r[k0:k1], q[k0:k1], c, k1 - k0)
+    m = 0.0
+    for j in range(count):
+        m = max(m, part[j])
+    return m
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _step_chunks(u, p, alpha, n, chunk):
+    """:func:`_step` over chunks of ``chunk`` entries in parallel: the same values."""
+    for j in nb.prange((n + chunk - 1) // chunk):
+        k0, k1 = j * chunk, min(n, (j + 1) * chunk)
+        _step(u[k0:k1], p[k0:k1], alpha, k1 - k0)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _turn_chunks(u, p, z, alpha, rz, rz_new, n, chunk):
+    """:func:`_turn` over chunks of ``chunk`` entries in parallel: the same values."""
+    for j in nb.prange((n + chunk - 1) // chunk):
+        k0, k1 = j * chunk, min(n, (j + 1) * chunk)
+        _turn(u[k0:k1], p[k0:k1], z[k0:k1], alpha, rz, rz_new, k1 - k0)
+
+
+@nb.njit(cache=True, nogil=True)
+def _descend_in(r, q, u, p, rz, pq, tol, n, stop, chunk):
+    """:func:`_descend`, over chunks of ``chunk`` entries on numba's threads where ``chunk`` > 0: the same values."""
+    if chunk <= 0:
+        return _descend(r, q, u, p, rz, pq, tol, n, stop)
+    alpha = rz / pq
+    worst = _subtract_max_chunks(r, q, alpha, n, chunk)
+    done = worst < tol or stop[0] != 0
+    if done:
+        _step_chunks(u, p, alpha, n, chunk)
+    return alpha, worst, done
+
+
+@nb.njit(cache=True, nogil=True)
+def _turn_in(u, p, z, alpha, rz, rz_new, n, chunk):
+    """:func:`_turn`, over chunks of ``chunk`` entries on numba's threads where ``chunk`` > 0: the same values."""
+    if chunk <= 0:
+        _turn(u, p, z, alpha, rz, rz_new, n)
+    else:
+        _turn_chunks(u, p, z, alpha, rz, rz_new, n, chunk)

@@ -60,7 +60,7 @@ import numpy as np
 
 from . import geometric, structured
 from .graph import coord_sum, grid_strides, strided_sum
-from .krylov import _cholesky, _descend, _now, _step, _subtract_max, _turn     # CG's steps, shared
+from .krylov import _cholesky, _descend, _descend_in, _now, _subtract_max, _turn, _turn_in     # CG's steps, shared
 
 #: Stop coarsening at this many unknowns and solve that level directly.  Its dense triangular
 #: solves run in every cycle (m² multiply-adds, a dependent chain): at 100 they were a third of
@@ -565,37 +565,6 @@ def _matvec0_dot(nb0, p, q, n, deg):
     return s
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _subtract_max_chunks(r, q, c, n, chunk):
-    """:func:`_subtract_max` over chunks of ``chunk`` entries in parallel: the same values, the same maximum."""
-    count = (n + chunk - 1) // chunk
-    part = np.zeros(count)
-    for j in nb.prange(count):
-        k0 = j * chunk
-        k1 = min(n, k0 + chunk)
-        part[j] = _subtract_max(r[k0:k1], q[k0:k1], c, k1 - k0)
-    m = 0.0
-    for j in range(count):
-        m = max(m, part[j])
-    return m
-
-
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _step_chunks(u, p, alpha, n, chunk):
-    """:func:`_step` over chunks of ``chunk`` entries in parallel: the same values."""
-    for j in nb.prange((n + chunk - 1) // chunk):
-        k0, k1 = j * chunk, min(n, (j + 1) * chunk)
-        _step(u[k0:k1], p[k0:k1], alpha, k1 - k0)
-
-
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _turn_chunks(u, p, z, alpha, rz, rz_new, n, chunk):
-    """:func:`_turn` over chunks of ``chunk`` entries in parallel: the same values."""
-    for j in nb.prange((n + chunk - 1) // chunk):
-        k0, k1 = j * chunk, min(n, (j + 1) * chunk)
-        _turn(u[k0:k1], p[k0:k1], z[k0:k1], alpha, rz, rz_new, k1 - k0)
-
-
 @nb.njit(cache=True, nogil=True)
 def _dot(a, b, n):
     """Return sum_i a[i] * b[i] over the first n entries, in a fixed order (the same bits every run)."""
@@ -1092,14 +1061,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
             pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
         if not pq > 0.0:
             break
-        if par:
-            alpha = rz / pq
-            res = _subtract_max_chunks(rl, ql, alpha, cells, chunk)
-            done = res < tol or stop[0] != 0
-            if done:
-                _step_chunks(ul, pl, alpha, cells, chunk)
-        else:
-            alpha, res, done = _descend(rl, ql, ul, pl, rz, pq, tol, cells, stop)
+        alpha, res, done = _descend_in(rl, ql, ul, pl, rz, pq, tol, cells, stop, chunk if par else 0)
         if done:
             break
         rz_new = _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, nbr, wt, diag,
@@ -1110,10 +1072,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         num = rz_new
         if kcyc:
             num = -alpha * (structured.dot_all_chunks(xl, ql, chunk) if par else structured.dot_all(xl, ql))
-        if par:
-            _turn_chunks(ul, pl, xl, alpha, rz, num, cells, chunk)
-        else:
-            _turn(ul, pl, xl, alpha, rz, num, cells)
+        _turn_in(ul, pl, xl, alpha, rz, num, cells, chunk if par else 0)
         rz = rz_new
     return it, res
 
@@ -1179,11 +1138,18 @@ def _fine_layout_alone(nb0, coords, shape, red0, max_cells_per_unknown):
     return structured.laid_out(nb0, coords, shape, red0, agg, ccoords.shape[0], max_cells_per_unknown)
 
 
-def _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, sweeps):
+def _chunk_of(layout, chunk_cells):
+    """Return the chunk of a fine level on cells: ``chunk_cells``, or (None) :data:`PARALLEL_CHUNK` on a large box."""
+    if chunk_cells is not None:
+        return int(chunk_cells)
+    return PARALLEL_CHUNK if 2 * layout.half >= PARALLEL_MIN_CELLS else 0
+
+
+def _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, sweeps, chunk):
     """
     Return :func:`solve`'s ``(x, iterations, largest residual)`` by :mod:`.geometric`'s levels ``lv`` under ``layout``.
 
-    h: the problem's fine level (:class:`Hierarchy`, not coarsened).
+    h: the problem's fine level (:class:`Hierarchy`, not coarsened); ``chunk``: :func:`.geometric.pcg`'s.
     """
     rows = None if h.in_order else h.fine_of_input     # each input's fine row
     u = np.zeros((2, layout.half)) if x0 is None else layout.to_cells(x0, rows)
@@ -1191,7 +1157,7 @@ def _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, swee
         stop = np.zeros(1, np.int64)
     elif stop[0] != 0:
         return np.zeros(h.nb0.shape[0]), 0, np.inf
-    it, res = geometric.pcg(layout, lv, layout.to_cells(rhs, rows), u, tol, max_iter, deadline, stop, sweeps)
+    it, res = geometric.pcg(layout, lv, layout.to_cells(rhs, rows), u, tol, max_iter, deadline, stop, sweeps, chunk)
     return layout.from_cells(u, rows), int(it), float(res)
 
 
@@ -1216,8 +1182,9 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
     says so (else on the node graph); "graph", on the node graph always; "structured", on the
     cells wherever they can hold it, whatever its size, with the aggregation levels; "geometric",
     the geometric levels wherever they apply, whatever the size (else as "structured"; the tests').
-    The geometric levels read ``sweeps`` (the fine level's) and none of ``boost``, ``coarse_sweeps``,
-    ``coarse_cells``, ``kcycle``, ``chunk_cells`` and ``beside``: they run in one thread.
+    The geometric levels read ``sweeps`` (the fine level's) and ``chunk_cells`` (their coarse levels'
+    loops in chunks of a quarter as many cells), and none of ``boost``, ``coarse_sweeps``,
+    ``coarse_cells``, ``kcycle`` and ``beside``.
     ``coarse_cells``: with the fine level on cells, level 1 on its cells too where
     :func:`.structured.coarse_layout`'s rule says so (with route "structured": wherever they can
     hold it); False: on the node graph (the tests').  The same
@@ -1264,7 +1231,8 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
         layout = structured.laid_out(h.nb0, h.coords, shape, h.red0, np.zeros(n, np.uint32), 0, max_cells, True)
         lv = geometric.levels(h.nb0, h.coords, h.red0, layout) if geometric.applies(len(shape), layout) else None
         if lv is not None:
-            return _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, sweeps)
+            return _solve_geometric(h, layout, lv, rhs, x0, tol, max_iter, deadline, stop, sweeps,
+                                    _chunk_of(layout, chunk_cells))
     built = None
     try:
         if route != "graph" and structured.may_lay_out(n, len(shape), sweeps, min_unknowns) and (
@@ -1296,8 +1264,7 @@ def solve(nbr, coords, shape, rhs, tol=1e-12, max_iter=500, deadline=0.0, sweeps
                         h.chol, layout.to_cells(rhs, rows), u, float(tol), int(max_iter), int(sweeps),
                         float(boost), int(coarse_sweeps), float(deadline), stop, *_coarse_args(coarse, h),
                         kcycle_of(n, len(shape), coarse) if kcycle is None else bool(kcycle),
-                        (PARALLEL_CHUNK if 2 * layout.half >= PARALLEL_MIN_CELLS else 0) if chunk_cells is None
-                        else int(chunk_cells))
+                        _chunk_of(layout, chunk_cells))
         return layout.from_cells(u, rows), int(it), float(res)
     rows = slice(0, n) if h.in_order else h.fine_of_input     # each input's fine row (in order: no renumbering)
     b = np.zeros(n + 1)
