@@ -97,7 +97,10 @@ def levels(nb0, coords, red0: int, layout) -> Levels:
     coarsest level would hold more than :data:`COARSEST_MOST` unknowns (a long thin band: the
     rule's second half, see :func:`applies`).
     """
-    lo0, lo1, s1, m0, m1 = _corner(coords)
+    lo0, lo1 = (int(v) for v in layout.lo)     # the unknowns' box (no seam: their lowest and highest coordinates)
+    s1 = (lo0 + lo1) & 1
+    m0 = int(layout.hi[0]) - lo0 + 3
+    m1 = int(layout.hi[1]) - lo1 + 3 + s1
     ok, st, inv, off, shp, idx, low = _levels(nb0, coords, lo0, lo1, s1, m0, m1, COARSEST_MOST)
     if not ok:
         return None
@@ -123,26 +126,6 @@ def pcg(layout, lv: Levels, rhs, u, tol: float, max_iter: int, deadline: float, 
 # --------------------------------------------------------------------------
 # set-up
 # --------------------------------------------------------------------------
-@nb.njit(cache=True, nogil=True)
-def _corner(coords):
-    """
-    Return the fine box of the rows ``coords`` (n, 2): ``(lo0, lo1, s1, m0, m1)``.
-
-    lo0, lo1: the lowest coordinates; s1: axis 1's shift of the padded coordinates (see the
-    module doc); m0, m1: the box's size with its ghost layer (and s1).
-    """
-    n = coords.shape[0]
-    lo0 = lo1 = 1 << 40
-    hi0 = hi1 = -(1 << 40)
-    for i in range(n):
-        lo0 = min(lo0, coords[i, 0])
-        hi0 = max(hi0, coords[i, 0])
-        lo1 = min(lo1, coords[i, 1])
-        hi1 = max(hi1, coords[i, 1])
-    s1 = (lo0 + lo1) & 1
-    return lo0, lo1, s1, hi0 - lo0 + 3, hi1 - lo1 + 3 + s1
-
-
 @nb.njit(cache=True, nogil=True)
 def _fine_edges(nb0, coords, lo0, lo1, s1, m0, m1):
     """
@@ -775,23 +758,6 @@ def _prolong_fine(x, xc, mask, tr, chunk=0):
         _prolong_fine_rows(x, xc, mask, tr, 1, tr[2] - 1)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _fine_half(xf, rf, mask, ranges, nranges, chunks, cut, colour, inv_deg):
-    """One colour's half-sweep on the fine cells: over ``chunks`` on numba's threads where there are any."""
-    if chunks.shape[1] > 0:
-        structured.half_sweep_chunks(xf, rf, mask, ranges, chunks, cut, colour, 4, inv_deg)
-    else:
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut, colour, 4, inv_deg)
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _fine_half_dot(xf, rf, mask, ranges, nranges, chunks, cut, colour, inv_deg):
-    """:func:`_fine_half`; return rf · xf over the colour (summed per chunk, then in order, where chunked)."""
-    if chunks.shape[1] > 0:
-        return structured.half_sweep_dot_chunks(xf, rf, mask, ranges, chunks, cut, colour, 4, inv_deg)
-    return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut, colour, 4, inv_deg)
-
-
 @nb.njit(cache=True, nogil=True)
 def _gvcycle(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx, low, rf, xf, res, xc, bc, t, y,
              h, sweeps, stop, chunks, chunk):
@@ -804,24 +770,21 @@ def _gvcycle(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, i
     numba's threads, the fine level's over those chunks, the others' in chunks of that many cells.
     """
     inv_deg = 0.25
-    if chunks.shape[1] > 0:
-        structured.first_red_chunks(xf, rf, mask, chunks, inv_deg)
-    else:
-        structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
-    _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
+    structured.first_red_in(xf, rf, mask, ranges, nranges, chunks, inv_deg)
+    structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, 4, inv_deg)
     for _ in range(sweeps - 1):
-        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, inv_deg)
-        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, 4, inv_deg)
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, 4, inv_deg)
     if stop[0] != 0:
         return 0.0
     _restrict_fine(rf, xf, mask, res, bc, ranges, cut_red, tr, chunk)
     _coarse_cycle(st, inv, off, shp, idx, low, xc, bc, t, y, h, chunk // 4)
     _prolong_fine(xf, xc, mask, tr, chunk)
     for _ in range(sweeps - 1):
-        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
-        _fine_half(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, inv_deg)
-    s_black = _fine_half_dot(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, inv_deg)
-    return _fine_half_dot(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, inv_deg) + s_black
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, 4, inv_deg)
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, 4, inv_deg)
+    s_black = structured.half_sweep_dot_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, 4, inv_deg)
+    return structured.half_sweep_dot_in(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, 4, inv_deg) + s_black
 
 
 @nb.njit(cache=True, nogil=True)
@@ -852,12 +815,8 @@ def _gpcg(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx,
     h = np.zeros(big, np.float32)
     y = np.zeros(idx.size)
     rl, pl, ql, ul, xl = r.reshape(-1), p.reshape(-1), q.reshape(-1), u.reshape(-1), xf.reshape(-1)
-    par = chunk > 0
-    chunks = structured.chunks_of(ranges, nranges, chunk) if par else np.zeros((2, 0, 3), np.int64)
-    if par:
-        structured.product_dot_chunks(u, q, mask, ranges, chunks, cut_red, cut_black, 4)
-    else:
-        structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, 4)
+    chunks = structured.chunks_of(ranges, nranges, chunk) if chunk > 0 else np.zeros((2, 0, 3), np.int64)
+    structured.product_dot_in(u, q, mask, ranges, nranges, chunks, cut_red, cut_black, 4)
     rl[:] = rhs.reshape(-1)
     worst = _subtract_max(rl, ql, 1.0, cells)
     if worst < tol:
@@ -870,10 +829,7 @@ def _gpcg(mask, ranges, nranges, cut_red, cut_black, tr, st, inv, off, shp, idx,
         if stop[0] != 0 or (deadline > 0.0 and _now() > deadline):      # polled before every iteration
             break
         it += 1
-        if par:
-            pq = structured.product_dot_chunks(p, q, mask, ranges, chunks, cut_red, cut_black, 4)
-        else:
-            pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, 4)
+        pq = structured.product_dot_in(p, q, mask, ranges, nranges, chunks, cut_red, cut_black, 4)
         if not pq > 0.0:
             break
         alpha, worst, done = _descend_in(rl, ql, ul, pl, rz, pq, tol, cells, stop, chunk)

@@ -930,14 +930,11 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     deg = ranges.shape[2] - 2
     inv_deg = 1.0 / deg
     par = chunks.shape[1] > 0
-    if par:
-        structured.first_red_chunks(xf, rf, mask, chunks, inv_deg)
-    else:
-        structured.first_red(xf, rf, mask, ranges, nranges, inv_deg)
-    _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_black, 1, deg, inv_deg)
+    structured.first_red_in(xf, rf, mask, ranges, nranges, chunks, inv_deg)
+    structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, deg, inv_deg)
     for _ in range(sweeps - 1):
-        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_red, 0, deg, inv_deg)
-        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_black, 1, deg, inv_deg)
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, deg, inv_deg)
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, deg, inv_deg)
     if stop[0] != 0:
         return 0.0
     cb = off[1]
@@ -971,22 +968,10 @@ def _svcycle(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows
     else:
         structured.prolong_red(xf, xc, pa, ranges, nranges, boost)
     for _ in range(sweeps - 1):
-        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_black, 1, deg, inv_deg)
-        _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut_red, 0, deg, inv_deg)
-    if par:
-        s_black = structured.half_sweep_dot_chunks(xf, rf, mask, ranges, chunks, cut_black, 1, deg, inv_deg)
-        return structured.half_sweep_dot_chunks(xf, rf, mask, ranges, chunks, cut_red, 0, deg, inv_deg) + s_black
-    s_black = structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_black, 1, deg, inv_deg)
-    return structured.half_sweep_dot(xf, rf, mask, ranges, nranges, cut_red, 0, deg, inv_deg) + s_black
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _half_sweep(xf, rf, mask, ranges, nranges, chunks, par, cut, colour, deg, inv_deg):
-    """One colour's half-sweep on the cells: over ``chunks`` in parallel when ``par`` (the same values)."""
-    if par:
-        structured.half_sweep_chunks(xf, rf, mask, ranges, chunks, cut, colour, deg, inv_deg)
-    else:
-        structured.half_sweep(xf, rf, mask, ranges, nranges, cut, colour, deg, inv_deg)
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, deg, inv_deg)
+        structured.half_sweep_in(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, deg, inv_deg)
+    s_black = structured.half_sweep_dot_in(xf, rf, mask, ranges, nranges, chunks, cut_black, 1, deg, inv_deg)
+    return structured.half_sweep_dot_in(xf, rf, mask, ranges, nranges, chunks, cut_red, 0, deg, inv_deg) + s_black
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1037,10 +1022,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
     # level 1 on its cells: its loops in chunks of an eighth as many (its box is about an eighth)
     c_chunks = structured.chunks_of(c_ranges, c_nranges, max(1, chunk // 8)) if par and c_on else \
         np.zeros((2, 0, 3), np.int64)
-    if par:
-        structured.product_dot_chunks(u, q, mask, ranges, chunks, cut_red, cut_black, deg)
-    else:
-        structured.product_dot(u, q, mask, ranges, nranges, cut_red, cut_black, deg)
+    structured.product_dot_in(u, q, mask, ranges, nranges, chunks, cut_red, cut_black, deg)
     rl[:] = rhs.reshape(-1)
     res = _subtract_max(rl, ql, 1.0, cells)
     if res < tol:
@@ -1055,10 +1037,7 @@ def _spcg(mask, ranges, nranges, cut_red, cut_black, aggr, gather, red, rrows, n
         if stop[0] != 0 or (deadline > 0.0 and _now() > deadline):      # polled before every iteration
             break
         it += 1
-        if par:
-            pq = structured.product_dot_chunks(p, q, mask, ranges, chunks, cut_red, cut_black, deg)
-        else:
-            pq = structured.product_dot(p, q, mask, ranges, nranges, cut_red, cut_black, deg)
+        pq = structured.product_dot_in(p, q, mask, ranges, nranges, chunks, cut_red, cut_black, deg)
         if not pq > 0.0:
             break
         alpha, res, done = _descend_in(rl, ql, ul, pl, rz, pq, tol, cells, stop, chunk if par else 0)

@@ -79,19 +79,19 @@ class Layout:
     and its neighbour (half indices); ``aggr`` uint32 (H,): each red cell's level-1 node
     (others: level 1's dummy row); ``gather`` int64 (level-1 nodes, 2^(ndim-1)): each level-1
     node's red cells in fine row order, padded with ``H - 1`` (a red cell outside every range:
-    its residual stays 0).  ``cells``: the box's cells.  ``base``, ``strides`` (int64 (ndim,)) and
-    ``padded`` (int64 (ndim,)): :func:`_box`'s, so that a cell's flat index is
+    its residual stays 0).  ``cells``: the box's cells.  ``lo``, ``hi``, ``base``, ``strides`` and
+    ``padded`` (int64 (ndim,) but base): :func:`_box`'s, so that a cell's flat index is
     ``base + Σ (c − lo + 1) · strides`` (its half index that over 2).
     """
 
-    def __init__(self, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather, cells, base=0, strides=None,
-                 padded=None):
+    def __init__(self, cell, mask, ranges, nranges, cut_red, cut_black, aggr, gather, cells, lo, hi, base, strides,
+                 padded):
         """Hold the arrays of :func:`_build` and :func:`_box`'s box."""
         self.cell, self.mask, self.ranges, self.nranges = cell, mask, ranges, int(nranges)
         self.cut_red, self.cut_black, self.aggr, self.gather = cut_red, cut_black, aggr, gather
         self.half = int(mask.shape[1])
         self.cells = int(cells)
-        self.base, self.strides, self.padded = int(base), strides, padded
+        self.lo, self.hi, self.base, self.strides, self.padded = lo, hi, int(base), strides, padded
 
     def to_cells(self, values, rows=None):
         """Return float64 (2, H): ``values`` (n,) of the fine rows (or of the inputs at fine ``rows``) on the cells."""
@@ -149,13 +149,13 @@ def laid_out(nb0, coords, shape, red0: int, agg, coarse_nodes: int, max_cells_pe
     """
     n = nb0.shape[0]
     shape = np.asarray(shape, np.int64)
-    ok, lo, padded, strides, base, periodic0 = _box(nb0, coords, shape)
+    ok, lo, hi, padded, strides, base, periodic0 = _box(nb0, coords, shape)
     cells = int(padded[0] * strides[0])
     if not ok or cells > max_cells_per_unknown * n or (seamless and periodic0):
         return None
     ok, *arrays = _build(nb0, coords, shape, lo, padded, strides, base, periodic0, agg, int(red0),
                          int(coarse_nodes), True)
-    return Layout(*arrays, cells, base, strides, padded) if ok else None
+    return Layout(*arrays, cells, lo, hi, base, strides, padded) if ok else None
 
 
 class Coarse:
@@ -205,7 +205,7 @@ def coarse_layout(h, shape, layout, coarse_sweeps, max_cells_per_unknown=MAX_COA
     shape1 = (np.asarray(shape, np.int64) + 1) // 2
     nb1 = h.nbr[a:a + m]
     coords1 = h.coords1
-    ok, lo, padded, strides, base, periodic0 = _box(nb1, coords1, shape1)
+    ok, lo, _, padded, strides, base, periodic0 = _box(nb1, coords1, shape1)
     cells = int(padded[0] * strides[0])
     if not ok or cells > max_cells_per_unknown * m:
         return None
@@ -225,10 +225,10 @@ def coarse_layout(h, shape, layout, coarse_sweeps, max_cells_per_unknown=MAX_COA
 @nb.njit(cache=True, nogil=True)
 def _box(nb0, coords, shape):
     """
-    Return the box of the unknowns: ``(ok, lo, padded, strides, base, periodic0)``.
+    Return the box of the unknowns: ``(ok, lo, hi, padded, strides, base, periodic0)``.
 
     nb0 uint32 (n, deg): the fine neighbours (n = none); coords (n, ndim); shape int64 (ndim,).
-    lo int64 (ndim,): the box's lowest coordinates (the ghost layer below them); padded: the
+    lo, hi int64 (ndim,): the box's lowest and highest coordinates (the ghost layer beyond them); padded: the
     box's extent with its ghosts (axes 1.. odd); strides: its C-order strides (odd); base:
     the flat index's offset (its parity is the colour's); periodic0: an edge crosses axis
     0's seam (the box then spans the axis).  ``ok`` False: an edge crosses another axis'
@@ -268,7 +268,7 @@ def _box(nb0, coords, shape):
             padded[a] += 1
         base += lo[a]
     base = 2 + (base + ndim) % 2       # f = base + sum((c - lo + 1) * stride): f and sum(c) of one parity
-    return ok, lo, padded, grid_strides(padded), base, wraps[0]
+    return ok, lo, hi, padded, grid_strides(padded), base, wraps[0]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -963,3 +963,40 @@ def weighted_restrict_red_chunks(b, x, w, diag, res, gather, bc, ranges, chunks,
     """:func:`weighted_restrict_red` with its loops in parallel: the same values."""
     _weighted_residual_chunks(b, x, w, diag, res, ranges, chunks, deg)
     _gather_all(res, gather, np.arange(gather.shape[0]), bc)
+
+
+# --------------------------------------------------------------------------
+# one loop or chunks: the fine level's kernels as both cells routes call them
+# --------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True, inline="always")
+def first_red_in(x, b, m, ranges, nranges, chunks, inv_deg):
+    """:func:`first_red`, over ``chunks`` (:func:`chunks_of`) on numba's threads where there are any."""
+    if chunks.shape[1] > 0:
+        first_red_chunks(x, b, m, chunks, inv_deg)
+    else:
+        first_red(x, b, m, ranges, nranges, inv_deg)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def half_sweep_in(x, b, m, ranges, nranges, chunks, cut, colour, deg, inv_deg):
+    """:func:`half_sweep`, over ``chunks`` on numba's threads where there are any: the same values."""
+    if chunks.shape[1] > 0:
+        half_sweep_chunks(x, b, m, ranges, chunks, cut, colour, deg, inv_deg)
+    else:
+        half_sweep(x, b, m, ranges, nranges, cut, colour, deg, inv_deg)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def half_sweep_dot_in(x, b, m, ranges, nranges, chunks, cut, colour, deg, inv_deg):
+    """:func:`half_sweep_dot`, over ``chunks`` where there are any (the dot product summed per chunk, then in order)."""
+    if chunks.shape[1] > 0:
+        return half_sweep_dot_chunks(x, b, m, ranges, chunks, cut, colour, deg, inv_deg)
+    return half_sweep_dot(x, b, m, ranges, nranges, cut, colour, deg, inv_deg)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def product_dot_in(p, q, m, ranges, nranges, chunks, cut_red, cut_black, deg):
+    """:func:`product_dot`, over ``chunks`` where there are any (the dot product summed per chunk, then in order)."""
+    if chunks.shape[1] > 0:
+        return product_dot_chunks(p, q, m, ranges, chunks, cut_red, cut_black, deg)
+    return product_dot(p, q, m, ranges, nranges, cut_red, cut_black, deg)
