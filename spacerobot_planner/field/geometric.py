@@ -20,7 +20,7 @@ CG, with the same stop rule, deadline and termination flag as :func:`.multigrid.
 The red cells of a fine row are all on level-1 nodes (an odd row) or all amid four (an even
 row), and consecutive in their half of the cells, so the restriction and the prolongation
 are vector loops along the rows (:func:`_restrict_fine`, :func:`_prolong_fine`; through
-index tables they took 31 of a V-cycle's 111 us at 181², 0.86x the whole solve after).
+index tables they took 18.1 and 14.4 of a V-cycle's 120.3 us at 181², medians; 8.9, 7.5 and 101.0 after).
 
 Measured on the captured first bands of the paper's 2-DOF scene and of random ones (`bench
 scenes`' family), against the aggregation route on cells in the same process (median / max of
@@ -28,7 +28,8 @@ scenes`' family), against the aggregation route on cells in the same process (me
 against 3.00 / 3.39 ms), 0.62x at 360² (10.09 / 10.80 against 16.26 / 17.17 ms), 0.96x at 720²
 (63.35 / 64.49 against 65.97 / 68.01 ms, where the other route runs on both cores; since then this
 route's loops run on numba's threads too on a large box, :func:`_gpcg`'s ``chunk``: 720² 71.4 -> 57.0
-ms on 2 cores, medians of 5 alternating; and the transfers along the rows took 2.44 -> 2.11 ms at 181²).  Where it
+ms on 2 cores, median of 5 alternating, max 72.1 -> 57.5; and the transfers along the rows took the 181² band's solve
+from 2.44 / 2.55 / 3.17 to 2.11 / 2.21 / 2.80 ms, median / p90 / max of 41).  Where it
 applies: :func:`applies` (2-D, the cells route's box rule, no edge across a periodic seam) and
 :func:`levels`; :func:`.multigrid.solve` takes this route there.
 
