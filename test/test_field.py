@@ -395,9 +395,10 @@ def test_the_node_graph_holds_the_goal_connected_nodes_of_random_grids(seed):
     """
     The graph's nodes against the oracle's components on random grids: 1 to 4 axes, any of them periodic.
 
-    The flood runs along the last axis and seeds the neighbouring rows: grids of up to 40 nodes a
-    row, up to half of them obstacles, a fifth of the face edges cut (along the last axis too,
-    and across its seam where it is periodic), one to three goals, which come first.
+    The graph joins runs along the last axis, then the runs of neighbouring rows: grids of up to
+    40 nodes a row, up to half of them obstacles, one to three goals, which come first; each grid
+    with a fifth of the face edges cut (along the last axis too, and across its seam where it is
+    periodic), and whole.
     """
     from spacerobot_planner.field.graph import node_graph, validate_problem
     rng = np.random.default_rng(1000 + seed)
@@ -414,12 +415,12 @@ def test_the_node_graph_holds_the_goal_connected_nodes_of_random_grids(seed):
     edges = {tuple(sorted((p, int(full[d, p])))) for d in range(2 * ndim) for p in range(occ.size) if full[d, p] >= 0}
     edges = sorted(e for e in edges if e[0] != e[1])
     pick = rng.random(len(edges)) < 0.2
-    cuts = np.array([e for e, cut in zip(edges, pick) if cut], np.int64).reshape(-1, 2)
-    g = node_graph(*validate_problem(occ, periodic, [tuple(int(k) for k in q) for q in goals]), cut_edges=cuts)
-    conn = connected(occ, periodic, goals, cuts).ravel()
-    assert np.array_equal(np.sort(g.order), np.flatnonzero(conn))
-    assert g.n_goal == len(goals)
-    assert np.array_equal(np.sort(g.order[:g.n_goal]), np.sort(np.ravel_multi_index(tuple(goals.T), shape)))
+    for cuts in (np.array([e for e, cut in zip(edges, pick) if cut], np.int64).reshape(-1, 2), None):
+        g = node_graph(*validate_problem(occ, periodic, [tuple(int(k) for k in q) for q in goals]), cut_edges=cuts)
+        conn = connected(occ, periodic, goals, cuts).ravel()
+        assert np.array_equal(np.sort(g.order), np.flatnonzero(conn))
+        assert g.n_goal == len(goals)
+        assert np.array_equal(np.sort(g.order[:g.n_goal]), np.sort(np.ravel_multi_index(tuple(goals.T), shape)))
 
 
 def test_a_large_node_graphs_neighbours_are_the_grids():

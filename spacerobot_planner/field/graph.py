@@ -228,18 +228,18 @@ _REACHED = np.uint32(0xFFFFFFFD)
 
 
 @nb.njit(cache=True, nogil=True)
-def _node_tables(occ_flat, code, shape, goal_flat):
+def _node_tables(occ_flat, code, shape, goal_flat, cuts):
     """
     Return ``(order, coords, nbr)`` of the goal-connected free nodes, in one kernel.
 
     occ_flat bool (prod(shape),), code: the grid's face codes (:func:`grid_codes`, cut edges
-    marked), goal_flat int64 (k,) distinct free flat nodes.  order int64 (N,): the goal nodes,
+    marked; ``cuts``: whether any is), goal_flat int64 (k,) distinct free flat nodes.  order int64 (N,): the goal nodes,
     then the reached nodes with an even coordinate sum ("red"), then the odd ones, each in
     grid order; coords int32 (N, ndim); nbr uint32 (N, 2 ndim): position in ``order`` of
     each node's face neighbours, N for walls, obstacles and nodes not reached.
 
-    One grid-sized table (``pos``, uint32: obstacles marked as it is filled, so that the
-    flood reads one table) and four passes: a flood fill from the goal (marks: :func:`_flood`), the grid in
+    One grid-sized table (``pos``, uint32: obstacles marked as it is filled) and four passes: the
+    goal's components by runs (marks: :func:`_reach`), the grid in
     C order by rows of the last axis twice (the red nodes counted, then positions and
     coordinates, no divisions: a row's coordinate sum is counted once per row), the
     neighbour table.
@@ -251,14 +251,14 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     pos = np.empty(n_grid, np.uint32)
     for f in range(n_grid):
         pos[f] = _BLOCKED if occ_flat[f] else _UNSEEN
-    order = np.empty(n_grid, np.int64)       # the goal nodes, the flood's stack, then the order
+    order = np.empty(n_grid, np.int64)       # the goal nodes, then the order
     n_goal = 0
     for g in goal_flat:
         if pos[g] == _UNSEEN:
             pos[g] = n_goal
             order[n_goal] = g
             n_goal += 1
-    n = n_goal + _flood(pos, code, shape, order[:n_goal], order[n_goal:])
+    n = n_goal + _reach(pos, occ_flat, code, shape, order[:n_goal], cuts)
     order = order[:n]
     coords = np.empty((n, ndim), np.int32)   # int32: half the bytes to write, and for the multigrid to read
     for k in range(n_goal):
@@ -311,121 +311,134 @@ def _node_tables(occ_flat, code, shape, goal_flat):
     return order, coords, nbr
 
 
-#: :func:`_flood`'s mark of a free node on its stack (each is pushed at most once; its run marks it ``_REACHED``).
-_SEEDED = np.uint32(0xFFFFFFFC)
+@nb.njit(cache=True, nogil=True, inline="always")
+def _root(parent, r):
+    """Return run ``r``'s root in the union-find forest ``parent`` (int64), halving the path on the way."""
+    while parent[r] != r:
+        parent[r] = parent[parent[r]]
+        r = parent[r]
+    return r
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _join(parent, r, s):
+    """Put runs ``r`` and ``s`` in one set (the lower root the root)."""
+    r = _root(parent, r)
+    s = _root(parent, s)
+    if r < s:
+        parent[s] = r
+    elif s < r:
+        parent[r] = s
 
 
 @nb.njit(cache=True, nogil=True)
-def _flood(pos, code, shape, goals, stack):
+def _reach(pos, occ_flat, code, shape, goals, cuts):
     """
     Mark ``_REACHED`` in ``pos`` every free node joined to the goal nodes; return how many (the goals not counted).
 
     pos uint32 (prod(shape),): ``_UNSEEN`` at the free nodes, ``_BLOCKED`` at obstacles, the goal
-    nodes (``goals`` int64 (k,), flat) marked with their positions (below k); code uint8
-    (prod(shape), ndim): the grid's face codes (:func:`grid_codes`, cut edges marked); stack:
-    int64 scratch, at least one entry per free node.
+    nodes (``goals`` int64 (k,), flat) marked with their positions (below k); occ_flat bool
+    (prod(shape),); code uint8 (prod(shape), ndim): the grid's face codes (:func:`grid_codes`, cut
+    edges marked); ``cuts``: whether any edge is cut (False: only the end slabs have codes).
 
-    A scanline fill along the last axis (stride 1).  A seed taken from the stack grows into its
-    run: every node joined to it along that axis that is unseen or seeded, each marked.  Then
-    each neighbouring row of the run (along every other axis, on both sides) gets a seed where
-    a stretch of unseen nodes starts or a cut along the last axis splits one: the stretch's run
-    takes the rest.  A node is seeded once (``_SEEDED``), so the stack never holds more than
-    the free nodes.  The same nodes as a breadth-first flood by :func:`_grid_nbr`'s edges,
-    read along rows: at 120³ (1.16 million nodes) 8.0 ms against the breadth-first flood's
-    17.1 (medians of 15; max 8.2 and 19.3), whose wave missed the cache at every node.  The
-    face codes' rule is written out here, not called: numba kept its reference counting of an
-    inlined helper's array arguments inside these loops (an atomic operation each, ten times
-    the time).
+    The components of the free nodes by runs: a run is a stretch of a row (the last axis, stride
+    1) joined node to node.  The runs are found in one pass over the grid, then joined in a
+    union-find forest: a run that wraps across a periodic last axis to the row's first one, and
+    each pair of overlapping runs of two neighbouring rows (along every other axis, across a
+    periodic seam too) that an uncut edge joins.  Without cuts one edge joins the whole overlap
+    (the rows' codes are the same along it); with cuts the overlap's nodes are read until one of
+    them is joined.  The goals' runs' sets are reached: their runs' nodes are marked.  About one
+    read of the occupancy and one of ``pos`` a node, and a few operations a run; the scanline
+    flood it replaces read each node's neighbouring rows and codes (9 ns a node at 36³).
     """
     ndim = shape.size
     last = ndim - 1
-    length = shape[last]                    # a row's nodes (the last axis)
-    strides = grid_strides(shape)
+    length = shape[last]                    # a row's nodes
+    n_grid = occ_flat.size
+    rows = n_grid // length
     cf = code.reshape(code.size)            # node f's code along axis a at f · ndim + a
-    top = 0
-    for g in goals:                         # the goal nodes' face neighbours
-        for a in range(ndim):
-            c = cf[g * ndim + a]
-            span = (shape[a] - 1) * strides[a]
-            if not c & _LOW_NONE:
-                h = g + span if c & _LOW_WRAP else g - strides[a]
-                if pos[h] == _UNSEEN:
-                    pos[h] = _SEEDED
-                    stack[top] = h
-                    top += 1
-            if not c & _HIGH_NONE:
-                h = g - span if c & _HIGH_WRAP else g + strides[a]
-                if pos[h] == _UNSEEN:
-                    pos[h] = _SEEDED
-                    stack[top] = h
-                    top += 1
-    reached = 0
-    while top > 0:
-        top -= 1
-        f = stack[top]
-        if pos[f] != _SEEDED:
-            continue                        # a run took it after it was seeded
-        pos[f] = _REACHED
-        k = 1                               # the run: ``down`` nodes below f, k in all (cyclic)
-        down = 0
-        for side in range(2):               # above f, then below it
-            none, wrap, step = (_HIGH_NONE, _HIGH_WRAP, 1) if side == 0 else (_LOW_NONE, _LOW_WRAP, -1)
-            g = f
-            while True:
-                c = cf[g * ndim + last]
-                if c & none:
-                    break
-                h = g - step * (length - 1) if c & wrap else g + step
-                v = pos[h]
-                if v != _UNSEEN and v != _SEEDED:
-                    break
-                pos[h] = _REACHED
-                g = h
-                k += 1
-                down += side
-        reached += k
-        row = f - f % length                # the row's first node
-        s = f - row - down                  # the run's first coordinate along the row (cyclic)
-        if s < 0:
-            s += length
-        for part in range(2):               # the run as one or two intervals of the row
-            if part == 0:
-                lo, hi = row + s, row + min(s + k, length)
-            elif s + k > length:
-                lo, hi = row, row + s + k - length
+    lo = np.empty(n_grid, np.int64)         # each run's first node and one past its last (flat)
+    hi = np.empty(n_grid, np.int64)
+    first = np.empty(rows + 1, np.int64)    # row r's runs: first[r] .. first[r + 1]
+    runs = 0
+    for r in range(rows):
+        first[r] = runs
+        f = r * length
+        end = f + length
+        while f < end:
+            if occ_flat[f]:
+                f += 1
+                continue
+            lo[runs] = f
+            while f + 1 < end and not occ_flat[f + 1] and (not cuts or not cf[f * ndim + last] & _HIGH_NONE):
+                f += 1
+            f += 1
+            hi[runs] = f
+            runs += 1
+    first[rows] = runs
+    parent = np.arange(runs)
+    for r in range(rows):                   # a periodic last axis: the row's last run and its first
+        a0, a1 = first[r], first[r + 1]
+        if a1 - a0 > 1 and lo[a0] == r * length and hi[a1 - 1] == (r + 1) * length:
+            c = cf[(hi[a1 - 1] - 1) * ndim + last]
+            if c & _HIGH_WRAP and not c & _HIGH_NONE:
+                _join(parent, a0, a1 - 1)
+    strides = grid_strides(shape)
+    for a in range(last):                   # every other axis: each row and the next one along it
+        step = strides[a] // length         # in rows
+        n_a = shape[a]
+        for r in range(rows):
+            a0, a1 = first[r], first[r + 1]
+            if a0 == a1:
+                continue
+            c = cf[r * length * ndim + a]   # the row's code along a (cuts aside: the same along the row)
+            if c & _HIGH_NONE and not cuts:
+                continue                    # a wall above the row
+            if (r // step) % n_a == n_a - 1:
+                if not c & _HIGH_WRAP:
+                    continue
+                q = r - (n_a - 1) * step    # across the seam
             else:
-                break
-            for a in range(last):
-                st = strides[a]
-                span = (shape[a] - 1) * st
-                c0 = cf[lo * ndim + a]      # the wrap bits are the same along the row
-                for side in range(2):
-                    if side == 0:
-                        none = _LOW_NONE
-                        off = span if c0 & _LOW_WRAP else -st
-                    else:
-                        none = _HIGH_NONE
-                        off = -span if c0 & _HIGH_WRAP else st
-                    unseen = 0              # (a vector loop: most neighbouring rows are done)
-                    for h in range(lo + off, hi + off):
-                        unseen += pos[h] == _UNSEEN
-                    if unseen == 0:
-                        continue
-                    joined = False          # the last node met is open and joined along the row
-                    for g in range(lo, hi):
-                        if cf[g * ndim + a] & none:
-                            joined = False
-                            continue
-                        h = g + off
-                        v = pos[h]
-                        if v == _UNSEEN:
-                            if not joined or cf[h * ndim + last] & _LOW_NONE:
-                                pos[h] = _SEEDED
-                                stack[top] = h
-                                top += 1
-                            joined = True
-                        else:
-                            joined = v == _SEEDED
+                q = r + step
+            b0, b1 = first[q], first[q + 1]
+            shift = (q - r) * length        # from a node of row r to its neighbour in row q
+            i, j = a0, b0
+            while i < a1 and j < b1:        # the overlapping runs, in row order
+                s = max(lo[i], lo[j] - shift)
+                e = min(hi[i], hi[j] - shift)
+                if s < e:
+                    joined = True
+                    if cuts:                # an uncut edge in the overlap
+                        joined = False
+                        for g in range(s, e):
+                            if not cf[g * ndim + a] & _HIGH_NONE:
+                                joined = True
+                                break
+                    if joined:
+                        _join(parent, i, j)
+                if hi[i] <= hi[j] - shift:
+                    i += 1
+                else:
+                    j += 1
+    reached_set = np.zeros(runs, np.bool_)
+    for g in goals:                         # the goals' runs (a binary search in the row's runs)
+        r = g // length
+        i0, i1 = first[r], first[r + 1] - 1
+        while i0 < i1:
+            mid = (i0 + i1 + 1) // 2
+            if lo[mid] <= g:
+                i0 = mid
+            else:
+                i1 = mid - 1
+        reached_set[_root(parent, i0)] = True
+    reached = -goals.size                   # every goal node is in a reached run
+    for i in range(runs):
+        if not reached_set[_root(parent, i)]:
+            continue
+        for f in range(lo[i], hi[i]):
+            v = pos[f]
+            pos[f] = _REACHED if v == _UNSEEN else v        # (a goal node keeps its position)
+        reached += hi[i] - lo[i]
     return reached
 
 
@@ -588,7 +601,8 @@ def node_graph(occ, per, goals, cut_edges=None, token=None) -> NodeGraph:
     shape = np.array(occ.shape, np.int64)
     code = face_codes(shape, per, cut_edges, token)
     goal_flat = np.ravel_multi_index(tuple(goals.T), occ.shape).astype(np.int64)
-    order, coords, nbr = _node_tables(occ.ravel(), code, shape, goal_flat)
+    order, coords, nbr = _node_tables(occ.ravel(), code, shape, goal_flat,
+                                      cut_edges is not None and len(cut_edges) > 0)
     token.check()
     return NodeGraph(order, nbr, coords, len(goals), tuple(occ.shape), tuple(per))
 
