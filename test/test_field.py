@@ -363,9 +363,9 @@ def test_the_node_graphs_neighbours_are_the_grids(shape, periodic):
     """
     The node graph's table against the oracle's face neighbours.
 
-    Random obstacles and cut edges (on two-node periodic axes too, where both directions reach
-    the same node), every node with the oracle's neighbours where they are in the graph, and the
-    graph's nodes exactly the goal-connected free ones.
+    Random obstacles, with and without cut edges (on two-node periodic axes too, where both
+    directions reach the same node), every node with the oracle's neighbours where they are in
+    the graph, and the graph's nodes exactly the goal-connected free ones.
     """
     from spacerobot_planner.field.graph import node_graph, validate_problem
     rng = np.random.default_rng(len(shape) * 31 + shape[0])
@@ -376,18 +376,19 @@ def test_the_node_graphs_neighbours_are_the_grids(shape, periodic):
     cuts = np.array(sorted({tuple(sorted((int(p), int(full[d, p]))))
                             for p, d in zip(pick, rng.integers(0, full.shape[0], 12)) if full[d, p] >= 0}),
                     np.int64).reshape(-1, 2)
-    want = face_neighbours(shape, periodic, cuts).reshape(2 * len(shape), -1)
-    g = node_graph(*validate_problem(occ, periodic, [goal]), cut_edges=cuts)
-    conn = connected(occ, periodic, [goal], cuts).ravel()
-    assert np.array_equal(np.sort(g.order), np.flatnonzero(conn))
-    assert g.order[0] == np.ravel_multi_index(goal, shape)
-    pos = np.full(occ.size, g.size)
-    pos[g.order] = np.arange(g.size)
-    for k, f in enumerate(g.order):
-        for d in range(2 * len(shape)):
-            expect = g.size if want[d, f] < 0 or not conn[want[d, f]] else pos[want[d, f]]
-            assert g.nbr[k, d] == expect
-    assert np.array_equal(g.coords, np.array(np.unravel_index(g.order, shape)).T)
+    for cut in (cuts, None):
+        want = face_neighbours(shape, periodic, cut).reshape(2 * len(shape), -1)
+        g = node_graph(*validate_problem(occ, periodic, [goal]), cut_edges=cut)
+        conn = connected(occ, periodic, [goal], cut).ravel()
+        assert np.array_equal(np.sort(g.order), np.flatnonzero(conn))
+        assert g.order[0] == np.ravel_multi_index(goal, shape)
+        pos = np.full(occ.size, g.size)
+        pos[g.order] = np.arange(g.size)
+        for k, f in enumerate(g.order):
+            for d in range(2 * len(shape)):
+                expect = g.size if want[d, f] < 0 or not conn[want[d, f]] else pos[want[d, f]]
+                assert g.nbr[k, d] == expect
+        assert np.array_equal(g.coords, np.array(np.unravel_index(g.order, shape)).T)
 
 
 @pytest.mark.parametrize("seed", range(40))

@@ -248,9 +248,10 @@ def _node_tables(occ_flat, code, shape, goal_flat, cuts):
     ndim = shape.size
     deg = 2 * ndim
     strides = grid_strides(shape)
-    pos = np.empty(n_grid, np.uint32)
+    pos = np.empty(n_grid + 1, np.uint32)   # the last entry: what a wall reads (:func:`_uncut_rows`)
     for f in range(n_grid):
         pos[f] = _BLOCKED if occ_flat[f] else _UNSEEN
+    pos[n_grid] = _BLOCKED
     order = np.empty(n_grid, np.int64)       # the goal nodes, then the order
     n_goal = 0
     for g in goal_flat:
@@ -304,10 +305,14 @@ def _node_tables(occ_flat, code, shape, goal_flat, cuts):
         for a in range(ndim - 1):
             par += lead[a]
     nbr = np.empty((n, deg), np.uint32)     # unsigned: no negative-index wrap-around in the kernels
-    if n >= PARALLEL_MIN_NODES:
+    if cuts and n >= PARALLEL_MIN_NODES:
         _neighbour_rows_chunks(nbr, order, pos, code, shape, strides)
-    else:
+    elif cuts:
         _neighbour_rows(nbr, order, pos, code, shape, strides, 0, n)
+    elif n >= PARALLEL_MIN_NODES:
+        _uncut_rows_chunks(nbr, pos, code, shape, strides)
+    else:
+        _uncut_rows(nbr, pos, code, shape, strides, 0, rows)
     return order, coords, nbr
 
 
@@ -443,7 +448,7 @@ def _reach(pos, occ_flat, code, shape, goals, cuts):
 
 
 #: :func:`_node_tables` fills its neighbour table on all of numba's threads from this many nodes on
-#: (each node's row on its own: the same table; numba reads the value when it compiles the kernel).
+#: (each node's entries on their own: the same table; numba reads the value when it compiles the kernel).
 #: The paper 3-DOF scene's table, one thread against two (the kernel alone, median of 7): 72³ 1.8 / 1.2 ms,
 #: 120³ 9.3 / 5.2 ms.
 PARALLEL_MIN_NODES = 100_000
@@ -466,6 +471,57 @@ def _neighbour_rows_chunks(nbr, order, pos, code, shape, strides):
     n = nbr.shape[0]
     for j in nb.prange((n + 8191) // 8192):
         _neighbour_rows(nbr, order, pos, code, shape, strides, j * 8192, min(n, (j + 1) * 8192))
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _uncut_rows(nbr, pos, code, shape, strides, r0, r1):
+    """
+    Fill the neighbour table's rows of the nodes on the grid's rows [r0, r1) (along the last axis), no edge cut.
+
+    pos uint32 (prod(shape) + 1,): each node's position in the graph, a mark above every position
+    elsewhere, the last entry one too (what a wall reads).  With no edge cut, every node of a grid
+    row has its row's codes along the other axes, so each row's offsets are decoded once, and along
+    the row only its two ends read theirs: the table :func:`_neighbour_rows` fills, at 0.65x its
+    time (36³: 0.19 against 0.29 ms, medians of 40).
+    """
+    none = np.uint32(nbr.shape[0])
+    ndim = shape.size
+    last = ndim - 1
+    length = shape[last]
+    cf = code.reshape(code.size)
+    wall = pos.size - 1
+    off = np.empty(2 * last, np.int64)      # the row's neighbour offsets along the other axes ...
+    walled = np.empty(2 * last, np.bool_)   # ... and where a wall stands instead
+    for r in range(r0, r1):
+        f0 = r * length
+        for a in range(last):
+            c = cf[f0 * ndim + a]
+            span = (shape[a] - 1) * strides[a]
+            off[2 * a] = span if c & _LOW_WRAP else -strides[a]
+            walled[2 * a] = c & _LOW_NONE != 0
+            off[2 * a + 1] = -span if c & _HIGH_WRAP else strides[a]
+            walled[2 * a + 1] = c & _HIGH_NONE != 0
+        below0 = wall if cf[f0 * ndim + last] & _LOW_NONE else f0 + length - 1         # the row's ends
+        above1 = wall if cf[(f0 + length - 1) * ndim + last] & _HIGH_NONE else f0
+        for j in range(length):
+            f = f0 + j
+            k = pos[f]
+            if k >= none:
+                continue
+            for d in range(2 * last):
+                nbr[k, d] = min(pos[wall if walled[d] else f + off[d]], none)
+            nbr[k, 2 * last] = min(pos[f - 1 if j > 0 else below0], none)
+            nbr[k, 2 * last + 1] = min(pos[f + 1 if j < length - 1 else above1], none)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _uncut_rows_chunks(nbr, pos, code, shape, strides):
+    """:func:`_uncut_rows` for every grid row, in chunks of about 8 192 nodes on numba's threads."""
+    length = shape[shape.size - 1]
+    rows = (pos.size - 1) // length
+    per = max(1, 8192 // length)
+    for j in nb.prange((rows + per - 1) // per):
+        _uncut_rows(nbr, pos, code, shape, strides, j * per, min(rows, (j + 1) * per))
 
 
 def validate_problem(occupied, periodic, goal_nodes):
