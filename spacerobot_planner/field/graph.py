@@ -227,6 +227,105 @@ _BLOCKED = np.uint32(0xFFFFFFFE)
 _REACHED = np.uint32(0xFFFFFFFD)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _row_lead(r, shape):
+    """Return the coordinates of grid row ``r`` (along the last axis) on the leading axes (the last one 0)."""
+    ndim = shape.size
+    lead = np.zeros(ndim, np.int64)
+    for a in range(ndim - 2, -1, -1):
+        lead[a] = r % shape[a]
+        r //= shape[a]
+    return lead
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _count_rows(pos, shape, r0, r1):
+    """Return ``(red, all)``: how many nodes marked ``_REACHED`` in ``pos`` on the grid's rows [r0, r1) are red, all."""
+    ndim = shape.size
+    last = shape[ndim - 1]
+    lead = _row_lead(r0, shape)
+    lead_shape = shape.copy()
+    lead_shape[ndim - 1] = 1                 # the odometer turns the leading axes only
+    n_red = 0
+    n = 0
+    for r in range(r0, r1):
+        par = 0                              # the row's coordinate sum
+        for a in range(ndim - 1):
+            par += lead[a]
+        f = r * last
+        for j in range(last):
+            hit = pos[f + j] == _REACHED
+            n += hit
+            n_red += hit and (par + j) & 1 == 0
+        _next_coord(lead, lead_shape)
+    return n_red, n
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _place_rows(pos, order, coords, shape, r0, r1, k_red, k_black):
+    """
+    Give the reached nodes on the grid's rows [r0, r1) their positions, from ``k_red`` (red) and ``k_black`` (black).
+
+    In grid order: ``pos[f]`` the node's position, ``order`` and ``coords`` its entries (no
+    divisions: a row's coordinate sum is counted once per row).
+    """
+    ndim = shape.size
+    last = shape[ndim - 1]
+    lead = _row_lead(r0, shape)
+    lead_shape = shape.copy()
+    lead_shape[ndim - 1] = 1
+    for r in range(r0, r1):
+        par = 0
+        for a in range(ndim - 1):
+            par += lead[a]
+        f = r * last
+        for j in range(last):
+            if pos[f] == _REACHED:
+                black = (par + j) & 1            # coordinates are >= 0: the parity, without a branch
+                k = k_black if black else k_red
+                k_red += 1 - black
+                k_black += black
+                pos[f] = k
+                order[k] = f
+                for a in range(ndim - 1):
+                    coords[k, a] = lead[a]
+                coords[k, ndim - 1] = j
+            f += 1
+        _next_coord(lead, lead_shape)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _place_chunks(pos, order, coords, shape, n_goal):
+    """
+    :func:`_count_rows` and :func:`_place_rows` over every grid row, in chunks of about 8 192 nodes on numba's threads.
+
+    Each chunk's red and black nodes are counted, then the chunks' first positions summed in
+    order (the goal nodes first, then every red node, then the black ones), then each chunk
+    placed: the positions of one thread's pass.
+    """
+    length = shape[shape.size - 1]
+    rows = (pos.size - 1) // length
+    per = max(1, 8192 // length)
+    chunks = (rows + per - 1) // per
+    red = np.empty(chunks, np.int64)
+    reached = np.empty(chunks, np.int64)
+    for j in nb.prange(chunks):
+        red[j], reached[j] = _count_rows(pos, shape, j * per, min(rows, (j + 1) * per))
+    k_red = np.empty(chunks, np.int64)
+    k_black = np.empty(chunks, np.int64)
+    n_red = 0
+    for j in range(chunks):
+        n_red += red[j]
+    kr, kb = n_goal, n_goal + n_red
+    for j in range(chunks):
+        k_red[j] = kr
+        k_black[j] = kb
+        kr += red[j]
+        kb += reached[j] - red[j]
+    for j in nb.prange(chunks):
+        _place_rows(pos, order, coords, shape, j * per, min(rows, (j + 1) * per), k_red[j], k_black[j])
+
+
 @nb.njit(cache=True, nogil=True)
 def _node_tables(occ_flat, code, shape, goal_flat, cuts):
     """
@@ -239,10 +338,10 @@ def _node_tables(occ_flat, code, shape, goal_flat, cuts):
     each node's face neighbours, N for walls, obstacles and nodes not reached.
 
     One grid-sized table (``pos``, uint32: obstacles marked as it is filled) and four passes: the
-    goal's components by runs (marks: :func:`_reach`), the grid in
-    C order by rows of the last axis twice (the red nodes counted, then positions and
-    coordinates, no divisions: a row's coordinate sum is counted once per row), the
-    neighbour table.
+    goal's components by runs (marks: :func:`_reach`), the grid in C order by rows of the last
+    axis twice (the red nodes counted, then positions and coordinates: :func:`_count_rows`,
+    :func:`_place_rows`), the neighbour table.  The last three on numba's threads from
+    :data:`PARALLEL_MIN_NODES` nodes on (in chunks of rows: the same tables).
     """
     n_grid = occ_flat.size
     ndim = shape.size
@@ -265,45 +364,12 @@ def _node_tables(occ_flat, code, shape, goal_flat, cuts):
     for k in range(n_goal):
         for a in range(ndim):
             coords[k, a] = (order[k] // strides[a]) % shape[a]
-    last = shape[ndim - 1]
-    rows = n_grid // last
-    lead = np.zeros(ndim, np.int64)          # the row's coordinates on the leading axes
-    lead_shape = shape.copy()
-    lead_shape[ndim - 1] = 1                 # the odometer turns the leading axes only
-    n_red = 0
-    f = 0
-    par = 0                                  # the row's coordinate sum
-    for r in range(rows):                    # count the red nodes
-        for j in range(last):
-            if pos[f] == _REACHED and (par + j) % 2 == 0:
-                n_red += 1
-            f += 1
-        _next_coord(lead, lead_shape)
-        par = 0
-        for a in range(ndim - 1):
-            par += lead[a]
-    k_red = n_goal
-    k_black = n_goal + n_red
-    lead[:] = 0
-    f = 0
-    par = 0
-    for r in range(rows):                    # positions, order and coordinates
-        for j in range(last):
-            if pos[f] == _REACHED:
-                black = (par + j) & 1            # coordinates are >= 0: the parity, without a branch
-                k = k_black if black else k_red
-                k_red += 1 - black
-                k_black += black
-                pos[f] = k
-                order[k] = f
-                for a in range(ndim - 1):
-                    coords[k, a] = lead[a]
-                coords[k, ndim - 1] = j
-            f += 1
-        _next_coord(lead, lead_shape)
-        par = 0
-        for a in range(ndim - 1):
-            par += lead[a]
+    rows = n_grid // shape[ndim - 1]
+    if n >= PARALLEL_MIN_NODES:
+        _place_chunks(pos, order, coords, shape, n_goal)
+    else:
+        n_red = _count_rows(pos, shape, 0, rows)[0]
+        _place_rows(pos, order, coords, shape, 0, rows, n_goal, n_goal + n_red)
     nbr = np.empty((n, deg), np.uint32)     # unsigned: no negative-index wrap-around in the kernels
     if cuts and n >= PARALLEL_MIN_NODES:
         _neighbour_rows_chunks(nbr, order, pos, code, shape, strides)
