@@ -672,9 +672,7 @@ def _restrict_fine_par(b, x, mask, res, bc, ranges, cut_red, tr, chunk):
     for j in nb.prange((k1 - k0 + chunk - 1) // chunk):
         a = k0 + j * chunk
         _red_residual(b, x, mask, res, a, min(k1, a + chunk), o)
-    xs = x[1]
-    for e in range(cut_red.shape[0]):
-        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    structured.cut_residuals(res, x[1], cut_red)
     c0 = tr[5]
     rows = max(1, chunk // tr[6])
     for k in nb.prange((c0 - 2 + rows - 1) // rows):
@@ -699,9 +697,7 @@ def _restrict_fine(b, x, mask, res, bc, ranges, cut_red, tr, chunk=0):
         _restrict_fine_par(b, x, mask, res, bc, ranges, cut_red, tr, chunk)
         return
     _red_residual(b, x, mask, res, ranges[0, 0, 0], ranges[0, 0, 1], ranges[0, 0, 2:])
-    xs = x[1]
-    for e in range(cut_red.shape[0]):
-        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    structured.cut_residuals(res, x[1], cut_red)
     _gather_rows(res, bc, tr, 1, tr[5] - 1)
 
 

@@ -602,6 +602,13 @@ def product_dot(p, q, m, ranges, nranges, cut_red, cut_black, deg):
     return s
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def cut_residuals(res, xs, cut):
+    """Take the cut edges back out of the red residuals: res[k] −= xs[j] for each (k, j) of ``cut`` (both routes')."""
+    for e in range(cut.shape[0]):
+        res[cut[e, 0]] -= xs[cut[e, 1]]
+
+
 @nb.njit(cache=True, nogil=True)
 def restrict_red(b, x, res, gather, at, bc, ranges, nranges, cut_red, deg):
     """
@@ -616,9 +623,7 @@ def restrict_red(b, x, res, gather, at, bc, ranges, nranges, cut_red, deg):
     fdeg = float(deg)
     for r in range(nranges):
         _residual_range(b[0], x[0], x[1], res, ranges[0, r, 0], ranges[0, r, 1], ranges[0, r, 2:], deg, fdeg)
-    xs = x[1]
-    for e in range(cut_red.shape[0]):
-        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    cut_residuals(res, x[1], cut_red)
     for c in range(gather.shape[0]):
         bc[at[c]] = _gathered(res, gather, c)
 
@@ -920,9 +925,7 @@ def _gather_all(res, gather, at, bc):
 def restrict_red_chunks(b, x, res, gather, at, bc, ranges, chunks, cut_red, deg):
     """:func:`restrict_red` with its loops in parallel: the same values."""
     _residual_chunks(b, x, res, ranges, chunks, deg)
-    xs = x[1]
-    for e in range(cut_red.shape[0]):
-        res[cut_red[e, 0]] -= xs[cut_red[e, 1]]
+    cut_residuals(res, x[1], cut_red)
     _gather_all(res, gather, at, bc)
 
 
