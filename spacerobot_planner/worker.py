@@ -55,7 +55,7 @@ from .config import load_scenario
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .planner import Planner, warm_up_unreached
-from .field import warm_up_rare as field_warm_up_rare
+from .field import reserve_heap, warm_up_rare as field_warm_up_rare
 from .termination import Termination, stall
 
 __all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
@@ -332,7 +332,8 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
     at most ``full_grid_max_nodes`` nodes, plans the configured target once on it with
     ``planner`` itself: the route a grid of that size takes (e.g. multigrid in 2-D) is
     compiled, and its C-space and field stay in ``planner``'s caches.  Kernels of other
-    solvers are compiled when first used.  Returns seconds per phase.
+    solvers are compiled when first used.  The heap a plan on the configured grid fills is
+    faulted in either way (``field.reserve_heap``).  Returns seconds per phase.
     """
     t0 = time.perf_counter()
     sc = planner.scenario
@@ -348,6 +349,7 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
             break
     warm_up_unreached(coarse.scenario)
     field_warm_up_rare()        # nor does a coarse plan need a breadth-first search or a second band
+    reserve_heap(sc.grid.n_nodes)   # the heap a plan on the configured grid fills (planned below or not)
     out = {"coarse_s": time.perf_counter() - t0}
     if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:
         t1 = time.perf_counter()

@@ -149,3 +149,66 @@ def test_joined_chains_after_the_nodes_chain_warm_up_meet_no_kernel_signature_it
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["joined"] >= 5, out          # the chains joined the moving arm
     assert not out["new"], f"kernels loaded or compiled in a joined replan's chain after the warm-up: {out['new']}"
+
+
+_PUBLIC_WARM_UP = _SIGNATURES + r"""
+import json, resource
+from dataclasses import replace
+import spacerobot_planner.field as field
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.planner import Planner, warm_up
+
+if sys.argv[2] == "no-reserve":
+    field.HEAP_BYTES_PER_NODE = 0          # the warm-up without its heap reservation: the faults' baseline
+sc = load_scenario(f"{sys.argv[1]}/config/paper_3dof.yaml")
+warm_up(sc)                                # what an API user, the CLI's callers and the benches run first
+before = signatures()
+faults, ok = [], []
+for cells in [int(c) for c in sys.argv[3:]]:
+    grid_sc = replace(sc, grid=sc.grid_with_cells(cells))
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    ok.append(bool(Planner(grid_sc).plan(grid_sc.start_rad, grid_sc.goal_rad).ok))
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+after = signatures()
+new = {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())}
+print(json.dumps({"ok": ok, "faults": faults, "kept_heap": field.keep_heap(), "new": new}))
+"""
+
+
+def _public_warm_up(*args) -> dict:
+    r = subprocess.run([sys.executable, "-c", _PUBLIC_WARM_UP, str(ROOT), *map(str, args)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_first_paper_plans_after_the_public_warm_up_meet_no_kernel_signature_it_did_not_load():
+    """
+    ``planner.warm_up`` loads the steps only large 3-D bands take: level 1 on its cells, coarse levels built beside.
+
+    The paper 3-DOF scene at 36³ (its first band's level 1 goes on cells) and at 72³ (its coarse levels
+    are built on a second thread while the fine level's cells are laid out), each the first plan of
+    its grid in a fresh process after the warm-up on the scenario's own (36³) grid.  Oracle: numba's
+    record of each kernel's signatures before and after the plans.
+    """
+    out = _public_warm_up("reserve", 36, 72)
+    assert out["ok"] == [True, True], out
+    assert not out["new"], f"kernels loaded or compiled in a first plan after planner.warm_up: {out['new']}"
+
+
+def test_the_public_warm_up_faults_in_the_heap_a_first_plan_fills():
+    """
+    After ``planner.warm_up`` a first paper 3-DOF plan on the warmed grid finds its memory in place.
+
+    Oracle: the kernel's count of the process's minor page faults (``getrusage``) during that plan,
+    against the same plan after the same warm-up without the heap's reservation (about 1 900 pages,
+    7.4 MB, measured when this was written).  Where the heap is not kept (not glibc, or the user's
+    own malloc settings) there is nothing to reserve.
+    """
+    warmed = _public_warm_up("reserve", 36)
+    if not warmed["kept_heap"]:
+        pytest.skip("the C library's heap is not kept here (field.keep_heap): no reservation to check")
+    baseline = _public_warm_up("no-reserve", 36)
+    assert warmed["ok"] == baseline["ok"] == [True]
+    assert baseline["faults"][0] > 500, baseline          # the plan does fill a heap it never held
+    assert warmed["faults"][0] < 0.5 * baseline["faults"][0], (warmed, baseline)

@@ -75,7 +75,7 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from ..termination import Termination
-from . import harmonic, paper
+from . import harmonic, multigrid, paper
 from .graph import NodeGraph, bfs, bfs_distance, node_graph, validate_problem
 
 __all__ = ["Field", "SOLVERS", "DEFAULT_SOLVER", "DEFAULT_BUDGET_S", "solve_field",
@@ -254,6 +254,29 @@ def _compile_once() -> None:
             solve_field(occ, per, [goal], budget_s=600.0)
 
 
+def _warm_large_band_steps() -> None:
+    """
+    Load (or compile) the steps of a 3-D first band that only large bands take, on the small 3-D warm problem.
+
+    Level 1 on its cells (``structured.coarse_layout``'s rule: from a band of about 30³ on) and the coarse
+    levels built beside the fine level's layout (``multigrid.BESIDE_MIN_UNKNOWNS``: from about 70³), each
+    a kernel that the warm problems' sizes do not reach: forced here (``route="structured"``,
+    ``beside=True``), so that the first 3-DOF plan of a process at 36³ or 72³ does not load them in
+    its middle (level 1's layout of a first paper plan at 36³ took 3.99 ms against 0.13 ms later).
+    """
+    occ, per, goal = _WARM_PROBLEMS[1]
+    graph = node_graph(*validate_problem(occ, per, [goal]))
+    known = np.zeros(graph.size, np.bool_)
+    known[:graph.n_goal] = True
+    log_u = np.full(graph.size + 1, -np.inf)
+    log_u[:graph.n_goal] = 0.0
+    sub, rhs, _ = harmonic._band_problem(graph.nbr, np.arange(graph.n_goal, graph.size, dtype=np.int64), known,
+                                         log_u)
+    # the band's coordinates as harmonic.solve passes a first band's: the rows after the goal's
+    multigrid.solve(sub, graph.coords[graph.n_goal:], graph.shape, rhs, tol=harmonic.RESIDUAL_TOL,
+                    route="structured", beside=True)
+
+
 def _warm_problem(shape, block):
     occ = np.zeros(shape, dtype=bool)
     occ[block] = True
@@ -280,8 +303,9 @@ def warm_up_rare() -> None:
     Compile (or load) the field kernels that only some plans reach, on small 2-D and 3-D grids.
 
     The breadth-first search of the disconnected diagnosis and of a retried grid (with cut
-    edges), and a later band's window (a solve of one band does not reach it): without
-    this, the first plan that needs one loads or compiles it.
+    edges), a later band's window (a solve of one band does not reach it) and a large 3-D
+    band's steps (:func:`_warm_large_band_steps`): without this, the first plan that needs one
+    loads or compiles it.
     """
     for occ, per, goal in _WARM_PROBLEMS:
         problem = validate_problem(occ, per, [goal])
@@ -292,6 +316,7 @@ def warm_up_rare() -> None:
         known[:graph.n_goal] = True
         harmonic._steps_from_known(graph.nbr, np.arange(graph.n_goal, graph.size, dtype=np.int64), known,
                                    np.full(graph.size + 1, -1, np.int32), harmonic.WINDOW_STEPS)
+    _warm_large_band_steps()
 
 
 # --------------------------------------------------------------------------
@@ -347,6 +372,34 @@ def keep_heap() -> bool:
     if _HEAP["kept"] is None:
         _HEAP["kept"] = _mallopt_thresholds()
     return _HEAP["kept"]
+
+
+#: :func:`reserve_heap`'s bytes per grid node: what a process's first plan grew its kept heap by
+#: (the paper scenes, ``planner.warm_up`` before: 104 at 181², 154 at 36³, 137 at 72³), with room.
+HEAP_BYTES_PER_NODE = 192
+#: :func:`reserve_heap` writes one byte in every block of this many bytes (a page: each one faulted in).
+_PAGE_BYTES = 4096
+
+
+def reserve_heap(n_nodes: int) -> int:
+    """
+    Grow the kept heap (:func:`keep_heap`) now by what a plan on ``n_nodes`` grid nodes allocates; return the bytes.
+
+    A process's first plan on a grid allocates its arrays from a heap that has never held them:
+    every page is faulted in and zeroed on its first write (about 2 µs each on the project's
+    virtual machine: 3.9 ms of the first paper 3-DOF plan at 36³, 12.8 against 8.9 ms; 18 ms at
+    72³). A block of ``HEAP_BYTES_PER_NODE`` bytes a node, written once a page and freed, stays
+    in the heap (the trim threshold), so that plan finds its pages in place: what a warm-up is
+    for. 0 (nothing done) where the heap is not kept: another C library, or a user's own
+    malloc settings.
+    """
+    if not keep_heap() or n_nodes <= 0:
+        return 0
+    nbytes = HEAP_BYTES_PER_NODE * int(n_nodes)
+    block = np.empty(nbytes, np.uint8)
+    block[::_PAGE_BYTES] = 0
+    del block
+    return nbytes
 
 
 def _mallopt_thresholds() -> bool:
