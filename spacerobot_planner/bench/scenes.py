@@ -123,7 +123,8 @@ def _warm_up(dof: int) -> None:
     sc = load_scenario(CONFIG / f"paper_{dof}dof.yaml")
     sc = replace(sc, grid=sc.grid_with_cells(12 if dof == 3 else 30))
     Planner(sc).plan(sc.start_rad, sc.goal_rad)
-    warm_up(sc)                 # the kernels a coarse plan may not reach (repairs among them)
+    # the kernels a coarse plan may not reach (repairs among them), and the heap of the scenes' grid
+    warm_up(replace(sc, grid=sc.grid_with_cells(CELLS[dof])))
 
 
 def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile: bool = False,
