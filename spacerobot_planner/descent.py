@@ -21,7 +21,7 @@ from .collision import NO_REFCOUNT
 from .motion import motion_scratch, segment_free_from
 
 # status codes of the kernels
-_REACHED, _STUCK, _TOO_LONG, _BLOCKED = 0, 1, 2, 3
+_REACHED, _STUCK, _TOO_LONG, _BLOCKED, _JOINED = 0, 1, 2, 3, 4
 #: A blocked walk looks for a detour within this many index steps per axis.
 DETOUR_STEPS = 1
 
@@ -192,9 +192,9 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
 
 
 @nb.njit(cache=True, nogil=True)
-def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
-                  planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
-                  reach_m):
+def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk,
+                  q_template, planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
+                  seg_step_rad, reach_m):
     """
     Walk as :func:`_ascend` does, but only along motions that pass the motion test.
 
@@ -205,24 +205,31 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     coordinates (not across a seam), so the clearance measured there starts the next step's
     test (``motion.segment_free_from``): each node is measured once.
 
+    ``owner`` int64 (nodes,) or empty: the nodes earlier walks on the same field stood on (a
+    detour's inner nodes are passed, not stood on), each as ``walk * nodes + position`` in that
+    walk, -1 where none (:class:`WalkJoins`).  A walk stands on a node as a pure function of the
+    node, so where this one stands on such a node it goes on as that walk did: it stops there
+    (status ``_JOINED``, the node its last) and the caller takes the rest from that walk.  The
+    nodes it stands on are written as walk ``walk``'s.
+
     Returns (number of nodes, status).  :func:`_walk_valid` with its scratch.
     """
     ndim = shape.size
     box = (2 * detour_steps + 1) ** ndim
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
-    return _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
-                       planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
-                       seg_step_rad, reach_m, grid_strides(shape), q_full, pts, body_w, np.empty(ndim),
+    return _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk,
+                       q_template, planned, lengths, checked, body, verts, starts, obs_centres, obs_radii,
+                       threshold_m, seg_step_rad, reach_m, grid_strides(shape), q_full, pts, body_w, np.empty(ndim),
                        np.empty(ndim), np.empty(ndim, np.int64), np.empty((4, 2 * ndim), np.int64), np.empty(2 * ndim),
                        np.empty(box, np.int64), np.empty(2), np.empty((3, box), np.int64), np.empty(ndim, np.int64),
                        np.empty(ndim, np.int64))
 
 
 @nb.njit(**NO_REFCOUNT)
-def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, q_template,
-                planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m, seg_step_rad,
-                reach_m, strides, q_full, pts, body_w, qa, qb, coord, cand, cand_v, detour, clr_ends, box_nodes, off,
-                c0):
+def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk,
+                q_template, planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
+                seg_step_rad, reach_m, strides, q_full, pts, body_w, qa, qb, coord, cand, cand_v, detour, clr_ends,
+                box_nodes, off, c0):
     """
     Run :func:`_ascend_valid` with the grid's strides and the scratch given.
 
@@ -241,11 +248,16 @@ def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, 
     m = 0
     out[m] = f
     m += 1
+    joins = owner.size > 0
     while True:
         if is_goal_flat[f]:
             return m, _REACHED
         if m >= out.size:
             return m, _TOO_LONG
+        if joins:
+            if owner[f] >= 0:
+                return m, _JOINED        # an earlier walk stood here: the rest is its
+            owner[f] = walk * owner.size + m - 1
         here = log_u_flat[f]
         k = 0
         for a in range(ndim):
@@ -302,8 +314,34 @@ def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, 
             clr_ends[0] = np.nan
 
 
+class WalkJoins:
+    """
+    The walks taken on one field with one motion test, for later walks to join (:func:`descend`'s ``joins``).
+
+    A walk stands on a node (its start, each step's end, each detour's end) and goes on from it as
+    a pure function of that node: a later walk from another start that stands on a node an earlier
+    one stood on goes on as that one did.  So it stops there and takes the rest of the earlier
+    walk's path, the path it would have walked (a plan whose every start node's walk is blocked
+    walks each one into the same blocked node: eight walks of about 0.25 ms each before a repair,
+    measured on the repairing scenes of ``bench scenes --dof 3``).  ``owner`` int64 (nodes,): each
+    node an earlier walk stood on as ``walk * nodes + position``, -1 elsewhere; ``walks``: each walk's
+    flat nodes (int64) and its kernel's status.  For one field and one motion test only: a walk
+    on another field or with another test goes elsewhere.
+    """
+
+    def __init__(self, field: Field):
+        """Hold no walk yet, for walks on ``field``."""
+        self.field = field
+        self.owner = np.full(np.asarray(field.log_u).size, -1, np.int64)
+        self.walks = []
+
+
+#: :func:`_ascend_valid`'s ``owner`` without joins.
+_NO_OWNER = np.zeros(0, np.int64)
+
+
 def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=None,
-            detour_steps: int = DETOUR_STEPS) -> GridPath:
+            detour_steps: int = DETOUR_STEPS, joins: WalkJoins | None = None) -> GridPath:
     """
     Steepest descent of phi (ascent of ``field.log_u``) from ``start_node``.
 
@@ -314,6 +352,10 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
         when every step passes, the walk is plain steepest descent.  Where no higher
         neighbour's motion passes, the walk looks for a detour over passing motions within
         ``detour_steps`` index steps to the nearest strictly higher node (0: none).
+    joins : optional :class:`WalkJoins` of ``field`` (with ``motions`` and the same
+        ``detour_steps`` each call): the walk stops where it stands on a node an earlier walk
+        stood on and takes the rest of that walk's path (the same path), and is kept there for
+        the walks after it.
     Returns a :class:`GridPath`; ``reason`` says why the goal was not reached
     ("start node is an obstacle", "start node not connected to the goal",
     "stuck at node (i, j): no strictly higher neighbour").
@@ -347,11 +389,23 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
         m, status = _ascend(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
                             np.array(field.periodic, np.bool_), flat0, out)
     else:
+        if joins is not None and joins.field is not field:
+            raise ValueError("joins: the walks of another field")
+        owner = _NO_OWNER if joins is None else joins.owner
+        walk = 0 if joins is None else len(joins.walks)
         m, status = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
                                   np.array(field.periodic, np.bool_), flat0, out,
                                   np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
-                                  int(detour_steps), *motions.arrays())
-    nodes = np.stack(np.unravel_index(out[:m], shape), axis=1).astype(np.int64)
+                                  int(detour_steps), owner, walk, *motions.arrays())
+        if joins is not None:
+            return _joined(joins, out[:m].copy(), status, shape)
+    return _grid_path(out[:m], status, shape)
+
+
+def _grid_path(flat, status, shape) -> GridPath:
+    """Return the :class:`GridPath` of a walk's flat nodes (int64) that ended with ``status``."""
+    m = flat.size
+    nodes = np.stack(np.unravel_index(flat, shape), axis=1).astype(np.int64)
     if status == _REACHED:
         return GridPath(nodes, True, m - 1, None)
     last = tuple(int(x) for x in nodes[-1])
@@ -360,7 +414,22 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
     if status == _BLOCKED:
         return GridPath(nodes, False, m - 1, f"blocked at node {last}: the straight segment to every "
                         "strictly higher neighbour collides", blocked=True)
-    return GridPath(nodes, False, m - 1, f"step limit {log_u.size} reached at node {last}")
+    return GridPath(nodes, False, m - 1, f"step limit {int(np.prod(shape))} reached at node {last}")
+
+
+def _joined(joins: WalkJoins, flat, status, shape) -> GridPath:
+    """
+    Return a walk's :class:`GridPath` with ``joins`` (its flat nodes ``flat``, its kernel's ``status``); keep it there.
+
+    A walk that stopped on a node an earlier walk stood on (``_JOINED``) takes that walk's nodes
+    from there on and its end.
+    """
+    if status == _JOINED:
+        earlier, pos = divmod(int(joins.owner[flat[-1]]), joins.owner.size)
+        before, status = joins.walks[earlier]
+        flat = np.concatenate([flat[:-1], before[pos:]])
+    joins.walks.append((flat, status))
+    return _grid_path(flat, status, shape)
 
 
 @nb.njit(cache=True, nogil=True)

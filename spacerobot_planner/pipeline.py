@@ -34,6 +34,7 @@ import numba as nb
 import numpy as np
 
 from .contact import leave_contact, what_is_hit
+from .descent import WalkJoins
 from .field import bfs_distance, validate_problem
 from .field.graph import _next_coord, bfs as field_bfs, grid_strides
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
@@ -708,6 +709,7 @@ class PlanRun:
             if not reach.any():
                 raise self.no_field_path_failure(cs, fld, blocked, cut, repairs)
             path, stuck, reasons, collide = None, None, [], []
+            joins = WalkJoins(fld)           # this field's walks: a later start's walk joins an earlier one
             for node in starts[reach]:
                 self.check_cancel()
                 tn = tuple(int(v) for v in node)
@@ -718,7 +720,7 @@ class PlanRun:
                     collide.append(deg_text(grid.config_of(node)))
                     continue
                 with self.stage("descent"):
-                    gp = self.descend(grid, fld, key, blocked, cut, node)
+                    gp = self.descend(grid, fld, key, blocked, cut, node, joins)
                 if gp.reached:
                     path = gp
                     break
@@ -774,9 +776,12 @@ class PlanRun:
             fld = self.resolve(cs, key, goal_nodes, blocked, cut, base)
         raise AssertionError("unreachable")
 
-    def descend(self, grid, fld, key, blocked, cut, node):
+    def descend(self, grid, fld, key, blocked, cut, node, joins=None):
         """
         Return the descent from ``node`` on the field under ``key`` less ``blocked`` and ``cut`` (``descent.GridPath``).
+
+        ``joins``: the walks on ``fld`` so far (``descent.WalkJoins``): a walk that stands on a node one
+        of them stood on takes the rest of its path (the same path, sooner).
 
         A walk (a pure function of the field and the node) is kept by the planner, keyed by that
         field and the node: one that does not reach the goal in ``Planner._failed_walks`` (the
@@ -789,7 +794,7 @@ class PlanRun:
         if gp is None:
             gp = self.p._failed_walks.get(dkey)
         if gp is None:
-            gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad)
+            gp = self.p._descend(fld, node, self.motions, grid.lower_rad, grid.step_rad, joins=joins)
             gp.nodes.flags.writeable = False
             self.p._remember(self.p._walks if gp.reached else self.p._failed_walks, dkey, gp, 256)
         return gp

@@ -427,13 +427,13 @@ class Planner:
         return fld
 
     @staticmethod
-    def _descend(field, node, motions, lower_rad, step_rad):
+    def _descend(field, node, motions, lower_rad, step_rad, joins=None):
         """
-        Run the descent stage (``descent.descend``), looked up in this module.
+        Run the descent stage (``descent.descend``; ``joins``: its ``WalkJoins``), looked up in this module.
 
         The node's tests inject a fault by patching ``planner.descend``.
         """
-        return descend(field, node, motions, lower_rad, step_rad)
+        return descend(field, node, motions, lower_rad, step_rad, joins=joins)
 
     # ------------------------------------------------------------------- plan
     def plan(self, start_rad, goal_rad=None, cancel: threading.Event | None = None,

@@ -109,3 +109,60 @@ def test_reaches_goal_mask_matches_walks(blocks):
             assert p.reached == mask[tuple(node)]
             assert np.array_equal(p.nodes, ascent_walk(succ, fld.goal_mask, node))
     assert not reaches_goal_mask(paper)[f.reachable].all()   # early paper sweeps: flat
+
+
+def _blocked_scene():
+    """Return a random 3-DOF scene of ``bench scenes``' family whose plan repaired (walks on its first field block)."""
+    from spacerobot_planner.bench.scenes import plan_problems
+    for _, (sc, start, planner, goal) in zip(range(60), plan_problems(np.random.default_rng([0, 3]), 3)):
+        res = planner.plan(start, goal)
+        if res.ok and res.solver_stats.get("repairs"):
+            return sc, res
+    pytest.fail("no repairing scene among the first 60 of the family")
+
+
+def test_walks_that_join_earlier_walks_are_the_walks_taken_alone():
+    """
+    A walk given the earlier walks on its field (``WalkJoins``) is the walk it takes alone, node for node.
+
+    On the first field of a repairing random scene (the planner's grid C-space and goal nodes, no
+    edge cut: walks there are blocked) with the planner's quick motion test, from every node of the
+    box of three steps around the plan's first grid node, then from 60 random free nodes, in one
+    ``WalkJoins``: each walk's nodes, end, reason and blocked flag against the same walk without it.
+    Some walks must block, and later walks must stop on the nodes the first blocked walk stood on
+    (those stay that walk's: a walk that went on past them would have taken them), or the joins
+    were not exercised.
+    """
+    from spacerobot_planner.descent import WalkJoins
+    from spacerobot_planner.motion import MotionValidator
+    sc, res = _blocked_scene()
+    grid = sc.grid
+    f = F.solve_field(res.cspace.occupied, grid.periodic, res.field.goal_nodes)
+    motions = MotionValidator.for_scene(sc.robot, sc.scene).segment_test()
+    first = res.grid_path_rad[0]
+    centre = np.rint((np.asarray(first) - grid.lower_rad) / grid.step_rad).astype(int) % np.array(grid.shape)
+    box = np.stack(np.meshgrid(*[np.arange(-3, 4)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    starts = [tuple((centre + d) % np.array(grid.shape)) for d in box]
+    free = np.argwhere(np.isfinite(f.log_u) & ~f.occupied)
+    starts += [tuple(v) for v in free[np.random.default_rng(7).choice(len(free), 60, replace=False)]]
+    starts = [s for s in starts if np.isfinite(f.log_u[s]) and not f.occupied[s]]
+    joins = WalkJoins(f)
+    walked = blocked = 0
+    first_blocked = None
+    for s in starts:
+        alone = descend(f, s, motions, grid.lower_rad, grid.step_rad)
+        joined = descend(f, s, motions, grid.lower_rad, grid.step_rad, joins=joins)
+        assert np.array_equal(joined.nodes, alone.nodes), s
+        assert (joined.reached, joined.blocked, joined.reason, joined.steps) == \
+            (alone.reached, alone.blocked, alone.reason, alone.steps), s
+        walked += len(alone.nodes)
+        blocked += alone.blocked
+        if alone.blocked and first_blocked is None:
+            first_blocked = (len(joins.walks) - 1, np.ravel_multi_index(tuple(alone.nodes.T), grid.shape))
+    assert blocked >= 5, blocked
+    w, nodes = first_blocked
+    n = joins.owner.size
+    assert np.mean(joins.owner[nodes] // n == w) > 0.9, "the first blocked walk's nodes were walked on again"
+    with pytest.raises(ValueError, match="joins"):
+        descend(F.solve_field(res.cspace.occupied, grid.periodic, res.field.goal_nodes), starts[0], motions,
+                grid.lower_rad, grid.step_rad, joins=joins)
