@@ -192,7 +192,7 @@ def _detour(log_u_flat, shape, periodic, strides, f, radius, lower, step, q_temp
 
 
 @nb.njit(cache=True, nogil=True)
-def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk,
+def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk, stood,
                   q_template, planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
                   seg_step_rad, reach_m):
     """
@@ -210,15 +210,18 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
     walk, -1 where none (:class:`WalkJoins`).  A walk stands on a node as a pure function of the
     node, so where this one stands on such a node it goes on as that walk did: it stops there
     (status ``_JOINED``, the node its last) and the caller takes the rest from that walk.  The
-    nodes it stands on are written as walk ``walk``'s.
+    nodes it stands on are written as walk ``walk``'s.  ``stood`` int64 (nodes,) or empty: the
+    positions in ``out`` of the nodes the walk stood on, in order (so that a first walk, run
+    without ``owner``, can be written there later).
 
-    Returns (number of nodes, status).  :func:`_walk_valid` with its scratch.
+    Returns (number of nodes, status, number of nodes stood on (0 without ``stood``)).
+    :func:`_walk_valid` with its scratch.
     """
     ndim = shape.size
     box = (2 * detour_steps + 1) ** ndim
     q_full, pts, body_w = motion_scratch(q_template, lengths, body)
     return _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk,
-                       q_template, planned, lengths, checked, body, verts, starts, obs_centres, obs_radii,
+                       stood, q_template, planned, lengths, checked, body, verts, starts, obs_centres, obs_radii,
                        threshold_m, seg_step_rad, reach_m, grid_strides(shape), q_full, pts, body_w, np.empty(ndim),
                        np.empty(ndim), np.empty(ndim, np.int64), np.empty((4, 2 * ndim), np.int64), np.empty(2 * ndim),
                        np.empty(box, np.int64), np.empty(2), np.empty((3, box), np.int64), np.empty(ndim, np.int64),
@@ -226,7 +229,7 @@ def _ascend_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step
 
 
 @nb.njit(**NO_REFCOUNT)
-def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk,
+def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, detour_steps, owner, walk, stood,
                 q_template, planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
                 seg_step_rad, reach_m, strides, q_full, pts, body_w, qa, qb, coord, cand, cand_v, detour, clr_ends,
                 box_nodes, off, c0):
@@ -249,15 +252,20 @@ def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, 
     out[m] = f
     m += 1
     joins = owner.size > 0
+    keep = stood.size > 0
+    s = 0
     while True:
         if is_goal_flat[f]:
-            return m, _REACHED
+            return m, _REACHED, s
         if m >= out.size:
-            return m, _TOO_LONG
+            return m, _TOO_LONG, s
         if joins:
             if owner[f] >= 0:
-                return m, _JOINED        # an earlier walk stood here: the rest is its
+                return m, _JOINED, s     # an earlier walk stood here: the rest is its
             owner[f] = walk * owner.size + m - 1
+        if keep:
+            stood[s] = m - 1
+            s += 1
         here = log_u_flat[f]
         k = 0
         for a in range(ndim):
@@ -281,7 +289,7 @@ def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, 
                 cand_f[t], cand_v[t], cand_a[t], cand_d[t], cand_n[t] = g, v, a, d, nc
                 k += 1
         if k == 0:
-            return m, _STUCK
+            return m, _STUCK, s
         moved = False
         for t in range(k):
             for a in range(ndim):
@@ -306,7 +314,7 @@ def _walk_valid(log_u_flat, is_goal_flat, shape, periodic, f, out, lower, step, 
                 planned, lengths, checked, body, verts, starts, obs_centres, obs_radii, threshold_m,
                 seg_step_rad, reach_m, q_full, pts, body_w, detour, box_nodes, off, c0, qa, qb, clr_ends)
             if n == 0 or m + n > out.size:
-                return m, _BLOCKED
+                return m, _BLOCKED, s
             for i in range(n):
                 out[m] = detour[i]
                 m += 1
@@ -324,19 +332,32 @@ class WalkJoins:
     walk's path, the path it would have walked (a plan whose every start node's walk is blocked
     walks each one into the same blocked node: eight walks of about 0.25 ms each before a repair,
     measured on the repairing scenes of ``bench scenes --dof 3``).  ``owner`` int64 (nodes,): each
-    node an earlier walk stood on as ``walk * nodes + position``, -1 elsewhere; ``walks``: each walk's
-    flat nodes (int64) and its kernel's status.  For one field and one motion test only: a walk
-    on another field or with another test goes elsewhere.
+    node an earlier walk stood on as ``walk * nodes + position``, -1 elsewhere, made for the second
+    walk (None before: a plan whose first walk reaches the goal, most of them, and a replan from a
+    cached walk make none; at 120³ it is 14 MB); ``walks``: each walk's flat nodes (int64), its
+    kernel's status and the positions of the nodes it stood on.  For one field and one motion test
+    only: a walk on another field or with another test goes elsewhere.
     """
 
     def __init__(self, field: Field):
         """Hold no walk yet, for walks on ``field``."""
         self.field = field
-        self.owner = np.full(np.asarray(field.log_u).size, -1, np.int64)
+        self.owner = None
         self.walks = []
 
+    def owners(self) -> np.ndarray:
+        """Return :attr:`owner`, made from the walks so far where it is not made yet."""
+        if self.owner is None:
+            n = np.asarray(self.field.log_u).size
+            self.owner = np.full(n, -1, np.int64)
+            for w, (flat, _, stood) in enumerate(self.walks):     # one walk: none joined another yet
+                at = flat[stood]
+                free = self.owner[at] < 0
+                self.owner[at[free]] = w * n + stood[free]
+        return self.owner
 
-#: :func:`_ascend_valid`'s ``owner`` without joins.
+
+#: :func:`_ascend_valid`'s ``owner`` and ``stood`` without joins.
 _NO_OWNER = np.zeros(0, np.int64)
 
 
@@ -391,14 +412,15 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
     else:
         if joins is not None and joins.field is not field:
             raise ValueError("joins: the walks of another field")
-        owner = _NO_OWNER if joins is None else joins.owner
         walk = 0 if joins is None else len(joins.walks)
-        m, status = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
-                                  np.array(field.periodic, np.bool_), flat0, out,
-                                  np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
-                                  int(detour_steps), owner, walk, *motions.arrays())
+        owner = joins.owners() if walk else _NO_OWNER      # the first walk: none to join
+        stood = _NO_OWNER if joins is None else np.empty(log_u.size, np.int64)
+        m, status, s = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
+                                     np.array(field.periodic, np.bool_), flat0, out,
+                                     np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
+                                     int(detour_steps), owner, walk, stood, *motions.arrays())
         if joins is not None:
-            return _joined(joins, out[:m].copy(), status, shape)
+            return _joined(joins, out[:m].copy(), status, stood[:s].copy(), shape)
     return _grid_path(out[:m], status, shape)
 
 
@@ -417,18 +439,19 @@ def _grid_path(flat, status, shape) -> GridPath:
     return GridPath(nodes, False, m - 1, f"step limit {int(np.prod(shape))} reached at node {last}")
 
 
-def _joined(joins: WalkJoins, flat, status, shape) -> GridPath:
+def _joined(joins: WalkJoins, flat, status, stood, shape) -> GridPath:
     """
-    Return a walk's :class:`GridPath` with ``joins`` (its flat nodes ``flat``, its kernel's ``status``); keep it there.
+    Return a walk's :class:`GridPath` with ``joins``; keep the walk there.
 
-    A walk that stopped on a node an earlier walk stood on (``_JOINED``) takes that walk's nodes
-    from there on and its end.
+    flat: its flat nodes (int64); status: its kernel's; stood: the positions of the nodes it stood
+    on.  A walk that stopped on a node an earlier walk stood on (``_JOINED``) takes that walk's
+    nodes from there on and its end (the nodes stood on past there are the earlier walk's).
     """
     if status == _JOINED:
         earlier, pos = divmod(int(joins.owner[flat[-1]]), joins.owner.size)
-        before, status = joins.walks[earlier]
+        before, status, _ = joins.walks[earlier]
         flat = np.concatenate([flat[:-1], before[pos:]])
-    joins.walks.append((flat, status))
+    joins.walks.append((flat, status, stood))
     return _grid_path(flat, status, shape)
 
 
