@@ -303,9 +303,10 @@ def warm_up_rare() -> None:
     Compile (or load) the field kernels that only some plans reach, on small 2-D and 3-D grids.
 
     The breadth-first search of the disconnected diagnosis and of a retried grid (with cut
-    edges), a later band's window (a solve of one band does not reach it) and a large 3-D
-    band's steps (:func:`_warm_large_band_steps`): without this, the first plan that needs one
-    loads or compiles it.
+    edges), a later band's window (a solve of one band does not reach it), the fill and the
+    ascent repair of a field whose budget ran out, and a large 3-D band's steps
+    (:func:`_warm_large_band_steps`): without this, the first plan that needs one loads or
+    compiles it (a plan already late, for the budget's).
     """
     for occ, per, goal in _WARM_PROBLEMS:
         problem = validate_problem(occ, per, [goal])
@@ -316,6 +317,12 @@ def warm_up_rare() -> None:
         known[:graph.n_goal] = True
         harmonic._steps_from_known(graph.nbr, np.arange(graph.n_goal, graph.size, dtype=np.int64), known,
                                    np.full(graph.size + 1, -1, np.int32), harmonic.WINDOW_STEPS)
+        # a field whose budget ran out (a loaded machine, a large grid): the rest filled below the known
+        # nodes, then its ascent repaired
+        log_u = np.full(graph.size + 1, -np.inf)
+        log_u[:graph.n_goal] = 0.0
+        harmonic._extend_below(log_u, known, graph.nbr, graph.n_goal, math.log(2 * graph.coords.shape[1]))
+        harmonic._repair_ascent(log_u, graph.nbr, graph.n_goal, harmonic.REPAIR_STEP)
     _warm_large_band_steps()
 
 
