@@ -420,7 +420,17 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
                                      np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
                                      int(detour_steps), owner, walk, stood, *motions.arrays())
         if joins is not None:
-            return _joined(joins, out[:m].copy(), status, stood[:s].copy(), shape)
+            got = _joined(joins, out[:m].copy(), status, stood[:s].copy(), shape)
+            if status != _JOINED or got.nodes.shape[0] + (2 * int(detour_steps) + 1) ** len(shape) < out.size:
+                return got
+            # a path near the walk's room (detours can pass nodes twice): alone, the walk could have
+            # stopped for room where the joined one did not; walked alone, it is the walk
+            joins.walks.pop()
+            m, status, s = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
+                                         np.array(field.periodic, np.bool_), flat0, out,
+                                         np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
+                                         int(detour_steps), _NO_OWNER, walk, stood, *motions.arrays())
+            joins.walks.append((out[:m].copy(), status, stood[:s].copy()))
     return _grid_path(out[:m], status, shape)
 
 

@@ -166,3 +166,38 @@ def test_walks_that_join_earlier_walks_are_the_walks_taken_alone():
     with pytest.raises(ValueError, match="joins"):
         descend(F.solve_field(res.cspace.occupied, grid.periodic, res.field.goal_nodes), starts[0], motions,
                 grid.lower_rad, grid.step_rad, joins=joins)
+
+
+@pytest.mark.parametrize("cells", [2, 4])
+def test_walks_that_join_on_a_tiny_grid_are_the_walks_taken_alone(cells):
+    """
+    On a grid of a few nodes a walk's room (its node count) is near every path: joined walks are the lone walks still.
+
+    The paper 2-DOF scene on 3×3 and 5×5 nodes, the field towards each free node in turn, every free
+    node's walk with one ``WalkJoins`` per field against the same walk alone (a joined path within a
+    detour's box of the room is walked again alone, as a lone walk could have stopped there for room).
+    """
+    from dataclasses import replace as _replace
+    from pathlib import Path
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.cspace import build_cspace
+    from spacerobot_planner.descent import WalkJoins
+    from spacerobot_planner.motion import MotionValidator
+    sc = load_scenario(Path(__file__).resolve().parent.parent / "config" / "paper_2dof.yaml")
+    sc = _replace(sc, grid=sc.grid_with_cells(cells))
+    grid = sc.grid
+    occ = build_cspace(sc.robot, sc.scene, grid).occupied
+    motions = MotionValidator.for_scene(sc.robot, sc.scene).segment_test(step_rad=0.2)
+    free = [tuple(v) for v in np.argwhere(~occ)]
+    compared = 0
+    for goal in free:
+        f = F.solve_field(occ, grid.periodic, [goal])
+        joins = WalkJoins(f)
+        for s in free:
+            if not np.isfinite(f.log_u[s]):
+                continue
+            alone = descend(f, s, motions, grid.lower_rad, grid.step_rad)
+            joined = descend(f, s, motions, grid.lower_rad, grid.step_rad, joins=joins)
+            assert np.array_equal(joined.nodes, alone.nodes) and joined.reason == alone.reason, (goal, s)
+            compared += 1
+    assert compared >= 9

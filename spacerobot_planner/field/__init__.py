@@ -397,12 +397,14 @@ def reserve_heap(n_nodes: int) -> int:
     virtual machine: 3.9 ms of the first paper 3-DOF plan at 36³, 12.8 against 8.9 ms; 18 ms at
     72³). A block of ``HEAP_BYTES_PER_NODE`` bytes a node, written once a page and freed, stays
     in the heap (the trim threshold), so that plan finds its pages in place: what a warm-up is
-    for. 0 (nothing done) where the heap is not kept: another C library, or a user's own
-    malloc settings.
+    for. 0 (nothing done) where the heap is not kept (:func:`keep_heap` not applied by a solve
+    before: another C library, a user's own malloc settings, no log_harmonic solve yet) or the
+    block would be above half the trim threshold (about 5.6 million nodes: freed on top of what
+    the heap's top already holds free, it could pass the threshold and go back to the system).
     """
-    if not keep_heap() or n_nodes <= 0:
-        return 0
     nbytes = HEAP_BYTES_PER_NODE * int(n_nodes)
+    if _HEAP["kept"] is not True or nbytes <= 0 or nbytes > TRIM_THRESHOLD_BYTES // 2:
+        return 0
     block = np.empty(nbytes, np.uint8)
     block[::_PAGE_BYTES] = 0
     del block
