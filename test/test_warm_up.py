@@ -216,3 +216,32 @@ def test_the_public_warm_up_faults_in_the_heap_a_first_plan_fills():
     assert warmed["ok"][0] and baseline["ok"] == [True]
     assert baseline["faults"][0] > 500, baseline          # the plan does fill a heap it never held
     assert warmed["faults"][0] < 0.5 * baseline["faults"][0], (warmed, baseline)
+
+
+_ONE_SOLVE = r"""
+import json, sys
+import numpy as np
+from spacerobot_planner.field import geometric, multigrid, solve_field
+shape = tuple(int(v) for v in sys.argv[1:])
+occ = np.zeros(shape, bool)
+solve_field(occ, (True,) + (False,) * (len(shape) - 1), [tuple(s - 1 for s in shape)])
+print(json.dumps({"geometric": len(geometric._gpcg.signatures), "cells": len(multigrid._spcg.signatures)}))
+"""
+
+
+@pytest.mark.parametrize("shape, geometric_loaded", [((10, 11, 11), False), ((30, 31), True)])
+def test_a_first_solve_loads_the_warm_routes_of_its_own_dimension_only(shape, geometric_loaded):
+    """
+    A process's first solve loads the cells routes of its grid's dimension, not the other's (the CLI's cold start).
+
+    A small 3-D solve in a fresh process: the aggregation levels on cells loaded, the 2-D geometric
+    levels' PCG not; a small 2-D one: the geometric levels loaded.  Oracle: numba's record of the
+    kernels' signatures.
+    """
+    r = subprocess.run([sys.executable, "-c", _ONE_SOLVE, *map(str, shape)], cwd=ROOT, capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert (out["geometric"] > 0) == geometric_loaded, out
+    if not geometric_loaded:
+        assert out["cells"] > 0, out

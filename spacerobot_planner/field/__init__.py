@@ -195,7 +195,7 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
 
     """
     if solver == "log_harmonic":
-        _compile_once()          # the budget is the solve's: a first call's JIT compile is not
+        _compile_once(np.ndim(occupied))     # the budget is the solve's: a first call's JIT compile is not
     t0 = time.perf_counter()
     if solver not in SOLVERS + INTERNAL_SOLVERS:
         raise ValueError(f"solver: unknown solver {solver!r}; expected one of {list(SOLVERS)}")
@@ -230,28 +230,43 @@ def solve_field(occupied, periodic, goal_nodes, solver: str = DEFAULT_SOLVER, *,
                  bool(stats.pop("converged")), time.perf_counter() - t0, left, stats)
 
 
-_COMPILED = False
+#: What :func:`_compile_once` loaded in this process: "graph" (the node graph's route), 2, 3 (a dimension's cells)
+_COMPILED: set = set()
 
 
-def _compile_once() -> None:
+def _compile_once(ndim: int) -> None:
     """
-    Compile (or load) the route's kernels once per process.
+    Compile (or load) the kernels of the routes a solve on ``ndim`` axes takes, once per process.
 
-    Compile (or load from numba's cache) the route's kernels once per process, on a tiny grid
-    (the multigrid's fine level on the node graph) and small 2-D and 3-D ones (on the grid's
-    cells: :mod:`.geometric`'s levels and :mod:`.structured`'s aggregation levels), so that no
-    budget pays for it; and keep freed memory in the heap
-    (:func:`keep_heap`), so that no solve page-faults its arrays in afresh.
+    Compile (or load from numba's cache), once per process, the node graph's route on a tiny
+    grid and, for a 2-D or a 3-D solve, its dimension's cells route on a small grid of that
+    dimension (:data:`_WARM_PROBLEMS`: the 2-D one :mod:`.geometric`'s levels, the 3-D one
+    :mod:`.structured`'s aggregation levels), so that no budget pays for it; and keep freed
+    memory in the heap (:func:`keep_heap`), so that no solve page-faults its arrays in afresh.
+    Only the solve's own dimension: a process that plans in 3-D (the CLI's first plan, whose
+    kernel loads are most of its time) does not load the 2-D levels' kernels (measured: 51 kernels
+    and 0.67-0.70 s of loads in ``spacerobot-plan`` on the paper 3-DOF scene, ``_gpcg`` and the
+    geometric ``_levels`` 58-66 ms of them).  The warm-ups (:func:`warm_up`) load every route.
     """
-    global _COMPILED
-    if not _COMPILED:
-        _COMPILED = True
-        keep_heap()
-        occ = np.zeros((6, 7), dtype=bool)
-        occ[2, 1:5] = True
-        solve_field(occ, (True, False), [(5, 6)], budget_s=600.0)
-        for occ, per, goal in _WARM_PROBLEMS:   # their first bands on cells (2-D: 1 389 unknowns, 1.3 a cell)
+    if "busy" in _COMPILED:
+        return                                   # a warm-up's own solve
+    kind = ndim if ndim in (2, 3) else None
+    if "graph" in _COMPILED and (kind is None or kind in _COMPILED):
+        return
+    _COMPILED.add("busy")
+    try:
+        if "graph" not in _COMPILED:
+            keep_heap()
+            occ = np.zeros((6, 7), dtype=bool)
+            occ[2, 1:5] = True
+            solve_field(occ, (True, False), [(5, 6)], budget_s=600.0)
+            _COMPILED.add("graph")
+        if kind is not None and kind not in _COMPILED:
+            occ, per, goal = _WARM_PROBLEMS[kind - 2]     # its first band on cells
             solve_field(occ, per, [goal], budget_s=600.0)
+            _COMPILED.add(kind)
+    finally:
+        _COMPILED.discard("busy")
 
 
 def _warm_large_band_steps() -> None:
