@@ -356,6 +356,17 @@ class WalkJoins:
                 self.owner[at[free]] = w * n + stood[free]
         return self.owner
 
+    def rest(self, flat):
+        """
+        Return ``(flat nodes, status)`` of a walk that stopped on a node an earlier walk stood on (its last).
+
+        flat: its flat nodes (int64), up to that node; the earlier walk's nodes from there on and its
+        kernel's status follow.
+        """
+        earlier, pos = divmod(int(self.owner[flat[-1]]), self.owner.size)
+        before, status, _ = self.walks[earlier]
+        return np.concatenate([flat[:-1], before[pos:]]), status
+
 
 #: :func:`_ascend_valid`'s ``owner`` and ``stood`` without joins.
 _NO_OWNER = np.zeros(0, np.int64)
@@ -413,24 +424,25 @@ def descend(field: Field, start_node, motions=None, lower_rad=None, step_rad=Non
         if joins is not None and joins.field is not field:
             raise ValueError("joins: the walks of another field")
         walk = 0 if joins is None else len(joins.walks)
-        owner = joins.owners() if walk else _NO_OWNER      # the first walk: none to join
         stood = _NO_OWNER if joins is None else np.empty(log_u.size, np.int64)
-        m, status, s = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
-                                     np.array(field.periodic, np.bool_), flat0, out,
-                                     np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
-                                     int(detour_steps), owner, walk, stood, *motions.arrays())
+
+        def walked(owner):
+            return _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
+                                 np.array(field.periodic, np.bool_), flat0, out, np.asarray(lower_rad, dtype=float),
+                                 np.asarray(step_rad, dtype=float), int(detour_steps), owner, walk, stood,
+                                 *motions.arrays())
+        m, status, s = walked(joins.owners() if walk else _NO_OWNER)     # the first walk: none to join
         if joins is not None:
-            got = _joined(joins, out[:m].copy(), status, stood[:s].copy(), shape)
-            if status != _JOINED or got.nodes.shape[0] + (2 * int(detour_steps) + 1) ** len(shape) < out.size:
-                return got
-            # a path near the walk's room (detours can pass nodes twice): alone, the walk could have
-            # stopped for room where the joined one did not; walked alone, it is the walk
-            joins.walks.pop()
-            m, status, s = _ascend_valid(log_u.ravel(), is_goal.ravel(), np.array(shape, np.int64),
-                                         np.array(field.periodic, np.bool_), flat0, out,
-                                         np.asarray(lower_rad, dtype=float), np.asarray(step_rad, dtype=float),
-                                         int(detour_steps), _NO_OWNER, walk, stood, *motions.arrays())
-            joins.walks.append((out[:m].copy(), status, stood[:s].copy()))
+            flat = out[:m].copy()
+            if status == _JOINED:
+                flat, status = joins.rest(flat)
+                if flat.size + (2 * int(detour_steps) + 1) ** len(shape) >= out.size:
+                    # near the walk's room (detours can pass nodes twice): alone, the walk could have
+                    # stopped for room where the joined one did not; walked alone, it is the walk
+                    m, status, s = walked(_NO_OWNER)
+                    flat = out[:m].copy()
+            joins.walks.append((flat, status, stood[:s].copy()))
+            return _grid_path(flat, status, shape)
     return _grid_path(out[:m], status, shape)
 
 
@@ -447,22 +459,6 @@ def _grid_path(flat, status, shape) -> GridPath:
         return GridPath(nodes, False, m - 1, f"blocked at node {last}: the straight segment to every "
                         "strictly higher neighbour collides", blocked=True)
     return GridPath(nodes, False, m - 1, f"step limit {int(np.prod(shape))} reached at node {last}")
-
-
-def _joined(joins: WalkJoins, flat, status, stood, shape) -> GridPath:
-    """
-    Return a walk's :class:`GridPath` with ``joins``; keep the walk there.
-
-    flat: its flat nodes (int64); status: its kernel's; stood: the positions of the nodes it stood
-    on.  A walk that stopped on a node an earlier walk stood on (``_JOINED``) takes that walk's
-    nodes from there on and its end (the nodes stood on past there are the earlier walk's).
-    """
-    if status == _JOINED:
-        earlier, pos = divmod(int(joins.owner[flat[-1]]), joins.owner.size)
-        before, status, _ = joins.walks[earlier]
-        flat = np.concatenate([flat[:-1], before[pos:]])
-    joins.walks.append((flat, status, stood))
-    return _grid_path(flat, status, shape)
 
 
 @nb.njit(cache=True, nogil=True)

@@ -511,8 +511,7 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
             break
     warm_up_unreached(coarse)
     field_warm_up()             # the solver kernels a coarse grid does not reach
-    if scenario.grid.n_nodes <= scenario.planner_settings.max_grid_nodes:    # a grid its plans do not refuse:
-        reserve_heap(scenario.grid.n_nodes)                                  # the heap a plan on it fills
+    reserve_heap(scenario.grid.n_nodes, scenario.planner_settings.max_grid_nodes)   # the heap a plan there fills
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
         # the free-floating capture's attitude kernel (numba)
         attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))

@@ -111,6 +111,15 @@ def test_reaches_goal_mask_matches_walks(blocks):
     assert not reaches_goal_mask(paper)[f.reachable].all()   # early paper sweeps: flat
 
 
+def _face_steps(nodes, shape, periodic) -> bool:
+    """Return whether each node of a walk is a face neighbour of the one before (one index ±1, wrapped if periodic)."""
+    d = np.diff(np.asarray(nodes), axis=0)
+    for a, (n, per) in enumerate(zip(shape, periodic)):
+        if per:
+            d[:, a] = (d[:, a] + 1) % n - 1
+    return bool(np.all(np.abs(d).sum(axis=1) == 1))
+
+
 def _blocked_scene():
     """Return a random 3-DOF scene of ``bench scenes``' family whose plan repaired (walks on its first field block)."""
     from spacerobot_planner.bench.scenes import plan_problems
@@ -153,6 +162,7 @@ def test_walks_that_join_earlier_walks_are_the_walks_taken_alone():
         alone = descend(f, s, motions, grid.lower_rad, grid.step_rad)
         joined = descend(f, s, motions, grid.lower_rad, grid.step_rad, joins=joins)
         assert np.array_equal(joined.nodes, alone.nodes), s
+        assert _face_steps(joined.nodes, grid.shape, grid.periodic), s     # the joined path is one walk
         assert (joined.reached, joined.blocked, joined.reason, joined.steps) == \
             (alone.reached, alone.blocked, alone.reason, alone.steps), s
         walked += len(alone.nodes)
@@ -199,5 +209,6 @@ def test_walks_that_join_on_a_tiny_grid_are_the_walks_taken_alone(cells):
             alone = descend(f, s, motions, grid.lower_rad, grid.step_rad)
             joined = descend(f, s, motions, grid.lower_rad, grid.step_rad, joins=joins)
             assert np.array_equal(joined.nodes, alone.nodes) and joined.reason == alone.reason, (goal, s)
+            assert _face_steps(joined.nodes, grid.shape, grid.periodic), (goal, s)
             compared += 1
     assert compared >= 9

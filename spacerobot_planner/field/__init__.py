@@ -269,22 +269,17 @@ def _compile_once(ndim: int) -> None:
         _COMPILED.discard("busy")
 
 
-def _warm_large_band_steps() -> None:
+def _warm_large_band_steps(graph, known, log_u) -> None:
     """
-    Load (or compile) the steps of a 3-D first band that only large bands take, on the small 3-D warm problem.
+    Load (or compile) the steps of a 3-D first band that only large bands take, on a small 3-D warm problem.
 
     Level 1 on its cells (``structured.coarse_layout``'s rule: from a band of about 30³ on) and the coarse
     levels built beside the fine level's layout (``multigrid.BESIDE_MIN_UNKNOWNS``: from about 70³), each
     a kernel that the warm problems' sizes do not reach: forced here (``route="structured"``,
     ``beside=True``), so that the first 3-DOF plan of a process at 36³ or 72³ does not load them in
     its middle (level 1's layout of a first paper plan at 36³ took 3.99 ms against 0.13 ms later).
+    graph: the problem's node graph; known, log_u: its goal nodes known at log u 0, as a first band's.
     """
-    occ, per, goal = _WARM_PROBLEMS[1]
-    graph = node_graph(*validate_problem(occ, per, [goal]))
-    known = np.zeros(graph.size, np.bool_)
-    known[:graph.n_goal] = True
-    log_u = np.full(graph.size + 1, -np.inf)
-    log_u[:graph.n_goal] = 0.0
     sub, rhs, _ = harmonic._band_problem(graph.nbr, np.arange(graph.n_goal, graph.size, dtype=np.int64), known,
                                          log_u)
     # the band's coordinates as harmonic.solve passes a first band's: the rows after the goal's
@@ -332,13 +327,14 @@ def warm_up_rare() -> None:
         known[:graph.n_goal] = True
         harmonic._steps_from_known(graph.nbr, np.arange(graph.n_goal, graph.size, dtype=np.int64), known,
                                    np.full(graph.size + 1, -1, np.int32), harmonic.WINDOW_STEPS)
-        # a field whose budget ran out (a loaded machine, a large grid): the rest filled below the known
-        # nodes, then its ascent repaired
         log_u = np.full(graph.size + 1, -np.inf)
         log_u[:graph.n_goal] = 0.0
+        if len(occ.shape) == 3:
+            _warm_large_band_steps(graph, known, log_u)
+        # a field whose budget ran out (a loaded machine, a large grid): the rest filled below the known
+        # nodes, then its ascent repaired
         harmonic._extend_below(log_u, known, graph.nbr, graph.n_goal, math.log(2 * graph.coords.shape[1]))
         harmonic._repair_ascent(log_u, graph.nbr, graph.n_goal, harmonic.REPAIR_STEP)
-    _warm_large_band_steps()
 
 
 # --------------------------------------------------------------------------
@@ -403,7 +399,7 @@ HEAP_BYTES_PER_NODE = 192
 _PAGE_BYTES = 4096
 
 
-def reserve_heap(n_nodes: int) -> int:
+def reserve_heap(n_nodes: int, max_nodes: int) -> int:
     """
     Grow the kept heap (:func:`keep_heap`) now by what a plan on ``n_nodes`` grid nodes allocates; return the bytes.
 
@@ -412,13 +408,14 @@ def reserve_heap(n_nodes: int) -> int:
     virtual machine: 3.9 ms of the first paper 3-DOF plan at 36³, 12.8 against 8.9 ms; 18 ms at
     72³). A block of ``HEAP_BYTES_PER_NODE`` bytes a node, written once a page and freed, stays
     in the heap (the trim threshold), so that plan finds its pages in place: what a warm-up is
-    for. 0 (nothing done) where the heap is not kept (:func:`keep_heap` not applied by a solve
+    for. 0 (nothing done) for a grid above ``max_nodes`` (``planner.max_grid_nodes``: its plans are
+    refused before they allocate), where the heap is not kept (:func:`keep_heap` not applied by a solve
     before: another C library, a user's own malloc settings, no log_harmonic solve yet) or the
     block would be above half the trim threshold (about 5.6 million nodes: freed on top of what
     the heap's top already holds free, it could pass the threshold and go back to the system).
     """
     nbytes = HEAP_BYTES_PER_NODE * int(n_nodes)
-    if _HEAP["kept"] is not True or nbytes <= 0 or nbytes > TRIM_THRESHOLD_BYTES // 2:
+    if _HEAP["kept"] is not True or nbytes <= 0 or n_nodes > max_nodes or nbytes > TRIM_THRESHOLD_BYTES // 2:
         return 0
     block = np.empty(nbytes, np.uint8)
     block[::_PAGE_BYTES] = 0
