@@ -130,7 +130,9 @@ PARAMETERS = (
     ParamSpec("planner.max_threads", "integer", 0,
               "Most threads a plan's parallel kernels use (the C-space rows; on large grids the field's "
               "loops and the node graph's table; 1 also keeps a large band's set-up in one thread); 0: "
-              "numba's (one per core, or NUMBA_NUM_THREADS). A plan is the same bit for bit on any number.",
+              "numba's (one per core, or NUMBA_NUM_THREADS). On grids of 100 000 nodes and more, no more "
+              "than the cores other work leaves (counted before the C-space and each field solve). A "
+              "plan is the same bit for bit on any number.",
               False, 0, 4096),
     ParamSpec("planner.max_start_penetration_m", "double", 0.05,
               "A start posture whose links reach at most this deep into an obstacle (e.g. holding the "

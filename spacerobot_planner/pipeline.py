@@ -309,7 +309,7 @@ class PlanRun:
             start_rad=self.start if self.start is not None else np.full(dof, np.nan),
             goal_rad=self.goal, path_rad=path if path is not None else np.zeros((0, dof)),
             grid_path_rad=self.grid_path, timings_s=dict(self.timings), cached=tuple(self.cached),
-            solver=self.s.solver, solver_stats=dict(self.stats),
+            solver=self.s.solver, solver_stats=dict(self.stats, **self.p.threads_note()),
             min_clearance_m=smooth.min_clearance_m if smooth is not None else math.nan,
             cspace=self.cs, field=self.fld, smoothing=smooth.method if smooth is not None else "",
             path_length_rad=(math.nan if path is None else smooth.length_rad if path is smooth.path_rad

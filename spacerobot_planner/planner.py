@@ -39,6 +39,7 @@ import numpy as np
 
 from .collision import CollisionChecker
 from .contact import warm_up as contact_warm_up
+from .cores import fit_threads
 from .cspace import GridSpec, body_occupancy, build_cspace
 from .cspace import warm_up as cspace_warm_up
 from .descent import descend
@@ -65,25 +66,6 @@ __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES"
 #: (a margin equal to the handle's length; its clearance only rounds above) leaves no motion
 #: that reaches it, and is refused as such rather than planned on grid after grid
 GRASP_ROOM_M = 1e-9
-#: per thread: the number :func:`use_threads` last set there (absent: none, numba's own holds)
-_THREADS_SET = threading.local()
-
-
-def use_threads(most: int) -> None:
-    """
-    Let the calling thread's parallel kernels use at most ``most`` threads (0: numba's own number).
-
-    numba's number is the calling thread's own; its thread pool starts where a number is set
-    or a parallel kernel first runs, so a thread that never asks for fewer sets nothing (a plan
-    on a small grid starts no pool).
-    """
-    most = int(most)
-    if most == getattr(_THREADS_SET, "most", 0):
-        return
-    import numba
-    limit = numba.config.NUMBA_NUM_THREADS
-    numba.set_num_threads(limit if most <= 0 else min(most, limit))
-    _THREADS_SET.most = most
 
 
 class Planner:
@@ -116,6 +98,7 @@ class Planner:
         self.settings = replace(base, **changes)
         self.scenario = scenario
         self._lock = threading.Lock()
+        self._fits = []                 # the current plan's thread choices (cores.Fit)
         self._cspaces: dict = {}         # (scene geometry, grid, extra margin) -> CSpace
         self._fields: dict = {}          # (C-space key, goal nodes, solver settings[, repairs]) -> Field
         self._body_tables: dict = {}     # (grid, total margin) -> cspace.body_occupancy
@@ -381,6 +364,7 @@ class Planner:
         if body_key not in self._body_tables:
             self._remember(self._body_tables, body_key, body_occupancy(sc.robot, grid, margin, token=token), 4)
         self._test_stall("cspace", token)
+        self._fit_threads(grid.n_nodes)
         cs = build_cspace(sc.robot, sc.scene, grid, extra_margin_m=extra_m,
                           body_table=self._body_tables[body_key], token=token)
         if len(self._cspaces) >= 4:
@@ -394,6 +378,24 @@ class Planner:
                     del cache[k]
         self._cspaces[key] = cs
         return cs, key, False
+
+    def _fit_threads(self, nodes: int) -> None:
+        """Give the stage about to run on ``nodes`` grid nodes the threads the busy cores leave (``cores``); note it."""
+        self._fits.append(fit_threads(self.settings.max_threads, nodes))
+
+    def threads_note(self) -> dict:
+        """
+        Return the current plan's thread counts for its ``solver_stats``: {} where no stage counted busy cores.
+
+        ``threads``: the fewest threads a stage of the plan ran its parallel loops on,
+        ``threads_limit``: the most it could, ``busy_cores``: the most cores it found busy
+        with other work (``cores.fit_threads``).
+        """
+        fits = [f for f in getattr(self, "_fits", ()) if f.busy is not None]
+        if not fits:
+            return {}
+        return {"threads": min(f.threads for f in fits), "threads_limit": max(f.limit for f in fits),
+                "busy_cores": max(f.busy for f in fits)}
 
     @staticmethod
     def _field_key(cspace_key, goal_nodes, settings: PlannerSettings) -> tuple:
@@ -419,6 +421,7 @@ class Planner:
             occ[tuple(np.array(sorted(blocked)).T)] = True
         edges = np.array(sorted(cut_edges), dtype=np.int64).reshape(-1, 2)
         self._test_stall("field", token)
+        self._fit_threads(occ.size)
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,
                           tol=settings.field_tolerance, budget_s=settings.field_budget_s,
                           cut_edges=edges if len(edges) else None, token=token,
@@ -456,7 +459,8 @@ class Planner:
         (``smoothing.smooth_path``); bad values answer ``invalid_input``.
         """
         with self._lock:
-            use_threads(self.settings.max_threads)
+            self._fits = []
+            fit_threads(self.settings.max_threads, 0)
             return PlanRun(self, self.settings, cancel, progress, start_tangent).run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:

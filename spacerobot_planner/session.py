@@ -60,6 +60,7 @@ from typing import Callable
 import numpy as np
 
 from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process
+from .cores import threads_text
 from .motion import MotionValidator
 from .replanning import MAX_STATE_AGE_S, STATE_WAIT_S, Executing, join_direction, plan_start, stopping_join
 from .scene import Target
@@ -746,7 +747,8 @@ class CaptureSession:
         self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
                  f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
                  f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
-                 f"{', '.join(res.cached) or 'none'}); clearance {res.min_clearance_m:.3f} m; "
+                 f"{', '.join(res.cached) or 'none'}{threads_text(res.solver_stats)}); clearance "
+                 f"{res.min_clearance_m:.3f} m; "
                  + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed, stamps)}, "
                     f"joined to the moving arm: {joined}; stamped {1e-9 * (stamp - now):.3f} s ahead"
                     if outcome.publication.sent else "no trajectory published")

@@ -49,7 +49,8 @@ COMPAT = ()
 #: the core's layers, lowest first: a module imports modules of its own layer or lower ones
 #: (within a layer the graph is acyclic).  Every core module is in one.
 LAYERS = (
-    ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft", "overlap")),
+    ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft", "overlap",
+                              "cores")),
     ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.structured",
                 "field.geometric", "field.krylov",
                 "field.oracle", "field.paper", "descent", "repair", "swept", "contact", "smoothing", "ik", "redundant",

@@ -50,15 +50,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .timing import tail_stats
+from .timing import busy_processes, tail_stats
 
 _PARAMS = Path(__file__).resolve().parent.parent.parent / "config" / "paper_3dof.yaml"
 #: The aim of ``latency_joint_state``'s median, s (issue 19; ``bench aims`` reads it here).
@@ -75,13 +73,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-moving", action="store_true", help="skip the latency_moving stage (mock arm)")
     ap.add_argument("--load", type=int, default=0, metavar="N", help="run N busy-loop processes meanwhile")
     args = ap.parse_args(argv)
-    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(max(0, args.load))]
-    try:
+    with busy_processes(args.load):
         return _run(args)
-    finally:
-        for h in hogs:              # only the processes started here
-            h.kill()
-            h.wait()
 
 
 def _run(args) -> int:

@@ -2,7 +2,7 @@
 Full offline plan, per stage, on the paper's scenes; the paper's Gauss–Seidel as baseline.
 
     python -m spacerobot_planner.bench plan [--cases 2dof:180,3dof:36] [--repeats 3]
-        [--solver log_harmonic] [--baseline-max-sweeps N] [--profile]
+        [--solver log_harmonic] [--baseline-max-sweeps N] [--profile] [--load N]
 
 Grids: 2-DOF 180² (181×181), 360², 720²; 3-DOF 36³, 72³, 120³.  Per case, after a
 JIT warm-up: C-space, field, descent, smoothing + verify and total of a fresh plan
@@ -19,7 +19,11 @@ stage).  The baseline is the paper's plain Gauss–Seidel (Φ0 = 1, goal 0, stop
 capped (``--baseline-max-sweeps``, default 400) and the row says so: the ratio is
 then a lower bound.  Prints a table of medians, the tails (median, p90 and max) of the
 whole plan, the field and the cached replans, then one JSON object per line (those rows
-with ``p90_s``, ``max_s``, ``min_s`` and ``plans``).
+with ``p90_s``, ``max_s``, ``min_s`` and ``plans``).  On grids of ``cores.PARALLEL_MIN_NODES``
+nodes and more, the ``total`` row also gives ``threads`` (the fewest threads a fresh plan's
+parallel loops ran on: fewer than ``threads_limit`` where other work kept cores busy) and
+``busy_cores`` (the most cores a plan found busy); ``--load N`` runs N busy-loop processes
+meanwhile (a loaded machine).
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from ..contact import penetration_depths_m
 from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
 from ..planner import Planner, warm_up as planner_warm_up
 from .profile import StepProfile, print_rows
-from .timing import tail_stats
+from .timing import busy_processes, tail_stats
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 CASES = (("2dof", 180), ("2dof", 360), ("2dof", 720), ("3dof", 36), ("3dof", 72), ("3dof", 120))
@@ -79,12 +83,15 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
     big = grid.n_nodes > BIG_GRID_NODES
     planner_warm_up(sc)              # as a user warms up for this grid: its kernels and its heap
     timings = []                     # each fresh plan's timings_s
+    counted = []                     # each fresh plan's thread counts (Planner.threads_note), where counted
     planner = res = None
     for _ in range(min(repeats, BIG_GRID_PLANS) if big else repeats):
         planner = res = None         # the last plan's memory back first, as a node's planner evicts a field
         planner = Planner(sc, solver=solver, max_grid_nodes=max(4_000_000, grid.n_nodes))
         res = planner.plan(sc.start_rad, sc.goal_rad)
         timings.append(res.timings_s)
+        if "threads" in res.solver_stats:
+            counted.append(res.solver_stats)
     if not res.ok:
         print(f"  {scene} {grid.label()}: no path ({res.code}): {res.reason}")
 
@@ -129,7 +136,9 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
          "ratio": None,
          "ok": res.ok, "path_length_rad": res.path_length_rad if res.ok else None,
          "min_clearance_m": res.min_clearance_m if res.ok else None, "smoothing": res.smoothing,
-         "repairs": res.solver_stats.get("repairs")},
+         "repairs": res.solver_stats.get("repairs"),
+         **({"threads": min(c["threads"] for c in counted), "threads_limit": counted[0]["threads_limit"],
+             "busy_cores": max(c["busy_cores"] for c in counted)} if counted else {})},
         {"stage": "replan_cached", **common, "seconds": replan_s, **tails(replans, "total"), "baseline_seconds": None,
          "ratio": None},
     ]
@@ -213,9 +222,15 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline-max-sweeps", type=int, default=400,
                     help=f"cap of the Gauss–Seidel baseline on grids above {BIG_GRID_NODES:,} nodes")
     ap.add_argument("--profile", action="store_true", help="also print the per-step profile of each case")
+    ap.add_argument("--load", type=int, default=0, metavar="N", help="run N busy-loop processes meanwhile")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         ap.error(f"--repeats: expected at least 1, got {args.repeats}")
+    with busy_processes(args.load):
+        return _run(args)
+
+
+def _run(args) -> int:
     cases = _parse_cases(args.cases)
     t0 = time.perf_counter()
     warm_up(args.solver)
@@ -248,6 +263,10 @@ def main(argv=None) -> int:
     for scene, r in by_case:
         print(f"  {scene:<5}{r['total']['grid']:>12}  whole plan {tail(r['total'])}  field {tail(r['field'])}  "
               f"cached replan {tail(r['replan_cached'])} ({r['replan_cached']['plans']} replans)")
+        t = r["total"]
+        if "threads" in t and t["threads"] < t["threads_limit"]:
+            print(f"  {scene:<5}{t['grid']:>12}  parallel loops on as few as {t['threads']} of {t['threads_limit']} "
+                  f"threads: up to {t['busy_cores']} cores busy with other work")
         if "replan_contact" in r:
             c = r["replan_contact"]
             failed = f"; {c['failed']} more failed, not counted" if c["failed"] else ""

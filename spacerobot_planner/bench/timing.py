@@ -2,11 +2,26 @@
 
 from __future__ import annotations
 
+import contextlib
+import subprocess
+import sys
 import time
 
 import numpy as np
 
-__all__ = ["call_times_s", "median_s", "tail_stats"]
+__all__ = ["busy_processes", "call_times_s", "median_s", "tail_stats"]
+
+
+@contextlib.contextmanager
+def busy_processes(count: int):
+    """Run ``count`` busy-loop processes (a loaded machine) while the block runs; stop them after."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(max(0, int(count)))]
+    try:
+        yield hogs
+    finally:
+        for h in hogs:              # only the processes started here
+            h.kill()
+            h.wait()
 
 
 def call_times_s(fn, repeats: int) -> list:

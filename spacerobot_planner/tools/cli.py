@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import check_value
+from ..cores import threads_text
 from ..field import SOLVERS
 from ..offline import plan_offline
 from ..planner import Planner
@@ -64,7 +65,7 @@ def _summary(res, scenario) -> list:
     t = res.timings_s
     stages = ", ".join(f"{k} {'cached' if k in res.cached else f'{1e3 * t[k]:.1f} ms'}"
                        for k in ("cspace", "field", "descent", "repair", "smoothing", "verify"))
-    lines.append(f"stages: {stages}; total {1e3 * t['total']:.1f} ms")
+    lines.append(f"stages: {stages}; total {1e3 * t['total']:.1f} ms{threads_text(res.solver_stats)}")
     if res.ok:
         lines.append(f"path: {len(res.path_rad)} samples ({res.smoothing}), {len(res.grid_path_rad)} grid nodes, "
                      f"length {res.path_length_rad:.3f} rad ({deg(res.path_length_rad):.1f}°), "

@@ -1,0 +1,153 @@
+"""
+The threads a plan's parallel kernels use: numba's number, fewer while other work keeps the cores busy.
+
+numba's parallel loops fork a team of threads and join them at the loop's end.  Where other
+processes keep the cores busy, the kernel scheduler takes team members off their cores, and the
+members that are left wait at the join until the missing one gets a time slice back: every loop
+of a solve pays a slice.  On the 2-core development VM, with two busy processes beside it, the
+paper's 3-DOF scene at 72³ planned in 445 / 2 113 / 3 012 ms (median / p90 / max of 5) on numba's
+two threads against 133 / 138 / 140 ms on one thread (61 and 78 ms on an idle machine): a team
+larger than the cores left to it is never faster, and sometimes twenty times slower.
+
+So where a plan's parallel loops run (a grid of :data:`PARALLEL_MIN_NODES` nodes or more), the
+planner counts, before its C-space build and before each field solve, the threads that are
+runnable on the machine outside this process (Linux's ``/proc/loadavg`` now, less this process's
+own running threads: numba's team spins a while after each loop) and gives its kernels no more
+threads than cores are left (:func:`fit_threads`).  The field's values are the same bits on any
+number of threads (``field.multigrid``), so the count changes only the time.  Below that size the
+configured number holds and nothing is read (the loops there are a few, and short).  Where
+``/proc`` cannot be read (not Linux), the configured number holds.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass
+
+__all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "busy_share", "busy_elsewhere", "threads_text"]
+
+#: grids of at least this many nodes count the busy cores before a stage's parallel loops; the
+#: node graph's (``field.graph.PARALLEL_MIN_NODES``) and the fine level's (``multigrid.PARALLEL_MIN_CELLS``)
+#: loops run on threads from about there on
+PARALLEL_MIN_NODES = 100_000
+
+_SET = threading.local()      # per thread: the number fit_threads last gave numba there
+_LOADAVG = {"fd": None}       # /proc/loadavg kept open: a pread of it is a fresh reading (about 1 us)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """
+    One choice of :func:`fit_threads`.
+
+    Attributes
+    ----------
+        threads: the threads the calling thread's parallel kernels now use.
+        limit: the most they may use (``planner.max_threads``, or numba's number).
+        busy: the cores counted busy with other work (scaled to this process's cores);
+            None where nothing was counted (a small grid, a limit of one, no ``/proc``).
+
+    """
+
+    threads: int
+    limit: int
+    busy: int | None
+
+
+def _runnable_on_machine() -> int | None:
+    """Return the threads runnable on the machine now (``/proc/loadavg``'s fourth field, this one included), or None."""
+    fd = _LOADAVG["fd"]
+    try:
+        if fd is None:
+            fd = _LOADAVG["fd"] = os.open("/proc/loadavg", os.O_RDONLY | os.O_CLOEXEC)
+        return int(os.pread(fd, 128, 0).split()[3].split(b"/")[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _running_here() -> int:
+    """Return this process's threads in state R (running or runnable), from ``/proc/self/task/*/stat``."""
+    n = 0
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:
+        return 1
+    for tid in tids:
+        try:
+            with open(f"/proc/self/task/{tid}/stat", "rb") as f:
+                s = f.read()
+        except OSError:               # the thread ended meanwhile
+            continue
+        end = s.rfind(b")")           # the state follows the command name, which may hold anything
+        if end >= 0 and s[end + 2:end + 3] == b"R":
+            n += 1
+    return max(n, 1)                  # the reading thread runs
+
+
+def busy_elsewhere() -> int | None:
+    """
+    Return how many of this process's cores other work keeps busy now, or None where it cannot be read.
+
+    The threads runnable on the machine less this process's own (:func:`busy_share`).
+    """
+    runnable = _runnable_on_machine()
+    if runnable is None:
+        return None
+    return busy_share(runnable - _running_here(), _cores(), os.cpu_count() or 1)
+
+
+def busy_share(others: int, cores: int, online: int) -> int:
+    """
+    Return the cores of ``cores`` that ``others`` threads runnable outside this process keep busy.
+
+    The machine's ``online`` CPUs share its other work evenly: a process that may run on 2 of
+    64 CPUs meets about 2/64 of it there.  Rounded half up, at most ``cores``.
+    """
+    cores, online, others = max(1, int(cores)), max(1, int(online)), max(0, int(others))
+    return min(cores, (2 * others * cores + online) // (2 * online))
+
+
+def fit_threads(most: int, nodes: int) -> Fit:
+    """
+    Set the calling thread's numba threads for a stage on a grid of ``nodes`` nodes; return the :class:`Fit`.
+
+    ``most``: ``planner.max_threads`` (0: numba's number, ``NUMBA_NUM_THREADS``).  From
+    :data:`PARALLEL_MIN_NODES` nodes on and with a limit above one, no more than the cores
+    that other work leaves (:func:`busy_elsewhere`), at least one; below, the limit itself.
+    numba's thread pool starts where a number is set or a parallel kernel first runs, so a
+    thread that never asks for fewer than numba's number sets nothing (a plan on a small grid
+    starts no pool).
+    """
+    import numba
+    numba_limit = numba.config.NUMBA_NUM_THREADS
+    limit = numba_limit if int(most) <= 0 else min(int(most), numba_limit)
+    threads, busy = limit, None
+    if limit > 1 and nodes >= PARALLEL_MIN_NODES:
+        busy = busy_elsewhere()
+        if busy is not None:
+            threads = max(1, min(limit, _cores() - busy))
+    if threads != getattr(_SET, "threads", numba_limit):
+        numba.set_num_threads(threads)
+        _SET.threads = threads
+    return Fit(threads, limit, busy)
+
+
+def threads_text(stats: dict) -> str:
+    """
+    Return '; parallel loops on 1 of 2 threads, 2 cores busy with other work', or '' where a plan ran on all.
+
+    ``stats``: a plan's ``solver_stats`` (``Planner.threads_note``'s entries).
+    """
+    if stats.get("threads", 0) >= stats.get("threads_limit", 0):
+        return ""
+    return (f"; parallel loops on {stats['threads']} of {stats['threads_limit']} threads, "
+            f"{stats['busy_cores']} cores busy with other work")
+
+
+def _cores() -> int:
+    """Return the CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
