@@ -227,11 +227,10 @@ def plan_chunk(scenario: Scenario, grid: PoseGrid, pose_ids, numba_threads: int 
     """
     Plan the poses ``pose_ids`` with one planner; return their rows, in that order.
 
-    ``numba_threads``: the numba kernels' threads in this process (a Dask worker runs one
-    process per core: 1), None to leave numba's setting.
+    ``numba_threads``: the most threads the planner's parallel kernels use in this process (a
+    Dask worker runs one process per core: 1; ``planner.max_threads``), None to leave the
+    scenario's setting.
     """
-    if numba_threads is not None:
-        import numba                        # the kernels' thread pool of this worker process
-        numba.set_num_threads(max(1, min(int(numba_threads), numba.config.NUMBA_NUM_THREADS)))
-    planner = Planner(scenario, reaction=True)
+    extra = {} if numba_threads is None else {"max_threads": max(1, int(numba_threads))}
+    planner = Planner(scenario, reaction=True, **extra)
     return [plan_pose(planner, scenario, grid, i) for i in pose_ids]
