@@ -134,6 +134,11 @@ PARAMETERS = (
               "than the cores other work leaves (counted before the C-space and each field solve). A "
               "plan is the same bit for bit on any number.",
               False, 0, 4096),
+    ParamSpec("planner.threads_follow_load", "bool", True,
+              "On grids of 100 000 nodes and more, run the parallel loops on no more threads than the cores "
+              "other work leaves (a team larger than the free cores waits at every loop's join: a 72³ plan "
+              "took up to 20× longer beside two busy processes on 2 cores). false: always planner.max_threads "
+              "(benchmarks and tests of the threaded loops)."),
     ParamSpec("planner.max_start_penetration_m", "double", 0.05,
               "A start posture whose links reach at most this deep into an obstacle (e.g. holding the "
               "grasp after the target moved) is first walked out along increasing clearance (reported, "
@@ -489,7 +494,7 @@ def scenario_from_params(params: dict) -> Scenario:
 #: parameters (``PARAMETERS``) → ``settings.PlannerSettings`` fields
 _PLANNER_SETTINGS = {"planner.solver": "solver", "planner.field_tolerance": "field_tolerance",
                      "planner.field_budget_s": "field_budget_s", "planner.max_grid_nodes": "max_grid_nodes",
-                     "planner.max_threads": "max_threads",
+                     "planner.max_threads": "max_threads", "planner.threads_follow_load": "threads_follow_load",
                      "planner.max_start_penetration_m": "max_start_penetration_m",
                      "grasp.max_approach_error_deg": "max_approach_error_deg"}
 

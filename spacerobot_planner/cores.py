@@ -18,12 +18,16 @@ threads than cores are left (:func:`fit_threads`).  The field's values are the s
 number of threads (``field.multigrid``), so the count changes only the time.  Below that size the
 configured number holds and nothing is read (the loops there are a few, and short).  Where
 ``/proc`` cannot be read (not Linux), the configured number holds.
+
+``/proc/loadavg`` counts the whole machine.  A process that may run on some of its CPUs only
+takes the machine's other work as spread evenly over them (:func:`busy_share`); work pinned to
+the same CPUs as the planner is then undercounted, and ``planner.max_threads`` caps the threads
+by hand.  ``planner.threads_follow_load: false`` keeps ``planner.max_threads`` whatever the load.
 """
 
 from __future__ import annotations
 
 import os
-import threading
 import time
 from dataclasses import dataclass
 
@@ -38,9 +42,6 @@ PARALLEL_MIN_NODES = 100_000
 CONFIRM_S = 1e-3
 #: ... every this many seconds
 CONFIRM_STEP_S = 2.5e-4
-
-_SET = threading.local()      # per thread: the number fit_threads last gave numba there
-_LOADAVG = {"fd": None}       # /proc/loadavg kept open: a pread of it is a fresh reading (about 1 us)
 
 
 @dataclass(frozen=True)
@@ -64,11 +65,9 @@ class Fit:
 
 def _runnable_on_machine() -> int | None:
     """Return the threads runnable on the machine now (``/proc/loadavg``'s fourth field, this one included), or None."""
-    fd = _LOADAVG["fd"]
     try:
-        if fd is None:
-            fd = _LOADAVG["fd"] = os.open("/proc/loadavg", os.O_RDONLY | os.O_CLOEXEC)
-        return int(os.pread(fd, 128, 0).split()[3].split(b"/")[0])
+        with open("/proc/loadavg", "rb") as f:
+            return int(f.read().split()[3].split(b"/")[0])
     except (OSError, ValueError, IndexError):
         return None
 
@@ -104,12 +103,11 @@ def busy_elsewhere() -> int | None:
     system thread's burst, 0.55 % of readings confirmed over 1 ms (4 000 readings each).
     """
     busy = _busy_now()
-    if not busy:
-        return busy
     t_end = time.monotonic() + CONFIRM_S
     while busy and time.monotonic() < t_end:
         time.sleep(CONFIRM_STEP_S)
-        busy = min(busy, _busy_now())
+        again = _busy_now()
+        busy = busy if again is None else min(busy, again)
     return busy
 
 
@@ -139,12 +137,15 @@ def fit_threads(most: int, nodes: int) -> Fit:
 
     ``most``: ``planner.max_threads`` (0: numba's number, ``NUMBA_NUM_THREADS``).  From
     :data:`PARALLEL_MIN_NODES` nodes on and with a limit above one, no more than the cores
-    that other work leaves (:func:`busy_elsewhere`), at least one; below, the limit itself.
-    numba's thread pool starts where a number is set or a parallel kernel first runs, so a
-    thread that never asks for fewer than numba's number sets nothing (a plan on a small grid
+    that other work leaves (:func:`busy_elsewhere`), at least one; below (and with ``nodes``
+    0), the limit itself.  The planner owns the count of the thread it plans in: a count set
+    on numba there directly is replaced (``planner.max_threads`` is the setting).  numba's
+    thread pool starts where a number is set or a parallel kernel first runs, so a thread of
+    a process without a pool that keeps numba's number sets nothing (a plan on a small grid
     starts no pool).
     """
     import numba
+    from numba.np.ufunc import parallel as pool
     numba_limit = numba.config.NUMBA_NUM_THREADS
     limit = numba_limit if int(most) <= 0 else min(int(most), numba_limit)
     threads, busy = limit, None
@@ -152,9 +153,9 @@ def fit_threads(most: int, nodes: int) -> Fit:
         busy = busy_elsewhere()
         if busy is not None:
             threads = max(1, min(limit, _cores() - busy))
-    if threads != getattr(_SET, "threads", numba_limit):
+    now = numba.get_num_threads() if pool._is_initialized else numba_limit
+    if threads != now:
         numba.set_num_threads(threads)
-        _SET.threads = threads
     return Fit(threads, limit, busy)
 
 

@@ -381,7 +381,8 @@ class Planner:
 
     def _fit_threads(self, nodes: int) -> None:
         """Give the stage about to run on ``nodes`` grid nodes the threads the busy cores leave (``cores``); note it."""
-        self._fits.append(fit_threads(self.settings.max_threads, nodes))
+        s = self.settings
+        self._fits.append(fit_threads(s.max_threads, nodes if s.threads_follow_load else 0))
 
     def threads_note(self) -> dict:
         """

@@ -49,6 +49,8 @@ class PlannerSettings:
         max_threads: the most threads a plan's parallel kernels use; 0: numba's own number (one per
             core, or ``NUMBA_NUM_THREADS``).  On large grids fewer while other work keeps the
             cores busy (``cores.fit_threads``).
+        threads_follow_load: whether large grids' stages take fewer threads while other work
+            keeps cores busy (False: always ``max_threads``).
         grid_extra_margin_m: added to the safety margin for the grid only, metres (the
             planner retries at 0 before answering ``disconnected``).
         shortcut: try a shortcut spline before the paper's every-second-node spline.
@@ -81,6 +83,7 @@ class PlannerSettings:
     field_budget_s: float = DEFAULT_BUDGET_S
     max_grid_nodes: int = 4_000_000
     max_threads: int = 0
+    threads_follow_load: bool = True
     grid_extra_margin_m: float = 0.02
     shortcut: bool = True
     shortcut_keep_clearance_m: float = 0.05

@@ -94,6 +94,7 @@ class PlanJob:
     stall_s: float = 0.0
     field_budget_s: float = 5.0
     max_threads: int = 0
+    threads_follow_load: bool = True
     stall_stage: str = "start"
     stall_polls: bool = True
     stages: bool = True
@@ -112,6 +113,7 @@ class PlanJob:
                    field_tolerance=float(s.field_tolerance), max_grid_nodes=int(s.max_grid_nodes),
                    start_rad=np.asarray(start_rad, dtype=float), joint_goal=joint_goal,
                    field_budget_s=float(s.field_budget_s), max_threads=int(s.max_threads), start_tangent=start_tangent,
+                   threads_follow_load=bool(s.threads_follow_load),
                    **test)
 
 
@@ -186,7 +188,8 @@ def _apply_settings(planner, job: PlanJob) -> None:
     nothing: the scene's checker and the target's goal (``Planner.capture_goal``) stay.
     """
     key = pickle.dumps((job.scene, job.grid, job.solver, job.field_tolerance, job.field_budget_s,
-                        job.max_grid_nodes, job.max_threads), protocol=pickle.HIGHEST_PROTOCOL)
+                        job.max_grid_nodes, job.max_threads, job.threads_follow_load),
+                       protocol=pickle.HIGHEST_PROTOCOL)
     held = _APPLIED.get(planner)
     if held is not None and held == (key, _state(planner)):
         return
@@ -197,14 +200,15 @@ def _apply_settings(planner, job: PlanJob) -> None:
     if (planner.solver, planner.field_tolerance, planner.settings.field_budget_s) != \
             (job.solver, job.field_tolerance, job.field_budget_s):
         planner.set_solver(job.solver, job.field_tolerance, job.field_budget_s)
-    planner.configure(max_grid_nodes=job.max_grid_nodes, max_threads=job.max_threads)
+    planner.configure(max_grid_nodes=job.max_grid_nodes, max_threads=job.max_threads,
+                      threads_follow_load=job.threads_follow_load)
     _APPLIED[planner] = (key, _state(planner))
 
 
 def _state(planner) -> tuple:
     """Return what a change of the planner outside a job changes: its scenario (by identity), solver, limits."""
     return (planner.scenario, planner.solver, planner.field_tolerance, planner.settings.field_budget_s,
-            planner.max_grid_nodes, planner.settings.max_threads)
+            planner.max_grid_nodes, planner.settings.max_threads, planner.settings.threads_follow_load)
 
 
 STALL_STAGES = ("start", "cspace", "field", "descent", "smoothing")

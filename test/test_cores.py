@@ -2,6 +2,9 @@
 A plan's parallel loops get no more threads than other work leaves cores (``cores``).
 
 - the share of the machine's other work that falls on this process's cores, by hand;
+- a reading: the machine's runnable threads less this process's own, scaled, from scripted
+  readings; a count above zero read again and the least one kept;
+- this process's running threads, with threads of known state started by the test;
 - with as many busy-loop processes as this process has cores, every core counts busy and a
   large grid's stages get one thread; a small grid's keep the limit and count nothing;
 - a plan on a large grid under that load reports one thread and plans the same path, bit for
@@ -36,12 +39,19 @@ def _cpu_ticks(pid: int) -> int:
     return int(fields[11]) + int(fields[12])
 
 
+def _skip_without_proc():
+    if not os.path.exists("/proc/loadavg") or not os.path.exists("/proc/self/task"):
+        pytest.skip("no /proc/loadavg or /proc/self/task (not Linux)")
+
+
 @pytest.fixture
 def every_core_busy():
     """One busy-loop process per core of this process, each seen running, stopped after the test."""
+    _skip_without_proc()
     n = _my_cores()
-    if n > MOST_HOGS or not os.path.exists("/proc/loadavg"):
-        pytest.skip(f"{n} cores (more than {MOST_HOGS}) or no /proc/loadavg")
+    if n > MOST_HOGS or n < (os.cpu_count() or 1):
+        pytest.skip(f"{n} cores (more than {MOST_HOGS}), or fewer than the machine's {os.cpu_count()} "
+                    "(the machine's other work is scaled to them)")
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
     try:
         t_end = time.monotonic() + 10.0
@@ -69,6 +79,78 @@ def test_busy_share_by_hand():
     assert cores.busy_share(3, 8, 16) == 2           # 1.5 rounds up
 
 
+def test_a_reading_counts_the_others_on_this_process_cores(monkeypatch):
+    readings = {"machine": 5, "here": 2, "cores": 2, "online": 2}
+    monkeypatch.setattr(cores, "_runnable_on_machine", lambda: readings["machine"])
+    monkeypatch.setattr(cores, "_running_here", lambda: readings["here"])
+    monkeypatch.setattr(cores, "_cores", lambda: readings["cores"])
+    monkeypatch.setattr(cores.os, "cpu_count", lambda: readings["online"])
+    # 5 runnable on the machine, 2 of them this process's: 3 others, on 2 cores of 2: both busy
+    assert cores._busy_now() == 2
+    readings.update(machine=3)                      # 1 other: one core busy
+    assert cores._busy_now() == 1
+    readings.update(machine=2)                      # only this process's threads run
+    assert cores._busy_now() == 0
+    readings.update(machine=12, here=2, cores=4, online=16)     # 10 others spread over 16 CPUs: 2.5 of 4
+    assert cores._busy_now() == 3
+    readings.update(machine=None)
+    assert cores._busy_now() is None
+
+
+def test_a_busy_reading_is_read_again_and_the_least_kept(monkeypatch):
+    def scripted(values):
+        it = iter(values)
+        calls = []
+
+        def reading():
+            calls.append(1)
+            return next(it)
+        monkeypatch.setattr(cores, "_busy_now", reading)
+        return calls
+
+    scripted([0])
+    assert cores.busy_elsewhere() == 0
+    calls = scripted([2, 1, 1, 1, 1] + [1] * 20)      # a busy core all along: 1 holds, read for a millisecond
+    assert cores.busy_elsewhere() == 1
+    assert len(calls) >= 2
+    scripted([1, 2, 0] + [2] * 20)                    # a burst: gone at the second reading after
+    assert cores.busy_elsewhere() == 0
+    scripted([2, None, 1] + [1] * 20)                 # an unreadable reading again changes nothing
+    assert cores.busy_elsewhere() == 1
+    scripted([None])
+    assert cores.busy_elsewhere() is None
+
+
+def test_running_here_counts_this_process_running_threads():
+    """Threads that sort (numpy lets the interpreter go) run beside the reading one; sleeping ones do not count."""
+    import threading
+    _skip_without_proc()
+    stop = threading.Event()
+    data = np.random.default_rng(0).random(1_000_000)
+
+    def sort_until_stopped():
+        while not stop.is_set():
+            np.sort(data)
+
+    sleepers = [threading.Thread(target=stop.wait) for _ in range(3)]
+    for t in sleepers:
+        t.start()
+    time.sleep(0.2)                    # numba's team, should a test before have run a loop, stops spinning
+    quiet = min(cores._running_here() for _ in range(20))     # the reader and no sorter
+    sorters = [threading.Thread(target=sort_until_stopped) for _ in range(2)]
+    try:
+        for t in sorters:
+            t.start()
+        time.sleep(0.05)
+        busy = max(cores._running_here() for _ in range(50))
+    finally:
+        stop.set()
+        for t in sorters + sleepers:
+            t.join()
+    assert quiet >= 1
+    assert busy >= quiet + 2 >= 3, (quiet, busy)
+
+
 def test_every_core_busy_gives_one_thread(every_core_busy):
     import numba
     if numba.config.NUMBA_NUM_THREADS < 2:
@@ -87,6 +169,7 @@ def test_every_core_busy_gives_one_thread(every_core_busy):
 
 def test_large_plan_under_load_runs_one_thread_same_path(paper_scenario, request):
     import numba
+    _skip_without_proc()
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("numba runs one thread here")
     from spacerobot_planner.planner import Planner
