@@ -1,13 +1,16 @@
 """
 Test isolation, hypothesis profiles and the paper's scenarios and paths.
 
-Each run gets its own DDS domain and discovery stays on this host.  Property tests
+Each run gets its own DDS domain and discovery stays on this host, and the DDS participants a
+test's nodes leave to the garbage collector are finalized before the next test starts (a
+participant finalized while another sends it discovery data can hang Fast DDS for good).  Property tests
 run a few dozen cases by default; ``pytest --hypothesis-profile=long`` (or
 ``make test-long``) runs thousands.  The ``graph`` fixture: in-process node graphs
 (test/node_helpers.py).
 """
 
 import fcntl
+import gc
 import os
 import tempfile
 
@@ -71,6 +74,42 @@ def pytest_collection_modifyitems(config, items):
     tests out in collection order), so they start while the short ones fill the other workers.
     """
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)      # stable: order kept otherwise
+
+
+def _dds_participants() -> int:
+    """Return the DDS participants alive in this process: Fast DDS's event threads (``dds.ev.<n>``, one each)."""
+    n = 0
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:
+        return 0
+    for tid in tids:
+        try:
+            with open(f"/proc/self/task/{tid}/comm", "rb") as f:
+                n += f.read().startswith(b"dds.ev")
+        except OSError:           # the thread ended meanwhile
+            continue
+    return n
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_logfinish(nodeid, location):
+    """
+    Finalize the DDS participants of the test that ended, where its nodes left any, before the next test.
+
+    A node's rcl handle, and with the context's last node its DDS participant, is finalized when
+    its Python objects go: the ``graph`` fixture's nodes are destroyed and their contexts shut
+    down, but pytest holds the test's fixture values until after its teardown, and the nodes sit in
+    reference cycles (callbacks, threads), so before this the garbage collector finalized them at
+    some allocation of a later test, often while that test's own participants were discovering
+    each other.  A fresh clone's ``make test`` hung there once for good (2026-12-05): Fast DDS
+    destroying a participant (``DomainParticipant::set_listener``) while another participant of
+    the process delivered it an endpoint's discovery (nine participants alive in that worker).
+    Here every one of them goes in a collection with no test running (about 20 ms, only where a
+    participant is alive).
+    """
+    if _dds_participants():
+        gc.collect()
 
 
 #: the wall-clock budget of a field solved with the default budget (``field.DEFAULT_BUDGET_S``,
