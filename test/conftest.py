@@ -76,7 +76,7 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)      # stable: order kept otherwise
 
 
-def _dds_participants() -> int:
+def dds_participants() -> int:
     """Return the DDS participants alive in this process: Fast DDS's event threads (``dds.ev.<n>``, one each)."""
     n = 0
     try:
@@ -108,7 +108,7 @@ def pytest_runtest_logfinish(nodeid, location):
     Here every one of them goes in a collection with no test running (about 20 ms, only where a
     participant is alive).
     """
-    if _dds_participants():
+    if dds_participants():
         gc.collect()
 
 

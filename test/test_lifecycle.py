@@ -235,3 +235,36 @@ def test_the_lifecycle_services_answer_as_ros2_lifecycle_expects(manual):
     # a shutdown id of another state is refused, the state kept
     assert not _change(g, Transition.TRANSITION_ACTIVE_SHUTDOWN)
     assert _state(g) == "inactive"
+
+
+def test_destroy_node_releases_its_dds_participant_at_once():
+    """
+    A destroyed planner node lets go of its rcl node, and its context's DDS participant, in the call itself.
+
+    Oracle: the process's Fast DDS participants, counted by their event threads in /proc (``conftest``),
+    with the garbage collector off and the node object still referenced. rclpy's LifecycleNode left
+    its state machine, which holds the rcl node, to the collector: the participant lived on until
+    the Python object went, in a process hosting other nodes at some later allocation.
+    """
+    import gc
+
+    import rclpy
+    from rclpy.context import Context
+
+    from conftest import dds_participants
+    from spacerobot_planner.ros.planner_node import PlannerNode
+    before = dds_participants()
+    ctx = Context()
+    rclpy.init(context=ctx, args=["--ros-args", "-p", "autostart:=false"])
+    gc.disable()
+    try:
+        node = PlannerNode(context=ctx)
+        if dds_participants() == before:
+            pytest.skip("this rmw names no dds.ev threads (not Fast DDS)")
+        assert dds_participants() == before + 1
+        node.destroy_node()
+        assert dds_participants() == before, "the participant outlived destroy_node"
+        assert node is not None                # still referenced: nothing was left to the collector
+    finally:
+        gc.enable()
+        rclpy.shutdown(context=ctx)

@@ -501,7 +501,14 @@ class PlannerNode(LifecycleNode):
         if self._started:
             self._pending_answers.drain()
             self._pending_answers.reap(now=True)
-        return super().destroy_node()
+        super().destroy_node()
+        # rclpy's LifecycleNode leaves its state machine, which holds the rcl node, to the garbage
+        # collector: the node, and with its context's last node the DDS participant, lived on
+        # until the Python object went (a process that hosts other nodes met it at a random
+        # allocation later, while its other participants discovered each other)
+        machine = getattr(self, "_state_machine", None)
+        if machine is not None:
+            machine.destroy_when_not_in_use()
 
     def shutdown_worker(self, timeout_s: float = 5.0, finish_goals: bool = False):
         """
