@@ -99,8 +99,8 @@ def busy_elsewhere() -> int | None:
     process's counted first: a thread of its own that stops between the two readings then
     counts as its own, not as other work (numba's team stops spinning a while after a loop).
     A count above zero is read again every :data:`CONFIRM_STEP_S` for :data:`CONFIRM_S`, and
-    the least count holds: on the idle development VM 2.6 % of single readings met a
-    system thread's burst, 0.55 % of readings confirmed over 1 ms (4 000 readings each).
+    the least count holds: on the idle development VM 2.5–2.6 % of single readings met a
+    system thread's burst, 0.43–0.6 % of readings confirmed over 1 ms (3 000–4 000 readings).
     """
     busy = _busy_now()
     t_end = time.monotonic() + CONFIRM_S
@@ -167,8 +167,9 @@ def threads_text(stats: dict) -> str:
     """
     if stats.get("threads", 0) >= stats.get("threads_limit", 0):
         return ""
+    busy = stats["busy_cores"]
     return (f"; parallel loops on {stats['threads']} of {stats['threads_limit']} threads, "
-            f"{stats['busy_cores']} cores busy with other work")
+            f"{busy} {'core' if busy == 1 else 'cores'} busy with other work")
 
 
 def _cores() -> int:

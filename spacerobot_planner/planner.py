@@ -392,7 +392,7 @@ class Planner:
         ``threads_limit``: the most it could, ``busy_cores``: the most cores it found busy
         with other work (``cores.fit_threads``).
         """
-        fits = [f for f in getattr(self, "_fits", ()) if f.busy is not None]
+        fits = [f for f in self._fits if f.busy is not None]
         if not fits:
             return {}
         return {"threads": min(f.threads for f in fits), "threads_limit": max(f.limit for f in fits),

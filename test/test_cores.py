@@ -196,3 +196,5 @@ def test_threads_text():
     assert cores.threads_text({"threads": 2, "threads_limit": 2, "busy_cores": 0}) == ""
     assert cores.threads_text({"threads": 1, "threads_limit": 2, "busy_cores": 2}) == (
         "; parallel loops on 1 of 2 threads, 2 cores busy with other work")
+    assert cores.threads_text({"threads": 3, "threads_limit": 4, "busy_cores": 1}) == (
+        "; parallel loops on 3 of 4 threads, 1 core busy with other work")
