@@ -38,9 +38,9 @@ __all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "busy_share", "busy_elsew
 #: loops run on threads from about there on
 PARALLEL_MIN_NODES = 100_000
 
-#: a count of busy cores above zero is read again for this long, s, and the least count holds
-CONFIRM_S = 1e-3
-#: ... every this many seconds
+#: a count of busy cores above zero is read again this many times, and the least count holds ...
+CONFIRM_READINGS = 4
+#: ... one every this many seconds (about a millisecond in all; longer on a loaded machine)
 CONFIRM_STEP_S = 2.5e-4
 
 
@@ -98,13 +98,14 @@ def busy_elsewhere() -> int | None:
     The threads runnable on the machine less this process's own (:func:`busy_share`), this
     process's counted first: a thread of its own that stops between the two readings then
     counts as its own, not as other work (numba's team stops spinning a while after a loop).
-    A count above zero is read again every :data:`CONFIRM_STEP_S` for :data:`CONFIRM_S`, and
-    the least count holds: on the idle development VM 2.5–2.6 % of single readings met a
+    A count above zero is read again :data:`CONFIRM_READINGS` times, every :data:`CONFIRM_STEP_S`
+    (a millisecond), and the least count holds: on the idle development VM 2.5–2.6 % of single readings met a
     system thread's burst, 0.43–0.6 % of readings confirmed over 1 ms (3 000–4 000 readings).
     """
     busy = _busy_now()
-    t_end = time.monotonic() + CONFIRM_S
-    while busy and time.monotonic() < t_end:
+    for _ in range(CONFIRM_READINGS):
+        if not busy:
+            break
         time.sleep(CONFIRM_STEP_S)
         again = _busy_now()
         busy = busy if again is None else min(busy, again)
