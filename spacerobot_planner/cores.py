@@ -31,7 +31,8 @@ import os
 import time
 from dataclasses import dataclass
 
-__all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "busy_share", "busy_elsewhere", "threads_text"]
+__all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "busy_share", "busy_elsewhere", "threads_text",
+           "own_thread_files"]
 
 #: grids of at least this many nodes count the busy cores before a stage's parallel loops; the
 #: node graph's (``field.graph.PARALLEL_MIN_NODES``) and the fine level's (``multigrid.PARALLEL_MIN_CELLS``)
@@ -72,19 +73,26 @@ def _runnable_on_machine() -> int | None:
         return None
 
 
-def _running_here() -> int:
-    """Return this process's threads in state R (running or runnable), from ``/proc/self/task/*/stat``."""
-    n = 0
+def own_thread_files(name: str) -> list:
+    """Return the bytes of ``/proc/self/task/<tid>/<name>`` for each of this process's threads ([] without /proc)."""
     try:
         tids = os.listdir("/proc/self/task")
     except OSError:
-        return 1
+        return []
+    out = []
     for tid in tids:
         try:
-            with open(f"/proc/self/task/{tid}/stat", "rb") as f:
-                s = f.read()
+            with open(f"/proc/self/task/{tid}/{name}", "rb") as f:
+                out.append(f.read())
         except OSError:               # the thread ended meanwhile
             continue
+    return out
+
+
+def _running_here() -> int:
+    """Return this process's threads in state R (running or runnable), from ``/proc/self/task/*/stat``."""
+    n = 0
+    for s in own_thread_files("stat"):
         end = s.rfind(b")")           # the state follows the command name, which may hold anything
         if end >= 0 and s[end + 2:end + 3] == b"R":
             n += 1
