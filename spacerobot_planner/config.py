@@ -130,15 +130,18 @@ PARAMETERS = (
     ParamSpec("planner.max_threads", "integer", 0,
               "Most threads a plan's parallel kernels use (the C-space rows; on large grids the field's "
               "loops and the node graph's table; 1 also keeps a large band's set-up in one thread); 0: "
-              "numba's (one per core, or NUMBA_NUM_THREADS). On grids of 100 000 nodes and more, no more "
+              "numba's (one per core, or NUMBA_NUM_THREADS). No more than the process's CPU limit (a "
+              "container's cgroup quota, rounded up), and on grids of 100 000 nodes and more, no more "
               "than the cores other work leaves (counted before the C-space and each field solve). A "
               "plan is the same bit for bit on any number.",
               False, 0, 4096),
     ParamSpec("planner.threads_follow_load", "bool", True,
-              "On grids of 100 000 nodes and more, run the parallel loops on no more threads than the cores "
-              "other work leaves (a team larger than the free cores waits at every loop's join: a 72³ plan "
-              "took up to 20× longer beside two busy processes on 2 cores). false: always planner.max_threads "
-              "(benchmarks and tests of the threaded loops)."),
+              "Run the parallel loops on no more threads than the process's CPU limit (a container's cgroup "
+              "quota, rounded up: a larger team spends the quota's period in a burst, then the process waits) "
+              "and, on grids of 100 000 nodes and more, than the cores other work leaves (a team larger than "
+              "the free cores waits at every loop's join: a 72³ plan took up to 20× longer beside two busy "
+              "processes on 2 cores). false: always planner.max_threads (benchmarks and tests of the threaded "
+              "loops)."),
     ParamSpec("planner.max_start_penetration_m", "double", 0.05,
               "A start posture whose links reach at most this deep into an obstacle (e.g. holding the "
               "grasp after the target moved) is first walked out along increasing clearance (reported, "

@@ -380,23 +380,26 @@ class Planner:
         return cs, key, False
 
     def _fit_threads(self, nodes: int) -> None:
-        """Give the stage about to run on ``nodes`` grid nodes the threads the busy cores leave (``cores``); note it."""
+        """Give the stage about to run on ``nodes`` grid nodes the threads the CPU limit and load leave; note it."""
         s = self.settings
-        self._fits.append(fit_threads(s.max_threads, nodes if s.threads_follow_load else 0))
+        self._fits.append(fit_threads(s.max_threads, nodes, s.threads_follow_load))
 
     def threads_note(self) -> dict:
         """
-        Return the current plan's thread counts for its ``solver_stats``: {} where no stage counted busy cores.
+        Return the current plan's thread counts for its ``solver_stats``: {} where none were counted or limited.
 
         ``threads``: the fewest threads a stage of the plan ran its parallel loops on,
         ``threads_limit``: the most it could, ``busy_cores``: the most cores it found busy
-        with other work (``cores.fit_threads``).
+        with other work (0 where none was counted), and where the process's CPU limit took
+        threads, ``cpu_limit``: that limit in whole CPUs (``cores.fit_threads``).
         """
-        fits = [f for f in self._fits if f.busy is not None]
+        fits = [f for f in self._fits if f.busy is not None or f.cpu_limit is not None]
         if not fits:
             return {}
-        return {"threads": min(f.threads for f in fits), "threads_limit": max(f.limit for f in fits),
-                "busy_cores": max(f.busy for f in fits)}
+        note = {"threads": min(f.threads for f in fits), "threads_limit": max(f.limit for f in fits),
+                "busy_cores": max(f.busy or 0 for f in fits)}
+        limits = [f.cpu_limit for f in fits if f.cpu_limit is not None]
+        return dict(note, cpu_limit=min(limits)) if limits else note
 
     @staticmethod
     def _field_key(cspace_key, goal_nodes, settings: PlannerSettings) -> tuple:
@@ -461,7 +464,7 @@ class Planner:
         """
         with self._lock:
             self._fits = []
-            fit_threads(self.settings.max_threads, 0)
+            self._fit_threads(0)
             return PlanRun(self, self.settings, cancel, progress, start_tangent).run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:

@@ -9,7 +9,12 @@ A plan's parallel loops get no more threads than other work leaves cores (``core
   large grid's stages get one thread; a small grid's keep the limit and count nothing;
 - a plan on a large grid under that load reports one thread and plans the same path, bit for
   bit, as the same plan before the load (a plan is the same on any number of threads);
-- the line the log and the CLI print.
+- the line the log and the CLI print;
+- the process's CPU limit (a container's cgroup quota): read from cgroup trees the test writes
+  (v1 and v2, nested, a container's own view, none), rounded up, kept for a second; under a
+  limit of one CPU a plan's parallel loops get one thread, it says so, and it plans the same path;
+  and, where this test may make a cgroup (root, cgroup v1's ``cpu`` controller), the limit a
+  process placed in one reads.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -26,6 +32,13 @@ from spacerobot_planner import cores
 
 #: the most busy processes a test starts (one per core of this process)
 MOST_HOGS = 8
+
+
+@pytest.fixture(autouse=True)
+def no_cpu_limit(request, monkeypatch):
+    """Run the load tests as on a machine with no CPU limit (a CI runner's quota would cap their threads first)."""
+    if "cpu_limit" not in request.node.name:
+        monkeypatch.setattr(cores, "cpu_limit", lambda: None)
 
 
 def _my_cores() -> int:
@@ -198,3 +211,158 @@ def test_threads_text():
         "; parallel loops on 1 of 2 threads, 2 cores busy with other work")
     assert cores.threads_text({"threads": 3, "threads_limit": 4, "busy_cores": 1}) == (
         "; parallel loops on 3 of 4 threads, 1 core busy with other work")
+
+
+def test_threads_text_names_a_cpu_limit():
+    assert cores.threads_text({"threads": 1, "threads_limit": 2, "busy_cores": 0, "cpu_limit": 1}) == (
+        "; parallel loops on 1 of 2 threads, a CPU limit of 1")
+    assert cores.threads_text({"threads": 1, "threads_limit": 8, "busy_cores": 1, "cpu_limit": 2}) == (
+        "; parallel loops on 1 of 8 threads, a CPU limit of 2 and 1 core busy with other work")
+
+
+# ---- the CPU limit: cgroup trees written here, each file's limit by hand ----
+
+def _mount(point, fstype, options="rw", root="/") -> str:
+    """One /proc/self/mountinfo line of a cgroup mount (spaces in the point escaped as the kernel does)."""
+    return (f"41 31 0:38 {root} {str(point).replace(' ', chr(92) + '040')} rw,relatime shared:9 - "
+            f"{fstype} {fstype} {options}")
+
+
+def _write(directory, **files):
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, text in files.items():
+        (directory / name.replace("__", ".")).write_text(text + "\n")
+
+
+def test_cpu_limit_of_a_v2_cgroup_is_the_least_up_to_the_mount(tmp_path):
+    top = tmp_path / "unified"
+    _write(top / "a", cpu__max="150000 100000")          # 1.5 CPUs
+    _write(top / "a" / "b", cpu__max="max 100000")        # none of its own
+    mounts = _mount(top, "cgroup2")
+    assert cores.cgroup_cpu_limit("0::/a/b\n", mounts) == pytest.approx(1.5)
+    _write(top / "a" / "b", cpu__max="400000 200000")     # 2 CPUs below 1.5: 1.5 holds
+    assert cores.cgroup_cpu_limit("0::/a/b\n", mounts) == pytest.approx(1.5)
+    _write(top / "a" / "b", cpu__max="25000 100000")      # a quarter
+    assert cores.cgroup_cpu_limit("0::/a/b\n", mounts) == pytest.approx(0.25)
+    assert cores.cgroup_cpu_limit("0::/\n", mounts) is None          # the root: no cpu.max
+    assert cores.cgroup_cpu_limit("0::/elsewhere\n", mounts) is None  # no such directory
+
+
+def test_cpu_limit_in_a_container_reads_its_own_cgroup_at_the_mount(tmp_path):
+    # inside a container, the cgroup namespace shows "/" and the mount's root is its own cgroup
+    point = tmp_path / "sys fs cgroup"
+    _write(point, cpu__max="200000 100000")
+    assert cores.cgroup_cpu_limit("0::/\n", _mount(point, "cgroup2")) == pytest.approx(2.0)
+    # a host's view of a bind mount of a sub-cgroup: the path below the mount's root
+    _write(point / "pod", cpu__max="50000 100000")
+    mounts = _mount(point, "cgroup2", root="/kubepods/burst")
+    assert cores.cgroup_cpu_limit("0::/kubepods/burst/pod\n", mounts) == pytest.approx(0.5)
+    assert cores.cgroup_cpu_limit("0::/kubepods/burst\n", mounts) == pytest.approx(2.0)
+
+
+def test_cpu_limit_of_a_v1_cpu_controller_and_both_hierarchies(tmp_path):
+    cpu = tmp_path / "cpu,cpuacct"
+    _write(cpu / "k8s", cpu__cfs_quota_us="-1", cpu__cfs_period_us="100000")
+    _write(cpu / "k8s" / "pod", cpu__cfs_quota_us="250000", cpu__cfs_period_us="100000")
+    other = tmp_path / "memory"
+    _write(other / "k8s" / "pod", cpu__cfs_quota_us="10000", cpu__cfs_period_us="100000")   # not the cpu controller
+    mounts = "\n".join([_mount(cpu, "cgroup", "rw,cpu,cpuacct"), _mount(other, "cgroup", "rw,memory")])
+    groups = "6:cpuset:/elsewhere\n5:memory:/k8s/pod\n4:cpu,cpuacct:/k8s/pod\n3:cpuacct:/elsewhere\n0::/\n"
+    assert cores.cgroup_cpu_limit(groups, mounts) == pytest.approx(2.5)
+    _write(cpu / "k8s" / "pod", cpu__cfs_quota_us="-1", cpu__cfs_period_us="100000")
+    assert cores.cgroup_cpu_limit(groups, mounts) is None
+    # a hybrid machine: the v2 hierarchy limits too, the least holds
+    unified = tmp_path / "unified"
+    _write(unified / "k8s" / "pod", cpu__max="120000 100000")
+    both = mounts + "\n" + _mount(unified, "cgroup2")
+    assert cores.cgroup_cpu_limit(groups.replace("0::/", "0::/k8s/pod"), both) == pytest.approx(1.2)
+    _write(cpu / "k8s" / "pod", cpu__cfs_quota_us="100000", cpu__cfs_period_us="100000")
+    assert cores.cgroup_cpu_limit(groups.replace("0::/", "0::/k8s/pod"), both) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("text", ["", "garbage", "max", "100000", "0 100000", "-5 100000", "100000 0"])
+def test_a_cpu_max_not_understood_limits_nothing(tmp_path, text):
+    top = tmp_path / "unified"
+    _write(top / "a", cpu__max=text)
+    assert cores.cgroup_cpu_limit("0::/a\n", _mount(top, "cgroup2")) is None
+
+
+def test_cpu_limit_rounds_up_and_is_read_at_most_once_a_second(monkeypatch):
+    reads = []
+    limit = [1.5]
+
+    def scripted(cgroups, mounts):
+        reads.append(1)
+        return limit[0]
+    monkeypatch.setattr(cores, "cgroup_cpu_limit", scripted)
+    monkeypatch.setattr(cores, "_limit_read", [-float("inf"), None])
+    assert cores.cpu_limit() == 2
+    limit[0] = 0.2
+    assert cores.cpu_limit() == 2 and len(reads) == 1            # kept: read again only after a second
+    monkeypatch.setattr(cores, "CPU_LIMIT_MAX_AGE_S", 0.0)
+    for value, whole in ((0.2, 1), (2.0, 2), (2.00001, 3), (None, None)):
+        limit[0] = value
+        assert cores.cpu_limit() == whole, value
+    assert len(reads) == 5
+
+
+def test_a_plan_under_a_cpu_limit_of_one_runs_one_thread_and_plans_the_same(paper_scenario, monkeypatch):
+    import numba
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba runs one thread here")
+    from spacerobot_planner.planner import Planner
+    sc = paper_scenario(3)
+    monkeypatch.setattr(cores, "cpu_limit", lambda: None)
+    free = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+    assert free.ok, free.reason
+    assert "cpu_limit" not in free.solver_stats and numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+    monkeypatch.setattr(cores, "cpu_limit", lambda: 1)
+    limited = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+    assert limited.ok, limited.reason
+    assert numba.get_num_threads() == 1                          # the planning thread's kernels
+    assert (limited.solver_stats["threads"], limited.solver_stats["cpu_limit"]) == (1, 1)
+    assert "a CPU limit of 1" in cores.threads_text(limited.solver_stats)
+    assert np.array_equal(limited.path_rad, free.path_rad)
+    # threads_follow_load false keeps the configured number, the limit notwithstanding
+    kept = Planner(sc, settings=replace(sc.planner_settings, threads_follow_load=False)).plan(sc.start_rad, sc.goal_rad)
+    assert "cpu_limit" not in kept.solver_stats and numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+    monkeypatch.setattr(cores, "cpu_limit", lambda: None)
+    cores.fit_threads(0, 0)
+
+
+def _own_v1_cpu_cgroup():
+    """Return this process's cgroup v1 ``cpu`` directory where it is writable here, else None."""
+    base = "/sys/fs/cgroup/cpu"
+    try:
+        with open("/proc/self/cgroup") as f:
+            line = next(ln for ln in f.read().splitlines() if "cpu" in ln.split(":")[1].split(","))
+    except (OSError, StopIteration, IndexError):
+        return None
+    d = os.path.join(base, line.split(":", 2)[2].lstrip("/"))
+    ok = os.path.exists(os.path.join(d, "cpu.cfs_quota_us")) and os.access(d, os.W_OK)
+    return d if ok else None
+
+
+def test_a_process_in_a_cgroup_of_a_cpu_and_a_half_reads_two():
+    d = _own_v1_cpu_cgroup()
+    if d is None:
+        pytest.skip("no writable cgroup v1 cpu controller here (not root, or cgroup v2 only)")
+    child = os.path.join(d, f"spacerobot_test_{os.getpid()}")
+    try:
+        os.mkdir(child)
+        with open(os.path.join(child, "cpu.cfs_period_us"), "w") as f:
+            f.write("100000")
+        with open(os.path.join(child, "cpu.cfs_quota_us"), "w") as f:
+            f.write("150000")
+    except OSError as e:
+        if os.path.isdir(child):
+            os.rmdir(child)
+        pytest.skip(f"cannot make a cgroup here: {e}")
+    try:
+        code = (f"import os; open({os.path.join(child, 'cgroup.procs')!r}, 'w').write(str(os.getpid())); "
+                "from spacerobot_planner import cores; print(cores.cpu_limit())")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.split() == ["2"]
+    finally:
+        os.rmdir(child)

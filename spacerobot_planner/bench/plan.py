@@ -19,11 +19,12 @@ stage).  The baseline is the paper's plain Gauss–Seidel (Φ0 = 1, goal 0, stop
 capped (``--baseline-max-sweeps``, default 400) and the row says so: the ratio is
 then a lower bound.  Prints a table of medians, the tails (median, p90 and max) of the
 whole plan, the field and the cached replans, then one JSON object per line (those rows
-with ``p90_s``, ``max_s``, ``min_s`` and ``plans``).  On grids of ``cores.PARALLEL_MIN_NODES``
-nodes and more, the ``total`` row also gives ``threads`` (the fewest threads a fresh plan's
-parallel loops ran on: fewer than ``threads_limit`` where other work kept cores busy) and
-``busy_cores`` (the most cores a plan found busy); ``--load N`` runs N busy-loop processes
-meanwhile (a loaded machine).
+with ``p90_s``, ``max_s``, ``min_s`` and ``plans``).  On grids of
+``cores.PARALLEL_MIN_NODES`` nodes and more (on every grid under a CPU limit), the ``total`` row
+also gives ``threads`` (the fewest threads a fresh plan's parallel loops ran on: fewer than
+``threads_limit`` where other work kept cores busy or the process's CPU limit is lower) and
+``busy_cores`` (the most cores a plan found busy), and ``cpu_limit`` where that limit took
+threads; ``--load N`` runs N busy-loop processes meanwhile (a loaded machine).
 """
 
 from __future__ import annotations
@@ -138,7 +139,9 @@ def bench_case(scene: str, cells: int, solver: str, repeats: int, baseline_cap: 
          "min_clearance_m": res.min_clearance_m if res.ok else None, "smoothing": res.smoothing,
          "repairs": res.solver_stats.get("repairs"),
          **({"threads": min(c["threads"] for c in counted), "threads_limit": counted[0]["threads_limit"],
-             "busy_cores": max(c["busy_cores"] for c in counted)} if counted else {})},
+             "busy_cores": max(c["busy_cores"] for c in counted),
+             **({"cpu_limit": min(c["cpu_limit"] for c in counted if "cpu_limit" in c)}
+                if any("cpu_limit" in c for c in counted) else {})} if counted else {})},
         {"stage": "replan_cached", **common, "seconds": replan_s, **tails(replans, "total"), "baseline_seconds": None,
          "ratio": None},
     ]
@@ -265,8 +268,10 @@ def _run(args) -> int:
               f"cached replan {tail(r['replan_cached'])} ({r['replan_cached']['plans']} replans)")
         t = r["total"]
         if "threads" in t and t["threads"] < t["threads_limit"]:
+            why = ([f"a CPU limit of {t['cpu_limit']}"] if "cpu_limit" in t else []) + (
+                [f"up to {t['busy_cores']} cores busy with other work"] if t["busy_cores"] else [])
             print(f"  {scene:<5}{t['grid']:>12}  parallel loops on as few as {t['threads']} of {t['threads_limit']} "
-                  f"threads: up to {t['busy_cores']} cores busy with other work")
+                  f"threads: {' and '.join(why)}")
         if "replan_contact" in r:
             c = r["replan_contact"]
             failed = f"; {c['failed']} more failed, not counted" if c["failed"] else ""
