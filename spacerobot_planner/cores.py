@@ -30,6 +30,15 @@ cgroup of 1 CPU: the paper's 3-DOF scene at 72³ 94.5 / 98.2 / 99.3 ms on two th
 71.8 / 74.9 / 78.3 on one (median / p90 / max of 7); of half a CPU, 287.7 / 296.5 / 304.3 against
 224.2 / 272.2 / 275.3.
 
+numba runs its parallel loops on one of three threading layers, the first of its priority that
+loads: OpenMP needs the system's ``libgomp`` (absent from slim container images), TBB the ``tbb``
+wheel (installed by ``requirements.txt`` on x86-64), and its own ``workqueue`` is always there but
+was 2.0× slower at 72³ here (109.9 against 55 ms) and ends the process where two threads launch
+parallel loops at once.  numba's own priority is TBB first; TBB was 1.07× OpenMP at 72³ here (49.1–50.8
+against 45.8–47.3 ms, small grids equal), so the package prefers OpenMP, then TBB, then the work
+queue (:func:`prefer_threading_layers`, on import; ``NUMBA_THREADING_LAYER`` or
+``NUMBA_THREADING_LAYER_PRIORITY`` set by the user hold).
+
 ``/proc/loadavg`` counts the whole machine.  A process that may run on some of its CPUs only
 takes the machine's other work as spread evenly over them (:func:`busy_share`); work pinned to
 the same CPUs as the planner is then undercounted, and ``planner.max_threads`` caps the threads
@@ -46,7 +55,7 @@ import time
 from dataclasses import dataclass
 
 __all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "busy_share", "busy_elsewhere", "threads_text",
-           "own_thread_files", "cpu_limit", "cgroup_cpu_limit"]
+           "own_thread_files", "cpu_limit", "cgroup_cpu_limit", "prefer_threading_layers", "LAYER_PRIORITY"]
 
 #: grids of at least this many nodes count the busy cores before a stage's parallel loops; the
 #: node graph's (``field.graph.PARALLEL_MIN_NODES``) and the fine level's (``multigrid.PARALLEL_MIN_CELLS``)
@@ -57,6 +66,8 @@ PARALLEL_MIN_NODES = 100_000
 CONFIRM_READINGS = 4
 #: ... one every this many seconds (about a millisecond in all; longer on a loaded machine)
 CONFIRM_STEP_S = 2.5e-4
+#: the threading layers numba tries, in order (see the module docstring)
+LAYER_PRIORITY = ("omp", "tbb", "workqueue")
 #: the CPU limit is read again after this many seconds (a container's limit may be changed while it runs)
 CPU_LIMIT_MAX_AGE_S = 1.0
 
@@ -157,6 +168,23 @@ def busy_share(others: int, cores: int, online: int) -> int:
     """
     cores, online, others = max(1, int(cores)), max(1, int(online)), max(0, int(others))
     return min(cores, (2 * others * cores + online) // (2 * online))
+
+
+def prefer_threading_layers() -> None:
+    """
+    Make numba try :data:`LAYER_PRIORITY`'s threading layers in order, unless the user chose (by environment).
+
+    Set in the environment (numba reads it again when it compiles, and the planning process and
+    Dask workers inherit it) and, where numba is already imported, in its config; numba picks a
+    layer when the first parallel loop runs.
+    """
+    import sys
+    if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
+        return
+    os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = " ".join(LAYER_PRIORITY)
+    config = sys.modules.get("numba.core.config")
+    if config is not None:
+        config.THREADING_LAYER_PRIORITY = list(LAYER_PRIORITY)
 
 
 def fit_threads(most: int, nodes: int, follow: bool = True) -> Fit:

@@ -14,7 +14,9 @@ A plan's parallel loops get no more threads than other work leaves cores (``core
   (v1 and v2, nested, a container's own view, none), rounded up, kept for a second; under a
   limit of one CPU a plan's parallel loops get one thread, it says so, and it plans the same path;
   and, where this test may make a cgroup (root, cgroup v1's ``cpu`` controller), the limit a
-  process placed in one reads.
+  process placed in one reads;
+- numba's threading layer in a fresh process that imports the package: OpenMP where the system
+  has it, else TBB (installed on x86-64), never the work queue; a user's choice holds.
 """
 
 from __future__ import annotations
@@ -366,3 +368,58 @@ def test_a_process_in_a_cgroup_of_a_cpu_and_a_half_reads_two():
         assert out.stdout.split() == ["2"]
     finally:
         os.rmdir(child)
+
+
+_LAYER_RUN = """
+import sys
+{before}
+import spacerobot_planner
+import numba
+import numpy as np
+
+@numba.njit(parallel=True)
+def total(a):
+    s = 0.0
+    for i in numba.prange(a.size):
+        s += a[i]
+    return s
+
+assert total(np.ones(1000)) == 1000.0
+print(numba.threading_layer())
+"""
+
+
+def _layer(before: str = "", **env) -> str:
+    """Return the threading layer a fresh process's first parallel loop runs on (the package imported first)."""
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
+    out = subprocess.run([sys.executable, "-c", _LAYER_RUN.format(before=before)], capture_output=True, text=True,
+                         timeout=300, env=dict(clean, **env))
+    assert out.returncode == 0, out.stderr
+    return out.stdout.split()[-1]
+
+
+def _openmp_loads() -> bool:
+    import ctypes
+    try:
+        ctypes.CDLL("libgomp.so.1")
+    except OSError:
+        return False
+    return True
+
+
+def test_parallel_loops_run_on_openmp_else_tbb_never_the_work_queue():
+    layer = _layer()
+    assert layer == ("omp" if _openmp_loads() else "tbb"), layer
+
+
+def test_without_openmp_the_loops_run_on_tbb():
+    import platform
+    if platform.machine() != "x86_64":
+        pytest.skip("the tbb wheel is installed on x86-64 only")
+    # as on a machine without libgomp: numba's OpenMP layer does not import
+    assert _layer('sys.modules["numba.np.ufunc.omppool"] = None') == "tbb"
+
+
+def test_a_users_threading_layer_choice_holds():
+    assert _layer(NUMBA_THREADING_LAYER_PRIORITY="workqueue omp tbb") == "workqueue"
+    assert _layer(NUMBA_THREADING_LAYER="workqueue") == "workqueue"

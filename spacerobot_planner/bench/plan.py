@@ -35,6 +35,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ..collision import CollisionChecker
@@ -237,7 +238,11 @@ def _run(args) -> int:
     cases = _parse_cases(args.cases)
     t0 = time.perf_counter()
     warm_up(args.solver)
-    print(f"bench plan: solver {args.solver}, JIT warm-up {time.perf_counter() - t0:.1f} s; "
+    try:
+        layer = numba.threading_layer()          # the warm-up's C-space ran parallel loops
+    except ValueError:
+        layer = "not started"
+    print(f"bench plan: solver {args.solver}, JIT warm-up {time.perf_counter() - t0:.1f} s, threading layer {layer}; "
           f"median of {args.repeats} fresh plans (at most {BIG_GRID_PLANS} above {BIG_GRID_NODES:,} nodes)")
     head = (f"{'scene':<6}{'grid':>12}{'cspace':>9}{'field':>10}{'descent':>9}{'smooth+ver':>11}"
             f"{'traj':>7}{'total':>10}{'replan':>9}{'GS base':>10}{'ratio':>8}  path")
