@@ -1,0 +1,93 @@
+"""
+Where numba caches the package's compiled kernels: a writable directory, whatever the install.
+
+Every kernel is compiled with ``cache=True``.  numba keeps its cache next to the source, in the
+package's ``__pycache__``, else in the user's cache directory (``~/.cache/numba`` on Linux), and
+where neither can be written it refuses to define the kernel: ``RuntimeError: cannot cache
+function ...: no locator available``, raised while the package is imported, so nothing of it
+runs.  That is a read-only install run by a user whose home cannot be written either: a
+container with a read-only root file system (Kubernetes ``readOnlyRootFilesystem``) or run as
+an arbitrary user id with no home (OpenShift), or a system install for a service account.
+
+So on import, where both of numba's places refuse a file and the user did not choose one
+(``NUMBA_CACHE_DIR``), the package points numba at a directory of the system's temporary
+directory of this user's own (:func:`ensure_writable_cache`): the kernels are compiled at the
+first start there and loaded from it afterwards.  numba loads pickled code from its cache, so a
+directory that another user could have made or can write is never taken; then a new private
+directory is made for the process (compiled again at each start, but it runs).
+"""
+from __future__ import annotations
+
+import os
+import stat
+import sys
+import tempfile
+
+__all__ = ["ensure_writable_cache", "writable"]
+
+
+def writable(directory: str) -> bool:
+    """Tell whether ``directory`` can be made (where it is missing) and a file created in it, as numba tries."""
+    try:
+        os.makedirs(directory, exist_ok=True)
+        tempfile.TemporaryFile(dir=directory).close()
+    except OSError:
+        return False
+    return True
+
+
+def _numba_user_cache_dir() -> str:
+    """Return numba's user-wide cache directory (numba's own rule; imports numba)."""
+    from numba.misc.appdirs import AppDirs
+    return AppDirs(appname="numba", appauthor=False).user_cache_dir
+
+
+def _own_private(directory: str) -> bool:
+    """Tell whether ``directory`` is a directory (not a link) of this user's that no one else can write."""
+    try:
+        st = os.lstat(directory)
+    except OSError:
+        return False
+    return (stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid()
+            and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH))
+
+
+def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None = None,
+                          temp_dir: str | None = None) -> str | None:
+    """
+    Point numba's cache at a temporary directory where its own places cannot be written; return it, or None.
+
+    None: ``NUMBA_CACHE_DIR`` is set, or the package's ``__pycache__`` (``package_dir``, this
+    package's by default) or numba's user-wide cache directory (``user_dir``, numba's by default)
+    can be written: numba's own choice holds.  Else ``<temp_dir>/spacerobot_planner-numba-<uid>``
+    (``temp_dir``: the system's temporary directory by default), made private to this user where
+    missing, or a new private directory where that one is not this user's alone; set in the
+    environment (the planning process inherits it) and in numba's config where numba is
+    already imported.  None too where no temporary directory can be written (numba then
+    raises its own error).
+    """
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return None
+    package_dir = package_dir or os.path.dirname(os.path.abspath(__file__))
+    if writable(os.path.join(package_dir, "__pycache__")):
+        return None
+    if writable(user_dir or _numba_user_cache_dir()):
+        return None
+    temp_dir = temp_dir or tempfile.gettempdir()
+    chosen = os.path.join(temp_dir, f"spacerobot_planner-numba-{os.getuid()}")
+    try:
+        os.mkdir(chosen, 0o700)
+    except FileExistsError:
+        pass
+    except OSError:
+        return None
+    if not (_own_private(chosen) and writable(chosen)):
+        try:
+            chosen = tempfile.mkdtemp(prefix="spacerobot_planner-numba-", dir=temp_dir)
+        except OSError:
+            return None
+    os.environ["NUMBA_CACHE_DIR"] = chosen
+    config = sys.modules.get("numba.core.config")
+    if config is not None:
+        config.CACHE_DIR = chosen
+    return chosen

@@ -1,0 +1,130 @@
+"""
+numba's cache goes where it can be written (``jit_cache``), so a read-only install still runs.
+
+- numba's own places (the package's ``__pycache__``, the user's cache directory) hold where
+  either can be written, and so does a user's ``NUMBA_CACHE_DIR``;
+- where neither can, a directory of the temporary directory private to this user, reused;
+  never one that someone else could have made or can write, nor a link;
+- with no temporary directory either, nothing is set (numba says what is wrong);
+- end to end, where this test may make a private mount namespace (root): a copy of the package
+  on a read-only mount, imported by a process whose home cannot be written, defines and runs a
+  kernel, and numba's cache file lands in the temporary directory (before the change the
+  import itself raised numba's "no locator available").
+
+A directory "that cannot be written" is one below a regular file: no one can make it, root
+included.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from spacerobot_planner import jit_cache
+
+PACKAGE = Path(jit_cache.__file__).resolve().parent
+
+
+@pytest.fixture
+def places(tmp_path, monkeypatch):
+    """Paths for the three places (writable ones, and ones below a file that no one can make), no NUMBA_CACHE_DIR."""
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    return {"ok_pkg": str(tmp_path / "pkg"), "ok_user": str(tmp_path / "user"), "temp": str(tmp_path / "tmp"),
+            "no_pkg": str(blocker / "pkg"), "no_user": str(blocker / "user"), "no_temp": str(blocker / "tmp")}
+
+
+def _private(path: str) -> bool:
+    st = os.lstat(path)
+    return stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid() and not st.st_mode & 0o077
+
+
+def test_numbas_own_places_hold_where_either_is_writable(places):
+    os.makedirs(places["temp"])
+    assert jit_cache.ensure_writable_cache(places["ok_pkg"], places["no_user"], places["temp"]) is None
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["ok_user"], places["temp"]) is None
+    assert "NUMBA_CACHE_DIR" not in os.environ
+    assert os.listdir(places["temp"]) == []
+
+
+def test_a_users_choice_holds(places, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "/somewhere/chosen")
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) is None
+    assert os.environ["NUMBA_CACHE_DIR"] == "/somewhere/chosen"
+
+
+def test_a_read_only_install_without_a_home_gets_a_private_temporary_cache(places, monkeypatch):
+    os.makedirs(places["temp"])
+    got = jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"])
+    assert got == os.path.join(places["temp"], f"spacerobot_planner-numba-{os.getuid()}")
+    assert os.environ["NUMBA_CACHE_DIR"] == got and _private(got)
+    # the next process (the variable not inherited) finds the same directory: the kernels compiled once
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) == got
+
+
+@pytest.mark.parametrize("planted", ["open to all", "a link"])
+def test_a_temporary_cache_someone_else_could_write_is_not_taken(places, planted, tmp_path):
+    os.makedirs(places["temp"])
+    name = os.path.join(places["temp"], f"spacerobot_planner-numba-{os.getuid()}")
+    if planted == "open to all":
+        os.mkdir(name)
+        os.chmod(name, 0o777)
+    else:
+        os.mkdir(tmp_path / "elsewhere", 0o700)
+        os.symlink(tmp_path / "elsewhere", name)
+    got = jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"])
+    assert got is not None and got != name
+    assert os.path.dirname(got) == places["temp"] and _private(got)
+    assert os.environ["NUMBA_CACHE_DIR"] == got
+
+
+def test_with_no_temporary_directory_nothing_is_set(places):
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["no_temp"]) is None
+    assert "NUMBA_CACHE_DIR" not in os.environ
+
+
+_READ_ONLY_RUN = r"""
+set -e
+mount --bind "$SRC" "$SRC"
+mount -o remount,bind,ro "$SRC"
+if touch "$SRC/spacerobot_planner/probe" 2>/dev/null; then echo "still writable"; exit 3; fi
+exec "$PY" -c '
+import glob, os, sys
+import spacerobot_planner
+assert spacerobot_planner.__file__.startswith(os.environ["SRC"]), spacerobot_planner.__file__
+from spacerobot_planner.joint_space import wrap_angle_scalar_rad
+assert abs(wrap_angle_scalar_rad(7.0) - (7.0 - 2 * 3.141592653589793)) < 1e-12
+where = os.environ["NUMBA_CACHE_DIR"]
+print(where, len(glob.glob(os.path.join(where, "**", "*.nbi"), recursive=True)))
+'
+"""
+
+
+def test_a_read_only_install_with_no_home_runs_its_kernels(tmp_path):
+    if shutil.which("unshare") is None or os.geteuid() != 0:
+        pytest.skip("needs root and unshare (a private mount namespace for a read-only mount)")
+    src = tmp_path / "src"
+    shutil.copytree(PACKAGE, src / "spacerobot_planner", ignore=shutil.ignore_patterns("__pycache__"))
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_CACHE_DIR", "XDG_CACHE_HOME"))}
+    env.update(SRC=str(src), PY=sys.executable, PYTHONPATH=str(src), HOME=str(blocker / "home"), TMPDIR=str(temp),
+               PYTHONDONTWRITEBYTECODE="1")
+    out = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", _READ_ONLY_RUN],
+                         capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
+    if out.returncode != 0 and "unshare" in out.stderr and "Operation not permitted" in out.stderr:
+        pytest.skip(f"no private mount namespace here: {out.stderr.strip()}")
+    assert out.returncode == 0, out.stdout + out.stderr
+    where, files = out.stdout.split()
+    assert where == str(temp / f"spacerobot_planner-numba-{os.getuid()}")
+    assert int(files) >= 1                                   # numba cached the kernel there
