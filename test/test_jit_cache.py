@@ -33,7 +33,7 @@ PACKAGE = Path(jit_cache.__file__).resolve().parent
 
 @pytest.fixture
 def places(tmp_path, monkeypatch):
-    """Paths for the three places (writable ones, and ones below a file that no one can make), no NUMBA_CACHE_DIR."""
+    """Return writable places and places below a file (no one can make them); NUMBA_CACHE_DIR unset."""
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     blocker = tmp_path / "a_file"
     blocker.write_text("")
