@@ -172,19 +172,58 @@ def busy_share(others: int, cores: int, online: int) -> int:
 
 def prefer_threading_layers() -> None:
     """
-    Make numba try :data:`LAYER_PRIORITY`'s threading layers in order, unless the user chose (by environment).
+    Make numba try :data:`LAYER_PRIORITY`'s threading layers in order, unless the user chose.
 
-    Set in the environment (numba reads it again when it compiles, and the planning process and
-    Dask workers inherit it) and, where numba is already imported, in its config; numba picks a
-    layer when the first parallel loop runs.
+    The user chose where ``NUMBA_THREADING_LAYER`` or ``NUMBA_THREADING_LAYER_PRIORITY`` is set,
+    or, numba already imported, its config's layer or order is not numba's default (set in
+    code).  Before numba's import the order goes in the environment (numba reads it at import;
+    the planning process and Dask workers inherit it); after, in numba's config only (a change
+    to the environment makes numba read its whole config again at the next compile, and drop
+    what the user set in code).  numba picks a layer when the first parallel loop runs.  Where
+    the system's OpenMP runtime does not load, the ``tbb`` wheel's library is loaded first
+    (:func:`_load_tbb`).
     """
     import sys
     if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
         return
-    os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = " ".join(LAYER_PRIORITY)
     config = sys.modules.get("numba.core.config")
-    if config is not None:
+    if config is None:
+        os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = " ".join(LAYER_PRIORITY)
+    elif config.THREADING_LAYER == "default" and list(config.THREADING_LAYER_PRIORITY) == ["tbb", "omp", "workqueue"]:
         config.THREADING_LAYER_PRIORITY = list(LAYER_PRIORITY)
+    else:
+        return
+    if not _loads("libgomp.so.1"):
+        _load_tbb()
+
+
+def _loads(library: str, mode: int | None = None) -> bool:
+    """Tell whether the dynamic loader loads ``library`` (a name or a path)."""
+    import ctypes
+    try:
+        ctypes.CDLL(library, mode=ctypes.DEFAULT_MODE if mode is None else mode)
+    except OSError:
+        return False
+    return True
+
+
+def _load_tbb() -> bool:
+    """
+    Load TBB's library for numba's TBB layer: by name, else from the ``tbb`` wheel's ``<prefix>/lib``.
+
+    numba's TBB module finds ``libtbb.so.12`` by name only, and the wheel puts it in the
+    install prefix's ``lib``, which the dynamic loader does not search (a virtualenv; a system
+    prefix before ``ldconfig``).  Loaded by its path with global symbols, the name is then taken.
+    Returns whether it is loaded.
+    """
+    import ctypes
+    import site
+    import sys
+    name = "libtbb.so.12"
+    if _loads(name, ctypes.RTLD_GLOBAL):
+        return True
+    prefixes = [sys.prefix, getattr(site, "USER_BASE", None) or ""]
+    return any(p and _loads(os.path.join(p, "lib", name), ctypes.RTLD_GLOBAL) for p in prefixes)
 
 
 def fit_threads(most: int, nodes: int, follow: bool = True) -> Fit:
@@ -199,7 +238,7 @@ def fit_threads(most: int, nodes: int, follow: bool = True) -> Fit:
     in: a count set on numba there directly is replaced (``planner.max_threads`` is the
     setting).  numba's thread pool starts where a number is set or a parallel kernel first
     runs, so a thread of a process without a pool that keeps numba's number sets nothing (a
-    plan on a small grid starts no pool).
+    plan on a small grid starts no pool, unless a CPU limit or ``most`` sets a number).
     """
     import numba
     from numba.np.ufunc import parallel as pool
@@ -261,14 +300,13 @@ def cpu_limit() -> int | None:
     if now - _limit_read[0] >= CPU_LIMIT_MAX_AGE_S:
         cpus = None
         try:
-            with open("/proc/self/cgroup") as f:
-                cgroups = f.read()
-            with open("/proc/self/mountinfo") as f:
-                mounts = f.read()
-        except OSError:
-            pass
-        else:
+            with open("/proc/self/cgroup", "rb") as f:
+                cgroups = os.fsdecode(f.read())
+            with open("/proc/self/mountinfo", "rb") as f:
+                mounts = os.fsdecode(f.read())     # a mount point's name may be any bytes
             cpus = cgroup_cpu_limit(cgroups, mounts)
+        except (OSError, ValueError):
+            cpus = None
         _limit_read[:] = [now, None if cpus is None else max(1, math.ceil(cpus))]
     return _limit_read[1]
 
@@ -297,11 +335,15 @@ def cgroup_cpu_limit(cgroups: str, mountinfo: str) -> float | None:
     least = None
     for fstype, options, root, point in _cgroup_mounts(mountinfo):
         if fstype == "cgroup2" and v2_path is not None:
-            cpus = _least_limit(point, _below(v2_path, root), _v2_limit)
+            path, read = v2_path, _v2_limit
         elif fstype == "cgroup" and v1_path is not None and "cpu" in options:
-            cpus = _least_limit(point, _below(v1_path, root), _v1_limit)
+            path, read = v1_path, _v1_limit
         else:
             continue
+        rel = _below(path, root)
+        if rel is None:               # the cgroup is not under this mount: it cannot be read here
+            continue
+        cpus = _least_limit(point, rel, read)
         if cpus is not None and (least is None or cpus < least):
             least = cpus
     return least
@@ -325,11 +367,19 @@ def _unescaped(field: str) -> str:
     return re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), field)
 
 
-def _below(path: str, root: str) -> str:
-    """Return ``path`` relative to a mount's ``root`` ('' where it is the mount's root or lies outside it)."""
+def _below(path: str, root: str) -> str | None:
+    """
+    Return ``path`` relative to a mount's ``root`` ('' where it is the root), or None where it is not below it.
+
+    None also for a path with a ``..`` part (a process outside its cgroup namespace's root).
+    """
     path, root = path.rstrip("/"), root.rstrip("/")
-    if path == root or not path.startswith(root + "/"):
+    if ".." in path.split("/"):
+        return None
+    if path == root:
         return ""
+    if not path.startswith(root + "/"):
+        return None
     return path[len(root) + 1:]
 
 
@@ -345,11 +395,11 @@ def _least_limit(point: str, rel: str, read) -> float | None:
 
 
 def _read_text(path: str) -> str | None:
-    """Return a file's text, or None where it cannot be read."""
+    """Return a file's text, or None where it cannot be read (or its path or bytes are not understood)."""
     try:
         with open(path) as f:
             return f.read()
-    except OSError:
+    except (OSError, ValueError):
         return None
 
 

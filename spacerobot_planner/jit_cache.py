@@ -11,19 +11,23 @@ an arbitrary user id with no home (OpenShift), or a system install for a service
 
 So on import, where both of numba's places refuse a file and the user did not choose one
 (``NUMBA_CACHE_DIR``), the package points numba at a directory of the system's temporary
-directory of this user's own (:func:`ensure_writable_cache`): the kernels are compiled at the
-first start there and loaded from it afterwards.  numba loads pickled code from its cache, so a
+directory of this user's own (:func:`ensure_writable_cache`).  numba reads no cache from a
+``__pycache__`` it cannot write, so the cache an install filled there (``setup.py``'s
+``warm_numba_cache``, ``make``) is copied over first (:func:`seed_from_package`: numba's index
+holds a hash of the source's bytes, not its path, so a copy of the same source loads it), and
+only what it lacks is compiled.  numba loads pickled code from its cache, so a
 directory that another user could have made or can write is never taken; then a new private
 directory is made for the process (compiled again at each start, but it runs).
 """
 from __future__ import annotations
 
 import os
+import shutil
 import stat
 import sys
 import tempfile
 
-__all__ = ["ensure_writable_cache", "writable"]
+__all__ = ["ensure_writable_cache", "seed_from_package", "writable"]
 
 
 def writable(directory: str) -> bool:
@@ -62,9 +66,10 @@ def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None =
     can be written: numba's own choice holds.  Else ``<temp_dir>/spacerobot_planner-numba-<uid>``
     (``temp_dir``: the system's temporary directory by default), made private to this user where
     missing, or a new private directory where that one is not this user's alone; set in the
-    environment (the planning process inherits it) and in numba's config where numba is
-    already imported.  None too where no temporary directory can be written (numba then
-    raises its own error).
+    environment before numba's import (the planning process inherits it), in numba's config
+    after it (a change to the environment would make numba read its whole config again, and
+    drop what the user set in code; a ``CACHE_DIR`` set there holds).  None too where no
+    temporary directory can be written (numba then raises its own error).
     """
     if os.environ.get("NUMBA_CACHE_DIR"):
         return None
@@ -86,8 +91,45 @@ def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None =
             chosen = tempfile.mkdtemp(prefix="spacerobot_planner-numba-", dir=temp_dir)
         except OSError:
             return None
-    os.environ["NUMBA_CACHE_DIR"] = chosen
     config = sys.modules.get("numba.core.config")
-    if config is not None:
-        config.CACHE_DIR = chosen
+    if config is None:
+        os.environ["NUMBA_CACHE_DIR"] = chosen
+    elif not config.CACHE_DIR:
+        config.CACHE_DIR = chosen     # not the environment: numba would read its whole config again
+    else:
+        return None                   # set in code by the user
+    seed_from_package(chosen, package_dir)
     return chosen
+
+
+def seed_from_package(cache_dir: str, package_dir: str) -> int:
+    """
+    Copy the package's own numba cache files into ``cache_dir`` where it lacks them; return how many.
+
+    Each ``__pycache__``'s ``*.nbi`` / ``*.nbc`` go where numba's ``NUMBA_CACHE_DIR`` locator
+    looks for that directory's sources (numba's own sub-path rule); files already there are
+    kept (they may be newer).  0 where numba's rule cannot be found or a copy fails.
+    """
+    try:
+        from numba.core.caching import _CacheLocator
+        subpath = _CacheLocator.get_suitable_cache_subpath
+    except (ImportError, AttributeError):
+        return 0
+    copied = 0
+    for root, _, files in os.walk(package_dir):
+        if os.path.basename(root) != "__pycache__":
+            continue
+        names = [f for f in files if f.endswith((".nbi", ".nbc"))]
+        if not names:
+            continue
+        dest = os.path.join(cache_dir, subpath(os.path.join(os.path.dirname(root), "__init__.py")))
+        try:
+            os.makedirs(dest, exist_ok=True)
+            have = set(os.listdir(dest))
+            for name in names:
+                if name not in have:
+                    shutil.copyfile(os.path.join(root, name), os.path.join(dest, name))
+                    copied += 1
+        except OSError:
+            return copied
+    return copied

@@ -464,7 +464,8 @@ class Planner:
         """
         with self._lock:
             self._fits = []
-            self._fit_threads(0)
+            s = self.settings                    # the numba count of this thread; noted where a stage runs loops
+            fit_threads(s.max_threads, 0, s.threads_follow_load)
             return PlanRun(self, self.settings, cancel, progress, start_tangent).run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:

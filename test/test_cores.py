@@ -224,10 +224,10 @@ def test_threads_text_names_a_cpu_limit():
 
 # ---- the CPU limit: cgroup trees written here, each file's limit by hand ----
 
-def _mount(point, fstype, options="rw", root="/") -> str:
+def _mount(point, fstype, options="rw", root="/", optional=("shared:9",)) -> str:
     """One /proc/self/mountinfo line of a cgroup mount (spaces in the point escaped as the kernel does)."""
-    return (f"41 31 0:38 {root} {str(point).replace(' ', chr(92) + '040')} rw,relatime shared:9 - "
-            f"{fstype} {fstype} {options}")
+    return (f"41 31 0:38 {root} {str(point).replace(' ', chr(92) + '040')} rw,relatime "
+            + "".join(f"{o} " for o in optional) + f"- {fstype} {fstype} {options}")
 
 
 def _write(directory, **files):
@@ -260,6 +260,30 @@ def test_cpu_limit_in_a_container_reads_its_own_cgroup_at_the_mount(tmp_path):
     mounts = _mount(point, "cgroup2", root="/kubepods/burst")
     assert cores.cgroup_cpu_limit("0::/kubepods/burst/pod\n", mounts) == pytest.approx(0.5)
     assert cores.cgroup_cpu_limit("0::/kubepods/burst\n", mounts) == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("optional", [(), ("shared:9",), ("shared:9", "master:2", "propagate_from:4")])
+def test_cpu_limit_whatever_the_mount_lines_optional_fields(tmp_path, optional):
+    top = tmp_path / "unified"
+    _write(top / "a", cpu__max="300000 100000")
+    assert cores.cgroup_cpu_limit("0::/a\n", _mount(top, "cgroup2", optional=optional)) == pytest.approx(3.0)
+
+
+def test_a_cgroup_not_below_the_mount_is_not_read(tmp_path):
+    point = tmp_path / "cg"
+    _write(point, cpu__max="50000 100000")                # the mount's root: another cgroup's limit
+    _write(tmp_path, cpu__max="10000 100000")             # above the mount point
+    assert cores.cgroup_cpu_limit("0::/a\n", _mount(point, "cgroup2", root="/b")) is None
+    assert cores.cgroup_cpu_limit("0::/../x\n", _mount(point, "cgroup2")) is None     # outside its namespace
+
+
+def test_odd_bytes_and_names_limit_nothing_and_raise_nothing(tmp_path):
+    top = tmp_path / "unified"
+    _write(top / "a", cpu__max="150000 100000")
+    odd = os.fsdecode(b"44 31 0:40 / /media/stick\xff rw - vfat /dev/sdb1 rw")     # as cpu_limit decodes mountinfo
+    mounts = odd + "\n" + _mount(top, "cgroup2") + "\n" + _mount(tmp_path / "n\\000ul", "cgroup2")
+    assert cores.cgroup_cpu_limit("0::/a\n", mounts) == pytest.approx(1.5)
+    assert cores.cgroup_cpu_limit("0::/a\x00b\n", mounts) is None
 
 
 def test_cpu_limit_of_a_v1_cpu_controller_and_both_hierarchies(tmp_path):
@@ -296,14 +320,17 @@ def test_cpu_limit_rounds_up_and_is_read_at_most_once_a_second(monkeypatch):
     def scripted(cgroups, mounts):
         reads.append(1)
         return limit[0]
+    clock = [100.0]
     monkeypatch.setattr(cores, "cgroup_cpu_limit", scripted)
+    monkeypatch.setattr(cores.time, "monotonic", lambda: clock[0])
     monkeypatch.setattr(cores, "_limit_read", [-float("inf"), None])
     assert cores.cpu_limit() == 2
     limit[0] = 0.2
+    clock[0] += 0.99 * cores.CPU_LIMIT_MAX_AGE_S
     assert cores.cpu_limit() == 2 and len(reads) == 1            # kept: read again only after a second
-    monkeypatch.setattr(cores, "CPU_LIMIT_MAX_AGE_S", 0.0)
     for value, whole in ((0.2, 1), (2.0, 2), (2.00001, 3), (None, None)):
         limit[0] = value
+        clock[0] += cores.CPU_LIMIT_MAX_AGE_S
         assert cores.cpu_limit() == whole, value
     assert len(reads) == 5
 
@@ -319,17 +346,23 @@ def test_a_plan_under_a_cpu_limit_of_one_runs_one_thread_and_plans_the_same(pape
     assert free.ok, free.reason
     assert "cpu_limit" not in free.solver_stats and numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
     monkeypatch.setattr(cores, "cpu_limit", lambda: 1)
-    limited = Planner(sc).plan(sc.start_rad, sc.goal_rad)
-    assert limited.ok, limited.reason
-    assert numba.get_num_threads() == 1                          # the planning thread's kernels
-    assert (limited.solver_stats["threads"], limited.solver_stats["cpu_limit"]) == (1, 1)
-    assert "a CPU limit of 1" in cores.threads_text(limited.solver_stats)
-    assert np.array_equal(limited.path_rad, free.path_rad)
-    # threads_follow_load false keeps the configured number, the limit notwithstanding
-    kept = Planner(sc, settings=replace(sc.planner_settings, threads_follow_load=False)).plan(sc.start_rad, sc.goal_rad)
-    assert "cpu_limit" not in kept.solver_stats and numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
-    monkeypatch.setattr(cores, "cpu_limit", lambda: None)
-    cores.fit_threads(0, 0)
+    try:
+        planner = Planner(sc)
+        limited = planner.plan(sc.start_rad, sc.goal_rad)
+        assert limited.ok, limited.reason
+        assert numba.get_num_threads() == 1                          # the planning thread's kernels
+        assert (limited.solver_stats["threads"], limited.solver_stats["cpu_limit"]) == (1, 1)
+        assert "a CPU limit of 1" in cores.threads_text(limited.solver_stats)
+        assert np.array_equal(limited.path_rad, free.path_rad)
+        replan = planner.plan(sc.start_rad + 0.01, sc.goal_rad)       # cached: no stage ran loops, nothing noted
+        assert replan.ok and "field" in replan.cached and "cpu_limit" not in replan.solver_stats
+        # threads_follow_load false keeps the configured number, the limit notwithstanding
+        kept = Planner(sc, settings=replace(sc.planner_settings, threads_follow_load=False)).plan(
+            sc.start_rad, sc.goal_rad)
+        assert "cpu_limit" not in kept.solver_stats and numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+    finally:
+        monkeypatch.setattr(cores, "cpu_limit", lambda: None)
+        cores.fit_threads(0, 0)
 
 
 def _own_v1_cpu_cgroup():
@@ -389,37 +422,68 @@ print(numba.threading_layer())
 """
 
 
-def _layer(before: str = "", **env) -> str:
-    """Return the threading layer a fresh process's first parallel loop runs on (the package imported first)."""
+def _layer(before: str = "", plain_venv: bool = False, **env) -> str:
+    """
+    Return the threading layer a fresh process's first parallel loop runs on (the package imported first).
+
+    ``plain_venv``: without the library path this project's virtualenv sets (its ROS wheels'
+    bootstrap), as a plain virtualenv or a system prefix before ``ldconfig`` runs.
+    """
     clean = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
+    if plain_venv:
+        clean.update(_ROS_WHEELS_BOOTSTRAP_COMPLETE="1", LD_LIBRARY_PATH="")
     out = subprocess.run([sys.executable, "-c", _LAYER_RUN.format(before=before)], capture_output=True, text=True,
                          timeout=300, env=dict(clean, **env))
     assert out.returncode == 0, out.stderr
     return out.stdout.split()[-1]
 
 
-def _openmp_loads() -> bool:
+#: run before the package's import: as on a machine without the system's OpenMP runtime
+_NO_OPENMP = """
+import ctypes
+_cdll = ctypes.CDLL
+class _NoGomp(_cdll):
+    def __init__(self, name, *args, **kwargs):
+        if name and "gomp" in str(name):
+            raise OSError("no libgomp here")
+        super().__init__(name, *args, **kwargs)
+ctypes.CDLL = _NoGomp
+sys.modules["numba.np.ufunc.omppool"] = None
+"""
+
+
+def _loads(name: str) -> bool:
     import ctypes
     try:
-        ctypes.CDLL("libgomp.so.1")
+        ctypes.CDLL(name)
     except OSError:
         return False
     return True
 
 
-def test_parallel_loops_run_on_openmp_else_tbb_never_the_work_queue():
+def _tbb_wheel() -> bool:
+    return os.path.exists(os.path.join(sys.prefix, "lib", "libtbb.so.12"))
+
+
+def test_parallel_loops_run_on_openmp_where_it_loads_and_never_on_the_work_queue_beside_tbb():
     layer = _layer()
-    assert layer == ("omp" if _openmp_loads() else "tbb"), layer
+    if _loads("libgomp.so.1"):
+        assert layer == "omp", layer
+    elif _tbb_wheel() or _loads("libtbb.so.12"):
+        assert layer == "tbb", layer
+    else:
+        pytest.skip(f"neither OpenMP nor TBB here (numba runs on {layer})")
 
 
-def test_without_openmp_the_loops_run_on_tbb():
-    import platform
-    if platform.machine() != "x86_64":
-        pytest.skip("the tbb wheel is installed on x86-64 only")
-    # as on a machine without libgomp: numba's OpenMP layer does not import
-    assert _layer('sys.modules["numba.np.ufunc.omppool"] = None') == "tbb"
+def test_without_openmp_the_loops_run_on_the_tbb_wheel_even_off_the_loaders_path():
+    if not _tbb_wheel():
+        pytest.skip("no tbb wheel in this prefix (installed on x86-64 only)")
+    assert _layer(_NO_OPENMP) == "tbb"
+    assert _layer(_NO_OPENMP, plain_venv=True) == "tbb"
 
 
 def test_a_users_threading_layer_choice_holds():
     assert _layer(NUMBA_THREADING_LAYER_PRIORITY="workqueue omp tbb") == "workqueue"
     assert _layer(NUMBA_THREADING_LAYER="workqueue") == "workqueue"
+    # chosen in code before the package's import: kept (numba's config is not read again)
+    assert _layer("import numba; numba.config.THREADING_LAYER = 'workqueue'") == "workqueue"

@@ -9,7 +9,8 @@ numba's cache goes where it can be written (``jit_cache``), so a read-only insta
 - end to end, where this test may make a private mount namespace (root): a copy of the package
   on a read-only mount, imported by a process whose home cannot be written, defines and runs a
   kernel, and numba's cache file lands in the temporary directory (before the change the
-  import itself raised numba's "no locator available").
+  import itself raised numba's "no locator available"); with the install's own cache in the
+  copy's ``__pycache__``, the kernel is loaded from it, not compiled (numba's compile events).
 
 A directory "that cannot be written" is one below a regular file: no one can make it, root
 included.
@@ -34,11 +35,20 @@ PACKAGE = Path(jit_cache.__file__).resolve().parent
 @pytest.fixture
 def places(tmp_path, monkeypatch):
     """Return writable places and places below a file (no one can make them); NUMBA_CACHE_DIR unset."""
+    import numba.core.config as config
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setattr(config, "CACHE_DIR", "")        # numba imported here: its config is what is set
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     return {"ok_pkg": str(tmp_path / "pkg"), "ok_user": str(tmp_path / "user"), "temp": str(tmp_path / "tmp"),
             "no_pkg": str(blocker / "pkg"), "no_user": str(blocker / "user"), "no_temp": str(blocker / "tmp")}
+
+
+def _chosen():
+    """Return the cache directory numba was pointed at (its config: numba is imported in this process)."""
+    import numba.core.config as config
+    assert "NUMBA_CACHE_DIR" not in os.environ            # the environment is left alone once numba is imported
+    return config.CACHE_DIR or None
 
 
 def _private(path: str) -> bool:
@@ -50,23 +60,29 @@ def test_numbas_own_places_hold_where_either_is_writable(places):
     os.makedirs(places["temp"])
     assert jit_cache.ensure_writable_cache(places["ok_pkg"], places["no_user"], places["temp"]) is None
     assert jit_cache.ensure_writable_cache(places["no_pkg"], places["ok_user"], places["temp"]) is None
-    assert "NUMBA_CACHE_DIR" not in os.environ
+    assert _chosen() is None
     assert os.listdir(places["temp"]) == []
 
 
 def test_a_users_choice_holds(places, monkeypatch):
+    import numba.core.config as config
     monkeypatch.setenv("NUMBA_CACHE_DIR", "/somewhere/chosen")
     assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) is None
-    assert os.environ["NUMBA_CACHE_DIR"] == "/somewhere/chosen"
+    assert os.environ["NUMBA_CACHE_DIR"] == "/somewhere/chosen" and config.CACHE_DIR == ""
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setattr(config, "CACHE_DIR", "/set/in/code")
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) is None
+    assert config.CACHE_DIR == "/set/in/code" and "NUMBA_CACHE_DIR" not in os.environ
 
 
 def test_a_read_only_install_without_a_home_gets_a_private_temporary_cache(places, monkeypatch):
     os.makedirs(places["temp"])
     got = jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"])
     assert got == os.path.join(places["temp"], f"spacerobot_planner-numba-{os.getuid()}")
-    assert os.environ["NUMBA_CACHE_DIR"] == got and _private(got)
-    # the next process (the variable not inherited) finds the same directory: the kernels compiled once
-    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    assert _chosen() == got and _private(got)
+    # the next process finds the same directory: the kernels compiled once
+    import numba.core.config as config
+    monkeypatch.setattr(config, "CACHE_DIR", "")
     assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) == got
 
 
@@ -83,12 +99,12 @@ def test_a_temporary_cache_someone_else_could_write_is_not_taken(places, planted
     got = jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"])
     assert got is not None and got != name
     assert os.path.dirname(got) == places["temp"] and _private(got)
-    assert os.environ["NUMBA_CACHE_DIR"] == got
+    assert _chosen() == got
 
 
 def test_with_no_temporary_directory_nothing_is_set(places):
     assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["no_temp"]) is None
-    assert "NUMBA_CACHE_DIR" not in os.environ
+    assert _chosen() is None
 
 
 _READ_ONLY_RUN = r"""
@@ -98,21 +114,39 @@ mount -o remount,bind,ro "$SRC"
 if touch "$SRC/spacerobot_planner/probe" 2>/dev/null; then echo "still writable"; exit 3; fi
 exec "$PY" -c '
 import glob, os, sys
+from numba.core.event import install_recorder
 import spacerobot_planner
 assert spacerobot_planner.__file__.startswith(os.environ["SRC"]), spacerobot_planner.__file__
-from spacerobot_planner.joint_space import wrap_angle_scalar_rad
-assert abs(wrap_angle_scalar_rad(7.0) - (7.0 - 2 * 3.141592653589793)) < 1e-12
-where = os.environ["NUMBA_CACHE_DIR"]
-print(where, len(glob.glob(os.path.join(where, "**", "*.nbi"), recursive=True)))
+from spacerobot_planner.joint_space import wrap_angle_scalar_rad, wrap_angle_rad
+import numpy as np
+with install_recorder("numba:compile") as compiled:
+    assert abs(wrap_angle_scalar_rad(7.0) - (7.0 - 2 * 3.141592653589793)) < 1e-12
+    assert abs(wrap_angle_rad(np.array([7.0]))[0] - (7.0 - 2 * 3.141592653589793)) < 1e-12
+import numba
+where = numba.config.CACHE_DIR
+print(where, len(glob.glob(os.path.join(where, "**", "*.nbi"), recursive=True)), len(compiled.buffer))
 '
 """
 
 
-def test_a_read_only_install_with_no_home_runs_its_kernels(tmp_path):
+def _warm_package_cache():
+    """Fill this tree's own cache of the two kernels the end-to-end test calls (as an install does)."""
+    import numpy as np
+    from spacerobot_planner.joint_space import wrap_angle_rad, wrap_angle_scalar_rad
+    wrap_angle_scalar_rad(1.0)
+    wrap_angle_rad(np.array([1.0]))
+
+
+@pytest.mark.parametrize("with_cache", [False, True], ids=["no cache in the install", "the install's cache"])
+def test_a_read_only_install_with_no_home_runs_its_kernels(tmp_path, with_cache):
     if shutil.which("unshare") is None or os.geteuid() != 0:
         pytest.skip("needs root and unshare (a private mount namespace for a read-only mount)")
     src = tmp_path / "src"
-    shutil.copytree(PACKAGE, src / "spacerobot_planner", ignore=shutil.ignore_patterns("__pycache__"))
+    if with_cache:
+        _warm_package_cache()
+        shutil.copytree(PACKAGE, src / "spacerobot_planner")
+    else:
+        shutil.copytree(PACKAGE, src / "spacerobot_planner", ignore=shutil.ignore_patterns("__pycache__"))
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     temp = tmp_path / "tmp"
@@ -125,6 +159,10 @@ def test_a_read_only_install_with_no_home_runs_its_kernels(tmp_path):
     if out.returncode != 0 and "unshare" in out.stderr and "Operation not permitted" in out.stderr:
         pytest.skip(f"no private mount namespace here: {out.stderr.strip()}")
     assert out.returncode == 0, out.stdout + out.stderr
-    where, files = out.stdout.split()
+    where, files, compiled = out.stdout.split()
     assert where == str(temp / f"spacerobot_planner-numba-{os.getuid()}")
-    assert int(files) >= 1                                   # numba cached the kernel there
+    assert int(files) >= 1                                   # numba's cache is there
+    if with_cache:
+        assert int(compiled) == 0, "the install's cache was not loaded: the kernels were compiled again"
+    else:
+        assert int(compiled) >= 2
