@@ -48,6 +48,8 @@ def _numba_user_cache_dir() -> str:
 
 def _own_private(directory: str) -> bool:
     """Tell whether ``directory`` is a directory (not a link) of this user's that no one else can write."""
+    if not hasattr(os, "getuid"):                 # no user ids (Windows): never a shared name's directory
+        return False
     try:
         st = os.lstat(directory)
     except OSError:
@@ -79,7 +81,7 @@ def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None =
     if writable(user_dir or _numba_user_cache_dir()):
         return None
     temp_dir = temp_dir or tempfile.gettempdir()
-    chosen = os.path.join(temp_dir, f"spacerobot_planner-numba-{os.getuid()}")
+    chosen = os.path.join(temp_dir, f"spacerobot_planner-numba-{os.getuid() if hasattr(os, 'getuid') else 'user'}")
     try:
         os.mkdir(chosen, 0o700)
     except FileExistsError:

@@ -50,7 +50,7 @@ COMPAT = ()
 #: (within a layer the graph is acyclic).  Every core module is in one.
 LAYERS = (
     ("physics and geometry", ("joint_space", "termination", "robot", "scene", "collision", "spacecraft", "overlap",
-                              "cores")),
+                              "cores", "jit_cache")),
     ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.structured",
                 "field.geometric", "field.krylov",
                 "field.oracle", "field.paper", "descent", "repair", "swept", "contact", "smoothing", "ik", "redundant",
