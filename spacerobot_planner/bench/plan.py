@@ -41,6 +41,7 @@ import numpy as np
 from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..contact import penetration_depths_m
+from ..cores import cpu_limit
 from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
 from ..planner import Planner, warm_up as planner_warm_up
 from .profile import StepProfile, print_rows
@@ -242,7 +243,10 @@ def _run(args) -> int:
         layer = numba.threading_layer()          # the warm-up's C-space ran parallel loops
     except ValueError:
         layer = "not started"
-    print(f"bench plan: solver {args.solver}, JIT warm-up {time.perf_counter() - t0:.1f} s, threading layer {layer}; "
+    cpus = cpu_limit()
+    limit = "" if cpus is None else f", a CPU limit of {cpus}"
+    print(f"bench plan: solver {args.solver}, JIT warm-up {time.perf_counter() - t0:.1f} s, "
+          f"threading layer {layer}{limit}; "
           f"median of {args.repeats} fresh plans (at most {BIG_GRID_PLANS} above {BIG_GRID_NODES:,} nodes)")
     head = (f"{'scene':<6}{'grid':>12}{'cspace':>9}{'field':>10}{'descent':>9}{'smooth+ver':>11}"
             f"{'traj':>7}{'total':>10}{'replan':>9}{'GS base':>10}{'ratio':>8}  path")
