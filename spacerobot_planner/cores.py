@@ -68,6 +68,8 @@ CONFIRM_READINGS = 4
 CONFIRM_STEP_S = 2.5e-4
 #: the threading layers numba tries, in order (see the module docstring)
 LAYER_PRIORITY = ("omp", "tbb", "workqueue")
+#: ... and numba's own order (its config's default)
+_NUMBAS_PRIORITY = ["tbb", "omp", "workqueue"]
 #: the CPU limit is read again after this many seconds (a container's limit may be changed while it runs)
 CPU_LIMIT_MAX_AGE_S = 1.0
 
@@ -181,18 +183,17 @@ def prefer_threading_layers() -> None:
     to the environment makes numba read its whole config again at the next compile, and drop
     what the user set in code).  numba picks a layer when the first parallel loop runs.  Where
     the system's OpenMP runtime does not load, the ``tbb`` wheel's library is loaded first
-    (:func:`_load_tbb`).
+    (:func:`_load_tbb`), whoever chose the order: a process started by one that imported the
+    package (the planning process) finds the order in the environment.
     """
     import sys
-    if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
-        return
-    config = sys.modules.get("numba.core.config")
-    if config is None:
-        os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = " ".join(LAYER_PRIORITY)
-    elif config.THREADING_LAYER == "default" and list(config.THREADING_LAYER_PRIORITY) == ["tbb", "omp", "workqueue"]:
-        config.THREADING_LAYER_PRIORITY = list(LAYER_PRIORITY)
-    else:
-        return
+    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+        config = sys.modules.get("numba.core.config")
+        if config is None:
+            os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = " ".join(LAYER_PRIORITY)
+        elif config.THREADING_LAYER == "default" and list(config.THREADING_LAYER_PRIORITY) == _NUMBAS_PRIORITY:
+            config.THREADING_LAYER_PRIORITY = list(LAYER_PRIORITY)
+    # whoever set the order (the planning process inherits the node's): TBB loadable where OpenMP is not
     if not _loads("libgomp.so.1"):
         _load_tbb()
 

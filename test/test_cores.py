@@ -480,6 +480,8 @@ def test_without_openmp_the_loops_run_on_the_tbb_wheel_even_off_the_loaders_path
         pytest.skip("no tbb wheel in this prefix (installed on x86-64 only)")
     assert _layer(_NO_OPENMP) == "tbb"
     assert _layer(_NO_OPENMP, plain_venv=True) == "tbb"
+    # a process started by one that imported the package (the planning process) inherits the order
+    assert _layer(_NO_OPENMP, plain_venv=True, NUMBA_THREADING_LAYER_PRIORITY="omp tbb workqueue") == "tbb"
 
 
 def test_a_users_threading_layer_choice_holds():
