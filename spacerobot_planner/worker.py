@@ -52,6 +52,7 @@ import numpy as np
 
 from .adapters import warm_up as warm_up_chain
 from .config import load_scenario
+from .cores import cpu_limit
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .planner import Planner, warm_up_unreached
@@ -129,6 +130,10 @@ class Ready:
     #: the objects the garbage collector walks, and those it leaves alone (frozen), once ready
     gc_tracked: int = -1
     gc_frozen: int = -1
+    #: numba's threading layer of the process ("" where no parallel loop ran yet), and its CPU
+    #: limit in whole CPUs (None: none; ``cores.cpu_limit``)
+    threading_layer: str = ""
+    cpu_limit: int | None = None
 
 
 @dataclass(frozen=True)
@@ -367,6 +372,15 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
 
 
 # ================================================================== the planning process
+def _threading_layer() -> str:
+    """Return numba's threading layer in this process, or "" where no parallel loop has run yet."""
+    import numba
+    try:
+        return str(numba.threading_layer())
+    except ValueError:
+        return ""
+
+
 def child_main(fd: int) -> None:
     """
     Run the planning process: one Planner (caches kept between jobs), jobs over a socket.
@@ -405,7 +419,7 @@ def child_main(fd: int) -> None:
     sent: dict = {}
     import sys
     send(Ready(t_warm, tuple(sorted({m.split(".")[0] for m in sys.modules})), len(gc.get_objects()),
-               gc.get_freeze_count()))
+               gc.get_freeze_count(), _threading_layer(), cpu_limit()))
     counts = {"jobs": 0, "cancelled": 0}
     while True:
         job = listener.next_job()
@@ -665,7 +679,9 @@ class ProcessBackend:
                 if isinstance(msg, Ready):
                     self._ready = msg
                     if self._info is not None:
-                        self._info(f"planning process {self.proc.pid} ready: JIT warm-up {msg.warm_up_s:.2f} s")
+                        self._info(f"planning process {self.proc.pid} ready: JIT warm-up {msg.warm_up_s:.2f} s"
+                                   + (f", threading layer {msg.threading_layer}" if msg.threading_layer else "")
+                                   + ("" if msg.cpu_limit is None else f", a CPU limit of {msg.cpu_limit}"))
                     return msg.warm_up_s
             if self.proc.poll() is not None:
                 raise RuntimeError(f"planning process exited during warm-up (code {self.proc.returncode})")

@@ -47,6 +47,16 @@ def backend():
     b.close()
 
 
+def test_planning_process_reports_its_threading_layer_as_mapped(backend):
+    """The layer its Ready names is the one whose numba pool module is mapped in the process (read from outside)."""
+    sc, b = backend
+    layer = b.ready.threading_layer
+    assert layer in ("omp", "tbb", "workqueue"), b.ready
+    pools = {"omp": "omppool", "tbb": "tbbpool", "workqueue": "workqueue"}
+    mapped = {name for name, module in pools.items() if any(f"/{module}." in p for p in _mapped_libraries(b.pid))}
+    assert layer in mapped, (layer, mapped)
+
+
 def test_planning_process_never_imports_rclpy_or_messages(backend):
     sc, b = backend
     mods = set(b.ready.modules)
