@@ -27,7 +27,10 @@ import stat
 import sys
 import tempfile
 
-__all__ = ["ensure_writable_cache", "seed_from_package", "writable"]
+__all__ = ["ensure_writable_cache", "seed_from_package", "start_numba_target", "writable"]
+
+#: the module numba's CPU target set-up imports only to check for a BLAS (see the module docstring)
+_BLAS_CHECK = "scipy.linalg.cython_blas"
 
 
 def writable(directory: str) -> bool:
@@ -135,3 +138,23 @@ def seed_from_package(cache_dir: str, package_dir: str) -> int:
         except OSError:
             return copied
     return copied
+
+
+def start_numba_target() -> bool:
+    """
+    Set numba's CPU target up now, without importing SciPy's BLAS; return whether it was set up here.
+
+    For the package's own processes, before their first kernel (see the module docstring).
+    False where numba's target was already set up or SciPy's BLAS is already imported: nothing
+    to save.  The BLAS module is hidden from the import system during the set-up only.
+    """
+    if "numba.np.arraymath" in sys.modules or _BLAS_CHECK in sys.modules:
+        return False
+    sys.modules[_BLAS_CHECK] = None            # an import of it fails at once: numba takes "no BLAS"
+    try:
+        from numba.core.registry import cpu_target
+        cpu_target.target_context.refresh()     # numba's registries, its BLAS check among them
+    finally:
+        if _BLAS_CHECK in sys.modules and sys.modules[_BLAS_CHECK] is None:
+            del sys.modules[_BLAS_CHECK]
+    return True

@@ -53,6 +53,7 @@ import numpy as np
 from .adapters import warm_up as warm_up_chain
 from .config import load_scenario
 from .cores import cpu_limit
+from .jit_cache import start_numba_target
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .planner import Planner, warm_up_unreached
@@ -394,6 +395,7 @@ def child_main(fd: int) -> None:
     from multiprocessing.connection import Connection
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)        # the node decides when to stop
+    start_numba_target()            # a process of its own: numba's set-up without SciPy's BLAS check
     conn = Connection(fd)
     scenario, solver, field_tolerance = conn.recv()
     planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)

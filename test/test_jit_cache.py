@@ -12,6 +12,11 @@ numba's cache goes where it can be written (``jit_cache``), so a read-only insta
   import itself raised numba's "no locator available"); with the install's own cache in the
   copy's ``__pycache__``, the kernel is loaded from it, not compiled (numba's compile events).
 
+A process of the package's own sets numba's target up without SciPy's BLAS check
+(``start_numba_target``): a fresh process plans the paper's 2-DOF scene without importing it, to
+the same path as this process, and a kernel of its own that uses ``np.dot`` afterwards still
+runs (and imports it then).
+
 A directory "that cannot be written" is one below a regular file: no one can make it, root
 included.
 """
@@ -166,3 +171,43 @@ def test_a_read_only_install_with_no_home_runs_its_kernels(tmp_path, with_cache)
         assert int(compiled) == 0, "the install's cache was not loaded: the kernels were compiled again"
     else:
         assert int(compiled) >= 2
+
+
+_TARGET_RUN = r"""
+import json, sys
+from spacerobot_planner.jit_cache import start_numba_target
+first, again = start_numba_target(), start_numba_target()
+import numpy as np
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.planner import Planner
+sc = load_scenario(sys.argv[1])
+res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+blas_after_plan = "scipy.linalg.cython_blas" in sys.modules
+import numba
+
+@numba.njit
+def dot(a, b):
+    return np.dot(a, b)
+
+v = np.arange(5.0)
+print(json.dumps({"first": first, "again": again, "ok": res.ok, "path": res.path_rad.tolist(),
+                  "blas_after_plan": blas_after_plan, "dot": float(dot(v, v)),
+                  "blas_after_dot": "scipy.linalg.cython_blas" in sys.modules}))
+"""
+
+
+def test_a_process_of_its_own_plans_without_scipys_blas_and_np_dot_still_runs(paper_scenario):
+    import json
+    import numpy as np
+    from spacerobot_planner.planner import Planner
+    config = PACKAGE.parent / "config" / "paper_2dof.yaml"
+    out = subprocess.run([sys.executable, "-c", _TARGET_RUN, str(config)], capture_output=True, text=True,
+                         timeout=600, cwd=PACKAGE.parent)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert (got["first"], got["again"], got["ok"]) == (True, False, True)
+    assert not got["blas_after_plan"]                       # the plan never needed it
+    assert got["dot"] == 30.0 and got["blas_after_dot"]     # np.dot in a kernel: imported then, and right
+    sc = paper_scenario(2)
+    here = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+    assert np.array_equal(np.array(got["path"]), here.path_rad)

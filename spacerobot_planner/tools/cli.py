@@ -30,6 +30,7 @@ import numpy as np
 from ..config import check_value
 from ..cores import threads_text
 from ..field import SOLVERS
+from ..jit_cache import start_numba_target
 from ..offline import plan_offline
 from ..planner import Planner
 from ..timing import Motion
@@ -104,6 +105,7 @@ def _motion_summary(r, processed) -> list:
 
 
 def main(argv=None) -> int:
+    start_numba_target()            # a process of its own: numba's set-up without SciPy's BLAS check
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["envelope"]:
         from .envelope_cli import main as envelope_main     # Dask: loaded only for a sweep
