@@ -14,8 +14,9 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   ``js_to_planning`` (the joint state and the ``~/replan`` call through the executor, the
   session's queue, the start on the executing trajectory; in two: ``js_to_request``, up to the
   session's request from the service callback, the bench's own wait for the node to hold the
-  joint state included, and ``js_request_to_planning``, the session's worker thread woken and
-  the start decided), ``js_plan_round_trip`` (the job to
+  joint state included (woken by the session's ``joint_state``, :class:`_Held`), and
+  ``js_request_to_planning``, the session's worker thread woken and the start decided),
+  ``js_plan_round_trip`` (the job to
   the planning process and its answer back; ``js_plan_in_process``: the plan itself, its
   ``timings_s``; with the planning process, in three: ``js_job_to_process``, until the process
   has the job, ``js_job_in_process``, until its outcome is ready (the plan and the job around
@@ -145,16 +146,15 @@ def _run(args) -> int:
             time.sleep(0.05)
         lat_j, parts = [], []
         rng = np.random.default_rng(0)
+        held = _Held(node.session)
         for i in range(args.repeats):
             q = q_full.copy()
             q[list(robot.planned_joints)] += np.radians(rng.uniform(-1.0, 1.0, robot.dof))
             n = len(got)
+            held.clear()
             t0 = time.perf_counter()
             pub_js.publish(joint_state_msg(robot.joint_names, q))
-            time.sleep(0.0)
-            while node.session.joint_q is None or not np.allclose(node.session.joint_q,
-                                                                  q[list(robot.planned_joints)]):
-                time.sleep(0.0005)
+            held.wait_for(q[list(robot.planned_joints)])
             cli.call_async(Trigger.Request())
             arrival = got.wait(n + 1, ended=lambda: _sent_nothing(node, t0))
             if arrival is not None:          # else the replan sent nothing (e.g. at the goal): skipped
@@ -204,6 +204,39 @@ def _run(args) -> int:
     for r in rows:
         print(json.dumps(r))
     return 0
+
+
+class _Held:
+    """
+    Wakes the bench the moment the node's session takes a joint state (its ``joint_state`` wrapped).
+
+    ``latency_joint_state`` calls ``~/replan`` once the node holds the new state (the two travel
+    on different DDS entities, so the call could overtake it); waiting for that by polling every
+    0.5 ms added the poll's own delay, about 0.3 ms on average, to ``js_to_request``.
+    """
+
+    def __init__(self, session):
+        self._session = session
+        self._event = threading.Event()
+        take = session.joint_state
+
+        def joint_state(q_rad, stamp_ns):
+            take(q_rad, stamp_ns)
+            self._event.set()
+        session.joint_state = joint_state
+
+    def clear(self) -> None:
+        self._event.clear()
+
+    def wait_for(self, q_rad, timeout_s: float = 10.0) -> None:
+        """Return once the session holds ``q_rad`` (planned joints), or after ``timeout_s``."""
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            q = self._session.joint_q
+            if q is not None and np.allclose(q, q_rad):
+                return
+            self._event.wait(0.05)
+            self._event.clear()
 
 
 class _Arrivals:
