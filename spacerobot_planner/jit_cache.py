@@ -21,6 +21,7 @@ directory is made for the process (compiled again at each start, but it runs).
 """
 from __future__ import annotations
 
+import atexit
 import os
 import shutil
 import stat
@@ -44,7 +45,15 @@ def writable(directory: str) -> bool:
 
 
 def _numba_user_cache_dir() -> str:
-    """Return numba's user-wide cache directory (numba's own rule; imports numba)."""
+    """
+    Return numba's user-wide cache directory (its ``appdirs`` rule).
+
+    On Linux and other Unixes but macOS without importing numba (``$XDG_CACHE_HOME/numba``, else
+    ``~/.cache/numba``), so that the cache directory can still go in the environment, before
+    numba reads it; elsewhere numba's own rule (it imports numba).
+    """
+    if os.name == "posix" and sys.platform != "darwin":
+        return os.path.join(os.getenv("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "numba")
     from numba.misc.appdirs import AppDirs
     return AppDirs(appname="numba", appauthor=False).user_cache_dir
 
@@ -61,6 +70,24 @@ def _own_private(directory: str) -> bool:
             and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH))
 
 
+def _safe_parent(directory: str) -> bool:
+    """
+    Tell whether no other user can swap entries of ``directory`` (the temporary directory).
+
+    Owned by root or by this user, and not writable by others, or sticky (``/tmp``: others may
+    add entries, not rename or remove this user's).  Without user ids (Windows), True.
+    """
+    if not hasattr(os, "getuid"):
+        return True
+    try:
+        st = os.stat(directory)
+    except OSError:
+        return False
+    if st.st_uid not in (0, os.getuid()):
+        return False
+    return bool(st.st_mode & stat.S_ISVTX) or not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+
+
 def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None = None,
                           temp_dir: str | None = None) -> str | None:
     """
@@ -69,8 +96,10 @@ def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None =
     None: ``NUMBA_CACHE_DIR`` is set, or the package's ``__pycache__`` (``package_dir``, this
     package's by default) or numba's user-wide cache directory (``user_dir``, numba's by default)
     can be written: numba's own choice holds.  Else ``<temp_dir>/spacerobot_planner-numba-<uid>``
-    (``temp_dir``: the system's temporary directory by default), made private to this user where
-    missing, or a new private directory where that one is not this user's alone; set in the
+    (``temp_dir``: the system's temporary directory by default, which no other user may swap
+    entries of: :func:`_safe_parent`), made private to this user where missing, or a new private
+    directory where that one is not this user's alone (removed when the process ends; its
+    children, the planning process, use it meanwhile); set in the
     environment before numba's import (the planning process inherits it), in numba's config
     after it (a change to the environment would make numba read its whole config again, and
     drop what the user set in code; a ``CACHE_DIR`` set there holds).  None too where no
@@ -84,6 +113,8 @@ def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None =
     if writable(user_dir or _numba_user_cache_dir()):
         return None
     temp_dir = temp_dir or tempfile.gettempdir()
+    if not _safe_parent(temp_dir):
+        return None                   # another user could swap the directory: numba's own error instead
     chosen = os.path.join(temp_dir, f"spacerobot_planner-numba-{os.getuid() if hasattr(os, 'getuid') else 'user'}")
     try:
         os.mkdir(chosen, 0o700)
@@ -96,6 +127,7 @@ def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None =
             chosen = tempfile.mkdtemp(prefix="spacerobot_planner-numba-", dir=temp_dir)
         except OSError:
             return None
+        atexit.register(shutil.rmtree, chosen, True)     # this process's alone (its children inherit it)
     config = sys.modules.get("numba.core.config")
     if config is None:
         os.environ["NUMBA_CACHE_DIR"] = chosen
@@ -109,11 +141,16 @@ def ensure_writable_cache(package_dir: str | None = None, user_dir: str | None =
 
 def seed_from_package(cache_dir: str, package_dir: str) -> int:
     """
-    Copy the package's own numba cache files into ``cache_dir`` where it lacks them; return how many.
+    Copy the package's own numba cache into ``cache_dir`` where it lacks it or holds another; return the files copied.
 
-    Each ``__pycache__``'s ``*.nbi`` / ``*.nbc`` go where numba's ``NUMBA_CACHE_DIR`` locator
-    looks for that directory's sources (numba's own sub-path rule); files already there are
-    kept (they may be newer).  0 where numba's rule cannot be found or a copy fails.
+    Each ``__pycache__``'s kernels go where numba's ``NUMBA_CACHE_DIR`` locator looks for that
+    directory's sources (numba's own sub-path rule).  A kernel's index (``*.nbi``) is copied with
+    its data files (``<the index's name less .nbi>.<n>.nbc``) where the cache has no index of that
+    name or a different one (an earlier install's: upgraded), the data first; an index the same
+    byte for byte is left with what numba added since.  Every file is written under a temporary
+    name and renamed (a copy cut short, a full disk or two processes seeding at once leave no
+    partial file for numba to load).  0 where numba's rule cannot be found; a copy that fails
+    stops the seeding there.
     """
     try:
         from numba.core.caching import _CacheLocator
@@ -124,29 +161,59 @@ def seed_from_package(cache_dir: str, package_dir: str) -> int:
     for root, _, files in os.walk(package_dir):
         if os.path.basename(root) != "__pycache__":
             continue
-        names = [f for f in files if f.endswith((".nbi", ".nbc"))]
-        if not names:
+        indexes = sorted(f for f in files if f.endswith(".nbi"))
+        if not indexes:
             continue
         dest = os.path.join(cache_dir, subpath(os.path.join(os.path.dirname(root), "__init__.py")))
         try:
             os.makedirs(dest, exist_ok=True)
-            have = set(os.listdir(dest))
-            for name in names:
-                if name not in have:
-                    shutil.copyfile(os.path.join(root, name), os.path.join(dest, name))
+            for index in indexes:
+                if _same_file(os.path.join(root, index), os.path.join(dest, index)):
+                    continue
+                stem = index[:-len(".nbi")] + "."
+                data = [f for f in files if f.startswith(stem) and f.endswith(".nbc")]
+                for name in data + [index]:            # the index last: it names the data
+                    _copy_atomic(os.path.join(root, name), os.path.join(dest, name))
                     copied += 1
         except OSError:
             return copied
     return copied
 
 
+def _same_file(a: str, b: str) -> bool:
+    """Tell whether files ``a`` and ``b`` hold the same bytes (False where ``b`` cannot be read)."""
+    try:
+        if os.path.getsize(a) != os.path.getsize(b):
+            return False
+        with open(a, "rb") as fa, open(b, "rb") as fb:
+            return fa.read() == fb.read()
+    except OSError:
+        return False
+
+
+def _copy_atomic(src: str, dst: str) -> None:
+    """Copy ``src`` to ``dst`` through a temporary file in ``dst``'s directory and a rename."""
+    fd, tmp = tempfile.mkstemp(prefix=".seed-", dir=os.path.dirname(dst))
+    try:
+        with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
+            shutil.copyfileobj(inp, out)
+        os.replace(tmp, dst)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
 def start_numba_target() -> bool:
     """
     Set numba's CPU target up now, without importing SciPy's BLAS; return whether it was set up here.
 
-    For the package's own processes, before their first kernel (see the module docstring).
-    False where numba's target was already set up or SciPy's BLAS is already imported: nothing
-    to save.  The BLAS module is hidden from the import system during the set-up only.
+    For the package's own processes, before their first kernel and before they start threads
+    (see the module docstring): the BLAS module is hidden from the import system during the
+    set-up, and a thread importing ``scipy.linalg`` meanwhile would fail.  False where numba's
+    target was already set up or SciPy's BLAS is already imported: nothing to save.
     """
     if "numba.np.arraymath" in sys.modules or _BLAS_CHECK in sys.modules:
         return False

@@ -107,21 +107,99 @@ def test_a_temporary_cache_someone_else_could_write_is_not_taken(places, planted
     assert _chosen() == got
 
 
+@pytest.mark.parametrize("mode", [0o777, 0o775])
+def test_a_temporary_directory_others_can_swap_entries_of_is_not_used(places, mode):
+    os.makedirs(places["temp"])
+    os.chmod(places["temp"], mode)                       # writable by others, not sticky
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) is None
+    assert _chosen() is None and os.listdir(places["temp"]) == []
+    os.chmod(places["temp"], mode | stat.S_ISVTX)        # sticky, as /tmp: others cannot rename ours
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) is not None
+
+
+def test_a_temporary_directory_of_another_user_is_not_used(places):
+    if os.geteuid() != 0:
+        pytest.skip("needs root to give a directory to another user")
+    os.makedirs(places["temp"])
+    os.chown(places["temp"], 65534, 65534)
+    os.chmod(places["temp"], 0o755)
+    assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["temp"]) is None
+
+
+@pytest.mark.skipif(os.name != "posix" or sys.platform == "darwin", reason="the rule written out is Linux's")
+@pytest.mark.parametrize("xdg", [None, "/somewhere/xdg"])
+def test_numbas_user_cache_directory_without_importing_numba(monkeypatch, xdg):
+    from numba.misc.appdirs import AppDirs
+    if xdg is None:
+        monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    else:
+        monkeypatch.setenv("XDG_CACHE_HOME", xdg)
+    assert jit_cache._numba_user_cache_dir() == AppDirs(appname="numba", appauthor=False).user_cache_dir
+
+
+def _kernel_files(directory: Path, stem: str, index: bytes, data: dict):
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / f"{stem}.nbi").write_bytes(index)
+    for n, payload in data.items():
+        (directory / f"{stem}.{n}.nbc").write_bytes(payload)
+
+
+def test_seeding_copies_what_the_cache_lacks_or_holds_another_of_and_leaves_no_partial_file(tmp_path):
+    from numba.core.caching import _CacheLocator
+    pkg, cache = tmp_path / "pkg", tmp_path / "cache"
+    _kernel_files(pkg / "__pycache__", "mod.f-10.py311", b"index v2", {1: b"data v2"})
+    _kernel_files(pkg / "sub" / "__pycache__", "sub.g-3.py311", b"g index", {1: b"g1", 2: b"g2"})
+    assert jit_cache.seed_from_package(str(cache), str(pkg)) == 5
+    dest = cache / _CacheLocator.get_suitable_cache_subpath(str(pkg / "__init__.py"))
+    sub = cache / _CacheLocator.get_suitable_cache_subpath(str(pkg / "sub" / "__init__.py"))
+    assert (dest / "mod.f-10.py311.nbi").read_bytes() == b"index v2"
+    assert (sub / "sub.g-3.py311.2.nbc").read_bytes() == b"g2"
+    # what numba added since is kept where the index is the same; nothing is copied again
+    (sub / "sub.g-3.py311.3.nbc").write_bytes(b"compiled here")
+    assert jit_cache.seed_from_package(str(cache), str(pkg)) == 0
+    assert (sub / "sub.g-3.py311.3.nbc").exists()
+    # an earlier install's index (an upgrade): the package's index and data replace it
+    (dest / "mod.f-10.py311.nbi").write_bytes(b"index v1")
+    (dest / "mod.f-10.py311.1.nbc").write_bytes(b"data v1")
+    assert jit_cache.seed_from_package(str(cache), str(pkg)) == 2
+    assert (dest / "mod.f-10.py311.1.nbc").read_bytes() == b"data v2"
+    assert not [p for p in cache.rglob("*") if p.name.startswith(".seed-")]
+
+
+def test_a_process_that_has_not_imported_numba_exports_the_directory(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    run = ("import os, sys\n"
+           "from spacerobot_planner import jit_cache\n"
+           "assert 'numba' not in sys.modules\n"
+           "got = jit_cache.ensure_writable_cache(sys.argv[1], sys.argv[2], sys.argv[3])\n"
+           "import numba\n"
+           "print(got, os.environ['NUMBA_CACHE_DIR'], numba.config.CACHE_DIR)\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CACHE_DIR")}
+    out = subprocess.run([sys.executable, "-c", run, str(blocker / "pkg"), str(blocker / "user"), str(tmp_path)],
+                         capture_output=True, text=True, timeout=300, env=env, cwd=PACKAGE.parent)
+    assert out.returncode == 0, out.stderr
+    got, exported, config = out.stdout.split()
+    assert got == exported == config == str(tmp_path / f"spacerobot_planner-numba-{os.getuid()}")
+
+
 def test_with_no_temporary_directory_nothing_is_set(places):
     assert jit_cache.ensure_writable_cache(places["no_pkg"], places["no_user"], places["no_temp"]) is None
     assert _chosen() is None
 
 
 _READ_ONLY_RUN = r"""
-set -e
-mount --bind "$SRC" "$SRC"
-mount -o remount,bind,ro "$SRC"
+mount --bind "$SRC" "$SRC" && mount -o remount,bind,ro "$SRC" || { echo MOUNT-FAILED; exit 77; }
 if touch "$SRC/spacerobot_planner/probe" 2>/dev/null; then echo "still writable"; exit 3; fi
-exec "$PY" -c '
+exec "$PY" -c "$RUN"
+"""
+
+#: run in the copy (on the read-only mount, or before it to fill the install's cache): the two kernels
+_KERNELS_RUN = r"""
 import glob, os, sys
-from numba.core.event import install_recorder
-import spacerobot_planner
+import spacerobot_planner              # first, as a program would: numba not imported yet
 assert spacerobot_planner.__file__.startswith(os.environ["SRC"]), spacerobot_planner.__file__
+from numba.core.event import install_recorder
 from spacerobot_planner.joint_space import wrap_angle_scalar_rad, wrap_angle_rad
 import numpy as np
 with install_recorder("numba:compile") as compiled:
@@ -129,17 +207,9 @@ with install_recorder("numba:compile") as compiled:
     assert abs(wrap_angle_rad(np.array([7.0]))[0] - (7.0 - 2 * 3.141592653589793)) < 1e-12
 import numba
 where = numba.config.CACHE_DIR
-print(where, len(glob.glob(os.path.join(where, "**", "*.nbi"), recursive=True)), len(compiled.buffer))
-'
+print(where or "-", os.environ.get("NUMBA_CACHE_DIR", "-"),
+      len(glob.glob(os.path.join(where, "**", "*.nbi"), recursive=True)) if where else 0, len(compiled.buffer))
 """
-
-
-def _warm_package_cache():
-    """Fill this tree's own cache of the two kernels the end-to-end test calls (as an install does)."""
-    import numpy as np
-    from spacerobot_planner.joint_space import wrap_angle_rad, wrap_angle_scalar_rad
-    wrap_angle_scalar_rad(1.0)
-    wrap_angle_rad(np.array([1.0]))
 
 
 @pytest.mark.parametrize("with_cache", [False, True], ids=["no cache in the install", "the install's cache"])
@@ -147,25 +217,26 @@ def test_a_read_only_install_with_no_home_runs_its_kernels(tmp_path, with_cache)
     if shutil.which("unshare") is None or os.geteuid() != 0:
         pytest.skip("needs root and unshare (a private mount namespace for a read-only mount)")
     src = tmp_path / "src"
-    if with_cache:
-        _warm_package_cache()
-        shutil.copytree(PACKAGE, src / "spacerobot_planner")
-    else:
-        shutil.copytree(PACKAGE, src / "spacerobot_planner", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(PACKAGE, src / "spacerobot_planner", ignore=shutil.ignore_patterns("__pycache__"))
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     temp = tmp_path / "tmp"
     temp.mkdir()
     env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_CACHE_DIR", "XDG_CACHE_HOME"))}
-    env.update(SRC=str(src), PY=sys.executable, PYTHONPATH=str(src), HOME=str(blocker / "home"), TMPDIR=str(temp),
-               PYTHONDONTWRITEBYTECODE="1")
+    env.update(SRC=str(src), PY=sys.executable, PYTHONPATH=str(src), RUN=_KERNELS_RUN, PYTHONDONTWRITEBYTECODE="1")
+    if with_cache:               # as an install fills it: the copy's own __pycache__, while it can be written
+        warm = subprocess.run([sys.executable, "-c", _KERNELS_RUN], capture_output=True, text=True, timeout=600,
+                              env=env, cwd=tmp_path)
+        assert warm.returncode == 0, warm.stderr
+        assert list((src / "spacerobot_planner" / "__pycache__").glob("joint_space.*.nbi"))
+    env.update(HOME=str(blocker / "home"), TMPDIR=str(temp))
     out = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", _READ_ONLY_RUN],
                          capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
-    if out.returncode != 0 and "unshare" in out.stderr and "Operation not permitted" in out.stderr:
-        pytest.skip(f"no private mount namespace here: {out.stderr.strip()}")
+    if "MOUNT-FAILED" in out.stdout or (out.returncode != 0 and "unshare" in out.stderr):
+        pytest.skip(f"no read-only mount in a private namespace here: {out.stderr.strip()}")
     assert out.returncode == 0, out.stdout + out.stderr
-    where, files, compiled = out.stdout.split()
-    assert where == str(temp / f"spacerobot_planner-numba-{os.getuid()}")
+    where, exported, files, compiled = out.stdout.split()
+    assert where == exported == str(temp / f"spacerobot_planner-numba-{os.getuid()}")   # in the environment too
     assert int(files) >= 1                                   # numba's cache is there
     if with_cache:
         assert int(compiled) == 0, "the install's cache was not loaded: the kernels were compiled again"
