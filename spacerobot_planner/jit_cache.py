@@ -1,5 +1,5 @@
 """
-Where numba caches the package's compiled kernels: a writable directory, whatever the install.
+Where numba caches the package's compiled kernels (a writable directory, whatever the install), and its start.
 
 Every kernel is compiled with ``cache=True``.  numba keeps its cache next to the source, in the
 package's ``__pycache__``, else in the user's cache directory (``~/.cache/numba`` on Linux), and
@@ -15,9 +15,18 @@ directory of this user's own (:func:`ensure_writable_cache`).  numba reads no ca
 ``__pycache__`` it cannot write, so the cache an install filled there (``setup.py``'s
 ``warm_numba_cache``, ``make``) is copied over first (:func:`seed_from_package`: numba's index
 holds a hash of the source's bytes, not its path, so a copy of the same source loads it), and
-only what it lacks is compiled.  numba loads pickled code from its cache, so a
-directory that another user could have made or can write is never taken; then a new private
-directory is made for the process (compiled again at each start, but it runs).
+only what it lacks is compiled.  numba loads pickled code from its cache, so a directory that
+another user could have made or can write is never taken (then a new private directory is made
+for the process, compiled again at each start, but it runs), nor one in a temporary directory
+where another user could swap it (writable by others and not sticky).
+
+A process of the package's own (the CLI, the node, the planning process) also sets numba's CPU
+target up itself, before its first kernel, without SciPy's BLAS (:func:`start_numba_target`):
+numba's set-up imports ``scipy.linalg.cython_blas`` only to decide how ``np.correlate`` and
+``np.convolve`` take inner products in kernels, which none of the package's kernels use, and
+that import was 0.14 s of the CLI's 1.1 s cold start.  ``np.dot`` and numba's linear algebra
+still import it when a kernel first uses them.  Not done on import: a user's own process keeps
+numba's set-up as numba makes it.
 """
 from __future__ import annotations
 
