@@ -33,10 +33,11 @@ cgroup of 1 CPU: the paper's 3-DOF scene at 72³ 94.5 / 98.2 / 99.3 ms on two th
 numba runs its parallel loops on one of three threading layers, the first of its priority that
 loads: OpenMP needs the system's ``libgomp`` (absent from slim container images), TBB the ``tbb``
 wheel (installed by ``requirements.txt`` on x86-64), and its own ``workqueue`` is always there but
-was 2.0× slower at 72³ here (109.9 against 55 ms) and ends the process where two threads launch
-parallel loops at once.  numba's own priority is TBB first; TBB was 1.07× OpenMP at 72³ here (49.1–50.8
-against 45.8–47.3 ms, small grids equal), so the package prefers OpenMP, then TBB, then the work
-queue (:func:`prefer_threading_layers`, on import; ``NUMBA_THREADING_LAYER`` or
+took 2.4× OpenMP's time at 72³ here (119.0 / 128.4 / 129.2 against 50.8 / 54.7 / 57.1 ms, median /
+p90 / max of 5, alternating) and ends the process where two threads launch parallel loops at
+once.  numba's own priority is TBB first; TBB was 1.07× OpenMP at 72³ here (medians 49.1–50.8
+against 45.8–47.3 ms, tails in docs/benchmarks.md; small grids equal), so the package prefers
+OpenMP, then TBB, then the work queue (:func:`prefer_threading_layers`, on import; ``NUMBA_THREADING_LAYER`` or
 ``NUMBA_THREADING_LAYER_PRIORITY`` set by the user hold).
 
 ``/proc/loadavg`` counts the whole machine.  A process that may run on some of its CPUs only
@@ -55,7 +56,8 @@ import time
 from dataclasses import dataclass
 
 __all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "busy_share", "busy_elsewhere", "threads_text",
-           "own_thread_files", "cpu_limit", "cgroup_cpu_limit", "prefer_threading_layers", "LAYER_PRIORITY"]
+           "own_thread_files", "cpu_limit", "cgroup_cpu_limit", "prefer_threading_layers", "LAYER_PRIORITY",
+           "limit_text", "threading_layer"]
 
 #: grids of at least this many nodes count the busy cores before a stage's parallel loops; the
 #: node graph's (``field.graph.PARALLEL_MIN_NODES``) and the fine level's (``multigrid.PARALLEL_MIN_CELLS``)
@@ -260,6 +262,20 @@ def fit_threads(most: int, nodes: int, follow: bool = True) -> Fit:
     return Fit(threads, limit, busy, capped)
 
 
+def limit_text(cpus: int | None) -> str:
+    """Return ', a CPU limit of 2' for a CPU limit of 2 (whole CPUs), '' for None: how every line names it."""
+    return "" if cpus is None else f", a CPU limit of {cpus}"
+
+
+def threading_layer() -> str:
+    """Return numba's threading layer in this process, or "" where no parallel loop has run yet."""
+    import numba
+    try:
+        return str(numba.threading_layer())
+    except ValueError:
+        return ""
+
+
 def threads_text(stats: dict) -> str:
     """
     Return '; parallel loops on 1 of 2 threads, 2 cores busy with other work', or '' where a plan ran on all.
@@ -269,12 +285,11 @@ def threads_text(stats: dict) -> str:
     """
     if stats.get("threads", 0) >= stats.get("threads_limit", 0):
         return ""
-    why = []
-    if stats.get("cpu_limit") is not None:
-        why.append(f"a CPU limit of {stats['cpu_limit']}")
+    why = [limit_text(stats.get("cpu_limit"))[2:]]
     busy = stats.get("busy_cores") or 0
     if busy:
         why.append(f"{busy} {'core' if busy == 1 else 'cores'} busy with other work")
+    why = [w for w in why if w]
     return f"; parallel loops on {stats['threads']} of {stats['threads_limit']} threads" + (
         ", " + " and ".join(why) if why else "")
 

@@ -24,13 +24,14 @@ A process of the package's own (the CLI, the node, the planning process) also se
 target up itself, before its first kernel, without SciPy's BLAS (:func:`start_numba_target`):
 numba's set-up imports ``scipy.linalg.cython_blas`` only to decide how ``np.correlate`` and
 ``np.convolve`` take inner products in kernels, which none of the package's kernels use, and
-that import was 0.14 s of the CLI's 1.1 s cold start.  ``np.dot`` and numba's linear algebra
+that import was 0.137 s of the CLI's start (one ``python -X importtime`` run).  ``np.dot`` and numba's linear algebra
 still import it when a kernel first uses them.  Not done on import: a user's own process keeps
 numba's set-up as numba makes it.
 """
 from __future__ import annotations
 
 import atexit
+import filecmp
 import os
 import shutil
 import stat
@@ -192,10 +193,7 @@ def seed_from_package(cache_dir: str, package_dir: str) -> int:
 def _same_file(a: str, b: str) -> bool:
     """Tell whether files ``a`` and ``b`` hold the same bytes (False where ``b`` cannot be read)."""
     try:
-        if os.path.getsize(a) != os.path.getsize(b):
-            return False
-        with open(a, "rb") as fa, open(b, "rb") as fb:
-            return fa.read() == fb.read()
+        return filecmp.cmp(a, b, shallow=False)
     except OSError:
         return False
 

@@ -52,7 +52,7 @@ import numpy as np
 
 from .adapters import warm_up as warm_up_chain
 from .config import load_scenario
-from .cores import cpu_limit
+from .cores import cpu_limit, limit_text, threading_layer
 from .jit_cache import start_numba_target
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
@@ -373,15 +373,6 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
 
 
 # ================================================================== the planning process
-def _threading_layer() -> str:
-    """Return numba's threading layer in this process, or "" where no parallel loop has run yet."""
-    import numba
-    try:
-        return str(numba.threading_layer())
-    except ValueError:
-        return ""
-
-
 def child_main(fd: int) -> None:
     """
     Run the planning process: one Planner (caches kept between jobs), jobs over a socket.
@@ -421,7 +412,7 @@ def child_main(fd: int) -> None:
     sent: dict = {}
     import sys
     send(Ready(t_warm, tuple(sorted({m.split(".")[0] for m in sys.modules})), len(gc.get_objects()),
-               gc.get_freeze_count(), _threading_layer(), cpu_limit()))
+               gc.get_freeze_count(), threading_layer(), cpu_limit()))
     counts = {"jobs": 0, "cancelled": 0}
     while True:
         job = listener.next_job()
@@ -683,7 +674,7 @@ class ProcessBackend:
                     if self._info is not None:
                         self._info(f"planning process {self.proc.pid} ready: JIT warm-up {msg.warm_up_s:.2f} s"
                                    + (f", threading layer {msg.threading_layer}" if msg.threading_layer else "")
-                                   + ("" if msg.cpu_limit is None else f", a CPU limit of {msg.cpu_limit}"))
+                                   + limit_text(msg.cpu_limit))
                     return msg.warm_up_s
             if self.proc.poll() is not None:
                 raise RuntimeError(f"planning process exited during warm-up (code {self.proc.returncode})")

@@ -37,7 +37,7 @@ import time
 import traceback
 from dataclasses import dataclass
 
-from ..cores import cpu_limit
+from ..cores import cpu_limit, limit_text
 from .latency import JOINT_STATE_AIM_S
 from .scenes import AIM_MAX_OVER_MEDIAN, AIM_MOST_S
 
@@ -306,12 +306,6 @@ def _yardstick(rows_by_bench: dict) -> str:
     return f" (the paper's Gauss–Seidel, the run's yardstick: {', '.join(parts)})" if parts else ""
 
 
-def _cpu_limit_text() -> str:
-    """Return ', a CPU limit of 2' where this process has one (the plans' threads are capped by it), else ''."""
-    cpus = cpu_limit()
-    return "" if cpus is None else f", a CPU limit of {cpus}"
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="bench aims", description=__doc__.strip().split("\n\n")[0])
     ap.add_argument("--skip", default="", help=f"comma list of benchmarks not to run ({', '.join(BENCHES)})")
@@ -327,7 +321,7 @@ def main(argv=None) -> int:
     try:
         print(f"bench aims: {', '.join(b for b in BENCHES if b not in skip)}"
               f"{' (--quick)' if args.quick else ''} on {os.cpu_count()} cores (load {os.getloadavg()[0]:.1f}"
-              f"{_cpu_limit_text()})", flush=True)
+              f"{limit_text(cpu_limit())})", flush=True)
         for name in BENCHES:
             if name in skip:
                 why_not[name] = "skipped (--skip)"

@@ -35,13 +35,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..contact import penetration_depths_m
-from ..cores import cpu_limit
+from ..cores import cpu_limit, limit_text, threading_layer
 from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
 from ..planner import Planner, warm_up as planner_warm_up
 from .profile import StepProfile, print_rows
@@ -239,14 +238,9 @@ def _run(args) -> int:
     cases = _parse_cases(args.cases)
     t0 = time.perf_counter()
     warm_up(args.solver)
-    try:
-        layer = numba.threading_layer()          # the warm-up's C-space ran parallel loops
-    except ValueError:
-        layer = "not started"
-    cpus = cpu_limit()
-    limit = "" if cpus is None else f", a CPU limit of {cpus}"
+    layer = threading_layer() or "not started"     # the warm-up's C-space ran parallel loops
     print(f"bench plan: solver {args.solver}, JIT warm-up {time.perf_counter() - t0:.1f} s, "
-          f"threading layer {layer}{limit}; "
+          f"threading layer {layer}{limit_text(cpu_limit())}; "
           f"median of {args.repeats} fresh plans (at most {BIG_GRID_PLANS} above {BIG_GRID_NODES:,} nodes)")
     head = (f"{'scene':<6}{'grid':>12}{'cspace':>9}{'field':>10}{'descent':>9}{'smooth+ver':>11}"
             f"{'traj':>7}{'total':>10}{'replan':>9}{'GS base':>10}{'ratio':>8}  path")
@@ -277,8 +271,9 @@ def _run(args) -> int:
               f"cached replan {tail(r['replan_cached'])} ({r['replan_cached']['plans']} replans)")
         t = r["total"]
         if "threads" in t and t["threads"] < t["threads_limit"]:
-            why = ([f"a CPU limit of {t['cpu_limit']}"] if "cpu_limit" in t else []) + (
+            why = [limit_text(t.get("cpu_limit"))[2:]] + (
                 [f"up to {t['busy_cores']} cores busy with other work"] if t["busy_cores"] else [])
+            why = [w for w in why if w]
             print(f"  {scene:<5}{t['grid']:>12}  parallel loops on as few as {t['threads']} of {t['threads_limit']} "
                   f"threads: {' and '.join(why)}")
         if "replan_contact" in r:
