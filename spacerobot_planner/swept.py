@@ -32,10 +32,16 @@ are the ones a sheet search would cut, on every axis but the last.
 The last axis (the joint that turns the last link alone) is left to the sheet search: its
 pivot moves with every other joint, so it would take a set of hulls per row.
 
-The rows and the tests run on numba's threads (each row, each edge on its own; the edges
-sorted at the end: the same edges on any number of threads).  Editing ``cspace._fill_rows``:
-numba's cache keeps :func:`_candidates` compiled against the old one (delete this module's
-cached kernels, ``__pycache__/swept*.nbi``, ``*.nbc``).
+The rows and the tests run in one thread below the C-space's ``cspace.ROWS_PARALLEL_NODES``
+nodes and on numba's threads from there (each row, each edge on its own; the edges sorted at the
+end: the same edges either way, on any number of threads): the rule of the row kernel they run.
+On the team's threads, a grid of 36³ repaired in 137 ms instead of 14.6 ms while another
+process kept one of the development VM's two cores busy (every parallel loop waited a time slice
+for the team member that had lost its core; ``bench scenes --dof 3 --count 60``, the repair
+stage's median).  From that size on the planner gives the loops the cores other work leaves
+(``cores.fit_threads``), as to the C-space's.  Editing ``cspace._fill_rows``: numba's cache keeps
+:func:`_candidate_rows` compiled against the old one (delete this module's cached kernels,
+``__pycache__/swept*.nbi``, ``*.nbc``).
 """
 from __future__ import annotations
 
@@ -45,7 +51,7 @@ import numba as nb
 import numpy as np
 
 from .collision import NO_REFCOUNT, CollisionChecker, link_points, rotate_body
-from .cspace import ROW_EPS_RAD, _fill_rows, build_cspace
+from .cspace import ROW_EPS_RAD, ROWS_PARALLEL_NODES, _fill_rows, build_cspace
 from .field.graph import grid_strides
 from .motion import MotionValidator
 from .repair import edge_up, motion_up_free
@@ -206,44 +212,54 @@ def _all_hulls(shape, lower, step, axis, q_template, planned, lengths, body, ver
     return hv, hs, hc, hr, count, margin
 
 
+@nb.njit(cache=True, nogil=True)
+def _candidate_rows(cand, r, end, rows_each, shape, lower, step, planned, q_template, lengths, turning, body, hv, hs,
+                    hc, hr, count, margin, stop):
+    """Write :func:`_candidates`' rows [r, end) into ``cand``, one value of the axes before at a time."""
+    known = np.zeros(0, np.bool_)
+    while r < end:
+        p = r // rows_each
+        stop_at = min(end, (p + 1) * rows_each)
+        k = count[p]
+        _fill_rows(cand, r, stop_at, shape, lower, step, planned, q_template, lengths, turning, body, hv[p],
+                   hs[p, :k + 1], hc[p, :k], hr[p, :k], margin[p], False, known, ROW_EPS_RAD, stop)
+        r = stop_at
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
+def _candidate_chunks(cand, rows, *args):
+    """Run :func:`_candidate_rows` over ``rows`` rows in 64 chunks on numba's threads (each row on its own)."""
+    chunks = 64
+    size = (rows + chunks - 1) // chunks
+    for ch in nb.prange(chunks):
+        _candidate_rows(cand, ch * size, min(rows, (ch + 1) * size), *args)
+
+
 def _candidates(shape, lower, step, axis, q_template, planned, lengths, checked, body, verts, starts, centres,
-                radii, margin_m, stop):
+                radii, margin_m, stop, parallel: bool):
     """
     Return bool (nodes,): the nodes whose edge up ``axis`` may collide (see the module doc).
 
     The links from the axis's joint on come within ``margin_m`` + the largest sagitta of a hull
     of an obstacle (and, past the attitude, the body) with its copy turned by −step[axis] about
-    the joint (:func:`_all_hulls`); the row kernel's rows in 64 chunks on numba's threads (each
-    row on its own: the same candidates).  shape, lower, step: the grid's (rad); ``planned``
-    int64: each axis's joint (the last axis the chain's last joint); the rest as
-    ``motion.SegmentTest.arrays()``.  ``stop`` int64 (1,): the termination flag, polled by the
-    row kernel (nonzero: returns part-way).
+    the joint (:func:`_all_hulls`); the row kernel's rows, in 64 chunks on numba's threads where
+    ``parallel`` (each row on its own: the same candidates either way).  shape, lower, step: the
+    grid's (rad); ``planned`` int64: each axis's joint (the last axis the chain's last joint); the
+    rest as ``motion.SegmentTest.arrays()``.  ``stop`` int64 (1,): the termination flag, polled
+    by the row kernel (nonzero: returns part-way).
     """
     ndim = shape.size
-    turning = checked[checked >= planned[axis]]
-    rows_each = 1
-    for d in range(axis, ndim - 1):
-        rows_each *= shape[d]
-    rows = rows_each
-    for d in range(axis):
-        rows *= shape[d]
-    hv, hs, hc, hr, count, margin = _all_hulls(shape, lower, step, axis, q_template, planned, lengths, body, verts,
-                                               starts, centres, radii, margin_m)
-    cand = np.zeros(rows * shape[ndim - 1], np.bool_)
-    known = np.zeros(0, np.bool_)
-    chunks = 64
-    size = (rows + chunks - 1) // chunks
-    for ch in nb.prange(chunks):
-        r = ch * size
-        end = min(rows, r + size)
-        while r < end:                                  # the chunk's rows, one value of the axes before at a time
-            p = r // rows_each
-            stop_at = min(end, (p + 1) * rows_each)
-            k = count[p]
-            _fill_rows(cand, r, stop_at, shape, lower, step, planned, q_template, lengths, turning, body, hv[p],
-                       hs[p, :k + 1], hc[p, :k], hr[p, :k], margin[p], False, known, ROW_EPS_RAD, stop)
-            r = stop_at
+    turning = np.ascontiguousarray(checked[checked >= planned[axis]])
+    rows_each = int(np.prod(shape[axis:ndim - 1]))
+    rows = rows_each * int(np.prod(shape[:axis]))
+    hulls = _all_hulls(shape, lower, step, axis, q_template, planned, lengths, body, verts, starts, centres, radii,
+                       margin_m)
+    cand = np.zeros(rows * int(shape[ndim - 1]), np.bool_)
+    args = (rows_each, shape, lower, step, planned, q_template, lengths, turning, body, *hulls, stop)
+    if parallel:
+        _candidate_chunks(cand, rows, *args)
+    else:
+        _candidate_rows(cand, 0, rows, *args)
     return cand
 
 
@@ -275,6 +291,18 @@ def _tested(cand, occ, shape, periodic, axis, lower, step, strides, q_template, 
             found[k, 1] = max(f, g)
             k += 1
     return k
+
+
+@nb.njit(cache=True, nogil=True)
+def _tested_all(cand, occ, shape, periodic, axis, lower, step, strides, q_template, planned, lengths, checked,
+                body, verts, starts, centres, radii, threshold_m, seg_step_rad, reach_m):
+    """Return :func:`_tested`'s edges over every node in one thread, in node order."""
+    found = np.empty((np.count_nonzero(cand), 2), np.int64)  # each candidate has at most one edge up the axis
+    k = _tested(cand, occ, shape, periodic, axis, lower, step, strides, q_template, planned, lengths, checked,
+                body, verts, starts, centres, radii, threshold_m, seg_step_rad, reach_m, q_template.copy(),
+                np.empty((lengths.size + 1, 2)), np.empty_like(body), np.empty(shape.size), np.empty(shape.size),
+                np.empty(2), found, 0, 0, cand.size)
+    return found[:k].copy()
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -317,7 +345,8 @@ def applies(motions, ndim: int) -> bool:
             and bool(np.all(np.diff(planned) > 0)))
 
 
-def swept_edges(occupied, periodic, lower_rad, step_rad, motions, token=None) -> np.ndarray:
+def swept_edges(occupied, periodic, lower_rad, step_rad, motions, token=None,
+                parallel: bool | None = None) -> np.ndarray:
     """
     Return the colliding grid edges along every axis but the last: int64 (k, 2) flat node pairs (smaller first), sorted.
 
@@ -325,6 +354,9 @@ def swept_edges(occupied, periodic, lower_rad, step_rad, motions, token=None) ->
     the nodes at ``lower_rad + index * step_rad``; motions: the scene's ``motion.SegmentTest``.
     Empty where :func:`applies` says no.  ``token``: the plan's termination token
     (``termination.Termination``; raises ``termination.Cancelled`` once it is set).
+    ``parallel``: the kernels' form, on numba's threads or in this one (None: on the threads
+    from the C-space's ``cspace.ROWS_PARALLEL_NODES`` nodes, the rule of the row kernel they run).
+    The same edges either way.
     """
     token = Termination.of(token)
     occ = np.ascontiguousarray(occupied, dtype=np.bool_)
@@ -338,18 +370,26 @@ def swept_edges(occupied, periodic, lower_rad, step_rad, motions, token=None) ->
     threshold_m = arrays[9]
     flat = occ.reshape(-1)
     strides = grid_strides(shape)
+    if parallel is None:
+        parallel = flat.size >= ROWS_PARALLEL_NODES
+    tested = _tested_chunks if parallel else _tested_all
     parts = []
     for axis in range(shape.size - 1):
-        cand = _candidates(shape, lower, step, axis, *arrays[:9], threshold_m, token.flag)
+        cand = _candidates(shape, lower, step, axis, *arrays[:9], threshold_m, token.flag, parallel)
         token.check()
-        parts.append(_tested_chunks(cand, flat, shape, per, axis, lower, step, strides, *arrays))
+        parts.append(tested(cand, flat, shape, per, axis, lower, step, strides, *arrays))
         token.check()
     edges = np.concatenate(parts)
     return edges[np.lexsort((edges[:, 1], edges[:, 0]))]
 
 
 def warm_up(robot, scene, grid) -> None:
-    """Compile (or load from numba's cache) the kernels of :func:`swept_edges` on ``grid`` (a coarse one)."""
+    """
+    Compile (or load from numba's cache) both forms of :func:`swept_edges`' kernels on ``grid`` (a coarse one).
+
+    A plan's own grid reaches one form only (as the C-space's row kernel, ``cspace.warm_up``).
+    """
     occ = build_cspace(robot, scene, grid).occupied
-    swept_edges(occ, grid.periodic, grid.lower_rad, grid.step_rad,
-                MotionValidator(CollisionChecker(robot, scene)).segment_test())
+    motions = MotionValidator(CollisionChecker(robot, scene)).segment_test()
+    for parallel in (False, True):
+        swept_edges(occ, grid.periodic, grid.lower_rad, grid.step_rad, motions, parallel=parallel)

@@ -12,6 +12,8 @@ sides: edges found come within the margin, edges left out near an obstacle stay 
 """
 
 import math
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -90,10 +92,11 @@ def test_swept_edges_are_every_colliding_edge_along_the_axes_but_the_last(name):
     every = _every_colliding_edge(occ, grid, motions)
     along_last = np.isin(every[:, 1] - every[:, 0], (1, grid.shape[-1] - 1))       # the last axis' stride is 1
     expected = {tuple(e) for e in every[~along_last].tolist()}
-    found = swept_edges(occ, grid.periodic, grid.lower_rad, grid.step_rad, motions)
-    assert {tuple(e) for e in found.tolist()} == expected
-    assert len(found) == len(expected)
-    assert found.dtype == np.int64 and np.all(found[:, 0] < found[:, 1])
+    for parallel in (False, True):          # the kernels in one thread and on numba's threads
+        found = swept_edges(occ, grid.periodic, grid.lower_rad, grid.step_rad, motions, parallel=parallel)
+        assert {tuple(e) for e in found.tolist()} == expected, parallel
+        assert len(found) == len(expected)
+        assert found.dtype == np.int64 and np.all(found[:, 0] < found[:, 1])
     rng = np.random.default_rng(0)
     for a, b in found[rng.permutation(len(found))[:12]]:      # a sample judged by the oracle
         assert edge_clearance(sc, int(a), int(b)) < sc.scene.safety_margin_m + TOL_M
@@ -132,3 +135,44 @@ def test_the_wall_and_random_scenes_have_edges_to_find():
         motions = MotionValidator(CollisionChecker(sc.robot, sc.scene)).segment_test()
         counts.append(len(swept_edges(occ, sc.grid.periodic, sc.grid.lower_rad, sc.grid.step_rad, motions)))
     assert min(counts) > 0, counts
+
+
+_POOL_PROBE = """
+import sys
+from dataclasses import replace
+import numpy as np
+from numba.np.ufunc import parallel as pool
+sys.path.insert(0, {test_dir!r})
+from test_swept import _slats
+from spacerobot_planner.collision import CollisionChecker
+from spacerobot_planner.cspace import ROWS_PARALLEL_NODES, build_cspace
+from spacerobot_planner.motion import MotionValidator
+from spacerobot_planner.swept import swept_edges
+sc = _slats()
+grid = sc.grid_with_cells(36)
+assert grid.n_nodes < ROWS_PARALLEL_NODES
+occ = build_cspace(sc.robot, sc.scene, grid).occupied
+motions = MotionValidator(CollisionChecker(sc.robot, sc.scene)).segment_test()
+edges = swept_edges(occ, grid.periodic, grid.lower_rad, grid.step_rad, motions)
+print(len(edges), pool._is_initialized)
+swept_edges(occ, grid.periodic, grid.lower_rad, grid.step_rad, motions, parallel=True)
+print(pool._is_initialized)
+"""
+
+
+def test_a_small_grid_runs_no_parallel_loop():
+    """
+    Below the C-space's size for threads, the swept edges start no numba thread team (numba's own pool state).
+
+    A parallel loop on a machine where other work holds a core waits a time slice for the team
+    member that lost it: a 36³ repair took 137 ms instead of 14.6 on the 2-core VM.  In a fresh
+    process (no pool yet): the edges of a 36³ grid start none; the threads' form does (the probe
+    sees a pool).
+    """
+    out = subprocess.run([sys.executable, "-c", _POOL_PROBE.format(test_dir=str(Path(__file__).parent))],
+                         capture_output=True, text=True, timeout=600, cwd=Path(__file__).parent.parent)
+    assert out.returncode == 0, out.stderr[-3000:]
+    first, second = out.stdout.split("\n")[-3:-1]
+    count, started = first.split()
+    assert int(count) > 0 and started == "False", out.stdout
+    assert second == "True", out.stdout
