@@ -50,7 +50,7 @@ from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, timed
 from .settings import SessionSettings
 from .spacecraft import free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import (Lowering, Resampled, Trajectory, controller_check, resample, segment_peaks,
+from .trajectory import (Lowering, Resampled, Trajectory, controller_check, lowering_factors, resample, segment_peaks,
                          segment_wheel_peaks, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
@@ -415,15 +415,10 @@ def overshot_stretches(traj: Trajectory, scenario, samples_per_segment: int = 16
     ``per_segment``: :func:`segment_overshoots` of the same, when known.
     """
     over = segment_overshoots(traj, scenario, samples_per_segment) if per_segment is None else per_segment
-    core = np.where(over > 1.0 + CONTROLLER_TOL, CONTROLLER_SHRINK / np.maximum(over, 1e-300), 1.0)
     # where the acceleration is lowered, the velocity by CONTROLLER_SHRINK too (the new profile overshot
     # it by up to 0.4 % in the next segment: a second re-timing on 11 of 20 paper 3-DOF starts, now 5)
-    core[:, 0] = np.where(core[:, 1] < 1.0, np.minimum(core[:, 0], CONTROLLER_SHRINK), core[:, 0])
-    f = np.ones_like(core)
-    seg = np.arange(len(core))
-    for col in range(core.shape[1]):
-        for k in np.flatnonzero(core[:, col] < 1.0):
-            np.minimum(f[:, col], core[k, col] + LOWERING_TAPER * np.abs(seg - k), out=f[:, col])
+    f = lowering_factors(np.ascontiguousarray(over, dtype=np.float64), CONTROLLER_TOL, CONTROLLER_SHRINK,
+                         LOWERING_TAPER)
     low = np.any(f < 1.0, axis=1)
     if not low.any():
         return ()

@@ -85,7 +85,7 @@ __all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_paramete
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
            "horizon_index", "HorizonPassed", "sample_points", "chord_lengths_rad",
            "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES",
-           "segment_peaks", "segment_wheel_peaks"]
+           "segment_peaks", "segment_wheel_peaks", "lowering_factors"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -1163,6 +1163,37 @@ class Lowering:
             raise ValueError(f"Lowering: factors must be ({len(p) - 1}, 4) for {len(p)} points, got shape {f.shape}")
         if not np.all((f > 0.0) & (f <= 1.0)):
             raise ValueError("Lowering: factors must lie in (0, 1]")
+
+
+@njit(cache=True, nogil=True)
+def lowering_factors(over, tol, shrink, taper):
+    """
+    Return each segment's factors on the limits, float64 (M - 1, C), where the controller's motion overshoots them.
+
+    ``over`` (M - 1, C): each segment's peak ratios to the limits (C = 4: joint velocity, joint
+    acceleration, wheel momentum, wheel torque).  A segment whose ratio exceeds 1 + ``tol`` has that
+    limit lowered to ``shrink`` over its ratio (where the acceleration is, the velocity to ``shrink``
+    too); every segment takes, per limit, the least of 1 and each lowered segment's factor plus
+    ``taper`` per segment between them (a step in a limit is a step in the time-optimal acceleration,
+    which the controller's quintics overshoot in turn).
+    """
+    m, c_n = over.shape
+    core = np.ones((m, c_n))
+    for k in range(m):
+        for c in range(c_n):
+            if over[k, c] > 1.0 + tol:
+                core[k, c] = shrink / max(over[k, c], 1e-300)
+        if c_n > 1 and core[k, 1] < 1.0:
+            core[k, 0] = min(core[k, 0], shrink)
+    f = np.ones((m, c_n))
+    for c in range(c_n):
+        for k in range(m):
+            if core[k, c] < 1.0:
+                for j in range(m):
+                    v = core[k, c] + taper * abs(j - k)
+                    if v < f[j, c]:
+                        f[j, c] = v
+    return f
 
 
 def _lowered_factors(p, refine: int, lowered) -> np.ndarray | None:

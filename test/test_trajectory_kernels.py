@@ -5,7 +5,8 @@ The spline on the reachability grid against SciPy's ``CubicSpline`` (not-a-knot,
 start); densifying and
 the rounding margins against the array (NumPy) formulation they replaced, which they must
 reproduce bit for bit (the published trajectories do not change with the kernels); the backward
-pass redone from the grid points whose limits changed against the whole pass on the new limits.
+pass redone from the grid points whose limits changed against the whole pass on the new limits;
+the controller re-timing's tapered factors against the array formulation they replaced.
 """
 
 import numpy as np
@@ -14,7 +15,7 @@ from scipy.interpolate import CubicSpline
 
 from spacerobot_planner.trajectory import (_backward, _backward_from, _constraint_rows, _path_model, _rounding_margins,
                                            _rows, arc_lengths_rad, chord_lengths_rad, clamped_start_slopes,
-                                           densify_path)
+                                           densify_path, lowering_factors)
 
 EPS = float(np.finfo(float).eps)
 SLACK = 1e-10
@@ -214,3 +215,35 @@ def test_a_backward_pass_redone_below_the_changed_rows_is_the_whole_pass_bit_for
         top = int(changed[-1]) if changed.size else -1
         _backward_from(k, *rows[:5], ds, 0.0, top)
         np.testing.assert_array_equal(k, whole)
+
+
+def _array_lowering(over, tol, shrink, taper):
+    """The factors as ``adapters.overshot_stretches`` computed them with NumPy before the kernel."""
+    core = np.where(over > 1.0 + tol, shrink / np.maximum(over, 1e-300), 1.0)
+    core[:, 0] = np.where(core[:, 1] < 1.0, np.minimum(core[:, 0], shrink), core[:, 0])
+    f = np.ones_like(core)
+    seg = np.arange(len(core))
+    for col in range(core.shape[1]):
+        for k in np.flatnonzero(core[:, col] < 1.0):
+            np.minimum(f[:, col], core[k, col] + taper * np.abs(seg - k), out=f[:, col])
+    return f
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_lowering_factors_are_the_array_formulation_bit_for_bit(seed):
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(1, 150))
+    tol, shrink, taper = 1e-3, float(rng.choice([0.99, 0.97])), float(rng.choice([0.0025, 0.01, 0.3]))
+    over = rng.uniform(0.5, 1.0, (m, 4))
+    hot = rng.random((m, 4)) < rng.choice([0.0, 0.03, 0.2])
+    over[hot] = rng.uniform(1.0, 1.3, hot.sum())
+    over[rng.random((m, 4)) < 0.02] = 1.0 + tol                # at the tolerance: not lowered
+    over[rng.random((m, 4)) < 0.02] = np.nan                   # a ratio not measured: not lowered
+    got = lowering_factors(over, tol, shrink, taper)
+    want = _array_lowering(over, tol, shrink, taper)
+    np.testing.assert_array_equal(got, want)
+    # the definition: 1 where nothing is lowered within reach, the lowered segment's own factor there
+    lowered = np.isfinite(over) & (over > 1.0 + tol)
+    assert np.all(got <= 1.0) and np.all(got[lowered] <= shrink / np.where(lowered, over, 1.0)[lowered])
+    if not lowered.any():
+        assert np.all(got == 1.0)
