@@ -218,7 +218,7 @@ def test_a_backward_pass_redone_below_the_changed_rows_is_the_whole_pass_bit_for
 
 
 def _array_lowering(over, tol, shrink, taper):
-    """The factors as ``adapters.overshot_stretches`` computed them with NumPy before the kernel."""
+    """Return the factors as ``adapters.overshot_stretches`` computed them with NumPy before the kernel."""
     core = np.where(over > 1.0 + tol, shrink / np.maximum(over, 1e-300), 1.0)
     core[:, 0] = np.where(core[:, 1] < 1.0, np.minimum(core[:, 0], shrink), core[:, 0])
     f = np.ones_like(core)
