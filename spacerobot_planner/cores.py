@@ -55,9 +55,9 @@ import re
 import time
 from dataclasses import dataclass
 
-__all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "busy_share", "busy_elsewhere", "threads_text",
-           "own_thread_files", "cpu_limit", "cgroup_cpu_limit", "prefer_threading_layers", "LAYER_PRIORITY",
-           "limit_text", "threading_layer"]
+__all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "current_threads", "busy_share", "busy_elsewhere",
+           "threads_text", "own_thread_files", "cpu_limit", "cgroup_cpu_limit", "prefer_threading_layers",
+           "LAYER_PRIORITY", "limit_text", "threading_layer"]
 
 #: grids of at least this many nodes count the busy cores before a stage's parallel loops; the
 #: node graph's (``field.graph.PARALLEL_MIN_NODES``) and the fine level's (``multigrid.PARALLEL_MIN_CELLS``)
@@ -229,22 +229,22 @@ def _load_tbb() -> bool:
     return any(p and _loads(os.path.join(p, "lib", name), ctypes.RTLD_GLOBAL) for p in prefixes)
 
 
-def fit_threads(most: int, nodes: int, follow: bool = True) -> Fit:
+def fit_threads(most: int, nodes: int, follow: bool = True, any_size: bool = False) -> Fit:
     """
     Set the calling thread's numba threads for a stage on a grid of ``nodes`` nodes; return the :class:`Fit`.
 
     ``most``: ``planner.max_threads`` (0: numba's number, ``NUMBA_NUM_THREADS``).  With
     ``follow`` (``planner.threads_follow_load``), no more than the process's CPU limit
-    (:func:`cpu_limit`) on any grid, and from :data:`PARALLEL_MIN_NODES` nodes on and with a
-    limit above one, no more than the cores that other work leaves (:func:`busy_elsewhere`),
-    at least one; without, the limit itself.  The planner owns the count of the thread it plans
-    in: a count set on numba there directly is replaced (``planner.max_threads`` is the
-    setting).  numba's thread pool starts where a number is set or a parallel kernel first
-    runs, so a thread of a process without a pool that keeps numba's number sets nothing (a
-    plan on a small grid starts no pool, unless a CPU limit or ``most`` sets a number).
+    (:func:`cpu_limit`) on any grid, and from :data:`PARALLEL_MIN_NODES` nodes on (on any grid
+    with ``any_size``: a stage whose loops run on threads at every size, the swept edges) and
+    with a limit above one, no more than the cores that other work leaves
+    (:func:`busy_elsewhere`), at least one; without, the limit itself.  The planner owns the count
+    of the thread it plans in: a count set on numba there directly is replaced
+    (``planner.max_threads`` is the setting).  numba's thread pool starts where a number is set
+    or a parallel kernel is first loaded, so a thread of a process without a pool that keeps
+    numba's number sets nothing (:func:`current_threads`).
     """
     import numba
-    from numba.np.ufunc import parallel as pool
     numba_limit = numba.config.NUMBA_NUM_THREADS
     limit = numba_limit if int(most) <= 0 else min(int(most), numba_limit)
     threads, busy, capped = limit, None, None
@@ -252,14 +252,25 @@ def fit_threads(most: int, nodes: int, follow: bool = True) -> Fit:
         cpus = cpu_limit()
         if cpus is not None and cpus < limit:
             threads = capped = cpus
-        if threads > 1 and nodes >= PARALLEL_MIN_NODES:
+        if threads > 1 and (nodes >= PARALLEL_MIN_NODES or any_size):
             busy = busy_elsewhere()
             if busy is not None:
                 threads = max(1, min(threads, _cores() - busy))
-    now = numba.get_num_threads() if pool._is_initialized else numba_limit
-    if threads != now:
+    if threads != current_threads():
         numba.set_num_threads(threads)
     return Fit(threads, limit, busy, capped)
+
+
+def current_threads() -> int:
+    """
+    Return the calling thread's numba thread count, without starting numba's thread pool.
+
+    numba's count (``numba.get_num_threads``) starts the pool; before it has started the count is
+    numba's number, ``NUMBA_NUM_THREADS``.
+    """
+    import numba
+    from numba.np.ufunc import parallel as pool
+    return numba.get_num_threads() if pool._is_initialized else numba.config.NUMBA_NUM_THREADS
 
 
 def limit_text(cpus: int | None) -> str:

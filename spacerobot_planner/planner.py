@@ -379,10 +379,14 @@ class Planner:
         self._cspaces[key] = cs
         return cs, key, False
 
-    def _fit_threads(self, nodes: int) -> None:
-        """Give the stage about to run on ``nodes`` grid nodes the threads the CPU limit and load leave; note it."""
+    def _fit_threads(self, nodes: int, any_size: bool = False) -> None:
+        """
+        Give the stage about to run on ``nodes`` grid nodes the threads the CPU limit and load leave; note it.
+
+        ``any_size``: the stage's loops run on threads at every grid size (``cores.fit_threads``).
+        """
         s = self.settings
-        self._fits.append(fit_threads(s.max_threads, nodes, s.threads_follow_load))
+        self._fits.append(fit_threads(s.max_threads, nodes, s.threads_follow_load, any_size))
 
     def threads_note(self) -> dict:
         """

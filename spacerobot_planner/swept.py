@@ -32,16 +32,16 @@ are the ones a sheet search would cut, on every axis but the last.
 The last axis (the joint that turns the last link alone) is left to the sheet search: its
 pivot moves with every other joint, so it would take a set of hulls per row.
 
-The rows and the tests run in one thread below the C-space's ``cspace.ROWS_PARALLEL_NODES``
-nodes and on numba's threads from there (each row, each edge on its own; the edges sorted at the
-end: the same edges either way, on any number of threads): the rule of the row kernel they run.
-On the team's threads, a grid of 36³ repaired in 137 ms instead of 14.6 ms while another
-process kept one of the development VM's two cores busy (every parallel loop waited a time slice
-for the team member that had lost its core; ``bench scenes --dof 3 --count 60``, the repair
-stage's median).  From that size on the planner gives the loops the cores other work leaves
-(``cores.fit_threads``), as to the C-space's.  Editing ``cspace._fill_rows``: numba's cache keeps
-:func:`_candidate_rows` compiled against the old one (delete this module's cached kernels,
-``__pycache__/swept*.nbi``, ``*.nbc``).
+The rows and the tests run on numba's threads where the calling thread has more than one, in
+that thread where it has one (each row, each edge on its own; the edges sorted at the end: the
+same edges either way, on any number of threads).  The planner gives the stage the cores other
+work leaves, on every grid (``cores.fit_threads(any_size=True)``): on a team of numba's two
+threads, a grid of 36³ repaired in 137 ms instead of 14.6 ms while another process kept one of
+the development VM's two cores busy (each of the four parallel loops waited about 32 ms, a time
+slice, for the team member that had lost its core; ``bench scenes --dof 3 --count 60``, the repair
+stage's median), where on an idle machine the team takes 0.6-0.7 of one thread's time (36³ to
+60³).  Editing ``cspace._fill_rows``: numba's cache keeps :func:`_candidate_rows` compiled against
+the old one (delete this module's cached kernels, ``__pycache__/swept*.nbi``, ``*.nbc``).
 """
 from __future__ import annotations
 
@@ -51,7 +51,8 @@ import numba as nb
 import numpy as np
 
 from .collision import NO_REFCOUNT, CollisionChecker, link_points, rotate_body
-from .cspace import ROW_EPS_RAD, ROWS_PARALLEL_NODES, _fill_rows, build_cspace
+from .cores import current_threads
+from .cspace import ROW_EPS_RAD, _fill_rows, build_cspace
 from .field.graph import grid_strides
 from .motion import MotionValidator
 from .repair import edge_up, motion_up_free
@@ -355,8 +356,7 @@ def swept_edges(occupied, periodic, lower_rad, step_rad, motions, token=None,
     Empty where :func:`applies` says no.  ``token``: the plan's termination token
     (``termination.Termination``; raises ``termination.Cancelled`` once it is set).
     ``parallel``: the kernels' form, on numba's threads or in this one (None: on the threads
-    from the C-space's ``cspace.ROWS_PARALLEL_NODES`` nodes, the rule of the row kernel they run).
-    The same edges either way.
+    where this thread has more than one, ``cores.current_threads``).  The same edges either way.
     """
     token = Termination.of(token)
     occ = np.ascontiguousarray(occupied, dtype=np.bool_)
@@ -371,7 +371,7 @@ def swept_edges(occupied, periodic, lower_rad, step_rad, motions, token=None,
     flat = occ.reshape(-1)
     strides = grid_strides(shape)
     if parallel is None:
-        parallel = flat.size >= ROWS_PARALLEL_NODES
+        parallel = current_threads() > 1
     tested = _tested_chunks if parallel else _tested_all
     parts = []
     for axis in range(shape.size - 1):
