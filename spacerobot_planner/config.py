@@ -132,13 +132,15 @@ PARAMETERS = (
               "loops and the node graph's table; 1 also keeps a large band's set-up in one thread); 0: "
               "numba's (one per core, or NUMBA_NUM_THREADS). No more than the process's CPU limit (a "
               "container's cgroup quota, rounded up), and on grids of 100 000 nodes and more, no more "
-              "than the cores other work leaves (counted before the C-space and each field solve). A "
+              "than the cores other work leaves (counted before the C-space and each field solve; before a "
+              "first repair's swept edges on every grid). A "
               "plan is the same bit for bit on any number.",
               False, 0, 4096),
     ParamSpec("planner.threads_follow_load", "bool", True,
               "Run the parallel loops on no more threads than the process's CPU limit (a container's cgroup "
               "quota, rounded up: a larger team spends the quota's period in a burst, then the process waits) "
-              "and, on grids of 100 000 nodes and more, than the cores other work leaves (a team larger than "
+              "and, on grids of 100 000 nodes and more (a first repair's swept edges: every grid), than the "
+              "cores other work leaves (a team larger than "
               "the free cores waits at every loop's join: a 72³ plan took up to 20× longer beside two busy "
               "processes on 2 cores). false: always planner.max_threads (benchmarks and tests of the threaded "
               "loops)."),

@@ -16,8 +16,11 @@ own running threads: numba's team spins a while after each loop; a count above z
 a millisecond, so that a system thread's burst is not a busy core) and gives its kernels no more
 threads than cores are left (:func:`fit_threads`).  The field's values are the same bits on any
 number of threads (``field.multigrid``), so the count changes only the time.  Below that size the
-configured number holds and nothing is read (the loops there are a few, and short).  Where
-``/proc`` cannot be read (not Linux), the configured number holds.
+configured number holds and nothing is read (the loops there are a few, and short), but before a
+plan's first repair's swept edges (``swept``), whose loops run on threads at every size and waited
+a time slice each beside another session's busy process (a 36³ repair 137 ms instead of 14.6):
+they are counted on every grid (``any_size``).  Where ``/proc`` cannot be read (not Linux), the
+configured number holds.
 
 A process in a container often may run on all of the machine's CPUs but for a share of their time
 only: a CPU limit (cgroup's ``cpu.max``, or ``cpu.cfs_quota_us`` over ``cpu.cfs_period_us`` in
@@ -59,7 +62,8 @@ __all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "current_threads", "busy_
            "threads_text", "own_thread_files", "cpu_limit", "cgroup_cpu_limit", "prefer_threading_layers",
            "LAYER_PRIORITY", "limit_text", "threading_layer"]
 
-#: grids of at least this many nodes count the busy cores before a stage's parallel loops; the
+#: grids of at least this many nodes count the busy cores before a stage's parallel loops (the swept edges: every
+#: grid, ``fit_threads(any_size=True)``); the
 #: node graph's (``field.graph.PARALLEL_MIN_NODES``) and the fine level's (``multigrid.PARALLEL_MIN_CELLS``)
 #: loops run on threads from about there on
 PARALLEL_MIN_NODES = 100_000

@@ -844,7 +844,7 @@ class PlanRun:
         ekey = (key, "swept")
         edges = self.p._colliding.get(ekey)
         if edges is None:
-            self.p._fit_threads(base.occupied.size, any_size=True)     # the cores other work leaves
+            self.p._fit_threads(base.occupied.size, any_size=True, note=False)   # the cores other work leaves
             edges = swept.swept_edges(base.occupied, grid.periodic, grid.lower_rad, grid.step_rad, self.motions,
                                       token=self.cancel)
             edges.flags.writeable = False

@@ -379,14 +379,17 @@ class Planner:
         self._cspaces[key] = cs
         return cs, key, False
 
-    def _fit_threads(self, nodes: int, any_size: bool = False) -> None:
+    def _fit_threads(self, nodes: int, any_size: bool = False, note: bool = True) -> None:
         """
         Give the stage about to run on ``nodes`` grid nodes the threads the CPU limit and load leave; note it.
 
         ``any_size``: the stage's loops run on threads at every grid size (``cores.fit_threads``).
+        ``note``: False: not noted in the plan's ``solver_stats`` (:meth:`threads_note`).
         """
         s = self.settings
-        self._fits.append(fit_threads(s.max_threads, nodes, s.threads_follow_load, any_size))
+        fit = fit_threads(s.max_threads, nodes, s.threads_follow_load, any_size)
+        if note:
+            self._fits.append(fit)
 
     def threads_note(self) -> dict:
         """
@@ -395,7 +398,10 @@ class Planner:
         ``threads``: the fewest threads a stage of the plan ran its parallel loops on,
         ``threads_limit``: the most it could, ``busy_cores``: the most cores it found busy
         with other work (0 where none was counted), and where the process's CPU limit took
-        threads, ``cpu_limit``: that limit in whole CPUs (``cores.fit_threads``).
+        threads, ``cpu_limit``: that limit in whole CPUs (``cores.fit_threads``).  The stages
+        are the C-space's and the field's solves: a first repair's swept edges take their
+        count the same way but are not noted (a plan that finds them cached runs none, and a
+        plan's stats on a small grid are the same whatever the caches and the load).
         """
         fits = [f for f in self._fits if f.busy is not None or f.cpu_limit is not None]
         if not fits:

@@ -48,9 +48,11 @@ class PlannerSettings:
         max_grid_nodes: refuse larger grids (before allocating).
         max_threads: the most threads a plan's parallel kernels use; 0: numba's own number (one per
             core, or ``NUMBA_NUM_THREADS``).  No more than the process's CPU limit, and on large
-            grids fewer while other work keeps the cores busy (``cores.fit_threads``).
+            grids (and a first repair's swept edges on any) fewer while other work keeps the cores
+            busy (``cores.fit_threads``).
         threads_follow_load: whether the stages take no more threads than the CPU limit and, on
-            large grids, fewer while other work keeps cores busy (False: always ``max_threads``).
+            large grids (a first repair's swept edges: any), fewer while other work keeps cores busy
+            (False: always ``max_threads``).
         grid_extra_margin_m: added to the safety margin for the grid only, metres (the
             planner retries at 0 before answering ``disconnected``).
         shortcut: try a shortcut spline before the paper's every-second-node spline.

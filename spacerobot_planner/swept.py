@@ -39,7 +39,7 @@ work leaves, on every grid (``cores.fit_threads(any_size=True)``): on a team of 
 threads, a grid of 36³ repaired in 137 ms instead of 14.6 ms while another process kept one of
 the development VM's two cores busy (each of the four parallel loops waited about 32 ms, a time
 slice, for the team member that had lost its core; ``bench scenes --dof 3 --count 60``, the repair
-stage's median), where on an idle machine the team takes 0.6-0.7 of one thread's time (36³ to
+stage's median), where on an idle machine the team takes 0.55-0.7 of one thread's time (36³ to
 60³).  Editing ``cspace._fill_rows``: numba's cache keeps :func:`_candidate_rows` compiled against
 the old one (delete this module's cached kernels, ``__pycache__/swept*.nbi``, ``*.nbc``).
 """
