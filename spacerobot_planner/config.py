@@ -133,7 +133,7 @@ PARAMETERS = (
               "numba's (one per core, or NUMBA_NUM_THREADS). No more than the process's CPU limit (a "
               "container's cgroup quota, rounded up), and on grids of 100 000 nodes and more, no more "
               "than the cores other work leaves (counted before the C-space and each field solve; before a "
-              "first repair's swept edges on every grid). A "
+              "first repair's swept edges, and a C-space built node by node, on every grid). A "
               "plan is the same bit for bit on any number.",
               False, 0, 4096),
     ParamSpec("planner.threads_follow_load", "bool", True,

@@ -19,8 +19,9 @@ number of threads (``field.multigrid``), so the count changes only the time.  Be
 configured number holds and nothing is read (the loops there are a few, and short), but before a
 plan's first repair's swept edges (``swept``), whose loops run on threads at every size and waited
 a time slice each beside another session's busy process (a 36³ repair 137 ms instead of 14.6):
-they are counted on every grid (``any_size``).  Where ``/proc`` cannot be read (not Linux), the
-configured number holds.
+they are counted on every grid (``any_size``), as before a C-space built node by node (a last
+planned joint that is not the chain's last: ``cspace.loops_at_any_size``).  Where ``/proc`` cannot
+be read (not Linux), the configured number holds.
 
 A process in a container often may run on all of the machine's CPUs but for a share of their time
 only: a CPU limit (cgroup's ``cpu.max``, or ``cpu.cfs_quota_us`` over ``cpu.cfs_period_us`` in

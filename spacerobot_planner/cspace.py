@@ -477,6 +477,23 @@ def _fill_rows_parallel(occ, n_rows, *args):
 ROWS_PARALLEL_NODES = 300_000
 
 
+def _by_rows(axis_joint, n_joints: int) -> bool:
+    """Tell whether the row kernel fills a grid: its last axis is the chain's last joint (else node by node)."""
+    return int(axis_joint[-1]) == n_joints - 1
+
+
+def loops_at_any_size(robot) -> bool:
+    """
+    Tell whether the C-space of ``robot``'s planned joints runs a parallel loop on every grid size.
+
+    The node-by-node kernel (:func:`_occupancy_kernel`, where the last planned joint is not the
+    chain's last) runs on numba's threads whatever the size; the row kernel from
+    ``ROWS_PARALLEL_NODES`` nodes only.  The planner counts the busy cores before such a build
+    on every grid (``cores.fit_threads(any_size=True)``).
+    """
+    return not _by_rows(robot.planned_joints, robot.n_joints)
+
+
 def _occupancy(shape, lower, step, axis_joint, *rest, token=None, parallel=None):
     """
     Use the row kernel where the last axis is the chain's last joint, else node by node.
@@ -488,7 +505,7 @@ def _occupancy(shape, lower, step, axis_joint, *rest, token=None, parallel=None)
     token = Termination.of(token)
     stop = token.flag
     q_locked = rest[0]
-    if axis_joint[-1] != q_locked.shape[0] - 1:
+    if not _by_rows(axis_joint, q_locked.shape[0]):
         occ = _occupancy_kernel(shape, lower, step, axis_joint, *rest, stop)
     else:
         n_nodes = int(np.prod(shape))

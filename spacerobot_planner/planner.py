@@ -40,7 +40,7 @@ import numpy as np
 from .collision import CollisionChecker
 from .contact import warm_up as contact_warm_up
 from .cores import fit_threads
-from .cspace import GridSpec, body_occupancy, build_cspace
+from .cspace import GridSpec, body_occupancy, build_cspace, loops_at_any_size
 from .cspace import warm_up as cspace_warm_up
 from .descent import descend
 from .field import solve_field
@@ -361,10 +361,10 @@ class Planner:
         if cs is not None:
             return cs, key, True
         body_key = (grid, margin)
+        self._fit_threads(grid.n_nodes, any_size=loops_at_any_size(sc.robot))    # the body table's loops too
         if body_key not in self._body_tables:
             self._remember(self._body_tables, body_key, body_occupancy(sc.robot, grid, margin, token=token), 4)
         self._test_stall("cspace", token)
-        self._fit_threads(grid.n_nodes)
         cs = build_cspace(sc.robot, sc.scene, grid, extra_margin_m=extra_m,
                           body_table=self._body_tables[body_key], token=token)
         if len(self._cspaces) >= 4:

@@ -268,6 +268,40 @@ def test_small_repair_under_load_runs_one_thread_same_path(request):
     assert idle[1] == 2 or idle[2] == 2          # (idle: whichever form the machine's load gave)
 
 
+def test_node_by_node_cspace_counts_the_busy_cores_on_a_small_grid(paper_scenario, request):
+    """
+    A C-space whose last planned joint is not the chain's last (node by node, a parallel loop at any size) counts.
+
+    The paper 3-DOF arm with its elbow (the last joint) locked: its C-space over the attitude and
+    the shoulder runs ``cspace._occupancy_kernel`` on numba's threads on every grid, so beside one
+    busy process per core the planner gives it one thread (and says so); the paper arm planning
+    its last joint counts nothing on a small grid.
+    """
+    import numba
+    from spacerobot_planner.cspace import grid_for_robot, loops_at_any_size
+    from spacerobot_planner.planner import Planner
+    _skip_without_proc()
+    n = _my_cores()
+    if numba.config.NUMBA_NUM_THREADS < 2 or n > MOST_HOGS or n < (os.cpu_count() or 1):
+        pytest.skip("numba runs one thread here, or the busy processes cannot hold every core")
+    sc = paper_scenario(3)
+    locked = np.array(sc.robot.locked_rad, dtype=float)
+    locked[2] = sc.start_rad[2]
+    robot = replace(sc.robot, planned_joints=(0, 1), locked_rad=locked)
+    assert loops_at_any_size(robot) and not loops_at_any_size(sc.robot)
+    two = replace(sc, robot=robot, grid=grid_for_robot(robot, [36, 36]), start_rad=sc.start_rad[:2],
+                  goal_rad=sc.goal_rad[:2])
+    assert two.grid.n_nodes < cores.PARALLEL_MIN_NODES
+    request.getfixturevalue("every_core_busy")
+    busy = Planner(two)
+    busy.plan(two.start_rad, two.goal_rad)
+    note = busy.threads_note()
+    assert note["threads"] == 1 and note["busy_cores"] >= 1, note
+    rows = Planner(sc)
+    rows.plan(sc.start_rad, sc.goal_rad)
+    assert "busy_cores" not in rows.threads_note()            # the row kernel's small grid: nothing counted
+
+
 def test_threads_text():
     assert cores.threads_text({}) == ""
     assert cores.threads_text({"threads": 2, "threads_limit": 2, "busy_cores": 0}) == ""
