@@ -147,3 +147,29 @@ def test_an_aim_without_a_finite_figure_is_not_measured():
     out = _by_name(aims.evaluate({"plan": plan}))
     r = out["field against the paper's Gauss–Seidel, 181²"]
     assert r["value"] is None and r["met"] is None
+
+
+def test_bench_scenes_load_runs_its_busy_processes_and_says_so(capsys, monkeypatch):
+    """``bench scenes --load 1``: its busy process runs while the scenes are planned, then stops; the output says so."""
+    import contextlib
+    import json
+
+    from spacerobot_planner.bench import scenes
+    started, running = [], []
+    real = scenes.busy_processes
+
+    @contextlib.contextmanager
+    def watched(count):
+        with real(count) as hogs:
+            started.extend(hogs)
+            yield hogs
+            running.extend(h.poll() is None for h in hogs)     # still running once the scenes are planned
+
+    monkeypatch.setattr(scenes, "busy_processes", watched)
+    assert scenes.main(["--dof", "2", "--count", "2", "--oracle", "0", "--slowest", "0", "--load", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "2 scenes (seed 0, 1 busy-loop process beside)" in out
+    rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert rows and all(r["load"] == 1 for r in rows)
+    assert len(started) == 1 and running == [True]
+    assert started[0].poll() is not None                          # stopped after the run

@@ -9,7 +9,8 @@ random locked attitude, and 3-DOF at 36³.  The goal is the planner's own (the b
 capture posture of the target), so some scenes end before the field (``goal_unreachable``,
 ``goal_in_collision``): the code counts say how many.
 
-``--profile`` adds the per-step profile (``bench/profile.py``), the mean per scene.
+``--profile`` adds the per-step profile (``bench/profile.py``), the mean per scene; ``--load N``
+runs N busy-loop processes meanwhile (a loaded machine: the tail a user meets beside other work).
 The CG iterations of each answer's field (median, p90, max, sum) and the repairs are counts,
 the same on any machine: a change to the field compares by them where times drift.  The
 answers' digest (:func:`_digest_rows`: codes, paths, fields and repairs) says whether a
@@ -43,6 +44,7 @@ from ..config import load_scenario
 from ..planner import STAGES, Planner, warm_up
 from ..scene import Scene, Target
 from .profile import StepProfile, print_rows
+from .timing import busy_processes
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 CELLS = {2: 180, 3: 36}
@@ -128,8 +130,12 @@ def _warm_up(dof: int) -> None:
 
 
 def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile: bool = False,
-        slowest: int = 5) -> list:
-    """Plan ``count`` random scenes; return the JSON rows (and print the table and the ``slowest`` scenes)."""
+        slowest: int = 5, load: int = 0) -> list:
+    """
+    Plan ``count`` random scenes; return the JSON rows (and print the table and the ``slowest`` scenes).
+
+    ``load``: the busy-loop processes running meanwhile (said in the title; the caller runs them).
+    """
     _warm_up(dof)
     prof = StepProfile() if profile else None
     rng = np.random.default_rng([seed, dof])
@@ -156,7 +162,8 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
         if res.ok:
             planned.append((sc, start, goal, res))
     rows = []
-    print(f"\nbench scenes: {dof}-DOF at {grid_label}, {count} scenes (seed {seed}); times in ms")
+    beside = f", {load} busy-loop process{'es' if load != 1 else ''} beside" if load else ""
+    print(f"\nbench scenes: {dof}-DOF at {grid_label}, {count} scenes (seed {seed}{beside}); times in ms")
     print(f"{'stage':>10} {'n':>5} {'median':>8} {'p90':>8} {'p99':>8} {'max':>8} {'max/med':>8}")
     for k in STAGES:
         if not per_stage[k]:
@@ -293,11 +300,13 @@ def main(argv=None) -> int:
     ap.add_argument("--solver", default=None, help="field solver (default: the planner's)")
     ap.add_argument("--profile", action="store_true", help="also print the per-step profile (mean per scene)")
     ap.add_argument("--slowest", type=int, default=5, help="print the N slowest scenes, what they did (default 5)")
+    ap.add_argument("--load", type=int, default=0, metavar="N", help="run N busy-loop processes meanwhile")
     args = ap.parse_args(argv)
     kw = {} if args.solver is None else {"solver": args.solver}
     rows = []
-    for dof in (int(d) for d in args.dof.split(",")):
-        rows += run(dof, args.count, args.seed, args.oracle, kw, args.profile, args.slowest)
+    with busy_processes(args.load):
+        for dof in (int(d) for d in args.dof.split(",")):
+            rows += run(dof, args.count, args.seed, args.oracle, kw, args.profile, args.slowest, args.load)
     for r in rows:
-        print(json.dumps(r))
+        print(json.dumps({**r, "load": args.load}))
     return 0
