@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 __all__ = ["Fit", "PARALLEL_MIN_NODES", "fit_threads", "current_threads", "busy_share", "busy_elsewhere",
            "threads_text", "own_thread_files", "cpu_limit", "cgroup_cpu_limit", "prefer_threading_layers",
-           "LAYER_PRIORITY", "limit_text", "threading_layer"]
+           "LAYER_PRIORITY", "limit_phrase", "limit_text", "threading_layer"]
 
 #: grids of at least this many nodes count the busy cores before a stage's parallel loops (the swept edges: every
 #: grid, ``fit_threads(any_size=True)``); the
@@ -278,9 +278,14 @@ def current_threads() -> int:
     return numba.get_num_threads() if pool._is_initialized else numba.config.NUMBA_NUM_THREADS
 
 
+def limit_phrase(cpus: int | None) -> str:
+    """Return 'a CPU limit of 2' for a CPU limit of 2 (whole CPUs), '' for None: how every line names it."""
+    return "" if cpus is None else f"a CPU limit of {cpus}"
+
+
 def limit_text(cpus: int | None) -> str:
-    """Return ', a CPU limit of 2' for a CPU limit of 2 (whole CPUs), '' for None: how every line names it."""
-    return "" if cpus is None else f", a CPU limit of {cpus}"
+    """Return ', a CPU limit of 2' (:func:`limit_phrase` after a comma), '' for None."""
+    return "" if cpus is None else f", {limit_phrase(cpus)}"
 
 
 def threading_layer() -> str:
@@ -301,11 +306,9 @@ def threads_text(stats: dict) -> str:
     """
     if stats.get("threads", 0) >= stats.get("threads_limit", 0):
         return ""
-    why = [limit_text(stats.get("cpu_limit"))[2:]]
     busy = stats.get("busy_cores") or 0
-    if busy:
-        why.append(f"{busy} {'core' if busy == 1 else 'cores'} busy with other work")
-    why = [w for w in why if w]
+    why = [w for w in (limit_phrase(stats.get("cpu_limit")),
+                       f"{busy} {'core' if busy == 1 else 'cores'} busy with other work" if busy else "") if w]
     return f"; parallel loops on {stats['threads']} of {stats['threads_limit']} threads" + (
         ", " + " and ".join(why) if why else "")
 

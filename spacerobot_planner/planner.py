@@ -474,8 +474,7 @@ class Planner:
         """
         with self._lock:
             self._fits = []
-            s = self.settings                    # the numba count of this thread; noted where a stage runs loops
-            fit_threads(s.max_threads, 0, s.threads_follow_load)
+            self._fit_threads(0, note=False)     # the numba count of this thread; noted where a stage runs loops
             return PlanRun(self, self.settings, cancel, progress, start_tangent).run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:

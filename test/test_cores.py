@@ -268,16 +268,18 @@ def test_small_repair_under_load_runs_one_thread_same_path(request):
     assert idle[1] == 2 or idle[2] == 2          # (idle: whichever form the machine's load gave)
 
 
-def test_node_by_node_cspace_counts_the_busy_cores_on_a_small_grid(paper_scenario, request):
+def test_node_by_node_cspace_counts_the_busy_cores_on_a_small_grid(paper_scenario, request, monkeypatch):
     """
     A C-space whose last planned joint is not the chain's last (node by node, a parallel loop at any size) counts.
 
     The paper 3-DOF arm with its elbow (the last joint) locked: its C-space over the attitude and
     the shoulder runs ``cspace._occupancy_kernel`` on numba's threads on every grid, so beside one
-    busy process per core the planner gives it one thread (and says so); the paper arm planning
-    its last joint counts nothing on a small grid.
+    busy process per core the planner gives it one thread: numba's count as each call of the
+    kernel starts (the body table's and the C-space's), and the plan says so; the paper arm
+    planning its last joint counts nothing on a small grid.
     """
     import numba
+    from spacerobot_planner import cspace
     from spacerobot_planner.cspace import grid_for_robot, loops_at_any_size
     from spacerobot_planner.planner import Planner
     _skip_without_proc()
@@ -293,8 +295,15 @@ def test_node_by_node_cspace_counts_the_busy_cores_on_a_small_grid(paper_scenari
                   goal_rad=sc.goal_rad[:2])
     assert two.grid.n_nodes < cores.PARALLEL_MIN_NODES
     request.getfixturevalue("every_core_busy")
+    kernel, counts = cspace._occupancy_kernel, []
+
+    def counted(*args):
+        counts.append(numba.get_num_threads())
+        return kernel(*args)
+    monkeypatch.setattr(cspace, "_occupancy_kernel", counted)
     busy = Planner(two)
     busy.plan(two.start_rad, two.goal_rad)
+    assert counts == [1, 1], counts                               # the body table, then the C-space
     note = busy.threads_note()
     assert note["threads"] == 1 and note["busy_cores"] >= 1, note
     rows = Planner(sc)

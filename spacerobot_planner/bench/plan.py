@@ -40,7 +40,7 @@ import numpy as np
 from ..collision import CollisionChecker
 from ..config import load_scenario
 from ..contact import penetration_depths_m
-from ..cores import cpu_limit, limit_text, threading_layer
+from ..cores import cpu_limit, limit_phrase, limit_text, threading_layer
 from ..field import DEFAULT_SOLVER, SOLVERS, solve_field
 from ..planner import Planner, warm_up as planner_warm_up
 from .profile import StepProfile, print_rows
@@ -271,9 +271,8 @@ def _run(args) -> int:
               f"cached replan {tail(r['replan_cached'])} ({r['replan_cached']['plans']} replans)")
         t = r["total"]
         if "threads" in t and t["threads"] < t["threads_limit"]:
-            why = [limit_text(t.get("cpu_limit"))[2:]] + (
-                [f"up to {t['busy_cores']} cores busy with other work"] if t["busy_cores"] else [])
-            why = [w for w in why if w]
+            why = [w for w in (limit_phrase(t.get("cpu_limit")),
+                               f"up to {t['busy_cores']} cores busy with other work" if t["busy_cores"] else "") if w]
             print(f"  {scene:<5}{t['grid']:>12}  parallel loops on as few as {t['threads']} of {t['threads_limit']} "
                   f"threads: {' and '.join(why)}")
         if "replan_contact" in r:
