@@ -2,7 +2,7 @@
 Shared helpers of the in-process node tests (test_node.py, test_reliability_node.py).
 
 The ``graph`` fixture (conftest.py) makes them.  Each graph gets a private rclpy Context
-and a SingleThreadedExecutor (what planner_node's main uses) spinning in a thread; no
+and a NodeExecutor (what planner_node's main uses) spinning in a thread; no
 launch_testing.
 """
 
@@ -21,7 +21,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
@@ -29,6 +28,7 @@ from visualization_msgs.msg import MarkerArray
 import spacerobot_planner
 from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_params_file, scenario_from_params
+from spacerobot_planner.ros.executor import NodeExecutor
 from spacerobot_planner.ros.mock_arm_node import MockArmNode
 from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
 from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
@@ -107,7 +107,7 @@ class Graph:
                                    backend_factory=planning_backend)
         self.planner_destroyed = False
         self.arm = None
-        self.ex = SingleThreadedExecutor(context=self.ctx)     # as planner_node.main
+        self.ex = NodeExecutor(context=self.ctx)     # as planner_node.main
         self.ex.add_node(self.planner)
         if with_arm:
             self.arm = MockArmNode(context=self.ctx,

@@ -408,11 +408,11 @@ def _future_stamp_run(t, q, v):
     """
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectory
 
     from spacerobot_planner.config import load_params_file
+    from spacerobot_planner.ros.executor import NodeExecutor
     from spacerobot_planner.ros.mock_arm_node import MockArmNode
     from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS, params_to_overrides
     ctx = Context()
@@ -427,7 +427,7 @@ def _future_stamp_run(t, q, v):
             states.append(m)
     sub = drv.create_subscription(JointState, "joint_states", record, 100)
     pub = drv.create_publisher(JointTrajectory, "joint_trajectory", 10)
-    ex = SingleThreadedExecutor(context=ctx)
+    ex = NodeExecutor(context=ctx)      # as the executables'
     ex.add_node(arm)
     ex.add_node(drv)
 

@@ -34,7 +34,6 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
@@ -42,6 +41,7 @@ from spacerobot_planner import planner as planner_mod
 from spacerobot_planner.ik import grasp_ik
 from spacerobot_planner.config import scenario_from_params
 from spacerobot_planner.planner import Planner
+from spacerobot_planner.ros.executor import NodeExecutor
 from spacerobot_planner.ros.planner_node import PlannerNode, params_to_overrides, spin_until_shutdown
 from spacerobot_planner.ros.conversions import joint_state_msg
 from spacerobot_planner.scene import Target
@@ -479,7 +479,7 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
     flat = scene_params("3dof", **LONG)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat))
     drv = rclpy.create_node("test_driver", context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
+    ex = NodeExecutor(context=ctx)
     spinner = threading.Thread(target=spin_until_shutdown, args=(node, ex), name="main-like")
     spinner.start()
     try:

@@ -86,12 +86,12 @@ def _run(args) -> int:
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectory
 
     from ..config import load_params_file, scenario_from_params
+    from ..ros.executor import NodeExecutor
     from ..ros.planner_node import PlannerNode, params_to_overrides
     from ..ros.conversions import joint_state_msg
 
@@ -108,7 +108,7 @@ def _run(args) -> int:
     # the driver shares the node's executor (as planner_node.main's has only the node): no parameter
     # services and no rosout, the fewest entities a driver needs in the executor's wait set
     drv = rclpy.create_node("latency_driver", context=ctx, start_parameter_services=False, enable_rosout=False)
-    ex = SingleThreadedExecutor(context=ctx)     # as planner_node.main
+    ex = NodeExecutor(context=ctx)     # as planner_node.main
     ex.add_node(node)
     ex.add_node(drv)
     got = _Arrivals(node, drv, margins)
@@ -385,11 +385,11 @@ def _moving(args, flat, margins) -> dict:
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from trajectory_msgs.msg import JointTrajectory
 
     from ..config import scenario_from_params
+    from ..ros.executor import NodeExecutor
     from ..ros.mock_arm_node import MockArmNode
     from ..ros.parameters import MOCK_ARM_PARAMETERS
     from ..ros.planner_node import PlannerNode, params_to_overrides
@@ -401,7 +401,7 @@ def _moving(args, flat, margins) -> dict:
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat), freeze_start_up=True)
     arm = MockArmNode(context=ctx, parameter_overrides=params_to_overrides(flat, MOCK_ARM_PARAMETERS))
     drv = rclpy.create_node("latency_moving_driver", context=ctx, start_parameter_services=False, enable_rosout=False)
-    ex = SingleThreadedExecutor(context=ctx)
+    ex = NodeExecutor(context=ctx)
     for n in (node, arm, drv):
         ex.add_node(n)
     got, states = _Arrivals(node, drv, margins), []

@@ -21,8 +21,10 @@ import threading
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+
+from .executor import NodeExecutor
 
 
 #: the longest the main thread waits in rcl before it sees a Ctrl-C, seconds
@@ -56,7 +58,7 @@ def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | 
 def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
              on_shutdown: Callable[[Node], None] | None = None) -> int:
     """
-    ``rclpy.init``, ``make_node()``, spin in a SingleThreadedExecutor until Ctrl-C.
+    ``rclpy.init``, ``make_node()``, spin in a :class:`.executor.NodeExecutor` until Ctrl-C.
 
     A refused start (a ValueError or RuntimeError from ``make_node``: bad parameters, a
     failed autostart; or rclpy's own parameter exceptions) is printed as one line
@@ -88,7 +90,7 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
             signal.signal(signal.SIGTERM, request_stop)
             if signal.getsignal(signal.SIGINT) is signal.default_int_handler:     # not ignored
                 signal.signal(signal.SIGINT, request_stop)
-            spin_until_shutdown(node, SingleThreadedExecutor(),
+            spin_until_shutdown(node, NodeExecutor(),
                                 None if on_shutdown is None else (lambda: on_shutdown(node)), stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

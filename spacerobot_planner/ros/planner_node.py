@@ -31,7 +31,7 @@ at once, saying that it is queued) and the action ``plan_capture``.  The goal: t
 accepted request from any channel is what a replan or a parameter change plans to; a goal
 with its own ``start`` is planned and returned, not executed.
 
-Threads: callbacks only record requests (one SingleThreadedExecutor).  The session's ONE
+Threads: callbacks only record requests (one SingleThreadedExecutor, ``executor.NodeExecutor``).  The session's ONE
 worker thread plans, latest request wins, through ``worker.ProcessBackend``: a child
 process that never imports rclpy.
 """

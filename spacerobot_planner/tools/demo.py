@@ -61,9 +61,10 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
     # ROS (rclpy, the messages, the nodes) only here: offline_facts runs without it
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from trajectory_msgs.msg import JointTrajectory
 
+    from ..ros.executor import NodeExecutor
     from ..ros.mock_arm_node import MockArmNode
     from ..ros.parameters import MOCK_ARM_PARAMETERS
     from ..ros.planner_node import PlannerNode, params_to_overrides
@@ -85,7 +86,7 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
             arm = MockArmNode(parameter_overrides=params_to_overrides(
                 {**load_params_file(params_file, node="mock_arm"), **flat}, MOCK_ARM_PARAMETERS))
             driver = rclpy.create_node("demo_driver")
-            executor = SingleThreadedExecutor()    # see planner_node: no busy loop
+            executor = NodeExecutor()    # as the executables' (see planner_node: no busy loop)
             for n in (planner, arm, driver):
                 executor.add_node(n)
             got = []
