@@ -207,6 +207,54 @@ def test_serialized_trajectory_is_the_message_a_subscriber_gets(joints, k):
     assert deserialize_message(arm, JointTrajectory) == conv.publication_msgs(pub)[0]
 
 
+@pytest.mark.parametrize("config,n_postures,frame", [("paper_3dof", 5, "world"), ("paper_2dof", 8, "map"),
+                                                     ("servicer_4joint", 1, "base_link_x")])
+def test_serialized_markers_are_the_path_and_scene(config, n_postures, frame):
+    """
+    The markers' bytes the node publishes: the arm at postures along the path, the bodies, the target.
+
+    Judged after rclpy deserializes them, against the test's own geometry (``oracles.arm_points``,
+    ``oracles.body_polygon``) and against what a subscriber gets of the message build.
+    """
+    from rclpy.serialization import deserialize_message, serialize_message
+    from builtin_interfaces.msg import Time
+    from visualization_msgs.msg import Marker, MarkerArray
+    from oracles import arm_points, body_polygon
+    sc = load_scenario(os.path.join(CONFIG_DIR, f"{config}.yaml"))
+    robot = sc.robot
+    rng = np.random.default_rng(5)
+    path = np.linspace(sc.start_rad, sc.start_rad + rng.uniform(-2.0, 2.0, robot.dof), 23)
+    stamp = Time(sec=1_700_000_123, nanosec=456)
+    strips = conv.marker_strips(robot, sc.scene, path, n_postures)
+    got = deserialize_message(conv.markers_cdr(strips, frame, stamp), MarkerArray)
+    assert got == deserialize_message(serialize_message(conv.markers_msg(strips, frame, stamp)), MarkerArray)
+    assert conv._MARKERS_SERIALIZED             # so the node publishes these bytes
+    clear, *strips_got = got.markers
+    assert clear.action == Marker.DELETEALL and clear.header.frame_id == frame
+    assert all(m.header.frame_id == frame and (m.header.stamp.sec, m.header.stamp.nanosec) == (1_700_000_123, 456)
+               and m.type == Marker.LINE_STRIP and m.action == Marker.ADD and m.pose.orientation.w == 1.0
+               for m in strips_got)
+
+    def xyz(m):
+        p = np.array([[q.x, q.y, q.z] for q in m.points])
+        assert np.all(p[:, 2] == 0.0)
+        return p[:, :2]
+    arms = [m for m in strips_got if m.ns == "arm"]
+    postures = sorted(set(int(round(x)) for x in np.linspace(0, len(path) - 1, n_postures)))
+    assert [m.id for m in arms] == list(range(len(postures)))
+    for m, k in zip(arms, postures):
+        np.testing.assert_allclose(xyz(m), arm_points(robot, robot.full(path[k])), atol=1e-12)
+    bodies = [m for m in strips_got if m.ns == "spacecraft"]
+    for m, k in zip(bodies, (0, len(path) - 1)):
+        outline = body_polygon(robot, robot.full(path[k])[0])
+        np.testing.assert_allclose(xyz(m), np.vstack([outline, outline[:1]]), atol=1e-12)
+    assert len(bodies) == 2
+    target = [m for m in strips_got if m.ns == "target"]
+    poly = np.asarray(sc.scene.target.body_polygon_m)
+    np.testing.assert_array_equal(xyz(target[0]), np.vstack([poly, poly[:1]]))
+    assert len([m for m in strips_got if m.ns == "debris"]) == len(sc.scene.debris_m)
+
+
 @pytest.mark.parametrize("statuses,stamp,hw", [
     ([], None, ""),
     ([("p", DiagnosticStatus.ERROR, "failed: " + "x" * 5000, {"reason": "x" * 5000}),

@@ -41,7 +41,8 @@ __all__ = [
     "pose_to_target", "quaternion_to_yaw", "yaw_to_quaternion", "target_to_pose",
     "joint_state_positions", "joint_state_msg", "trajectory_to_msg", "msg_to_trajectory_arrays",
     "duration_to_s", "s_to_duration", "ns_to_time", "time_to_ns", "potential_slice_values", "obstacle_slice_values",
-    "grid_slice", "grid_slice_to_msg", "path_markers", "diagnostic_array", "plan_result", "predicted_drift_msg",
+    "grid_slice", "grid_slice_to_msg", "path_markers", "marker_strips", "markers_msg", "markers_cdr",
+    "markers_payload", "diagnostic_array", "plan_result", "predicted_drift_msg",
     "split_trajectory_msg", "plan_visuals", "GridSlices", "slice_axes_and_point", "publication_msgs",
     "publication_payloads", "trajectory_cdr", "diagnostic_cdr", "diagnostic_payload",
     "OBSTACLE", "UNREACHABLE",
@@ -376,58 +377,60 @@ def grid_slice_to_msg(values_xy, grid, slice_axes, frame_id: str, stamp=None) ->
 
 
 # ------------------------------------------------------------------ markers
-def _rgba(r, g, b, a=1.0):
-    return ColorRGBA(r=float(r), g=float(g), b=float(b), a=float(a))
-
-
-def _strip(mid, ns, pts, color, frame, stamp, width=0.03, closed=False):
-    m = Marker()
-    m.header.frame_id = frame
-    if stamp is not None:
-        m.header.stamp = stamp
-    m.ns, m.id, m.type, m.action = ns, mid, Marker.LINE_STRIP, Marker.ADD
-    m.pose.orientation.w = 1.0
-    m.scale.x = width
-    m.color = color
-    pts = np.asarray(pts, dtype=float)
-    if closed:
-        pts = np.vstack([pts, pts[:1]])
-    m.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in pts]
-    return m
-
-
-def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int = 8) -> MarkerArray:
+def marker_strips(robot, scene, path_rad, n_postures: int = 8) -> list:
     """
-    Build the markers of a planned path and its scene.
+    Return the LINE_STRIPs of a planned path and its scene: ``[(ns, id, points (k, 2) m, rgba, width m)]``.
 
-    Arm postures along a path (one LINE_STRIP each, start blue → goal green), the spacecraft body at
-    the start and the goal, the target body and handle, debris.
+    Arm postures along a path (start blue → goal green), the spacecraft body at the start and the
+    goal, the target body and handle, debris; a polygon's strip closed (its first point again).
     """
-    arr = MarkerArray()
-    clear = Marker()
-    clear.header.frame_id = frame
-    clear.action = Marker.DELETEALL
-    arr.markers.append(clear)
+    strips = []
     path = np.atleast_2d(np.asarray(path_rad, dtype=float))
     idx = np.unique(np.linspace(0, len(path) - 1, min(n_postures, len(path))).round().astype(int))
     pts = robot.forward_kinematics(robot.full(path[idx]))
     for i, (k, p) in enumerate(zip(idx, pts)):
         f = k / max(1, len(path) - 1)
         alpha = 0.4 + 0.6 * (i in (0, len(idx) - 1))
-        arr.markers.append(_strip(i, "arm", p, _rgba(0.1, 0.3 + 0.6 * f, 1.0 - 0.8 * f, alpha),
-                                  frame, stamp))
+        strips.append(("arm", i, p, (0.1, 0.3 + 0.6 * f, 1.0 - 0.8 * f, alpha), 0.03))
+
+    def closed(poly):
+        poly = np.asarray(poly, dtype=float)
+        return np.vstack([poly, poly[:1]])
     for i, k in enumerate((0, len(path) - 1)):
         att = robot.full(path[k])[0]
-        arr.markers.append(_strip(i, "spacecraft", robot.body_polygon_world(att),
-                                  _rgba(0.7, 0.7, 0.7), frame, stamp, 0.04, True))
+        strips.append(("spacecraft", i, closed(robot.body_polygon_world(att)), (0.7, 0.7, 0.7, 1.0), 0.04))
     if scene.target is not None:
-        arr.markers.append(_strip(0, "target", scene.target.body_polygon_m, _rgba(1.0, 0.5, 0.0),
-                                  frame, stamp, 0.04, True))
-        arr.markers.append(_strip(0, "handle", scene.target.handle_polygon_m, _rgba(1.0, 0.1, 0.1),
-                                  frame, stamp, 0.02, True))
+        strips.append(("target", 0, closed(scene.target.body_polygon_m), (1.0, 0.5, 0.0, 1.0), 0.04))
+        strips.append(("handle", 0, closed(scene.target.handle_polygon_m), (1.0, 0.1, 0.1, 1.0), 0.02))
     for i, poly in enumerate(scene.debris_m):
-        arr.markers.append(_strip(i, "debris", poly, _rgba(0.8, 0.1, 0.1), frame, stamp, 0.04, True))
+        strips.append(("debris", i, closed(poly), (0.8, 0.1, 0.1, 1.0), 0.04))
+    return [(ns, i, np.asarray(p, dtype=float).reshape(-1, 2), rgba, w) for ns, i, p, rgba, w in strips]
+
+
+def markers_msg(strips, frame: str, stamp=None) -> MarkerArray:
+    """Return the MarkerArray of :func:`marker_strips`' strips: a DELETEALL, then one LINE_STRIP each."""
+    arr = MarkerArray()
+    clear = Marker()
+    clear.header.frame_id = frame
+    clear.action = Marker.DELETEALL
+    arr.markers.append(clear)
+    for ns, mid, pts, rgba, width in strips:
+        m = Marker()
+        m.header.frame_id = frame
+        if stamp is not None:
+            m.header.stamp = stamp
+        m.ns, m.id, m.type, m.action = ns, mid, Marker.LINE_STRIP, Marker.ADD
+        m.pose.orientation.w = 1.0
+        m.scale.x = width
+        m.color = ColorRGBA(r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]), a=float(rgba[3]))
+        m.points = [Point(x=float(x), y=float(y), z=0.0) for x, y in pts]
+        arr.markers.append(m)
     return arr
+
+
+def path_markers(robot, scene, path_rad, frame: str, stamp=None, n_postures: int = 8) -> MarkerArray:
+    """Build the markers of a planned path and its scene (:func:`marker_strips`) as a MarkerArray."""
+    return markers_msg(marker_strips(robot, scene, path_rad, n_postures), frame, stamp)
 
 
 # ------------------------------------------------------------------ diagnostics
@@ -536,12 +539,13 @@ def plan_visuals(robot, scene, res, frame: str, grid_frame: str, stamp=None, use
     """
     Return the visual messages of an ok plan (a ``PlanResult``): (markers, cspace grid, potential grid).
 
-    The markers in the planning ``frame``; the grids (None without a C-space or field, or
-    under 2 planned joints) sliced by :func:`slice_axes_and_point` in ``grid_frame``.
+    The markers in the planning ``frame`` (serialized where that was checked:
+    :func:`markers_payload`); the grids (None without a C-space or field, or under 2 planned
+    joints) sliced by :func:`slice_axes_and_point` in ``grid_frame``.
     ``slices``: the last plan's grids (:class:`GridSlices`), reused (restamped) when this plan
     has the same C-space and field objects and the slice passes through the same node.
     """
-    markers = path_markers(robot, scene, res.path_rad, frame, stamp)
+    markers = markers_payload(marker_strips(robot, scene, res.path_rad), frame, stamp)
     sl = slice_axes_and_point(robot, res.start_rad, use_current_attitude, slice_attitude_deg)
     if sl is None or res.cspace is None:
         return markers, None, None
@@ -714,29 +718,111 @@ def diagnostic_cdr(statuses, stamp=None, hardware_id: str = "") -> bytes:
     return bytes(out)
 
 
-def _diagnostics_match() -> bool:
-    """
-    Tell whether :func:`diagnostic_cdr`'s bytes are the message they stand for.
+def _cdr_align(out: bytearray, size: int) -> None:
+    """Append the zero bytes that align the next primitive of ``size`` bytes (from the payload's start)."""
+    out += b"\0" * (-(len(out) - 4) % size)
 
-    rclpy deserializes them (as a subscriber does) into what a subscriber gets of
-    :func:`diagnostic_array`'s message (a string up to a NUL), on a few shapes (rclpy's own
-    serialization leaves its padding bytes uninitialised: not comparable byte for byte).
+
+def markers_cdr(strips, frame: str, stamp=None) -> bytes:
+    """
+    Return :func:`markers_msg`'s message serialized (CDR, as a publisher sends it), made from the strips.
+
+    ``strips``: :func:`marker_strips`' list; ``stamp``: builtin_interfaces/Time or None (zero).  No
+    message objects: about a tenth of the time of the MarkerArray's 14 markers and their points.
+    Checked once: rclpy deserializes it into that message (:data:`_MARKERS_SERIALIZED`).
+    """
+    sec, nsec = (0, 0) if stamp is None else (stamp.sec, stamp.nanosec)
+    out = bytearray(_CDR_LE)
+    _cdr_count(out, len(strips) + 1)
+    for k, strip in enumerate([None] + list(strips)):
+        _cdr_align(out, 4)
+        out += struct.pack("<iI", sec if k else 0, nsec if k else 0)
+        _cdr_string(out, frame)
+        if strip is None:                         # the DELETEALL: every field at its default
+            _cdr_string(out, "")
+            _cdr_align(out, 4)
+            out += struct.pack("<iii", 0, 0, Marker.DELETEALL)
+            _cdr_align(out, 8)
+            out += struct.pack("<7d3d4fiI?", 0, 0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, False)
+            pts = np.zeros((0, 3))
+        else:
+            ns, mid, xy, rgba, width = strip
+            _cdr_string(out, ns)
+            _cdr_align(out, 4)
+            out += struct.pack("<iii", mid, Marker.LINE_STRIP, Marker.ADD)
+            _cdr_align(out, 8)
+            out += struct.pack("<7d3d4fiI?", 0, 0, 0, 0, 0, 0, 1.0, width, 0, 0, *map(float, rgba), 0, 0, False)
+            pts = np.column_stack([xy, np.zeros(len(xy))])
+        _cdr_count(out, len(pts))
+        if len(pts):
+            _cdr_align(out, 8)
+            out += np.ascontiguousarray(pts, dtype="<f8").tobytes()
+        _cdr_count(out, 0)                        # colors
+        _cdr_string(out, "")                      # texture_resource
+        _cdr_align(out, 4)
+        out += struct.pack("<iI", 0, 0)           # texture: its header's stamp
+        _cdr_string(out, "")                      # its frame_id
+        _cdr_string(out, "")                      # its format
+        _cdr_count(out, 0)                        # its data
+        _cdr_count(out, 0)                        # uv_coordinates
+        _cdr_string(out, "")                      # text
+        _cdr_string(out, "")                      # mesh_resource
+        _cdr_string(out, "")                      # mesh_file: filename
+        _cdr_count(out, 0)                        # its data
+        out += b"\0"                              # mesh_use_embedded_materials
+    return bytes(out)
+
+
+def _same_as_rclpy(cdr, build, msg_type, cases) -> bool:
+    """
+    Tell whether ``cdr(*case)`` deserializes into what rclpy's round trip of ``build(*case)`` gives, in every case.
+
+    rclpy deserializes them as a subscriber does; its own serialization leaves its padding bytes
+    uninitialised, so the bytes themselves are not compared.  False where rclpy cannot say, or
+    raises (any doubt: the messages are published).
     """
     try:
         from rclpy.serialization import deserialize_message, serialize_message
     except ImportError:          # no rclpy serialization: messages are published
         return False
-    for statuses, stamp, hw in (([], None, ""), ([("n", DiagnosticStatus.WARN, "m", {})], Time(sec=3, nanosec=4), "h"),
-                                ([("node: planner", b"\x02", "failed: ü ✓", {"a": 1, "bb": "x\0y", "ccc": ""}),
-                                  ("node: input", DiagnosticStatus.OK, "", {"k": [1.5, "z"]})],
-                                 Time(sec=1_700_000_000, nanosec=999_999_999), "hw")):
+    for case in cases:
         try:
-            if deserialize_message(diagnostic_cdr(statuses, stamp, hw), DiagnosticArray) != \
-                    deserialize_message(serialize_message(diagnostic_array(statuses, stamp, hw)), DiagnosticArray):
+            if deserialize_message(cdr(*case), msg_type) != \
+                    deserialize_message(serialize_message(build(*case)), msg_type):
                 return False
         except Exception:        # noqa: BLE001 - any doubt: messages
             return False
     return True
+
+
+def _diagnostics_match() -> bool:
+    """
+    Tell whether :func:`diagnostic_cdr`'s bytes are the message they stand for.
+
+    What a subscriber gets of :func:`diagnostic_array`'s message (a string up to a NUL), on a few
+    shapes (:func:`_same_as_rclpy`).
+    """
+    cases = (([], None, ""), ([("n", DiagnosticStatus.WARN, "m", {})], Time(sec=3, nanosec=4), "h"),
+             ([("node: planner", b"\x02", "failed: ü ✓", {"a": 1, "bb": "x\0y", "ccc": ""}),
+               ("node: input", DiagnosticStatus.OK, "", {"k": [1.5, "z"]})],
+              Time(sec=1_700_000_000, nanosec=999_999_999), "hw"))
+    return _same_as_rclpy(diagnostic_cdr, diagnostic_array, DiagnosticArray, cases)
+
+
+def _markers_match() -> bool:
+    """
+    Tell whether :func:`markers_cdr`'s bytes are the message they stand for.
+
+    What a subscriber gets of :func:`markers_msg`'s message (the colours as float32), on a few
+    shapes (:func:`_same_as_rclpy`): no strip, strips of 0, 1 and several points, namespaces and
+    frames of every length modulo 4, a zero and a set stamp.
+    """
+    rng = np.random.default_rng(0)
+    shapes = ([], [("a", 0, np.zeros((0, 2)), (0.1, 0.2, 0.3, 0.4), 0.03)],
+              [(ns, i, rng.normal(size=(k, 2)), tuple(rng.uniform(size=4)), float(rng.uniform()))
+               for i, (ns, k) in enumerate((("arm", 1), ("ab", 5), ("abc", 2), ("abcd", 0), ("spacecraft", 7)))])
+    stamps = (None, Time(sec=3, nanosec=4), Time(sec=1_700_000_000, nanosec=999_999_999))
+    return _same_as_rclpy(markers_cdr, markers_msg, MarkerArray, zip(shapes, ("", "map", "world"), stamps))
 
 
 def _trajectories_match() -> bool:
@@ -770,6 +856,13 @@ def _trajectories_match() -> bool:
 _TRAJECTORIES_SERIALIZED = _trajectories_match()
 #: the node publishes :func:`diagnostic_cdr`'s bytes (:func:`_diagnostics_match`), else :func:`diagnostic_array`'s
 _DIAGNOSTICS_SERIALIZED = _diagnostics_match()
+#: the node publishes :func:`markers_cdr`'s bytes (:func:`_markers_match`), else :func:`markers_msg`'s
+_MARKERS_SERIALIZED = _markers_match()
+
+
+def markers_payload(strips, frame: str, stamp=None):
+    """Return what a publisher sends for :func:`markers_msg`: its bytes (:func:`markers_cdr`) or the message."""
+    return (markers_cdr if _MARKERS_SERIALIZED else markers_msg)(strips, frame, stamp)
 
 
 def diagnostic_payload(statuses, stamp=None, hardware_id: str = ""):
