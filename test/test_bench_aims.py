@@ -173,3 +173,38 @@ def test_bench_scenes_load_runs_its_busy_processes_and_says_so(capsys, monkeypat
     assert rows and all(r["load"] == 1 for r in rows)
     assert len(started) == 1 and running == [True]
     assert started[0].poll() is not None                          # stopped after the run
+
+
+def test_bench_latency_pauses_as_told_and_says_so(capsys, monkeypatch):
+    """
+    ``bench latency --pause-s``: the pause after each joint-state replan is the one given; every row says so.
+
+    The bench's sleeps are recorded (the target replans keep their own 50 ms); a pause that is
+    not a number of seconds >= 0 is refused naming the option.
+    """
+    import json
+    import time as real_time
+
+    from spacerobot_planner.bench import latency
+    slept = []
+
+    class _Time:
+        def __getattr__(self, name):
+            return getattr(real_time, name)
+
+        @staticmethod
+        def sleep(s):
+            slept.append(s)
+            real_time.sleep(s)
+    monkeypatch.setattr(latency, "time", _Time())
+    assert latency.main(["--repeats", "2", "--no-moving", "--pause-s", "0.0023"]) == 0
+    out = capsys.readouterr().out
+    assert "joint-state replans 2.3 ms after the last trajectory" in out
+    rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    js = next(r for r in rows if r["stage"] == "latency_joint_state")
+    assert js["repeats"] == 2 and all(r["pause_s"] == 0.0023 for r in rows if "seconds" in r)
+    assert slept.count(0.0023) == 2 and slept.count(latency.PAUSE_S) == 2
+    for bad in ("-1", "nan"):
+        with pytest.raises(SystemExit):
+            latency.main(["--pause-s", bad])
+        assert "--pause-s" in capsys.readouterr().err

@@ -37,7 +37,10 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   case of the node's ``trajectory.start_lead_s`` is measured (both must stay positive: a
   controller refuses a trajectory that ends before it arrives, and one arriving after its
   start begins with a velocity step);
-- ``--load N`` runs N busy-loop processes meanwhile (a loaded machine).
+- ``--load N`` runs N busy-loop processes meanwhile (a loaded machine);
+- ``--pause-s S``: the pause after each joint-state replan's trajectory before the next joint
+  state (default :data:`PAUSE_S`, the aim's: after it the machine has gone idle and runs slow for
+  a while; shorter: a stream of replans at sensor rate).  Every row says it (``pause_s``).
 
 The node is built as ``main()`` builds it (``freeze_start_up``: its start-up frozen out of the
 garbage collector's reach once configured), so a full collection of this process's some 10⁵
@@ -62,6 +65,8 @@ from .timing import busy_processes, tail_stats
 _PARAMS = Path(__file__).resolve().parent.parent.parent / "config" / "paper_3dof.yaml"
 #: The aim of ``latency_joint_state``'s median, s (issue 19; ``bench aims`` reads it here).
 JOINT_STATE_AIM_S = 0.005
+#: the default pause after each joint-state replan's trajectory, s (the aim's figures)
+PAUSE_S = 0.05
 
 
 def main(argv=None) -> int:
@@ -73,7 +78,11 @@ def main(argv=None) -> int:
                     help="plan in the worker thread instead of the child process")
     ap.add_argument("--no-moving", action="store_true", help="skip the latency_moving stage (mock arm)")
     ap.add_argument("--load", type=int, default=0, metavar="N", help="run N busy-loop processes meanwhile")
+    ap.add_argument("--pause-s", type=float, default=PAUSE_S, metavar="S",
+                    help=f"pause after each joint-state replan's trajectory, s (default {PAUSE_S:g}, the aim's)")
     args = ap.parse_args(argv)
+    if not (args.pause_s >= 0.0 and np.isfinite(args.pause_s)):
+        ap.error(f"--pause-s: expected a finite number of seconds >= 0, got {args.pause_s}")
     with busy_processes(args.load):
         return _run(args)
 
@@ -160,7 +169,7 @@ def _run(args) -> int:
             if arrival is not None:          # else the replan sent nothing (e.g. at the goal): skipped
                 lat_j.append(arrival - t0)
                 parts.append(_parts(node, t0, arrival))
-            time.sleep(0.05)
+            time.sleep(args.pause_s)
         cached = node.last_result.cached
         grid = sc.grid.label()
         msg_s = _message_times(node, args.repeats)
@@ -171,7 +180,7 @@ def _run(args) -> int:
         stages[2:2] = [(name, [p[name] for p in parts if name in p], None) for name in _PARTS
                        if any(name in p for p in parts)]
         for stage, vals, aim in stages:
-            rows.append({"stage": stage, "grid": grid, **_stats(vals), "aim_s": aim,
+            rows.append({"stage": stage, "grid": grid, **_stats(vals), "aim_s": aim, "pause_s": args.pause_s,
                          "backend": "thread" if args.in_process else "process",
                          **({"cached": list(cached)} if stage == "latency_joint_state" else {})})
     finally:
@@ -184,6 +193,9 @@ def _run(args) -> int:
     if not args.no_moving:
         rows.append(_moving(args, flat, margins))
     rows.append(_margin_row(margins, sc.grid.label(), args))
+    print(f"bench latency: joint-state replans {1e3 * args.pause_s:g} ms after the last trajectory"
+          + (" (the aim's pause)" if args.pause_s == PAUSE_S else "")
+          + (f"; {args.load} busy-loop process{'es' if args.load != 1 else ''} beside" if args.load else ""))
     print(f"{'stage':<24}{'grid':<12}{'median ms':>10}{'p90 ms':>9}{'max ms':>9}{'aim ms':>8}")
     for r in rows:
         if "seconds" not in r:
