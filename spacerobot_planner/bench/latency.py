@@ -60,7 +60,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .timing import busy_processes, tail_stats
+from .timing import busy_processes, load_phrase, tail_stats
 
 _PARAMS = Path(__file__).resolve().parent.parent.parent / "config" / "paper_3dof.yaml"
 #: The aim of ``latency_joint_state``'s median, s (issue 19; ``bench aims`` reads it here).
@@ -195,7 +195,7 @@ def _run(args) -> int:
     rows.append(_margin_row(margins, sc.grid.label(), args))
     print(f"bench latency: joint-state replans {1e3 * args.pause_s:g} ms after the last trajectory"
           + (" (the aim's pause)" if args.pause_s == PAUSE_S else "")
-          + (f"; {args.load} busy-loop process{'es' if args.load != 1 else ''} beside" if args.load else ""))
+          + (f"; {load_phrase(args.load)}" if args.load else ""))
     print(f"{'stage':<24}{'grid':<12}{'median ms':>10}{'p90 ms':>9}{'max ms':>9}{'aim ms':>8}")
     for r in rows:
         if "seconds" not in r:

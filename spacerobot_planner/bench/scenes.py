@@ -44,7 +44,7 @@ from ..config import load_scenario
 from ..planner import STAGES, Planner, warm_up
 from ..scene import Scene, Target
 from .profile import StepProfile, print_rows
-from .timing import busy_processes
+from .timing import busy_processes, load_phrase
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"
 CELLS = {2: 180, 3: 36}
@@ -162,7 +162,7 @@ def run(dof: int, count: int, seed: int, n_oracle: int, solver_kw: dict, profile
         if res.ok:
             planned.append((sc, start, goal, res))
     rows = []
-    beside = f", {load} busy-loop process{'es' if load != 1 else ''} beside" if load else ""
+    beside = f", {load_phrase(load)}" if load else ""
     print(f"\nbench scenes: {dof}-DOF at {grid_label}, {count} scenes (seed {seed}{beside}); times in ms")
     print(f"{'stage':>10} {'n':>5} {'median':>8} {'p90':>8} {'p99':>8} {'max':>8} {'max/med':>8}")
     for k in STAGES:

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-__all__ = ["busy_processes", "call_times_s", "median_s", "tail_stats"]
+__all__ = ["busy_processes", "load_phrase", "call_times_s", "median_s", "tail_stats"]
 
 
 @contextlib.contextmanager
@@ -22,6 +22,11 @@ def busy_processes(count: int):
         for h in hogs:              # only the processes started here
             h.kill()
             h.wait()
+
+
+def load_phrase(count: int) -> str:
+    """Return "2 busy-loop processes beside" for ``--load 2`` (:func:`busy_processes`), "" for none."""
+    return f"{count} busy-loop process{'es' if count != 1 else ''} beside" if count else ""
 
 
 def call_times_s(fn, repeats: int) -> list:

@@ -630,13 +630,16 @@ def _cdr_point_layout(start: int, n: int) -> tuple:
 
 #: a CDR count or length: uint32, little endian
 _CDR_U32 = struct.Struct("<I").pack
-#: the zero bytes that align the payload (after the encapsulation header) to 4 bytes, by what is missing
-_CDR_PAD4 = (b"", b"\0", b"\0\0", b"\0\0\0")
+
+
+def _cdr_align(out: bytearray, size: int) -> None:
+    """Append the zero bytes that align the next primitive of ``size`` bytes (from the payload's start)."""
+    out += b"\0" * (-(len(out) - 4) % size)
 
 
 def _cdr_count(out: bytearray, n: int) -> None:
     """Append a sequence's element count (uint32, aligned to 4 from the payload's start)."""
-    out += _CDR_PAD4[-(len(out) - 4) % 4]
+    _cdr_align(out, 4)
     out += _CDR_U32(n)
 
 
@@ -718,11 +721,6 @@ def diagnostic_cdr(statuses, stamp=None, hardware_id: str = "") -> bytes:
     return bytes(out)
 
 
-def _cdr_align(out: bytearray, size: int) -> None:
-    """Append the zero bytes that align the next primitive of ``size`` bytes (from the payload's start)."""
-    out += b"\0" * (-(len(out) - 4) % size)
-
-
 def markers_cdr(strips, frame: str, stamp=None) -> bytes:
     """
     Return :func:`markers_msg`'s message serialized (CDR, as a publisher sends it), made from the strips.
@@ -734,25 +732,19 @@ def markers_cdr(strips, frame: str, stamp=None) -> bytes:
     sec, nsec = (0, 0) if stamp is None else (stamp.sec, stamp.nanosec)
     out = bytearray(_CDR_LE)
     _cdr_count(out, len(strips) + 1)
-    for k, strip in enumerate([None] + list(strips)):
+    # the DELETEALL first: every field at its default (no stamp, no width, no colour, no points)
+    for k, (ns, mid, xy, rgba, width) in enumerate([("", 0, np.zeros((0, 2)), (0.0,) * 4, 0.0)] + list(strips)):
+        kind, action, stamp_k = ((0, Marker.DELETEALL, (0, 0)) if k == 0
+                                 else (Marker.LINE_STRIP, Marker.ADD, (sec, nsec)))
         _cdr_align(out, 4)
-        out += struct.pack("<iI", sec if k else 0, nsec if k else 0)
+        out += struct.pack("<iI", *stamp_k)
         _cdr_string(out, frame)
-        if strip is None:                         # the DELETEALL: every field at its default
-            _cdr_string(out, "")
-            _cdr_align(out, 4)
-            out += struct.pack("<iii", 0, 0, Marker.DELETEALL)
-            _cdr_align(out, 8)
-            out += struct.pack("<7d3d4fiI?", 0, 0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, False)
-            pts = np.zeros((0, 3))
-        else:
-            ns, mid, xy, rgba, width = strip
-            _cdr_string(out, ns)
-            _cdr_align(out, 4)
-            out += struct.pack("<iii", mid, Marker.LINE_STRIP, Marker.ADD)
-            _cdr_align(out, 8)
-            out += struct.pack("<7d3d4fiI?", 0, 0, 0, 0, 0, 0, 1.0, width, 0, 0, *map(float, rgba), 0, 0, False)
-            pts = np.column_stack([xy, np.zeros(len(xy))])
+        _cdr_string(out, ns)
+        _cdr_align(out, 4)
+        out += struct.pack("<iii", mid, kind, action)
+        _cdr_align(out, 8)                        # pose (orientation w 1), scale (x the width), colour, lifetime 0
+        out += struct.pack("<7d3d4fiI?", 0, 0, 0, 0, 0, 0, 1.0, width, 0, 0, *map(float, rgba), 0, 0, False)
+        pts = np.column_stack([xy, np.zeros(len(xy))])
         _cdr_count(out, len(pts))
         if len(pts):
             _cdr_align(out, 8)
