@@ -35,7 +35,10 @@ only): in half the time (the capture scene's replans 145-170 -> 69-77 ms; refusa
 scan every family, 0.9-1.2 -> 0.4-0.6 s), the same plans to the bit on the 14 scenes it was
 measured on as the kernel that evaluated every Simpson point afresh.  A row's end point is
 now the row itself, not the previous row plus the step: the same attitude changes on smooth
-paths, within 4e-15 on rows drawn at random.  No ROS imports.
+paths, within 4e-15 on rows drawn at random.  A batch of paths (a family's scan, step 3's gaps
+at every approach offset, integrated together) runs on numba's threads from
+:data:`PARALLEL_MIN_ROWS` path rows on, each path as in one thread (the same bits on any number of
+threads); the pipeline gives the scans the cores other work leaves (``fit_threads``).  No ROS imports.
 """
 
 from __future__ import annotations
@@ -45,9 +48,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .collision import CollisionChecker
+from .cores import current_threads
 from .ik import _fit_to_bounds as fit_to_bounds  # noqa: PLC2701 - the IK module's own helpers
 from .ik import _two_link as two_link  # noqa: PLC2701
 from .ik import approach_error_rad
@@ -58,7 +62,8 @@ from .spacecraft import FreeFloatingResponse, MassProperties, free_floating_resp
 from .spacecraft import _momentum_map_row, _momentum_tables  # noqa: PLC2701 - the momentum's one rule
 
 __all__ = ["apparent_scene", "captures_free_floating", "check_capture_scenario", "FreeFloatingCapture",
-           "CapturePostureFF", "capture_postures", "attitude_changes_rad", "plan_capture", "SEARCH"]
+           "CapturePostureFF", "capture_postures", "attitude_changes_rad", "plan_capture", "SEARCH",
+           "warm_up"]
 
 
 def apparent_scene(scene, attitude_change_rad, body_position_m):
@@ -120,6 +125,27 @@ def _rate(h, q0, q1):
     return -num / h[0]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _profile_into(paths, b, pair, inertia, out, w, h_row, h_mid, h_next, mid):
+    """Write path b's attitude change at each row into out[b] (:func:`_attitude_profiles`); the rest is scratch."""
+    nk, n = paths.shape[1], paths.shape[2]
+    total = 0.0
+    _momentum_map_row(pair, inertia, paths[b, 0], w, h_row)
+    for k in range(nk - 1):
+        q0 = paths[b, k]
+        q1 = paths[b, k + 1]
+        for j in range(n):
+            mid[j] = q0[j] + 0.5 * (q1[j] - q0[j])
+        _momentum_map_row(pair, inertia, mid, w, h_mid)
+        _momentum_map_row(pair, inertia, q1, w, h_next)
+        step = _rate(h_row, q0, q1)
+        step += 4.0 * _rate(h_mid, q0, q1)
+        step += _rate(h_next, q0, q1)
+        total += step / 6.0
+        out[b, k + 1] = total
+        h_row, h_next = h_next, h_row
+
+
 @njit(cache=True, nogil=True)
 def _attitude_profiles(paths, pair, inertia):
     """
@@ -134,32 +160,53 @@ def _attitude_profiles(paths, pair, inertia):
     nb, nk, n = paths.shape
     out = np.zeros((nb, nk))
     w = np.empty((4, n))
-    h_row = np.empty(n)
-    h_mid = np.empty(n)
-    h_next = np.empty(n)
-    mid = np.empty(n)
+    h_row, h_mid, h_next, mid = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     for b in range(nb):
-        total = 0.0
-        _momentum_map_row(pair, inertia, paths[b, 0], w, h_row)
-        for k in range(nk - 1):
-            q0 = paths[b, k]
-            q1 = paths[b, k + 1]
-            for j in range(n):
-                mid[j] = q0[j] + 0.5 * (q1[j] - q0[j])
-            _momentum_map_row(pair, inertia, mid, w, h_mid)
-            _momentum_map_row(pair, inertia, q1, w, h_next)
-            step = _rate(h_row, q0, q1)
-            step += 4.0 * _rate(h_mid, q0, q1)
-            step += _rate(h_next, q0, q1)
-            total += step / 6.0
-            out[b, k + 1] = total
-            h_row, h_next = h_next, h_row
+        _profile_into(paths, b, pair, inertia, out, w, h_row, h_mid, h_next, mid)
     return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _attitude_profiles_parallel(paths, pair, inertia):
+    """:func:`_attitude_profiles` with the paths in 64 chunks on numba's threads: each path as in one thread."""
+    nb, nk, n = paths.shape
+    out = np.zeros((nb, nk))
+    chunks = 64
+    size = (nb + chunks - 1) // chunks
+    for ch in prange(chunks):
+        w = np.empty((4, n))
+        h_row, h_mid, h_next, mid = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+        for b in range(ch * size, min(nb, (ch + 1) * size)):
+            _profile_into(paths, b, pair, inertia, out, w, h_row, h_mid, h_next, mid)
+    return out
+
+
+#: A batch of at least this many path rows (paths × rows) runs on numba's threads where the calling
+#: thread has more than one (:func:`_profiles`; ``cores.current_threads``, which the pipeline sets for
+#: the cores other work leaves before the search).  Each path is integrated as in one thread: the same
+#: bits either way.  Below it, the team's start and join cost more than the rows (a row about 0.3 us).
+PARALLEL_MIN_ROWS = 4096
+
+
+def _profiles(paths, pair, inertia):
+    """Return :func:`_attitude_profiles` of ``paths`` (B, K, n), on numba's threads for a large batch (above)."""
+    nb, nk = paths.shape[0], paths.shape[1]
+    if nb > 1 and nb * nk >= PARALLEL_MIN_ROWS and current_threads() > 1:
+        return _attitude_profiles_parallel(paths, pair, inertia)
+    return _attitude_profiles(paths, pair, inertia)
 
 
 def _attitude_changes(paths, pair, inertia):
     """Return the attitude change over each path of ``paths`` (B, K, n): (B,) rad (see :func:`_attitude_profiles`)."""
-    return _attitude_profiles(paths, pair, inertia)[:, -1]
+    return _profiles(paths, pair, inertia)[:, -1]
+
+
+def warm_up(robot, masses: MassProperties) -> None:
+    """Load (or compile) the attitude kernel's two forms (:func:`_profiles`: one thread, numba's threads)."""
+    pair, inertia = _momentum_tables(robot, masses)
+    paths = np.zeros((2, 2, robot.n_joints))
+    _attitude_profiles(paths, pair, inertia)
+    _attitude_profiles_parallel(paths, pair, inertia)
 
 
 def _com_coefficients(robot, masses):
@@ -371,7 +418,7 @@ def check_capture_scenario(scenario) -> None:
 
 
 def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties | None = None,
-                 base_path=None, check=None) -> FreeFloatingCapture:
+                 base_path=None, check=None, fit_threads=None) -> FreeFloatingCapture:
     """
     Plan the arm so that the free-floating spacecraft ends grasping the handle perpendicularly.
 
@@ -398,6 +445,10 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
             quintic — the harmonic field's path in the scene as the body sees it at the end
             (``pipeline``).
         check: callable polled between candidates (a cancel check that raises).
+        fit_threads: callable run once before the scans, after the guides' plans (which set the
+            thread's numba threads for their own stages): the pipeline gives the scans' parallel
+            kernel the cores other work leaves (``cores.fit_threads(any_size=True)``); None: the
+            thread's count as it is.
 
     Raises
     ------
@@ -452,6 +503,8 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
     kinds = ("field", "quintic") if guided else ("quintic",)
     families = [(post, kind, base) for post in postures for kind in kinds
                 if (base := make_base(post, kind)) is not None]
+    if fit_threads is not None:          # every guide is made: no plan of its own runs from here on
+        fit_threads()
     if goal_rad is None and SEARCH["approach_as_parameter"]:
         # the approach tolerance as a free parameter: the end posture whose attitude change the
         # base path itself makes (no correction needed), where one exists within the tolerance
@@ -469,6 +522,25 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
             base = make_base(posts[0], kind) if posts else None
             return (None, None) if base is None else (base, posts[0])
 
+        def prefill(branches):
+            """Fill ``gaps`` at every fraction of ``fracs``, branch and kind: their paths integrated in one batch."""
+            todo, paths = [], []
+            for branch in branches:
+                for kind in kinds:
+                    for frac in fracs:
+                        key = (float(frac), branch, kind)
+                        base, post = based(frac, branch, kind)
+                        if base is None:
+                            gaps[key] = math.nan, None
+                        else:
+                            todo.append((key, post))
+                            paths.append(_full(start_full, base(s_mid)))
+            if paths:        # each path as gap would integrate it alone: the same values
+                own_d = _attitude_changes(np.ascontiguousarray(np.stack(paths)), pair, inertia)
+                for (key, post), d in zip(todo, own_d):
+                    gaps[key] = d - post.attitude_change_rad, post
+
+        prefill(sorted({p.branch for p in postures}))
         for branch in sorted({p.branch for p in postures}):
             for kind in kinds:
                 def gap(frac, branch=branch, kind=kind):
@@ -577,7 +649,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
             full = _full(start_full, p)
             # a quick look at the rows first (the kernel's drift, the body where the CoM puts it)
             moved = full.copy()
-            moved[:, 0] += _attitude_profiles(full[None], pair, inertia)[0]
+            moved[:, 0] += _profiles(full[None], pair, inertia)[0]
             com = system_com_m(robot, masses, moved)
             clr = checker.clearance_shifted_m(moved, com[0] - com)
             best_clear = max(best_clear, float(clr.min()))

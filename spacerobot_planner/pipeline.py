@@ -418,7 +418,9 @@ class PlanRun:
             check_capture_scenario(self.sc)
         except ValueError as e:
             raise Fail(Code.GOAL_UNREACHABLE, str(e)) from None
-        cap = plan_capture(self.sc, self.start, goal, base_path=guide, check=self.check_cancel)
+        # the scans' batches run on numba's threads: the cores other work leaves (as a repair's swept edges)
+        cap = plan_capture(self.sc, self.start, goal, base_path=guide, check=self.check_cancel,
+                           fit_threads=lambda: self.p._fit_threads(0, any_size=True, note=False))
         self.timings["descent"] += cap.search_s
         self.timings["verify"] += cap.verify_s
         self.stats.update(free_floating_candidates=cap.candidates, free_floating_checked=cap.checked)

@@ -45,7 +45,7 @@ from .cspace import warm_up as cspace_warm_up
 from .descent import descend
 from .field import solve_field
 from .field import reserve_heap, warm_up as field_warm_up
-from .free_floating_capture import attitude_changes_rad
+from .free_floating_capture import warm_up as free_floating_warm_up
 from .ik import approach_error_rad, grasp_ik, meets_approach_angle, perpendicular_attitudes
 from .motion import MotionValidator
 from .pipeline import PlanRun
@@ -531,6 +531,5 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
     field_warm_up()             # the solver kernels a coarse grid does not reach
     reserve_heap(scenario.grid.n_nodes, scenario.planner_settings.max_grid_nodes)   # the heap a plan there fills
     if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
-        # the free-floating capture's attitude kernel (numba)
-        attitude_changes_rad(scenario.robot, scenario.masses, np.zeros((2, 2, scenario.robot.n_joints)))
+        free_floating_warm_up(scenario.robot, scenario.masses)     # the capture's attitude kernel, both forms
     return time.perf_counter() - t0

@@ -56,6 +56,7 @@ from .cores import cpu_limit, limit_text, threading_layer
 from .jit_cache import start_numba_target
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
+from .free_floating_capture import warm_up as free_floating_warm_up
 from .planner import Planner, warm_up_unreached
 from .field import reserve_heap, warm_up_rare as field_warm_up_rare
 from .termination import Termination, stall
@@ -359,6 +360,8 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
             break
     warm_up_unreached(coarse.scenario)
     field_warm_up_rare()        # nor does a coarse plan need a breadth-first search or a second band
+    if captures_free_floating(sc, False):
+        free_floating_warm_up(sc.robot, sc.masses)     # the capture's attitude kernel (no plan here reaches it)
     reserve_heap(sc.grid.n_nodes, planner.settings.max_grid_nodes)    # the heap a plan on the grid fills
     out = {"coarse_s": time.perf_counter() - t0}
     if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:

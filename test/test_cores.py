@@ -252,20 +252,65 @@ def test_small_repair_under_load_runs_one_thread_same_path(request):
     else:
         pytest.fail("no repairing scene among the family's first 60 draws")
 
+    def judged(fields):
+        code, repairs, nodes = fields[:3]
+        return code == "ok" and int(repairs) >= 1 and int(nodes) < cores.PARALLEL_MIN_NODES
+
+    _idle_then_loaded(request, _REPAIR_PROBE.format(draws=draws), judged, kernels=2)
+
+
+def _idle_then_loaded(request, script, judged, kernels):
+    """
+    Run a probe ``script`` in a fresh process idle, then beside one busy process per core: compare.
+
+    Its last line: fields that ``judged`` accepts, then the path's digest, how many parallel and how
+    many one-thread kernels ran (numba's dispatchers' signatures).  Beside the busy processes only the
+    ``kernels`` one-thread kernels ran, and the path is the idle one's.
+    """
     def probe():
-        out = subprocess.run([sys.executable, "-c", _REPAIR_PROBE.format(draws=draws)], capture_output=True,
-                             text=True, timeout=600, cwd=Path(__file__).parent.parent)
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
+                             cwd=Path(__file__).parent.parent)
         assert out.returncode == 0, out.stderr[-3000:]
-        code, repairs, nodes, digest, parallel, one = out.stdout.split()
-        assert code == "ok" and int(repairs) >= 1 and int(nodes) < cores.PARALLEL_MIN_NODES, out.stdout
+        *fields, digest, parallel, one = out.stdout.split()
+        assert judged(fields), out.stdout
         return digest, int(parallel), int(one)
 
     idle = probe()
     request.getfixturevalue("every_core_busy")
     loaded = probe()
-    assert loaded[1:] == (0, 2), loaded          # beside busy processes: the one-thread kernels only
-    assert loaded[0] == idle[0]                  # the same path
-    assert idle[1] == 2 or idle[2] == 2          # (idle: whichever form the machine's load gave)
+    assert loaded[1:] == (0, kernels), loaded          # beside busy processes: the one-thread kernels only
+    assert loaded[0] == idle[0]                        # the same path
+    assert kernels in idle[1:]                         # (idle: whichever form the machine's load gave)
+
+
+_CAPTURE_PROBE = """
+import hashlib
+from spacerobot_planner import free_floating_capture as ffc
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.planner import Planner
+sc = load_scenario("config/free_floating_capture.yaml")
+res = Planner(sc).plan(sc.start_rad)
+print(res.code, hashlib.sha256(res.path_rad.tobytes()).hexdigest(), len(ffc._attitude_profiles_parallel.signatures),
+      len(ffc._attitude_profiles.signatures))
+"""
+
+
+def test_free_floating_capture_under_load_runs_one_thread_same_path(request):
+    """
+    A free-floating capture counts the busy cores before its scans: beside busy processes, the one-thread kernel.
+
+    The capture's search integrates batches of paths on numba's threads (``free_floating_capture._profiles``);
+    the pipeline gives the scans the cores other work leaves, as a repair's swept edges.  The capture
+    scene planned in a fresh process (numba's dispatchers then say which kernels ran), idle and beside
+    one busy process per core: the same path, and beside them the parallel form never ran.
+    """
+    import numba
+    _skip_without_proc()
+    n = _my_cores()
+    if numba.config.NUMBA_NUM_THREADS < 2 or n > MOST_HOGS or n < (os.cpu_count() or 1):
+        pytest.skip("numba runs one thread here, or the busy processes cannot hold every core")
+
+    _idle_then_loaded(request, _CAPTURE_PROBE, lambda fields: fields == ["ok"], kernels=1)
 
 
 def test_node_by_node_cspace_counts_the_busy_cores_on_a_small_grid(paper_scenario, request, monkeypatch):

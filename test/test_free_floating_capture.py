@@ -68,6 +68,49 @@ def test_the_attitude_kernel_meets_the_simulator_on_coarse_paths():
     assert np.max(np.abs(got)) > 0.05                      # the paths turn the body (the check is not vacuous)
 
 
+def test_a_large_batch_runs_on_numbas_threads_and_meets_the_simulator(monkeypatch):
+    """
+    A batch of many paths runs the attitude kernel's parallel form (``_profiles``' rule), and it meets the simulator.
+
+    600 random coarse arm paths (5 400 path rows, above ``PARALLEL_MIN_ROWS``) on two of numba's
+    threads: the parallel form ran (counted at its call), every fiftieth path's change is within
+    2e-5 rad of the test's simulator, and every path's change is the one it has integrated alone
+    (one path: the one-thread form), bit for bit: the plan is the same on any number of threads.
+    """
+    import numba
+    from spacerobot_planner import free_floating_capture as ffc
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba runs one thread here")
+    sc = load_scenario(FF)
+    robot = sc.robot
+    rng = np.random.default_rng(11)
+    lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
+    s = np.linspace(0.0, 1.0, 9)[:, None]
+    paths = []
+    for _ in range(600):
+        a, b = rng.uniform(lo, hi), rng.uniform(lo, hi)
+        paths.append(robot.full(np.clip(a + (b - a) * s + 0.4 * np.sin(np.pi * s) * rng.normal(size=len(lo)), lo, hi)))
+    paths = np.stack(paths)
+    assert paths.shape[0] * paths.shape[1] >= ffc.PARALLEL_MIN_ROWS
+    ran = []
+    parallel = ffc._attitude_profiles_parallel
+    monkeypatch.setattr(ffc, "_attitude_profiles_parallel", lambda *a: ran.append(len(a[0])) or parallel(*a))
+    threads = numba.get_num_threads()
+    numba.set_num_threads(2)
+    try:
+        got = ffc.attitude_changes_rad(robot, sc.masses, paths)
+    finally:
+        numba.set_num_threads(threads)
+    assert ran == [600]
+    alone = np.array([ffc.attitude_changes_rad(robot, sc.masses, p) for p in paths])
+    assert ran == [600]                                    # one path at a time: the one-thread form
+    assert np.array_equal(got, alone)
+    for p, change in zip(paths[::50], got[::50]):
+        q, _ = simulate_free_floating(robot, sc.masses, p[:, list(robot.planned_joints)], sub=64)
+        assert abs(change - (q[-1, 0] - q[0, 0])) < 2e-5, (change, q[-1, 0] - q[0, 0])
+    assert np.max(np.abs(got)) > 0.05
+
+
 def _tip_and_approach(sc, q_full, body):
     tip = arm_points(sc.robot, q_full)[-1] + body
     approach_deg = link3_and_normal_deg(sc.robot, sc.scene.target, q_full)

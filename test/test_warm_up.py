@@ -151,6 +151,48 @@ def test_joined_chains_after_the_nodes_chain_warm_up_meet_no_kernel_signature_it
     assert not out["new"], f"kernels loaded or compiled in a joined replan's chain after the warm-up: {out['new']}"
 
 
+_CAPTURE_AFTER_WARM_UP = _SIGNATURES + r"""
+import json
+from spacerobot_planner import planner as planner_module
+from spacerobot_planner import worker
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.planner import Planner
+
+numba.set_num_threads(2)                  # the capture's batches on numba's threads (the parallel form)
+sc = load_scenario(f"{sys.argv[1]}/config/free_floating_capture.yaml")
+if sys.argv[2] == "worker":
+    worker.warm_up(Planner(sc))           # the node's planning process, before it serves
+else:
+    planner_module.warm_up(sc)            # the public warm-up (the CLI's callers, the benches)
+before = signatures()
+res = Planner(sc).plan(sc.start_rad)      # no goal: the free-floating capture
+after = signatures()
+new = {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())}
+print(json.dumps({"code": str(res.code), "new": new}))
+"""
+
+
+@pytest.mark.parametrize("which", ["worker", "planner"])
+def test_a_free_floating_capture_after_the_warm_up_meets_no_kernel_signature_it_did_not_load(which):
+    """
+    Both warm-ups load the capture's attitude kernel in both forms (one thread, numba's threads).
+
+    No plan of the warm-ups reaches the capture's search (the planning process's warm-up plans with
+    goals); its batches run on numba's threads where the thread has more than one.  The capture
+    scene's plan in a fresh process after the warm-up, on two threads.  Oracle: numba's record of
+    each kernel's signatures before and after the plan.
+    """
+    import numba
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba runs one thread here")
+    r = subprocess.run([sys.executable, "-c", _CAPTURE_AFTER_WARM_UP, str(ROOT), which], cwd=ROOT,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["code"] == "ok", out
+    assert not out["new"], f"kernels loaded or compiled in a capture after the warm-up: {out['new']}"
+
+
 _PUBLIC_WARM_UP = _SIGNATURES + r"""
 import json, resource
 from dataclasses import replace
