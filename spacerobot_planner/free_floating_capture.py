@@ -266,37 +266,43 @@ def capture_postures(robot, masses: MassProperties, scene, start_full_rad, appro
     whole motion does that).  3-joint chains (``grasp_ik``'s).
     """
     q0 = np.asarray(start_full_rad, dtype=float)
-    com_coef = _com_coefficients(robot, masses)
+    coef = [float(c) for c in _com_coefficients(robot, masses)]
 
     def com(q):
-        phi = np.cumsum(q)
-        return com_coef @ np.column_stack([np.cos(phi), np.sin(phi)])
+        """r̄(q) from the body centre, (x, y) m: scalar arithmetic (the fixed point runs it a dozen times a posture)."""
+        phi = x = y = 0.0
+        for c, a in zip(coef, q):
+            phi += a
+            x += c * math.cos(phi)
+            y += c * math.sin(phi)
+        return x, y
 
-    com0 = com(q0)
-    grasp = np.asarray(scene.target.grasp_point_m, dtype=float)
+    com0_x, com0_y = com(q0)
+    gx, gy = (float(v) for v in scene.target.grasp_point_m)
     psi = scene.target.approach_angle_rad + float(approach_offset_rad)
     l1, l2, l3 = (float(v) for v in robot.link_lengths_m)
-    elbow0 = grasp - l3 * np.array([math.cos(psi), math.sin(psi)])
+    ex, ey = gx - l3 * math.cos(psi), gy - l3 * math.sin(psi)        # the elbow point, body at rest
     out = []
     for branch in (0, 1):
-        body = np.zeros(2)
+        bx = by = 0.0                                                # the body's displacement b, m
         q = None
         for _ in range(50):
-            sols = two_link((0.0, 0.0), elbow0 - body, l1, l2)     # (θ1, θ2) with the elbow point reached
+            sols = two_link((0.0, 0.0), (ex - bx, ey - by), l1, l2)  # (θ1, θ2) with the elbow point reached
             if len(sols) <= branch:
                 q = None
                 break
             th1, th2 = sorted(sols, key=lambda s: -s[1])[branch]
-            q = np.array([th1, th2, psi - th1 - th2])
-            moved = com0 - com(q)
-            done = float(np.linalg.norm(moved - body)) < 1e-12
-            body = moved
+            q = (th1, th2, psi - th1 - th2)
+            cx, cy = com(q)
+            mx, my = com0_x - cx, com0_y - cy
+            done = math.sqrt((mx - bx) ** 2 + (my - by) ** 2) < 1e-12
+            bx, by = mx, my
             if done:
                 break
         if q is not None:
-            q = fit_to_bounds(robot, wrap_angle_rad(q))
+            q = fit_to_bounds(robot, wrap_angle_rad(np.array(q)))
         if q is not None:
-            out.append(CapturePostureFF(q, body, float(wrap_angle_rad(q[0] - q0[0])), branch))
+            out.append(CapturePostureFF(q, np.array([bx, by]), float(wrap_angle_rad(q[0] - q0[0])), branch))
     return out
 
 

@@ -12,6 +12,7 @@ posture of their self-motion (``redundant.py``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -49,17 +50,18 @@ class IKSolution:
 
 
 def _two_link(base, target, l_a, l_b):
-    """Both solutions (absolute angle of link a, relative angle of link b) of a 2-link reach."""
-    d = np.asarray(target, dtype=float) - np.asarray(base, dtype=float)
-    r2 = float(d @ d)
+    """Both solutions (absolute angle of link a, relative angle of link b) of a 2-link reach (floats, rad)."""
+    dx = float(target[0]) - float(base[0])
+    dy = float(target[1]) - float(base[1])
+    r2 = dx * dx + dy * dy
     cos_b = (r2 - l_a * l_a - l_b * l_b) / (2.0 * l_a * l_b)
     if cos_b > 1.0 + 1e-12 or cos_b < -1.0 - 1e-12:
         return []
     cos_b = min(1.0, max(-1.0, cos_b))
     sols = []
     for sign in (1.0, -1.0):
-        rel_b = sign * np.arccos(cos_b)
-        abs_a = np.arctan2(d[1], d[0]) - np.arctan2(l_b * np.sin(rel_b), l_a + l_b * np.cos(rel_b))
+        rel_b = sign * math.acos(cos_b)
+        abs_a = math.atan2(dy, dx) - math.atan2(l_b * math.sin(rel_b), l_a + l_b * math.cos(rel_b))
         sols.append((abs_a, rel_b))
         if cos_b in (1.0, -1.0):
             break

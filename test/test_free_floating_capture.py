@@ -111,6 +111,45 @@ def test_a_large_batch_runs_on_numbas_threads_and_meets_the_simulator(monkeypatc
     assert np.max(np.abs(got)) > 0.05
 
 
+def test_capture_postures_grasp_where_the_centre_of_mass_puts_the_body():
+    """
+    Each capture posture, its body moved by ``body_m``, grasps the handle, and the system's centre of mass stays put.
+
+    Random starts and approach offsets within the tolerance.  The test's own chain (``arm_points``,
+    ``bodies_world``, ``mass_table``): the tip at the grasp point, link 3 at the offset from the
+    handle's inward normal, the centre of mass where the start's was, the joints within their bounds,
+    the attitude change the posture's attitude less the start's.
+    """
+    from spacerobot_planner.free_floating_capture import capture_postures
+    from oracles import bodies_world, mass_table
+    sc = load_scenario(FF)
+    robot, target = sc.robot, sc.scene.target
+    m, _ = mass_table(sc.masses)
+    tol = math.radians(sc.planner_settings.max_approach_error_deg)
+    rng = np.random.default_rng(8)
+
+    def com(q_full, body):
+        centres, _ = bodies_world(robot, np.asarray(q_full, dtype=float)[None], np.asarray(body, dtype=float)[None])
+        return m @ centres[0] / m.sum()
+
+    branches = set()
+    for _ in range(40):
+        q0 = robot.full(rng.uniform(robot.planned_lower_rad, robot.planned_upper_rad))
+        q0[0] = rng.uniform(-0.3, 0.3)
+        offset = rng.uniform(-tol, tol)
+        for post in capture_postures(robot, sc.masses, sc.scene, q0, offset):
+            branches.add(post.branch)
+            tip = arm_points(robot, post.q_full)[-1] + post.body_m
+            assert np.linalg.norm(tip - target.grasp_point_m) < 1e-9
+            assert abs(link3_and_normal_deg(robot, target, post.q_full) - abs(math.degrees(offset))) < 1e-6
+            assert np.linalg.norm(com(post.q_full, post.body_m) - com(q0, np.zeros(2))) < 1e-9
+            assert np.all(post.q_full >= np.asarray(robot.lower_rad) - 1e-9)
+            assert np.all(post.q_full <= np.asarray(robot.upper_rad) + 1e-9)
+            assert abs(wrap_diff(post.attitude_change_rad, post.q_full[0] - q0[0])) < 1e-12
+            assert 0.001 < np.linalg.norm(post.body_m) < 0.5          # the body moved (the check is not vacuous)
+    assert branches == {0, 1}
+
+
 def _tip_and_approach(sc, q_full, body):
     tip = arm_points(sc.robot, q_full)[-1] + body
     approach_deg = link3_and_normal_deg(sc.robot, sc.scene.target, q_full)
