@@ -126,14 +126,14 @@ def _rate(h, q0, q1):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _profile_into(paths, b, pair, inertia, out, w, h_row, h_mid, h_next, mid):
-    """Write path b's attitude change at each row into out[b] (:func:`_attitude_profiles`); the rest is scratch."""
-    nk, n = paths.shape[1], paths.shape[2]
+def _profile_into(path, pair, inertia, out, w, h_row, h_mid, h_next, mid):
+    """Write a path's (K, n) attitude change at each row after its first into out (K,) (:func:`_attitude_profiles`)."""
+    nk, n = path.shape
     total = 0.0
-    _momentum_map_row(pair, inertia, paths[b, 0], w, h_row)
+    _momentum_map_row(pair, inertia, path[0], w, h_row)
     for k in range(nk - 1):
-        q0 = paths[b, k]
-        q1 = paths[b, k + 1]
+        q0 = path[k]
+        q1 = path[k + 1]
         for j in range(n):
             mid[j] = q0[j] + 0.5 * (q1[j] - q0[j])
         _momentum_map_row(pair, inertia, mid, w, h_mid)
@@ -142,7 +142,7 @@ def _profile_into(paths, b, pair, inertia, out, w, h_row, h_mid, h_next, mid):
         step += 4.0 * _rate(h_mid, q0, q1)
         step += _rate(h_next, q0, q1)
         total += step / 6.0
-        out[b, k + 1] = total
+        out[k + 1] = total
         h_row, h_next = h_next, h_row
 
 
@@ -162,7 +162,7 @@ def _attitude_profiles(paths, pair, inertia):
     w = np.empty((4, n))
     h_row, h_mid, h_next, mid = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     for b in range(nb):
-        _profile_into(paths, b, pair, inertia, out, w, h_row, h_mid, h_next, mid)
+        _profile_into(paths[b], pair, inertia, out[b], w, h_row, h_mid, h_next, mid)
     return out
 
 
@@ -177,7 +177,7 @@ def _attitude_profiles_parallel(paths, pair, inertia):
         w = np.empty((4, n))
         h_row, h_mid, h_next, mid = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
         for b in range(ch * size, min(nb, (ch + 1) * size)):
-            _profile_into(paths, b, pair, inertia, out, w, h_row, h_mid, h_next, mid)
+            _profile_into(paths[b], pair, inertia, out[b], w, h_row, h_mid, h_next, mid)
     return out
 
 
@@ -201,12 +201,97 @@ def _attitude_changes(paths, pair, inertia):
     return _profiles(paths, pair, inertia)[:, -1]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _family_span(i0, stride, base, basis, dirs, amps, lo, hi, att0, pair, inertia, delta, inside):
+    """
+    Integrate a family's paths i0, i0 + stride, ... (flat (direction, amplitude) indices) that stay within the bounds.
+
+    Path (d, a)'s arm joints at row k: base[k, j] + Σ_h (dirs[d, j, h] amps[a]) basis[h, k] (:func:`_family`'s
+    rows, written out), the attitude ``att0`` (it drifts); within [lo, hi] at every row (NaN is not):
+    ``inside[d, a]`` and ``delta[d, a]`` its attitude change (:func:`_profile_into`), else left as they are.
+    """
+    nk, m = base.shape
+    n_amp = amps.shape[0]
+    harm = basis.shape[0]
+    row = np.empty((nk, m + 1))
+    prof = np.zeros(nk)
+    w = np.empty((4, m + 1))
+    h_row, h_mid, h_next, mid = np.empty(m + 1), np.empty(m + 1), np.empty(m + 1), np.empty(m + 1)
+    for i in range(i0, delta.size, stride):
+        d, a = i // n_amp, i % n_amp
+        within = True
+        for k in range(nk):
+            row[k, 0] = att0
+            for j in range(m):
+                acc = 0.0
+                for h in range(harm):
+                    acc += (dirs[d, j, h] * amps[a]) * basis[h, k]
+                v = base[k, j] + acc
+                row[k, j + 1] = v
+                if not (v >= lo[j] and v <= hi[j]):
+                    within = False
+                    break
+            if not within:
+                break
+        if within:
+            inside[d, a] = True
+            _profile_into(row, pair, inertia, prof, w, h_row, h_mid, h_next, mid)
+            delta[d, a] = prof[nk - 1]
+
+
+@njit(cache=True, nogil=True)
+def _family_changes(base, basis, dirs, amps, lo, hi, att0, pair, inertia):
+    """
+    Return a family's scan: (attitude change float64 (D, A), NaN outside the bounds; within the bounds bool (D, A)).
+
+    base (K, m) the family's base at the scan's rows, basis (H, K) its sine terms (:func:`_basis`), dirs
+    (D, m, H) the directions, amps (A,) the amplitudes, rad; lo, hi (m,) the arm joints' bounds, rad;
+    att0 the start's attitude, rad.  Without the family's (D, A, K, m) array of rows: each path's rows
+    made, checked and integrated in turn (:func:`_family_span`).
+    """
+    delta = np.full((dirs.shape[0], amps.shape[0]), np.nan)
+    inside = np.zeros((dirs.shape[0], amps.shape[0]), np.bool_)
+    _family_span(0, 1, base, basis, dirs, amps, lo, hi, att0, pair, inertia, delta, inside)
+    return delta, inside
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _family_changes_parallel(base, basis, dirs, amps, lo, hi, att0, pair, inertia):
+    """
+    :func:`_family_changes` on numba's threads: each path as in one thread.
+
+    64 strands, strand c the paths c, c + 64, ...: the paths out of bounds (most of some directions,
+    none of others) cost next to nothing, so contiguous chunks left one thread most of the work.
+    """
+    delta = np.full((dirs.shape[0], amps.shape[0]), np.nan)
+    inside = np.zeros((dirs.shape[0], amps.shape[0]), np.bool_)
+    strands = 64
+    for c in prange(strands):
+        _family_span(c, strands, base, basis, dirs, amps, lo, hi, att0, pair, inertia, delta, inside)
+    return delta, inside
+
+
+def _family_scan(base, basis, dirs, amps, lo, hi, att0, pair, inertia):
+    """Return :func:`_family_changes`, on numba's threads for a large scan (:data:`PARALLEL_MIN_ROWS`)."""
+    rows = dirs.shape[0] * amps.shape[0] * base.shape[0]
+    kernel = _family_changes_parallel if rows >= PARALLEL_MIN_ROWS and current_threads() > 1 else _family_changes
+    return kernel(np.ascontiguousarray(base, dtype=float), np.ascontiguousarray(basis, dtype=float),
+                  np.ascontiguousarray(dirs, dtype=float), np.ascontiguousarray(amps, dtype=float),
+                  np.ascontiguousarray(lo, dtype=float), np.ascontiguousarray(hi, dtype=float), float(att0), pair,
+                  inertia)
+
+
 def warm_up(robot, masses: MassProperties) -> None:
-    """Load (or compile) the attitude kernel's two forms (:func:`_profiles`: one thread, numba's threads)."""
+    """Load (or compile) the attitude kernels' two forms (one thread, numba's threads): paths, a family's scan."""
     pair, inertia = _momentum_tables(robot, masses)
-    paths = np.zeros((2, 2, robot.n_joints))
+    n = robot.n_joints
+    paths = np.zeros((2, 2, n))
     _attitude_profiles(paths, pair, inertia)
     _attitude_profiles_parallel(paths, pair, inertia)
+    scan = (np.zeros((2, n - 1)), np.zeros((1, 2)), np.zeros((2, n - 1, 1)), np.zeros(2), np.full(n - 1, -1.0),
+            np.ones(n - 1), 0.0, pair, inertia)
+    _family_changes(*scan)
+    _family_changes_parallel(*scan)
 
 
 def _com_coefficients(robot, masses):
@@ -481,6 +566,7 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
     dirs = _directions(len(arm), harm, SEARCH["directions"], SEARCH["seed"])
     amps = np.linspace(0.0, SEARCH["max_amplitude_rad"], SEARCH["amplitudes"])
     s_coarse = np.linspace(0.0, 1.0, SEARCH["coarse_samples"])
+    basis_coarse = _basis(s_coarse, harm)
     pair, inertia = _momentum_tables(robot, masses)
     periodic = np.asarray(robot.periodic)[arm]
 
@@ -600,19 +686,12 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
         post, kind, base = families[f_i]
         need = post.attitude_change_rad
         t_s = time.perf_counter()
-        coef = dirs[:, None] * amps[None, :, None, None]                       # (D, A, m, H)
         base_coarse = base(s_coarse)                                          # (K, m)
-        paths = _family(base_coarse, coef, s_coarse, harm)                    # (D, A, K, m)
-        inside = np.all((paths >= lo) & (paths <= hi), axis=(-1, -2))          # (D, A)
+        # the attitude change of the paths within the joint bounds only (the others are no
+        # candidates and no part of the reach): nan elsewhere; (D, A) each
+        delta, inside = _family_scan(base_coarse, basis_coarse, dirs, amps, lo, hi, start_full[0], pair, inertia)
         if not inside.any():
             continue
-        # the attitude change of the paths within the joint bounds only (the others are no
-        # candidates and no part of the reach): nan elsewhere
-        within = np.flatnonzero(inside.ravel())
-        flat = paths.reshape(-1, len(s_coarse), len(arm))
-        delta = np.full(inside.size, np.nan)
-        delta[within] = _attitude_changes(np.ascontiguousarray(_full(start_full, flat[within])), pair, inertia)
-        delta = delta.reshape(inside.shape)
         r = reach.get(post.branch, (math.inf, -math.inf))
         reach[post.branch] = (min(r[0], float(delta[inside].min())), max(r[1], float(delta[inside].max())))
         # the brackets (the smallest amplitude along each direction), the coarse path's length at
@@ -635,7 +714,8 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
                 check()
             d = dirs[d_i]
             # the final path: no joint moves more than about 0.4° between rows (at the bracket's end)
-            step = float(np.max(np.abs(np.diff(paths[d_i, a_i + 1], axis=0)))) * (len(s_coarse) - 1)
+            bracket_end = _family(base_coarse, d * amps[a_i + 1], s_coarse, harm)
+            step = float(np.max(np.abs(np.diff(bracket_end, axis=0)))) * (len(s_coarse) - 1)
             s_fine = np.linspace(0.0, 1.0, int(max(241, math.ceil(step / math.radians(0.4)) + 1)))
             base_fine = base(s_fine)
 

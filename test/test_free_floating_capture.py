@@ -111,6 +111,56 @@ def test_a_large_batch_runs_on_numbas_threads_and_meets_the_simulator(monkeypatc
     assert np.max(np.abs(got)) > 0.05
 
 
+def test_a_familys_scan_keeps_its_paths_within_the_bounds_and_meets_the_simulator():
+    """
+    A family's scan (``_family_changes``, both forms) against the test's own rows, bounds and simulator.
+
+    The test makes the family's paths itself: a rest-to-rest quintic between two arm postures plus
+    Σ_h c_h sin((h + 1)π s) per joint, c = amplitude × direction (8 random directions, 6 amplitudes up
+    to 120°), 61 rows.  A path is in the scan where each of its rows is within the joint bounds, and
+    then its attitude change is within 2e-5 rad of the simulator's (10 of them judged); NaN where not;
+    the parallel form (two of numba's threads) gives the one-thread form's values bit for bit.
+    """
+    import numba
+    from spacerobot_planner import free_floating_capture as ffc
+    from spacerobot_planner.spacecraft import _momentum_tables
+    sc = load_scenario(FF)
+    robot = sc.robot
+    lo, hi = np.asarray(robot.planned_lower_rad), np.asarray(robot.planned_upper_rad)
+    rng = np.random.default_rng(4)
+    a0, af = rng.uniform(lo + 0.3, hi - 0.3), rng.uniform(lo + 0.3, hi - 0.3)
+    s = np.linspace(0.0, 1.0, 61)
+    base = a0 + (af - a0) * (s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s))[:, None]           # (61, 2)
+    basis = np.stack([np.sin(np.pi * s), np.sin(2.0 * np.pi * s)])                         # (2, 61)
+    dirs = rng.normal(size=(8, 2, 2))
+    dirs /= np.linalg.norm(dirs.reshape(8, -1), axis=1)[:, None, None]
+    amps = np.radians(np.linspace(0.0, 120.0, 6))
+    pair, inertia = _momentum_tables(robot, sc.masses)
+    att0 = float(robot.full(a0)[0])
+    args = (base, basis, dirs, amps, lo - 1e-9, hi + 1e-9, att0, pair, inertia)
+    delta, inside = ffc._family_changes(*args)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        delta_p, inside_p = ffc._family_changes_parallel(*args)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(inside, inside_p) and np.array_equal(delta, delta_p, equal_nan=True)
+    judged = 0
+    for d in range(len(dirs)):
+        for a in range(len(amps)):
+            terms = [sum(amps[a] * dirs[d, j, h] * basis[h] for h in range(2)) for j in range(2)]
+            rows = base + np.stack(terms, axis=1)
+            ok = bool(np.all((rows >= lo - 1e-9) & (rows <= hi + 1e-9)))
+            assert inside[d, a] == ok, (d, a)
+            assert np.isnan(delta[d, a]) != ok
+            if ok and judged < 10 and (d + a) % 2 == 0:
+                q, _ = simulate_free_floating(robot, sc.masses, rows, sub=16)
+                assert abs(delta[d, a] - (q[-1, 0] - q[0, 0])) < 2e-5, (d, a, delta[d, a], q[-1, 0] - q[0, 0])
+                judged += 1
+    assert judged == 10 and 0 < np.count_nonzero(inside) < inside.size     # both kinds of path (not vacuous)
+
+
 def test_capture_postures_grasp_where_the_centre_of_mass_puts_the_body():
     """
     Each capture posture, its body moved by ``body_m``, grasps the handle, and the system's centre of mass stays put.
