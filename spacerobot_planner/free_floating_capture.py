@@ -39,9 +39,10 @@ paths, within 4e-15 on rows drawn at random.  A batch of paths (a family's scan,
 at every approach offset, integrated together) runs on numba's threads from
 :data:`PARALLEL_MIN_ROWS` path rows on, each path as in one thread (the same bits on any number of
 threads); the pipeline gives the scans the cores other work leaves (``fit_threads``), and a family's
-scan makes, checks and integrates each path's rows in one kernel (:func:`_family_changes`): the
-capture scene's 13 cases of docs/benchmarks.md (twenty-first sitting) grasp in 37 ms instead of
-67 and refuse in 272 instead of 714-737 (medians, paired).  No ROS imports.
+scan makes, checks and integrates each path's rows in one kernel (:func:`_family_changes`): on the
+capture scene from its start and from 12 random targets and starts (docs/benchmarks.md, twenty-first
+sitting) a grasp takes 37 ms instead of 67 and a refusal 272 instead of 714-737 (medians, paired,
+on two cores).  No ROS imports.
 """
 
 from __future__ import annotations
