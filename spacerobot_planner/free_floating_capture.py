@@ -195,6 +195,8 @@ PARALLEL_MIN_ROWS = 4096
 def _profiles(paths, pair, inertia):
     """Return :func:`_attitude_profiles` of ``paths`` (B, K, n), on numba's threads for a large batch (above)."""
     nb, nk = paths.shape[0], paths.shape[1]
+    if nk == 0:
+        return np.zeros((nb, 0))          # (the kernels read each path's first row)
     if nb > 1 and nb * nk >= PARALLEL_MIN_ROWS and current_threads() > 1:
         return _attitude_profiles_parallel(paths, pair, inertia)
     return _attitude_profiles(paths, pair, inertia)
@@ -277,6 +279,8 @@ def _family_changes_parallel(base, basis, dirs, amps, lo, hi, att0, pair, inerti
 
 def _family_scan(base, basis, dirs, amps, lo, hi, att0, pair, inertia):
     """Return :func:`_family_changes`, on numba's threads for a large scan (:data:`PARALLEL_MIN_ROWS`)."""
+    if base.shape[0] == 0:
+        raise ValueError("a family's scan needs rows (SEARCH['coarse_samples'] >= 1)")
     rows = dirs.shape[0] * amps.shape[0] * base.shape[0]
     kernel = _family_changes_parallel if rows >= PARALLEL_MIN_ROWS and current_threads() > 1 else _family_changes
     return kernel(np.ascontiguousarray(base, dtype=float), np.ascontiguousarray(basis, dtype=float),

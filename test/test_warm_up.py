@@ -158,17 +158,24 @@ from spacerobot_planner import worker
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.planner import Planner
 
-numba.set_num_threads(2)                  # the capture's batches on numba's threads (the parallel form)
+from spacerobot_planner import free_floating_capture as ffc
 sc = load_scenario(f"{sys.argv[1]}/config/free_floating_capture.yaml")
 if sys.argv[2] == "worker":
     worker.warm_up(Planner(sc))           # the node's planning process, before it serves
 else:
     planner_module.warm_up(sc)            # the public warm-up (the CLI's callers, the benches)
 before = signatures()
-res = Planner(sc).plan(sc.start_rad)      # no goal: the free-floating capture
+ran, kernels = {}, {}
+for name in ("_attitude_profiles_parallel", "_family_changes_parallel"):   # counted as the plan calls them
+    kernels[name] = kernel = getattr(ffc, name)
+    setattr(ffc, name, lambda *a, kernel=kernel, name=name: ran.update({name: ran.get(name, 0) + 1}) or kernel(*a))
+# no goal: the free-floating capture; numba's threads whatever the machine's load (its batches' parallel form)
+res = Planner(sc, threads_follow_load=False).plan(sc.start_rad)
+for name, kernel in kernels.items():
+    setattr(ffc, name, kernel)              # the dispatchers back, for their signatures
 after = signatures()
 new = {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())}
-print(json.dumps({"code": str(res.code), "new": new}))
+print(json.dumps({"code": str(res.code), "new": new, "parallel": sorted(ran)}))
 """
 
 
@@ -179,8 +186,9 @@ def test_a_free_floating_capture_after_the_warm_up_meets_no_kernel_signature_it_
 
     No plan of the warm-ups reaches the capture's search (the planning process's warm-up plans with
     goals); its batches run on numba's threads where the thread has more than one.  The capture
-    scene's plan in a fresh process after the warm-up, on two threads.  Oracle: numba's record of
-    each kernel's signatures before and after the plan.
+    scene's plan in a fresh process after the warm-up, on numba's threads whatever the load
+    (``threads_follow_load: false``; both parallel forms ran).  Oracle: numba's record of each
+    kernel's signatures before and after the plan.
     """
     import numba
     if numba.config.NUMBA_NUM_THREADS < 2:
@@ -190,6 +198,7 @@ def test_a_free_floating_capture_after_the_warm_up_meets_no_kernel_signature_it_
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["code"] == "ok", out
+    assert out["parallel"] == ["_attitude_profiles_parallel", "_family_changes_parallel"], out   # (not vacuous)
     assert not out["new"], f"kernels loaded or compiled in a capture after the warm-up: {out['new']}"
 
 
