@@ -266,8 +266,8 @@ def _family_changes_parallel(base, basis, dirs, amps, lo, hi, att0, pair, inerti
     """
     :func:`_family_changes` on numba's threads: each path as in one thread.
 
-    64 strands, strand c the paths c, c + 64, ...: the paths out of bounds (most of some directions,
-    none of others) cost next to nothing, so contiguous chunks left one thread most of the work.
+    64 strands, strand c the paths c, c + 64, ...: the paths out of bounds cost next to nothing and cluster
+    by direction, and 64 contiguous chunks ran 2.5-4 % longer (four capture cases' scans, alternating).
     """
     delta = np.full((dirs.shape[0], amps.shape[0]), np.nan)
     inside = np.zeros((dirs.shape[0], amps.shape[0]), np.bool_)
