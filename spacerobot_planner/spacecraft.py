@@ -193,7 +193,7 @@ def _momentum_tables(robot, masses):
     return np.ascontiguousarray(pair), inertia
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _momentum_coefficients(pair, inertia, q, w):
     """
     Fill w (4, n) at the sample q (n,) full joints: w[0], w[1] cos, sin of φ − φ_1; w[2] A; w[3] B.
@@ -223,7 +223,7 @@ def _momentum_coefficients(pair, inertia, q, w):
             w[3, i] -= ps
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _sample_momentum(pair, inertia, q, qd, qdd, w):
     """
     (h, dh/dt) of one sample: q, qd, qdd (n,) full joints (qdd None: no rate, 0.0); w (4, n) scratch.
@@ -256,7 +256,7 @@ def _momentum_rows(pair, inertia, q, qd, qdd, with_rate):
     return h, rate
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _momentum_map_row(pair, inertia, q, w, h):
     """Fill h (n,) with the momentum map's row at q (n,) full joints: H_k = Σ_{j ≥ k} A_j (w (4, n) scratch)."""
     _momentum_coefficients(pair, inertia, q, w)
