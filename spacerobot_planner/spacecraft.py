@@ -201,6 +201,8 @@ def _momentum_coefficients(pair, inertia, q, w):
     A_j = inertia[j] + Σ_i pair[i, j] C_ij and B_j = Σ_i pair[i, j] S_ij with C_ij = cos(φ_i − φ_j),
     S_ij = sin(φ_i − φ_j) (:func:`_momentum_tables`): h = Σ_j A_j φ̇_j and dh/dt = Σ_j (A_j φ̈_j + B_j φ̇_j²)
     (the terms in φ̇_i φ̇_j, i ≠ j, cancel: S is antisymmetric, pair symmetric).  Each pair i < j once.
+    Inlined where it is called, as the two rows below (a compiled call passed array views and their
+    reference counts at every sample: the capture's scans took 2.6 times as long, the same bits).
     """
     n = q.shape[0]
     psi = 0.0                       # φ_j − φ_1: the differences alone matter (no sine of the attitude)
