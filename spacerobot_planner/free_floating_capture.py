@@ -192,14 +192,18 @@ def _attitude_profiles_parallel(paths, pair, inertia):
 PARALLEL_MIN_ROWS = 4096
 
 
+def _on_threads(paths: int, rows: int) -> bool:
+    """Tell whether a batch of ``paths`` paths of ``rows`` rows each runs its kernel's parallel form (above)."""
+    return paths > 1 and paths * rows >= PARALLEL_MIN_ROWS and current_threads() > 1
+
+
 def _profiles(paths, pair, inertia):
     """Return :func:`_attitude_profiles` of ``paths`` (B, K, n), on numba's threads for a large batch (above)."""
     nb, nk = paths.shape[0], paths.shape[1]
     if nk == 0:
         return np.zeros((nb, 0))          # (the kernels read each path's first row)
-    if nb > 1 and nb * nk >= PARALLEL_MIN_ROWS and current_threads() > 1:
-        return _attitude_profiles_parallel(paths, pair, inertia)
-    return _attitude_profiles(paths, pair, inertia)
+    kernel = _attitude_profiles_parallel if _on_threads(nb, nk) else _attitude_profiles
+    return kernel(paths, pair, inertia)
 
 
 def _attitude_changes(paths, pair, inertia):
@@ -208,37 +212,59 @@ def _attitude_changes(paths, pair, inertia):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _rows_into(base, coef, basis, out, col):
+    """
+    Write a family's path into out[:, col:col + m]: row k, joint j is base[k, j] + Σ_h coef[j, h] basis[h, k].
+
+    base (K, m) the base's rows, coef (m, H) the sine terms' coefficients, rad; basis (H, K) (:func:`_basis`).
+    The one rule of the family's rows (:func:`_family`, :func:`_family_span`).
+    """
+    nk, m = base.shape
+    for k in range(nk):
+        for j in range(m):
+            acc = 0.0
+            for h in range(basis.shape[0]):
+                acc += coef[j, h] * basis[h, k]
+            out[k, col + j] = base[k, j] + acc
+
+
+@njit(cache=True, nogil=True)
+def _family_rows(base, coef, basis):
+    """Return a family's path (K, m) (:func:`_rows_into`)."""
+    out = np.empty(base.shape)
+    _rows_into(base, coef, basis, out, 0)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _family_span(i0, stride, base, basis, dirs, amps, lo, hi, att0, pair, inertia, delta, inside):
     """
     Integrate a family's paths i0, i0 + stride, ... (flat (direction, amplitude) indices) that stay within the bounds.
 
-    Path (d, a)'s arm joints at row k: base[k, j] + Σ_h (dirs[d, j, h] amps[a]) basis[h, k] (:func:`_family`'s
-    rows, written out), the attitude ``att0`` (it drifts); within [lo, hi] at every row (NaN is not):
-    ``inside[d, a]`` and ``delta[d, a]`` its attitude change (:func:`_profile_into`), else left as they are.
+    Path (d, a): coefficients dirs[d] amps[a] (:func:`_rows_into`), the attitude ``att0`` (it drifts);
+    within [lo, hi] at every row (NaN is not): ``inside[d, a]`` and ``delta[d, a]`` its attitude change
+    (:func:`_profile_into`), else left as they are.
     """
     nk, m = base.shape
     n_amp = amps.shape[0]
-    harm = basis.shape[0]
     row = np.empty((nk, m + 1))
+    coef = np.empty((m, basis.shape[0]))
     prof = np.zeros(nk)
     w = np.empty((4, m + 1))
     h_row, h_mid, h_next, mid = np.empty(m + 1), np.empty(m + 1), np.empty(m + 1), np.empty(m + 1)
     for i in range(i0, delta.size, stride):
         d, a = i // n_amp, i % n_amp
+        for j in range(m):
+            for h in range(coef.shape[1]):
+                coef[j, h] = dirs[d, j, h] * amps[a]
+        _rows_into(base, coef, basis, row, 1)
         within = True
         for k in range(nk):
             row[k, 0] = att0
             for j in range(m):
-                acc = 0.0
-                for h in range(harm):
-                    acc += (dirs[d, j, h] * amps[a]) * basis[h, k]
-                v = base[k, j] + acc
-                row[k, j + 1] = v
+                v = row[k, j + 1]
                 if not (v >= lo[j] and v <= hi[j]):
                     within = False
-                    break
-            if not within:
-                break
         if within:
             inside[d, a] = True
             _profile_into(row, pair, inertia, prof, w, h_row, h_mid, h_next, mid)
@@ -281,17 +307,24 @@ def _family_scan(base, basis, dirs, amps, lo, hi, att0, pair, inertia):
     """Return :func:`_family_changes`, on numba's threads for a large scan (:data:`PARALLEL_MIN_ROWS`)."""
     if base.shape[0] == 0:
         raise ValueError("a family's scan needs rows (SEARCH['coarse_samples'] >= 1)")
-    rows = dirs.shape[0] * amps.shape[0] * base.shape[0]
-    kernel = _family_changes_parallel if rows >= PARALLEL_MIN_ROWS and current_threads() > 1 else _family_changes
+    kernel = _family_changes_parallel if _on_threads(dirs.shape[0] * amps.shape[0], base.shape[0]) else _family_changes
     return kernel(np.ascontiguousarray(base, dtype=float), np.ascontiguousarray(basis, dtype=float),
                   np.ascontiguousarray(dirs, dtype=float), np.ascontiguousarray(amps, dtype=float),
                   np.ascontiguousarray(lo, dtype=float), np.ascontiguousarray(hi, dtype=float), float(att0), pair,
                   inertia)
 
 
-def warm_up(robot, masses: MassProperties) -> None:
-    """Load (or compile) the attitude kernels' two forms (one thread, numba's threads): paths, a family's scan."""
-    pair, inertia = _momentum_tables(robot, masses)
+def warm_up(scenario) -> None:
+    """
+    Load (or compile) the capture's kernels where ``scenario`` plans free-floating captures (else nothing).
+
+    The attitude kernels' two forms (one thread, numba's threads: paths, a family's scan) and a
+    family's rows.  No warm-up plan reaches them (:func:`captures_free_floating` plans have no goal).
+    """
+    if not captures_free_floating(scenario, False):
+        return
+    robot = scenario.robot
+    pair, inertia = _momentum_tables(robot, scenario.masses)
     n = robot.n_joints
     paths = np.zeros((2, 2, n))
     _attitude_profiles(paths, pair, inertia)
@@ -300,6 +333,7 @@ def warm_up(robot, masses: MassProperties) -> None:
             np.ones(n - 1), 0.0, pair, inertia)
     _family_changes(*scan)
     _family_changes_parallel(*scan)
+    _family_rows(scan[0], np.zeros((n - 1, 1)), scan[1])      # base (K, m), coefficients (m, H), basis (H, K)
 
 
 def _com_coefficients(robot, masses):
@@ -472,8 +506,9 @@ def _along(path):
 
 
 def _family(base_at_s, coef, s, harmonics):
-    """Arm paths (..., K, m): the base's rows at s plus Σ_h coef[..., j, h] sin((h+1)π s) on joint j."""
-    return base_at_s + np.einsum("...jh,hk->...kj", coef, _basis(s, harmonics))
+    """Arm path (K, m): the base's rows at s plus Σ_h coef[j, h] sin((h+1)π s) on joint j (:func:`_rows_into`)."""
+    return _family_rows(np.ascontiguousarray(base_at_s, dtype=float), np.ascontiguousarray(coef, dtype=float),
+                        _basis(s, harmonics))
 
 
 def _directions(m, harmonics, count, seed):

@@ -530,6 +530,5 @@ def warm_up(scenario: Scenario, cells: int = 6) -> float:
     warm_up_unreached(coarse)
     field_warm_up()             # the solver kernels a coarse grid does not reach
     reserve_heap(scenario.grid.n_nodes, scenario.planner_settings.max_grid_nodes)   # the heap a plan there fills
-    if scenario.acs.mode == "free_floating" and scenario.robot.n_joints == 3:
-        free_floating_warm_up(scenario.robot, scenario.masses)     # the capture's attitude kernel, both forms
+    free_floating_warm_up(scenario)     # a free-floating capture's kernels, where the scenario plans one
     return time.perf_counter() - t0

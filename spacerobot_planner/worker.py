@@ -360,8 +360,7 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
             break
     warm_up_unreached(coarse.scenario)
     field_warm_up_rare()        # nor does a coarse plan need a breadth-first search or a second band
-    if captures_free_floating(sc, False):
-        free_floating_warm_up(sc.robot, sc.masses)     # the capture's attitude kernel (no plan here reaches it)
+    free_floating_warm_up(sc)   # a free-floating capture's kernels, where the scenario plans one (no plan here does)
     reserve_heap(sc.grid.n_nodes, planner.settings.max_grid_nodes)    # the heap a plan on the grid fills
     out = {"coarse_s": time.perf_counter() - t0}
     if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:

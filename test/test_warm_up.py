@@ -153,12 +153,12 @@ def test_joined_chains_after_the_nodes_chain_warm_up_meet_no_kernel_signature_it
 
 _CAPTURE_AFTER_WARM_UP = _SIGNATURES + r"""
 import json
+from spacerobot_planner import free_floating_capture as ffc
 from spacerobot_planner import planner as planner_module
 from spacerobot_planner import worker
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.planner import Planner
 
-from spacerobot_planner import free_floating_capture as ffc
 sc = load_scenario(f"{sys.argv[1]}/config/free_floating_capture.yaml")
 if sys.argv[2] == "worker":
     worker.warm_up(Planner(sc))           # the node's planning process, before it serves
