@@ -41,8 +41,9 @@ at every approach offset, integrated together) runs on numba's threads from
 threads); the pipeline gives the scans the cores other work leaves (``fit_threads``), and a family's
 scan makes, checks and integrates each path's rows in one kernel (:func:`_family_changes`): on the
 capture scene from its start and from 12 random targets and starts (docs/benchmarks.md, twenty-first
-sitting) a grasp takes 26-28 ms instead of 67 and a refusal 129 instead of 714-737 (medians, paired,
-on two cores; the momentum's row inlined in the kernels, ``spacecraft``, half of it).  No ROS imports.
+sitting) a grasp takes 26-28 ms instead of 67 and a refusal 129 instead of 714-737 (medians on two
+cores, over two paired runs: 67 -> 37 and 714-737 -> 272 by the changes here, then -> 26-28 and 129 by
+the momentum's row inlined in the kernels, ``spacecraft``).  No ROS imports.
 """
 
 from __future__ import annotations
