@@ -142,7 +142,8 @@ class Processed:
             resampled polyline could not be certified, or when refused).
         indices: (K,) their indices in ``dense``.
         certified: the published polyline passed the exact-geometry check.
-        min_clearance_m: its clearance (nan when not checked).
+        min_clearance_m: its clearance, m: the least at the check's samples of the controller's motion
+            (``trajectory.controller_check``; nan when not checked).
         reaction: ``reaction.ReactionReport`` or None (not reported for this scenario).
         arm, attitude: the :class:`TrajectoryPart` of each controller (see :func:`split_parts`).
         join_stamp_ns: ROS time of the trajectory's start when joined to an executing one

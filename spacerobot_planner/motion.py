@@ -102,7 +102,7 @@ def sweep_m(qa, qb, reach_m):
 @njit(**NO_REFCOUNT)
 def certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
                      threshold_m, reach_m, max_step_rad, min_step_rad,
-                     interval_ok, interval_clr, certified, vertex_clr, q_full, pts, body_w):
+                     interval_ok, interval_clr, certified, vertex_clr, every_row, q_full, pts, body_w):
     """
     Walk each straight interval of ``points`` (M×dof planned joints) with certified steps.
 
@@ -119,11 +119,23 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     and last samples are the points themselves) and a later check of the same points
     (the certified check after the quick one) reuses them.
 
+    ``every_row`` false: one walk along the whole polyline instead, its certificate carried past
+    the rows (a sample's ball covers the sweep after it, in whatever intervals: :func:`sweep_m`
+    bounds each, and their sum bounds the polyline's); a row is evaluated where the walk's next
+    sample falls on it or where its clearance is known, the samples still at most
+    ``max_step_rad`` apart along the polyline.  For a dense polyline whose rows are samples of a
+    curve themselves (the controller's motion, eight rows a segment): the same proof with fewer
+    evaluations.  An interval no sample falls in has clearance ``inf`` in ``interval_clr`` (none
+    measured; the walk's certificate covers it), and a failed interval ends the certificate
+    (the next interval starts from its first row, as with ``every_row``).
+
     Scratch (:func:`motion_scratch`): q_full (n_joints,) starting as ``q_template``, pts
     (n_links + 1, 2), body_w like body.
     """
     dof = points.shape[1]
     n_eval = 0
+    free_m = -1.0       # (carried) the sweep, m, the last sample proves free beyond the walk's place (< 0: none)
+    room_rad = 0.0      # (carried) the length, rad, the walk may still go before its next sample
     for i in range(points.shape[0] - 1):
         seg_len = 0.0
         for a in range(dof):
@@ -135,6 +147,17 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
         t = 0.0
         ok = True
         best = np.inf
+        if free_m >= 0.0 and np.isnan(vertex_clr[i]):
+            # row i passed over: the walk goes on under the last sample's certificate
+            go = room_rad if free_m == np.inf else min(free_m * rad_per_m, room_rad)
+            if go >= seg_len:
+                free_m -= span
+                room_rad -= seg_len
+                interval_ok[i] = True
+                interval_clr[i] = np.inf
+                continue
+            t = go
+        free_m = -1.0
         while True:
             v = i if t == 0.0 else (i + 1 if t >= seg_len else -1)     # a vertex: its index
             if v >= 0 and not np.isnan(vertex_clr[v]):
@@ -157,10 +180,19 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
                 ok = False
                 break
             if t >= seg_len:
+                if not every_row:
+                    free_m = 0.999 * (c - threshold_m) if certified else np.inf
+                    room_rad = max_step_rad
                 break
             step = 0.999 * (c - threshold_m) * rad_per_m if certified else max_step_rad
             if step < min_step_rad:
                 ok = False
+                break
+            if not every_row and t + min(step, max_step_rad) >= seg_len:
+                # the rest of the interval is proven free: the certificate goes on past row i + 1
+                left = seg_len - t
+                free_m = 0.999 * (c - threshold_m) - left / rad_per_m if certified else np.inf
+                room_rad = max_step_rad - left
                 break
             t = min(seg_len, t + min(step, max_step_rad))
         interval_ok[i] = ok
@@ -170,21 +202,21 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
 
 def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts,
                  starts, centres, radii, threshold_m, reach_m, max_step_rad, min_step_rad, certified,
-                 vertex_clr):
+                 vertex_clr, every_row=True):
     """
     Run :meth:`MotionValidator.check` on M ≥ 2 rows: :func:`certify_segments` and the bounds, in one call.
 
     An interval fails also where a row at either end has a bounded joint outside
     [lower_rad, upper_rad] (``periodic`` (dof,) bool: unbounded).  Returns (ok, smallest
     interval clearance (NaN if one is NaN), evaluations, interval_ok (M-1,), interval
-    clearances (M-1,)); ``vertex_clr`` as in :func:`certify_segments`.
+    clearances (M-1,)); ``vertex_clr`` and ``every_row`` as in :func:`certify_segments`.
     """
     m = points.shape[0] - 1
     interval_ok = np.empty(m, np.bool_)
     interval_clr = np.empty(m)
     ok, best, n = _check_rows(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body,
                               verts, starts, centres, radii, threshold_m, reach_m, max_step_rad,
-                              min_step_rad, certified, vertex_clr, interval_ok, interval_clr,
+                              min_step_rad, certified, vertex_clr, bool(every_row), interval_ok, interval_clr,
                               *motion_scratch(q_template, lengths, body))
     return ok, best, n, interval_ok, interval_clr
 
@@ -192,12 +224,12 @@ def check_kernel(points, lower_rad, upper_rad, periodic, q_template, planned, le
 @njit(**NO_REFCOUNT)
 def _check_rows(points, lower_rad, upper_rad, periodic, q_template, planned, lengths, checked, body, verts, starts,
                 centres, radii, threshold_m, reach_m, max_step_rad, min_step_rad, certified, vertex_clr,
-                interval_ok, interval_clr, q_full, pts, body_w):
+                every_row, interval_ok, interval_clr, q_full, pts, body_w):
     """:func:`check_kernel` into interval_ok, interval_clr (M-1,), with the scratch given; (ok, best, n)."""
     m = points.shape[0] - 1
     n = certify_segments(points, q_template, planned, lengths, checked, body, verts, starts, centres, radii,
                          threshold_m, reach_m, max_step_rad, min_step_rad, interval_ok,
-                         interval_clr, certified, vertex_clr, q_full, pts, body_w)
+                         interval_clr, certified, vertex_clr, every_row, q_full, pts, body_w)
     ok = True
     best = np.inf
     before = True
@@ -510,7 +542,8 @@ class MotionValidator:
         return p
 
     def check(self, path_rad, *, step_rad: float | None = None, required_clearance_m: float | None = None,
-              min_step_rad: float = 1e-6, certified: bool = True, vertex_clearance_m=None) -> PathCheck:
+              min_step_rad: float = 1e-6, certified: bool = True, vertex_clearance_m=None,
+              every_row: bool = True) -> PathCheck:
         """
         Certified check of the piecewise-linear path through the rows of ``path_rad``.
 
@@ -522,7 +555,10 @@ class MotionValidator:
         a quick test at samples ``step_rad`` apart only (for candidates; never for what
         is returned).  ``vertex_clearance_m``: (M,) the clearances at the rows from an
         earlier check of the *same* rows (``PathCheck.vertex_clearance_m``, NaN where not
-        known), reused instead of evaluated again.
+        known), reused instead of evaluated again.  ``every_row=False``: one walk along the whole
+        polyline, rows that a sample before them proves free passed over (for a dense polyline
+        of samples of a curve, :func:`certify_segments`); an interval no sample falls in then has
+        clearance ``inf`` in ``interval_clearance_m``, and ``min_clearance_m`` is the smallest over the samples taken.
         """
         checker = self.checker
         step = self.step_rad if step_rad is None else float(step_rad)
@@ -542,7 +578,7 @@ class MotionValidator:
                                  f"got shape {vertex_clr.shape}")
         ok, best, n, interval_ok, interval_clr = check_kernel(
             p, self.lower_rad, self.upper_rad, self._periodic_mask, *self.kernel_arrays, float(threshold),
-            self.reach_m, step, float(min_step_rad), bool(certified), vertex_clr)
+            self.reach_m, step, float(min_step_rad), bool(certified), vertex_clr, every_row)
         return PathCheck(bool(ok), interval_ok, float(best), int(n), interval_clr, vertex_clr)
 
     def check_kept(self, path_rad) -> PathCheck:

@@ -313,7 +313,7 @@ def _shortcut_kernel(pts, iv_clr, cap, q_template, planned, lengths, checked, bo
                     ends_clr[0] = vertex_clr[i]
                     ends_clr[1] = vertex_clr[j]
                     certify_segments(seg, q_template, planned, lengths, checked, body, verts, starts, centres,
-                                     radii, threshold, reach_m, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr,
+                                     radii, threshold, reach_m, step_rad, 1e-6, ok_iv, clr_iv, True, ends_clr, True,
                                      q_full, chain, body_w)
                     vertex_clr[i] = ends_clr[0]
                     vertex_clr[j] = ends_clr[1]

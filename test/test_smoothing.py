@@ -297,3 +297,74 @@ def test_the_certified_walks_bound_holds_every_checked_point_and_is_exact_for_th
         if moving.sum() == 1 and moving[-1] and robot.planned_joints[-1] == robot.n_joints - 1:
             assert travel >= bound * (1 - 1e-6), (trial, travel, bound)
         assert bound <= lipschitz_m_per_rad(robot) * np.linalg.norm(b - a) * (1 + 1e-12)
+
+
+@pytest.mark.parametrize("dof", [2, 3])
+def test_the_walk_past_rows_proves_what_the_geometry_says(paper_scenario, dof):
+    """
+    ``MotionValidator.check(every_row=False)`` (the controller's motion: eight rows a segment) against the geometry.
+
+    Curved paths (cubic Béziers, rows 0.1° apart on average, as the controller's samples are)
+    that come nearest an obstacle in their middle, checked at a required clearance near that
+    least clearance, judged by the test's own geometry (``oracles.ref_clearance``) at samples
+    0.02° apart: where the walk passes an interval, no sample of it is within the required
+    clearance; every interval with a sample more than 0.1 mm inside it fails; the verdict is the
+    every-row walk's (5 mm below the least clearance: passed; 2 and 0.3 mm above: failed); the rows it
+    measured are the geometry's clearances.  Samples up to 6° apart, so the certificate carried
+    past the rows alone bounds them.  At the scene's margin and the validator's own step it
+    evaluates fewer than half the rows.
+    """
+    from oracles import dense_samples, ref_clearance
+    sc = paper_scenario(dof)
+    v = MotionValidator.for_scene(sc.robot, sc.scene)
+    wide = v.with_step(np.radians(6.0))          # samples as far apart as the certificate alone allows
+    margin = sc.scene.safety_margin_m
+    lo, hi, _ = bounds(sc)
+    rng = np.random.default_rng(40 + dof)
+    trials = 0
+    while trials < 6:
+        mid = rng.uniform(lo, hi)
+        if not margin + 0.01 < v.clearance_m(mid) < 0.08:
+            continue
+        d = rng.normal(size=dof)
+        d *= rng.uniform(0.2, 0.5) / np.linalg.norm(d)
+        ctrl = np.array([mid - d, mid - d / 3 + rng.normal(0.0, 0.05, dof),
+                         mid + d / 3 + rng.normal(0.0, 0.05, dof), mid + d])
+        fine = np.linspace(0.0, 1.0, 2001)[:, None]
+
+        def curve(u):
+            return ((1 - u) ** 3 * ctrl[0] + 3 * u * (1 - u) ** 2 * ctrl[1] + 3 * u ** 2 * (1 - u) * ctrl[2]
+                    + u ** 3 * ctrl[3])
+        length_deg = np.degrees(np.linalg.norm(np.diff(curve(fine), axis=0), axis=1).sum())
+        u = np.sort(np.concatenate([[0.0, 1.0], rng.uniform(0.0, 1.0, int(length_deg / 0.1))]))[:, None]
+        rows = curve(u)
+        quick = v.clearance_m(curve(fine))          # the selection only (the verdicts are judged below)
+        if not (v.within_bounds(rows).all() and quick.min() > margin + 0.006
+                and min(quick[0], quick[-1]) > quick.min() + 0.01):
+            continue
+        dense, owner = [], []
+        for i in range(len(rows) - 1):
+            piece = dense_samples(rows[i:i + 2], np.radians(0.02))
+            dense.append(piece)
+            owner += [i] * len(piece)
+        dense, owner = np.concatenate(dense), np.array(owner)
+        truth = np.array([ref_clearance(sc.robot, sc.scene, q) for q in dense])
+        least = truth.min()
+        if not (least > margin + 0.006 and min(truth[0], truth[-1]) > least + 0.01):
+            continue                     # nearest the obstacle in its middle, with room for both verdicts
+        trials += 1
+        for need in (least - 5e-3, least + 2e-3, least + 3e-4):
+            got = wide.check(rows, required_clearance_m=need, every_row=False)
+            every = wide.check(rows, required_clearance_m=need)
+            for i in np.flatnonzero(got.interval_ok):
+                assert truth[owner == i].min() > need - 1e-9, (trials, i)
+            inside = np.unique(owner[truth < need - 1e-4])
+            assert not got.interval_ok[inside].any(), (trials, inside)
+            assert got.ok == (need < least) == every.ok, (trials, need, least)
+            known = np.isfinite(got.vertex_clearance_m)
+            np.testing.assert_allclose(got.vertex_clearance_m[known],
+                                       [ref_clearance(sc.robot, sc.scene, q) for q in rows[known]], rtol=0, atol=1e-9)
+            # the least of the samples the walk took: on the path (within the oracle's spacing), rows among them
+            assert truth.min() - 5e-4 <= got.min_clearance_m <= got.vertex_clearance_m[known].min()
+        got, every = v.check(rows, every_row=False), v.check(rows)
+        assert got.ok and every.ok and got.n_checked < len(rows) // 2 < every.n_checked, trials
