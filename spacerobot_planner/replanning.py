@@ -129,8 +129,7 @@ class Executing:
         """
         if ros_ns < self.start_ns and self.previous is not None:
             return self.previous.expected_at(ros_ns, published_only)
-        traj = self.trajectory.subset(self.published) if published_only else self.trajectory
-        return sample(traj, self.time_s(ros_ns))[0]
+        return sample(self.trajectory, self.time_s(ros_ns), self.published if published_only else None)[0]
 
     def joined_by(self, trajectory: Trajectory, published, start_ns: int) -> "Executing":
         """

@@ -1682,22 +1682,26 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
     return Resampled(traj.subset(idx), idx, check, rounds)
 
 
-def sample(traj: Trajectory, t_s: float):
+def sample(traj: Trajectory, t_s: float, points=None):
     """
     Position and velocity at time ``t_s`` (clamped to [0, duration]).
 
     Linear interpolation of the positions between points (the arm stays on the dense,
-    collision-checked polyline) and of the velocities.
+    collision-checked polyline) and of the velocities.  ``points``: (K,) sorted indices of the
+    points to interpolate between (first and last included), as ``sample(traj.subset(points),
+    t_s)`` without the subset's copies (None: every point).
     """
-    t = traj.times_s
+    t = traj.times_s if points is None else traj.times_s[points]
+    first, last = (0, len(traj) - 1) if points is None else (points[0], points[-1])
     if len(t) == 1 or t_s <= 0.0:
-        return traj.positions_rad[0].copy(), traj.velocities_rad_s[0].copy()
+        return traj.positions_rad[first].copy(), traj.velocities_rad_s[first].copy()
     if t_s >= t[-1]:
-        return traj.positions_rad[-1].copy(), np.zeros(traj.positions_rad.shape[1])
+        return traj.positions_rad[last].copy(), np.zeros(traj.positions_rad.shape[1])
     k = int(np.searchsorted(t, t_s, side="right") - 1)
     f = (t_s - t[k]) / (t[k + 1] - t[k])
-    q = traj.positions_rad[k] + f * (traj.positions_rad[k + 1] - traj.positions_rad[k])
-    v = traj.velocities_rad_s[k] + f * (traj.velocities_rad_s[k + 1] - traj.velocities_rad_s[k])
+    a, b = (k, k + 1) if points is None else (points[k], points[k + 1])
+    q = traj.positions_rad[a] + f * (traj.positions_rad[b] - traj.positions_rad[a])
+    v = traj.velocities_rad_s[a] + f * (traj.velocities_rad_s[b] - traj.velocities_rad_s[a])
     return q, v
 
 

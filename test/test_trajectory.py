@@ -183,6 +183,25 @@ def test_sample_interpolates_and_clamps():
     assert 0.0 < q[0] < 0.2
 
 
+def test_sample_between_some_points_is_the_linear_interpolation_of_those_points():
+    """``sample(traj, t, points)``: numpy's own interpolation of the chosen points, and the subset's bits."""
+    path = np.array([[0.0, 0.0, 0.1], [0.4, -0.3, 0.2], [0.1, 0.5, -0.2], [0.6, 0.2, 0.3]])
+    traj = time_parameterize(path, VMAX, AMAX)
+    rng = np.random.default_rng(3)
+    points = np.unique(np.concatenate([[0, len(traj) - 1], rng.choice(len(traj), 12, replace=False)]))
+    sub = traj.subset(points)
+    for t_s in np.concatenate([[-1.0, 0.0, traj.duration_s, traj.duration_s + 1.0], sub.times_s,
+                               rng.uniform(0.0, traj.duration_s, 200)]):
+        q, v = sample(traj, t_s, points)
+        for j in range(3):
+            assert q[j] == pytest.approx(np.interp(t_s, sub.times_s, sub.positions_rad[:, j]), abs=1e-12)
+        if t_s < traj.duration_s:
+            for j in range(3):
+                assert v[j] == pytest.approx(np.interp(t_s, sub.times_s, sub.velocities_rad_s[:, j]), abs=1e-12)
+        q0, v0 = sample(sub, t_s)
+        assert np.array_equal(q, q0) and np.array_equal(v, v0)
+
+
 def test_densify_keeps_exact_ends_and_drops_repeats():
     p = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.5], [1.0, 0.5 + 1e-15]])
     out = densify_path(p, 0.3)
