@@ -110,7 +110,8 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
     D/ℓ m per rad of it (D: :func:`sweep_m`, ``reach_m`` (dof,) :func:`joint_reach_m`), so
     from a sample with clearance c the interval is free for (c - threshold)·ℓ/D on either
     side, and the next sample goes at most that far (less 0.1 %, and at most max_step_rad).
-    An interval fails where c ≤ threshold or the certified step falls below min_step_rad.
+    An interval fails where c ≤ threshold or the certified step falls below min_step_rad, and
+    where a row at either end is not finite (unwalked, its clearance NaN).
     With ``certified`` false the samples go ``max_step_rad`` apart whatever the
     clearance (a quick test, not a proof).  Returns the number of clearance evaluations.
 
@@ -142,6 +143,13 @@ def certify_segments(points, q_template, planned, lengths, checked, body, verts,
             d = points[i + 1, a] - points[i, a]
             seg_len += d * d
         seg_len = np.sqrt(seg_len)
+        if not seg_len < np.inf:
+            # a row not finite (NaN, ±inf): the interval fails unwalked (a walk's place would never reach
+            # its end; a clearance there is no clearance)
+            interval_ok[i] = False
+            interval_clr[i] = np.nan
+            free_m = -1.0
+            continue
         span = sweep_m(points[i], points[i + 1], reach_m)
         rad_per_m = seg_len / span if span > 0.0 else 0.0     # rad of the segment per m of motion (0: no length)
         t = 0.0

@@ -368,3 +368,35 @@ def test_the_walk_past_rows_proves_what_the_geometry_says(paper_scenario, dof):
             assert truth.min() - 5e-4 <= got.min_clearance_m <= got.vertex_clearance_m[known].min()
         got, every = v.check(rows, every_row=False), v.check(rows)
         assert got.ok and every.ok and got.n_checked < len(rows) // 2 < every.n_checked, trials
+
+
+@pytest.mark.parametrize("every_row", [True, False])
+@pytest.mark.parametrize("certified", [True, False])
+def test_a_row_that_is_not_finite_fails_its_intervals_at_once(sc2, chk2, paper_scenario, certified, every_row):
+    """
+    A NaN or infinite row (a periodic joint's or a bounded one's) fails the two intervals it ends, and only those.
+
+    The walk's place never reached such a row's interval end (a NaN attitude hung the kernel; an
+    infinite attitude passed, its clearance an infinity or a number of no posture).  Each check
+    must return within 60 s, judged in a thread.
+    """
+    import threading
+    for sc in (sc2, paper_scenario(3)):
+        v = MotionValidator.for_scene(sc.robot, sc.scene)
+        lo, hi, _ = bounds(sc)
+        base = np.linspace(lo + 0.45 * (hi - lo), lo + 0.55 * (hi - lo), 9)
+        assert v.check(base, certified=certified, every_row=every_row).ok
+        for bad in (np.nan, np.inf, -np.inf):
+            for joint in range(sc.robot.dof):              # joint 0 is the periodic attitude's
+                path = base.copy()
+                path[4, joint] = bad
+                out = {}
+                th = threading.Thread(target=lambda: out.setdefault(
+                    "chk", v.check(path, certified=certified, every_row=every_row)), daemon=True)
+                th.start()
+                th.join(60.0)
+                assert not th.is_alive(), (bad, joint, "the check did not return")
+                chk = out["chk"]
+                assert not chk.ok
+                assert list(np.flatnonzero(~chk.interval_ok)) == [3, 4], (bad, joint, chk.interval_ok)
+                assert np.isnan(chk.interval_clearance_m[3:5]).all() and np.isnan(chk.min_clearance_m)
