@@ -384,7 +384,8 @@ def segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts
     ``ROUNDING_SLACK_M`` are skipped (a margin, relative and absolute, that no rounding of a
     clearance or of a sample's position reaches: without the absolute part a segment an ulp
     long could pass on a clearance 10⁻¹⁵ m from the threshold).  The same verdict as measuring
-    every sample, with fewer measurements away from obstacles.  ``clr_ends`` (2,), m:
+    every sample, with fewer measurements away from obstacles; False where an end is not finite.
+    ``clr_ends`` (2,), m:
     [0] the clearance at qa (NaN: measured, then stored there, so a walk trying several
     neighbours measures its node once); [1] set to the clearance at qb, NaN when qb was not
     measured (the test stopped before it, or skipped it): the next step's [0].
@@ -394,9 +395,11 @@ def segment_free_from(qa, qb, q_template, planned, lengths, checked, body, verts
     for a in range(dof):
         d = qb[a] - qa[a]
         d2 += d * d
+    clr_ends[1] = np.nan
+    if not d2 < np.inf:
+        return False                          # an end not finite: no motion (and no sample count)
     span_m = sweep_m(qa, qb, reach_m)      # D, m
     n = max(1, int(np.ceil(np.sqrt(d2) / step_rad)))
-    clr_ends[1] = np.nan
     k = 0
     while k <= n:
         if k == 0 and not np.isnan(clr_ends[0]):

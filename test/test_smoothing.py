@@ -376,11 +376,15 @@ def test_a_row_that_is_not_finite_fails_its_intervals_at_once(sc2, chk2, paper_s
     """
     A NaN or infinite row (a periodic joint's or a bounded one's) fails the two intervals it ends, and only those.
 
+    The quick test of a segment to it (``segment_free``) and the certified one say it is not free.
+
     The walk's place never reached such a row's interval end (a NaN attitude hung the kernel; an
     infinite attitude passed, its clearance an infinity or a number of no posture).  Each check
     must return within 60 s, judged in a thread.
     """
     import threading
+
+    from spacerobot_planner.motion import motion_scratch, segment_free
     for sc in (sc2, paper_scenario(3)):
         v = MotionValidator.for_scene(sc.robot, sc.scene)
         lo, hi, _ = bounds(sc)
@@ -400,3 +404,9 @@ def test_a_row_that_is_not_finite_fails_its_intervals_at_once(sc2, chk2, paper_s
                 assert not chk.ok
                 assert list(np.flatnonzero(~chk.interval_ok)) == [3, 4], (bad, joint, chk.interval_ok)
                 assert np.isnan(chk.interval_clearance_m[3:5]).all() and np.isnan(chk.min_clearance_m)
+                # the quick test and the certified segment test of the same motion: not free
+                if certified and every_row:
+                    t = v.segment_test()
+                    assert not segment_free(path[3], path[4], *t.arrays(),
+                                            *motion_scratch(t.q_template, t.lengths, t.body))
+                    assert not v.segment_ok(path[3], path[4])
