@@ -168,6 +168,8 @@ def test_goal_waiting_for_joint_states_plans_when_they_arrive(graph):
     g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     status, res, _ = g.goal_result(handle, timeout=60)
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    # feedback and result travel apart: a feedback sent before the result may arrive after it
+    g.wait(lambda: "cspace" in feedback, 5, "the cspace stage's feedback")
     assert feedback[0] == "waiting_for_joint_states" and "cspace" in feedback, feedback
 
 
