@@ -266,6 +266,9 @@ def _family_span(i0, stride, base, basis, dirs, amps, lo, hi, att0, pair, inerti
                 v = row[k, j + 1]
                 if not (v >= lo[j] and v <= hi[j]):
                     within = False
+                    break
+            if not within:
+                break                   # not integrated: the rest of its rows unread
         if within:
             inside[d, a] = True
             _profile_into(row, pair, inertia, prof, w, h_row, h_mid, h_next, mid)
