@@ -871,6 +871,75 @@ def test_penetration_depths_meet_a_shapely_oracle_on_random_postures(dof):
     assert inside >= 40 and outside >= 40, (inside, outside)
 
 
+@pytest.mark.parametrize("dof", [2, 3])
+def test_each_step_out_of_a_contact_is_the_best_neighbour_by_the_tests_geometry(dof):
+    """
+    The walk out of a contact (``contact.leave_contact``) judged by GEOS (shapely) and the test's own steps.
+
+    Random scenes of the ``bench scenes`` family, starts drawn within the margin of the body or an
+    obstacle (many inside): every step is one of the test's 3^dof - 1 grid directions scaled to
+    0.25°, the rows stay within the bounds, the signed distance the walk reports at each row
+    (clearance outside, minus the penetration depth inside) is the oracle's (clearance to 1e-9 m,
+    depth to 1.3 mm: the kernel samples links every 2 mm, the oracle every 0.5 mm), it increases,
+    and no direction within the bounds has an oracle signed distance more than 2.6 mm above the
+    one taken (the walk takes the best; its depths are within 1 mm).  A walk that ends in the room
+    it asks for ends there.
+    """
+    import itertools
+    from shapely.geometry import LineString, Polygon
+    from oracles import _polygons
+    from spacerobot_planner.bench.scenes import random_scenario
+    from spacerobot_planner.contact import leave_contact
+    from spacerobot_planner.motion import MotionValidator
+
+    def signed(sc, q):
+        q_full = sc.robot.full(q)
+        pts = arm_points(sc.robot, q_full)
+        clr = min(LineString([pts[k], pts[k + 1]]).distance(Polygon(poly))
+                  for k in sc.robot.checked_links for poly in _polygons(sc.robot, sc.scene, q_full[0]))
+        return clr if clr > 0.0 else -shapely_penetration(sc.robot, sc.scene, q, spacing_m=5e-4)
+
+    step = np.radians(0.25)
+    dirs = np.array([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=dof) if any(d)])
+    dirs = step * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    rng = np.random.default_rng([43, dof])
+    walks = steps = inside = 0
+    while walks < 6:
+        sc, _start = random_scenario(rng, dof)
+        if not all(Polygon(p).is_valid for p in sc.scene.obstacle_polygons_m):
+            continue                      # GEOS has no inside for a self-intersecting polygon
+        motions = MotionValidator.for_scene(sc.robot, sc.scene)
+        lo, hi, per = sc.robot.planned_lower_rad, sc.robot.planned_upper_rad, np.array(sc.robot.planned_periodic)
+        qs = rng.uniform(lo, hi, size=(4000, dof))
+        qs = qs[motions.clearance_m(qs) <= sc.scene.safety_margin_m]
+        for q0 in qs[:2]:
+            ex = leave_contact(motions, q0, max_penetration_m=0.05, max_length_rad=np.radians(5.0))
+            if ex.start_penetration_m > 0.05:
+                continue
+            walks += 1
+            rows = ex.path_rad
+            assert np.array_equal(rows[0], q0)
+            for k, row in enumerate(rows):
+                got = ex.signed_distance_m[k]
+                ref = signed(sc, row)
+                assert abs(got - ref) <= (1e-9 if ref > 0.0 else 1.3e-3), (k, got, ref)
+                inside += ref < 0.0
+                assert np.all(per | ((row >= lo) & (row <= hi)))
+                if k == 0:
+                    continue
+                assert got > ex.signed_distance_m[k - 1]
+                d = row - rows[k - 1]
+                assert np.min(np.max(np.abs(dirs - d), axis=1)) < 1e-12, d
+                cands = rows[k - 1] + dirs
+                cands = cands[np.all(per | ((cands >= lo) & (cands <= hi)), axis=1)]
+                best = max(signed(sc, c) for c in cands)
+                assert best <= ref + 2.6e-3, (k, best, ref)
+                steps += 1
+            if ex.ok:
+                assert ex.signed_distance_m[-1] >= sc.scene.safety_margin_m + 0.01
+    assert steps >= 20 and inside >= 5, (steps, inside)
+
+
 def test_deep_start_collision_still_refused(paper_scenario):
     sc0 = paper_scenario(3)
     q_cap, sc = _captured_then_moved(sc0, 0.20)             # link 3 10 cm inside the body
