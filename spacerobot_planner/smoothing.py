@@ -516,8 +516,11 @@ def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, 
                     continue
                 ta, tb = t_knots[j], t_knots[j + 1]
                 inner = t_poly[(t_poly > ta + 1e-12) & (t_poly < tb - 1e-12)]
-                if j == iv or len(inner):
-                    new_t.extend(inner if len(inner) else [0.5 * (ta + tb)])
+                if len(inner):
+                    new_t.extend(inner)
+                elif j == iv:                     # split in 2, then 4, then 8 parts: a stretch that fails
+                    parts = 2 ** min(rounds + 1, 3)   # again needs the polyline close (contact starts: 9 -> 4)
+                    new_t.extend([0.5 * (ta + tb)] if parts == 2 else ta + (tb - ta) * np.arange(1, parts) / parts)
         if not new_t:
             return None
         t_knots = np.unique(np.concatenate([t_knots, new_t]))
