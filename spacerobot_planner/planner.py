@@ -145,6 +145,21 @@ class Planner:
             changes["field_budget_s"] = field_budget_s
         self.configure(**changes)
 
+    def set_settings(self, settings: PlannerSettings, acs, masses, joint_limits) -> None:
+        """
+        Take a scenario's settings: its ``planner_settings``, ``acs``, ``masses`` and ``joint_limits``.
+
+        What the planner was made with beyond the scenario's settings (``trajectory``,
+        ``reaction``) stays; the cached C-spaces and fields stay (their keys hold what they
+        depend on), the free-floating capture's planners go (made with the old settings).
+        """
+        new = replace(settings, trajectory=self.settings.trajectory, reaction=self.settings.reaction)
+        with self._lock:
+            self.scenario = replace(self.scenario, planner_settings=settings, acs=acs, masses=masses,
+                                    joint_limits=joint_limits)
+            self.settings = new
+            self._apparent.clear()
+
     def set_scene(self, scene: Scene) -> None:
         """Replace the scene; the caches go only when geometry or margin changed."""
         with self._lock:

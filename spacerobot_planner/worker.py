@@ -83,7 +83,10 @@ class PlanJob:
     stages: False reports only that the job began (:func:`began`, the backend's own), not
     each stage (no one follows them: each is a message the plan pays for, and a wake of the
     node's waiting thread in the middle of the plan); start_tangent: (dof,) the direction
-    the arm moves in at the start, or None (``Planner.plan``).
+    the arm moves in at the start, or None (``Planner.plan``); scenario_settings: the
+    scenario's ``(planner_settings, acs, masses, joint_limits)`` (``Planner.set_settings``: a
+    runtime change of ``planner.*``, ``grasp.*``, ``acs.*``, ``dynamics.*`` or ``trajectory.*``
+    reaches the planning process with its next job), None: the planner's own kept.
     """
 
     gen: int
@@ -102,14 +105,16 @@ class PlanJob:
     stall_polls: bool = True
     stages: bool = True
     start_tangent: np.ndarray | None = None
+    scenario_settings: tuple | None = None
 
     @classmethod
     def for_scenario(cls, gen: int, scenario, start_rad, joint_goal=None, start_tangent=None, **test) -> "PlanJob":
         """
         Return the job of planning ``scenario`` from ``start_rad``.
 
-        Its scene and grid, and its solver, tolerance, budget, grid limit and threads
-        (``Scenario.planner_settings``); ``test``: the stall fields.
+        Its scene and grid, its solver, tolerance, budget, grid limit and threads
+        (``Scenario.planner_settings``), and its settings as a whole (``scenario_settings``);
+        ``test``: the stall fields.
         """
         s = scenario.planner_settings
         return cls(gen=gen, scene=scenario.scene, grid=scenario.grid, solver=s.solver,
@@ -117,6 +122,7 @@ class PlanJob:
                    start_rad=np.asarray(start_rad, dtype=float), joint_goal=joint_goal,
                    field_budget_s=float(s.field_budget_s), max_threads=int(s.max_threads), start_tangent=start_tangent,
                    threads_follow_load=bool(s.threads_follow_load),
+                   scenario_settings=(s, scenario.acs, scenario.masses, scenario.joint_limits),
                    **test)
 
 
@@ -189,18 +195,20 @@ _APPLIED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 def _apply_settings(planner, job: PlanJob) -> None:
     """
-    Give ``planner`` the job's scene, grid, solver and limits.
+    Give ``planner`` the job's scene, grid, scenario settings, solver and limits.
 
     A job with the settings of the last one applied (a replan: the same bytes) changes
     nothing: the scene's checker and the target's goal (``Planner.capture_goal``) stay.
     """
     key = pickle.dumps((job.scene, job.grid, job.solver, job.field_tolerance, job.field_budget_s,
-                        job.max_grid_nodes, job.max_threads, job.threads_follow_load),
+                        job.max_grid_nodes, job.max_threads, job.threads_follow_load, job.scenario_settings),
                        protocol=pickle.HIGHEST_PROTOCOL)
     held = _APPLIED.get(planner)
     if held is not None and held == (key, _state(planner)):
         return
     _APPLIED.pop(planner, None)
+    if job.scenario_settings is not None:
+        planner.set_settings(*job.scenario_settings)
     planner.set_scene(job.scene)
     if planner.scenario.grid != job.grid:
         planner.set_grid(job.grid)

@@ -182,6 +182,51 @@ def test_jobs_of_the_same_settings_keep_the_goal_and_a_new_target_or_scene_takes
     assert b.planner.scenario.scene.target.center_m == moved.target.center_m
 
 
+def test_a_job_plans_with_its_scenarios_settings_not_those_the_planner_was_made_with():
+    """
+    A runtime change of ``acs.*`` or ``planner.*`` reaches the plan with the next job (``PlanJob.scenario_settings``).
+
+    The planning process's planner is made once, from the scenario the node started with; a job
+    built from the node's current scenario (``PlanJob.for_scenario``) plans as a planner made from
+    that scenario does (the oracle), both ways: the free-floating capture scene switched to
+    ``acs.mode: held`` and back (the capture then searches the drifted postures: another goal), and
+    ``planner.max_start_penetration_m`` (0: a start in contact is refused, not walked out of).
+    """
+    from spacerobot_planner.bench.plan import contact_starts
+    from spacerobot_planner.planner import Planner
+    from spacerobot_planner.termination import Termination
+    from spacerobot_planner.worker import run_job
+
+    def outcome(planner, sc, gen, start=None):
+        out = run_job(planner, PlanJob.for_scenario(gen, sc, sc.start_rad if start is None else start), Termination())
+        assert isinstance(out, PlanDone), out
+        r = out.result
+        return r.code, r.reason, None if r.path_rad is None else r.path_rad.tobytes()
+
+    ffc = load_scenario(os.path.join(CONFIG_DIR, "free_floating_capture.yaml"))
+    assert ffc.acs.mode == "free_floating"
+    held = dataclasses.replace(ffc, acs=dataclasses.replace(ffc.acs, mode="held"))
+    want_ff = outcome(Planner(ffc, trajectory=False), ffc, 1)
+    want_held = outcome(Planner(held, trajectory=False), held, 1)
+    assert want_ff != want_held                             # the mode decides the plan
+    p = Planner(held, trajectory=False)
+    assert outcome(p, ffc, 1) == want_ff
+    assert outcome(p, held, 2) == want_held
+    assert outcome(p, ffc, 3) == want_ff
+
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_3dof.yaml"))
+    start = contact_starts(sc, 1)[0]
+    strict = dataclasses.replace(sc, planner_settings=dataclasses.replace(sc.planner_settings,
+                                                                          max_start_penetration_m=0.0))
+    p = Planner(sc, trajectory=False)
+    walked = outcome(p, sc, 1, start)
+    assert walked[0] == "ok"
+    refused = outcome(p, strict, 2, start)
+    assert refused[0] == "start_in_collision"
+    assert refused == outcome(Planner(strict, trajectory=False), strict, 1, start)
+    assert outcome(p, sc, 3, start) == walked
+
+
 def test_unreachable_target_is_a_plan_error(backend):
     sc, b = backend
     far = sc.scene.with_target(sc.scene.target.__class__(center_m=(9.0, 9.0)))
