@@ -408,6 +408,29 @@ def test_unknown_parameter_in_a_file_is_reported_by_the_node(tmp_path, capfd):
     assert "unknown parameter 'safety_margn_m' (ignored); did you mean 'safety_margin_m'?" in lines[0]
 
 
+def test_an_inputs_durability_override_is_applied_and_one_not_taken_is_said(graph, capfd):
+    """
+    ``qos_overrides.<topic>.subscription.durability`` sets an input's QoS; one no input takes is named in a warning.
+
+    Oracle: the ROS graph's view of the planner's own subscription (what ``ros2 topic info -v``
+    prints).  rclpy's default overridable policies leave durability out: it was declared and
+    reported by ``ros2 param get`` but not applied (a ROS user's audit).
+    """
+    from rclpy.qos import DurabilityPolicy
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof", **{"qos_overrides./target_pose.subscription.durability": "transient_local",
+                                      "qos_overrides./target_pose.subscription.lifespan": 5}),
+              with_arm=False, wait_subscribed=False)
+
+    def planner_endpoint():
+        ends = g.drv.get_subscriptions_info_by_topic("/target_pose")
+        return next((e for e in ends if e.node_name == "spacerobot_planner"), None)
+    g.wait(lambda: planner_endpoint() is not None, 30, "the planner's target_pose subscription seen")
+    assert planner_endpoint().qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    g.wait(lambda: "qos_overrides./target_pose.subscription.lifespan" in capfd.readouterr().err, 10,
+           "the override not taken named in a warning")
+
+
 # ================================================================== 10. the attitude from its own topic
 def test_attitude_from_its_own_topic_when_joint_states_lack_it(graph):
     from geometry_msgs.msg import PoseStamped

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 
@@ -31,14 +31,28 @@ from ..scene import Target
 from ..session import target_why
 from . import conversions as conv
 
-__all__ = ["Inputs", "CLOCK_MISMATCH_S"]
+__all__ = ["Inputs", "CLOCK_MISMATCH_S", "OVERRIDABLE", "unused_qos_overrides"]
 
 #: a joint_states header stamped further than this from the node's clock at arrival, s, is on
 #: another clock (wall time against sim time: 1.8e9 s); its stamp made a late state look
 #: "1796299619.64 s old" and joins fail
 CLOCK_MISMATCH_S = 60.0
+#: the QoS policies of target_pose, joint_states and goal_joint_state that
+#: ``qos_overrides.<topic>.subscription.<policy>`` may set (rclpy's defaults and the durability)
+OVERRIDABLE = (QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 #: ... said at most this often, s
 CLOCK_WARNING_PERIOD_S = 30.0
+
+
+def unused_qos_overrides(names, topics) -> list:
+    """
+    Return the ``qos_overrides.*`` parameter names among ``names`` that no subscription takes.
+
+    ``topics``: the fully qualified topics of the overridable subscriptions; each takes
+    ``qos_overrides.<topic>.subscription.<policy>`` for the policies of :data:`OVERRIDABLE`.
+    """
+    taken = {f"qos_overrides.{t}.subscription.{kind.name.lower()}" for t in topics for kind in OVERRIDABLE}
+    return sorted(n for n in names if n.startswith("qos_overrides.") and n not in taken)
 
 
 class Inputs:
@@ -55,13 +69,20 @@ class Inputs:
         # states: best effort matches both reliable and best-effort (sensor-data) drivers; the
         # latest state is all that counts.  qos_overrides.<topic>.subscription.* may change it.
         states_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-        overridable = QoSOverridingOptions.with_default_policies()
+        overridable = QoSOverridingOptions(OVERRIDABLE)
         subs = [node.create_subscription(PoseStamped, "target_pose", self.on_target, 10,
                                          qos_overriding_options=overridable),
                 node.create_subscription(JointState, "joint_states", self.on_joint_state, states_qos,
                                          qos_overriding_options=overridable),
                 node.create_subscription(JointState, "goal_joint_state", self.on_goal_joint_state, 10,
                                          qos_overriding_options=overridable)]
+        unused = unused_qos_overrides(node.list_parameters(["qos_overrides"], 0).names,
+                                      [sub.topic_name for sub in subs])
+        if unused:
+            node.get_logger().warning(
+                f"{', '.join(unused)}: not applied (the QoS overrides taken are "
+                f"{', '.join(kind.name.lower() for kind in OVERRIDABLE)} of the subscriptions "
+                f"{', '.join(sub.topic_name for sub in subs)})")
         topic = node.param_handler.params["attitude_topic"]
         if topic:
             subs.append(node.create_subscription(PoseStamped, topic, self.on_attitude, states_qos))
