@@ -107,7 +107,7 @@ PARAMETERS = (
               "periodic one as many: [36, 36, 36] with the attitude periodic is the 36x37x37 grid).",
               False, 2, 4096, True),
     ParamSpec("scenario.start_deg", "double_array", [-90.0, 135.0, 90.0],
-              "Start posture of the planned joints, degrees (CLI and mock arm).", False),
+              "Start posture of the planned joints, degrees (CLI and mock arm: where it starts).", True),
     ParamSpec("scenario.goal_deg", "double_array", [160.7, 32.8, 76.5],
               "Goal posture of the planned joints, degrees (CLI; the node plans to the target).", False),
     # ---- planner (field, path)

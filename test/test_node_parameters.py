@@ -116,6 +116,29 @@ def test_what_ros2_param_set_sends_is_taken_or_refused_by_name(graph):
     assert g.planner.get_parameter("safety_margin_m").value == 0.02
 
 
+def test_the_mock_arms_rate_takes_effect_and_its_start_is_read_only(graph):
+    """
+    ``ros2 param set /mock_arm rate_hz 25`` (an integer) sets the joint_states timer; ``scenario.start_deg`` is refused.
+
+    Oracle: the parameter service a ``ros2 param`` user calls and the node's timers (rclpy's
+    view). Both had been taken and never applied (a ROS user's audit), and a whole number for
+    the rate was refused with rclpy's type numbers.
+    """
+    g = graph(scene_params("3dof"))
+
+    def set_one(name, value):
+        req = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        return _call(g, "mock_arm", SetParameters, "set_parameters", req).results[0]
+
+    assert [t.timer_period_ns for t in g.arm.timers] == [20_000_000]          # the file's 50 Hz
+    r = set_one("rate_hz", 25)
+    assert r.successful, r.reason
+    assert g.arm.get_parameter("rate_hz").value == 25.0
+    assert [t.timer_period_ns for t in g.arm.timers] == [40_000_000]
+    r = set_one("scenario.start_deg", [0.0, 90.0, 90.0])
+    assert not r.successful and "read-only" in r.reason, r.reason
+
+
 def test_limits_too_low_for_a_trajectory_message_are_refused_by_name(graph):
     """
     Velocity limits near 0 (a slip of `ros2 param set`): the plan answers invalid_input, nothing is published.

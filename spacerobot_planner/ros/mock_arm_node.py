@@ -30,8 +30,8 @@ nanoseconds, so a state is exact at its stamp.  Joints that no trajectory moves 
 position.
 
 Parameters: ``robot.*`` and ``scenario.start_deg`` (the shared ``/**`` section of a
-scenario file) and ``rate_hz`` (its own ``mock_arm`` section).  Run it with the same
-file as the planner::
+scenario file; read-only) and ``rate_hz`` (its own ``mock_arm`` section; a change takes effect
+at once, a whole number too).  Run it with the same file as the planner::
 
     ros2 run spacerobot_planner mock_arm_node --ros-args --params-file config/paper_3dof.yaml
 """
@@ -52,7 +52,7 @@ from ..config import scenario_from_params
 from ..trajectory import sample_points
 from . import conversions as conv
 from . import node_main
-from .parameters import MOCK_ARM_PARAMETERS, SPECS, descriptor_for
+from .parameters import MOCK_ARM_PARAMETERS, SPECS, as_declared, descriptor_for
 
 __all__ = ["MockArmNode", "main"]
 
@@ -116,8 +116,26 @@ class MockArmNode(Node):
         for topic in ("joint_trajectory", "attitude_trajectory"):      # the arm's and the attitude's
             self.create_subscription(JointTrajectory, topic, lambda m, t=topic: self._on_trajectory(m, t), 10)
         self._timer = self.create_timer(1.0 / float(params["mock_arm.rate_hz"]), self._tick)
+        self.add_post_set_parameters_callback(self._post_set)
         self.get_logger().info(f"mock arm at {np.round(np.degrees(self._q), 2).tolist()}°, "
                                f"publishing {', '.join(self.names)} at {params['mock_arm.rate_hz']} Hz")
+
+    # ------------------------------------------------------------------ parameters
+    def set_parameters_atomically(self, parameter_list):
+        """As rclpy's (the ``~/set_parameters`` service calls it), a whole number given for a double as a double."""
+        return super().set_parameters_atomically(as_declared(parameter_list, MOCK_ARM_PARAMETERS))
+
+    def set_parameters(self, parameter_list):
+        """As rclpy's, a whole number given for a double as a double (``ros2 param set /mock_arm rate_hz 100``)."""
+        return super().set_parameters(as_declared(parameter_list, MOCK_ARM_PARAMETERS))
+
+    def _post_set(self, parameters) -> None:
+        """Apply a new ``rate_hz`` (the others it declares are read-only): the timer at the new rate."""
+        for p in parameters:
+            if p.name == "rate_hz":
+                self.destroy_timer(self._timer)
+                self._timer = self.create_timer(1.0 / float(p.value), self._tick)
+                self.get_logger().info(f"publishing joint_states at {p.value} Hz")
 
     @property
     def positions(self) -> np.ndarray:

@@ -88,18 +88,19 @@ def _normalise(spec, value):
     return value
 
 
-def as_declared(parameters) -> list:
+def as_declared(parameters, names: dict | None = None) -> list:
     """
     Return ``parameters`` (rclpy Parameters) with a whole number given for a double as a double.
 
     ``ros2 param set /spacerobot_planner safety_margin_m 1`` sends an integer, and ``[90, 180]``
     an integer array: for a double (array) of the schema they become the double (array) the
     parameter is declared with (as :func:`_normalise` does with start values), where rclpy
-    would refuse them with enum numbers.  Everything else is passed on as it is.
+    would refuse them with enum numbers.  Everything else is passed on as it is.  ``names``:
+    declared name -> schema name where they differ (``MOCK_ARM_PARAMETERS``: ``rate_hz``).
     """
     out = []
     for p in parameters:
-        spec = SPECS.get(p.name)
+        spec = SPECS.get(p.name if names is None else names.get(p.name, p.name))
         kind = None if spec is None else spec.type
         if kind == "double" and p.type_ == Parameter.Type.INTEGER:
             p = Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
