@@ -308,11 +308,21 @@ def _check_scalar(name, kind, value):
     raise AssertionError(kind)
 
 
+#: parameters that name a frame: a tf2 frame id, not empty, no leading "/" (tf2 refuses it)
+FRAME_PARAMETERS = ("planning_frame", "grid_frame")
+
+
 def check_value(name: str, value):
     """Type- and range-check one parameter value; return it normalised (lists as lists)."""
     spec = _SPECS.get(name)
     if spec is None:
         raise ValueError(f"unknown parameter '{name}'")
+    if name in FRAME_PARAMETERS:
+        frame = _check_scalar(name, spec.type, value)
+        if not frame.strip() or frame.startswith("/") or frame != frame.strip():
+            raise ValueError(f"{name}: expected a frame id (not empty, no spaces around it, no leading '/', "
+                             f"as tf2 asks), got {value!r}")
+        return frame
     if spec.type.endswith("_array"):
         if isinstance(value, (tuple, np.ndarray, array.array)):    # array.array: from a ROS message
             value = list(value)

@@ -77,6 +77,12 @@ def test_rejected_values_name_the_parameter(graph):
     g.wait(lambda: g.level("input") == b"\x02", 5, "the input status ERROR")
     assert "safety_margin_m: expected a number, got 'wide'" in g.status("input").message
     assert g.planner.get_parameter("safety_margin_m").value == 0.02
+    # a frame RViz and tf2 could not use (an empty one was taken: a ROS user's audit)
+    for frame in ("", " ", "/cspace"):
+        req = SetParameters.Request(parameters=[Parameter("grid_frame", value=frame).to_parameter_msg()])
+        r = _call(g, "spacerobot_planner", SetParameters, "set_parameters", req).results[0]
+        assert not r.successful and r.reason.startswith("grid_frame: expected a frame id"), (frame, r.reason)
+    assert g.planner.get_parameter("grid_frame").value == "cspace"
 
 
 def test_what_ros2_param_set_sends_is_taken_or_refused_by_name(graph):
