@@ -483,6 +483,24 @@ def _spline_kernel(s, y, max_step_rad, start_slope, clamped):
     return q, u, iv
 
 
+#: A failing knot interval shorter than this many sample steps is not split again (the spline
+#: already follows the polyline there at the samples' resolution: where it fails the polyline is
+#: what passes), nor split into parts shorter than it.
+FINEST_KNOT_INTERVAL = 1.0 / 16.0
+
+
+def _split(ta, tb, rounds, finest):
+    """
+    Return the knots that split a failing knot interval [ta, tb] (no polyline vertex in it) in round ``rounds``.
+
+    In 2 parts in the first round (its midpoint), then 4, then 8 (contact starts' refinements 9 ->
+    4 rounds: a stretch that fails again needs the spline close to the polyline), never into
+    parts shorter than ``finest`` but in two.
+    """
+    parts = max(2, min(2 ** min(rounds + 1, 3), int((tb - ta) / finest)))
+    return [0.5 * (ta + tb)] if parts == 2 else list(ta + (tb - ta) * np.arange(1, parts) / parts)
+
+
 def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, certified, start_tangent=None):
     """
     Spline through polyline points at arc lengths t_knots, refined where it collides.
@@ -492,6 +510,7 @@ def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, 
     the first clean spline, or None.
     """
     t_knots = np.unique(t_knots)
+    finest = max_step_rad * FINEST_KNOT_INTERVAL
     for rounds in range(max_rounds + 1):
         if cancel is not None and cancel.is_set():
             return None
@@ -518,9 +537,8 @@ def _refined_spline(v, poly, t_poly, t_knots, max_step_rad, max_rounds, cancel, 
                 inner = t_poly[(t_poly > ta + 1e-12) & (t_poly < tb - 1e-12)]
                 if len(inner):
                     new_t.extend(inner)
-                elif j == iv:                     # split in 2, then 4, then 8 parts: a stretch that fails
-                    parts = 2 ** min(rounds + 1, 3)   # again needs the polyline close (contact starts: 9 -> 4)
-                    new_t.extend([0.5 * (ta + tb)] if parts == 2 else ta + (tb - ta) * np.arange(1, parts) / parts)
+                elif j == iv and tb - ta >= finest:
+                    new_t.extend(_split(ta, tb, rounds, finest))
         if not new_t:
             return None
         t_knots = np.unique(np.concatenate([t_knots, new_t]))
