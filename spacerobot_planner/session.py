@@ -54,7 +54,7 @@ import math
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -253,12 +253,26 @@ class CaptureSession:
         self._with_target = (None, None, None)   # (scenario, target, the scenario with the target)
 
     # ------------------------------------------------------------------ set-up
-    def configure(self, scenario, settings: SessionSettings, target_changed: bool = False) -> None:
-        """Take new parameters (a validated change); ``target_changed``: the scenario's target becomes current."""
+    def configure(self, scenario, settings: SessionSettings, target_changed: bool = False,
+                  target_resized: bool = False) -> None:
+        """
+        Take new parameters (a validated change).
+
+        ``target_changed``: the scenario's target becomes current (its pose changed); else
+        ``target_resized``: the current target (a ``target_pose``'s too) takes the scenario's
+        target's sizes, where it is.
+        """
         with self.lock:
             self.scenario, self.settings = scenario, settings
+            new = scenario.scene.target
             if target_changed:
-                self.target = scenario.scene.target
+                self.target = new
+            elif target_resized and new is not None:
+                sized = {"body_side_m": new.body_side_m, "handle_side_m": new.handle_side_m}
+                if self.target is not None:
+                    self.target = replace(self.target, **sized)
+                if self.requested_target is not None:
+                    self.requested_target = replace(self.requested_target, **sized)
 
     def start(self, backend, thread: bool = True) -> None:
         """Plan with ``backend`` (``worker.ProcessBackend`` or ``ThreadBackend``), in the worker thread (``thread``)."""

@@ -153,6 +153,14 @@ def test_which_goal_a_replan_or_a_parameter_change_uses(flat, backend):
     change = ses.submit("parameter change (safety_margin_m)")
     np.testing.assert_array_equal(change.joint_goal, goal)
     assert change.scenario.scene.target is topic and change.scenario.scene.safety_margin_m == 0.03
+    # a change of the target's sizes alone: the current target (the topic's) keeps its place, takes the sizes
+    ses.configure(scenario_from_params(dict(moved, **{"target.handle_side_m": 0.2})), ses.settings,
+                  target_resized=True)
+    resized = ses.submit("parameter change (target.handle_side_m)")
+    np.testing.assert_array_equal(resized.joint_goal, goal)
+    got = resized.scenario.scene.target
+    assert (got.center_m, got.yaw_rad, got.handle_side_m) == (topic.center_m, topic.yaw_rad, 0.2)
+    assert ses.requested_target.center_m == topic.center_m and ses.requested_target.handle_side_m == 0.2
     # a change of target.*: the parameters' target becomes current (a target request plans to it)
     ses.configure(scenario_from_params(dict(moved, **{"target.center_m": [-3.25, -2.62]})), ses.settings,
                   target_changed=True)

@@ -89,6 +89,9 @@ YIELD_AFTER_SEND_S = 0.0003
 CONTEXT_WAIT_S = 0.05
 #: the severities of ``_log``'s levels (any other level: info)
 _SEVERITY = {"error": LoggingSeverity.ERROR, "warning": LoggingSeverity.WARN}
+#: the target.* parameters that place the target: a change makes the parameters' target current
+#: (a target_pose's with it); target.body_side_m / handle_side_m resize the current one where it is
+TARGET_POSE_PARAMETERS = ("target.center_m", "target.yaw_deg")
 
 
 class PlannerNode(LifecycleNode):
@@ -347,8 +350,9 @@ class PlannerNode(LifecycleNode):
 
     def _apply_params(self, params, scenario, names):
         """Apply an accepted change (once): the session's scenario and settings, the timer, a replan."""
-        self.session.configure(scenario, session_settings_from_params(params),
-                               target_changed=any(n.startswith("target.") for n in names))
+        moved = any(n in TARGET_POSE_PARAMETERS for n in names)     # else only its sizes, where it is
+        self.session.configure(scenario, session_settings_from_params(params), target_changed=moved,
+                               target_resized=not moved and any(n.startswith("target.") for n in names))
         if "diagnostics.period_s" in names and self._diag_timer is not None:
             self.destroy_timer(self._diag_timer)
             self._diag_timer = self.create_timer(float(params["diagnostics.period_s"]), self._diag_tick)
