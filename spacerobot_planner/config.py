@@ -196,8 +196,10 @@ PARAMETERS = (
               "Largest reaction-wheel torque the trajectory may need, N m (0: no limit).",
               False, 0.0, 1e9),
     ParamSpec("acs.compensate_drift", "bool", False,
-              "Free floating (CLI): plan the arm for the predicted drift (goal corrected and replanned "
-              "until the drifted tip reaches the grasp; 2-DOF, attitude not planned).", False),
+              "Free floating, the CLI's strategy: plan the arm for the predicted drift (goal corrected and "
+              "replanned until the drifted tip reaches the grasp; 2-DOF, attitude not planned). The node has "
+              "no drift compensation: set, it does not run the free-floating capture search either, and its "
+              "plans are judged by the drift they would cause.", False),
     ParamSpec("grasp.position_tolerance_m", "double", 0.02,
               "Free floating: largest acceptable distance of the drifted tip from the grasp point, m.",
               False, 0.0, 10.0),
