@@ -28,6 +28,15 @@ def run(argv, capsys):
     return rc, out.out, out.err
 
 
+def test_json_to_stdout_is_the_json_alone(capsys):
+    """``--json -`` pipes into a JSON parser: the lines for people go to stderr (a newcomer's audit)."""
+    rc, out, err = run(["--params-file", P2, "--json", "-"], capsys)
+    assert rc == 0, err
+    d = json.loads(out)
+    assert d["ok"] is True and d["code"] == "ok" and len(d["path_rad"]) > 10
+    assert "planning " in err and "clearance" in err
+
+
 def test_paper_3dof_json(tmp_path, capsys):
     js = tmp_path / "plan.json"
     rc, out, err = run(["--params-file", P3, "--json", str(js)], capsys)

@@ -20,6 +20,7 @@ reason is printed and in the JSON), 1 bad input (a message naming the field on s
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -138,11 +139,12 @@ def main(argv=None) -> int:
         planner = Planner(scenario, solver=solver, field_tolerance=tol, field_budget_s=field_budget, reaction=True)
     except ValueError as e:
         return fail_input(str(e))
-    # ---- plan
-    progress = None if args.quiet else (lambda line: print(f"  {line}", flush=True))
+    # ---- plan (with --json -, stdout is the JSON alone: the lines for people go to stderr)
+    say = functools.partial(print, file=sys.stderr if args.json == "-" else sys.stdout, flush=True)
+    progress = None if args.quiet else (lambda line: say(f"  {line}"))
     if not args.quiet:
-        print(f"planning {args.params_file}: joints {', '.join(robot.planned_names)}, "
-              f"grid {scenario.grid.label()}, solver {solver}")
+        say(f"planning {args.params_file}: joints {', '.join(robot.planned_names)}, "
+            f"grid {scenario.grid.label()}, solver {solver}")
     try:
         done = plan_offline(planner, start, goal, progress=progress)
     except ValueError as e:            # the drift compensation refuses the scenario
@@ -151,14 +153,14 @@ def main(argv=None) -> int:
     if res.code == "invalid_input":
         return fail_input(res.reason)
     if comp is not None:
-        print(f"drift compensation: {len(comp.history)} plans, tip miss "
-              f"{' → '.join(f'{h[0]:.4f}' for h in comp.history)} m; goal "
-              f"{np.round(np.degrees(comp.goal_rad), 2).tolist()}°")
+        say(f"drift compensation: {len(comp.history)} plans, tip miss "
+            f"{' → '.join(f'{h[0]:.4f}' for h in comp.history)} m; goal "
+            f"{np.round(np.degrees(comp.goal_rad), 2).tolist()}°")
     for line in _summary(res, scenario):
-        print(line)
+        say(line)
     if processed is not None:
         for line in _motion_summary(res.reaction, processed):
-            print(line)
+            say(line)
         if res.code == "reaction_refused":
             print(f"spacerobot-plan: refused: {res.reason}", file=sys.stderr)
     if args.json:
@@ -175,17 +177,17 @@ def main(argv=None) -> int:
         else:
             Path(args.json).parent.mkdir(parents=True, exist_ok=True)
             Path(args.json).write_text(text + "\n", encoding="utf-8")
-            print(f"wrote {args.json}")
+            say(f"wrote {args.json}")
     if args.plot:
         from .plotting import plot_plan        # matplotlib: loaded only when a plot is asked for
         Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
         plot_plan(res, scenario, args.plot)
-        print(f"wrote {args.plot}")
+        say(f"wrote {args.plot}")
         if res.reaction is not None:
             from .plotting import plot_reaction    # matplotlib, as above
             rpath = Path(args.plot).with_name(Path(args.plot).stem + "_reaction.png")
             plot_reaction(Motion(res.trajectory, res.reaction), rpath)
-            print(f"wrote {rpath}")
+            say(f"wrote {rpath}")
     return 0 if res.ok else 2
 
 
