@@ -431,6 +431,34 @@ def test_an_inputs_durability_override_is_applied_and_one_not_taken_is_said(grap
            "the override not taken named in a warning")
 
 
+def test_a_held_joint_reported_away_from_its_lock_is_said_in_a_warning(graph, capfd):
+    """
+    joint_states with the attitude of the paper 2-DOF scene (not planned, held at 160.7°) 10° off: a warning names it.
+
+    The plans hold a joint that is not planned at ``robot.locked_positions_deg``; after a
+    free-floating capture the real attitude has drifted from it, and a user would plan with
+    the wrong body pose unaware.  Oracle: the node's log (stderr), the values the test sent.
+    """
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import scene_params
+    g = graph(scene_params("2dof"), with_arm=False)
+    robot = g.scenario.robot
+    q = robot.full(g.scenario.start_rad)
+    assert robot.planned_joints == (1, 2) and abs(np.degrees(q[0]) - 160.7) < 1e-9
+    g.pub_js.publish(joint_state_msg(robot.joint_names, q))          # at its lock: nothing said
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    off = q.copy()
+    off[0] += np.radians(10.0)
+    g.pub_js.publish(joint_state_msg(robot.joint_names, off))
+    seen = []
+
+    def warned():
+        seen.append(capfd.readouterr().err)
+        return "attitude at 170.7° where robot.locked_positions_deg holds it at 160.7°" in "".join(seen)
+    g.wait(warned, 10, "the held attitude's warning")
+    assert "".join(seen).count("robot.locked_positions_deg holds it") == 1
+
+
 # ================================================================== 10. the attitude from its own topic
 def test_attitude_from_its_own_topic_when_joint_states_lack_it(graph):
     from geometry_msgs.msg import PoseStamped

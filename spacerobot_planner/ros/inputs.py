@@ -18,6 +18,7 @@ A bad message is rejected through the node (log, rate-limited per topic, and /di
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -31,17 +32,47 @@ from ..scene import Target
 from ..session import target_why
 from . import conversions as conv
 
-__all__ = ["Inputs", "CLOCK_MISMATCH_S", "OVERRIDABLE", "unused_qos_overrides"]
+__all__ = ["Inputs", "CLOCK_MISMATCH_S", "OVERRIDABLE", "unused_qos_overrides", "locked_mismatches",
+           "LOCKED_TOL_RAD"]
 
 #: a joint_states header stamped further than this from the node's clock at arrival, s, is on
 #: another clock (wall time against sim time: 1.8e9 s); its stamp made a late state look
 #: "1796299619.64 s old" and joins fail
 CLOCK_MISMATCH_S = 60.0
+#: a joint the planner does not plan that joint_states report this far from its
+#: ``robot.locked_positions_deg`` (rad; a periodic one the shortest way) is said in a warning, at
+#: most every LOCKED_WARNING_PERIOD_S: the plans hold it at the parameter (after a free-floating
+#: capture the attitude has drifted from it)
+LOCKED_TOL_RAD = math.radians(0.5)
+LOCKED_WARNING_PERIOD_S = 30.0
 #: the QoS policies of target_pose, joint_states and goal_joint_state that
 #: ``qos_overrides.<topic>.subscription.<policy>`` may set (rclpy's defaults and the durability)
 OVERRIDABLE = (QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 #: ... said at most this often, s
 CLOCK_WARNING_PERIOD_S = 30.0
+
+
+def locked_mismatches(robot, names, positions, tol_rad: float = LOCKED_TOL_RAD) -> list:
+    """
+    Return (name, reported rad, locked rad) of each joint not planned that a joint state reports away from its lock.
+
+    ``names``, ``positions``: the message's; a joint reported more than ``tol_rad`` from
+    ``robot.locked_rad`` (a periodic one the shortest way round) is one.  Joints not in the
+    message, or not finite there, are not.
+    """
+    out = []
+    planned = set(robot.planned_joints)
+    for j, name in enumerate(robot.joint_names):
+        if j in planned or name not in names:
+            continue
+        i = list(names).index(name)
+        if i >= len(positions):
+            continue
+        got, held = float(positions[i]), float(robot.locked_rad[j])
+        off = math.remainder(got - held, 2 * math.pi) if robot.periodic[j] else got - held
+        if math.isfinite(off) and abs(off) > tol_rad:
+            out.append((name, got, held))
+    return out
 
 
 def unused_qos_overrides(names, topics) -> list:
@@ -62,6 +93,7 @@ class Inputs:
         self.node = node
         self.attitude = None        # rad: the latest yaw on attitude_topic (joint_states without it)
         self._clock_warned = -float("inf")     # monotonic s of the last clock-mismatch warning
+        self._locked_warned = -float("inf")    # ... and of the last locked-joint warning
 
     def subscribe(self) -> list:
         """Create the subscriptions (activate); return them."""
@@ -144,6 +176,24 @@ class Inputs:
             self._clock_mismatch(now_ns, stamp_ns)
             stamp_ns = 0
         node.session.joint_state(q, stamp_ns or now_ns)
+        if len(msg.name) > len(robot.planned_names):       # a joint the planner holds may be in it
+            self._check_locked(msg)
+
+    def _check_locked(self, msg: JointState) -> None:
+        """Warn (at most every LOCKED_WARNING_PERIOD_S) where a joint the plans hold is reported elsewhere."""
+        t = time.monotonic()
+        if t < self._locked_warned + LOCKED_WARNING_PERIOD_S:
+            return
+        off = locked_mismatches(self.node.robot, msg.name, msg.position)
+        if not off:
+            return
+        self._locked_warned = t
+        said = ", ".join(f"{name} at {math.degrees(got):.1f}° where robot.locked_positions_deg holds it at "
+                         f"{math.degrees(held):.1f}°" for name, got, held in off)
+        self.node.get_logger().warning(
+            f"joint_states: {said}: not a planned joint, so the plans hold it at the parameter (after a "
+            f"free-floating capture the attitude has drifted): set robot.locked_positions_deg and restart the "
+            f"node, or plan that joint")
 
     def _clock_mismatch(self, now_ns: int, stamp_ns: int) -> None:
         """Warn (at most every CLOCK_WARNING_PERIOD_S of wall time) that joint_states are stamped on another clock."""
