@@ -172,6 +172,8 @@ def _depths_into(out, q_full, lengths, checked, body, verts, starts, sample_m, p
                                np.inf)
 
 
+#: :func:`leave_contact` walks in chunks of at most this many steps (its default 30° is 120 steps)
+WALK_CHUNK = 256
 #: :func:`_walk_out`'s endings: the room was reached, no candidate increased the signed distance,
 #: no candidate within the bounds, the steps ran out (these two: the caller checks the last row)
 _REACHED, _NO_INCREASE, _NO_CANDIDATE, _STEPS_OUT = 0, 1, 2, 3
@@ -327,16 +329,25 @@ def leave_contact(motions, start_rad, *, max_penetration_m: float,
         return Exit(False, q[None, :].copy(), depth, np.array([sd0]),
                     f"the links reach {depth:.3f} m into {hit}, more than "
                     f"planner.max_start_penetration_m = {max_penetration_m} m")
-    n_steps = int(math.ceil(max_length_rad / step_rad))
-    rows = np.empty((n_steps + 1, dof))
-    rows[0] = q
-    sd_rows = np.empty(n_steps + 1)
-    k, ending = _walk_out(sd0, dirs, motions.lower_rad, motions.upper_rad, np.array(motions.periodic, np.bool_),
-                          *motions.kernel_arrays, _SAMPLE_M, margin + room_m, rows, sd_rows, np.empty_like(dirs),
-                          np.empty(len(dirs)), np.empty(checker.robot.n_joints),
-                          np.empty((checker.lengths.shape[0] + 1, 2)), np.empty_like(checker.body),
-                          _coarse_scratch(checker.lengths))
-    path, sds = rows[:k].copy(), sd_rows[:k].copy()
+    left = max(0, int(math.ceil(max_length_rad / step_rad)))           # steps allowed
+    scratch = (np.empty_like(dirs), np.empty(len(dirs)), np.empty(checker.robot.n_joints),
+               np.empty((checker.lengths.shape[0] + 1, 2)), np.empty_like(checker.body),
+               _coarse_scratch(checker.lengths))
+    rows, sd_rows, ending = [q[None, :]], [np.array([sd0])], _STEPS_OUT
+    while True:                 # in chunks of WALK_CHUNK steps (a long max_length_rad allocates as it goes)
+        chunk = min(left, WALK_CHUNK)
+        got = np.empty((chunk + 1, dof))
+        got[0] = rows[-1][-1]
+        got_sd = np.empty(chunk + 1)
+        k, ending = _walk_out(sd_rows[-1][-1], dirs, motions.lower_rad, motions.upper_rad,
+                              np.array(motions.periodic, np.bool_), *motions.kernel_arrays, _SAMPLE_M,
+                              margin + room_m, got, got_sd, *scratch)
+        rows.append(got[1:k])
+        sd_rows.append(got_sd[1:k])
+        left -= k - 1
+        if ending != _STEPS_OUT or left <= 0:
+            break
+    path, sds = np.concatenate(rows), np.concatenate(sd_rows)
     if ending == _NO_INCREASE:
         return Exit(False, path, depth, sds, f"no joint motion increases the clearance from {deg_text(path[-1])}")
     if ending == _REACHED or sds[-1] >= margin + room_m:

@@ -483,9 +483,10 @@ def _spline_kernel(s, y, max_step_rad, start_slope, clamped):
     return q, u, iv
 
 
-#: A failing knot interval shorter than this many sample steps is not split again (the spline
-#: already follows the polyline there at the samples' resolution: where it fails the polyline is
-#: what passes), nor split into parts shorter than it.
+#: A failing knot interval shorter than this many sample steps is not split (in any round: the
+#: halving before it split it in the first; the spline already follows the polyline there at the
+#: samples' resolution, and where it fails the polyline is what passes), nor split into parts
+#: shorter than it.
 FINEST_KNOT_INTERVAL = 1.0 / 16.0
 
 
@@ -493,9 +494,10 @@ def _split(ta, tb, rounds, finest):
     """
     Return the knots that split a failing knot interval [ta, tb] (no polyline vertex in it) in round ``rounds``.
 
-    In 2 parts in the first round (its midpoint), then 4, then 8 (contact starts' refinements 9 ->
-    4 rounds: a stretch that fails again needs the spline close to the polyline), never into
-    parts shorter than ``finest`` but in two.
+    In 2 parts in the first round (its midpoint), then 4, then 8, by the refinement's round, not
+    by how often this interval was split (contact starts' refinements 9 -> 4 rounds: a stretch
+    that fails again needs the spline close to the polyline), never into parts shorter than
+    ``finest`` but in two.
     """
     parts = max(2, min(2 ** min(rounds + 1, 3), int((tb - ta) / finest)))
     return [0.5 * (ta + tb)] if parts == 2 else list(ta + (tb - ta) * np.arange(1, parts) / parts)

@@ -145,6 +145,35 @@ def test_the_mock_arms_rate_takes_effect_and_its_start_is_read_only(graph):
     assert not r.successful and "read-only" in r.reason, r.reason
 
 
+def test_a_target_size_that_would_overlap_the_current_target_is_refused(graph):
+    """
+    A new ``target.body_side_m`` resizes the current target (a target_pose's) where it is: refused where that overlaps.
+
+    The parameters' own target at (-3.27, -2.60) m stays clear of the spacecraft with a 2 m body;
+    a target_pose at (-2.0, -1.2) m does not (a review of the resize's mend found nothing refused it).
+    Oracle: the parameter service's answer and the session's target, as a ``ros2 param`` user sees them.
+    """
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_target(-2.0, -1.2)
+    g.wait(lambda: g.planner.session.target.center_m == (-2.0, -1.2), 15, "the topic's target current")
+
+    def set_one(name, value):
+        req = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        return _call(g, "spacerobot_planner", SetParameters, "set_parameters", req).results[0]
+
+    r = set_one("target.body_side_m", 2.0)
+    assert not r.successful and r.reason.startswith("target.body_side_m: the current target at (-2.000, -1.200) m"), \
+        r.reason
+    assert "overlap" in r.reason and g.planner.session.target.body_side_m == 1.0
+    r = set_one("target.body_side_m", 1.1)
+    assert r.successful, r.reason
+    assert g.planner.session.target.center_m == (-2.0, -1.2) and g.planner.session.target.body_side_m == 1.1
+
+
 def test_limits_too_low_for_a_trajectory_message_are_refused_by_name(graph):
     """
     Velocity limits near 0 (a slip of `ros2 param set`): the plan answers invalid_input, nothing is published.

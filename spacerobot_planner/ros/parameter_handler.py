@@ -14,13 +14,15 @@ hands it to ``apply`` once.
 Validation: the schema's type and range (``config.check_value``), read-only parameters,
 string choices, then the scenario (``config.scenario_from_params``: per-joint lengths
 among others) and the node's own checks (:func:`check_runtime`: a target inside the
-spacecraft, a grid over ``planner.max_grid_nodes``).
+spacecraft, a grid over ``planner.max_grid_nodes``; a new size of the target's that would make
+the current target, a ``target_pose``'s where it is, overlap the spacecraft: :func:`check_resized`).
 """
 
 from __future__ import annotations
 
 import difflib
 import threading
+from dataclasses import replace
 
 from rcl_interfaces.msg import SetParametersResult
 
@@ -28,7 +30,11 @@ from ..config import check_value, scenario_from_params
 from ..overlap import target_overlap_reason
 from .parameters import SPECS, check_choice
 
-__all__ = ["ParameterHandler", "check_runtime", "NO_REPLAN"]
+__all__ = ["ParameterHandler", "check_runtime", "check_resized", "NO_REPLAN", "TARGET_POSE_PARAMETERS"]
+
+#: the target.* parameters that place the target: a change makes the parameters' target current
+#: (a target_pose's with it); target.body_side_m / handle_side_m alone resize the current one where it is
+TARGET_POSE_PARAMETERS = ("target.center_m", "target.yaw_deg")
 
 #: changes of these only affect publishing, not the plan: no replan
 NO_REPLAN = {"replan.target_tolerance_m", "replan.target_tolerance_deg", "diagnostics.period_s",
@@ -49,6 +55,24 @@ def check_runtime(params: dict, scenario) -> None:
                          f"planner.max_grid_nodes = {params['planner.max_grid_nodes']}")
 
 
+def check_resized(names, scenario, current) -> None:
+    """
+    Raise ValueError (naming the parameter) where a change of the target's sizes alone overlaps the current target.
+
+    ``names``: the changed parameters; ``scenario``: the one they make; ``current``: the
+    session's current target (a ``target_pose``'s), which takes the new sizes where it is.
+    """
+    sized = [n for n in names if n.startswith("target.") and n not in TARGET_POSE_PARAMETERS]
+    if current is None or not sized or any(n in TARGET_POSE_PARAMETERS for n in names):
+        return
+    new = scenario.scene.target
+    resized = replace(current, body_side_m=new.body_side_m, handle_side_m=new.handle_side_m)
+    overlap = target_overlap_reason(scenario.robot, resized)
+    if overlap is not None:
+        raise ValueError(f"{sized[0]}: the current target at ({current.center_m[0]:.3f}, {current.center_m[1]:.3f}) m, "
+                         f"resized: {overlap}")
+
+
 def _key(parameters) -> tuple:
     return tuple((p.name, repr(p.value)) for p in parameters)
 
@@ -64,12 +88,14 @@ class ParameterHandler:
         params: the declared values (flat dotted dict); scenario: built from them.
         reject(reason): a refused change (log and /diagnostics).
         apply(params, scenario, names): an accepted change, once.
+        current_target(): the session's current target (:func:`check_resized`), or None.
 
     """
 
-    def __init__(self, node, params: dict, scenario, reject, apply):
+    def __init__(self, node, params: dict, scenario, reject, apply, current_target=None):
         self.params, self.scenario = params, scenario
         self._reject, self._apply = reject, apply
+        self._current_target = current_target
         self._lock = threading.Lock()
         self._checked = None        # (base params, key, (merged, scenario) or ValueError)
         self._declared = node.has_parameter
@@ -92,6 +118,8 @@ class ParameterHandler:
                 self._checked = (base, key, got)
         if isinstance(got, ValueError):
             raise got
+        if self._current_target is not None:       # not kept with the rest: the current target moves
+            check_resized([p.name for p in parameters], got[1], self._current_target())
         return got
 
     @staticmethod

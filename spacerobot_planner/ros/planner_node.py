@@ -69,7 +69,7 @@ from .diagnostics import NodeDiagnostics
 from .inputs import Inputs
 from .lifecycle import LifecycleInterface
 from .log_lines import LogLines
-from .parameter_handler import NO_REPLAN, ParameterHandler, check_runtime
+from .parameter_handler import NO_REPLAN, TARGET_POSE_PARAMETERS, ParameterHandler, check_runtime
 from .parameters import PLANNER_PARAMETERS, as_declared, declare_checked, params_to_overrides
 from .pending import PendingAnswers
 
@@ -89,9 +89,6 @@ YIELD_AFTER_SEND_S = 0.0003
 CONTEXT_WAIT_S = 0.05
 #: the severities of ``_log``'s levels (any other level: info)
 _SEVERITY = {"error": LoggingSeverity.ERROR, "warning": LoggingSeverity.WARN}
-#: the target.* parameters that place the target: a change makes the parameters' target current
-#: (a target_pose's with it); target.body_side_m / handle_side_m resize the current one where it is
-TARGET_POSE_PARAMETERS = ("target.center_m", "target.yaw_deg")
 
 
 class PlannerNode(LifecycleNode):
@@ -148,7 +145,8 @@ class PlannerNode(LifecycleNode):
         self._wake = self.create_guard_condition(lambda: None)   # resumes awaiting goals
         self.param_handler = ParameterHandler(
             self, params, scenario, apply=self._apply_params,
-            reject=lambda reason: self._reject("parameters", "invalid_parameter", reason))
+            reject=lambda reason: self._reject("parameters", "invalid_parameter", reason),
+            current_target=lambda: self.session.target)
         self._lifecycle = LifecycleInterface(self)
         self._started = True
         if params["autostart"]:
