@@ -940,6 +940,28 @@ def test_each_step_out_of_a_contact_is_the_best_neighbour_by_the_tests_geometry(
     assert steps >= 20 and inside >= 5, (steps, inside)
 
 
+def test_the_walks_length_limit_takes_any_number(paper_scenario):
+    """
+    ``leave_contact``'s ``max_length_rad``: negative walks nothing, a huge one allocates as it walks.
+
+    From the captured posture with the target moved onto it (as above): no limit is reached by a
+    walk that ends in the room it asks for, so 30° and 10⁶ rad give the same walk; a negative limit
+    gives the start alone, refused with its clearance.  (The rows had been allocated for the limit
+    up front: a negative one raised, 10⁶ rad asked for gigabytes.)
+    """
+    from spacerobot_planner.contact import leave_contact
+    from spacerobot_planner.motion import MotionValidator
+    q_cap, sc = _captured_then_moved(paper_scenario(3), 0.10)
+    motions = MotionValidator.for_scene(sc.robot, sc.scene)
+    short = leave_contact(motions, q_cap, max_penetration_m=0.05)
+    assert short.ok and len(short.path_rad) > 1
+    huge = leave_contact(motions, q_cap, max_penetration_m=0.05, max_length_rad=1e6)
+    assert huge.ok and np.array_equal(huge.path_rad, short.path_rad)
+    none = leave_contact(motions, q_cap, max_penetration_m=0.05, max_length_rad=-1.0)
+    assert not none.ok and none.path_rad.shape == (1, 3) and np.array_equal(none.path_rad[0], q_cap)
+    assert "no free posture within" in none.reason
+
+
 def test_deep_start_collision_still_refused(paper_scenario):
     sc0 = paper_scenario(3)
     q_cap, sc = _captured_then_moved(sc0, 0.20)             # link 3 10 cm inside the body
