@@ -8,7 +8,7 @@ the attitude joint), everything here is inertially fixed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -52,6 +52,10 @@ class Target:
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f"target.{name}: must be > 0, got {v}")
         object.__setattr__(self, "center_m", (float(c[0]), float(c[1])))
+
+    def sized_as(self, other: "Target") -> "Target":
+        """Return this target where it is with ``other``'s body and handle sides (a runtime change of the sizes)."""
+        return replace(self, body_side_m=other.body_side_m, handle_side_m=other.handle_side_m)
 
     def _to_world(self, local_xy) -> np.ndarray:
         c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)

@@ -54,7 +54,7 @@ import math
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -268,11 +268,10 @@ class CaptureSession:
             if target_changed:
                 self.target = new
             elif target_resized and new is not None:
-                sized = {"body_side_m": new.body_side_m, "handle_side_m": new.handle_side_m}
                 if self.target is not None:
-                    self.target = replace(self.target, **sized)
+                    self.target = self.target.sized_as(new)
                 if self.requested_target is not None:
-                    self.requested_target = replace(self.requested_target, **sized)
+                    self.requested_target = self.requested_target.sized_as(new)
 
     def start(self, backend, thread: bool = True) -> None:
         """Plan with ``backend`` (``worker.ProcessBackend`` or ``ThreadBackend``), in the worker thread (``thread``)."""

@@ -27,6 +27,7 @@ from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 
+from ..joint_space import wrap_angle_rad
 from ..overlap import target_overlap_reason
 from ..scene import Target
 from ..session import target_why
@@ -69,7 +70,7 @@ def locked_mismatches(robot, names, positions, tol_rad: float = LOCKED_TOL_RAD) 
         if i >= len(positions):
             continue
         got, held = float(positions[i]), float(robot.locked_rad[j])
-        off = math.remainder(got - held, 2 * math.pi) if robot.periodic[j] else got - held
+        off = float(wrap_angle_rad(got - held)) if robot.periodic[j] else got - held
         if math.isfinite(off) and abs(off) > tol_rad:
             out.append((name, got, held))
     return out

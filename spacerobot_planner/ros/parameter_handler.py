@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import difflib
 import threading
-from dataclasses import replace
 
 from rcl_interfaces.msg import SetParametersResult
 
@@ -65,9 +64,7 @@ def check_resized(names, scenario, current) -> None:
     sized = [n for n in names if n.startswith("target.") and n not in TARGET_POSE_PARAMETERS]
     if current is None or not sized or any(n in TARGET_POSE_PARAMETERS for n in names):
         return
-    new = scenario.scene.target
-    resized = replace(current, body_side_m=new.body_side_m, handle_side_m=new.handle_side_m)
-    overlap = target_overlap_reason(scenario.robot, resized)
+    overlap = target_overlap_reason(scenario.robot, current.sized_as(scenario.scene.target))
     if overlap is not None:
         raise ValueError(f"{sized[0]}: the current target at ({current.center_m[0]:.3f}, {current.center_m[1]:.3f}) m, "
                          f"resized: {overlap}")
