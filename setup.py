@@ -309,7 +309,7 @@ setup(
         "console_scripts": [
             "planner_node = spacerobot_planner.ros.planner_node:main",
             "mock_arm_node = spacerobot_planner.ros.mock_arm_node:main",
-            "spacerobot-plan = spacerobot_planner.tools.cli:main",
+            "spacerobot-plan = spacerobot_planner.tools.cli:run",
             "spacerobot-demo = spacerobot_planner.tools.demo:main",
         ],
     },

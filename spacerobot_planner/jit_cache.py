@@ -25,8 +25,26 @@ target up itself, before its first kernel, without SciPy's BLAS (:func:`start_nu
 numba's set-up imports ``scipy.linalg.cython_blas`` only to decide how ``np.correlate`` and
 ``np.convolve`` take inner products in kernels, which none of the package's kernels use, and
 that import was 0.137 s of the CLI's start (one ``python -X importtime`` run).  ``np.dot`` and numba's linear algebra
-still import it when a kernel first uses them.  Not done on import: a user's own process keeps
-numba's set-up as numba makes it.
+still import it when a kernel first uses them.  It also loads numba's cached kernels without
+parsing the LLVM bitcode numba keeps beside each one's machine code
+(:func:`defer_linking_modules`): 0.19 of the 0.24 s the CLI's first plan spent loading its 50
+kernels.  Neither is done on import: a user's own process keeps numba as numba makes it.
+
+What numba does with that bitcode, and what is kept of it
+---------------------------------------------------------
+numba caches a kernel as its object code and, beside it, the bitcode of its module made fit
+for linking (exported functions ``linkonce_odr``).  Loading a kernel, numba parses that bitcode
+(0.13 s for the CLI's 50) and walks every function and global of it through LLVM's C API
+(16 000 calls, 0.06 s) for one thing: the names the kernel defines, which its JIT engine's
+``is_symbol_defined`` answers from (a kernel's entry points, another kernel's reference).  The
+parsed module itself is used only to link the kernel into code compiled later in the process
+(a new signature of a kernel that calls it).  Here the names come from the object code's own
+symbol table (:func:`elf_defined_symbols`: the symbols an ELF object defines with global or
+weak binding; on all 273 cached kernels of the package, exactly the bitcode's defined names
+less its internal and private ones, which no lookup asks for), and the bitcode is parsed the
+first time numba asks to link the kernel.  Only for the numba release this was read and tested
+on (``_DEFER_NUMBA``, the one ``requirements.txt`` pins) and ELF objects; anything else loads
+as numba loads it.
 """
 from __future__ import annotations
 
@@ -35,13 +53,20 @@ import filecmp
 import os
 import shutil
 import stat
+import struct
 import sys
 import tempfile
 
-__all__ = ["ensure_writable_cache", "seed_from_package", "start_numba_target", "writable"]
+__all__ = ["defer_linking_modules", "elf_defined_symbols", "ensure_writable_cache", "seed_from_package",
+           "start_numba", "start_numba_target", "writable"]
 
 #: the module numba's CPU target set-up imports only to check for a BLAS (see the module docstring)
 _BLAS_CHECK = "scipy.linalg.cython_blas"
+
+#: numba releases whose loading of a cached kernel :func:`defer_linking_modules` replaces (read and tested)
+_DEFER_NUMBA = ("0.68.1",)
+
+_deferred = False               # defer_linking_modules has replaced numba's loading in this process
 
 
 def writable(directory: str) -> bool:
@@ -232,3 +257,109 @@ def start_numba_target() -> bool:
         if _BLAS_CHECK in sys.modules and sys.modules[_BLAS_CHECK] is None:
             del sys.modules[_BLAS_CHECK]
     return True
+
+
+def elf_defined_symbols(obj: bytes) -> frozenset | None:
+    """
+    Return the names an ELF object defines with global or weak binding; None for another format.
+
+    ``obj``: the bytes of an object file (numba's cached machine code of a kernel on Linux
+    x86-64 and aarch64).  A symbol is defined where its section index is not ``SHN_UNDEF``
+    (common symbols count); local symbols (functions and constants private to the object) are
+    left out.  More than 0xff00 sections (a count of 0 in the header) are counted from section
+    0's size, as ELF says.  None where ``obj`` is not a 64-bit little-endian ELF object or a
+    table runs past its bytes.
+    """
+    try:
+        if obj[:6] != b"\x7fELF\x02\x01":                      # magic, 64-bit, little-endian
+            return None
+        shoff, = struct.unpack_from("<Q", obj, 0x28)
+        shentsize, shnum = struct.unpack_from("<HH", obj, 0x3A)
+        # each section header: name, type, flags, addr, offset, size, link, info, addralign, entsize
+        section = struct.Struct("<IIQQQQIIQQ")
+        if shnum == 0 and shoff:
+            shnum = section.unpack_from(obj, shoff)[5]
+        headers = [section.unpack_from(obj, shoff + i * shentsize) for i in range(shnum)]
+        names = set()
+        symbol = struct.Struct("<IBBHQQ")             # name, info, other, section index, value, size
+        for _, kind, _, _, offset, size, link, _, _, entsize in headers:
+            if kind != 2 or entsize < symbol.size:    # SHT_SYMTAB
+                continue
+            strings = headers[link][4]
+            for j in range(1, size // entsize):          # entry 0 is the null symbol
+                name, info, _, shndx, _, _ = symbol.unpack_from(obj, offset + j * entsize)
+                if shndx == 0 or info >> 4 == 0:          # SHN_UNDEF, STB_LOCAL
+                    continue
+                start = strings + name
+                names.add(obj[start:obj.index(b"\0", start)].decode("utf-8", "surrogateescape"))
+        return frozenset(names)
+    except (struct.error, IndexError, ValueError):
+        return None
+
+
+def defer_linking_modules() -> bool:
+    """
+    Load numba's cached kernels without parsing their linking bitcode; return whether it was set up here.
+
+    For the package's own processes (see the module docstring, which says what numba does with
+    the bitcode and what is kept of it): numba's loading of a cached library
+    (``CPUCodeLibrary._unserialize``) is replaced by the same steps less the bitcode's parse and
+    walk, its defined names taken from the object code (:func:`elf_defined_symbols`); the bitcode
+    is kept and parsed when numba first asks for the library's module to link
+    (``_get_module_for_linking``).  A library numba cached as bitcode alone, or whose object
+    code is not ELF, loads as numba loads it.  False where it was set up before in this
+    process, or numba is not a release this was tested on, or lacks what it replaces.
+    """
+    global _deferred
+    if _deferred:
+        return False
+    import numba
+    if numba.__version__ not in _DEFER_NUMBA:
+        return False
+    import llvmlite.binding as llvm
+    from numba.core.codegen import CPUCodeLibrary
+    unserialize = CPUCodeLibrary.__dict__.get("_unserialize")
+    for_linking = CPUCodeLibrary.__dict__.get("_get_module_for_linking")
+    if not isinstance(unserialize, classmethod) or for_linking is None:
+        return False
+
+    def _unserialize(cls, codegen, state):
+        name, kind, data = state
+        names = elf_defined_symbols(data[0]) if kind == "object" else None
+        if names is None:
+            return unserialize.__func__(cls, codegen, state)
+        object_code, linking_bitcode = data
+        self = codegen.create_library(name)
+        assert isinstance(self, cls)
+        self.enable_object_caching()
+        self._set_compiled_object(object_code)
+        self._deferred_linking_bitcode = linking_bitcode
+        self._finalize_final_module()
+        codegen._engine._defined_symbols |= names
+        return self
+
+    def _get_module_for_linking(self):
+        bitcode = getattr(self, "_deferred_linking_bitcode", None)
+        if bitcode is not None:
+            self._deferred_linking_bitcode = None
+            if self._shared_module is None:
+                self._ensure_finalized()
+                self._shared_module = llvm.parse_bitcode(bitcode)
+        return for_linking(self)
+
+    CPUCodeLibrary._unserialize = classmethod(_unserialize)
+    CPUCodeLibrary._get_module_for_linking = _get_module_for_linking
+    _deferred = True
+    return True
+
+
+def start_numba() -> None:
+    """
+    Start numba for a process of the package's own: its cached kernels' loading, its target.
+
+    :func:`defer_linking_modules`, then :func:`start_numba_target`.
+
+    Before the process's first kernel and before it starts threads.
+    """
+    defer_linking_modules()
+    start_numba_target()

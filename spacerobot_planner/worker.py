@@ -53,7 +53,7 @@ import numpy as np
 from .adapters import warm_up as warm_up_chain
 from .config import load_scenario
 from .cores import cpu_limit, limit_text, threading_layer
-from .jit_cache import start_numba_target
+from .jit_cache import start_numba
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .free_floating_capture import warm_up as free_floating_warm_up
@@ -396,7 +396,7 @@ def child_main(fd: int) -> None:
     from multiprocessing.connection import Connection
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)        # the node decides when to stop
-    start_numba_target()            # a process of its own: numba's set-up without SciPy's BLAS check
+    start_numba()                   # a process of its own: cached kernels without their linking bitcode, no BLAS check
     conn = Connection(fd)
     scenario, solver, field_tolerance = conn.recv()
     planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)

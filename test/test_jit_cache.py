@@ -17,6 +17,15 @@ A process of the package's own sets numba's target up without SciPy's BLAS check
 the same path as this process, and a kernel of its own that uses ``np.dot`` afterwards still
 runs (and imports it then).
 
+A process of the package's own loads numba's cached kernels without parsing the bitcode numba
+keeps for linking (``start_numba``, ``defer_linking_modules``): the names each kernel defines come
+from its object code's symbol table (``elf_defined_symbols``), checked against LLVM's own view of
+objects the test compiles from IR of every linkage (llvmlite: the IR's defined names less its
+internal and private ones), and, in a fresh process planning the paper's 2-DOF scene, against
+LLVM's parse of every loaded kernel's bitcode; that process plans the same path as this one, none
+of its kernels' bitcode parsed, and a kernel it compiles afterwards that calls a package kernel
+(so that numba links the deferred module in) computes what NumPy computes.
+
 A directory "that cannot be written" is one below a regular file: no one can make it, root
 included.
 """
@@ -282,3 +291,146 @@ def test_a_process_of_its_own_plans_without_scipys_blas_and_np_dot_still_runs(pa
     sc = paper_scenario(2)
     here = Planner(sc).plan(sc.start_rad, sc.goal_rad)
     assert np.array_equal(np.array(got["path"]), here.path_rad)
+
+
+_LINKAGES_IR = r"""
+@g_ext = global i64 1
+@g_int = internal global i64 2
+@g_priv = private constant [3 x i8] c"ab\00"
+@g_lo = linkonce_odr global i64 3
+@g_common = common global i64 0
+@g_decl = external global i64
+declare i64 @f_decl(i64)
+define internal i64 @f_int(i64 %x) {
+  %v = load i64, ptr @g_int
+  %s = add i64 %x, %v
+  ret i64 %s
+}
+define linkonce_odr i64 @f_lo(i64 %x) {
+  %v = load i64, ptr @g_decl
+  %s = add i64 %x, %v
+  ret i64 %s
+}
+define weak i64 @f_weak(i64 %x) {
+  ret i64 %x
+}
+define i64 @f_ext(i64 %x) {
+  %a = call i64 @f_decl(i64 %x)
+  %b = call i64 @f_int(i64 %a)
+  %c = call i64 @f_lo(i64 %b)
+  %p = load i8, ptr @g_priv
+  %q = zext i8 %p to i64
+  %r = add i64 %c, %q
+  ret i64 %r
+}
+"""
+
+
+def _llvm_defined(module) -> set:
+    """Return the names an LLVM module defines, less its internal and private ones (llvmlite's view of the IR)."""
+    import llvmlite.binding as llvm
+    return {g.name for g in list(module.functions) + list(module.global_variables)
+            if not g.is_declaration and g.linkage not in (llvm.Linkage.internal, llvm.Linkage.private)}
+
+
+def _object_of(ir: str):
+    import llvmlite.binding as llvm
+    llvm.initialize_native_target()
+    llvm.initialize_native_asmprinter()
+    module = llvm.parse_assembly(ir)
+    return module, llvm.Target.from_default_triple().create_target_machine().emit_object(module)
+
+
+def test_an_objects_defined_names_are_the_irs_less_its_internal_and_private_ones():
+    import struct
+    module, obj = _object_of(_LINKAGES_IR)
+    if obj[:6] != b"\x7fELF\x02\x01":
+        pytest.skip("this machine's objects are not 64-bit little-endian ELF")
+    want = {"f_ext", "f_lo", "f_weak", "g_ext", "g_lo", "g_common"}
+    assert _llvm_defined(module) == want                      # the test's IR says what it defines
+    assert jit_cache.elf_defined_symbols(obj) == want
+    # more than 0xff00 sections: the header's count 0, the real one in section 0's size (ELF's rule)
+    shoff, = struct.unpack_from("<Q", obj, 0x28)
+    shentsize, shnum = struct.unpack_from("<HH", obj, 0x3A)
+    extended = bytearray(obj)
+    struct.pack_into("<H", extended, 0x3C, 0)
+    struct.pack_into("<Q", extended, shoff + 32, shnum)       # section 0's sh_size
+    assert jit_cache.elf_defined_symbols(bytes(extended)) == want
+    # not ELF, another class, cut short: None (numba's own loading then)
+    assert jit_cache.elf_defined_symbols(b"\xcf\xfa\xed\xfe" + obj[4:]) is None
+    assert jit_cache.elf_defined_symbols(obj[:4] + b"\x01" + obj[5:]) is None
+    assert jit_cache.elf_defined_symbols(obj[:len(obj) // 2]) is None
+
+
+_DEFER_RUN = r"""
+import json, sys
+import llvmlite.binding as llvm
+from spacerobot_planner import jit_cache
+set_up, again = jit_cache.defer_linking_modules(), jit_cache.defer_linking_modules()
+jit_cache.start_numba()
+from numba.core.codegen import CPUCodeLibrary
+loaded, parses = [], [0]
+_unserialize = CPUCodeLibrary.__dict__["_unserialize"].__func__
+def record(cls, codegen, state):
+    if state[1] == "object":
+        loaded.append(state[2])
+    return _unserialize(cls, codegen, state)
+CPUCodeLibrary._unserialize = classmethod(record)
+_parse = llvm.parse_bitcode
+def parse(data):
+    parses[0] += 1
+    return _parse(data)
+llvm.parse_bitcode = parse
+from spacerobot_planner.config import load_scenario
+from spacerobot_planner.planner import Planner
+sc = load_scenario(sys.argv[1])
+res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+parsed_in_plan = parses[0]
+llvm.parse_bitcode = _parse
+import numba
+import numpy as np
+from spacerobot_planner.joint_space import _wrap_rows
+@numba.njit
+def wrapped_sum(q, lower, per):
+    _wrap_rows(q, lower, per)
+    return q.sum()
+q = np.array([[7.0, -7.0], [1.0, 20.0]])
+lower = np.array([-np.pi, 0.0])
+per = np.array([True, False])
+linked = wrapped_sum(q.copy(), lower, per)
+names = []
+for obj, bitcode in loaded:
+    elf = jit_cache.elf_defined_symbols(obj)
+    module = llvm.parse_bitcode(bitcode)
+    names.append([sorted(elf), sorted(g.name for g in list(module.functions) + list(module.global_variables)
+                  if not g.is_declaration and g.linkage not in (llvm.Linkage.internal, llvm.Linkage.private))])
+print(json.dumps({"set_up": set_up, "again": again, "ok": res.ok, "path": res.path_rad.tolist(),
+                  "loaded": len(loaded), "parsed_in_plan": parsed_in_plan, "linked": linked, "names": names}))
+"""
+
+
+def test_a_process_of_its_own_loads_its_kernels_without_their_linking_bitcode(paper_scenario):
+    import json
+    import numba
+    import numpy as np
+    from spacerobot_planner.planner import Planner
+    if numba.__version__ not in jit_cache._DEFER_NUMBA:
+        pytest.skip(f"numba {numba.__version__}: loaded as numba loads it")
+    _, obj = _object_of(_LINKAGES_IR)
+    if obj[:6] != b"\x7fELF\x02\x01":
+        pytest.skip("this machine's objects are not 64-bit little-endian ELF")
+    sc = paper_scenario(2)
+    here = Planner(sc).plan(sc.start_rad, sc.goal_rad)         # this process fills numba's cache if it must
+    config = PACKAGE.parent / "config" / "paper_2dof.yaml"
+    out = subprocess.run([sys.executable, "-c", _DEFER_RUN, str(config)], capture_output=True, text=True,
+                         timeout=600, cwd=PACKAGE.parent)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert (got["set_up"], got["again"], got["ok"]) == (True, False, True)
+    assert np.array_equal(np.array(got["path"]), here.path_rad)
+    assert got["loaded"] >= 10 and got["parsed_in_plan"] == 0
+    for elf, llvm_names in got["names"]:
+        assert elf == llvm_names and elf
+    q = np.array([[7.0, -7.0], [1.0, 20.0]])
+    q[:, 0] = -np.pi + (q[:, 0] + np.pi) % (2 * np.pi)          # the attitude column wrapped, NumPy's way
+    assert got["linked"] == pytest.approx(q.sum(), abs=1e-12)

@@ -172,10 +172,11 @@ def test_a_broken_interface_fails_the_install_with_what_to_do(tmp_path):
     assert "warm_numba_cache" not in r.stdout
 
 
-# third-party modules the package imports and their rosdep keys (package.xml)
+# third-party modules the package imports and their rosdep keys (package.xml); llvmlite is numba's own
+# dependency, installed with it (jit_cache reads numba's cached kernels with it)
 _ROSDEP_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml",
-                "matplotlib": "python3-matplotlib", "numba": "python3-numba", "dask": "python3-dask",
-                "distributed": "python3-distributed", "pyarrow": "python3-pyarrow"}
+                "matplotlib": "python3-matplotlib", "numba": "python3-numba", "llvmlite": "python3-numba",
+                "dask": "python3-dask", "distributed": "python3-distributed", "pyarrow": "python3-pyarrow"}
 #: imported only by the benchmarks, declared as test dependencies
 _TEST_ONLY = {"toppra": "python3-toppra-pip", "ompl": "python3-ompl-pip"}
 

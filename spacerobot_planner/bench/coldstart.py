@@ -6,14 +6,18 @@ Python's bytecode of the package (``worker.compile_package`` first: an interpret
 ``PYTHONDONTWRITEBYTECODE`` set, as on this project's VM (and a CI machine like it), would never write it, and every
 start would compile the package's sources again, about 0.12 s).
 
-Runs ``python -m spacerobot_planner.tools.cli --params-file FILE --quiet`` (the console
-script's code) ``--runs`` times as a new process each, and in the same run, interleaved,
-the floors it cannot go below:
+Runs ``spacerobot-plan --params-file FILE --quiet`` (the console script's code,
+``tools.cli.run``) ``--runs`` times as a new process each, and in the same run, interleaved:
 
-- ``interpreter``: ``python -c pass``;
+- ``interpreter``: ``python -c pass``, the floor;
 - ``numpy + numba imports``: what every kernel module needs before it is defined;
 - ``numba first cached kernel``: those imports plus one call of a one-line kernel loaded
-  from numba's cache (numba's target set-up happens at the first load, whatever the kernel).
+  from numba's cache, as numba starts on its own (its target set-up happens at the first
+  load, whatever the kernel, and imports SciPy's BLAS);
+- ``spacerobot-plan, numba as numba starts``: the baseline, the same plan with numba's own
+  loading of the cached kernels (their linking bitcode parsed), its own target set-up, and
+  the interpreter's exit with its cycle collections (``tools.cli.main`` where the console
+  script calls ``run``): what ``jit_cache.start_numba`` and ``run`` save, measured in the run.
 
 Each CLI run also reports, from inside the process (``_probe``), where its time went:
 importing the package, loading each kernel from numba's cache (count and seconds), and the
@@ -54,9 +58,13 @@ def load_overload(self, *a, **k):
         loads[1] += time.perf_counter() - s
 caching.Cache.load_overload = load_overload
 t1 = time.perf_counter()
-from spacerobot_planner.tools.cli import main
+from spacerobot_planner.tools import cli
+if "--baseline" in sys.argv:            # numba as numba starts, the interpreter's own exit
+    sys.argv.remove("--baseline")
+    cli.start_numba = lambda: None
+    cli.run = cli.main
 t2 = time.perf_counter()
-rc = main(sys.argv[1:])
+rc = cli.run(sys.argv[1:])
 t3 = time.perf_counter()
 print(json.dumps({"numba_import_s": t1 - t0, "package_import_s": t2 - t1, "main_s": t3 - t2,
                   "kernel_loads": loads[0], "kernel_load_s": loads[1], "rc": rc}), file=sys.stderr)
@@ -90,28 +98,33 @@ def main(argv=None) -> int:
             "numpy + numba imports": ([py, "-c", "import numpy, numba"], None),
             "numba first cached kernel": ([py, "-c", "import one_kernel; one_kernel.one(1.0)"], kernel_env),
             "spacerobot-plan": ([py, "-c", _PROBE, "--params-file", args.params_file, "--quiet"], None),
+            "spacerobot-plan, numba as numba starts": (
+                [py, "-c", _PROBE, "--params-file", args.params_file, "--quiet", "--baseline"], None),
         }
         for cmd, env in cases.values():          # warm-up: numba's cache of the kernel, the OS file cache
             _wall(cmd, env)
         walls = {name: [] for name in cases}
-        probes = []
+        probes = {}
         for _ in range(args.runs):
             for name, (cmd, env) in cases.items():
                 w, err = _wall(cmd, env)
                 walls[name].append(w)
-                if name == "spacerobot-plan":
-                    probes.append(json.loads(err.strip().splitlines()[-1]))
+                if name.startswith("spacerobot-plan"):
+                    probes.setdefault(name, []).append(json.loads(err.strip().splitlines()[-1]))
     rows = [{"bench": "coldstart", "case": name, **tail_stats(v)} for name, v in walls.items()]
-    for key in ("numba_import_s", "package_import_s", "kernel_load_s", "main_s"):
-        rows.append({"bench": "coldstart", "case": f"spacerobot-plan: {key[:-2]}",
-                     **tail_stats([p[key] for p in probes])})
-    loads = sorted({p["kernel_loads"] for p in probes})
+    for name, runs in probes.items():
+        for key in ("numba_import_s", "package_import_s", "kernel_load_s", "main_s"):
+            rows.append({"bench": "coldstart", "case": f"{name}: {key[:-2]}", **tail_stats([p[key] for p in runs])})
+    loads = sorted({p["kernel_loads"] for runs in probes.values() for p in runs})
+    ratio = tail_stats(walls["spacerobot-plan"])["median_s"] / tail_stats(
+        walls["spacerobot-plan, numba as numba starts"])["median_s"]
     print(f"bench coldstart: {Path(args.params_file).name}, {args.runs} runs each, interleaved; "
           f"wall seconds of a fresh process, numba's cache and the package's bytecode filled "
           f"(load {os.getloadavg()[0]:.1f})")
-    print(f"{'case':<40}{'median':>9}{'p90':>9}{'max':>9}")
+    print(f"{'case':<56}{'median':>9}{'p90':>9}{'max':>9}")
     for r in rows:
-        print(f"{r['case']:<40}{r['median_s']:>9.3f}{r['p90_s']:>9.3f}{r['max_s']:>9.3f}")
+        print(f"{r['case']:<56}{r['median_s']:>9.3f}{r['p90_s']:>9.3f}{r['max_s']:>9.3f}")
+    print(f"spacerobot-plan against numba as numba starts (medians): {ratio:.2f}×")
     print(f"kernels loaded from numba's cache per CLI run: {', '.join(map(str, loads))} (the first load "
           f"includes numba's target set-up; the package import includes numba's and numpy's)")
     for r in rows:

@@ -59,7 +59,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ..adapters import warm_up as warm_up_chain
 from ..config import NODE_NAME, scenario_from_params, session_settings_from_params, unknown_parameters
-from ..jit_cache import start_numba_target
+from ..jit_cache import start_numba
 from ..session import CaptureSession, Outcome
 from ..worker import make_backend
 from . import conversions as conv
@@ -539,7 +539,7 @@ def spin_until_shutdown(node: PlannerNode, executor) -> None:
 
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner planner_node --ros-args --params-file ...``."""
-    start_numba_target()            # a process of its own: numba's set-up without SciPy's BLAS check
+    start_numba()                   # a process of its own: cached kernels without their linking bitcode, no BLAS check
     return node_main.run_node(lambda: PlannerNode(freeze_start_up=True), "planner_node", args,
                               lambda node: node.shutdown_worker(finish_goals=True))
 
