@@ -261,39 +261,50 @@ def start_numba_target() -> bool:
 
 def elf_defined_symbols(obj: bytes) -> frozenset | None:
     """
-    Return the names an ELF object defines with global or weak binding; None for another format.
+    Return the names an ELF object defines with global or weak binding; None where they cannot be read.
 
     ``obj``: the bytes of an object file (numba's cached machine code of a kernel on Linux
     x86-64 and aarch64).  A symbol is defined where its section index is not ``SHN_UNDEF``
     (common symbols count); local symbols (functions and constants private to the object) are
     left out.  More than 0xff00 sections (a count of 0 in the header) are counted from section
-    0's size, as ELF says.  None where ``obj`` is not a 64-bit little-endian ELF object or a
-    table runs past its bytes.
+    0's size, as ELF says.  None where ``obj`` is not a 64-bit little-endian ELF object, has no
+    symbol table, or a header, a table or a name lies outside its bytes or outside its table.
     """
+    header = struct.Struct("<IIQQQQIIQQ")    # name, type, flags, addr, offset, size, link, info, addralign, entsize
+    symbol = struct.Struct("<IBBHQQ")        # name, info, other, section index, value, size
+    end = len(obj)
     try:
         if obj[:6] != b"\x7fELF\x02\x01":                      # magic, 64-bit, little-endian
             return None
         shoff, = struct.unpack_from("<Q", obj, 0x28)
         shentsize, shnum = struct.unpack_from("<HH", obj, 0x3A)
-        # each section header: name, type, flags, addr, offset, size, link, info, addralign, entsize
-        section = struct.Struct("<IIQQQQIIQQ")
-        if shnum == 0 and shoff:
-            shnum = section.unpack_from(obj, shoff)[5]
-        headers = [section.unpack_from(obj, shoff + i * shentsize) for i in range(shnum)]
-        names = set()
-        symbol = struct.Struct("<IBBHQQ")             # name, info, other, section index, value, size
+        if shentsize != header.size or not shoff:
+            return None
+        if shnum == 0:
+            shnum = header.unpack_from(obj, shoff)[5]
+        if shoff + shnum * header.size > end:
+            return None
+        headers = [header.unpack_from(obj, shoff + i * header.size) for i in range(shnum)]
+        names, tables = set(), 0
         for _, kind, _, _, offset, size, link, _, _, entsize in headers:
-            if kind != 2 or entsize < symbol.size:    # SHT_SYMTAB
+            if kind != 2:                                       # SHT_SYMTAB
                 continue
-            strings = headers[link][4]
-            for j in range(1, size // entsize):          # entry 0 is the null symbol
+            if entsize != symbol.size or offset + size > end or link >= shnum:
+                return None
+            strings, strings_size = headers[link][4], headers[link][5]
+            if strings + strings_size > end:
+                return None
+            tables += 1
+            for j in range(1, size // entsize):                 # entry 0 is the null symbol
                 name, info, _, shndx, _, _ = symbol.unpack_from(obj, offset + j * entsize)
-                if shndx == 0 or info >> 4 == 0:          # SHN_UNDEF, STB_LOCAL
+                if shndx == 0 or info >> 4 == 0:                 # SHN_UNDEF, STB_LOCAL
                     continue
-                start = strings + name
-                names.add(obj[start:obj.index(b"\0", start)].decode("utf-8", "surrogateescape"))
-        return frozenset(names)
-    except (struct.error, IndexError, ValueError):
+                stop = obj.find(b"\0", strings + name, strings + strings_size)
+                if name >= strings_size or stop < 0:
+                    return None
+                names.add(obj[strings + name:stop].decode("utf-8", "surrogateescape"))
+        return frozenset(names) if tables else None
+    except (struct.error, IndexError, ValueError, OverflowError, MemoryError):
         return None
 
 
@@ -307,8 +318,9 @@ def defer_linking_modules() -> bool:
     walk, its defined names taken from the object code (:func:`elf_defined_symbols`); the bitcode
     is kept and parsed when numba first asks for the library's module to link
     (``_get_module_for_linking``).  A library numba cached as bitcode alone, or whose object
-    code is not ELF, loads as numba loads it.  False where it was set up before in this
-    process, or numba is not a release this was tested on, or lacks what it replaces.
+    code's names cannot be read (not ELF, malformed) or are none, loads as numba loads it.
+    False where it was set up before in this process, or numba is not a release this was
+    tested on, or lacks what it replaces.
     """
     global _deferred
     if _deferred:
@@ -326,7 +338,7 @@ def defer_linking_modules() -> bool:
     def _unserialize(cls, codegen, state):
         name, kind, data = state
         names = elf_defined_symbols(data[0]) if kind == "object" else None
-        if names is None:
+        if not names:                          # not read, or none: numba's own loading
             return unserialize.__func__(cls, codegen, state)
         object_code, linking_bitcode = data
         self = codegen.create_library(name)
@@ -341,10 +353,10 @@ def defer_linking_modules() -> bool:
     def _get_module_for_linking(self):
         bitcode = getattr(self, "_deferred_linking_bitcode", None)
         if bitcode is not None:
-            self._deferred_linking_bitcode = None
             if self._shared_module is None:
                 self._ensure_finalized()
-                self._shared_module = llvm.parse_bitcode(bitcode)
+                self._shared_module = llvm.parse_bitcode(bitcode)     # its own error, where it fails
+            self._deferred_linking_bitcode = None
         return for_linking(self)
 
     CPUCodeLibrary._unserialize = classmethod(_unserialize)

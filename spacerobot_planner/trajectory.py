@@ -1082,7 +1082,7 @@ def _sample_states(x, dt, ds, d1, d2, refine, vmax, amax, g_w, gp_w, h_max, tau_
         sd[k] = s_d
         top, arg = -np.inf, -1
         for a in range(n):
-            vel[k, a] = 0.0 if k == m - 1 else d1[j, a] * s_d
+            vel[k, a] = 0.0 if k == m - 1 else d1[j, a] * s_d + 0.0      # + 0.0: at rest 0, not -0.0
             acc[k, a] = d1[j, a] * u + d2[j, a] * xs
             r = abs(d1[j, a]) * s_d / vmax[a]
             if r > top:
@@ -1093,7 +1093,7 @@ def _sample_states(x, dt, ds, d1, d2, refine, vmax, amax, g_w, gp_w, h_max, tau_
                 top, arg = r, n + a
         if wheel:
             gs, gps = g_w[j], gp_w[j]
-            h_w[k] = -gs * s_d
+            h_w[k] = -gs * s_d + 0.0
             tau_w[k] = -(gps * xs + gs * u)
             r = abs(gs) * s_d / h_max
             if r > top:

@@ -360,6 +360,25 @@ def test_an_objects_defined_names_are_the_irs_less_its_internal_and_private_ones
     assert jit_cache.elf_defined_symbols(b"\xcf\xfa\xed\xfe" + obj[4:]) is None
     assert jit_cache.elf_defined_symbols(obj[:4] + b"\x01" + obj[5:]) is None
     assert jit_cache.elf_defined_symbols(obj[:len(obj) // 2]) is None
+    # malformed: each None, at once (no exception, no loop over a made-up count)
+    kinds = [struct.unpack_from("<I", obj, shoff + i * shentsize + 4)[0] for i in range(shnum)]
+    table = shoff + kinds.index(2) * shentsize                  # the SHT_SYMTAB section's header
+    strings = shoff + struct.unpack_from("<I", obj, table + 40)[0] * shentsize
+
+    def changed(*edits):
+        b = bytearray(obj)
+        for fmt, at, value in edits:
+            struct.pack_into(fmt, b, at, value)
+        return bytes(b)
+
+    for bad in (changed(("<Q", 0x28, 2 ** 63)),                           # section headers far past the end
+                changed(("<Q", table + 24, 2 ** 63 + 5)),                  # the symbol table far past it
+                changed(("<Q", strings + 24, 2 ** 64 - 1)),                # the string table too
+                changed(("<Q", 0x28, 0), ("<H", 0x3C, 0)),                 # no section headers
+                changed(("<I", table + 4, 11)),                            # no SHT_SYMTAB (a SHT_DYNSYM)
+                changed(("<H", 0x3A, 0), ("<H", 0x3C, 0), ("<Q", shoff + 32, 2 ** 40)),   # 2**40 headers of 0 bytes
+                changed(("<Q", strings + 32, 1))):                         # names past their table's end
+        assert jit_cache.elf_defined_symbols(bad) is None
 
 
 _DEFER_RUN = r"""

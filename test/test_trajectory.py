@@ -236,6 +236,17 @@ def test_durations_within_one_percent_of_toppra_and_limits_hold(dof, paper_scena
     assert np.all(traj.limit_ratio <= 1 + 1e-9) and np.median(traj.limit_ratio) > 0.999
 
 
+@pytest.mark.parametrize("dof", [2, 3])
+def test_a_start_from_rest_has_zero_velocities_without_a_sign(dof, paper_scenario, paper_path):
+    """The first point from rest publishes 0, not -0.0 (``ros2 topic echo`` prints the sign) on joints moving down."""
+    sc, path = paper_scenario(dof), paper_path(dof)
+    vmax, amax = joint_limits(sc)
+    traj = time_parameterize(path, vmax, amax, sc.robot.planned_names)
+    first = traj.velocities_rad_s[0]
+    assert np.any(path[1] < path[0])                         # a joint that moves down from the start
+    assert np.all(first == 0.0) and not np.any(np.signbit(first)), first
+
+
 def test_scaling_factors_scale_time_exactly(paper_scenario, paper_path):
     """Velocities × k and accelerations × k² make the same profile 1/k slower."""
     sc, path = paper_scenario(3), paper_path(3)

@@ -201,8 +201,8 @@ def run(argv=None) -> int:
     0.55 s of a cold start's paper 3-DOF plan; ``perf``: ``gc_collect_main``); frozen
     (``gc.freeze``), they are left to the process's end, as every object still referenced is.
     Whatever the run wrote is closed by then (files are written whole, stdout and stderr are
-    flushed at exit as before).  Not in :func:`main`, which tests and other code call in a
-    process that goes on.
+    flushed at exit as before; ``envelope``'s Dask cluster is closed before :func:`main`
+    returns).  Not in :func:`main`, which tests and other code call in a process that goes on.
     """
     rc = main(argv)
     gc.freeze()
