@@ -37,7 +37,7 @@ from numba import njit
 
 from .collision import (NO_REFCOUNT, CollisionChecker, config_clearance, link_points, point_in_polygon,
                         point_segment_dist2, rotate_body)
-from .joint_space import deg_text
+from .joint_space import deg_text, row_within_bounds
 from .motion import MotionValidator
 from .scene import Scene
 
@@ -203,13 +203,9 @@ def _walk_out(sd0, dirs, lower, upper, periodic, template, planned, lengths, che
             return k + 1, _REACHED
         m = 0                                   # the candidates within the bounds, in order
         for d in range(dirs.shape[0]):
-            inside = True
             for a in range(dof):
-                v = path[k, a] + dirs[d, a]
-                cand[m, a] = v
-                if not periodic[a] and not (v >= lower[a] and v <= upper[a]):
-                    inside = False
-            if inside:
+                cand[m, a] = path[k, a] + dirs[d, a]
+            if row_within_bounds(cand[m], lower, upper, periodic):
                 m += 1
         if m == 0:
             return k + 1, _NO_CANDIDATE

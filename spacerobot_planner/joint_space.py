@@ -215,6 +215,15 @@ def within_bounds(q_rad, lower_rad, upper_rad, periodic, tol_rad: float = 0.0) -
     return np.all(inside | per, axis=-1)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def row_within_bounds(q_rad, lower_rad, upper_rad, periodic):
+    """:func:`within_bounds` of one row q (n,) inside a numba kernel, tolerance 0 (the same comparisons: NaN is out)."""
+    for a in range(q_rad.shape[0]):
+        if not ((q_rad[a] >= lower_rad[a] and q_rad[a] <= upper_rad[a]) or periodic[a]):
+            return False
+    return True
+
+
 def deg_text(q_rad) -> str:
     """Return a configuration for people: ``(160.7, 32.8, 76.5)°``."""
     return "(" + ", ".join(f"{v:.1f}" for v in np.degrees(np.asarray(q_rad, dtype=float))) + ")°"

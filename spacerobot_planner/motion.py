@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 
 from .collision import NO_REFCOUNT, CollisionChecker, config_clearance
-from .joint_space import unwrap_path, within_bounds
+from .joint_space import row_within_bounds, unwrap_path, within_bounds
 
 __all__ = ["PathCheck", "MotionValidator", "check_path", "first_bad_segment", "lipschitz_m_per_rad", "joint_reach_m",
            "certify_segments", "sweep_m", "SegmentTest", "DEFAULT_VERIFY_STEP_RAD", "QUICK_STEP_RAD", "quick_step_rad",
@@ -242,11 +242,7 @@ def _check_rows(points, lower_rad, upper_rad, periodic, q_template, planned, len
     best = np.inf
     before = True
     for r in range(m + 1):
-        inside = True
-        for a in range(points.shape[1]):
-            x = points[r, a]
-            if not ((x >= lower_rad[a] and x <= upper_rad[a]) or periodic[a]):
-                inside = False
+        inside = row_within_bounds(points[r], lower_rad, upper_rad, periodic)
         if r > 0:
             if not (before and inside):
                 interval_ok[r - 1] = False
