@@ -81,6 +81,11 @@ CHAIN_ALLOWANCE_S = 0.3
 #: what a further attempt does after a join failed (index = the attempt)
 RETRY = ("", "with twice the horizon", "stopping on the executing path as soon as the limits allow",
          "from the end of the executing trajectory", "from the measured state, at rest")
+#: a flood of requests: at most FLOOD_LINES log lines of a kind (planning, superseded) in FLOOD_WINDOW_S
+FLOOD_LINES, FLOOD_WINDOW_S = 5, 1.0
+#: the attempt from the measured state, at rest (RETRY); an outcome planned again from there at once
+AT_REST = len(RETRY) - 1
+RETRY_AT_REST = "retry_at_rest"
 #: the attempt that starts from the executing trajectory's end, at rest (RETRY)
 FROM_THE_END = 3
 
@@ -213,16 +218,22 @@ class CaptureSession:
         publish(request, outcome): an ok outcome, to publish (``outcome.publication``).
         record(request, outcome): a finished request (ok or failed; not a superseded one).
         changed(): the session began planning (``activity`` is "planning").
+        clock_problem(): why ``now_ns`` cannot stamp a trajectory now (ROS time under
+            ``use_sim_time`` before the first ``/clock``), else None: a request planned then fails
+            with it (``invalid_input``).
 
     """
 
     def __init__(self, scenario, settings: SessionSettings | None = None, *, now_ns: Callable[[], int] = time.time_ns,
                  log: Callable = _quiet, publish: Callable | None = None, record: Callable | None = None,
-                 changed: Callable | None = None):
+                 changed: Callable | None = None, clock_problem: Callable[[], str | None] | None = None):
         self.lock = threading.Condition()
         self.scenario = scenario
         self.settings = settings or SessionSettings()
         self.now_ns = now_ns
+        self._clock_problem = clock_problem or (lambda: None)
+        self.time_epoch = 0              # time_jumped's count: a plan begun before a jump is planned again
+        self._flood = {}                 # _log_flood: kind -> (window start, lines said, lines left out)
         self.log = log
         self._publish = publish or (lambda req, out: None)
         self._record = record or (lambda req, out: None)
@@ -329,6 +340,29 @@ class CaptureSession:
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self._replace_pending(waiting)
+
+    def time_jumped(self, what: str) -> None:
+        """
+        Take a jump of ROS time back, or a change of its source (``what``: for the log line).
+
+        The trajectory last sent and the joint states' stamps belong to the time before: the
+        trajectory is forgotten (the next plan starts from the arm's measured state, at rest,
+        stamped in the new time; a join on it would be stamped where the old time was: seconds
+        or minutes ahead, the arm parked meanwhile), the last measured state is kept, stamped now
+        (the next joint_states replace it).  A plan begun before the jump is planned again when
+        it ends, from rest (its start and stamps were taken in the old time).
+        """
+        with self.lock:
+            forgot = self.executing is not None
+            self.executing = None
+            self.time_epoch += 1
+            if self.joint_q is not None:
+                self.joint_ns, self.joint_prev_ns = int(self.now_ns()), 0
+            planning = self._active is not None
+        self.log("warning", f"ROS time {what}: "
+                 + ("the trajectory last sent is forgotten, " if forgot else "")
+                 + "the next plan starts from the arm's measured state, at rest"
+                 + ("; the plan under way is planned again" if planning else ""))
 
     def same_target(self, target: Target) -> str | None:
         """Say why a topic target is not a new request (within tolerance of the current one), else None."""
@@ -509,13 +543,18 @@ class CaptureSession:
     def _run(self, req: Request) -> Outcome:
         outcome = None
         while outcome is None:
+            problem = self._clock_problem()
+            if problem is not None:
+                outcome = self._failure(req, "invalid_input", problem)
+                break
             try:
-                outcome = self._plan(req, *self._start_of(req))
+                epoch = self.time_epoch
+                outcome = self._plan(req, *self._start_of(req), epoch=epoch)
             except Exception as e:      # noqa: BLE001 - never let the worker die
                 outcome = self._failure(req, "internal_error", f"planning crashed: {type(e).__name__}: {e}",
                                         tb=traceback.format_exc())
-            if outcome.code == "retry":
-                req.attempt += 1
+            if outcome.code in ("retry", RETRY_AT_REST):
+                req.attempt = AT_REST if outcome.code == RETRY_AT_REST else req.attempt + 1
                 self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
                          + RETRY[min(req.attempt, len(RETRY) - 1)])
                 outcome = None
@@ -613,6 +652,27 @@ class CaptureSession:
                 return _superseded(self._latest)
         return None
 
+    def _log_flood(self, kind: str, text: str) -> None:
+        """
+        Log an info line of a kind a flood of requests repeats (planning began, superseded, cancelled).
+
+        At most :data:`FLOOD_LINES` of a kind in :data:`FLOOD_WINDOW_S`; the first line of the kind
+        after a window with lines left out says how many (a target published at 100 Hz, each a new
+        one: two lines per request, 400 a second, before).
+        """
+        now = time.monotonic()
+        with self.lock:
+            start, said, left = self._flood.get(kind, (-math.inf, 0, 0))
+            if now - start >= FLOOD_WINDOW_S:
+                start, said, before, left = now, 0, left, 0
+            else:
+                before = 0
+            if said >= FLOOD_LINES:
+                self._flood[kind] = (start, said, left + 1)
+                return
+            self._flood[kind] = (start, said + 1, left)
+        self.log("info", text + (f" ({before} more such lines left out before this one)" if before else ""))
+
     def motions(self, scene) -> MotionValidator:
         """Return the scene's one MotionValidator (kept while the scene is the same object)."""
         held, motions = self._motions
@@ -621,7 +681,7 @@ class CaptureSession:
             self._motions = (scene, motions)
         return motions
 
-    def _plan(self, req: Request, start_raw: np.ndarray, join=None) -> Outcome:
+    def _plan(self, req: Request, start_raw: np.ndarray, join=None, epoch: int | None = None) -> Outcome:
         stamps = {"request": req.t_request, "planning": time.perf_counter()}
         changed = self.activity != "planning"
         if changed:                           # the state changes at once; a flood is not echoed
@@ -639,8 +699,8 @@ class CaptureSession:
             if changed:
                 self._changed()
             where = "" if join is None else f" ({join.horizon_s:g} s ahead on the executing trajectory)"
-            self.log("info", f"planning #{req.gen} ({req.why}) from {np.round(np.degrees(start_raw), 2).tolist()}°"
-                     f"{where} on {sc.grid.label()}")
+            self._log_flood("planning", f"planning #{req.gen} ({req.why}) from "
+                            f"{np.round(np.degrees(start_raw), 2).tolist()}°{where} on {sc.grid.label()}")
 
         def progress(p):
             announce()
@@ -661,7 +721,7 @@ class CaptureSession:
             dropped = dropped or Outcome("cancelled", "the node is shutting down")
             if isinstance(out, PlanCrash):      # still worth a traceback
                 self.log("error", f"plan #{req.gen} crashed: {out.what}\n{out.traceback.rstrip()}")
-            self.log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
+            self._log_flood(dropped.code, f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
         if isinstance(out, PlanCrash):
             return self._failure(req, "internal_error", f"planning crashed: {out.what}", tb=out.traceback)
@@ -693,12 +753,20 @@ class CaptureSession:
         stamps["chain"] = time.perf_counter()
         dropped = self._superseded_by(req)
         if dropped is not None:
-            self.log("info", f"plan #{req.gen} {dropped.code}: {dropped.reason}")
+            self._log_flood(dropped.code, f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
-        return self._publish_plan(req, res, processed, start_raw, join, stamps)
+        return self._publish_plan(req, res, processed, start_raw, join, stamps, epoch)
 
-    def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None) -> Outcome:
-        """Record an ok plan, stamp it just before it is published, publish it (the hooks)."""
+    def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None,
+                      epoch: int | None = None) -> Outcome:
+        """
+        Record an ok plan, stamp it just before it is published, publish it (the hooks).
+
+        ``epoch``: :attr:`time_epoch` when its start was taken (None: not checked); where ROS time
+        jumped since (:meth:`time_jumped`), nothing is published: planned again, from rest.
+        """
+        if epoch is not None and epoch != self.time_epoch:
+            return Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
         lead_s = float(req.settings.start_lead_s)
         if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
             ahead = 1e-9 * (processed.join_stamp_ns - self.now_ns())
@@ -746,6 +814,8 @@ class CaptureSession:
         if outcome.publication.sent:
             dense, idx = processed.dense, processed.indices
             with self.lock:
+                if epoch is not None and epoch != self.time_epoch:      # (a jump just now) not published
+                    return Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
                 self.last_publish_t = time.monotonic()
                 self.executing = (Executing(dense, idx, stamp) if join is None
                                   else join.executing.joined_by(dense, idx, stamp))

@@ -94,6 +94,26 @@ def test_goal_plans_returns_the_published_trajectory_with_feedback(graph, monkey
     assert [f.progress for f in feedback] == sorted(f.progress for f in feedback)
 
 
+def test_a_goal_planned_again_sends_its_stages_again_and_its_progress_never_goes_back(graph, monkeypatch):
+    """The arm moves; the plan takes longer than the 1 s horizon (a stall), so it is planned again with 2 s."""
+    from rclpy.action.server import ServerGoalHandle
+    from rclpy.parameter import Parameter
+    published = []
+    send = ServerGoalHandle.publish_feedback
+    monkeypatch.setattr(ServerGoalHandle, "publish_feedback",
+                        lambda self, fb: (published.append((fb.stage, fb.progress)), send(self, fb))[1])
+    g = graph(scene_params("3dof"))                 # with the mock arm: it follows the first trajectory
+    g.send_target()
+    g.wait(lambda: g.n_trajs() >= 1 and g.arm.executing, 60, "the arm moving on the first trajectory")
+    assert g.planner.set_parameters([Parameter("planner.test_stall_s", value=1.5)])[0].successful
+    status, res, _ = g.goal_result(g.send_goal(_target_goal(-3.22, -2.65)))
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+    stages = [s for s, _ in published]
+    assert stages.count("cspace") >= 2 and stages[-1] == "trajectory", stages      # the stages again
+    progress = [p for _, p in published]
+    assert progress == sorted(progress) and progress[-1] == max(progress), published
+
+
 def test_newer_goal_aborts_the_older_with_a_reason(graph):
     g = graph(scene_params("3dof", **{"planner.test_stall_s": 2.0}), with_arm=False)
     _start(g)

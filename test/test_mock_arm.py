@@ -492,3 +492,64 @@ def test_spinning_arm_honours_a_future_stamp_in_its_joint_states():
             break
         gaps.append(gap)
     assert all(seen.values()), f"joint_states in every phase: {seen} (runs void for a stall, gaps s: {gaps})"
+
+
+def test_the_arm_stops_where_it_is_when_ros_time_jumps_back():
+    """
+    Under use_sim_time, /clock goes back (a bag played again) while the arm follows a trajectory.
+
+    The arm holds its latest positions at rest, the trajectory dropped; before, its state, a function of
+    the time, went back to where it was at the new time (its start posture).
+    """
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    from spacerobot_planner.config import load_params_file
+    from spacerobot_planner.ros.executor import NodeExecutor
+    from spacerobot_planner.ros.mock_arm_node import MockArmNode
+    from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS, params_to_overrides
+    ctx = Context()
+    rclpy.init(context=ctx)
+    overrides = params_to_overrides(load_params_file(CONFIG), MOCK_ARM_PARAMETERS)
+    arm = MockArmNode(context=ctx, parameter_overrides=overrides + [Parameter("use_sim_time", value=True)])
+    drv = rclpy.create_node("clock_driver", context=ctx)
+    pub = drv.create_publisher(Clock, "/clock", 10)
+    ex = NodeExecutor(context=ctx)
+    ex.add_node(arm)
+    ex.add_node(drv)
+    th = threading.Thread(target=ex.spin, daemon=True)
+    th.start()
+
+    def clock_at(sec):
+        msg = Clock()
+        msg.clock.sec = sec
+        t0 = time.monotonic()
+        while arm.get_clock().now().nanoseconds != sec * 1_000_000_000:
+            assert time.monotonic() - t0 < 30, f"the arm's ROS time at /clock {sec} s"
+            pub.publish(msg)
+            time.sleep(0.01)
+    try:
+        clock_at(1000)
+        t = np.array([0.0, 1.0, 2.0])
+        q = START[1:] + np.array([[0.0, 0.0], [0.2, -0.2], [0.4, -0.4]])
+        assert arm.receive(_msg(ARM, t, q, np.zeros_like(q) + [[0, 0], [0.2, -0.2], [0, 0]]), "joint_trajectory",
+                           1000 * 1_000_000_000)
+        moved = arm.state(1001 * 1_000_000_000)[0]
+        assert np.all(np.abs(moved[1:] - START[1:]) > 0.1) and arm.executing
+        clock_at(500)
+        t0 = time.monotonic()
+        while arm.executing:                   # the jump's callback runs just after the clock is set
+            assert time.monotonic() - t0 < 30, "the arm still executing after the jump"
+            time.sleep(0.01)
+        q_after, v_after, _ = arm.state(500 * 1_000_000_000)
+        np.testing.assert_array_equal(q_after, moved)
+        assert not np.any(v_after) and not arm.executing
+        np.testing.assert_array_equal(arm.state(510 * 1_000_000_000)[0], moved)     # held, not followed on
+    finally:
+        ex.shutdown()
+        th.join(5)
+        arm.destroy_node()
+        drv.destroy_node()
+        rclpy.shutdown(context=ctx)

@@ -151,6 +151,78 @@ def test_goal_without_start_before_joint_states_says_so_then_aborts(graph, sim_t
     assert g.n_trajs() == 0
 
 
+def _clock_publisher(g):
+    """Return tick(sec): the driver publishes /clock at ``sec`` s and the planner's ROS time follows (waited for)."""
+    from rosgraph_msgs.msg import Clock
+    pub = g.drv.create_publisher(Clock, "/clock", 10)
+
+    def tick(sec):
+        msg = Clock()
+        msg.clock.sec = int(sec)
+        g.wait(lambda: pub.publish(msg) or abs(g.planner.get_clock().now().nanoseconds - int(sec) * 10 ** 9) < 10 ** 6,
+               30, f"the planner's ROS time at /clock {sec} s")
+    return tick
+
+
+def _stamp_s(msg):
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+def test_ros_time_going_back_forgets_the_trajectory_sent_and_stamps_the_next_in_the_new_time(graph, capfd):
+    """
+    A bag played again under use_sim_time: /clock at 1000 s, a plan, then /clock back at 500 s.
+
+    The next plan is stamped the lead after 500 s, from the arm's state; before, the node joined it
+    to the trajectory sent before the jump and stamped it at that one's start, 500 s ahead.
+    """
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof", use_sim_time=True), with_arm=False)
+    tick = _clock_publisher(g)
+    robot = g.scenario.robot
+    msg = joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad))
+    tick(1000)
+    msg.header.stamp.sec = 1000
+    g.wait(lambda: g.pub_js.publish(msg) or g.planner.session.joint_q is not None, 30, "the joint state taken")
+    g.send_target()
+    g.wait(lambda: g.n_trajs() >= 1, 60, "the first trajectory")
+    with g.lock:
+        first = g.trajs[0][1]
+    assert 1000.0 < _stamp_s(first) < 1001.0
+    capfd.readouterr()
+    tick(500)
+    g.wait(lambda: g.planner.session.executing is None, 30, "the trajectory sent forgotten")
+    msg.header.stamp.sec = 500
+    g.pub_js.publish(msg)
+    g.send_target(x=-3.22, y=-2.65)
+    g.wait(lambda: g.n_trajs() >= 2, 60, "the plan after the jump")
+    with g.lock:
+        second = g.trajs[1][1]
+        g.checked.clear()             # their stamps are /clock's; the driver's controller check reads wall time
+    assert 500.0 < _stamp_s(second) < 501.0, _stamp_s(second)
+    assert not any(second.points[0].velocities), list(second.points[0].velocities)     # from rest
+    err = capfd.readouterr().err
+    assert "ROS time jumped back 500.000 s" in err and "forgotten" in err, err[-3000:]
+
+
+def test_under_sim_time_before_the_first_clock_a_plan_fails_saying_so(graph, capfd):
+    """ROS time 0 (no /clock yet): no trajectory stamped in the past, the reason named; no joint states called ahead."""
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof", use_sim_time=True), with_arm=False)
+    capfd.readouterr()
+    robot = g.scenario.robot
+    msg = joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad))
+    msg.header.stamp.sec = 1000                      # the driver's own sim time
+    g.wait(lambda: g.pub_js.publish(msg) or g.planner.session.joint_q is not None, 30, "the joint state taken")
+    g.send_target()
+    g.wait(lambda: any("/clock" in m for _, m in g.errors()), 60, "the plan's failure on /diagnostics")
+    reason = next(m for _, m in g.errors() if "/clock" in m)
+    assert "use_sim_time" in reason and "ROS time is 0" in reason, reason
+    assert g.n_trajs() == 0
+    assert "joint_states are stamped" not in capfd.readouterr().err
+
+
 def test_goal_waiting_for_joint_states_plans_when_they_arrive(graph):
     from action_msgs.msg import GoalStatus
     from spacerobot_planner.ros.conversions import joint_state_msg

@@ -281,6 +281,85 @@ def test_a_plan_longer_than_the_horizon_is_planned_again_with_twice_the_horizon(
     assert any("2 s ahead on the executing trajectory" in t for _, t in ses.log_lines)
 
 
+def test_after_ros_time_jumped_back_a_replan_starts_from_the_arm_at_rest_stamped_in_the_new_time(flat, backend):
+    """
+    ROS time jumps back 500 s while the arm moves (a bag played again): the trajectory last sent is forgotten.
+
+    Joined to it, the replan would start where it was, stamped the old time's join (500 s ahead):
+    instead it starts at the arm's measured state, from rest, the lead after it is published.
+    """
+    clock = Clock()
+    ses, ex = _moving(flat, backend, clock, t_in_s=1.0)
+    q_measured = ses.joint_q.copy()
+    clock.t -= 500 * S
+    ses.time_jumped("jumped back 500.000 s")
+    assert ses.executing is None and any(lvl == "warning" and "jumped back 500.000 s" in t and "forgotten" in t
+                                         for lvl, t in ses.log_lines), ses.log_lines
+    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+    out = ses.run_once()
+    assert out.ok and out.values["joined_moving_arm"] == "no (the arm at rest)", out.values
+    np.testing.assert_allclose(out.trajectory.positions_rad[0], q_measured, rtol=0, atol=1e-12)
+    assert not np.any(out.trajectory.velocities_rad_s[0])
+    assert out.publication.stamp_ns == clock.last + int(ses.settings.start_lead_s * S) < ex.start_ns
+
+
+def test_a_plan_under_way_when_ros_time_jumped_is_planned_again_from_rest(flat):
+    """The jump comes while the job plans (joined to the moving arm): nothing of that plan is published."""
+    clock = Clock()
+    slow = SlowBackend(scenario_from_params(flat), clock, plan_s=0.01)
+    try:
+        ses, ex = _moving(flat, slow, clock, t_in_s=1.0)
+        jumps = []
+
+        def jump(ns):
+            if not jumps:                          # the first plan only: the time goes back 300 s
+                jumps.append(ns)
+                clock.t -= 300 * S
+                ses.time_jumped("jumped back 300.000 s")
+        slow.meanwhile = jump
+        ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+        out = ses.run_once()
+    finally:
+        slow.close()
+    again = [t for lvl, t in ses.log_lines if "planning again" in t]
+    assert len(again) == 1 and "ROS time jumped while it planned" in again[0] and "at rest" in again[0], again
+    assert out.ok and out.values["joined_moving_arm"] == "no (the arm at rest)", out.values
+    assert len(ses.published) == 2                 # the first target's, then the plan again's: one
+    assert out.publication.stamp_ns < ex.start_ns and ses.executing.start_ns == out.publication.stamp_ns
+
+
+def test_without_a_clock_a_request_fails_saying_so(flat, backend):
+    sc = scenario_from_params(flat)
+    ses = CaptureSession(sc, session_settings_from_params(flat), now_ns=lambda: 0,
+                         clock_problem=lambda: "ROS time is 0: no /clock yet")
+    ses.start(backend, thread=False)
+    ses.accept(True)
+    ses.joint_state(sc.start_rad, 0)
+    ses.submit("target", target=ses.target)
+    out = ses.run_once()
+    assert out.code == "invalid_input" and out.reason == "ROS time is 0: no /clock yet"
+
+
+def test_a_flood_of_requests_logs_a_few_lines_a_second_and_says_how_many_it_left_out(flat, backend, monkeypatch):
+    """Each request of a flood planned, then superseded: two info lines each, at most FLOOD_LINES a second of each."""
+    import spacerobot_planner.session as session_module
+    now = [100.0]
+    monkeypatch.setattr(session_module.time, "monotonic", lambda: now[0])
+    ses = _session(flat, backend)
+    for k in range(40):                           # 40 requests within 0.4 s
+        ses._log_flood("planning", f"planning #{k}")
+        ses._log_flood("superseded", f"plan #{k} superseded: superseded by request #{k + 1}")
+        now[0] += 0.01
+    lines = [t for _, t in ses.log_lines]
+    assert [t for t in lines if t.startswith("planning")] == [f"planning #{k}" for k in range(5)]
+    assert len([t for t in lines if "superseded" in t]) == 5
+    now[0] += 1.0
+    ses._log_flood("planning", "planning #40")
+    assert ses.log_lines[-1][1] == "planning #40 (35 more such lines left out before this one)"
+    ses._log_flood("planning", "planning #41")     # a new window's second line: as it is
+    assert ses.log_lines[-1][1] == "planning #41"
+
+
 def test_stamp_for_a_join_too_close_asks_for_another_plan():
     traj = SimpleNamespace(duration_s=0.06)
     now, lead = 100 * S, 0.35

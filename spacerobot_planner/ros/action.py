@@ -46,9 +46,12 @@ class PlanCaptureServer:
             done.set_result(outcome)
             node._wake_goals()
 
+        highest = [0.0]          # progress never goes back: a plan planned again repeats its stages
+
         def on_progress(p):
+            highest[0] = max(highest[0], float(p.fraction))
             try:
-                goal_handle.publish_feedback(PlanCapture.Feedback(stage=p.stage, progress=float(p.fraction)))
+                goal_handle.publish_feedback(PlanCapture.Feedback(stage=p.stage, progress=highest[0]))
             except Exception:      # noqa: BLE001 - goal already finished / server gone
                 pass
 

@@ -32,6 +32,7 @@ from ..overlap import target_overlap_reason
 from ..scene import Target
 from ..session import target_why
 from . import conversions as conv
+from .time_jumps import no_clock_yet
 
 __all__ = ["Inputs", "CLOCK_MISMATCH_S", "OVERRIDABLE", "unused_qos_overrides", "locked_mismatches",
            "LOCKED_TOL_RAD"]
@@ -173,7 +174,9 @@ class Inputs:
             node._reject("joint_states", "invalid_input", reason)
             return
         now_ns, stamp_ns = node.get_clock().now().nanoseconds, conv.time_to_ns(msg.header.stamp)
-        if stamp_ns and abs(now_ns - stamp_ns) > CLOCK_MISMATCH_S * 1e9:
+        if now_ns == 0 and no_clock_yet(node.get_clock()):
+            pass                  # use_sim_time before the first /clock: the stamp as it is, no time to compare
+        elif stamp_ns and abs(now_ns - stamp_ns) > CLOCK_MISMATCH_S * 1e9:
             self._clock_mismatch(now_ns, stamp_ns)
             stamp_ns = 0
         node.session.joint_state(q, stamp_ns or now_ns)

@@ -53,6 +53,7 @@ from ..trajectory import sample_points
 from . import conversions as conv
 from . import node_main
 from .parameters import MOCK_ARM_PARAMETERS, SPECS, as_declared, descriptor_for
+from .time_jumps import on_time_jumps
 
 __all__ = ["MockArmNode", "main"]
 
@@ -117,6 +118,7 @@ class MockArmNode(Node):
             self.create_subscription(JointTrajectory, topic, lambda m, t=topic: self._on_trajectory(m, t), 10)
         self._timer = self.create_timer(1.0 / float(params["mock_arm.rate_hz"]), self._tick)
         self.add_post_set_parameters_callback(self._post_set)
+        self._time_jumps = on_time_jumps(self, self.time_jumped)      # the handle keeps the callback
         self.get_logger().info(f"mock arm at {np.round(np.degrees(self._q), 2).tolist()}°, "
                                f"publishing {', '.join(self.names)} at {params['mock_arm.rate_hz']} Hz")
 
@@ -142,6 +144,25 @@ class MockArmNode(Node):
         """Return the positions of the latest state (the last ``state`` call's: the last published), (n,) rad."""
         with self._lock:
             return self._q.copy()
+
+    def time_jumped(self, what: str) -> None:
+        """
+        Stop where the arm is: ROS time jumped back or changed source (``what``, for the log; ``ros.time_jumps``).
+
+        The state is a function of the time, and the trajectories' stamps belong to the time
+        before: followed on, the arm would go back to where it was at the new time (its start
+        posture after a bag played again).  The latest state's positions are held, the
+        trajectories dropped, the history begun again.
+        """
+        with self._lock:
+            self._hold = self._q.copy()
+            self._v[:] = 0.0
+            self._a[:] = 0.0
+            self._active, self._waiting = {}, {}
+            self._history = [(-1, {}, self._hold.copy())]
+            self.executing = False
+            here = np.round(np.degrees(self._hold), 2).tolist()
+        self.get_logger().warning(f"ROS time {what}: stopped at {here}°, its trajectories dropped")
 
     def _on_trajectory(self, msg: JointTrajectory, topic: str = "joint_trajectory"):
         self.receive(msg, topic, self.get_clock().now().nanoseconds)

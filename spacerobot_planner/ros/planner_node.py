@@ -72,6 +72,7 @@ from .log_lines import LogLines
 from .parameter_handler import NO_REPLAN, TARGET_POSE_PARAMETERS, ParameterHandler, check_runtime
 from .parameters import PLANNER_PARAMETERS, as_declared, declare_checked, params_to_overrides
 from .pending import PendingAnswers
+from .time_jumps import no_clock_yet, on_time_jumps
 
 __all__ = ["PlannerNode", "main", "spin_until_shutdown", "params_to_overrides", "GRID_QOS", "Outcome"]
 
@@ -130,7 +131,8 @@ class PlannerNode(LifecycleNode):
         self._phase = "unconfigured"     # the lifecycle's view: unconfigured, inactive, active, finalized
         self.session = CaptureSession(scenario, session_settings_from_params(params), now_ns=self._now_ns,
                                       log=self._log, publish=self._publish_outcome, record=self._record,
-                                      changed=self._publish_diag)
+                                      changed=self._publish_diag, clock_problem=self._clock_problem)
+        self._time_jumps = on_time_jumps(self, self.session.time_jumped)     # the handle keeps the callback
         self.diagnostics = NodeDiagnostics()
         self.inputs = Inputs(self)       # the input topics
         self._waiting_timer = None       # ends a goal's wait for the first joint_states
@@ -193,6 +195,13 @@ class PlannerNode(LifecycleNode):
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
+
+    def _clock_problem(self) -> str | None:
+        """Why ROS time cannot stamp a trajectory now (see ``ros.time_jumps``), else None."""
+        if no_clock_yet(self.get_clock()):
+            return ("ROS time is 0: use_sim_time is true and no /clock message has come yet, so a trajectory "
+                    "would start in the past (publish /clock: the simulator, or `ros2 bag play --clock`)")
+        return None
 
     # ------------------------------------------------------------------ lifecycle
     def trigger_configure(self):
