@@ -151,6 +151,41 @@ def test_goal_without_start_before_joint_states_says_so_then_aborts(graph, sim_t
     assert g.n_trajs() == 0
 
 
+def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_path):
+    """
+    ``--params-file paper_3dof.yaml -p rate_hz:=20.0``: rcl keeps the file's ``/**/mock_arm`` value; the start says so.
+
+    rcl itself decides (the node in a context initialised with those arguments); a ``-p`` of a
+    name the file sets only under ``/**`` is taken (applied in order), and so is one naming the node.
+    """
+    from spacerobot_planner.ros.mock_arm_node import MockArmNode
+    from spacerobot_planner.ros.node_main import command_line_parameters, not_taken
+    config = os.path.join(CONFIG_DIR, "paper_3dof.yaml")
+    for args, fragments in (
+            (["-p", "rate_hz:=20.0", "-p", "scenario.start_deg:=[-80.0,130.0,90.0]"],
+             ["-p rate_hz:=20.0 was not taken (rate_hz is 50.0)", "-p mock_arm:rate_hz:=20.0",
+              "ros2 param set /mock_arm rate_hz 20.0"]),
+            (["-p", "mock_arm:rate_hz:=20.0"], [])):
+        argv = ["mock_arm_node", "--ros-args", "--params-file", config, *args]
+        ctx = Context()
+        rclpy.init(args=argv, context=ctx)
+        try:
+            node = MockArmNode(context=ctx)
+            lines = not_taken(node, command_line_parameters(argv))
+            rate = node.get_parameter("rate_hz").value
+            start = list(node.get_parameter("scenario.start_deg").value)
+            node.destroy_node()
+        finally:
+            rclpy.shutdown(context=ctx)
+        if fragments:
+            assert rate == 50.0 and start == [-80.0, 130.0, 90.0]          # rcl's choice: the file's, the -p's
+            assert len(lines) == 1 and all(f in lines[0] for f in fragments), lines
+        else:
+            assert rate == 20.0 and lines == []
+    assert command_line_parameters(["x", "-p", "a:=1", "--ros-args", "-p", "b:=2", "--param", "c:=[1, 2]",
+                                    "-p", "n:d:=3", "-p", "b:=4", "--", "-p", "e:=5"]) == {"b": "4", "c": "[1, 2]"}
+
+
 def _clock_publisher(g):
     """Return tick(sec): the driver publishes /clock at ``sec`` s and the planner's ROS time follows (waited for)."""
     from rosgraph_msgs.msg import Clock

@@ -31,6 +31,60 @@ from .executor import NodeExecutor
 SPIN_WAKE_S = 0.1
 
 
+def command_line_parameters(argv) -> dict:
+    """
+    Return the ``-p NAME:=VALUE`` (``--param``) of ``--ros-args`` sections that name no node: {NAME: text}.
+
+    A later one of a name replaces an earlier one, as rcl applies them; ``-p node:NAME:=VALUE``
+    (one node's) are left out.
+    """
+    given, inside, k = {}, False, 0
+    argv = list(argv or ())
+    while k < len(argv):
+        arg = argv[k]
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif inside and arg in ("-p", "--param") and k + 1 < len(argv):
+            k += 1
+            name, sep, value = argv[k].partition(":=")
+            if sep and ":" not in name:
+                given[name] = value
+        k += 1
+    return given
+
+
+def not_taken(node: Node, given: dict) -> list:
+    """
+    Say which command-line ``-p`` (``given``: :func:`command_line_parameters`) ``node`` does not hold.
+
+    A parameter file's section for a node (``/**/spacerobot_planner``, ``/**/mock_arm``) wins over a
+    ``-p`` that names no node, wherever it comes (rcl's rule: a node's own values over the
+    wildcard's), so ``--params-file config/paper_3dof.yaml -p grid.cells:=[72,72,72]`` starts with the
+    file's cells, silently.  One line per declared parameter whose value is not the one given
+    (read as rcl reads it: YAML), naming the two ways that work.
+    """
+    import yaml
+    lines = []
+    for name, text in given.items():
+        if not node.has_parameter(name):
+            continue
+        try:
+            want = yaml.safe_load(text)
+        except yaml.YAMLError:
+            continue
+        have = node.get_parameter(name).value
+        if isinstance(have, (list, tuple)) or type(have).__name__ == "array":
+            have = list(have)
+        if have != want:
+            lines.append(f"-p {name}:={text} was not taken ({name} is {have}): this node's section of the "
+                         f"parameter file sets it and wins over a -p that names no node (ROS 2's rule); give "
+                         f"-p {node.get_name()}:{name}:={text}, or set it now: ros2 param set "
+                         f"{node.get_fully_qualified_name()} {name} {text}")
+    return lines
+
+
 def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | None = None,
                         stop: threading.Event | None = None) -> None:
     """
@@ -86,6 +140,8 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
             except (ValueError, RuntimeError, ParameterException) as e:
                 print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
                 return 1
+            for line in not_taken(node, command_line_parameters(sys.argv if args is None else args)):
+                node.get_logger().warning(line)
             # from now on a signal asks the spin loop to stop
             signal.signal(signal.SIGTERM, request_stop)
             if signal.getsignal(signal.SIGINT) is signal.default_int_handler:     # not ignored
