@@ -83,6 +83,8 @@ RETRY = ("", "with twice the horizon", "stopping on the executing path as soon a
          "from the end of the executing trajectory", "from the measured state, at rest")
 #: a flood of requests: at most FLOOD_LINES log lines of a kind (planning, superseded) in FLOOD_WINDOW_S
 FLOOD_LINES, FLOOD_WINDOW_S = 5, 1.0
+#: a request planned again this many times for ROS time jumping back fails (two /clock sources, a bag on a loop)
+TIME_JUMPS_MOST = 3
 #: the attempt from the measured state, at rest (RETRY); an outcome planned again from there at once
 AT_REST = len(RETRY) - 1
 RETRY_AT_REST = "retry_at_rest"
@@ -112,6 +114,7 @@ class Request:
     keep: bool = False                           # finish and publish although superseded (a stream)
     attempt: int = 0                             # planned again after a join failed (RETRY)
     waiting: bool = False                        # waited for the first joint state
+    time_jumps: int = 0                          # planned again after ROS time jumped (TIME_JUMPS_MOST)
 
 
 @dataclass(frozen=True, eq=False)
@@ -233,7 +236,7 @@ class CaptureSession:
         self.now_ns = now_ns
         self._clock_problem = clock_problem or (lambda: None)
         self.time_epoch = 0              # time_jumped's count: a plan begun before a jump is planned again
-        self._flood = {}                 # _log_flood: kind -> (window start, lines said, lines left out)
+        self._flood = {}                 # _log_flood: kind -> (window start, said, left out, the last left out)
         self.log = log
         self._publish = publish or (lambda req, out: None)
         self._record = record or (lambda req, out: None)
@@ -340,6 +343,16 @@ class CaptureSession:
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self._replace_pending(waiting)
+
+    def time_jumping(self) -> None:
+        """
+        Take notice that ROS time is about to jump (rclpy's pre-jump callback; :meth:`time_jumped` follows).
+
+        Under the lock, before the time changes: a plan that stamps its trajectory meanwhile
+        does so wholly in the time before, and sees the jump at its next check.
+        """
+        with self.lock:
+            self.time_epoch += 1
 
     def time_jumped(self, what: str) -> None:
         """
@@ -543,16 +556,24 @@ class CaptureSession:
     def _run(self, req: Request) -> Outcome:
         outcome = None
         while outcome is None:
-            problem = self._clock_problem()
+            executes = req.start_rad is None           # a goal with its own start is returned, not stamped
+            problem = self._clock_problem() if executes else None
             if problem is not None:
                 outcome = self._failure(req, "invalid_input", problem)
                 break
             try:
-                epoch = self.time_epoch
+                epoch = self.time_epoch if executes else None
                 outcome = self._plan(req, *self._start_of(req), epoch=epoch)
             except Exception as e:      # noqa: BLE001 - never let the worker die
                 outcome = self._failure(req, "internal_error", f"planning crashed: {type(e).__name__}: {e}",
                                         tb=traceback.format_exc())
+            if outcome.code == RETRY_AT_REST:
+                req.time_jumps += 1
+                if req.time_jumps >= TIME_JUMPS_MOST:
+                    outcome = self._failure(req, "invalid_input", f"ROS time jumped back {req.time_jumps} times "
+                                            "while this request was planned (two /clock publishers? a bag played "
+                                            "on a short loop?)")
+                    break
             if outcome.code in ("retry", RETRY_AT_REST):
                 req.attempt = AT_REST if outcome.code == RETRY_AT_REST else req.attempt + 1
                 self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
@@ -560,8 +581,11 @@ class CaptureSession:
                 outcome = None
         with self.lock:
             self._active = None
-            if self._pending is None:
+            idle = self._pending is None
+            if idle:
                 self.activity = "idle"
+        if idle:
+            self._flush_flood()
         if not outcome.ok and outcome.code != "superseded":
             self._record(req, outcome)
         with self.lock:
@@ -662,16 +686,24 @@ class CaptureSession:
         """
         now = time.monotonic()
         with self.lock:
-            start, said, left = self._flood.get(kind, (-math.inf, 0, 0))
+            start, said, left, _ = self._flood.get(kind, (-math.inf, 0, 0, None))
             if now - start >= FLOOD_WINDOW_S:
                 start, said, before, left = now, 0, left, 0
             else:
                 before = 0
             if said >= FLOOD_LINES:
-                self._flood[kind] = (start, said, left + 1)
+                self._flood[kind] = (start, said, left + 1, text)
                 return
-            self._flood[kind] = (start, said + 1, left)
+            self._flood[kind] = (start, said + 1, left, None)
         self.log("info", text + (f" ({before} more such lines left out before this one)" if before else ""))
+
+    def _flush_flood(self) -> None:
+        """Log the last line of each kind :meth:`_log_flood` left out (the worker went idle): the latest request's."""
+        with self.lock:
+            last = [(kind, left, text) for kind, (_, _, left, text) in self._flood.items() if left]
+            self._flood = {}
+        for _, left, text in last:
+            self.log("info", text + (f" ({left - 1} more such lines left out before this one)" if left > 1 else ""))
 
     def motions(self, scene) -> MotionValidator:
         """Return the scene's one MotionValidator (kept while the scene is the same object)."""
@@ -798,28 +830,34 @@ class CaptureSession:
             values["at_goal"] = "true"
         outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
                           None, values, processed, np.asarray(start_raw), dict(stamps or {}))
+        jumped = Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it
+            if epoch is not None and epoch != self.time_epoch:
+                return jumped
             self.last_result = res
             self.last_trajectory = traj
             if self._pending is None:
                 self.activity = "idle"
         self._record(req, outcome)
         execute = req.start_rad is None      # a goal with its own start: the arm is elsewhere
-        now = self.now_ns()
-        stamp = stamp_for(processed, now, lead_s)
-        if stamp is None:            # the record took the join's margin (a stalled machine): publish nothing
-            return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
-        outcome.publication = Publication(stamp, processed.arm, processed.attitude, execute,
-                                          processed.predicted_drift)
-        if outcome.publication.sent:
-            dense, idx = processed.dense, processed.indices
-            with self.lock:
-                if epoch is not None and epoch != self.time_epoch:      # (a jump just now) not published
-                    return Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
+        with self.lock:           # the stamp and the trajectory held in one step: a jump comes before or after
+            if epoch is not None and epoch != self.time_epoch:
+                return jumped
+            now = self.now_ns()
+            stamp = stamp_for(processed, now, lead_s)
+            if stamp is None:     # the record took the join's margin (a stalled machine): publish nothing
+                return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
+            outcome.publication = Publication(stamp, processed.arm, processed.attitude, execute,
+                                              processed.predicted_drift)
+            if outcome.publication.sent:
+                dense, idx = processed.dense, processed.indices
                 self.last_publish_t = time.monotonic()
                 self.executing = (Executing(dense, idx, stamp) if join is None
                                   else join.executing.joined_by(dense, idx, stamp))
         self._publish(req, outcome)
+        if outcome.publication.sent and epoch is not None and epoch != self.time_epoch:
+            # the time jumped as it went out: stamped in the time before; one from rest replaces it at once
+            return Outcome(RETRY_AT_REST, "ROS time jumped as its trajectory was published")
         outcome.stamps["published"] = time.perf_counter()
         if not execute:
             self.log("info", f"plan #{req.gen}: planned from the goal's own start: returned, not published")

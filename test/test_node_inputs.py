@@ -171,7 +171,7 @@ def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_p
         rclpy.init(args=argv, context=ctx)
         try:
             node = MockArmNode(context=ctx)
-            lines = not_taken(node, command_line_parameters(argv))
+            lines = not_taken(node, command_line_parameters(argv), argv)
             rate = node.get_parameter("rate_hz").value
             start = list(node.get_parameter("scenario.start_deg").value)
             node.destroy_node()
@@ -184,6 +184,38 @@ def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_p
             assert rate == 20.0 and lines == []
     assert command_line_parameters(["x", "-p", "a:=1", "--ros-args", "-p", "b:=2", "--param", "c:=[1, 2]",
                                     "-p", "n:d:=3", "-p", "b:=4", "--", "-p", "e:=5"]) == {"b": "4", "c": "[1, 2]"}
+
+
+@pytest.mark.parametrize("args, namespace, warned", [
+    (["-p", "rate_hz:=2e1"], "/", False),                      # taken (no params file): rcl reads 2e1 as 20.0
+    (["--params-file", "{wild}", "-p", "rate_hz:=2.5e1"], "/", False),    # a /** section: the -p after it wins
+    (["--params-file", "{paper}", "-p", "rate_hz:=50"], "/", False),      # the file's own value: nothing to say
+    (["--params-file", "{paper}", "-p", "rate_hz:=20.0"], "/a", True),    # in a namespace: no "-p node:" hint
+], ids=["scientific", "wildcard_file", "same_value", "namespace"])
+def test_a_command_line_parameter_is_said_only_where_the_files_node_section_overrode_it(tmp_path, args, namespace,
+                                                                                        warned):
+    from spacerobot_planner.ros.mock_arm_node import MockArmNode
+    from spacerobot_planner.ros.node_main import command_line_parameters, not_taken
+    paper = os.path.join(CONFIG_DIR, "paper_3dof.yaml")
+    wild = tmp_path / "wild.yaml"
+    # the /** section alone, with rate_hz in it: a -p after it is taken
+    wild.write_text(open(paper).read().split("/**/spacerobot_planner:")[0].rstrip() + "\n    rate_hz: 50.0\n")
+    argv = ["mock_arm_node", "--ros-args", "-r", f"__ns:={namespace}",
+            *[a.format(wild=wild, paper=paper) for a in args]]
+    ctx = Context()
+    rclpy.init(args=argv, context=ctx)
+    try:
+        node = MockArmNode(context=ctx)
+        lines = not_taken(node, command_line_parameters(argv), argv)
+        rate = node.get_parameter("rate_hz").value
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    assert bool(lines) == warned, lines
+    if "{wild}" in args:
+        assert rate == 25.0                                                    # rcl took the -p
+    if warned:
+        assert "ros2 param set /a/mock_arm rate_hz 20.0" in lines[0] and "-p mock_arm:" not in lines[0], lines
 
 
 def _clock_publisher(g):

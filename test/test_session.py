@@ -328,6 +328,44 @@ def test_a_plan_under_way_when_ros_time_jumped_is_planned_again_from_rest(flat):
     assert out.publication.stamp_ns < ex.start_ns and ses.executing.start_ns == out.publication.stamp_ns
 
 
+def test_a_request_that_ros_time_keeps_sending_back_fails_saying_so(flat):
+    """Every plan of it meets a jump back (two /clock sources): planned again twice, then it fails naming the cause."""
+    clock = Clock()
+    slow = SlowBackend(scenario_from_params(flat), clock, plan_s=0.01)
+    try:
+        ses, _ = _moving(flat, slow, clock, t_in_s=1.0)
+        plans = []
+
+        def jump(ns):
+            plans.append(ns)
+            clock.t -= 10 * S
+            ses.time_jumped("jumped back 10.000 s")
+        slow.meanwhile = jump
+        ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+        out = ses.run_once()
+    finally:
+        slow.close()
+    assert len(plans) == 3 and out.code == "invalid_input", (len(plans), out.code, out.reason)
+    assert "jumped back 3 times" in out.reason and "/clock" in out.reason
+    assert len(ses.published) == 1                # the first target's alone
+
+
+def test_a_goal_with_its_own_start_is_not_stamped_so_neither_the_clock_nor_a_jump_stops_it(flat):
+    clock = Clock()
+    slow = SlowBackend(scenario_from_params(flat), clock, plan_s=0.01)
+    try:
+        ses = CaptureSession(scenario_from_params(flat), session_settings_from_params(flat), now_ns=clock,
+                             clock_problem=lambda: "ROS time is 0: no /clock yet")
+        ses.start(slow, thread=False)
+        ses.accept(True)
+        slow.meanwhile = lambda ns: ses.time_jumped("jumped back 10.000 s")
+        ses.submit("goal with a start", target=ses.target, start_rad=ses.scenario.start_rad)
+        out = ses.run_once()
+    finally:
+        slow.close()
+    assert out.ok and not out.publication.sent and ses.executing is None, (out.code, out.reason)
+
+
 def test_without_a_clock_a_request_fails_saying_so(flat, backend):
     sc = scenario_from_params(flat)
     ses = CaptureSession(sc, session_settings_from_params(flat), now_ns=lambda: 0,
@@ -358,6 +396,13 @@ def test_a_flood_of_requests_logs_a_few_lines_a_second_and_says_how_many_it_left
     assert ses.log_lines[-1][1] == "planning #40 (35 more such lines left out before this one)"
     ses._log_flood("planning", "planning #41")     # a new window's second line: as it is
     assert ses.log_lines[-1][1] == "planning #41"
+    for k in range(42, 50):                       # 8 more within the window: 3 said, 5 left out
+        ses._log_flood("planning", f"planning #{k}")
+    assert ses.log_lines[-1][1] == "planning #44"
+    ses._flush_flood()                            # the worker idle: each kind's latest line left out, and the count
+    assert [t for _, t in ses.log_lines[-2:]] == [
+        "planning #49 (4 more such lines left out before this one)",
+        "plan #39 superseded: superseded by request #40 (34 more such lines left out before this one)"]
 
 
 def test_stamp_for_a_join_too_close_asks_for_another_plan():

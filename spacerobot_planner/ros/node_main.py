@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+import re
 import signal
 import sys
 import threading
@@ -31,6 +32,21 @@ from .executor import NodeExecutor
 SPIN_WAKE_S = 0.1
 
 
+def _ros_args(argv):
+    """Yield (option, its value) of ``argv``'s ``--ros-args`` sections: ``-p``/``--param``, ``--params-file``."""
+    argv, inside, k = list(argv or ()), False, 0
+    while k < len(argv):
+        arg = argv[k]
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif inside and arg in ("-p", "--param", "--params-file") and k + 1 < len(argv):
+            k += 1
+            yield ("--params-file" if arg == "--params-file" else "-p"), argv[k]
+        k += 1
+
+
 def command_line_parameters(argv) -> dict:
     """
     Return the ``-p NAME:=VALUE`` (``--param``) of ``--ros-args`` sections that name no node: {NAME: text}.
@@ -38,50 +54,94 @@ def command_line_parameters(argv) -> dict:
     A later one of a name replaces an earlier one, as rcl applies them; ``-p node:NAME:=VALUE``
     (one node's) are left out.
     """
-    given, inside, k = {}, False, 0
-    argv = list(argv or ())
-    while k < len(argv):
-        arg = argv[k]
-        if arg == "--ros-args":
-            inside = True
-        elif arg == "--":
-            inside = False
-        elif inside and arg in ("-p", "--param") and k + 1 < len(argv):
-            k += 1
-            name, sep, value = argv[k].partition(":=")
-            if sep and ":" not in name:
-                given[name] = value
-        k += 1
+    given = {}
+    for option, value in _ros_args(argv):
+        name, sep, text = value.partition(":=")
+        if option == "-p" and sep and ":" not in name:
+            given[name] = text
     return given
 
 
-def not_taken(node: Node, given: dict) -> list:
+def _section_matches(key: str, fqn: str) -> bool:
+    """Tell whether a parameter file's section ``key`` is ``fqn``'s own (not ``/**``): rcl's ``/**`` and ``/*``."""
+    key = key if key.startswith("/") else "/" + key
+    if key in ("/**", "/*"):
+        return False
+    pattern = "".join("(/[^/]+)*" if part == "**" else "/[^/]+" if part == "*" else "/" + re.escape(part)
+                      for part in key.strip("/").split("/"))
+    return re.fullmatch(pattern, fqn) is not None
+
+
+def _flat(doc: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def files_node_sections(argv, fqn: str) -> dict:
+    """Return what the ``--params-file`` of ``argv`` set in sections of node ``fqn`` (not ``/**``): {NAME: value}."""
+    import yaml
+    found = {}
+    for option, path in _ros_args(argv):
+        if option != "--params-file":
+            continue
+        try:
+            with open(path, encoding="utf-8") as f:
+                doc = yaml.safe_load(f) or {}
+        except (OSError, yaml.YAMLError):
+            continue
+        for key, body in (doc.items() if isinstance(doc, dict) else ()):
+            if isinstance(key, str) and isinstance(body, dict) and _section_matches(key, fqn):
+                found.update(_flat(body.get("ros__parameters") or {}))
+    return found
+
+
+def _same(have, text: str) -> bool:
+    """Tell whether a parameter's value ``have`` is what ``-p NAME:=text`` gives (YAML, numbers as rcl reads them)."""
+    import yaml
+    try:
+        want = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return False
+    if isinstance(have, (list, tuple)) or type(have).__name__ == "array":
+        have = list(have)
+    if isinstance(want, str) and isinstance(have, (int, float)) and not isinstance(have, bool):
+        try:
+            want = float(text)
+        except ValueError:
+            return False
+    return have == want
+
+
+def not_taken(node: Node, given: dict, argv=()) -> list:
     """
     Say which command-line ``-p`` (``given``: :func:`command_line_parameters`) ``node`` does not hold.
 
     A parameter file's section for a node (``/**/spacerobot_planner``, ``/**/mock_arm``) wins over a
     ``-p`` that names no node, wherever it comes (rcl's rule: a node's own values over the
     wildcard's), so ``--params-file config/paper_3dof.yaml -p grid.cells:=[72,72,72]`` starts with the
-    file's cells, silently.  One line per declared parameter whose value is not the one given
-    (read as rcl reads it: YAML), naming the two ways that work.
+    file's cells, silently.  One line for each ``-p`` whose name such a section of a
+    ``--params-file`` of ``argv`` sets and whose value the node does not hold, naming the ways that
+    work (``-p NODE:NAME:=VALUE`` only in the root namespace: rcl takes no namespace there).
     """
-    import yaml
+    fqn = node.get_fully_qualified_name()
+    sections = files_node_sections(argv, fqn)
     lines = []
     for name, text in given.items():
-        if not node.has_parameter(name):
-            continue
-        try:
-            want = yaml.safe_load(text)
-        except yaml.YAMLError:
+        if name not in sections or not node.has_parameter(name):
             continue
         have = node.get_parameter(name).value
-        if isinstance(have, (list, tuple)) or type(have).__name__ == "array":
-            have = list(have)
-        if have != want:
-            lines.append(f"-p {name}:={text} was not taken ({name} is {have}): this node's section of the "
-                         f"parameter file sets it and wins over a -p that names no node (ROS 2's rule); give "
-                         f"-p {node.get_name()}:{name}:={text}, or set it now: ros2 param set "
-                         f"{node.get_fully_qualified_name()} {name} {text}")
+        if _same(have, text):
+            continue
+        shown = list(have) if type(have).__name__ == "array" else have
+        hint = f"-p {node.get_name()}:{name}:={text}, or " if node.get_namespace() == "/" else ""
+        lines.append(f"-p {name}:={text} was not taken ({name} is {shown}): this node's section of the "
+                     f"parameter file sets it and wins over a -p that names no node (ROS 2's rule); give "
+                     f"{hint}set it now: ros2 param set {fqn} {name} {text}")
     return lines
 
 
@@ -140,7 +200,8 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
             except (ValueError, RuntimeError, ParameterException) as e:
                 print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
                 return 1
-            for line in not_taken(node, command_line_parameters(sys.argv if args is None else args)):
+            argv = sys.argv if args is None else args
+            for line in not_taken(node, command_line_parameters(argv), argv):
                 node.get_logger().warning(line)
             # from now on a signal asks the spin loop to stop
             signal.signal(signal.SIGTERM, request_stop)

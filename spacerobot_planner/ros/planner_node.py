@@ -132,7 +132,8 @@ class PlannerNode(LifecycleNode):
         self.session = CaptureSession(scenario, session_settings_from_params(params), now_ns=self._now_ns,
                                       log=self._log, publish=self._publish_outcome, record=self._record,
                                       changed=self._publish_diag, clock_problem=self._clock_problem)
-        self._time_jumps = on_time_jumps(self, self.session.time_jumped)     # the handle keeps the callback
+        self._time_jumps = on_time_jumps(self, self.session.time_jumped,     # the handle keeps the callbacks
+                                         before=self.session.time_jumping)
         self.diagnostics = NodeDiagnostics()
         self.inputs = Inputs(self)       # the input topics
         self._waiting_timer = None       # ends a goal's wait for the first joint_states

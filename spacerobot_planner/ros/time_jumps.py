@@ -32,16 +32,18 @@ def jump_text(jump) -> str:
             "again, a simulator reset?)")
 
 
-def on_time_jumps(node, callback):
+def on_time_jumps(node, callback, before=None):
     """
     Call ``callback(text)`` when ``node``'s ROS time jumps back (more than :data:`CLOCK_JUMP_BACK_S`) or changes source.
 
-    ``text``: :func:`jump_text`.  Returns the jump handle: keep it (rclpy drops the callback
-    with it); called in the thread that sets the time (the executor's, ``/clock``'s callback).
+    ``text``: :func:`jump_text`; ``before()`` (optional) is called first, before the time changes.
+    Returns the jump handle: keep it (rclpy drops the callbacks with it); called in the thread
+    that sets the time (the executor's, ``/clock``'s callback).
     """
     threshold = JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-int(CLOCK_JUMP_BACK_S * 1e9)),
                               on_clock_change=True)
-    return node.get_clock().create_jump_callback(threshold, post_callback=lambda jump: callback(jump_text(jump)))
+    return node.get_clock().create_jump_callback(threshold, pre_callback=before,
+                                                 post_callback=lambda jump: callback(jump_text(jump)))
 
 
 def no_clock_yet(clock) -> bool:
