@@ -307,9 +307,9 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "planner_node = spacerobot_planner.ros.planner_node:main",
-            "mock_arm_node = spacerobot_planner.ros.mock_arm_node:main",
-            "spacerobot-plan = spacerobot_planner.tools.cli:run",
+            "planner_node = spacerobot_planner.tools.entry:planner_node",
+            "mock_arm_node = spacerobot_planner.tools.entry:mock_arm_node",
+            "spacerobot-plan = spacerobot_planner.tools.entry:plan",
             "spacerobot-demo = spacerobot_planner.tools.demo:main",
         ],
     },

@@ -57,8 +57,8 @@ import struct
 import sys
 import tempfile
 
-__all__ = ["defer_linking_modules", "elf_defined_symbols", "ensure_writable_cache", "seed_from_package",
-           "start_numba", "start_numba_target", "writable"]
+__all__ = ["defer_linking_modules", "elf_defined_symbols", "ensure_writable_cache", "import_numba",
+           "seed_from_package", "start_numba", "start_numba_target", "writable"]
 
 #: the module numba's CPU target set-up imports only to check for a BLAS (see the module docstring)
 _BLAS_CHECK = "scipy.linalg.cython_blas"
@@ -362,6 +362,31 @@ def defer_linking_modules() -> bool:
     CPUCodeLibrary._unserialize = classmethod(_unserialize)
     CPUCodeLibrary._get_module_for_linking = _get_module_for_linking
     _deferred = True
+    return True
+
+
+def import_numba() -> bool:
+    """
+    Import numba for a process of the package's own, without its coverage support's import of ``coverage``.
+
+    Return whether it was imported here.
+
+    numba's ``misc.coverage_support`` imports ``coverage`` where it is installed (colcon's
+    pytest-cov installs it with ``make``) only to report the lines of jitted code to a coverage
+    measurement running in the process: 25 ms of the CLI's start.  Where ``coverage`` is not
+    imported yet, no measurement runs (``coverage run`` and ``COVERAGE_PROCESS_START`` import it
+    first), so numba is imported with it hidden, and it can be imported as usual afterwards.
+    False where numba or ``coverage`` was imported before.  Before anything imports numba: the
+    entry points (``tools.entry``) and the planning process call it first.
+    """
+    if "numba" in sys.modules or "coverage" in sys.modules:
+        return False
+    sys.modules["coverage"] = None               # an import of it fails at once: numba takes "no coverage"
+    try:
+        import numba  # noqa: F401
+    finally:
+        if "coverage" in sys.modules and sys.modules["coverage"] is None:
+            del sys.modules["coverage"]
     return True
 
 

@@ -627,6 +627,7 @@ class ProcessBackend:
         # that `python -c` would find in the working directory (e.g. a source tree)
         return subprocess.Popen(
             [sys.executable, "-c", f"import sys; sys.path.insert(0, {_PACKAGE_PARENT!r}); "
+             "from spacerobot_planner.jit_cache import import_numba; import_numba(); "
              "from spacerobot_planner.worker import child_main; child_main(int(sys.argv[1]))", str(fd)],
             pass_fds=(fd,), stdin=subprocess.DEVNULL)
 

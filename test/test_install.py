@@ -34,7 +34,13 @@ def test_ament_install_into_a_temp_prefix(tmp_path):
     assert r.returncode == 0, r.stderr
     _check_prefix(tmp_path)
     launcher = (tmp_path / "lib" / PKG / "planner_node").read_text()
-    assert "spacerobot_planner.ros.planner_node" in launcher and "main" in launcher
+    from spacerobot_planner.tools.ament_install import console_scripts
+    module, func = console_scripts()["planner_node"].split(":")       # the installed console script's target
+    assert f"from {module} import {func}" in launcher and f"{func}()" in launcher, launcher
+    # it starts the planner node (a refused start: one line, at once)
+    run = subprocess.run([sys.executable, str(tmp_path / "lib" / PKG / "planner_node"), "--ros-args", "-p",
+                          "safety_margin_m:=-1.0"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1 and run.stderr.startswith("planner_node: ") and "safety_margin_m" in run.stderr, run
 
 
 # run in the installed tree: the default route (the planning process's warm-up, then a full

@@ -453,3 +453,36 @@ def test_a_process_of_its_own_loads_its_kernels_without_their_linking_bitcode(pa
     q = np.array([[7.0, -7.0], [1.0, 20.0]])
     q[:, 0] = -np.pi + (q[:, 0] + np.pi) % (2 * np.pi)          # the attitude column wrapped, NumPy's way
     assert got["linked"] == pytest.approx(q.sum(), abs=1e-12)
+
+
+_COVERAGE_RUN = r"""
+import json, sys
+first = sys.argv[1] == "coverage_first"
+if first:
+    import coverage
+import spacerobot_planner.tools.entry                      # the console scripts' module: nothing heavy
+heavy = sorted(m for m in ("numba", "numpy", "coverage") if m in sys.modules)
+from spacerobot_planner.jit_cache import import_numba
+done = import_numba()
+from numba.misc import coverage_support
+hidden = "coverage" not in sys.modules
+import coverage                                             # importable as usual afterwards
+print(json.dumps({"heavy": heavy, "done": done, "available": coverage_support.coverage_available,
+                  "hidden": hidden, "coverage": coverage.__name__}))
+"""
+
+
+@pytest.mark.parametrize("case", ["fresh", "coverage_first"])
+def test_numba_is_imported_without_coverage_unless_a_measurement_could_run(case):
+    """Where coverage is installed (make installs it with colcon): hidden from numba's import, unless imported."""
+    import json
+    pytest.importorskip("coverage")
+    out = subprocess.run([sys.executable, "-c", _COVERAGE_RUN, case], capture_output=True, text=True,
+                         timeout=600, cwd=PACKAGE.parent)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    if case == "fresh":
+        assert got["heavy"] == [] and got["done"] and not got["available"] and got["hidden"], got
+    else:                                   # a coverage measurement could run: numba as numba imports itself
+        assert got["heavy"] == ["coverage"] and not got["done"] and got["available"], got
+    assert got["coverage"] == "coverage"

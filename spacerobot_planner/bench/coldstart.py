@@ -7,7 +7,7 @@ Python's bytecode of the package (``worker.compile_package`` first: an interpret
 start would compile the package's sources again, about 0.12 s).
 
 Runs ``spacerobot-plan --params-file FILE --quiet`` (the console script's code,
-``tools.cli.run``) ``--runs`` times as a new process each, and in the same run, interleaved:
+``tools.entry.plan``) ``--runs`` times as a new process each, and in the same run, interleaved:
 
 - ``interpreter``: ``python -c pass``, the floor;
 - ``numpy + numba imports``: what every kernel module needs before it is defined;
@@ -15,9 +15,10 @@ Runs ``spacerobot-plan --params-file FILE --quiet`` (the console script's code,
   from numba's cache, as numba starts on its own (its target set-up happens at the first
   load, whatever the kernel, and imports SciPy's BLAS);
 - ``spacerobot-plan, numba as numba starts``: the baseline, the same plan with numba's own
-  loading of the cached kernels (their linking bitcode parsed), its own target set-up, and
-  the interpreter's exit with its cycle collections (``tools.cli.main`` where the console
-  script calls ``run``): what ``jit_cache.start_numba`` and ``run`` save, measured in the run.
+  import (with its coverage support's), its own loading of the cached kernels (their linking
+  bitcode parsed), its own target set-up, and the interpreter's exit with its cycle collections
+  (``tools.cli.main`` where the console script calls ``jit_cache.import_numba`` and
+  ``tools.cli.run``): what those save, measured in the run.
 
 Each CLI run also reports, from inside the process (``_probe``), where its time went:
 importing the package, loading each kernel from numba's cache (count and seconds), and the
@@ -46,6 +47,9 @@ _PARAMS = _PKG.parent / "config" / "paper_3dof.yaml"
 _PROBE = r"""
 import json, sys, time
 t0 = time.perf_counter()
+if "--baseline" not in sys.argv:        # as the console script's entry (tools.entry.plan)
+    from spacerobot_planner.jit_cache import import_numba
+    import_numba()
 import numba.core.caching as caching
 loads = [0, 0.0]
 _load = caching.Cache.load_overload
