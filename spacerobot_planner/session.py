@@ -797,8 +797,9 @@ class CaptureSession:
         ``epoch``: :attr:`time_epoch` when its start was taken (None: not checked); where ROS time
         jumped since (:meth:`time_jumped`), nothing is published: planned again, from rest.
         """
+        jumped = Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
         if epoch is not None and epoch != self.time_epoch:
-            return Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
+            return jumped
         lead_s = float(req.settings.start_lead_s)
         if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
             ahead = 1e-9 * (processed.join_stamp_ns - self.now_ns())
@@ -830,7 +831,6 @@ class CaptureSession:
             values["at_goal"] = "true"
         outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
                           None, values, processed, np.asarray(start_raw), dict(stamps or {}))
-        jumped = Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it
             if epoch is not None and epoch != self.time_epoch:
                 return jumped

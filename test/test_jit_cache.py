@@ -253,6 +253,15 @@ def test_a_read_only_install_with_no_home_runs_its_kernels(tmp_path, with_cache)
         assert int(compiled) >= 2
 
 
+def _fresh_process_json(code: str, *args) -> dict:
+    """Run ``code`` in a fresh interpreter (the package's directory); return the JSON of its last line."""
+    import json
+    out = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True,
+                         timeout=600, cwd=PACKAGE.parent)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 _TARGET_RUN = r"""
 import json, sys
 from spacerobot_planner.jit_cache import start_numba_target
@@ -277,14 +286,10 @@ print(json.dumps({"first": first, "again": again, "ok": res.ok, "path": res.path
 
 
 def test_a_process_of_its_own_plans_without_scipys_blas_and_np_dot_still_runs(paper_scenario):
-    import json
     import numpy as np
     from spacerobot_planner.planner import Planner
     config = PACKAGE.parent / "config" / "paper_2dof.yaml"
-    out = subprocess.run([sys.executable, "-c", _TARGET_RUN, str(config)], capture_output=True, text=True,
-                         timeout=600, cwd=PACKAGE.parent)
-    assert out.returncode == 0, out.stderr
-    got = json.loads(out.stdout.strip().splitlines()[-1])
+    got = _fresh_process_json(_TARGET_RUN, config)
     assert (got["first"], got["again"], got["ok"]) == (True, False, True)
     assert not got["blas_after_plan"]                       # the plan never needed it
     assert got["dot"] == 30.0 and got["blas_after_dot"]     # np.dot in a kernel: imported then, and right
@@ -429,7 +434,6 @@ print(json.dumps({"set_up": set_up, "again": again, "ok": res.ok, "path": res.pa
 
 
 def test_a_process_of_its_own_loads_its_kernels_without_their_linking_bitcode(paper_scenario):
-    import json
     import numba
     import numpy as np
     from spacerobot_planner.planner import Planner
@@ -441,10 +445,7 @@ def test_a_process_of_its_own_loads_its_kernels_without_their_linking_bitcode(pa
     sc = paper_scenario(2)
     here = Planner(sc).plan(sc.start_rad, sc.goal_rad)         # this process fills numba's cache if it must
     config = PACKAGE.parent / "config" / "paper_2dof.yaml"
-    out = subprocess.run([sys.executable, "-c", _DEFER_RUN, str(config)], capture_output=True, text=True,
-                         timeout=600, cwd=PACKAGE.parent)
-    assert out.returncode == 0, out.stderr
-    got = json.loads(out.stdout.strip().splitlines()[-1])
+    got = _fresh_process_json(_DEFER_RUN, config)
     assert (got["set_up"], got["again"], got["ok"]) == (True, False, True)
     assert np.array_equal(np.array(got["path"]), here.path_rad)
     assert got["loaded"] >= 10 and got["parsed_in_plan"] == 0
@@ -475,12 +476,8 @@ print(json.dumps({"heavy": heavy, "done": done, "available": coverage_support.co
 @pytest.mark.parametrize("case", ["fresh", "coverage_first"])
 def test_numba_is_imported_without_coverage_unless_a_measurement_could_run(case):
     """Where coverage is installed (make installs it with colcon): hidden from numba's import, unless imported."""
-    import json
     pytest.importorskip("coverage")
-    out = subprocess.run([sys.executable, "-c", _COVERAGE_RUN, case], capture_output=True, text=True,
-                         timeout=600, cwd=PACKAGE.parent)
-    assert out.returncode == 0, out.stderr
-    got = json.loads(out.stdout.strip().splitlines()[-1])
+    got = _fresh_process_json(_COVERAGE_RUN, case)
     if case == "fresh":
         assert got["heavy"] == [] and got["done"] and not got["available"] and got["hidden"], got
     else:                                   # a coverage measurement could run: numba as numba imports itself

@@ -151,6 +151,23 @@ def test_goal_without_start_before_joint_states_says_so_then_aborts(graph, sim_t
     assert g.n_trajs() == 0
 
 
+def _mock_arm_started_with(argv):
+    """Start a mock arm in a context rcl initialised with ``argv``; return (not_taken's lines, rate_hz, start)."""
+    from spacerobot_planner.ros.mock_arm_node import MockArmNode
+    from spacerobot_planner.ros.node_main import command_line_parameters, not_taken
+    ctx = Context()
+    rclpy.init(args=argv, context=ctx)
+    try:
+        node = MockArmNode(context=ctx)
+        lines = not_taken(node, command_line_parameters(argv), argv)
+        rate = node.get_parameter("rate_hz").value
+        start = list(node.get_parameter("scenario.start_deg").value)
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    return lines, rate, start
+
+
 def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_path):
     """
     ``--params-file paper_3dof.yaml -p rate_hz:=20.0``: rcl keeps the file's ``/**/mock_arm`` value; the start says so.
@@ -158,25 +175,14 @@ def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_p
     rcl itself decides (the node in a context initialised with those arguments); a ``-p`` of a
     name the file sets only under ``/**`` is taken (applied in order), and so is one naming the node.
     """
-    from spacerobot_planner.ros.mock_arm_node import MockArmNode
-    from spacerobot_planner.ros.node_main import command_line_parameters, not_taken
+    from spacerobot_planner.ros.node_main import command_line_parameters
     config = os.path.join(CONFIG_DIR, "paper_3dof.yaml")
     for args, fragments in (
             (["-p", "rate_hz:=20.0", "-p", "scenario.start_deg:=[-80.0,130.0,90.0]"],
              ["-p rate_hz:=20.0 was not taken (rate_hz is 50.0)", "-p mock_arm:rate_hz:=20.0",
               "ros2 param set /mock_arm rate_hz 20.0"]),
             (["-p", "mock_arm:rate_hz:=20.0"], [])):
-        argv = ["mock_arm_node", "--ros-args", "--params-file", config, *args]
-        ctx = Context()
-        rclpy.init(args=argv, context=ctx)
-        try:
-            node = MockArmNode(context=ctx)
-            lines = not_taken(node, command_line_parameters(argv), argv)
-            rate = node.get_parameter("rate_hz").value
-            start = list(node.get_parameter("scenario.start_deg").value)
-            node.destroy_node()
-        finally:
-            rclpy.shutdown(context=ctx)
+        lines, rate, start = _mock_arm_started_with(["mock_arm_node", "--ros-args", "--params-file", config, *args])
         if fragments:
             assert rate == 50.0 and start == [-80.0, 130.0, 90.0]          # rcl's choice: the file's, the -p's
             assert len(lines) == 1 and all(f in lines[0] for f in fragments), lines
@@ -194,23 +200,12 @@ def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_p
 ], ids=["scientific", "wildcard_file", "same_value", "namespace"])
 def test_a_command_line_parameter_is_said_only_where_the_files_node_section_overrode_it(tmp_path, args, namespace,
                                                                                         warned):
-    from spacerobot_planner.ros.mock_arm_node import MockArmNode
-    from spacerobot_planner.ros.node_main import command_line_parameters, not_taken
     paper = os.path.join(CONFIG_DIR, "paper_3dof.yaml")
     wild = tmp_path / "wild.yaml"
     # the /** section alone, with rate_hz in it: a -p after it is taken
     wild.write_text(open(paper).read().split("/**/spacerobot_planner:")[0].rstrip() + "\n    rate_hz: 50.0\n")
-    argv = ["mock_arm_node", "--ros-args", "-r", f"__ns:={namespace}",
-            *[a.format(wild=wild, paper=paper) for a in args]]
-    ctx = Context()
-    rclpy.init(args=argv, context=ctx)
-    try:
-        node = MockArmNode(context=ctx)
-        lines = not_taken(node, command_line_parameters(argv), argv)
-        rate = node.get_parameter("rate_hz").value
-        node.destroy_node()
-    finally:
-        rclpy.shutdown(context=ctx)
+    lines, rate, _ = _mock_arm_started_with(["mock_arm_node", "--ros-args", "-r", f"__ns:={namespace}",
+                                             *[a.format(wild=wild, paper=paper) for a in args]])
     assert bool(lines) == warned, lines
     if "{wild}" in args:
         assert rate == 25.0                                                    # rcl took the -p

@@ -303,24 +303,34 @@ def test_after_ros_time_jumped_back_a_replan_starts_from_the_arm_at_rest_stamped
     assert out.publication.stamp_ns == clock.last + int(ses.settings.start_lead_s * S) < ex.start_ns
 
 
-def test_a_plan_under_way_when_ros_time_jumped_is_planned_again_from_rest(flat):
-    """The jump comes while the job plans (joined to the moving arm): nothing of that plan is published."""
+def _planned_through_jumps(flat, back_s, jumps):
+    """
+    Plan a new target while the arm moves, ROS time jumping back ``back_s`` during each of the first ``jumps`` plans.
+
+    Returns (session, the executing trajectory before, outcome, how many plans met a jump).
+    """
     clock = Clock()
     slow = SlowBackend(scenario_from_params(flat), clock, plan_s=0.01)
+    met = []
     try:
         ses, ex = _moving(flat, slow, clock, t_in_s=1.0)
-        jumps = []
 
         def jump(ns):
-            if not jumps:                          # the first plan only: the time goes back 300 s
-                jumps.append(ns)
-                clock.t -= 300 * S
-                ses.time_jumped("jumped back 300.000 s")
+            if len(met) < jumps:
+                met.append(ns)
+                clock.t -= int(back_s * S)
+                ses.time_jumped(f"jumped back {back_s:.3f} s")
         slow.meanwhile = jump
         ses.submit("moved target", target=_target(ses, -3.22, -2.65))
         out = ses.run_once()
     finally:
         slow.close()
+    return ses, ex, out, len(met)
+
+
+def test_a_plan_under_way_when_ros_time_jumped_is_planned_again_from_rest(flat):
+    """The jump comes while the job plans (joined to the moving arm): nothing of that plan is published."""
+    ses, ex, out, _ = _planned_through_jumps(flat, 300.0, jumps=1)
     again = [t for lvl, t in ses.log_lines if "planning again" in t]
     assert len(again) == 1 and "ROS time jumped while it planned" in again[0] and "at rest" in again[0], again
     assert out.ok and out.values["joined_moving_arm"] == "no (the arm at rest)", out.values
@@ -330,22 +340,8 @@ def test_a_plan_under_way_when_ros_time_jumped_is_planned_again_from_rest(flat):
 
 def test_a_request_that_ros_time_keeps_sending_back_fails_saying_so(flat):
     """Every plan of it meets a jump back (two /clock sources): planned again twice, then it fails naming the cause."""
-    clock = Clock()
-    slow = SlowBackend(scenario_from_params(flat), clock, plan_s=0.01)
-    try:
-        ses, _ = _moving(flat, slow, clock, t_in_s=1.0)
-        plans = []
-
-        def jump(ns):
-            plans.append(ns)
-            clock.t -= 10 * S
-            ses.time_jumped("jumped back 10.000 s")
-        slow.meanwhile = jump
-        ses.submit("moved target", target=_target(ses, -3.22, -2.65))
-        out = ses.run_once()
-    finally:
-        slow.close()
-    assert len(plans) == 3 and out.code == "invalid_input", (len(plans), out.code, out.reason)
+    ses, _, out, plans = _planned_through_jumps(flat, 10.0, jumps=100)
+    assert plans == 3 and out.code == "invalid_input", (plans, out.code, out.reason)
     assert "jumped back 3 times" in out.reason and "/clock" in out.reason
     assert len(ses.published) == 1                # the first target's alone
 
