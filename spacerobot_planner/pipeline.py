@@ -50,7 +50,7 @@ from .timing import timed_motion, trajectory_limits_known
 
 #: timed_motion, trajectory_limits_known: the trajectory stage (``timing.py``), also importable
 #: from here (tests do; the node's chain, ``adapters.py``, imports it from ``timing``)
-__all__ = ["run_pipeline", "PlanRun", "Fail", "timed_motion", "trajectory_limits_known"]
+__all__ = ["run_pipeline", "PlanRun", "Fail", "NotCached", "timed_motion", "trajectory_limits_known"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node
 #: (one more with each repair of the same plan, up to REPAIR_WIDENING more) and those joined
@@ -86,6 +86,15 @@ class Fail(Exception):
 
 class Refine(Fail):
     """A grid given up for a finer one (repairs piled up): ``PlanRun.find_grid_path`` refines at once."""
+
+
+class NotCached(Exception):
+    """
+    A plan from the caches alone (``Planner.plan(cached_only=True)``) met a stage they do not hold: its name.
+
+    Raised before the stage's work (a C-space, a field solve, a grid connectivity search, a
+    repair, a free-floating capture's search); never turned into a result (:meth:`PlanRun.run`).
+    """
 
 
 def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
@@ -254,8 +263,9 @@ class PlanRun:
 
     """
 
-    def __init__(self, planner, settings, cancel, progress, start_tangent=None):
+    def __init__(self, planner, settings, cancel, progress, start_tangent=None, cached_only: bool = False):
         self.p = planner
+        self.cached_only = cached_only           # raise NotCached rather than build what the caches lack
         self.start_tangent_given = start_tangent  # the direction to leave the start along (check_inputs)
         self.start_tangent = None
         self.s = settings
@@ -405,6 +415,8 @@ class PlanRun:
         (``reaction_refused``) with the attitude change needed and what the arm's motions
         achieve, or the inertial clearance; ``goal_unreachable`` for a chain it does not handle.
         """
+        if self.cached_only:
+            raise NotCached("free-floating capture")
         robot, margin = self.robot, self.sc.scene.safety_margin_m
         self.take_start(start_rad)
         goal = None if goal_rad is None else self.validated_q(goal_rad, "goal")
@@ -587,7 +599,7 @@ class PlanRun:
         self.cached = []
         before = self.timings["cspace"]
         with self.stage("cspace"):
-            cs, key, hit = self.p._cspace(grid, extra_m, token=self.cancel)
+            cs, key, hit = self.p._cspace(grid, extra_m, token=self.cancel, cached_only=self.cached_only)
         if hit:
             self.timings["cspace"] = before           # a cached stage costs nothing
             self.cached.append("cspace")
@@ -640,6 +652,8 @@ class PlanRun:
         """
         if self.p._field_key(cs_key, goal_nodes, self.s) in self.p._fields:
             return
+        if self.cached_only:
+            raise NotCached("field")
         grid = cs.grid
         self.stats = {"repairs": 0, "blocked_nodes": 0, "cut_edges": 0,
                       "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m),
@@ -658,6 +672,8 @@ class PlanRun:
         self.check_cancel()
         key = self.p._field_key(cs_key, goal_nodes, self.s)
         hit = key in self.p._fields
+        if not hit and self.cached_only:
+            raise NotCached("field")
         before = self.timings["field"]
         with self.stage("field"):
             fld = self.p._solve(cs, key, goal_nodes, self.s, token=self.cancel)
@@ -819,6 +835,8 @@ class PlanRun:
         ``fld``: the field the descent was blocked on; ``base``: the field before the plan's
         repairs, under ``key``.
         """
+        if self.cached_only:
+            raise NotCached("repair")
         everywhere = repairs == 0 and swept.applies(self.motions, grid.ndim)
         with self.stage("repair"):
             if everywhere:
@@ -1001,6 +1019,8 @@ class PlanRun:
         except Cancelled:
             self.say("cancelled")
             return self.result(Code.CANCELLED, "planning was cancelled")
+        except NotCached:
+            raise
         except Fail as f:
             self.say(f"failed ({f.code}): {f.reason}")
             return self.result(f.code, f.reason)

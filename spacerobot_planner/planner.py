@@ -48,7 +48,7 @@ from .field import reserve_heap, warm_up as field_warm_up
 from .free_floating_capture import warm_up as free_floating_warm_up
 from .ik import approach_error_rad, grasp_ik, meets_approach_angle, perpendicular_attitudes
 from .motion import MotionValidator
-from .pipeline import PlanRun
+from .pipeline import NotCached, PlanRun
 from .problem import Scenario
 from .repair import warm_up as repair_warm_up
 from .results import CODES, STAGES, Code, PlanResult
@@ -163,13 +163,9 @@ class Planner:
     def set_scene(self, scene: Scene) -> None:
         """Replace the scene; the caches go only when geometry or margin changed."""
         with self._lock:
-            if scene.geometry_key() != self.scenario.scene.geometry_key():
-                self._cspaces.clear()
-                self._fields.clear()
-                self._goal_nodes.clear()
-                self._colliding.clear()
-                self._failed_walks.clear()
-                self._walks.clear()
+            geometry = scene.geometry_key()
+            if geometry != self.scenario.scene.geometry_key():
+                self._keep_cached(lambda cs_key: cs_key[0] == geometry)     # (a held scene's: :meth:`hold_only`)
             self.scenario = self.scenario.with_scene(scene)
             self._checker = CollisionChecker(self.scenario.robot, scene)
             self._validator = MotionValidator(self._checker)
@@ -360,14 +356,15 @@ class Planner:
             cache.pop(next(iter(cache)))
         cache[key] = value
 
-    def _cspace(self, grid: GridSpec, extra_m: float, token=None):
+    def _cspace(self, grid: GridSpec, extra_m: float, token=None, cached_only: bool = False):
         """
         (C-space, its cache key, cache hit) of the current scene on ``grid``.
 
         The spacecraft-body table (``cspace.body_occupancy``) depends on the grid and the
         margin only, so it is kept across target and debris moves as well.  ``token``:
         the plan's termination token; a build it stops raises ``termination.Cancelled``
-        and stores nothing (nor evicts anything).
+        and stores nothing (nor evicts anything).  ``cached_only``: one not cached raises
+        ``pipeline.NotCached`` instead.
         """
         sc = self.scenario
         margin = float(sc.scene.safety_margin_m + extra_m)
@@ -375,6 +372,8 @@ class Planner:
         cs = self._cspaces.get(key)
         if cs is not None:
             return cs, key, True
+        if cached_only:
+            raise NotCached("cspace")
         body_key = (grid, margin)
         self._fit_threads(grid.n_nodes, any_size=loops_at_any_size(sc.robot))    # the body table's loops too
         if body_key not in self._body_tables:
@@ -384,15 +383,53 @@ class Planner:
                           body_table=self._body_tables[body_key], token=token)
         if len(self._cspaces) >= 4:
             evicted = next(iter(self._cspaces))
-            del self._cspaces[evicted]
-            for cache in (self._fields, self._goal_nodes):    # their fields go with them
-                for k in [k for k in cache if k[0] == evicted]:
-                    del cache[k]
-            for cache in (self._colliding, self._failed_walks, self._walks):
-                for k in [k for k in cache if k[0][0] == evicted]:
-                    del cache[k]
+            self._keep_cached(lambda cs_key: cs_key != evicted)
         self._cspaces[key] = cs
         return cs, key, False
+
+    def _keep_cached(self, keep) -> None:
+        """
+        Drop the cached C-spaces whose key ``keep(key)`` refuses, and everything cached on them.
+
+        Their fields, goal nodes, repairs' edges and descents go with them (the caller holds the lock).
+        """
+        for k in [k for k in self._cspaces if not keep(k)]:
+            del self._cspaces[k]
+        for cache in (self._fields, self._goal_nodes):                    # keyed on (C-space key, ...)
+            for k in [k for k in cache if not keep(k[0])]:
+                del cache[k]
+        for cache in (self._colliding, self._failed_walks, self._walks):  # on (field key, ...)
+            for k in [k for k in cache if not keep(k[0][0])]:
+                del cache[k]
+
+    def cache_key_of(self, entry):
+        """Return the key the C-space or field ``entry`` (the object) is cached under, or None where it is not."""
+        for cache in (self._cspaces, self._fields):
+            for key, held in cache.items():
+                if held is entry:
+                    return key
+        return None
+
+    def hold_only(self, cspace_entry, field_entry) -> None:
+        """
+        Make the caches hold one C-space and one field of another planner's, and what this one made on them.
+
+        ``cspace_entry``, ``field_entry``: (key, object) as that planner caches them
+        (:meth:`cache_key_of`), or None; a field of another C-space is not held.  For a planner
+        that plans from its caches alone (``plan(cached_only=True)``: ``worker.HybridBackend``).
+        The entries are never changed, as this planner's own; the goal nodes and descents made
+        on that C-space stay, the rest goes.  The scene may become the C-space's afterwards
+        (:meth:`set_scene` keeps the entries of the scene it changes to).
+        """
+        with self._lock:
+            cs_key = None if cspace_entry is None else cspace_entry[0]
+            self._keep_cached(lambda k: k == cs_key)
+            if cspace_entry is None:
+                return
+            self._cspaces[cs_key] = cspace_entry[1]
+            self._fields.clear()
+            if field_entry is not None and field_entry[0][0] == cs_key:
+                self._fields[field_entry[0]] = field_entry[1]
 
     def _fit_threads(self, nodes: int, any_size: bool = False, note: bool = True) -> None:
         """
@@ -469,7 +506,8 @@ class Planner:
 
     # ------------------------------------------------------------------- plan
     def plan(self, start_rad, goal_rad=None, cancel: threading.Event | None = None,
-             progress: Callable[[str], None] | None = None, start_tangent=None) -> PlanResult:
+             progress: Callable[[str], None] | None = None, start_tangent=None,
+             cached_only: bool = False) -> PlanResult:
         """
         Plan from ``start_rad`` to ``goal_rad`` (default: :meth:`goal_from_target`).
 
@@ -486,11 +524,16 @@ class Planner:
         ``start_tangent``: (dof,) the direction the arm moves in at the start (a replan from a
         moving arm: its velocity), or None: the smoothed path leaves the start along it
         (``smoothing.smooth_path``); bad values answer ``invalid_input``.
+
+        ``cached_only``: a plan from the caches alone: where it would build a C-space, solve a
+        field, search the grid's connectivity, repair or search a free-floating capture, it raises
+        ``pipeline.NotCached`` instead (the goal nodes and descents it made before stay cached).
         """
         with self._lock:
             self._fits = []
             self._fit_threads(0, note=False)     # the numba count of this thread; noted where a stage runs loops
-            return PlanRun(self, self.settings, cancel, progress, start_tangent).run(start_rad, goal_rad)
+            run = PlanRun(self, self.settings, cancel, progress, start_tangent, cached_only)
+            return run.run(start_rad, goal_rad)
 
     def add_trajectory(self, result: PlanResult, state_rad=None) -> PlanResult:
         """Run the trajectory stage on an existing ok result (e.g. a drift-compensated plan)."""

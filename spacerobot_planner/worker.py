@@ -57,12 +57,14 @@ from .jit_cache import start_numba
 from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .free_floating_capture import warm_up as free_floating_warm_up
+from .contact import warm_up as contact_warm_up
+from .pipeline import NotCached
 from .planner import Planner, warm_up_unreached
 from .field import reserve_heap, warm_up_rare as field_warm_up_rare
 from .termination import Termination, stall
 
 __all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
-           "ProcessBackend", "ThreadBackend", "make_backend", "compile_package", "STAGE_ORDER"]
+           "ProcessBackend", "HybridBackend", "ThreadBackend", "make_backend", "compile_package", "STAGE_ORDER"]
 
 #: the folder holding the ``spacerobot_planner`` package this module belongs to
 _PACKAGE_PARENT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -162,6 +164,9 @@ class PlanDone:
     #: and its outcome (``job_received_s``, ``job_answered_s``: ``time.perf_counter()`` s, the
     #: clock every process of the machine shares)
     stats: dict = dc_field(default_factory=dict)
+    #: ("cspace"/"field", its key in the planning process's caches) of each one sent (not left
+    #: out) that is cached there (``Planner.cache_key_of``): what a :class:`HybridBackend` holds
+    keys: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -242,13 +247,15 @@ def began(job: PlanJob) -> Progress:
     return Progress(job.gen, "cspace", STAGE_ORDER.index("cspace") / len(STAGE_ORDER))
 
 
-def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] | None = None):
+def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] | None = None,
+            cached_only: bool = False):
     """
     Return PlanDone or PlanError for one job (exceptions propagate: the backends catch them).
 
     ``cancel``: the job's termination token (``termination.Termination``, or anything
     with ``is_set()``).  ``progress`` gets the stages as they begin (``job.stages``) and a test
-    stall's start, not that the job began (:func:`began`: the backend's).
+    stall's start, not that the job began (:func:`began`: the backend's).  ``cached_only``: the
+    plan from the planner's caches alone (``Planner.plan``; ``pipeline.NotCached`` propagates).
     """
     def say(text):
         p = _progress_of(text)
@@ -277,7 +284,7 @@ def run_job(planner, job: PlanJob, cancel, progress: Callable[[Progress], None] 
         planner.test_stall = (job.stall_stage, float(job.stall_s), bool(job.stall_polls), stalling)
     try:
         return PlanDone(job.gen, planner.plan(job.start_rad, goal, cancel=token, progress=say,
-                                              start_tangent=job.start_tangent))
+                                              start_tangent=job.start_tangent, cached_only=cached_only))
     finally:
         planner.test_stall = None
 
@@ -286,14 +293,15 @@ def _crash(gen: int, e: BaseException) -> PlanCrash:
     return PlanCrash(gen, f"{type(e).__name__}: {e}", traceback.format_exc())
 
 
-def _strip_sent(done: PlanDone, sent: dict) -> PlanDone:
+def _strip_sent(done: PlanDone, sent: dict, planner=None) -> PlanDone:
     """
-    Leave out the C-space and field the node already holds (the objects last sent).
+    Leave out the C-space and field the node already holds (the objects last sent); name the keys of the others.
 
-    A replan from cache would otherwise pickle them again (~0.5 MB at 36³).
+    A replan from cache would otherwise pickle them again (~0.5 MB at 36³).  ``planner``: whose
+    caches name the keys of those sent (``PlanDone.keys``).
     """
     res = done.result
-    left_out = []
+    left_out, keys = [], []
     for name in ("cspace", "field"):
         obj = getattr(res, name, None)
         if obj is None:
@@ -302,9 +310,12 @@ def _strip_sent(done: PlanDone, sent: dict) -> PlanDone:
             left_out.append(name)
         else:
             sent[name] = obj
-    if not left_out:
+            key = None if planner is None else planner.cache_key_of(obj)
+            if key is not None:
+                keys.append((name, key))
+    if not left_out and not keys:
         return done
-    return PlanDone(done.gen, replace(res, **{n: None for n in left_out}), tuple(left_out), done.stats)
+    return PlanDone(done.gen, replace(res, **{n: None for n in left_out}), tuple(left_out), done.stats, tuple(keys))
 
 
 class _GenCancel(Termination):
@@ -356,16 +367,7 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
     """
     t0 = time.perf_counter()
     sc = planner.scenario
-    coarse = Planner(replace(sc, grid=sc.grid.with_cells(cells)), solver=planner.solver,
-                     field_tolerance=planner.field_tolerance)
-    rng = np.random.default_rng(0)
-    lo, hi = sc.robot.planned_lower_rad, sc.robot.planned_upper_rad
-    start = None
-    for _ in range(32):
-        a, b = rng.uniform(lo, hi, size=(2, sc.robot.dof))
-        if coarse.plan(a, b).ok:
-            start = a
-            break
+    coarse, start, _ = _coarse_plan(planner, cells)
     warm_up_unreached(coarse.scenario)
     field_warm_up_rare()        # nor does a coarse plan need a breadth-first search or a second band
     free_floating_warm_up(sc)   # a free-floating capture's kernels, where the scenario plans one (no plan here does)
@@ -380,6 +382,44 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
         out["full_grid_s"] = time.perf_counter() - t1
     out["total_s"] = time.perf_counter() - t0
     return out
+
+
+def _coarse_plan(planner, cells: int):
+    """
+    Plan once on a ``cells``-per-joint copy of ``planner``'s scenario (its solver), from seeded random postures.
+
+    Returns (the coarse planner, the start of its first plan that succeeded, that plan) (None, None:
+    none of 32 did).
+    """
+    sc = planner.scenario
+    coarse = Planner(replace(sc, grid=sc.grid.with_cells(cells)), solver=planner.solver,
+                     field_tolerance=planner.field_tolerance)
+    rng = np.random.default_rng(0)
+    lo, hi = sc.robot.planned_lower_rad, sc.robot.planned_upper_rad
+    for _ in range(32):
+        a, b = rng.uniform(lo, hi, size=(2, sc.robot.dof))
+        res = coarse.plan(a, b)
+        if res.ok:
+            return coarse, a, res
+    return coarse, None, None
+
+
+def warm_up_replans(planner, cells: int = WARM_CELLS) -> float:
+    """
+    Load the kernels of a plan from the caches in this process: a cached replan on a coarse copy, a start in contact.
+
+    For :class:`HybridBackend`'s planner ``planner`` (its robot and scene), in the node's process
+    (the planning process's warm-up, :func:`warm_up`, covers it there).  Returns the seconds.
+    """
+    t0 = time.perf_counter()
+    coarse, start, first = _coarse_plan(planner, cells)
+    if start is not None:       # from the middle of the first plan's path: the same C-space and field
+        try:
+            coarse.plan(first.path_rad[len(first.path_rad) // 2], first.goal_rad, cached_only=True)
+        except NotCached:       # (a repair: the kernels of a replan loaded all the same, up to it)
+            pass
+    contact_warm_up(planner.scenario.robot, planner.scenario.scene)
+    return time.perf_counter() - t0
 
 
 # ================================================================== the planning process
@@ -441,7 +481,7 @@ def child_main(fd: int) -> None:
             counts["cancelled"] += out.result.code == "cancelled"
             out = replace(out, stats={**_process_stats(planner, counts), "job_received_s": got_s,
                                       "job_answered_s": done_s})
-            out = _strip_sent(out, sent)
+            out = _strip_sent(out, sent, planner)
         ok = send(out)
         listener.stop_listening()
         if not ok:
@@ -544,6 +584,10 @@ class ThreadBackend:
     def wait_ready(self, timeout_s: float | None = None) -> float | None:
         return 0.0
 
+    def warm_up_here(self) -> float:
+        """Load this process's kernels before the first plan (none: the first plan loads them); the seconds."""
+        return 0.0
+
     def run(self, job: PlanJob, progress=None):
         self._cancel.clear()
         try:
@@ -604,6 +648,10 @@ class ProcessBackend:
     @property
     def pid(self) -> int:
         return self.proc.pid
+
+    def warm_up_here(self) -> float:
+        """Load the kernels this (the node's) process plans with (none: the planning process plans); the seconds."""
+        return 0.0
 
     def attach_logs(self, log=None, info=None) -> None:
         """Send this backend's warnings to ``log``, its progress to ``info`` from now on (a process started ahead)."""
@@ -700,7 +748,7 @@ class ProcessBackend:
         for name in ("cspace", "field"):
             if getattr(res, name, None) is not None:
                 self._held[name] = getattr(res, name)
-        return PlanDone(done.gen, res, (), done.stats)
+        return PlanDone(done.gen, res, (), done.stats, done.keys)
 
     def run(self, job: PlanJob, progress=None):
         """
@@ -783,6 +831,98 @@ class ProcessBackend:
         self.conn.close()
 
 
+class HybridBackend(ProcessBackend):
+    """
+    The planning process for what its caches alone hold, the calling (worker) thread for a replan the node holds.
+
+    The node holds the C-space and field the planning process sent last (each new one comes with
+    its plan, for the grids the node publishes; ``PlanDone.keys`` names their keys in the process's
+    caches).  A job on that C-space's scene and grid runs first in the calling thread, on a
+    planner that holds just those two (:attr:`here`, ``Planner.hold_only``) and plans from its
+    caches alone (``Planner.plan(cached_only=True)``): a new start to the same target, the
+    node's replans, without the process's round trip (two processes' wakes: about 0.6 ms of
+    ``bench latency``'s 5).  Where that plan meets a stage the caches do not hold
+    (``pipeline.NotCached``: another grid margin or a finer grid, a repair, a free-floating
+    capture's search, a goal whose field is not held) the job goes to the process, as does every
+    job before the first C-space and field arrive, and every test stall (``PlanJob.stall_s``).
+    The result is the process's bit for bit: the same objects, the same pipeline; its kernels
+    run serially, its stages poll the cancel as the process's do.
+    """
+
+    def __init__(self, scenario, log=None, info=None, solver: str | None = None,
+                 field_tolerance: float | None = None):
+        #: the planner of the jobs planned here (its caches: what the process sent last)
+        self.here = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)
+        self._here_cancel = _GenCancel()
+        #: ((key, C-space), (key, field)) the process sent last (None: not sent, or not cached there)
+        self._hold = (None, None)
+        self._held_here = None          # the _hold that ``here`` holds
+        self.jobs_here = 0              # jobs answered here (a cancelled one included)
+        super().__init__(scenario, log=log, info=info, solver=solver, field_tolerance=field_tolerance)
+
+    def warm_up_here(self) -> float:
+        """Load the kernels of the jobs planned here (:func:`warm_up_replans`); the seconds."""
+        return warm_up_replans(self.here)
+
+    def _unpack(self, done: PlanDone) -> PlanDone:
+        out = super()._unpack(done)
+        keys = dict(done.keys)
+        hold = dict(zip(("cspace", "field"), self._hold))
+        for name in ("cspace", "field"):
+            obj = getattr(done.result, name, None)
+            if obj is not None:             # sent anew: held with its key, or not at all
+                hold[name] = (keys[name], obj) if name in keys else None
+        self._hold = (hold["cspace"], hold["field"])
+        return out
+
+    def _answers_here(self, job: PlanJob) -> bool:
+        """Tell whether ``job`` may be planned here: a C-space and field held, of the job's scene and grid; no stall."""
+        cs, fld = self._hold
+        if job.stall_s > 0 or cs is None or fld is None:
+            return False
+        geometry, grid, _ = cs[0]
+        return grid == job.grid and geometry == job.scene.geometry_key()
+
+    def run(self, job: PlanJob, progress=None):
+        """Return the outcome of ``job`` (see the class): planned here where the caches held answer it, else there."""
+        if self._answers_here(job):
+            out = self._run_here(job, progress)
+            if out is not None:
+                return out
+        return super().run(job, progress)
+
+    def _run_here(self, job: PlanJob, progress):
+        """Plan ``job`` here from the caches alone; None where they do not answer it (nothing reported then)."""
+        said = []
+        self._here_cancel.start(job.gen)
+        try:
+            if self._held_here is not self._hold:
+                self.here.hold_only(*self._hold)
+                self._held_here = self._hold
+            out = run_job(self.here, job, self._here_cancel, said.append, cached_only=True)
+        except NotCached:
+            return None         # (a cancel meanwhile also went to the process: its job is cancelled there)
+        except Exception as e:     # noqa: BLE001 - report to the node, keep serving
+            out = _crash(job.gen, e)
+        self._cancel_at.pop(job.gen, None)
+        self.jobs_here += 1
+        if progress is not None:        # (the stages of a plan of a millisecond or so, told once it is done)
+            for p in [began(job)] + said:
+                progress(p)
+        if isinstance(out, PlanDone):
+            out = replace(out, stats={"planned_in": "worker thread", "jobs_here": self.jobs_here,
+                                      **self.here.cache_sizes()})
+        return out
+
+    def cancel(self, gen: int) -> None:
+        self._here_cancel.cancel_upto(gen)
+        super().cancel(gen)
+
+    def close(self) -> None:
+        self._here_cancel.cancel_upto(1 << 62)
+        super().close()
+
+
 class _Overdue:
     """Internal: the running job's cancel is overdue and its process was replaced."""
 
@@ -793,10 +933,11 @@ def _cancelled_done(job: PlanJob, grace_s: float) -> PlanError:
                      f"stage did not answer the cancel within {grace_s:g} s)")
 
 
-def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=None):
-    """Make a ProcessBackend (default) or ThreadBackend."""
-    return (ProcessBackend if separate_process else ThreadBackend)(scenario, log=log, info=info, solver=solver,
-                                                                   field_tolerance=field_tolerance)
+def make_backend(scenario, separate_process: bool, log=None, info=None, solver=None, field_tolerance=None,
+                 replans_here: bool = True):
+    """Make a HybridBackend (default), a ProcessBackend (``replans_here`` false) or a ThreadBackend (no process)."""
+    kind = ThreadBackend if not separate_process else HybridBackend if replans_here else ProcessBackend
+    return kind(scenario, log=log, info=info, solver=solver, field_tolerance=field_tolerance)
 
 
 def compile_package() -> None:

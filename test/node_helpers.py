@@ -32,7 +32,7 @@ from spacerobot_planner.ros.executor import NodeExecutor
 from spacerobot_planner.ros.mock_arm_node import MockArmNode
 from spacerobot_planner.ros.parameters import MOCK_ARM_PARAMETERS
 from spacerobot_planner.ros.planner_node import GRID_QOS, PlannerNode, params_to_overrides
-from spacerobot_planner.worker import ProcessBackend, make_backend
+from spacerobot_planner.worker import HybridBackend, ProcessBackend, make_backend
 
 from planning_zygote import PlanningZygote
 
@@ -60,11 +60,17 @@ class ZygoteBackend(ProcessBackend):
         return ZYGOTE.fork(fd)
 
 
-def planning_backend(scenario, separate_process, log=None, info=None, **kw):
+class ZygoteHybridBackend(HybridBackend):
+    """The node's default ``worker.HybridBackend``, its planning processes forked warm by this test process's zygote."""
+
+    start_process = ZygoteBackend.start_process
+
+
+def planning_backend(scenario, separate_process, log=None, info=None, replans_here=True, **kw):
     """Make the node's own backend (a PlannerNode ``backend_factory``), its planning processes forked by the zygote."""
     if not separate_process:
         return make_backend(scenario, False, log=log, info=info, **kw)
-    return ZygoteBackend(scenario, log=log, info=info, **kw)
+    return (ZygoteHybridBackend if replans_here else ZygoteBackend)(scenario, log=log, info=info, **kw)
 
 
 #: this test process's zygote (planning_zygote.py): every Graph's planning process is forked there

@@ -75,7 +75,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cells", type=int, default=36)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--in-process", action="store_true",
-                    help="plan in the worker thread instead of the child process")
+                    help="plan in the worker thread instead of the child process (planner.separate_process false)")
+    ap.add_argument("--replans-in-process", action="store_true",
+                    help="plan the cached replans in the child process too (planner.replans_in_node false)")
     ap.add_argument("--no-moving", action="store_true", help="skip the latency_moving stage (mock arm)")
     ap.add_argument("--load", type=int, default=0, metavar="N", help="run N busy-loop processes meanwhile")
     ap.add_argument("--pause-s", type=float, default=PAUSE_S, metavar="S",
@@ -107,6 +109,7 @@ def _run(args) -> int:
     flat = load_params_file(args.params_file)
     flat["grid.cells"] = [args.cells] * len(flat.get("robot.planned_joints", [0, 0, 0]))
     flat["planner.separate_process"] = not args.in_process
+    flat["planner.replans_in_node"] = not args.replans_in_process
     sc = scenario_from_params(flat)
     robot = sc.robot
     ctx = Context()
@@ -181,7 +184,7 @@ def _run(args) -> int:
                        if any(name in p for p in parts)]
         for stage, vals, aim in stages:
             rows.append({"stage": stage, "grid": grid, **_stats(vals), "aim_s": aim, "pause_s": args.pause_s,
-                         "backend": "thread" if args.in_process else "process",
+                         "backend": _backend(args),
                          **({"cached": list(cached)} if stage == "latency_joint_state" else {})})
     finally:
         node.shutdown_worker()
@@ -318,12 +321,17 @@ def _margin_row(margins, grid, args) -> dict:
     """Return the stamp_margin row: min, p10, median of stamp - arrival and of stamp + duration - arrival, s."""
     m = np.asarray(margins, dtype=float).reshape(-1, 2)
     out = {"stage": "stamp_margin", "grid": grid, "trajectories": int(len(m)), "load": args.load,
-           "backend": "thread" if args.in_process else "process"}
+           "backend": _backend(args)}
     for k, name in enumerate(("start", "end")):
         v = m[:, k] if len(m) else np.array([np.nan])
         out.update({f"{name}_min_s": float(v.min()), f"{name}_p10_s": float(np.percentile(v, 10)),
                     f"{name}_median_s": float(np.median(v))})
     return out
+
+
+def _backend(args) -> str:
+    """Return where the bench's node plans: "thread", "process" (every plan), "hybrid" (replans in the thread)."""
+    return "thread" if args.in_process else "process" if args.replans_in_process else "hybrid"
 
 
 def _stats(vals) -> dict:
@@ -462,7 +470,7 @@ def _moving(args, flat, margins) -> dict:
     return {"stage": "latency_moving", "grid": sc.grid.label(), **_stats(lat), "aim_s": None,
             "joined": joined, "velocity_step_deg_s": float(np.degrees(max(0.0, step.max()))),
             "arm_speed_deg_s": float(np.degrees(np.abs(v).max())),
-            "backend": "thread" if args.in_process else "process"}
+            "backend": _backend(args)}
 
 
 if __name__ == "__main__":

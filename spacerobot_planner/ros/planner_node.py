@@ -105,7 +105,7 @@ class PlannerNode(LifecycleNode):
 
     def __init__(self, *, context=None, parameter_overrides=None, node_name: str = NODE_NAME, backend_factory=None,
                  freeze_start_up: bool = False, **kwargs):
-        # backend_factory(scenario, separate_process, log=, info=) -> a worker backend: how configure
+        # backend_factory(scenario, separate_process, log=, info=, replans_here=) -> a worker backend: how configure
         # gets its planning process (default worker.make_backend: a new one, warmed up then)
         self._make_backend = backend_factory or make_backend
         # freeze_start_up: configure moves what start-up made out of the garbage collector's reach
@@ -227,12 +227,14 @@ class PlannerNode(LifecycleNode):
         backend = None
         try:
             backend = self._make_backend(scenario, self._params["planner.separate_process"], log=log.warning,
-                                         info=log.info)
-            # this process's kernels (the chain from rest and joined to a moving arm), while the child warms up
+                                         info=log.info, replans_here=self._params["planner.replans_in_node"])
+            # this process's kernels (the chain from rest and joined to a moving arm; the replans it
+            # plans itself), while the child warms up
             try:
                 warm_up_chain(scenario)
             except ValueError as e:     # limits no motion can keep to: every plan says so too
                 log.warning(f"configure: the trajectory warm-up was refused ({e}); plans will be too")
+            backend.warm_up_here()
             if backend.wait_ready(WARM_UP_TIMEOUT_S) is None:
                 raise RuntimeError(f"no warm-up within {WARM_UP_TIMEOUT_S} s")
         except Exception as e:      # noqa: BLE001 - a failed configure, with the reason
@@ -258,7 +260,8 @@ class PlannerNode(LifecycleNode):
         if self._freeze_start_up:
             gc.collect()                 # garbage is freed first, not frozen with the rest
             gc.freeze()
-        where = "planning process" if self._params["planner.separate_process"] else "worker thread"
+        where = ("worker thread" if not self._params["planner.separate_process"] else "planning process"
+                 if not self._params["planner.replans_in_node"] else "planning process and replans' kernels")
         log.info(f"configured in {time.perf_counter() - t0:.2f} s: planning "
                  f"{', '.join(self.robot.planned_names)} on a {scenario.grid.label()} grid in frame "
                  f"'{self.planning_frame}' ({where} warmed up)")
