@@ -787,15 +787,17 @@ class CaptureSession:
         if dropped is not None:
             self._log_flood(dropped.code, f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
-        return self._publish_plan(req, res, processed, start_raw, join, stamps, epoch)
+        return self._publish_plan(req, res, processed, start_raw, join, stamps, epoch,
+                                  planned_in=out.stats.get("planned_in", ""))
 
     def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None,
-                      epoch: int | None = None) -> Outcome:
+                      epoch: int | None = None, planned_in: str = "") -> Outcome:
         """
         Record an ok plan, stamp it just before it is published, publish it (the hooks).
 
         ``epoch``: :attr:`time_epoch` when its start was taken (None: not checked); where ROS time
         jumped since (:meth:`time_jumped`), nothing is published: planned again, from rest.
+        ``planned_in``: where the backend planned it, when it says (``worker.PlanDone.stats``).
         """
         jumped = Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
         if epoch is not None and epoch != self.time_epoch:
@@ -868,7 +870,8 @@ class CaptureSession:
         self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
                  f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
                  f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
-                 f"{', '.join(res.cached) or 'none'}{threads_text(res.solver_stats)}); clearance "
+                 f"{', '.join(res.cached) or 'none'}{threads_text(res.solver_stats)}"
+                 + (f"; planned in the {planned_in}" if planned_in else "") + "); clearance "
                  f"{res.min_clearance_m:.3f} m; "
                  + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed, stamps)}, "
                     f"joined to the moving arm: {joined}; stamped {1e-9 * (stamp - now):.3f} s ahead"

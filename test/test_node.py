@@ -98,7 +98,7 @@ def test_potential_grid_late_subscriber(graph):
     assert p[c == 0].max() <= 99
 
 
-def test_bad_input_then_good_request(graph):
+def test_bad_input_then_good_request(graph, capfd):
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
 
@@ -149,6 +149,10 @@ def test_bad_input_then_good_request(graph):
     assert fut.result().success
     g.wait(lambda: g.n_trajs() == 3, 30, "a trajectory after ~/replan")
     assert "cspace" in g.planner.last_result.cached and "field" in g.planner.last_result.cached
+    # ... planned in the worker thread from what the planning process sent (worker.HybridBackend)
+    err = []
+    g.wait(lambda: err.append(capfd.readouterr().err) or "planned in the worker thread" in "".join(err), 5,
+           "the replan's log line")
 
 
 def test_joint_goal(graph):
