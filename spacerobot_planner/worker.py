@@ -63,7 +63,7 @@ from .planner import Planner, warm_up_unreached
 from .field import reserve_heap, warm_up_rare as field_warm_up_rare
 from .termination import Termination, stall
 
-__all__ = ["PlanJob", "Cancel", "Ready", "Progress", "PlanDone", "PlanError", "PlanCrash",
+__all__ = ["PlanJob", "Cancel", "Ready", "ReplanSeed", "Progress", "PlanDone", "PlanError", "PlanCrash",
            "ProcessBackend", "HybridBackend", "ThreadBackend", "make_backend", "compile_package", "STAGE_ORDER"]
 
 #: the folder holding the ``spacerobot_planner`` package this module belongs to
@@ -144,6 +144,26 @@ class Ready:
     #: limit in whole CPUs (None: none; ``cores.cpu_limit``)
     threading_layer: str = ""
     cpu_limit: int | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class ReplanSeed:
+    """
+    A replan from the caches on a coarse copy of the scenario: what the node needs to plan it.
+
+    Sent by the planning process once its warm-up's coarse plan succeeded, before its
+    :class:`Ready`: the node loads its replans' kernels meanwhile (:meth:`HybridBackend.warm_up_here`).
+
+    ``grid``: the copy's (``cspace.GridSpec``); ``cspace``, ``field``: (key,
+    object) of the planning process's coarse plan (``Planner.cache_key_of``); ``start_rad``,
+    ``goal_rad``: (dof,) a start on that plan's path and its goal, rad.
+    """
+
+    grid: object
+    cspace: tuple
+    field: tuple
+    start_rad: np.ndarray
+    goal_rad: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -353,7 +373,8 @@ WARM_FULL_GRID_MAX_NODES = 250_000
 WARM_CELLS = 6
 
 
-def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FULL_GRID_MAX_NODES) -> dict:
+def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FULL_GRID_MAX_NODES,
+            coarse_done: Callable | None = None) -> dict:
     """
     Compile (or load from numba's cache) the kernels of the default route only.
 
@@ -364,10 +385,13 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
     compiled, and its C-space and field stay in ``planner``'s caches.  Kernels of other
     solvers are compiled when first used.  The heap a plan on the configured grid fills is
     faulted in either way (``field.reserve_heap``).  Returns seconds per phase.
+    ``coarse_done(coarse planner, its plan)`` is called once a coarse plan succeeded.
     """
     t0 = time.perf_counter()
     sc = planner.scenario
-    coarse, start, _ = _coarse_plan(planner, cells)
+    coarse, start, first = _coarse_plan(planner, cells)
+    if coarse_done is not None and first is not None:
+        coarse_done(coarse, first)
     warm_up_unreached(coarse.scenario)
     field_warm_up_rare()        # nor does a coarse plan need a breadth-first search or a second band
     free_floating_warm_up(sc)   # a free-floating capture's kernels, where the scenario plans one (no plan here does)
@@ -404,22 +428,39 @@ def _coarse_plan(planner, cells: int):
     return coarse, None, None
 
 
-def warm_up_replans(planner, cells: int = WARM_CELLS) -> float:
+def replan_seed(coarse, first) -> ReplanSeed | None:
     """
-    Load the kernels of a plan from the caches in this process: a cached replan on a coarse copy, a start in contact.
+    Return the :class:`ReplanSeed` of the coarse planner ``coarse``'s ok plan ``first``.
 
-    For :class:`HybridBackend`'s planner ``planner`` (its robot and scene), in the node's process
-    (the planning process's warm-up, :func:`warm_up`, covers it there).  Returns the seconds.
+    Its grid, C-space and field, a start in the middle of its path, its goal.  None where the
+    planner no longer caches them.
     """
-    t0 = time.perf_counter()
-    coarse, start, first = _coarse_plan(planner, cells)
-    if start is not None:       # from the middle of the first plan's path: the same C-space and field
-        try:
-            coarse.plan(first.path_rad[len(first.path_rad) // 2], first.goal_rad, cached_only=True)
-        except NotCached:       # (a repair: the kernels of a replan loaded all the same, up to it)
-            pass
-    contact_warm_up(planner.scenario.robot, planner.scenario.scene)
-    return time.perf_counter() - t0
+    entries = [(coarse.cache_key_of(obj), obj) for obj in (first.cspace, first.field)]
+    if any(key is None for key, _ in entries):
+        return None
+    return ReplanSeed(coarse.scenario.grid, *entries, first.path_rad[len(first.path_rad) // 2], first.goal_rad)
+
+
+def warm_up_replans(planner, seed: ReplanSeed | None):
+    """
+    Load the kernels of a replan from the caches in this process: the planning process's ``seed``, a start in contact.
+
+    For :class:`HybridBackend`'s planner ``planner`` (its scenario, solver and tolerance), in
+    the node's process, from the C-space and field of the seed: none is built here (no C-space or
+    field kernel loaded, no numba thread pool started in the node's process).  Returns the
+    seed's plan (None: no seed; a ``PlanResult``, or the ``pipeline.NotCached`` raised).
+    """
+    sc = planner.scenario
+    contact_warm_up(sc.robot, sc.scene)
+    if seed is None:
+        return None
+    coarse = Planner(replace(sc, grid=seed.grid), solver=planner.solver,
+                     field_tolerance=planner.field_tolerance, trajectory=False)
+    coarse.hold_only(seed.cspace, seed.field)
+    try:
+        return coarse.plan(seed.start_rad, seed.goal_rad, cached_only=True)
+    except NotCached as e:      # (a seed of another scene or solver: the kernels up to there are loaded)
+        return e
 
 
 # ================================================================== the planning process
@@ -440,7 +481,15 @@ def child_main(fd: int) -> None:
     conn = Connection(fd)
     scenario, solver, field_tolerance = conn.recv()
     planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)
-    t_warm = warm_up(planner)["total_s"]      # compile / load the kernels before saying "ready"
+
+    def send_seed(coarse, first):
+        seed = replan_seed(coarse, first)
+        if seed is not None:
+            conn.send(seed)
+
+    # compile / load the kernels before saying "ready"; the coarse plan's seed at once (the node
+    # loads its replans' kernels meanwhile)
+    t_warm = warm_up(planner, coarse_done=send_seed)["total_s"]
     # what start-up made (modules, kernels, the warm-up's objects) lives as long as the process:
     # out of the collector's reach, a full collection in the middle of a plan walks only what
     # the plans made since (about 70 ms -> under 1 ms at the 3-DOF grid; the node's own
@@ -584,9 +633,9 @@ class ThreadBackend:
     def wait_ready(self, timeout_s: float | None = None) -> float | None:
         return 0.0
 
-    def warm_up_here(self) -> float:
-        """Load this process's kernels before the first plan (none: the first plan loads them); the seconds."""
-        return 0.0
+    def warm_up_here(self, timeout_s: float | None = None):
+        """Load this process's kernels before the first plan (none: the first plan loads them)."""
+        return None
 
     def run(self, job: PlanJob, progress=None):
         self._cancel.clear()
@@ -649,9 +698,9 @@ class ProcessBackend:
     def pid(self) -> int:
         return self.proc.pid
 
-    def warm_up_here(self) -> float:
-        """Load the kernels this (the node's) process plans with (none: the planning process plans); the seconds."""
-        return 0.0
+    def warm_up_here(self, timeout_s: float | None = None):
+        """Load the kernels this (the node's) process plans with (none: the planning process plans)."""
+        return None
 
     def attach_logs(self, log=None, info=None) -> None:
         """Send this backend's warnings to ``log``, its progress to ``info`` from now on (a process started ahead)."""
@@ -688,6 +737,7 @@ class ProcessBackend:
         child.close()
         self.conn.send((self._scenario, *self._solver))
         self._ready = None          # Ready once received
+        self._seed = None           # its ReplanSeed once received (before Ready)
         self._held = {}             # C-space / field this child sent last
 
     def _respawn(self, why: str | None):
@@ -722,24 +772,28 @@ class ProcessBackend:
 
     def wait_ready(self, timeout_s: float | None = None) -> float | None:
         """Block until the child has warmed up; the warm-up seconds (None: closed or timeout)."""
-        if self._ready is not None:
-            return self._ready.warm_up_s
+        self._start_up(timeout_s)
+        return None if self._ready is None else self._ready.warm_up_s
+
+    def _start_up(self, timeout_s: float | None, seed: bool = False) -> None:
+        """Read the child's warm-up messages until its Ready (``seed``: or its ReplanSeed), closed or ``timeout_s``."""
         t0 = time.monotonic()
-        while not self._closed:
+        while not self._closed and self._ready is None and not (seed and self._seed is not None):
             if self.conn.poll(0.05):
                 msg = self.conn.recv()
+                if isinstance(msg, ReplanSeed):
+                    self._seed = msg
                 if isinstance(msg, Ready):
                     self._ready = msg
                     if self._info is not None:
                         self._info(f"planning process {self.proc.pid} ready: JIT warm-up {msg.warm_up_s:.2f} s"
                                    + (f", threading layer {msg.threading_layer}" if msg.threading_layer else "")
                                    + limit_text(msg.cpu_limit))
-                    return msg.warm_up_s
+                continue
             if self.proc.poll() is not None:
                 raise RuntimeError(f"planning process exited during warm-up (code {self.proc.returncode})")
             if timeout_s is not None and time.monotonic() - t0 > timeout_s:
-                return None
-        return None
+                return
 
     def _unpack(self, done: PlanDone) -> PlanDone:
         res = done.result
@@ -860,9 +914,16 @@ class HybridBackend(ProcessBackend):
         self.jobs_here = 0              # jobs answered here (a cancelled one included)
         super().__init__(scenario, log=log, info=info, solver=solver, field_tolerance=field_tolerance)
 
-    def warm_up_here(self) -> float:
-        """Load the kernels of the jobs planned here (:func:`warm_up_replans`); the seconds."""
-        return warm_up_replans(self.here)
+    def warm_up_here(self, timeout_s: float | None = None):
+        """
+        Load the kernels of the jobs planned here (:func:`warm_up_replans`): from the process's seed, while it warms up.
+
+        Waits for the process's :class:`ReplanSeed` (at most ``timeout_s``; None where the process
+        is ready without one, closed, or out of time: then only the start in contact).  Returns
+        the seed's plan (see :func:`warm_up_replans`).
+        """
+        self._start_up(timeout_s, seed=True)
+        return warm_up_replans(self.here, self._seed)
 
     def _unpack(self, done: PlanDone) -> PlanDone:
         out = super()._unpack(done)

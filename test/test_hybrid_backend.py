@@ -10,7 +10,10 @@ outcome's stats (the process's carry its pid).
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -222,3 +225,29 @@ def test_held_entries_stay_when_the_scene_becomes_theirs_and_go_with_another():
     assert mine.field is res.field and np.array_equal(mine.path_rad, source.plan(q, res.goal_rad).path_rad)
     here.set_scene(sc.scene)
     assert here.cache_sizes()["cspaces"] == 0 and here.cache_sizes()["fields"] == 0
+
+
+def test_the_node_side_warm_up_plans_the_seed_from_the_caches_without_a_thread_pool():
+    """
+    ``HybridBackend.warm_up_here`` plans the planning process's seed from the caches in the calling process.
+
+    In a fresh process (the node's, as configure runs it): a coarse replan from the C-space and field
+    the planning process sent before its Ready (the node warms up while it does), and no numba thread
+    pool started there (no C-space or field built: their parallel kernels start one).
+    """
+    code = (
+        "import json, os, sys\n"
+        "from spacerobot_planner.config import load_scenario\n"
+        "from spacerobot_planner.worker import HybridBackend\n"
+        "from numba.np.ufunc import parallel as pool\n"
+        f"b = HybridBackend(load_scenario(os.path.join({CONFIG_DIR!r}, 'paper_3dof.yaml')))\n"
+        "res = b.warm_up_here(300)\n"
+        "ready = b.ready\n"
+        "assert b.wait_ready(300) is not None\n"
+        "b.close()\n"
+        "print(json.dumps({'before_ready': ready is None, 'ok': bool(res.ok), 'cached': list(res.cached),\n"
+        "                  'pool': bool(pool._is_initialized)}))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got == {"before_ready": True, "ok": True, "cached": ["cspace", "field"], "pool": False}

@@ -228,13 +228,13 @@ class PlannerNode(LifecycleNode):
         try:
             backend = self._make_backend(scenario, self._params["planner.separate_process"], log=log.warning,
                                          info=log.info, replans_here=self._params["planner.replans_in_node"])
-            # this process's kernels (the chain from rest and joined to a moving arm; the replans it
-            # plans itself), while the child warms up
+            # this process's kernels (the chain from rest and joined to a moving arm), while the child warms up
             try:
                 warm_up_chain(scenario)
             except ValueError as e:     # limits no motion can keep to: every plan says so too
                 log.warning(f"configure: the trajectory warm-up was refused ({e}); plans will be too")
-            backend.warm_up_here()
+            # the replans it plans itself (worker.HybridBackend): from the child's seed, while it warms up
+            backend.warm_up_here(WARM_UP_TIMEOUT_S)
             if backend.wait_ready(WARM_UP_TIMEOUT_S) is None:
                 raise RuntimeError(f"no warm-up within {WARM_UP_TIMEOUT_S} s")
         except Exception as e:      # noqa: BLE001 - a failed configure, with the reason
