@@ -17,8 +17,9 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   joint state included (woken by the session's ``joint_state``, :class:`_Held`), and
   ``js_request_to_planning``, the session's worker thread woken and the start decided),
   ``js_plan_round_trip`` (the job to
-  the planning process and its answer back; ``js_plan_in_process``: the plan itself, its
-  ``timings_s``; with the planning process, in three: ``js_job_to_process``, until the process
+  its backend and its outcome back: a replan the node's worker thread plans itself, the default's
+  (``worker.HybridBackend``), or the round trip to the planning process; ``js_plan_in_process``:
+  the plan itself, its ``timings_s``; through the planning process, in three: ``js_job_to_process``, until the process
   has the job, ``js_job_in_process``, until its outcome is ready (the plan and the job around
   it), and ``js_answer_to_node``, until the node has the outcome), ``js_chain``
   (``adapters.post_process``), ``js_record_and_send`` (the record, the stamp, the messages, the
@@ -38,6 +39,9 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   controller refuses a trajectory that ends before it arrives, and one arriving after its
   start begins with a velocity step);
 - ``--load N`` runs N busy-loop processes meanwhile (a loaded machine);
+- ``--replans-in-process``: every plan through the planning process (``planner.replans_in_node``
+  false), the baseline of the default's replans in the worker thread; ``--in-process``: every plan
+  in the worker thread (``planner.separate_process`` false);
 - ``--pause-s S``: the pause after each joint-state replan's trajectory before the next joint
   state (default :data:`PAUSE_S`, the aim's: after it the machine has gone idle and runs slow for
   a while; shorter: a stream of replans at sensor rate).  Every row says it (``pause_s``).
