@@ -92,8 +92,9 @@ class NotCached(Exception):
     """
     A plan from the caches alone (``Planner.plan(cached_only=True)``) met a stage they do not hold: its name.
 
-    Raised before the stage's work (a C-space, a field solve, a grid connectivity search, a
-    repair, a free-floating capture's search); never turned into a result (:meth:`PlanRun.run`).
+    Raised before the stage's work (a C-space, a field solve, the grid's connectivity search
+    before a solve, a repair, a free-floating capture's search); never turned into a result
+    (:meth:`PlanRun.run`).
     """
 
 

@@ -417,19 +417,26 @@ class Planner:
         ``cspace_entry``, ``field_entry``: (key, object) as that planner caches them
         (:meth:`cache_key_of`), or None; a field of another C-space is not held.  For a planner
         that plans from its caches alone (``plan(cached_only=True)``: ``worker.HybridBackend``).
-        The entries are never changed, as this planner's own; the goal nodes and descents made
-        on that C-space stay, the rest goes.  The scene may become the C-space's afterwards
-        (:meth:`set_scene` keeps the entries of the scene it changes to).
+        The entries are never changed, as this planner's own; the goal nodes made on that
+        C-space stay, and the descents made on that field (the same object: a field solved again
+        under the same key after its budget ended may differ), the rest goes.  The scene may
+        become the C-space's afterwards (:meth:`set_scene` keeps the entries of the scene it
+        changes to).
         """
         with self._lock:
             cs_key = None if cspace_entry is None else cspace_entry[0]
+            field_key = None if field_entry is None or field_entry[0][0] != cs_key else field_entry[0]
+            same_field = field_key is not None and self._fields.get(field_key) is field_entry[1]
             self._keep_cached(lambda k: k == cs_key)
+            if not same_field:      # the descents and repairs' edges were made on another field object
+                for cache in (self._colliding, self._failed_walks, self._walks):
+                    cache.clear()
+            self._fields.clear()
             if cspace_entry is None:
                 return
             self._cspaces[cs_key] = cspace_entry[1]
-            self._fields.clear()
-            if field_entry is not None and field_entry[0][0] == cs_key:
-                self._fields[field_entry[0]] = field_entry[1]
+            if field_key is not None:
+                self._fields[field_key] = field_entry[1]
 
     def _fit_threads(self, nodes: int, any_size: bool = False, note: bool = True) -> None:
         """
@@ -467,6 +474,17 @@ class Planner:
     def _field_key(cspace_key, goal_nodes, settings: PlannerSettings) -> tuple:
         return (cspace_key, tuple(map(tuple, np.asarray(goal_nodes).tolist())), settings.solver,
                 settings.field_tolerance, settings.field_budget_s)
+
+    @staticmethod
+    def repaired_key(field_key: tuple) -> bool:
+        """
+        Tell whether a field's key (:meth:`cache_key_of`) is a repaired field's.
+
+        A solve's key is :meth:`_field_key`'s five items; a repair's adds its blocked nodes and
+        cut edges (``pipeline.PlanRun.cut_or_block``).  A plan from the caches alone looks up the
+        solve's first, so a repaired field alone answers none.
+        """
+        return len(field_key) > 5
 
     def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None,
                guess=None):
@@ -526,12 +544,13 @@ class Planner:
         (``smoothing.smooth_path``); bad values answer ``invalid_input``.
 
         ``cached_only``: a plan from the caches alone: where it would build a C-space, solve a
-        field, search the grid's connectivity, repair or search a free-floating capture, it raises
+        field, search the grid's connectivity before a solve, repair or search a free-floating capture, it raises
         ``pipeline.NotCached`` instead (the goal nodes and descents it made before stay cached).
         """
         with self._lock:
             self._fits = []
-            self._fit_threads(0, note=False)     # the numba count of this thread; noted where a stage runs loops
+            if not cached_only:     # (one runs no parallel loop: setting the count would start numba's pool)
+                self._fit_threads(0, note=False)     # the numba count of this thread; noted where a stage runs loops
             run = PlanRun(self, self.settings, cancel, progress, start_tangent, cached_only)
             return run.run(start_rad, goal_rad)
 

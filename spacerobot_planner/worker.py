@@ -908,9 +908,9 @@ class HybridBackend(ProcessBackend):
         #: the planner of the jobs planned here (its caches: what the process sent last)
         self.here = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)
         self._here_cancel = _GenCancel()
-        #: ((key, C-space), (key, field)) the process sent last (None: not sent, or not cached there)
+        #: ((key, C-space), (key, field)) the process sent last, which ``here`` holds (None: not sent,
+        #: not cached there, or a repaired field: no plan from the caches alone reads one)
         self._hold = (None, None)
-        self._held_here = None          # the _hold that ``here`` holds
         self.jobs_here = 0              # jobs answered here (a cancelled one included)
         super().__init__(scenario, log=log, info=info, solver=solver, field_tolerance=field_tolerance)
 
@@ -929,11 +929,16 @@ class HybridBackend(ProcessBackend):
         out = super()._unpack(done)
         keys = dict(done.keys)
         hold = dict(zip(("cspace", "field"), self._hold))
+        sent = False
         for name in ("cspace", "field"):
             obj = getattr(done.result, name, None)
             if obj is not None:             # sent anew: held with its key, or not at all
-                hold[name] = (keys[name], obj) if name in keys else None
-        self._hold = (hold["cspace"], hold["field"])
+                sent = True
+                usable = name in keys and not (name == "field" and Planner.repaired_key(keys[name]))
+                hold[name] = (keys[name], obj) if usable else None
+        if sent:                            # (at once: no older pair kept beside the node's own)
+            self._hold = (hold["cspace"], hold["field"])
+            self.here.hold_only(*self._hold)
         return out
 
     def _answers_here(self, job: PlanJob) -> bool:
@@ -946,6 +951,8 @@ class HybridBackend(ProcessBackend):
 
     def run(self, job: PlanJob, progress=None):
         """Return the outcome of ``job`` (see the class): planned here where the caches held answer it, else there."""
+        if self._closed:
+            return None
         if self._answers_here(job):
             out = self._run_here(job, progress)
             if out is not None:
@@ -957,9 +964,6 @@ class HybridBackend(ProcessBackend):
         said = []
         self._here_cancel.start(job.gen)
         try:
-            if self._held_here is not self._hold:
-                self.here.hold_only(*self._hold)
-                self._held_here = self._hold
             out = run_job(self.here, job, self._here_cancel, said.append, cached_only=True)
         except NotCached:
             return None         # (a cancel meanwhile also went to the process: its job is cancelled there)

@@ -110,12 +110,15 @@ def test_a_new_target_is_planned_in_the_process_and_its_replans_here(backends):
     hybrid, plain = backends
     sc = _scenario("paper_3dof")
     _same(hybrid.run(_job(sc, sc.start_rad)), plain.run(_job(sc, sc.start_rad)))
+    first_field = hybrid.run(_job(sc, _free_starts(sc, 1, seed=7)[0])).result.field
     moved = _moved(sc, 0.02, -0.01)
     before = hybrid.jobs_here
     job = _job(moved, sc.start_rad)
     a = hybrid.run(job)
     _same(a, plain.run(job))
     assert a.result.ok and "pid" in a.stats and hybrid.jobs_here == before
+    # the first target's C-space and field are let go at once (the node holds the new pair only)
+    assert hybrid.here.cache_key_of(first_field) is None and hybrid.here.cache_key_of(a.result.field) is not None
     for q in _free_starts(moved, 3, seed=8):
         job = _job(moved, q)
         a = hybrid.run(job)
@@ -161,6 +164,8 @@ def test_a_replan_that_repairs_is_planned_in_the_process(backends):
         _same(a, plain.run(job))
         assert "pid" in a.stats and hybrid.jobs_here == before     # new (then repaired): the process's
     assert a.result.solver_stats["repairs"] > 0
+    # a repaired field is not held: no plan from the caches alone reads one (none is tried here)
+    assert hybrid.here.cache_sizes()["fields"] == 0 and not hybrid._answers_here(job)
     # the process sent the repaired field last: a replan on the field before the repairs is its too
     job = _job(sc, clear, joint_goal=goal)
     a = hybrid.run(job)
@@ -180,6 +185,16 @@ def test_a_replan_cancelled_before_it_runs_here_answers_cancelled(backends):
     assert hybrid.jobs_here == before + 1 and "pid" not in out.stats
     again = hybrid.run(_job(sc, job.start_rad))         # a newer job is not cancelled
     assert again.result.ok and hybrid.jobs_here == before + 2
+
+
+def test_a_closed_backend_plans_nothing():
+    sc = _scenario("paper_2dof")
+    hybrid = HybridBackend(sc)
+    hybrid.run(_job(sc, sc.start_rad))
+    job = _job(sc, _free_starts(sc, 1, seed=16)[0])
+    assert hybrid._answers_here(job)
+    hybrid.close()
+    assert hybrid.run(job) is None
 
 
 def test_a_stalled_job_is_planned_in_the_process(backends):
@@ -233,21 +248,31 @@ def test_the_node_side_warm_up_plans_the_seed_from_the_caches_without_a_thread_p
 
     In a fresh process (the node's, as configure runs it): a coarse replan from the C-space and field
     the planning process sent before its Ready (the node warms up while it does), and no numba thread
-    pool started there (no C-space or field built: their parallel kernels start one).
+    pool started there, by the warm-up or a replan planned there, with ``planner.max_threads`` numba's
+    number or its own (no C-space or field built: their parallel kernels start one, and so does a
+    thread count set on numba).
     """
     code = (
         "import json, os, sys\n"
+        "from dataclasses import replace\n"
         "from spacerobot_planner.config import load_scenario\n"
-        "from spacerobot_planner.worker import HybridBackend\n"
+        "from spacerobot_planner.worker import HybridBackend, PlanJob\n"
         "from numba.np.ufunc import parallel as pool\n"
-        f"b = HybridBackend(load_scenario(os.path.join({CONFIG_DIR!r}, 'paper_3dof.yaml')))\n"
+        f"sc = load_scenario(os.path.join({CONFIG_DIR!r}, 'paper_3dof.yaml'))\n"
+        "sc = replace(sc, planner_settings=replace(sc.planner_settings, max_threads=int(sys.argv[1])))\n"
+        "b = HybridBackend(sc)\n"
         "res = b.warm_up_here(300)\n"
         "ready = b.ready\n"
         "assert b.wait_ready(300) is not None\n"
+        "b.run(PlanJob.for_scenario(1, sc, sc.start_rad))\n"
+        "again = b.run(PlanJob.for_scenario(2, sc, sc.start_rad + 0.01))\n"
         "b.close()\n"
         "print(json.dumps({'before_ready': ready is None, 'ok': bool(res.ok), 'cached': list(res.cached),\n"
+        "                  'replan_here': again.result.ok and 'pid' not in again.stats,\n"
         "                  'pool': bool(pool._is_initialized)}))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    got = json.loads(out.stdout.strip().splitlines()[-1])
-    assert got == {"before_ready": True, "ok": True, "cached": ["cspace", "field"], "pool": False}
+    for threads in (0, 1):      # numba's number, and a count of its own (set on numba by a plan that builds)
+        out = subprocess.run([sys.executable, "-c", code, str(threads)], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-3000:]
+        got = json.loads(out.stdout.strip().splitlines()[-1])
+        assert got == {"before_ready": True, "ok": True, "cached": ["cspace", "field"], "replan_here": True,
+                       "pool": False}, threads

@@ -234,8 +234,9 @@ class PlannerNode(LifecycleNode):
             except ValueError as e:     # limits no motion can keep to: every plan says so too
                 log.warning(f"configure: the trajectory warm-up was refused ({e}); plans will be too")
             # the replans it plans itself (worker.HybridBackend): from the child's seed, while it warms up
+            until = time.monotonic() + WARM_UP_TIMEOUT_S
             backend.warm_up_here(WARM_UP_TIMEOUT_S)
-            if backend.wait_ready(WARM_UP_TIMEOUT_S) is None:
+            if backend.wait_ready(max(0.0, until - time.monotonic())) is None:
                 raise RuntimeError(f"no warm-up within {WARM_UP_TIMEOUT_S} s")
         except Exception as e:      # noqa: BLE001 - a failed configure, with the reason
             log.error(f"configure failed: planning process: {type(e).__name__}: {e}")
