@@ -9,11 +9,16 @@ No rclpy here, and the planning process imports none of it: it is started as
 Messages are small dataclasses, pickled over a socketpair:
 
 - node → process: a :class:`PlanJob`, :class:`Cancel` (a job number), ``None`` (quit);
-- process → node: :class:`Ready` (once, after the JIT warm-up), :class:`Progress`
+- process → node: :class:`ReplanSeed` (once, during the warm-up: a coarse plan the node plans
+  again from its C-space and field, :class:`HybridBackend`), :class:`Ready` (once, after the JIT
+  warm-up), :class:`Progress`
   (stage and fraction while a job runs, when the job asks for its stages) and one outcome per
   job: :class:`PlanDone`
   (a ``PlanResult``, ok or not), :class:`PlanError` (no plan was attempted: e.g. the
   target has no capture posture) or :class:`PlanCrash` (an exception, with its traceback).
+
+The node's default backend, :class:`HybridBackend`, plans the replans the C-space and field the
+process sent last answer in the calling thread itself, from those alone, and the rest here.
 
 Cancel stops the work, not the process: the planning process holds one termination
 token (``termination.Termination``, a flag array numba kernels read without the GIL);

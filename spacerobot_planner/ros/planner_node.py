@@ -32,8 +32,9 @@ accepted request from any channel is what a replan or a parameter change plans t
 with its own ``start`` is planned and returned, not executed.
 
 Threads: callbacks only record requests (one SingleThreadedExecutor, ``executor.NodeExecutor``).  The session's ONE
-worker thread plans, latest request wins, through ``worker.ProcessBackend``: a child
-process that never imports rclpy.
+worker thread plans, latest request wins, through ``worker.HybridBackend``: a child
+process that never imports rclpy, and the replans the C-space and field it sent last answer in
+the worker thread itself (``planner.replans_in_node``).
 """
 
 from __future__ import annotations
