@@ -916,6 +916,9 @@ class HybridBackend(ProcessBackend):
         #: ((key, C-space), (key, field)) the process sent last, which ``here`` holds (None: not sent,
         #: not cached there, or a repaired field: no plan from the caches alone reads one)
         self._hold = (None, None)
+        #: the goals of the process's jobs whose plans read the field held (None: the target's; at
+        #: most HELD_GOALS, the latest), each a joint goal (dof,) rad
+        self._held_goals = []
         self.jobs_here = 0              # jobs answered here (a cancelled one included)
         super().__init__(scenario, log=log, info=info, solver=solver, field_tolerance=field_tolerance)
 
@@ -944,12 +947,21 @@ class HybridBackend(ProcessBackend):
         if sent:                            # (at once: no older pair kept beside the node's own)
             self._hold = (hold["cspace"], hold["field"])
             self.here.hold_only(*self._hold)
+        if done.result.field is not None:   # a field sent anew: the goals that read it begin anew
+            self._held_goals = []
         return out
 
     def _answers_here(self, job: PlanJob) -> bool:
-        """Tell whether ``job`` may be planned here: a C-space and field held, of the job's scene and grid; no stall."""
+        """
+        Tell whether ``job`` may be planned here: a C-space and field held, of the job's scene, grid and goal; no stall.
+
+        The goal: one of the process's jobs whose plans read the field held (the target, or a joint
+        goal: a new joint goal needs a field of its own, and is not tried here only to fail at it).
+        """
         cs, fld = self._hold
         if job.stall_s > 0 or cs is None or fld is None:
+            return False
+        if not any(_same_goal(job.joint_goal, g) for g in self._held_goals):
             return False
         geometry, grid, _ = cs[0]
         return grid == job.grid and geometry == job.scene.geometry_key()
@@ -962,7 +974,13 @@ class HybridBackend(ProcessBackend):
             out = self._run_here(job, progress)
             if out is not None:
                 return out
-        return super().run(job, progress)
+        out = super().run(job, progress)
+        fld = self._hold[1]
+        if isinstance(out, PlanDone) and fld is not None and out.result.field is fld[1] and \
+                not any(_same_goal(job.joint_goal, g) for g in self._held_goals):
+            goal = None if job.joint_goal is None else np.array(job.joint_goal, dtype=float)
+            self._held_goals = (self._held_goals + [goal])[-HELD_GOALS:]
+        return out
 
     def _run_here(self, job: PlanJob, progress):
         """Plan ``job`` here from the caches alone; None where they do not answer it (nothing reported then)."""
@@ -991,6 +1009,15 @@ class HybridBackend(ProcessBackend):
     def close(self) -> None:
         self._here_cancel.cancel_upto(1 << 62)
         super().close()
+
+
+#: :class:`HybridBackend` tries a job here only for one of the last this many goals whose plans read the field held
+HELD_GOALS = 4
+
+
+def _same_goal(a, b) -> bool:
+    """Tell whether two jobs' joint goals are the same (None: the target's)."""
+    return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
 
 
 class _Overdue:
