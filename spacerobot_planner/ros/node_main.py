@@ -82,22 +82,51 @@ def _flat(doc: dict, prefix: str = "") -> dict:
     return out
 
 
+def _file_sections(path: str):
+    """Yield (section key, {NAME: value}) of a parameter file (nothing where it cannot be read)."""
+    import yaml
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = yaml.safe_load(f) or {}
+    except (OSError, yaml.YAMLError):
+        return
+    for key, body in (doc.items() if isinstance(doc, dict) else ()):
+        if isinstance(key, str) and isinstance(body, dict):
+            yield key, _flat(body.get("ros__parameters") or {})
+
+
 def files_node_sections(argv, fqn: str) -> dict:
     """Return what the ``--params-file`` of ``argv`` set in sections of node ``fqn`` (not ``/**``): {NAME: value}."""
-    import yaml
     found = {}
     for option, path in _ros_args(argv):
-        if option != "--params-file":
-            continue
-        try:
-            with open(path, encoding="utf-8") as f:
-                doc = yaml.safe_load(f) or {}
-        except (OSError, yaml.YAMLError):
-            continue
-        for key, body in (doc.items() if isinstance(doc, dict) else ()):
-            if isinstance(key, str) and isinstance(body, dict) and _section_matches(key, fqn):
-                found.update(_flat(body.get("ros__parameters") or {}))
+        if option == "--params-file":
+            for key, params in _file_sections(path):
+                if _section_matches(key, fqn):
+                    found.update(params)
     return found
+
+
+def set_for_every_node_after(argv) -> set:
+    """
+    Return the names a ``--params-file``'s ``/**`` section sets after the last ``-p NAME`` of ``argv``.
+
+    rcl applies ``-p`` and the files' sections for every node in their order, so such a file's
+    value wins over the ``-p`` before it (``-p`` that name a node left out, as
+    :func:`command_line_parameters`).
+    """
+    events = list(_ros_args(argv))
+    last = {}
+    for k, (option, value) in enumerate(events):
+        name, sep, _ = value.partition(":=")
+        if option == "-p" and sep and ":" not in name:
+            last[name] = k
+    after = set()
+    for k, (option, path) in enumerate(events):
+        if option == "--params-file":
+            for key, params in _file_sections(path):
+                if (key if key.startswith("/") else "/" + key) in ("/**", "/*"):
+                    after.update(name for name in params if last.get(name, k) < k)
+    return after
 
 
 def _same(have, text: str) -> bool:
@@ -126,22 +155,30 @@ def not_taken(node: Node, given: dict, argv=()) -> list:
     wildcard's), so ``--params-file config/paper_3dof.yaml -p grid.cells:=[72,72,72]`` starts with the
     file's cells, silently.  One line for each ``-p`` whose name such a section of a
     ``--params-file`` of ``argv`` sets and whose value the node does not hold, naming the ways that
-    work (``-p NODE:NAME:=VALUE`` only in the root namespace: rcl takes no namespace there).
+    work (``-p NODE:NAME:=VALUE`` only in the root namespace: rcl takes no namespace there).  So
+    too where a ``--params-file`` given after the ``-p`` sets the name for every node (``/**``: rcl
+    applies those in order, :func:`set_for_every_node_after`).
     """
     fqn = node.get_fully_qualified_name()
     sections = files_node_sections(argv, fqn)
+    later = set_for_every_node_after(argv)
     lines = []
     for name, text in given.items():
-        if name not in sections or not node.has_parameter(name):
+        if (name not in sections and name not in later) or not node.has_parameter(name):
             continue
         have = node.get_parameter(name).value
         if _same(have, text):
             continue
         shown = list(have) if type(have).__name__ == "array" else have
-        hint = f"-p {node.get_name()}:{name}:={text}, or " if node.get_namespace() == "/" else ""
-        lines.append(f"-p {name}:={text} was not taken ({name} is {shown}): this node's section of the "
-                     f"parameter file sets it and wins over a -p that names no node (ROS 2's rule); give "
-                     f"{hint}set it now: ros2 param set {fqn} {name} {text}")
+        if name in sections:
+            hint = f"-p {node.get_name()}:{name}:={text}, or " if node.get_namespace() == "/" else ""
+            lines.append(f"-p {name}:={text} was not taken ({name} is {shown}): this node's section of the "
+                         f"parameter file sets it and wins over a -p that names no node (ROS 2's rule); give "
+                         f"{hint}set it now: ros2 param set {fqn} {name} {text}")
+        else:
+            lines.append(f"-p {name}:={text} was not taken ({name} is {shown}): a --params-file given after it "
+                         f"sets it for every node (/**), and ROS 2 applies those in order; give the -p after the "
+                         f"file, or set it now: ros2 param set {fqn} {name} {text}")
     return lines
 
 
