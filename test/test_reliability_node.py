@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -587,7 +588,7 @@ def test_sigint_to_node_process_during_long_plan(record_property, tmp_path):
     assert dt < PROMPT_BOUND_S, f"the node took {dt:.2f} s to exit after SIGINT\n{text[-2000:]}"
 
 
-def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress():
+def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress(capfd):
     """
     A log line of the session's worker while rclpy's context shutdown holds the context's lock returns at once.
 
@@ -595,7 +596,8 @@ def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress():
     waits for its worker: a worker log line that asked ``context.ok()`` then waited for the thread
     that waited for it (5 s, and the worker outlived the node: seen under load, a Ctrl-C during a
     plan, ``test_context_shutdown_during_long_plan_main_path``).  Here the test holds the lock as the
-    shutdown does while the worker thread logs: the line goes to stderr and the thread ends.
+    shutdown does while the worker thread logs: the line goes to stderr and the thread ends, in
+    rcutils' format (level, a wall-clock time in seconds, the name) as the node's other lines.
     """
     ctx = Context()
     rclpy.init(context=ctx)
@@ -614,3 +616,6 @@ def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress():
         node.destroy_node()
         rclpy.shutdown(context=ctx)
     assert not stuck, "the worker's log line waited for the context's lock"
+    line = next(x for x in capfd.readouterr().err.splitlines() if "a line from the worker" in x)
+    m = re.fullmatch(r"\[INFO\] \[(\d+\.\d{9})\] \[spacerobot_planner\]: a line from the worker", line)
+    assert m and abs(float(m.group(1)) - time.time()) < 600.0, line

@@ -93,6 +93,10 @@ CONTEXT_WAIT_S = 0.05
 _SEVERITY = {"error": LoggingSeverity.ERROR, "warning": LoggingSeverity.WARN}
 
 
+#: the level names rcutils' log lines use, by the session's levels
+_RCUTILS_LEVEL = {"debug": "DEBUG", "info": "INFO", "warning": "WARN", "error": "ERROR", "fatal": "FATAL"}
+
+
 class PlannerNode(LifecycleNode):
     """
     See the module docstring.
@@ -491,7 +495,9 @@ class PlannerNode(LifecycleNode):
         if (self.context.ok() if not in_worker else not self.session.closing and self._context_ok_soon()):
             self._log_lines.log(_SEVERITY.get(level, LoggingSeverity.INFO), text)
         else:
-            print(f"[{level.upper()}] [{self._log_name}]: {text}", file=sys.stderr)
+            # as rcutils writes a line (its default format): the level, the time in seconds, the name
+            print(f"[{_RCUTILS_LEVEL.get(level, level.upper())}] [{time.time():.9f}] [{self._log_name}]: {text}",
+                  file=sys.stderr)
 
     def _context_ok_soon(self) -> bool:
         """
