@@ -63,6 +63,7 @@ from .offline import plan_offline
 from .free_floating_capture import captures_free_floating
 from .free_floating_capture import warm_up as free_floating_warm_up
 from .contact import warm_up as contact_warm_up
+from .smoothing import warm_up as smoothing_warm_up
 from .pipeline import NotCached
 from .planner import Planner, warm_up_unreached
 from .field import reserve_heap, warm_up_rare as field_warm_up_rare
@@ -450,6 +451,9 @@ def warm_up_replans(planner, seed: ReplanSeed | None):
     """
     Load the kernels of a replan from the caches in this process: the planning process's ``seed``, a start in contact.
 
+    The smoothing's own warm-up as well: the seed's path may need no spline (the first joined
+    replan in the node loaded its kernel, about 11 ms, before).
+
     For :class:`HybridBackend`'s planner ``planner`` (its scenario, solver and tolerance), in
     the node's process, from the C-space and field of the seed: none is built here (no C-space or
     field kernel loaded, no numba thread pool started in the node's process).  Returns the
@@ -457,6 +461,7 @@ def warm_up_replans(planner, seed: ReplanSeed | None):
     """
     sc = planner.scenario
     contact_warm_up(sc.robot, sc.scene)
+    smoothing_warm_up()         # the spline's kernels: a coarse seed's path may need none (two knots)
     if seed is None:
         return None
     coarse = Planner(replace(sc, grid=seed.grid), solver=planner.solver,

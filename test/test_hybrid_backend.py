@@ -255,11 +255,14 @@ def test_the_node_side_warm_up_plans_the_seed_from_the_caches_without_a_thread_p
     the planning process sent before its Ready (the node warms up while it does), and no numba thread
     pool started there, by the warm-up or a replan planned there, with ``planner.max_threads`` numba's
     number or its own (no C-space or field built: their parallel kernels start one, and so does a
-    thread count set on numba).
+    thread count set on numba).  The replans planned there after it, from rest and with the arm
+    moving at the start (a joined replan's start tangent), load no kernel of numba's cache (the
+    first joined replan loaded the spline's, 11 ms, when the warm-up planned the seed alone).
     """
     code = (
         "import json, os, sys\n"
         "from dataclasses import replace\n"
+        "import numpy as np\n"
         "from spacerobot_planner.config import load_scenario\n"
         "from spacerobot_planner.worker import HybridBackend, PlanJob\n"
         "from numba.np.ufunc import parallel as pool\n"
@@ -269,18 +272,23 @@ def test_the_node_side_warm_up_plans_the_seed_from_the_caches_without_a_thread_p
         "res = b.warm_up_here(300)\n"
         "ready = b.ready\n"
         "assert b.wait_ready(300) is not None\n"
-        "b.run(PlanJob.for_scenario(1, sc, sc.start_rad))\n"
+        "first = b.run(PlanJob.for_scenario(1, sc, sc.start_rad)).result\n"
+        "import numba.core.caching as caching\n"
+        "loads, load = [], caching.Cache.load_overload\n"
+        "caching.Cache.load_overload = lambda self, *a: loads.append(self._name) or load(self, *a)\n"
+        "q, tangent = first.path_rad[3], first.path_rad[4] - first.path_rad[2]\n"
         "again = b.run(PlanJob.for_scenario(2, sc, sc.start_rad + 0.01))\n"
+        "joined = b.run(PlanJob.for_scenario(3, sc, q, start_tangent=tangent / np.linalg.norm(tangent)))\n"
         "b.close()\n"
         "print(json.dumps({'before_ready': ready is None, 'ok': bool(res.ok), 'cached': list(res.cached),\n"
-        "                  'replan_here': again.result.ok and 'pid' not in again.stats,\n"
-        "                  'pool': bool(pool._is_initialized)}))\n")
+        "                  'replans_here': all(r.result.ok and 'pid' not in r.stats for r in (again, joined)),\n"
+        "                  'kernels_loaded_by_replans': loads, 'pool': bool(pool._is_initialized)}))\n")
     for threads in (0, 1):      # numba's number, and a count of its own (set on numba by a plan that builds)
         out = subprocess.run([sys.executable, "-c", code, str(threads)], capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-3000:]
         got = json.loads(out.stdout.strip().splitlines()[-1])
-        assert got == {"before_ready": True, "ok": True, "cached": ["cspace", "field"], "replan_here": True,
-                       "pool": False}, threads
+        assert got == {"before_ready": True, "ok": True, "cached": ["cspace", "field"], "replans_here": True,
+                       "kernels_loaded_by_replans": [], "pool": False}, threads
 
 
 def test_a_new_joint_goal_is_planned_in_the_process_and_its_replans_here(backends):
