@@ -419,7 +419,7 @@ def _moving(args, flat, margins) -> dict:
     from ..ros.planner_node import PlannerNode, params_to_overrides
 
     sc = scenario_from_params(flat)
-    amax = np.radians(np.asarray(flat.get("trajectory.max_acceleration_deg_s2", [5.0, 20.0, 20.0])))
+    amax = sc.joint_limits.planned(sc.robot)[1]     # the planned joints' (the file lists every joint's)
     ctx = Context()
     rclpy.init(context=ctx)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat), freeze_start_up=True)
