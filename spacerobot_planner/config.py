@@ -223,8 +223,8 @@ PARAMETERS = (
               "Run the planning core in a child process driven by the worker thread: the plans' "
               "Python steps do not share the executor's interpreter lock, a stage that does not answer "
               "a cancel is killed without the node, and the process keeps its heap for large grids. "
-              "false: in the worker thread (a cached replan about 1 ms sooner; its kernels run without "
-              "the interpreter lock).", True),
+              "false: in the worker thread (its kernels run without the interpreter lock). With "
+              "planner.replans_in_node the replans run in the worker thread either way.", True),
     ParamSpec("planner.replans_in_node", "bool", True,
               "With planner.separate_process: a plan that the C-space and field the planning process sent "
               "last answer (a new start to the same target: the replans) runs in the worker thread, "

@@ -949,6 +949,8 @@ class HybridBackend(ProcessBackend):
                 sent = True
                 usable = name in keys and not (name == "field" and Planner.repaired_key(keys[name]))
                 hold[name] = (keys[name], obj) if usable else None
+        if hold["field"] is not None and (hold["cspace"] is None or hold["field"][0][0] != hold["cspace"][0]):
+            hold["field"] = None            # a field of another C-space than the one held: none would answer
         if sent:                            # (at once: no older pair kept beside the node's own)
             self._hold = (hold["cspace"], hold["field"])
             self.here.hold_only(*self._hold)
@@ -961,15 +963,20 @@ class HybridBackend(ProcessBackend):
         Tell whether ``job`` may be planned here: a C-space and field held, of the job's scene, grid and goal; no stall.
 
         The goal: one of the process's jobs whose plans read the field held (the target, or a joint
-        goal: a new joint goal needs a field of its own, and is not tried here only to fail at it).
+        goal: a new joint goal needs a field of its own, and is not tried here only to fail at it);
+        the C-space: of the grid margin a plan tries first.
         """
         cs, fld = self._hold
         if job.stall_s > 0 or cs is None or fld is None:
             return False
         if not any(_same_goal(job.joint_goal, g) for g in self._held_goals):
             return False
-        geometry, grid, _ = cs[0]
-        return grid == job.grid and geometry == job.scene.geometry_key()
+        geometry, grid, extra_m = cs[0]
+        # the grid margin a plan tries first (pipeline.PlanRun.grid_margins): a C-space of the second
+        # (0, where the first left no path) would not answer
+        s = self.here.settings if job.scenario_settings is None else job.scenario_settings[0]
+        first_m = float(s.grid_extra_margin_m) if s.grid_extra_margin_m > 0.0 else 0.0
+        return grid == job.grid and extra_m == first_m and geometry == job.scene.geometry_key()
 
     def run(self, job: PlanJob, progress=None):
         """Return the outcome of ``job`` (see the class): planned here where the caches held answer it, else there."""

@@ -307,3 +307,32 @@ def test_a_new_joint_goal_is_planned_in_the_process_and_its_replans_here(backend
     _same(a, plain.run(job), cached=False)
     assert "pid" not in a.stats
     assert not hybrid._answers_here(_job(sc, sc.start_rad))   # the target's field is no longer held
+
+
+def test_a_cspace_of_another_grid_margin_or_a_field_of_another_cspace_is_not_tried_here(backends):
+    """
+    Where no plan from the caches held would answer, the job is not tried here (only to fail there).
+
+    A held C-space of another grid margin than the one a plan tries first (``grid_extra_margin_m``;
+    a plan that needed the second margin leaves one of 0), and a field kept from before a C-space
+    sent without one (a plan that failed before its field).
+    """
+    hybrid, plain = backends
+    sc = _scenario("paper_3dof")
+    first = hybrid.run(_job(sc, sc.start_rad)).result
+    assert first.ok and first.solver_stats["grid_extra_margin_m"] > 0.0
+    flat = replace(sc, planner_settings=replace(sc.planner_settings, grid_extra_margin_m=0.0))
+    job = _job(flat, _free_starts(sc, 1, seed=19)[0])
+    assert not hybrid._answers_here(job)                      # its first margin's C-space is not held
+    a = hybrid.run(job)
+    _same(a, plain.run(job), cached=False)
+    assert "pid" in a.stats
+    # a C-space sent without a field: the field held before is of another C-space, and goes
+    hybrid.run(_job(sc, sc.start_rad))
+    other = Planner(_moved(sc, 0.03, 0.0), trajectory=False)
+    res = other.plan(sc.start_rad, other.goal_from_target())
+    done = PlanDone(10 ** 6, replace(res, field=None), stats={}, keys=(("cspace", other.cache_key_of(res.cspace)),))
+    hybrid._unpack(done)
+    assert hybrid._hold[0][1] is res.cspace and hybrid._hold[1] is None
+    assert hybrid.here.cache_sizes()["cspaces"] == 1 and hybrid.here.cache_sizes()["fields"] == 0
+    assert not hybrid._answers_here(_job(_moved(sc, 0.03, 0.0), sc.start_rad))

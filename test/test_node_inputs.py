@@ -154,12 +154,12 @@ def test_goal_without_start_before_joint_states_says_so_then_aborts(graph, sim_t
 def _mock_arm_started_with(argv):
     """Start a mock arm in a context rcl initialised with ``argv``; return (not_taken's lines, rate_hz, start)."""
     from spacerobot_planner.ros.mock_arm_node import MockArmNode
-    from spacerobot_planner.ros.node_main import command_line_parameters, not_taken
+    from spacerobot_planner.ros.node_main import not_taken
     ctx = Context()
     rclpy.init(args=argv, context=ctx)
     try:
         node = MockArmNode(context=ctx)
-        lines = not_taken(node, command_line_parameters(argv), argv)
+        lines = not_taken(node, argv)
         rate = node.get_parameter("rate_hz").value
         start = list(node.get_parameter("scenario.start_deg").value)
         node.destroy_node()
@@ -175,12 +175,12 @@ def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_p
     rcl itself decides (the node in a context initialised with those arguments); a ``-p`` of a
     name the file sets only under ``/**`` is taken (applied in order), and so is one naming the node.
     """
-    from spacerobot_planner.ros.node_main import command_line_parameters
+    from spacerobot_planner.ros.node_main import parameter_sections
     config = os.path.join(CONFIG_DIR, "paper_3dof.yaml")
     for args, fragments in (
             (["-p", "rate_hz:=20.0", "-p", "scenario.start_deg:=[-80.0,130.0,90.0]"],
-             ["-p rate_hz:=20.0 was not taken (rate_hz is 50.0)", "-p mock_arm:rate_hz:=20.0",
-              "ros2 param set /mock_arm rate_hz 20.0"]),
+             ["-p rate_hz:=20.0 was not taken (rate_hz is 50.0)", "-p mock_arm:rate_hz:=20.0 after the parameter file",
+              "ros2 param set /mock_arm rate_hz 20.0", "its section /**/mock_arm"]),
             (["-p", "mock_arm:rate_hz:=20.0"], [])):
         lines, rate, start = _mock_arm_started_with(["mock_arm_node", "--ros-args", "--params-file", config, *args])
         if fragments:
@@ -188,36 +188,64 @@ def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_p
             assert len(lines) == 1 and all(f in lines[0] for f in fragments), lines
         else:
             assert rate == 20.0 and lines == []
-    assert command_line_parameters(["x", "-p", "a:=1", "--ros-args", "-p", "b:=2", "--param", "c:=[1, 2]",
-                                    "-p", "n:d:=3", "-p", "b:=4", "--", "-p", "e:=5"]) == {"b": "4", "c": "[1, 2]"}
+    assert parameter_sections(["x", "-p", "a:=1", "--ros-args", "-p", "b:=2", "--param", "c:=[1, 2]",
+                               "-p", "n:d:=3", "-p", "b:=4", "--", "-p", "e:=5"]) == [
+        ("/**", {"b": ("-p", "b:=4"), "c": ("-p", "c:=[1, 2]")}), ("/n", {"d": ("-p", "n:d:=3")})]
 
 
-@pytest.mark.parametrize("args, namespace, warned", [
-    (["-p", "rate_hz:=2e1"], "/", ""),                         # taken (no params file): rcl reads 2e1 as 20.0
-    (["--params-file", "{wild}", "-p", "rate_hz:=2.5e1"], "/", ""),       # a /** section: the -p after it wins
-    (["--params-file", "{paper}", "-p", "rate_hz:=50"], "/", ""),         # the file's own value: nothing to say
-    (["--params-file", "{paper}", "-p", "rate_hz:=20.0"], "/a", "ros2 param set /a/mock_arm rate_hz 20.0"),
-    (["-p", "rate_hz:=2.5e1", "--params-file", "{wild}"], "/",            # a /** section after it: the file wins
-     "a --params-file given after it sets it for every node"),
-], ids=["scientific", "wildcard_file", "same_value", "namespace", "wildcard_file_after"])
-def test_a_command_line_parameter_is_said_only_where_the_files_node_section_overrode_it(tmp_path, args, namespace,
-                                                                                        warned):
+#: (the arguments after ``--ros-args``, the namespace, rcl's rate_hz, a fragment of the line said ("": none))
+ORDER_CASES = {
+    "scientific": (["-p", "rate_hz:=2e1"], "/", 20.0, ""),                      # rcl reads 2e1 as 20.0
+    "wildcard_file": (["--params-file", "{wild}", "-p", "rate_hz:=2.5e1"], "/", 25.0, ""),
+    "same_value": (["--params-file", "{paper}", "-p", "rate_hz:=50"], "/", 50.0, ""),
+    "namespace": (["--params-file", "{paper}", "-p", "rate_hz:=20.0"], "/a", 50.0,
+                  "ros2 param set /a/mock_arm rate_hz 20.0"),
+    "wildcard_file_after": (["-p", "rate_hz:=2.5e1", "--params-file", "{wild}"], "/", 50.0, "its section /**"),
+    "node_named_before": (["-p", "mock_arm:rate_hz:=20.0", "--params-file", "{paper}"], "/", 50.0,
+                          "-p mock_arm:rate_hz:=20.0 was not taken"),
+    "node_named_after": (["--params-file", "{paper}", "-p", "mock_arm:rate_hz:=20.0"], "/", 20.0, ""),
+    "own_section_first": (["--params-file", "{own}", "-p", "rate_hz:=25.0"], "/", 25.0, ""),
+    "later_file": (["--params-file", "{wild}", "-p", "rate_hz:=25.0", "--params-file", "{w40}"], "/", 40.0,
+                   "w40.yaml sets it in its section /**"),
+    "repeated": (["-p", "rate_hz:=25.0", "--params-file", "{wild}", "-p", "rate_hz:=30.0"], "/", 30.0, ""),
+    "root_star": (["-p", "rate_hz:=25.0", "--params-file", "{star}"], "/", 50.0, "its section /*"),
+    "root_star_namespace": (["-p", "rate_hz:=25.0", "--params-file", "{star}"], "/a", 25.0, ""),
+    "star_after_other": (["-p", "use_sim_time:=false", "--params-file", "{star}", "-p", "rate_hz:=25.0"], "/",
+                         50.0, "its section /*"),
+    "second_ros_args": (["-p", "rate_hz:=25.0", "--", "--ros-args", "--params-file", "{wild}"], "/", 50.0,
+                        "its section /**"),
+}
+
+
+@pytest.mark.parametrize("case", list(ORDER_CASES))
+def test_a_command_line_parameter_is_said_exactly_where_rcl_did_not_take_it(tmp_path, case):
     """
-    A ``-p`` the node does not hold is named at its start; one it holds is not.
+    A ``-p`` of ``rate_hz`` the node does not hold is named at its start; one it holds is not.
 
-    rcl itself decides (the mock arm in a context initialised with the arguments); ``warned``: a
-    fragment of the one line expected ("": none).  In a namespace no ``-p node:`` hint (rcl takes
-    none there).
+    rcl itself decides (the mock arm in a context initialised with the arguments): its value is
+    the table's (rclpy applies the sections that match a node in the order their keys first
+    appear: a ``-p`` that names no node joins ``/**``'s), and a line is said exactly where it
+    differs from the last ``-p`` of it.  In a namespace no ``-p node:`` hint (rcl takes none there).
     """
+    args, namespace, rcl_rate, fragment = ORDER_CASES[case]
     paper = os.path.join(CONFIG_DIR, "paper_3dof.yaml")
-    wild = tmp_path / "wild.yaml"
-    # the /** section alone, with rate_hz in it: a -p after it is taken, one before it is not
-    wild.write_text(open(paper).read().split("/**/spacerobot_planner:")[0].rstrip() + "\n    rate_hz: 50.0\n")
+    files = {"paper": paper, "wild": tmp_path / "wild.yaml", "w40": tmp_path / "w40.yaml",
+             "own": tmp_path / "own.yaml", "star": tmp_path / "star.yaml"}
+    # the paper's /** section alone with rate_hz 50; /** with 40; the node's own section; /* (the root namespace's)
+    files["wild"].write_text(open(paper).read().split("/**/spacerobot_planner:")[0].rstrip()
+                             + "\n    rate_hz: 50.0\n")
+    files["w40"].write_text("/**:\n  ros__parameters:\n    rate_hz: 40.0\n")
+    files["own"].write_text("/**/mock_arm:\n  ros__parameters:\n    rate_hz: 50.0\n")
+    files["star"].write_text("/*:\n  ros__parameters:\n    rate_hz: 50.0\n")
     lines, rate, _ = _mock_arm_started_with(["mock_arm_node", "--ros-args", "-r", f"__ns:={namespace}",
-                                             *[a.format(wild=wild, paper=paper) for a in args]])
-    assert len(lines) == bool(warned) and all(warned in line and "-p mock_arm:" not in line for line in lines), lines
-    if "{wild}" in args:
-        assert rate == (25.0 if args[0] == "--params-file" else 50.0)          # rcl's order
+                                             *[a.format(**files) for a in args]])
+    assert rate == rcl_rate
+    given = [a for a in args if a.startswith(("rate_hz:=", "mock_arm:rate_hz:="))][-1]
+    taken = rate == float(given.partition(":=")[2])
+    assert len(lines) == (0 if taken else 1) and all(fragment in line for line in lines), lines
+    assert bool(fragment) != taken
+    if namespace != "/":
+        assert all("-p mock_arm:" not in line for line in lines), lines
 
 
 def _clock_publisher(g):

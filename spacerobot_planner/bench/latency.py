@@ -419,10 +419,11 @@ def _moving(args, flat, margins) -> dict:
     from ..ros.planner_node import PlannerNode, params_to_overrides
 
     sc = scenario_from_params(flat)
-    amax = sc.joint_limits.planned(sc.robot)[1]     # the planned joints' (the file lists every joint's)
     ctx = Context()
     rclpy.init(context=ctx)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides(flat), freeze_start_up=True)
+    # the planned joints' limits, as the node holds them (the file's, or the defaults where it has none)
+    amax = node.param_handler.scenario.joint_limits.planned(sc.robot)[1]
     arm = MockArmNode(context=ctx, parameter_overrides=params_to_overrides(flat, MOCK_ARM_PARAMETERS))
     drv = rclpy.create_node("latency_moving_driver", context=ctx, start_parameter_services=False, enable_rosout=False)
     ex = NodeExecutor(context=ctx)

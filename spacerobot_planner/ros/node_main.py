@@ -47,26 +47,9 @@ def _ros_args(argv):
         k += 1
 
 
-def command_line_parameters(argv) -> dict:
-    """
-    Return the ``-p NAME:=VALUE`` (``--param``) of ``--ros-args`` sections that name no node: {NAME: text}.
-
-    A later one of a name replaces an earlier one, as rcl applies them; ``-p node:NAME:=VALUE``
-    (one node's) are left out.
-    """
-    given = {}
-    for option, value in _ros_args(argv):
-        name, sep, text = value.partition(":=")
-        if option == "-p" and sep and ":" not in name:
-            given[name] = text
-    return given
-
-
-def _section_matches(key: str, fqn: str) -> bool:
-    """Tell whether a parameter file's section ``key`` is ``fqn``'s own (not ``/**``): rcl's ``/**`` and ``/*``."""
+def _key_matches(key: str, fqn: str) -> bool:
+    """Tell whether a parameter section ``key`` applies to the node ``fqn`` (rcl's ``**``: any parts, ``*``: one)."""
     key = key if key.startswith("/") else "/" + key
-    if key in ("/**", "/*"):
-        return False
     pattern = "".join("(/[^/]+)*" if part == "**" else "/[^/]+" if part == "*" else "/" + re.escape(part)
                       for part in key.strip("/").split("/"))
     return re.fullmatch(pattern, fqn) is not None
@@ -95,40 +78,6 @@ def _file_sections(path: str):
             yield key, _flat(body.get("ros__parameters") or {})
 
 
-def files_node_sections(argv, fqn: str) -> dict:
-    """Return what the ``--params-file`` of ``argv`` set in sections of node ``fqn`` (not ``/**``): {NAME: value}."""
-    found = {}
-    for option, path in _ros_args(argv):
-        if option == "--params-file":
-            for key, params in _file_sections(path):
-                if _section_matches(key, fqn):
-                    found.update(params)
-    return found
-
-
-def set_for_every_node_after(argv) -> set:
-    """
-    Return the names a ``--params-file``'s ``/**`` section sets after the last ``-p NAME`` of ``argv``.
-
-    rcl applies ``-p`` and the files' sections for every node in their order, so such a file's
-    value wins over the ``-p`` before it (``-p`` that name a node left out, as
-    :func:`command_line_parameters`).
-    """
-    events = list(_ros_args(argv))
-    last = {}
-    for k, (option, value) in enumerate(events):
-        name, sep, _ = value.partition(":=")
-        if option == "-p" and sep and ":" not in name:
-            last[name] = k
-    after = set()
-    for k, (option, path) in enumerate(events):
-        if option == "--params-file":
-            for key, params in _file_sections(path):
-                if (key if key.startswith("/") else "/" + key) in ("/**", "/*"):
-                    after.update(name for name in params if last.get(name, k) < k)
-    return after
-
-
 def _same(have, text: str) -> bool:
     """Tell whether a parameter's value ``have`` is what ``-p NAME:=text`` gives (YAML, numbers as rcl reads them)."""
     import yaml
@@ -146,39 +95,78 @@ def _same(have, text: str) -> bool:
     return have == want
 
 
-def not_taken(node: Node, given: dict, argv=()) -> list:
-    """
-    Say which command-line ``-p`` (``given``: :func:`command_line_parameters`) ``node`` does not hold.
+def _param_key(arg: str) -> tuple:
+    """Return (section key, NAME) of a ``-p``: ``NAME:=V`` is ``/**``'s, ``NODE:NAME:=V`` ``/NODE``'s (None: no :=)."""
+    name, sep, _ = arg.partition(":=")
+    if not sep:
+        return None, None
+    node, _, param = name.rpartition(":")
+    return ("/" + node.lstrip("/") if node else "/**"), param
 
-    A parameter file's section for a node (``/**/spacerobot_planner``, ``/**/mock_arm``) wins over a
-    ``-p`` that names no node, wherever it comes (rcl's rule: a node's own values over the
-    wildcard's), so ``--params-file config/paper_3dof.yaml -p grid.cells:=[72,72,72]`` starts with the
-    file's cells, silently.  One line for each ``-p`` whose name such a section of a
-    ``--params-file`` of ``argv`` sets and whose value the node does not hold, naming the ways that
-    work (``-p NODE:NAME:=VALUE`` only in the root namespace: rcl takes no namespace there).  So
-    too where a ``--params-file`` given after the ``-p`` sets the name for every node (``/**``: rcl
-    applies those in order, :func:`set_for_every_node_after`).
+
+def parameter_sections(argv) -> list:
+    """
+    Return the parameter overrides of ``argv``'s ``--ros-args`` in the order rclpy applies them.
+
+    [(section key, {NAME: origin})]: a ``-p NAME:=VALUE`` is section ``/**``'s, a ``-p
+    NODE:NAME:=VALUE`` section ``/NODE``'s, a ``--params-file``'s sections their own; a section
+    sits where its key first appears, a later value of a name in it replaces the earlier one.
+    rclpy gives a node the sections that match it (:func:`_key_matches`) in that order, so the
+    last one with a name wins: a file's own section for the node after its ``/**`` section beats a
+    ``-p NAME:=VALUE`` wherever it comes, and a ``/**`` section of a later file one before it.
+    origin: ("-p", the argument's text) or ("--params-file", the path, the section's key as written).
+    """
+    sections = {}
+    for option, value in _ros_args(argv):
+        if option == "-p":
+            key, param = _param_key(value)
+            if key is not None:
+                sections.setdefault(key, {})[param] = ("-p", value)
+        else:
+            for key, params in _file_sections(value):
+                section = sections.setdefault(key if key.startswith("/") else "/" + key, {})
+                section.update({name: ("--params-file", value, key) for name in params})
+    return list(sections.items())
+
+
+def not_taken(node: Node, argv=()) -> list:
+    """
+    Say which command-line ``-p`` for ``node`` it does not hold: one line each, and the ways that work.
+
+    rclpy applies the parameter sections that match a node in the order their keys first appear
+    (:func:`parameter_sections`): ``--params-file config/paper_3dof.yaml -p grid.cells:=[72,72,72]``
+    starts with the file's cells, silently, its section for the node coming after its ``/**``
+    section, which the ``-p`` joins; so does a ``-p`` before a file that sets the name, a
+    ``-p NODE:NAME:=VALUE`` too.  For each ``-p`` of a section that applies to the node, whose
+    name a later section sets and whose value the node does not hold: a line naming what set it,
+    ``-p NODE:NAME:=VALUE`` after the file (in the root namespace only: rcl takes no namespace
+    there) and ``ros2 param set``.
     """
     fqn = node.get_fully_qualified_name()
-    sections = files_node_sections(argv, fqn)
-    later = set_for_every_node_after(argv)
+    winner = {}
+    for key, params in parameter_sections(argv):
+        if _key_matches(key, fqn):
+            winner.update(params)
+    given = {}                  # (section key, NAME) -> the last -p of it, of a section for this node
+    for option, value in _ros_args(argv):
+        key, param = _param_key(value) if option == "-p" else (None, None)
+        if key is not None and _key_matches(key, fqn):
+            given[(key, param)] = ("-p", value)
     lines = []
-    for name, text in given.items():
-        if (name not in sections and name not in later) or not node.has_parameter(name):
+    for (_, name), origin in given.items():
+        won = winner[name]
+        text = origin[1].partition(":=")[2]
+        if won == origin or not node.has_parameter(name) or _same(node.get_parameter(name).value, text):
             continue
         have = node.get_parameter(name).value
-        if _same(have, text):
-            continue
         shown = list(have) if type(have).__name__ == "array" else have
-        if name in sections:
-            hint = f"-p {node.get_name()}:{name}:={text}, or " if node.get_namespace() == "/" else ""
-            lines.append(f"-p {name}:={text} was not taken ({name} is {shown}): this node's section of the "
-                         f"parameter file sets it and wins over a -p that names no node (ROS 2's rule); give "
-                         f"{hint}set it now: ros2 param set {fqn} {name} {text}")
-        else:
-            lines.append(f"-p {name}:={text} was not taken ({name} is {shown}): a --params-file given after it "
-                         f"sets it for every node (/**), and ROS 2 applies those in order; give the -p after the "
-                         f"file, or set it now: ros2 param set {fqn} {name} {text}")
+        by = (f"the parameter file {won[1]} sets it in its section {won[2]}" if won[0] == "--params-file"
+              else f"-p {won[1]} sets it")
+        hint = (f"-p {node.get_name()}:{name}:={text} after the parameter file, or "
+                if node.get_namespace() == "/" else "")
+        lines.append(f"-p {origin[1]} was not taken ({name} is {shown}): {by}, and ROS 2 applies the parameter "
+                     f"sections that match a node in the order they first appear on the command line (a -p that "
+                     f"names no node is the /** section's); give {hint}set it now: ros2 param set {fqn} {name} {text}")
     return lines
 
 
@@ -238,7 +226,7 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
                 print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
                 return 1
             argv = sys.argv if args is None else args
-            for line in not_taken(node, command_line_parameters(argv), argv):
+            for line in not_taken(node, argv):
                 node.get_logger().warning(line)
             # from now on a signal asks the spin loop to stop
             signal.signal(signal.SIGTERM, request_stop)

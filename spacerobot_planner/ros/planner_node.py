@@ -496,8 +496,9 @@ class PlannerNode(LifecycleNode):
             self._log_lines.log(_SEVERITY.get(level, LoggingSeverity.INFO), text)
         else:
             # as rcutils writes a line (its default format): the level, the time in seconds, the name
-            print(f"[{_RCUTILS_LEVEL.get(level, level.upper())}] [{time.time():.9f}] [{self._log_name}]: {text}",
-                  file=sys.stderr)
+            t_ns = time.time_ns()
+            print(f"[{_RCUTILS_LEVEL.get(level, level.upper())}] [{t_ns // 10**9}.{t_ns % 10**9:09d}] "
+                  f"[{self._log_name}]: {text}", file=sys.stderr)
 
     def _context_ok_soon(self) -> bool:
         """
