@@ -46,6 +46,7 @@ from .scene import Scene, Target
 from .settings import JointLimits, PlannerSettings, SessionSettings
 
 __all__ = ["ParamSpec", "PARAMETERS", "Scenario", "load_scenario", "load_params_file", "matching_sections",
+           "section_regex", "flatten_params",
            "unknown_parameters", "ROS_PARAMETERS", "DECLARED_ALIASES",
            "scenario_from_params", "spec_default", "NODE_NAME", "settings_from_params", "joint_limits_from_params",
            "session_settings_from_params"]
@@ -349,12 +350,13 @@ def check_value(name: str, value):
     return out
 
 
-def _flatten(d, prefix=""):
+def flatten_params(d, prefix=""):
+    """Return a nested ``ros__parameters`` mapping as a flat dotted dict."""
     out = {}
     for k, v in d.items():
         key = f"{prefix}{k}"
         if isinstance(v, dict):
-            out.update(_flatten(v, key + "."))
+            out.update(flatten_params(v, key + "."))
         else:
             out[key] = v
     return out
@@ -365,10 +367,10 @@ def _section_params(doc, key, path):
     section = doc[key]
     if not isinstance(section, dict) or not isinstance(section.get("ros__parameters"), dict):
         raise ValueError(f"params file: the '{key}' section in {path} has no 'ros__parameters' mapping")
-    return _flatten(section["ros__parameters"])
+    return flatten_params(section["ros__parameters"])
 
 
-def _section_regex(key: str) -> re.Pattern:
+def section_regex(key: str) -> re.Pattern:
     """
     Return the regex of a section's node name, with rcl's wildcards.
 
@@ -385,7 +387,7 @@ def _section_regex(key: str) -> re.Pattern:
 def matching_sections(doc: dict, node: str, namespace: str = "/") -> list:
     """Return the keys of the sections of a parameter file that apply to ``namespace/node``, in file order."""
     fqn = namespace.rstrip("/") + "/" + node.strip("/")
-    return [k for k in doc if isinstance(k, str) and _section_regex(k).fullmatch(fqn)]
+    return [k for k in doc if isinstance(k, str) and section_regex(k).fullmatch(fqn)]
 
 
 def load_params_file(path, node: str = NODE_NAME, namespace: str = "/") -> dict:

@@ -50,7 +50,7 @@ from .timing import timed_motion, trajectory_limits_known
 
 #: timed_motion, trajectory_limits_known: the trajectory stage (``timing.py``), also importable
 #: from here (tests do; the node's chain, ``adapters.py``, imports it from ``timing``)
-__all__ = ["run_pipeline", "PlanRun", "Fail", "NotCached", "timed_motion", "trajectory_limits_known"]
+__all__ = ["run_pipeline", "PlanRun", "Fail", "NotCached", "grid_margins", "timed_motion", "trajectory_limits_known"]
 
 #: A repair cuts the colliding grid edges within this many index steps of the blocked node
 #: (one more with each repair of the same plan, up to REPAIR_WIDENING more) and those joined
@@ -96,6 +96,19 @@ class NotCached(Exception):
     before a solve, a repair, a free-floating capture's search); never turned into a result
     (:meth:`PlanRun.run`).
     """
+
+
+def grid_margins(settings, level: int = 0) -> tuple:
+    """
+    Return the grid's extra margins, m, a plan tries on a grid of refinement ``level``, in order.
+
+    On the scenario's grid the configured one (``settings.grid_extra_margin_m``), then 0 (a grid
+    with the extra margin can close a passage that the safety margin leaves open); on a refined
+    grid 0 only (it is tried because a coarser one did not give a path: the extra margin would
+    narrow the passages it looks for).
+    """
+    extra = settings.grid_extra_margin_m
+    return (extra, 0.0) if extra > 0.0 and level == 0 else (0.0,)
 
 
 def run_pipeline(run: "PlanRun", start_rad, goal_rad) -> PlanResult:
@@ -538,16 +551,8 @@ class PlanRun:
             self.say(f"refining the grid to {grid.label()}")
 
     def grid_margins(self, level: int = 0) -> tuple:
-        """
-        Return the grid's extra margins to try on a grid of refinement ``level``.
-
-        On the scenario's grid the configured one, then 0 (a grid with the extra margin can
-        close a passage that the safety margin leaves open); on a refined grid 0 only (it is
-        tried because a coarser one did not give a path: the extra margin would narrow the
-        passages it looks for).
-        """
-        extra = self.s.grid_extra_margin_m
-        return (extra, 0.0) if extra > 0.0 and level == 0 else (0.0,)
+        """Return the grid's extra margins to try on a grid of refinement ``level`` (:func:`grid_margins`)."""
+        return grid_margins(self.s, level)
 
     def refinement_refused(self, grid) -> str:
         """
@@ -651,10 +656,8 @@ class PlanRun:
         one that failed (the second margin, a refined grid), where a separation is likely
         and a field solve costs tens of milliseconds; not when the field is cached.
         """
-        if self.p._field_key(cs_key, goal_nodes, self.s) in self.p._fields:
-            return
-        if self.cached_only:
-            raise NotCached("field")
+        if self.cached_only or self.p._field_key(cs_key, goal_nodes, self.s) in self.p._fields:
+            return                  # (from the caches alone: :meth:`field` says whether it is held)
         grid = cs.grid
         self.stats = {"repairs": 0, "blocked_nodes": 0, "cut_edges": 0,
                       "grid_extra_margin_m": float(cs.margin_m - self.sc.scene.safety_margin_m),

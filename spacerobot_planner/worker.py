@@ -64,7 +64,7 @@ from .free_floating_capture import captures_free_floating
 from .free_floating_capture import warm_up as free_floating_warm_up
 from .contact import warm_up as contact_warm_up
 from .smoothing import warm_up as smoothing_warm_up
-from .pipeline import NotCached
+from .pipeline import NotCached, grid_margins
 from .planner import Planner, warm_up_unreached
 from .field import reserve_heap, warm_up_rare as field_warm_up_rare
 from .termination import Termination, stall
@@ -395,7 +395,7 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
     """
     t0 = time.perf_counter()
     sc = planner.scenario
-    coarse, start, first = _coarse_plan(planner, cells)
+    coarse, first = _coarse_plan(planner, cells)
     if coarse_done is not None and first is not None:
         coarse_done(coarse, first)
     warm_up_unreached(coarse.scenario)
@@ -403,10 +403,10 @@ def warm_up(planner, cells: int = WARM_CELLS, full_grid_max_nodes: int = WARM_FU
     free_floating_warm_up(sc)   # a free-floating capture's kernels, where the scenario plans one (no plan here does)
     reserve_heap(sc.grid.n_nodes, planner.settings.max_grid_nodes)    # the heap a plan on the grid fills
     out = {"coarse_s": time.perf_counter() - t0}
-    if start is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:
+    if first is not None and sc.grid.n_nodes <= full_grid_max_nodes and sc.scene.target is not None:
         t1 = time.perf_counter()
         try:
-            planner.plan(start, planner.goal_from_target())
+            planner.plan(first.start_rad, planner.goal_from_target())
         except ValueError:          # no capture posture for the configured target: nothing to warm
             pass
         out["full_grid_s"] = time.perf_counter() - t1
@@ -418,8 +418,7 @@ def _coarse_plan(planner, cells: int):
     """
     Plan once on a ``cells``-per-joint copy of ``planner``'s scenario (its solver), from seeded random postures.
 
-    Returns (the coarse planner, the start of its first plan that succeeded, that plan) (None, None:
-    none of 32 did).
+    Returns (the coarse planner, its first plan that succeeded (None: none of 32 did)).
     """
     sc = planner.scenario
     coarse = Planner(replace(sc, grid=sc.grid.with_cells(cells)), solver=planner.solver,
@@ -430,8 +429,8 @@ def _coarse_plan(planner, cells: int):
         a, b = rng.uniform(lo, hi, size=(2, sc.robot.dof))
         res = coarse.plan(a, b)
         if res.ok:
-            return coarse, a, res
-    return coarse, None, None
+            return coarse, res
+    return coarse, None
 
 
 def replan_seed(coarse, first) -> ReplanSeed | None:
@@ -969,14 +968,13 @@ class HybridBackend(ProcessBackend):
         cs, fld = self._hold
         if job.stall_s > 0 or cs is None or fld is None:
             return False
-        if not any(_same_goal(job.joint_goal, g) for g in self._held_goals):
+        if not self._goal_held(job.joint_goal):
             return False
         geometry, grid, extra_m = cs[0]
-        # the grid margin a plan tries first (pipeline.PlanRun.grid_margins): a C-space of the second
-        # (0, where the first left no path) would not answer
-        s = self.here.settings if job.scenario_settings is None else job.scenario_settings[0]
-        first_m = float(s.grid_extra_margin_m) if s.grid_extra_margin_m > 0.0 else 0.0
-        return grid == job.grid and extra_m == first_m and geometry == job.scene.geometry_key()
+        # the grid margin a plan tries first: a C-space of the second (0, where the first left no
+        # path) would not answer
+        settings = self.here.settings if job.scenario_settings is None else job.scenario_settings[0]
+        return grid == job.grid and extra_m == grid_margins(settings)[0] and geometry == job.scene.geometry_key()
 
     def run(self, job: PlanJob, progress=None):
         """Return the outcome of ``job`` (see the class): planned here where the caches held answer it, else there."""
@@ -989,10 +987,15 @@ class HybridBackend(ProcessBackend):
         out = super().run(job, progress)
         fld = self._hold[1]
         if isinstance(out, PlanDone) and fld is not None and out.result.field is fld[1] and \
-                not any(_same_goal(job.joint_goal, g) for g in self._held_goals):
+                not self._goal_held(job.joint_goal):
             goal = None if job.joint_goal is None else np.array(job.joint_goal, dtype=float)
             self._held_goals = (self._held_goals + [goal])[-HELD_GOALS:]
         return out
+
+    def _goal_held(self, joint_goal) -> bool:
+        """Tell whether a process's plan to ``joint_goal`` (None: the target) read the field held."""
+        return any((joint_goal is None and g is None) or (joint_goal is not None and g is not None
+                                                          and np.array_equal(joint_goal, g)) for g in self._held_goals)
 
     def _run_here(self, job: PlanJob, progress):
         """Plan ``job`` here from the caches alone; None where they do not answer it (nothing reported then)."""
@@ -1025,11 +1028,6 @@ class HybridBackend(ProcessBackend):
 
 #: :class:`HybridBackend` tries a job here only for one of the last this many goals whose plans read the field held
 HELD_GOALS = 4
-
-
-def _same_goal(a, b) -> bool:
-    """Tell whether two jobs' joint goals are the same (None: the target's)."""
-    return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
 
 
 class _Overdue:

@@ -151,7 +151,7 @@ def test_bad_input_then_good_request(graph, capfd):
     assert "cspace" in g.planner.last_result.cached and "field" in g.planner.last_result.cached
     # ... planned in the worker thread from what the planning process sent (worker.HybridBackend)
     err = []
-    g.wait(lambda: err.append(capfd.readouterr().err) or "planned in the worker thread" in "".join(err), 5,
+    g.wait(lambda: err.append(capfd.readouterr().err) or "planned in the worker thread" in "".join(err), 30,
            "the replan's log line")
 
 

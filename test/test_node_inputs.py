@@ -625,7 +625,7 @@ def test_a_held_joint_reported_away_from_its_lock_is_said_in_a_warning(graph, ca
     def warned():
         seen.append(capfd.readouterr().err)
         return "attitude at 170.7° where robot.locked_positions_deg holds it at 160.7°" in "".join(seen)
-    g.wait(warned, 10, lambda: "the held attitude's warning; the node said:\n" + "".join(seen)[-3000:])
+    g.wait(warned, 30, lambda: "the held attitude's warning; the node said:\n" + "".join(seen)[-3000:])
     assert "".join(seen).count("robot.locked_positions_deg holds it") == 1, "".join(seen)[-3000:]
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from typing import Callable
 
-import re
 import signal
 import sys
 import threading
@@ -25,6 +24,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from ..config import flatten_params, section_regex
 from .executor import NodeExecutor
 
 
@@ -47,24 +47,6 @@ def _ros_args(argv):
         k += 1
 
 
-def _key_matches(key: str, fqn: str) -> bool:
-    """Tell whether a parameter section ``key`` applies to the node ``fqn`` (rcl's ``**``: any parts, ``*``: one)."""
-    key = key if key.startswith("/") else "/" + key
-    pattern = "".join("(/[^/]+)*" if part == "**" else "/[^/]+" if part == "*" else "/" + re.escape(part)
-                      for part in key.strip("/").split("/"))
-    return re.fullmatch(pattern, fqn) is not None
-
-
-def _flat(doc: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in doc.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def _file_sections(path: str):
     """Yield (section key, {NAME: value}) of a parameter file (nothing where it cannot be read)."""
     import yaml
@@ -75,7 +57,7 @@ def _file_sections(path: str):
         return
     for key, body in (doc.items() if isinstance(doc, dict) else ()):
         if isinstance(key, str) and isinstance(body, dict):
-            yield key, _flat(body.get("ros__parameters") or {})
+            yield key, flatten_params(body.get("ros__parameters") or {})
 
 
 def _same(have, text: str) -> bool:
@@ -111,7 +93,7 @@ def parameter_sections(argv) -> list:
     [(section key, {NAME: origin})]: a ``-p NAME:=VALUE`` is section ``/**``'s, a ``-p
     NODE:NAME:=VALUE`` section ``/NODE``'s, a ``--params-file``'s sections their own; a section
     sits where its key first appears, a later value of a name in it replaces the earlier one.
-    rclpy gives a node the sections that match it (:func:`_key_matches`) in that order, so the
+    rclpy gives a node the sections that match it (``config.section_regex``) in that order, so the
     last one with a name wins: a file's own section for the node after its ``/**`` section beats a
     ``-p NAME:=VALUE`` wherever it comes, and a ``/**`` section of a later file one before it.
     origin: ("-p", the argument's text) or ("--params-file", the path, the section's key as written).
@@ -145,12 +127,12 @@ def not_taken(node: Node, argv=()) -> list:
     fqn = node.get_fully_qualified_name()
     winner = {}
     for key, params in parameter_sections(argv):
-        if _key_matches(key, fqn):
+        if section_regex(key).fullmatch(fqn):
             winner.update(params)
     given = {}                  # (section key, NAME) -> the last -p of it, of a section for this node
     for option, value in _ros_args(argv):
         key, param = _param_key(value) if option == "-p" else (None, None)
-        if key is not None and _key_matches(key, fqn):
+        if key is not None and section_regex(key).fullmatch(fqn):
             given[(key, param)] = ("-p", value)
     lines = []
     for (_, name), origin in given.items():
