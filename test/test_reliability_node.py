@@ -603,7 +603,12 @@ def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress(capf
     rclpy.init(context=ctx)
     node = PlannerNode(context=ctx, parameter_overrides=params_to_overrides({**scene_params("3dof"),
                                                                              "autostart": False}))
-    worker = threading.Thread(target=node._log, args=("info", "a line from the worker"), name="worker-like")
+    said = (("info", "INFO"), ("warning", "WARN"), ("error", "ERROR"), ("debug", "INFO"))   # as rosout's levels
+
+    def lines():
+        for level, _ in said:
+            node._log(level, f"a {level} line from the worker")
+    worker = threading.Thread(target=lines, name="worker-like")
     held, node.session.worker = node.session.worker, worker
     try:
         with ctx._lock:                  # as Context.shutdown holds it while it destroys the nodes
@@ -616,6 +621,8 @@ def test_a_worker_log_line_does_not_wait_for_a_context_shutdown_in_progress(capf
         node.destroy_node()
         rclpy.shutdown(context=ctx)
     assert not stuck, "the worker's log line waited for the context's lock"
-    line = next(x for x in capfd.readouterr().err.splitlines() if "a line from the worker" in x)
-    m = re.fullmatch(r"\[INFO\] \[(\d+\.\d{9})\] \[spacerobot_planner\]: a line from the worker", line)
-    assert m and abs(float(m.group(1)) - time.time()) < 600.0, line
+    err = capfd.readouterr().err.splitlines()
+    for level, name in said:
+        line = next(x for x in err if f"a {level} line from the worker" in x)
+        m = re.fullmatch(rf"\[{name}\] \[(\d+\.\d{{9}})\] \[spacerobot_planner\]: a {level} line from the worker", line)
+        assert m and abs(float(m.group(1)) - time.time()) < 600.0, line

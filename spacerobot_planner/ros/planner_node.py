@@ -89,12 +89,9 @@ YIELD_AFTER_SEND_S = 0.0003
 #: the worker thread's log lines wait at most this long for the rclpy context's lock, s
 #: (:meth:`PlannerNode._context_ok_soon`)
 CONTEXT_WAIT_S = 0.05
-#: the severities of ``_log``'s levels (any other level: info)
+#: the severities of ``_log``'s levels (any other level: info), and rcutils' name of each in its lines
 _SEVERITY = {"error": LoggingSeverity.ERROR, "warning": LoggingSeverity.WARN}
-
-
-#: the level names rcutils' log lines use, by the session's levels
-_RCUTILS_LEVEL = {"debug": "DEBUG", "info": "INFO", "warning": "WARN", "error": "ERROR", "fatal": "FATAL"}
+_RCUTILS_NAME = {LoggingSeverity.ERROR: "ERROR", LoggingSeverity.WARN: "WARN", LoggingSeverity.INFO: "INFO"}
 
 
 class PlannerNode(LifecycleNode):
@@ -492,12 +489,14 @@ class PlannerNode(LifecycleNode):
         needs (the worker would wait for the thread that waits for it).
         """
         in_worker = threading.current_thread() is self.session.worker
+        severity = _SEVERITY.get(level, LoggingSeverity.INFO)
         if (self.context.ok() if not in_worker else not self.session.closing and self._context_ok_soon()):
-            self._log_lines.log(_SEVERITY.get(level, LoggingSeverity.INFO), text)
+            self._log_lines.log(severity, text)
         else:
-            # as rcutils writes a line (its default format): the level, the time in seconds, the name
+            # as rcutils writes a line (its default format): the level (the one rosout gets), the time in
+            # seconds, the name
             t_ns = time.time_ns()
-            print(f"[{_RCUTILS_LEVEL.get(level, level.upper())}] [{t_ns // 10**9}.{t_ns % 10**9:09d}] "
+            print(f"[{_RCUTILS_NAME[severity]}] [{t_ns // 10**9}.{t_ns % 10**9:09d}] "
                   f"[{self._log_name}]: {text}", file=sys.stderr)
 
     def _context_ok_soon(self) -> bool:
