@@ -908,7 +908,7 @@ class PlanRun:
         Solved from the field under ``key`` (``base``, before any repair) as its guess: a function
         of the key, the nodes and the edges alone, whichever repairs came before.
         """
-        rkey = key + (tuple(sorted(blocked)), tuple(sorted(cut)))
+        rkey = self.p.repaired_field_key(key, blocked, cut)
         hit = rkey in self.p._fields
         with self.stage("repair"):
             fld = self.p._solve(cs, rkey, goal_nodes, self.s, blocked, cut, token=self.cancel, guess=base)

@@ -66,6 +66,8 @@ __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES"
 #: (a margin equal to the handle's length; its clearance only rounds above) leaves no motion
 #: that reaches it, and is refused as such rather than planned on grid after grid
 GRASP_ROOM_M = 1e-9
+#: the item after a solve's key that makes it a repaired field's key (:meth:`Planner.repaired_field_key`)
+REPAIRED = "repaired"
 
 
 class Planner:
@@ -476,15 +478,24 @@ class Planner:
                 settings.field_tolerance, settings.field_budget_s)
 
     @staticmethod
+    def repaired_field_key(field_key: tuple, blocked, cut) -> tuple:
+        """
+        Return the key of the field under ``field_key`` repaired: ``blocked`` nodes out, ``cut`` edges cut.
+
+        :meth:`_field_key`'s items, then :data:`REPAIRED` and the blocked nodes and cut edges, sorted
+        (``pipeline.PlanRun.resolve``).
+        """
+        return field_key + (REPAIRED, tuple(sorted(blocked)), tuple(sorted(cut)))
+
+    @staticmethod
     def repaired_key(field_key: tuple) -> bool:
         """
-        Tell whether a field's key (:meth:`cache_key_of`) is a repaired field's.
+        Tell whether a field's key (:meth:`cache_key_of`) is a repaired field's (:meth:`repaired_field_key`).
 
-        A solve's key is :meth:`_field_key`'s five items; a repair's adds its blocked nodes and
-        cut edges (``pipeline.PlanRun.cut_or_block``).  A plan from the caches alone looks up the
-        solve's first, so a repaired field alone answers none.
+        A plan from the caches alone looks up the solve's key first, so a repaired field alone
+        answers none.
         """
-        return len(field_key) > 5
+        return REPAIRED in field_key
 
     def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None,
                guess=None):
