@@ -21,7 +21,15 @@ import numpy as np
 
 from .joint_space import TWO_PI, wrap_rad
 
-__all__ = ["PlanarArm", "square_polygon", "validate_polygon"]
+__all__ = ["PlanarArm", "square_polygon", "validate_polygon", "BOUND_TOL_RAD", "MAX_TURNS_RAD"]
+
+#: a bounded joint reported this far past a bound is taken as at the bound (rounding: a bound of
+#: 180° in a file, the joint state's π in radians), rad; farther is refused
+BOUND_TOL_RAD = 1e-9
+#: the largest magnitude a periodic joint's value may have, rad (about 159 000 turns): a plan's
+#: motion is published shifted by the whole turns of the joint state it starts from, and float64
+#: resolves 1.2e-10 rad there (at 1e17 rad a step is 16 rad: the attitude could not move at all)
+MAX_TURNS_RAD = 1e6
 
 
 def _plain(value):
@@ -168,8 +176,11 @@ class PlanarArm:
         Check a planned configuration: right length, finite, within bounds.
 
         Periodic joints are wrapped into their range (that is the same posture, not a
-        clamp); any other violation raises ``ValueError`` naming ``name`` and the joint (values
-        that are not numbers: ``name`` and what was given).
+        clamp), where their value is within ``MAX_TURNS_RAD``; a bounded joint within
+        ``BOUND_TOL_RAD`` past a bound is set to the bound (the motion validator accepts no posture
+        outside, so every motion from or to it was refused as colliding).  Any other violation raises
+        ``ValueError`` naming ``name`` and the joint (values that are not numbers: ``name`` and what
+        was given).
         """
         try:
             q = np.asarray(q, dtype=float)
@@ -185,10 +196,18 @@ class PlanarArm:
             jn = self.joint_names[j]
             if not math.isfinite(x):
                 raise ValueError(f"{name}: joint '{jn}' is {q[k]} (not a finite number)")
-            if not self.periodic[j] and not (low - 1e-9 <= x <= high + 1e-9):
+            if self.periodic[j] and abs(x) > MAX_TURNS_RAD:
+                raise ValueError(f"{name}: joint '{jn}' = {x:.6g} rad is more turns than a plan can carry: at most "
+                                 f"±{MAX_TURNS_RAD:g} rad (about {MAX_TURNS_RAD / TWO_PI:,.0f} turns; float64 "
+                                 f"resolves {math.ulp(MAX_TURNS_RAD):.1g} rad there); report it wrapped, e.g. "
+                                 f"into [-π, π)")
+            if not self.periodic[j] and not (low - BOUND_TOL_RAD <= x <= high + BOUND_TOL_RAD):
                 raise ValueError(f"{name}: joint '{jn}' = {np.degrees(q[k]):.3f}° is outside its "
                                  f"bounds [{np.degrees(lo[k]):.1f}°, {np.degrees(hi[k]):.1f}°]")
-        return wrap_rad(q, self._planned_periodic, lo)
+        q = wrap_rad(q, self._planned_periodic, lo)
+        bounded = ~self._planned_periodic
+        q[bounded] = np.clip(q[bounded], lo[bounded], hi[bounded])
+        return q
 
     # -------------------------------------------------------------- kinematics
     def forward_kinematics(self, q_full) -> np.ndarray:

@@ -17,6 +17,7 @@ from spacerobot_planner.scene import Scene, Target
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"
 HALF_DEG = np.radians(0.5)
+D = np.radians
 
 
 def dense_check(robot, scene, path, step_rad=np.radians(0.25)):
@@ -284,6 +285,51 @@ def test_invalid_start(planner3, sc3, start, word):
 def test_invalid_goal(planner3, sc3):
     res = planner3.plan(sc3.start_rad, [0.0, 0.0, 3.5])
     assert res.code == "invalid_input" and "goal" in res.reason and "elbow" in res.reason
+
+
+@pytest.mark.parametrize("past_rad", [1e-10, 4.5e-16])
+def test_a_start_or_goal_a_rounding_past_a_bound_plans_from_the_bound(sc2, sc3, past_rad):
+    """
+    An elbow at π plus a rounding (a bound of 180° in the file, a joint state in radians) plans from ±180°.
+
+    It had been taken as it was, and every motion from it or to it refused as colliding:
+    ``path_invalid`` where the same posture on the bound plans (a hidden-family audit).  Oracle:
+    the files' bounds (±180° on the paper arms' elbows) and the independent 0.25° check.
+    """
+    bound = D(180.0)
+    goal = np.array([sc2.goal_rad[0], bound + past_rad])           # the paper 2-DOF goal's elbow is at 180°
+    res = Planner(sc2).plan(sc2.start_rad, goal)
+    assert_valid_path(res, sc2)
+    assert res.path_rad[-1, 1] == bound and np.all(np.abs(res.path_rad[:, 1]) <= bound)
+    start = np.array([sc3.start_rad[0], sc3.start_rad[1], -bound - past_rad])
+    res = Planner(sc3).plan(start, sc3.goal_rad)
+    assert_valid_path(res, sc3)
+    assert res.path_rad[0, 2] == -bound and np.all(np.abs(res.path_rad[:, 2]) <= bound)
+    res = Planner(sc3).plan(np.array([sc3.start_rad[0], sc3.start_rad[1], -bound - 1e-8]), sc3.goal_rad)
+    assert res.code == "invalid_input" and "'elbow' = -180.000° is outside its bounds" in res.reason, res.reason
+
+
+@pytest.mark.parametrize("turns", [1e17, -2e6])
+def test_an_attitude_of_more_turns_than_float64_moves_is_refused_naming_it(sc3, turns):
+    """
+    A start attitude of 1e17 rad had planned ``ok``, its trajectory's attitude still (float64's step there: 16 rad).
+
+    The published motion is the path shifted by the joint state's whole turns; beyond 1e6 rad
+    the start or goal answers invalid_input saying so.  A start at 900 000 rad still plans, its
+    trajectory's attitude moving as from the same posture wrapped (oracle: ``math.remainder``).
+    """
+    import math
+    for name, start, goal in (("start", [turns, *sc3.start_rad[1:]], sc3.goal_rad),
+                              ("goal", sc3.start_rad, [turns, *sc3.goal_rad[1:]])):
+        res = Planner(sc3).plan(np.array(start), np.array(goal))
+        assert res.code == "invalid_input" and res.reason.startswith(f"{name}: joint 'attitude' = "), res.reason
+        assert "more turns than a plan can carry" in res.reason and "[-π, π)" in res.reason, res.reason
+    far = 9e5
+    res = Planner(sc3).plan(np.array([far, *sc3.start_rad[1:]]), sc3.goal_rad)
+    near = Planner(sc3).plan(np.array([math.remainder(far, 2 * math.pi), *sc3.start_rad[1:]]), sc3.goal_rad)
+    assert res.ok and near.ok
+    moved, moved_near = (r.trajectory.positions_rad[-1, 0] - r.trajectory.positions_rad[0, 0] for r in (res, near))
+    assert res.trajectory.positions_rad[0, 0] == far and abs(moved - moved_near) < 1e-8, (moved, moved_near)
 
 
 @pytest.mark.parametrize("value", ["abc", [np.float64(1.0), "x", 2.0], {"attitude": 1.0}, np.array(["a", "b", "c"])])

@@ -101,6 +101,21 @@ def test_validate_q_names_the_problem(sc3, q, field):
         sc3.robot.validate_q(np.asarray(q, dtype=float), "start")
 
 
+def test_validate_q_takes_a_rounding_past_a_bound_as_the_bound(sc3):
+    """The paper 3-DOF elbow's bounds are ±180° (config/paper_3dof.yaml): π + 1e-10 is π, π + 1e-8 is refused."""
+    for past in (1e-10, 1e-9, 4.5e-16):
+        assert sc3.robot.validate_q(np.array([0.1, 0.2, D(180.0) + past]))[2] == D(180.0)
+        assert sc3.robot.validate_q(np.array([0.1, 0.2, -D(180.0) - past]))[2] == -D(180.0)
+    with pytest.raises(ValueError, match="'elbow' = 180.000° is outside"):
+        sc3.robot.validate_q(np.array([0.1, 0.2, D(180.0) + 1e-8]), "start")
+
+
+@pytest.mark.parametrize("turns", [1e300, 1e17, 1e9, -2e6])
+def test_validate_q_refuses_an_attitude_of_more_turns_than_a_plan_can_carry(sc3, turns):
+    with pytest.raises(ValueError, match=r"start: joint 'attitude' = \S+ rad is more turns than a plan can carry"):
+        sc3.robot.validate_q(np.array([turns, 0.2, 0.3]), "start")
+
+
 def test_validate_q_wraps_the_periodic_attitude(sc3):
     q = sc3.robot.validate_q(D([190.0, 10.0, 10.0]))
     assert np.degrees(q[0]) == pytest.approx(-170.0)
