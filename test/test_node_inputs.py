@@ -193,6 +193,85 @@ def test_a_command_line_parameter_the_files_node_section_overrides_is_said(tmp_p
         ("/**", {"b": ("-p", "b:=4"), "c": ("-p", "c:=[1, 2]")}), ("/n", {"d": ("-p", "n:d:=3")})]
 
 
+def test_a_parameter_file_that_does_not_state_the_robot_is_refused_and_one_for_no_node_is_said(tmp_path):
+    """
+    A file with ``robot.link_length_m`` (a typo) had started the nodes on the default arm; a file for no node: nothing.
+
+    ``node_main.file_problems`` against rcl itself (the mock arm in a context initialised with the
+    arguments): where it refuses, the node holds the default for every name it says is missing;
+    the robot split over two files, or a file and a ``-p``, is stated; no file at all is the
+    documented defaults.
+    """
+    from spacerobot_planner.ros.mock_arm_node import MockArmNode
+    from spacerobot_planner.ros.node_main import file_problems
+    import yaml
+    paper = open(os.path.join(CONFIG_DIR, "paper_2dof.yaml")).read()
+    typo, robot_only, rest, other = (tmp_path / f"{n}.yaml" for n in ("typo", "robot", "rest", "other"))
+    typo.write_text(paper.replace("link_lengths_m", "link_length_m"))
+    doc = yaml.safe_load(paper)                 # the robot in one file, the rest in another
+    robot = doc["/**"]["ros__parameters"].pop("robot")
+    robot_only.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"robot": robot}}}))
+    rest.write_text(yaml.safe_dump(doc))
+    other.write_text("/**/planner:\n  ros__parameters:\n    rate_hz: 20.0\n")
+
+    def problems(*args):
+        """The node's start, checked where the executable checks it (its parameters declared, nothing begun)."""
+        argv = ["mock_arm_node", "--ros-args", *map(str, args)]
+        seen = {}
+
+        def check(node):
+            seen["said"] = file_problems(node, argv)
+            seen["held"] = {n: list(node.get_parameter(n).value) for n in ("robot.link_lengths_m", "robot.joint_names")}
+            raise ValueError("checked")       # the start stops here (the refusal's way)
+        ctx = Context()
+        rclpy.init(args=argv, context=ctx)
+        try:
+            with pytest.raises(ValueError, match="checked"):
+                MockArmNode(context=ctx, start_check=check)
+        finally:
+            rclpy.shutdown(context=ctx)
+        return (*seen["said"], seen["held"])
+    refusal, warnings, held = problems("--params-file", typo)
+    assert refusal is not None and refusal.startswith(f"the parameter file(s) {typo} state no robot.link_lengths_m "
+                                                      f"for /mock_arm"), refusal
+    assert held["robot.link_lengths_m"] == [1.4, 2.0, 2.0] and warnings == []     # rcl: the default, unset
+    refusal, warnings, held = problems("--params-file", rest)
+    assert refusal is not None and "robot.joint_names, robot.link_lengths_m" in refusal, refusal
+    assert held["robot.joint_names"] == ["attitude", "shoulder", "elbow"]
+    for args in (["--params-file", robot_only, "--params-file", rest],
+                 ["--params-file", typo, "-p", "robot.link_lengths_m:=[1.4, 2.0, 2.0]"], ["-p", "rate_hz:=20.0"], []):
+        refusal, warnings, _ = problems(*args)
+        assert refusal is None and warnings == [], (args, refusal, warnings)
+    refusal, warnings, _ = problems("--params-file", os.path.join(CONFIG_DIR, "paper_2dof.yaml"),
+                                    "--params-file", other)
+    assert refusal is None and len(warnings) == 1, warnings
+    assert warnings[0].startswith(f"the parameter file {other} sets nothing for /mock_arm: none of its sections "
+                                  f"(/**/planner) matches the node"), warnings
+
+
+@pytest.mark.parametrize("exe", ["planner_node", "mock_arm_node"])
+def test_the_executables_refuse_a_file_without_the_robot_and_arguments_outside_ros_args(tmp_path, exe):
+    """One line and exit 1 before the node starts anything; a stray argument exit 2 naming it; --help the usage."""
+    typo = tmp_path / "typo.yaml"
+    paper = open(os.path.join(CONFIG_DIR, "paper_2dof.yaml")).read()
+    typo.write_text(paper.replace("link_lengths_m", "link_length_m"))
+    module = f"spacerobot_planner.ros.{exe}"
+
+    def run(*args):
+        proc = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
+                              stdin=subprocess.DEVNULL, timeout=START_TIMEOUT_S)
+        return proc.returncode, proc.stdout, proc.stderr
+    rc, out, err = run("--ros-args", "--params-file", str(typo))
+    ours = [line for line in err.splitlines() if line.startswith(f"{exe}: ")]
+    assert rc == 1 and len(ours) == 1 and "state no robot.link_lengths_m" in ours[0], err
+    assert "configured" not in err and "publishing" not in err, err          # nothing started
+    rc, out, err = run("--params-file", os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
+    assert rc == 2 and err.startswith(f"{exe}: unrecognised argument(s) --params-file "), err
+    assert "after --ros-args" in err, err
+    rc, out, err = run("--help")
+    assert rc == 0 and out.startswith(f"usage: {exe} [--ros-args") and "docs/parameters.md" in out, (out, err)
+
+
 #: (the arguments after ``--ros-args``, the namespace, rcl's rate_hz, a fragment of the line said ("": none))
 ORDER_CASES = {
     "scientific": (["-p", "rate_hz:=2e1"], "/", 20.0, ""),                      # rcl reads 2e1 as 20.0

@@ -87,13 +87,16 @@ class _Motion:
 
 
 class MockArmNode(Node):
-    def __init__(self, *, context=None, parameter_overrides=None, node_name: str = "mock_arm", **kwargs):
+    def __init__(self, *, context=None, parameter_overrides=None, node_name: str = "mock_arm", start_check=None,
+                 **kwargs):
         super().__init__(node_name, context=context, parameter_overrides=parameter_overrides, **kwargs)
         params = {}
         for name, schema in MOCK_ARM_PARAMETERS.items():
             spec = SPECS[schema]
             value = self.declare_parameter(name, spec.default, descriptor_for(spec, name)).value
             params[schema] = list(value) if isinstance(value, (tuple, np.ndarray, array.array)) else value
+        if start_check is not None:     # the executable's: its parameter files state the robot (ValueError)
+            start_check(self)
         params["grid.cells"] = [2] * len(params["robot.planned_joints"])   # unused here
         sc = scenario_from_params(params)
         self.robot = sc.robot
@@ -287,7 +290,7 @@ def _shortest_angle(from_rad: float, to_rad: float) -> float:
 
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner mock_arm_node``."""
-    return node_main.run_node(MockArmNode, "mock_arm_node", args)
+    return node_main.run_node(lambda check: MockArmNode(start_check=check), "mock_arm_node", args)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
-from ..config import flatten_params, section_regex
+from ..config import PARAMETERS, flatten_params, section_regex
 from .executor import NodeExecutor
 
 
@@ -152,6 +152,57 @@ def not_taken(node: Node, argv=()) -> list:
     return lines
 
 
+def file_problems(node: Node, argv=()) -> tuple:
+    """
+    Return (refusal or None, warnings) for the parameter files of ``argv`` as they apply to ``node``.
+
+    A scenario file must state the robot (``config.PARAMETERS``' ``required_in_file`` names, those
+    the node declares): where a ``--params-file`` applies to the node and none of the files nor a
+    ``-p`` for it states one of them, the node would plan with the default robot (the paper's
+    3-DOF arm) for a file that means another one (a key misspelled, left out): the refusal names
+    them.  Without a file that applies, the defaults are the documented ones.  A file none of whose
+    sections applies to the node (a section named for another node) is a warning: it sets nothing.
+    """
+    fqn = node.get_fully_qualified_name()
+    files, applying, stated = [], set(), set()
+    for option, value in _ros_args(argv):
+        if option == "--params-file" and value not in files:
+            files.append(value)
+    for key, params in parameter_sections(argv):
+        if section_regex(key).fullmatch(fqn):
+            stated.update(params)
+            applying.update(origin[1] for origin in params.values() if origin[0] == "--params-file")
+    warnings = []
+    for path in files:
+        if path not in applying:
+            keys = [key for key, _ in _file_sections(path)]
+            warnings.append(f"the parameter file {path} sets nothing for {fqn}: none of its sections "
+                            f"({', '.join(keys) or 'none'}) matches the node (/**, /**/{node.get_name()}, "
+                            f"{fqn}); where no file applies, the node runs with the defaults of docs/parameters.md")
+    required = [s.name for s in PARAMETERS if s.required_in_file and node.has_parameter(s.name)]
+    missing = [name for name in required if name not in stated]
+    if not applying or not missing:
+        return None, warnings
+    return (f"the parameter file(s) {', '.join(sorted(applying))} state no {', '.join(missing)} for {fqn}: a "
+            f"scenario file must state the robot (a key misspelled or left out would plan the default arm; "
+            f"docs/parameters.md lists the required keys)"), warnings
+
+
+def stray_arguments(argv) -> list:
+    """Return the arguments of ``argv`` (its first, the program, left out) outside its ``--ros-args`` sections."""
+    from rclpy.utilities import remove_ros_args
+    return list(remove_ros_args(args=list(argv))[1:])
+
+
+def usage(exe_name: str) -> str:
+    """Return the executable's usage: where its parameters go."""
+    return (f"usage: {exe_name} [--ros-args [--params-file FILE] [-p NAME:=VALUE] [-r __ns:=/NS] ...]\n"
+            f"  ros2 run spacerobot_planner {exe_name} --ros-args --params-file config/paper_3dof.yaml\n"
+            f"The scenario (robot, target, obstacles, grid) comes from a ROS 2 parameter file or -p; without\n"
+            f"one, the defaults (the paper's 3-DOF scene). Every parameter: docs/parameters.md; the nodes: "
+            f"docs/node.md.")
+
+
 def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | None = None,
                         stop: threading.Event | None = None) -> None:
     """
@@ -176,17 +227,30 @@ def spin_until_shutdown(node: Node, executor, on_shutdown: Callable[[], None] | 
         node.destroy_node()
 
 
-def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
+def run_node(make_node: Callable[[Callable[[Node], None]], Node], exe_name: str, args=None,
              on_shutdown: Callable[[Node], None] | None = None) -> int:
     """
-    ``rclpy.init``, ``make_node()``, spin in a :class:`.executor.NodeExecutor` until Ctrl-C.
+    ``rclpy.init``, ``make_node(start_check)``, spin in a :class:`.executor.NodeExecutor` until Ctrl-C.
+
+    ``start_check(node)``: the node calls it once its parameters are declared, before it starts
+    anything; it raises ValueError where :func:`file_problems` refuses the parameter files.
 
     A refused start (a ValueError or RuntimeError from ``make_node``: bad parameters, a
-    failed autostart; or rclpy's own parameter exceptions) is printed as one line
-    ``<exe_name>: <reason>`` on stderr, without a traceback, and gives exit code 1;
-    otherwise 0.
+    failed autostart; or rclpy's own parameter exceptions; a parameter file that applies to the
+    node but does not state its robot, :func:`file_problems`) is printed as one line
+    ``<exe_name>: <reason>`` on stderr, without a traceback, and gives exit code 1; arguments
+    outside ``--ros-args`` exit 2 naming them (``-h``/``--help``: the usage, exit 0); otherwise 0.
     """
     stop = threading.Event()
+    argv = sys.argv if args is None else args
+    stray = stray_arguments(argv)
+    if any(a in ("-h", "--help") for a in stray):
+        print(usage(exe_name))
+        return 0
+    if stray:
+        print(f"{exe_name}: unrecognised argument(s) {' '.join(stray)}: ROS arguments go after --ros-args "
+              f"(e.g. {exe_name} --ros-args --params-file FILE); --help says more", file=sys.stderr, flush=True)
+        return 2
 
     def interrupt(signum, frame):
         raise KeyboardInterrupt
@@ -202,13 +266,19 @@ def run_node(make_node: Callable[[], Node], exe_name: str, args=None,
             print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
             return 1
         with init:
+            warnings = []
+
+            def start_check(node: Node) -> None:
+                refusal, said = file_problems(node, argv)
+                if refusal is not None:
+                    raise ValueError(refusal)
+                warnings.extend(said)
             try:
-                node = make_node()
+                node = make_node(start_check)
             except (ValueError, RuntimeError, ParameterException) as e:
                 print(f"{exe_name}: {e}", file=sys.stderr, flush=True)
                 return 1
-            argv = sys.argv if args is None else args
-            for line in not_taken(node, argv):
+            for line in warnings + not_taken(node, argv):
                 node.get_logger().warning(line)
             # from now on a signal asks the spin loop to stop
             signal.signal(signal.SIGTERM, request_stop)

@@ -106,7 +106,7 @@ class PlannerNode(LifecycleNode):
     _started = False
 
     def __init__(self, *, context=None, parameter_overrides=None, node_name: str = NODE_NAME, backend_factory=None,
-                 freeze_start_up: bool = False, **kwargs):
+                 freeze_start_up: bool = False, start_check=None, **kwargs):
         # backend_factory(scenario, separate_process, log=, info=, replans_here=) -> a worker backend: how configure
         # gets its planning process (default worker.make_backend: a new one, warmed up then)
         self._make_backend = backend_factory or make_backend
@@ -124,6 +124,8 @@ class PlannerNode(LifecycleNode):
         others = declare_checked(self, PLANNER_PARAMETERS)      # ValueError: the parameter and why
         for line in unknown_parameters(others):                 # typos, named with the closest name
             self.get_logger().warning(line)
+        if start_check is not None:     # the executable's: its parameter files state the robot (ValueError)
+            start_check(self)
         params = {n: self.get_parameter(n).value for n in PLANNER_PARAMETERS}
         params = {k: (list(v) if isinstance(v, (tuple, np.ndarray, array.array)) else v) for k, v in params.items()}
         scenario = scenario_from_params(params)        # raises on a bad file: fail at start
@@ -561,7 +563,7 @@ def spin_until_shutdown(node: PlannerNode, executor) -> None:
 def main(args=None) -> int:
     """Entry point: ``ros2 run spacerobot_planner planner_node --ros-args --params-file ...``."""
     start_numba()                   # a process of its own: cached kernels without their linking bitcode, no BLAS check
-    return node_main.run_node(lambda: PlannerNode(freeze_start_up=True), "planner_node", args,
+    return node_main.run_node(lambda check: PlannerNode(freeze_start_up=True, start_check=check), "planner_node", args,
                               lambda node: node.shutdown_worker(finish_goals=True))
 
 
