@@ -121,7 +121,8 @@ def test_unreachable_target_exit_2(tmp_path, capsys):
     (["--solver", "magic"], "--solver"),
     (["--cells", "1"], "--cells: 1 is below the minimum 2"),
     (["--cells", "10", "10"], "--cells"),
-    (["--tolerance", "-1"], "planner.field_tolerance"),
+    (["--tolerance", "-1"], "--tolerance: -1.0 is below the minimum"),
+    (["--field-budget", "0"], "--field-budget: 0.0 is below the minimum"),
     (["--start-deg", "a", "b", "c"], "--start-deg"),
     (["--bogus"], "--bogus"),
 ])
@@ -152,6 +153,36 @@ def test_plot_2dof(tmp_path, capsys):
     rc, out, err = run(["--params-file", P2, "--cells", "90", "--plot", str(png), "--quiet"], capsys)
     assert rc == 0, err
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+
+
+@pytest.mark.parametrize("flag, name, said", [
+    ("--json", "afile/x.json", "afile is a file, not a folder"),
+    ("--json", "adir", "adir is a folder; give a file name (e.g. {tmp}/adir/plan.json)"),
+    ("--plot", "afile/x.png", "afile is a file, not a folder"),
+    ("--plot", "adir", "adir is a folder; give a file name (e.g. {tmp}/adir/plan.png)"),
+    ("--plot", "fig.xyz", "'.xyz' is not a format it writes; one of "),
+])
+def test_an_output_it_cannot_write_is_refused_before_the_plan(tmp_path, capsys, flag, name, said):
+    """Exit 1 naming the option, no plan run, nothing written (it had planned, then raised a traceback)."""
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "adir").mkdir()
+    before = sorted(tmp_path.rglob("*"))
+    rc, out, err = run(["--params-file", P2, flag, str(tmp_path / name)], capsys)
+    assert rc == 1 and err.startswith(f"spacerobot-plan: error: {flag}: ") and "Traceback" not in err, err
+    assert said.format(tmp=tmp_path) in err, err
+    assert "stages:" not in out and sorted(tmp_path.rglob("*")) == before, out
+
+
+def test_plot_names_the_file_it_wrote_in_the_format_its_suffix_says(tmp_path, capsys):
+    """``--plot NAME`` (no suffix) writes NAME.png and says so (it said NAME); ``.pdf`` a PDF, its reaction's too."""
+    rc, out, err = run(["--params-file", P2, "--cells", "90", "--plot", str(tmp_path / "noext")], capsys)
+    png = tmp_path / "noext.png"
+    assert rc == 0 and f"wrote {png}\n" in out and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", (out, err)
+    assert not (tmp_path / "noext").exists()
+    rc, out, err = run(["--params-file", S3, "--plot", str(tmp_path / "s.pdf"), "--quiet"], capsys)
+    assert rc == 0, err
+    for f in ("s.pdf", "s_reaction.pdf"):
+        assert f"wrote {tmp_path / f}" in out and (tmp_path / f).read_bytes()[:5] == b"%PDF-", (f, out)
 
 
 def test_plot_without_path(tmp_path, capsys):

@@ -291,7 +291,10 @@ def _client(stack: ExitStack, scheduler: str | None, workers: int | None):
     """Open a Client on ``scheduler``, or on a :func:`local_cluster` of ``workers`` (closed with the stack)."""
     from distributed import Client
     if scheduler:
-        return stack.enter_context(Client(scheduler, timeout="30s"))
+        try:
+            return stack.enter_context(Client(scheduler, timeout="30s"))
+        except OSError as e:           # not the output folder's: said as the option's (envelope_cli)
+            raise ValueError(f"--scheduler {scheduler}: cannot connect: {e}") from None
     cluster = stack.enter_context(local_cluster(workers))
     return stack.enter_context(Client(cluster))
 

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+from pathlib import Path
 
 import numpy as np
 
 from ..config import check_value, load_scenario
 
-__all__ = ["ArgError", "Parser", "fail_input", "posture", "with_cells", "parse", "load"]
+__all__ = ["ArgError", "Parser", "fail_input", "posture", "with_cells", "parse", "load", "output_file",
+           "option_value"]
 
 
 class ArgError(Exception):
@@ -35,6 +38,41 @@ def with_cells(scenario, cells: list):
     if len(full) != dof:
         raise ValueError(f"--cells: expected 1 or {dof} values, got {len(cells)}")
     return scenario.with_grid(scenario.grid_with_cells(full))
+
+
+def option_value(name: str, value, flag: str):
+    """Return ``config.check_value(name, value)``; its ValueError names ``flag``, the option typed, not the field."""
+    try:
+        return check_value(name, value)
+    except ValueError as e:
+        raise ValueError(f"{flag}: {str(e).removeprefix(name + ': ')}") from None
+
+
+def output_file(path: str, flag: str, formats=None, default_suffix: str = "") -> Path:
+    """
+    Return the file ``flag`` names for output, checked before any work (ValueError naming ``flag``).
+
+    Not a folder; its folder one that exists or can be made (the nearest that exists a folder this
+    process may write in).  ``formats``: the suffixes allowed (without the dot, lower case); a name
+    without a suffix gets ``default_suffix`` (the file then written is the one returned).
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{flag}: {path} is a folder; give a file name (e.g. {p / ('plan' + default_suffix)})")
+    if formats is not None:
+        if not p.suffix and default_suffix:
+            p = p.with_name(p.name + default_suffix)
+        if p.suffix.lower().lstrip(".") not in formats:
+            raise ValueError(f"{flag}: {path}: '{p.suffix}' is not a format it writes; one of "
+                             f"{', '.join('.' + f for f in sorted(formats))}")
+    above = p.parent
+    while not above.exists() and above != above.parent:
+        above = above.parent
+    if not above.is_dir():
+        raise ValueError(f"{flag}: {path}: {above} is a file, not a folder")
+    if not os.access(above, os.W_OK | os.X_OK):
+        raise ValueError(f"{flag}: {path}: cannot write in {above} (permission denied)")
+    return p
 
 
 def posture(robot, values, flag: str) -> np.ndarray:

@@ -25,7 +25,6 @@ import gc
 import json
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -36,7 +35,7 @@ from ..jit_cache import start_numba
 from ..offline import plan_offline
 from ..planner import Planner
 from ..timing import Motion
-from .args import Parser, fail_input, load, parse, posture, with_cells
+from .args import Parser, fail_input, load, option_value, output_file, parse, posture, with_cells
 
 __all__ = ["main", "build_parser", "run"]
 
@@ -57,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--tolerance", type=float, help="gauss_seidel's tolerance (planner.field_tolerance)")
     ap.add_argument("--field-budget", type=float, help="field budget, seconds (planner.field_budget_s)")
     ap.add_argument("--json", metavar="PATH", help="write the result as JSON ('-' for stdout)")
-    ap.add_argument("--plot", metavar="PATH", help="write a PNG: C-space, potential, path, arm motion")
+    ap.add_argument("--plot", metavar="PATH", help="write a figure: C-space, potential, path, arm motion (its "
+                    "format by the suffix, .png where none; the reaction's beside it, NAME_reaction)")
     ap.add_argument("--quiet", action="store_true", help="no stage lines")
     return ap
 
@@ -125,10 +125,15 @@ def main(argv=None) -> int:
         solver = args.solver if args.solver is not None else given.solver
         if solver not in SOLVERS:
             raise ValueError(f"--solver: unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
-        tol = args.tolerance if args.tolerance is not None else given.field_tolerance
+        tol = (given.field_tolerance if args.tolerance is None else
+               option_value("planner.field_tolerance", float(args.tolerance), "--tolerance"))
         tol = check_value("planner.field_tolerance", float(tol))
-        field_budget = args.field_budget if args.field_budget is not None else given.field_budget_s
+        field_budget = (given.field_budget_s if args.field_budget is None else
+                        option_value("planner.field_budget_s", float(args.field_budget), "--field-budget"))
         field_budget = check_value("planner.field_budget_s", float(field_budget))
+        # the outputs checked before the plan (it had run whole, then a traceback)
+        json_path = None if args.json in (None, "-") else output_file(args.json, "--json", default_suffix=".json")
+        plot_path = None if args.plot is None else output_file(args.plot, "--plot", _figure_formats(), ".png")
 
         if args.start_deg is not None:
             start = posture(robot, args.start_deg, "--start-deg")
@@ -173,23 +178,36 @@ def main(argv=None) -> int:
             doc["published_trajectory"] = processed.to_json_dict()
             doc["dense_trajectory"] = processed.dense.to_json_dict()
         text = json.dumps(doc, indent=None, allow_nan=False)
-        if args.json == "-":
+        if json_path is None:
             print(text)
         else:
-            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(text + "\n", encoding="utf-8")
-            say(f"wrote {args.json}")
-    if args.plot:
-        from .plotting import plot_plan        # matplotlib: loaded only when a plot is asked for
-        Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
-        plot_plan(res, scenario, args.plot)
-        say(f"wrote {args.plot}")
-        if res.reaction is not None:
-            from .plotting import plot_reaction    # matplotlib, as above
-            rpath = Path(args.plot).with_name(Path(args.plot).stem + "_reaction.png")
-            plot_reaction(Motion(res.trajectory, res.reaction), rpath)
-            say(f"wrote {rpath}")
+            try:
+                json_path.parent.mkdir(parents=True, exist_ok=True)
+                json_path.write_text(text + "\n", encoding="utf-8")
+            except OSError as e:
+                return fail_input(f"--json: cannot write {json_path}: {e.strerror or e}")
+            say(f"wrote {json_path}")
+    if plot_path is not None:
+        from .plotting import plot_plan, plot_reaction     # matplotlib: loaded only when a plot is asked for
+        written = [plot_path]
+        if res.reaction is not None:        # the reaction's figure beside it, in the same format
+            written.append(plot_path.with_name(plot_path.stem + "_reaction" + plot_path.suffix))
+        try:
+            plot_path.parent.mkdir(parents=True, exist_ok=True)
+            plot_plan(res, scenario, plot_path)
+            if res.reaction is not None:
+                plot_reaction(Motion(res.trajectory, res.reaction), written[1])
+        except OSError as e:
+            return fail_input(f"--plot: cannot write {plot_path}: {e.strerror or e}")
+        for path in written:
+            say(f"wrote {path}")
     return 0 if res.ok else 2
+
+
+def _figure_formats() -> set:
+    """Return the file formats matplotlib writes (suffixes without the dot); imports matplotlib (``--plot`` only)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+    return set(FigureCanvasBase.get_supported_filetypes())
 
 
 def run(argv=None) -> int:

@@ -110,6 +110,10 @@ def closed_loop(params_file, out: Path, speedup: float, timeout_s: float, target
                 t_start = time.monotonic()      # the timeout is the loop's: the start-up (a first JIT) is not in it
                 while time.monotonic() - t_start < timeout_s:
                     time.sleep(0.05)
+                    refused = planner.diagnostics.last_rejection
+                    if refused is not None and refused[0] == "target_pose":     # no plan follows
+                        reason = f"the planner refused the target ({refused[1]}): {refused[2]}"
+                        break
                     last = planner.last_outcome
                     if last is not None and not last.ok and last.code != "cancelled":
                         reason = f"planning failed ({last.code}): {last.reason}"
@@ -152,9 +156,9 @@ def _plot(res, scenario, path: Path) -> None:
     except ImportError:
         print("[demo] spacerobot_planner.tools.plotting not available: no figure")
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
     sc = scenario.with_scene(scenario.scene)
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         plot_plan(res, sc, path)
         print(f"[demo] figure: {path}")
     except Exception as e:        # noqa: BLE001 - a figure must not fail the demo
@@ -176,6 +180,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not args.speedup > 0:
         ap.error("--speedup must be > 0")
+    above = Path(args.out)            # a folder, or one that can be made (the figure comes mid-loop)
+    while not above.exists() and above != above.parent:
+        above = above.parent
+    if not above.is_dir():
+        ap.error(f"--out {args.out}: {above} is a file, not a folder")
     try:
         offline_facts(args.params_file)
     except ValueError as e:
