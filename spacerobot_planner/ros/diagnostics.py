@@ -63,6 +63,12 @@ class NodeDiagnostics:
         with self._lock:
             self._rejected = None
 
+    @property
+    def last_rejection(self) -> tuple | None:
+        """(source, code, reason) of the last bad input (a topic's message, a goal, a parameter), or None."""
+        with self._lock:
+            return None if self._rejected is None else self._rejected[:3]
+
     def reject(self, source: str, code: str, reason: str) -> tuple:
         """
         Count a bad input; return (the line to log or None, whether the status changed).
