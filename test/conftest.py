@@ -23,21 +23,54 @@ ROS_DOMAINS = range(1, 233)
 DOMAIN_LOCK_DIR = os.path.join(tempfile.gettempdir(), "spacerobot_planner-test-ros-domains")
 
 
-def claim_ros_domain(lock_dir: str = DOMAIN_LOCK_DIR, domains=ROS_DOMAINS):
+#: Fast DDS's (and the RTPS standard's) ports: domain d's participants bind UDP ports in
+#: [PORT_BASE + DOMAIN_GAIN * d, PORT_BASE + DOMAIN_GAIN * (d + 1))
+PORT_BASE, DOMAIN_GAIN = 7400, 250
+
+
+def domains_in_use(tables=("/proc/net/udp", "/proc/net/udp6")) -> set:
     """
-    Claim a ROS domain that no concurrent test run on this machine holds.
+    Return the ROS domains whose DDS ports some process on this machine has bound (a node running there).
+
+    From the kernel's UDP socket tables (the local port of each socket): a process outside the
+    test runs' locks (a node someone started, a benchmark, another tool's run in a domain it
+    chose) is seen too.  A socket in that range that is not DDS's only makes a domain look taken.
+    """
+    used = set()
+    for table in tables:
+        try:
+            with open(table, encoding="ascii") as f:
+                rows = f.read().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            fields = row.split()
+            if len(fields) > 1 and ":" in fields[1]:
+                port = int(fields[1].rsplit(":", 1)[1], 16)
+                if port >= PORT_BASE:
+                    used.add((port - PORT_BASE) // DOMAIN_GAIN)
+    return used
+
+
+def claim_ros_domain(lock_dir: str = DOMAIN_LOCK_DIR, domains=ROS_DOMAINS, in_use=None):
+    """
+    Claim a ROS domain that no concurrent test run on this machine holds and no other process uses.
 
     Each domain has a lock file in ``lock_dir``; the first domain whose lock this process
     gets (``flock``, non-blocking) is claimed and held until the returned file is closed or
     the process ends (the kernel drops the lock then, so a crashed run never leaks one).
-    The search starts at a point derived from the process id, so concurrent runs rarely
-    contend for the same file.  Returns (domain id, open lock file).
+    Domains ``in_use`` (None: :func:`domains_in_use`, the machine's bound DDS ports) are passed
+    over while any other is free: a node outside the test runs in the same domain (a benchmark,
+    someone's ``ros2 run``) had sent a test its own ``joint_states``.  The search starts at a
+    point derived from the process id, so concurrent runs rarely contend for the same file.
+    Returns (domain id, open lock file).
     """
     os.makedirs(lock_dir, exist_ok=True)
     domains = list(domains)
+    used = domains_in_use() if in_use is None else set(in_use)
     first = os.getpid() % len(domains)
-    for k in range(len(domains)):
-        domain = domains[(first + k) % len(domains)]
+    order = [domains[(first + k) % len(domains)] for k in range(len(domains))]
+    for domain in [d for d in order if d not in used] + [d for d in order if d in used]:
         f = open(os.path.join(lock_dir, f"{domain}.lock"), "w")
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -8,12 +8,12 @@ import os
 import subprocess
 import sys
 
-from conftest import claim_ros_domain
+from conftest import claim_ros_domain, domains_in_use
 
 _CLAIM_AND_HOLD = r"""
 import sys
 from conftest import claim_ros_domain
-domain, lock = claim_ros_domain(sys.argv[1], range(1, 4))
+domain, lock = claim_ros_domain(sys.argv[1], range(1, 4), in_use=())
 print(domain, flush=True)
 sys.stdin.readline()            # hold the claim until told to go
 """
@@ -30,7 +30,7 @@ def _claimer(lock_dir):
 def test_concurrent_runs_get_different_domains_and_a_finished_run_frees_its_own(tmp_path):
     a, dom_a = _claimer(tmp_path)
     b, dom_b = _claimer(tmp_path)
-    mine, lock = claim_ros_domain(str(tmp_path), range(1, 4))
+    mine, lock = claim_ros_domain(str(tmp_path), range(1, 4), in_use=())
     assert len({dom_a, dom_b, mine}) == 3, (dom_a, dom_b, mine)
     a.communicate("\n", timeout=30)          # run a ends: its domain is free again
     c, dom_c = _claimer(tmp_path)
@@ -38,6 +38,43 @@ def test_concurrent_runs_get_different_domains_and_a_finished_run_frees_its_own(
     for p in (b, c):
         p.communicate("\n", timeout=30)
     lock.close()
+
+
+def test_a_domain_another_process_uses_is_passed_over_while_another_is_free(tmp_path):
+    """
+    A UDP socket bound in domain d's DDS port range (as a node there binds): the claim takes d + 1, then d.
+
+    Oracle: the socket this test binds (in a process of its own, as a node outside the test runs
+    would be) and the RTPS port mapping written here, 7400 + 250 × domain.  d and d + 1: two
+    domains nothing on the machine uses now.
+    """
+    import socket
+    used = domains_in_use()
+    d = next(d for d in range(1, 231) if d not in used and d + 1 not in used)
+    port = 7400 + 250 * d + 17
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import socket, sys\n"
+        "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)\n"
+        f"s.bind(('127.0.0.1', {port}))\n"
+        "print('bound', flush=True)\n"
+        "sys.stdin.readline()\n")], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "bound"
+        assert d in domains_in_use()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:     # the port is really taken
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                pass
+            else:
+                raise AssertionError("the holder's port was free")
+        first, lock_a = claim_ros_domain(str(tmp_path), [d, d + 1])
+        second, lock_b = claim_ros_domain(str(tmp_path), [d, d + 1])     # only d left: taken, not refused
+        assert (first, second) == (d + 1, d)
+        lock_a.close()
+        lock_b.close()
+    finally:
+        holder.communicate("\n", timeout=30)
 
 
 def test_this_run_holds_its_domain():
