@@ -29,6 +29,10 @@ def main(argv=None) -> int:
         print(__doc__)
         return 0 if argv else 1
     name, rest = argv[0], argv[1:]
+    if name == "all" and any(a in ("-h", "--help") for a in rest):     # not the first benchmark's help
+        print(f"bench all [ARGS]: runs {', '.join(BENCHES)} in turn, each with ARGS, stopping at the first that "
+              f"fails; bench NAME --help: one benchmark's options")
+        return 0
     names = BENCHES if name == "all" else (name,)
     for n in names:
         if n not in BENCHES + SUMMARIES:
