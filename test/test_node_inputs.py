@@ -215,7 +215,7 @@ def test_a_parameter_file_that_does_not_state_the_robot_is_refused_and_one_for_n
     other.write_text("/**/planner:\n  ros__parameters:\n    rate_hz: 20.0\n")
 
     def problems(*args):
-        """The node's start, checked where the executable checks it (its parameters declared, nothing begun)."""
+        """Start the node, checked where the executable checks it (its parameters declared, nothing begun)."""
         argv = ["mock_arm_node", "--ros-args", *map(str, args)]
         seen = {}
 

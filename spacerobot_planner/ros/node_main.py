@@ -189,9 +189,17 @@ def file_problems(node: Node, argv=()) -> tuple:
 
 
 def stray_arguments(argv) -> list:
-    """Return the arguments of ``argv`` (its first, the program, left out) outside its ``--ros-args`` sections."""
+    """
+    Return the arguments of ``argv`` (its first, the program, left out) outside its ``--ros-args`` sections.
+
+    None where rcl refuses the ROS arguments themselves (a parameter file it cannot parse): ``rclpy.init``
+    says so then.
+    """
     from rclpy.utilities import remove_ros_args
-    return list(remove_ros_args(args=list(argv))[1:])
+    try:
+        return list(remove_ros_args(args=list(argv))[1:])
+    except RuntimeError:            # rclpy's RCLInvalidROSArgsError
+        return None
 
 
 def usage(exe_name: str) -> str:
@@ -243,7 +251,7 @@ def run_node(make_node: Callable[[Callable[[Node], None]], Node], exe_name: str,
     """
     stop = threading.Event()
     argv = sys.argv if args is None else args
-    stray = stray_arguments(argv)
+    stray = stray_arguments(argv) or []
     if any(a in ("-h", "--help") for a in stray):
         print(usage(exe_name))
         return 0
