@@ -87,8 +87,8 @@ def _motion_summary(r, processed) -> list:
     active = ", ".join(f"{lab} {100 * c / len(traj):.0f} %" for lab, c in
                        sorted(zip(labels, counts), key=lambda lc: -lc[1]))
     lines = [f"published trajectory (the time-optimal one re-timed where the controller's interpolation of the "
-             f"published points overshoots a limit): {traj.duration_s:.2f} s, {len(traj)} points (published: "
-             f"{len(processed.trajectory)}, "
+             f"published points overshoots a limit): {traj.duration_s:.2f} s, {len(processed.trajectory)} points "
+             f"published (of {len(traj)} dense samples; "
              f"{'certified' if processed.certified else 'NOT certified'}, clearance "
              f"{processed.min_clearance_m:.4f} m); active limits: {active}"]
 
