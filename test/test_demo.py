@@ -30,6 +30,6 @@ def test_a_target_the_planner_refuses_ends_the_demo_saying_why(tmp_path):
 def test_an_out_that_is_a_file_is_refused_before_the_loop(tmp_path):
     (tmp_path / "taken").write_text("x")
     proc = _demo("--out", str(tmp_path / "taken" / "figs"), cwd=tmp_path)
-    assert proc.returncode == 2 and f"--out {tmp_path / 'taken' / 'figs'}: " in proc.stderr, proc.stderr[-3000:]
+    assert proc.returncode == 2 and f"--out: {tmp_path / 'taken' / 'figs'}: " in proc.stderr, proc.stderr[-3000:]
     assert "is a file, not a folder" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-3000:]
     assert "[demo] planner up" not in proc.stdout, proc.stdout

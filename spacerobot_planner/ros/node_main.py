@@ -188,7 +188,7 @@ def file_problems(node: Node, argv=()) -> tuple:
             f"docs/parameters.md lists the required keys)"), warnings
 
 
-def stray_arguments(argv) -> list:
+def stray_arguments(argv) -> list | None:
     """
     Return the arguments of ``argv`` (its first, the program, left out) outside its ``--ros-args`` sections.
 

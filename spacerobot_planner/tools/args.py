@@ -13,7 +13,7 @@ import numpy as np
 from ..config import check_value, load_scenario
 
 __all__ = ["ArgError", "Parser", "fail_input", "posture", "with_cells", "parse", "load", "output_file",
-           "option_value"]
+           "folder_to_write", "option_value"]
 
 
 class ArgError(Exception):
@@ -65,14 +65,24 @@ def output_file(path: str, flag: str, formats=None, default_suffix: str = "") ->
         if p.suffix.lower().lstrip(".") not in formats:
             raise ValueError(f"{flag}: {path}: '{p.suffix}' is not a format it writes; one of "
                              f"{', '.join('.' + f for f in sorted(formats))}")
-    above = p.parent
+    folder_to_write(p.parent, flag, path)
+    return p
+
+
+def folder_to_write(folder, flag: str, given=None) -> None:
+    """
+    Check that ``folder`` exists or can be made, for writing (ValueError naming ``flag`` and ``given``).
+
+    The nearest of it and the folders above it that exists must be a folder this process may write in.
+    """
+    given = folder if given is None else given
+    above = Path(folder)
     while not above.exists() and above != above.parent:
         above = above.parent
     if not above.is_dir():
-        raise ValueError(f"{flag}: {path}: {above} is a file, not a folder")
+        raise ValueError(f"{flag}: {given}: {above} is a file, not a folder")
     if not os.access(above, os.W_OK | os.X_OK):
-        raise ValueError(f"{flag}: {path}: cannot write in {above} (permission denied)")
-    return p
+        raise ValueError(f"{flag}: {given}: cannot write in {above} (permission denied)")
 
 
 def posture(robot, values, flag: str) -> np.ndarray:

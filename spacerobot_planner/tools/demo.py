@@ -26,6 +26,7 @@ from ..config import load_params_file, load_scenario, scenario_from_params, spec
 from ..cspace import build_cspace
 from ..ik import capture_posture, grasp_ik
 from ..joint_space import wrap_angle_rad
+from .args import folder_to_write
 
 _DEFAULT_PARAMS = Path(__file__).resolve().parents[2] / "config" / "paper_3dof.yaml"
 
@@ -180,11 +181,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not args.speedup > 0:
         ap.error("--speedup must be > 0")
-    above = Path(args.out)            # a folder, or one that can be made (the figure comes mid-loop)
-    while not above.exists() and above != above.parent:
-        above = above.parent
-    if not above.is_dir():
-        ap.error(f"--out {args.out}: {above} is a file, not a folder")
+    try:                              # a folder, or one that can be made (the figure comes mid-loop)
+        folder_to_write(args.out, "--out")
+    except ValueError as e:
+        ap.error(str(e))
     try:
         offline_facts(args.params_file)
     except ValueError as e:
