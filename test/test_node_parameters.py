@@ -54,13 +54,14 @@ def test_each_node_declares_only_what_it_reads(graph):
 def test_descriptors_carry_ranges_and_allowed_values(graph):
     g = graph(scene_params("3dof"), with_arm=False)
     d = _describe(g, "spacerobot_planner", ["safety_margin_m", "planner.solver", "grid.cells", "robot.link_lengths_m",
-                                            "planner.max_grid_nodes"])
+                                            "planner.max_grid_nodes", "acs.mode"])
     fr = d["safety_margin_m"].floating_point_range[0]
     assert (fr.from_value, fr.to_value) == (0.0, 1.0) and d["safety_margin_m"].type == ParameterType.PARAMETER_DOUBLE
     ir = d["planner.max_grid_nodes"].integer_range[0]
     assert (ir.from_value, ir.to_value) == (4, 200_000_000)
     allowed = d["planner.solver"].additional_constraints
     assert allowed.startswith("one of:") and all(s in allowed for s in SOLVERS)
+    assert d["acs.mode"].additional_constraints == "one of: held, free_floating"     # as docs/reaction.md names them
     assert "Range [2, 4096]" in d["grid.cells"].additional_constraints
     assert d["robot.link_lengths_m"].read_only
 

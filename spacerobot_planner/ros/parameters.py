@@ -41,8 +41,13 @@ def _solvers():
     return tuple(SOLVERS)
 
 
+def _acs_modes():
+    from ..spacecraft import ACS_MODES
+    return tuple(ACS_MODES)
+
+
 #: string parameters with a fixed set of values: name -> callable returning them
-CHOICES = {"planner.solver": _solvers}
+CHOICES = {"planner.solver": _solvers, "acs.mode": _acs_modes}
 
 
 def check_choice(name: str, value) -> None:

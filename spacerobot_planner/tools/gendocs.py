@@ -56,11 +56,9 @@ def _value(v) -> str:
 def render_parameters() -> str:
     """Return docs/parameters.md: every parameter of ``config.PARAMETERS``, grouped by section."""
     from ..config import PARAMETERS
-    from ..spacecraft import ACS_MODES
     from ..ros.parameters import CHOICES, MOCK_ARM_PARAMETERS, PLANNER_PARAMETERS
 
     choices = {name: tuple(f()) for name, f in CHOICES.items()}
-    choices.setdefault("acs.mode", tuple(ACS_MODES))
     mock_arm = {schema: decl for decl, schema in MOCK_ARM_PARAMETERS.items()}
     groups: dict = {}
     for p in PARAMETERS:
