@@ -48,7 +48,7 @@ import numpy as np
 from .motion import MotionValidator
 from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, timed_join
 from .settings import SessionSettings
-from .spacecraft import free_floating_response
+from .spacecraft import free_floating_rates, free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import (Lowering, Resampled, Trajectory, controller_check, lowering_factors, resample, segment_peaks,
                          segment_wheel_peaks, shared_path_models)
@@ -636,13 +636,15 @@ def predicted_drift(scenario, dense: Trajectory, indices) -> TrajectoryPart:
     Columns: the attitude joint (rad, as it drifts: what an attitude sensor would read) and
     ``body_x``, ``body_y`` (the body centre's displacement from the start, inertial frame,
     metres), at ``dense``'s points ``indices`` (``spacecraft.free_floating_response`` along
-    the dense points; velocities by finite differences, accelerations 0).
+    the dense points; velocities from the arm's, ``spacecraft.free_floating_rates``: 0 where the
+    arm is at rest, which finite differences were not; accelerations 0).
     """
     robot = scenario.robot
     resp = free_floating_response(robot, scenario.masses, dense.positions_rad)
     q = np.column_stack([resp.q_full_rad[:, 0], resp.body_position_m])
     t = np.asarray(dense.times_s, dtype=float)
-    v = np.gradient(q, t, axis=0) if len(t) > 1 else np.zeros_like(q)
+    att_rate, body_v = free_floating_rates(robot, scenario.masses, resp.q_full_rad, dense.velocities_rad_s)
+    v = np.column_stack([att_rate, body_v])
     idx = np.asarray(indices)
     return TrajectoryPart((robot.joint_names[0], "body_x", "body_y"), t[idx].copy(), q[idx], v[idx],
                           np.zeros_like(q[idx]))

@@ -42,7 +42,8 @@ import numpy as np
 from numba import njit
 
 __all__ = ["MassProperties", "AcsSettings", "WheelModel", "FreeFloatingResponse", "ACS_MODES", "system_com_m",
-           "angular_momentum_Nms", "momentum_rate_Nm", "momentum_map", "wheel_load", "free_floating_response"]
+           "angular_momentum_Nms", "momentum_rate_Nm", "momentum_map", "wheel_load", "free_floating_response",
+           "free_floating_rates"]
 
 ACS_MODES = ("held", "free_floating")
 
@@ -412,6 +413,27 @@ class FreeFloatingResponse:
     def attitude_drift_rad(self) -> np.ndarray:
         """(K,) attitude that happens minus the planned one, rad."""
         return self.q_full_rad[:, 0] - self.planned_q_full_rad[:, 0]
+
+
+def free_floating_rates(robot, masses: MassProperties, q_full, qd_planned) -> tuple:
+    """
+    Return the free-floating attitude rate and body velocity where the arm moves at ``qd_planned``.
+
+    q_full: (K, n) the configurations that happen (the attitude as it drifts); qd_planned: (K, dof)
+    the planned joints' rates (the attitude's own, where it is planned, is not executed: not read;
+    locked joints do not move).  θ̇1 = −(Σ_{k>1} H_k q̇_k) / H_1; the body centre moves opposite
+    the system centre of mass relative to it (which stays put): −d/dt :func:`system_com_m`.
+    Returns ((K,) rad/s, (K, 2) m/s); 0 where the arm is at rest.
+    """
+    q = np.asarray(q_full, dtype=float)
+    qd = _planned_rates(robot, qd_planned)
+    qd[..., 0] = _attitude_rate_integrand(robot, masses, q, qd)
+    cl, m, _ = _tables(robot, masses)
+    phi = np.cumsum(q, axis=-1)
+    phid = np.cumsum(qd, axis=-1)
+    e_perp = np.stack([-np.sin(phi), np.cos(phi)], axis=-1) * phid[..., None]      # d e_j / dt
+    com_rate = np.einsum("k,kj,...jd->...d", m[1:], cl, e_perp) / m.sum()        # the body's centre: 0 in it
+    return qd[..., 0], -com_rate
 
 
 def _attitude_rate_integrand(robot, masses, q_full, dq_full):

@@ -286,6 +286,31 @@ def test_the_node_chain_publishes_the_arm_only_and_predicts_the_drift(capture):
     assert doc["predicted_drift"]["joint_names"] == ["attitude", "body_x", "body_y"]
 
 
+def test_the_predicted_drifts_rates_are_the_drifts_own_zero_at_rest(capture):
+    """
+    The predicted drift's velocities: 0 where the arm is at rest, the oracle's drift's time derivative elsewhere.
+
+    They had been finite differences of the positions: 0.002 rad/s of attitude and 0.9 mm/s of
+    body at the start, where nothing moves (an audit with its own momentum balance).  Oracle: the
+    test's simulator on the dense trajectory, differentiated at the published points (central
+    differences over the dense points around each).
+    """
+    sc, res = capture
+    processed = post_process(sc, res.path_rad, start_rad=sc.start_rad,
+                             motions=MotionValidator.for_scene(sc.robot, sc.scene))
+    drift, dense, idx = processed.predicted_drift, processed.dense, processed.indices
+    at_rest = np.all(dense.velocities_rad_s[idx] == 0.0, axis=1)
+    assert at_rest[0] and at_rest[-1]
+    assert np.all(drift.velocities_rad_s[at_rest] == 0.0), drift.velocities_rad_s[at_rest]
+    q, body = _judge(sc, dense.positions_rad, sub=8)
+    oracle = np.gradient(np.column_stack([q[:, 0], body]), dense.times_s, axis=0)[idx]
+    inner = slice(1, -1)
+    scale = np.max(np.abs(oracle), axis=0)
+    assert np.all(scale > 1e-4)                              # the body turns and moves (not vacuous)
+    assert np.all(np.abs(drift.velocities_rad_s[inner] - oracle[inner]) < 0.02 * scale), \
+        np.max(np.abs(drift.velocities_rad_s[inner] - oracle[inner]) / scale, axis=0)
+
+
 def test_the_cli_json_holds_every_joint_and_the_bodys_displacement(tmp_path, capsys):
     js = tmp_path / "ff.json"
     rc = main(["--params-file", FF, "--json", str(js), "--quiet"])
