@@ -830,8 +830,11 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
                   f"needs ({what}; tried: single motions, quintic or the field's path plus {harm} sine terms per "
                   f"joint, within the joint bounds; motions that loop to turn the spacecraft further are not)")
     else:
+        skipped = n_candidates - n_checked
         reason = (f"free floating: {n_candidates} arm motions turn the spacecraft by the needed attitude change "
-                  f"({what}), but the {n_checked} certified come within the safety margin in the inertial "
-                  f"frame (best clearance {best_clear:.3f} m, margin {scene.safety_margin_m} m)")
+                  f"({what}), but none of the {n_checked} checked in the inertial frame stays clear of the safety "
+                  f"margin and grasps (best clearance {best_clear:.3f} m, margin {scene.safety_margin_m} m)"
+                  + (f"; {skipped} not checked (beyond the {SEARCH['max_checks']} shortest of a family, or off "
+                     f"the joint bounds or the attitude change once refined to the final path)" if skipped else ""))
     return FreeFloatingCapture(False, reason, np.zeros((0, robot.dof)), None, None, needed, achievable, None, None,
                                math.nan, math.nan, n_candidates, n_checked, search_s, verify_s)
