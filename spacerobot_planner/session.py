@@ -112,6 +112,7 @@ class Request:
     on_progress: Callable | None = None          # worker.Progress while planning
     cancelled: str | None = None                 # reason, once cancelled
     keep: bool = False                           # finish and publish although superseded (a stream)
+    plan_cancelled: bool = False                 # its plan was cancelled in the backend (superseded)
     attempt: int = 0                             # planned again after a join failed (RETRY)
     waiting: bool = False                        # waited for the first joint state
     time_jumps: int = 0                          # planned again after ROS time jumped (TIME_JUMPS_MOST)
@@ -450,10 +451,14 @@ class CaptureSession:
             if active is not None:
                 period = float(req.settings.min_publish_period_s)
                 starving = period > 0 and time.monotonic() - self.last_publish_t >= period
-                if starving and active.on_done is None and req.on_done is None:
+                if starving and active.on_done is None and req.on_done is None and not active.plan_cancelled:
                     active.keep = True          # a stream of targets: let this one be published
                 elif self.backend is not None:
-                    self.backend.cancel(active.gen)   # supersede the plan in progress
+                    # supersede the plan in progress, kept or not (a goal after a stream's target had
+                    # cancelled a kept plan, which then ended as an outcome "cancelled" with no reason)
+                    active.keep = False
+                    active.plan_cancelled = True
+                    self.backend.cancel(active.gen)
             self.lock.notify_all()
             return req
 
