@@ -265,6 +265,12 @@ def test_the_executables_refuse_a_file_without_the_robot_and_arguments_outside_r
     ours = [line for line in err.splitlines() if line.startswith(f"{exe}: ")]
     assert rc == 1 and len(ours) == 1 and "state no robot.link_lengths_m" in ours[0], err
     assert "configured" not in err and "publishing" not in err, err          # nothing started
+    if exe == "planner_node":      # renamed: the shipped file's /**/spacerobot_planner section (grid.cells) not its
+        rc, out, err = run("--ros-args", "--params-file", os.path.join(CONFIG_DIR, "paper_3dof.yaml"),
+                           "-r", "__node:=planner", "-r", "__ns:=/robot1")
+        ours = [line for line in err.splitlines() if line.startswith(f"{exe}: ")]
+        assert rc == 1 and len(ours) == 1 and "state no grid.cells for /robot1/planner: the section(s) " \
+            "/**/spacerobot_planner set them, but not for this node's name" in ours[0], err
     rc, out, err = run("--params-file", os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
     assert rc == 2 and err.startswith(f"{exe}: unrecognised argument(s) --params-file "), err
     assert "after --ros-args" in err, err

@@ -183,9 +183,14 @@ def file_problems(node: Node, argv=()) -> tuple:
     missing = [name for name in required if name not in stated]
     if not applying or not missing:
         return None, warnings
-    return (f"the parameter file(s) {', '.join(sorted(applying))} state no {', '.join(missing)} for {fqn}: a "
-            f"scenario file must state the robot (a key misspelled or left out would plan the default arm; "
-            f"docs/parameters.md lists the required keys)"), warnings
+    # sections that set a missing name for another node (a node renamed with __node:=, a namespace)
+    elsewhere = sorted({key for path in files for key, params in _file_sections(path)
+                        if not section_regex(key).fullmatch(fqn) and any(name in params for name in missing)})
+    why = (f"the section(s) {', '.join(elsewhere)} set them, but not for this node's name (a node renamed "
+           f"with __node:= needs a section of its own, e.g. /**/{node.get_name()})" if elsewhere else
+           "a key misspelled or left out would plan the default arm")
+    return (f"the parameter file(s) {', '.join(sorted(applying))} state no {', '.join(missing)} for {fqn}: {why}; "
+            f"a scenario file must state the robot and grid (docs/parameters.md lists the required keys)"), warnings
 
 
 def stray_arguments(argv) -> list | None:
