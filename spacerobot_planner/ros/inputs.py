@@ -135,9 +135,25 @@ class Inputs:
         return target
 
     def joint_goal_from_msg(self, msg: JointState, what: str) -> np.ndarray:
-        """Return the planned joints' goal of a JointState; ValueError (named ``what``) when unusable."""
+        """
+        Return the planned joints' goal of a JointState; ValueError (named ``what``) when unusable.
+
+        A joint the robot does not have, or one the plans hold (not planned) asked to be away from
+        where they hold it, is refused: the goal would be planned without it, silently.
+        """
         robot = self.node.robot
-        return robot.validate_q(conv.joint_state_positions(msg, robot.planned_names, what), what)
+        q = robot.validate_q(conv.joint_state_positions(msg, robot.planned_names, what), what)
+        unknown = [n for n in msg.name if n not in robot.joint_names]
+        if unknown:
+            raise ValueError(f"{what}: joint(s) {', '.join(unknown)} not of this robot (its joints: "
+                             f"{', '.join(robot.joint_names)})")
+        off = locked_mismatches(robot, msg.name, msg.position)
+        if off:
+            said = ", ".join(f"{name} at {math.degrees(got):.1f}° (held at {math.degrees(held):.1f}°)"
+                             for name, got, held in off)
+            raise ValueError(f"{what}: {said}: not a planned joint, so no plan moves it (robot.planned_joints: "
+                             f"{', '.join(robot.planned_names)}); leave it out of the goal or plan that joint")
+        return q
 
     def on_target(self, msg: PoseStamped):
         node = self.node
