@@ -138,15 +138,12 @@ class Inputs:
         """
         Return the planned joints' goal of a JointState; ValueError (named ``what``) when unusable.
 
-        A joint the robot does not have, or one the plans hold (not planned) asked to be away from
-        where they hold it, is refused: the goal would be planned without it, silently.
+        A joint the plans hold (not planned) asked to be away from where they hold it is refused: the
+        goal would be planned without it, silently.  Joints the robot does not have are ignored (a
+        JointState of a whole arm, its gripper's joints with it), as on ``joint_states``.
         """
         robot = self.node.robot
         q = robot.validate_q(conv.joint_state_positions(msg, robot.planned_names, what), what)
-        unknown = [n for n in msg.name if n not in robot.joint_names]
-        if unknown:
-            raise ValueError(f"{what}: joint(s) {', '.join(unknown)} not of this robot (its joints: "
-                             f"{', '.join(robot.joint_names)})")
         off = locked_mismatches(robot, msg.name, msg.position)
         if off:
             said = ", ".join(f"{name} at {math.degrees(got):.1f}° (held at {math.degrees(held):.1f}°)"
