@@ -922,6 +922,8 @@ def result_values(res, reaction) -> dict:
                 "free_floating_attitude_change_deg", "free_floating_tip_miss_m"]
         if getattr(reaction, "acs_mode", None) == "free_floating":
             keys += ["free_floating_body_displacement_m", "free_floating_approach_error_deg"]
+        else:                # the attitude held, the body still translates: where the tip then is
+            keys += ["held_body_displacement_m", "held_tip_miss_m"]
         for key in keys:
             value = getattr(reaction, key, None)
             if value is not None:

@@ -214,6 +214,36 @@ def _variant(tmp_path, base, name, **sections):
     return str(f)
 
 
+def test_a_held_attitudes_body_translation_and_tip_miss_are_said_and_right(tmp_path, capsys):
+    """
+    With the attitude held the body still translates (the system's centre of mass stays put): said, and right.
+
+    The audit measured a 0.106 m miss on the servicer scene, reported in the JSON only.  Oracle: the
+    test's bodies and masses (oracles.bodies_world, mass_table), the centre of mass held fixed, the
+    tip from oracles.arm_points, the grasp point from the target's geometry in the file.
+    """
+    from oracles import arm_points, bodies_world, mass_table
+    from spacerobot_planner.config import load_scenario
+    js = tmp_path / "s.json"
+    rc, out, err = run(["--params-file", S3, "--json", str(js), "--quiet"], capsys)
+    assert rc == 0, err
+    d, sc = json.loads(js.read_text()), load_scenario(S3)
+    q = sc.robot.full(np.array(d["path_rad"])[[0, -1]])
+    m, _ = mass_table(sc.masses)
+    centres, _ = bodies_world(sc.robot, q, np.zeros((2, 2)))
+    com = np.einsum("b,kbd->kd", m, centres) / m.sum()
+    body = com[0] - com[1]                                  # where the body centre ends: the CoM back in place
+    tip = arm_points(sc.robot, q[1:])[0, -1] + body
+    miss = float(np.linalg.norm(tip - sc.scene.target.grasp_point_m))
+    re = d["reaction"]
+    assert re["held_body_displacement_m"] == pytest.approx(np.linalg.norm(body), abs=1e-9)
+    assert re["held_tip_miss_m"] == pytest.approx(miss, abs=1e-9) and miss > 0.05
+    said = [line for line in out.splitlines() if line.startswith("held attitude: ")]
+    assert said == [f"held attitude: the body still translates {np.linalg.norm(body):.3f} m (the centre of mass "
+                    f"stays put), so the tip ends {miss:.3f} m from the grasp point (beyond "
+                    f"grasp.position_tolerance_m {re['position_tolerance_m']:g} m)"], out
+
+
 def test_servicer_json_has_trajectory_and_reaction(tmp_path, capsys):
     js = tmp_path / "s.json"
     rc, out, err = run(["--params-file", S3, "--json", str(js), "--quiet"], capsys)

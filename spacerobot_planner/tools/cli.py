@@ -103,6 +103,11 @@ def _motion_summary(r, processed) -> list:
                  f"{r.free_floating_attitude_change_deg:.2f}°, body displacement "
                  f"{r.free_floating_body_displacement_m:.3f} m, tip miss {r.free_floating_tip_miss_m:.3f} m"
                  f"{', drifted arm collides' if r.free_floating_collides else ''}")
+    if r.acs_mode == "held" and r.held_tip_miss_m == r.held_tip_miss_m:
+        beyond = (f" (beyond grasp.position_tolerance_m {r.position_tolerance_m:g} m)"
+                  if r.held_tip_miss_m > r.position_tolerance_m else "")
+        lines.append(f"held attitude: the body still translates {r.held_body_displacement_m:.3f} m (the centre of "
+                     f"mass stays put), so the tip ends {r.held_tip_miss_m:.3f} m from the grasp point{beyond}")
     return lines
 
 
