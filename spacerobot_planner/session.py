@@ -760,6 +760,9 @@ class CaptureSession:
                 self.log("error", f"plan #{req.gen} crashed: {out.what}\n{out.traceback.rstrip()}")
             self._log_flood(dropped.code, f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
+        # the lines a flood held back (this plan's "planning" among them) before its own result's: at the
+        # worker's idle they came after "plan #N ok", and the log seemed to end on a plan never finished
+        self._flush_flood()
         if isinstance(out, PlanCrash):
             return self._failure(req, "internal_error", f"planning crashed: {out.what}", tb=out.traceback)
         if isinstance(out, PlanError):

@@ -401,6 +401,24 @@ def test_a_flood_of_requests_logs_a_few_lines_a_second_and_says_how_many_it_left
         "plan #39 superseded: superseded by request #40 (34 more such lines left out before this one)"]
 
 
+def test_a_plan_whose_planning_line_a_flood_held_back_says_it_before_its_result(flat, backend, monkeypatch):
+    """The held-back "planning #N" line comes before "plan #N ok", not after it at the worker's idle (client audit)."""
+    import spacerobot_planner.session as session_module
+    now = [100.0]
+    monkeypatch.setattr(session_module.time, "monotonic", lambda: now[0])
+    ses = _session(flat, backend)
+    ses.joint_state(ses.scenario.start_rad, 999 * S)
+    for k in range(session_module.FLOOD_LINES + 3):           # the window's lines spent (earlier requests')
+        ses._log_flood("planning", f"planning #{100 + k}")
+    req = ses.submit("a target", target=_target(ses, -3.20, -2.70))
+    assert ses.run_once().ok
+    lines = [t for _, t in ses.log_lines]
+    said = [i for i, t in enumerate(lines) if t.startswith(f"planning #{req.gen} ")]
+    done = [i for i, t in enumerate(lines) if t.startswith(f"plan #{req.gen} ok")]
+    assert len(said) == 1 and len(done) == 1 and said[0] < done[0], lines[-6:]
+    assert "3 more such lines left out before this one" in lines[said[0]], lines[said[0]]
+
+
 def test_stamp_for_a_join_too_close_asks_for_another_plan():
     traj = SimpleNamespace(duration_s=0.06)
     now, lead = 100 * S, 0.35
