@@ -47,6 +47,11 @@ def _joint_goal(names, q):
     return g
 
 
+def _without_flag(goal):
+    goal.use_joint_goal = False
+    return goal
+
+
 def _start(g):
     robot = g.scenario.robot
     g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
@@ -170,7 +175,9 @@ def test_cancel_mid_plan_ends_the_plan_promptly(graph, record_property):
     (lambda: _joint_goal(("attitude", "shoulder", "elbow"), np.radians([0.0, 200.0, 30.0])),
      ["goal.joint_goal", "shoulder", "outside its bounds"]),
     (lambda: _joint_goal(("attitude", "shoulder"), [0.0, 0.0]), ["goal.joint_goal", "missing joint", "elbow"]),
-], ids=["nan_pose", "wrong_frame", "joint_goal_out_of_bounds", "joint_goal_missing_joint"])
+    (lambda: _without_flag(_joint_goal(("attitude", "shoulder", "elbow"), [0.0, 2.0, 1.0])),
+     ["goal.target_pose", "joint_goal is filled but use_joint_goal is false"]),
+], ids=["nan_pose", "wrong_frame", "joint_goal_out_of_bounds", "joint_goal_missing_joint", "joint_goal_flag_left_out"])
 def test_bad_goal_is_aborted_with_the_reason_and_the_node_serves_on(graph, make_goal, fragments):
     g = graph(scene_params("3dof"), with_arm=False)
     _start(g)

@@ -95,7 +95,13 @@ class PlanCaptureServer:
             q = node.inputs.joint_goal_from_msg(goal.joint_goal, "goal.joint_goal")
             return (f"plan_capture goal: joint goal {np.round(np.degrees(q), 2).tolist()}°",
                     {"joint_goal": q, "start_rad": start})
-        target = node.inputs.target_from_pose(goal.target_pose, "goal.target_pose")
+        try:
+            target = node.inputs.target_from_pose(goal.target_pose, "goal.target_pose")
+        except ValueError as e:
+            if len(goal.joint_goal.name) and not goal.target_pose.header.frame_id:     # the flag left out
+                raise ValueError(f"{e} (the goal's joint_goal is filled but use_joint_goal is false: set "
+                                 f"use_joint_goal: true to plan to it)") from None
+            raise
         return f"plan_capture goal: {target_why(target)}", {"target": target, "start_rad": start}
 
     def _on_goal(self, goal):
