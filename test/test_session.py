@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
+import time
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -419,6 +421,43 @@ def test_a_plan_whose_planning_line_a_flood_held_back_says_it_before_its_result(
     assert "3 more such lines left out before this one" in lines[said[0]], lines[said[0]]
 
 
+def test_a_goal_after_a_streams_kept_plan_supersedes_it_not_cancels_it(flat):
+    """
+    Target 1 planning (stalled), target 2 marks it kept (nothing published for the period), then a goal's request.
+
+    The goal supersedes the kept plan: a superseded request is no outcome (docs/node.md).  It had
+    been cancelled in the backend and left kept, so it ended as an outcome "cancelled: planning was
+    cancelled" in /diagnostics (the record) that nobody asked for (a client audit).  Oracle: the
+    session's record and log, the goal's outcome.  Target 1's stall is a minute, which only the
+    goal's cancel ends: nothing here depends on how fast the machine is.
+    """
+    be = ThreadBackend(scenario_from_params(flat))
+    ses = _session(flat, be, min_publish_period_s=0.2)
+    try:
+        ses.joint_state(ses.scenario.start_rad, 999 * S)
+        ses.last_publish_t -= 10.0                      # nothing published for longer than the period
+        ses.start(be, thread=True)                      # the worker thread, as in the node
+        first = ses.request("target 1", target=_target(ses, -3.25, -2.60))
+        first = ses.submit(replace(first, settings=replace(first.settings, test_stall_s=60.0)))
+        deadline = time.monotonic() + 60
+        while ses._active is not first:                 # target 1 planning (stalled)
+            assert time.monotonic() < deadline, "target 1 never began"
+            time.sleep(0.002)
+        ses.submit("target 2", target=_target(ses, -3.23, -2.60))
+        assert first.keep                               # a stream: target 1's plan is let finish
+        done, outcomes = threading.Event(), []
+        goal = ses.submit("a goal", target=_target(ses, -3.21, -2.60),
+                          on_done=lambda out: (outcomes.append(out), done.set()))
+        assert done.wait(120), "no outcome for the goal"
+    finally:
+        ses.stop()
+    assert outcomes[0].ok, outcomes[0].reason
+    assert [req.gen for req, _ in ses.recorded] == [goal.gen], [(r.gen, o.code, o.reason) for r, o in ses.recorded]
+    text = "\n".join(t for _, t in ses.log_lines)
+    assert f"plan #{first.gen} superseded: superseded by request #{goal.gen} (a goal)" in text, text
+    assert f"plan #{first.gen} cancelled" not in text, text
+
+
 def test_stamp_for_a_join_too_close_asks_for_another_plan():
     traj = SimpleNamespace(duration_s=0.06)
     now, lead = 100 * S, 0.35
@@ -474,9 +513,6 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, c
     the trajectory started) is no stream, and a stream whose last state is 1.6 s old stopped:
     nothing is waited for (the first plans from the state at rest, the second joins on it).
     """
-    import threading
-    import time
-
     from spacerobot_planner.replanning import STATE_WAIT_S
     if case == "a_newer_state_comes":    # however late this thread sends it, the worker still waits
         monkeypatch.setattr("spacerobot_planner.session.STATE_WAIT_S", 60.0)
