@@ -307,7 +307,7 @@ def test_the_predicted_drifts_rates_are_the_drifts_own_zero_at_rest(capture):
     inner = slice(1, -1)
     scale = np.max(np.abs(oracle), axis=0)
     assert np.all(scale > 1e-4)                              # the body turns and moves (not vacuous)
-    assert np.all(np.abs(drift.velocities_rad_s[inner] - oracle[inner]) < 0.02 * scale), \
+    assert np.all(np.abs(drift.velocities_rad_s[inner] - oracle[inner]) < 0.005 * scale), \
         np.max(np.abs(drift.velocities_rad_s[inner] - oracle[inner]) / scale, axis=0)
 
 

@@ -164,18 +164,17 @@ def file_problems(node: Node, argv=()) -> tuple:
     sections applies to the node (a section named for another node) is a warning: it sets nothing.
     """
     fqn = node.get_fully_qualified_name()
-    files, applying, stated = [], set(), set()
-    for option, value in _ros_args(argv):
-        if option == "--params-file" and value not in files:
-            files.append(value)
+    applying, stated = set(), set()
     for key, params in parameter_sections(argv):
         if section_regex(key).fullmatch(fqn):
             stated.update(params)
             applying.update(origin[1] for origin in params.values() if origin[0] == "--params-file")
+    # each file's sections, read once: (key, {NAME: value}) in file order
+    files = {value: list(_file_sections(value)) for option, value in _ros_args(argv) if option == "--params-file"}
     warnings = []
-    for path in files:
+    for path, sections in files.items():
         if path not in applying:
-            keys = [key for key, _ in _file_sections(path)]
+            keys = [key for key, _ in sections]
             warnings.append(f"the parameter file {path} sets nothing for {fqn}: none of its sections "
                             f"({', '.join(keys) or 'none'}) matches the node (/**, /**/{node.get_name()}, "
                             f"{fqn}); where no file applies, the node runs with the defaults of docs/parameters.md")
@@ -184,7 +183,7 @@ def file_problems(node: Node, argv=()) -> tuple:
     if not applying or not missing:
         return None, warnings
     # sections that set a missing name for another node (a node renamed with __node:=, a namespace)
-    elsewhere = sorted({key for path in files for key, params in _file_sections(path)
+    elsewhere = sorted({key for sections in files.values() for key, params in sections
                         if not section_regex(key).fullmatch(fqn) and any(name in params for name in missing)})
     why = (f"the section(s) {', '.join(elsewhere)} set them, but not for this node's name (a node renamed "
            f"with __node:= needs a section of its own, e.g. /**/{node.get_name()})" if elsewhere else

@@ -28,7 +28,6 @@ import sys
 
 import numpy as np
 
-from ..config import check_value
 from ..cores import threads_text
 from ..field import SOLVERS
 from ..jit_cache import start_numba
@@ -130,12 +129,11 @@ def main(argv=None) -> int:
         solver = args.solver if args.solver is not None else given.solver
         if solver not in SOLVERS:
             raise ValueError(f"--solver: unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
+        # the file's (checked when it was read), or the option's, checked here
         tol = (given.field_tolerance if args.tolerance is None else
                option_value("planner.field_tolerance", float(args.tolerance), "--tolerance"))
-        tol = check_value("planner.field_tolerance", float(tol))
         field_budget = (given.field_budget_s if args.field_budget is None else
                         option_value("planner.field_budget_s", float(args.field_budget), "--field-budget"))
-        field_budget = check_value("planner.field_budget_s", float(field_budget))
         # the outputs checked before the plan (it had run whole, then a traceback)
         json_path = None if args.json in (None, "-") else output_file(args.json, "--json", default_suffix=".json")
         plot_path = None if args.plot is None else output_file(args.plot, "--plot", _figure_formats(), ".png")
