@@ -256,6 +256,7 @@ class CaptureSession:
         self.joint_q = None              # latest planned-joint positions (raw, unwrapped), rad
         self.joint_ns = 0                # its ROS time, ns
         self.joint_prev_ns = 0           # the ROS time of the joint state before it, ns (0: none)
+        self.joint_refused = None        # why the joint states after it were refused (None: none were)
         self._state_wanted = False       # the worker waits for a recent joint state (_arm_state)
         self.executing: Executing | None = None      # the trajectory last sent to the arm
         self.activity = "idle"           # "idle" or "planning"
@@ -339,11 +340,22 @@ class CaptureSession:
         with self.lock:
             self.joint_q = np.asarray(q_rad, dtype=float)
             self.joint_prev_ns, self.joint_ns = self.joint_ns, int(stamp_ns)
+            self.joint_refused = None
             if self._state_wanted:
                 self.lock.notify_all()
             waiting, self._waiting = self._waiting, None
             if waiting is not None:
                 self._replace_pending(waiting)
+
+    def joint_state_refused(self, reason: str) -> None:
+        """
+        Take notice that the arm's latest joint state was refused (``reason``).
+
+        A plan from the arm's state fails (``invalid_input``, saying why) until a joint state is
+        taken: the last one taken is a state the arm has left.
+        """
+        with self.lock:
+            self.joint_refused = reason
 
     def time_jumping(self) -> None:
         """
@@ -562,7 +574,7 @@ class CaptureSession:
         outcome = None
         while outcome is None:
             executes = req.start_rad is None           # a goal with its own start is returned, not stamped
-            problem = self._clock_problem() if executes else None
+            problem = (self._clock_problem() or self._state_problem()) if executes else None
             if problem is not None:
                 outcome = self._failure(req, "invalid_input", problem)
                 break
@@ -596,6 +608,14 @@ class CaptureSession:
         with self.lock:
             self._finish(req, outcome)
         return outcome
+
+    def _state_problem(self) -> str | None:
+        """Return why no plan may start from the arm's state (its latest joint state was refused), else None."""
+        refused = self.joint_refused
+        if refused is None:
+            return None
+        return (f"the arm's latest joint_states was refused ({refused}): no plan starts from an older state the "
+                f"arm has left")
 
     def _start_of(self, req: Request):
         """

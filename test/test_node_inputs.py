@@ -566,6 +566,47 @@ def test_a_flood_of_bad_joint_states_logs_a_line_then_counts(graph, capfd):
     assert latest in lines[-1], lines
 
 
+def test_joint_states_outside_a_joints_bounds_are_refused_and_no_plan_starts_from_an_older_state(graph):
+    """
+    A driver reporting the shoulder at 250° (bounds ±180°): refused at input, naming the joint; plans wait for a good one.
+
+    Before, the state was taken (the input status OK) and each plan failed on its start.  Oracle:
+    the bounds in the scenario file and the values the test sent; the attitude at 370° is the same
+    posture as 10° (periodic), taken.
+    """
+    from action_msgs.msg import GoalStatus
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from spacerobot_planner_interfaces.action import PlanCapture
+    from node_helpers import diag_values, scene_params
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+    start = robot.full(g.scenario.start_rad)                         # attitude -90°, shoulder 135°, elbow 90°
+    g.pub_js.publish(joint_state_msg(robot.joint_names, start))
+    g.wait(lambda: g.planner.session.joint_q is not None, 10, "the good joint state taken")
+    away = start.copy()
+    away[1] = math.radians(250.0)
+    n0 = g.planner._rejected_total
+    g.pub_js.publish(joint_state_msg(robot.joint_names, away))
+    g.wait(lambda: g.planner._rejected_total > n0, 10, "the out-of-bounds joint state refused")
+    iv = diag_values(g.status("input"))
+    assert iv["source"] == "joint_states" and "'shoulder' = 250.000°" in iv["reason"], iv
+    assert "bounds [-180.0°, 180.0°]" in iv["reason"], iv
+    np.testing.assert_array_equal(g.planner.session.joint_q, start)   # the last state taken, untouched
+    goal = PlanCapture.Goal()
+    goal.target_pose.header.frame_id = "world"
+    goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = -3.27, -2.60
+    goal.target_pose.pose.orientation.w = 1.0
+    status, res, _ = g.goal_result(g.send_goal(goal), timeout=60)
+    assert status == GoalStatus.STATUS_ABORTED and "'shoulder' = 250.000°" in res.reason, (status, res.reason)
+    assert g.n_trajs() == 0
+    turned = start.copy()
+    turned[0] += 2 * math.pi                                         # the attitude a turn on: the same posture
+    g.pub_js.publish(joint_state_msg(robot.joint_names, turned))
+    g.wait(lambda: g.planner.session.joint_refused is None, 10, "the attitude a turn on taken")
+    status, res, _ = g.goal_result(g.send_goal(goal), timeout=60)
+    assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
+
+
 # ================================================================== 8. a target inside the spacecraft
 def _unit_target(r, deg, side=0.2):
     from spacerobot_planner.scene import Target

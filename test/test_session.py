@@ -563,3 +563,19 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, c
     else:
         assert out.values["joined_moving_arm"].startswith("yes"), out.values
         assert "for a newer joint_states" not in text and "1.60 s old" in text, text
+
+
+def test_no_plan_starts_from_a_state_the_arm_has_left_after_its_latest_joint_state_was_refused(flat, backend):
+    """A refused joint state (the node's input check) fails the plans from the arm's state until one is taken."""
+    ses = _session(flat, backend)
+    ses.joint_state(ses.scenario.start_rad, 999 * S)
+    ses.joint_state_refused("joint_states: joint 'shoulder' = 250.000° is outside its bounds [-180.0°, 180.0°]")
+    ses.submit("target", target=ses.target)
+    out = ses.run_once()
+    assert out.code == "invalid_input" and "shoulder' = 250.000°" in out.reason and "refused" in out.reason, out
+    assert not ses.published
+    own = ses.submit("goal with its start", target=ses.target, start_rad=ses.scenario.start_rad)
+    assert ses.run_once().ok and own.start_rad is not None          # a start of its own: not the arm's
+    ses.joint_state(ses.scenario.start_rad, 1000 * S)                # a state taken: plans start from it again
+    ses.submit("target again", target=ses.target)
+    assert ses.run_once().ok

@@ -6,7 +6,8 @@ The planner node's input topics: messages checked and turned into the session's 
   bounds when the attitude is planned, is invalid input: ``overlap.py``); one within
   ``replan.target_tolerance_*`` of the current target is no new request;
 - ``goal_joint_state`` (JointState): a joint goal of the planned joints;
-- ``joint_states`` (JointState): the arm's state, stamped (its header, else the arrival; a
+- ``joint_states`` (JointState): the arm's state (``robot.validate_q``: a joint outside its bounds is
+  rejected), stamped (its header, else the arrival; a
   header more than ``CLOCK_MISMATCH_S`` from this node's clock at arrival is another clock's,
   a driver on sim time and a planner not or the other way round: the arrival, and a warning
   at most every ``CLOCK_WARNING_PERIOD_S``);
@@ -180,11 +181,16 @@ class Inputs:
         fallback = None if self.attitude is None else {attitude: self.attitude}
         try:
             q = conv.joint_state_positions(msg, robot.planned_names, fallback=fallback)
+            # outside a joint's bounds no plan can start (every motion from there is refused): said here, where
+            # the message came, not by each plan.  Checked only: the state is kept as reported (a periodic
+            # joint unwrapped, as the controller has it; the plans wrap their starts themselves)
+            robot.validate_q(q, "joint_states")
         except ValueError as e:
             reason = str(e)
             if topic and fallback is None and attitude in robot.planned_names and attitude not in msg.name:
                 reason += f"; no attitude received on '{topic}' yet"
             node._reject("joint_states", "invalid_input", reason)
+            node.session.joint_state_refused(reason)
             return
         now_ns, stamp_ns = node.get_clock().now().nanoseconds, conv.time_to_ns(msg.header.stamp)
         if now_ns == 0 and no_clock_yet(node.get_clock()):
