@@ -568,7 +568,7 @@ def test_a_flood_of_bad_joint_states_logs_a_line_then_counts(graph, capfd):
 
 def test_joint_states_outside_a_joints_bounds_are_refused_and_no_plan_starts_from_an_older_state(graph):
     """
-    A driver reporting the shoulder at 250° (bounds ±180°): refused at input, naming the joint; plans wait for a good one.
+    A driver reporting the shoulder at 250° (bounds ±180°): refused, naming it; no plan until a state is taken.
 
     Before, the state was taken (the input status OK) and each plan failed on its start.  Oracle:
     the bounds in the scenario file and the values the test sent; the attitude at 370° is the same
