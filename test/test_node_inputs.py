@@ -755,6 +755,59 @@ def test_a_held_joint_reported_away_from_its_lock_is_said_in_a_warning(graph, ca
     assert "".join(seen).count("robot.locked_positions_deg holds it") == 1, "".join(seen)[-3000:]
 
 
+def test_two_joint_states_publishers_that_disagree_are_said_in_a_warning_naming_them(graph, capfd):
+    """
+    A mock arm left running beside a driver: two publishers, 20° apart on the shoulder; a warning names both nodes.
+
+    Before, nothing was said and each plan started from whichever state came last.  Two
+    publishers that agree come first: a warning for them would be the one said (one at most in
+    30 s), so the check of its values is also the check that agreeing ones are not said.
+    Oracle: the node names the test gave and the values it sent.
+    """
+    import rclpy
+    from sensor_msgs.msg import JointState
+    from spacerobot_planner.ros.conversions import joint_state_msg
+    from node_helpers import scene_params
+    g = graph(scene_params("3dof"), with_arm=False)
+    robot = g.scenario.robot
+    start = robot.full(g.scenario.start_rad)                     # shoulder 135°
+    other = rclpy.create_node("second_driver", context=g.ctx)
+    try:
+        _two_publishers(g, robot, start, [g.pub_js, other.create_publisher(JointState, "joint_states", 10)],
+                        capfd, joint_state_msg)
+    finally:
+        other.destroy_node()
+
+
+def _two_publishers(g, robot, start, pubs, capfd, joint_state_msg):
+    g.wait(lambda: all(p.get_subscription_count() >= 2 for p in pubs), 30, "both publishers matched")
+    capfd.readouterr()
+    seen = []
+
+    def said(text):
+        def check():
+            seen.append(capfd.readouterr().err)
+            return text in "".join(seen)
+        return check
+    same = start.copy()
+    same[0] += 2 * math.pi                                       # the attitude a turn on: the same posture
+    for i in range(20):                                          # agreeing, as two drivers of one arm
+        for pub, q in zip(pubs, (start, same)):
+            pub.publish(joint_state_msg(robot.joint_names, q))
+    g.wait(lambda: len(g.planner.inputs._by_publisher) == 2 or any(
+        p.publish(joint_state_msg(robot.joint_names, start)) for p in pubs), 10, "states of both taken")
+    away = start.copy()
+    away[1] -= math.radians(20.0)                                # shoulder 115°
+    g.wait(lambda: any(p.publish(joint_state_msg(robot.joint_names, q)) for p, q in zip(pubs, (start, away)))
+           or said("two publishers disagree")(), 30, lambda: "the warning; the node said:\n" + "".join(seen)[-3000:])
+    text = "".join(seen)
+    line = next(x for x in text.splitlines() if "two publishers disagree" in x)
+    ours, theirs = f"/{g.drv.get_name()}", "/second_driver"       # which came first: as the two arrived
+    assert (f"{ours} has shoulder at 135.0°, {theirs} at 115.0°" in line
+            or f"{theirs} has shoulder at 115.0°, {ours} at 135.0°" in line), line
+    assert text.count("two publishers disagree") == 1, text[-3000:]
+
+
 # ================================================================== 10. the attitude from its own topic
 def test_attitude_from_its_own_topic_when_joint_states_lack_it(graph):
     from geometry_msgs.msg import PoseStamped

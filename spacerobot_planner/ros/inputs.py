@@ -53,6 +53,12 @@ LOCKED_WARNING_PERIOD_S = 30.0
 OVERRIDABLE = (QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 #: ... said at most this often, s
 CLOCK_WARNING_PERIOD_S = 30.0
+#: two joint_states publishers whose states, received within DISAGREE_WINDOW_S of each other, put a
+#: planned joint more than DISAGREE_TOL_RAD apart are not one arm (a mock arm left running beside a
+#: driver or a simulator): said in a warning at most every DISAGREE_WARNING_PERIOD_S, naming them
+DISAGREE_WINDOW_S = 0.1
+DISAGREE_TOL_RAD = math.radians(2.0)
+DISAGREE_WARNING_PERIOD_S = 30.0
 
 
 def locked_mismatches(robot, names, positions, tol_rad: float = LOCKED_TOL_RAD) -> list:
@@ -97,6 +103,9 @@ class Inputs:
         self.attitude = None        # rad: the latest yaw on attitude_topic (joint_states without it)
         self._clock_warned = -float("inf")     # monotonic s of the last clock-mismatch warning
         self._locked_warned = -float("inf")    # ... and of the last locked-joint warning
+        self._disagree_warned = -float("inf")  # ... and of the last two-publishers warning
+        self._by_publisher = {}     # publisher gid (bytes) -> (monotonic s, planned-joint rad) of its last state
+        self._states_sub = None
 
     def subscribe(self) -> list:
         """Create the subscriptions (activate); return them."""
@@ -111,6 +120,7 @@ class Inputs:
                                          qos_overriding_options=overridable),
                 node.create_subscription(JointState, "goal_joint_state", self.on_goal_joint_state, 10,
                                          qos_overriding_options=overridable)]
+        self._states_sub, self._by_publisher = subs[1], {}
         unused = unused_qos_overrides(node.list_parameters(["qos_overrides"], 0).names,
                                       [sub.topic_name for sub in subs])
         if unused:
@@ -174,7 +184,8 @@ class Inputs:
             return
         self.node._submit(f"joint goal {np.round(np.degrees(q), 2).tolist()}°", joint_goal=q)
 
-    def on_joint_state(self, msg: JointState):
+    def on_joint_state(self, msg: JointState, info: dict):
+        """Take the arm's state (``info``: rclpy's MessageInfo, its publisher's gid: two that disagree are said)."""
         node, robot = self.node, self.node.robot
         attitude = robot.joint_names[0]
         topic = node.param_handler.params["attitude_topic"]
@@ -201,6 +212,55 @@ class Inputs:
         node.session.joint_state(q, stamp_ns or now_ns)
         if len(msg.name) > len(robot.planned_names):       # a joint the planner holds may be in it
             self._check_locked(msg)
+        gid = (info or {}).get("publisher_gid") or {}
+        if gid.get("data") is not None:
+            self._check_publishers(bytes(gid["data"]), q)
+
+    def _check_publishers(self, gid: bytes, q) -> None:
+        """
+        Warn (at most every DISAGREE_WARNING_PERIOD_S) where two publishers' joint states are not one arm's.
+
+        ``gid``: the publisher of ``q`` (planned-joint rad).  States of another publisher received
+        within DISAGREE_WINDOW_S that put a planned joint more than DISAGREE_TOL_RAD away (a periodic
+        one the shortest way) are another arm's: each plan would start from whichever came last.
+        """
+        t = time.monotonic()
+        others = [(g, q_o, t - t_o) for g, (t_o, q_o) in self._by_publisher.items()
+                  if g != gid and t - t_o <= DISAGREE_WINDOW_S]
+        self._by_publisher = {g: v for g, v in self._by_publisher.items() if t - v[0] <= DISAGREE_WINDOW_S}
+        self._by_publisher[gid] = (t, q)
+        if not others or t < self._disagree_warned + DISAGREE_WARNING_PERIOD_S:
+            return
+        robot = self.node.robot
+        periodic = np.asarray(robot.planned_periodic, dtype=bool)
+        for g, q_o, ago_s in others:
+            off = np.where(periodic, wrap_angle_rad(q - q_o), q - q_o)
+            k = int(np.argmax(np.abs(off)))
+            if not abs(off[k]) > DISAGREE_TOL_RAD:
+                continue
+            self._disagree_warned = t
+            name = robot.planned_names[k]
+            who = self._publisher_names()
+            self.node.get_logger().warning(
+                f"joint_states: two publishers disagree: {who.get(g, 'one')} has {name} at "
+                f"{math.degrees(q_o[k]):.1f}°, {who.get(gid, 'another')} at {math.degrees(q[k]):.1f}° "
+                f"({ago_s:.3f} s later): each plan starts from whichever came last. Is a mock arm running beside "
+                f"the arm's driver or a simulator? (ros2 topic info -v {self._states_sub.topic_name})")
+            return
+
+    def _publisher_names(self) -> dict:
+        """Return publisher gid (bytes) -> its node's name ("/ns/node"; "publisher 2 of /ns/node" beside another)."""
+        try:
+            infos = self.node.get_publishers_info_by_topic(self._states_sub.topic_name)
+        except Exception:           # noqa: BLE001 - a name for a warning only
+            return {}
+        full = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos]
+        out = {}
+        for i, info in enumerate(infos):
+            same = [k for k, f in enumerate(full) if f == full[i]]
+            out[bytes(info.endpoint_gid)] = (full[i] if len(same) == 1
+                                             else f"publisher {same.index(i) + 1} of {full[i]}")
+        return out
 
     def _check_locked(self, msg: JointState) -> None:
         """Warn (at most every LOCKED_WARNING_PERIOD_S) where a joint the plans hold is reported elsewhere."""
