@@ -351,8 +351,8 @@ class CaptureSession:
         """
         Take notice that the arm's latest joint state was refused (``reason``).
 
-        A plan from the arm's state fails (``invalid_input``, saying why) until a joint state is
-        taken: the last one taken is a state the arm has left.
+        A plan from the arm's state waits for one to be taken, up to ``STATE_WAIT_S``, then fails
+        (``invalid_input``, saying why): the last one taken is a state the arm has left.
         """
         with self.lock:
             self.joint_refused = reason
@@ -574,9 +574,12 @@ class CaptureSession:
         outcome = None
         while outcome is None:
             executes = req.start_rad is None           # a goal with its own start is returned, not stamped
-            problem = (self._clock_problem() or self._state_problem()) if executes else None
+            problem = self._clock_problem() if executes else None
             if problem is not None:
                 outcome = self._failure(req, "invalid_input", problem)
+                break
+            outcome = self._refused_state(req) if executes else None
+            if outcome is not None:
                 break
             try:
                 epoch = self.time_epoch if executes else None
@@ -609,13 +612,32 @@ class CaptureSession:
             self._finish(req, outcome)
         return outcome
 
-    def _state_problem(self) -> str | None:
-        """Return why no plan may start from the arm's state (its latest joint state was refused), else None."""
-        refused = self.joint_refused
+    def _refused_state(self, req: Request) -> Outcome | None:
+        """
+        Wait while the arm's latest joint state is a refused one; return None once one is taken.
+
+        Up to ``STATE_WAIT_S`` (a driver's next state ends a glitch); then ``req``'s failure
+        (``invalid_input``, the refusal's reason): no plan starts from an older state the arm has
+        left.  Its supersession when a newer request came meanwhile.
+        """
+        deadline = time.monotonic() + STATE_WAIT_S
+        with self.lock:
+            while self.joint_refused is not None:
+                gone = self._superseded_by(req)
+                if gone is not None:
+                    return gone
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    break
+                self._state_wanted = True
+                self.lock.wait(min(left, 0.1))
+            self._state_wanted = False
+            refused = self.joint_refused
         if refused is None:
             return None
-        return (f"the arm's latest joint_states was refused ({refused}): no plan starts from an older state the "
-                f"arm has left")
+        return self._failure(req, "invalid_input", f"the arm's latest joint_states was refused ({refused}) and "
+                             f"none was taken within {STATE_WAIT_S:g} s: no plan starts from an older state the "
+                             f"arm has left")
 
     def _start_of(self, req: Request):
         """

@@ -566,16 +566,23 @@ def test_a_late_state_is_waited_for_before_a_plan_starts_on_a_moving_arm(flat, c
 
 
 def test_no_plan_starts_from_a_state_the_arm_has_left_after_its_latest_joint_state_was_refused(flat, backend):
-    """A refused joint state (the node's input check) fails the plans from the arm's state until one is taken."""
+    """After a refused joint state a plan from the arm waits for one to be taken, else fails saying why."""
+    from spacerobot_planner.replanning import STATE_WAIT_S
     ses = _session(flat, backend)
     ses.joint_state(ses.scenario.start_rad, 999 * S)
     ses.joint_state_refused("joint_states: joint 'shoulder' = 250.000° is outside its bounds [-180.0°, 180.0°]")
     ses.submit("target", target=ses.target)
+    t0 = time.monotonic()
     out = ses.run_once()
     assert out.code == "invalid_input" and "shoulder' = 250.000°" in out.reason and "refused" in out.reason, out
-    assert not ses.published
+    assert time.monotonic() - t0 >= STATE_WAIT_S and not ses.published    # it waited for a state to be taken
     own = ses.submit("goal with its start", target=ses.target, start_rad=ses.scenario.start_rad)
     assert ses.run_once().ok and own.start_rad is not None          # a start of its own: not the arm's
-    ses.joint_state(ses.scenario.start_rad, 1000 * S)                # a state taken: plans start from it again
+    ses.joint_state_refused("joint_states: joint(s) elbow not finite")       # a glitch; the driver's next state
     ses.submit("target again", target=ses.target)
-    assert ses.run_once().ok
+    taken = threading.Timer(0.2, ses.joint_state, (ses.scenario.start_rad, 1000 * S))
+    taken.start()
+    try:
+        assert ses.run_once().ok
+    finally:
+        taken.join()
