@@ -36,7 +36,7 @@ from spacerobot_planner.config import load_scenario
 from spacerobot_planner.envelope import (TIMING_COLUMNS, PoseGrid, axis_values, read_rows, run_envelope,
                                          sweep_spec)
 from spacerobot_planner.envelope.engine import MAX_CHUNK, Progress, guided_size, local_cluster
-from spacerobot_planner.envelope.sweep import chunks
+from spacerobot_planner.envelope.sweep import COLUMNS, chunks
 from spacerobot_planner.motion import MotionValidator
 from spacerobot_planner.planner import Planner
 from spacerobot_planner.scene import Target
@@ -273,6 +273,40 @@ def test_a_folder_of_another_sweep_is_refused(serial, tmp_path):
     run_envelope(sc, small, tmp_path, _spec(sc, small), workers=0, quiet=True)
     with pytest.raises(ValueError, match="another sweep.*poses"):
         run_envelope(sc, grid, tmp_path, _spec(sc, grid), workers=0, quiet=True)
+
+
+def test_a_table_of_another_sweep_without_its_manifest_is_refused(serial, tmp_path):
+    """
+    ``envelope.csv`` left without ``envelope.json``: rows of another grid are refused, naming the line.
+
+    Before, their ids were taken as done (a 4-pose sweep over 4 foreign rows planned nothing and
+    exited 0; over 300 it said "-296 poses not planned" at every rerun).  Oracle: the rows the test
+    wrote, changed by hand from the serial sweep's.
+    """
+    sc, grid, ser = serial
+    out = tmp_path / "stale"
+    out.mkdir()
+    names = [n for n, _ in COLUMNS]
+
+    def write(rows):
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(names)
+        w.writerows([[repr(r[n]) if isinstance(r[n], float) else r[n] for n in names] for r in rows])
+        (out / "envelope.csv").write_text(buf.getvalue())
+    rows = [dict(r) for r in ser.rows[:4]]
+    rows[2]["x_m"] += 0.5                                  # one row of another grid
+    write(rows)
+    with pytest.raises(ValueError, match=r"line 4 is another sweep's pose \(pose 2: .*no envelope.json"):
+        run_envelope(sc, grid, out, _spec(sc, grid), workers=0, quiet=True)
+    rows[2]["x_m"] -= 0.5                                  # this sweep's own rows, manifest lost: resumed
+    rows[3]["pose_id"] = grid.n_poses + 7                  # ... but an id beyond its poses is not
+    write(rows)
+    with pytest.raises(ValueError, match=f"line 5 is another sweep's pose .*this sweep has {grid.n_poses} poses"):
+        run_envelope(sc, grid, out, _spec(sc, grid), workers=0, quiet=True)
+    write(rows[:3])
+    rep = run_envelope(sc, grid, out, _spec(sc, grid), workers=0, quiet=True)
+    assert rep.done_before == 3 and rep.complete and _differences(ser.rows, rep.rows) == []
 
 
 def test_the_progress_bar_shows_rate_and_eta_on_a_terminal_only():

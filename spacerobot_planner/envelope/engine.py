@@ -193,7 +193,7 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
     if scenario.scene.target is None:
         raise ValueError("target: the scenario has no target; an envelope sweeps the target's pose")
     store = EnvelopeStore(out_dir, spec)
-    done = store.open()
+    done = store.open(grid)
     todo_ids = [i for i in range(grid.n_poses) if i not in done]
     report = SweepReport(n_poses=grid.n_poses, done_before=len(done))
     serial = client is None and scheduler is None and workers == 0

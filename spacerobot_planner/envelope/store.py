@@ -115,12 +115,13 @@ class EnvelopeStore:
         self._run = None
 
     # ------------------------------------------------------------------ open
-    def open(self) -> set:
+    def open(self, grid: PoseGrid | None = None) -> set:
         """
         Open the folder for writing; return the ``pose_id`` of every pose already done.
 
         ValueError when the folder holds another sweep (naming the key that differs) or a
-        damaged ``envelope.csv``.
+        damaged ``envelope.csv``; with ``grid`` (the sweep's), also when a row of
+        ``envelope.csv`` is not one of its poses (another sweep's table, its manifest gone).
         """
         self.dir.mkdir(parents=True, exist_ok=True)
         if self.manifest_path.exists():
@@ -140,6 +141,8 @@ class EnvelopeStore:
                 with open(self.csv_path, "r+b") as f:
                     f.truncate(cut)
             rows = _parse(data[:cut].decode("utf-8"), str(self.csv_path))
+            if grid is not None:
+                self._check_rows(rows, grid)
             done = {r["pose_id"] for r in rows}
             if cut == 0:
                 self.csv_path.unlink()
@@ -149,6 +152,23 @@ class EnvelopeStore:
         self._file = open(self.csv_path, "a", encoding="utf-8", newline="")
         self._writer = csv.writer(self._file, lineterminator="\n")
         return done
+
+    def _check_rows(self, rows, grid: PoseGrid) -> None:
+        """ValueError naming the first row of ``rows`` that is not the pose of ``grid`` its ``pose_id`` numbers."""
+        for k, r in enumerate(rows, start=2):
+            i = r["pose_id"]
+            want = grid.pose(i) if 0 <= i < grid.n_poses else None
+            if want is not None and (r["x_m"], r["y_m"], r["yaw_deg"], r["start_index"]) == (
+                    float(want.x_m), float(want.y_m), float(want.yaw_deg), want.start_index):
+                continue
+            where = (f"this sweep has {grid.n_poses} poses" if want is None else
+                     f"this sweep's pose {i} is x {float(want.x_m):g} m, y {float(want.y_m):g} m, yaw "
+                     f"{float(want.yaw_deg):g}°, start {want.start_index}")
+            raise ValueError(
+                f"--out {self.dir}: {CSV_NAME} line {k} is another sweep's pose (pose {i}: x {r['x_m']:g} m, "
+                f"y {r['y_m']:g} m, yaw {r['yaw_deg']:g}°, start {r['start_index']}; {where})"
+                + ("" if self.manifest_path.exists() else f", and no {MANIFEST_NAME} says which sweep it holds")
+                + "; choose another folder, or delete that one to start again")
 
     # ----------------------------------------------------------------- runs
     def start_run(self, **info) -> None:
