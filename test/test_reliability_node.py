@@ -87,7 +87,11 @@ class TableGraph(Graph):
         self.wait(lambda: self.planner._joint_q is not None, 10, "joint_states seen")
 
     def good_js(self):
-        self.pub_js.publish(joint_state_msg(self.robot.joint_names, self.robot.full(self.scenario.start_rad)))
+        """Publish the arm's state until the planner took one (best effort: after a refused one, plans wait for it)."""
+        msg = joint_state_msg(self.robot.joint_names, self.robot.full(self.scenario.start_rad))
+        self.pub_js.publish(msg)
+        self.wait(lambda: self.planner.session.joint_refused is None or self.pub_js.publish(msg), 10,
+                  "a good joint state taken")
 
     def next_good_target(self):
         self.good += 1

@@ -200,8 +200,8 @@ class Inputs:
             reason = str(e)
             if topic and fallback is None and attitude in robot.planned_names and attitude not in msg.name:
                 reason += f"; no attitude received on '{topic}' yet"
-            node._reject("joint_states", "invalid_input", reason)
             node.session.joint_state_refused(reason)
+            node._reject("joint_states", "invalid_input", reason)
             return
         now_ns, stamp_ns = node.get_clock().now().nanoseconds, conv.time_to_ns(msg.header.stamp)
         if now_ns == 0 and no_clock_yet(node.get_clock()):
