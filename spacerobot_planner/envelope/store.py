@@ -154,7 +154,7 @@ class EnvelopeStore:
         return done
 
     def _check_rows(self, rows, grid: PoseGrid) -> None:
-        """ValueError naming the first row of ``rows`` that is not the pose of ``grid`` its ``pose_id`` numbers."""
+        """Raise ValueError naming the first row of ``rows`` that is not the pose its id numbers in ``grid``."""
         for k, r in enumerate(rows, start=2):
             i = r["pose_id"]
             want = grid.pose(i) if 0 <= i < grid.n_poses else None
