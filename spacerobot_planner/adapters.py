@@ -143,7 +143,8 @@ class Processed:
         indices: (K,) their indices in ``dense``.
         certified: the published polyline passed the exact-geometry check.
         min_clearance_m: its clearance, m: the least at the check's samples of the controller's motion
-            (``trajectory.controller_check``; nan when not checked).
+            (``trajectory.controller_check``; where not certified, the check's up to where it failed;
+            nan when not checked).
         reaction: ``reaction.ReactionReport`` or None (not reported for this scenario).
         arm, attitude: the :class:`TrajectoryPart` of each controller (see :func:`split_parts`).
         join_stamp_ns: ROS time of the trajectory's start when joined to an executing one
@@ -603,10 +604,28 @@ def _finished(scenario, got: Processed, rs, wheel_over=None) -> Processed:
     if scenario.acs.mode == "free_floating":
         att = None                  # nothing commands the attitude
         drift = None if arm is None else predicted_drift(scenario, dense, idx)
-    clr = float(rs.check.min_clearance_m) if rs.ok and rs.check is not None else float("nan")
+    clr = float(rs.check.min_clearance_m) if rs.check is not None else float("nan")
     return replace(got, trajectory=traj, indices=idx, certified=rs.ok, min_clearance_m=clr, arm=arm,
                    attitude=att, predicted_drift=drift,
                    reaction=_published_peaks(scenario, got.reaction, traj, wheel_over if rs.ok else None))
+
+
+def uncertified_text(processed: Processed, motions) -> str:
+    """
+    Say where the controller's motion through ``processed``'s published points leaves the certified (a text).
+
+    When it comes within the safety margin (``motions``: the scene's ``motion.MotionValidator``)
+    and how close: for the log of a trajectory that is not certified (a start within the margin, or
+    a joined one whose executing path a new scene put an obstacle on).
+    """
+    traj, motions = processed.trajectory, MotionValidator.of(motions)
+    check, seg_ok = controller_check(traj, motions)
+    if check.ok:
+        return f"the controller's motion is certified (clearance {check.min_clearance_m:.3f} m)"
+    bad = np.flatnonzero(~seg_ok)
+    when = f"{traj.times_s[bad[0]]:.2f} s after its start" if len(bad) else "at its points"
+    return (f"the controller's motion comes within the safety margin {motions.margin_m:g} m "
+            f"{when}: clearance {check.min_clearance_m:.3f} m")
 
 
 def _published_peaks(scenario, reaction, traj: Trajectory, wheel_over=None):

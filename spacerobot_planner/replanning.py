@@ -59,7 +59,7 @@ from .timing import timed_motion
 from .trajectory import Trajectory, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
-           "stopping_join",
+           "stopping_join", "committed_path",
            "MAX_STATE_AGE_S", "STATE_WAIT_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
 #: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
@@ -462,13 +462,15 @@ def _braked(scenario, path_rad, path_speed: float):
     return timed_motion(scenario, path_rad, start_path_speed=path_speed, report=False)[0]
 
 
-def stopping_join(scenario, join: Join, now_ns: int, lead_s: float) -> Join:
+def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: bool = False) -> Join:
     """
     Return a join where the arm stops on the executing path as soon as the limits allow.
 
     From the executing trajectory's first published point at least ``lead_s`` after ``now_ns``
     (where the join will be) and from the next (where it will be when the plan runs late):
-    the nearest point at or after ``join.horizon_index`` that the arm can stop at along the
+    the nearest point at or after ``join.horizon_index`` (``soonest``: after the join, for an
+    executing path that comes within the safety margin of a new scene before the horizon
+    point; the plan then has until the join) that the arm can stop at along the
     executing path from its speed there under the scenario's acceleration and wheel torque
     limits scaled by ``STOP_ROOM`` (the chain re-times the stop with the limits lowered by the
     controller's overshoot), found by trying points in doubling steps; the executing
@@ -487,7 +489,7 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float) -> Join:
                                                 acceleration_scaling=limits.acceleration_scaling * STOP_ROOM))
     pub = np.asarray(ex.published)
     later = pub[traj.times_s[pub] >= ex.time_s(now_ns) + lead_s]
-    stop = join.horizon_index
+    stop = 0 if soonest else join.horizon_index
     for j in (later[:2] if len(later) else [last]):     # the join, or the next point when the plan runs late
         stop, step = max(stop, int(j) + 1), 1
         while stop < last:
@@ -497,6 +499,25 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float) -> Join:
             except ValueError:
                 stop, step = min(last, stop + step), 2 * step
     return Join(ex, min(stop, last), join.horizon_s, stop=True)
+
+
+def committed_path(join: Join, from_ns: int, to_ns: int) -> np.ndarray:
+    """
+    Return the executing path the arm follows from ROS time ``from_ns`` to ``to_ns``: (K, n) rows, rad.
+
+    The dense trajectory's rows between, and its positions at both times (K = 0 when ``to_ns`` is
+    not after ``from_ns``; times before its start or after its end clamped to them).  A plan
+    that switches at ``to_ns`` leaves the arm on it until then: what it must keep clear in the
+    plan's scene from the earliest a new message can take over (``from_ns``: now + the lead).
+    """
+    ex = join.executing
+    traj = ex.trajectory
+    ta, tb = max(0.0, ex.time_s(from_ns)), min(traj.duration_s, ex.time_s(to_ns))
+    if tb <= ta:
+        return np.zeros((0, traj.positions_rad.shape[1]))
+    t = traj.times_s
+    inner = np.flatnonzero((t > ta) & (t < tb))
+    return np.vstack([sample(traj, ta)[0], traj.positions_rad[inner], sample(traj, tb)[0]])
 
 
 def start_tangent(c) -> np.ndarray | None:

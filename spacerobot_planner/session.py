@@ -27,7 +27,11 @@ and its answers into messages; everything between is here:
   ``start_lead_s`` ahead when it would be published) it is planned again with twice the
   horizon, then stopping on the executing path as soon as the limits allow
   (``replanning.stopping_join``), then from the executing trajectory's end, then from the
-  measured state at rest (:data:`RETRY`).
+  measured state at rest (:data:`RETRY`).  A plan from a moving arm is judged on the whole
+  motion it commits the arm to, in its own scene (:meth:`CaptureSession._exposure`: the
+  executing path up to its switch, then its trajectory as the controller moves the arm): where a
+  new target lies on the executing path it stops on it right after the join (not on to the end),
+  and what cannot be avoided is published with a warning (``trajectory_certified: false``).
 - **the stamp**: every published trajectory starts at least ``start_lead_s`` after it is
   published: a trajectory from rest is stamped now + the lead just before it is
   published; a joined one carries the join's time, checked then to be still at least the
@@ -59,10 +63,11 @@ from typing import Callable
 
 import numpy as np
 
-from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process
+from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process, uncertified_text
 from .cores import threads_text
 from .motion import MotionValidator
-from .replanning import MAX_STATE_AGE_S, STATE_WAIT_S, Executing, join_direction, plan_start, stopping_join
+from .replanning import (MAX_STATE_AGE_S, STATE_WAIT_S, Executing, committed_path, join_direction, plan_start,
+                         stopping_join)
 from .scene import Target
 from .settings import SessionSettings
 from .trajectory import HorizonPassed
@@ -90,6 +95,8 @@ AT_REST = len(RETRY) - 1
 RETRY_AT_REST = "retry_at_rest"
 #: the attempt that starts from the executing trajectory's end, at rest (RETRY)
 FROM_THE_END = 3
+#: the attempt that stops on the executing path (RETRY; right after the join when ``Request.stop_soonest``)
+STOPPING = FROM_THE_END - 1
 
 
 @dataclass(eq=False)
@@ -114,6 +121,7 @@ class Request:
     keep: bool = False                           # finish and publish although superseded (a stream)
     plan_cancelled: bool = False                 # its plan was cancelled in the backend (superseded)
     attempt: int = 0                             # planned again after a join failed (RETRY)
+    stop_soonest: bool = False                   # its stop (RETRY's) right after the join: the path ahead is not clear
     waiting: bool = False                        # waited for the first joint state
     time_jumps: int = 0                          # planned again after ROS time jumped (TIME_JUMPS_MOST)
 
@@ -596,6 +604,8 @@ class CaptureSession:
                     break
             if outcome.code in ("retry", RETRY_AT_REST):
                 req.attempt = AT_REST if outcome.code == RETRY_AT_REST else req.attempt + 1
+                if req.stop_soonest and req.attempt == FROM_THE_END:
+                    req.attempt = AT_REST      # the executing path ahead is not clear: not on to its end
                 self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
                          + RETRY[min(req.attempt, len(RETRY) - 1)])
                 outcome = None
@@ -658,8 +668,9 @@ class CaptureSession:
         now = self.now_ns()
         start, join, why = plan_start(ex, now, q, q_ns, horizon_s, float(s.follow_tolerance_rad),
                                       req.scenario.robot.planned_periodic)
-        if join is not None and req.attempt == FROM_THE_END - 1:     # stop on the executing path, then go
-            join = stopping_join(req.scenario, join, now, float(s.start_lead_s) + CHAIN_ALLOWANCE_S)
+        if join is not None and req.attempt == STOPPING:     # stop on the executing path, then go
+            join = stopping_join(req.scenario, join, now, float(s.start_lead_s) + CHAIN_ALLOWANCE_S,
+                                 soonest=req.stop_soonest)
             start = join.start_rad
         if why is not None:
             self.log("warning", f"plan #{req.gen}: {why}")
@@ -832,22 +843,67 @@ class CaptureSession:
             return self._failure(req, "invalid_input", f"time parameterisation: {e}", res)
         if processed.refused is not None:
             return self._failure(req, "reaction_refused", processed.refused, res)
+        exposure, avoidable = (None, False) if join is None else self._exposure(req, join, processed,
+                                                                                self.motions(sc.scene))
+        if exposure is not None and avoidable and not req.stop_soonest:
+            # the executing path it follows (to the horizon point, or to its end) comes within the margin of this
+            # plan's scene (a target moved onto it): stop on it as soon as the limits allow instead
+            req.stop_soonest, req.attempt = True, STOPPING - 1
+            return Outcome("retry", f"the motion it commits the arm to is not collision-free in this plan's scene "
+                           f"({exposure})")
         stamps["chain"] = time.perf_counter()
         dropped = self._superseded_by(req)
         if dropped is not None:
             self._log_flood(dropped.code, f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
         return self._publish_plan(req, res, processed, start_raw, join, stamps, epoch,
-                                  planned_in=out.stats.get("planned_in", ""))
+                                  planned_in=out.stats.get("planned_in", ""), exposure=exposure)
+
+    def _exposure(self, req: Request, join, processed: Processed, motions) -> tuple:
+        """
+        Return where the motion a plan from a moving arm commits it to is not collision-free in the plan's scene.
+
+        That motion is the executing path from the earliest a new message can take over (now +
+        ``start_lead_s``) to the plan's switch (its join; from the executing trajectory's end, that
+        end: ``replanning.committed_path``), then the published trajectory as the controller moves
+        the arm (``processed.certified``): the executing path was certified in the scene it was
+        planned in, not in this one (a target moved onto it).  Returns (text or None when clear,
+        whether another plan may avoid it: not the stretch up to the earliest join any plan can
+        have, now + the lead + ``CHAIN_ALLOWANCE_S`` or its own join, which the arm follows whatever
+        is published).
+        """
+        ex = join.executing
+        lead_ns = self.now_ns() + int(1e9 * float(req.settings.start_lead_s))
+        earliest_ns = lead_ns + int(1e9 * CHAIN_ALLOWANCE_S)
+        switch_ns = processed.join_stamp_ns
+        if switch_ns is None:              # from the executing trajectory's end, at rest
+            switch_ns = ex.start_ns + int(round(1e9 * ex.trajectory.duration_s))
+        else:
+            earliest_ns = max(earliest_ns, switch_ns)
+        said = None
+        for a_ns, b_ns, avoidable in ((earliest_ns, switch_ns, True), (lead_ns, min(earliest_ns, switch_ns), False)):
+            path = committed_path(join, a_ns, b_ns)
+            check = motions.check(path) if len(path) else None
+            if check is not None and not check.ok:
+                said = (f"the arm follows the executing path {1e-9 * (b_ns - lead_ns):.2f} s more after the lead, "
+                        f"which comes within the safety margin {motions.margin_m:g} m: clearance "
+                        f"{check.min_clearance_m:.3f} m" + ("" if avoidable else " (before any plan can take over)"))
+                if avoidable:
+                    return said, True
+                break
+        if not processed.certified:
+            return uncertified_text(processed, motions), True
+        return said, False
 
     def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None,
-                      epoch: int | None = None, planned_in: str = "") -> Outcome:
+                      epoch: int | None = None, planned_in: str = "", exposure: str | None = None) -> Outcome:
         """
         Record an ok plan, stamp it just before it is published, publish it (the hooks).
 
         ``epoch``: :attr:`time_epoch` when its start was taken (None: not checked); where ROS time
         jumped since (:meth:`time_jumped`), nothing is published: planned again, from rest.
         ``planned_in``: where the backend planned it, when it says (``worker.PlanDone.stats``).
+        ``exposure``: where the motion it commits a moving arm to is not collision-free (:meth:`_exposure`).
         """
         jumped = Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
         if epoch is not None and epoch != self.time_epoch:
@@ -868,6 +924,10 @@ class CaptureSession:
         values = {
             "goal_deg": np.round(np.degrees(res.goal_rad), 3).tolist(),
             "min_clearance_m": f"{res.min_clearance_m:.4f}",
+            # the published motion's, as the controller moves the arm through its points (a joined one: from
+            # the join, on the executing path first): below the margin where not certified
+            "trajectory_clearance_m": f"{processed.min_clearance_m:.4f}",
+            "trajectory_certified": str(bool(processed.certified and exposure is None)).lower(),
             "trajectory_duration_s": f"{traj.duration_s:.3f}",
             "trajectory_points": len(traj),
             "trajectory_dense_points": len(processed.dense),
@@ -916,6 +976,13 @@ class CaptureSession:
         elif at_goal:
             self.log("info", f"plan #{req.gen}: already at the goal (within {AT_GOAL_TOL_RAD:g} rad): "
                      "no trajectory published")
+        if outcome.publication.sent and (exposure is not None or not processed.certified):
+            self.log("warning", f"plan #{req.gen}: its motion is published although not collision-free: "
+                     + (exposure or uncertified_text(processed, self.motions(req.scenario.scene)))
+                     + ("" if join is None else "; the least exposed motion found from the moving arm"
+                        + (" (it stops on the executing path as soon as the limits allow, and goes from there)"
+                           if join.stop else ""))
+                     + ("; it starts within the margin and walks out" if join is None else ""))
         t = res.timings_s
         self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
                  f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "

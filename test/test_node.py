@@ -221,13 +221,14 @@ def test_diagnostics_describe_only_the_last_finished_request(graph):
     ok_keys = {"state", "request", "request_reason", "target_m", "target_yaw_deg", "code", "goal_deg",
                "min_clearance_m", "trajectory_duration_s", "trajectory_points", "cached", "solver", "latency_s",
                "field_converged", "field_bands", "repairs", "approach_error_deg", "trajectory_dense_points",
-               "trajectory_retimings", "joined_moving_arm"}
+               "trajectory_retimings", "joined_moving_arm", "trajectory_clearance_m", "trajectory_certified"}
     timing_keys = {k for k in pv if k.startswith("time_") and k.endswith("_ms")}
     assert timing_keys and set(pv) == ok_keys | timing_keys, set(pv) ^ (ok_keys | timing_keys)
     assert json.loads(pv["target_m"]) == [-3.27, -2.6]
     assert pv["field_converged"] == "true" and float(pv["approach_error_deg"]) < 5.0
     assert int(pv["trajectory_points"]) < int(pv["trajectory_dense_points"])     # resampled
     assert int(pv["trajectory_retimings"]) >= 0
+    assert pv["trajectory_certified"] == "true" and float(pv["trajectory_clearance_m"]) > 0.02   # the file's margin
 
 
 def test_grids_are_in_the_grid_frame(graph):
