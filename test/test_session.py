@@ -667,3 +667,32 @@ def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_ba
     assert {v for v, _ in seen.values()} == {"true", "false"}, seen
     assert any(j.startswith("no (the arm at rest") for _, j in seen.values()), seen
     assert any("stopping on its path" in j for _, j in seen.values()), seen
+
+
+def test_a_plan_from_rest_within_the_margin_says_so_and_reports_the_motions_clearance(flat, backend):
+    """
+    The target moved 9 cm towards the parked arm (its start 1 cm from it, inside the 2 cm margin): walked out, said.
+
+    Before, nothing was said and the plan's clearance (0.031 m in the audit) was reported as the
+    motion's.  Oracle: the start's clearance in the test's geometry.
+    """
+    from oracles import ref_clearance
+    clock = Clock()
+    ses = _session(flat, backend, clock)
+    ses.joint_state(ses.scenario.start_rad, clock.t)
+    ses.submit("first", target=ses.target)
+    parked = ses.run_once().trajectory.positions_rad[-1]
+    clock.t += 100 * S                                  # long after its trajectory ended: the arm at rest there
+    ses.joint_state(parked, clock.t)
+    t0 = ses.target
+    normal = np.array([-math.sin(t0.yaw_rad), math.cos(t0.yaw_rad)])        # the handle's side, towards the arm
+    moved = replace(t0, center_m=tuple(np.asarray(t0.center_m) + 0.09 * normal))
+    robot = ses.scenario.robot
+    start_clr = ref_clearance(robot, ses.scenario.scene.with_target(moved), robot.full(parked))
+    assert 0.0 < start_clr < ses.scenario.scene.safety_margin_m, start_clr
+    ses.submit("moved", target=moved)
+    out = ses.run_once()
+    assert out.ok and out.values["trajectory_certified"] == "false", out.values
+    assert float(out.values["trajectory_clearance_m"]) == pytest.approx(start_clr, abs=2e-3), (out.values, start_clr)
+    said = "\n".join(text for _, text in ses.log_lines[-3:])
+    assert "published although not collision-free" in said and "starts within the margin and walks out" in said, said
