@@ -54,6 +54,7 @@ from .trajectory import (Lowering, Resampled, Trajectory, controller_check, lowe
                          segment_wheel_peaks, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
+           "switching_at_arrival",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD", "warm_up"]
 
@@ -608,6 +609,45 @@ def _finished(scenario, got: Processed, rs, wheel_over=None) -> Processed:
     return replace(got, trajectory=traj, indices=idx, certified=rs.ok, min_clearance_m=clr, arm=arm,
                    attitude=att, predicted_drift=drift,
                    reaction=_published_peaks(scenario, got.reaction, traj, wheel_over if rs.ok else None))
+
+
+def switching_at_arrival(processed: Processed, executing, now_ns: int) -> tuple:
+    """
+    Return (stamp_ns, arm, attitude, predicted_drift) of a joined trajectory for a controller that switches at arrival.
+
+    Such a controller (``controller.switch: arrival``) installs a trajectory when it arrives and
+    goes from its state then to the first point, reached at the stamp: the join's state at the
+    join's time, a connecting stretch nobody checked.  So the message is stamped at the
+    executing trajectory's last published point at or before ``now_ns`` (the anchor) and holds
+    its published points from there up to the join (exact states, at their own times), then
+    the joined trajectory's, shifted: arriving anywhere before the join, the controller samples
+    the segment it is in, the executing trajectory's own.  ``processed``: a joined plan's
+    (``join_stamp_ns`` set); ``executing``: the ``replanning.Executing`` it joins.  As given when
+    no published point of it lies at or before ``now_ns`` (it has not started: the arm is on the
+    one before, which the message it was sent in already connects to).
+    """
+    ex, k = executing, processed.continuation.index
+    traj = ex.trajectory
+    pub = np.asarray(ex.published)
+    before = pub[(pub < k) & (ex.start_ns + np.round(1e9 * traj.times_s[pub]) <= now_ns)]
+    if not len(before):
+        return processed.join_stamp_ns, processed.arm, processed.attitude, processed.predicted_drift
+    rows = pub[(pub >= before[-1]) & (pub < k)]
+    t0 = float(traj.times_s[rows[0]])
+    shift = float(traj.times_s[k]) - t0
+
+    def prefixed(part):
+        if part is None:
+            return None
+        cols = [traj.joint_names.index(n) for n in part.joint_names]
+        return TrajectoryPart(part.joint_names, np.concatenate([traj.times_s[rows] - t0, part.times_s + shift]),
+                              np.vstack([traj.positions_rad[np.ix_(rows, cols)], part.positions_rad]),
+                              np.vstack([traj.velocities_rad_s[np.ix_(rows, cols)], part.velocities_rad_s]),
+                              np.vstack([traj.accelerations_rad_s2[np.ix_(rows, cols)], part.accelerations_rad_s2]))
+    drift = processed.predicted_drift
+    if drift is not None:               # reported, not sent: its times on the message's clock
+        drift = replace(drift, times_s=drift.times_s + shift)
+    return ex.start_ns + int(round(1e9 * t0)), prefixed(processed.arm), prefixed(processed.attitude), drift
 
 
 def uncertified_text(processed: Processed, motions) -> str:

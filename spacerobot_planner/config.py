@@ -175,6 +175,14 @@ PARAMETERS = (
               "stamp-to-arrival time measured on a loaded machine (load 5, in-process graphs) was 0.26 s "
               "(python -m spacerobot_planner.bench latency --load N reports the margin), seconds.",
               False, 0.0, 10.0),
+    ParamSpec("controller.switch", "string", "stamp",
+              "When the arm's trajectory controller takes a newer trajectory over: stamp (at its header "
+              "stamp, following the one it has until then: ros2_controllers' joint_trajectory_controller "
+              "from 6.8 on with allow_trajectory_replacement, and the mock arm) or arrival (when it arrives, "
+              "going from its state then to the first point: joint_trajectory_controller before 6.8, as in "
+              "Kilted and Jazzy). With arrival a trajectory joined to the moving arm is stamped at the "
+              "executing one's last published point before it is sent and holds its points up to the join. "
+              "Read by both nodes.", True),
     # ---- the spacecraft's reaction (spacecraft.py, reaction.py)
     ParamSpec("dynamics.body_mass_kg", "double", 2000.0,
               "Spacecraft body mass (with the massless link 1), kg.", False, 1e-6, 1e12),
@@ -539,7 +547,8 @@ def session_settings_from_params(params: dict) -> SessionSettings:
                            start_lead_s=_get(params, "trajectory.start_lead_s"),
                            target_tolerance_m=_get(params, "replan.target_tolerance_m"),
                            target_tolerance_deg=_get(params, "replan.target_tolerance_deg"),
-                           test_stall_s=_get(params, "planner.test_stall_s"))
+                           test_stall_s=_get(params, "planner.test_stall_s"),
+                           controller_switch=_get(params, "controller.switch"))
 
 
 def joint_limits_from_params(params: dict, robot: PlanarArm) -> JointLimits | None:

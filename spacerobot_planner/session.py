@@ -63,7 +63,8 @@ from typing import Callable
 
 import numpy as np
 
-from .adapters import AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process, uncertified_text
+from .adapters import (AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process, switching_at_arrival,
+                       uncertified_text)
 from .cores import threads_text
 from .motion import MotionValidator
 from .replanning import (MAX_STATE_AGE_S, STATE_WAIT_S, Executing, committed_path, join_direction, plan_start,
@@ -959,8 +960,11 @@ class CaptureSession:
             stamp = stamp_for(processed, now, lead_s)
             if stamp is None:     # the record took the join's margin (a stalled machine): publish nothing
                 return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
-            outcome.publication = Publication(stamp, processed.arm, processed.attitude, execute,
-                                              processed.predicted_drift)
+            sent = (stamp, processed.arm, processed.attitude, processed.predicted_drift)
+            if processed.join_stamp_ns is not None and req.settings.controller_switch == "arrival":
+                # a controller that switches when the message arrives: the executing points up to the join in it
+                sent = switching_at_arrival(processed, join.executing, now)
+            outcome.publication = Publication(sent[0], sent[1], sent[2], execute, sent[3])
             if outcome.publication.sent:
                 dense, idx = processed.dense, processed.indices
                 self.last_publish_t = time.monotonic()

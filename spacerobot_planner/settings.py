@@ -19,7 +19,7 @@ from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS
 from .motion import DEFAULT_VERIFY_STEP_RAD
 from .smoothing import DEFAULT_MAX_STEP_RAD
 
-__all__ = ["PlannerSettings", "JointLimits", "SessionSettings"]
+__all__ = ["PlannerSettings", "JointLimits", "SessionSettings", "CONTROLLER_SWITCHES"]
 
 
 def _positive(name, value, allow_zero=False) -> float:
@@ -179,13 +179,19 @@ class JointLimits:
         return (np.asarray(self.max_velocity_rad_s)[idx], np.asarray(self.max_acceleration_rad_s2)[idx])
 
 
+#: ``controller.switch``: when the arm's trajectory controller takes a newer trajectory over: at its stamp
+#: (ros2_controllers' joint_trajectory_controller from 6.8 on, ``allow_trajectory_replacement``; the mock
+#: arm's default) or at its arrival, going from its state then to the first point (before 6.8: Kilted, Jazzy)
+CONTROLLER_SWITCHES = ("stamp", "arrival")
+
+
 @dataclass(frozen=True)
 class SessionSettings:
     """
     How a capture session (``session.py``) replans a moving arm and stamps what it publishes.
 
     From the parameters (``config.session_settings_from_params``): ``replan.*``,
-    ``trajectory.start_lead_s``, ``planner.test_stall_s``.
+    ``trajectory.start_lead_s``, ``planner.test_stall_s``, ``controller.switch``.
 
     Attributes
     ----------
@@ -199,6 +205,8 @@ class SessionSettings:
         target_tolerance_m, target_tolerance_deg: a topic target this close to the current one
             is not a new request (metres, degrees).
         test_stall_s: testing aid, the planning process stalls this long before each plan, s.
+        controller_switch: when the arm's controller takes a newer trajectory over, "stamp" or
+            "arrival" (:data:`CONTROLLER_SWITCHES`, ``adapters.switching_at_arrival``).
 
     """
 
@@ -209,8 +217,12 @@ class SessionSettings:
     target_tolerance_m: float = 0.005
     target_tolerance_deg: float = 0.5
     test_stall_s: float = 0.0
+    controller_switch: str = "stamp"
 
     def __post_init__(self):
         for name in ("horizon_s", "follow_tolerance_rad", "min_publish_period_s", "start_lead_s",
                      "target_tolerance_m", "target_tolerance_deg", "test_stall_s"):
             object.__setattr__(self, name, _positive(name, getattr(self, name), allow_zero=True))
+        if self.controller_switch not in CONTROLLER_SWITCHES:
+            raise ValueError(f"controller.switch: expected one of {', '.join(CONTROLLER_SWITCHES)}, got "
+                             f"{self.controller_switch!r}")

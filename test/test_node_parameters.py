@@ -48,7 +48,8 @@ def test_each_node_declares_only_what_it_reads(graph):
     assert {"robot.joint_names", "grid.cells", "planner.solver", "autostart", "grid_frame"} <= planner
     assert arm == {"robot.joint_names", "robot.link_lengths_m", "robot.lower_deg", "robot.upper_deg",
                    "robot.periodic", "robot.body_side_m", "robot.planned_joints", "robot.locked_positions_deg",
-                   "scenario.start_deg", "rate_hz"}, arm
+                   "scenario.start_deg", "controller.switch", "rate_hz"}, arm
+    assert "controller.switch" in planner          # both: when the arm's controller switches to a newer trajectory
 
 
 def test_descriptors_carry_ranges_and_allowed_values(graph):

@@ -63,10 +63,13 @@ def _grasp_point_m(flat, center_m, yaw_rad):
     return np.array([center_m[0] - out * math.sin(yaw_rad), center_m[1] + out * math.cos(yaw_rad)])
 
 
-def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph):
+@pytest.mark.parametrize("switch", ["stamp", "arrival"])
+def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph, switch):
     # a horizon that a loaded machine keeps (request -> trajectory took 1.35 s at load 11, past
-    # the default 1 s, and the retry's join came within the lead), still inside the ~5 s motion
-    g = graph(_moderate(**{"replan.horizon_s": 2.5}))
+    # the default 1 s, and the retry's join came within the lead), still inside the ~5 s motion;
+    # controller.switch for both nodes: the mock arm switching at the stamp (JTC from 6.8 on) or at the
+    # message's arrival (before 6.8: Kilted), the planner encoding the join for it
+    g = graph(_moderate(**{"replan.horizon_s": 2.5, "controller.switch": switch}))
     robot = g.scenario.robot
     names = list(robot.planned_names)
     amax = np.radians(AMAX_DEG_S2)
@@ -87,7 +90,14 @@ def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph):
     assert angle_err_deg(robot, g.arm.positions, goal2) < 0.5
 
     t, q, v = _record(g, names, t_ros0)
-    stamp = second.header.stamp.sec + 1e-9 * second.header.stamp.nanosec
+    with g.lock:
+        first = g.trajs[0][1]
+    # the switch: the join, "yes, S s into the executing trajectory" (the second message's stamp with "stamp"; with
+    # "arrival" it is stamped before it was sent, at the first's last published point then)
+    stamp = (first.header.stamp.sec + 1e-9 * first.header.stamp.nanosec
+             + float(joined.split("yes, ")[1].split(" s into")[0]))
+    if switch == "stamp":
+        assert abs(stamp - (second.header.stamp.sec + 1e-9 * second.header.stamp.nanosec)) < 1e-3   # (said to 1 ms)
     k = int(np.searchsorted(t, stamp))
     speed_at_switch = float(np.degrees(np.max(np.abs(v[max(k - 1, 0)]))))
     assert speed_at_switch > 5.0, f"the arm was not moving at the switch ({speed_at_switch:.2f}°/s): nothing tested"

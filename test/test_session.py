@@ -696,3 +696,78 @@ def test_a_plan_from_rest_within_the_margin_says_so_and_reports_the_motions_clea
     assert float(out.values["trajectory_clearance_m"]) == pytest.approx(start_clr, abs=2e-3), (out.values, start_clr)
     said = "\n".join(text for _, text in ses.log_lines[-3:])
     assert "published although not collision-free" in said and "starts within the margin and walks out" in said, said
+
+
+def _legacy_controller(messages, arrivals_ns, ts_ns):
+    """
+    Return the positions (len(ts_ns), k) a joint_trajectory_controller before 6.8 commands (the test's model).
+
+    ``messages``: [(stamp ns, times s, q, v, a)] of one joint group, in order; each is installed when it
+    arrives (``arrivals_ns``) and sampled from then: before its first point's time, a quintic from the
+    commanded state at the arrival (``interpolate_from_desired_state``) to that point; after it, its own
+    quintic segments (oracles.controller_interpolation: BPoly, not the package's sampler).
+    """
+    from oracles import controller_interpolation
+    out = []
+    for t in ts_ns:
+        k = max(i for i, a in enumerate(arrivals_ns) if a <= t)
+        out.append(_commanded(messages[:k + 1], arrivals_ns[:k + 1], t, controller_interpolation))
+    return np.array(out)
+
+
+def _commanded(messages, arrivals_ns, t_ns, interpolation):
+    """Return (q) at ``t_ns`` of the last message installed (recursively: its connection starts on the one before)."""
+    stamp, times, q, v, a = messages[-1]
+    s = 1e-9 * (t_ns - stamp)
+    if len(messages) > 1 and s < times[0]:
+        arr = arrivals_ns[-1]
+        eps = 1000                                             # the state at the arrival, by differences (1 us)
+        q0 = _commanded(messages[:-1], arrivals_ns[:-1], arr, interpolation)
+        qp = _commanded(messages[:-1], arrivals_ns[:-1], arr + eps, interpolation)
+        qm = _commanded(messages[:-1], arrivals_ns[:-1], arr - eps, interpolation)
+        v0, a0 = (qp - qm) / (2e-9 * eps), (qp - 2 * q0 + qm) / (1e-9 * eps) ** 2
+        f = interpolation(np.array([1e-9 * (arr - stamp), times[0]]), np.vstack([q0, q[0]]), np.vstack([v0, v[0]]),
+                          np.vstack([a0, a[0]]))
+        return f(s)[0][0]
+    return interpolation(times, q, v, a)(s)[0][0]
+
+
+@pytest.mark.parametrize("arrive_after_s", [0.02, 0.15, 0.3])
+def test_a_join_for_a_controller_that_switches_at_arrival_is_the_executing_motion_until_the_join(flat, backend,
+                                                                                                 arrive_after_s):
+    """
+    ``controller.switch: arrival`` (joint_trajectory_controller before 6.8, Kilted's): the arm follows the old motion.
+
+    The message is stamped at the executing trajectory's last published point before it is sent
+    and holds its points up to the join; wherever it arrives before the join, the controller's
+    motion is the executing one's until the join, then the joined trajectory's.  The same plan
+    stamped at the join ("stamp") makes such a controller leave the executing motion at once
+    (its connection from its state to the first point).  Oracle: the test's model of that
+    controller, on the test's quintics.
+    """
+    clock = Clock()
+    ses, ex = _moving(flat, backend, clock, controller_switch="arrival")
+    now = clock.t
+    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+    out = ses.run_once()
+    assert out.ok and out.values["joined_moving_arm"].startswith("yes"), out.values
+    (_, first, _), (_, second, _) = ses.published
+    join_ns = out.processed.join_stamp_ns
+    arrival = now + int(arrive_after_s * S)
+    assert second.publication.stamp_ns <= now < arrival < join_ns            # stamped before it is sent
+
+    def msg(pub, part):
+        p = getattr(pub, part)
+        return pub.stamp_ns, p.times_s, p.positions_rad, p.velocities_rad_s, p.accelerations_rad_s2
+    ts = np.linspace(arrival, join_ns + int(0.5 * S), 60).astype(np.int64)
+    for part in ("arm", "attitude"):
+        old, new = msg(first.publication, part), msg(second.publication, part)
+        got = _legacy_controller([old, new], [0, arrival], ts)
+        p = getattr(out.processed, part)                        # the joined trajectory, stamped at the join
+        intended = _legacy_controller([old, (join_ns, p.times_s, p.positions_rad, p.velocities_rad_s,
+                                             p.accelerations_rad_s2)], [0, join_ns], ts)
+        np.testing.assert_allclose(got, intended, atol=1e-9, err_msg=part)
+        at_join = _legacy_controller([old, (join_ns, p.times_s, p.positions_rad, p.velocities_rad_s,
+                                            p.accelerations_rad_s2)], [0, arrival], ts)   # "stamp": stamped at the join
+        if part == "arm":
+            assert np.max(np.abs(at_join - intended)) > 1e-6, np.max(np.abs(at_join - intended))

@@ -13,9 +13,10 @@ would) is followed as ros2_controllers' joint_trajectory_controller (JTC) follow
 - its time base is its header stamp (a zero stamp: the moment it arrives); one that would
   end before it arrives (a non-zero stamp plus its duration in the past) is refused;
 - it takes over at its stamp (at its arrival when that is later): until then the arm goes on
-  following the trajectory it had on the same topic (or holds still), as JTC does with
-  ``allow_trajectory_replacement`` (a newer waiting trajectory drops any waiting one that
-  would start at or after it);
+  following the trajectory it had on the same topic (or holds still), as JTC from
+  ros2_controllers 6.8 on does with ``allow_trajectory_replacement`` (a newer waiting trajectory
+  drops any waiting one that would start at or after it); with ``controller.switch: arrival`` it
+  takes over when it arrives, as JTC before 6.8 (Kilted, Jazzy);
 - when it takes over before its first point's time, the arm moves from its state at that
   moment (position, velocity, acceleration) to the first point along the segment the first
   point's fields call for (JTC's "point before the trajectory"; a periodic joint's state is
@@ -29,8 +30,8 @@ accelerations are not in it: JointState has no field for them).  Times are kept 
 nanoseconds, so a state is exact at its stamp.  Joints that no trajectory moves hold their
 position.
 
-Parameters: ``robot.*`` and ``scenario.start_deg`` (the shared ``/**`` section of a
-scenario file; read-only) and ``rate_hz`` (its own ``mock_arm`` section; a change takes effect
+Parameters: ``robot.*``, ``scenario.start_deg`` and ``controller.switch`` (the shared ``/**``
+section of a scenario file; read-only) and ``rate_hz`` (its own ``mock_arm`` section; a change takes effect
 at once, a whole number too).  Run it with the same file as the planner::
 
     ros2 run spacerobot_planner mock_arm_node --ros-args --params-file config/paper_3dof.yaml
@@ -52,7 +53,7 @@ from ..config import scenario_from_params
 from ..trajectory import sample_points
 from . import conversions as conv
 from . import node_main
-from .parameters import MOCK_ARM_PARAMETERS, SPECS, as_declared, descriptor_for
+from .parameters import MOCK_ARM_PARAMETERS, SPECS, as_declared, check_choice, descriptor_for
 from .time_jumps import on_time_jumps
 
 __all__ = ["MockArmNode", "main"]
@@ -103,6 +104,10 @@ class MockArmNode(Node):
         q_full = self.robot.full(sc.start_rad if sc.start_rad is not None else self.robot.locked_rad[
             list(self.robot.planned_joints)])
         self.names = tuple(self.robot.joint_names)
+        # when a newer trajectory takes over: at its stamp (joint_trajectory_controller from 6.8 on) or at its
+        # arrival, from the state then to its first point (before 6.8: Kilted, Jazzy)
+        check_choice("controller.switch", params["controller.switch"])
+        self.switch_at_arrival = params["controller.switch"] == "arrival"
         self.periodic = tuple(bool(p) for p in self.robot.periodic)
         self._lock = threading.Lock()
         self._hold = np.array(q_full, dtype=float)     # where joints no trajectory moves are
@@ -192,7 +197,8 @@ class MockArmNode(Node):
                 a = None
         now_ns = int(now_ns)
         start_ns = conv.time_to_ns(msg.header.stamp) or now_ns
-        m = _Motion(tuple(self.names.index(n) for n in names), t, q, v, a, start_ns, max(start_ns, now_ns))
+        switch_ns = now_ns if self.switch_at_arrival else max(start_ns, now_ns)
+        m = _Motion(tuple(self.names.index(n) for n in names), t, q, v, a, start_ns, switch_ns)
         if m.s_at(now_ns) > t[-1]:
             self.get_logger().error(f"{topic}: refused a trajectory that ends in the past (stamp + duration "
                                     f"{m.s_at(now_ns) - t[-1]:.3f} s before now)")

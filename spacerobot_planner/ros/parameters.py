@@ -33,7 +33,8 @@ PLANNER_PARAMETERS = tuple(p.name for p in PARAMETERS
                            if not p.name.startswith(("scenario.", "mock_arm.")))
 #: the mock arm's: declared name -> config.PARAMETERS name
 MOCK_ARM_PARAMETERS = {**{p.name: p.name for p in PARAMETERS if p.name.startswith("robot.")},
-                       "scenario.start_deg": "scenario.start_deg", "rate_hz": "mock_arm.rate_hz"}
+                       "scenario.start_deg": "scenario.start_deg", "controller.switch": "controller.switch",
+                       "rate_hz": "mock_arm.rate_hz"}
 
 
 def _solvers():
@@ -46,8 +47,13 @@ def _acs_modes():
     return tuple(ACS_MODES)
 
 
+def _controller_switches():
+    from ..settings import CONTROLLER_SWITCHES
+    return tuple(CONTROLLER_SWITCHES)
+
+
 #: string parameters with a fixed set of values: name -> callable returning them
-CHOICES = {"planner.solver": _solvers, "acs.mode": _acs_modes}
+CHOICES = {"planner.solver": _solvers, "acs.mode": _acs_modes, "controller.switch": _controller_switches}
 
 
 def check_choice(name: str, value) -> None:
