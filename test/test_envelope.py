@@ -309,6 +309,27 @@ def test_a_table_of_another_sweep_without_its_manifest_is_refused(serial, tmp_pa
     assert rep.done_before == 3 and rep.complete and _differences(ser.rows, rep.rows) == []
 
 
+def test_a_sweep_that_cannot_reach_its_scheduler_leaves_no_new_folder_and_an_old_one_as_it_was(
+        serial, tmp_path, monkeypatch):
+    """``--scheduler`` that does not answer (Dask's own 30 s, here at once): no folder made for nothing (audit)."""
+    from spacerobot_planner.envelope import engine
+    sc, grid, ser = serial
+
+    def unreachable(stack, scheduler, workers):
+        raise ValueError(f"--scheduler {scheduler}: cannot connect: timed out")
+    monkeypatch.setattr(engine, "_client", unreachable)
+    new = tmp_path / "a" / "new"
+    with pytest.raises(ValueError, match="cannot connect"):
+        run_envelope(sc, grid, new, _spec(sc, grid), scheduler="tcp://127.0.0.1:9", quiet=True)
+    assert not new.exists() and (tmp_path / "a").exists()       # its parent made on the way stays
+    old = tmp_path / "old"
+    run_envelope(sc, grid, old, _spec(sc, grid), workers=0, quiet=True)
+    before = {p.name: p.read_bytes() for p in old.iterdir()}
+    with pytest.raises(ValueError, match="cannot connect"):
+        run_envelope(sc, grid, old, _spec(sc, grid), scheduler="tcp://127.0.0.1:9", quiet=True)
+    assert {p.name: p.read_bytes() for p in old.iterdir()} == before
+
+
 def test_the_progress_bar_shows_rate_and_eta_on_a_terminal_only():
     class Tty(io.StringIO):
         def isatty(self):
@@ -351,6 +372,7 @@ def test_the_command_writes_the_table_parquet_and_maps(tmp_path, capsys):
     (["--cells", "0"], "--cells: 0 is below the minimum 2"),
     (["--x-m", "-3.27", "-3.27", "3"], "--x-m: 3 values asked for between equal ends"),
     (["--x-m", "-3", "-2", "100000", "--y-m", "-3", "-2", "1000"], "more than one sweep holds"),
+    (["--yaw-deg", "400", "400", "1"], "--yaw-deg: target.yaw_deg: 400.0 is above the maximum 360"),
 ])
 def test_bad_input_exits_1_naming_the_flag(extra, named, tmp_path, capsys):
     argv = ["envelope", "--params-file", str(P2), "--x-m", "-3.27", "-3.02", "2", "--y-m", "-2.6", "-2.6", "1",

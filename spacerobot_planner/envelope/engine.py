@@ -237,6 +237,8 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
         report.seconds = time.perf_counter() - t_start
         if store.running:
             store.end_run(report.planned, report.complete, report.seconds)
+        else:            # stopped before a run began (no --scheduler to connect to): leave no new folder behind
+            store.discard_new()
     if report.complete:
         want_parquet = grid.n_poses >= PARQUET_MIN_POSES if parquet is None else parquet
         report.rows = store.finish(want_parquet)

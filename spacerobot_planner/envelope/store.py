@@ -113,6 +113,7 @@ class EnvelopeStore:
         self.parquet_path = self.dir / PARQUET_NAME
         self._file = None
         self._run = None
+        self._made = []             # what open() made: the table (header only), the folder
 
     # ------------------------------------------------------------------ open
     def open(self, grid: PoseGrid | None = None) -> set:
@@ -123,7 +124,9 @@ class EnvelopeStore:
         damaged ``envelope.csv``; with ``grid`` (the sweep's), also when a row of
         ``envelope.csv`` is not one of its poses (another sweep's table, its manifest gone).
         """
-        self.dir.mkdir(parents=True, exist_ok=True)
+        if not self.dir.exists():
+            self.dir.mkdir(parents=True)
+            self._made.append(self.dir)
         if self.manifest_path.exists():
             old = json.loads(self.manifest_path.read_text(encoding="utf-8"))
             for key in SPEC_KEYS:
@@ -149,6 +152,7 @@ class EnvelopeStore:
         if not self.csv_path.exists():
             with open(self.csv_path, "w", encoding="utf-8", newline="") as f:
                 csv.writer(f, lineterminator="\n").writerow(_NAMES)
+            self._made.insert(0, self.csv_path)
         self._file = open(self.csv_path, "a", encoding="utf-8", newline="")
         self._writer = csv.writer(self._file, lineterminator="\n")
         return done
@@ -169,6 +173,18 @@ class EnvelopeStore:
                 f"y {r['y_m']:g} m, yaw {r['yaw_deg']:g}°, start {r['start_index']}; {where})"
                 + ("" if self.manifest_path.exists() else f", and no {MANIFEST_NAME} says which sweep it holds")
                 + "; choose another folder, or delete that one to start again")
+
+    def discard_new(self) -> None:
+        """Remove what :meth:`open` made (a header-only table; the folder, when it made it and it is empty)."""
+        for path in self._made:
+            try:
+                if path == self.csv_path:
+                    path.unlink()
+                else:
+                    path.rmdir()
+            except OSError:
+                pass            # something else was put there meanwhile: left as it is
+        self._made = []
 
     # ----------------------------------------------------------------- runs
     def start_run(self, **info) -> None:

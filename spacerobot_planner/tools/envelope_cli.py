@@ -29,6 +29,7 @@ import math
 import sys
 from pathlib import Path
 
+from ..config import check_value
 from ..envelope.engine import run_envelope
 from ..envelope.store import sweep_spec
 from ..envelope.sweep import PoseGrid, axis_values
@@ -93,6 +94,11 @@ def main(argv=None) -> int:
             yaws = (math.degrees(scenario.scene.target.yaw_rad),)
         else:
             yaws = axis_values(args.yaw_deg[0], args.yaw_deg[1], _count(args.yaw_deg[2], "--yaw-deg"), "--yaw-deg")
+            for end in args.yaw_deg[:2]:          # the range of the file's target.yaw_deg (was not checked: 400° ran)
+                try:
+                    check_value("target.yaw_deg", end)
+                except ValueError as e:
+                    raise ValueError(f"--yaw-deg: {e} (the range of the file's target.yaw_deg)") from None
         if args.starts_deg:
             starts = [posture(scenario.robot, s, "--starts-deg") for s in args.starts_deg]
         elif scenario.start_rad is not None:
