@@ -611,43 +611,48 @@ def _finished(scenario, got: Processed, rs, wheel_over=None) -> Processed:
                    reaction=_published_peaks(scenario, got.reaction, traj, wheel_over if rs.ok else None))
 
 
-def switching_at_arrival(processed: Processed, executing, now_ns: int) -> tuple:
+def switching_at_arrival(sent_stamp_ns: int, sent_parts, stamp_ns: int, parts, drift, now_ns: int) -> tuple:
     """
-    Return (stamp_ns, arm, attitude, predicted_drift) of a joined trajectory for a controller that switches at arrival.
+    Return (stamp_ns, parts, drift) of a trajectory from a moving arm for a controller that switches at arrival.
 
     Such a controller (``controller.switch: arrival``) installs a trajectory when it arrives and
-    goes from its state then to the first point, reached at the stamp: the join's state at the
-    join's time, a connecting stretch nobody checked.  So the message is stamped at the
-    executing trajectory's last published point at or before ``now_ns`` (the anchor) and holds
-    its published points from there up to the join (exact states, at their own times), then
-    the joined trajectory's, shifted: arriving anywhere before the join, the controller samples
-    the segment it is in, the executing trajectory's own.  ``processed``: a joined plan's
-    (``join_stamp_ns`` set); ``executing``: the ``replanning.Executing`` it joins.  As given when
-    no published point of it lies at or before ``now_ns`` (it has not started: the arm is on the
-    one before, which the message it was sent in already connects to).
+    goes from its state then to the first point, reached at the stamp: a connecting stretch
+    nobody checked.  So the message is stamped at the last point, at or before ``now_ns``, of the
+    message last sent (``sent_stamp_ns``, ``sent_parts``: what the controller executes, whatever
+    it was joined to before) and holds that message's points from there up to ``stamp_ns`` (the
+    join, one of them; or after its end, at rest there), then ``parts`` shifted: arriving
+    anywhere before the switch, the controller samples the segment it is in, the one it had.
+    ``parts``: the (arm, attitude) ``TrajectoryPart`` objects from ``stamp_ns`` (None where a group is
+    not sent); ``drift``: the reported free-floating drift, its times shifted alike.  As given
+    when the two messages do not hold the same groups and joints, or no sent point lies before
+    ``stamp_ns``.
     """
-    ex, k = executing, processed.continuation.index
-    traj = ex.trajectory
-    pub = np.asarray(ex.published)
-    before = pub[(pub < k) & (ex.start_ns + np.round(1e9 * traj.times_s[pub]) <= now_ns)]
+    same = [(a is None) == (b is None) and (a is None or a.joint_names == b.joint_names)
+            for a, b in zip(sent_parts, parts)]
+    ref = next((p for p in sent_parts if p is not None), None)
+    if not all(same) or ref is None:
+        return stamp_ns, tuple(parts), drift
+    t_ns = sent_stamp_ns + np.round(1e9 * np.asarray(ref.times_s)).astype(np.int64)
+    before = np.flatnonzero(t_ns < stamp_ns)
     if not len(before):
-        return processed.join_stamp_ns, processed.arm, processed.attitude, processed.predicted_drift
-    rows = pub[(pub >= before[-1]) & (pub < k)]
-    t0 = float(traj.times_s[rows[0]])
-    shift = float(traj.times_s[k]) - t0
+        return stamp_ns, tuple(parts), drift
+    past = np.flatnonzero(t_ns[before] <= now_ns)
+    first = int(before[past[-1]]) if len(past) else 0     # the last point the controller has passed (or its first)
+    rows = np.arange(first, int(before[-1]) + 1)
+    t0 = float(ref.times_s[first])
+    anchor_ns = int(t_ns[first])
+    shift = 1e-9 * (stamp_ns - anchor_ns)
 
-    def prefixed(part):
+    def prefixed(old, part):
         if part is None:
             return None
-        cols = [traj.joint_names.index(n) for n in part.joint_names]
-        return TrajectoryPart(part.joint_names, np.concatenate([traj.times_s[rows] - t0, part.times_s + shift]),
-                              np.vstack([traj.positions_rad[np.ix_(rows, cols)], part.positions_rad]),
-                              np.vstack([traj.velocities_rad_s[np.ix_(rows, cols)], part.velocities_rad_s]),
-                              np.vstack([traj.accelerations_rad_s2[np.ix_(rows, cols)], part.accelerations_rad_s2]))
-    drift = processed.predicted_drift
+        return TrajectoryPart(part.joint_names, np.concatenate([old.times_s[rows] - t0, part.times_s + shift]),
+                              np.vstack([old.positions_rad[rows], part.positions_rad]),
+                              np.vstack([old.velocities_rad_s[rows], part.velocities_rad_s]),
+                              np.vstack([old.accelerations_rad_s2[rows], part.accelerations_rad_s2]))
     if drift is not None:               # reported, not sent: its times on the message's clock
         drift = replace(drift, times_s=drift.times_s + shift)
-    return ex.start_ns + int(round(1e9 * t0)), prefixed(processed.arm), prefixed(processed.attitude), drift
+    return anchor_ns, tuple(prefixed(old, part) for old, part in zip(sent_parts, parts)), drift
 
 
 def uncertified_text(processed: Processed, motions) -> str:

@@ -505,19 +505,34 @@ def committed_path(join: Join, from_ns: int, to_ns: int) -> np.ndarray:
     """
     Return the executing path the arm follows from ROS time ``from_ns`` to ``to_ns``: (K, n) rows, rad.
 
-    The dense trajectory's rows between, and its positions at both times (K = 0 when ``to_ns`` is
-    not after ``from_ns``; times before its start or after its end clamped to them).  A plan
-    that switches at ``to_ns`` leaves the arm on it until then: what it must keep clear in the
-    plan's scene from the earliest a new message can take over (``from_ns``: now + the lead).
+    Along the chain of trajectories it follows (``Executing.previous`` before each one's start:
+    a trajectory joined to one that had not started yet is reached on the one before), each
+    one's dense rows in the stretch and the positions at the stretch's ends and at the switches
+    (K = 0 when ``to_ns`` is not after ``from_ns``; before the oldest one's start, at its first
+    point; after the newest one's end, at its last).  A plan that switches at ``to_ns`` leaves
+    the arm on it until then: what it must keep clear in the plan's scene from the earliest a new
+    message can take over (``from_ns``: now + the lead).
     """
-    ex = join.executing
-    traj = ex.trajectory
-    ta, tb = max(0.0, ex.time_s(from_ns)), min(traj.duration_s, ex.time_s(to_ns))
-    if tb <= ta:
-        return np.zeros((0, traj.positions_rad.shape[1]))
-    t = traj.times_s
-    inner = np.flatnonzero((t > ta) & (t < tb))
-    return np.vstack([sample(traj, ta)[0], traj.positions_rad[inner], sample(traj, tb)[0]])
+    chain, link = [], join.executing
+    while link is not None:
+        chain.append(link)
+        link = link.previous
+    chain.reverse()                                   # the oldest first
+    n = chain[-1].trajectory.positions_rad.shape[1]
+    if to_ns <= from_ns:
+        return np.zeros((0, n))
+    rows = []
+    for i, link in enumerate(chain):
+        traj = link.trajectory
+        a_ns = from_ns if i == 0 else max(from_ns, link.start_ns)
+        b_ns = to_ns if i + 1 == len(chain) else min(to_ns, chain[i + 1].start_ns)
+        if b_ns < a_ns or (rows and b_ns == a_ns):
+            continue
+        ta = min(max(0.0, link.time_s(a_ns)), traj.duration_s)
+        tb = min(max(0.0, link.time_s(b_ns)), traj.duration_s)
+        t = traj.times_s
+        rows += [sample(traj, ta)[0], *traj.positions_rad[(t > ta) & (t < tb)], sample(traj, tb)[0]]
+    return np.array(rows).reshape(-1, n)
 
 
 def start_tangent(c) -> np.ndarray | None:

@@ -268,6 +268,7 @@ class CaptureSession:
         self.joint_refused = None        # why the joint states after it were refused (None: none were)
         self._state_wanted = False       # the worker waits for a recent joint state (_arm_state)
         self.executing: Executing | None = None      # the trajectory last sent to the arm
+        self.last_sent: Publication | None = None    # ... as it was sent (controller.switch: arrival)
         self.activity = "idle"           # "idle" or "planning"
         self.last_result = None          # PlanResult of the last ok plan
         self.last_trajectory = None      # its published Trajectory
@@ -389,7 +390,7 @@ class CaptureSession:
         """
         with self.lock:
             forgot = self.executing is not None
-            self.executing = None
+            self.executing = self.last_sent = None
             self.time_epoch += 1
             if self.joint_q is not None:
                 self.joint_ns, self.joint_prev_ns = int(self.now_ns()), 0
@@ -960,11 +961,15 @@ class CaptureSession:
             stamp = stamp_for(processed, now, lead_s)
             if stamp is None:     # the record took the join's margin (a stalled machine): publish nothing
                 return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
-            sent = (stamp, processed.arm, processed.attitude, processed.predicted_drift)
-            if processed.join_stamp_ns is not None and req.settings.controller_switch == "arrival":
-                # a controller that switches when the message arrives: the executing points up to the join in it
-                sent = switching_at_arrival(processed, join.executing, now)
-            outcome.publication = Publication(sent[0], sent[1], sent[2], execute, sent[3])
+            sent_stamp, parts, drift = stamp, (processed.arm, processed.attitude), processed.predicted_drift
+            last = self.last_sent
+            if join is not None and execute and last is not None and req.settings.controller_switch == "arrival":
+                # a controller that switches when the message arrives: the points it has, up to the switch, in front
+                sent_stamp, parts, drift = switching_at_arrival(last.stamp_ns, (last.arm, last.attitude), stamp,
+                                                                parts, drift, now)
+            outcome.publication = Publication(sent_stamp, parts[0], parts[1], execute, drift)
+            if outcome.publication.sent:
+                self.last_sent = outcome.publication
             if outcome.publication.sent:
                 dense, idx = processed.dense, processed.indices
                 self.last_publish_t = time.monotonic()
@@ -996,6 +1001,7 @@ class CaptureSession:
                  f"{res.min_clearance_m:.3f} m; "
                  + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed, stamps)}, "
                     f"joined to the moving arm: {joined}; stamped {1e-9 * (stamp - now):.3f} s ahead"
+                    + _prefix_text(outcome.publication, processed, now)
                     if outcome.publication.sent else "no trajectory published")
                  + f"; request→trajectory {1e3 * latency:.1f} ms")
         return outcome
@@ -1006,6 +1012,18 @@ class CaptureSession:
         if res is not None and res.goal_rad is not None:
             values["goal_deg"] = np.round(np.degrees(res.goal_rad), 3).tolist()
         return Outcome(code, reason, res, values=values)
+
+
+def _prefix_text(publication: Publication, processed: Processed, now_ns: int) -> str:
+    """Say what a message for a controller that switches at arrival holds in front of the trajectory (else "")."""
+    part, own = ((publication.arm, processed.arm) if publication.arm is not None
+                 else (publication.attitude, processed.attitude))
+    if part is None or own is None or len(part.times_s) == len(own.times_s):
+        return ""
+    k = len(part.times_s) - len(own.times_s)
+    return (f" (sent for a controller that switches at arrival: {k} points of the message before in front, "
+            f"{len(part.times_s)} points, {part.times_s[-1]:.2f} s, stamped "
+            f"{1e-9 * (now_ns - publication.stamp_ns):.3f} s ago)")
 
 
 def _chain_text(processed: Processed, stamps) -> str:

@@ -733,41 +733,88 @@ def _commanded(messages, arrivals_ns, t_ns, interpolation):
 
 
 @pytest.mark.parametrize("arrive_after_s", [0.02, 0.15, 0.3])
+@pytest.mark.parametrize("stream", [False, True], ids=["one_replan", "a_replan_before_the_last_one_started"])
 def test_a_join_for_a_controller_that_switches_at_arrival_is_the_executing_motion_until_the_join(flat, backend,
-                                                                                                 arrive_after_s):
+                                                                                                 arrive_after_s,
+                                                                                                 stream):
     """
     ``controller.switch: arrival`` (joint_trajectory_controller before 6.8, Kilted's): the arm follows the old motion.
 
-    The message is stamped at the executing trajectory's last published point before it is sent
-    and holds its points up to the join; wherever it arrives before the join, the controller's
-    motion is the executing one's until the join, then the joined trajectory's.  The same plan
-    stamped at the join ("stamp") makes such a controller leave the executing motion at once
-    (its connection from its state to the first point).  Oracle: the test's model of that
+    The message is stamped at the last point the controller has passed of the message it was
+    sent last and holds its points up to the join; wherever it arrives before the join, the
+    controller's motion is the one it had until the join, then the joined trajectory's.  With a
+    stream of replans the one before may not have started yet (its prefix then comes from the
+    message before it: the audit's 55 of 63 joined messages sent with nothing in front).  The same
+    plans stamped at their joins ("stamp") make such a controller leave the executing motion at
+    once (its connection from its state to the first point).  Oracle: the test's model of that
     controller, on the test's quintics.
     """
     clock = Clock()
     ses, ex = _moving(flat, backend, clock, controller_switch="arrival")
-    now = clock.t
-    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
-    out = ses.run_once()
-    assert out.ok and out.values["joined_moving_arm"].startswith("yes"), out.values
-    (_, first, _), (_, second, _) = ses.published
-    join_ns = out.processed.join_stamp_ns
+    outs = []
+    for x, y in ([(-3.25, -2.62)] if stream else []) + [(-3.22, -2.65)]:
+        ses.submit("moved target", target=_target(ses, x, y))
+        outs.append(ses.run_once())
+        assert outs[-1].ok and outs[-1].values["joined_moving_arm"].startswith("yes"), outs[-1].values
+    now = clock.t                                               # (not moved: the first replan has not started)
+    pubs = [p.publication for _, p, _ in ses.published]         # from rest, then the replans, as sent
+    join_ns = outs[-1].processed.join_stamp_ns
     arrival = now + int(arrive_after_s * S)
-    assert second.publication.stamp_ns <= now < arrival < join_ns            # stamped before it is sent
+    assert pubs[-1].stamp_ns <= now < arrival < join_ns          # stamped before it is sent
+    if stream:
+        assert outs[0].processed.join_stamp_ns > now, "the first replan had started: nothing tested"
 
     def msg(pub, part):
         p = getattr(pub, part)
         return pub.stamp_ns, p.times_s, p.positions_rad, p.velocities_rad_s, p.accelerations_rad_s2
+
+    def at_join(out, part):                                     # the joined trajectory, stamped at its join
+        p = getattr(out.processed, part)
+        return out.processed.join_stamp_ns, p.times_s, p.positions_rad, p.velocities_rad_s, p.accelerations_rad_s2
     ts = np.linspace(arrival, join_ns + int(0.5 * S), 60).astype(np.int64)
+    earlier = [0] + [now] * (len(pubs) - 2)                      # when the ones before arrived
     for part in ("arm", "attitude"):
-        old, new = msg(first.publication, part), msg(second.publication, part)
-        got = _legacy_controller([old, new], [0, arrival], ts)
-        p = getattr(out.processed, part)                        # the joined trajectory, stamped at the join
-        intended = _legacy_controller([old, (join_ns, p.times_s, p.positions_rad, p.velocities_rad_s,
-                                             p.accelerations_rad_s2)], [0, join_ns], ts)
+        got = _legacy_controller([msg(p, part) for p in pubs], earlier + [arrival], ts)
+        stamped = [msg(pubs[0], part)] + [at_join(o, part) for o in outs]
+        intended = _legacy_controller(stamped, [0] + [o.processed.join_stamp_ns for o in outs], ts)
         np.testing.assert_allclose(got, intended, atol=1e-9, err_msg=part)
-        at_join = _legacy_controller([old, (join_ns, p.times_s, p.positions_rad, p.velocities_rad_s,
-                                            p.accelerations_rad_s2)], [0, arrival], ts)   # "stamp": stamped at the join
+        as_stamped = _legacy_controller(stamped, earlier + [arrival], ts)     # "stamp": each stamped at its join
         if part == "arm":
-            assert np.max(np.abs(at_join - intended)) > 1e-6, np.max(np.abs(at_join - intended))
+            assert np.max(np.abs(as_stamped - intended)) > 1e-6, np.max(np.abs(as_stamped - intended))
+
+
+def test_the_committed_path_runs_on_the_trajectory_before_a_joined_one_that_has_not_started(flat, backend):
+    """
+    A replan joined to the executing trajectory starts later, at its join: until then the arm is on the one before.
+
+    ``committed_path`` (what a plan must keep clear, from now + the lead to its switch) clamped
+    every earlier time to the newest trajectory's start: the stretch on the one before went
+    unchecked (the audit's 0.0135 m, "certified").  Oracle: the test's own linear interpolation
+    of the two dense trajectories in time.
+    """
+    from spacerobot_planner.replanning import Join, committed_path
+    clock = Clock()
+    ses, ex1 = _moving(flat, backend, clock)
+    ses.submit("moved target", target=_target(ses, -3.25, -2.62))
+    assert ses.run_once().values["joined_moving_arm"].startswith("yes")
+    ex2 = ses.executing
+    assert ex2.previous is not None and ex2.start_ns > clock.t        # joined ahead: not started
+    a_ns, b_ns = clock.t + S // 10, ex2.start_ns + S // 2
+
+    def interp(ex, t_ns):
+        t = 1e-9 * (t_ns - ex.start_ns)
+        tr = ex.trajectory
+        return np.array([np.interp(t, tr.times_s, tr.positions_rad[:, j]) for j in range(tr.positions_rad.shape[1])])
+
+    def inner(ex, lo_ns, hi_ns):
+        t = ex.start_ns + 1e9 * ex.trajectory.times_s
+        return list(ex.trajectory.positions_rad[(t > lo_ns) & (t < hi_ns)])
+    want = np.array([interp(ex1, a_ns), *inner(ex1, a_ns, ex2.start_ns), interp(ex1, ex2.start_ns),
+                     interp(ex2, ex2.start_ns), *inner(ex2, ex2.start_ns, b_ns), interp(ex2, b_ns)])
+    got = committed_path(Join(ex2, 0, 1.0), a_ns, b_ns)
+
+    def distinct(rows):       # a dense point at the switch's time is also its interpolation there (rounding)
+        rows = np.asarray(rows)
+        return rows[np.r_[True, np.any(np.abs(np.diff(rows, axis=0)) > 1e-9, axis=1)]]
+    np.testing.assert_allclose(distinct(got), distinct(want), atol=1e-9)
+    assert np.max(np.abs(want[0] - ex2.trajectory.positions_rad[0])) > 1e-3       # the two differ there
