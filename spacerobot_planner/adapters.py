@@ -54,7 +54,7 @@ from .trajectory import (Lowering, Resampled, Trajectory, controller_check, lowe
                          segment_wheel_peaks, shared_path_models)
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
-           "switching_at_arrival",
+           "switching_at_arrival", "AFTER_THE_END_S",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD", "warm_up"]
 
@@ -152,8 +152,8 @@ class Processed:
             (its stamp: the join), None from rest (stamped when published; for a plan
             given a join, from the executing trajectory's end, which it reaches first).
         continuation: the ``trajectory.Continuation`` of a join, else None.
-        not_before_ns: from rest at the executing trajectory's end: that end (ROS time, ns),
-            the earliest stamp (see :func:`starts_at_the_end`); else None.
+        not_before_ns: from rest at the executing trajectory's end: ``AFTER_THE_END_S`` after that end
+            (ROS time, ns), the earliest stamp (see :func:`starts_at_the_end`); else None.
         predicted_drift: free floating: :func:`predicted_drift` at the published points (not
             published: nothing commands the attitude); else None.
         retimings: how many times the path was timed again because the controller's motion of
@@ -205,24 +205,34 @@ class Processed:
                 "points": len(self.trajectory), "dense_points": len(self.dense)}
 
 
+#: a plan from the executing trajectory's end starts this long after that end, s: its first point
+#: and the old last one are both at rest but with their own accelerations (the time-optimal
+#: profiles': braking into the end, speeding up out of it), and a controller that splices the
+#: two messages (joint_trajectory_controller's blend from 6.8 on, or the points in front for
+#: one that switches at arrival) would otherwise give the old last segment the new acceleration
+#: at its end (a re-run audit measured 1.045 × the elbow's limit there); over the gap the
+#: controller's quintic between the two states stays within their accelerations
+AFTER_THE_END_S = 1e-3
+
+
 def starts_at_the_end(join, now_ns: int, lead_s: float, from_end_at_rest: bool = False) -> int | None:
     """
-    Return the executing trajectory's end (ROS time, ns) when a plan starts there at rest, else None.
+    Return when a plan starting at the executing trajectory's end, at rest, may start (ROS time, ns), else None.
 
     The plan starts at the executing trajectory's last point (``join.horizon_index``) and
     either that trajectory ends less than ``lead_s`` after ``now_ns`` (no join can be the lead
     ahead) or ``from_end_at_rest`` (the session's retry from the end, after a join missed its
     time).  The arm comes to rest there on the trajectory it follows, so the new one starts
-    there from rest, stamped no earlier than that end (and the lead after it is published):
-    a stamp the chain's own time cannot overtake.  None: a join (through the horizon point
-    without stopping).
+    there from rest, stamped no earlier than :data:`AFTER_THE_END_S` after that end (and the lead
+    after it is published): a stamp the chain's own time cannot overtake.  None: a join (through
+    the horizon point without stopping).
     """
     ex = join.executing
     end_ns = ex.start_ns + int(round(ex.trajectory.duration_s * 1e9))
     if join.horizon_index != len(ex.trajectory) - 1:
         return None
     if from_end_at_rest or end_ns <= int(now_ns) + int(round(lead_s * 1e9)):
-        return end_ns
+        return end_ns + int(round(AFTER_THE_END_S * 1e9))
     return None
 
 
@@ -643,13 +653,23 @@ def switching_at_arrival(sent_stamp_ns: int, sent_parts, stamp_ns: int, parts, d
     anchor_ns = int(t_ns[first])
     shift = 1e-9 * (stamp_ns - anchor_ns)
 
+    # after the sent message's end (a plan from there, at rest): held between, at rest, through points with no
+    # acceleration AFTER_THE_END_S after that end and before the new start (a quintic from one state at rest to
+    # another with their own accelerations over the whole wait would sway)
+    gap = AFTER_THE_END_S
+    end_s = float(ref.times_s[-1]) - t0
+    holds = ([end_s + gap, shift - gap] if rows[-1] == len(ref.times_s) - 1 and shift - gap > end_s + gap + 1e-9
+             else [])
+
     def prefixed(old, part):
         if part is None:
             return None
-        return TrajectoryPart(part.joint_names, np.concatenate([old.times_s[rows] - t0, part.times_s + shift]),
-                              np.vstack([old.positions_rad[rows], part.positions_rad]),
-                              np.vstack([old.velocities_rad_s[rows], part.velocities_rad_s]),
-                              np.vstack([old.accelerations_rad_s2[rows], part.accelerations_rad_s2]))
+        rest = np.repeat(old.positions_rad[-1:], len(holds), axis=0)
+        still = np.zeros_like(rest)
+        return TrajectoryPart(part.joint_names, np.concatenate([old.times_s[rows] - t0, holds, part.times_s + shift]),
+                              np.vstack([old.positions_rad[rows], rest, part.positions_rad]),
+                              np.vstack([old.velocities_rad_s[rows], still, part.velocities_rad_s]),
+                              np.vstack([old.accelerations_rad_s2[rows], still, part.accelerations_rad_s2]))
     if drift is not None:               # reported, not sent: its times on the message's clock
         drift = replace(drift, times_s=drift.times_s + shift)
     return anchor_ns, tuple(prefixed(old, part) for old, part in zip(sent_parts, parts)), drift

@@ -249,7 +249,7 @@ def test_the_retry_from_the_end_starts_there_at_rest_stamped_at_that_end(flat, b
     From rest at the end, stamped at that end (not the lead after publishing, while the arm
     still moves), however long the chain took: no join that the clock can overtake.
     """
-    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.adapters import AFTER_THE_END_S, post_process
     from spacerobot_planner.replanning import Join
     clock = Clock()
     ses, ex = _executing(flat, backend, clock)
@@ -258,10 +258,11 @@ def test_the_retry_from_the_end_starts_there_at_rest_stamped_at_that_end(flat, b
     join = Join(ex, len(ex.trajectory) - 1, 2.0)
     new_path = np.vstack([ex.trajectory.positions_rad[-1], ses.scenario.start_rad])
     out = post_process(ses.scenario, new_path, join=join, now_ns=now, lead_s=0.35, from_end_at_rest=True)
-    assert out.join_stamp_ns is None and out.continuation is None and out.not_before_ns == end_ns
+    after = end_ns + int(AFTER_THE_END_S * S)          # just after it: both at rest, with their own accelerations
+    assert out.join_stamp_ns is None and out.continuation is None and out.not_before_ns == after
     np.testing.assert_array_equal(out.trajectory.positions_rad[0], ex.trajectory.positions_rad[-1])
     assert not np.any(out.trajectory.velocities_rad_s[0])
-    assert stamp_for(out, now, 0.35) == end_ns                   # published now: at the end
+    assert stamp_for(out, now, 0.35) == after                    # published now: at the end
     assert stamp_for(out, end_ns, 0.35) == end_ns + int(0.35 * S)   # published at the end: the lead later
 
 
@@ -818,3 +819,39 @@ def test_the_committed_path_runs_on_the_trajectory_before_a_joined_one_that_has_
         return rows[np.r_[True, np.any(np.abs(np.diff(rows, axis=0)) > 1e-9, axis=1)]]
     np.testing.assert_allclose(distinct(got), distinct(want), atol=1e-9)
     assert np.max(np.abs(want[0] - ex2.trajectory.positions_rad[0])) > 1e-3       # the two differ there
+
+
+def test_a_plan_from_the_end_for_a_controller_that_switches_at_arrival_leaves_the_last_segment_as_it_was(flat,
+                                                                                                         backend):
+    """
+    From the executing trajectory's end, at rest, ``AFTER_THE_END_S`` after it: the old last segment keeps its end.
+
+    Both are at rest there, each with its own acceleration (braking into the end, speeding up out of
+    it); with one point for both, the old last segment bent (a re-run audit: 1.045 x the elbow's
+    limit).  Oracle: the test's model of a pre-6.8 controller: the message as sent, arriving before
+    the end, against the old message run to its end and the new one from its stamp.
+    """
+    clock = Clock()
+    ses, ex = _executing(flat, backend, clock, controller_switch="arrival")
+    end_ns = ex.start_ns + int(ex.trajectory.duration_s * S)
+    clock.t = end_ns - S // 10                       # 0.1 s before its end: within the lead, so from the end
+    ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
+    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+    out = ses.run_once()
+    assert out.ok and out.values["joined_moving_arm"] == "no (from the end of the executing trajectory, at rest)"
+    first, second = (p.publication for _, p, _ in ses.published)
+    arrival = clock.t + S // 50
+    assert second.stamp_ns < arrival < end_ns
+    acc_old, acc_new = first.arm.accelerations_rad_s2[-1], out.processed.arm.accelerations_rad_s2[0]
+    assert np.max(np.abs(acc_old - acc_new)) > 1e-3, "the two accelerations agree: nothing tested"
+
+    def msg(stamp, p):
+        return stamp, p.times_s, p.positions_rad, p.velocities_rad_s, p.accelerations_rad_s2
+    k = len(second.arm.times_s) - len(out.processed.arm.times_s)      # the new part's first point, as sent
+    own_stamp = second.stamp_ns + int(round(1e9 * second.arm.times_s[k]))
+    assert own_stamp >= first.stamp_ns + int(round(1e9 * first.arm.times_s[-1])) + 10 ** 6 - 1   # the gap
+    ts = np.linspace(arrival, end_ns + S // 2, 80).astype(np.int64)
+    got = _legacy_controller([msg(first.stamp_ns, first.arm), msg(second.stamp_ns, second.arm)], [0, arrival], ts)
+    intended = _legacy_controller([msg(first.stamp_ns, first.arm), msg(own_stamp, out.processed.arm)],
+                                  [0, own_stamp], ts)
+    np.testing.assert_allclose(got, intended, atol=1e-6)
