@@ -129,6 +129,17 @@ def test_the_local_clusters_workers_start_without_dasks_malloc_trim_threshold(mo
     assert pid != os.getpid() and trim is None
 
 
+def test_the_local_clusters_workers_ignore_a_terminals_ctrl_c():
+    """A terminal's Ctrl-C reaches every process of its group: the workers printed KeyboardInterrupt tracebacks."""
+    import signal
+    from distributed import Client
+    before = signal.getsignal(signal.SIGINT)
+    with local_cluster(1) as cluster, Client(cluster) as client:
+        assert signal.getsignal(signal.SIGINT) is before                 # this process's is back
+        seen = client.run(lambda: signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+    assert list(seen.values()) == [True], seen
+
+
 def test_the_serial_sweep_covers_the_grid_with_both_outcomes(serial):
     sc, grid, rep = serial
     assert rep.complete and rep.done_before == 0 and rep.planned == grid.n_poses == 8

@@ -21,7 +21,9 @@ from __future__ import annotations
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -273,13 +275,20 @@ def local_cluster(workers: int | None = None):
     Use it as a context manager (it closes its processes).  No dashboard port is taken from
     the default 8787 (a free one is chosen); logs below ERROR are silenced; the workers get
     ``LOCAL_CLUSTER_CONFIG`` and start without ``MALLOC_TRIM_THRESHOLD_`` in their environment
-    (whatever this process's says; a worker the nanny restarts later gets this process's).
+    (whatever this process's says; a worker the nanny restarts later gets this process's), and
+    ignoring SIGINT: a terminal's Ctrl-C reaches every process of its group, and each worker
+    printed a KeyboardInterrupt traceback above the sweep's "interrupted; run the same command
+    again to resume" (this process ends the cluster when it is interrupted).  Spawned with
+    SIGINT ignored, their interpreters keep it so (Python installs its handler only over the
+    default); meanwhile, a few seconds, a Ctrl-C here is not taken either.
     """
     import dask                                      # Dask: loaded only when a sweep runs on it
     from distributed import LocalCluster
     # a Dask cluster started before in this process leaves MALLOC_TRIM_THRESHOLD_ in its
     # environment (the nannies set it there before they spawn); out of it while ours spawn
     trim = os.environ.pop(MALLOC_TRIM, None)
+    main = threading.current_thread() is threading.main_thread()     # (signals: the main thread's only)
+    interrupt = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
     try:
         with dask.config.set(LOCAL_CLUSTER_CONFIG):      # the nannies hand this config to their workers
             return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
@@ -287,6 +296,8 @@ def local_cluster(workers: int | None = None):
     finally:
         if trim is not None:
             os.environ[MALLOC_TRIM] = trim
+        if main:
+            signal.signal(signal.SIGINT, interrupt)
 
 
 def _client(stack: ExitStack, scheduler: str | None, workers: int | None):
