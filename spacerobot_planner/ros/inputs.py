@@ -212,7 +212,7 @@ class Inputs:
         node.session.joint_state(q, stamp_ns or now_ns)
         if len(msg.name) > len(robot.planned_names):       # a joint the planner holds may be in it
             self._check_locked(msg)
-        gid = (info or {}).get("publisher_gid") or {}
+        gid = info.get("publisher_gid") or {}
         if gid.get("data") is not None:
             self._check_publishers(bytes(gid["data"]), q)
 
