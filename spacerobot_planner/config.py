@@ -175,14 +175,18 @@ PARAMETERS = (
               "stamp-to-arrival time measured on a loaded machine (load 5, in-process graphs) was 0.26 s "
               "(python -m spacerobot_planner.bench latency --load N reports the margin), seconds.",
               False, 0.0, 10.0),
-    ParamSpec("controller.switch", "string", "stamp",
+    ParamSpec("controller.switch", "string", "auto",
               "When the arm's trajectory controller takes a newer trajectory over: stamp (at its header "
               "stamp, following the one it has until then: ros2_controllers' joint_trajectory_controller "
-              "from 6.8 on with allow_trajectory_replacement, and the mock arm) or arrival (when it arrives, "
-              "going from its state then to the first point: joint_trajectory_controller before 6.8, as in "
-              "Kilted and Jazzy). With arrival a trajectory joined to the moving arm is stamped at the "
-              "executing one's last published point before it is sent and holds its points up to the join. "
-              "Read by both nodes.", True),
+              "from 6.8 on with allow_trajectory_replacement true, and the mock arm by default) or arrival "
+              "(when it arrives, going from its state then to the first point: joint_trajectory_controller "
+              "before 6.8, as in Kilted and Jazzy, or with allow_trajectory_replacement false). With arrival "
+              "a trajectory joined to the moving arm is stamped at the executing one's last published point "
+              "before it is sent and holds its points up to the join. auto: the planner asks the nodes that "
+              "subscribe joint_trajectory for their parameters (allow_trajectory_replacement; "
+              "joint_trajectory_controller's joints and interpolation_method without it: before 6.8) and "
+              "sends for the kind they are, stamp until one answers; the mock arm then models its own "
+              "allow_trajectory_replacement. Read by both nodes.", True),
     # ---- the spacecraft's reaction (spacecraft.py, reaction.py)
     ParamSpec("dynamics.body_mass_kg", "double", 2000.0,
               "Spacecraft body mass (with the massless link 1), kg.", False, 1e-6, 1e12),
@@ -242,6 +246,11 @@ PARAMETERS = (
               True),
     ParamSpec("mock_arm.rate_hz", "double", 50.0,
               "mock_arm_node: joint_states publishing rate, Hz (its parameter 'rate_hz').", False, 0.1, 1000.0),
+    ParamSpec("mock_arm.allow_trajectory_replacement", "bool", True,
+              "mock_arm_node (its parameter 'allow_trajectory_replacement', as joint_trajectory_controller's "
+              "from 6.8 on): true, a newer trajectory takes over at its stamp; false, at its arrival. With "
+              "controller.switch stamp or arrival it is that (a value that contradicts it is refused at "
+              "start); with auto it is the model, and the planner reads it.", True),
     # ---- planner node (ROS side)
     ParamSpec("autostart", "bool", True,
               "Configure and activate the lifecycle node at start (off: wait for `ros2 lifecycle set`).",
@@ -280,7 +289,8 @@ _SPECS = {p.name: p for p in PARAMETERS}
 #: parameters rclpy declares on every node (never the package's, never unknown)
 ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
 #: names a node of the package declares that differ from the schema's (mock_arm_node)
-DECLARED_ALIASES = {"rate_hz": "mock_arm.rate_hz"}
+DECLARED_ALIASES = {"rate_hz": "mock_arm.rate_hz",
+                    "allow_trajectory_replacement": "mock_arm.allow_trajectory_replacement"}
 
 
 def unknown_parameters(names) -> list:

@@ -70,7 +70,7 @@ from .motion import MotionValidator
 from .replanning import (MAX_STATE_AGE_S, STATE_WAIT_S, Executing, committed_path, join_direction, plan_start,
                          stopping_join)
 from .scene import Target
-from .settings import SessionSettings
+from .settings import SWITCH_UNTIL_FOUND, SessionSettings
 from .trajectory import HorizonPassed
 from .worker import STAGE_ORDER, PlanCrash, PlanDone, PlanError, PlanJob, Progress
 
@@ -269,6 +269,7 @@ class CaptureSession:
         self._state_wanted = False       # the worker waits for a recent joint state (_arm_state)
         self.executing: Executing | None = None      # the trajectory last sent to the arm
         self.last_sent: Publication | None = None    # ... as it was sent (controller.switch: arrival)
+        self.controller_switch_found = None          # the controller's kind the node found (controller_found)
         self.activity = "idle"           # "idle" or "planning"
         self.last_result = None          # PlanResult of the last ok plan
         self.last_trajectory = None      # its published Trajectory
@@ -279,6 +280,23 @@ class CaptureSession:
         self._with_target = (None, None, None)   # (scenario, target, the scenario with the target)
 
     # ------------------------------------------------------------------ set-up
+    def controller_found(self, switch: str | None) -> None:
+        """
+        Take the kind of the arm's controller as the node found it ("stamp", "arrival"; None: not known).
+
+        Only ``controller.switch: auto`` reads it (:attr:`controller_switch`); a trajectory is sent for
+        the kind known when it is sent.
+        """
+        self.controller_switch_found = switch
+
+    @property
+    def controller_switch(self) -> str:
+        """Return when the arm's controller is taken to switch to a newer trajectory: "stamp" or "arrival"."""
+        switch = self.settings.controller_switch
+        if switch == "auto":
+            return self.controller_switch_found or SWITCH_UNTIL_FOUND
+        return switch
+
     def configure(self, scenario, settings: SessionSettings, target_changed: bool = False,
                   target_resized: bool = False) -> None:
         """
@@ -963,7 +981,7 @@ class CaptureSession:
                 return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
             sent_stamp, parts, drift = stamp, (processed.arm, processed.attitude), processed.predicted_drift
             last = self.last_sent
-            if join is not None and execute and last is not None and req.settings.controller_switch == "arrival":
+            if join is not None and execute and last is not None and self.controller_switch == "arrival":
                 # a controller that switches when the message arrives: the points it has, up to the switch, in front
                 sent_stamp, parts, drift = switching_at_arrival(last.stamp_ns, (last.arm, last.attitude), stamp,
                                                                 parts, drift, now)

@@ -19,7 +19,7 @@ from .field import DEFAULT_BUDGET_S, DEFAULT_SOLVER, INTERNAL_SOLVERS, SOLVERS
 from .motion import DEFAULT_VERIFY_STEP_RAD
 from .smoothing import DEFAULT_MAX_STEP_RAD
 
-__all__ = ["PlannerSettings", "JointLimits", "SessionSettings", "CONTROLLER_SWITCHES"]
+__all__ = ["PlannerSettings", "JointLimits", "SessionSettings", "CONTROLLER_SWITCHES", "SWITCH_UNTIL_FOUND"]
 
 
 def _positive(name, value, allow_zero=False) -> float:
@@ -181,8 +181,13 @@ class JointLimits:
 
 #: ``controller.switch``: when the arm's trajectory controller takes a newer trajectory over: at its stamp
 #: (ros2_controllers' joint_trajectory_controller from 6.8 on, ``allow_trajectory_replacement``; the mock
-#: arm's default) or at its arrival, going from its state then to the first point (before 6.8: Kilted, Jazzy)
-CONTROLLER_SWITCHES = ("stamp", "arrival")
+#: arm's default) or at its arrival, going from its state then to the first point (before 6.8: Kilted, Jazzy);
+#: ``auto``: as the subscribers of ``joint_trajectory`` say (``ros.controller_probe``), ``SWITCH_UNTIL_FOUND``
+#: until one does
+CONTROLLER_SWITCHES = ("auto", "stamp", "arrival")
+#: what ``controller.switch: auto`` assumes while no subscriber has said which kind it is (the mock arm's
+#: default, and the one whose mistake on the other kind is a connecting stretch, not a step back)
+SWITCH_UNTIL_FOUND = "stamp"
 
 
 @dataclass(frozen=True)
@@ -205,8 +210,9 @@ class SessionSettings:
         target_tolerance_m, target_tolerance_deg: a topic target this close to the current one
             is not a new request (metres, degrees).
         test_stall_s: testing aid, the planning process stalls this long before each plan, s.
-        controller_switch: when the arm's controller takes a newer trajectory over, "stamp" or
-            "arrival" (:data:`CONTROLLER_SWITCHES`, ``adapters.switching_at_arrival``).
+        controller_switch: when the arm's controller takes a newer trajectory over, "stamp",
+            "arrival" (``adapters.switching_at_arrival``) or "auto" (as the node finds the controller:
+            ``CaptureSession.controller_found``) (:data:`CONTROLLER_SWITCHES`).
 
     """
 
@@ -217,7 +223,7 @@ class SessionSettings:
     target_tolerance_m: float = 0.005
     target_tolerance_deg: float = 0.5
     test_stall_s: float = 0.0
-    controller_switch: str = "stamp"
+    controller_switch: str = "auto"
 
     def __post_init__(self):
         for name in ("horizon_s", "follow_tolerance_rad", "min_publish_period_s", "start_lead_s",

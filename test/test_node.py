@@ -218,7 +218,8 @@ def test_diagnostics_describe_only_the_last_finished_request(graph):
     iv = diag_values(g.status("input"))
     assert set(iv) == {"rejected_total"} and iv["rejected_total"] == "1"
     assert pv["request"] != fv["request"] and pv["code"] == "ok"
-    ok_keys = {"state", "request", "request_reason", "target_m", "target_yaw_deg", "code", "goal_deg",
+    ok_keys = {"state", "controller_switch", "controller_switch_source", "request", "request_reason", "target_m",
+               "target_yaw_deg", "code", "goal_deg",
                "min_clearance_m", "trajectory_duration_s", "trajectory_points", "cached", "solver", "latency_s",
                "field_converged", "field_bands", "repairs", "approach_error_deg", "trajectory_dense_points",
                "trajectory_retimings", "joined_moving_arm", "trajectory_clearance_m", "trajectory_certified"}

@@ -48,7 +48,7 @@ def test_each_node_declares_only_what_it_reads(graph):
     assert {"robot.joint_names", "grid.cells", "planner.solver", "autostart", "grid_frame"} <= planner
     assert arm == {"robot.joint_names", "robot.link_lengths_m", "robot.lower_deg", "robot.upper_deg",
                    "robot.periodic", "robot.body_side_m", "robot.planned_joints", "robot.locked_positions_deg",
-                   "scenario.start_deg", "controller.switch", "rate_hz"}, arm
+                   "scenario.start_deg", "controller.switch", "rate_hz", "allow_trajectory_replacement"}, arm
     assert "controller.switch" in planner          # both: when the arm's controller switches to a newer trajectory
 
 

@@ -63,13 +63,20 @@ def _grasp_point_m(flat, center_m, yaw_rad):
     return np.array([center_m[0] - out * math.sin(yaw_rad), center_m[1] + out * math.cos(yaw_rad)])
 
 
-@pytest.mark.parametrize("switch", ["stamp", "arrival"])
+@pytest.mark.parametrize("switch", ["stamp", "arrival", "auto"])
 def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph, switch):
     # a horizon that a loaded machine keeps (request -> trajectory took 1.35 s at load 11, past
     # the default 1 s, and the retry's join came within the lead), still inside the ~5 s motion;
     # controller.switch for both nodes: the mock arm switching at the stamp (JTC from 6.8 on) or at the
-    # message's arrival (before 6.8: Kilted), the planner encoding the join for it
-    g = graph(_moderate(**{"replan.horizon_s": 2.5, "controller.switch": switch}))
+    # message's arrival (before 6.8: Kilted), the planner encoding the join for it; "auto": the mock arm
+    # modelling a controller that switches at arrival by its allow_trajectory_replacement, which the
+    # planner finds
+    extra = ({"controller.switch": switch} if switch != "auto"
+             else {"mock_arm.allow_trajectory_replacement": False})
+    g = graph(_moderate(**{"replan.horizon_s": 2.5, **extra}))
+    if switch == "auto":
+        assert g.arm.switch_at_arrival
+        g.wait(lambda: g.planner.session.controller_switch == "arrival", 30, "the planner finding the arm's kind")
     robot = g.scenario.robot
     names = list(robot.planned_names)
     amax = np.radians(AMAX_DEG_S2)
@@ -96,8 +103,11 @@ def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph, switch):
     # "arrival" it is stamped before it was sent, at the first's last published point then)
     stamp = (first.header.stamp.sec + 1e-9 * first.header.stamp.nanosec
              + float(joined.split("yes, ")[1].split(" s into")[0]))
+    second_stamp = second.header.stamp.sec + 1e-9 * second.header.stamp.nanosec
     if switch == "stamp":
-        assert abs(stamp - (second.header.stamp.sec + 1e-9 * second.header.stamp.nanosec)) < 1e-3   # (said to 1 ms)
+        assert abs(stamp - second_stamp) < 1e-3   # (said to 1 ms)
+    else:                                         # sent for a controller that switches at arrival: stamped before
+        assert second_stamp < stamp - 1e-3, (second_stamp, stamp)
     k = int(np.searchsorted(t, stamp))
     speed_at_switch = float(np.degrees(np.max(np.abs(v[max(k - 1, 0)]))))
     assert speed_at_switch > 5.0, f"the arm was not moving at the switch ({speed_at_switch:.2f}°/s): nothing tested"

@@ -89,11 +89,15 @@ class NodeDiagnostics:
         """Return the count lines of floods of bad input due now."""
         return self.rejections.flush()
 
-    def statuses(self, name: str, state: str) -> list:
-        """[(name, level, message, values)]: the planner status and the input status of node ``name``."""
+    def statuses(self, name: str, state: str, node_values: dict | None = None) -> list:
+        """
+        [(name, level, message, values)]: the planner status and the input status of node ``name``.
+
+        ``node_values``: the planner status's values that are the node's, not a request's (the controller's kind).
+        """
         with self._lock:
             out, req, rej, total = self.last_outcome, self._last_req, self._rejected, self.rejected_total
-        values = {"state": state}
+        values = {"state": state, **(node_values or {})}
         if out is None:
             level, message = DiagnosticStatus.OK, f"{state}: no request finished yet"
         else:

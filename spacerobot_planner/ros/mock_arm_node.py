@@ -15,8 +15,9 @@ would) is followed as ros2_controllers' joint_trajectory_controller (JTC) follow
 - it takes over at its stamp (at its arrival when that is later): until then the arm goes on
   following the trajectory it had on the same topic (or holds still), as JTC from
   ros2_controllers 6.8 on does with ``allow_trajectory_replacement`` (a newer waiting trajectory
-  drops any waiting one that would start at or after it); with ``controller.switch: arrival`` it
-  takes over when it arrives, as JTC before 6.8 (Kilted, Jazzy);
+  drops any waiting one that would start at or after it); with ``controller.switch: arrival`` (or
+  ``auto`` and ``allow_trajectory_replacement: false``) it takes over when it arrives, as JTC before
+  6.8 (Kilted, Jazzy);
 - when it takes over before its first point's time, the arm moves from its state at that
   moment (position, velocity, acceleration) to the first point along the segment the first
   point's fields call for (JTC's "point before the trajectory"; a periodic joint's state is
@@ -31,8 +32,10 @@ nanoseconds, so a state is exact at its stamp.  Joints that no trajectory moves 
 position.
 
 Parameters: ``robot.*``, ``scenario.start_deg`` and ``controller.switch`` (the shared ``/**``
-section of a scenario file; read-only) and ``rate_hz`` (its own ``mock_arm`` section; a change takes effect
-at once, a whole number too).  Run it with the same file as the planner::
+section of a scenario file; read-only), ``rate_hz`` (its own ``mock_arm`` section; a change takes effect
+at once, a whole number too) and ``allow_trajectory_replacement`` (read-only: joint_trajectory_controller's
+name for the model, which the planner's ``controller.switch: auto`` reads; it follows ``controller.switch``
+unless that is ``auto``, default true).  Run it with the same file as the planner::
 
     ros2 run spacerobot_planner mock_arm_node --ros-args --params-file config/paper_3dof.yaml
 """
@@ -87,6 +90,26 @@ class _Motion:
         return 1e-9 * (int(ns) - self.start_ns)
 
 
+def _switches_at_arrival(switch: str, allow_replacement: bool) -> bool:
+    """
+    Return whether the mock arm takes a newer trajectory over at its arrival (else at its stamp).
+
+    ``controller.switch`` (the shared section) decides when it is ``stamp`` or ``arrival``; with
+    ``auto`` the arm's own ``allow_trajectory_replacement`` does, as joint_trajectory_controller's
+    from 6.8 on (the planner's ``controller.switch: auto`` reads it there).  ValueError naming both
+    when they contradict each other.
+    """
+    check_choice("controller.switch", switch)
+    if switch == "auto":
+        return not allow_replacement
+    if allow_replacement != (switch == "stamp"):
+        raise ValueError(f"allow_trajectory_replacement: {str(allow_replacement).lower()} contradicts "
+                         f"controller.switch: {switch} (a controller that switches at its "
+                         f"{'stamp' if allow_replacement else 'arrival'}); set controller.switch: auto, or leave "
+                         "allow_trajectory_replacement out")
+    return switch == "arrival"
+
+
 class MockArmNode(Node):
     def __init__(self, *, context=None, parameter_overrides=None, node_name: str = "mock_arm", start_check=None,
                  **kwargs):
@@ -94,7 +117,10 @@ class MockArmNode(Node):
         params = {}
         for name, schema in MOCK_ARM_PARAMETERS.items():
             spec = SPECS[schema]
-            value = self.declare_parameter(name, spec.default, descriptor_for(spec, name)).value
+            default = spec.default
+            if name == "allow_trajectory_replacement":      # what controller.switch (declared before) says
+                default = params["controller.switch"] != "arrival"
+            value = self.declare_parameter(name, default, descriptor_for(spec, name)).value
             params[schema] = list(value) if isinstance(value, (tuple, np.ndarray, array.array)) else value
         if start_check is not None:     # the executable's: its parameter files state the robot (ValueError)
             start_check(self)
@@ -106,8 +132,8 @@ class MockArmNode(Node):
         self.names = tuple(self.robot.joint_names)
         # when a newer trajectory takes over: at its stamp (joint_trajectory_controller from 6.8 on) or at its
         # arrival, from the state then to its first point (before 6.8: Kilted, Jazzy)
-        check_choice("controller.switch", params["controller.switch"])
-        self.switch_at_arrival = params["controller.switch"] == "arrival"
+        self.switch_at_arrival = _switches_at_arrival(params["controller.switch"],
+                                                      params["mock_arm.allow_trajectory_replacement"])
         self.periodic = tuple(bool(p) for p in self.robot.periodic)
         self._lock = threading.Lock()
         self._hold = np.array(q_full, dtype=float)     # where joints no trajectory moves are
@@ -128,7 +154,8 @@ class MockArmNode(Node):
         self.add_post_set_parameters_callback(self._post_set)
         self._time_jumps = on_time_jumps(self, self.time_jumped)      # the handle keeps the callback
         self.get_logger().info(f"mock arm at {np.round(np.degrees(self._q), 2).tolist()}°, "
-                               f"publishing {', '.join(self.names)} at {params['mock_arm.rate_hz']} Hz")
+                               f"publishing {', '.join(self.names)} at {params['mock_arm.rate_hz']} Hz; a newer "
+                               f"trajectory takes over at its {'arrival' if self.switch_at_arrival else 'stamp'}")
 
     # ------------------------------------------------------------------ parameters
     def set_parameters_atomically(self, parameter_list):

@@ -34,7 +34,8 @@ PLANNER_PARAMETERS = tuple(p.name for p in PARAMETERS
 #: the mock arm's: declared name -> config.PARAMETERS name
 MOCK_ARM_PARAMETERS = {**{p.name: p.name for p in PARAMETERS if p.name.startswith("robot.")},
                        "scenario.start_deg": "scenario.start_deg", "controller.switch": "controller.switch",
-                       "rate_hz": "mock_arm.rate_hz"}
+                       "rate_hz": "mock_arm.rate_hz",
+                       "allow_trajectory_replacement": "mock_arm.allow_trajectory_replacement"}
 
 
 def _solvers():

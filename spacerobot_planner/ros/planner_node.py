@@ -66,6 +66,7 @@ from ..worker import make_backend
 from . import conversions as conv
 from . import node_main
 from .action import PlanCaptureServer
+from .controller_probe import ControllerProbe
 from .diagnostics import NodeDiagnostics
 from .inputs import Inputs
 from .lifecycle import LifecycleInterface
@@ -146,6 +147,7 @@ class PlannerNode(LifecycleNode):
         self.pub_diag = None
         self._diag_timer = None
         self._active_entities = []       # subscriptions, service (destroyed on deactivate)
+        self._probe = None               # controller.switch auto: asks joint_trajectory's subscribers (configure)
         self._action = None
         self._pending_answers = PendingAnswers(self, self._log)    # goals and ~/replan calls in flight
         self._goals = self._pending_answers.goals                  # goal id bytes -> the goal's request
@@ -257,6 +259,8 @@ class PlannerNode(LifecycleNode):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._action = PlanCaptureServer(self)
         self._diag_timer = self.create_timer(float(self._params["diagnostics.period_s"]), self._diag_tick)
+        if self._params["controller.switch"] == "auto":
+            self._probe = ControllerProbe(self, self._pubs["traj"].topic_name, self._controller_found, self._log)
         self.session.start(backend)
         self._phase = "inactive"
         # what start-up made (modules, kernels, the warm-up's objects) lives as long as the process:
@@ -321,6 +325,10 @@ class PlannerNode(LifecycleNode):
         action, self._action = self._action, None
         if action is not None:
             self._pending_answers.retire(action.destroy)
+        probe, self._probe = self._probe, None
+        if probe is not None:
+            probe.destroy()
+            self.session.controller_found(None)
         for pub in self._pubs.values():
             self.destroy_lifecycle_publisher(pub)
         self._pubs = {}
@@ -477,10 +485,22 @@ class PlannerNode(LifecycleNode):
             # the namespace too (robot1.spacerobot_planner; no '/': rqt_robot_monitor and the aggregator
             # split names on it): two robots' planners share /diagnostics
             name = self._log_name
-            pub.publish(conv.diagnostic_payload(self.diagnostics.statuses(name, self.state),
+            pub.publish(conv.diagnostic_payload(self.diagnostics.statuses(name, self.state, self._controller_values()),
                                                 self.get_clock().now().to_msg(), name))
         except Exception:              # noqa: BLE001 - context shutting down
             pass
+
+    def _controller_found(self, switch):
+        """Take the probe's news (controller.switch auto): the session sends for that kind from now on; said at once."""
+        self.session.controller_found(switch)
+        self._publish_diag()
+
+    def _controller_values(self) -> dict:
+        """/diagnostics: when the arm's controller is taken to switch to a newer trajectory, and who says so."""
+        probe = self._probe
+        source = ("parameter controller.switch" if self._params["controller.switch"] != "auto"
+                  else f"auto: {probe.text}" if probe is not None else "auto: not configured")
+        return {"controller_switch": self.session.controller_switch, "controller_switch_source": source}
 
     def _log(self, level: str, text: str):
         """
