@@ -26,15 +26,16 @@ CONTROLLERS = {
 
 
 #: a controller manager's controller as far as the planner can see: a node in a process of its own that
-#: declares a controller's parameters and subscribes the topic (argv: name, parameters as JSON)
+#: declares a controller's parameters and subscribes the topic (argv: name, parameters as JSON; null: a node
+#: without parameter services, as ros2cli's ``ros2 topic echo``)
 _FAKE = """
 import json, sys
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from trajectory_msgs.msg import JointTrajectory
 rclpy.init()
-node = rclpy.create_node(sys.argv[1])
-for key, value in json.loads(sys.argv[2]).items():
+node = rclpy.create_node(sys.argv[1], start_parameter_services=sys.argv[2] != "null")
+for key, value in (json.loads(sys.argv[2]) or {}).items():
     node.declare_parameter(key, value)
 node.create_subscription(JointTrajectory, "joint_trajectory", lambda m: None, 10)
 try:
@@ -172,3 +173,22 @@ def test_a_controller_loaded_again_under_its_name_is_asked_again(graph):
         _wait_switch(g, "arrival", "/arm_controller (a joint_trajectory_controller without")
     finally:
         fake.close()
+
+
+def test_a_subscriber_without_parameter_services_is_given_up_and_a_controller_still_found(graph, monkeypatch):
+    """``ros2 topic echo /joint_trajectory`` (no parameter services): its clients go after ``GIVE_UP_S``."""
+    from spacerobot_planner.ros import controller_probe
+    monkeypatch.setattr(controller_probe, "GIVE_UP_S", 3.0)
+    g = graph(scene_params("3dof"), with_arm=False)
+    echo = _FakeController(g, "echo", None)
+    fake = None
+    try:
+        remotes = g.planner._probe._remotes
+        g.wait(lambda: "/echo" in remotes and remotes["/echo"].answer is not None, 30, "/echo given up")
+        assert remotes["/echo"].clients is None and "no answer within 3 s" in remotes["/echo"].answer[1]
+        fake = _FakeController(g, "joint_trajectory_controller", CONTROLLERS["jtc_before_6_8"][0])
+        _wait_switch(g, "arrival", "/joint_trajectory_controller")
+    finally:
+        echo.close()
+        if fake is not None:
+            fake.close()

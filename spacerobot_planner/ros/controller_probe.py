@@ -17,7 +17,8 @@ does (``list_parameters`` of the names below, then ``get_parameters``):
 
 The subscribers are looked at every ``PROBE_PERIOD_S`` (a controller started, gone, or started
 again under its name: its subscription's gid; a question unanswered for ``ANSWER_TIMEOUT_S`` is
-asked again); a change of ``allow_trajectory_replacement`` at runtime comes on ``/parameter_events``.
+asked again; one that has not answered within ``GIVE_UP_S``, as a node without parameter services,
+is left out); a change of ``allow_trajectory_replacement`` at runtime comes on ``/parameter_events``.
 What the controllers say together goes to the session
 (``found``: one kind; None while there is none, or when they disagree, which is warned: the
 session then keeps ``settings.SWITCH_UNTIL_FOUND``), and each change is logged once.  The
@@ -45,6 +46,8 @@ __all__ = ["ControllerProbe", "kind_of", "agreed", "REPLACEMENT", "JTC_PARAMETER
 REPLACEMENT = "allow_trajectory_replacement"
 #: parameters every joint_trajectory_controller declares (Humble's on): without ``REPLACEMENT``, one before 6.8
 JTC_PARAMETERS = ("joints", "interpolation_method")
+#: a subscriber that has not answered this long after it was seen is not asked any more (its clients go), s
+GIVE_UP_S = 30.0
 #: the node name of a subscription discovered before its node's (rmw_dds_common's graph cache)
 UNKNOWN_NAME = "_NODE_NAME_UNKNOWN_"
 #: how often the subscribers of ``joint_trajectory`` are looked at, s (steady time)
@@ -108,6 +111,7 @@ class _Remote:
         self.clients = None            # (list_parameters, get_parameters) clients while asking
         self.future = None
         self.asked_at = 0.0            # time.monotonic() of the open question
+        self.seen_at = time.monotonic()
 
 
 class ControllerProbe:
@@ -157,6 +161,9 @@ class ControllerProbe:
         now = time.monotonic()
         for remote in self._remotes.values():
             if remote.answer is not None:
+                continue
+            if now - remote.seen_at > GIVE_UP_S:     # no parameter services (ros2 topic echo's node has none)
+                self._answered(remote, (None, f"no answer within {GIVE_UP_S:g} s"))
                 continue
             if remote.future is not None:
                 if now - remote.asked_at < ANSWER_TIMEOUT_S:
