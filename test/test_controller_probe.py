@@ -12,8 +12,12 @@ planner says is read where a user reads it (``/diagnostics``, its log).
 
 from __future__ import annotations
 
+import time
+
 import pytest
 from node_helpers import diag_values, scene_params
+
+from spacerobot_planner.ros.controller_probe import PROBE_PERIOD_S
 
 #: (parameters the node declares, when joint_trajectory_controller of that kind switches): the table above
 CONTROLLERS = {
@@ -185,10 +189,39 @@ def test_a_subscriber_without_parameter_services_is_given_up_and_a_controller_st
     try:
         remotes = g.planner._probe._remotes
         g.wait(lambda: "/echo" in remotes and remotes["/echo"].answer is not None, 30, "/echo given up")
-        assert remotes["/echo"].clients is None and "no answer within 3 s" in remotes["/echo"].answer[1]
+        assert remotes["/echo"].clients is None and "did not answer within 3 s" in remotes["/echo"].answer[1]
+        _wait_switch(g, "stamp", "/echo: did not answer within 3 s")
         fake = _FakeController(g, "joint_trajectory_controller", CONTROLLERS["jtc_before_6_8"][0])
         _wait_switch(g, "arrival", "/joint_trajectory_controller")
     finally:
         echo.close()
         if fake is not None:
             fake.close()
+
+
+def test_a_controller_started_again_beside_itself_keeps_its_kind_throughout(graph):
+    """A respawn: the new process up before the old one is gone; the answer is kept while it is asked again."""
+    g = graph(scene_params("3dof"), with_arm=False)
+    old = _FakeController(g, "arm_controller", CONTROLLERS["jtc_before_6_8"][0])
+    new = None
+    try:
+        _wait_switch(g, "arrival", "/arm_controller")
+        with g.lock:
+            since = len(g.diags)
+        new = _FakeController(g, "arm_controller", CONTROLLERS["jtc_before_6_8"][0])
+        infos = g.planner.get_subscriptions_info_by_topic("/joint_trajectory")
+        g.wait(lambda: sum(i.node_name == "arm_controller" for i in g.planner.get_subscriptions_info_by_topic(
+            "/joint_trajectory")) == 2, 30, f"the second /arm_controller's subscription ({infos})")
+        old.close()
+        g.wait(lambda: sum(i.node_name == "arm_controller" for i in g.planner.get_subscriptions_info_by_topic(
+            "/joint_trajectory")) == 1, 30, "the first /arm_controller gone")
+        time.sleep(2 * PROBE_PERIOD_S)        # ticks on the graph with the new one alone
+        _wait_switch(g, "arrival", "/arm_controller")
+        with g.lock:
+            said = [diag_values(next(st for st in d.status if st.name.endswith(": planner"))).get("controller_switch")
+                    for _, d in g.diags[since:]]
+        assert said and set(said) == {"arrival"}, said
+    finally:
+        old.close()
+        if new is not None:
+            new.close()

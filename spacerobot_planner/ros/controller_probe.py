@@ -48,6 +48,8 @@ REPLACEMENT = "allow_trajectory_replacement"
 JTC_PARAMETERS = ("joints", "interpolation_method")
 #: a subscriber that has not answered this long after it was seen is not asked any more (its clients go), s
 GIVE_UP_S = 30.0
+#: what a subscriber given up is said to have done
+SILENT = "did not answer"
 #: the node name of a subscription discovered before its node's (rmw_dds_common's graph cache)
 UNKNOWN_NAME = "_NODE_NAME_UNKNOWN_"
 #: how often the subscribers of ``joint_trajectory`` are looked at, s (steady time)
@@ -81,7 +83,8 @@ def agreed(kinds: dict, topic: str) -> tuple:
 
     ``kinds``: node -> (switch or None, what it is) of the subscribers that answered (``kind_of``).
     One kind among the controllers: that; none, or controllers that disagree: None (the session keeps
-    ``SWITCH_UNTIL_FOUND``), a warning when they disagree.
+    ``SWITCH_UNTIL_FOUND``), a warning when they disagree or when there is none and a subscriber
+    did not answer (``GIVE_UP_S``).
     """
     controllers = {node: k for node, k in sorted(kinds.items()) if k[0] is not None}
     switches = {switch for switch, _ in controllers.values()}
@@ -96,8 +99,14 @@ def agreed(kinds: dict, topic: str) -> tuple:
         return None, "warning", (f"controller.switch auto: the controllers on {topic} disagree ({who}): sent as "
                                  f"for one that switches at its {SWITCH_UNTIL_FOUND} until they agree; set "
                                  "controller.switch to the one that moves the arm")
-    return None, "info", (f"controller.switch auto: no trajectory controller on {topic} has answered yet: sent as "
-                          f"for one that switches at its {SWITCH_UNTIL_FOUND} until one does")
+    tail = f"sent as for one that switches at its {SWITCH_UNTIL_FOUND} until one answers"
+    if not kinds:
+        return None, "info", f"controller.switch auto: no trajectory controller on {topic} has answered yet: {tail}"
+    said = "; ".join(f"{node}: {what}" for node, (_, what) in sorted(kinds.items()))
+    silent = any(what.startswith(SILENT) for _, what in kinds.values())
+    return None, "warning" if silent else "info", (
+        f"controller.switch auto: no trajectory controller on {topic} ({said}): {tail}"
+        + ("; set controller.switch if one of them moves the arm" if silent else ""))
 
 
 class _Remote:
@@ -106,12 +115,18 @@ class _Remote:
     def __init__(self, node: str, gids: set):
         self.node = node               # its fully qualified name
         self.gids = gids               # its subscriptions' endpoint gids
-        self.answer = None             # (switch or None, what it is) once it answered
+        self.answer = None             # (switch or None, what it is) once it answered (kept while asked again)
+        self.asking = True             # a question is due or open
         self.names = None              # the names it listed (of REPLACEMENT and JTC_PARAMETERS)
         self.clients = None            # (list_parameters, get_parameters) clients while asking
-        self.future = None
-        self.asked_at = 0.0            # time.monotonic() of the open question
-        self.seen_at = time.monotonic()
+        self.future = None             # the question sent last
+        self.asked = []                # every question of this round (a late reply is taken)
+        self.asked_at = 0.0            # time.monotonic() of the question sent last
+        self.seen_at = time.monotonic()   # when this round of questions began
+
+    def renew(self, now: float) -> None:
+        """Ask again from the start (the answer there is, kept meanwhile)."""
+        self.asking, self.names, self.future, self.seen_at = True, None, None, now
 
 
 class ControllerProbe:
@@ -154,23 +169,25 @@ class ControllerProbe:
             if i.node_name != UNKNOWN_NAME:      # discovered before its node's name: asked once that comes
                 nodes.setdefault(_fqn(i.node_namespace, i.node_name), set()).add(bytes(i.endpoint_gid))
         nodes.pop(self._own, None)
-        for gone in [n for n, r in self._remotes.items() if r.gids != nodes.get(n)]:
-            self._close(self._remotes.pop(gone))
-        for new in set(nodes) - set(self._remotes):
-            self._remotes[new] = _Remote(new, nodes[new])
         now = time.monotonic()
+        for node, remote in list(self._remotes.items()):
+            gids = nodes.get(node)
+            if gids is None:
+                self._close(self._remotes.pop(node))
+            elif not gids <= remote.gids:     # a new subscription under its name (started again): asked again,
+                remote.renew(now)             # its answer kept until the new one (one only gone: nothing new)
+            remote.gids = gids or remote.gids
+        for node in set(nodes) - set(self._remotes):
+            self._remotes[node] = _Remote(node, nodes[node])
         for remote in self._remotes.values():
-            if remote.answer is not None:
+            if not remote.asking:
                 continue
             if now - remote.seen_at > GIVE_UP_S:     # no parameter services (ros2 topic echo's node has none)
-                self._answered(remote, (None, f"no answer within {GIVE_UP_S:g} s"))
+                self._answered(remote, (None, f"{SILENT} within {GIVE_UP_S:g} s (no parameter services?)"))
                 continue
-            if remote.future is not None:
-                if now - remote.asked_at < ANSWER_TIMEOUT_S:
-                    continue
-                self._forget(remote)          # no answer (a response sent before it could match): asked again
-            self._ask(remote, now)
-        self._decide()
+            if remote.future is None or now - remote.asked_at >= ANSWER_TIMEOUT_S:
+                self._ask(remote, now)        # (again: a response sent before it could match is lost; a late
+        self._decide()                        # one to the question before is taken too)
 
     def _ask(self, remote: _Remote, now: float) -> None:
         """Send the next question: the names it has (``list_parameters``), then ``REPLACEMENT``'s value."""
@@ -189,19 +206,25 @@ class ControllerProbe:
         else:
             remote.future = client.call_async(GetParameters.Request(names=[REPLACEMENT]))
             remote.future.add_done_callback(lambda f, r=remote: self._got(r, f))
+        remote.asked.append(remote.future)
+
+    def _current(self, remote: _Remote, future) -> bool:
+        """Whether a reply is still wanted: to this node's open questions (a late one too), with a result."""
+        return (self._remotes.get(remote.node) is remote and remote.asking and future in remote.asked
+                and not future.cancelled() and future.result() is not None)
 
     def _listed(self, remote: _Remote, future) -> None:
-        if future is not remote.future or future.cancelled() or future.result() is None:
+        if not self._current(remote, future) or remote.names is not None:
             return
-        remote.future = None
         remote.names = set(future.result().result.names)
+        remote.future = None
         if REPLACEMENT not in remote.names:
             self._answered(remote, kind_of(remote.names))
         else:
             self._ask(remote, time.monotonic())
 
     def _got(self, remote: _Remote, future) -> None:
-        if future is not remote.future or future.cancelled() or future.result() is None:
+        if not self._current(remote, future):
             return
         values = future.result().values
         value = values[0] if values else None
@@ -209,22 +232,18 @@ class ControllerProbe:
 
     def _answered(self, remote: _Remote, answer: tuple) -> None:
         self._close(remote)
+        remote.asking = False
         if self._remotes.get(remote.node) is remote:
             remote.answer = answer
             self._decide()
 
-    def _forget(self, remote: _Remote) -> None:
-        """Forget an open question (its clients stay: a new pair would have to be discovered again)."""
-        future, remote.future = remote.future, None
-        if future is not None and remote.clients is not None:
-            for client in remote.clients:
-                client.remove_pending_request(future)
-
     def _close(self, remote: _Remote) -> None:
-        """Forget an open question and remove the clients."""
-        self._forget(remote)
+        """Forget the open questions and remove the clients."""
+        asked, remote.asked, remote.future = remote.asked, [], None
         clients, remote.clients = remote.clients, None
         for client in clients or ():
+            for future in asked:
+                client.remove_pending_request(future)
             self._node.destroy_client(client)
 
     def _on_event(self, event: ParameterEvent) -> None:
@@ -237,7 +256,8 @@ class ControllerProbe:
                 self._answered(remote, kind_of({REPLACEMENT}, _python(p.value)))
         if any(p.name == REPLACEMENT for p in event.deleted_parameters):
             self._close(remote)
-            remote.answer = remote.names = None    # asked again
+            remote.answer = None
+            remote.renew(time.monotonic())          # asked again
             self._decide()
 
     def _decide(self) -> None:
