@@ -937,8 +937,9 @@ class CaptureSession:
         c = processed.continuation
         joined = ("no (from the end of the executing trajectory, at rest)" if c is None and join is not None
                   else "no (the arm at rest)") if c is None else (
-            f"yes, {c.join_time_s:.3f} s into the executing trajectory at "
-            f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s"
+            (f"yes, {c.join_time_s:.3f} s into the executing trajectory at " if c.join_time_s >= 0.0005 else
+             "yes, at the start of the executing trajectory (sent, not begun: its first point) at ")
+            + f"{np.degrees(np.linalg.norm(c.start_velocity_rad_s)):.2f}°/s"
             + (f", stopping on its path {c.prefix_rad.shape[0] - 1} points on" if join.stop else ""))
         latency = time.perf_counter() - req.t_request
         values = {

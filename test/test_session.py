@@ -872,3 +872,16 @@ def test_a_plan_from_the_end_for_a_controller_that_switches_at_arrival_leaves_th
     intended = _legacy_controller([msg(first.stamp_ns, first.arm), msg(own_stamp, out.processed.arm)],
                                   [0, own_stamp], ts)
     np.testing.assert_allclose(got, intended, atol=1e-6)
+
+
+def test_a_replan_joined_where_the_one_before_begins_says_so(flat, backend):
+    """Two replans at one instant: the second joins the first at its first point, before it begins (not "0.000 s")."""
+    clock = Clock()
+    ses, _ = _moving(flat, backend, clock)
+    ses.submit("moved target", target=_target(ses, -3.25, -2.62))
+    assert ses.run_once().values["joined_moving_arm"].startswith("yes, ")
+    first = ses.executing
+    ses.submit("moved again", target=_target(ses, -3.24, -2.63))
+    joined = ses.run_once().values["joined_moving_arm"]
+    assert ses.executing.start_ns == first.start_ns > clock.t, "not joined where the one before begins"
+    assert joined.startswith("yes, at the start of the executing trajectory (sent, not begun"), joined
