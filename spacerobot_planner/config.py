@@ -185,8 +185,8 @@ PARAMETERS = (
               "before it is sent and holds its points up to the join. auto: the planner asks the nodes that "
               "subscribe joint_trajectory for their parameters (allow_trajectory_replacement; "
               "joint_trajectory_controller's joints and interpolation_method without it: before 6.8) and "
-              "sends for the kind they are, stamp until one answers; the mock arm then models its own "
-              "allow_trajectory_replacement. Read by both nodes.", True),
+              "sends for the kind they are, stamp until one answers or while they disagree; the mock arm "
+              "then models its own allow_trajectory_replacement. Read by both nodes.", True),
     # ---- the spacecraft's reaction (spacecraft.py, reaction.py)
     ParamSpec("dynamics.body_mass_kg", "double", 2000.0,
               "Spacecraft body mass (with the massless link 1), kg.", False, 1e-6, 1e12),
@@ -249,8 +249,9 @@ PARAMETERS = (
     ParamSpec("mock_arm.allow_trajectory_replacement", "bool", True,
               "mock_arm_node (its parameter 'allow_trajectory_replacement', as joint_trajectory_controller's "
               "from 6.8 on): true, a newer trajectory takes over at its stamp; false, at its arrival. With "
-              "controller.switch stamp or arrival it is that (a value that contradicts it is refused at "
-              "start); with auto it is the model, and the planner reads it.", True),
+              "controller.switch stamp or arrival it is that (its default then: true with stamp, false with arrival; "
+              "a value that contradicts it is refused at start); with auto it is the model, and the planner "
+              "reads it.", True),
     # ---- planner node (ROS side)
     ParamSpec("autostart", "bool", True,
               "Configure and activate the lifecycle node at start (off: wait for `ros2 lifecycle set`).",

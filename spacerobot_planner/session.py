@@ -961,7 +961,8 @@ class CaptureSession:
         }
         at_goal = processed.at_goal
         if at_goal:                   # nothing is published: no points, no duration (the arm holds where it is)
-            values.update(at_goal="true", trajectory_points=0, trajectory_duration_s="0.000")
+            values.update(at_goal="true", trajectory_points=0, trajectory_duration_s="0.000",
+                          trajectory_dense_points=0, trajectory_retimings=0)
         outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
                           None, values, processed, np.asarray(start_raw), dict(stamps or {}))
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it

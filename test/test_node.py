@@ -288,6 +288,7 @@ def test_at_the_goal_no_trajectory_and_it_says_so(graph, capfd):
     assert st.level == DiagnosticStatus.OK and "request #" in st.message
     values = diag_values(st)                  # no trajectory went out: none is described
     assert values["trajectory_points"] == "0" and values["trajectory_duration_s"] == "0.000", values
+    assert values["trajectory_dense_points"] == "0" and values["trajectory_retimings"] == "0", values
     assert g.n_trajs() == n0
     # a joint goal next: its plan is the first published since (none went out at the goal)
     away = np.radians([120.0, 80.0])

@@ -83,8 +83,8 @@ def agreed(kinds: dict, topic: str) -> tuple:
 
     ``kinds``: node -> (switch or None, what it is) of the subscribers that answered (``kind_of``).
     One kind among the controllers: that; none, or controllers that disagree: None (the session keeps
-    ``SWITCH_UNTIL_FOUND``), a warning when they disagree or when there is none and a subscriber
-    did not answer (``GIVE_UP_S``).
+    ``SWITCH_UNTIL_FOUND``), a warning when they disagree or when subscribers answered and none is a
+    controller (a relay, a bridge, a driver of one's own: the planner is guessing).
     """
     controllers = {node: k for node, k in sorted(kinds.items()) if k[0] is not None}
     switches = {switch for switch, _ in controllers.values()}
@@ -103,10 +103,8 @@ def agreed(kinds: dict, topic: str) -> tuple:
     if not kinds:
         return None, "info", f"controller.switch auto: no trajectory controller on {topic} has answered yet: {tail}"
     said = "; ".join(f"{node}: {what}" for node, (_, what) in sorted(kinds.items()))
-    silent = any(what.startswith(SILENT) for _, what in kinds.values())
-    return None, "warning" if silent else "info", (
-        f"controller.switch auto: no trajectory controller on {topic} ({said}): {tail}"
-        + ("; set controller.switch if one of them moves the arm" if silent else ""))
+    return None, "warning", (f"controller.switch auto: no trajectory controller on {topic} ({said}): {tail}; "
+                             "set controller.switch if one of them moves the arm (a relay, a bridge, a driver)")
 
 
 class _Remote:
@@ -148,6 +146,9 @@ class ControllerProbe:
         self._timer = node.create_timer(PROBE_PERIOD_S, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._events = node.create_subscription(ParameterEvent, "/parameter_events", self._on_event,
                                                 qos_profile_parameter_events)
+
+    def start(self) -> None:
+        """Look at the subscribers now (the timer does every ``PROBE_PERIOD_S`` from then)."""
         self._tick()
 
     def destroy(self) -> None:
@@ -166,7 +167,9 @@ class ControllerProbe:
             return
         nodes = {}                  # node -> its subscriptions' gids (a node started again under its name: new ones)
         for i in infos:
-            if i.node_name != UNKNOWN_NAME:      # discovered before its node's name: asked once that comes
+            # a name not known yet (discovered before its node's: asked once it comes); a hidden node
+            # (``_ros2cli_...``: ``ros2 topic echo``) is no controller
+            if i.node_name != UNKNOWN_NAME and not i.node_name.startswith("_"):
                 nodes.setdefault(_fqn(i.node_namespace, i.node_name), set()).add(bytes(i.endpoint_gid))
         nodes.pop(self._own, None)
         now = time.monotonic()
@@ -174,9 +177,10 @@ class ControllerProbe:
             gids = nodes.get(node)
             if gids is None:
                 self._close(self._remotes.pop(node))
-            elif not gids <= remote.gids:     # a new subscription under its name (started again): asked again,
-                remote.renew(now)             # its answer kept until the new one (one only gone: nothing new)
-            remote.gids = gids or remote.gids
+            elif gids != remote.gids:         # started again under its name (both for a while): asked again with
+                self._close(remote)           # new clients whenever its subscriptions change, its answer kept
+                remote.renew(now)             # until the new one (the old node may have answered the question)
+                remote.gids = gids
         for node in set(nodes) - set(self._remotes):
             self._remotes[node] = _Remote(node, nodes[node])
         for remote in self._remotes.values():

@@ -261,6 +261,7 @@ class PlannerNode(LifecycleNode):
         self._diag_timer = self.create_timer(float(self._params["diagnostics.period_s"]), self._diag_tick)
         if self._params["controller.switch"] == "auto":
             self._probe = ControllerProbe(self, self._pubs["traj"].topic_name, self._controller_found, self._log)
+            self._probe.start()
         self.session.start(backend)
         self._phase = "inactive"
         # what start-up made (modules, kernels, the warm-up's objects) lives as long as the process:
