@@ -253,6 +253,9 @@ def test_a_controller_started_again_beside_itself_is_asked_again_and_keeps_a_kin
            and not remotes["/arm_controller"].asking, WAIT_S, "/arm_controller asked again, alone")
     _wait_switch(g, CONTROLLERS[new_kind][1], "/arm_controller")
     with g.lock:
+        until = len(g.diags)
+    g.wait(lambda: len(g.diags) > until, WAIT_S, "a /diagnostics heartbeat after it")   # none need come between
+    with g.lock:
         sources = [diag_values(next(st for st in d.status if st.name.endswith(": planner"))).get(
             "controller_switch_source", "") for _, d in g.diags[since:]]
-    assert sources and all("/arm_controller (" in s for s in sources), sources
+    assert all("/arm_controller (" in s for s in sources), sources
