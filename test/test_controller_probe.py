@@ -106,8 +106,12 @@ WAIT_S = 60
 
 
 def _wait_switch(g, switch, source_has, timeout=WAIT_S, also=None):
-    g.wait(lambda: (also is None or also() or True) and _switch(g)[0] == switch and source_has in _switch(g)[1],
-           timeout, lambda: f"controller_switch {switch} ({source_has!r}); /diagnostics says {_switch(g)}")
+    """Wait for /diagnostics to say ``switch`` with ``source_has`` in its source; ``also()`` runs at each poll."""
+    def said():
+        if also is not None:
+            also()
+        return _switch(g)[0] == switch and source_has in _switch(g)[1]
+    g.wait(said, timeout, lambda: f"controller_switch {switch} ({source_has!r}); /diagnostics says {_switch(g)}")
 
 
 def test_what_joint_trajectory_controllers_declare_tells_when_they_switch():
