@@ -40,7 +40,7 @@ from .field.graph import _next_coord, bfs as field_bfs, grid_strides
 from .free_floating_capture import apparent_scene, captures_free_floating, check_capture_scenario, plan_capture
 from .joint_space import align_to_state, deg_text, nearest_turn_rad, unwrap_path, wrap_angle_scalar_rad
 from .motion import MotionValidator
-from .repair import MAX_TESTS, sheet_edges
+from .repair import MAX_TESTS, CutEdges, sheet_edges
 from . import swept
 from .results import STAGES, Code, PlanResult
 from .smoothing import SmoothPath, path_length_rad, smooth_path, start_direction
@@ -706,7 +706,7 @@ class PlanRun:
         Returns the unwrapped waypoints: exact start, grid nodes, exact goal.
         """
         grid, s = cs.grid, self.s
-        blocked, cut = frozenset(), frozenset()
+        blocked, cut = frozenset(), CutEdges()
         base = fld                       # every repaired field starts its iterations from this one
         repairs = 0
         start_ok = {}                    # grid node -> whether the straight segment from the start passes
@@ -811,7 +811,7 @@ class PlanRun:
         on the same fields first), one that reaches it in ``Planner._walks`` (a replan from a
         start near the same grid node descends no more).
         """
-        dkey = (key, tuple(sorted(blocked)), tuple(sorted(cut)), tuple(int(v) for v in node))
+        dkey = (key, tuple(sorted(blocked)), cut, tuple(int(v) for v in node))
         gp = self.p._walks.get(dkey)
         if gp is None:
             gp = self.p._failed_walks.get(dkey)
@@ -851,10 +851,10 @@ class PlanRun:
                 edges = self.colliding_edges(grid, fld, key, blocked, node,
                                              REPAIR_RADIUS + min(repairs, REPAIR_WIDENING),
                                              MAX_TESTS << min(repairs, REPAIR_DOUBLINGS))
-        new = {(int(a), int(b)) for a, b in edges} - cut
+        grown, new = cut.with_edges(edges)
         if new:
             where = "off the last axis and around" if everywhere else "around"
-            return blocked, cut | new, f"cutting {len(new)} colliding grid edge(s) {where} node {node}"
+            return blocked, grown, f"cutting {new} colliding grid edge(s) {where} node {node}"
         return blocked | {node}, cut, f"blocking node {node}"
 
     def swept_edges(self, grid, base, key) -> np.ndarray:
@@ -942,7 +942,7 @@ class PlanRun:
             return self.unjoined_failure(where)
         # the grid joins them: does the field's own graph (repairs, goal joins) join them?
         f_occ, per, f_goals = validate_problem(fld.occupied, grid.periodic, fld.goal_nodes)
-        f_dist = field_bfs(f_occ, per, f_goals, np.array(sorted(cut), dtype=np.int64).reshape(-1, 2))[0]
+        f_dist = field_bfs(f_occ, per, f_goals, cut.array)[0]
         f_starts = self.candidates(start, grid, fld.occupied)
         joined = len(f_starts) and np.any(f_dist.reshape(occ.shape)[tuple(f_starts.T)] >= 0)
         if joined and fld.solver == "gauss_seidel":

@@ -50,6 +50,7 @@ from .ik import approach_error_rad, grasp_ik, meets_approach_angle, perpendicula
 from .motion import MotionValidator
 from .pipeline import NotCached, PlanRun
 from .problem import Scenario
+from .repair import CutEdges
 from .repair import warm_up as repair_warm_up
 from .results import CODES, STAGES, Code, PlanResult
 from .scene import Scene
@@ -482,10 +483,10 @@ class Planner:
         """
         Return the key of the field under ``field_key`` repaired: ``blocked`` nodes out, ``cut`` edges cut.
 
-        :meth:`_field_key`'s items, then :data:`REPAIRED` and the blocked nodes and cut edges, sorted
-        (``pipeline.PlanRun.resolve``).
+        :meth:`_field_key`'s items, then :data:`REPAIRED`, the blocked nodes, sorted, and the cut
+        edges (``repair.CutEdges``; ``pipeline.PlanRun.resolve``).
         """
-        return field_key + (REPAIRED, tuple(sorted(blocked)), tuple(sorted(cut)))
+        return field_key + (REPAIRED, tuple(sorted(blocked)), cut)
 
     @staticmethod
     def repaired_key(field_key: tuple) -> bool:
@@ -502,7 +503,8 @@ class Planner:
         """
         Return the field under ``key`` (solved and stored when absent).
 
-        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges``.
+        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges`` (a ``repair.CutEdges``,
+        or flat node pairs).
         ``token``: the plan's termination token; a solve it stops raises
         ``termination.Cancelled`` and stores nothing.  ``guess``: a field of the same grid and
         goal whose values the log_harmonic solve starts from (``solve_field``'s guess).
@@ -514,7 +516,7 @@ class Planner:
         if blocked:
             occ = occ.copy()
             occ[tuple(np.array(sorted(blocked)).T)] = True
-        edges = np.array(sorted(cut_edges), dtype=np.int64).reshape(-1, 2)
+        edges = (cut_edges if isinstance(cut_edges, CutEdges) else CutEdges(list(cut_edges))).array
         self._test_stall("field", token)
         self._fit_threads(occ.size)
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,

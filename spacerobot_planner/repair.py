@@ -176,6 +176,53 @@ def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: 
     return edges
 
 
+class CutEdges:
+    """
+    The grid edges a plan's repairs have cut: int64 (k, 2) flat node pairs, distinct, in row order.
+
+    Immutable and hashable, a part of the repaired fields' and their walks' cache keys
+    (``pipeline.PlanRun``): two are equal when they hold the same edges.  ``array`` (read-only,
+    the rows sorted as ``sorted`` sorts their pairs) is what the field solve and the grid's
+    search take.  Made from arrays, never from Python tuples: a first repair cuts hundreds to
+    thousands of edges (every colliding one off the last axis), and a frozenset of tuples of
+    them cost about 2 us an edge to build plus a sort at every key made of it (each walk's,
+    each field's): milliseconds per repairing plan.
+    """
+
+    __slots__ = ("array", "_bytes")
+
+    def __init__(self, edges=()):
+        """Hold ``edges`` (anything of k pairs of flat node indices; repeats taken once)."""
+        a = np.array(edges, dtype=np.int64).reshape(-1, 2)
+        if len(a) > 1:
+            a = a[np.lexsort((a[:, 1], a[:, 0]))]
+            a = a[np.concatenate(([True], np.any(a[1:] != a[:-1], axis=1)))]
+        a = np.ascontiguousarray(a)
+        a.flags.writeable = False
+        self.array = a
+        self._bytes = a.tobytes()
+
+    def with_edges(self, edges) -> tuple:
+        """Return ``(these edges and ``edges``, how many of ``edges`` were not cut yet)`` (distinct ones)."""
+        grown = CutEdges(np.concatenate((self.array, np.asarray(edges, dtype=np.int64).reshape(-1, 2))))
+        return grown, len(grown) - len(self)
+
+    def __len__(self) -> int:
+        return int(self.array.shape[0])
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, CutEdges) and self._bytes == other._bytes
+
+    def __hash__(self) -> int:
+        return hash(self._bytes)
+
+    def __reduce__(self):
+        return CutEdges, (np.array(self.array),)
+
+    def __repr__(self) -> str:
+        return f"CutEdges({len(self)} edges)"
+
+
 def warm_up() -> None:
     """
     Compile (or load from numba's cache) what a repair runs: the search, a field with cut edges.

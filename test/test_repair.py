@@ -10,6 +10,7 @@ neighbours come from the oracle's own grid (``face_neighbours``).
 """
 
 import math
+import pickle
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from spacerobot_planner.collision import CollisionChecker
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.cspace import build_cspace
 from spacerobot_planner.motion import QUICK_STEP_RAD, MotionValidator
-from spacerobot_planner.repair import sheet_edges
+from spacerobot_planner.repair import CutEdges, sheet_edges
 from spacerobot_planner.scene import Scene
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"
@@ -127,3 +128,22 @@ def test_the_box_around_the_node_is_searched_whatever_the_count(wall):
     # the same input, the same edges in the same order
     again = sheet_edges(occ, grid.periodic, node, motions, grid.lower_rad, grid.step_rad, radius=2)
     np.testing.assert_array_equal(again, more)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_cut_edges_hold_the_set_of_pairs_in_sorted_order(seed):
+    """Compare ``CutEdges`` with a set of pairs: its edges in sorted order, the new ones counted, equal as sets."""
+    rng = np.random.default_rng(seed)
+    pairs = rng.integers(0, 30, size=(int(rng.integers(0, 60)), 2))
+    cut = CutEdges(pairs)
+    held = {(int(a), int(b)) for a, b in pairs}
+    assert cut.array.tolist() == [list(p) for p in sorted(held)]
+    assert len(cut) == len(held) and not cut.array.flags.writeable
+    more = rng.integers(0, 30, size=(int(rng.integers(0, 20)), 2))
+    grown, new = cut.with_edges(more)
+    assert new == len({(int(a), int(b)) for a, b in more} - held)
+    assert grown.array.tolist() == [list(p) for p in sorted(held | {(int(a), int(b)) for a, b in more})]
+    shuffled = CutEdges(rng.permutation(np.vstack([pairs, more, pairs]).reshape(-1, 2)))
+    assert shuffled == grown and hash(shuffled) == hash(grown) and {grown: 1}[shuffled] == 1
+    assert pickle.loads(pickle.dumps(grown)) == grown
+    assert (grown == cut) == (new == 0)
