@@ -691,7 +691,8 @@ def face_codes(shape, periodic, cut_edges=None, token=None) -> np.ndarray:
     if token is not None:
         token.check()
     if cut_edges is not None and len(cut_edges):
-        _cut_edges(code, shape, np.asarray(cut_edges, dtype=np.int64).reshape(-1, 2))
+        # a writable copy: the kernel's one signature (a read-only array, repair.CutEdges', would compile another)
+        _cut_edges(code, shape, np.array(cut_edges, dtype=np.int64).reshape(-1, 2))
     return code
 
 
