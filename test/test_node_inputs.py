@@ -589,8 +589,14 @@ def test_joint_states_outside_a_joints_bounds_are_refused_and_no_plan_starts_fro
     n0 = g.planner._rejected_total
     g.pub_js.publish(joint_state_msg(robot.joint_names, away))
     g.wait(lambda: g.planner._rejected_total > n0, 10, "the out-of-bounds joint state refused")
+    # the refusal reaches /diagnostics after the node counted it (two fresh clones' suites side by side
+    # read the status before it, twice): waited for, then judged
+
+    def refused():
+        iv = diag_values(g.status("input"))
+        return iv.get("source") == "joint_states" and "'shoulder' = 250.000°" in iv.get("reason", "")
+    g.wait(refused, 10, "the refusal, naming the shoulder at 250°, in /diagnostics' input status")
     iv = diag_values(g.status("input"))
-    assert iv["source"] == "joint_states" and "'shoulder' = 250.000°" in iv["reason"], iv
     assert "bounds [-180.0°, 180.0°]" in iv["reason"], iv
     np.testing.assert_array_equal(g.planner.session.joint_q, start)   # the last state taken, untouched
     goal = PlanCapture.Goal()
