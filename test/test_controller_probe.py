@@ -94,6 +94,23 @@ def _stderr(fakes_made):
     return "".join(f"\n{f.name}: {open(f.log).read()[-1000:]}" for f in fakes_made)
 
 
+def _probe_state(g) -> str:
+    """Say what the planner's probe saw and asked (a failed wait's message): the subscribers, each remote."""
+    probe = getattr(g.planner, "_probe", None)
+    if probe is None:
+        return "\nno probe"
+    try:
+        infos = g.planner.get_subscriptions_info_by_topic(probe._topic)
+        seen = ", ".join(f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos)
+    except Exception as e:          # noqa: BLE001 - only for the message
+        seen = f"(not read: {e!r})"
+    now = time.monotonic()
+    remotes = "; ".join(f"{r.node}: asking {r.asking}, names {r.names}, answer {r.answer}, "
+                        f"{now - r.seen_at:.1f} s since seen, {len(r.asked)} questions, "
+                        f"clients {'yes' if r.clients else 'no'}" for r in list(probe._remotes.values()))
+    return f"\nthe planner saw on {probe._topic}: {seen}\nits probe: {remotes or 'no remotes'}"
+
+
 def _switch(g):
     """Return the planner status's (controller_switch, controller_switch_source), as /diagnostics last said."""
     v = diag_values(g.status("planner"))
@@ -169,7 +186,8 @@ def test_controllers_that_disagree_are_warned_and_the_assumption_kept(graph, fak
     def warned():
         seen.append(capfd.readouterr().err)
         return "disagree" in "".join(seen)
-    g.wait(warned, WAIT_S, lambda: "the warning; the node said:\n" + "".join(seen)[-3000:] + _stderr([new, old]))
+    g.wait(warned, WAIT_S, lambda: "the warning; the node said:\n" + "".join(seen)[-3000:] + _stderr([new, old])
+           + _probe_state(g))
     line = next(x for x in "".join(seen).splitlines() if "disagree" in x)
     assert "WARN" in line, line
     assert "/new_controller at its stamp" in line and "/old_controller at its arrival" in line, line
