@@ -69,6 +69,8 @@ __all__ = ["PlanResult", "Planner", "PlannerSettings", "Code", "STAGES", "CODES"
 GRASP_ROOM_M = 1e-9
 #: the item after a solve's key that makes it a repaired field's key (:meth:`Planner.repaired_field_key`)
 REPAIRED = "repaired"
+#: a field's cut grid edges before any repair (``Planner._solve``)
+_NO_CUTS = CutEdges()
 
 
 class Planner:
@@ -498,13 +500,12 @@ class Planner:
         """
         return REPAIRED in field_key
 
-    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=(), token=None,
+    def _solve(self, cs, key, goal_nodes, settings: PlannerSettings, blocked=(), cut_edges=_NO_CUTS, token=None,
                guess=None):
         """
         Return the field under ``key`` (solved and stored when absent).
 
-        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges`` (a ``repair.CutEdges``,
-        or flat node pairs).
+        The C-space's free nodes less ``blocked``, its grid edges less ``cut_edges`` (a ``repair.CutEdges``).
         ``token``: the plan's termination token; a solve it stops raises
         ``termination.Cancelled`` and stores nothing.  ``guess``: a field of the same grid and
         goal whose values the log_harmonic solve starts from (``solve_field``'s guess).
@@ -516,7 +517,7 @@ class Planner:
         if blocked:
             occ = occ.copy()
             occ[tuple(np.array(sorted(blocked)).T)] = True
-        edges = (cut_edges if isinstance(cut_edges, CutEdges) else CutEdges(list(cut_edges))).array
+        edges = cut_edges.array
         self._test_stall("field", token)
         self._fit_threads(occ.size)
         fld = solve_field(occ, cs.grid.periodic, np.asarray(goal_nodes), solver=settings.solver,

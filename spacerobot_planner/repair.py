@@ -176,6 +176,11 @@ def sheet_edges(occupied, periodic, node, motions, lower_rad, step_rad, radius: 
     return edges
 
 
+def in_row_order(edges: np.ndarray) -> np.ndarray:
+    """Return grid edges int (k, 2) with their rows in ``sorted``'s order of the pairs (first node, then second)."""
+    return edges[np.lexsort((edges[:, 1], edges[:, 0]))]
+
+
 class CutEdges:
     """
     The grid edges a plan's repairs have cut: int64 (k, 2) flat node pairs, distinct, in row order.
@@ -195,7 +200,7 @@ class CutEdges:
         """Hold ``edges`` (anything of k pairs of flat node indices; repeats taken once)."""
         a = np.array(edges, dtype=np.int64).reshape(-1, 2)
         if len(a) > 1:
-            a = a[np.lexsort((a[:, 1], a[:, 0]))]
+            a = in_row_order(a)
             a = a[np.concatenate(([True], np.any(a[1:] != a[:-1], axis=1)))]
         a = np.ascontiguousarray(a)
         a.flags.writeable = False

@@ -55,7 +55,7 @@ from .cores import current_threads
 from .cspace import ROW_EPS_RAD, _fill_rows, build_cspace
 from .field.graph import grid_strides
 from .motion import MotionValidator
-from .repair import edge_up, motion_up_free
+from .repair import edge_up, in_row_order, motion_up_free
 from .termination import Termination
 
 #: Added to the candidates' margin (beyond the sagitta), m: no rounding of a hull reaches it.
@@ -380,7 +380,7 @@ def swept_edges(occupied, periodic, lower_rad, step_rad, motions, token=None,
         parts.append(tested(cand, flat, shape, per, axis, lower, step, strides, *arrays))
         token.check()
     edges = np.concatenate(parts)
-    return edges[np.lexsort((edges[:, 1], edges[:, 0]))]
+    return in_row_order(edges)
 
 
 def warm_up(robot, scene, grid) -> None:
