@@ -44,6 +44,8 @@ PLAN_CANCELLED_AT_SHUTDOWN = re.compile(r"shutdown: the plan in progress is canc
 #: ``python -m spacerobot_planner.bench promptness``; a test checks only that the work ends far
 #: sooner than the injected stall (30 s) would, a bound a loaded machine keeps.
 PROMPT_BOUND_S = 10.0
+# s between a test's sends of one state on a topic the planner hears best effort (Graph.publish_until)
+RESEND_S = 0.25
 FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
         "trajectory.max_acceleration_deg_s2": [360.0, 720.0, 720.0]}
 _CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config")
@@ -287,6 +289,48 @@ class Graph:
             if time.monotonic() - t0 > timeout:
                 raise AssertionError(f"timed out after {timeout} s waiting for: {what() if callable(what) else what}")
             time.sleep(0.01)
+
+    def publish_until(self, pub, msg, cond, timeout, what):
+        """
+        Publish ``msg`` on ``pub`` until ``cond()`` holds, again every RESEND_S; AssertionError as ``wait``.
+
+        For the topics the planner hears best effort (joint_states and the attitude topic, as a
+        driver's sensor data): one message can be lost on a loaded machine, and a test that sent
+        it once then waited for what it causes failed in CI (a held joint's warning never came in
+        30 s).  A driver sends its state at its rate; so does a test.  ``cond`` must say that the
+        planner took this message (or refused it), not only that an earlier one arrived.
+        """
+        pub.publish(msg)
+        sent = [time.monotonic()]
+
+        def taken():
+            if cond():
+                return True
+            if time.monotonic() - sent[0] >= RESEND_S:
+                pub.publish(msg)
+                sent[0] = time.monotonic()
+            return False
+        self.wait(taken, timeout, what)
+
+    def send_joint_state(self, msg, cond=None, timeout=30, what=None):
+        """
+        Publish ``msg`` on joint_states until the planner took it (``publish_until``).
+
+        ``cond`` defaults to: the planner's joint state is ``msg``'s planned joints' positions and
+        no refusal came after it (every planned joint in ``msg``); give one for a state it refuses
+        or completes otherwise.
+        """
+        if cond is None:
+            names = list(msg.name)
+            want = np.array([msg.position[names.index(n)] for n in self.scenario.robot.planned_names])
+
+            def cond():
+                session = self.planner.session
+                q = session.joint_q
+                return q is not None and session.joint_refused is None and np.array_equal(np.asarray(q), want)
+        self.publish_until(self.pub_js, msg, cond, timeout,
+                           what or f"the joint state {dict(zip(msg.name, np.round(np.degrees(msg.position), 3)))}° "
+                                   f"taken by the planner")
 
     def send_target(self, x=-3.27, y=-2.60, yaw=0.0, frame="world", quat=None):
         m = PoseStamped()

@@ -54,8 +54,7 @@ def _without_flag(goal):
 
 def _start(g):
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
 
 
 def test_goal_plans_returns_the_published_trajectory_with_feedback(graph, monkeypatch):

@@ -363,8 +363,7 @@ def test_the_node_publishes_the_arm_only_and_returns_the_predicted_drift(graph):
     flat.update({k: v[:1] + v[1:2] * 2 for k, v in FAST.items()})
     g = graph(flat, with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(conv.joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(conv.joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     goal = PlanCapture.Goal()
     goal.target_pose.header.frame_id = "world"
     goal.target_pose.pose.position.x, goal.target_pose.pose.position.y = -3.27, -2.60

@@ -90,8 +90,7 @@ def test_transitions_in_order_then_shutdown_leaves_nothing(manual, capfd):
     assert _state(g) == "active"
     assert g.planner.count_subscribers("target_pose") == 1
     g.wait(lambda: _subscribed(g), 60, "target_pose subscribed when active, seen by the driver")
-    g.pub_js.publish(_js(g))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(_js(g))
     g.send_target()
     g.wait(lambda: g.n_trajs() == 1, 30, "a trajectory when active")
 
@@ -176,8 +175,7 @@ def test_lifecycle_shutdown_during_a_long_plan(graph, capfd, record_property):
     """
     before = _threads()
     g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
-    g.pub_js.publish(_js(g))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(_js(g))
     g.send_target()
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
     _lifecycle(g)                                      # discovered before the clock starts

@@ -102,12 +102,11 @@ def test_bad_input_then_good_request(graph, capfd):
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
 
-    def js(names=robot.joint_names, q=None):
+    def js(names=robot.joint_names, q=None, cond=None):
         q = robot.full(g.scenario.start_rad) if q is None else q
-        g.pub_js.publish(joint_state_msg(names, q))
+        g.send_joint_state(joint_state_msg(names, q), cond)
 
     js()
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
 
     def expect_error(action, fragment):
         e0 = len(g.errors())
@@ -119,7 +118,8 @@ def test_bad_input_then_good_request(graph, capfd):
     expect_error(lambda: g.send_target(math.nan, -2.6), "NaN")
     expect_error(lambda: g.send_target(frame="map"), "frame 'map'")
     expect_error(lambda: g.send_target(3.0, 2.5), "out of the arm's reach")
-    expect_error(lambda: js(names=("attitude", "shoulder"), q=[0.0, 0.0]), "missing joint")
+    expect_error(lambda: js(names=("attitude", "shoulder"), q=[0.0, 0.0],
+                            cond=lambda: g.planner.session.joint_refused is not None), "missing joint")
     js()
 
     def bad_param():
@@ -192,8 +192,7 @@ def test_diagnostics_describe_only_the_last_finished_request(graph):
     from node_helpers import diag_values
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     # 1. a request that fails: its planner status names the reason, whole
     g.send_target(3.0, 2.5)
     g.wait(lambda: g.level("planner") == DiagnosticStatus.ERROR, 15, "the failed request")
@@ -235,7 +234,7 @@ def test_diagnostics_describe_only_the_last_finished_request(graph):
 def test_grids_are_in_the_grid_frame(graph):
     g = graph(scene_params("2dof", **{"grid_frame": "joint_space"}), with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target()
     g.wait(lambda: g.planner.last_result is not None, 60, "a plan")
     got = {}
@@ -338,7 +337,7 @@ def test_servicer_trajectory_keeps_the_wheel_limits(graph):
     from spacerobot_planner.spacecraft import MassProperties
     g = graph(scene_params("servicer"), with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target()
     g.wait(lambda: g.planner.last_trajectory is not None, 60, "a trajectory")
     traj = g.planner.last_trajectory
@@ -378,8 +377,7 @@ def test_the_cli_json_carries_the_trajectory_the_node_publishes(graph, tmp_path)
     flat = {k: v for k, v in scene_params("3dof").items() if k != "scenario.goal_deg"}   # the goal: the target's
     g = graph(flat, with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target(*g.scenario.scene.target.center_m)
     g.wait(lambda: g.n_trajs() == 1 and len(g.att_trajs) == 1, 60, "the trajectory")
     with g.lock:

@@ -365,7 +365,7 @@ def test_ros_time_going_back_forgets_the_trajectory_sent_and_stamps_the_next_in_
     msg = joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad))
     tick(1000)
     msg.header.stamp.sec = 1000
-    g.wait(lambda: g.pub_js.publish(msg) or g.planner.session.joint_q is not None, 30, "the joint state taken")
+    g.send_joint_state(msg)
     g.send_target()
     # the plan done (the worker publishes its visuals after the trajectory: a jump meanwhile plans again)
     g.wait(lambda: g.n_trajs() >= 1 and not g.planner.session.planning, 60, "the first trajectory, the plan done")
@@ -377,7 +377,7 @@ def test_ros_time_going_back_forgets_the_trajectory_sent_and_stamps_the_next_in_
     tick(500)
     g.wait(lambda: g.planner.session.executing is None, 30, "the trajectory sent forgotten")
     msg.header.stamp.sec = 500
-    g.pub_js.publish(msg)
+    g.send_joint_state(msg, lambda: g.planner.session.joint_ns == 500 * 10**9, what="the state stamped 500 s taken")
     g.send_target(x=-3.22, y=-2.65)
     g.wait(lambda: g.n_trajs() >= 2, 60, "the plan after the jump")
     with g.lock:
@@ -398,7 +398,7 @@ def test_under_sim_time_before_the_first_clock_a_plan_fails_saying_so(graph, cap
     robot = g.scenario.robot
     msg = joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad))
     msg.header.stamp.sec = 1000                      # the driver's own sim time
-    g.wait(lambda: g.pub_js.publish(msg) or g.planner.session.joint_q is not None, 30, "the joint state taken")
+    g.send_joint_state(msg)
     g.send_target()
     g.wait(lambda: any("/clock" in m for _, m in g.errors()), 60, "the plan's failure on /diagnostics")
     reason = next(m for _, m in g.errors() if "/clock" in m)
@@ -421,7 +421,7 @@ def test_goal_waiting_for_joint_states_plans_when_they_arrive(graph):
     handle = g.send_goal(goal, feedback=lambda m: feedback.append(m.feedback.stage))
     g.wait(lambda: "waiting_for_joint_states" in feedback, 10, "the waiting feedback")
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     status, res, _ = g.goal_result(handle, timeout=60)
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
     # feedback and result travel apart: a feedback sent before the result may arrive after it
@@ -465,13 +465,10 @@ def test_joint_states_on_another_clock_are_said_so_and_taken_at_their_arrival(gr
     msg.header.stamp.sec = 100
     with g.lock:                 # the arm's state, for the graph's checks of what a controller sees
         g.states.append((time.monotonic(), msg))
-    g.pub_js.publish(msg)
-    err = ""
-    t0 = time.monotonic()
-    while "joint_states are stamped" not in err:
-        err += capfd.readouterr().err
-        assert time.monotonic() - t0 < 30, err[-2000:]
-        time.sleep(0.05)
+    seen = []
+    g.send_joint_state(msg, lambda: seen.append(capfd.readouterr().err) or "joint_states are stamped" in "".join(seen),
+                       what=lambda: "the clocks' warning; the node said:\n" + "".join(seen)[-2000:])
+    err = "".join(seen)
     line = next(x for x in err.splitlines() if "joint_states are stamped" in x)
     assert "s behind this node's clock" in line and "use_sim_time: false" in line and "same clock" in line, line
     off = float(line.split("stamped ")[1].split(" s ")[0])
@@ -487,8 +484,7 @@ def test_a_plan_from_an_old_joint_state_says_how_old(graph, capfd):
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
     t_sent = time.monotonic()
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner.session.joint_q is not None, 30, "the joint state taken")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     time.sleep(1.5)
     capfd.readouterr()
     g.send_target()
@@ -541,16 +537,26 @@ def test_a_flood_of_bad_joint_states_logs_a_line_then_counts(graph, capfd):
     g = graph(scene_params("3dof"), with_arm=False)
     names = g.scenario.robot.joint_names
     capfd.readouterr()
+    sent = []
+
+    class Counted:              # one lost is sent again (joint_states are heard best effort): every send counted
+        def publish(self, msg):
+            sent.append(msg)
+            g.pub_js.publish(msg)
     t0 = time.monotonic()
     for i in range(100):                  # a NaN in a different joint each time: the reasons differ
         q = [0.1, 0.2, 0.3]
         q[i % 3] = math.nan
         n0 = g.planner._rejected_total
-        g.pub_js.publish(joint_state_msg(names, q))
-        g.wait(lambda: g.planner._rejected_total > n0, 10, f"bad joint_states {i} rejected")
+        g.publish_until(Counted(), joint_state_msg(names, q), lambda: g.planner._rejected_total > n0, 10,
+                        f"bad joint_states {i} rejected")
     elapsed = time.monotonic() - t0
     latest = f"joint(s) {names[99 % 3]} not finite"
-    g.wait(lambda: diag_values(g.status("input")).get("rejected_total") == "100", 10, "the count in /diagnostics")
+
+    def counted():
+        got = diag_values(g.status("input")).get("rejected_total")
+        return got is not None and 100 <= int(got) <= len(sent) and int(got) == g.planner._rejected_total
+    g.wait(counted, 10, lambda: f"the count (100 to {len(sent)} sent) in /diagnostics")
     iv = diag_values(g.status("input"))
     assert iv["source"] == "joint_states" and latest in iv["reason"], iv
     err = ""
@@ -582,13 +588,12 @@ def test_joint_states_outside_a_joints_bounds_are_refused_and_no_plan_starts_fro
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
     start = robot.full(g.scenario.start_rad)                         # attitude -90°, shoulder 135°, elbow 90°
-    g.pub_js.publish(joint_state_msg(robot.joint_names, start))
-    g.wait(lambda: g.planner.session.joint_q is not None, 10, "the good joint state taken")
+    g.send_joint_state(joint_state_msg(robot.joint_names, start))
     away = start.copy()
     away[1] = math.radians(250.0)
     n0 = g.planner._rejected_total
-    g.pub_js.publish(joint_state_msg(robot.joint_names, away))
-    g.wait(lambda: g.planner._rejected_total > n0, 10, "the out-of-bounds joint state refused")
+    g.send_joint_state(joint_state_msg(robot.joint_names, away), lambda: g.planner._rejected_total > n0,
+                       what="the out-of-bounds joint state refused")
     # the refusal reaches /diagnostics after the node counted it (two fresh clones' suites side by side
     # read the status before it, twice): waited for, then judged
 
@@ -608,8 +613,7 @@ def test_joint_states_outside_a_joints_bounds_are_refused_and_no_plan_starts_fro
     assert g.n_trajs() == 0
     turned = start.copy()
     turned[0] += 2 * math.pi                                         # the attitude a turn on: the same posture
-    g.pub_js.publish(joint_state_msg(robot.joint_names, turned))
-    g.wait(lambda: g.planner.session.joint_refused is None, 10, "the attitude a turn on taken")
+    g.send_joint_state(joint_state_msg(robot.joint_names, turned))                 # the attitude a turn on taken
     status, res, _ = g.goal_result(g.send_goal(goal), timeout=60)
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
 
@@ -648,8 +652,7 @@ def test_target_overlapping_the_spacecraft_is_invalid_input(graph):
     from node_helpers import diag_values, scene_params
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target(-1.0, 0.0)
     g.wait(lambda: g.level("input") == b"\x02", 15, "the input status ERROR")
     iv = diag_values(g.status("input"))
@@ -748,17 +751,17 @@ def test_a_held_joint_reported_away_from_its_lock_is_said_in_a_warning(graph, ca
     robot = g.scenario.robot
     q = robot.full(g.scenario.start_rad)
     assert robot.planned_joints == (1, 2) and abs(np.degrees(q[0]) - 160.7) < 1e-9
-    g.pub_js.publish(joint_state_msg(robot.joint_names, q))          # at its lock: nothing said
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, q))          # at its lock: nothing said
     off = q.copy()
     off[0] += np.radians(10.0)
-    g.pub_js.publish(joint_state_msg(robot.joint_names, off))
     seen = []
 
     def warned():
         seen.append(capfd.readouterr().err)
         return "attitude at 170.7° where robot.locked_positions_deg holds it at 160.7°" in "".join(seen)
-    g.wait(warned, 30, lambda: "the held attitude's warning; the node said:\n" + "".join(seen)[-3000:])
+    # sent until said (a CI run's one message was lost: joint_states are heard best effort); one warning in 30 s
+    g.send_joint_state(joint_state_msg(robot.joint_names, off), warned,
+                       what=lambda: "the held attitude's warning; the node said:\n" + "".join(seen)[-3000:])
     assert "".join(seen).count("robot.locked_positions_deg holds it") == 1, "".join(seen)[-3000:]
 
 
@@ -825,8 +828,8 @@ def test_attitude_from_its_own_topic_when_joint_states_lack_it(graph):
     assert g.planner.get_parameter("attitude_topic").value == "spacecraft_pose"
     start = robot.full(g.scenario.start_rad)                  # attitude -90°, shoulder 135°, elbow 90°
     arm_only = joint_state_msg(robot.joint_names[1:], start[1:])  # a real servicer's joint_states
-    g.pub_js.publish(arm_only)                                 # no attitude yet: refused, saying where from
-    g.wait(lambda: g.level("input") == b"\x02", 10, "joint_states without the attitude refused")
+    g.send_joint_state(arm_only, lambda: g.level("input") == b"\x02",   # no attitude yet: refused, saying where from
+                       what="joint_states without the attitude refused")
     reason = diag_values(g.status("input"))["reason"]
     assert "attitude" in reason and "spacecraft_pose" in reason, reason
     pub = g.drv.create_publisher(PoseStamped, "spacecraft_pose", 10)
@@ -835,10 +838,8 @@ def test_attitude_from_its_own_topic_when_joint_states_lack_it(graph):
     pose.header.frame_id = "world"
     yaw = start[0]
     pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
-    pub.publish(pose)
-    g.wait(lambda: g.planner._attitude is not None, 10, "the attitude received")
-    g.pub_js.publish(arm_only)
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states with the topic's attitude")
+    g.publish_until(pub, pose, lambda: g.planner._attitude is not None, 30, "the attitude received")
+    g.send_joint_state(arm_only, lambda: g.planner._joint_q is not None, what="joint_states with the topic's attitude")
     # the graph's controller check reads the recorded joint_states, which lack the attitude here: it
     # cannot see the attitude's current state (checked against the topic's yaw below instead)
     g.known_violations.add("the first point is at time 0 but is not the current state")

@@ -158,8 +158,7 @@ def test_a_target_size_that_would_overlap_the_current_target_is_refused(graph):
     from spacerobot_planner.ros.conversions import joint_state_msg
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target(-2.0, -1.2)
     g.wait(lambda: g.planner.session.target.center_m == (-2.0, -1.2), 15, "the topic's target current")
 
@@ -190,8 +189,7 @@ def test_limits_too_low_for_a_trajectory_message_are_refused_by_name(graph):
     g = graph(scene_params("3dof", **{"trajectory.max_velocity_deg_s": [0.001] * 3,
                                       "trajectory.max_velocity_scaling_factor": 1e-6}), with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target()
 
     def code():

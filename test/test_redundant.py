@@ -380,7 +380,7 @@ def test_the_node_plans_the_4_joint_scenario(graph):
     g = graph(scene_params("servicer4", cells=[10] * 4), with_arm=False)
     robot, scene = g.scenario.robot, g.scenario.scene
     assert robot.checked_links == (1, 2, 3)
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target()                                   # the paper's target
     # the message as a controller gets it (published, then delivered: later on a loaded machine)
     g.wait(lambda: g.n_trajs() > 0, 60, "a joint_trajectory message")

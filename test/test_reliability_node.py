@@ -84,14 +84,10 @@ class TableGraph(Graph):
         self.robot = self.scenario.robot
         self.good = 0
         self.good_js()
-        self.wait(lambda: self.planner._joint_q is not None, 10, "joint_states seen")
 
     def good_js(self):
-        """Publish the arm's state until the planner took one (best effort: after a refused one, plans wait for it)."""
-        msg = joint_state_msg(self.robot.joint_names, self.robot.full(self.scenario.start_rad))
-        self.pub_js.publish(msg)
-        self.wait(lambda: self.planner.session.joint_refused is None or self.pub_js.publish(msg), 10,
-                  "a good joint state taken")
+        """Publish the arm's state until the planner took it (best effort: after a refused one, plans wait for it)."""
+        self.send_joint_state(joint_state_msg(self.robot.joint_names, self.robot.full(self.scenario.start_rad)))
 
     def next_good_target(self):
         self.good += 1
@@ -124,6 +120,11 @@ def _huge_grid(g):
     assert list(g.planner.get_parameter("grid.cells").value) == [36, 36, 36]
 
 
+def _refused(g):
+    """Return a test: the planner refused a joint state since the last good one (the table sends good ones between)."""
+    return lambda: g.planner.session.joint_refused is not None
+
+
 def _goal_out_of_bounds(g):
     g.pub_goal.publish(joint_state_msg(("attitude", "shoulder", "elbow"), np.radians([0.0, 200.0, 30.0])))
 
@@ -137,10 +138,11 @@ BAD_INPUT = [
     ("quaternion_norm_1.05", lambda g: g.send_target(quat=(0.0, 0.0, 0.0, 1.05)), ["not a unit quaternion"]),
     ("tilted_5deg", lambda g: g.send_target(quat=_quat_about_x(5.0)), ["tilted out of the plane"]),
     ("joint_states_length_mismatch",
-     lambda g: g.pub_js.publish(JointState(name=["attitude", "shoulder", "elbow"], position=[0.0, 0.1])),
+     lambda g: g.send_joint_state(JointState(name=["attitude", "shoulder", "elbow"], position=[0.0, 0.1]), _refused(g)),
      ["joint_states", "3 names but 2 positions"]),
     ("joint_states_nan",
-     lambda g: g.pub_js.publish(joint_state_msg(("attitude", "shoulder", "elbow"), [0.0, math.nan, 0.2])),
+     lambda g: g.send_joint_state(joint_state_msg(("attitude", "shoulder", "elbow"), [0.0, math.nan, 0.2]),
+                                  _refused(g)),
      ["joint_states", "shoulder", "not finite"]),
     ("goal_joint_state_length_mismatch",
      lambda g: g.pub_goal.publish(JointState(name=["shoulder", "elbow"], position=[0.1])),
@@ -392,8 +394,7 @@ def _bad_first_job(real):
 def test_planning_process_killed_mid_plan_is_reported_and_replaced(graph):
     g = graph(scene_params("3dof", **LONG), with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     old = g.planner._backend.proc.pid
     e0 = len(g.errors())
     g.send_target()
@@ -416,8 +417,7 @@ def test_planning_process_killed_mid_plan_is_reported_and_replaced(graph):
 # ================================================================== shutdown during a long plan
 def _start_long_plan(g):
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target()
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
     time.sleep(1.5)                            # the child has loaded its kernels: inside the field solve
@@ -453,8 +453,7 @@ def test_destroy_node_during_long_plan_in_thread(graph, record_property):
     g = graph(scene_params("3dof", **{"planner.separate_process": False, "planner.test_stall_s": 3.0}),
               with_arm=False)
     robot = g.scenario.robot
-    g.pub_js.publish(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
-    g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
+    g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
     g.send_target()
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
     worker = g.planner._worker
@@ -495,10 +494,11 @@ def test_context_shutdown_during_long_plan_main_path(record_property):
             assert time.monotonic() - t0 < 60, "planner not subscribed"
             time.sleep(0.01)
         robot = node.robot
-        pub_j.publish(joint_state_msg(robot.joint_names, robot.full(scenario_from_params(flat).start_rad)))
-        while node._joint_q is None:
-            assert time.monotonic() - t0 < 10
-            time.sleep(0.01)
+        js = joint_state_msg(robot.joint_names, robot.full(scenario_from_params(flat).start_rad))
+        while node._joint_q is None:             # sent again until taken: joint_states are heard best effort
+            assert time.monotonic() - t0 < 30
+            pub_j.publish(js)
+            time.sleep(0.1)
         m = PoseStamped()
         m.header.frame_id = "world"
         m.pose.position.x, m.pose.position.y, m.pose.orientation.w = -3.27, -2.60, 1.0
