@@ -28,17 +28,26 @@ CONTROLLERS = {
 
 
 #: a controller manager's controller as far as the planner can see: a node in a process of its own that
-#: declares a controller's parameters and subscribes the topic (argv: name, parameters as JSON; null: a node
-#: without parameter services, as ros2cli's ``ros2 topic echo``)
+#: declares a controller's parameters and subscribes the topic (argv: name, parameters as JSON, null: a node
+#: without parameter services, as ros2cli's ``ros2 topic echo``; s before its parameter services start, 0: at once)
 _FAKE = """
 import json, sys
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from trajectory_msgs.msg import JointTrajectory
+from rclpy.parameter_service import ParameterService
 rclpy.init()
-node = rclpy.create_node(sys.argv[1], start_parameter_services=sys.argv[2] != "null")
+late_s = float(sys.argv[3])
+node = rclpy.create_node(sys.argv[1], start_parameter_services=sys.argv[2] != "null" and not late_s)
 for key, value in (json.loads(sys.argv[2]) or {}).items():
     node.declare_parameter(key, value)
+if late_s and sys.argv[2] != "null":
+    timer = None
+
+    def serve():
+        node.destroy_timer(timer)
+        node._parameter_service = ParameterService(node)
+    timer = node.create_timer(late_s, serve)
 node.create_subscription(JointTrajectory, "joint_trajectory", lambda m: None, 10)
 try:
     rclpy.spin(node)
@@ -50,13 +59,14 @@ except (KeyboardInterrupt, ExternalShutdownException):
 class _FakeController:
     """A fake controller (``_FAKE``) in a process of its own, in the test run's ROS domain (its stderr in ``log``)."""
 
-    def __init__(self, name, parameters, log):
+    def __init__(self, name, parameters, log, services_after_s=0.0):
         import json
         import subprocess
         import sys
         self.name, self.log = name, log
         with open(log, "w") as err:
-            self.proc = subprocess.Popen([sys.executable, "-c", _FAKE, name, json.dumps(parameters)],
+            self.proc = subprocess.Popen([sys.executable, "-c", _FAKE, name, json.dumps(parameters),
+                                          str(float(services_after_s))],
                                          stdout=subprocess.DEVNULL, stderr=err)
 
     def close(self):
@@ -81,8 +91,8 @@ def fakes(tmp_path):
     """
     made = []
 
-    def start(name, parameters):
-        fake = _FakeController(name, parameters, tmp_path / f"{name}-{len(made)}.err")
+    def start(name, parameters, services_after_s=0.0):
+        fake = _FakeController(name, parameters, tmp_path / f"{name}-{len(made)}.err", services_after_s)
         made.append(fake)
         return fake
     yield start
@@ -245,6 +255,26 @@ def test_a_subscriber_without_parameter_services_is_given_up_and_a_controller_st
     _wait_switch(g, "stamp", "/silent: did not answer within 3 s")
     fakes("joint_trajectory_controller", CONTROLLERS["jtc_before_6_8"][0])
     _wait_switch(g, "arrival", "/joint_trajectory_controller")
+
+
+def test_a_controller_that_answers_only_after_it_was_given_up_is_asked_again_and_found(graph, fakes, monkeypatch):
+    """
+    A controller whose parameter services come up late (a loaded machine): given up, asked again, its kind used.
+
+    Before, a subscriber given up after ``GIVE_UP_S`` was never asked again until its
+    subscriptions changed: a controller slow to answer was never counted.
+    """
+    from spacerobot_planner.ros import controller_probe
+    monkeypatch.setattr(controller_probe, "GIVE_UP_S", 3.0)
+    monkeypatch.setattr(controller_probe, "ASK_AGAIN_S", 2.0)
+    g = graph(scene_params("3dof"), with_arm=False)
+    made = [fakes("slow_controller", CONTROLLERS["jtc_before_6_8"][0], services_after_s=12.0)]
+    _wait_switch(g, "stamp", "/slow_controller: did not answer within 3 s",
+                 also=lambda: None if made[0].proc.poll() is None else pytest.fail(_stderr(made)))
+    # still silent then (its services start 12 s after its process, the first give-up came at least 3 s after
+    # its subscription was seen): then asked again until it answers
+    _wait_switch(g, "arrival", "/slow_controller (a joint_trajectory_controller without")
+    assert g.planner._probe._remotes["/slow_controller"].clients is None       # its clients gone once answered
 
 
 @pytest.mark.parametrize("old_kind, new_kind", [("jtc_before_6_8", "jtc_before_6_8"), ("jtc_6_8", "jtc_before_6_8")])

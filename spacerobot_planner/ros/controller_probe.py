@@ -18,7 +18,8 @@ does (``list_parameters`` of the names below, then ``get_parameters``):
 The subscribers are looked at every ``PROBE_PERIOD_S`` (a controller started, gone, or started
 again under its name: its subscription's gid; a question unanswered for ``ANSWER_TIMEOUT_S`` is
 asked again; one that has not answered within ``GIVE_UP_S``, as a node without parameter services,
-is left out); a change of ``allow_trajectory_replacement`` at runtime comes on ``/parameter_events``.
+is left out, and asked again ``ASK_AGAIN_S`` later: a controller slow to answer on a loaded machine is
+counted late, not never); a change of ``allow_trajectory_replacement`` at runtime comes on ``/parameter_events``.
 What the controllers say together goes to the session
 (``found``: one kind; None while there is none, or when they disagree, which is warned: the
 session then keeps ``settings.SWITCH_UNTIL_FOUND``), and each change is logged once.  The
@@ -39,7 +40,7 @@ from rclpy.qos import qos_profile_parameter_events
 from ..settings import SWITCH_UNTIL_FOUND
 
 __all__ = ["ControllerProbe", "kind_of", "agreed", "REPLACEMENT", "JTC_PARAMETERS", "PROBE_PERIOD_S",
-           "ANSWER_TIMEOUT_S"]
+           "ANSWER_TIMEOUT_S", "GIVE_UP_S", "ASK_AGAIN_S"]
 
 #: joint_trajectory_controller's parameter from ros2_controllers 6.8 on: true, a newer trajectory takes
 #: over at its stamp (the mock arm's too)
@@ -48,6 +49,9 @@ REPLACEMENT = "allow_trajectory_replacement"
 JTC_PARAMETERS = ("joints", "interpolation_method")
 #: a subscriber that has not answered this long after it was seen is not asked any more (its clients go), s
 GIVE_UP_S = 30.0
+#: a subscriber given up is asked again this long after, s (its answer, ``SILENT``, kept meanwhile): two
+#: clients for up to ``GIVE_UP_S`` every minute for ``ros2 bag record``; a controller's answer found late
+ASK_AGAIN_S = 30.0
 #: what a subscriber given up is said to have done
 SILENT = "did not answer"
 #: the node name of a subscription discovered before its node's (rmw_dds_common's graph cache)
@@ -121,10 +125,11 @@ class _Remote:
         self.asked = []                # every question of this round (a late reply is taken)
         self.asked_at = 0.0            # time.monotonic() of the question sent last
         self.seen_at = time.monotonic()   # when this round of questions began
+        self.given_up_at = None        # time.monotonic() when it was given up (None: it answered, or is asked)
 
     def renew(self, now: float) -> None:
         """Ask again from the start (the answer there is, kept meanwhile)."""
-        self.asking, self.names, self.future, self.seen_at = True, None, None, now
+        self.asking, self.names, self.future, self.seen_at, self.given_up_at = True, None, None, now, None
 
 
 class ControllerProbe:
@@ -185,9 +190,12 @@ class ControllerProbe:
             self._remotes[node] = _Remote(node, nodes[node])
         for remote in self._remotes.values():
             if not remote.asking:
-                continue
+                if remote.given_up_at is None or now - remote.given_up_at < ASK_AGAIN_S:
+                    continue
+                remote.renew(now)                    # given up a while ago: asked again (slow under load?)
             if now - remote.seen_at > GIVE_UP_S:     # no parameter services (ros2 topic echo's node has none)
                 self._answered(remote, (None, f"{SILENT} within {GIVE_UP_S:g} s (no parameter services?)"))
+                remote.given_up_at = now
                 continue
             if remote.future is None or now - remote.asked_at >= ANSWER_TIMEOUT_S:
                 self._ask(remote, now)        # (again: a response sent before it could match is lost; a late
@@ -236,7 +244,7 @@ class ControllerProbe:
 
     def _answered(self, remote: _Remote, answer: tuple) -> None:
         self._close(remote)
-        remote.asking = False
+        remote.asking, remote.given_up_at = False, None
         if self._remotes.get(remote.node) is remote:
             remote.answer = answer
             self._decide()
