@@ -19,8 +19,10 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import Log
 from geometry_msgs.msg import PoseStamped
 from rclpy.context import Context
+from rclpy.qos import qos_profile_rosout_default
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
@@ -44,6 +46,8 @@ PLAN_CANCELLED_AT_SHUTDOWN = re.compile(r"shutdown: the plan in progress is canc
 #: ``python -m spacerobot_planner.bench promptness``; a test checks only that the work ends far
 #: sooner than the injected stall (30 s) would, a bound a loaded machine keeps.
 PROMPT_BOUND_S = 10.0
+#: rcl_interfaces/Log levels as rcutils' console lines name them
+_LEVELS = {Log.DEBUG: "DEBUG", Log.INFO: "INFO", Log.WARN: "WARN", Log.ERROR: "ERROR", Log.FATAL: "FATAL"}
 # s between a test's sends of one state on a topic the planner hears best effort (Graph.publish_until)
 RESEND_S = 0.25
 FAST = {"trajectory.max_velocity_deg_s": [90.0, 180.0, 180.0],
@@ -126,6 +130,7 @@ class Graph:
         self.lock = threading.Lock()
         self.trajs, self.states, self.diags, self.markers = [], [], [], []
         self.att_trajs = []
+        self.logs = []            # (arrival time, rcl_interfaces Log) of every line on /rosout (log_text, wait_log)
         self.checked = []         # (topic, msg, ROS time received, latest joint_states positions by name)
         # violations a test expects (and says why); every other one fails the test at close()
         self.known_violations = set()
@@ -135,6 +140,11 @@ class Graph:
                                      self._rec_traj(self.att_trajs, "attitude_trajectory"), 10)
         self.drv.create_subscription(JointState, "joint_states", self._rec(self.states), 100)
         self.drv.create_subscription(DiagnosticArray, "/diagnostics", self._rec(self.diags), 50)
+        # every node's log lines, as ``ros2 topic echo /rosout`` or rqt_console has them: reliable, and the
+        # lines from before this subscription matched come too (transient local, kept 10 s).  Not pytest's
+        # capfd while nodes log: its readouterr() reads, then truncates the captured file, and a line written
+        # by another thread in between is lost (a CI run polled it and never saw a warning the node logged)
+        self.drv.create_subscription(Log, "/rosout", self._rec(self.logs), qos_profile_rosout_default)
         self.drv.create_subscription(MarkerArray, "planned_path_markers", self._rec(self.markers), GRID_QOS)
         self.pub_target = self.drv.create_publisher(PoseStamped, "target_pose", 10)
         self.pub_js = self.drv.create_publisher(JointState, "joint_states", 10)
@@ -331,6 +341,28 @@ class Graph:
         self.publish_until(self.pub_js, msg, cond, timeout,
                            what or f"the joint state {dict(zip(msg.name, np.round(np.degrees(msg.position), 3)))}° "
                                    f"taken by the planner")
+
+    def log_count(self) -> int:
+        """Return how many log lines were received so far (a ``since`` for :meth:`log_text`)."""
+        with self.lock:
+            return len(self.logs)
+
+    def log_text(self, since=0, name="spacerobot_planner") -> str:
+        """
+        Return the log lines received on /rosout from the ``since``-th on, of node ``name`` (None: every node).
+
+        One line each, as rcutils' console format has them: ``[WARN] [spacerobot_planner]: text``.
+        """
+        with self.lock:
+            msgs = [m for _, m in self.logs[since:]]
+        return "".join(f"[{_LEVELS.get(m.level, m.level)}] [{m.name}]: {m.msg}\n" for m in msgs
+                       if name is None or m.name == name)
+
+    def wait_log(self, fragment, timeout=30, since=0, name="spacerobot_planner"):
+        """Wait for a log line of ``name`` containing ``fragment`` (from the ``since``-th line on); return the text."""
+        self.wait(lambda: fragment in self.log_text(since, name), timeout,
+                  lambda: f"a log line with {fragment!r}; the lines:\n{self.log_text(since, name)[-3000:]}")
+        return self.log_text(since, name)
 
     def send_target(self, x=-3.27, y=-2.60, yaw=0.0, frame="world", quat=None):
         m = PoseStamped()

@@ -187,18 +187,13 @@ def test_a_runtime_change_of_allow_trajectory_replacement_is_followed(graph, fak
         _wait_switch(g, switch, f"/arm_controller (allow_trajectory_replacement {str(value).lower()})", also=set_value)
 
 
-def test_controllers_that_disagree_are_warned_and_the_assumption_kept(graph, fakes, capfd):
+def test_controllers_that_disagree_are_warned_and_the_assumption_kept(graph, fakes):
     g = graph(scene_params("3dof"), with_arm=False)
     new = fakes("new_controller", CONTROLLERS["jtc_6_8"][0])
     old = fakes("old_controller", CONTROLLERS["jtc_before_6_8"][0])
-    seen = []
-
-    def warned():
-        seen.append(capfd.readouterr().err)
-        return "disagree" in "".join(seen)
-    g.wait(warned, WAIT_S, lambda: "the warning; the node said:\n" + "".join(seen)[-3000:] + _stderr([new, old])
-           + _probe_state(g))
-    line = next(x for x in "".join(seen).splitlines() if "disagree" in x)
+    g.wait(lambda: "disagree" in g.log_text(), WAIT_S,
+           lambda: "the warning; the node said:\n" + g.log_text()[-3000:] + _stderr([new, old]) + _probe_state(g))
+    line = next(x for x in g.log_text().splitlines() if "disagree" in x)
     assert "WARN" in line, line
     assert "/new_controller at its stamp" in line and "/old_controller at its arrival" in line, line
     assert g.planner.session.controller_switch == "stamp"

@@ -98,7 +98,7 @@ def test_potential_grid_late_subscriber(graph):
     assert p[c == 0].max() <= 99
 
 
-def test_bad_input_then_good_request(graph, capfd):
+def test_bad_input_then_good_request(graph):
     g = graph(scene_params("3dof"), with_arm=False)
     robot = g.scenario.robot
 
@@ -150,9 +150,7 @@ def test_bad_input_then_good_request(graph, capfd):
     g.wait(lambda: g.n_trajs() == 3, 30, "a trajectory after ~/replan")
     assert "cspace" in g.planner.last_result.cached and "field" in g.planner.last_result.cached
     # ... planned in the worker thread from what the planning process sent (worker.HybridBackend)
-    err = []
-    g.wait(lambda: err.append(capfd.readouterr().err) or "planned in the worker thread" in "".join(err), 30,
-           "the replan's log line")
+    g.wait_log("planned in the worker thread", 30)
 
 
 def test_joint_goal(graph):
@@ -272,7 +270,7 @@ def test_an_in_process_node_leaves_the_garbage_collector_alone(graph):
     assert gone() is None, "garbage made before the node's configure was frozen, never freed"
 
 
-def test_at_the_goal_no_trajectory_and_it_says_so(graph, capfd):
+def test_at_the_goal_no_trajectory_and_it_says_so(graph):
     g = graph(scene_params("2dof"))
     g.send_target()
     wait_at_goal(g, 60)
@@ -294,7 +292,7 @@ def test_at_the_goal_no_trajectory_and_it_says_so(graph, capfd):
     g.pub_goal.publish(joint_state_msg(("shoulder", "elbow"), away))
     end, _ = next_plan(g, n0)
     np.testing.assert_allclose(end, away, atol=1e-9, err_msg="a trajectory was published at the goal")
-    assert "already at the goal" in capfd.readouterr().err
+    g.wait_log("already at the goal", 10)
 
 
 @pytest.mark.parametrize("period_s, expect_some", [(0.5, True), (0.0, False)], ids=["min_period_0.5s", "latest_wins"])
