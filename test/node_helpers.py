@@ -46,6 +46,8 @@ PLAN_CANCELLED_AT_SHUTDOWN = re.compile(r"shutdown: the plan in progress is canc
 #: ``python -m spacerobot_planner.bench promptness``; a test checks only that the work ends far
 #: sooner than the injected stall (30 s) would, a bound a loaded machine keeps.
 PROMPT_BOUND_S = 10.0
+#: s for a fresh planner_node process to come up (generous: a loaded 2-core machine imports rclpy and numba slowly)
+START_TIMEOUT_S = 120.0
 #: rcl_interfaces/Log levels as rcutils' console lines name them
 _LEVELS = {Log.DEBUG: "DEBUG", Log.INFO: "INFO", Log.WARN: "WARN", Log.ERROR: "ERROR", Log.FATAL: "FATAL"}
 # s between a test's sends of one state on a topic the planner hears best effort (Graph.publish_until)
@@ -305,10 +307,11 @@ class Graph:
         Publish ``msg`` on ``pub`` until ``cond()`` holds, again every RESEND_S; AssertionError as ``wait``.
 
         For the topics the planner hears best effort (joint_states and the attitude topic, as a
-        driver's sensor data): one message can be lost on a loaded machine, and a test that sent
-        it once then waited for what it causes failed in CI (a held joint's warning never came in
-        30 s).  A driver sends its state at its rate; so does a test.  ``cond`` must say that the
-        planner took this message (or refused it), not only that an earlier one arrived.
+        driver's sensor data): a message may be dropped (a reader's queue full, another process's
+        participant), and a test that sent one and waited for what it causes would wait for
+        nothing.  A driver sends its state at its rate; so does a test.  ``cond`` must say that the
+        planner took this message (or refused it), not only that an earlier one arrived; a copy
+        may be taken twice (sent again while the first was still on its way).
         """
         pub.publish(msg)
         sent = [time.monotonic()]

@@ -109,11 +109,11 @@ def test_bad_input_then_good_request(graph):
     js()
 
     def expect_error(action, fragment):
+        # the one that names it (an ERROR still set is published again every diagnostics period)
         e0 = len(g.errors())
         action()
-        g.wait(lambda: len(g.errors()) > e0, 15, f"a diagnostics error for {fragment}")
-        msg = g.errors()[-1][1]
-        assert fragment in msg, msg
+        g.wait(lambda: any(fragment in m for _, m in g.errors()[e0:]), 30,
+               lambda: f"a diagnostics error for {fragment}; the errors since: {[m for _, m in g.errors()[e0:]]}")
 
     expect_error(lambda: g.send_target(math.nan, -2.6), "NaN")
     expect_error(lambda: g.send_target(frame="map"), "frame 'map'")
@@ -143,9 +143,9 @@ def test_bad_input_then_good_request(graph):
     g.wait(lambda: g.n_trajs() == 2, 30, "a trajectory after the parameter change")
     # ~/replan from a new joint state (field cached)
     cli = g.drv.create_client(Trigger, "/spacerobot_planner/replan")
-    assert cli.wait_for_service(5.0)
+    assert cli.wait_for_service(30.0)
     fut = cli.call_async(Trigger.Request())
-    g.wait(fut.done, 10, "~/replan response")
+    g.wait(fut.done, 30, "~/replan response")
     assert fut.result().success
     g.wait(lambda: g.n_trajs() == 3, 30, "a trajectory after ~/replan")
     assert "cspace" in g.planner.last_result.cached and "field" in g.planner.last_result.cached
@@ -276,9 +276,9 @@ def test_at_the_goal_no_trajectory_and_it_says_so(graph):
     wait_at_goal(g, 60)
     n0 = g.n_trajs()
     cli = g.drv.create_client(Trigger, "/spacerobot_planner/replan")
-    assert cli.wait_for_service(5.0)
+    assert cli.wait_for_service(30.0)
     fut = cli.call_async(Trigger.Request())
-    g.wait(fut.done, 10, "~/replan response")
+    g.wait(fut.done, 30, "~/replan response")
     from node_helpers import diag_values
     g.wait(lambda: diag_values(g.status("planner")).get("at_goal") == "true", 10, "at_goal on /diagnostics")
     st = g.status("planner")
@@ -295,15 +295,18 @@ def test_at_the_goal_no_trajectory_and_it_says_so(graph):
     g.wait_log("already at the goal", 10)
 
 
-@pytest.mark.parametrize("period_s, expect_some", [(0.5, True), (0.0, False)], ids=["min_period_0.5s", "latest_wins"])
-def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, expect_some):
+@pytest.mark.parametrize("period_s, stall_s, expect_some", [(0.5, 0.3, True), (0.0, 1.0, False)],
+                         ids=["min_period_0.5s", "latest_wins"])
+def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, stall_s, expect_some):
     """
-    Targets drifting 2 cm/s at 20 Hz while each plan takes 0.3 s (a stall).
+    Targets drifting 2 cm/s at 20 Hz while each plan takes ``stall_s`` at least (a stall).
 
     Latest-wins alone publishes nothing; with replan.min_publish_period_s a plan is let finish once
-    no trajectory went out for that long.
+    no trajectory went out for that long.  (Latest-wins' plans take 1 s: a pause of the test's
+    sends as long as a plan, on a loaded machine, would let one finish.)
     """
-    params = {"planner.test_stall_s": 0.3, "replan.min_publish_period_s": period_s, "replan.target_tolerance_m": 0.0}
+    params = {"planner.test_stall_s": stall_s, "replan.min_publish_period_s": period_s,
+              "replan.target_tolerance_m": 0.0}
     g = graph(scene_params("3dof", **params))
     g.wait(lambda: g.planner._joint_q is not None, 10, "joint_states seen")
     t0 = time.monotonic()
