@@ -219,7 +219,11 @@ def _random_graspable_target(rng, scenario):
 
 
 def test_target_pose_flood(graph, record_property):
-    g = graph(scene_params("3dof"))            # with the mock arm at 50 Hz
+    # with the mock arm at 50 Hz.  Every trajectory stamped 1 s ahead (default 0.35 s): the flood starves the
+    # graph's one executor thread, which also hands the arm its trajectories; one that reached the arm after its
+    # stamp (joint_states stopped 0.3 s in a fresh clone's run beside a benchmark) took over at its arrival, the
+    # next one, joined to it as sent, then did not start at the arm's state (a controller would refuse it)
+    g = graph(scene_params("3dof", **{"trajectory.start_lead_s": 1.0}))
     robot = g.scenario.robot
     g.send_target()                            # warm-up: the child imports, numba loads
     g.wait(lambda: g.n_trajs() >= 1, 60, "the warm-up trajectory")
