@@ -1,9 +1,23 @@
 """
-Shared helpers of the in-process node tests (test_node.py, test_reliability_node.py).
+Shared helpers of the in-process node tests (test_node*.py, test_reliability_node.py, test_action.py, ...).
 
 The ``graph`` fixture (conftest.py) makes them.  Each graph gets a private rclpy Context
 and a NodeExecutor (what planner_node's main uses) spinning in a thread; no
 launch_testing.
+
+Rules these tests keep, each learnt from a failure on a loaded machine (CI runs three workers
+on two cores):
+
+- wait for the thing judged, in the channel it comes on: a message on /diagnostics is waited
+  for by its content (a status still set is published again every period), not read right
+  after a node's attribute changed;
+- a node's log lines are read from /rosout (:meth:`Graph.log_text`, :meth:`Graph.wait_log`),
+  never by polling pytest's ``capfd``: its ``readouterr()`` reads, then truncates the captured
+  file, and a line another thread writes in between is lost;
+- a state on a topic the planner hears best effort is sent until taken
+  (:meth:`Graph.send_joint_state`, :meth:`Graph.publish_until`), and counts allow a copy taken twice;
+- a "long" plan is long by injection (``planner.test_stall_s``), long enough that what must
+  happen during it does on a slow machine; bounds are for hangs (tens of seconds), not speed.
 """
 
 from __future__ import annotations
