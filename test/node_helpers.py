@@ -466,7 +466,7 @@ class Graph:
     def send_goal(self, goal, feedback=None):
         """Send a PlanCapture goal; returns the accepted ClientGoalHandle (asserts acceptance)."""
         fut = self.action_client().send_goal_async(goal, feedback_callback=feedback)
-        self.wait(fut.done, 10, "the goal response")
+        self.wait(fut.done, 30, "the goal response")
         handle = fut.result()
         assert handle.accepted, "goal rejected"
         return handle

@@ -23,6 +23,15 @@ from spacerobot_planner.ros.conversions import duration_to_s, joint_state_msg
 from node_helpers import PROMPT_BOUND_S, next_plan, planned_positions, scene_params
 
 R = PlanCapture.Result
+#: limits that make the paper's 3-DOF first motion about 10 s long (half test_replanning_node's moderate ones):
+#: a goal sent while the arm follows it is planned, on a loaded machine too, before the arm stops
+SLOW = {"trajectory.max_velocity_deg_s": [15.0, 30.0, 30.0],
+        "trajectory.max_acceleration_deg_s2": [30.0, 60.0, 60.0]}
+#: the stall of a plan that a newer request supersedes: far longer than a loaded machine takes to send that
+#: request (it had been 2 s), never waited for (the supersession ends it at once)
+STALL_S = 60.0
+#: how long such a plan's result is waited for: half the stall (a plan that waited for it fails the wait)
+SUPERSEDED_WITHIN_S = STALL_S / 2
 
 
 def _tip_m(link_lengths_m, q_full):
@@ -70,8 +79,8 @@ def test_goal_plans_returns_the_published_trajectory_with_feedback(graph, monkey
     status, res, _ = g.goal_result(handle)
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
     assert res.error_code == R.OK and res.error_name == "ok" and res.reason == ""
-    g.wait(lambda: g.n_trajs() == 1, 5, "the trajectory on joint_trajectory")
-    g.wait(lambda: len(g.att_trajs) == 1, 5, "the attitude trajectory on attitude_trajectory")
+    g.wait(lambda: g.n_trajs() == 1, 30, "the trajectory on joint_trajectory")
+    g.wait(lambda: len(g.att_trajs) == 1, 30, "the attitude trajectory on attitude_trajectory")
     for mine, pub in ((res.trajectory, g.trajs[0][1]), (res.attitude_trajectory, g.att_trajs[0][1])):
         assert list(mine.joint_names) == list(pub.joint_names)
         assert len(mine.points) == len(pub.points) > 2
@@ -99,18 +108,29 @@ def test_goal_plans_returns_the_published_trajectory_with_feedback(graph, monkey
 
 
 def test_a_goal_planned_again_sends_its_stages_again_and_its_progress_never_goes_back(graph, monkeypatch):
-    """The arm moves; the plan takes longer than the 1 s horizon (a stall), so it is planned again with 2 s."""
+    """
+    The arm moves; the plan takes longer than the 1 s horizon (a stall), so it is planned again with 2 s.
+
+    The goal's plan must begin while the arm still follows the first trajectory (else it plans once, from
+    rest): the first motion is made about 10 s long by slow limits (with the fast ones it took about 2 s,
+    and a loaded machine spent that between the arm moving and the goal's plan), and the action client is
+    made (its server discovered) before it starts.
+    """
     from rclpy.action.server import ServerGoalHandle
     from rclpy.parameter import Parameter
     published = []
     send = ServerGoalHandle.publish_feedback
     monkeypatch.setattr(ServerGoalHandle, "publish_feedback",
                         lambda self, fb: (published.append((fb.stage, fb.progress)), send(self, fb))[1])
-    g = graph(scene_params("3dof"))                 # with the mock arm: it follows the first trajectory
+    g = graph(scene_params("3dof", **SLOW))         # with the mock arm: it follows the first trajectory
+    g.action_client()                               # discovered now, not while the arm moves
     g.send_target()
     g.wait(lambda: g.n_trajs() >= 1 and g.arm.executing, 60, "the arm moving on the first trajectory")
     assert g.planner.set_parameters([Parameter("planner.test_stall_s", value=1.5)])[0].successful
-    status, res, _ = g.goal_result(g.send_goal(_target_goal(-3.22, -2.65)))
+    handle = g.send_goal(_target_goal(-3.22, -2.65))
+    # the test's precondition (the ~10 s motion leaves room for a loaded machine), said plainly where it fails
+    assert g.arm.executing, "the first motion ended before the goal was accepted: its plan starts from rest"
+    status, res, _ = g.goal_result(handle)
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
     stages = [s for s, _ in published]
     assert stages.count("cspace") >= 2 and stages[-1] == "trajectory", stages      # the stages again
@@ -118,13 +138,27 @@ def test_a_goal_planned_again_sends_its_stages_again_and_its_progress_never_goes
     assert progress == sorted(progress) and progress[-1] == max(progress), published
 
 
+def _unstalled(g):
+    """
+    Plan the requests that come from now on without the stall.
+
+    The plan in progress keeps its own (a request's settings are those at its arrival): it stalls
+    until a newer request supersedes it, which ends it at once (the stall answers the cancel
+    token, as the kernels do); the newer one plans without a stall.
+    """
+    from rclpy.parameter import Parameter
+    assert g.planner.set_parameters([Parameter("planner.test_stall_s", value=0.0)])[0].successful
+
+
 def test_newer_goal_aborts_the_older_with_a_reason(graph):
-    g = graph(scene_params("3dof", **{"planner.test_stall_s": 2.0}), with_arm=False)
+    # the stall far longer than a loaded machine takes to send the second goal: the first is still planning
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": STALL_S}), with_arm=False)
     _start(g)
     first = g.send_goal(_target_goal())
-    g.wait(lambda: g.planner.state == "planning", 10, "the first goal planning")
+    g.wait(lambda: g.planner.state == "planning", 30, "the first goal planning")
+    _unstalled(g)
     second = g.send_goal(_target_goal(-3.0, -2.8))
-    status1, res1, _ = g.goal_result(first)
+    status1, res1, _ = g.goal_result(first, timeout=SUPERSEDED_WITHIN_S)       # not after its stall
     assert status1 == GoalStatus.STATUS_ABORTED
     assert res1.error_code == R.SUPERSEDED and "superseded by request" in res1.reason, res1.reason
     assert "plan_capture goal" in res1.reason          # names the newer request
@@ -134,12 +168,13 @@ def test_newer_goal_aborts_the_older_with_a_reason(graph):
 
 
 def test_topic_target_supersedes_a_goal(graph):
-    g = graph(scene_params("3dof", **{"planner.test_stall_s": 2.0}), with_arm=False)
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": STALL_S}), with_arm=False)
     _start(g)
     handle = g.send_goal(_target_goal())
-    g.wait(lambda: g.planner.state == "planning", 10, "the goal planning")
+    g.wait(lambda: g.planner.state == "planning", 30, "the goal planning")
+    _unstalled(g)
     g.send_target(-3.0, -2.8)
-    status, res, _ = g.goal_result(handle)
+    status, res, _ = g.goal_result(handle, timeout=SUPERSEDED_WITHIN_S)         # not after its stall
     assert status == GoalStatus.STATUS_ABORTED and res.error_code == R.SUPERSEDED
     assert "new target (-3.000, -2.800)" in res.reason, res.reason
 
@@ -148,11 +183,11 @@ def test_cancel_mid_plan_ends_the_plan_promptly(graph, record_property):
     g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
     _start(g)
     handle = g.send_goal(_target_goal())
-    g.wait(lambda: g.planner.state == "planning", 10, "the goal planning")
+    g.wait(lambda: g.planner.state == "planning", 30, "the goal planning")
     time.sleep(0.5)                                  # inside the stall
     t0 = time.monotonic()
     fut = handle.cancel_goal_async()
-    g.wait(fut.done, 5, "the cancel response")
+    g.wait(fut.done, PROMPT_BOUND_S, "the cancel response")      # (the result too is judged by this bound)
     assert len(fut.result().goals_canceling) == 1
     status, res, t_result = g.goal_result(handle, timeout=10)
     dt = t_result - t0
@@ -185,7 +220,7 @@ def test_bad_goal_is_aborted_with_the_reason_and_the_node_serves_on(graph, make_
     for frag in fragments:
         assert frag in res.reason, (frag, res.reason)
     assert g.n_trajs() == 0
-    g.wait(lambda: g.level("input") == b"\x02", 5, "the input status ERROR")
+    g.wait(lambda: g.level("input") == b"\x02", 30, "the input status ERROR")
     status, res, _ = g.goal_result(g.send_goal(_target_goal()))
     assert status == GoalStatus.STATUS_SUCCEEDED, res.reason
 

@@ -33,7 +33,7 @@ from spacerobot_planner_interfaces.action import PlanCapture
 from spacerobot_planner.ros.conversions import joint_state_msg
 
 from conftest import CONFIG_DIR
-from node_helpers import diag_list, planned_positions, scene_params
+from node_helpers import diag_list, diag_values, planned_positions, scene_params
 from test_action import _joint_goal, _start, _target_goal
 
 R = PlanCapture.Result
@@ -84,15 +84,17 @@ def _wait(cond, timeout, what):
 @pytest.fixture
 def stalled(graph):
     """
-    Make a planner plan a goal of a client of its own, stalled for 30 s.
+    Make a planner plan a goal of a client of its own, stalled for 120 s.
 
-    Yields the graph, the client and the goal's result future.
+    Longer than the waits of a test that ends it (a service discovered, a transition: 90 s at most),
+    and never waited for: each test ends the plan.  Yields the graph, the client and the goal's
+    result future.
     """
-    g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}), with_arm=False)
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 120.0}), with_arm=False)
     _start(g)
     client = _Client(g.ctx)
     result = client.send(_target_goal())
-    g.wait(lambda: g.planner.state == "planning", 10, "the goal planning")
+    g.wait(lambda: g.planner.state == "planning", 30, "the goal planning")
     yield g, client, result
     client.close()
 
@@ -181,6 +183,24 @@ def _plan_end(g, k):
         return planned_positions(g.scenario.robot, [g.trajs[k][1], g.att_trajs[k][1]])
 
 
+def _status_of_the_last_request(g, timeout=30):
+    """
+    Return the planner status once it reports the session's latest request (its record).
+
+    The record goes out on /diagnostics with the plan's trajectory on joint_trajectory: it may arrive
+    after it, and the latest /diagnostics message until then reports the request before.
+    """
+    want, got = f"#{g.planner.session.gen}", []
+
+    def reported():
+        st = g.status("planner")
+        if diag_values(st).get("request") == want:
+            got.append(st)
+        return bool(got)
+    g.wait(reported, timeout, lambda: f"the planner status of request {want}: {diag_values(g.status('planner'))}")
+    return got[0]
+
+
 def _assert_same_posture(g, got, want, msg):
     """Angles compared modulo a turn for the periodic joints (the attitude), 1e-6 rad."""
     d = np.asarray(got, dtype=float) - np.asarray(want, dtype=float)
@@ -225,7 +245,7 @@ def test_after_an_action_goal_a_replan_plans_to_the_goals_goal(graph, kind, then
     end = _plan_end(g, 2)
     _assert_same_posture(g, end, end_b, "the replan went back to the older topic target")
     if kind == "target":
-        assert diag_list(g.status("planner"), "target_m") == list(B)
+        assert diag_list(_status_of_the_last_request(g), "target_m") == list(B)
 
 
 def test_a_goal_with_its_own_start_does_not_change_the_goal(graph):
@@ -240,7 +260,7 @@ def test_a_goal_with_its_own_start_does_not_change_the_goal(graph):
     _change_margin(g)
     end = _plan_end(g, 1)                                  # planned, not executed: the next one is the replan
     _assert_same_posture(g, end, end_a, "the replan went to the goal with its own start")
-    assert diag_list(g.status("planner"), "target_m") == list(A)
+    assert diag_list(_status_of_the_last_request(g), "target_m") == list(A)
 
 
 # ================================================================== 5. ~/replan answers with the outcome
@@ -258,15 +278,30 @@ def _call(g, cli, timeout=60):
     return fut.result()
 
 
-def test_replan_answers_with_the_plans_outcome(graph):
+def _published_trajectories(g, monkeypatch) -> list:
+    """
+    Return a list of the planner's publications on joint_trajectory from now on (their messages, as they go out).
+
+    What the node has sent, not what the driver received: the trajectory travels on a topic of its
+    own, and a response may overtake it on its way to the driver.
+    """
+    pub, sent = g.planner._pubs["traj"], []
+    publish = pub.publish
+    monkeypatch.setattr(pub, "publish", lambda msg: (publish(msg), sent.append(msg))[0])
+    return sent
+
+
+def test_replan_answers_with_the_plans_outcome(graph, monkeypatch):
     g = graph(scene_params("3dof"), with_arm=False)
     _start(g)
     cli = _replan_client(g)
+    sent = _published_trajectories(g, monkeypatch)
     g.send_target(*A)
     g.wait(lambda: g.n_trajs() == 1, 30, "the first trajectory")
     resp = _call(g, cli)
     assert resp.success and "ok" in resp.message, resp.message
-    assert g.n_trajs() == 2, "~/replan answered before its trajectory was published"
+    assert len(sent) == 2, f"~/replan answered after {len(sent)} trajectories published, not 2 (its own the last)"
+    g.wait(lambda: g.n_trajs() == 2, 30, "the replan's trajectory")
     g.send_target(3.0, 2.5)                                # out of the arm's reach
     g.wait(lambda: g.level("planner") == b"\x02", 30, "the failed request")
     resp = _call(g, cli)
@@ -280,16 +315,30 @@ def test_replan_before_joint_states_says_it_is_queued(graph):
     assert not resp.success and "queued" in resp.message and "joint_states" in resp.message, resp.message
 
 
-def test_replan_awaits_its_plan_and_the_node_serves_on(graph):
-    g = graph(scene_params("3dof", **{"planner.test_stall_s": 10.0}), with_arm=False)
+def test_replan_awaits_its_plan_and_the_node_serves_on(graph, monkeypatch):
+    """
+    A ~/replan call is answered when its plan ends, not before; meanwhile the node serves its inputs.
+
+    Its plan stalls far longer than a loaded machine takes for what the test does meanwhile (a
+    stall of 10 s had ended first); a second ~/replan, planned without the stall, then supersedes it
+    at once (the stall answers the cancel token): the first call is answered with that outcome, the
+    second with its plan's, once its trajectory was published.
+    """
+    from rclpy.parameter import Parameter
+    g = graph(scene_params("3dof", **{"planner.test_stall_s": 60.0}), with_arm=False)
     _start(g)
     cli = _replan_client(g)
+    sent = _published_trajectories(g, monkeypatch)
     from std_srvs.srv import Trigger
     fut = cli.call_async(Trigger.Request())
     g.wait(lambda: g.planner.state == "planning", 30, "the replan planning")
     g.send_target(frame="map")                             # rejected at once, while the plan stalls
-    g.wait(lambda: g.level("input") == b"\x02", 10, "the input status ERROR during the replan")
+    g.wait(lambda: g.level("input") == b"\x02", 30, "the input status ERROR during the replan")
     assert not fut.done(), f"the replan answered before its (stalled) plan ended: {fut.result()}"
-    g.wait(fut.done, 60, "the ~/replan response")
-    assert fut.result().success, fut.result().message
-    assert g.n_trajs() == 1
+    assert g.planner.set_parameters([Parameter("planner.test_stall_s", value=0.0)])[0].successful
+    resp = _call(g, cli, timeout=30)                       # not the 60 s stall
+    g.wait(fut.done, 30, "the first ~/replan response")
+    assert not fut.result().success and "superseded by request" in fut.result().message, fut.result().message
+    assert resp.success, resp.message
+    assert len(sent) == 1, f"{len(sent)} trajectories published, not the second replan's one"
+    g.wait(lambda: g.n_trajs() == 1, 30, "the second replan's trajectory")

@@ -10,19 +10,24 @@ parameterisation or the join.
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
 
 import numpy as np
 import pytest
-from node_helpers import angle_err_deg, scene_params, wait_at_goal
+from node_helpers import angle_err_deg, diag_values, scene_params, wait_at_goal
 from test_action import _tip_m
 
 from spacerobot_planner.scene import Target
 
 VMAX_DEG_S = [30.0, 60.0, 60.0]
 AMAX_DEG_S2 = [60.0, 120.0, 120.0]
+#: half the moderate limits: a first motion of about 10 s, so that a plan joining it (a loaded machine's
+#: request -> trajectory included, or a retry's twice the horizon) still has its horizon on it
+SLOW_VMAX_DEG_S = [v / 2 for v in VMAX_DEG_S]
+SLOW_AMAX_DEG_S2 = [a / 2 for a in AMAX_DEG_S2]
 #: stated tolerance on the recorded accelerations: 50 Hz finite differences of
 #: velocities interpolated between the published points, stamp rounding
 ACC_TOL = 0.10
@@ -31,6 +36,11 @@ ACC_TOL = 0.10
 def _moderate(**extra):
     return scene_params("3dof", **{"trajectory.max_velocity_deg_s": VMAX_DEG_S,
                                    "trajectory.max_acceleration_deg_s2": AMAX_DEG_S2, **extra})
+
+
+def _slow(**extra):
+    return _moderate(**{"trajectory.max_velocity_deg_s": SLOW_VMAX_DEG_S,
+                        "trajectory.max_acceleration_deg_s2": SLOW_AMAX_DEG_S2, **extra})
 
 
 def _record(g, names, since_ros_s=0.0):
@@ -66,24 +76,26 @@ def _grasp_point_m(flat, center_m, yaw_rad):
 @pytest.mark.parametrize("switch", ["stamp", "arrival", "auto"])
 def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph, switch):
     # a horizon that a loaded machine keeps (request -> trajectory took 1.35 s at load 11, past
-    # the default 1 s, and the retry's join came within the lead), still inside the ~5 s motion;
+    # the default 1 s, and the retry's join came within the lead), inside the ~10 s motion of the slow
+    # limits with room to spare: with the moderate ones (~5 s) a plan that took longer than the horizon
+    # was planned again with twice it, past the motion's end, and joined "from the end";
     # controller.switch for both nodes: the mock arm switching at the stamp (JTC from 6.8 on) or at the
     # message's arrival (before 6.8: Kilted), the planner encoding the join for it; "auto": the mock arm
     # modelling a controller that switches at arrival by its allow_trajectory_replacement, which the
     # planner finds
     extra = ({"controller.switch": switch} if switch != "auto"
              else {"mock_arm.allow_trajectory_replacement": False})
-    g = graph(_moderate(**{"replan.horizon_s": 2.5, **extra}))
+    g = graph(_slow(**{"replan.horizon_s": 2.5, **extra}))
     if switch == "auto":
         assert g.arm.switch_at_arrival
         g.wait(lambda: g.planner.session.controller_switch == "arrival", 30, "the planner finding the arm's kind")
     robot = g.scenario.robot
     names = list(robot.planned_names)
-    amax = np.radians(AMAX_DEG_S2)
+    amax = np.radians(SLOW_AMAX_DEG_S2)
     t_ros0 = g.drv.get_clock().now().nanoseconds * 1e-9
     g.send_target()
     g.wait(lambda: g.arm.executing and g.n_trajs() >= 1, 30, "the first trajectory executing")
-    # well into the motion (about 4 s long): the arm measurably moving, not a fixed sleep
+    # well into the motion (about 10 s long): the arm measurably moving, not a fixed sleep
     g.wait(lambda: g.arm.executing and float(np.degrees(np.max(np.abs(g.arm.state(
         g.arm.get_clock().now().nanoseconds)[1])))) > 10.0, 30, "the arm moving faster than 10°/s")
     g.send_target(-3.0, -2.8)
@@ -119,7 +131,7 @@ def test_a_new_target_while_moving_joins_without_a_velocity_jump(graph, switch):
     assert np.all(ratio <= 1.0 + ACC_TOL), f"acceleration above the limits: {ratio}"
     # no position jump either: no step faster than the velocity limits
     step = np.abs(np.diff(q, axis=0)) / np.diff(t)[:, None]
-    assert np.all(step <= np.radians(VMAX_DEG_S) * (1.0 + ACC_TOL)), np.degrees(step.max(axis=0))
+    assert np.all(step <= np.radians(SLOW_VMAX_DEG_S) * (1.0 + ACC_TOL)), np.degrees(step.max(axis=0))
 
 
 class _Silenced:
@@ -144,10 +156,9 @@ def test_late_joint_states_while_the_arm_follows_still_join(graph, silence_s):
     start where the arm no longer is: the graph's controller check (the mock arm's own history at
     the stamp) refuses it when the graph closes.
     """
-    # half the moderate limits: a first motion of about 10 s, so that the late plan (up to 1.5 s
-    # after the last state, plus a loaded machine's delays) still has its horizon on it
-    g = graph(_moderate(**{"replan.horizon_s": 2.5, "trajectory.max_velocity_deg_s": [v / 2 for v in VMAX_DEG_S],
-                           "trajectory.max_acceleration_deg_s2": [a / 2 for a in AMAX_DEG_S2]}))
+    # the slow limits: the late plan (up to 1.5 s after the last state, plus a loaded machine's delays)
+    # still has its horizon on the first motion
+    g = graph(_slow(**{"replan.horizon_s": 2.5}))
     lines = []
     logged = g.planner.session.log
     g.planner.session.log = lambda level, text: (lines.append(text), logged(level, text))
@@ -204,10 +215,17 @@ def test_a_drifting_target_is_followed_to_the_grasp(graph):
     gaps = np.diff(np.concatenate([[t0], arrivals, [t_end]]))
     last = Target(center_m=(x0 + vel_m_s[0] * duration_s, y0 + vel_m_s[1] * duration_s),
                   yaw_rad=yaw_rate * duration_s)
-    # the node replans when the target moved more than replan.target_tolerance_m (5 mm)
-    g.wait(lambda: g.planner._requested_target is not None
-           and np.allclose(g.planner._requested_target.center_m, last.center_m, atol=0.005), 10,
-           "a target near the last one taken")
+    # the node replans when the target moved more than replan.target_tolerance_m (5 mm): its last plan's
+    # target is within that of the last one, and nothing is planned after it (the planner status on
+    # /diagnostics reports the last finished request and the node's state)
+
+    def planned_near_last():
+        v = diag_values(g.status("planner"))
+        return v.get("state") == "idle" and "target_m" in v and \
+            np.allclose(json.loads(v["target_m"]), last.center_m, atol=0.005)
+    g.wait(planned_near_last, 30, lambda: f"a plan to a target within 5 mm of {last.center_m}, the node idle: "
+           f"{diag_values(g.status('planner'))}")
+    assert diag_values(g.status("planner"))["code"] == "ok", diag_values(g.status("planner"))
     wait_at_goal(g, 30)
     time.sleep(0.5)
     tip = _tip_m(robot.link_lengths_m, g.arm.positions)
