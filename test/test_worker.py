@@ -22,8 +22,10 @@ from spacerobot_planner.config import load_scenario
 from spacerobot_planner.worker import Cancel, PlanDone, PlanError, PlanJob, ProcessBackend, Progress, ThreadBackend
 from conftest import CONFIG_DIR
 
-#: a bound for "promptly" that a loaded 2-core machine meets (the figure itself: ``bench cancel``)
-GENEROUS_S = 3.0
+#: a bound for "promptly" that a loaded 2-core machine meets: far sooner than the injected stalls (120 s); that
+#: the stage itself answered (not the grace, ``ProcessBackend.CANCEL_GRACE_S``) shows in the process kept
+#: (the figure itself: ``bench cancel``; it had been 3 s, which a suite on a busy machine can stall past)
+GENEROUS_S = 10.0
 LOG: list = []                # the module backend's warnings
 
 
