@@ -36,7 +36,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import Log
 from geometry_msgs.msg import PoseStamped
 from rclpy.context import Context
-from rclpy.qos import qos_profile_rosout_default
+from rclpy.qos import QoSProfile, qos_profile_rosout_default
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
@@ -62,6 +62,10 @@ PLAN_CANCELLED_AT_SHUTDOWN = re.compile(r"shutdown: the plan in progress is canc
 PROMPT_BOUND_S = 10.0
 #: s for a fresh planner_node process to come up (generous: a loaded 2-core machine imports rclpy and numba slowly)
 START_TIMEOUT_S = 120.0
+#: the graph's /rosout subscription: the nodes' own profile (reliable, transient local), a deeper queue (a flood's
+#: lines while the graph's one executor thread is busy)
+ROSOUT_QOS = QoSProfile(depth=10_000, reliability=qos_profile_rosout_default.reliability,
+                        durability=qos_profile_rosout_default.durability)
 #: rcl_interfaces/Log levels as rcutils' console lines name them
 _LEVELS = {Log.DEBUG: "DEBUG", Log.INFO: "INFO", Log.WARN: "WARN", Log.ERROR: "ERROR", Log.FATAL: "FATAL"}
 # s between a test's sends of one state on a topic the planner hears best effort (Graph.publish_until)
@@ -160,7 +164,7 @@ class Graph:
         # lines from before this subscription matched come too (transient local, kept 10 s).  Not pytest's
         # capfd while nodes log: its readouterr() reads, then truncates the captured file, and a line written
         # by another thread in between is lost (a CI run polled it and never saw a warning the node logged)
-        self.drv.create_subscription(Log, "/rosout", self._rec(self.logs), qos_profile_rosout_default)
+        self.drv.create_subscription(Log, "/rosout", self._rec(self.logs), ROSOUT_QOS)
         self.drv.create_subscription(MarkerArray, "planned_path_markers", self._rec(self.markers), GRID_QOS)
         self.pub_target = self.drv.create_publisher(PoseStamped, "target_pose", 10)
         self.pub_js = self.drv.create_publisher(JointState, "joint_states", 10)
