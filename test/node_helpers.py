@@ -33,8 +33,8 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.msg import Log
 from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import Log
 from rclpy.context import Context
 from rclpy.qos import QoSProfile, qos_profile_rosout_default
 from sensor_msgs.msg import JointState

@@ -220,9 +220,8 @@ def _random_graspable_target(rng, scenario):
 
 def test_target_pose_flood(graph, record_property):
     # with the mock arm at 50 Hz.  Every trajectory stamped 1 s ahead (default 0.35 s): the flood starves the
-    # graph's one executor thread, which also hands the arm its trajectories; one that reached the arm after its
-    # stamp (joint_states stopped 0.3 s in a fresh clone's run beside a benchmark) took over at its arrival, the
-    # next one, joined to it as sent, then did not start at the arm's state (a controller would refuse it)
+    # graph's one executor thread, which also hands the arm its trajectories, and one that reaches the arm after
+    # its stamp takes over at its arrival (joint_states stopped 0.3 s in a fresh clone's run beside a benchmark)
     g = graph(scene_params("3dof", **{"trajectory.start_lead_s": 1.0}))
     robot = g.scenario.robot
     g.send_target()                            # warm-up: the child imports, numba loads
@@ -317,7 +316,7 @@ def test_target_pose_flood(graph, record_property):
     assert max_gap < 2.0, f"joint_states stopped for {max_gap:.2f} s during the flood"
     assert rss1[0] - rss0[0] < 150.0 and child_peak - rss0[1] < 150.0, figures
     assert g.planner._worker.is_alive()
-    # A known defect, not a flood's (issue 19's note of 2026-12-07; two fresh clones' runs of seven that day):
+    # A known defect, not a flood's (issue 19's note of 2026-12-07; two of eight fresh clones' runs that day):
     # a random target lands on the moving arm's executing path, neither a join nor a stop on that path fits
     # the limits, and the retries' last rung plans "from the measured state, at rest" while the arm still
     # moves; that trajectory's first point (time 0) is not where the arm is at its stamp, and the plans after

@@ -10,14 +10,13 @@ parameterisation or the join.
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 import time
 
 import numpy as np
 import pytest
-from node_helpers import angle_err_deg, diag_values, scene_params, wait_at_goal
+from node_helpers import angle_err_deg, diag_list, diag_values, scene_params, wait_at_goal
 from test_action import _tip_m
 
 from spacerobot_planner.scene import Target
@@ -220,9 +219,10 @@ def test_a_drifting_target_is_followed_to_the_grasp(graph):
     # /diagnostics reports the last finished request and the node's state)
 
     def planned_near_last():
-        v = diag_values(g.status("planner"))
-        return v.get("state") == "idle" and "target_m" in v and \
-            np.allclose(json.loads(v["target_m"]), last.center_m, atol=0.005)
+        st = g.status("planner")
+        target = diag_list(st, "target_m")
+        return diag_values(st).get("state") == "idle" and target is not None and \
+            np.allclose(target, last.center_m, atol=0.005)
     g.wait(planned_near_last, 30, lambda: f"a plan to a target within 5 mm of {last.center_m}, the node idle: "
            f"{diag_values(g.status('planner'))}")
     assert diag_values(g.status("planner"))["code"] == "ok", diag_values(g.status("planner"))
