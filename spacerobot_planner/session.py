@@ -27,11 +27,14 @@ and its answers into messages; everything between is here:
   ``start_lead_s`` ahead when it would be published) it is planned again with twice the
   horizon, then stopping on the executing path as soon as the limits allow
   (``replanning.stopping_join``), then from the executing trajectory's end, then from the
-  measured state at rest (:data:`RETRY`).  A plan from a moving arm is judged on the whole
-  motion it commits the arm to, in its own scene (:meth:`CaptureSession._exposure`: the
-  executing path up to its switch, then its trajectory as the controller moves the arm): where a
-  new target lies on the executing path it stops on it right after the join (not on to the end),
-  and what cannot be avoided is published with a warning (``trajectory_certified: false``).
+  measured state at rest (:data:`RETRY`), this last only where the arm does not follow or is at
+  rest when it would start: else the request fails (:data:`JOIN_FAILED`, nothing sent; the arm
+  finishes its trajectory), as a trajectory from rest would not start where the arm is.  A plan
+  from a moving arm is judged on the whole motion it commits the arm to, in its own scene
+  (:meth:`CaptureSession._exposure`: the executing path up to its switch, then its trajectory
+  as the controller moves the arm): where a new target lies on the executing path it stops on
+  it right after the join (not on to the end), and what cannot be avoided is published with a
+  warning (``trajectory_certified: false``).
 - **the stamp**: every published trajectory starts at least ``start_lead_s`` after it is
   published: a trajectory from rest is stamped now + the lead just before it is
   published; a joined one carries the join's time, checked then to be still at least the
@@ -74,7 +77,8 @@ from .settings import SWITCH_UNTIL_FOUND, SessionSettings
 from .trajectory import HorizonPassed
 from .worker import STAGE_ORDER, PlanCrash, PlanDone, PlanError, PlanJob, Progress
 
-__all__ = ["CaptureSession", "Request", "Outcome", "Publication", "RETRY", "WAITING_STAGE", "CHAIN_ALLOWANCE_S",
+__all__ = ["CaptureSession", "Request", "Outcome", "Publication", "RETRY", "JOIN_FAILED", "WAITING_STAGE",
+           "CHAIN_ALLOWANCE_S",
            "stamp_for", "target_why"]
 
 #: the feedback stage of a request that waits for the first joint state
@@ -94,6 +98,8 @@ TIME_JUMPS_MOST = 3
 #: the attempt from the measured state, at rest (RETRY); an outcome planned again from there at once
 AT_REST = len(RETRY) - 1
 RETRY_AT_REST = "retry_at_rest"
+#: the code of a request whose every attempt to take over the moving arm failed (node only, like "superseded")
+JOIN_FAILED = "join_failed"
 #: the attempt that starts from the executing trajectory's end, at rest (RETRY)
 FROM_THE_END = 3
 #: the attempt that stops on the executing path (RETRY; right after the join when ``Request.stop_soonest``)
@@ -599,7 +605,7 @@ class CaptureSession:
         return self._run(req)
 
     def _run(self, req: Request) -> Outcome:
-        outcome = None
+        outcome, tried = None, []          # the attempts made (RETRY's indices)
         while outcome is None:
             executes = req.start_rad is None           # a goal with its own start is returned, not stamped
             problem = self._clock_problem() if executes else None
@@ -609,6 +615,7 @@ class CaptureSession:
             outcome = self._refused_state(req) if executes else None
             if outcome is not None:
                 break
+            tried.append(req.attempt)
             try:
                 epoch = self.time_epoch if executes else None
                 outcome = self._plan(req, *self._start_of(req), epoch=epoch)
@@ -626,6 +633,14 @@ class CaptureSession:
                 req.attempt = AT_REST if outcome.code == RETRY_AT_REST else req.attempt + 1
                 if req.stop_soonest and req.attempt == FROM_THE_END:
                     req.attempt = AT_REST      # the executing path ahead is not clear: not on to its end
+                if req.attempt >= AT_REST and outcome.code == "retry":
+                    moving = self._still_moving(req)
+                    if moving is not None:      # a trajectory from rest would not start where the arm is
+                        ways = ", ".join(RETRY[a] or "joined to it" for a in sorted(set(tried)))
+                        outcome = self._failure(req, JOIN_FAILED, f"{moving} and no new trajectory can take over "
+                                                f"from it (tried: {ways}; the last: {outcome.reason}); nothing was "
+                                                "sent: the arm finishes the trajectory it follows")
+                        break
                 self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again "
                          + RETRY[min(req.attempt, len(RETRY) - 1)])
                 outcome = None
@@ -641,6 +656,31 @@ class CaptureSession:
         with self.lock:
             self._finish(req, outcome)
         return outcome
+
+    def _still_moving(self, req: Request) -> str | None:
+        """
+        Say how the arm still moves on the executing trajectory when a trajectory from rest would start; else None.
+
+        The arm follows the trajectory last sent (``replanning.plan_start`` joins it) and that
+        trajectory still runs ``start_lead_s`` + :data:`CHAIN_ALLOWANCE_S` from now, when a
+        trajectory from the measured state at rest would be stamped: that trajectory's first
+        point (time 0) would not be where the arm is then, and a controller refuses it (or
+        jumps).  None where the arm does not follow (a stalled arm: the retry from rest is
+        for it), comes to rest before, or holds still until after it (a chain not begun yet).
+        """
+        with self.lock:
+            q, q_ns, ex = self.joint_q, self.joint_ns, self.executing
+        if ex is None or q is None:
+            return None
+        s = req.settings
+        now = self.now_ns()
+        _, join, _ = plan_start(ex, now, q, q_ns, max(float(s.horizon_s), 1e-3), float(s.follow_tolerance_rad),
+                                req.scenario.robot.planned_periodic)
+        stamp_ns = now + int(1e9 * (float(s.start_lead_s) + CHAIN_ALLOWANCE_S))
+        if join is None or not ex.running_at(stamp_ns) or stamp_ns < ex.first_start_ns():    # (held before it)
+            return None
+        left_s = ex.trajectory.duration_s - ex.time_s(now)
+        return f"the arm follows its trajectory ({left_s:.2f} s from its end)"
 
     def _refused_state(self, req: Request) -> Outcome | None:
         """

@@ -137,6 +137,8 @@ def test_plan_result_codes_mirror_the_planner_codes():
         assert r.error_code == i and r.error_name == code and r.reason == "why"
         assert len(r.trajectory.points) == 0 and math.isnan(r.min_clearance_m)
     assert conv.plan_result(PlanCapture.Result, "superseded").error_code == PlanCapture.Result.SUPERSEDED
+    from spacerobot_planner.session import JOIN_FAILED
+    assert conv.plan_result(PlanCapture.Result, JOIN_FAILED).error_code == PlanCapture.Result.JOIN_FAILED == 11
     with pytest.raises(ValueError, match="no PlanCapture result code"):
         conv.plan_result(PlanCapture.Result, "bogus")
 

@@ -185,11 +185,11 @@ def test_readme_python_example_plans(monkeypatch, capsys):
 
 
 # ------------------------------------------------------------------ (4) result codes
-def test_action_constants_are_the_planner_codes_then_superseded():
+def test_action_constants_are_the_planner_codes_then_the_nodes_own():
     from spacerobot_planner.results import CODES
 
     consts = _action_constants()
-    assert [n.lower() for n in consts] == list(CODES) + ["superseded"], consts
+    assert [n.lower() for n in consts] == list(CODES) + ["superseded", "join_failed"], consts
     assert list(consts.values()) == list(range(len(consts))), consts
 
 
