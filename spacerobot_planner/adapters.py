@@ -71,6 +71,10 @@ CONTROLLER_RETIMES = 4
 #: on 100 random 3-DOF scenes of `bench scenes`' family published up to 1.104 x a limit, 2 of them
 #: over; 2-DOF 1.025 x, 5 over; with three, none: at most 1.0010 x after up to six re-timings)
 WHOLE_PATH_RETIMES = 3
+#: ... and for a stop on the executing path (``replanning.stopping_join``), this many: its first point has the
+#: arm's acceleration, which no re-timing changes, and the quintic from there to the braking shrinks its
+#: overshoot about by half a round (closed-loop audit replay, 3.55 s: 1.87, 1.28, 1.14, ... 1.016 x after 6)
+STOP_WHOLE_PATH_RETIMES = 6
 #: each re-timing lowers a limit a little more than its overshoot there (converges in 1-2)
 CONTROLLER_SHRINK = 0.99
 #: ... and tapers the lowering back to the full limit by this fraction of the limit per segment
@@ -346,7 +350,7 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     exceeds lowered by the overshoot along the stretches where it did (:func:`overshot_stretches`),
     from the CONTROLLER_RETIMES-th re-timing on along the whole path (the scaling factors, as
     MoveIt's: a stretch's lowering that moved the overshoot on does not go on forever), at most
-    WHOLE_PATH_RETIMES times.
+    WHOLE_PATH_RETIMES times (a stop on the executing path: STOP_WHOLE_PATH_RETIMES).
     A join's re-timings time the path the first round chose (``replanning.timed_join``).
     ``args``: :func:`_time_and_resample`'s arguments after the scenario.  Returns (the
     :class:`Processed` of the last round (its ``retimings`` counted), that of the first, the last
@@ -355,7 +359,8 @@ def _retimed(scenario, args, certify: bool) -> tuple:
     limits, acs = scenario.joint_limits, scenario.acs
     got, chosen = _time_and_resample(scenario, *args, certify=certify)
     first, wheel_over, joined = got, None, args[8] is not None
-    last = CONTROLLER_RETIMES - 1 + WHOLE_PATH_RETIMES
+    stop = joined and args[8].join.stop
+    last = CONTROLLER_RETIMES - 1 + (STOP_WHOLE_PATH_RETIMES if stop else WHOLE_PATH_RETIMES)
     retimings = 0
     for round_ in range(last + 1):
         if got.refused is not None or limits is None:

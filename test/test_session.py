@@ -633,6 +633,10 @@ def _moved_onto_the_executing_path(slow_backend, t1_s, t2_s):
     return ses, out, ses.scenario.scene.with_target(target), ex, clock.t
 
 
+#: (t1_s, t2_s) of _moved_onto_the_executing_path: moments of the closed-loop audit's grid with every verdict
+AUDIT_MOMENTS = [(3.05, 0.0), (3.25, 0.2), (3.55, 0.0), (3.65, 0.0), (3.7, 0.4)]
+
+
 def _on_the_chain(ex, t_ns):
     """
     Return where the arm is at ROS time ``t_ns`` on an executing chain: the test's own linear interpolation in time.
@@ -647,7 +651,7 @@ def _on_the_chain(ex, t_ns):
     return np.array([np.interp(t, tr.times_s, tr.positions_rad[:, j]) for j in range(tr.positions_rad.shape[1])])
 
 
-@pytest.mark.parametrize("t1_s, t2_s", [(3.05, 0.0), (3.25, 0.2), (3.55, 0.0), (3.65, 0.0)])
+@pytest.mark.parametrize("t1_s, t2_s", AUDIT_MOMENTS)
 def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_the_margin(slow_backend, t1_s, t2_s):
     """
     A target moved onto the executing path: the motion the arm makes is judged whole, in the new scene.
@@ -676,7 +680,11 @@ def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_
     off = np.abs(out.trajectory.positions_rad[0] - _on_the_chain(ex, stamp)).max()
     assert off < math.radians(0.5), (math.degrees(off), out.values["joined_moving_arm"])
     old = [_on_the_chain(ex, t) for t in range(lead_ns, max(lead_ns, stamp) + 1, S // 200)]
-    new = controller_motion(out.trajectory, 40 * len(out.trajectory.times_s))[0]
+    new, v, a = controller_motion(out.trajectory, 40 * len(out.trajectory.times_s))
+    lim = ses.scenario.joint_limits
+    vmax, amax = lim.planned(robot)
+    peaks = np.max(np.abs(v) / (vmax * lim.velocity_scaling)), np.max(np.abs(a) / (amax * lim.acceleration_scaling))
+    assert max(peaks) <= 1.0 + 2e-3, (peaks, out.values["joined_moving_arm"])     # the controller keeps the limits
     clr = min(ref_clearance(robot, scene, robot.full(q)) for q in list(new) + old)
     said = "\n".join(text for _, text in ses.log_lines[-4:])
     if abs(clr - margin) < 1e-3:
@@ -692,11 +700,14 @@ def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_
 def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_backend):
     """The cases above: one whose motion is certified, one that stops on the executing path, one not taken over."""
     seen = {}
-    for t1_s, t2_s in [(3.05, 0.0), (3.25, 0.2), (3.55, 0.0), (3.65, 0.0)]:
+    for t1_s, t2_s in AUDIT_MOMENTS:
         _, out, _, _, _ = _moved_onto_the_executing_path(slow_backend, t1_s, t2_s)
         seen[(t1_s, t2_s)] = (out.values.get("trajectory_certified", out.code), out.values.get("joined_moving_arm", ""))
     assert {v for v, _ in seen.values()} == {"true", "false", "join_failed"}, seen
     assert any("stopping on its path" in j for _, j in seen.values()), seen
+    # a stop whose first segment (from the arm's own acceleration) the chain brings within the limits only
+    # after more than three whole-path re-timings (adapters.STOP_WHOLE_PATH_RETIMES): before, join_failed
+    assert "stopping on its path" in seen[(3.55, 0.0)][1], seen
 
 
 def test_a_plan_from_rest_within_the_margin_says_so_and_reports_the_motions_clearance(flat, backend):
