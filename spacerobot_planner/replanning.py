@@ -56,7 +56,7 @@ import numpy as np
 from .joint_space import align_to_state, difference_rad
 from .motion import MotionValidator
 from .timing import timed_motion
-from .trajectory import Trajectory, continuation, horizon_index, sample
+from .trajectory import Lowering, Trajectory, check_start_tangent, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
            "stopping_join", "committed_path",
@@ -454,12 +454,27 @@ def _stop_at_horizon(scenario, c):
     """
     if len(c.prefix_rad) < 2:
         raise ValueError("the join is the stopping point itself: no executing path to stop on")
-    return _braked(scenario, c.prefix_rad, c.start_path_speed)
+    return _braked(scenario, c.prefix_rad, c.start_path_speed, start_tangent(c))
 
 
-def _braked(scenario, path_rad, path_speed: float):
-    """Return ``path_rad`` timed from ``path_speed`` (rad/s along it) to rest; ValueError when too short to stop on."""
-    return timed_motion(scenario, path_rad, start_path_speed=path_speed, report=False)[0]
+def _braked(scenario, path_rad, path_speed: float, tangent=None):
+    """
+    Return ``path_rad`` timed from ``path_speed`` (rad/s along it) to rest; ValueError when too short to stop on.
+
+    ``tangent``: the arm's direction at the start (its velocity over its path speed), or None
+    (at rest): the spline re-fitted through the executing rows leaves the start along it, as the
+    arm does (with its own end tangent, its curvature there, and the speed the limits allow, were
+    off the arm's: a slow arm at a bend of its path could not be stopped on it at all).  A tangent
+    the path cannot take (``trajectory.check_start_tangent``: where the executing path nearly turns
+    back, the arm's velocity over its path speed is far from unit length) is left out, as a join's
+    timings do (``_fastest``'s second choice).
+    """
+    if tangent is not None:
+        try:
+            check_start_tangent(np.asarray(tangent, dtype=float), path_rad)
+        except ValueError:
+            tangent = None
+    return timed_motion(scenario, path_rad, start_path_speed=path_speed, report=False, start_tangent=tangent)[0]
 
 
 def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: bool = False) -> Join:
@@ -472,8 +487,10 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     executing path that comes within the safety margin of a new scene before the horizon
     point; the plan then has until the join) that the arm can stop at along the
     executing path from its speed there under the scenario's acceleration and wheel torque
-    limits scaled by ``STOP_ROOM`` (the chain re-times the stop with the limits lowered by the
-    controller's overshoot), found by trying points in doubling steps; the executing
+    limits lowered to ``STOP_ROOM`` along it (the chain re-times the stop with the limits lowered
+    by the controller's overshoot; a lowering, not the scaling factors: where the arm's speed
+    needs the full limits to enter the path, at a bend, its start keeps them, as the chain's
+    timings do), found by trying points in doubling steps; the executing
     trajectory's end when none before it.  The new plan starts there from rest
     (``Join.stop``): for a new path that cannot be entered at speed (it turns back, or the arm,
     slowed by weak wheels, cannot brake within the horizon), sooner than waiting for the
@@ -482,19 +499,27 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     ex = join.executing
     traj = ex.trajectory
     last = len(traj) - 1
-    limits, acs = scenario.joint_limits, scenario.acs
-    if limits is not None:         # room for the chain's re-timings (the controller's overshoot)
-        scenario = replace(scenario, acs=replace(acs, wheel_torque_scaling=acs.wheel_torque_scaling * STOP_ROOM),
-                           joint_limits=replace(limits,
-                                                acceleration_scaling=limits.acceleration_scaling * STOP_ROOM))
+    limits = scenario.joint_limits
+    room = np.array([1.0, STOP_ROOM, 1.0, STOP_ROOM])      # trajectory.LOWERED_LIMITS' order
+
+    def within_room(prefix):
+        """Return the scenario with the acceleration and wheel torque limits lowered to STOP_ROOM along ``prefix``."""
+        if limits is None:
+            return scenario
+        low = Lowering(prefix, np.tile(room, (len(prefix) - 1, 1)))
+        return replace(scenario, joint_limits=replace(limits, lowered=limits.lowered + (low,)))
+
     pub = np.asarray(ex.published)
     later = pub[traj.times_s[pub] >= ex.time_s(now_ns) + lead_s]
     stop = 0 if soonest else join.horizon_index
     for j in (later[:2] if len(later) else [last]):     # the join, or the next point when the plan runs late
         stop, step = max(stop, int(j) + 1), 1
         while stop < last:
+            speed = float(traj.path_speed[j])
+            tangent = traj.velocities_rad_s[j] / speed if speed > 0.0 else None
+            prefix = traj.positions_rad[j:stop + 1]
             try:
-                _braked(scenario, traj.positions_rad[j:stop + 1], float(traj.path_speed[j]))
+                _braked(within_room(prefix), prefix, speed, tangent)
                 break
             except ValueError:
                 stop, step = min(last, stop + step), 2 * step

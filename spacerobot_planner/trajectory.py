@@ -85,7 +85,7 @@ __all__ = ["Trajectory", "Lowering", "Resampled", "Continuation", "time_paramete
            "densify_path", "limit_ratios", "resample", "start_path_speed_from_velocity", "continuation",
            "horizon_index", "HorizonPassed", "sample_points", "chord_lengths_rad",
            "arc_lengths_rad", "controller_motion", "controller_check", "CONTROLLER_SAMPLES",
-           "segment_peaks", "segment_wheel_peaks", "lowering_factors"]
+           "segment_peaks", "segment_wheel_peaks", "lowering_factors", "check_start_tangent"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -795,7 +795,7 @@ def _forward(x, a_row, b_row, c_row, kappa, xv, delta, k, x0):
 MAX_START_TANGENT_TURN_RAD = float(np.radians(30.0))
 
 
-def _check_start_tangent(tangent, path_rad) -> None:
+def check_start_tangent(tangent, path_rad) -> None:
     """Refuse a start tangent (n,) that the path (M, n) cannot leave its start along (ValueError)."""
     p = np.asarray(path_rad, dtype=float)
     n = p.shape[1] if p.ndim == 2 else -1
@@ -1410,7 +1410,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         if start_velocity_rad_s is not None:
             raise ValueError("start_tangent: give it with start_path_speed, not start_velocity_rad_s")
         tangent = np.array(start_tangent, dtype=float).reshape(-1)
-        _check_start_tangent(tangent, path_rad)
+        check_start_tangent(tangent, path_rad)
     p, model = _modelled_path(path_rad, float(max_step_rad), refine, tangent)
     n = p.shape[1]
     vmax = _check_limits("max_velocity", max_velocity_rad_s, n)

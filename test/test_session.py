@@ -603,13 +603,14 @@ def slow_backend():
     be.close()
 
 
-def _moved_onto_the_executing_path(slow_backend, t1_s, t2_s):
+def _moved_onto_the_executing_path(slow_backend, t1_s, t2_s, acceleration_scaling=None):
     """
     Replay a closed-loop audit's targets: a plan, a goal joined into it, then a target 5 cm / 6° off it, joined.
 
     The third target lies on or near the second's executing path ahead (its estimate moved as the
     arm approached).  ``t1_s``: when the second comes, into the first trajectory; ``t2_s``: when
-    the third comes, into the second.  Returns (session, the third's outcome, its scene, the
+    the third comes, into the second; ``acceleration_scaling``: the joint limits' for the third
+    (a parameter change as the arm moves).  Returns (session, the third's outcome, its scene, the
     trajectory it came into, now, ns).
     """
     f, be = slow_backend
@@ -623,6 +624,9 @@ def _moved_onto_the_executing_path(slow_backend, t1_s, t2_s):
             clock.t = ex.start_ns + int(at_s * S)
             ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
         target = replace(ses.scenario.scene.target, center_m=(x, y), yaw_rad=math.radians(yaw_deg))
+        if k == 2 and acceleration_scaling is not None:
+            lim = replace(ses.scenario.joint_limits, acceleration_scaling=acceleration_scaling)
+            ses.configure(replace(ses.scenario, joint_limits=lim), ses.settings)
         sent = len(ses.published)
         ses.submit(f"target {k}", target=target)
         out = ses.run_once()
@@ -634,7 +638,7 @@ def _moved_onto_the_executing_path(slow_backend, t1_s, t2_s):
 
 
 #: (t1_s, t2_s) of _moved_onto_the_executing_path: moments of the closed-loop audit's grid with every verdict
-AUDIT_MOMENTS = [(3.05, 0.0), (3.25, 0.2), (3.55, 0.0), (3.65, 0.0), (3.7, 0.4)]
+AUDIT_MOMENTS = [(3.05, 0.0), (3.25, 0.2), (3.55, 0.0), (3.65, 0.0), (3.0, 0.4)]
 
 
 def _on_the_chain(ex, t_ns):
@@ -698,16 +702,48 @@ def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_
 
 
 def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_backend):
-    """The cases above: one whose motion is certified, one that stops on the executing path, one not taken over."""
+    """The cases above: one whose motion is certified, one that is not, and stops on the executing path."""
     seen = {}
     for t1_s, t2_s in AUDIT_MOMENTS:
         _, out, _, _, _ = _moved_onto_the_executing_path(slow_backend, t1_s, t2_s)
         seen[(t1_s, t2_s)] = (out.values.get("trajectory_certified", out.code), out.values.get("joined_moving_arm", ""))
-    assert {v for v, _ in seen.values()} == {"true", "false", "join_failed"}, seen
-    assert any("stopping on its path" in j for _, j in seen.values()), seen
-    # a stop whose first segment (from the arm's own acceleration) the chain brings within the limits only
-    # after more than three whole-path re-timings (adapters.STOP_WHOLE_PATH_RETIMES): before, join_failed
-    assert "stopping on its path" in seen[(3.55, 0.0)][1], seen
+    assert {v for v, _ in seen.values()} == {"true", "false"}, seen
+    # two stops that were published from the measured state at rest while the arm moved, then failed
+    # (join_failed): (3.55, 0.0) needs more than three whole-path re-timings of its first segment, from the
+    # arm's own acceleration (adapters.STOP_WHOLE_PATH_RETIMES); (3.0, 0.4) is a slow arm at a bend, whose
+    # stop is found with the arm's own tangent and its start at the full limits (replanning.stopping_join)
+    for moment in [(3.55, 0.0), (3.0, 0.4)]:
+        assert "stopping on its path" in seen[moment][1], seen
+
+
+def test_a_moving_arm_no_trajectory_can_take_over_finishes_its_own_and_the_next_request_plans_from_its_end(
+        slow_backend):
+    """
+    The acceleration limits lowered to a tenth as the arm moves, a target moved onto its path: nothing is sent.
+
+    No join, stop or plan from the executing trajectory's end fits the new limits and the path
+    ahead; before, a trajectory from the measured state at rest was published while the arm moved
+    on (its first point, at time 0, not where the arm was at its stamp: a controller refuses it).
+    Now the request fails with ``join_failed`` and says why; the arm finishes the trajectory it
+    follows (the session still takes it as the executing one), and a request after its end
+    plans from where it came to rest.  Oracle: the executing chain interpolated in time by the test.
+    """
+    ses, out, _, ex, now = _moved_onto_the_executing_path(slow_backend, 3.55, 0.0, acceleration_scaling=0.1)
+    assert out.code == "join_failed", (out.code, out.reason)
+    lead_ns = now + int(ses.settings.start_lead_s * S)
+    moved = np.abs(_on_the_chain(ex, lead_ns + S // 10) - _on_the_chain(ex, lead_ns)).max()
+    assert moved > 1e-3, moved                              # the arm still moves when anything sent could start
+    for said in ("the arm follows its trajectory", "stopping on the executing path", "nothing was sent"):
+        assert said in out.reason, out.reason
+    assert ses.executing is ex and ses.recorded[-1][1] is out, ses.recorded[-1]
+    end_ns = ex.start_ns + int(ex.trajectory.duration_s * S) + S
+    ses.now_ns.t = end_ns                                   # (the test's Clock)
+    at_rest = _on_the_chain(ex, end_ns)
+    ses.joint_state(at_rest, end_ns)
+    ses.submit("after its end", target=ses.target)
+    again = ses.run_once()
+    assert again.ok and again.values["joined_moving_arm"] == "no (the arm at rest)", (again.code, again.reason)
+    np.testing.assert_allclose(again.trajectory.positions_rad[0], at_rest, atol=1e-9)
 
 
 def test_a_plan_from_rest_within_the_margin_says_so_and_reports_the_motions_clearance(flat, backend):
