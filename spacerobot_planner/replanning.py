@@ -514,9 +514,9 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     stop = 0 if soonest else join.horizon_index
     for j in (later[:2] if len(later) else [last]):     # the join, or the next point when the plan runs late
         stop, step = max(stop, int(j) + 1), 1
+        speed = float(traj.path_speed[j])
+        tangent = traj.velocities_rad_s[j] / speed if speed > 0.0 else None      # the arm's direction there
         while stop < last:
-            speed = float(traj.path_speed[j])
-            tangent = traj.velocities_rad_s[j] / speed if speed > 0.0 else None
             prefix = traj.positions_rad[j:stop + 1]
             try:
                 _braked(within_room(prefix), prefix, speed, tangent)
