@@ -34,7 +34,8 @@ and its answers into messages; everything between is here:
   (:meth:`CaptureSession._exposure`: the executing path up to its switch, then its trajectory
   as the controller moves the arm): where a new target lies on the executing path it stops on
   it right after the join (not on to the end), and what cannot be avoided is published with a
-  warning (``trajectory_certified: false``).
+  warning (``trajectory_certified: false``): where no stop fits the limits either, the plan from
+  the executing trajectory's end (the arm goes there on it whatever is sent).
 - **the stamp**: every published trajectory starts at least ``start_lead_s`` after it is
   published: a trajectory from rest is stamped now + the lead just before it is
   published; a joined one carries the join's time, checked then to be still at least the
@@ -631,8 +632,6 @@ class CaptureSession:
                     break
             if outcome.code in ("retry", RETRY_AT_REST):
                 req.attempt = AT_REST if outcome.code == RETRY_AT_REST else req.attempt + 1
-                if req.stop_soonest and req.attempt == FROM_THE_END:
-                    req.attempt = AT_REST      # the executing path ahead is not clear: not on to its end
                 if req.attempt >= AT_REST and outcome.code == "retry":
                     moving = self._still_moving(req)
                     if moving is not None:      # a trajectory from rest would not start where the arm is
@@ -1050,7 +1049,9 @@ class CaptureSession:
                      + (exposure or uncertified_text(processed, self.motions(req.scenario.scene)))
                      + ("" if join is None else "; the least exposed motion found from the moving arm"
                         + (" (it stops on the executing path as soon as the limits allow, and goes from there)"
-                           if join.stop else ""))
+                           if join.stop else " (no stop on the executing path fits the limits: from its end, "
+                           "which the arm reaches whatever is sent)"
+                           if req.stop_soonest and processed.join_stamp_ns is None else ""))
                      + ("; it starts within the margin and walks out" if join is None else ""))
         t = res.timings_s
         self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "

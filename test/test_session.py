@@ -698,7 +698,9 @@ def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_
     assert ("published although not collision-free" in said) == (not certified), said
     if not certified:
         assert float(out.values["trajectory_clearance_m"]) < margin or "executing path" in said, (out.values, said)
-    assert "from the end of the executing trajectory" not in out.values["joined_moving_arm"] or certified
+    # on along the executing path to its end only where the motion is certified or no stop fits the limits
+    assert "from the end of the executing trajectory" not in out.values["joined_moving_arm"] or certified \
+        or "no stop on the executing path fits the limits" in said, said
 
 
 def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_backend):
@@ -716,30 +718,72 @@ def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_ba
         assert "stopping on its path" in seen[moment][1], seen
 
 
-def test_a_moving_arm_no_trajectory_can_take_over_finishes_its_own_and_the_next_request_plans_from_its_end(
-        slow_backend):
+def test_limits_lowered_as_the_arm_moves_and_no_stop_fits_them_plan_from_the_executing_trajectorys_end(slow_backend):
     """
-    The acceleration limits lowered to a tenth as the arm moves, a target moved onto its path: nothing is sent.
+    The acceleration limits lowered to a tenth as the arm moves, a target moved onto its path: from its end, said.
 
-    No join, stop or plan from the executing trajectory's end fits the new limits and the path
-    ahead; before, a trajectory from the measured state at rest was published while the arm moved
-    on (its first point, at time 0, not where the arm was at its stamp: a controller refuses it).
-    Now the request fails with ``join_failed`` and says why; the arm finishes the trajectory it
-    follows (the session still takes it as the executing one), and a request after its end
-    plans from where it came to rest.  Oracle: the executing chain interpolated in time by the test.
+    No join or stop on the executing path fits the new limits; the arm reaches that trajectory's
+    end whatever is sent, so the plan from there, at rest, is the least exposed motion: published
+    with a warning, stamped no earlier than that end, its first point where the arm comes to rest.
+    (Before, a trajectory from the measured state at rest was published while the arm moved on:
+    its first point, at time 0, not where the arm was at its stamp.)  Oracle: the executing chain
+    interpolated in time by the test.
     """
     ses, out, _, ex, now = _moved_onto_the_executing_path(slow_backend, 3.55, 0.0, acceleration_scaling=0.1)
-    assert out.code == "join_failed", (out.code, out.reason)
-    lead_ns = now + int(ses.settings.start_lead_s * S)
+    assert out.ok, (out.code, out.reason)
+    assert out.values["joined_moving_arm"] == "no (from the end of the executing trajectory, at rest)", out.values
+    said = "\n".join(text for _, text in ses.log_lines[-3:])
+    assert out.values["trajectory_certified"] == "false" and "no stop on the executing path fits" in said, said
+    stamp, end_ns = out.publication.stamp_ns, ex.start_ns + int(round(ex.trajectory.duration_s * S))
+    assert stamp >= end_ns, (stamp, end_ns)
+    off = np.abs(out.trajectory.positions_rad[0] - _on_the_chain(ex, stamp)).max()
+    assert off < 1e-6, math.degrees(off)
+
+
+def test_a_moving_arm_no_trajectory_can_take_over_finishes_its_own_and_the_next_request_plans_from_its_end(
+        slow_backend, monkeypatch):
+    """
+    Every way to take over the moving arm fails (injected: no timing enters its speed): nothing is sent.
+
+    Before, the last retry published a trajectory from the measured state at rest while the arm
+    moved on (a controller refuses its first point, at time 0, not the arm's state).  Now the
+    request fails with ``join_failed`` saying what was tried; the arm finishes the trajectory it
+    follows (the session still takes it as the executing one), and a request after its end plans
+    from where it came to rest.  Oracle: the executing chain interpolated in time by the test.
+    """
+    import spacerobot_planner.session as session_module
+    real = session_module.post_process
+
+    def no_join(*args, join=None, **kwargs):
+        if join is not None:
+            raise ValueError("injected: no timing enters the arm's speed")
+        return real(*args, join=join, **kwargs)
+
+    f, be = slow_backend
+    clock = Clock()
+    ses = _session(f, be, clock)
+    ses.joint_state(np.radians([-178.7, 41.05, 95.96]), clock.t)
+    ses.submit("first", target=ses.target)
+    assert ses.run_once().ok
+    ex = ses.executing
+    clock.t = ex.start_ns + 2 * S
+    ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
+    monkeypatch.setattr(session_module, "post_process", no_join)
+    sent = len(ses.published)
+    ses.submit("moved", target=replace(ses.target, center_m=tuple(np.asarray(ses.target.center_m) + 0.05)))
+    out = ses.run_once()
+    assert out.code == "join_failed" and len(ses.published) == sent, (out.code, out.reason)
+    lead_ns = clock.t + int(ses.settings.start_lead_s * S)
     moved = np.abs(_on_the_chain(ex, lead_ns + S // 10) - _on_the_chain(ex, lead_ns)).max()
     assert moved > 1e-3, moved                              # the arm still moves when anything sent could start
-    for said in ("the arm follows its trajectory", "stopping on the executing path", "nothing was sent"):
+    for said in ("the arm follows its trajectory", "stopping on the executing path", "from the end of the executing",
+                 "injected", "nothing was sent"):
         assert said in out.reason, out.reason
     assert ses.executing is ex and ses.recorded[-1][1] is out, ses.recorded[-1]
-    end_ns = ex.start_ns + int(ex.trajectory.duration_s * S) + S
-    ses.now_ns.t = end_ns                                   # (the test's Clock)
-    at_rest = _on_the_chain(ex, end_ns)
-    ses.joint_state(at_rest, end_ns)
+    monkeypatch.setattr(session_module, "post_process", real)
+    clock.t = ex.start_ns + int(ex.trajectory.duration_s * S) + S
+    at_rest = _on_the_chain(ex, clock.t)
+    ses.joint_state(at_rest, clock.t)
     ses.submit("after its end", target=ses.target)
     again = ses.run_once()
     assert again.ok and again.values["joined_moving_arm"] == "no (the arm at rest)", (again.code, again.reason)
