@@ -627,12 +627,8 @@ def _moved_onto_the_executing_path(slow_backend, t1_s, t2_s, acceleration_scalin
         if k == 2 and acceleration_scaling is not None:
             lim = replace(ses.scenario.joint_limits, acceleration_scaling=acceleration_scaling)
             ses.configure(replace(ses.scenario, joint_limits=lim), ses.settings)
-        sent = len(ses.published)
         ses.submit(f"target {k}", target=target)
         out = ses.run_once()
-        if k == 2 and out.code == "join_failed":       # no trajectory could take over the moving arm: none sent
-            assert len(ses.published) == sent, ses.published[sent:]
-            break
         assert out.ok, (k, out.code, out.reason)
     return ses, out, ses.scenario.scene.with_target(target), ex, clock.t
 
@@ -673,12 +669,6 @@ def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_
     ses, out, scene, ex, now = _moved_onto_the_executing_path(slow_backend, t1_s, t2_s)
     robot, margin = ses.scenario.robot, scene.safety_margin_m
     lead_ns = now + int(ses.settings.start_lead_s * S)
-    if out.code == "join_failed":
-        # nothing sent, because a trajectory from rest would not start where the arm is: it still moves then
-        moved = np.abs(_on_the_chain(ex, lead_ns + S // 10) - _on_the_chain(ex, lead_ns)).max()
-        assert moved > 1e-3, (moved, out.reason)
-        assert "the arm follows its trajectory" in out.reason and "nothing was sent" in out.reason, out.reason
-        return
     stamp = out.publication.stamp_ns
     # the controller takes it where the arm is at its stamp (its first point at time 0 is the arm's state then)
     off = np.abs(out.trajectory.positions_rad[0] - _on_the_chain(ex, stamp)).max()
@@ -708,7 +698,7 @@ def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_ba
     seen = {}
     for t1_s, t2_s in AUDIT_MOMENTS:
         _, out, _, _, _ = _moved_onto_the_executing_path(slow_backend, t1_s, t2_s)
-        seen[(t1_s, t2_s)] = (out.values.get("trajectory_certified", out.code), out.values.get("joined_moving_arm", ""))
+        seen[(t1_s, t2_s)] = (out.values["trajectory_certified"], out.values["joined_moving_arm"])
     assert {v for v, _ in seen.values()} == {"true", "false"}, seen
     # two stops that were published from the measured state at rest while the arm moved, then failed
     # (join_failed): (3.55, 0.0) needs more than three whole-path re-timings of its first segment, from the
