@@ -27,8 +27,8 @@ and its answers into messages; everything between is here:
   ``start_lead_s`` ahead when it would be published) it is planned again with twice the
   horizon, then stopping on the executing path as soon as the limits allow
   (``replanning.stopping_join``), then from the executing trajectory's end, then from the
-  measured state at rest (:data:`RETRY`), this last only where the arm does not follow or is at
-  rest when it would start: else the request fails (:data:`JOIN_FAILED`, nothing sent; the arm
+  measured state at rest (:data:`RETRY`), this last only where the arm does not follow its
+  trajectory or it has ended: else the request fails (:data:`JOIN_FAILED`, nothing sent; the arm
   finishes its trajectory), as a trajectory from rest would not start where the arm is.  A plan
   from a moving arm is judged on the whole motion it commits the arm to, in its own scene
   (:meth:`CaptureSession._exposure`: the executing path up to its switch, then its trajectory
@@ -130,6 +130,8 @@ class Request:
     plan_cancelled: bool = False                 # its plan was cancelled in the backend (superseded)
     attempt: int = 0                             # planned again after a join failed (RETRY)
     stop_soonest: bool = False                   # its stop (RETRY's) right after the join: the path ahead is not clear
+    stop_failed: str | None = None               # why its last stop on the executing path was not published
+    stop_again: bool = False                     # its stop was planned again once after it came too late
     waiting: bool = False                        # waited for the first joint state
     time_jumps: int = 0                          # planned again after ROS time jumped (TIME_JUMPS_MOST)
 
@@ -211,6 +213,11 @@ def target_why(target: Target) -> str:
     """Describe a new target in a request's ``why``."""
     return (f"new target ({target.center_m[0]:.3f}, {target.center_m[1]:.3f}) m, "
             f"yaw {math.degrees(target.yaw_rad):.1f}°")
+
+
+def _late(reason: str) -> Outcome:
+    """Return a retry because the plan came too late for its join (``values["late"]``; not the limits or the scene)."""
+    return Outcome("retry", reason, values={"late": True})
 
 
 def _superseded(newer: Request) -> Outcome:
@@ -630,10 +637,22 @@ class CaptureSession:
                                             "while this request was planned (two /clock publishers? a bag played "
                                             "on a short loop?)")
                     break
+            if outcome.code == "retry" and req.attempt == STOPPING:
+                req.stop_failed = outcome.reason
+                if outcome.values.get("late") and not req.stop_again:      # a stop came late: once more, from now
+                    req.stop_again = True
+                    self.log("warning", f"plan #{req.gen}: {outcome.reason}; planning again " + RETRY[STOPPING])
+                    outcome = None
+                    continue
             if outcome.code in ("retry", RETRY_AT_REST):
                 req.attempt = AT_REST if outcome.code == RETRY_AT_REST else req.attempt + 1
                 if req.attempt >= AT_REST and outcome.code == "retry":
-                    moving = self._still_moving(req)
+                    try:
+                        moving = self._still_moving(req)
+                    except Exception as e:      # noqa: BLE001 - never let the worker die
+                        outcome = self._failure(req, "internal_error", f"the arm's state: {type(e).__name__}: {e}",
+                                                tb=traceback.format_exc())
+                        break
                     if moving is not None:      # a trajectory from rest would not start where the arm is
                         ways = ", ".join(RETRY[a] or "joined to it" for a in sorted(set(tried)))
                         outcome = self._failure(req, JOIN_FAILED, f"{moving} and no new trajectory can take over "
@@ -658,14 +677,14 @@ class CaptureSession:
 
     def _still_moving(self, req: Request) -> str | None:
         """
-        Say how the arm still moves on the executing trajectory when a trajectory from rest would start; else None.
+        Say how the arm follows the trajectory last sent, running or waiting for its start; else None.
 
-        The arm follows the trajectory last sent (``replanning.plan_start`` joins it) and that
-        trajectory still runs ``start_lead_s`` + :data:`CHAIN_ALLOWANCE_S` from now, when a
-        trajectory from the measured state at rest would be stamped: that trajectory's first
-        point (time 0) would not be where the arm is then, and a controller refuses it (or
-        jumps).  None where the arm does not follow (a stalled arm: the retry from rest is
-        for it), comes to rest before, or holds still until after it (a chain not begun yet).
+        Then a trajectory from the measured state at rest would not start where the arm is at its
+        stamp (a controller refuses a first point at time 0 that is not its state, or jumps): the
+        arm is on that trajectory then, or at its end, or (one waiting) about to leave for it; a
+        stamp estimated ahead could not tell which (the plan and the chain take what they take).
+        None where the arm does not follow it (a stalled arm, one pushed away: the retry from rest
+        is for it) or it has ended.
         """
         with self.lock:
             q, q_ns, ex = self.joint_q, self.joint_ns, self.executing
@@ -675,8 +694,7 @@ class CaptureSession:
         now = self.now_ns()
         _, join, _ = plan_start(ex, now, q, q_ns, max(float(s.horizon_s), 1e-3), float(s.follow_tolerance_rad),
                                 req.scenario.robot.planned_periodic)
-        stamp_ns = now + int(1e9 * (float(s.start_lead_s) + CHAIN_ALLOWANCE_S))
-        if join is None or not ex.running_at(stamp_ns) or stamp_ns < ex.first_start_ns():    # (held before it)
+        if join is None:
             return None
         left_s = ex.trajectory.duration_s - ex.time_s(now)
         return f"the arm follows its trajectory ({left_s:.2f} s from its end)"
@@ -895,7 +913,7 @@ class CaptureSession:
                                      lead_s=float(req.settings.start_lead_s) + CHAIN_ALLOWANCE_S,
                                      motions=self.motions(sc.scene), from_end_at_rest=req.attempt == FROM_THE_END)
         except HorizonPassed:
-            return Outcome("retry", f"the plan took longer than the {join.horizon_s:g} s horizon")
+            return _late(f"the plan took longer than the {join.horizon_s:g} s horizon")
         except ValueError as e:
             if join is not None:
                 return Outcome("retry", f"the new path cannot be joined at the arm's speed ({e})")
@@ -970,8 +988,8 @@ class CaptureSession:
         lead_s = float(req.settings.start_lead_s)
         if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
             ahead = 1e-9 * (processed.join_stamp_ns - self.now_ns())
-            return Outcome("retry", f"the join is {ahead:.3f} s ahead, less than trajectory.start_lead_s "
-                           f"({lead_s:g} s): it would reach the controller after it")
+            return _late(f"the join is {ahead:.3f} s ahead, less than trajectory.start_lead_s ({lead_s:g} s): it "
+                         "would reach the controller after it")
         traj = processed.trajectory
         c = processed.continuation
         joined = ("no (from the end of the executing trajectory, at rest)" if c is None and join is not None
@@ -1019,7 +1037,7 @@ class CaptureSession:
             now = self.now_ns()
             stamp = stamp_for(processed, now, lead_s)
             if stamp is None:     # the record took the join's margin (a stalled machine): publish nothing
-                return Outcome("retry", "the join came within trajectory.start_lead_s while the plan was recorded")
+                return _late("the join came within trajectory.start_lead_s while the plan was recorded")
             sent_stamp, parts, drift = stamp, (processed.arm, processed.attitude), processed.predicted_drift
             last = self.last_sent
             if join is not None and execute and last is not None and self.controller_switch == "arrival":
@@ -1049,9 +1067,9 @@ class CaptureSession:
                      + (exposure or uncertified_text(processed, self.motions(req.scenario.scene)))
                      + ("" if join is None else "; the least exposed motion found from the moving arm"
                         + (" (it stops on the executing path as soon as the limits allow, and goes from there)"
-                           if join.stop else " (no stop on the executing path fits the limits: from its end, "
-                           "which the arm reaches whatever is sent)"
-                           if req.stop_soonest and processed.join_stamp_ns is None else ""))
+                           if join.stop else f" (no stop on the executing path could be sent: {req.stop_failed}; "
+                           "from its end, which the arm reaches whatever is sent)"
+                           if req.stop_failed and processed.join_stamp_ns is None else ""))
                      + ("; it starts within the margin and walks out" if join is None else ""))
         t = res.timings_s
         self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "

@@ -690,7 +690,7 @@ def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_
         assert float(out.values["trajectory_clearance_m"]) < margin or "executing path" in said, (out.values, said)
     # on along the executing path to its end only where the motion is certified or no stop fits the limits
     assert "from the end of the executing trajectory" not in out.values["joined_moving_arm"] or certified \
-        or "no stop on the executing path fits the limits" in said, said
+        or "no stop on the executing path could be sent" in said, said
 
 
 def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_backend):
@@ -723,17 +723,47 @@ def test_limits_lowered_as_the_arm_moves_and_no_stop_fits_them_plan_from_the_exe
     assert out.ok, (out.code, out.reason)
     assert out.values["joined_moving_arm"] == "no (from the end of the executing trajectory, at rest)", out.values
     said = "\n".join(text for _, text in ses.log_lines[-3:])
-    assert out.values["trajectory_certified"] == "false" and "no stop on the executing path fits" in said, said
+    assert out.values["trajectory_certified"] == "false" and "no stop on the executing path could be sent" in said, said
     stamp, end_ns = out.publication.stamp_ns, ex.start_ns + int(round(ex.trajectory.duration_s * S))
     assert stamp >= end_ns, (stamp, end_ns)
     off = np.abs(out.trajectory.positions_rad[0] - _on_the_chain(ex, stamp)).max()
     assert off < 1e-6, math.degrees(off)
 
 
+def test_a_stop_on_the_executing_path_that_came_too_late_is_planned_again_once(slow_backend, monkeypatch):
+    """
+    The audit's 3.65 s moment, its first stop on the path made late (injected: the arm past it): stopped again.
+
+    Before, a stop that came too late for its join went on to the plan from the executing
+    trajectory's end (through the target on that path); now it is planned again once, from then.
+    """
+    import spacerobot_planner.session as session_module
+    from spacerobot_planner.trajectory import HorizonPassed
+    real, late = session_module.post_process, []
+
+    def once_late(*args, join=None, **kwargs):
+        if join is not None and join.stop and not late:
+            late.append(join)
+            raise HorizonPassed("injected: the arm is past the stop's join")
+        return real(*args, join=join, **kwargs)
+
+    monkeypatch.setattr(session_module, "post_process", once_late)
+    ses, out, _, _, _ = _moved_onto_the_executing_path(slow_backend, 3.65, 0.0)
+    said = "\n".join(text for _, text in ses.log_lines)
+    assert late and "took longer than the" in said and "stopping on its path" in out.values["joined_moving_arm"], \
+        (out.values, said)
+
+
+@pytest.mark.parametrize("at_s", [2.0, -0.5], ids=["2 s in", "0.5 s before its end"])
 def test_a_moving_arm_no_trajectory_can_take_over_finishes_its_own_and_the_next_request_plans_from_its_end(
-        slow_backend, monkeypatch):
+        slow_backend, monkeypatch, at_s):
     """
     Every way to take over the moving arm fails (injected: no timing enters its speed): nothing is sent.
+
+    ``at_s``: when the request comes, into the trajectory (negative: before its end).  0.5 s before
+    its end, the trajectory ends after now + the lead but before the plan from rest would be stamped
+    (a review's scenario: that plan was published, from the measured state, 0.79° from the arm at
+    its stamp).
 
     Before, the last retry published a trajectory from the measured state at rest while the arm
     moved on (a controller refuses its first point, at time 0, not the arm's state).  Now the
@@ -756,7 +786,7 @@ def test_a_moving_arm_no_trajectory_can_take_over_finishes_its_own_and_the_next_
     ses.submit("first", target=ses.target)
     assert ses.run_once().ok
     ex = ses.executing
-    clock.t = ex.start_ns + 2 * S
+    clock.t = ex.start_ns + int(S * (at_s if at_s > 0 else ex.trajectory.duration_s + at_s))
     ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
     monkeypatch.setattr(session_module, "post_process", no_join)
     sent = len(ses.published)
