@@ -56,7 +56,7 @@ import numpy as np
 from .joint_space import align_to_state, difference_rad
 from .motion import MotionValidator
 from .timing import timed_motion
-from .trajectory import Lowering, Trajectory, check_start_tangent, continuation, horizon_index, sample
+from .trajectory import Trajectory, check_start_tangent, chord_lengths_rad, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
            "stopping_join", "committed_path",
@@ -70,8 +70,8 @@ START_LEAD_S = 0.1
 BLEND_SAMPLES = (8, 24)
 #: a turn at the horizon point smaller than this (rad) is left as it is
 MIN_CORNER_RAD = float(np.radians(1.0))
-#: :func:`stopping_join` finds a stop the arm makes under this fraction of its acceleration and
-#: wheel torque limits
+#: :func:`stopping_join` gives the arm 1 / STOP_ROOM of the path the limits need to stop: a braking at this
+#: fraction of their deceleration
 STOP_ROOM = 0.5
 
 #: a joint state older than this (s) is late: taken before the trajectory's start, it does not show
@@ -479,50 +479,61 @@ def _braked(scenario, path_rad, path_speed: float, tangent=None):
 
 def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: bool = False) -> Join:
     """
-    Return a join where the arm stops on the executing path as soon as the limits allow.
+    Return a join where the arm stops on the executing path as soon as the limits allow, with room.
 
     From the executing trajectory's first published point at least ``lead_s`` after ``now_ns``
-    (where the join will be) and from the next (where it will be when the plan runs late):
-    the nearest point at or after ``join.horizon_index`` (``soonest``: after the join, for an
+    (where the join will be) and from the next (where it will be when the plan runs late): the
+    nearest point the arm can stop at along the executing path from its speed and direction
+    there under the scenario's limits (found in doubling steps, then by bisection), and then
+    the path to it stretched to 1 / ``STOP_ROOM`` of its length (braking from the same speed
+    over that much more path needs ``STOP_ROOM`` of the deceleration: room for the chain, which
+    re-times the stop with the limits lowered by the controller's overshoot); the farther of
+    the two joins' stops, at or after ``join.horizon_index`` (``soonest``: after the join, for an
     executing path that comes within the safety margin of a new scene before the horizon
-    point; the plan then has until the join) that the arm can stop at along the
-    executing path from its speed there under the scenario's acceleration and wheel torque
-    limits lowered to ``STOP_ROOM`` along it (the chain re-times the stop with the limits lowered
-    by the controller's overshoot; a lowering, not the scaling factors: where the arm's speed
-    needs the full limits to enter the path, at a bend, its start keeps them, as the chain's
-    timings do), found by trying points in doubling steps; the executing
-    trajectory's end when none before it.  The new plan starts there from rest
-    (``Join.stop``): for a new path that cannot be entered at speed (it turns back, or the arm,
-    slowed by weak wheels, cannot brake within the horizon), sooner than waiting for the
-    executing trajectory's end.
+    point; the plan then has until the join); the executing trajectory's end when none before
+    it.  (The room as lowered limits along the stop, or as scaling factors, did not hold: the
+    timing lets a moving start keep the full limits where the arm's speed needs them to enter
+    the path, which took the room back; as factors, a start at the arm's speed on a bend could
+    not enter at all.)  The new plan starts there from rest (``Join.stop``): for a new path that
+    cannot be entered at speed (it turns back, or the arm, slowed by weak wheels, cannot brake
+    within the horizon), sooner than waiting for the executing trajectory's end.
     """
     ex = join.executing
     traj = ex.trajectory
     last = len(traj) - 1
-    limits = scenario.joint_limits
-    room = np.array([1.0, STOP_ROOM, 1.0, STOP_ROOM])      # trajectory.LOWERED_LIMITS' order
+    along = np.concatenate([[0.0], np.cumsum(chord_lengths_rad(traj.positions_rad))])   # path length, rad
 
-    def within_room(prefix):
-        """Return the scenario with the acceleration and wheel torque limits lowered to STOP_ROOM along ``prefix``."""
-        if limits is None:
-            return scenario
-        low = Lowering(prefix, np.tile(room, (len(prefix) - 1, 1)))
-        return replace(scenario, joint_limits=replace(limits, lowered=limits.lowered + (low,)))
+    def stop_from(j: int) -> int:
+        """Return the stop with room from executing point ``j`` (``last`` when none before it)."""
+        speed = float(traj.path_speed[j])
+        tangent = traj.velocities_rad_s[j] / speed if speed > 0.0 else None      # the arm's direction there
+
+        def brakes(stop: int) -> bool:
+            try:
+                _braked(scenario, traj.positions_rad[j:stop + 1], speed, tangent)
+            except ValueError:
+                return False
+            return True
+
+        lo, hi, step = j, j + 1, 1              # lo: too near (the join itself), hi: the next to try
+        while hi < last and not brakes(hi):
+            lo, hi, step = hi, min(last, hi + step), 2 * step
+        if hi >= last:
+            return last
+        while hi - lo > 1:                      # the nearest stop at the full limits
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if brakes(mid) else (mid, hi)
+        stop = max(hi, int(np.searchsorted(along, along[j] + (along[hi] - along[j]) / STOP_ROOM)))
+        step = 1
+        while stop < last and not brakes(stop):
+            stop, step = min(last, stop + step), 2 * step
+        return min(stop, last)
 
     pub = np.asarray(ex.published)
     later = pub[traj.times_s[pub] >= ex.time_s(now_ns) + lead_s]
     stop = 0 if soonest else join.horizon_index
     for j in (later[:2] if len(later) else [last]):     # the join, or the next point when the plan runs late
-        stop, step = max(stop, int(j) + 1), 1
-        speed = float(traj.path_speed[j])
-        tangent = traj.velocities_rad_s[j] / speed if speed > 0.0 else None      # the arm's direction there
-        while stop < last:
-            prefix = traj.positions_rad[j:stop + 1]
-            try:
-                _braked(within_room(prefix), prefix, speed, tangent)
-                break
-            except ValueError:
-                stop, step = min(last, stop + step), 2 * step
+        stop = max(stop, stop_from(int(j)) if int(j) < last else last)
     return Join(ex, min(stop, last), join.horizon_s, stop=True)
 
 
