@@ -506,7 +506,7 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     def stop_from(j: int) -> int:
         """Return the stop with room from executing point ``j`` (``last`` when none before it)."""
         speed = float(traj.path_speed[j])
-        tangent = traj.velocities_rad_s[j] / speed if speed > 0.0 else None      # the arm's direction there
+        tangent = _arm_direction(traj.velocities_rad_s[j], speed)
 
         def brakes(stop: int) -> bool:
             try:
@@ -581,9 +581,14 @@ def start_tangent(c) -> np.ndarray | None:
     of executing path and the new path's corner gives (up to 7 % off it on the paper's 3-DOF
     scene).  None at rest (nothing to keep: the path's own tangent).
     """
-    if not c.start_path_speed > 0.0:
+    return _arm_direction(c.start_velocity_rad_s, c.start_path_speed)
+
+
+def _arm_direction(velocity_rad_s, path_speed: float) -> np.ndarray | None:
+    """Return the arm's direction along its path, its velocity (n,) over its path speed; None at rest."""
+    if not path_speed > 0.0:
         return None
-    return np.asarray(c.start_velocity_rad_s, dtype=float) / float(c.start_path_speed)
+    return np.asarray(velocity_rad_s, dtype=float) / float(path_speed)
 
 
 def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):

@@ -692,6 +692,7 @@ class CaptureSession:
             return None
         s = req.settings
         now = self.now_ns()
+        # plan_start's rule of following (any horizon above 0: only whether it joins is asked)
         _, join, _ = plan_start(ex, now, q, q_ns, max(float(s.horizon_s), 1e-3), float(s.follow_tolerance_rad),
                                 req.scenario.robot.planned_periodic)
         if join is None:
