@@ -261,3 +261,64 @@ def test_goal_with_its_own_start(graph):
     _, first = next_plan(g, 0)
     np.testing.assert_allclose(first, g.scenario.start_rad, atol=1e-9,
                                err_msg="a plan from another start was sent to the controller")
+
+
+def test_a_goal_that_nothing_can_take_over_the_moving_arm_for_fails_join_failed_and_sends_nothing(graph, monkeypatch):
+    """
+    The arm moves; every timing that would take over from it is refused (injected): JOIN_FAILED, nothing sent.
+
+    The session's own test covers the ladder; this one the action's answer: the goal aborted with
+    ``JOIN_FAILED`` and its name, a reason that says what was tried and that nothing was sent, no
+    trajectory on either topic, and the node serving on (the next goal, the injection gone,
+    succeeds).  Oracles: the trajectories the test's subscribers received, the action protocol's
+    statuses, the mock arm's own motion state.
+    """
+    import spacerobot_planner.session as session_module
+    real = session_module.post_process
+
+    def no_join(*args, join=None, **kwargs):
+        if join is not None:
+            raise ValueError("injected: no timing enters the arm's speed")
+        return real(*args, join=join, **kwargs)
+
+    g = graph(scene_params("3dof", **SLOW))         # with the mock arm: it follows the first trajectory
+    g.action_client()                               # discovered now, not while the arm moves
+    g.send_target()
+    g.wait(lambda: g.n_trajs() >= 1 and _moving(g), 60, "the arm moving on the first trajectory")
+    sent = g.n_trajs()
+    with g.lock:
+        attitudes = len(g.att_trajs)
+    monkeypatch.setattr(session_module, "post_process", no_join)
+    status, res, _ = g.goal_result(g.send_goal(_target_goal(-3.22, -2.65)))
+    # the test's precondition (the ~10 s motion leaves room for a loaded machine), said plainly where it fails
+    assert g.arm.executing, "the first motion ended before the goal was planned: its plan starts from rest"
+    assert status == GoalStatus.STATUS_ABORTED, (status, res.reason)
+    assert res.error_code == R.JOIN_FAILED and res.error_name == "join_failed", (res.error_code, res.error_name)
+    for said in ("stopping on the executing path", "from the end of the executing", "injected", "nothing was sent"):
+        assert said in res.reason, res.reason
+    assert len(res.trajectory.points) == 0 and len(res.attitude_trajectory.points) == 0
+    g.wait_log(": join_failed: ")
+    assert g.n_trajs() == sent, "a trajectory was sent for a request that failed"
+    with g.lock:
+        assert len(g.att_trajs) == attitudes, "an attitude trajectory was sent for a request that failed"
+    monkeypatch.setattr(session_module, "post_process", real)
+    status, res, _ = g.goal_result(g.send_goal(_target_goal(-3.22, -2.65)))
+    assert status == GoalStatus.STATUS_SUCCEEDED and res.error_code == R.OK, res.reason
+    assert g.n_trajs() > sent
+    # the arm past the new trajectory's stamp: the teardown's controller check sees it take over
+    stamp_s = res.trajectory.header.stamp.sec + 1e-9 * res.trajectory.header.stamp.nanosec
+    g.wait(lambda: _last_state_stamp_s(g) > stamp_s + 0.1, 60, "joint_states after the new trajectory's stamp")
+
+
+def _moving(g) -> bool:
+    """Tell whether the last joint_states message has a joint moving (faster than 0.1°/s)."""
+    with g.lock:
+        last = g.states[-1][1] if g.states else None
+    return last is not None and max((abs(v) for v in last.velocity), default=0.0) > math.radians(0.1)
+
+
+def _last_state_stamp_s(g) -> float:
+    """Return the stamp of the last joint_states message, s (0 before any)."""
+    with g.lock:
+        last = g.states[-1][1] if g.states else None
+    return 0.0 if last is None else last.header.stamp.sec + 1e-9 * last.header.stamp.nanosec
