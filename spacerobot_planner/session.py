@@ -215,6 +215,12 @@ def target_why(target: Target) -> str:
             f"yaw {math.degrees(target.yaw_rad):.1f}°")
 
 
+def _ahead_s(join, now_ns: int) -> float:
+    """Return how far ahead of ``now_ns`` the join's point is on the executing trajectory, s."""
+    ex = join.executing
+    return float(ex.trajectory.times_s[join.horizon_index]) - ex.time_s(now_ns)
+
+
 def _late(reason: str) -> Outcome:
     """Return a retry because the plan came too late for its join (``values["late"]``; not the limits or the scene)."""
     return Outcome("retry", reason, values={"late": True})
@@ -866,7 +872,9 @@ class CaptureSession:
             announced.append(True)
             if changed:
                 self._changed()
-            where = "" if join is None else f" ({join.horizon_s:g} s ahead on the executing trajectory)"
+            where = "" if join is None else (
+                f" (stopping on the executing trajectory {_ahead_s(join, self.now_ns()):.2f} s ahead)" if join.stop
+                else f" ({join.horizon_s:g} s ahead on the executing trajectory)")
             self._log_flood("planning", f"planning #{req.gen} ({req.why}) from "
                             f"{np.round(np.degrees(start_raw), 2).tolist()}°{where} on {sc.grid.label()}")
 
@@ -1027,7 +1035,12 @@ class CaptureSession:
         if at_goal:                   # nothing is published: no points, no duration (the arm holds where it is)
             values.update(at_goal="true", trajectory_points=0, trajectory_duration_s="0.000",
                           trajectory_dense_points=0, trajectory_retimings=0)
-        outcome = Outcome("ok", "already at the goal: no trajectory published" if at_goal else "", res, traj,
+        # the last rung from the moving arm, and the trajectory it follows ends at the goal: no new motion, and the
+        # arm goes on as sent, whatever made the request (limits lowered as it moves, say): said, not "at the goal"
+        kept = (f"no new trajectory could take over from the moving arm ({req.stop_failed or 'no join fitted'}); "
+                "the trajectory it follows ends at this goal: it finishes it as it was sent"
+                if at_goal and req.attempt == FROM_THE_END and req.start_rad is None else None)
+        outcome = Outcome("ok", kept or ("already at the goal: no trajectory published" if at_goal else ""), res, traj,
                           None, values, processed, np.asarray(start_raw), dict(stamps or {}))
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it
             if epoch is not None and epoch != self.time_epoch:
@@ -1070,6 +1083,8 @@ class CaptureSession:
         outcome.stamps["published"] = time.perf_counter()
         if not execute:
             self.log("info", f"plan #{req.gen}: planned from the goal's own start: returned, not published")
+        elif kept:
+            self.log("warning", f"plan #{req.gen}: {kept}; no trajectory published")
         elif at_goal:
             self.log("info", f"plan #{req.gen}: already at the goal (within {AT_GOAL_TOL_RAD:g} rad): "
                      "no trajectory published")

@@ -108,6 +108,23 @@ def test_arrays_from_ros_messages_are_lists():
     assert check_value("trajectory.max_velocity_deg_s", array.array("d", [1.0, 2.0, 3.0])) == [1.0, 2.0, 3.0]
 
 
+def test_a_list_that_came_as_a_string_says_how_to_write_it():
+    """
+    ``ros2 param set NODE NAME "[0.5, 2, 2]"`` sends a string (integers and decimals mixed): the error says so.
+
+    Before, it said only "expected a non-empty list, got '[0.5, 2, 2]'", as if no list had been given.
+    """
+    from spacerobot_planner.config import check_value
+    with pytest.raises(ValueError) as e:
+        check_value("trajectory.max_acceleration_deg_s2", "[0.5, 2, 2]")
+    assert "trajectory.max_acceleration_deg_s2" in str(e.value)
+    assert "write every number with a decimal point, [0.5, 2.0, 2.0]" in str(e.value), str(e.value)
+    for text in ("abc", "[a, b]", "[]"):                 # not a list of numbers: no such hint
+        with pytest.raises(ValueError) as e:
+            check_value("trajectory.max_acceleration_deg_s2", text)
+        assert "decimal point" not in str(e.value), str(e.value)
+
+
 def test_planner_settings_come_from_the_parameters_and_name_bad_values(paper_scenario):
     from spacerobot_planner.config import scenario_from_params, settings_from_params
     from spacerobot_planner.planner import Planner

@@ -286,6 +286,9 @@ ORDER_CASES = {
     "node_named_before": (["-p", "mock_arm:rate_hz:=20.0", "--params-file", "{paper}"], "/", 50.0,
                           "-p mock_arm:rate_hz:=20.0 was not taken"),
     "node_named_after": (["--params-file", "{paper}", "-p", "mock_arm:rate_hz:=20.0"], "/", 20.0, ""),
+    # rcl matches a -p's node name in the root namespace only: in /a it applies to nothing (had been silent)
+    "node_named_namespace": (["--params-file", "{paper}", "-p", "mock_arm:rate_hz:=20.0"], "/a", 50.0,
+                             "it names the node /mock_arm in the root namespace, and this node is /a/mock_arm"),
     "own_section_first": (["--params-file", "{own}", "-p", "rate_hz:=25.0"], "/", 25.0, ""),
     "later_file": (["--params-file", "{wild}", "-p", "rate_hz:=25.0", "--params-file", "{w40}"], "/", 40.0,
                    "w40.yaml sets it in its section /**"),
@@ -307,7 +310,8 @@ def test_a_command_line_parameter_is_said_exactly_where_rcl_did_not_take_it(tmp_
     rcl itself decides (the mock arm in a context initialised with the arguments): its value is
     the table's (rclpy applies the sections that match a node in the order their keys first
     appear: a ``-p`` that names no node joins ``/**``'s), and a line is said exactly where it
-    differs from the last ``-p`` of it.  In a namespace no ``-p node:`` hint (rcl takes none there).
+    differs from the last ``-p`` of it.  In a namespace no ``-p node:`` hint (rcl takes none there),
+    and a ``-p node:`` is said not taken.
     """
     args, namespace, rcl_rate, fragment = ORDER_CASES[case]
     paper = os.path.join(CONFIG_DIR, "paper_3dof.yaml")
@@ -326,8 +330,9 @@ def test_a_command_line_parameter_is_said_exactly_where_rcl_did_not_take_it(tmp_
     taken = rate == float(given.partition(":=")[2])
     assert len(lines) == (0 if taken else 1) and all(fragment in line for line in lines), lines
     assert bool(fragment) != taken
+    assert all("give set" not in line and "ros2 param set " in line for line in lines), lines
     if namespace != "/":
-        assert all("-p mock_arm:" not in line for line in lines), lines
+        assert all("-p mock_arm:rate_hz:=20.0 after" not in line for line in lines), lines
 
 
 def _clock_publisher(g):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -695,17 +696,22 @@ def test_a_replan_is_certified_only_when_the_motion_it_commits_the_arm_to_keeps_
 
 def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_backend):
     """The cases above: one whose motion is certified, one that is not, and stops on the executing path."""
-    seen = {}
+    seen, planning = {}, {}
     for t1_s, t2_s in AUDIT_MOMENTS:
-        _, out, _, _, _ = _moved_onto_the_executing_path(slow_backend, t1_s, t2_s)
+        ses, out, _, _, _ = _moved_onto_the_executing_path(slow_backend, t1_s, t2_s)
         seen[(t1_s, t2_s)] = (out.values["trajectory_certified"], out.values["joined_moving_arm"])
+        planning[(t1_s, t2_s)] = [t for _, t in ses.log_lines if t.startswith("planning #3 ")]
     assert {v for v, _ in seen.values()} == {"true", "false"}, seen
     # two stops that were published from the measured state at rest while the arm moved, then failed
-    # (join_failed): (3.55, 0.0) needs more than three whole-path re-timings of its first segment, from the
-    # arm's own acceleration (adapters.STOP_WHOLE_PATH_RETIMES); (3.0, 0.4) is a slow arm at a bend, whose
-    # stop is found with the arm's own tangent and its start at the full limits (replanning.stopping_join)
+    # (join_failed): (3.55, 0.0) had needed more than three whole-path re-timings of its first segment, from the
+    # arm's own acceleration (adapters.STOP_WHOLE_PATH_RETIMES; a controller that switches at arrival still
+    # does); (3.0, 0.4) is a slow arm at a bend, whose stop is found with the arm's own tangent and its start
+    # at the full limits (replanning.stopping_join).  The stop's planning line says where the stop is (it had
+    # said "1 s ahead", the horizon, wherever the stop was)
     for moment in [(3.55, 0.0), (3.0, 0.4)]:
         assert "stopping on its path" in seen[moment][1], seen
+        assert any(re.search(r"\(stopping on the executing trajectory \d+\.\d\d s ahead\)", t)
+                   for t in planning[moment]), planning[moment]
 
 
 def test_limits_lowered_as_the_arm_moves_and_no_stop_fits_them_plan_from_the_executing_trajectorys_end(slow_backend):
@@ -728,6 +734,42 @@ def test_limits_lowered_as_the_arm_moves_and_no_stop_fits_them_plan_from_the_exe
     assert stamp >= end_ns, (stamp, end_ns)
     off = np.abs(out.trajectory.positions_rad[0] - _on_the_chain(ex, stamp)).max()
     assert off < 1e-6, math.degrees(off)
+
+
+def test_limits_lowered_as_the_arm_moves_to_its_goal_say_that_it_finishes_its_trajectory_as_sent(slow_backend):
+    """
+    Velocity limits lowered to a sixteenth as the arm moves to its goal (``ros2 param set``): said, not "at the goal".
+
+    The arm moves faster than the new limits allow: no join and no stop on the executing path can
+    be timed under them, and the plan from that trajectory's end, where the goal is, has nothing to
+    send.  Before, the request ended as "already at the goal" (and the log said so, as info) while
+    the arm ran on at 16 times the new limit for seconds.  Now: ok, nothing sent, the reason and a
+    warning say that no trajectory could take over and that the arm finishes the one it follows as
+    it was sent.  Oracle: the executing trajectory's own speed against the new limits (the test's).
+    """
+    f, be = slow_backend
+    clock = Clock()
+    ses = _session(f, be, clock)
+    ses.joint_state(np.radians([-178.7, 41.05, 95.96]), clock.t)
+    ses.submit("first", target=ses.target)
+    assert ses.run_once().ok
+    ex = ses.executing
+    clock.t = ex.start_ns + int(0.4 * ex.trajectory.duration_s * S)
+    ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
+    lim = ses.scenario.joint_limits
+    slower = replace(lim, max_velocity_rad_s=tuple(np.asarray(lim.max_velocity_rad_s) / 16.0))
+    ses.configure(replace(ses.scenario, joint_limits=slower), ses.settings)
+    k = int(np.searchsorted(ex.trajectory.times_s, ex.time_s(clock.t)))
+    vmax_new = np.asarray(slower.planned(ses.scenario.robot)[0])
+    assert np.max(np.abs(ex.trajectory.velocities_rad_s[k]) / vmax_new) > 2.0     # the test's premise: far too fast
+    ses.submit("limits changed", target=ses.target)
+    out = ses.run_once()
+    assert out.ok and not out.publication.sent, (out.code, out.reason)
+    for said in ("no new trajectory could take over from the moving arm", "finishes it as it was sent"):
+        assert said in out.reason, out.reason
+    assert any(level == "warning" and "finishes it as it was sent" in text for level, text in ses.log_lines), \
+        ses.log_lines[-4:]
+    assert not any("already at the goal" in text for _, text in ses.log_lines[-6:]), ses.log_lines[-6:]
 
 
 def test_a_stop_on_the_executing_path_that_came_too_late_is_planned_again_once(slow_backend, monkeypatch):

@@ -122,7 +122,9 @@ def not_taken(node: Node, argv=()) -> list:
     ``-p NODE:NAME:=VALUE`` too.  For each ``-p`` of a section that applies to the node, whose
     name a later section sets and whose value the node does not hold: a line naming what set it,
     ``-p NODE:NAME:=VALUE`` after the file (in the root namespace only: rcl takes no namespace
-    there) and ``ros2 param set``.
+    there) and ``ros2 param set``.  A ``-p NODE:NAME:=VALUE`` naming this node's name while the node
+    runs in a namespace applies to nothing (rcl matches it to ``/NODE``): a line saying so, and
+    what works there.
     """
     fqn = node.get_fully_qualified_name()
     winner = {}
@@ -134,21 +136,29 @@ def not_taken(node: Node, argv=()) -> list:
         key, param = _param_key(value) if option == "-p" else (None, None)
         if key is not None and section_regex(key).fullmatch(fqn):
             given[(key, param)] = ("-p", value)
+        elif key == "/" + node.get_name() and fqn != key:
+            given[(key, param)] = ("-p", value, "namespace")
     lines = []
     for (_, name), origin in given.items():
-        won = winner[name]
         text = origin[1].partition(":=")[2]
+        if origin[2:] == ("namespace",):
+            lines.append(f"-p {origin[1]} was not taken: it names the node /{node.get_name()} in the root namespace, "
+                         f"and this node is {fqn} (ROS 2 matches a -p's node name in the root namespace only); "
+                         f"set it now: ros2 param set {fqn} {name} {text}, or give it in a parameter file's section "
+                         f"for {fqn} (or /**/{node.get_name()}) after the others")
+            continue
+        won = winner[name]
         if won == origin or not node.has_parameter(name) or _same(node.get_parameter(name).value, text):
             continue
         have = node.get_parameter(name).value
         shown = list(have) if type(have).__name__ == "array" else have
         by = (f"the parameter file {won[1]} sets it in its section {won[2]}" if won[0] == "--params-file"
               else f"-p {won[1]} sets it")
-        hint = (f"-p {node.get_name()}:{name}:={text} after the parameter file, or "
+        hint = (f"give -p {node.get_name()}:{name}:={text} after the parameter file, or "
                 if node.get_namespace() == "/" else "")
         lines.append(f"-p {origin[1]} was not taken ({name} is {shown}): {by}, and ROS 2 applies the parameter "
                      f"sections that match a node in the order they first appear on the command line (a -p that "
-                     f"names no node is the /** section's); give {hint}set it now: ros2 param set {fqn} {name} {text}")
+                     f"names no node is the /** section's); {hint}set it now: ros2 param set {fqn} {name} {text}")
     return lines
 
 
