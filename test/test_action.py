@@ -98,6 +98,10 @@ def test_goal_plans_returns_the_published_trajectory_with_feedback(graph, monkey
     assert res.min_clearance_m > 0.0
     assert "total" in res.stage_names and len(res.stage_times_s) == len(res.stage_names)
     assert all(t >= 0.0 for t in res.stage_times_s)
+    # the node's trajectory stage is the chain after the path: timed (it had said 0.00), within the total
+    stage = dict(zip(res.stage_names, res.stage_times_s))
+    assert stage["trajectory"] > 0.0, stage
+    assert sum(t for name, t in stage.items() if name != "total") <= stage["total"] + 1e-9, stage
     # the node publishes every stage, the chain's "trajectory" last; rclpy's action client drops a
     # feedback that comes with or after the result (it forgets the goal's feedback callback then),
     # so the client holds those published before the last, in order

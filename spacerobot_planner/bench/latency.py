@@ -19,7 +19,8 @@ Latency of planner_node: message in → joint_trajectory out, in one process.
   ``js_plan_round_trip`` (the job to
   its backend and its outcome back: a replan the node's worker thread plans itself, the default's
   (``worker.HybridBackend``), or the round trip to the planning process; ``js_plan_in_process``:
-  the plan itself, its ``timings_s``; through the planning process, in three: ``js_job_to_process``, until the process
+  the plan itself, its ``timings_s`` (the total less the chain, which the session counts as its
+  trajectory stage); through the planning process, in three: ``js_job_to_process``, until the process
   has the job, ``js_job_in_process``, until its outcome is ready (the plan and the job around
   it), and ``js_answer_to_node``, until the node has the outcome), ``js_chain``
   (``adapters.post_process``), ``js_record_and_send`` (the record, the stamp, the messages, the
@@ -369,7 +370,9 @@ def _parts(node, t0: float, arrival: float, timeout_s: float = 5.0) -> dict | No
     got = {"js_to_planning": st["planning"] - t0, "js_to_request": st["request"] - t0,
            "js_request_to_planning": st["planning"] - st["request"],
            "js_plan_round_trip": st["received"] - st["planning"],
-           "js_plan_in_process": float(out.result.timings_s["total"]), "js_chain": st["chain"] - st["received"],
+           # the result's total holds the chain (the node's trajectory stage): the plan alone without it
+           "js_plan_in_process": float(out.result.timings_s["total"]) - (st["chain"] - st["received"]),
+           "js_chain": st["chain"] - st["received"],
            "js_record_and_send": st["sent"] - st["chain"], "js_sent_to_arrival": arrival - st["sent"],
            "js_after_sent": st["published"] - st["sent"]}
     if "process_received" in st and "process_answered" in st:      # the planning process's own stamps
