@@ -629,13 +629,16 @@ class ThreadBackend:
     """
     Plans in the calling (worker) thread: no process (``planner.separate_process:=false``).
 
-    A cancel sets the plan's termination token: the stage stops at its next poll.
+    A cancel of job ``gen`` sets the plan's termination token for that job and every older one,
+    before or while it runs (:class:`_GenCancel`, the planning process's): the stage stops at its
+    next poll.  (A plain token cleared when a job began lost a cancel that came between the
+    session taking the request and the job starting: a superseded plan then ran to its end.)
     """
 
     def __init__(self, scenario, log=None, info=None, solver: str | None = None,
                  field_tolerance: float | None = None):
         self.planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)
-        self._cancel = Termination()
+        self._cancel = _GenCancel()
         self.pid = None
         self._counts = {"jobs": 0, "cancelled": 0}
 
@@ -647,7 +650,7 @@ class ThreadBackend:
         return None
 
     def run(self, job: PlanJob, progress=None):
-        self._cancel.clear()
+        self._cancel.start(job.gen)
         try:
             if progress is not None:
                 progress(began(job))
@@ -661,10 +664,10 @@ class ThreadBackend:
         return out
 
     def cancel(self, gen: int) -> None:
-        self._cancel.set()
+        self._cancel.cancel_upto(gen)
 
     def close(self) -> None:
-        self._cancel.set()
+        self._cancel.cancel_upto(1 << 62)
 
 
 class ProcessBackend:

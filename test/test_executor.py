@@ -70,8 +70,26 @@ def _wait(pred, timeout_s=10.0):
     return True
 
 
+def _settled(passes, quiet_s=0.05, timeout_s=5.0):
+    """Wait until the executor has made no pass for ``quiet_s`` (at most ``timeout_s``)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        seen = len(passes)
+        time.sleep(quiet_s)
+        if len(passes) == seen:
+            return
+
+
 def _passes_per_message(ros, make_executor, count=20):
-    """Return (messages taken, executor passes while they came), one message every 30 ms."""
+    """
+    Return (messages taken, executor passes while they came).
+
+    Each message is sent once the one before was taken and the executor has gone quiet (no pass
+    for 50 ms): its wakes are its own.  (It had sent one every 30 ms: an executor thread that fell
+    behind on a loaded machine took a message in the same wait as the wake after the one before,
+    and rclpy's count fell below twice the messages: 20 passes for 20 messages, 2 runs in 16 under
+    three busy loops.)
+    """
     ctx, served, client = ros
     got = []
     served.create_subscription(String, "chatter", lambda m: got.append(m.data), 50)
@@ -83,12 +101,15 @@ def _passes_per_message(ros, make_executor, count=20):
         pub.publish(String(data="warm"))
         assert _wait(lambda: got)
         time.sleep(0.1)
+        _settled(passes)
         before = len(passes)
         for i in range(count):
+            n_got = len(got)
             pub.publish(String(data=str(i)))
-            time.sleep(0.03)
+            assert _wait(lambda: len(got) > n_got)
+            _settled(passes)
         assert _wait(lambda: len(got) == count + 1)
-        time.sleep(0.1)
+        _settled(passes)
         return len(got) - 1, len(passes) - before
     finally:
         stop()

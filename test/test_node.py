@@ -166,15 +166,19 @@ def test_executor_responsive_during_slow_plan(graph):
     g = graph(scene_params("3dof", **{"planner.test_stall_s": 30.0}))   # a long plan (stalled)
     g.send_target()
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
-    with g.lock:
-        n0 = len(g.states)
     t0 = time.monotonic()
-    time.sleep(1.5)
+    time.sleep(2.0)
+    t1 = time.monotonic()
     assert g.planner.state == "planning", "the stalled plan finished too quickly to test anything"
+    # the executor keeps delivering the arm's 50 Hz joint_states while the plan runs: no gap near a hang (a
+    # blocked executor sends none for the 30 s stall).  A bound on gaps, not on the rate over the window: a
+    # loaded machine slows the stream, it does not stop it
     with g.lock:
-        n = len(g.states) - n0
-    rate = n / (time.monotonic() - t0)
-    assert rate > 25.0, f"only {rate:.1f} joint_states/s reached the driver during the plan (50 Hz sent)"
+        arrivals = [t for t, _ in g.states if t0 <= t <= t1]
+    gaps = np.diff([t0, *arrivals, t1])
+    assert len(arrivals) >= 4 and gaps.max() < 1.0, \
+        (f"{len(arrivals)} joint_states reached the driver in 2 s of the plan (50 Hz sent), "
+         f"largest gap {gaps.max():.2f} s")
     t_close = time.monotonic()
     g.close()
     assert time.monotonic() - t_close < PROMPT_BOUND_S, "shutdown did not stop the long (30 s) plan promptly"

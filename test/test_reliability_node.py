@@ -256,7 +256,7 @@ def test_target_pose_flood(graph, record_property):
     n_traj_flood = g.n_trajs() - n_traj0
     g.wait(lambda: g.planner._gen > gen0 and g.planner._requested_target is not None
            and math.hypot(g.planner._requested_target.center_m[0] - last[0],
-                          g.planner._requested_target.center_m[1] - last[1]) < 1e-9, 5,
+                          g.planner._requested_target.center_m[1] - last[1]) < 1e-9, 30,
            "the last target received")
     received = g.planner._gen - gen0
 
@@ -455,7 +455,8 @@ def test_destroy_node_during_long_plan_in_thread(graph, record_property):
     left.
     """
     before = _threads()
-    g = graph(scene_params("3dof", **{"planner.separate_process": False, "planner.test_stall_s": 3.0}),
+    # a stall far longer than a loaded machine can hold this thread back after its 0.5 s sleep (3 s had left 2.5)
+    g = graph(scene_params("3dof", **{"planner.separate_process": False, "planner.test_stall_s": 10.0}),
               with_arm=False)
     robot = g.scenario.robot
     g.send_joint_state(joint_state_msg(robot.joint_names, robot.full(g.scenario.start_rad)))
@@ -467,7 +468,7 @@ def test_destroy_node_during_long_plan_in_thread(graph, record_property):
     g.destroy_planner()
     worker.join(60)
     dt = time.monotonic() - t_want
-    print(f"\nshutdown during a 3 s stalled plan (in-thread): {dt:.3f} s after it was due")
+    print(f"\nshutdown during a 10 s stalled plan (in-thread): {dt:.3f} s after it was due")
     record_property("shutdown_destroy_in_thread_s", round(dt, 3))
     assert not worker.is_alive()
     assert g.planner.last_result is None and g.n_trajs() == 0, "the plan finished before the shutdown"

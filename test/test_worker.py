@@ -522,6 +522,25 @@ def test_thread_backend_cancel_mid_field_keeps_its_cspace():
     assert isinstance(again, PlanDone) and again.result.ok and "cspace" in again.result.cached
 
 
+def test_thread_backend_a_cancel_before_the_job_starts_cancels_it_and_not_the_next():
+    """
+    A cancel of job N that comes before N runs (the session took the request, the job not yet begun) cancels it.
+
+    The token had been cleared when a job began: such a cancel was lost and the superseded plan
+    (a 60 s stall in a session test) ran to its end.  The next job (N + 1) is not cancelled.
+    Oracle: the result codes and the wall time against the stall.
+    """
+    sc = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
+    b = ThreadBackend(sc)
+    b.cancel(7)
+    t0 = time.monotonic()
+    out = b.run(_job(sc, 7, joint_goal=sc.goal_rad, stall_s=60.0))
+    assert isinstance(out, PlanDone) and out.result.code == "cancelled", out
+    assert time.monotonic() - t0 < 30.0, "the cancelled job ran its stall"
+    nxt = b.run(_job(sc, 8, joint_goal=sc.goal_rad))
+    assert isinstance(nxt, PlanDone) and nxt.result.ok, nxt
+
+
 def test_thread_backend_plans_the_same_job():
     sc = load_scenario(os.path.join(CONFIG_DIR, "paper_2dof.yaml"))
     out = ThreadBackend(sc).run(_job(sc, 1, joint_goal=sc.goal_rad))
