@@ -299,15 +299,16 @@ def test_at_the_goal_no_trajectory_and_it_says_so(graph):
     g.wait_log("already at the goal", 10)
 
 
-@pytest.mark.parametrize("period_s, stall_s, expect_some", [(0.5, 0.3, True), (0.0, 1.0, False)],
+@pytest.mark.parametrize("period_s, stall_s, expect_some", [(0.5, 0.3, True), (0.0, 3.0, False)],
                          ids=["min_period_0.5s", "latest_wins"])
 def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, stall_s, expect_some):
     """
     Targets drifting 2 cm/s at 20 Hz while each plan takes ``stall_s`` at least (a stall).
 
     Latest-wins alone publishes nothing; with replan.min_publish_period_s a plan is let finish once
-    no trajectory went out for that long.  (Latest-wins' plans take 1 s: a pause of the test's
-    sends as long as a plan, on a loaded machine, would let one finish.)
+    no trajectory went out for that long.  (Latest-wins' plans take 3 s: a pause of the test's
+    sends as long as a plan, on a loaded machine, would let one finish; 1 s had been near a loaded
+    machine's pauses.)
     """
     params = {"planner.test_stall_s": stall_s, "replan.min_publish_period_s": period_s,
               "replan.target_tolerance_m": 0.0}
@@ -325,7 +326,7 @@ def test_a_stream_of_targets_still_gets_trajectories(graph, period_s, stall_s, e
         assert n_stream >= 2
     else:
         assert n_stream == 0
-    g.wait(lambda: g.n_trajs() > n_stream, 10, "the last target's trajectory after the stream")
+    g.wait(lambda: g.n_trajs() > n_stream, 30, "the last target's trajectory after the stream")
 
 
 def test_servicer_trajectory_keeps_the_wheel_limits(graph):
