@@ -71,10 +71,9 @@ CONTROLLER_RETIMES = 4
 #: on 100 random 3-DOF scenes of `bench scenes`' family published up to 1.104 x a limit, 2 of them
 #: over; 2-DOF 1.025 x, 5 over; with three, none: at most 1.0010 x after up to six re-timings)
 WHOLE_PATH_RETIMES = 3
-#: ... and for a stop on the executing path (``replanning.stopping_join``), this many: for a controller that
-#: switches at arrival its first point has the arm's acceleration, which no re-timing changes, and the quintic
-#: from there to the braking shrinks its overshoot about by half a round (closed-loop audit replay, 3.55 s:
-#: 1.87, 1.28, 1.14, ... 1.016 x after 6)
+#: ... and for a stop on the executing path (``replanning.stopping_join``), this many: its first point has the
+#: arm's acceleration, which no re-timing changes, and the quintic from there to the braking shrinks its
+#: overshoot about by half a round (closed-loop audit replay, 3.55 s: 1.87, 1.28, 1.14, ... 1.016 x after 6)
 STOP_WHOLE_PATH_RETIMES = 6
 #: each re-timing lowers a limit a little more than its overshoot there (converges in 1-2)
 CONTROLLER_SHRINK = 0.99
@@ -243,7 +242,7 @@ def starts_at_the_end(join, now_ns: int, lead_s: float, from_end_at_rest: bool =
 
 def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int = 0, lead_s: float = START_LEAD_S,
                  motions: MotionValidator | None = None, time_step_s: float = RESAMPLE_STEP_S,
-                 from_end_at_rest: bool = False, switch: str = "stamp") -> Processed:
+                 from_end_at_rest: bool = False) -> Processed:
     """
     Run the chain after the path (see the module docstring).
 
@@ -260,12 +259,6 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
         time_step_s: largest time between published points, s.
         from_end_at_rest: (joined at the executing trajectory's end) start there from rest,
             stamped no earlier than that end, instead of joining (:func:`starts_at_the_end`).
-        switch: (joined) when the arm's controller takes the trajectory over (``controller.switch``):
-            "stamp" (the first point has the arm's velocity and the new motion's acceleration: the
-            controller switches to it at the join, and the commanded acceleration changes there as
-            at any switch of a time-optimal profile) or "arrival" (the message is sent behind the
-            points the controller has, so the join is a point inside one message: it keeps the
-            arm's acceleration too; :func:`_in_the_arms_state`).
 
     Returns
     -------
@@ -280,7 +273,7 @@ def post_process(scenario, path_rad, *, start_rad=None, join=None, now_ns: int =
     """
     with shared_path_models():          # the re-timings time the same paths: each modelled once
         return _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
-                             from_end_at_rest, switch)
+                             from_end_at_rest)
 
 
 def warm_up(scenario) -> None:
@@ -316,11 +309,9 @@ def warm_up(scenario) -> None:
 
 
 def _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
-                  from_end_at_rest, switch) -> Processed:
+                  from_end_at_rest) -> Processed:
     """:func:`post_process`'s chain (its arguments, in order)."""
     motions = motions or MotionValidator.for_scene(scenario.robot, scenario.scene)
-    if switch not in ("stamp", "arrival"):
-        raise ValueError(f"switch: 'stamp' or 'arrival', not {switch!r}")
     if len(motions.periodic) != np.shape(path_rad)[-1]:
         raise ValueError(f"motions: a validator of {len(motions.periodic)} planned joints for a path of "
                          f"{np.shape(path_rad)[-1]} (the scenario's own validator expected)")
@@ -329,8 +320,7 @@ def _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, 
     paths = None
     if join is not None and starts_at_the_end(join, now_ns, lead_s, from_end_at_rest) is None:
         paths = joined_paths(scenario, join, path_rad, now_ns, lead_s, motions)
-    args = (path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s, from_end_at_rest, paths,
-            switch == "arrival")
+    args = (path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s, from_end_at_rest, paths)
     # the re-timing rounds need only the published points (the certification cannot change them
     # when it passes at once) and, from rest, not the reaction report (the same path; the verdict
     # is the accepted round's): certify and report the accepted round alone ...
@@ -523,14 +513,12 @@ def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: 
 
 
 def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s,
-                       from_end_at_rest, paths=None, arms_acceleration: bool = False, certify: bool = True,
-                       chosen: int | None = None) -> tuple:
+                       from_end_at_rest, paths=None, certify: bool = True, chosen: int | None = None) -> tuple:
     """
     Run steps 1 to 3 and 5 of the chain (see the module docstring) under the scenario's limits.
 
     ``paths``: a join's ``replanning.JoinedPaths`` (None from rest or from the executing
-    trajectory's end); ``chosen``: the candidate an earlier round timed (``replanning.timed_join``);
-    ``arms_acceleration``: a join's first point keeps the arm's acceleration (:func:`_in_the_arms_state`).
+    trajectory's end); ``chosen``: the candidate an earlier round timed (``replanning.timed_join``).
     ``certify`` False: the points are resampled but neither certified nor split, and from rest
     the reaction is not reported (a round whose points only the controller check reads;
     :func:`_certified` finishes the accepted one).  Returns (:class:`Processed`, the
@@ -546,7 +534,7 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     else:
         dense, reaction, chosen = timed_join(scenario, paths, motions, chosen)
         stamp_ns, cont = paths.stamp_ns, paths.continuation
-        dense = _in_the_arms_state(dense, paths, arms_acceleration)
+        dense = _in_the_arms_state(dense, paths)
     got = Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
                     stamp_ns, cont, not_before_ns)
     if reaction is not None and not reaction.ok:
@@ -557,33 +545,21 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s)), chosen
 
 
-def _in_the_arms_state(dense: Trajectory, paths, arms_acceleration: bool) -> Trajectory:
+def _in_the_arms_state(dense: Trajectory, paths) -> Trajectory:
     """
-    Return a joined trajectory whose first point has the executing trajectory's velocity at the join (and acceleration).
+    Return a joined trajectory whose first point has the executing trajectory's velocity and acceleration at the join.
 
     The time parameterisation starts along the arm's own direction (``replanning.start_tangent``:
     the joined path's spline clamped to it) at the arm's path speed, so the velocity is the
-    arm's up to the speed's rounding: the first point takes it exactly (no velocity step at the
-    switch).  Its acceleration is the time-optimal profile's, not the arm's (the executing
-    trajectory may be braking where the new one speeds up).  A controller that switches at the
-    stamp takes the new trajectory over at the join: the commanded acceleration changes there,
-    within the limits on either side, as at every switch of a time-optimal profile, and the
-    quintic from the first point to the second follows the new profile.  ``arms_acceleration``
-    (a controller that switches at arrival: the join is a point inside one message, after the
-    points it has) keeps the arm's acceleration there too, so the segment before the join
-    continues the arm's motion; the quintic after it then goes from the arm's acceleration to
-    the new profile's (by up to twice the limit: it overshoots, the more the farther apart,
-    whatever the segment's length).  Either way the controller's quintic from the first point to
-    the second is what the chain checks and certifies (the overshoot, the collisions), as every
-    other segment.
+    arm's up to the speed's rounding; its acceleration is the time-optimal profile's, not the
+    arm's (the executing trajectory may be braking where the new one speeds up).  The first
+    point takes the state the arm is in, exactly; the controller's quintic from there to the
+    second point is what the chain checks and certifies (the overshoot, the collisions), as
+    every other segment.
     """
     ex, k = paths.join.executing.trajectory, paths.continuation.index
-    vel = dense.velocities_rad_s.copy()
-    vel[0] = ex.velocities_rad_s[k]
-    if not arms_acceleration:
-        return replace(dense, velocities_rad_s=vel)
-    acc = dense.accelerations_rad_s2.copy()
-    acc[0] = ex.accelerations_rad_s2[k]
+    vel, acc = dense.velocities_rad_s.copy(), dense.accelerations_rad_s2.copy()
+    vel[0], acc[0] = ex.velocities_rad_s[k], ex.accelerations_rad_s2[k]
     return replace(dense, velocities_rad_s=vel, accelerations_rad_s2=acc)
 
 

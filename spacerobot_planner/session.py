@@ -917,12 +917,10 @@ class CaptureSession:
             return self._failure(req, res.code, res.reason or res.code, res, tb=res.traceback or None)
         if req.on_progress is not None:
             req.on_progress(_progress("trajectory"))
-        switch = self.controller_switch         # the message is made and sent for this kind of controller
         try:
             processed = post_process(sc, res.path_rad, start_rad=start_raw, join=join, now_ns=self.now_ns(),
                                      lead_s=float(req.settings.start_lead_s) + CHAIN_ALLOWANCE_S,
-                                     motions=self.motions(sc.scene), from_end_at_rest=req.attempt == FROM_THE_END,
-                                     switch=switch)
+                                     motions=self.motions(sc.scene), from_end_at_rest=req.attempt == FROM_THE_END)
         except HorizonPassed:
             return _late(f"the plan took longer than the {join.horizon_s:g} s horizon")
         except ValueError as e:
@@ -949,7 +947,7 @@ class CaptureSession:
             self._log_flood(dropped.code, f"plan #{req.gen} {dropped.code}: {dropped.reason}")
             return dropped
         return self._publish_plan(req, res, processed, start_raw, join, stamps, epoch,
-                                  planned_in=out.stats.get("planned_in", ""), exposure=exposure, switch=switch)
+                                  planned_in=out.stats.get("planned_in", ""), exposure=exposure)
 
     def _exposure(self, req: Request, join, processed: Processed, motions) -> tuple:
         """
@@ -988,8 +986,7 @@ class CaptureSession:
         return said, False
 
     def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None,
-                      epoch: int | None = None, planned_in: str = "", exposure: str | None = None,
-                      switch: str | None = None) -> Outcome:
+                      epoch: int | None = None, planned_in: str = "", exposure: str | None = None) -> Outcome:
         """
         Record an ok plan, stamp it just before it is published, publish it (the hooks).
 
@@ -997,14 +994,11 @@ class CaptureSession:
         jumped since (:meth:`time_jumped`), nothing is published: planned again, from rest.
         ``planned_in``: where the backend planned it, when it says (``worker.PlanDone.stats``).
         ``exposure``: where the motion it commits a moving arm to is not collision-free (:meth:`_exposure`).
-        ``switch``: the kind of controller the chain made a joined trajectory for (``post_process``; None: the
-        kind now).
         """
         jumped = Outcome(RETRY_AT_REST, "ROS time jumped while it planned")
         if epoch is not None and epoch != self.time_epoch:
             return jumped
         lead_s = float(req.settings.start_lead_s)
-        switch = switch or self.controller_switch
         if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
             ahead = 1e-9 * (processed.join_stamp_ns - self.now_ns())
             return _late(f"the join is {ahead:.3f} s ahead, less than trajectory.start_lead_s ({lead_s:g} s): it "
@@ -1064,11 +1058,7 @@ class CaptureSession:
                 return _late("the join came within trajectory.start_lead_s while the plan was recorded")
             sent_stamp, parts, drift = stamp, (processed.arm, processed.attitude), processed.predicted_drift
             last = self.last_sent
-            if join is not None and execute and self.controller_switch != switch:
-                # the controller's kind became known as the chain ran: its first point was made for the other kind
-                return _late(f"the arm's controller was found to switch at its {self.controller_switch}, not its "
-                             f"{switch}, as the trajectory was made")
-            if join is not None and execute and last is not None and switch == "arrival":
+            if join is not None and execute and last is not None and self.controller_switch == "arrival":
                 # a controller that switches when the message arrives: the points it has, up to the switch, in front
                 sent_stamp, parts, drift = switching_at_arrival(last.stamp_ns, (last.arm, last.attitude), stamp,
                                                                 parts, drift, now)

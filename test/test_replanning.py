@@ -230,16 +230,14 @@ def test_a_join_a_few_rows_before_a_turn_starts_in_the_arms_direction(executing,
     assert min(shapely_clearance(sc.robot, sc.scene, q) for q in traj.positions_rad[::3]) > sc.scene.safety_margin_m
 
 
-@pytest.mark.parametrize("switch", ["stamp", "arrival"])
-def test_a_turn_too_sharp_for_the_arms_direction_is_entered_along_the_paths_own_tangent(executing, switch):
+def test_a_turn_too_sharp_for_the_arms_direction_is_entered_along_the_paths_own_tangent(executing):
     """
     Where no candidate can be entered leaving the join along the arm's direction, the chain times it along its own.
 
     Three rows before a 15° turn at the arm's speed, every candidate (the corner and its blends)
     leaving along the arm's direction asks for a slower arm; along the spline's own tangent one
     can be entered.  The published trajectory starts exactly in the arm's state (position,
-    velocity; for a controller that switches at arrival, acceleration too: the join is a point
-    inside its message), and the controller's motion through its points (the test's quintics)
+    velocity, acceleration), and the controller's motion through its points (the test's quintics)
     keeps the limits and the scene's margin (shapely).
     """
     from spacerobot_planner.adapters import post_process
@@ -255,14 +253,12 @@ def test_a_turn_too_sharp_for_the_arms_direction_is_entered_along_the_paths_own_
     for cand in paths.candidates:
         with pytest.raises(ValueError, match="start_path_speed"):
             timed_motion(sc, cand, start_path_speed=c.start_path_speed, start_tangent=start_tangent(c))
-    out = post_process(sc, new, join=join, now_ns=later, lead_s=0.02, switch=switch)
+    out = post_process(sc, new, join=join, now_ns=later, lead_s=0.02)
     traj = out.trajectory
     assert out.continuation is not None and len(out.continuation.prefix_rad) == 3
-    exact = [(traj.positions_rad[0], old.positions_rad[c.index]),
-             (traj.velocities_rad_s[0], old.velocities_rad_s[c.index])]
-    if switch == "arrival":
-        exact.append((traj.accelerations_rad_s2[0], old.accelerations_rad_s2[c.index]))
-    for got, want in exact:
+    for got, want in ((traj.positions_rad[0], old.positions_rad[c.index]),
+                      (traj.velocities_rad_s[0], old.velocities_rad_s[c.index]),
+                      (traj.accelerations_rad_s2[0], old.accelerations_rad_s2[c.index])):
         np.testing.assert_array_equal(got, want)
     q, v, a = controller_motion(traj, 40 * len(traj.times_s))
     assert np.max(np.abs(v) / vmax) <= 1.0 + 2e-3 and np.max(np.abs(a) / amax) <= 1.0 + 2e-3
@@ -308,20 +304,15 @@ SERVICER_JOINS = [((11.0, -18.0, -37.0), 0.1, "back"), ((-16.0, -6.0, -38.0), 0.
                   ((-16.0, -6.0, -38.0), 0.1, "same"), ((0.0, 0.0, 0.0), 0.1, "other")]
 
 
-@pytest.mark.parametrize("switch", ["stamp", "arrival"])
-def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel_limits(switch):
+def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel_limits():
     """
     Replans joined to servicer_3dof trajectories (wheels 50 N·m·s, 0.5 N·m), as the node joins them.
 
     Each is either published (joined) with the executing trajectory's state at the join (its
-    position and velocity at that published point, exactly; for a controller that switches at
-    arrival, its acceleration too) and the wheels' load of the controller's motion within the
-    limits (SciPy's quintic, the test's momentum sum), or refused with ValueError, which the node
-    answers by planning again (a longer horizon, the executing trajectory's end).  A controller
-    that switches at the stamp takes the new trajectory over at the join, its first point with
-    the new profile's acceleration (the joins these moments refuse turn off the arm's direction at
-    the horizon point itself, refused either way; the next test has the ones only the arm's
-    acceleration refuses).  Before: 45 of 48 such joins stepped the velocity
+    position, velocity and acceleration at that published point, exactly) and the wheels'
+    load of the controller's motion within the limits (SciPy's quintic, the test's momentum
+    sum), or refused with ValueError, which the node answers by planning again (a longer
+    horizon, the executing trajectory's end).  Before: 45 of 48 such joins stepped the velocity
     (17 reversed it: a path back, joined at the horizon point itself), and 7 of 48 drove the
     wheel torque to 1.15-1.37 times its limit (a re-timing that could not be entered was
     dropped and the over-limit round published); until the first point took the arm's state, a
@@ -346,7 +337,7 @@ def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel
                                     "other": sc.goal_rad + np.radians([-30.0, 5.0, 10.0])}[goal])
         assert res.ok, res.reason
         try:
-            out = post_process(sc, res.path_rad, join=join, now_ns=now + S // 4, lead_s=0.65, switch=switch)
+            out = post_process(sc, res.path_rad, join=join, now_ns=now + S // 4, lead_s=0.65)
         except ValueError:
             refused += 1
             continue
@@ -356,72 +347,11 @@ def test_a_joined_servicer_replan_never_steps_the_velocity_nor_exceeds_the_wheel
         np.testing.assert_allclose(traj.positions_rad[0], ex.trajectory.positions_rad[k], atol=1e-9)
         # the arm's state exactly (the joined path's re-fitted tangent was 3.0° and 5.3 % off it here)
         np.testing.assert_array_equal(v0, v_ex, err_msg=f"{(offset_deg, frac, goal)}")
-        if switch == "arrival":
-            np.testing.assert_array_equal(traj.accelerations_rad_s2[0], ex.trajectory.accelerations_rad_s2[k])
+        np.testing.assert_array_equal(traj.accelerations_rad_s2[0], ex.trajectory.accelerations_rad_s2[k])
         h, tau = controller_wheel_load(sc, traj, 40 * len(traj.times_s))
         assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3), \
             (offset_deg, frac, goal, np.max(np.abs(tau)))
-    print(f"\nservicer joins, a controller switching at its {switch}: {published} published, {refused} refused")
     assert published >= 2 and refused >= 2, (published, refused)
-
-
-@pytest.fixture(scope="module")
-def servicer_executing():
-    """Return (scenario, Executing) of servicer_3dof's first plan to its target, published from rest (173 s)."""
-    import os
-    from spacerobot_planner.adapters import post_process
-    from spacerobot_planner.config import load_scenario
-    from spacerobot_planner.planner import Planner
-    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "servicer_3dof.yaml"))
-    first = post_process(sc, Planner(sc).plan(sc.start_rad).path_rad, start_rad=sc.start_rad)
-    return sc, Executing(first.dense, first.indices, 100 * S)
-
-
-@pytest.mark.parametrize("frac", [0.45, 0.6, 0.7])
-def test_a_controller_switching_at_the_stamp_takes_a_join_whose_arm_acceleration_would_overshoot_the_wheels(
-        servicer_executing, frac):
-    """
-    The target moved 5 cm / 3° as the servicer's arm moves: joined at the stamp, refused at arrival.
-
-    At these moments the arm accelerates at the wheels' torque limit where the new motion brakes
-    (or the reverse).  A first point with the arm's acceleration (a controller that switches at
-    arrival: one message) makes the controller's quintic to the second point drive the wheel
-    torque to 1.3-1.7 times its limit, and no slower motion can be entered at the arm's speed:
-    refused, and the session plans again (in a closed-loop replay 6 of 36 such retargets went on
-    only from the executing trajectory's end, up to a minute later).  A controller that switches
-    at the stamp follows the executing trajectory to the join and the new one from there: the
-    first point has the arm's position and velocity exactly and the new profile's acceleration,
-    and the controller's motion (the test's quintics, the test's momentum sum) keeps the joint
-    and wheel limits and the scene's margin (shapely) from the join on.
-    """
-    import math
-    from dataclasses import replace
-    from spacerobot_planner.adapters import post_process
-    from spacerobot_planner.planner import Planner
-    from spacerobot_planner.replanning import join_direction
-    sc, ex = servicer_executing
-    t0 = sc.scene.target
-    moved = replace(t0, center_m=(t0.center_m[0], t0.center_m[1] + 0.05), yaw_rad=t0.yaw_rad + math.radians(3.0))
-    sc2 = sc.with_scene(sc.scene.with_target(moved))
-    planner = Planner(sc2)
-    now = ex.start_ns + int(frac * ex.trajectory.duration_s * S)
-    q_from, join, why = plan_start(ex, now, ex.expected_at(now - S // 100), now - S // 100, 1.0, np.radians(2.0),
-                                   sc.robot.planned_periodic)
-    assert join is not None, why
-    res = planner.plan(q_from, planner.goal_from_target(), start_tangent=join_direction(join))
-    assert res.ok, res.reason
-    with pytest.raises(ValueError, match="wheel torque reaches"):
-        post_process(sc2, res.path_rad, join=join, now_ns=now + S // 4, lead_s=0.65, switch="arrival")
-    out = post_process(sc2, res.path_rad, join=join, now_ns=now + S // 4, lead_s=0.65, switch="stamp")
-    traj, k, old = out.trajectory, out.continuation.index, ex.trajectory
-    np.testing.assert_allclose(traj.positions_rad[0], old.positions_rad[k], atol=1e-12)
-    np.testing.assert_array_equal(traj.velocities_rad_s[0], old.velocities_rad_s[k])
-    vmax, amax = joint_limits(sc2)
-    q, v, a = controller_motion(traj, 40 * len(traj.times_s))
-    assert np.max(np.abs(v) / vmax) <= 1.0 + 2e-3 and np.max(np.abs(a) / amax) <= 1.0 + 2e-3
-    h, tau = controller_wheel_load(sc2, traj, 40 * len(traj.times_s))
-    assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3), np.max(np.abs(tau))
-    assert min(shapely_clearance(sc2.robot, sc2.scene, p) for p in q[::10]) > sc2.scene.safety_margin_m
 
 
 def test_a_servicer_replan_back_stops_on_the_executing_path_and_goes_back():

@@ -966,44 +966,6 @@ def test_a_join_for_a_controller_that_switches_at_arrival_is_the_executing_motio
             assert np.max(np.abs(as_stamped - intended)) > 1e-6, np.max(np.abs(as_stamped - intended))
 
 
-def test_a_joined_trajectory_is_made_for_the_controller_it_is_sent_to(flat, backend, monkeypatch):
-    """
-    The first point's acceleration depends on when the controller switches; one found as the chain ran is planned again.
-
-    ``controller.switch: auto`` takes "stamp" until the node finds the controller: the chain gives a
-    joined trajectory's first point the new profile's acceleration (the controller switches to it at
-    the join).  When the node finds, as that chain runs, a controller that switches at arrival (one
-    message: the join a point inside it), that trajectory is not sent: planned again, its first point
-    then the arm's own state, acceleration too, sent behind the points the controller has.
-    Oracle: the executing trajectory's state at the join.
-    """
-    import spacerobot_planner.session as session_module
-    real = session_module.post_process
-    switches = []
-
-    def found_as_it_runs(*args, switch="stamp", **kwargs):
-        switches.append(switch)
-        if kwargs.get("join") is not None and len(switches) == 1:
-            ses.controller_found("arrival")
-        return real(*args, switch=switch, **kwargs)
-
-    clock = Clock()
-    ses, ex = _moving(flat, backend, clock, controller_switch="auto")
-    monkeypatch.setattr(session_module, "post_process", found_as_it_runs)
-    sent = len(ses.published)
-    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
-    out = ses.run_once()
-    assert out.ok and out.values["joined_moving_arm"].startswith("yes"), (out.code, out.reason)
-    assert switches == ["stamp", "arrival"], switches
-    assert len(ses.published) == sent + 1
-    assert any("found to switch at its arrival" in text for _, text in ses.log_lines), ses.log_lines[-5:]
-    k, first = out.processed.continuation.index, out.processed.arm
-    arm = ses.scenario.robot.planned_names.index(first.joint_names[0])
-    np.testing.assert_array_equal(first.accelerations_rad_s2[0], ex.trajectory.accelerations_rad_s2[k, arm:])
-    pub = out.publication                                  # sent behind the points the controller has
-    assert pub.stamp_ns < out.processed.join_stamp_ns and len(pub.arm.times_s) > len(first.times_s)
-
-
 def test_the_committed_path_runs_on_the_trajectory_before_a_joined_one_that_has_not_started(flat, backend):
     """
     A replan joined to the executing trajectory starts later, at its join: until then the arm is on the one before.
