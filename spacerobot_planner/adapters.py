@@ -212,7 +212,7 @@ class Processed:
 #: a plan from the executing trajectory's end starts this long after that end, s: its first point
 #: and the old last one are both at rest but with their own accelerations (the time-optimal
 #: profiles': braking into the end, speeding up out of it), and a controller that splices the
-#: two messages (joint_trajectory_controller's blend from 6.8 on, or the points in front for
+#: two messages (joint_trajectory_controller's blend after 6.9.0, ros2_controllers #2419, or the points in front for
 #: one that switches at arrival) would otherwise give the old last segment the new acceleration
 #: at its end (a re-run audit measured 1.045 × the elbow's limit there); over the gap the
 #: controller's quintic between the two states stays within their accelerations

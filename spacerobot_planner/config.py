@@ -340,12 +340,13 @@ def _check_scalar(name, kind, value):
 FRAME_PARAMETERS = ("planning_frame", "grid_frame")
 
 
-def _mixed_list_hint(value) -> str:
+def _mixed_list_hint(value, kind: str) -> str:
     """
     Say why a list came as a string, where it reads as a list of numbers ("" otherwise).
 
     ``ros2 param set NODE NAME "[0.5, 2, 2]"`` sends a list that mixes integers and decimals as a
-    string (no ROS parameter type holds both).
+    string (no ROS parameter type holds both).  ``kind``: the parameter's element type ("double",
+    "integer", ...): what to write instead.
     """
     if not isinstance(value, str):
         return ""
@@ -356,9 +357,11 @@ def _mixed_list_hint(value) -> str:
     if not (isinstance(parsed, list) and parsed
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in parsed)):
         return ""
+    why = " (a string: a list that mixes integers and decimals arrives as one, no ROS parameter type holds both; "
+    if kind == "integer":
+        return why + "this one takes whole numbers only)"
     decimals = "[" + ", ".join(repr(float(v)) for v in parsed) + "]"
-    return (f" (a string: a list that mixes integers and decimals arrives as one, no ROS parameter type holds "
-            f"both; write every number with a decimal point, {decimals})")
+    return why + f"write every number with a decimal point, {decimals})"
 
 
 def check_value(name: str, value):
@@ -376,7 +379,8 @@ def check_value(name: str, value):
         if isinstance(value, (tuple, np.ndarray, array.array)):    # array.array: from a ROS message
             value = list(value)
         if not isinstance(value, list) or not value:
-            raise ValueError(f"{name}: expected a non-empty list, got {value!r}" + _mixed_list_hint(value))
+            raise ValueError(f"{name}: expected a non-empty list, got {value!r}"
+                             + _mixed_list_hint(value, spec.type[:-6]))
         kind = spec.type[:-6]
         out = [_check_scalar(f"{name}[{i}]", kind, v) for i, v in enumerate(value)]
     else:

@@ -1037,7 +1037,7 @@ class CaptureSession:
         # arm goes on as sent, whatever made the request (limits lowered as it moves, say): said, not "at the goal"
         kept = (f"no new trajectory could take over from the moving arm ({req.stop_failed or 'no join fitted'}); "
                 "the trajectory it follows ends at this goal: it finishes it as it was sent"
-                if at_goal and req.attempt == FROM_THE_END and req.start_rad is None else None)
+                if at_goal and join is not None and req.attempt == FROM_THE_END and req.start_rad is None else None)
         outcome = Outcome("ok", kept or ("already at the goal: no trajectory published" if at_goal else ""), res, traj,
                           None, values, processed, np.asarray(start_raw), dict(stamps or {}))
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it

@@ -372,6 +372,11 @@ class _GenCancel(Termination):
             if self.cancelled_upto >= self.gen:
                 self.set()
 
+    def forget(self) -> None:
+        """Drop the cancels so far (a new numbering of jobs: another session's)."""
+        with self._gen_lock:
+            self.cancelled_upto = 0
+
 
 # ================================================================== warm-up
 #: the warm-up also plans the configured target on the configured grid up to this size
@@ -632,13 +637,16 @@ class ThreadBackend:
     A cancel of job ``gen`` sets the plan's termination token for that job and every older one,
     before or while it runs (:class:`_GenCancel`, the planning process's): the stage stops at its
     next poll.  (A plain token cleared when a job began lost a cancel that came between the
-    session taking the request and the job starting: a superseded plan then ran to its end.)
+    session taking the request and the job starting: a superseded plan then ran to its end.)  A job
+    numbered below the one before starts a new numbering (the backend handed to another session,
+    whose jobs count from 1 again): the cancels before it are forgotten.
     """
 
     def __init__(self, scenario, log=None, info=None, solver: str | None = None,
                  field_tolerance: float | None = None):
         self.planner = Planner(scenario, solver=solver, field_tolerance=field_tolerance, trajectory=False)
         self._cancel = _GenCancel()
+        self._last_gen = 0
         self.pid = None
         self._counts = {"jobs": 0, "cancelled": 0}
 
@@ -650,6 +658,9 @@ class ThreadBackend:
         return None
 
     def run(self, job: PlanJob, progress=None):
+        if job.gen < self._last_gen:
+            self._cancel.forget()
+        self._last_gen = job.gen
         self._cancel.start(job.gen)
         try:
             if progress is not None:

@@ -119,6 +119,9 @@ def test_a_list_that_came_as_a_string_says_how_to_write_it():
         check_value("trajectory.max_acceleration_deg_s2", "[0.5, 2, 2]")
     assert "trajectory.max_acceleration_deg_s2" in str(e.value)
     assert "write every number with a decimal point, [0.5, 2.0, 2.0]" in str(e.value), str(e.value)
+    with pytest.raises(ValueError) as e:                 # an integer list: no decimals to suggest
+        check_value("grid.cells", "[72, 72.5, 72]")
+    assert "whole numbers only" in str(e.value) and "72.0" not in str(e.value), str(e.value)
     for text in ("abc", "[a, b]", "[]"):                 # not a list of numbers: no such hint
         with pytest.raises(ValueError) as e:
             check_value("trajectory.max_acceleration_deg_s2", text)

@@ -3,7 +3,8 @@
 
 The oracle is ros2_controllers' joint_trajectory_controller as its sources and docs state it,
 written here as a table: from 6.8 on it declares ``allow_trajectory_replacement`` (default
-true: a newer trajectory is spliced in at its stamp; false: the legacy install at arrival);
+true: a newer trajectory takes over at its stamp (6.8.0 and 6.9.0 hold it until then; after 6.9.0,
+ros2_controllers #2419, it is spliced in from its stamp on); false: the legacy install at arrival);
 before 6.8 (Kilted's 5.x, Jazzy's 4.x) it declares ``joints`` and ``interpolation_method`` and
 installs at arrival.  The fake controllers below are plain rclpy nodes that declare those
 parameters and subscribe the topic, as a controller manager's controller node does; what the

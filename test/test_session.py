@@ -703,11 +703,10 @@ def test_the_replans_of_a_target_moved_onto_the_path_cover_every_verdict(slow_ba
         planning[(t1_s, t2_s)] = [t for _, t in ses.log_lines if t.startswith("planning #3 ")]
     assert {v for v, _ in seen.values()} == {"true", "false"}, seen
     # two stops that were published from the measured state at rest while the arm moved, then failed
-    # (join_failed): (3.55, 0.0) had needed more than three whole-path re-timings of its first segment, from the
-    # arm's own acceleration (adapters.STOP_WHOLE_PATH_RETIMES; a controller that switches at arrival still
-    # does); (3.0, 0.4) is a slow arm at a bend, whose stop is found with the arm's own tangent and its start
-    # at the full limits (replanning.stopping_join).  The stop's planning line says where the stop is (it had
-    # said "1 s ahead", the horizon, wherever the stop was)
+    # (join_failed): (3.55, 0.0) needs more than three whole-path re-timings of its first segment, from the
+    # arm's own acceleration (adapters.STOP_WHOLE_PATH_RETIMES); (3.0, 0.4) is a slow arm at a bend, whose stop
+    # is found with the arm's own tangent and its start at the full limits (replanning.stopping_join).  The
+    # stop's planning line says where the stop is (it had said "1 s ahead", the horizon, wherever the stop was)
     for moment in [(3.55, 0.0), (3.0, 0.4)]:
         assert "stopping on its path" in seen[moment][1], seen
         assert any(re.search(r"\(stopping on the executing trajectory \d+\.\d\d s ahead\)", t)

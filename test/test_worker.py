@@ -539,6 +539,9 @@ def test_thread_backend_a_cancel_before_the_job_starts_cancels_it_and_not_the_ne
     assert time.monotonic() - t0 < 30.0, "the cancelled job ran its stall"
     nxt = b.run(_job(sc, 8, joint_goal=sc.goal_rad))
     assert isinstance(nxt, PlanDone) and nxt.result.ok, nxt
+    # handed to another session, whose jobs count from 1 again: the cancels of the first are forgotten
+    again = b.run(_job(sc, 1, joint_goal=sc.goal_rad))
+    assert isinstance(again, PlanDone) and again.result.ok, again
 
 
 def test_thread_backend_plans_the_same_job():
