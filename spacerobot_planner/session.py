@@ -1094,11 +1094,12 @@ class CaptureSession:
         t = res.timings_s
         self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
                  f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "
-                 f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f} ms; cached: "
+                 f"{1e3 * t['smoothing']:.1f}, verify {1e3 * t['verify']:.1f}, trajectory "
+                 f"{1e3 * t.get('trajectory', 0.0):.1f} ms; cached: "
                  f"{', '.join(res.cached) or 'none'}{threads_text(res.solver_stats)}"
                  + (f"; planned in the {planned_in}" if planned_in else "") + "); clearance "
                  f"{res.min_clearance_m:.3f} m; "
-                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed, stamps)}, "
+                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed)}, "
                     f"joined to the moving arm: {joined}; stamped {1e-9 * (stamp - now):.3f} s ahead"
                     + _prefix_text(outcome.publication, processed, now)
                     if outcome.publication.sent else "no trajectory published")
@@ -1125,15 +1126,12 @@ def _prefix_text(publication: Publication, processed: Processed, now_ns: int) ->
             f"{1e-9 * (now_ns - publication.stamp_ns):.3f} s ago)")
 
 
-def _chain_text(processed: Processed, stamps) -> str:
-    """Return the log's ' (chain 3.1 ms, timed again twice for the controller's overshoot)', or ''."""
-    parts = []
-    if stamps and "chain" in stamps and "received" in stamps:
-        parts.append(f"chain {1e3 * (stamps['chain'] - stamps['received']):.1f} ms")
+def _chain_text(processed: Processed) -> str:
+    """Return the log's ' (timed again twice for the controller's overshoot)', or '' (the chain's time: its stages)."""
     n = processed.retimings
-    if n:
-        parts.append("timed again " + {1: "once", 2: "twice"}.get(n, f"{n} times") + " for the controller's overshoot")
-    return f" ({', '.join(parts)})" if parts else ""
+    if not n:
+        return ""
+    return " (timed again " + {1: "once", 2: "twice"}.get(n, f"{n} times") + " for the controller's overshoot)"
 
 
 def result_values(res, reaction) -> dict:
