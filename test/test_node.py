@@ -167,7 +167,7 @@ def test_executor_responsive_during_slow_plan(graph):
     g.send_target()
     g.wait(lambda: g.planner.state == "planning", 10, "planning started")
     t0 = time.monotonic()
-    time.sleep(2.0)
+    time.sleep(3.0)
     t1 = time.monotonic()
     assert g.planner.state == "planning", "the stalled plan finished too quickly to test anything"
     # the executor keeps delivering the arm's 50 Hz joint_states while the plan runs: no gap near a hang (a
@@ -176,8 +176,8 @@ def test_executor_responsive_during_slow_plan(graph):
     with g.lock:
         arrivals = [t for t, _ in g.states if t0 <= t <= t1]
     gaps = np.diff([t0, *arrivals, t1])
-    assert len(arrivals) >= 4 and gaps.max() < 1.0, \
-        (f"{len(arrivals)} joint_states reached the driver in 2 s of the plan (50 Hz sent), "
+    assert len(arrivals) >= 4 and gaps.max() < 1.5, \
+        (f"{len(arrivals)} joint_states reached the driver in 3 s of the plan (50 Hz sent), "
          f"largest gap {gaps.max():.2f} s")
     t_close = time.monotonic()
     g.close()

@@ -735,6 +735,24 @@ def test_limits_lowered_as_the_arm_moves_and_no_stop_fits_them_plan_from_the_exe
     assert off < 1e-6, math.degrees(off)
 
 
+def _following_its_first_trajectory(slow_backend, at):
+    """
+    Return (session, Executing, clock): the audit's first target planned, the arm following its trajectory.
+
+    ``at(duration_s)``: how far into that trajectory (s) the clock is, the arm's state measured 10 ms before.
+    """
+    f, be = slow_backend
+    clock = Clock()
+    ses = _session(f, be, clock)
+    ses.joint_state(np.radians([-178.7, 41.05, 95.96]), clock.t)
+    ses.submit("first", target=ses.target)
+    assert ses.run_once().ok
+    ex = ses.executing
+    clock.t = ex.start_ns + int(S * at(ex.trajectory.duration_s))
+    ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
+    return ses, ex, clock
+
+
 def test_limits_lowered_as_the_arm_moves_to_its_goal_say_that_it_finishes_its_trajectory_as_sent(slow_backend):
     """
     Velocity limits lowered to a sixteenth as the arm moves to its goal (``ros2 param set``): said, not "at the goal".
@@ -746,15 +764,7 @@ def test_limits_lowered_as_the_arm_moves_to_its_goal_say_that_it_finishes_its_tr
     warning say that no trajectory could take over and that the arm finishes the one it follows as
     it was sent.  Oracle: the executing trajectory's own speed against the new limits (the test's).
     """
-    f, be = slow_backend
-    clock = Clock()
-    ses = _session(f, be, clock)
-    ses.joint_state(np.radians([-178.7, 41.05, 95.96]), clock.t)
-    ses.submit("first", target=ses.target)
-    assert ses.run_once().ok
-    ex = ses.executing
-    clock.t = ex.start_ns + int(0.4 * ex.trajectory.duration_s * S)
-    ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
+    ses, ex, clock = _following_its_first_trajectory(slow_backend, lambda duration_s: 0.4 * duration_s)
     lim = ses.scenario.joint_limits
     slower = replace(lim, max_velocity_rad_s=tuple(np.asarray(lim.max_velocity_rad_s) / 16.0))
     ses.configure(replace(ses.scenario, joint_limits=slower), ses.settings)
@@ -820,15 +830,8 @@ def test_a_moving_arm_no_trajectory_can_take_over_finishes_its_own_and_the_next_
             raise ValueError("injected: no timing enters the arm's speed")
         return real(*args, join=join, **kwargs)
 
-    f, be = slow_backend
-    clock = Clock()
-    ses = _session(f, be, clock)
-    ses.joint_state(np.radians([-178.7, 41.05, 95.96]), clock.t)
-    ses.submit("first", target=ses.target)
-    assert ses.run_once().ok
-    ex = ses.executing
-    clock.t = ex.start_ns + int(S * (at_s if at_s > 0 else ex.trajectory.duration_s + at_s))
-    ses.joint_state(ex.expected_at(clock.t - S // 100), clock.t - S // 100)
+    ses, ex, clock = _following_its_first_trajectory(
+        slow_backend, lambda duration_s: at_s if at_s > 0 else duration_s + at_s)
     monkeypatch.setattr(session_module, "post_process", no_join)
     sent = len(ses.published)
     ses.submit("moved", target=replace(ses.target, center_m=tuple(np.asarray(ses.target.center_m) + 0.05)))
