@@ -10,13 +10,15 @@ plan a person would get from ``spacerobot-plan`` for that pose:
 2. with ``acs.mode: free_floating`` and ``acs.compensate_drift``, the drift-compensated plan
    (``free_floating.plan_free_floating``, geometry only) and the trajectory stage on it;
 3. the node's chain after the path, from rest at the start (``adapters.post_process``): what
-   the node publishes for the same request.
+   the node publishes for the same request; its time joins the result's ``trajectory`` stage
+   and total, as the node's (``PlanResult.with_chain``).
 
 No rclpy here.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from .adapters import Processed, post_process
@@ -40,12 +42,15 @@ class OfflinePlan:
         processed: ``adapters.Processed`` of the result's path from rest at the start (the
             published trajectory), None when the result has no trajectory.
         compensated: the ``free_floating.CompensatedPlan`` when the drift compensation ran, else None.
+        chain_s: seconds the node's chain took (in ``result``'s trajectory stage and total), 0.0
+            without a trajectory.
 
     """
 
     result: PlanResult
     processed: Processed | None
     compensated: CompensatedPlan | None
+    chain_s: float = 0.0
 
 
 def plan_offline(planner: Planner, start_rad, goal_rad=None, progress=None) -> OfflinePlan:
@@ -77,9 +82,13 @@ def plan_offline(planner: Planner, start_rad, goal_rad=None, progress=None) -> O
         comp = plan_free_floating(scenario, start_rad, goal_rad)
         if comp.plan.ok:
             res = planner.add_trajectory(comp.plan, start_rad)
-    processed = None
+    processed, chain_s = None, 0.0
     if res.trajectory is not None:
-        # the node's chain, from rest at the start: what the node publishes for this request
+        # the node's chain, from rest at the start: what the node publishes for this request (its
+        # seconds in the trajectory stage and the total, as the node's)
+        t0 = time.perf_counter()
         processed = post_process(scenario, res.path_rad, start_rad=start_rad,
                                  motions=MotionValidator.for_scene(scenario.robot, scenario.scene))
-    return OfflinePlan(res, processed, comp)
+        chain_s = time.perf_counter() - t0
+        res = res.with_chain(chain_s)
+    return OfflinePlan(res, processed, comp, chain_s)

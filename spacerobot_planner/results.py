@@ -8,7 +8,7 @@ give the plain value, so the strings on the wire stay as they were.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import numpy as np
@@ -124,6 +124,18 @@ class PlanResult:
     exit_path_rad: np.ndarray | None = None
     start_penetration_m: float = 0.0
     free_floating: object = None
+
+    def with_chain(self, chain_s: float) -> "PlanResult":
+        """
+        Return this result with the node's chain (``adapters.post_process``) as its trajectory stage.
+
+        The chain makes the trajectory that is published (from the node, or from
+        ``spacerobot-plan`` for the same request), so its seconds join the ``trajectory``
+        stage (after the planner's own time parameterisation, where one ran) and the total.
+        """
+        t = self.timings_s
+        return replace(self, timings_s={**t, "trajectory": t.get("trajectory", 0.0) + chain_s,
+                                        "total": t.get("total", 0.0) + chain_s})
 
     def to_json_dict(self) -> dict:
         """

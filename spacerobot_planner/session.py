@@ -62,7 +62,7 @@ import math
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -939,9 +939,7 @@ class CaptureSession:
                            f"({exposure})")
         stamps["chain"] = time.perf_counter()
         if "received" in stamps:        # the node's trajectory stage is the chain: in the result's stages and total
-            chain_s, t = stamps["chain"] - stamps["received"], res.timings_s
-            res = replace(res, timings_s={**t, "trajectory": t.get("trajectory", 0.0) + chain_s,
-                                          "total": t.get("total", 0.0) + chain_s})
+            res = res.with_chain(stamps["chain"] - stamps["received"])
         dropped = self._superseded_by(req)
         if dropped is not None:
             self._log_flood(dropped.code, f"plan #{req.gen} {dropped.code}: {dropped.reason}")

@@ -58,6 +58,29 @@ def test_paper_3dof_json(tmp_path, capsys):
     assert "clearance" in out and "length" in out
 
 
+def test_the_chain_is_the_trajectory_stage(monkeypatch, capsys):
+    """The trajectory the CLI prints is the node's chain's: its time is in the trajectory stage and the total, as the
+    node's action result says (the stage line had no trajectory, the total left the chain out).  Made long by
+    injection: a chain that takes 0.3 s more."""
+    import time
+    from spacerobot_planner import offline
+    real = offline.post_process
+
+    def slow(*a, **k):
+        time.sleep(0.3)
+        return real(*a, **k)
+
+    monkeypatch.setattr(offline, "post_process", slow)
+    rc, out, err = run(["--params-file", P2, "--json", "-"], capsys)
+    assert rc == 0, err
+    t = json.loads(out)["timings_s"]
+    assert t["trajectory"] >= 0.3 and t["total"] >= 0.3 + t["field"] + t["cspace"]
+    line = next(s for s in err.splitlines() if s.startswith("stages:"))
+    chain_ms = float(line.split("the node's chain ")[1].split(" ms")[0])
+    stage_ms = float(line.split("trajectory ")[1].split(" ms")[0])
+    assert 300.0 <= chain_ms <= stage_ms <= 1e3 * t["total"]
+
+
 def test_start_and_goal_flags(tmp_path, capsys):
     js = tmp_path / "p.json"
     rc, out, err = run(["--params-file", P3, "--start-deg", "-80", "135", "90",

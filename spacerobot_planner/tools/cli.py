@@ -61,12 +61,15 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _summary(res, scenario) -> list:
+def _summary(res, scenario, chain_s: float = 0.0) -> list:
     deg = np.degrees
     lines = []
     t = res.timings_s
     stages = ", ".join(f"{k} {'cached' if k in res.cached else f'{1e3 * t[k]:.1f} ms'}"
-                       for k in ("cspace", "field", "descent", "repair", "smoothing", "verify"))
+                       for k in ("cspace", "field", "descent", "repair", "smoothing", "verify", "trajectory")
+                       if k in t)
+    if chain_s:
+        stages += f" (of it the node's chain {1e3 * chain_s:.1f} ms)"
     lines.append(f"stages: {stages}; total {1e3 * t['total']:.1f} ms{threads_text(res.solver_stats)}")
     if res.ok:
         lines.append(f"path: {len(res.path_rad)} samples ({res.smoothing}), {len(res.grid_path_rad)} grid nodes, "
@@ -165,7 +168,7 @@ def main(argv=None) -> int:
         say(f"drift compensation: {len(comp.history)} plans, tip miss "
             f"{' → '.join(f'{h[0]:.4f}' for h in comp.history)} m; goal "
             f"{np.round(np.degrees(comp.goal_rad), 2).tolist()}°")
-    for line in _summary(res, scenario):
+    for line in _summary(res, scenario, done.chain_s):
         say(line)
     if processed is not None:
         for line in _motion_summary(res.reaction, processed):
