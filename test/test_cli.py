@@ -59,9 +59,12 @@ def test_paper_3dof_json(tmp_path, capsys):
 
 
 def test_the_chain_is_the_trajectory_stage(monkeypatch, capsys):
-    """The trajectory the CLI prints is the node's chain's: its time is in the trajectory stage and the total, as the
-    node's action result says (the stage line had no trajectory, the total left the chain out).  Made long by
-    injection: a chain that takes 0.3 s more."""
+    """
+    The CLI's trajectory stage is the node's chain, in its stages and total as in the node's result.
+
+    The stage line had no trajectory and the total left the chain out.  Made long by injection: a
+    chain that takes 0.3 s more.
+    """
     import time
     from spacerobot_planner import offline
     real = offline.post_process
