@@ -14,8 +14,8 @@ carries the very trajectory the node publishes:
    trajectory stops the chain (``Processed.refused``);
 3. **resample and certify** -- a subset of the dense points at most ``time_step_s``
    apart and within 0.1° of the dense path; the motion the controller makes of them (its
-   quintics, sampled: ``trajectory.controller_check``) certified on the exact geometry with
-   the scene's ``motion.MotionValidator`` (``trajectory.resample``); when that certification
+   quintics, sampled: ``published.controller_check``) certified on the exact geometry with
+   the scene's ``motion.MotionValidator`` (``published.resample``); when that certification
    fails the dense trajectory is kept;
 4. **the controller's motion** -- joint_trajectory_controller interpolates the published
    points (quintic segments), which overshoots the time-optimal profile's piecewise-constant
@@ -50,8 +50,8 @@ from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, timed
 from .settings import SessionSettings
 from .spacecraft import free_floating_rates, free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
-from .trajectory import (Lowering, Resampled, Trajectory, controller_check, lowering_factors, resample, segment_peaks,
-                         segment_wheel_peaks, shared_path_models)
+from .published import Resampled, controller_check, resample, segment_peaks, segment_wheel_peaks
+from .trajectory import Lowering, Trajectory, lowering_factors, shared_path_models
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "switching_at_arrival", "AFTER_THE_END_S",
@@ -148,7 +148,7 @@ class Processed:
         indices: (K,) their indices in ``dense``.
         certified: the published polyline passed the exact-geometry check.
         min_clearance_m: its clearance, m: the least at the check's samples of the controller's motion
-            (``trajectory.controller_check``; where not certified, the check's up to where it failed;
+            (``published.controller_check``; where not certified, the check's up to where it failed;
             nan when not checked).
         reaction: ``reaction.ReactionReport`` or None (not reported for this scenario).
         arm, attitude: the :class:`TrajectoryPart` of each controller (see :func:`split_parts`).
@@ -453,8 +453,8 @@ def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16
     Columns: joint velocity, joint acceleration (the largest over the planned joints, over the
     limits times the scaling factors), wheel momentum, wheel torque (over the limits; 0 unless
     the attitude is held and the limit set); each over ``samples_per_segment`` samples of the
-    segment's quintic and its end point (``trajectory.segment_peaks`` for the joints, the
-    acceleration exact; ``trajectory.segment_wheel_peaks`` for the wheels, their peak between
+    segment's quintic and its end point (``published.segment_peaks`` for the joints, the
+    acceleration exact; ``published.segment_wheel_peaks`` for the wheels, their peak between
     the samples searched: 16 samples alone miss it by up to 0.4 % of a limit, with the search
     by less than 0.004 %).
     """
@@ -499,7 +499,7 @@ def controller_wheel_overshoot(traj: Trajectory, scenario, samples_per_segment: 
     Return the peak (wheel momentum, wheel torque) over the scenario's wheel limits of the controller's motion.
 
     The wheels take the arm's reaction as the arm really moves: joint_trajectory_controller's
-    interpolation of ``traj``'s points (``trajectory.controller_motion``), sampled
+    interpolation of ``traj``'s points (``published.controller_motion``), sampled
     ``samples_per_segment`` times per segment and at the end, its peak between the samples
     searched (:func:`segment_overshoots`), not only the points the time parameterisation kept within the
     limits (the quintics between them overshoot a torque limit that binds by up to about a

@@ -18,7 +18,7 @@ never for what is returned.
 One scene, one validator (OMPL's ``SpaceInformation`` with its ``MotionValidator``):
 :class:`MotionValidator` is bound to a scene's collision checker and owns the planned
 joints' bounds, their periodic axes and the certified step.  The stages (smoothing, the
-pipeline's joins and grid paths, ``trajectory.resample``, the replan's corner blends, the
+pipeline's joins and grid paths, ``published.resample``, the replan's corner blends, the
 exit from a contact) ask it instead of passing a checker, bounds and packed arrays around;
 :func:`check_path` and :func:`first_bad_segment` are the same checks for a checker and
 bounds given one by one.

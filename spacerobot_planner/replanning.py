@@ -91,7 +91,7 @@ class Executing:
     ----------
         trajectory: the dense trajectory (planned joints, unwrapped, rad), whose polyline
             was certified collision-free.
-        published: (K,) indices of the points sent (``trajectory.resample``'s), 0 and the
+        published: (K,) indices of the points sent (``published.resample``'s), 0 and the
             last included.
         start_ns: the ROS time of its time 0 (the message's stamp), ns.
         previous: the trajectory it was joined to (what the arm follows before

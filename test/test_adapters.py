@@ -62,7 +62,7 @@ def test_the_retimings_count_says_why_the_first_timing_was_not_published(
     that first timing's.
     """
     from spacerobot_planner.adapters import RESAMPLE_STEP_S
-    from spacerobot_planner.trajectory import resample
+    from spacerobot_planner.published import resample
     sc = paper_scenario(dof)
     idx = list(sc.robot.planned_joints)
     n = sc.robot.n_joints

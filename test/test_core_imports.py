@@ -54,7 +54,7 @@ LAYERS = (
     ("stages", ("motion", "cspace", "field", "field.graph", "field.harmonic", "field.multigrid", "field.structured",
                 "field.geometric", "field.krylov",
                 "field.oracle", "field.paper", "descent", "repair", "swept", "contact", "smoothing", "ik", "redundant",
-                "results", "trajectory", "reaction", "timing", "replanning", "settings", "problem",
+                "results", "trajectory", "published", "reaction", "timing", "replanning", "settings", "problem",
                 "free_floating_capture")),
     ("pipeline", ("pipeline", "adapters")),
     ("planner", ("planner",)),

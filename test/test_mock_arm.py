@@ -1,7 +1,7 @@
 """
 The mock arm follows trajectories as joint_trajectory_controller (JTC) does.
 
-- ``trajectory.sample_points`` against independent oracles: SciPy's ``CubicHermiteSpline``
+- ``published.sample_points`` against independent oracles: SciPy's ``CubicHermiteSpline``
   (positions and velocities), SciPy's ``BPoly.from_derivatives`` and a quintic solved here
   from its six end conditions (positions, velocities and accelerations), ``np.interp``
   (positions only); the end conditions and the clamping outside the points.
@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from oracles import controller_interpolation as oracle, quintic_acceleration_peaks
-from spacerobot_planner.trajectory import sample_points, segment_peaks
+from spacerobot_planner.published import sample_points, segment_peaks
 
 CONFIG = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "config", "paper_3dof.yaml")
 #: a ROS time of today's order (s): the float rounding of the stamps is part of what is tested

@@ -5,7 +5,7 @@ The oracle builds the body and link centres, velocities and accelerations of the
 as stacked arrays (the textbook sums: centre of link k = Σ_{j<k} L_j e_j + L_k/2 e_k, the
 angular momentum about the system CoM h = Σ m (r − r̄) × (ṙ − r̄̇) + Σ I φ̇ and its rate), and
 the momentum map from a central difference of h in the joint rates (h is linear in them).
-The same sums judge ``trajectory.segment_wheel_peaks`` (the wheels' load of the controller's
+The same sums judge ``published.segment_wheel_peaks`` (the wheels' load of the controller's
 quintics, per segment) on SciPy's quintics sampled densely.
 """
 
@@ -15,7 +15,7 @@ import pytest
 from spacerobot_planner.config import load_scenario
 from spacerobot_planner.spacecraft import (angular_momentum_Nms, momentum_map, momentum_rate_Nm, wheel_load,
                                            MassProperties)
-from spacerobot_planner.trajectory import segment_wheel_peaks
+from spacerobot_planner.published import segment_wheel_peaks
 from pathlib import Path
 from types import SimpleNamespace
 

@@ -14,7 +14,8 @@ from paper_paths import joint_limits, new_path_from, turned
 
 from spacerobot_planner.pipeline import timed_motion
 from spacerobot_planner.replanning import BLEND_SAMPLES, Executing, joined_motion, plan_start
-from spacerobot_planner.trajectory import HorizonPassed, resample
+from spacerobot_planner.published import resample
+from spacerobot_planner.trajectory import HorizonPassed
 
 PERIODIC = (True, False, False)
 S = 1_000_000_000          # ns per s

@@ -15,8 +15,8 @@ from oracles import (check_trajectory, controller_motion, dense_samples, shapely
                      toppra_duration_s)
 from paper_paths import joint_limits, new_path_from, turned
 from spacerobot_planner.collision import CollisionChecker
-from spacerobot_planner.trajectory import (Lowering, densify_path, resample, sample, shared_path_models,
-                                           time_parameterize)
+from spacerobot_planner.published import resample
+from spacerobot_planner.trajectory import Lowering, densify_path, sample, shared_path_models, time_parameterize
 
 VMAX = np.radians([5.0, 15.0, 15.0])
 AMAX = np.radians([5.0, 20.0, 20.0])

@@ -50,7 +50,8 @@ from ..ik import grasp_ik
 from ..planner import Planner, warm_up
 from ..reaction import reaction_report
 from ..spacecraft import MassProperties, WheelModel
-from ..trajectory import resample, time_parameterize
+from ..published import resample
+from ..trajectory import time_parameterize
 from .timing import call_times_s, tail_stats
 
 CONFIG = Path(__file__).resolve().parent.parent.parent / "config"

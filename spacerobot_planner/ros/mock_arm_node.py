@@ -7,7 +7,7 @@ and ``robot.locked_positions_deg`` for the rest.  A trajectory on ``joint_trajec
 arm) or ``attitude_trajectory`` (the spacecraft's attitude, as an attitude control system
 would) is followed as ros2_controllers' joint_trajectory_controller (JTC) follows one:
 
-- its points are interpolated per segment by ``trajectory.sample_points``: linear for
+- its points are interpolated per segment by ``published.sample_points``: linear for
   positions only, a cubic Hermite with velocities, a quintic with velocities and
   accelerations; after the last point the arm holds it, at rest;
 - its time base is its header stamp (a zero stamp: the moment it arrives); one that would
@@ -53,7 +53,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from ..config import scenario_from_params
-from ..trajectory import sample_points
+from ..published import sample_points
 from . import conversions as conv
 from . import node_main
 from .parameters import MOCK_ARM_PARAMETERS, SPECS, as_declared, check_choice, descriptor_for
