@@ -46,15 +46,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .motion import MotionValidator
+from .published import Resampled, controller_check, resample, segment_peaks, segment_wheel_peaks
+from .reaction import DriftedValidator
 from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, timed_join
 from .settings import SessionSettings
 from .spacecraft import free_floating_rates, free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
-from .published import Resampled, controller_check, resample, segment_peaks, segment_wheel_peaks
 from .trajectory import Lowering, Trajectory, lowering_factors, shared_path_models
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
-           "switching_at_arrival", "AFTER_THE_END_S",
+           "switching_at_arrival", "AFTER_THE_END_S", "certifying",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD", "warm_up"]
 
@@ -320,6 +321,8 @@ def _post_process(scenario, path_rad, start_rad, join, now_ns, lead_s, motions, 
     paths = None
     if join is not None and starts_at_the_end(join, now_ns, lead_s, from_end_at_rest) is None:
         paths = joined_paths(scenario, join, path_rad, now_ns, lead_s, motions)
+    # the published points' motion certified in the frame the plan was (free floating: inertial)
+    motions = certifying(scenario, motions)
     args = (path_rad, start_rad, join, now_ns, lead_s, motions, time_step_s, from_end_at_rest, paths)
     # the re-timing rounds need only the published points (the certification cannot change them
     # when it passes at once) and, from rest, not the reaction report (the same path; the verdict
@@ -680,15 +683,32 @@ def switching_at_arrival(sent_stamp_ns: int, sent_parts, stamp_ns: int, parts, d
     return anchor_ns, tuple(prefixed(old, part) for old, part in zip(sent_parts, parts)), drift
 
 
-def uncertified_text(processed: Processed, motions) -> str:
+def certifying(scenario, motions: MotionValidator) -> MotionValidator:
+    """
+    Return the validator that certifies the controller's motion in ``scenario``: free floating, the inertial frame's.
+
+    With ``acs.mode: free_floating`` nothing holds the attitude: the arm's motion turns and
+    moves the spacecraft, so the motion through the published points is certified with the
+    body drifting (``reaction.DriftedValidator``), as the plan's path was
+    (``reaction.check_drifted``), not on a body held still (where a capture's last stretch,
+    planned for the drifted body, may cross the target).  Else ``motions`` itself.
+    """
+    motions = MotionValidator.of(motions)
+    if scenario.acs.mode != "free_floating" or isinstance(motions, DriftedValidator):
+        return motions
+    return DriftedValidator(motions, scenario.masses)
+
+
+def uncertified_text(scenario, processed: Processed, motions) -> str:
     """
     Say where the controller's motion through ``processed``'s published points leaves the certified (a text).
 
-    When it comes within the safety margin (``motions``: the scene's ``motion.MotionValidator``)
-    and how close: for the log of a trajectory that is not certified (a start within the margin, or
-    a joined one whose executing path a new scene put an obstacle on).
+    When it comes within the safety margin (``motions``: the scene's ``motion.MotionValidator``,
+    :func:`certifying` in ``scenario``) and how close: for the log of a trajectory that is not
+    certified (a start within the margin, or a joined one whose executing path a new scene put an
+    obstacle on).
     """
-    traj, motions = processed.trajectory, MotionValidator.of(motions)
+    traj, motions = processed.trajectory, certifying(scenario, motions)
     check, seg_ok = controller_check(traj, motions)
     if check.ok:
         return f"the controller's motion is certified (clearance {check.min_clearance_m:.3f} m)"

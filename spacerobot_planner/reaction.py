@@ -18,10 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 from .collision import CollisionChecker
 from .ik import approach_error_rad
+from .motion import MotionValidator, PathCheck
 from .spacecraft import (ACS_MODES, MassProperties, WheelModel, free_floating_response, system_com_m,
                          wheel_load)
 
-__all__ = ["DriftCheck", "ReactionReport", "check_drifted", "reaction_report"]
+__all__ = ["DriftCheck", "DriftedValidator", "ReactionReport", "check_drifted", "reaction_report"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,34 +59,123 @@ def check_drifted(robot, masses: MassProperties, scene, path_rad, max_rounds: in
     δ = Σ_j |Δq_j| · reach_j + |Δb| (reach_j: chain length beyond joint j, b: body
     position), so an interval is certified when (c_a + c_b − δ)/2 > margin; otherwise
     it is split (the path is straight between its rows) and the drift recomputed.
+    Stops at the first sample within the margin (:func:`_drift_walk`).
 
     ``motions``: the scene's ``motion.MotionValidator`` (its checker is used; one is made
     when None).  ``response``: :func:`free_floating_response` of ``path_rad`` when the caller
     has it (its first round; the grasp point does not enter the drift).
     """
     chk = CollisionChecker(robot, scene) if motions is None else motions.checker
+    walk = _drift_walk(robot, masses, chk, np.atleast_2d(np.asarray(path_rad, dtype=float)), chk.margin_m,
+                       max_rounds, response, stop_at_hit=True)
+    return DriftCheck(walk.ok, walk.min_clearance_m, walk.first_hit_fraction, walk.n_checked)
+
+
+@dataclass(frozen=True, eq=False)
+class _DriftWalk:
+    """:func:`_drift_walk`'s result: per interval of the given rows (M - 1,), per row (M,), overall."""
+
+    ok: bool
+    interval_ok: np.ndarray
+    interval_clearance_m: np.ndarray
+    vertex_clearance_m: np.ndarray
+    min_clearance_m: float
+    first_hit_fraction: float | None
+    n_checked: int
+
+
+def _drift_walk(robot, masses, chk, path, threshold_m: float, max_rounds: int, response=None,
+                stop_at_hit: bool = False) -> _DriftWalk:
+    """
+    Certify the drifted motion through the rows of ``path`` (M, dof), interval by interval.
+
+    :func:`check_drifted`'s rule, per interval of the given rows.
+    Each round integrates the drift along the rows so far (:func:`free_floating_response`),
+    evaluates their inertial clearance, fails the intervals with a row at or below
+    ``threshold_m`` and splits those whose two ends' clearance balls do not overlap (the
+    motion between them bounded by δ, above) at their middles; after ``max_rounds`` splits an
+    interval still open fails.  ``stop_at_hit``: return at the first round with a row within
+    the threshold (``first_hit_fraction``: that row's place among the rows then, 0…1).
+    ``interval_clearance_m``: the least clearance at the rows in each interval (its two ends
+    included), ``vertex_clearance_m`` the clearance at the given rows, both from the last round.
+    """
     lengths = np.asarray(robot.link_lengths_m, dtype=float)
     reach = np.cumsum(lengths[::-1])[::-1]
-    p = np.atleast_2d(np.asarray(path_rad, dtype=float))
-    margin = chk.margin_m
-    n_eval = 0
+    p, m = path, len(path)
+    owner = np.arange(m)                  # each row's interval of the given rows (the last row: m - 1, none)
+    given = np.arange(m)                  # where the given rows are among the rows
+    failed = np.zeros(max(m - 1, 0), dtype=bool)
+    n_eval, c, hit_fraction = 0, np.zeros(m), None
     for r in range(max_rounds + 1):
         resp = response if r == 0 and response is not None else free_floating_response(robot, masses, p)
         c = chk.clearance_shifted_m(resp.q_full_rad, resp.body_position_m)
         n_eval += len(c)
-        hit = np.flatnonzero(~(c > margin))
+        hit = np.flatnonzero(~(c > threshold_m))
         if len(hit):
-            return DriftCheck(False, float(c.min()), float(hit[0] / max(1, len(c) - 1)), n_eval)
+            hit_fraction = float(hit[0] / max(1, len(c) - 1)) if hit_fraction is None else hit_fraction
+            if stop_at_hit:
+                break
+            # a row within the threshold fails its interval (a given row: both of its intervals)
+            failed[owner[hit][owner[hit] < m - 1]] = True
+            at_given = np.searchsorted(given, hit)
+            on_given = (at_given < m) & (given[np.minimum(at_given, m - 1)] == hit)
+            before = at_given[on_given] - 1
+            failed[before[before >= 0]] = True
         if len(p) < 2:
-            return DriftCheck(True, float(c.min()), None, n_eval)
+            break
         delta = (np.abs(np.diff(resp.q_full_rad, axis=0)) @ reach
                  + np.linalg.norm(np.diff(resp.body_position_m, axis=0), axis=1))
-        bad = np.flatnonzero(~(0.5 * (c[:-1] + c[1:] - delta) > margin))
+        bad = np.flatnonzero(~(0.5 * (c[:-1] + c[1:] - delta) > threshold_m) & ~failed[owner[:-1]])
         if not len(bad):
-            return DriftCheck(True, float(c.min()), None, n_eval)
+            break
+        if r == max_rounds:
+            failed[owner[bad]] = True
+            break
         mids = 0.5 * (p[bad] + p[bad + 1])
         p = np.insert(p, bad + 1, mids, axis=0)
-    return DriftCheck(False, float(c.min()), None, n_eval)
+        owner = np.insert(owner, bad + 1, owner[bad])
+        given = given + np.searchsorted(bad, given, side="left")
+    iv_clr = np.full(max(m - 1, 0), np.inf)
+    if m > 1:
+        rows = np.flatnonzero(owner < m - 1)
+        np.minimum.at(iv_clr, owner[rows], c[rows])
+        np.minimum(iv_clr, c[given[1:]], out=iv_clr)
+    ok = hit_fraction is None and not failed.any()
+    return _DriftWalk(bool(ok), ~failed, iv_clr, c[given].copy(), float(np.nanmin(c)), hit_fraction, n_eval)
+
+
+class DriftedValidator(MotionValidator):
+    """
+    A scene's motion validator for a free-floating spacecraft: :meth:`check` certifies in the inertial frame.
+
+    The arm's joints move as the rows say and the spacecraft turns and translates as the
+    momentum balance makes it (:func:`free_floating_response`, from the first row), while the
+    target and the debris stay put (:func:`_drift_walk`, :func:`check_drifted`'s rule, per
+    interval): what the chain's certification of the controller's motion must judge when
+    nothing holds the attitude (``acs.mode: free_floating``), not the arm on a body held still.
+    The segment tests the planning stages use are the scene's own (``MotionValidator``'s).
+    """
+
+    def __init__(self, motions: MotionValidator, masses: MassProperties, max_rounds: int = 12):
+        super().__init__(motions.checker, motions.lower_rad, motions.upper_rad, motions.periodic, motions.step_rad)
+        self.masses, self.max_rounds = masses, int(max_rounds)
+
+    def check(self, path_rad, *, required_clearance_m: float | None = None, **_) -> PathCheck:
+        """
+        Certified check of the drifted motion through the rows of ``path_rad`` (M, planned joints), rad.
+
+        ``motion.PathCheck`` per interval between the rows (every row checked: the drift
+        integrates along all of them); bounded joints within their bounds at the rows.
+        ``required_clearance_m``: a larger threshold than the margin.  The other arguments of
+        ``MotionValidator.check`` (the walk's step, reused clearances, one walk past the rows)
+        have no meaning here and are ignored.
+        """
+        p = self._rows(path_rad)
+        threshold = self.margin_m if required_clearance_m is None else max(self.margin_m, required_clearance_m)
+        walk = _drift_walk(self.robot, self.masses, self.checker, p, threshold, self.max_rounds)
+        ok = walk.ok and bool(self.within_bounds(p).all())
+        return PathCheck(ok, walk.interval_ok, walk.min_clearance_m, walk.n_checked, walk.interval_clearance_m,
+                         walk.vertex_clearance_m)
 
 
 @dataclass(frozen=True, eq=False)

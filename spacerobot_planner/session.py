@@ -980,7 +980,7 @@ class CaptureSession:
                     return said, True
                 break
         if not processed.certified:
-            return uncertified_text(processed, motions), True
+            return uncertified_text(req.scenario, processed, motions), True
         return said, False
 
     def _publish_plan(self, req: Request, res, processed: Processed, start_raw, join, stamps=None,
@@ -1081,14 +1081,19 @@ class CaptureSession:
             self.log("info", f"plan #{req.gen}: already at the goal (within {AT_GOAL_TOL_RAD:g} rad): "
                      "no trajectory published")
         if outcome.publication.sent and (exposure is not None or not processed.certified):
+            motions = self.motions(req.scenario.scene)
+            walks_out = join is None and not motions.clearance_m(processed.trajectory.positions_rad[0]) > \
+                motions.margin_m
             self.log("warning", f"plan #{req.gen}: its motion is published although not collision-free: "
-                     + (exposure or uncertified_text(processed, self.motions(req.scenario.scene)))
+                     + (exposure or uncertified_text(req.scenario, processed, motions))
                      + ("" if join is None else "; the least exposed motion found from the moving arm"
                         + (" (it stops on the executing path as soon as the limits allow, and goes from there)"
                            if join.stop else f" (no stop on the executing path could be sent: {req.stop_failed}; "
                            "from its end, which the arm reaches whatever is sent)"
                            if req.stop_failed and processed.join_stamp_ns is None else ""))
-                     + ("; it starts within the margin and walks out" if join is None else ""))
+                     + ("" if join is not None else "; it starts within the margin and walks out" if walks_out
+                        else "; the path is certified, the controller's interpolation of every one of its points "
+                        "is not"))
         t = res.timings_s
         self.log("info", f"plan #{req.gen} ok in {1e3 * t['total']:.1f} ms (cspace {1e3 * t['cspace']:.1f}, "
                  f"field {1e3 * t['field']:.1f}, descent {1e3 * t['descent']:.1f}, smoothing "

@@ -174,6 +174,37 @@ def test_drift_check_certifies_a_clear_motion(paper_scenario, paper_path):
     assert chk.ok and chk.min_clearance_m > sc.scene.safety_margin_m
 
 
+def test_the_drifted_validator_fails_every_interval_the_drifted_arm_hits_in(paper_scenario, paper_path):
+    """
+    ``reaction.DriftedValidator`` (the chain's certification, free floating): per interval, sound.
+
+    The paper's 2-DOF path with the reference spacecraft free: the drifted arm reaches the
+    target.  Oracle: the test's simulator over 16 substeps a row interval and the target's
+    square by points along the links; every interval where it finds the arm within the margin
+    is failed, the intervals before the first such are passed, and a held check of the same
+    rows (the scene's ``MotionValidator``) passes them all (the frame is what differs).
+    """
+    from spacerobot_planner.motion import MotionValidator
+    from spacerobot_planner.reaction import DriftedValidator
+    sc, path = paper_scenario(2), paper_path(2)
+    rows = path[::6]
+    motions = MotionValidator.for_scene(sc.robot, sc.scene)
+    got = DriftedValidator(motions, REF).check(rows)
+    assert not got.ok and got.interval_ok.shape == (len(rows) - 1,)
+    assert motions.check(rows).ok
+    sub = 16
+    hit = np.zeros(len(rows) - 1, bool)
+    q, body = simulate_free_floating(sc.robot, REF, np.vstack(
+        [np.linspace(a, b, sub, endpoint=False) for a, b in zip(rows[:-1], rows[1:])] + [rows[-1:]]), sub=4)
+    inside = inside_target_or_margin(sc.robot, sc.scene, q, body)
+    for k in range(len(rows) - 1):
+        hit[k] = inside[k * sub:(k + 1) * sub + 1].any()
+    assert hit.any() and not hit[0]
+    assert not got.interval_ok[hit].any(), np.flatnonzero(hit & got.interval_ok)
+    first = int(np.flatnonzero(hit)[0])
+    assert got.interval_ok[:max(0, first - 2)].all()
+
+
 def test_bad_masses_and_modes_name_the_field(paper_scenario, paper_path):
     with pytest.raises(ValueError, match="dynamics.body_mass_kg"):
         MassProperties(body_mass_kg=0.0)

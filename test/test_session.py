@@ -883,6 +883,33 @@ def test_a_plan_from_rest_within_the_margin_says_so_and_reports_the_motions_clea
     assert "published although not collision-free" in said and "starts within the margin and walks out" in said, said
 
 
+def test_an_uncertified_plan_from_a_clear_start_does_not_say_it_walks_out(flat, backend, monkeypatch):
+    """
+    The warning of an uncertified motion from rest says "starts within the margin" only where the start is.
+
+    A ROS user's free-floating ``~/replan`` was published uncertified (the chain's check was in
+    the wrong frame, since mended) with "it starts within the margin and walks out" from a start
+    0.13 m clear.  Injected here: the chain's result marked uncertified.  Oracle: the start's
+    clearance in the test's geometry.
+    """
+    from oracles import ref_clearance
+    from spacerobot_planner import session as session_module
+    real = session_module.post_process
+    monkeypatch.setattr(session_module, "post_process", lambda *a, **k: replace(real(*a, **k), certified=False))
+    clock = Clock()
+    ses = _session(flat, backend, clock)
+    start = ses.scenario.start_rad
+    robot = ses.scenario.robot
+    assert ref_clearance(robot, ses.scenario.scene, robot.full(start)) > ses.scenario.scene.safety_margin_m
+    ses.joint_state(start, clock.t)
+    ses.submit("first", target=ses.target)
+    out = ses.run_once()
+    assert out.ok and out.values["trajectory_certified"] == "false", out.values
+    said = "\n".join(text for _, text in ses.log_lines[-3:])
+    assert "published although not collision-free" in said and "walks out" not in said, said
+    assert "the controller's interpolation of every one of its points is not" in said, said
+
+
 def _legacy_controller(messages, arrivals_ns, ts_ns):
     """
     Return the positions (len(ts_ns), k) a joint_trajectory_controller before 6.8 commands (the test's model).
