@@ -9,7 +9,10 @@ and its answers into messages; everything between is here:
   one supersedes the one queued and cancels the one being planned (its result is dropped),
   except under a stream of topic targets, where a plan is let finish once nothing was
   published for ``min_publish_period_s``.  A request without its own start waits for the
-  first joint state.
+  first joint state.  Requests with their own start (what-if queries, returned, not executed)
+  are a stream of their own: the latest query supersedes an older query only, never a request
+  the arm executes (nor the other way round); the worker takes the two queues' requests in the
+  order they came.
 - **the current goal**: the latest accepted request from any channel (its target or its
   joint goal) is what a replan or a parameter change plans to; a request with its own
   ``start_rad`` (an action goal's) is planned and returned, not executed, and changes
@@ -275,10 +278,12 @@ class CaptureSession:
         self.joint_goal = None           # (dof,) rad when the current goal is a joint goal
         self.requested_target = None     # the target of the last target request that became current
         self.gen = 0
-        self._pending: Request | None = None
+        self._pending: Request | None = None      # the next request the arm executes
+        self._query: Request | None = None        # the next request with its own start (returned, not executed)
         self._waiting: Request | None = None      # waits for the first joint state
         self._active: Request | None = None
-        self._latest: Request | None = None
+        self._latest: Request | None = None       # the latest request the arm executes
+        self._latest_query: Request | None = None  # the latest request with its own start
         self.accepting = False           # requests are taken (the node is active)
         self._stop = True                # no worker until started
         self.closing = False             # stop() runs
@@ -496,7 +501,17 @@ class CaptureSession:
             self.gen += 1
             req.gen = self.gen
             self._make_current(req)
-            if self.joint_q is None and req.start_rad is None:
+            if req.start_rad is not None:       # a query: its own stream (supersedes an older query only)
+                if self._query is not None:
+                    self._finish(self._query, _superseded(req))
+                self._query = self._latest_query = req
+                active = self._active
+                if active is not None and active.start_rad is not None:
+                    active.plan_cancelled = True
+                    self._cancel_job(active)
+                self.lock.notify_all()
+                return req
+            if self.joint_q is None:
                 if self._waiting is not None:
                     self._finish(self._waiting, _superseded(req))
                 self._waiting = req
@@ -508,7 +523,7 @@ class CaptureSession:
                 self._replace_pending(req)
             self._latest = req
             active = self._active
-            if active is not None:
+            if active is not None and active.start_rad is None:
                 period = float(req.settings.min_publish_period_s)
                 starving = period > 0 and time.monotonic() - self.last_publish_t >= period
                 if starving and active.on_done is None and req.on_done is None and not active.plan_cancelled:
@@ -518,7 +533,7 @@ class CaptureSession:
                     # cancelled a kept plan, which then ended as an outcome "cancelled" with no reason)
                     active.keep = False
                     active.plan_cancelled = True
-                    self.backend.cancel(active.gen)
+                    self._cancel_job(active)
             self.lock.notify_all()
             return req
 
@@ -541,27 +556,28 @@ class CaptureSession:
             if self._pending is req:
                 self._pending = None
                 self._finish(req, Outcome("cancelled", reason))
+            elif self._query is req:
+                self._query = None
+                self._finish(req, Outcome("cancelled", reason))
             elif self._waiting is req:
                 self._waiting = None
                 self._finish(req, Outcome("cancelled", reason))
             elif self._active is req:
                 req.cancelled = reason
-                if self.backend is not None:
-                    self.backend.cancel(req.gen)
+                self._cancel_job(req)
                 self.lock.notify_all()          # a wait for a joint state ends (_arm_state)
 
     def drop(self, why: str) -> None:
         """Cancel everything queued or being planned."""
         with self.lock:
-            for attr in ("_pending", "_waiting"):
+            for attr in ("_pending", "_query", "_waiting"):
                 req = getattr(self, attr)
                 if req is not None:
                     setattr(self, attr, None)
                     self._finish(req, Outcome("cancelled", why))
             if self._active is not None:
                 self._active.cancelled = why
-                if self.backend is not None:
-                    self.backend.cancel(self._active.gen)
+                self._cancel_job(self._active)
                 self.lock.notify_all()          # a wait for a joint state ends (_arm_state)
 
     @property
@@ -570,6 +586,33 @@ class CaptureSession:
         return self._active is not None
 
     # ------------------------------------------------------------------ bookkeeping (lock held)
+    def _cancel_job(self, req: Request) -> None:
+        """
+        Cancel the backend's job of the request being planned (``req``), where that cancels nothing else.
+
+        The backends cancel by job number, every job up to it (``worker._GenCancel``): a request
+        of the other stream queued with a lower number (one that waited for the first joint
+        state while a query was planned) would start cancelled.  Then the job runs to its end
+        and its result is dropped (superseded or cancelled, :meth:`_superseded_by`).
+        """
+        if self.backend is None:
+            return
+        if any(other is not None and other.gen < req.gen for other in (self._pending, self._query, self._waiting)):
+            return
+        self.backend.cancel(req.gen)
+
+    def _next(self) -> Request | None:
+        """Take the next request to plan: the older of the two queues' (the arm's, the queries'); None when none."""
+        queued = [r for r in (self._pending, self._query) if r is not None]
+        if not queued:
+            return None
+        req = min(queued, key=lambda r: r.gen)
+        if req is self._pending:
+            self._pending = None
+        else:
+            self._query = None
+        return req
+
     def _make_current(self, req: Request) -> None:
         """Make the goal of an accepted request the current goal (not that of one with its own start)."""
         if req.start_rad is not None:
@@ -601,18 +644,18 @@ class CaptureSession:
     def _worker_loop(self):
         while True:
             with self.lock:
-                while self._pending is None and not self._stop:
+                while self._pending is None and self._query is None and not self._stop:
                     self.lock.wait()
                 if self._stop:
                     return
-                req, self._pending = self._pending, None
+                req = self._next()
                 self._active = req
             self._run(req)
 
     def run_once(self) -> Outcome | None:
         """Plan the queued request in this thread (instead of the worker); None when there is none."""
         with self.lock:
-            req, self._pending = self._pending, None
+            req = self._next()
             if req is None:
                 return None
             self._active = req
@@ -670,7 +713,7 @@ class CaptureSession:
                 outcome = None
         with self.lock:
             self._active = None
-            idle = self._pending is None
+            idle = self._pending is None and self._query is None
             if idle:
                 self.activity = "idle"
         if idle:
@@ -814,8 +857,9 @@ class CaptureSession:
                 return Outcome("cancelled", req.cancelled)
             if self._stop:
                 return Outcome("cancelled", "the node is shutting down")
-            if req.gen != self.gen and not req.keep:
-                return _superseded(self._latest)
+            latest = self._latest if req.start_rad is None else self._latest_query
+            if latest is not req and not req.keep:
+                return _superseded(latest)
         return None
 
     def _log_flood(self, kind: str, text: str) -> None:
@@ -1043,7 +1087,7 @@ class CaptureSession:
                 return jumped
             self.last_result = res
             self.last_trajectory = traj
-            if self._pending is None:
+            if self._pending is None and self._query is None:
                 self.activity = "idle"
         self._record(req, outcome)
         execute = req.start_rad is None      # a goal with its own start: the arm is elsewhere

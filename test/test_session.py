@@ -367,6 +367,66 @@ def test_a_goal_with_its_own_start_is_not_stamped_so_neither_the_clock_nor_a_jum
     assert out.ok and not out.publication.sent and ses.executing is None, (out.code, out.reason)
 
 
+def test_a_query_with_its_own_start_leaves_the_arms_request_planned_and_published(flat, backend):
+    """
+    A goal with its own start (a what-if query) neither supersedes nor cancels the request the arm executes.
+
+    A ROS user's query 0.5 s after a topic target superseded the target's plan: the arm's goal was
+    never planned nor sent.  Now, queued together, both are planned in the order they came (the
+    target's published, the query's returned); a query submitted while the arm's plan runs
+    leaves it running (its on_progress submits one); a target submitted while a query runs
+    leaves the query; a newer query supersedes an older one only.  Oracle: which outcomes were
+    published (the session's publish hook) and their codes.
+    """
+    ses = _session(flat, backend)
+    start = ses.scenario.start_rad
+    ses.joint_state(start, 999 * S)
+    other = _target(ses, -3.30, -2.55)
+    done = {}
+
+    def finish(name):
+        return lambda out: done.__setitem__(name, out)
+
+    arm = ses.submit(ses.request("target", target=other, on_done=finish("arm")))
+    query = ses.submit(ses.request("query", target=ses.target, start_rad=start, on_done=finish("query")))
+    assert ses.run_once().ok and ses.run_once().ok and ses.run_once() is None
+    assert done["arm"].ok and done["arm"].publication.sent, done["arm"].reason
+    assert done["query"].ok and not done["query"].publication.sent, done["query"].reason
+    assert [r for r, out, _ in ses.published if out.publication.sent] == [arm] and query.gen > arm.gen
+    assert ses.target is other
+    # a query while the arm's plan runs: the arm's plan goes on and is published
+    asked = []
+
+    def ask(progress):
+        if not asked:
+            asked.append(ses.submit(ses.request("query meanwhile", target=ses.target, start_rad=start,
+                                                on_done=finish("meanwhile"))))
+
+    ses.joint_state(done["arm"].trajectory.positions_rad[-1], 2_000 * S)      # long after: at rest at its end
+    again = ses.submit(ses.request("target again", target=ses.target, on_done=finish("again"), on_progress=ask))
+    assert ses.run_once().ok and asked and ses.run_once().ok
+    assert done["again"].ok and done["again"].publication.sent, done["again"].reason
+    assert done["meanwhile"].ok and not done["meanwhile"].publication.sent
+    assert ses.published[-2][0] is again
+    # a target while a query runs leaves the query; a newer query supersedes an older one only
+    late = []
+
+    def target_meanwhile(progress):
+        if not late:
+            late.append(ses.submit(ses.request("target meanwhile", target=other, on_done=finish("late"))))
+
+    first = ses.submit(ses.request("query 1", target=ses.target, start_rad=start, on_done=finish("q1"),
+                                   on_progress=target_meanwhile))
+    out = ses.run_once()
+    assert out.ok and done["q1"].ok and late and not out.publication.sent, (out.code, out.reason)
+    second = ses.submit(ses.request("query 2", target=ses.target, start_rad=start, on_done=finish("q2")))
+    third = ses.submit(ses.request("query 3", target=ses.target, start_rad=start, on_done=finish("q3")))
+    assert done["q2"].code == "superseded" and f"#{third.gen}" in done["q2"].reason
+    assert ses.run_once().ok and done["late"].ok and done["late"].publication.sent     # the older: the target
+    assert ses.run_once().ok and done["q3"].ok and ses.run_once() is None
+    assert first.gen < late[0].gen < second.gen < third.gen
+
+
 def test_without_a_clock_a_request_fails_saying_so(flat, backend):
     sc = scenario_from_params(flat)
     ses = CaptureSession(sc, session_settings_from_params(flat), now_ns=lambda: 0,
