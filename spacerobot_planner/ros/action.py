@@ -3,8 +3,9 @@ The planner node's ``plan_capture`` action server (Nav2's ``ComputePathToPose`` 
 
 A goal becomes a request of the node's capture session (``session.CaptureSession``): a
 target pose or a joint goal, and optionally its own ``start`` (then it is planned and
-returned, not executed).  A newer goal (or a topic request) supersedes it: it aborts with
-code SUPERSEDED and the reason; a cancel ends its plan; feedback carries the stage and a
+returned, not executed).  A newer goal (or a topic request) supersedes it (one with its own
+start: only a newer one with its own start, ``session``'s two streams): it aborts with code
+SUPERSEDED and the reason; a cancel ends its plan; feedback carries the stage and a
 progress fraction (``waiting_for_joint_states`` while it waits for the first
 joint_states); a bad goal aborts with INVALID_INPUT and the reason.  The result carries
 the published trajectories (``conversions.publication_msgs``; free floating, the predicted
