@@ -127,7 +127,12 @@ def test_shipped_files_have_only_namespace_independent_sections(name):
 # ================================================================== 6. a goal before any joint_states
 @pytest.mark.parametrize("sim_time", [False, True], ids=["wall_time", "sim_time_without_clock"])
 def test_goal_without_start_before_joint_states_says_so_then_aborts(graph, sim_time):
-    """The wait ends after joint_states_timeout_s of wall time, also under use_sim_time with no /clock published."""
+    """
+    The wait ends after joint_states_timeout_s of wall time, also under use_sim_time with no /clock published.
+
+    There the reason also says that no /clock came (a driver on ROS time, the mock arm too, publishes nothing
+    before it: a ROS user's goal had said only "no joint_states").
+    """
     from action_msgs.msg import GoalStatus
     from spacerobot_planner_interfaces.action import PlanCapture
     from node_helpers import scene_params
@@ -145,6 +150,7 @@ def test_goal_without_start_before_joint_states_says_so_then_aborts(graph, sim_t
     assert "waiting_for_joint_states" in feedback, feedback
     assert status == GoalStatus.STATUS_ABORTED and res.error_code == PlanCapture.Result.INVALID_INPUT
     assert "joint_states" in res.reason and "1 s" in res.reason, res.reason
+    assert ("no /clock message has come yet" in res.reason) == sim_time, res.reason
     assert g.n_trajs() == 0
 
 

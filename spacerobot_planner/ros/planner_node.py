@@ -430,8 +430,10 @@ class PlannerNode(LifecycleNode):
         timer, self._waiting_timer = self._waiting_timer, None
         if timer is not None:
             self.destroy_timer(timer)
+        clock = self._clock_problem()       # a driver (the mock arm too) on ROS time waits for /clock to publish
         self.session.expire_waiting(req, f"no joint_states within {timeout_s:g} s: the arm's state (the plan's "
-                                    "start) is unknown; publish joint_states or give the goal a start")
+                                    "start) is unknown; publish joint_states or give the goal a start"
+                                    + ("" if clock is None else f"; and {clock}"))
 
     def _wake_goals(self):
         try:
