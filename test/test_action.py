@@ -267,6 +267,30 @@ def test_goal_with_its_own_start(graph):
                                err_msg="a plan from another start was sent to the controller")
 
 
+def test_twenty_results_asked_at_once_are_all_answered(graph):
+    """
+    A client that sends 20 goals and then asks for their 20 results at once gets every one.
+
+    With rclpy's defaults the result service kept 10 requests (a ROS user's client got 11 of 20
+    answers; the others' clients waited until their own timeout).  The goals have their own start
+    (the latest supersedes the others at once); the results are asked once every goal has ended.
+    """
+    g = graph(scene_params("2dof"), with_arm=False)
+    _start(g)
+    handles = []
+    for k in range(20):
+        goal = _joint_goal(("shoulder", "elbow"), np.radians([32.8, 76.5]))
+        goal.start = JointState(name=["shoulder", "elbow"], position=[float(v) for v in np.radians([120.0, 80.0 - k])])
+        handles.append(g.send_goal(goal))
+    ended = (GoalStatus.STATUS_SUCCEEDED, GoalStatus.STATUS_ABORTED, GoalStatus.STATUS_CANCELED)
+    g.wait(lambda: all(h.status in ended for h in handles), 60, "every goal's end")
+    futures = [h.get_result_async() for h in handles]
+    g.wait(lambda: all(f.done() for f in futures), 30, "the 20 results")
+    got = [f.result() for f in futures]
+    assert got[-1].status == GoalStatus.STATUS_SUCCEEDED, got[-1].result.reason
+    assert all(r.result.error_code == R.SUPERSEDED for r in got[:-1] if r.status == GoalStatus.STATUS_ABORTED)
+
+
 def test_a_goal_that_nothing_can_take_over_the_moving_arm_for_fails_join_failed_and_sends_nothing(graph, monkeypatch):
     """
     The arm moves; every timing that would take over from it is refused (injected): JOIN_FAILED, nothing sent.

@@ -16,13 +16,23 @@ from __future__ import annotations
 
 import numpy as np
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.qos import QoSProfile, qos_profile_services_default
 from rclpy.task import Future
 from spacerobot_planner_interfaces.action import PlanCapture
 
 from ..session import target_why
 from . import conversions as conv
 
-__all__ = ["PlanCaptureServer"]
+__all__ = ["PlanCaptureServer", "SERVICE_DEPTH", "RESULT_TIMEOUT_S"]
+
+#: requests the action's goal, cancel and result services keep before they are taken (rclpy's
+#: default, 10, lost a client's 20 result requests sent at once: 11 were answered)
+SERVICE_DEPTH = 100
+#: how long a finished goal's result is kept for a client that asks later, s (rclpy's default 10 s)
+RESULT_TIMEOUT_S = 60
+_SERVICES_QOS = {"history": qos_profile_services_default.history,
+                 "reliability": qos_profile_services_default.reliability,
+                 "durability": qos_profile_services_default.durability}
 
 
 class PlanCaptureServer:
@@ -30,9 +40,12 @@ class PlanCaptureServer:
 
     def __init__(self, node):
         self.node = node
+        services = QoSProfile(**{**_SERVICES_QOS, "depth": SERVICE_DEPTH})
         self.server = ActionServer(node, PlanCapture, "plan_capture", execute_callback=self._execute,
                                    goal_callback=self._on_goal, cancel_callback=self._on_cancel,
-                                   handle_accepted_callback=lambda h: h.execute())
+                                   handle_accepted_callback=lambda h: h.execute(),
+                                   goal_service_qos_profile=services, result_service_qos_profile=services,
+                                   cancel_service_qos_profile=services, result_timeout=RESULT_TIMEOUT_S)
 
     def destroy(self) -> None:
         self.server.destroy()
