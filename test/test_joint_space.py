@@ -104,3 +104,10 @@ def test_the_path_kernels_give_numpys_values_bit_for_bit():
         want = path.copy()
         want[:, per] += two_pi * np.round((state[per] - path[0, per]) / two_pi)
         assert np.array_equal(js.align_to_state(path, state, per), want)
+
+
+def test_deg_text_never_says_minus_zero():
+    """A joint at -0.0098° read "(-56.6, -0.0)°" in a hidden-scene audit's disconnected reason."""
+    from spacerobot_planner.joint_space import deg_text
+    assert deg_text(np.radians([-56.6, -0.0098])) == "(-56.6, 0.0)°"
+    assert deg_text(np.radians([-0.04, 0.04, -12.34])) == "(0.0, 0.0, -12.3)°"
