@@ -291,8 +291,15 @@ class Planner:
         good = [s for s, e in zip(free, errs) if e <= bound]
         if good:
             return good[0]
+        blocked = [(math.degrees(approach_error_rad(sc.robot, sc.scene.target, s.q_full)), s) for s in found
+                   if not any(s is f for f in free)]
+        nearer = min(blocked, key=lambda es: es[0], default=None)
+        closer = ("" if nearer is None or nearer[0] >= min(errs) else
+                  f" (the posture {nearer[0]:.1f}° off it collides)" if not nearer[1].clearance_m > 0.0 else
+                  f" (the posture {nearer[0]:.1f}° off it comes within the safety margin {margin:g} m: clearance "
+                  f"{nearer[1].clearance_m:.3f} m)")
         raise ValueError(f"no capture posture grasps the handle perpendicularly: link 3 meets it "
-                         f"{min(errs):.1f}° off its normal, above grasp.max_approach_error_deg = "
+                         f"{min(errs):.1f}° off its normal{closer}, above grasp.max_approach_error_deg = "
                          f"{bound:g}°; {self._attitude_advice(sc)}")
 
     @staticmethod

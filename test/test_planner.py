@@ -1,5 +1,6 @@
 """The offline planner on the paper's scenes: exact ends, dense validity, codes, cache, cancel."""
 
+import math
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -242,6 +243,45 @@ def test_a_grasp_on_the_safety_margin_is_refused_as_such(dof, sc2, sc3):
         assert res.code == "goal_unreachable" and "sits on the safety margin" in res.reason, (res.code, res.reason)
         assert "target.handle_side_m" in res.reason and f"{margin:g} m is not below" in res.reason, res.reason
         assert res.timings_s.get("field", 0.0) == 0.0          # refused before any grid is built
+
+
+def test_a_refusal_off_the_normal_names_the_nearer_posture_that_collides():
+    """
+    "link 3 meets it X° off its normal" is the clear posture's; the one nearer the normal is named with why not.
+
+    The paper's 2-DOF arm with the attitude locked at 140°: the two elbow branches meet the handle
+    12.6° and 61.7° off its normal; a debris square on the nearer one's elbow.  The reason had
+    quoted 61.7° alone (a hidden-scene audit: "true, but doesn't mention the closer branch").
+    Oracle: the test's own two-link inverse kinematics, link angle and clearance.
+    """
+    import cmath
+    from spacerobot_planner.config import load_params_file, scenario_from_params
+    f = load_params_file(str(CONFIG / "paper_2dof.yaml"))
+    sc = scenario_from_params(dict(f, **{"robot.locked_positions_deg": [140.0, 0.0, 0.0]}))
+    robot, att = sc.robot, math.radians(140.0)
+    shoulder = complex(*arm_points(robot, [att, 0.0, 0.0])[1])
+    grasp = complex(*sc.scene.target.grasp_point_m)
+    a, b = robot.link_lengths_m[1], robot.link_lengths_m[2]
+    d = abs(grasp - shoulder)
+    alpha = math.acos((a * a + d * d - b * b) / (2 * a * d))
+    branches = []
+    for sign in (1.0, -1.0):
+        t1 = cmath.phase(grasp - shoulder) + sign * alpha
+        elbow = shoulder + a * cmath.exp(1j * t1)
+        t2 = cmath.phase(grasp - elbow)
+        q = np.array([att, t1 - att, t2 - t1])
+        q[1:] = (q[1:] + math.pi) % (2 * math.pi) - math.pi
+        assert np.allclose(arm_points(robot, q)[-1], sc.scene.target.grasp_point_m, atol=1e-9)
+        branches.append((link3_and_normal_deg(robot, sc.scene.target, q), q, elbow))
+    (near, q_near, elbow), (far, q_far, _) = sorted(branches, key=lambda b: b[0])
+    assert near < 20.0 < far                                    # both beyond the 5° bound
+    box = [(elbow.real + dx, elbow.imag + dy) for dx, dy in ((-0.2, -0.2), (0.2, -0.2), (0.2, 0.2), (-0.2, 0.2))]
+    blocked = sc.with_scene(replace(sc.scene, debris_m=(np.array(box),)))
+    assert ref_clearance(robot, blocked.scene, q_near[1:]) <= 0.0 < blocked.scene.safety_margin_m < \
+        ref_clearance(robot, blocked.scene, q_far[1:])
+    res = Planner(blocked).plan(blocked.start_rad)
+    assert res.code == "goal_unreachable", (res.code, res.reason)
+    assert f"meets it {far:.1f}° off its normal (the posture {near:.1f}° off it collides)" in res.reason, res.reason
 
 
 def test_goal_from_target_is_papers_branch(planner3):
