@@ -226,4 +226,5 @@ def row_within_bounds(q_rad, lower_rad, upper_rad, periodic):
 
 def deg_text(q_rad) -> str:
     """Return a configuration for people: ``(160.7, 32.8, 76.5)°`` (one rounding to zero reads 0.0, not -0.0)."""
-    return "(" + ", ".join(f"{v:.1f}" for v in np.round(np.degrees(np.asarray(q_rad, dtype=float)), 1) + 0.0) + ")°"
+    return "(" + ", ".join(f"{v:.1f}".replace("-0.0", "0.0") if abs(v) < 0.05 else f"{v:.1f}"
+                           for v in np.degrees(np.asarray(q_rad, dtype=float))) + ")°"

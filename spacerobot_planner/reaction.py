@@ -141,7 +141,7 @@ def _drift_walk(robot, masses, chk, path, threshold_m: float, max_rounds: int, r
         np.minimum.at(iv_clr, owner[rows], c[rows])
         np.minimum(iv_clr, c[given[1:]], out=iv_clr)
     ok = hit_fraction is None and not failed.any()
-    return _DriftWalk(bool(ok), ~failed, iv_clr, c[given].copy(), float(np.nanmin(c)), hit_fraction, n_eval)
+    return _DriftWalk(bool(ok), ~failed, iv_clr, c[given].copy(), float(c.min()), hit_fraction, n_eval)
 
 
 class DriftedValidator(MotionValidator):
@@ -153,7 +153,8 @@ class DriftedValidator(MotionValidator):
     target and the debris stay put (:func:`_drift_walk`, :func:`check_drifted`'s rule, per
     interval): what the chain's certification of the controller's motion must judge when
     nothing holds the attitude (``acs.mode: free_floating``), not the arm on a body held still.
-    The segment tests the planning stages use are the scene's own (``MotionValidator``'s).
+    The segment tests the planning stages use (``segment_ok``, ``check_kept``, ...) would restart
+    the drift at each segment: they raise here; the planning stages use the scene's own validator.
     """
 
     def __init__(self, motions: MotionValidator, masses: MassProperties, max_rounds: int = 12):
@@ -173,9 +174,21 @@ class DriftedValidator(MotionValidator):
         p = self._rows(path_rad)
         threshold = self.margin_m if required_clearance_m is None else max(self.margin_m, required_clearance_m)
         walk = _drift_walk(self.robot, self.masses, self.checker, p, threshold, self.max_rounds)
-        ok = walk.ok and bool(self.within_bounds(p).all())
-        return PathCheck(ok, walk.interval_ok, walk.min_clearance_m, walk.n_checked, walk.interval_clearance_m,
+        inside = self.within_bounds(p)
+        interval_ok = walk.interval_ok & inside[:-1] & inside[1:]       # a row out of bounds fails its intervals
+        ok = walk.ok and bool(inside.all())
+        return PathCheck(ok, interval_ok, walk.min_clearance_m, walk.n_checked, walk.interval_clearance_m,
                          walk.vertex_clearance_m)
+
+    def with_step(self, step_rad: float) -> "DriftedValidator":
+        """Return itself: :meth:`check` evaluates every row (the drift integrates along all of them), no step."""
+        return self
+
+    def _planning_frame_only(self, *_, **__):
+        raise NotImplementedError("DriftedValidator certifies whole paths from their first row (check); its segment "
+                                  "tests would restart the drift at each segment: use the scene's MotionValidator")
+
+    check_kept = segment_ok = first_bad_segment = segment_test = _planning_frame_only
 
 
 @dataclass(frozen=True, eq=False)

@@ -136,6 +136,7 @@ class Request:
     stop_failed: str | None = None               # why its last stop on the executing path was not published
     stop_again: bool = False                     # its stop was planned again once after it came too late
     waiting: bool = False                        # waited for the first joint state
+    job: int = 0                                 # the backend's job number (its cancels), given when it is taken
     time_jumps: int = 0                          # planned again after ROS time jumped (TIME_JUMPS_MOST)
 
 
@@ -278,6 +279,7 @@ class CaptureSession:
         self.joint_goal = None           # (dof,) rad when the current goal is a joint goal
         self.requested_target = None     # the target of the last target request that became current
         self.gen = 0
+        self._jobs = 0                   # the backend's job numbers, in the order the requests are taken
         self._pending: Request | None = None      # the next request the arm executes
         self._query: Request | None = None        # the next request with its own start (returned, not executed)
         self._waiting: Request | None = None      # waits for the first joint state
@@ -587,22 +589,19 @@ class CaptureSession:
 
     # ------------------------------------------------------------------ bookkeeping (lock held)
     def _cancel_job(self, req: Request) -> None:
-        """
-        Cancel the backend's job of the request being planned (``req``), where that cancels nothing else.
-
-        The backends cancel by job number, every job up to it (``worker._GenCancel``): a request
-        of the other stream queued with a lower number (one that waited for the first joint
-        state while a query was planned) would start cancelled.  Then the job runs to its end
-        and its result is dropped (superseded or cancelled, :meth:`_superseded_by`).
-        """
-        if self.backend is None:
-            return
-        if any(other is not None and other.gen < req.gen for other in (self._pending, self._query, self._waiting)):
-            return
-        self.backend.cancel(req.gen)
+        """Cancel the backend's job of the request being planned (``req``)."""
+        if self.backend is not None:
+            self.backend.cancel(req.job)
 
     def _next(self) -> Request | None:
-        """Take the next request to plan: the older of the two queues' (the arm's, the queries'); None when none."""
+        """
+        Take the next request to plan: the older of the two queues' (the arm's, the queries'); None when none.
+
+        It gets the next job number.  The backends cancel every job up to a number
+        (``worker._GenCancel``), so the numbers follow the order the requests are taken in, not
+        the requests' own (a request of the arm's that waited for the first joint state is taken
+        after a query submitted later: cancelling that query must not cancel it).
+        """
         queued = [r for r in (self._pending, self._query) if r is not None]
         if not queued:
             return None
@@ -611,6 +610,8 @@ class CaptureSession:
             self._pending = None
         else:
             self._query = None
+        self._jobs += 1
+        req.job = self._jobs
         return req
 
     def _make_current(self, req: Request) -> None:
@@ -905,7 +906,7 @@ class CaptureSession:
         if changed:                           # the state changes at once; a flood is not echoed
             self.activity = "planning"
         sc = req.scenario
-        job = PlanJob.for_scenario(req.gen, sc, start_raw, req.joint_goal, start_tangent=join_direction(join),
+        job = PlanJob.for_scenario(req.job, sc, start_raw, req.joint_goal, start_tangent=join_direction(join),
                                    stall_s=float(req.settings.test_stall_s), stages=req.on_progress is not None)
         announced = []
 

@@ -521,6 +521,47 @@ def test_a_goal_after_a_streams_kept_plan_supersedes_it_not_cancels_it(flat):
     assert f"plan #{first.gen} cancelled" not in text, text
 
 
+@pytest.mark.parametrize("arm", ["waiting", "queued"])
+def test_a_cancelled_query_ends_at_once_and_the_arms_older_request_still_plans(flat, arm):
+    """
+    A query's cancel ends its plan although a request of the arm's with a lower number is queued.
+
+    The arm's request came first and waited for the first joint state; a query (its own start)
+    was planned meanwhile; the client cancelled it.  The backends cancel every job up to a
+    number: cancelling the query by its request number would have cancelled the arm's request
+    too, so the cancel had been skipped and the query's plan ran to its end (a review measured
+    2.5-2.9 s of a 3 s stall).  Jobs are numbered as they are taken now.  The query's stall is a
+    minute, which only its cancel ends; the arm's request then plans and is published.
+    """
+    be = ThreadBackend(scenario_from_params(flat))
+    ses = _session(flat, be)
+    outcomes, ended = {}, threading.Event()
+
+    def finish(name):
+        return lambda out: (outcomes.__setitem__(name, out), ended.set() if len(outcomes) == 2 else None)
+
+    try:
+        ses.start(be, thread=True)                      # the worker thread, as in the node
+        first = ses.submit(ses.request("arm's target", target=_target(ses, -3.25, -2.60), on_done=finish("arm")))
+        assert first.waiting
+        query = ses.request("query", target=ses.target, start_rad=ses.scenario.start_rad, on_done=finish("query"))
+        query = ses.submit(replace(query, settings=replace(query.settings, test_stall_s=60.0)))
+        deadline = time.monotonic() + 60
+        while ses._active is not query:                 # the query planning (stalled)
+            assert time.monotonic() < deadline, "the query never began"
+            time.sleep(0.002)
+        if arm == "queued":
+            ses.joint_state(ses.scenario.start_rad, 999 * S)
+        ses.cancel(query, "cancelled by the client")
+        if arm == "waiting":
+            ses.joint_state(ses.scenario.start_rad, 999 * S)
+        assert ended.wait(45), outcomes                 # not after the query's minute
+    finally:
+        ses.stop()
+    assert outcomes["query"].code == "cancelled" and "by the client" in outcomes["query"].reason
+    assert outcomes["arm"].ok and outcomes["arm"].publication.sent, (outcomes["arm"].code, outcomes["arm"].reason)
+
+
 def test_stamp_for_a_join_too_close_asks_for_another_plan():
     traj = SimpleNamespace(duration_s=0.06)
     now, lead = 100 * S, 0.35
