@@ -188,6 +188,39 @@ def test_a_sweep_on_a_local_cluster_equals_the_serial_sweep_row_by_row(serial, t
     assert _differences(rep.rows, read_rows(tmp_path / "envelope.csv")) == []
 
 
+def test_chunks_cancelled_with_a_lost_worker_are_planned_again_not_written_as_failures(serial, tmp_path):
+    """
+    The scenario's scattered copy lost (as with the only worker holding it killed) after the first chunk.
+
+    Dask then cancels every chunk not yet planned ("already forgotten"): they had been written
+    as ``internal_error`` rows, the run ending "complete" and a rerun planning nothing (an
+    audit's remote worker, killed mid-sweep).  Now the scenario is scattered again and those
+    chunks planned again: the table equals the serial sweep's.
+    """
+    from distributed import Client
+
+    sc, grid, ser = serial
+    scattered = []
+    with local_cluster(2) as cluster, Client(cluster) as client:
+        real = client.scatter
+
+        def scatter(*a, **k):
+            scattered.append(real(*a, **k))
+            return scattered[-1]
+
+        def lose(rows):
+            if len(scattered) == 1:
+                client.cancel(scattered[0])         # its copies gone: the chunks not yet planned are cancelled
+
+        client.scatter = scatter
+        rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), client=client, chunk_size=1, quiet=True,
+                           after_chunk=lose)
+    assert len(scattered) >= 2                     # scattered again
+    assert rep.complete and rep.planned == grid.n_poses
+    assert [r["pose_id"] for r in rep.rows if r["code"] == "internal_error"] == []
+    assert _differences(ser.rows, rep.rows) == []
+
+
 @pytest.mark.parametrize("pose_id", [0, 1, 3, 6])
 def test_rows_replanned_one_by_one_with_the_plain_planner_agree(serial, pose_id):
     sc, grid, rep = serial

@@ -148,6 +148,10 @@ def _clock(seconds: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
 
 
+#: how many times a chunk cancelled by a lost worker (the scenario's copies gone with it) is submitted again
+LOST_RESUBMITS = 3
+
+
 def _failed_chunk_rows(grid: PoseGrid, ids, error: BaseException) -> list:
     rows = []
     for i in ids:
@@ -317,18 +321,37 @@ def _run_on_dask(client, scenario, grid, work, take) -> None:
     Submit one task per chunk; hand each chunk's rows to ``take`` as it finishes.
 
     The chunks' priorities follow their order (the scheduler hands the first ones out first).
+    The scenario goes to the workers once (scattered); a worker lost with every copy of it
+    cancels the chunks not yet planned (Dask's ``FutureCancelledError``: "already forgotten"):
+    the scenario is scattered again and those chunks submitted again, up to ``LOST_RESUBMITS``
+    times each, then left unplanned (the run ends incomplete; the same command resumes it).
+    Only a chunk whose own task failed (it raised, or its workers died planning it: Dask's
+    ``KilledWorker``) becomes rows naming the failure.
     """
     from distributed import as_completed
-    scenario_f = client.scatter(scenario, broadcast=True)
-    futures = {}
-    for k, ids in enumerate(work):
-        f = client.submit(plan_chunk, scenario_f, grid, ids, 1, pure=False, priority=len(work) - k)
-        futures[f.key] = (f, ids)
-    for f in as_completed([f for f, _ in futures.values()]):
-        ids = futures.pop(f.key)[1]
+    from distributed.client import FutureCancelledError
+    shared = [client.scatter(scenario, broadcast=True)]
+    futures, resubmits = {}, {}
+
+    def submit(k, ids):
+        if shared[0].status != "finished":          # its copies lost with their workers
+            shared[0] = client.scatter(scenario, broadcast=True)
+        f = client.submit(plan_chunk, shared[0], grid, ids, 1, pure=False, priority=len(work) - k)
+        futures[f.key] = (f, k, ids)
+        return f
+
+    finished = as_completed([submit(k, ids) for k, ids in enumerate(work)])
+    for f in finished:
+        _, k, ids = futures.pop(f.key)
         try:
             rows = f.result()
-        except Exception as e:  # noqa: BLE001 -- a lost task is rows naming the failure, not the end of the run
+        except FutureCancelledError:
+            f.release()
+            resubmits[k] = resubmits.get(k, 0) + 1
+            if resubmits[k] <= LOST_RESUBMITS:
+                finished.add(submit(k, ids))
+            continue
+        except Exception as e:  # noqa: BLE001 -- a failed task is rows naming the failure, not the end of the run
             rows = _failed_chunk_rows(grid, ids, e)
         f.release()
         take(rows)
