@@ -243,6 +243,35 @@ def test_rows_replanned_one_by_one_with_the_plain_planner_agree(serial, pose_id)
         assert np.allclose(np.radians([float(v) for v in row["goal_deg"].split()]), res.goal_rad, atol=1e-7)
 
 
+def test_a_ctrl_c_in_a_serial_sweep_finishes_the_pose_then_stops_and_resumes(serial, tmp_path, monkeypatch):
+    """
+    A SIGINT while a pose is planned in this process (``--workers 0``): that pose is written, the sweep stops.
+
+    A KeyboardInterrupt inside a numba kernel had come out as a SystemError, an
+    ``internal_error`` row, and the sweep went on to exit 0 (an audit, 2 of 4 tries).  The
+    signal is raised here as pose 4's plan begins; poses 0-4 are in the table, none an
+    ``internal_error``, and the rerun plans the rest: the serial sweep's table.
+    """
+    from spacerobot_planner.envelope import sweep
+    sc, grid, ser = serial
+    real = sweep.plan_pose
+
+    def interrupted(planner, scenario, grid_, i):
+        if i == 4:
+            signal.raise_signal(signal.SIGINT)
+        return real(planner, scenario, grid_, i)
+
+    monkeypatch.setattr(sweep, "plan_pose", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_envelope(sc, grid, tmp_path, _spec(sc, grid), workers=0, chunk_size=3, quiet=True)
+    first = read_rows(tmp_path / "envelope.csv")
+    assert sorted(r["pose_id"] for r in first) == [0, 1, 2, 3, 4]
+    assert all(r["code"] != "internal_error" for r in first)
+    monkeypatch.setattr(sweep, "plan_pose", real)
+    rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), workers=0, quiet=True)
+    assert rep.done_before == 5 and rep.complete and _differences(ser.rows, rep.rows) == []
+
+
 def test_a_pose_that_raises_becomes_an_internal_error_row(serial, tmp_path, monkeypatch):
     sc, grid, ser = serial
     bad = grid.pose(2)

@@ -25,7 +25,7 @@ import signal
 import sys
 import threading
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 
 from ..problem import Scenario
@@ -230,8 +230,11 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
                     after_chunk(rows)
 
             if serial:
-                for ids in work:
-                    take(plan_chunk(scenario, grid, ids))
+                with _interrupt_between_poses() as interrupted:
+                    for ids in work:
+                        take(plan_chunk(scenario, grid, ids, stop=interrupted))
+                        if interrupted:
+                            raise KeyboardInterrupt
             elif work:
                 _run_on_dask(client, scenario, grid, work, take)
             report.plan_seconds = time.perf_counter() - t_plan
@@ -249,6 +252,28 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
         want_parquet = grid.n_poses >= PARQUET_MIN_POSES if parquet is None else parquet
         report.rows = store.finish(want_parquet)
     return report
+
+
+@contextmanager
+def _interrupt_between_poses():
+    """
+    Within it, a Ctrl-C (SIGINT) is taken between the serial sweep's poses: yields a list, not empty once one came.
+
+    A KeyboardInterrupt raised inside a numba kernel comes out as a SystemError ("returned a
+    result with an exception set"), which the plan turned into an ``internal_error`` row, and
+    the sweep went on (an audit: exit 0, a row a rerun would not plan again).  The pose being
+    planned is finished and written; the sweep then stops as interrupted.  Outside the main
+    thread (no signals there) it changes nothing.
+    """
+    came = []
+    if threading.current_thread() is not threading.main_thread():
+        yield came
+        return
+    before = signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
+    try:
+        yield came
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 #: glibc's variable that Dask sets in its workers' environment (see ``LOCAL_CLUSTER_CONFIG``)
@@ -330,12 +355,14 @@ def _run_on_dask(client, scenario, grid, work, take) -> None:
     """
     from distributed import as_completed
     from distributed.client import FutureCancelledError
-    shared = [client.scatter(scenario, broadcast=True)]
+    # a key of its own each time (not the data's hash): a copy scattered again must not meet the
+    # scheduler still forgetting the lost one under the same key
+    shared = [client.scatter(scenario, broadcast=True, hash=False)]
     futures, resubmits = {}, {}
 
     def submit(k, ids):
         if shared[0].status != "finished":          # its copies lost with their workers
-            shared[0] = client.scatter(scenario, broadcast=True)
+            shared[0] = client.scatter(scenario, broadcast=True, hash=False)
         f = client.submit(plan_chunk, shared[0], grid, ids, 1, pure=False, priority=len(work) - k)
         futures[f.key] = (f, k, ids)
         return f

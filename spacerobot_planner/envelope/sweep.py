@@ -223,14 +223,21 @@ def _fill(row: dict, done) -> None:
                    free_floating_tip_miss_m=_num(r.free_floating_tip_miss_m))
 
 
-def plan_chunk(scenario: Scenario, grid: PoseGrid, pose_ids, numba_threads: int | None = None) -> list:
+def plan_chunk(scenario: Scenario, grid: PoseGrid, pose_ids, numba_threads: int | None = None,
+               stop=None) -> list:
     """
     Plan the poses ``pose_ids`` with one planner; return their rows, in that order.
 
     ``numba_threads``: the most threads the planner's parallel kernels use in this process (a
     Dask worker runs one process per core: 1; ``planner.max_threads``), None to leave the
-    scenario's setting.
+    scenario's setting.  ``stop``: a sequence, or None; once it is not empty no further pose
+    is planned (the rows so far are returned: the serial sweep's Ctrl-C).
     """
     extra = {} if numba_threads is None else {"max_threads": max(1, int(numba_threads))}
     planner = Planner(scenario, reaction=True, **extra)
-    return [plan_pose(planner, scenario, grid, i) for i in pose_ids]
+    rows = []
+    for i in pose_ids:
+        if stop:
+            break
+        rows.append(plan_pose(planner, scenario, grid, i))
+    return rows
