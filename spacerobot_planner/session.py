@@ -1081,6 +1081,10 @@ class CaptureSession:
         kept = (f"no new trajectory could take over from the moving arm ({req.stop_failed or 'no join fitted'}); "
                 "the trajectory it follows ends at this goal: it finishes it as it was sent"
                 if at_goal and join is not None and req.attempt == FROM_THE_END and req.start_rad is None else None)
+        if kept:                      # not at the goal: on the way there as sent; no new motion, no reaction of one
+            values.update(at_goal="false", finishes_executing="true")
+            for key in [k for k in values if k.startswith(("peak_wheel_", "free_floating_", "held_"))]:
+                del values[key]
         outcome = Outcome("ok", kept or ("already at the goal: no trajectory published" if at_goal else ""), res, traj,
                           None, values, processed, np.asarray(start_raw), dict(stamps or {}))
         with self.lock:           # the session's state first: whoever reacts to the trajectory sees it

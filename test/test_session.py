@@ -880,6 +880,10 @@ def test_limits_lowered_as_the_arm_moves_to_its_goal_say_that_it_finishes_its_tr
     assert any(level == "warning" and "finishes it as it was sent" in text for level, text in ses.log_lines), \
         ses.log_lines[-4:]
     assert not any("already at the goal" in text for _, text in ses.log_lines[-6:]), ses.log_lines[-6:]
+    # /diagnostics' values: not at the goal (it had said at_goal true), and no reaction of a motion not planned
+    # (it had said peak_wheel_torque_Nm 0.0000 while the arm ran on at 2.5 x a lowered wheel limit: an audit)
+    assert out.values["at_goal"] == "false" and out.values["finishes_executing"] == "true", out.values
+    assert not any(k.startswith("peak_wheel_") for k in out.values), out.values
 
 
 def test_a_stop_on_the_executing_path_that_came_too_late_is_planned_again_once(slow_backend, monkeypatch):

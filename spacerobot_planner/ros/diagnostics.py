@@ -106,7 +106,10 @@ class NodeDiagnostics:
             if out.result is not None:
                 values.update({f"time_{k}_ms": f"{1e3 * v:.2f}" for k, v in out.result.timings_s.items()})
             values.update(out.values)
-            if out.ok:
+            if out.ok and out.values.get("finishes_executing") == "true":     # nothing new could take over
+                level, message = DiagnosticStatus.WARN, f"{state}: request #{req.gen}: {out.reason}"
+                values["reason"] = out.reason
+            elif out.ok:
                 level, message = DiagnosticStatus.OK, f"{state}: request #{req.gen} planned"
             elif out.code == "cancelled":
                 level, message = DiagnosticStatus.OK, f"{state}: request #{req.gen} cancelled: {out.reason}"
