@@ -131,17 +131,19 @@ class Executing:
             return self.previous.expected_at(ros_ns, published_only)
         return sample(self.trajectory, self.time_s(ros_ns), self.published if published_only else None)[0]
 
-    def joined_by(self, trajectory: Trajectory, published, start_ns: int) -> "Executing":
+    def joined_by(self, trajectory: Trajectory, published, start_ns: int, now_ns: int | None = None) -> "Executing":
         """
-        Record a trajectory joined to this one at ``start_ns``.
+        Record a trajectory joined to this one at ``start_ns``, published at ROS time ``now_ns``.
 
         The chain of the trajectories it replaced is kept back to the one on which a late
         joint state was taken (``MAX_STATE_AGE_S + STATE_WAIT_S``, and a join is at most a
-        published points' spacing ahead): links whose successor started over 2 s before
-        are cut, and an older state reads as one from before the trajectory started.
+        published points' spacing ahead): links whose successor started over 2 s before the
+        earlier of ``start_ns`` and ``now_ns`` are cut, and an older state reads as one from
+        before the trajectory started.  (A plan from the end of a trajectory that has not begun
+        is stamped far ahead: the trajectory the arm follows now stays in the chain.)
         """
         keep, link = [], self
-        horizon_ns = int(start_ns) - 2 * 1_000_000_000
+        horizon_ns = min(int(start_ns), int(start_ns) if now_ns is None else int(now_ns)) - 2 * 1_000_000_000
         successor_start = int(start_ns)
         while link is not None and successor_start >= horizon_ns:
             keep.append(link)
@@ -240,8 +242,16 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
                              "follows it): planned from the last one, at rest")
         return q, None, (f"the arm does not follow its trajectory ({traj.joint_names[j]} "
                          f"{np.degrees(off[j]):.2f}° from it): planned from the measured state, at rest")
-    h = horizon_index(traj, executing.time_s(now_ns), horizon_s)
-    join = Join(executing, h, float(horizon_s))
+    # the link of the chain the arm is on at the horizon: a trajectory sent but starting later (a plan
+    # from the end of the one that runs, stamped far ahead) waits for its stamp, and a newer message
+    # stamped before it drops it (the controller's rule, and the mock arm's): the plan takes over
+    # from the trajectory that runs, not after the waiting ones
+    horizon_ns = int(now_ns) + int(round(1e9 * float(horizon_s)))
+    link = executing
+    while link.previous is not None and link.start_ns > horizon_ns and link.previous.running_at(now_ns):
+        link = link.previous
+    h = horizon_index(link.trajectory, link.time_s(now_ns), horizon_s)
+    join = Join(link, h, float(horizon_s))
     # a late state taken on the moving trajectory is the last sign there is: the arm followed it
     # then (a controller keeps following; under load the states arrive late)
     why = (f"the last joint_states is {age_s:.2f} s old; it had the arm on its trajectory: planned from the "

@@ -21,7 +21,9 @@ and its answers into messages; everything between is here:
   trajectory last published) the point ``horizon_s`` ahead on it
   (``replanning.plan_start``; a trajectory published but not started yet is joined like
   one running: joint_trajectory_controller keeps a waiting trajectory until a newer one's
-  stamp, when that is later, as the mock arm does).
+  stamp, when that is later, as the mock arm does; where it starts beyond the horizon (a plan
+  from the end of the running one), the running one is joined, and the new message, stamped
+  first, drops the waiting ones).
 - **ONE post-processing chain** (``adapters.post_process``: time, reaction, resampling
   certified with the scene's ``motion.MotionValidator``, arm/attitude split), the same
   as ``spacerobot-plan``'s.
@@ -1116,7 +1118,7 @@ class CaptureSession:
                 dense, idx = processed.dense, processed.indices
                 self.last_publish_t = time.monotonic()
                 self.executing = (Executing(dense, idx, stamp) if join is None
-                                  else join.executing.joined_by(dense, idx, stamp))
+                                  else join.executing.joined_by(dense, idx, stamp, now))
         self._publish(req, outcome)
         if outcome.publication.sent and epoch is not None and epoch != self.time_epoch:
             # the time jumped as it went out: stamped in the time before; one from rest replaces it at once

@@ -42,6 +42,39 @@ def test_a_following_arm_starts_the_plan_on_its_trajectory(executing):
     np.testing.assert_array_equal(start, traj.positions_rad[join.horizon_index])
 
 
+def test_a_plan_takes_over_the_running_trajectory_not_after_the_ones_waiting_far_ahead(executing):
+    """
+    Plans from the end of the running trajectory (stamped far ahead) do not make later plans wait for them.
+
+    The arm runs on R (started 0.3 of its duration ago); A was sent from R's end (waiting for its
+    stamp), B from A's end.  A new plan joins R at the horizon: a newer message stamped before
+    the waiting ones drops them.  It had joined the newest at its first point (an audit on the
+    4-joint servicer: a retarget stamped 141 s ahead, a target on the running path answered
+    ``start_in_collision`` for a posture 140 s away), and once B was joined the chain had lost
+    R (cut 2 s before B's start): the arm on R read as "no sign that it follows", planned from
+    rest, a velocity step.  Oracle: the running trajectory's own samples.
+    """
+    _, ex = executing
+    traj = ex.trajectory
+    end_ns = ex.start_ns + int(round(traj.duration_s * S))
+    t_now = 0.3 * traj.duration_s
+    now = ex.start_ns + int(t_now * S)
+    waiting = ex.joined_by(traj, ex.published, end_ns, now)                     # A: from R's end
+    later = waiting.joined_by(traj, ex.published, end_ns + int(round(traj.duration_s * S)), now)    # B: from A's
+    assert later.first_start_ns() == ex.start_ns                                 # R kept in the chain
+    measured = ex.expected_at(now - S // 100)
+    for newest in (waiting, later):
+        start, join, why = plan_start(newest, now, measured, now - S // 100, 1.0, np.radians(2.0), PERIODIC)
+        assert why is None and join is not None, why
+        assert join.executing.start_ns == ex.start_ns                            # on R
+        assert traj.times_s[join.horizon_index] >= t_now + 1.0 > traj.times_s[join.horizon_index - 1]
+        np.testing.assert_array_equal(start, traj.positions_rad[join.horizon_index])
+    # a trajectory waiting for a stamp within the horizon is the one joined, as before
+    soon = ex.joined_by(traj, ex.published, now + S // 2, now)
+    _, join, _ = plan_start(soon, now, measured, now - S // 100, 1.0, np.radians(2.0), PERIODIC)
+    assert join.executing is soon and join.horizon_index == int(np.searchsorted(traj.times_s, 0.5))
+
+
 @pytest.mark.parametrize("case", ["pushed_away", "stale_before_start", "before_start", "finished", "no_horizon"])
 def test_otherwise_the_plan_starts_at_the_measured_state(executing, case):
     _, ex = executing
