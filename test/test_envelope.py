@@ -403,6 +403,47 @@ def test_a_sweep_that_cannot_reach_its_scheduler_leaves_no_new_folder_and_an_old
     assert {p.name: p.read_bytes() for p in old.iterdir()} == before
 
 
+def test_a_scheduler_without_workers_is_named_and_leaves_no_folder(serial, tmp_path, monkeypatch):
+    """
+    A scheduler no worker has joined: waited for a while, then refused naming ``--scheduler``, no folder left.
+
+    It had waited silently, or said "--out ...: No valid workers found" after 30 s and left the
+    folder's files behind (an audit).  Here a local scheduler without workers, a 1 s wait.
+    """
+    from distributed import LocalCluster
+    from spacerobot_planner.envelope import engine
+    sc, grid, _ = serial
+    monkeypatch.setattr(engine, "WORKER_WAIT_S", 1.0)
+    out = tmp_path / "sweep"
+    with LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as cluster:
+        with pytest.raises(ValueError, match=r"--scheduler .*: no worker joined it in 1 s \(start one: dask worker"):
+            run_envelope(sc, grid, out, _spec(sc, grid), scheduler=cluster.scheduler_address, quiet=True)
+    assert not out.exists()
+
+
+def test_the_maps_show_a_range_given_from_its_larger_end_and_name_close_yaws_apart():
+    """
+    A reversed range's cells are all in the panel (it had shown one corner), the scenario's target too; yaws
+    0.0004° apart get their own files (rounded to 0.001°, two had one name and one map overwrote the other).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from spacerobot_planner.envelope.plots import _edges, _panel_limits, figure_name
+    sc = _scenario()
+    xs, ys = np.linspace(-2.6, -3.6, 3), np.linspace(-2.2, -3.0, 3)         # as given: larger end first
+    fig, ax = plt.subplots()
+    body = np.array([[-0.9, -0.9], [0.9, -0.9], [0.9, 0.9], [-0.9, 0.9]])
+    target = np.asarray(sc.scene.target.body_polygon_m)
+    _panel_limits(ax, _edges(xs), _edges(ys), body, target)
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    plt.close(fig)
+    for lo, hi, values in ((x0, x1, np.r_[xs, target[:, 0]]), (y0, y1, np.r_[ys, target[:, 1]])):
+        assert lo < values.min() and values.max() < hi, (lo, hi, values)
+    names = [figure_name(0, yaw, 1) for yaw in (-0.0004, 0.0, 0.0004, -1e-9)]
+    assert len(set(names[:3])) == 3 and names[3] == names[1] == "envelope_yaw0deg.png", names
+
+
 def test_the_progress_bar_shows_rate_and_eta_on_a_terminal_only():
     class Tty(io.StringIO):
         def isatty(self):
@@ -446,6 +487,14 @@ def test_the_command_writes_the_table_parquet_and_maps(tmp_path, capsys):
     (["--x-m", "-3.27", "-3.27", "3"], "--x-m: 3 values asked for between equal ends"),
     (["--x-m", "-3", "-2", "100000", "--y-m", "-3", "-2", "1000"], "more than one sweep holds"),
     (["--yaw-deg", "400", "400", "1"], "--yaw-deg: target.yaw_deg: 400.0 is above the maximum 360"),
+    # an audit's: tracebacks, a flag not named, 3 GB before the refusal; and a --scheduler Dask would not take
+    (["--x-m", "-3", "-2", "inf"], "--x-m: the count must be an integer, got inf"),
+    (["--y-m", "-3", "-2", "nan"], "--y-m: the count must be an integer, got nan"),
+    (["--x-m", "-3", "-2", "1e20"], "--x-m: 100000000000000000000 values, more than one sweep holds"),
+    (["--x-m", "-3", "-2", "1e5", "--y-m", "-3", "-2", "1e4"], "more than one sweep holds"),
+    (["--scheduler", "foo"], "--scheduler: 'foo' is not a Dask scheduler's address"),
+    (["--scheduler", "http://127.0.0.1:8786"], "--scheduler: 'http://127.0.0.1:8786' is not a Dask"),
+    (["--scheduler", ""], "--scheduler: an empty address"),
 ])
 def test_bad_input_exits_1_naming_the_flag(extra, named, tmp_path, capsys):
     argv = ["envelope", "--params-file", str(P2), "--x-m", "-3.27", "-3.02", "2", "--y-m", "-2.6", "-2.6", "1",

@@ -210,6 +210,8 @@ def run_envelope(scenario: Scenario, grid: PoseGrid, out_dir, spec: dict, *, sch
                 slots, report.engine = 1, "serial (this process)"
             else:
                 client = client or _client(stack, scheduler, workers)
+                if scheduler:
+                    _wait_for_a_worker(client, scheduler)
                 slots = max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values()))
                 report.engine = (f"Dask at {scheduler}" if scheduler else f"Dask, {slots} worker slots")
             if chunk_size:
@@ -327,6 +329,23 @@ def local_cluster(workers: int | None = None):
             os.environ[MALLOC_TRIM] = trim
         if main:
             signal.signal(signal.SIGINT, interrupt)
+
+
+#: how long a sweep waits for a worker to join a scheduler that has none, s
+WORKER_WAIT_S = 30.0
+
+
+def _wait_for_a_worker(client, scheduler: str) -> None:
+    """Wait up to ``WORKER_WAIT_S`` for the scheduler to have a worker; ValueError naming ``--scheduler`` if none."""
+    if client.scheduler_info()["workers"]:
+        return
+    print(f"spacerobot-plan envelope: the scheduler at {scheduler} has no workers yet; waiting up to "
+          f"{WORKER_WAIT_S:g} s for one (dask worker {scheduler})", file=sys.stderr, flush=True)
+    try:
+        client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+    except (TimeoutError, OSError):
+        raise ValueError(f"--scheduler {scheduler}: no worker joined it in {WORKER_WAIT_S:g} s (start one: "
+                         f"dask worker {scheduler})") from None
 
 
 def _client(stack: ExitStack, scheduler: str | None, workers: int | None):

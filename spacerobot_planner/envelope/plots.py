@@ -43,9 +43,10 @@ CODE_COLOURS = ("#2ca02c", "#7f7f7f", "#d62728", "#ff7f0e", "#c7c7c7", "#9467bd"
 
 
 def figure_name(start_index: int, yaw_deg: float, n_starts: int) -> str:
-    """Return the PNG's file name of one (start, yaw)."""
+    """Return the PNG's file name of one (start, yaw): the yaw to 1e-6° (distinct yaws of a grid, distinct names)."""
     start = f"_start{start_index}" if n_starts > 1 else ""
-    return f"envelope{start}_yaw{round(yaw_deg, 3):g}deg.png"
+    yaw = f"{yaw_deg:.6f}".rstrip("0").rstrip(".")
+    return f"envelope{start}_yaw{'0' if yaw == '-0' else yaw}deg.png"
 
 
 def _edges(centres) -> np.ndarray:
@@ -97,10 +98,16 @@ def _overlay(ax, scenario: Scenario, start_rad, yaw_deg: float) -> None:
         ax.add_patch(Circle(centre, inner, fill=False, ec="#1f3b73", ls="--", lw=1.0, zorder=3))
 
 
-def _panel_limits(ax, xe, ye, body) -> None:
-    """Show the swept cells and the spacecraft body (``body``: its outline, k×2 m), 0.2 m around."""
-    ax.set_xlim(min(xe[0], body[:, 0].min()) - 0.2, max(xe[-1], body[:, 0].max()) + 0.2)
-    ax.set_ylim(min(ye[0], body[:, 1].min()) - 0.2, max(ye[-1], body[:, 1].max()) + 0.2)
+def _panel_limits(ax, xe, ye, body, target) -> None:
+    """
+    Show the swept cells, the spacecraft body and the scenario's target (outlines k×2, m), 0.2 m around.
+
+    The cells' edges in either order (a range given from its larger end: ``--x-m -2.6 -3.6 3``).
+    """
+    x = np.concatenate([np.asarray(xe, dtype=float), body[:, 0], target[:, 0]])
+    y = np.concatenate([np.asarray(ye, dtype=float), body[:, 1], target[:, 1]])
+    ax.set_xlim(x.min() - 0.2, x.max() + 0.2)
+    ax.set_ylim(y.min() - 0.2, y.max() + 0.2)
     ax.set_aspect("equal")
     ax.set_xlabel("target x (m)")
     ax.set_ylabel("target y (m)")
@@ -150,7 +157,7 @@ def plot_envelope(rows, scenario: Scenario, grid: PoseGrid, out_dir, dpi: int = 
             ax.legend(handles=handles + ax.get_legend_handles_labels()[0], fontsize=7, loc="upper center",
                       bbox_to_anchor=(0.5, -0.12), ncol=3)      # below the map: "best" could cover cells
             ax.set_title(f"feasibility: {ok} of {nx * ny} poses ok", fontsize=10)
-            _panel_limits(ax, xe, ye, body)
+            _panel_limits(ax, xe, ye, body, scenario.scene.target.body_polygon_m)
             for ax, (col, label, vals) in zip(flat[1:], panels):
                 lo, hi = np.nanmin(vals), np.nanmax(vals)
                 flat_map = hi - lo <= 1e-9 * max(1.0, abs(hi))     # e.g. an approach error of 0 everywhere
@@ -160,7 +167,7 @@ def plot_envelope(rows, scenario: Scenario, grid: PoseGrid, out_dir, dpi: int = 
                 fig.colorbar(im, ax=ax, shrink=0.85)
                 _overlay(ax, scenario, grid.starts_rad[s], grid.yaw_deg[a])
                 ax.set_title(f"{label}: {round(float(hi), 6):g} everywhere" if flat_map else label, fontsize=10)
-                _panel_limits(ax, xe, ye, body)
+                _panel_limits(ax, xe, ye, body, scenario.scene.target.body_polygon_m)
             for ax in flat[n:]:
                 ax.set_visible(False)
             start_deg = " ".join(f"{v:.1f}" for v in np.degrees(grid.starts_rad[s]))

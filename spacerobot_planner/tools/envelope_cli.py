@@ -71,9 +71,29 @@ MAX_POSES = 50_000_000
 
 
 def _count(value: float, flag: str) -> int:
-    if value != int(value):
+    if not math.isfinite(value) or value != int(value):
         raise ValueError(f"{flag}: the count must be an integer, got {value}")
+    if value > MAX_POSES:
+        raise ValueError(f"{flag}: {value:.0f} values, more than one sweep holds ({MAX_POSES} poses); split it "
+                         "into several sweeps")
     return int(value)
+
+
+def _scheduler(address: str | None) -> str | None:
+    """Return ``--scheduler``'s address as Dask takes it; ValueError naming the flag for one it would not."""
+    if address is None:
+        return None
+    address = address.strip()
+    if not address:
+        raise ValueError("--scheduler: an empty address (give tcp://HOST:PORT, or leave the flag out for a local "
+                         "cluster)")
+    scheme, sep, rest = address.rpartition("://")
+    host, colon, port = (rest if sep else address).rpartition(":")
+    if (sep and scheme not in ("tcp", "tls", "inproc", "ucx", "ws", "wss")) or not colon or not host \
+            or not port.isdigit():
+        raise ValueError(f"--scheduler: {address!r} is not a Dask scheduler's address (tcp://HOST:PORT, as "
+                         "`dask scheduler` prints it)")
+    return address
 
 
 def main(argv=None) -> int:
@@ -86,14 +106,21 @@ def main(argv=None) -> int:
             scenario = with_cells(scenario, args.cells)
         if scenario.scene.target is None:
             raise ValueError("target: the scenario has no target; an envelope sweeps the target's pose")
-        if args.scheduler is not None and args.workers is not None:
+        scheduler = _scheduler(args.scheduler)
+        if scheduler is not None and args.workers is not None:
             raise ValueError("--workers: the cluster at --scheduler has its own workers; give one of the two")
-        xs = axis_values(args.x_m[0], args.x_m[1], _count(args.x_m[2], "--x-m"), "--x-m")
-        ys = axis_values(args.y_m[0], args.y_m[1], _count(args.y_m[2], "--y-m"), "--y-m")
+        counts = [_count(args.x_m[2], "--x-m"), _count(args.y_m[2], "--y-m")]
+        if args.yaw_deg is not None:
+            counts.append(_count(args.yaw_deg[2], "--yaw-deg"))
+        if math.prod(counts) * max(1, len(args.starts_deg or ())) > MAX_POSES:      # before any axis is built
+            raise ValueError(f"--x-m/--y-m/--yaw-deg/--starts-deg: {math.prod(counts)} poses a start, more than "
+                             f"one sweep holds ({MAX_POSES}); split it into several sweeps")
+        xs = axis_values(args.x_m[0], args.x_m[1], counts[0], "--x-m")
+        ys = axis_values(args.y_m[0], args.y_m[1], counts[1], "--y-m")
         if args.yaw_deg is None:
             yaws = (math.degrees(scenario.scene.target.yaw_rad),)
         else:
-            yaws = axis_values(args.yaw_deg[0], args.yaw_deg[1], _count(args.yaw_deg[2], "--yaw-deg"), "--yaw-deg")
+            yaws = axis_values(args.yaw_deg[0], args.yaw_deg[1], counts[2], "--yaw-deg")
             for end in args.yaw_deg[:2]:          # the range of the file's target.yaw_deg (was not checked: 400° ran)
                 try:
                     check_value("target.yaw_deg", end)
@@ -114,7 +141,7 @@ def main(argv=None) -> int:
         if not args.quiet:
             print(f"envelope {args.params_file}: {grid.n_poses} poses ({len(xs)} x × {len(ys)} y × {len(yaws)} "
                   f"yaw × {len(starts)} start), grid {scenario.grid.label()}, into {args.out}", flush=True)
-        report = run_envelope(scenario, grid, args.out, spec, scheduler=args.scheduler, workers=args.workers,
+        report = run_envelope(scenario, grid, args.out, spec, scheduler=scheduler, workers=args.workers,
                               chunk_size=args.chunk_size, parquet=parquet, quiet=args.quiet)
     except ValueError as e:
         return fail_input(str(e))
@@ -140,7 +167,16 @@ def main(argv=None) -> int:
                 print(f"wrote {Path(args.out) / name}")
     if not args.no_plots:
         from ..envelope.plots import plot_envelope     # matplotlib: loaded only when maps are drawn
-        for path in plot_envelope(report.rows, scenario, grid, args.out):
+        try:
+            written = plot_envelope(report.rows, scenario, grid, args.out)
+        except OSError as e:
+            return fail_input(f"--out {args.out}: the maps: {e} (the table is written; rerun with the same command "
+                              "to draw them)")
+        except KeyboardInterrupt:
+            print("spacerobot-plan envelope: interrupted while drawing the maps (the table is written; rerun with "
+                  "the same command to draw them)", file=sys.stderr)
+            return 130
+        for path in written:
             if not args.quiet:
                 print(f"wrote {path}")
     return 0
