@@ -388,3 +388,16 @@ def test_importing_the_core_loads_no_rclpy():
             "sys.exit(1 if bad else 0)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(ROOT.parent))
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_a_ctrl_c_the_command_does_not_take_itself_ends_it_with_130_and_one_line(monkeypatch, capsys):
+    """A Ctrl-C during a plan (or the imports) printed a KeyboardInterrupt traceback (an envelope audit)."""
+    from spacerobot_planner.tools import cli
+
+    def interrupted(argv=None):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "main", interrupted)
+    assert cli.run(["--params-file", P2]) == 130
+    err = capsys.readouterr().err
+    assert err == "spacerobot-plan: interrupted\n", err

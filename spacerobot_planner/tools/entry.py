@@ -14,9 +14,14 @@ __all__ = ["plan", "planner_node", "mock_arm_node"]
 
 
 def plan(argv=None) -> int:
-    """``spacerobot-plan``: ``tools.cli.run``."""
-    import_numba()
-    from .cli import run
+    """``spacerobot-plan``: ``tools.cli.run`` (a Ctrl-C while numba and the package load: status 130, one line)."""
+    try:
+        import_numba()
+        from .cli import run
+    except KeyboardInterrupt:
+        import sys
+        print("spacerobot-plan: interrupted", file=sys.stderr)
+        return 130
     return run(argv)
 
 
