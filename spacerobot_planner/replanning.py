@@ -131,6 +131,21 @@ class Executing:
             return self.previous.expected_at(ros_ns, published_only)
         return sample(self.trajectory, self.time_s(ros_ns), self.published if published_only else None)[0]
 
+    def link_at(self, ros_ns: int, now_ns: int) -> "Executing":
+        """
+        Return the link of the chain the arm is on at ROS time ``ros_ns`` (seen at ``now_ns``).
+
+        The newest whose start is before ``ros_ns``: a trajectory sent to start later (a plan from
+        the end of the one that runs, stamped seconds or minutes ahead) waits for its stamp, and a
+        newer message stamped before it drops it (the controller's rule, and the mock arm's), so
+        a plan that takes over at ``ros_ns`` joins the one running then.  Only links whose
+        predecessor still runs at ``now_ns`` are stepped back over.
+        """
+        link = self
+        while link.previous is not None and link.start_ns >= int(ros_ns) and link.previous.running_at(now_ns):
+            link = link.previous
+        return link
+
     def joined_by(self, trajectory: Trajectory, published, start_ns: int, now_ns: int | None = None) -> "Executing":
         """
         Record a trajectory joined to this one at ``start_ns``, published at ROS time ``now_ns``.
@@ -242,14 +257,9 @@ def plan_start(executing: Executing | None, now_ns: int, measured_rad, measured_
                              "follows it): planned from the last one, at rest")
         return q, None, (f"the arm does not follow its trajectory ({traj.joint_names[j]} "
                          f"{np.degrees(off[j]):.2f}° from it): planned from the measured state, at rest")
-    # the link of the chain the arm is on at the horizon: a trajectory sent but starting later (a plan
-    # from the end of the one that runs, stamped far ahead) waits for its stamp, and a newer message
-    # stamped before it drops it (the controller's rule, and the mock arm's): the plan takes over
-    # from the trajectory that runs, not after the waiting ones
-    horizon_ns = int(now_ns) + int(round(1e9 * float(horizon_s)))
-    link = executing
-    while link.previous is not None and link.start_ns > horizon_ns and link.previous.running_at(now_ns):
-        link = link.previous
+    # the link the arm is on at the horizon: the plan takes over from the trajectory that runs then,
+    # not after the ones waiting for later stamps (Executing.link_at)
+    link = executing.link_at(int(now_ns) + int(round(1e9 * float(horizon_s))), now_ns)
     h = horizon_index(link.trajectory, link.time_s(now_ns), horizon_s)
     join = Join(link, h, float(horizon_s))
     # a late state taken on the moving trajectory is the last sign there is: the arm followed it

@@ -791,11 +791,14 @@ class CaptureSession:
         q, q_ns, ex = self._arm_state(req)
         s = req.settings
         horizon_s = float(s.horizon_s) * (2.0 if req.attempt == 1 else 1.0)
+        now = self.now_ns()
         if req.attempt == FROM_THE_END and ex is not None and horizon_s > 0.0:
-            horizon_s = max(horizon_s, ex.trajectory.duration_s - ex.time_s(self.now_ns()))
+            # the end of the trajectory that runs at the horizon, not of the newest one waiting after it (a
+            # plan from there, stamped first, drops the waiting ones; after them, they had piled up: an audit)
+            run = ex.link_at(now + int(round(1e9 * horizon_s)), now)
+            horizon_s = max(horizon_s, run.trajectory.duration_s - run.time_s(now))
         if req.attempt > FROM_THE_END:
             horizon_s = 0.0
-        now = self.now_ns()
         start, join, why = plan_start(ex, now, q, q_ns, horizon_s, float(s.follow_tolerance_rad),
                                       req.scenario.robot.planned_periodic)
         if join is not None and req.attempt == STOPPING:     # stop on the executing path, then go
@@ -1084,7 +1087,8 @@ class CaptureSession:
                 "the trajectory it follows ends at this goal: it finishes it as it was sent"
                 if at_goal and join is not None and req.attempt == FROM_THE_END and req.start_rad is None else None)
         if kept:                      # not at the goal: on the way there as sent; no new motion, no reaction of one
-            values.update(at_goal="false", finishes_executing="true")
+            values.update(at_goal="false", finishes_executing="true",
+                          joined_moving_arm="no (nothing sent: the arm finishes the trajectory it follows)")
             for key in [k for k in values if k.startswith(("peak_wheel_", "free_floating_", "held_"))]:
                 del values[key]
         outcome = Outcome("ok", kept or ("already at the goal: no trajectory published" if at_goal else ""), res, traj,

@@ -854,6 +854,30 @@ def _following_its_first_trajectory(slow_backend, at):
     return ses, ex, clock
 
 
+def test_the_fallback_from_the_end_starts_at_the_running_trajectorys_end_not_after_the_waiting_ones(slow_backend):
+    """
+    The retry from the executing trajectory's end takes the end of the one that runs, stamped before the waiting ones.
+
+    With trajectories waiting for later stamps (plans from the end, sent before), it had taken the
+    newest one's end: each such plan queued after the last, and the arm was left a queue of motions
+    to goals later requests had replaced (an audit on the servicer: five waiting, the last stamped
+    585 s ahead).  Here one trajectory waits from the running one's end; the retry's start is the
+    running one's last point.  Oracle: the running trajectory's own points.
+    """
+    from spacerobot_planner.session import FROM_THE_END
+    ses, ex, clock = _following_its_first_trajectory(slow_backend, lambda duration_s: 0.4 * duration_s)
+    traj = ex.trajectory
+    end_ns = ex.start_ns + int(round(traj.duration_s * S))
+    waiting = ex.joined_by(traj, ex.published, end_ns, clock.t)          # sent from the running one's end
+    ses.executing = waiting.joined_by(traj, ex.published, end_ns + int(round(traj.duration_s * S)), clock.t)
+    req = ses.request("retarget", target=ses.target)
+    req.attempt = FROM_THE_END
+    start, join = ses._start_of(req)
+    assert join is not None and join.executing.start_ns == ex.start_ns, join
+    assert join.horizon_index == len(traj.times_s) - 1
+    np.testing.assert_array_equal(start, traj.positions_rad[-1])
+
+
 def test_limits_lowered_as_the_arm_moves_to_its_goal_say_that_it_finishes_its_trajectory_as_sent(slow_backend):
     """
     Velocity limits lowered to a sixteenth as the arm moves to its goal (``ros2 param set``): said, not "at the goal".
