@@ -423,8 +423,10 @@ def test_a_scheduler_without_workers_is_named_and_leaves_no_folder(serial, tmp_p
 
 def test_the_maps_show_a_range_given_from_its_larger_end_and_name_close_yaws_apart():
     """
-    A reversed range's cells are all in the panel (it had shown one corner), the scenario's target too; yaws
-    0.0004° apart get their own files (rounded to 0.001°, two had one name and one map overwrote the other).
+    A reversed range's cells are all in the panel, the scenario's target too; close yaws get their own files.
+
+    The panel had shown one corner; yaws 0.0004° apart, rounded to 0.001°, had shared a name and
+    one map overwrote the other (an audit).
     """
     import matplotlib
     matplotlib.use("Agg")
