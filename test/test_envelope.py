@@ -497,6 +497,8 @@ def test_the_command_writes_the_table_parquet_and_maps(tmp_path, capsys):
     (["--scheduler", "foo"], "--scheduler: 'foo' is not a Dask scheduler's address"),
     (["--scheduler", "http://127.0.0.1:8786"], "--scheduler: 'http://127.0.0.1:8786' is not a Dask"),
     (["--scheduler", ""], "--scheduler: an empty address"),
+    (["--x-m", "1e300", "1e300", "1"], "--x-m: target.center_m: 1e+300 is above the maximum 1000"),
+    (["--y-m", "-3", "-2000", "2"], "--y-m: target.center_m: -2000.0 is below the minimum -1000"),
 ])
 def test_bad_input_exits_1_naming_the_flag(extra, named, tmp_path, capsys):
     argv = ["envelope", "--params-file", str(P2), "--x-m", "-3.27", "-3.02", "2", "--y-m", "-2.6", "-2.6", "1",

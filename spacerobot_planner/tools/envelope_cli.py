@@ -115,6 +115,12 @@ def main(argv=None) -> int:
         if math.prod(counts) * max(1, len(args.starts_deg or ())) > MAX_POSES:      # before any axis is built
             raise ValueError(f"--x-m/--y-m/--yaw-deg/--starts-deg: {math.prod(counts)} poses a start, more than "
                              f"one sweep holds ({MAX_POSES}); split it into several sweeps")
+        for flag, ends, k in (("--x-m", args.x_m, 0), ("--y-m", args.y_m, 1)):    # the file's target.center_m range
+            for end in ends[:2]:
+                try:
+                    check_value("target.center_m", [end if j == k else 0.0 for j in range(2)])
+                except ValueError as e:
+                    raise ValueError(f"{flag}: {e} (the range of the file's target.center_m)") from None
         xs = axis_values(args.x_m[0], args.x_m[1], counts[0], "--x-m")
         ys = axis_values(args.y_m[0], args.y_m[1], counts[1], "--y-m")
         if args.yaw_deg is None:
