@@ -291,9 +291,9 @@ class Planner:
         good = [s for s, e in zip(free, errs) if e <= bound]
         if good:
             return good[0]
-        blocked = [(math.degrees(approach_error_rad(sc.robot, sc.scene.target, s.q_full)), s) for s in found
-                   if not any(s is f for f in free)]
-        nearer = min(blocked, key=lambda es: es[0], default=None)
+        # the posture nearest the normal of all found: where it is nearer than the clear ones', it is not clear
+        nearer = min(((math.degrees(approach_error_rad(sc.robot, sc.scene.target, s.q_full)), s) for s in found),
+                     key=lambda es: es[0], default=None)
         closer = ("" if nearer is None or nearer[0] >= min(errs) else
                   f" (the posture {nearer[0]:.1f}° off it collides)" if not nearer[1].clearance_m > 0.0 else
                   f" (the posture {nearer[0]:.1f}° off it comes within the safety margin {margin:g} m: clearance "

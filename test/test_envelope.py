@@ -190,32 +190,34 @@ def test_a_sweep_on_a_local_cluster_equals_the_serial_sweep_row_by_row(serial, t
 
 def test_chunks_cancelled_with_a_lost_worker_are_planned_again_not_written_as_failures(serial, tmp_path):
     """
-    The scenario's scattered copy lost (as with the only worker holding it killed) after the first chunk.
+    The scenario's scattered copy lost (as with the only worker holding it killed) once the first chunk is submitted.
 
-    Dask then cancels every chunk not yet planned ("already forgotten"): they had been written
-    as ``internal_error`` rows, the run ending "complete" and a rerun planning nothing (an
-    audit's remote worker, killed mid-sweep).  Now the scenario is scattered again and those
-    chunks planned again: the table equals the serial sweep's.
+    Dask then cancels the chunks that need it ("already forgotten"): they had been written as
+    ``internal_error`` rows, the run ending "complete" and a rerun planning nothing (an audit's
+    remote worker, killed mid-sweep).  Now the scenario is scattered again and those chunks
+    planned again: the table equals the serial sweep's.  Lost before any chunk can run, so the
+    first chunk is cancelled whatever the machine's speed.
     """
     from distributed import Client
 
     sc, grid, ser = serial
-    scattered = []
+    scattered, submitted = [], []
     with local_cluster(2) as cluster, Client(cluster) as client:
-        real = client.scatter
+        real_scatter, real_submit = client.scatter, client.submit
 
         def scatter(*a, **k):
-            scattered.append(real(*a, **k))
+            scattered.append(real_scatter(*a, **k))
             return scattered[-1]
 
-        def lose(rows):
-            if len(scattered) == 1:
-                client.cancel(scattered[0])         # its copies gone: the chunks not yet planned are cancelled
+        def submit(*a, **k):
+            submitted.append(real_submit(*a, **k))
+            if len(submitted) == 1:
+                client.cancel(scattered[0])         # its copies gone: the chunk submitted on it is cancelled
+            return submitted[-1]
 
-        client.scatter = scatter
-        rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), client=client, chunk_size=1, quiet=True,
-                           after_chunk=lose)
-    assert len(scattered) >= 2                     # scattered again
+        client.scatter, client.submit = scatter, submit
+        rep = run_envelope(sc, grid, tmp_path, _spec(sc, grid), client=client, chunk_size=1, quiet=True)
+    assert len(scattered) >= 2 and len(submitted) > grid.n_poses        # scattered again, a chunk submitted again
     assert rep.complete and rep.planned == grid.n_poses
     assert [r["pose_id"] for r in rep.rows if r["code"] == "internal_error"] == []
     assert _differences(ser.rows, rep.rows) == []

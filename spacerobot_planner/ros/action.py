@@ -30,9 +30,6 @@ __all__ = ["PlanCaptureServer", "SERVICE_DEPTH", "RESULT_TIMEOUT_S"]
 SERVICE_DEPTH = 100
 #: how long a finished goal's result is kept for a client that asks later, s (rclpy's default 10 s)
 RESULT_TIMEOUT_S = 60
-_SERVICES_QOS = {"history": qos_profile_services_default.history,
-                 "reliability": qos_profile_services_default.reliability,
-                 "durability": qos_profile_services_default.durability}
 
 
 class PlanCaptureServer:
@@ -40,7 +37,9 @@ class PlanCaptureServer:
 
     def __init__(self, node):
         self.node = node
-        services = QoSProfile(**{**_SERVICES_QOS, "depth": SERVICE_DEPTH})
+        d = qos_profile_services_default
+        services = QoSProfile(history=d.history, depth=SERVICE_DEPTH, reliability=d.reliability,
+                              durability=d.durability)
         self.server = ActionServer(node, PlanCapture, "plan_capture", execute_callback=self._execute,
                                    goal_callback=self._on_goal, cancel_callback=self._on_cancel,
                                    handle_accepted_callback=lambda h: h.execute(),
