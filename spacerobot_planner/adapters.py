@@ -48,7 +48,7 @@ import numpy as np
 from .motion import MotionValidator
 from .published import Resampled, controller_check, resample, segment_peaks, segment_wheel_peaks
 from .reaction import DriftedValidator
-from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, timed_join
+from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, rests_at, timed_join
 from .settings import SessionSettings
 from .spacecraft import free_floating_rates, free_floating_response
 from .timing import reaction_matters, reaction_of, timed_motion
@@ -222,22 +222,28 @@ AFTER_THE_END_S = 1e-3
 
 def starts_at_the_end(join, now_ns: int, lead_s: float, from_end_at_rest: bool = False) -> int | None:
     """
-    Return when a plan starting at the executing trajectory's end, at rest, may start (ROS time, ns), else None.
+    Return when a plan starting where the executing trajectory comes to rest may start (ROS time, ns), else None.
 
-    The plan starts at the executing trajectory's last point (``join.horizon_index``) and
-    either that trajectory ends less than ``lead_s`` after ``now_ns`` (no join can be the lead
-    ahead) or ``from_end_at_rest`` (the session's retry from the end, after a join missed its
-    time).  The arm comes to rest there on the trajectory it follows, so the new one starts
-    there from rest, stamped no earlier than :data:`AFTER_THE_END_S` after that end (and the lead
-    after it is published): a stamp the chain's own time cannot overtake.  None: a join (through
-    the horizon point without stopping).
+    The plan starts at a point where the arm comes to rest on the trajectory it follows
+    (``join.horizon_index``: its last point, or a stop an earlier plan sent there,
+    ``replanning.rests_at``) and either that point is less than ``lead_s`` after ``now_ns`` (no
+    join can be the lead ahead), or the join stops there before the trajectory's end
+    (``join.stop``: the session's stop on the executing path, ``replanning.stopping_join``, which
+    never brakes past such a point; a stop at the end is braked to it, and where that does not fit
+    the limits the session retries from the end), or ``from_end_at_rest`` (the session's retry
+    from the end, after a join missed its time).  The
+    arm comes to rest there on the trajectory it follows, so the new one starts there from rest,
+    stamped no earlier than :data:`AFTER_THE_END_S` after it (and the lead after it is
+    published): a stamp the chain's own time cannot overtake.  None: a join (through the
+    horizon point without stopping, or braked to it).
     """
-    ex = join.executing
-    end_ns = ex.start_ns + int(round(ex.trajectory.duration_s * 1e9))
-    if join.horizon_index != len(ex.trajectory) - 1:
+    ex, h = join.executing, join.horizon_index
+    if not rests_at(ex, h):
         return None
-    if from_end_at_rest or end_ns <= int(now_ns) + int(round(lead_s * 1e9)):
-        return end_ns + int(round(AFTER_THE_END_S * 1e9))
+    rest_ns = ex.start_ns + int(round(float(ex.trajectory.times_s[h]) * 1e9))
+    stop_before_end = join.stop and h < len(ex.trajectory) - 1
+    if from_end_at_rest or stop_before_end or rest_ns <= int(now_ns) + int(round(lead_s * 1e9)):
+        return rest_ns + int(round(AFTER_THE_END_S * 1e9))
     return None
 
 

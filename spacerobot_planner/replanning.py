@@ -59,7 +59,7 @@ from .timing import timed_motion
 from .trajectory import Trajectory, check_start_tangent, chord_lengths_rad, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
-           "stopping_join", "committed_path",
+           "stopping_join", "committed_path", "rests_at", "next_rest",
            "MAX_STATE_AGE_S", "STATE_WAIT_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
 #: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
@@ -454,13 +454,37 @@ def timed_join(scenario, paths: JoinedPaths, checker=None, chosen: int | None = 
     try:
         return _fastest(scenario, paths, motions, chosen)
     except ValueError:
-        last = len(ex.trajectory) - 1
-        if paths.join.horizon_index != last:
+        h = paths.join.horizon_index
+        if not rests_at(ex, h):
             raise
-        rest = ex.trajectory.subset(np.arange(c.index, last + 1))
-        rest = replace(rest, times_s=rest.times_s - rest.times_s[0])
         after, reaction = timed_motion(scenario, paths.new_rad, motions=motions)
-        return rest.then(after), reaction, None
+        return _remainder(ex.trajectory, c.index, h).then(after), reaction, None
+
+
+def rests_at(ex: Executing, index: int) -> bool:
+    """
+    Tell whether the arm comes to rest at the executing trajectory's point ``index``.
+
+    Its last point, or a published point (``ex.published``) whose velocities are all exactly 0: a
+    stop an earlier plan sent (``Trajectory.then``), where the controller's motion rests too.
+    """
+    traj = ex.trajectory
+    return index == len(traj) - 1 or (bool(np.all(traj.velocities_rad_s[index] == 0.0))
+                                      and bool(np.any(np.asarray(ex.published) == index)))
+
+
+def next_rest(ex: Executing, index: int) -> int:
+    """Return the executing trajectory's first point after ``index`` where the arm comes to rest (:func:`rests_at`)."""
+    pub = np.asarray(ex.published)
+    pub = pub[pub > index]
+    still = pub[np.all(ex.trajectory.velocities_rad_s[pub] == 0.0, axis=1)]
+    return int(still[0]) if len(still) else len(ex.trajectory) - 1
+
+
+def _remainder(traj: Trajectory, first: int, last: int) -> Trajectory:
+    """Return ``traj``'s points ``first`` to ``last`` as sent, timed from 0 (the arm follows them)."""
+    rest = traj.subset(np.arange(first, last + 1))
+    return replace(rest, times_s=rest.times_s - rest.times_s[0])
 
 
 def _stop_at_horizon(scenario, c):
@@ -510,9 +534,13 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     re-times the stop with the limits lowered by the controller's overshoot); the farther of
     the two joins' stops, at or after ``join.horizon_index`` (``soonest``: after the join, for an
     executing path that comes within the safety margin of a new scene before the horizon
-    point; the plan then has until the join); the executing trajectory's end when none before
-    it.  (The room as lowered limits along the stop, or as scaling factors, did not hold: the
-    timing lets a moving start keep the full limits where the arm's speed needs them to enter
+    point; the plan then has until the join); where the executing trajectory itself comes to rest
+    before that, at a stop an earlier plan sent, there, from rest, the arm following it as sent
+    until then (``adapters.starts_at_the_end``: re-timed from a re-fitted spline, its braking could
+    need a few per cent more path than it has, and a stop searched past it braked through it to
+    the end: minutes on a slow servicer); its end when none before it.  (The room as lowered
+    limits along the stop, or as scaling factors, did not
+    hold: the timing lets a moving start keep the full limits where the arm's speed needs them to enter
     the path, which took the room back; as factors, a start at the arm's speed on a bend could
     not enter at all.)  The new plan starts there from rest (``Join.stop``): for a new path that
     cannot be entered at speed (it turns back, or the arm, slowed by weak wheels, cannot brake
@@ -524,7 +552,8 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     along = np.concatenate([[0.0], np.cumsum(chord_lengths_rad(traj.positions_rad))])   # path length, rad
 
     def stop_from(j: int) -> int:
-        """Return the stop with room from executing point ``j`` (``last`` when none before it)."""
+        """Return the stop with room from executing point ``j`` (the trajectory's next rest when none before)."""
+        rest = next_rest(ex, j)                 # it stops there as sent (adapters.starts_at_the_end): no braking past
         speed = float(traj.path_speed[j])
         tangent = _arm_direction(traj.velocities_rad_s[j], speed)
 
@@ -536,25 +565,31 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
             return True
 
         lo, hi, step = j, j + 1, 1              # lo: too near (the join itself), hi: the next to try
-        while hi < last and not brakes(hi):
-            lo, hi, step = hi, min(last, hi + step), 2 * step
-        if hi >= last:
-            return last
+        while hi < rest and not brakes(hi):
+            lo, hi, step = hi, min(rest, hi + step), 2 * step
+        if hi >= rest:
+            return rest
         while hi - lo > 1:                      # the nearest stop at the full limits
             mid = (lo + hi) // 2
             lo, hi = (lo, mid) if brakes(mid) else (mid, hi)
         stop = max(hi, int(np.searchsorted(along, along[j] + (along[hi] - along[j]) / STOP_ROOM)))
         step = 1
-        while stop < last and not brakes(stop):
-            stop, step = min(last, stop + step), 2 * step
-        return min(stop, last)
+        while stop < rest and not brakes(stop):
+            stop, step = min(rest, stop + step), 2 * step
+        return min(stop, rest)
 
     pub = np.asarray(ex.published)
     later = pub[traj.times_s[pub] >= ex.time_s(now_ns) + lead_s]
-    stop = 0 if soonest else join.horizon_index
-    for j in (later[:2] if len(later) else [last]):     # the join, or the next point when the plan runs late
-        stop = max(stop, stop_from(int(j)) if int(j) < last else last)
-    return Join(ex, min(stop, last), join.horizon_s, stop=True)
+    joins = [int(j) for j in later[:2]]
+    if not joins or rests_at(ex, joins[0]):     # the arm comes to rest at the join: from there
+        return Join(ex, joins[0] if joins else last, join.horizon_s, stop=True)
+    # never past the executing trajectory's own next rest (the horizon point may be beyond it)
+    rest = next_rest(ex, joins[0])
+    stop = 0 if soonest else min(join.horizon_index, rest)
+    for j in joins:                             # the join, or the next point when the plan runs late
+        if j < rest:
+            stop = max(stop, stop_from(j))
+    return Join(ex, min(stop, rest), join.horizon_s, stop=True)
 
 
 def committed_path(join: Join, from_ns: int, to_ns: int) -> np.ndarray:

@@ -221,6 +221,14 @@ def target_why(target: Target) -> str:
             f"yaw {math.degrees(target.yaw_rad):.1f}°")
 
 
+def _from_rest_on(join) -> str:
+    """Say where on the executing trajectory a plan from rest starts (its end, or a stop an earlier plan sent)."""
+    ex, h = join.executing, join.horizon_index
+    if h == len(ex.trajectory) - 1:
+        return "no (from the end of the executing trajectory, at rest)"
+    return f"no (from where the executing trajectory stops, {ex.trajectory.times_s[h]:.3f} s into it, at rest)"
+
+
 def _ahead_s(join, now_ns: int) -> float:
     """Return how far ahead of ``now_ns`` the join's point is on the executing trajectory, s."""
     ex = join.executing
@@ -1053,7 +1061,7 @@ class CaptureSession:
                          "would reach the controller after it")
         traj = processed.trajectory
         c = processed.continuation
-        joined = ("no (from the end of the executing trajectory, at rest)" if c is None and join is not None
+        joined = (_from_rest_on(join) if c is None and join is not None
                   else "no (the arm at rest)") if c is None else (
             (f"yes, {c.join_time_s:.3f} s into the executing trajectory at " if c.join_time_s >= 0.0005 else
              "yes, at the start of the executing trajectory (sent, not begun: its first point) at ")

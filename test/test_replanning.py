@@ -437,6 +437,65 @@ def test_a_servicer_replan_back_stops_on_the_executing_path_and_goes_back():
     assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3)
 
 
+@pytest.mark.parametrize("before_s", [12.0, 8.0, 3.0])
+def test_a_stop_on_a_trajectory_that_stops_itself_is_where_it_stops(before_s):
+    """
+    The stop rung on an executing trajectory that itself stops on the way (an earlier stop, then back): there.
+
+    servicer_3dof: a first trajectory, stopped on its path and sent back (the executing trajectory
+    comes to rest at that stop, then goes on), and then, ``before_s`` before it comes to rest,
+    the session's stop rung for another goal.  The stop is where the executing trajectory comes to
+    rest (its published point at rest, found by the test), the plan starts there from rest,
+    stamped no earlier than the arm gets there (the executing trajectory is what it does until
+    then), within the wheel limits.  Before, the stop was searched past that point: at 12 s and 8 s
+    the search braked through it to the trajectory's end, 66 s later, where a re-timed braking
+    could not be entered at the arm's speed (a servicer audit: a retarget waited for an executing
+    trajectory 143 s long); at 3 s the arm, at rest there, was sent 12 s on along the old path
+    before it stopped again.
+    """
+    import os
+    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.planner import Planner
+    from spacerobot_planner.replanning import stopping_join
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "servicer_3dof.yaml"))
+    robot, planner = sc.robot, Planner(sc)
+    start = sc.start_rad + np.radians([11.0, -18.0, -37.0])
+    first = post_process(sc, planner.plan(start, sc.goal_rad).path_rad, start_rad=start)
+    ex = Executing(first.dense, first.indices, 100 * S)
+    now = ex.start_ns + int(0.1 * ex.trajectory.duration_s * S)
+    _, join, _ = plan_start(ex, now, ex.expected_at(now - S // 100), now - S // 100, 1.0, np.radians(2.0),
+                            robot.planned_periodic)
+    back = planner.plan(stopping_join(sc, join, now, 0.65).start_rad, start)
+    second = post_process(sc, back.path_rad, join=stopping_join(sc, join, now, 0.65), now_ns=now + S // 4,
+                          lead_s=0.65)
+    ex2 = Executing(second.dense, second.indices, second.join_stamp_ns)
+    old = ex2.trajectory
+    pub = np.asarray(second.indices)
+    resting = pub[(np.linalg.norm(old.velocities_rad_s[pub], axis=1) == 0.0) & (pub < len(old) - 1)]
+    assert len(resting) == 1, resting                   # the first trajectory's stop, then on
+    r = int(resting[0])
+    rest_ns = ex2.start_ns + int(round(old.times_s[r] * S))
+    now2 = rest_ns - int((before_s + 1.65) * S)
+    _, join2, why = plan_start(ex2, now2, ex2.expected_at(now2 - S // 100), now2 - S // 100, 1.0,
+                               np.radians(2.0), robot.planned_periodic)
+    assert join2 is not None, why
+    stop = stopping_join(sc, join2, now2, 0.65)
+    assert stop.stop and stop.horizon_index == r, (stop.horizon_index, r, len(old))
+    goal = sc.goal_rad + np.radians([-10.0, 5.0, 10.0])
+    res = planner.plan(stop.start_rad, goal)
+    assert res.ok, res.reason
+    out = post_process(sc, res.path_rad, join=stop, now_ns=now2 + S // 4, lead_s=0.65)
+    traj = out.trajectory
+    assert out.refused is None and out.certified and out.continuation is None
+    assert out.not_before_ns is not None and out.not_before_ns >= rest_ns
+    np.testing.assert_array_equal(traj.positions_rad[0], old.positions_rad[r])
+    assert np.all(traj.velocities_rad_s[0] == 0.0)
+    np.testing.assert_allclose(traj.positions_rad[-1], goal, atol=1e-9)
+    h, tau = controller_wheel_load(sc, traj, 40 * len(traj.times_s))
+    assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3)
+
+
 @pytest.mark.parametrize("frac,goal", [(0.1, "back"), (0.4, "back"), (0.4, "other"), (0.7, "same")])
 def test_an_arm_at_its_velocity_limit_is_joined_at_its_speed(frac, goal):
     """
