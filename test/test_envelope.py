@@ -343,11 +343,18 @@ def test_a_killed_sweep_resumes_planning_only_what_is_missing(serial, tmp_path):
 
 
 def test_a_folder_of_another_sweep_is_refused(serial, tmp_path):
+    """A folder of another sweep is refused, naming what differs and the values of both (the folder's, this one's)."""
     sc, grid, _ = serial
     small = PoseGrid(grid.x_m[:1], grid.y_m[:1], grid.yaw_deg, grid.starts_rad[:1])
     run_envelope(sc, small, tmp_path, _spec(sc, small), workers=0, quiet=True)
-    with pytest.raises(ValueError, match="another sweep.*poses"):
+    with pytest.raises(ValueError, match="another sweep.*poses") as e:
         run_envelope(sc, grid, tmp_path, _spec(sc, grid), workers=0, quiet=True)
+    said = str(e.value)
+    assert f"x_m [{grid.x_m[0]:g}] there, " in said and f"y_m [{grid.y_m[0]:g}] there, " in said, said
+    assert "yaw_deg" not in said, said                  # the same in both
+    for values in (grid.x_m, grid.y_m):
+        here = f"[{', '.join(f'{v:g}' for v in values)}] here" if len(values) <= 4 else f"{len(values)} values"
+        assert here in said, (here, said)
 
 
 def test_a_table_of_another_sweep_without_its_manifest_is_refused(serial, tmp_path):

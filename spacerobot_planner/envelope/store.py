@@ -42,6 +42,30 @@ _TYPES = dict(COLUMNS)
 SPEC_KEYS = ("scenario_sha256", "grid_cells", "poses", "columns")
 
 
+def _difference(key: str, old: dict, new: dict) -> str:
+    """Say how the manifest ``old``'s ``key`` (one of SPEC_KEYS) differs from the sweep ``new``'s: its values, short."""
+    a, b = old.get(key), new.get(key)
+    if key == "scenario_sha256":
+        return (f"the folder's from {old.get('params_file', '?')} (SHA-256 {str(a)[:12]}…), "
+                f"this one from {new.get('params_file', '?')} ({str(b)[:12]}…)")
+    if key == "poses" and isinstance(a, dict) and isinstance(b, dict):
+        parts = [f"{k} {_short(a.get(k))} there, {_short(b.get(k))} here" for k in sorted(set(a) | set(b))
+                 if a.get(k) != b.get(k)]
+        return "; ".join(parts)
+    return f"{_short(a)} there, {_short(b)} here"
+
+
+def _short(v, most: int = 4) -> str:
+    """Return a manifest value as text: a list of more than ``most`` numbers as its count, ends and step."""
+    if isinstance(v, list) and len(v) > most and all(isinstance(x, (int, float)) for x in v):
+        return f"{len(v)} values {v[0]:g} … {v[-1]:g}"
+    if isinstance(v, list) and len(v) > most:
+        return f"{len(v)} values {_short(v[0])} … {_short(v[-1])}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_short(x) for x in v) + "]"
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
 def sweep_spec(params_file, grid_cells, grid: PoseGrid) -> dict:
     """Return what names a sweep: the scenario file (path and SHA-256), the grid cells and the poses."""
     data = Path(params_file).read_bytes()
@@ -131,7 +155,8 @@ class EnvelopeStore:
             old = json.loads(self.manifest_path.read_text(encoding="utf-8"))
             for key in SPEC_KEYS:
                 if old.get(key) != self.spec.get(key):
-                    raise ValueError(f"--out {self.dir}: it holds another sweep ({key} differs from this one's); "
+                    raise ValueError(f"--out {self.dir}: it holds another sweep ({key} differs from this one's: "
+                                     f"{_difference(key, old, self.spec)}); "
                                      "choose another folder, or delete that one to start again")
             self.manifest = old
         else:
