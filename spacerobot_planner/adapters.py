@@ -159,6 +159,9 @@ class Processed:
         continuation: the ``trajectory.Continuation`` of a join, else None.
         not_before_ns: from rest at the executing trajectory's end: ``AFTER_THE_END_S`` after that end
             (ROS time, ns), the earliest stamp (see :func:`starts_at_the_end`); else None.
+        stamp_exact: from rest where the executing trajectory stops before its end (a stop an
+            earlier plan sent, or its first point, not begun): the stamp is ``not_before_ns``
+            exactly, as the arm leaves that point after it (later: plan again); False otherwise.
         predicted_drift: free floating: :func:`predicted_drift` at the published points (not
             published: nothing commands the attitude); else None.
         retimings: how many times the path was timed again because the controller's motion of
@@ -178,6 +181,7 @@ class Processed:
     continuation: object = None
     not_before_ns: int | None = None
     predicted_drift: TrajectoryPart | None = None
+    stamp_exact: bool = False
     retimings: int = 0
 
     @property
@@ -243,7 +247,8 @@ def starts_at_the_end(join, now_ns: int, lead_s: float, from_end_at_rest: bool =
     rest_ns = ex.start_ns + int(round(float(ex.trajectory.times_s[h]) * 1e9))
     stop_before_end = join.stop and h < len(ex.trajectory) - 1
     if from_end_at_rest or stop_before_end or rest_ns <= int(now_ns) + int(round(lead_s * 1e9)):
-        return rest_ns + int(round(AFTER_THE_END_S * 1e9))
+        # at its first point (not begun) no segment of it comes before the new one: its very stamp
+        return rest_ns + (0 if h == 0 else int(round(AFTER_THE_END_S * 1e9)))
     return None
 
 
@@ -534,18 +539,20 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     candidate timed or None).
     """
     stamp_ns = cont = not_before_ns = None
+    exact = False
     if paths is None and join is None:
         dense, reaction = timed_motion(scenario, path_rad, start_rad, motions=motions, report=certify)
     elif paths is None:
         # from rest at the executing trajectory's end, stamped when published, not before that end
         not_before_ns = starts_at_the_end(join, now_ns, lead_s, from_end_at_rest)
+        exact = join.horizon_index < len(join.executing.trajectory) - 1     # the arm leaves that point after it
         dense, reaction = timed_motion(scenario, path_rad, join.start_rad, motions=motions, report=certify)
     else:
         dense, reaction, chosen = timed_join(scenario, paths, motions, chosen)
         stamp_ns, cont = paths.stamp_ns, paths.continuation
         dense = _in_the_arms_state(dense, paths)
     got = Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
-                    stamp_ns, cont, not_before_ns)
+                    stamp_ns, cont, not_before_ns, stamp_exact=exact)
     if reaction is not None and not reaction.ok:
         return got, chosen
     if not certify:

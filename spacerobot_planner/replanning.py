@@ -59,7 +59,7 @@ from .timing import timed_motion
 from .trajectory import Trajectory, check_start_tangent, chord_lengths_rad, continuation, horizon_index, sample
 
 __all__ = ["Executing", "Join", "JoinedPaths", "plan_start", "joined_paths", "joined_motion", "timed_join",
-           "stopping_join", "committed_path", "rests_at", "next_rest",
+           "stopping_join", "resting_join", "committed_path", "rests_at", "next_rest",
            "MAX_STATE_AGE_S", "STATE_WAIT_S", "BLEND_SAMPLES", "START_LEAD_S"]
 
 #: the default of :func:`joined_motion`'s ``lead_s``: the join at least this far ahead (the messages'
@@ -519,6 +519,31 @@ def _braked(scenario, path_rad, path_speed: float, tangent=None):
         except ValueError:
             tangent = None
     return timed_motion(scenario, path_rad, start_path_speed=path_speed, report=False, start_tangent=tangent)[0]
+
+
+def resting_join(join: Join, now_ns: int, lead_s: float) -> Join:
+    """
+    Return where a plan takes over from an arm at rest there: the join, when it is a point where the arm rests.
+
+    The join is the executing trajectory's first published point at least ``lead_s`` after
+    ``now_ns`` (:func:`continuation`'s).  Where the arm is at rest there (:func:`rests_at`: the first
+    point of a trajectory sent and not begun, the controller holding it until its stamp; or a stop
+    an earlier plan sent) before the horizon point, the new plan starts there, from rest, stamped
+    when the arm is there (``Join.stop``; ``adapters.starts_at_the_end``), instead of following the
+    executing path on to the horizon point and turning there: a target moved again before the arm
+    set off goes to the new target from where the arm is.  Else ``join`` as given.
+    """
+    ex = join.executing
+    if join.stop:
+        return join
+    pub = np.asarray(ex.published)
+    later = pub[ex.trajectory.times_s[pub] >= ex.time_s(now_ns) + lead_s]
+    if not len(later):
+        return join
+    j = int(later[0])
+    if j < join.horizon_index and rests_at(ex, j):
+        return Join(ex, j, join.horizon_s, stop=True)
+    return join
 
 
 def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: bool = False) -> Join:

@@ -77,7 +77,7 @@ from .adapters import (AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process,
 from .cores import threads_text
 from .motion import MotionValidator
 from .replanning import (MAX_STATE_AGE_S, STATE_WAIT_S, Executing, committed_path, join_direction, plan_start,
-                         stopping_join)
+                         resting_join, stopping_join)
 from .scene import Target
 from .settings import SWITCH_UNTIL_FOUND, SessionSettings
 from .trajectory import HorizonPassed
@@ -204,13 +204,16 @@ def stamp_for(processed: Processed, now_ns: int, lead_s: float) -> int | None:
     Return the stamp of a trajectory published at ``now_ns``, or None when the join is too close.
 
     From rest: ``now_ns`` + the lead (from the executing trajectory's end: not before that
-    end).  Joined: the join's time, when it is still at least the lead ahead (None otherwise:
-    plan again).  Either way the trajectory also ends at least the lead after ``now_ns``.
+    end).  Joined, or from rest where the executing trajectory stops before its end
+    (``Processed.stamp_exact``): the join's time (the stop's), when it is still at least the lead
+    ahead (None otherwise: plan again).  Either way the trajectory also ends at least the lead
+    after ``now_ns``.
     """
     lead_ns = int(round(lead_s * 1e9))
-    if processed.join_stamp_ns is None:        # from rest (at the executing trajectory's end: not before it)
+    if processed.join_stamp_ns is None and not processed.stamp_exact:
+        # from rest (at the executing trajectory's end: not before it)
         return max(int(now_ns) + lead_ns, int(processed.not_before_ns or 0))
-    stamp = int(processed.join_stamp_ns)
+    stamp = int(processed.join_stamp_ns if processed.join_stamp_ns is not None else processed.not_before_ns)
     end = stamp + int(round(processed.trajectory.duration_s * 1e9))
     return stamp if stamp - int(now_ns) >= lead_ns and end - int(now_ns) >= lead_ns else None
 
@@ -222,10 +225,12 @@ def target_why(target: Target) -> str:
 
 
 def _from_rest_on(join) -> str:
-    """Say where on the executing trajectory a plan from rest starts (its end, or a stop an earlier plan sent)."""
+    """Say where on the executing trajectory a plan from rest starts (its end or start, a stop an earlier plan sent)."""
     ex, h = join.executing, join.horizon_index
     if h == len(ex.trajectory) - 1:
         return "no (from the end of the executing trajectory, at rest)"
+    if h == 0:
+        return "no (from the start of the executing trajectory, sent and not begun, at rest)"
     return f"no (from where the executing trajectory stops, {ex.trajectory.times_s[h]:.3f} s into it, at rest)"
 
 
@@ -813,6 +818,9 @@ class CaptureSession:
             join = stopping_join(req.scenario, join, now, float(s.start_lead_s) + CHAIN_ALLOWANCE_S,
                                  soonest=req.stop_soonest)
             start = join.start_rad
+        elif join is not None and req.attempt < STOPPING:    # the arm at rest at the join: from there
+            join = resting_join(join, now, float(s.start_lead_s) + CHAIN_ALLOWANCE_S)
+            start = join.start_rad
         if why is not None:
             self.log("warning", f"plan #{req.gen}: {why}")
         elif join is None and now - q_ns > MAX_STATE_AGE_S * 1e9:     # a driver gone, or a state sent once
@@ -1022,8 +1030,9 @@ class CaptureSession:
         lead_ns = self.now_ns() + int(1e9 * float(req.settings.start_lead_s))
         earliest_ns = lead_ns + int(1e9 * CHAIN_ALLOWANCE_S)
         switch_ns = processed.join_stamp_ns
-        if switch_ns is None:              # from the executing trajectory's end, at rest
-            switch_ns = ex.start_ns + int(round(1e9 * ex.trajectory.duration_s))
+        if switch_ns is None:              # from where the executing trajectory stops (its end), at rest
+            switch_ns = (processed.not_before_ns if processed.not_before_ns is not None
+                         else ex.start_ns + int(round(1e9 * ex.trajectory.duration_s)))
         else:
             earliest_ns = max(earliest_ns, switch_ns)
         said = None
@@ -1055,9 +1064,12 @@ class CaptureSession:
         if epoch is not None and epoch != self.time_epoch:
             return jumped
         lead_s = float(req.settings.start_lead_s)
-        if processed.join_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
-            ahead = 1e-9 * (processed.join_stamp_ns - self.now_ns())
-            return _late(f"the join is {ahead:.3f} s ahead, less than trajectory.start_lead_s ({lead_s:g} s): it "
+        if (processed.join_stamp_ns is not None or processed.stamp_exact) \
+                and stamp_for(processed, self.now_ns(), lead_s) is None:
+            at = processed.join_stamp_ns if processed.join_stamp_ns is not None else processed.not_before_ns
+            ahead = 1e-9 * (at - self.now_ns())
+            return _late(f"the {'join' if processed.join_stamp_ns is not None else 'stop it starts from'} is "
+                         f"{ahead:.3f} s ahead, less than trajectory.start_lead_s ({lead_s:g} s): it "
                          "would reach the controller after it")
         traj = processed.trajectory
         c = processed.continuation

@@ -6,6 +6,8 @@ state of the executing trajectory at the join, its certified points to the horiz
 test's own finite differences).
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -437,21 +439,13 @@ def test_a_servicer_replan_back_stops_on_the_executing_path_and_goes_back():
     assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3)
 
 
-@pytest.mark.parametrize("before_s", [12.0, 8.0, 3.0])
-def test_a_stop_on_a_trajectory_that_stops_itself_is_where_it_stops(before_s):
+def _servicer_stopped_and_sent_back():
     """
-    The stop rung on an executing trajectory that itself stops on the way (an earlier stop, then back): there.
+    Return (scenario, planner, Executing, r): a servicer_3dof trajectory at rest at its point r, then on.
 
-    servicer_3dof: a first trajectory, stopped on its path and sent back (the executing trajectory
-    comes to rest at that stop, then goes on), and then, ``before_s`` before it comes to rest,
-    the session's stop rung for another goal.  The stop is where the executing trajectory comes to
-    rest (its published point at rest, found by the test), the plan starts there from rest,
-    stamped no earlier than the arm gets there (the executing trajectory is what it does until
-    then), within the wheel limits.  Before, the stop was searched past that point: at 12 s and 8 s
-    the search braked through it to the trajectory's end, 66 s later, where a re-timed braking
-    could not be entered at the arm's speed (a servicer audit: a retarget waited for an executing
-    trajectory 143 s long); at 3 s the arm, at rest there, was sent 12 s on along the old path
-    before it stopped again.
+    A first trajectory from rest, stopped on its path at 10 % and sent back to its start (the
+    session's stop rung): old path, at rest at the stop (r: its one published point at rest before
+    its end, found here by its velocities), then the path back.
     """
     import os
     from spacerobot_planner.adapters import post_process
@@ -459,26 +453,45 @@ def test_a_stop_on_a_trajectory_that_stops_itself_is_where_it_stops(before_s):
     from spacerobot_planner.planner import Planner
     from spacerobot_planner.replanning import stopping_join
     sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "servicer_3dof.yaml"))
-    robot, planner = sc.robot, Planner(sc)
+    planner = Planner(sc)
     start = sc.start_rad + np.radians([11.0, -18.0, -37.0])
     first = post_process(sc, planner.plan(start, sc.goal_rad).path_rad, start_rad=start)
     ex = Executing(first.dense, first.indices, 100 * S)
     now = ex.start_ns + int(0.1 * ex.trajectory.duration_s * S)
     _, join, _ = plan_start(ex, now, ex.expected_at(now - S // 100), now - S // 100, 1.0, np.radians(2.0),
-                            robot.planned_periodic)
-    back = planner.plan(stopping_join(sc, join, now, 0.65).start_rad, start)
-    second = post_process(sc, back.path_rad, join=stopping_join(sc, join, now, 0.65), now_ns=now + S // 4,
+                            sc.robot.planned_periodic)
+    stop = stopping_join(sc, join, now, 0.65)
+    second = post_process(sc, planner.plan(stop.start_rad, start).path_rad, join=stop, now_ns=now + S // 4,
                           lead_s=0.65)
     ex2 = Executing(second.dense, second.indices, second.join_stamp_ns)
-    old = ex2.trajectory
-    pub = np.asarray(second.indices)
+    old, pub = ex2.trajectory, np.asarray(second.indices)
     resting = pub[(np.linalg.norm(old.velocities_rad_s[pub], axis=1) == 0.0) & (pub < len(old) - 1)]
     assert len(resting) == 1, resting                   # the first trajectory's stop, then on
-    r = int(resting[0])
+    return sc, planner, ex2, int(resting[0])
+
+
+@pytest.mark.parametrize("before_s", [12.0, 8.0, 3.0])
+def test_a_stop_on_a_trajectory_that_stops_itself_is_where_it_stops(before_s):
+    """
+    The stop rung on an executing trajectory that itself stops on the way (an earlier stop, then back): there.
+
+    servicer_3dof (:func:`_servicer_stopped_and_sent_back`), ``before_s`` before the executing
+    trajectory comes to rest, the session's stop rung for another goal.  The stop is where the
+    executing trajectory comes to rest, the plan starts there from rest, stamped no earlier than
+    the arm gets there (the executing trajectory is what it does until then), within the wheel
+    limits.  Before, the stop was searched past that point: at 12 s and 8 s the search braked
+    through it to the trajectory's end, 66 s later, where a re-timed braking could not be entered
+    at the arm's speed (a servicer audit: a retarget waited for an executing trajectory 143 s
+    long); at 3 s the arm, at rest there, was sent 12 s on along the old path before it stopped again.
+    """
+    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.replanning import stopping_join
+    sc, planner, ex2, r = _servicer_stopped_and_sent_back()
+    old = ex2.trajectory
     rest_ns = ex2.start_ns + int(round(old.times_s[r] * S))
     now2 = rest_ns - int((before_s + 1.65) * S)
     _, join2, why = plan_start(ex2, now2, ex2.expected_at(now2 - S // 100), now2 - S // 100, 1.0,
-                               np.radians(2.0), robot.planned_periodic)
+                               np.radians(2.0), sc.robot.planned_periodic)
     assert join2 is not None, why
     stop = stopping_join(sc, join2, now2, 0.65)
     assert stop.stop and stop.horizon_index == r, (stop.horizon_index, r, len(old))
@@ -488,12 +501,58 @@ def test_a_stop_on_a_trajectory_that_stops_itself_is_where_it_stops(before_s):
     out = post_process(sc, res.path_rad, join=stop, now_ns=now2 + S // 4, lead_s=0.65)
     traj = out.trajectory
     assert out.refused is None and out.certified and out.continuation is None
-    assert out.not_before_ns is not None and out.not_before_ns >= rest_ns
+    assert out.stamp_exact and out.not_before_ns is not None and out.not_before_ns >= rest_ns
     np.testing.assert_array_equal(traj.positions_rad[0], old.positions_rad[r])
     assert np.all(traj.velocities_rad_s[0] == 0.0)
     np.testing.assert_allclose(traj.positions_rad[-1], goal, atol=1e-9)
     h, tau = controller_wheel_load(sc, traj, 40 * len(traj.times_s))
     assert np.max(np.abs(h)) <= 50.0 * (1 + 2e-3) and np.max(np.abs(tau)) <= 0.5 * (1 + 2e-3)
+
+
+def test_a_replan_where_the_arm_rests_at_the_join_starts_there():
+    """
+    The first try's join is a point where the executing trajectory rests (a stop it was sent with): from there, at rest.
+
+    servicer_3dof (:func:`_servicer_stopped_and_sent_back`), the join (the first published point
+    the lead ahead) at the stop and the horizon point beyond it on the path back: the plan starts at
+    the stop from rest (``replanning.resting_join``), stamped just after the arm is there
+    (``adapters.starts_at_the_end``), and never goes on along the executing path after it (the test's
+    nearest-point distance to the executing rows after the stop).  Without it the plan followed the
+    executing path on past the stop to the horizon point and turned there.  A trajectory sent and
+    not begun (the arm held at its first point at rest): the same, stamped at its very stamp.
+    """
+    from spacerobot_planner.adapters import AFTER_THE_END_S, post_process, starts_at_the_end
+    from spacerobot_planner.replanning import resting_join
+    sc, planner, ex2, r = _servicer_stopped_and_sent_back()
+    old = ex2.trajectory
+    rest_ns = ex2.start_ns + int(round(old.times_s[r] * S))
+    now = rest_ns - int(0.66 * S)                     # the stop is the first point the lead (0.65 s) ahead
+    _, join, why = plan_start(ex2, now, ex2.expected_at(now - S // 100), now - S // 100, 8.0, np.radians(2.0),
+                              sc.robot.planned_periodic)
+    assert join is not None and join.horizon_index > r + 1, (why, join and join.horizon_index, r)
+    taken = resting_join(join, now, 0.65)
+    assert taken.stop and taken.horizon_index == r
+    goal = sc.goal_rad + np.radians([-10.0, 5.0, 10.0])
+    res = planner.plan(taken.start_rad, goal)
+    assert res.ok, res.reason
+    out = post_process(sc, res.path_rad, join=taken, now_ns=now, lead_s=0.65)
+    assert out.refused is None and out.certified and out.continuation is None and out.stamp_exact
+    assert out.not_before_ns == rest_ns + int(round(AFTER_THE_END_S * S))
+    dense = out.dense
+    np.testing.assert_array_equal(dense.positions_rad[0], old.positions_rad[r])
+    assert np.all(dense.velocities_rad_s[0] == 0.0)
+    after = old.positions_rad[r + 1:join.horizon_index + 1]           # the executing path on past the stop
+    gap = np.min(np.linalg.norm(dense.positions_rad[:, None, :] - after[None], axis=2), axis=0)
+    assert np.all(gap >= 0.99 * np.linalg.norm(after - old.positions_rad[r], axis=1)), np.degrees(gap)
+    # not begun: the first point, held at rest until its stamp, is where the plan starts, at that stamp
+    back = old.subset(np.arange(r, len(old)))                           # the path back, from rest at the stop
+    pub = np.asarray(ex2.published)
+    waiting = Executing(replace(back, times_s=back.times_s - back.times_s[0]), pub[pub >= r] - r, now + 2 * S)
+    _, join0, _ = plan_start(waiting, now, back.positions_rad[0], now, 8.0, np.radians(2.0),
+                             sc.robot.planned_periodic)
+    first = resting_join(join0, now, 0.65)
+    assert first.stop and first.horizon_index == 0
+    assert starts_at_the_end(first, now, 0.65) == waiting.start_ns
 
 
 @pytest.mark.parametrize("frac,goal", [(0.1, "back"), (0.4, "back"), (0.4, "other"), (0.7, "same")])

@@ -565,13 +565,22 @@ def test_a_cancelled_query_ends_at_once_and_the_arms_older_request_still_plans(f
 def test_stamp_for_a_join_too_close_asks_for_another_plan():
     traj = SimpleNamespace(duration_s=0.06)
     now, lead = 100 * S, 0.35
-    rest = SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=None)
+    rest = SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=None, stamp_exact=False)
     assert stamp_for(rest, now, lead) == now + int(0.35 * S)
-    # from rest at the end of an executing trajectory that ends later: at that end
-    at_end = SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=now + 2 * S)
+    # from rest at the end of an executing trajectory that ends later: at that end; one that ends sooner: the lead
+    at_end = SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=now + 2 * S, stamp_exact=False)
     assert stamp_for(at_end, now, lead) == now + 2 * S
-    assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 2, trajectory=traj), now, lead) == now + S // 2
-    assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 5, trajectory=traj), now, lead) is None
+    assert stamp_for(SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=now + S // 5,
+                                     stamp_exact=False), now, lead) == now + int(0.35 * S)
+    # from rest where it stops before its end (the arm leaves that point after it): then, or plan again
+    stop = SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=now + S // 2, stamp_exact=True)
+    assert stamp_for(stop, now, lead) == now + S // 2
+    assert stamp_for(SimpleNamespace(join_stamp_ns=None, trajectory=traj, not_before_ns=now + S // 5,
+                                     stamp_exact=True), now, lead) is None
+    assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 2, trajectory=traj, stamp_exact=False), now,
+                     lead) == now + S // 2
+    assert stamp_for(SimpleNamespace(join_stamp_ns=now + S // 5, trajectory=traj, stamp_exact=False), now,
+                     lead) is None
 
 
 def test_at_the_goal_nothing_is_published_and_it_says_so(flat, backend):
