@@ -55,7 +55,7 @@ from .timing import reaction_matters, reaction_of, timed_motion
 from .trajectory import Lowering, Trajectory, lowering_factors, shared_path_models
 
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
-           "switching_at_arrival", "AFTER_THE_END_S", "certifying",
+           "switching_at_arrival", "AFTER_THE_END_S", "HOLD_S", "held", "certifying",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD", "warm_up"]
 
@@ -63,6 +63,8 @@ __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predic
 RESAMPLE_STEP_S = 0.25
 #: a plan whose joints all move less than this is at the goal: nothing is published, rad
 AT_GOAL_TOL_RAD = 1e-4
+#: a goal where the arm rests on the trajectory it follows, which then goes on, is held this long (:func:`held`), s
+HOLD_S = 0.1
 #: the controller's interpolation may exceed a limit by this fraction (sampling of its peak)
 CONTROLLER_TOL = 1e-3
 #: when the controller's motion overshoots, the first CONTROLLER_RETIMES - 1 re-timings lower the limits
@@ -120,19 +122,34 @@ class TrajectoryPart:
                 "accelerations_rad_s2": self.accelerations_rad_s2.tolist()}
 
 
-def split_parts(traj: Trajectory, attitude_joint: str) -> tuple:
+def split_parts(traj: Trajectory, attitude_joint: str, hold: bool = False) -> tuple:
     """
     Return (arm part, attitude part) of a trajectory to publish: the at-goal rule and the split.
 
-    Both None when no joint moves more than ``AT_GOAL_TOL_RAD`` from start to end.  A group
-    that does not move while the other does still gets its (holding) part, which replaces an
-    older trajectory still running on its controller.
+    Both None when no joint moves more than ``AT_GOAL_TOL_RAD`` from start to end (unless
+    ``hold``: a trajectory that holds the arm, :func:`held`).  A group that does not move while
+    the other does still gets its (holding) part, which replaces an older trajectory still
+    running on its controller.
     """
     q = np.asarray(traj.positions_rad)
-    if float(np.max(np.abs(q[-1] - q[0]))) <= AT_GOAL_TOL_RAD:
+    if not hold and float(np.max(np.abs(q[-1] - q[0]))) <= AT_GOAL_TOL_RAD:
         return None, None
     others = [n for n in traj.joint_names if n != attitude_joint]
     return TrajectoryPart.of(traj, others), TrajectoryPart.of(traj, [attitude_joint])
+
+
+def held(traj: Trajectory) -> Trajectory:
+    """
+    Return a trajectory that holds the arm at ``traj``'s first point, at rest: there, and again :data:`HOLD_S` later.
+
+    For a goal where the arm comes to rest on the trajectory it follows, which then goes on (a
+    stop it was sent with, or its first point, not begun): nothing moves, yet a message must
+    replace that trajectory there, or the arm would follow it on.  Two points, so that every
+    controller takes it as a trajectory (times increasing, the last after the stamp).
+    """
+    two = traj.subset([0, 0])
+    zero = np.zeros_like(two.velocities_rad_s)
+    return replace(two, times_s=np.array([0.0, HOLD_S]), velocities_rad_s=zero, accelerations_rad_s2=zero.copy())
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,7 +265,7 @@ def starts_at_the_end(join, now_ns: int, lead_s: float, from_end_at_rest: bool =
     stop_before_end = join.stop and h < len(ex.trajectory) - 1
     if from_end_at_rest or stop_before_end or rest_ns <= int(now_ns) + int(round(lead_s * 1e9)):
         # at its first point (not begun) no segment of it comes before the new one: its very stamp
-        return rest_ns + (0 if h == 0 else int(round(AFTER_THE_END_S * 1e9)))
+        return rest_ns + (0 if h == 0 < len(ex.trajectory) - 1 else int(round(AFTER_THE_END_S * 1e9)))
     return None
 
 
@@ -632,6 +649,12 @@ def _finished(scenario, got: Processed, rs, wheel_over=None) -> Processed:
     dense = got.dense
     traj, idx = (rs.trajectory, rs.indices) if rs.ok else (dense, np.arange(len(dense)))
     arm, att = split_parts(traj, scenario.robot.joint_names[0])
+    if arm is None and att is None and got.stamp_exact:
+        # the goal is where the arm rests on the trajectory it follows, which then goes on: held there
+        dense = traj = held(traj)
+        idx = np.arange(len(traj))
+        arm, att = split_parts(traj, scenario.robot.joint_names[0], hold=True)
+        got = replace(got, dense=dense)
     drift = None
     if scenario.acs.mode == "free_floating":
         att = None                  # nothing commands the attitude

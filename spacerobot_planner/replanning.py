@@ -612,8 +612,7 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     rest = next_rest(ex, joins[0])
     stop = 0 if soonest else min(join.horizon_index, rest)
     for j in joins:                             # the join, or the next point when the plan runs late
-        if j < rest:
-            stop = max(stop, stop_from(j))
+        stop = max(stop, stop_from(j) if j < rest else rest)
     return Join(ex, min(stop, rest), join.horizon_s, stop=True)
 
 

@@ -77,7 +77,7 @@ from .adapters import (AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process,
 from .cores import threads_text
 from .motion import MotionValidator
 from .replanning import (MAX_STATE_AGE_S, STATE_WAIT_S, Executing, committed_path, join_direction, plan_start,
-                         resting_join, stopping_join)
+                         resting_join, rests_at, stopping_join)
 from .scene import Target
 from .settings import SWITCH_UNTIL_FOUND, SessionSettings
 from .trajectory import HorizonPassed
@@ -939,7 +939,9 @@ class CaptureSession:
             if changed:
                 self._changed()
             where = "" if join is None else (
-                f" (stopping on the executing trajectory {_ahead_s(join, self.now_ns()):.2f} s ahead)" if join.stop
+                f" (where the executing trajectory rests, {_ahead_s(join, self.now_ns()):.2f} s ahead)"
+                if join.stop and rests_at(join.executing, join.horizon_index)
+                else f" (stopping on the executing trajectory {_ahead_s(join, self.now_ns()):.2f} s ahead)" if join.stop
                 else f" ({join.horizon_s:g} s ahead on the executing trajectory)")
             self._log_flood("planning", f"planning #{req.gen} ({req.why}) from "
                             f"{np.round(np.degrees(start_raw), 2).tolist()}°{where} on {sc.grid.label()}")
@@ -1162,7 +1164,9 @@ class CaptureSession:
             self.log("warning", f"plan #{req.gen}: its motion is published although not collision-free: "
                      + (exposure or uncertified_text(req.scenario, processed, motions))
                      + ("" if join is None else "; the least exposed motion found from the moving arm"
-                        + (" (it stops on the executing path as soon as the limits allow, and goes from there)"
+                        + (" (it goes on to where the executing trajectory rests, and from there)"
+                           if join.stop and rests_at(join.executing, join.horizon_index) else
+                           " (it stops on the executing path as soon as the limits allow, and goes from there)"
                            if join.stop else f" (no stop on the executing path could be sent: {req.stop_failed}; "
                            "from its end, which the arm reaches whatever is sent)"
                            if req.stop_failed and processed.join_stamp_ns is None else ""))

@@ -355,6 +355,11 @@ def test_a_folder_of_another_sweep_is_refused(serial, tmp_path):
     for values in (grid.x_m, grid.y_m):
         here = f"[{', '.join(f'{v:g}' for v in values)}] here" if len(values) <= 4 else f"{len(values)} values"
         assert here in said, (here, said)
+    # values that read the same in short: the first that differs, in full
+    nudged = PoseGrid(grid.x_m[:1], (grid.y_m[0] + 1e-7,), grid.yaw_deg, grid.starts_rad[:1])
+    with pytest.raises(ValueError, match="another sweep") as e:
+        run_envelope(sc, nudged, tmp_path, _spec(sc, nudged), workers=0, quiet=True)
+    assert f"y_m[0] {float(grid.y_m[0])!r} there, {float(grid.y_m[0] + 1e-7)!r} here" in str(e.value), str(e.value)
 
 
 def test_a_table_of_another_sweep_without_its_manifest_is_refused(serial, tmp_path):

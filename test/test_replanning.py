@@ -484,7 +484,7 @@ def test_a_stop_on_a_trajectory_that_stops_itself_is_where_it_stops(before_s):
     at the arm's speed (a servicer audit: a retarget waited for an executing trajectory 143 s
     long); at 3 s the arm, at rest there, was sent 12 s on along the old path before it stopped again.
     """
-    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.adapters import AFTER_THE_END_S, post_process
     from spacerobot_planner.replanning import stopping_join
     sc, planner, ex2, r = _servicer_stopped_and_sent_back()
     old = ex2.trajectory
@@ -501,7 +501,7 @@ def test_a_stop_on_a_trajectory_that_stops_itself_is_where_it_stops(before_s):
     out = post_process(sc, res.path_rad, join=stop, now_ns=now2 + S // 4, lead_s=0.65)
     traj = out.trajectory
     assert out.refused is None and out.certified and out.continuation is None
-    assert out.stamp_exact and out.not_before_ns is not None and out.not_before_ns >= rest_ns
+    assert out.stamp_exact and out.not_before_ns == rest_ns + int(round(AFTER_THE_END_S * S))
     np.testing.assert_array_equal(traj.positions_rad[0], old.positions_rad[r])
     assert np.all(traj.velocities_rad_s[0] == 0.0)
     np.testing.assert_allclose(traj.positions_rad[-1], goal, atol=1e-9)
@@ -544,6 +544,13 @@ def test_a_replan_where_the_arm_rests_at_the_join_starts_there():
     after = old.positions_rad[r + 1:join.horizon_index + 1]           # the executing path on past the stop
     gap = np.min(np.linalg.norm(dense.positions_rad[:, None, :] - after[None], axis=2), axis=0)
     assert np.all(gap >= 0.99 * np.linalg.norm(after - old.positions_rad[r], axis=1)), np.degrees(gap)
+    # a goal there: a trajectory that holds the arm there, replacing the executing one (which goes on)
+    hold = post_process(sc, np.vstack([taken.start_rad, taken.start_rad]), join=taken, now_ns=now, lead_s=0.65)
+    assert not hold.at_goal and hold.arm is not None and hold.stamp_exact
+    assert hold.not_before_ns == rest_ns + int(round(AFTER_THE_END_S * S))
+    assert len(hold.trajectory) == 2 and hold.trajectory.times_s[-1] > 0.0
+    np.testing.assert_array_equal(hold.trajectory.positions_rad, old.positions_rad[[r, r]])
+    assert np.all(hold.trajectory.velocities_rad_s == 0.0) and np.all(hold.trajectory.accelerations_rad_s2 == 0.0)
     # not begun: the first point, held at rest until its stamp, is where the plan starts, at that stamp
     back = old.subset(np.arange(r, len(old)))                           # the path back, from rest at the stop
     pub = np.asarray(ex2.published)

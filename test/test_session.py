@@ -1206,6 +1206,46 @@ def test_a_plan_from_the_end_for_a_controller_that_switches_at_arrival_leaves_th
     np.testing.assert_allclose(got, intended, atol=1e-6)
 
 
+def test_a_replan_of_a_trajectory_sent_and_not_begun_starts_at_its_first_point(flat, backend):
+    """
+    The arm running to P's end, W sent from there (not begun), a new target: from W's first point, at its stamp.
+
+    As a plan from the executing trajectory's end sends W: from rest at P's end, stamped just after
+    it.  0.8 s before P ends (W within the 1 s horizon, its first point more than the lead and the
+    chain's allowance ahead) a new target: the plan starts where the arm will rest, P's last point
+    (the test's own record of P), stamped exactly W's stamp, which it replaces; it goes to the new
+    target, not along W (the test's nearest-point distance to W's rows).  Before, it joined W there
+    and followed W's path for the horizon, then turned.
+    """
+    from spacerobot_planner.adapters import post_process
+    from spacerobot_planner.planner import Planner
+    clock = Clock()
+    ses, p = _executing(flat, backend, clock)
+    sc = ses.scenario
+    p_end = p.trajectory.positions_rad[-1].copy()
+    end_ns = p.start_ns + int(round(p.trajectory.duration_s * S))
+    w = post_process(sc, Planner(sc).plan(p_end, sc.start_rad).path_rad, start_rad=p_end)
+    w_start = end_ns + S // 1000
+    ses.executing = p.joined_by(w.dense, w.indices, w_start, clock.t)
+    clock.t = end_ns - int(0.8 * S)
+    ses.joint_state(p.expected_at(clock.t - S // 100), clock.t - S // 100)
+    ses.submit("moved target", target=_target(ses, -3.22, -2.65))
+    out = ses.run_once()
+    assert out.ok, (out.code, out.reason)
+    said = "\n".join(text for _, text in ses.log_lines[-3:])
+    assert out.values["joined_moving_arm"] == \
+        "no (from the start of the executing trajectory, sent and not begun, at rest)", (out.values, said)
+    assert "(where the executing trajectory rests, " in said, said
+    assert out.publication.stamp_ns == w_start
+    np.testing.assert_array_equal(out.trajectory.positions_rad[0], p_end)
+    assert np.all(out.trajectory.velocities_rad_s[0] == 0.0)
+    assert ses.executing.start_ns == w_start and ses.executing.trajectory is out.processed.dense
+    along_w = w.dense.positions_rad[1:]
+    gap = np.min(np.linalg.norm(out.processed.dense.positions_rad[:, None, :] - along_w[None], axis=2), axis=0)
+    reach = np.linalg.norm(along_w - p_end, axis=1)
+    assert np.any(gap > 0.5 * reach), "the new plan went along W"
+
+
 def test_a_replan_joined_where_the_one_before_begins_says_so(flat, backend):
     """Two replans at one instant: the second joins the first at its first point, before it begins (not "0.000 s")."""
     clock = Clock()

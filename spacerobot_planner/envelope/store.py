@@ -49,16 +49,25 @@ def _difference(key: str, old: dict, new: dict) -> str:
         return (f"the folder's from {old.get('params_file', '?')} (SHA-256 {str(a)[:12]}…), "
                 f"this one from {new.get('params_file', '?')} ({str(b)[:12]}…)")
     if key == "poses" and isinstance(a, dict) and isinstance(b, dict):
-        parts = [f"{k} {_short(a.get(k))} there, {_short(b.get(k))} here" for k in sorted(set(a) | set(b))
-                 if a.get(k) != b.get(k)]
-        return "; ".join(parts)
-    return f"{_short(a)} there, {_short(b)} here"
+        return "; ".join(_values_differ(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k))
+    return _values_differ(key, a, b)
+
+
+def _values_differ(name: str, a, b) -> str:
+    """Say ``name``'s two values (the folder's ``a``, the sweep's ``b``); read alike: the first that differs."""
+    there, here = _short(a), _short(b)
+    if there == here and isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        i = next(k for k, (x, y) in enumerate(zip(a, b)) if x != y)
+        return f"{name}[{i}] {a[i]!r} there, {b[i]!r} here"
+    return f"{name} {there} there, {here} here"
 
 
 def _short(v, most: int = 4) -> str:
-    """Return a manifest value as text: a list of more than ``most`` numbers as its count, ends and step."""
+    """Return a manifest value as text: a list of more than ``most`` numbers as its count, ends and step (when even)."""
     if isinstance(v, list) and len(v) > most and all(isinstance(x, (int, float)) for x in v):
-        return f"{len(v)} values {v[0]:g} … {v[-1]:g}"
+        steps = [y - x for x, y in zip(v, v[1:])]
+        even = all(abs(d - steps[0]) <= 1e-9 * max(1.0, abs(steps[0])) for d in steps)
+        return f"{len(v)} values {v[0]:g} … {v[-1]:g}" + (f" (step {steps[0]:g})" if even else "")
     if isinstance(v, list) and len(v) > most:
         return f"{len(v)} values {_short(v[0])} … {_short(v[-1])}"
     if isinstance(v, list):
