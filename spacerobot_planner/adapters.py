@@ -252,11 +252,12 @@ def starts_at_the_end(join, now_ns: int, lead_s: float, from_end_at_rest: bool =
     (``join.stop``: the session's stop on the executing path, ``replanning.stopping_join``, which
     never brakes past such a point; a stop at the end is braked to it, and where that does not fit
     the limits the session retries from the end), or ``from_end_at_rest`` (the session's retry
-    from the end, after a join missed its time).  The
-    arm comes to rest there on the trajectory it follows, so the new one starts there from rest,
-    stamped no earlier than :data:`AFTER_THE_END_S` after it (and the lead after it is
-    published): a stamp the chain's own time cannot overtake.  None: a join (through the
-    horizon point without stopping, or braked to it).
+    from the end, after a join missed its time).  The arm comes to rest there on the trajectory
+    it follows, so the new one starts there from rest, stamped :data:`AFTER_THE_END_S` after it
+    (at the trajectory's first point, not begun, at its very stamp: no segment of it comes
+    before; at its end, no earlier than that and the lead after it is published): a stamp the
+    chain's own time cannot overtake.  None: a join (through the horizon point without stopping,
+    or braked to it).
     """
     ex, h = join.executing, join.horizon_index
     if not rests_at(ex, h):
