@@ -209,6 +209,13 @@ class Processed:
         return None
 
     @property
+    def fixed_stamp_ns(self) -> int | None:
+        """Return the stamp it must have, ROS ns: a join's, or a stop's (``stamp_exact``); None: when published."""
+        if self.join_stamp_ns is not None:
+            return int(self.join_stamp_ns)
+        return int(self.not_before_ns) if self.stamp_exact else None
+
+    @property
     def at_goal(self) -> bool:
         """Tell whether nothing moves (nothing to publish)."""
         return self.arm is None and self.attitude is None and self.refused is None

@@ -194,6 +194,11 @@ class Join:
         """(n,) the new plan's start (unwrapped as on the executing trajectory), rad."""
         return self.executing.trajectory.positions_rad[self.horizon_index].copy()
 
+    @property
+    def rests(self) -> bool:
+        """Tell whether the arm comes to rest at the horizon point on the executing trajectory (:func:`rests_at`)."""
+        return rests_at(self.executing, self.horizon_index)
+
 
 def join_direction(join: Join | None) -> np.ndarray | None:
     """
@@ -461,24 +466,34 @@ def timed_join(scenario, paths: JoinedPaths, checker=None, chosen: int | None = 
         return _remainder(ex.trajectory, c.index, h).then(after), reaction, None
 
 
-def rests_at(ex: Executing, index: int) -> bool:
+def _rest_points(ex: Executing) -> np.ndarray:
     """
-    Tell whether the arm comes to rest at the executing trajectory's point ``index``.
+    Return the executing trajectory's points where the arm comes to rest, increasing: the one rule of rest.
 
-    Its last point, or a published point (``ex.published``) whose velocities are all exactly 0: a
-    stop an earlier plan sent (``Trajectory.then``), where the controller's motion rests too.
+    Its published points (``ex.published``) whose velocities are all exactly 0 (its first point
+    from rest, a stop an earlier plan sent: ``Trajectory.then``), where the controller's motion
+    rests too, and its last point.
     """
-    traj = ex.trajectory
-    return index == len(traj) - 1 or (bool(np.all(traj.velocities_rad_s[index] == 0.0))
-                                      and bool(np.any(np.asarray(ex.published) == index)))
+    pub = np.asarray(ex.published, dtype=np.int64)
+    still = pub[np.all(ex.trajectory.velocities_rad_s[pub] == 0.0, axis=1)]
+    return np.union1d(still, [len(ex.trajectory) - 1])
+
+
+def rests_at(ex: Executing, index: int) -> bool:
+    """Tell whether the arm comes to rest at the executing trajectory's point ``index`` (:func:`_rest_points`)."""
+    return bool(np.any(_rest_points(ex) == int(index)))
 
 
 def next_rest(ex: Executing, index: int) -> int:
-    """Return the executing trajectory's first point after ``index`` where the arm comes to rest (:func:`rests_at`)."""
+    """Return the executing trajectory's first point after ``index`` where the arm rests (:func:`_rest_points`)."""
+    rest = _rest_points(ex)
+    return int(rest[np.searchsorted(rest, int(index), side="right")]) if index < rest[-1] else int(rest[-1])
+
+
+def _joins_ahead(ex: Executing, now_ns: int, lead_s: float) -> list:
+    """Return the executing trajectory's published points at least ``lead_s`` after ``now_ns``: the join and on."""
     pub = np.asarray(ex.published)
-    pub = pub[pub > index]
-    still = pub[np.all(ex.trajectory.velocities_rad_s[pub] == 0.0, axis=1)]
-    return int(still[0]) if len(still) else len(ex.trajectory) - 1
+    return [int(j) for j in pub[ex.trajectory.times_s[pub] >= ex.time_s(now_ns) + lead_s]]
 
 
 def _remainder(traj: Trajectory, first: int, last: int) -> Trajectory:
@@ -534,15 +549,9 @@ def resting_join(join: Join, now_ns: int, lead_s: float) -> Join:
     set off goes to the new target from where the arm is.  Else ``join`` as given.
     """
     ex = join.executing
-    if join.stop:
-        return join
-    pub = np.asarray(ex.published)
-    later = pub[ex.trajectory.times_s[pub] >= ex.time_s(now_ns) + lead_s]
-    if not len(later):
-        return join
-    j = int(later[0])
-    if j < join.horizon_index and rests_at(ex, j):
-        return Join(ex, j, join.horizon_s, stop=True)
+    joins = [] if join.stop else _joins_ahead(ex, now_ns, lead_s)
+    if joins and joins[0] < join.horizon_index and rests_at(ex, joins[0]):
+        return Join(ex, joins[0], join.horizon_s, stop=True)
     return join
 
 
@@ -564,12 +573,12 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
     until then (``adapters.starts_at_the_end``: re-timed from a re-fitted spline, its braking could
     need a few per cent more path than it has, and a stop searched past it braked through it to
     the end: minutes on a slow servicer); its end when none before it.  (The room as lowered
-    limits along the stop, or as scaling factors, did not
-    hold: the timing lets a moving start keep the full limits where the arm's speed needs them to enter
-    the path, which took the room back; as factors, a start at the arm's speed on a bend could
-    not enter at all.)  The new plan starts there from rest (``Join.stop``): for a new path that
-    cannot be entered at speed (it turns back, or the arm, slowed by weak wheels, cannot brake
-    within the horizon), sooner than waiting for the executing trajectory's end.
+    limits along the stop, or as scaling factors, did not hold: the timing lets a moving start
+    keep the full limits where the arm's speed needs them to enter the path, which took the room
+    back; as factors, a start at the arm's speed on a bend could not enter at all.)  The new plan
+    starts there from rest (``Join.stop``): for a new path that cannot be entered at speed (it
+    turns back, or the arm, slowed by weak wheels, cannot brake within the horizon), sooner than
+    waiting for the executing trajectory's end.
     """
     ex = join.executing
     traj = ex.trajectory
@@ -603,9 +612,7 @@ def stopping_join(scenario, join: Join, now_ns: int, lead_s: float, soonest: boo
             stop, step = min(rest, stop + step), 2 * step
         return min(stop, rest)
 
-    pub = np.asarray(ex.published)
-    later = pub[traj.times_s[pub] >= ex.time_s(now_ns) + lead_s]
-    joins = [int(j) for j in later[:2]]
+    joins = _joins_ahead(ex, now_ns, lead_s)[:2]
     if not joins or rests_at(ex, joins[0]):     # the arm comes to rest at the join: from there
         return Join(ex, joins[0] if joins else last, join.horizon_s, stop=True)
     # never past the executing trajectory's own next rest (the horizon point may be beyond it)

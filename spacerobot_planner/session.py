@@ -77,7 +77,7 @@ from .adapters import (AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process,
 from .cores import threads_text
 from .motion import MotionValidator
 from .replanning import (MAX_STATE_AGE_S, STATE_WAIT_S, Executing, committed_path, join_direction, plan_start,
-                         resting_join, rests_at, stopping_join)
+                         resting_join, stopping_join)
 from .scene import Target
 from .settings import SWITCH_UNTIL_FOUND, SessionSettings
 from .trajectory import HorizonPassed
@@ -210,10 +210,9 @@ def stamp_for(processed: Processed, now_ns: int, lead_s: float) -> int | None:
     after ``now_ns``.
     """
     lead_ns = int(round(lead_s * 1e9))
-    if processed.join_stamp_ns is None and not processed.stamp_exact:
-        # from rest (at the executing trajectory's end: not before it)
+    stamp = processed.fixed_stamp_ns
+    if stamp is None:        # from rest (at the executing trajectory's end: not before it)
         return max(int(now_ns) + lead_ns, int(processed.not_before_ns or 0))
-    stamp = int(processed.join_stamp_ns if processed.join_stamp_ns is not None else processed.not_before_ns)
     end = stamp + int(round(processed.trajectory.duration_s * 1e9))
     return stamp if stamp - int(now_ns) >= lead_ns and end - int(now_ns) >= lead_ns else None
 
@@ -940,7 +939,7 @@ class CaptureSession:
                 self._changed()
             where = "" if join is None else (
                 f" (where the executing trajectory rests, {_ahead_s(join, self.now_ns()):.2f} s ahead)"
-                if join.stop and rests_at(join.executing, join.horizon_index)
+                if join.stop and join.rests
                 else f" (stopping on the executing trajectory {_ahead_s(join, self.now_ns()):.2f} s ahead)" if join.stop
                 else f" ({join.horizon_s:g} s ahead on the executing trajectory)")
             self._log_flood("planning", f"planning #{req.gen} ({req.why}) from "
@@ -1066,10 +1065,8 @@ class CaptureSession:
         if epoch is not None and epoch != self.time_epoch:
             return jumped
         lead_s = float(req.settings.start_lead_s)
-        if (processed.join_stamp_ns is not None or processed.stamp_exact) \
-                and stamp_for(processed, self.now_ns(), lead_s) is None:
-            at = processed.join_stamp_ns if processed.join_stamp_ns is not None else processed.not_before_ns
-            ahead = 1e-9 * (at - self.now_ns())
+        if processed.fixed_stamp_ns is not None and stamp_for(processed, self.now_ns(), lead_s) is None:
+            ahead = 1e-9 * (processed.fixed_stamp_ns - self.now_ns())
             return _late(f"the {'join' if processed.join_stamp_ns is not None else 'stop it starts from'} is "
                          f"{ahead:.3f} s ahead, less than trajectory.start_lead_s ({lead_s:g} s): it "
                          "would reach the controller after it")
@@ -1165,7 +1162,7 @@ class CaptureSession:
                      + (exposure or uncertified_text(req.scenario, processed, motions))
                      + ("" if join is None else "; the least exposed motion found from the moving arm"
                         + (" (it goes on to where the executing trajectory rests, and from there)"
-                           if join.stop and rests_at(join.executing, join.horizon_index) else
+                           if join.stop and join.rests else
                            " (it stops on the executing path as soon as the limits allow, and goes from there)"
                            if join.stop else f" (no stop on the executing path could be sent: {req.stop_failed}; "
                            "from its end, which the arm reaches whatever is sent)"

@@ -392,12 +392,12 @@ def test_importing_the_core_loads_no_rclpy():
 
 def test_a_ctrl_c_the_command_does_not_take_itself_ends_it_with_130_and_one_line(monkeypatch, capsys):
     """A Ctrl-C during a plan (or the imports) printed a KeyboardInterrupt traceback (an envelope audit)."""
-    from spacerobot_planner.tools import cli
+    from spacerobot_planner.tools import cli, entry
 
     def interrupted(argv=None):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cli, "main", interrupted)
-    assert cli.run(["--params-file", P2]) == 130
+    assert entry.plan(["--params-file", P2]) == 130           # the console script's function
     err = capsys.readouterr().err
     assert err == "spacerobot-plan: interrupted\n", err

@@ -227,14 +227,9 @@ def run(argv=None) -> int:
     Whatever the run wrote is closed by then (files are written whole, stdout and stderr are
     flushed at exit as before; ``envelope``'s Dask cluster is closed before :func:`main`
     returns).  Not in :func:`main`, which tests and other code call in a process that goes on.
-    A Ctrl-C that :func:`main` does not take itself (during the imports, a plan) ends it with
-    status 130 and one line, not a traceback.
+    (A Ctrl-C that :func:`main` does not take itself: ``tools.entry.plan``.)
     """
-    try:
-        rc = main(argv)
-    except KeyboardInterrupt:           # before a command's own handling (its imports, say): no traceback
-        print("spacerobot-plan: interrupted", file=sys.stderr)
-        return 130
+    rc = main(argv)
     gc.freeze()
     return rc
 

@@ -14,15 +14,20 @@ __all__ = ["plan", "planner_node", "mock_arm_node"]
 
 
 def plan(argv=None) -> int:
-    """``spacerobot-plan``: ``tools.cli.run`` (a Ctrl-C while numba and the package load: status 130, one line)."""
+    """
+    ``spacerobot-plan``: ``tools.cli.run``.
+
+    A Ctrl-C that the command does not take itself (while numba and the package load, during a
+    plan) ends it with status 130 and one line, not a traceback.
+    """
     try:
         import_numba()
         from .cli import run
+        return run(argv)
     except KeyboardInterrupt:
         import sys
         print("spacerobot-plan: interrupted", file=sys.stderr)
         return 130
-    return run(argv)
 
 
 def planner_node(args=None) -> int:
