@@ -57,6 +57,7 @@ from .trajectory import Lowering, Trajectory, lowering_factors, shared_path_mode
 __all__ = ["TrajectoryPart", "Processed", "post_process", "split_parts", "predicted_drift", "starts_at_the_end",
            "switching_at_arrival", "AFTER_THE_END_S", "HOLD_S", "held", "certifying",
            "controller_overshoot", "controller_wheel_overshoot", "overshot_stretches", "segment_overshoots",
+           "braking_allowance", "braking_text",
            "RESAMPLE_STEP_S", "AT_GOAL_TOL_RAD", "warm_up"]
 
 #: published trajectories keep a point at least this often (plus where the path bends), s
@@ -502,14 +503,55 @@ def segment_overshoots(traj: Trajectory, scenario, samples_per_segment: int = 16
         return np.zeros((0, 4))
     s = samples_per_segment
     vmax, amax = scenario.joint_limits.planned(scenario.robot)
+    vlim = vmax * scenario.joint_limits.velocity_scaling
     seg = np.zeros((m - 1, 4))
     # joints: one kernel, the acceleration exact (its peak near a point falls between the samples)
-    seg[:, :2] = segment_peaks(traj, np.arange(s) / s, vmax * scenario.joint_limits.velocity_scaling,
-                               amax * scenario.joint_limits.acceleration_scaling)
+    seg[:, :2] = segment_peaks(traj, np.arange(s) / s, vlim, amax * scenario.joint_limits.acceleration_scaling)
+    seg[:, 0] /= braking_allowance(traj, vlim)
     limits = _wheel_limits(scenario)
     if limits is not None:
         seg[:, 2:] = segment_wheel_peaks(scenario.robot, scenario.masses, traj, s) / limits
     return seg
+
+
+def braking_allowance(traj: Trajectory, vlim) -> np.ndarray:
+    """
+    Return each segment's allowance on the velocity limits (M - 1,): ≥ 1 where the trajectory brakes down to them.
+
+    A trajectory that starts above the velocity limits (lowered while the arm moves: timed with
+    ``brake_to_limits``) brakes to them first: along the run of points from its first one whose
+    velocity exceeds ``vlim`` (n,) by more than ``CONTROLLER_TOL``, a segment's motion is held to
+    the speed of its first point (its largest ratio to the limits), not to the limits, which it
+    cannot meet yet; 1 elsewhere (every trajectory that starts within them).
+    """
+    m = len(traj.times_s)
+    allow = np.ones(max(m - 1, 0))
+    if m < 2:
+        return allow
+    ratio = np.max(np.abs(traj.velocities_rad_s) / np.asarray(vlim, dtype=float), axis=1)
+    above = ratio > 1.0 + CONTROLLER_TOL
+    run = m if above.all() else int(np.argmin(above))      # the points above from the first one
+    allow[:min(run, m - 1)] = ratio[:min(run, m - 1)]
+    return allow
+
+
+def braking_text(scenario, traj: Trajectory) -> str:
+    """
+    Say how a trajectory that starts above the velocity limits brakes to them (for the log), or "".
+
+    ``traj``: a published trajectory (``Processed.trajectory``); the limits are the scenario's
+    (scaled).  E.g. "; it brakes to the velocity limits over its first 0.87 s (the arm at 2.81
+    times them)": the time of its first point within them (:func:`braking_allowance`'s run).
+    """
+    if len(traj.times_s) < 2:
+        return ""
+    vmax, _ = scenario.joint_limits.planned(scenario.robot)
+    allow = braking_allowance(traj, vmax * scenario.joint_limits.velocity_scaling)
+    run = int(np.argmin(allow > 1.0)) if not (allow > 1.0).all() else len(allow)
+    if run == 0:
+        return ""
+    return (f"; it brakes to the velocity limits over its first {traj.times_s[run]:.2f} s (the arm at "
+            f"{allow[0]:.2f} times them)")
 
 
 def _wheel_limits(scenario):

@@ -526,14 +526,16 @@ def _braked(scenario, path_rad, path_speed: float, tangent=None):
     off the arm's: a slow arm at a bend of its path could not be stopped on it at all).  A tangent
     the path cannot take (``trajectory.check_start_tangent``: where the executing path nearly turns
     back, the arm's velocity over its path speed is far from unit length) is left out, as a join's
-    timings do (``_fastest``'s second choice).
+    timings do (``_fastest``'s second choice).  A speed above the velocity limits (lowered while the
+    arm moves) is braked to them on the way (``trajectory.time_parameterize(brake_to_limits=True)``).
     """
     if tangent is not None:
         try:
             check_start_tangent(np.asarray(tangent, dtype=float), path_rad)
         except ValueError:
             tangent = None
-    return timed_motion(scenario, path_rad, start_path_speed=path_speed, report=False, start_tangent=tangent)[0]
+    return timed_motion(scenario, path_rad, start_path_speed=path_speed, report=False, start_tangent=tangent,
+                        brake_to_limits=True)[0]
 
 
 def resting_join(join: Join, now_ns: int, lead_s: float) -> Join:
@@ -686,14 +688,16 @@ def _fastest(scenario, paths: JoinedPaths, motions, chosen: int | None = None):
     K + i leaves it along candidate i's re-fitted tangent (a path turning just after the join,
     which the arm's direction would take too sharply at its speed; the published first point
     still has the arm's velocity: ``adapters._in_the_arms_state``, the controller's quintic from
-    it checked as every other).  ValueError when none can be entered at the join's speed.
+    it checked as every other).  A join's speed above the velocity limits (lowered while the arm
+    moves) is braked to them first (``brake_to_limits``).  ValueError when none can be entered at
+    the join's speed.
     """
     k = len(paths.candidates)
     speed, tangent = paths.continuation.start_path_speed, start_tangent(paths.continuation)
 
     def timing(j):
         return timed_motion(scenario, paths.candidates[j % k], start_path_speed=speed,
-                            start_tangent=tangent if j < k else None, motions=motions)
+                            start_tangent=tangent if j < k else None, motions=motions, brake_to_limits=True)
 
     err = None
     if chosen is not None:

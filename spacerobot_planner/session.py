@@ -72,7 +72,7 @@ from typing import Callable
 
 import numpy as np
 
-from .adapters import (AT_GOAL_TOL_RAD, Processed, TrajectoryPart, post_process, switching_at_arrival,
+from .adapters import (AT_GOAL_TOL_RAD, Processed, TrajectoryPart, braking_text, post_process, switching_at_arrival,
                        uncertified_text)
 from .cores import threads_text
 from .motion import MotionValidator
@@ -1178,7 +1178,8 @@ class CaptureSession:
                  f"{', '.join(res.cached) or 'none'}{threads_text(res.solver_stats)}"
                  + (f"; planned in the {planned_in}" if planned_in else "") + "); clearance "
                  f"{res.min_clearance_m:.3f} m; "
-                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed)}, "
+                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed)}"
+                    f"{braking_text(req.scenario, processed.trajectory)}, "
                     f"joined to the moving arm: {joined}; stamped {1e-9 * (stamp - now):.3f} s ahead"
                     + _prefix_text(outcome.publication, processed, now)
                     if outcome.publication.sent else "no trajectory published")

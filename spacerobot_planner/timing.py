@@ -59,7 +59,7 @@ def scenario_joint_limits(scenario):
 
 
 def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_speed=None, start_tangent=None,
-                motions=None) -> Motion:
+                motions=None, brake_to_limits: bool = False) -> Motion:
     """
     Time-parameterise a planned path with the scenario's limits and report the reaction.
 
@@ -76,6 +76,8 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
         start_velocity_rad_s, start_path_speed, start_tangent: a moving start (see
             ``trajectory.time_parameterize``); default at rest.
         motions: the scene's ``motion.MotionValidator``, for the drift check (made when None).
+        brake_to_limits: a moving start above the velocity limits brakes to them
+            (``trajectory.time_parameterize``).
 
     Returns
     -------
@@ -86,11 +88,12 @@ def plan_motion(scenario, path_rad, *, start_velocity_rad_s=None, start_path_spe
         ValueError: bad limits or a start velocity the path cannot be followed with.
 
     """
-    traj = _wheel_timed(scenario, path_rad, start_velocity_rad_s, start_path_speed, start_tangent)
+    traj = _wheel_timed(scenario, path_rad, start_velocity_rad_s, start_path_speed, start_tangent, brake_to_limits)
     return Motion(traj, _report(scenario, path_rad, traj, motions))
 
 
-def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed=None, start_tangent=None):
+def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed=None, start_tangent=None,
+                 brake_to_limits: bool = False):
     """:func:`plan_motion`'s trajectory (the wheel limits in the time-optimal parameterisation)."""
     robot, acs = scenario.robot, scenario.acs
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
@@ -98,7 +101,7 @@ def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed
     return time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
                              start_path_speed=start_path_speed, start_tangent=start_tangent, wheel=wheel,
-                             lowered=scenario.joint_limits.lowered)
+                             lowered=scenario.joint_limits.lowered, brake_to_limits=brake_to_limits)
 
 
 def _report(scenario, path_rad, traj, motions=None) -> ReactionReport:
@@ -138,7 +141,7 @@ def trajectory_limits_known(scenario) -> bool:
 
 
 def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = None, start_path_speed: float = 0.0,
-                 motions=None, report: bool = True, start_tangent=None):
+                 motions=None, report: bool = True, start_tangent=None, brake_to_limits: bool = False):
     """
     Run the last core stage: the path in time (MoveIt's adapter order), for the CLI and the node.
 
@@ -159,6 +162,8 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
             makes it later, e.g. for the one of several re-timings that is kept).
         start_tangent: (dof,) the direction the path leaves its start along (the arm's
             velocity over ``start_path_speed``; ``trajectory.time_parameterize``), or None.
+        brake_to_limits: a start speed above the velocity limits brakes to them instead of
+            being refused (``trajectory.time_parameterize``: limits lowered while the arm moves).
 
     Returns
     -------
@@ -177,12 +182,14 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
     if reaction is None:
         reaction = reaction_matters(scenario)
     if reaction and not report:
-        return _wheel_timed(scenario, path, start_path_speed=start_path_speed, start_tangent=start_tangent), None
+        return _wheel_timed(scenario, path, start_path_speed=start_path_speed, start_tangent=start_tangent,
+                            brake_to_limits=brake_to_limits), None
     if reaction:
         motion = plan_motion(scenario, path, start_path_speed=start_path_speed, start_tangent=start_tangent,
-                             motions=motions)
+                             motions=motions, brake_to_limits=brake_to_limits)
         return motion.trajectory, motion.reaction
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_path_speed=start_path_speed,
-                             start_tangent=start_tangent, lowered=scenario.joint_limits.lowered), None
+                             start_tangent=start_tangent, lowered=scenario.joint_limits.lowered,
+                             brake_to_limits=brake_to_limits), None

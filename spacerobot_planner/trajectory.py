@@ -39,6 +39,10 @@ Method (reachability analysis, Pham & Pham's TOPP-RA):
    from which the goal can still be reached at rest); a forward pass from the start
    speed² picks at each step the largest ``x_{i+1} ∈ K_{i+1}`` the constraints admit.
    Both passes use the same feasibility test: no uniform slow-down is applied or needed.
+   A start above the velocity bound (``brake_to_limits``: limits lowered while the arm moves)
+   is braked instead of refused: while x_i lies above K_i the forward pass takes the least
+   x_{i+1} the acceleration rows admit (the velocity rows not applied as long as it has stayed
+   above them), until it can enter K (``_forward_braking``).
    The published times are float64 and the finite differences amplify their rounding
    (by about |w| ulp(t) / Δt², which matters where samples are close in time, e.g.
    6·10⁻⁵ s apart at t = 1.65 s: 10⁻⁷ of the limit).  A bound on that rounding
@@ -102,7 +106,8 @@ class Trajectory:
         active_limit: (M,) str, the constraint closest to its limit at each point:
             ``"velocity:<joint>"``, ``"acceleration:<joint>"``, ``"wheel_momentum"``,
             ``"wheel_torque"`` (``limit_ratio`` says how close).
-        limit_ratio: (M,) |value| / limit of that constraint (≤ 1).
+        limit_ratio: (M,) |value| / limit of that constraint (≤ 1; above 1 only where a start
+            above the velocity limits brakes to them: ``time_parameterize(brake_to_limits=True)``).
         wheel_momentum_Nms, wheel_torque_Nm: (M,) h_wheel = −H·q̇ and its time
             derivative when a wheel model was given, else None.
         max_wheel_momentum_Nms, max_wheel_torque_Nm: the wheel limits obeyed (None: none).
@@ -761,9 +766,51 @@ def _forward(x, a_row, b_row, c_row, kappa, xv, delta, k, x0):
     divisions (the lower bounds are not needed).  An x_i outside [0, xv[i]] or violating a
     constraint on x alone (not reached: x_i ∈ K_i) is followed by 0.
     """
+    x[0] = x0
+    _forward_from(x, a_row, b_row, c_row, kappa, xv, delta, k, 0)
+
+
+@njit(**NO_REFCOUNT)
+def _forward_braking(x, a_row, b_row, c_row, kappa, xv, delta, k, x0, no_cap):
+    """
+    Forward pass from x0 above the velocity bound xv[0]: braked at the acceleration limits into K, into x (G,).
+
+    While x_i lies above K_i, x_{i+1} is the least value the acceleration rows admit from it (the
+    hardest braking: :func:`_bounds` without the velocity bounds, ``no_cap`` (G,) all inf), the
+    velocity rows not applied as long as the braking has stayed above them since the start;
+    where K_{i+1} can be reached, the largest value in it, and from there :func:`_forward`'s
+    steps.  Returns the grid index where x enters K, or -1: the acceleration rows admit no
+    x_{i+1} (the arm too fast for the path's bend), the braking comes back above a velocity bound
+    it had come below (it brakes for a bound further on), or it does not reach K before the end.
+    """
     m = xv.shape[0]
     x[0] = x0
+    above = True                 # above the velocity bound at every grid point since the start
     for i in range(m - 1):
+        if x[i] <= k[i]:
+            _forward_from(x, a_row, b_row, c_row, kappa, xv, delta, k, i)
+            return i
+        above = above and x[i] > xv[i]
+        lo, _, hi, _, g, _ = _bounds(i, x[i], a_row, b_row, c_row, kappa, no_cap, delta, np.inf)
+        if g > 0.0 or lo > hi:
+            return -1
+        cap = min(xv[i + 1], k[i + 1])
+        if lo <= cap:
+            x[i + 1] = min(hi, cap)
+        elif not above and lo > xv[i + 1]:
+            return -1
+        else:
+            x[i + 1] = lo
+    if x[m - 1] <= k[m - 1]:
+        return m - 1
+    return -1
+
+
+@njit(**NO_REFCOUNT)
+def _forward_from(x, a_row, b_row, c_row, kappa, xv, delta, k, first):
+    """:func:`_forward`'s steps from grid point ``first`` on (x[first] given), into x."""
+    m = xv.shape[0]
+    for i in range(first, m - 1):
         xi = x[i]
         if xi > xv[i] or xi < 0.0:
             x[i + 1] = 0.0
@@ -865,25 +912,31 @@ _EPS = float(np.finfo(float).eps)
 
 
 @njit(**NO_REFCOUNT)
-def _timed_forward(x, dt, t, per, a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
+def _timed_forward(x, dt, t, per, a_row, b_row, c_row, kappa, xv, ds, k, x0, refine, no_cap):
     """
-    Run the forward pass from x0 (clipped to K_0) to rest, and time it; returns ok.
+    Run the forward pass from x0 (clipped to K_0) to rest, and time it; returns 0 (ok), 1 or 2.
 
-    Fills x (G,), the grid durations dt (G-1,) s, the sample times t (M,) s and the sample
-    intervals per (M-1,) s: ``dt = 2 Δ / (ṡ_i + ṡ_{i+1})``; each sample interval the sum of its
-    ``refine`` grid durations in order, the times their running sum from 0 (NumPy's row sums
-    and ``cumsum`` for ``refine`` ≤ 7); ok False when a stretch has ṡ = 0 at both ends.
+    ``no_cap`` (G,) all inf: x0 above the velocity bound is braked into K (:func:`_forward_braking`,
+    not clipped); empty: clipped.  Fills x (G,), the grid durations dt (G-1,) s, the sample times
+    t (M,) s and the sample intervals per (M-1,) s: ``dt = 2 Δ / (ṡ_i + ṡ_{i+1})``; each sample
+    interval the sum of its ``refine`` grid durations in order, the times their running sum from 0
+    (NumPy's row sums and ``cumsum`` for ``refine`` ≤ 7).  Returns 1 where a stretch has ṡ = 0 at
+    both ends, 2 where the braking cannot reach K.
     """
-    _forward(x, a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
+    if no_cap.shape[0] > 0 and x0 > k[0]:
+        if _forward_braking(x, a_row, b_row, c_row, kappa, xv, ds, k, x0, no_cap) < 0:
+            return 2
+    else:
+        _forward(x, a_row, b_row, c_row, kappa, xv, ds, k, min(x0, k[0]))
     g = x.shape[0]
     x[g - 1] = 0.0
-    ok = True
+    ok = 0
     prev = np.sqrt(x[0])
     for j in range(g - 1):
         nxt = np.sqrt(x[j + 1])
         den = prev + nxt
         if den <= 0.0:
-            ok = False
+            ok = 1
         dt[j] = 2.0 * ds[j] / den if den > 0.0 else np.inf
         prev = nxt
     m = (g - 1) // refine + 1
@@ -897,18 +950,24 @@ def _timed_forward(x, dt, t, per, a_row, b_row, c_row, kappa, xv, ds, k, x0, ref
     return ok
 
 
-def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine):
+def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine, brake: bool = False):
     """
-    Forward pass from x0 (clipped to K_0) to rest (:func:`_timed_forward`).
+    Forward pass from x0 (clipped to K_0; ``brake``: above K_0, braked into it) to rest (:func:`_timed_forward`).
 
     Returns (x (G,), grid durations dt (G-1,) s, sample times (M,) s, 0 first, sample
-    intervals (M-1,) s).  Raises ValueError where ṡ = 0 at both ends of a grid segment.
+    intervals (M-1,) s).  Raises ValueError where ṡ = 0 at both ends of a grid segment, or
+    where the braking cannot bring the speed within the limits (:func:`_forward_braking`).
     """
     g = xv.shape[0]
     m = (g - 1) // refine + 1
     x, dt, t, per = np.empty(g), np.empty(g - 1), np.empty(m), np.empty(m - 1)
-    ok = _timed_forward(x, dt, t, per, a_row, b_row, c_row, kappa, xv, ds, k, float(x0), int(refine))
-    if not ok:
+    no_cap = np.full(g, np.inf) if brake else np.empty(0)
+    code = _timed_forward(x, dt, t, per, a_row, b_row, c_row, kappa, xv, ds, k, float(x0), int(refine), no_cap)
+    if code == 2:
+        raise ValueError(f"start_path_speed: {np.sqrt(x0):.6g} rad/s along the path is above the velocity "
+                         f"limits, and braking at the acceleration limits does not bring the arm within them "
+                         f"on this path (its bend at that speed, a bound further on, or the goal too near)")
+    if code:
         raise ValueError("path: a stretch cannot be followed at any speed within the limits")
     if refine > _SEQUENTIAL_SUM_MAX:        # NumPy's pairwise row sums
         per = dt.reshape(-1, refine).sum(axis=1)
@@ -1350,7 +1409,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                       start_path_speed: float | None = None, start_velocity_rad_s=None, start_tangent=None,
                       wheel=None, max_step_rad: float = np.radians(0.5),
                       grid_refinement: int = 2, start_speed_tolerance: float = 1e-3,
-                      lowered: tuple = ()) -> Trajectory:
+                      lowered: tuple = (), brake_to_limits: bool = False) -> Trajectory:
     """
     Time-optimal parameterisation of a joint path within joint (and wheel) limits.
 
@@ -1386,6 +1445,11 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
             the velocity bound by a hair); more is refused.
         lowered: :class:`Lowering` stretches, where the limits are lower still (the chain's
             re-timings, where the controller's interpolation overshot them).
+        brake_to_limits: a start speed above the velocity limits at the start (limits
+            lowered while the arm moves) is braked at the acceleration (and wheel torque)
+            limits until the limits admit it, instead of refused; the velocity limits do not
+            bind along that stretch (its ``limit_ratio`` above 1), the speed only falls.  Refused
+            still where that braking cannot reach the limits on the path.
 
     Returns
     -------
@@ -1446,8 +1510,11 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         g, gp = wheel.path_terms(qg, d1, d2)
     rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
     k = _backward(*rows[:5], ds, 0.0)
+    # a start above the velocity limits themselves (not lowered) brakes into them (brake_to_limits)
+    braking = bool(brake_to_limits) and sd0 > np.sqrt(xv[0]) * (1.0 + start_speed_tolerance)
     free = 1                         # a moving start keeps this many grid points' limits from the lowering
-    while low is not None and sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance) and free < 2 * g_n:
+    while (not braking and low is not None and sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance)
+           and free < 2 * g_n):
         # the arm's speed is given: lowered only where it can be entered (at last the whole path:
         # the limits themselves); a grid point's rows follow its own factors, so the pass is
         # redone from the last point whose factors this round raises (none: k stands)
@@ -1460,7 +1527,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         free *= 2
     a_row, b_row, c_row, kappa, xv = rows
     x0 = sd0 * sd0
-    if sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance):
+    if not braking and sd0 > np.sqrt(k[0]) * (1.0 + start_speed_tolerance):
         raise ValueError(f"start_path_speed: {sd0:.6g} rad/s along the path is faster than the limits "
                          f"allow from the start (at most {np.sqrt(k[0]):.6g} rad/s there, to stay within "
                          f"the velocity and acceleration limits and stop at the goal)")
@@ -1471,7 +1538,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     c_used, xv_used = c_row, xv
     m_acc, m_vel = np.zeros((g_n, n)), np.zeros(g_n)
     for _ in range(_ROUNDING_ROUNDS):
-        x, dt, t, dt_samples = _solve(a_row, b_row, c_used, kappa, xv_used, ds, k, x0, refine)
+        x, dt, t, dt_samples = _solve(a_row, b_row, c_used, kappa, xv_used, ds, k, x0, refine, braking)
         acc_m, vel_m, grown = _rounding_margins(t, dt_samples, p, d1, x, amax, refine, m_acc, m_vel)
         if not grown:
             break

@@ -330,6 +330,57 @@ def test_start_velocities_that_cannot_be_followed_are_refused():
         time_parameterize(short, vmax, amax, start_path_speed=0.9)    # cannot stop within 0.05 rad
 
 
+@pytest.mark.parametrize("over", [1.02, 1.6, 2.2])
+def test_a_start_above_the_velocity_limits_brakes_to_them_when_asked(over):
+    """
+    ``brake_to_limits``: a start ``over`` times the velocity limits (lowered as the arm moves) brakes, then obeys them.
+
+    Without it the same start is refused (the test above).  Oracle: the finite differences of the
+    positions (``oracles.finite_differences``, not the published values): every acceleration within
+    its limit throughout; the speed along the path (chord / Δt) never rises while any joint is above
+    its velocity limit, and from the first segment within the limits on every segment is; that comes
+    soon after braking joint 0 (which binds at the start) at its own acceleration limit would (the
+    test's bound: its excess speed over its limit, plus a fifth and 50 ms).
+    """
+    from oracles import finite_differences
+    path = np.column_stack([np.linspace(0.0, 3.0, 120), 0.15 * np.sin(np.linspace(0.0, 3.0, 120))])
+    vmax, amax = np.array([0.5, 0.5]), np.array([0.4, 0.4])
+    tangent = path[1] - path[0]
+    speed_at_limit = vmax[0] / (tangent[0] / np.linalg.norm(tangent))     # joint 0 binds at the start
+    sd0 = over * speed_at_limit
+    with pytest.raises(ValueError, match="start_path_speed.*faster"):
+        time_parameterize(path, vmax, amax, start_path_speed=sd0)
+    traj = time_parameterize(path, vmax, amax, start_path_speed=sd0, brake_to_limits=True)
+    t, q = traj.times_s, traj.positions_rad
+    np.testing.assert_array_equal(q[0], path[0])
+    np.testing.assert_array_equal(q[-1], path[-1])
+    v0 = traj.velocities_rad_s[0]
+    np.testing.assert_allclose(np.linalg.norm(v0), sd0, rtol=2e-2)        # |q'| = 1 along the chord length
+    assert np.max(np.abs(v0) / vmax) > over * 0.98
+    w, a = finite_differences(t, q, v0)
+    assert np.all(np.abs(a) <= amax * (1 + 1e-9)), np.max(np.abs(a) / amax)
+    ratio = np.max(np.abs(w) / vmax, axis=1)
+    within = np.flatnonzero(ratio <= 1.0 + 1e-9)
+    first = int(within[0])
+    assert np.all(ratio[first:] <= 1.0 + 1e-9), ratio[first:].max()
+    speed = np.linalg.norm(w, axis=1)
+    assert np.all(np.diff(speed[:first + 1]) <= 1e-9 * speed[0]), np.diff(speed[:first + 1]).max()
+    bound = 1.2 * (over - 1.0) * vmax[0] / amax[0] + 0.05      # s: joint 0 (it binds) braked at its limit, slack
+    assert t[first] <= bound, (t[first], bound)
+    assert traj.limit_ratio[0] > 1.0
+
+
+def test_a_start_above_the_velocity_limits_that_braking_cannot_bring_within_them_is_refused():
+    """A start too fast for the path's bend (the acceleration rows), or for its length, is refused with braking too."""
+    vmax, amax = np.array([0.5, 0.5]), np.array([0.4, 0.4])
+    bend = np.column_stack([np.linspace(0.0, 2.0, 60), np.linspace(0.0, 1.0, 60) + 0.2 * np.sin(np.linspace(0, 3, 60))])
+    with pytest.raises(ValueError, match="braking at the acceleration limits does not bring"):
+        time_parameterize(bend, vmax, amax, start_path_speed=1.2, brake_to_limits=True)
+    short = np.array([[0.0, 0.0], [0.05, 0.0]])
+    with pytest.raises(ValueError, match="braking at the acceleration limits does not bring"):
+        time_parameterize(short, vmax, amax, start_path_speed=0.9, brake_to_limits=True)
+
+
 def test_a_start_tangent_sets_the_start_velocity_and_bad_ones_are_refused():
     """
     The path leaves its start along ``start_tangent``; bad tangents are refused.
