@@ -46,7 +46,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .motion import MotionValidator
-from .published import Resampled, controller_check, resample, segment_peaks, segment_wheel_peaks
+from .published import (Resampled, controller_check, controller_motion, resample, segment_peaks,
+                        segment_wheel_peaks)
 from .reaction import DriftedValidator
 from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, rests_at, timed_join
 from .settings import SessionSettings
@@ -800,8 +801,46 @@ def uncertified_text(scenario, processed: Processed, motions) -> str:
         return f"the controller's motion is certified (clearance {check.min_clearance_m:.3f} m)"
     bad = np.flatnonzero(~seg_ok)
     when = f"{traj.times_s[bad[0]]:.2f} s after its start" if len(bad) else "at its points"
-    return (f"the controller's motion comes within the safety margin {motions.margin_m:g} m "
-            f"{when}: clearance {check.min_clearance_m:.3f} m")
+    said = []
+    if not check.min_clearance_m > motions.margin_m:
+        said.append(f"comes within the safety margin {motions.margin_m:g} m {when}: clearance "
+                    f"{check.min_clearance_m:.3f} m")
+    said += _past_bounds_text(scenario, traj)
+    if not said:
+        said.append(f"is not certified {when} (clearance {check.min_clearance_m:.3f} m)")
+    return "the controller's motion " + "; it ".join(said)
+
+
+#: samples per segment of the controller's motion for :func:`_past_bounds_text` (its peak between them:
+#: within about a hundredth of its excess)
+_BOUND_SAMPLES = 64
+
+
+def _past_bounds_text(scenario, traj: Trajectory) -> list:
+    """
+    Say where the controller's motion of ``traj`` passes a bounded joint's bound, joint by joint (texts; [] when none).
+
+    The quintics sampled :data:`_BOUND_SAMPLES` times a segment (``published.controller_motion``)
+    against the robot's planned bounds: e.g. "passes elbow's bound -180° by 0.0055° 8.09 s after
+    its start" (the points themselves lie within them: the path's samples do).
+    """
+    robot = scenario.robot
+    names = list(robot.planned_names)
+    lo, hi = np.asarray(robot.planned_lower_rad, dtype=float), np.asarray(robot.planned_upper_rad, dtype=float)
+    q = controller_motion(traj, _BOUND_SAMPLES)[0]
+    t = np.append((traj.times_s[:-1, None] + np.diff(traj.times_s)[:, None]
+                   * (np.arange(_BOUND_SAMPLES) / _BOUND_SAMPLES)).ravel(), traj.times_s[-1])
+    out = []
+    for c, name in enumerate(traj.joint_names):
+        j = names.index(name)
+        if robot.planned_periodic[j]:
+            continue
+        for bound, excess in ((lo[j], lo[j] - q[:, c]), (hi[j], q[:, c] - hi[j])):
+            k = int(np.argmax(excess))
+            if excess[k] > 0.0:
+                out.append(f"passes {name}'s bound {np.degrees(bound):g}° by {np.degrees(excess[k]):.2g}° "
+                           f"{t[k]:.2f} s after its start")
+    return out
 
 
 def _published_peaks(scenario, reaction, traj: Trajectory, wheel_over=None):

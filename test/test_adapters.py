@@ -216,3 +216,43 @@ def test_another_robots_validator_is_refused_by_name_not_run():
         with pytest.raises(ValueError, match="rows of this validator's 4 planned joints"):
             validator.check_kept(rows)
     assert post_process(paper, path).trajectory is not None       # its own validator: as ever
+
+
+def test_an_uncertified_motion_past_a_joint_bound_is_said_to_pass_it_not_to_come_within_the_margin():
+    """
+    The log's text for a controller's motion that leaves the elbow's bound names the bound, not the safety margin.
+
+    An audit found a plan along the elbow's -180° bound whose quintics passed it by 0.0055° while the
+    text said "comes within the safety margin 0.05 m ...: clearance 0.055 m".  Here two points on
+    the bound with the elbow moving outwards at both: the quintic between them bulges past it.
+    Oracle: SciPy's quintic (``oracles.controller_interpolation``) for the excess, the reference
+    geometry (``oracles.ref_clearance``) for the clearance along it.
+    """
+    from types import SimpleNamespace
+    from oracles import controller_interpolation, ref_clearance
+    from spacerobot_planner.adapters import uncertified_text
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.motion import MotionValidator
+    from spacerobot_planner.trajectory import Trajectory
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_2dof.yaml"))
+    robot = sc.robot
+    names = robot.planned_names
+    elbow = names.index("elbow")
+    lo = robot.planned_lower_rad[elbow]
+    q = np.zeros((2, 2))
+    q[:, 1 - elbow] = np.radians([60.0, 62.0])
+    q[:, elbow] = lo
+    v = np.zeros((2, 2))
+    v[:, 1 - elbow] = np.radians(2.0)
+    v[:, elbow] = -1e-3                                   # outwards, past the bound
+    t = np.array([0.0, 1.0])
+    traj = Trajectory(tuple(names), t, q, v, np.zeros((2, 2)), np.ones(2), np.ones(2))
+    ts = np.linspace(0.0, 1.0, 2001)
+    qs = controller_interpolation(t, q, v, np.zeros((2, 2)))(ts)[0]
+    excess = float(np.max(lo - qs[:, elbow]))
+    assert excess > 1e-5                                  # the test's premise
+    clearance = min(ref_clearance(robot, sc.scene, row) for row in qs[::50])
+    text = uncertified_text(sc, SimpleNamespace(trajectory=traj), MotionValidator.for_scene(robot, sc.scene))
+    assert f"passes elbow's bound {np.degrees(lo):g}° by {np.degrees(excess):.2g}°" in text, text
+    assert clearance > sc.scene.safety_margin_m + 1e-3, clearance         # the posture is free: ...
+    assert "safety margin" not in text, (text, clearance)                  # ... the margin is not the cause
