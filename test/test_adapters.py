@@ -256,3 +256,36 @@ def test_an_uncertified_motion_past_a_joint_bound_is_said_to_pass_it_not_to_come
     assert f"passes elbow's bound {np.degrees(lo):g}° by {np.degrees(excess):.2g}°" in text, text
     assert clearance > sc.scene.safety_margin_m + 1e-3, clearance         # the posture is free: ...
     assert "safety margin" not in text, (text, clearance)                  # ... the margin is not the cause
+
+
+def test_a_path_along_the_elbows_bound_is_published_without_passing_it():
+    """
+    A path that runs along the elbow's -180° bound: the controller's motion stays on it, and is certified.
+
+    The path's samples there lie on the bound; the spline the time parameterisation fits through
+    them leaves small velocities at them, and the controller's quintics between such points bulged
+    past the bound (0.022° here; 0.0055° in a helper's audit), so the chain published its dense
+    points uncertified.  Oracle: SciPy's quintic through the published points
+    (``oracles.controller_interpolation``), 64 samples a segment, against the bound; the reference
+    geometry for the path's clearance (the test's premise).
+    """
+    from oracles import controller_interpolation, ref_clearance
+    from spacerobot_planner.config import load_scenario
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_2dof.yaml"))
+    robot = sc.robot
+    names = list(robot.planned_names)
+    e, s = names.index("elbow"), names.index("shoulder")
+    lo = robot.planned_lower_rad[e]
+    path = np.tile(np.asarray(sc.start_rad, dtype=float), (61, 1))
+    path[:, s] = np.radians(np.linspace(40.0, 100.0, 61))
+    path[:, e] = np.radians(np.concatenate([np.linspace(-170.0, -180.0, 15), np.full(31, -180.0),
+                                            np.linspace(-180.0, -170.0, 15)]))
+    path[15:46, e] = lo                                          # on the bound itself
+    assert min(ref_clearance(robot, sc.scene, row) for row in path) > sc.scene.safety_margin_m + 0.05
+    out = post_process(sc, path)
+    tr = out.trajectory
+    f = controller_interpolation(tr.times_s, tr.positions_rad, tr.velocities_rad_s, tr.accelerations_rad_s2)
+    ts = np.concatenate([np.linspace(a, b, 64, endpoint=False) for a, b in zip(tr.times_s[:-1], tr.times_s[1:])])
+    q = f(ts)[0]
+    assert float(np.max(lo - q[:, e])) <= 1e-12, np.degrees(np.max(lo - q[:, e]))
+    assert out.certified
