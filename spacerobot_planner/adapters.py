@@ -523,11 +523,12 @@ def braking_allowance(traj: Trajectory, vlim) -> np.ndarray:
     ``brake_to_limits``) brakes to them first: along the run of points from its first one whose
     velocity exceeds ``vlim`` (n,) by more than ``CONTROLLER_TOL``, a segment's motion is held to
     the speed of its first point (its largest ratio to the limits), not to the limits, which it
-    cannot meet yet; 1 elsewhere (every trajectory that starts within them).
+    cannot meet yet; 1 elsewhere (every trajectory that starts within them: its first point alone
+    is looked at).
     """
     m = len(traj.times_s)
     allow = np.ones(max(m - 1, 0))
-    if m < 2:
+    if m < 2 or not np.max(np.abs(traj.velocities_rad_s[0]) / vlim) > 1.0 + CONTROLLER_TOL:
         return allow
     ratio = np.max(np.abs(traj.velocities_rad_s) / np.asarray(vlim, dtype=float), axis=1)
     above = ratio > 1.0 + CONTROLLER_TOL
@@ -638,22 +639,19 @@ def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
     slope there is small but not 0: the controller's quintic between two such points bulged past the
     bound (by up to 0.0055° in a helper's audit, where it runs along the elbow's -180°).  Held at rest
     there, the quintic between two of them stays on the bound.  The first point keeps its state (a
-    join's is the arm's).  The same object where no point lies on a bound.
+    join's is the arm's).  The same object where no point lies on a bound.  ``dense``'s columns are
+    the robot's planned joints in order (``timing.timed_motion``'s).
     """
-    names = list(robot.planned_names)
-    cols = [c for c, n in enumerate(dense.joint_names) if not robot.planned_periodic[names.index(n)]]
-    if len(dense.times_s) < 2 or not cols:
+    if len(dense.times_s) < 2:
         return dense
-    idx = [names.index(dense.joint_names[c]) for c in cols]
-    q = dense.positions_rad[1:, cols]
-    on = (q == np.asarray(robot.planned_lower_rad, dtype=float)[idx]) | \
-        (q == np.asarray(robot.planned_upper_rad, dtype=float)[idx])
+    bounded = ~np.asarray(robot.planned_periodic, dtype=bool)
+    q = dense.positions_rad[1:]
+    on = ((q == robot.planned_lower_rad) | (q == robot.planned_upper_rad)) & bounded
     if not on.any():
         return dense
     vel, acc = dense.velocities_rad_s.copy(), dense.accelerations_rad_s2.copy()
-    rows, at = np.nonzero(on)
-    vel[rows + 1, np.asarray(cols)[at]] = 0.0
-    acc[rows + 1, np.asarray(cols)[at]] = 0.0
+    vel[1:][on] = 0.0
+    acc[1:][on] = 0.0
     return replace(dense, velocities_rad_s=vel, accelerations_rad_s2=acc)
 
 
