@@ -1178,10 +1178,10 @@ class CaptureSession:
                  f"{', '.join(res.cached) or 'none'}{threads_text(res.solver_stats)}"
                  + (f"; planned in the {planned_in}" if planned_in else "") + "); clearance "
                  f"{res.min_clearance_m:.3f} m; "
-                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed)}"
-                    f"{braking_text(req.scenario, processed.trajectory)}, "
+                 + (f"trajectory {len(traj)} points, {traj.duration_s:.2f} s{_chain_text(processed)}, "
                     f"joined to the moving arm: {joined}; stamped {1e-9 * (stamp - now):.3f} s ahead"
                     + _prefix_text(outcome.publication, processed, now)
+                    + braking_text(req.scenario, processed.trajectory)
                     if outcome.publication.sent else "no trajectory published")
                  + f"; request→trajectory {1e3 * latency:.1f} ms")
         return outcome
