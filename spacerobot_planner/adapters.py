@@ -522,9 +522,9 @@ def braking_allowance(traj: Trajectory, vlim) -> np.ndarray:
     A trajectory that starts above the velocity limits (lowered while the arm moves: timed with
     ``brake_to_limits``) brakes to them first: along the run of points from its first one whose
     velocity exceeds ``vlim`` (n,) by more than ``CONTROLLER_TOL``, a segment's motion is held to
-    the speed of its first point (its largest ratio to the limits), not to the limits, which it
-    cannot meet yet; 1 elsewhere (every trajectory that starts within them: its first point alone
-    is looked at).
+    the speed of its first point (its largest ratio to the limits over the joints, which the
+    time parameterisation's braking never lets rise), not to the limits, which it cannot meet yet;
+    1 elsewhere (every trajectory that starts within them: its first point alone is looked at).
     """
     m = len(traj.times_s)
     allow = np.ones(max(m - 1, 0))
@@ -539,11 +539,12 @@ def braking_allowance(traj: Trajectory, vlim) -> np.ndarray:
 
 def braking_text(scenario, traj: Trajectory) -> str:
     """
-    Say how a trajectory that starts above the velocity limits brakes to them (for the log), or "".
+    Say when a trajectory that starts above the velocity limits comes within them (for the log), or "".
 
     ``traj``: a published trajectory (``Processed.trajectory``); the limits are the scenario's
-    (scaled).  E.g. "; it brakes to the velocity limits over its first 0.87 s (the arm at 2.81
-    times them)": the time of its first point within them (:func:`braking_allowance`'s run).
+    (scaled).  E.g. "; within the velocity limits from 1.41 s on (the arm at 15.99 times them at its
+    start)": the time of its first point within them (:func:`braking_allowance`'s run), whether it
+    brakes there or follows the executing trajectory that far (to where that one rests).
     """
     if len(traj.times_s) < 2:
         return ""
@@ -552,8 +553,8 @@ def braking_text(scenario, traj: Trajectory) -> str:
     run = int(np.argmin(allow > 1.0)) if not (allow > 1.0).all() else len(allow)
     if run == 0:
         return ""
-    return (f"; it brakes to the velocity limits over its first {traj.times_s[run]:.2f} s (the arm at "
-            f"{allow[0]:.2f} times them)")
+    return (f"; within the velocity limits from {traj.times_s[run]:.2f} s on (the arm at {allow[0]:.2f} times "
+            f"them at its start)")
 
 
 def _wheel_limits(scenario):
@@ -633,25 +634,32 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
 
 def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
     """
-    Return ``dense`` with each bounded joint at rest (velocity and acceleration 0) at its points exactly on its bound.
+    Return ``dense`` with each bounded joint held on its bound at its points exactly on it.
 
     A path along a joint's bound (its samples snapped onto it) is timed on a spline through them whose
     slope there is small but not 0: the controller's quintic between two such points bulged past the
-    bound (by up to 0.0055° in a helper's audit, where it runs along the elbow's -180°).  Held at rest
-    there, the quintic between two of them stays on the bound.  The first point keeps its state (a
-    join's is the arm's).  The same object where no point lies on a bound.  ``dense``'s columns are
-    the robot's planned joints in order (``timing.timed_motion``'s).
+    bound (by up to 0.0055° in a helper's audit, where it runs along the elbow's -180°).  At such a
+    point that joint's velocity is set to 0, and its acceleration too where it points past the bound
+    or where a neighbouring point lies on the same bound (along the bound; a path that touches it at
+    one point and turns back keeps its turn's acceleration, which points inwards).  The first point
+    keeps its state (a join's is the arm's).  The same object where no point lies on a bound.
     """
     if len(dense.times_s) < 2:
         return dense
-    bounded = ~np.asarray(robot.planned_periodic, dtype=bool)
-    q = dense.positions_rad[1:]
-    on = ((q == robot.planned_lower_rad) | (q == robot.planned_upper_rad)) & bounded
-    if not on.any():
+    names = list(robot.planned_names)
+    cols = np.array([names.index(n) for n in dense.joint_names])
+    bounded = ~np.asarray(robot.planned_periodic, dtype=bool)[cols]
+    lo, hi = robot.planned_lower_rad[cols], robot.planned_upper_rad[cols]
+    q = dense.positions_rad
+    at_lo, at_hi = (q == lo) & bounded, (q == hi) & bounded
+    at_lo[0] = at_hi[0] = False
+    if not (at_lo.any() or at_hi.any()):
         return dense
     vel, acc = dense.velocities_rad_s.copy(), dense.accelerations_rad_s2.copy()
-    vel[1:][on] = 0.0
-    acc[1:][on] = 0.0
+    along_lo = at_lo & (np.roll(at_lo, 1, axis=0) | np.roll(at_lo, -1, axis=0))
+    along_hi = at_hi & (np.roll(at_hi, 1, axis=0) | np.roll(at_hi, -1, axis=0))
+    vel[at_lo | at_hi] = 0.0
+    acc[along_lo | along_hi | (at_lo & (acc < 0.0)) | (at_hi & (acc > 0.0))] = 0.0
     return replace(dense, velocities_rad_s=vel, accelerations_rad_s2=acc)
 
 

@@ -41,8 +41,8 @@ Method (reachability analysis, Pham & Pham's TOPP-RA):
    Both passes use the same feasibility test: no uniform slow-down is applied or needed.
    A start above the velocity bound (``brake_to_limits``: limits lowered while the arm moves)
    is braked instead of refused: while x_i lies above K_i the forward pass takes the least
-   x_{i+1} the acceleration rows admit (the velocity rows not applied as long as it has stayed
-   above them), until it can enter K (``_forward_braking``).
+   x_{i+1} the acceleration rows admit, its ratio to the velocity bound never rising above the
+   larger of 1 and x_i's, until it can enter K (``_forward_braking``).
    The published times are float64 and the finite differences amplify their rounding
    (by about |w| ulp(t) / Δt², which matters where samples are close in time, e.g.
    6·10⁻⁵ s apart at t = 1.65 s: 10⁻⁷ of the limit).  A bound on that rounding
@@ -773,31 +773,31 @@ def _forward(x, a_row, b_row, c_row, kappa, xv, delta, k, x0):
 @njit(**NO_REFCOUNT)
 def _forward_braking(x, a_row, b_row, c_row, kappa, xv, delta, k, x0, no_cap):
     """
-    Forward pass from x0 above the velocity bound xv[0]: braked at the acceleration limits into K, into x (G,).
+    Run the forward pass from x0 above the velocity bound xv[0], braked at the acceleration limits into K, into x (G,).
 
     While x_i lies above K_i, x_{i+1} is the least value the acceleration rows admit from it (the
-    hardest braking: :func:`_bounds` without the velocity bounds, ``no_cap`` (G,) all inf), the
-    velocity rows not applied as long as the braking has stayed above them since the start;
-    where K_{i+1} can be reached, the largest value in it, and from there :func:`_forward`'s
-    steps.  Returns the grid index where x enters K, or -1: the acceleration rows admit no
-    x_{i+1} (the arm too fast for the path's bend), the braking comes back above a velocity bound
-    it had come below (it brakes for a bound further on), or it does not reach K before the end.
+    hardest braking: :func:`_bounds` without the velocity bounds, ``no_cap`` (G,) all inf), and its
+    ratio to the velocity bound may not rise above the larger of 1 and x_i's (x / xv is the largest
+    joint's speed over its limit, squared: no joint comes closer to or further above its limit than
+    the fastest one was); where K_{i+1} can be reached, the largest value in it, and from there
+    :func:`_forward`'s steps.  Returns the grid index where x enters K, or -1: the acceleration rows
+    admit no x_{i+1} (the arm too fast for the path's bend), the hardest braking would raise that
+    ratio (a bound further on, a bend that turns the motion onto a slower joint), or it does not
+    reach K before the end.
     """
     m = xv.shape[0]
     x[0] = x0
-    above = True                 # above the velocity bound at every grid point since the start
     for i in range(m - 1):
         if x[i] <= k[i]:
             _forward_from(x, a_row, b_row, c_row, kappa, xv, delta, k, i)
             return i
-        above = above and x[i] > xv[i]
         lo, _, hi, _, g, _ = _bounds(i, x[i], a_row, b_row, c_row, kappa, no_cap, delta, np.inf)
         if g > 0.0 or lo > hi:
             return -1
         cap = min(xv[i + 1], k[i + 1])
         if lo <= cap:
             x[i + 1] = min(hi, cap)
-        elif not above and lo > xv[i + 1]:
+        elif lo > max(xv[i + 1], x[i] * (xv[i + 1] / xv[i])):
             return -1
         else:
             x[i + 1] = lo
@@ -966,7 +966,8 @@ def _solve(a_row, b_row, c_row, kappa, xv, ds, k, x0, refine, brake: bool = Fals
     if code == 2:
         raise ValueError(f"start_path_speed: {np.sqrt(x0):.6g} rad/s along the path is above the velocity "
                          f"limits, and braking at the acceleration limits does not bring the arm within them "
-                         f"on this path (its bend at that speed, a bound further on, or the goal too near)")
+                         f"on this path (its bend at that speed, a bound further on or a slower joint the motion turns "
+                         f"onto, or the goal too near)")
     if code:
         raise ValueError("path: a stretch cannot be followed at any speed within the limits")
     if refine > _SEQUENTIAL_SUM_MAX:        # NumPy's pairwise row sums
@@ -1447,9 +1448,11 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
             re-timings, where the controller's interpolation overshot them).
         brake_to_limits: a start speed above the velocity limits at the start (limits
             lowered while the arm moves) is braked at the acceleration (and wheel torque)
-            limits until the limits admit it, instead of refused; the velocity limits do not
-            bind along that stretch (its ``limit_ratio`` above 1), the speed only falls.  Refused
-            still where that braking cannot reach the limits on the path.
+            limits until the limits admit it, instead of refused; the velocity (and wheel
+            momentum) limits do not bind along that stretch (its ``limit_ratio`` above 1), but
+            no joint's speed over its limit rises above the largest such ratio before it (on the
+            grid's bounds), and the stretches the chain lowered near the start stay lowered.
+            Refused still where that braking cannot reach the limits on the path.
 
     Returns
     -------

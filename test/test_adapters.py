@@ -8,6 +8,7 @@ the scenario's limits; the wheels' load of that motion by the test's own momentu
 (``oracles.wheel_load``).  No code of the package's sampler or momentum model is used.
 """
 import os
+import re
 
 from dataclasses import replace
 
@@ -253,7 +254,8 @@ def test_an_uncertified_motion_past_a_joint_bound_is_said_to_pass_it_not_to_come
     assert excess > 1e-5                                  # the test's premise
     clearance = min(ref_clearance(robot, sc.scene, row) for row in qs[::50])
     text = uncertified_text(sc, SimpleNamespace(trajectory=traj), MotionValidator.for_scene(robot, sc.scene))
-    assert f"passes elbow's bound {np.degrees(lo):g}° by {np.degrees(excess):.2g}°" in text, text
+    said = re.search(rf"passes elbow's bound {np.degrees(lo):g}° by ([0-9.e+-]+)°", text)
+    assert said and abs(float(said.group(1)) - np.degrees(excess)) <= 0.06 * np.degrees(excess), (text, excess)
     assert clearance > sc.scene.safety_margin_m + 1e-3, clearance         # the posture is free: ...
     assert "safety margin" not in text, (text, clearance)                  # ... the margin is not the cause
 
