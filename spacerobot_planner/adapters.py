@@ -46,8 +46,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .motion import MotionValidator
-from .published import (Resampled, controller_check, controller_motion, resample, segment_peaks,
-                        segment_wheel_peaks)
+from .published import (Resampled, controller_check, controller_motion, controller_times, resample,
+                        segment_peaks, segment_wheel_peaks)
 from .reaction import DriftedValidator
 from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, rests_at, timed_join
 from .settings import SessionSettings
@@ -531,10 +531,15 @@ def braking_allowance(traj: Trajectory, vlim) -> np.ndarray:
     if m < 2 or not np.max(np.abs(traj.velocities_rad_s[0]) / vlim) > 1.0 + CONTROLLER_TOL:
         return allow
     ratio = np.max(np.abs(traj.velocities_rad_s) / np.asarray(vlim, dtype=float), axis=1)
-    above = ratio > 1.0 + CONTROLLER_TOL
-    run = m if above.all() else int(np.argmin(above))      # the points above from the first one
+    run = _leading_run(ratio > 1.0 + CONTROLLER_TOL)       # the points above from the first one
     allow[:min(run, m - 1)] = ratio[:min(run, m - 1)]
     return allow
+
+
+def _leading_run(mask) -> int:
+    """Return how many of ``mask``'s (K,) first values are all True."""
+    mask = np.asarray(mask, dtype=bool)
+    return len(mask) if mask.all() else int(np.argmin(mask))
 
 
 def braking_text(scenario, traj: Trajectory) -> str:
@@ -550,7 +555,7 @@ def braking_text(scenario, traj: Trajectory) -> str:
         return ""
     vmax, _ = scenario.joint_limits.planned(scenario.robot)
     allow = braking_allowance(traj, vmax * scenario.joint_limits.velocity_scaling)
-    run = int(np.argmin(allow > 1.0)) if not (allow > 1.0).all() else len(allow)
+    run = _leading_run(allow > 1.0)
     if run == 0:
         return ""
     return (f"; within the velocity limits from {traj.times_s[run]:.2f} s on (the arm at {allow[0]:.2f} times "
@@ -861,9 +866,7 @@ def _past_bounds_text(scenario, traj: Trajectory) -> list:
     robot = scenario.robot
     names = list(robot.planned_names)
     lo, hi = np.asarray(robot.planned_lower_rad, dtype=float), np.asarray(robot.planned_upper_rad, dtype=float)
-    q = controller_motion(traj, _BOUND_SAMPLES)[0]
-    t = np.append((traj.times_s[:-1, None] + np.diff(traj.times_s)[:, None]
-                   * (np.arange(_BOUND_SAMPLES) / _BOUND_SAMPLES)).ravel(), traj.times_s[-1])
+    q, t = controller_motion(traj, _BOUND_SAMPLES)[0], controller_times(traj, _BOUND_SAMPLES)
     out = []
     for c, name in enumerate(traj.joint_names):
         j = names.index(name)

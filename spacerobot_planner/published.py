@@ -32,7 +32,8 @@ from .motion import MotionValidator
 from .spacecraft import _momentum_tables, _sample_momentum
 from .trajectory import _SHARED_MODELS, Trajectory, _bits_hash
 
-__all__ = ["Resampled", "resample", "sample_points", "controller_motion", "controller_check", "CONTROLLER_SAMPLES",
+__all__ = ["Resampled", "resample", "sample_points", "controller_motion", "controller_times",
+           "controller_check", "CONTROLLER_SAMPLES",
            "segment_peaks", "segment_wheel_peaks"]
 
 
@@ -404,20 +405,29 @@ def sample_points(times_s, positions, velocities, accelerations, t_s):
 CONTROLLER_SAMPLES = 8
 
 
+def controller_times(traj: Trajectory, samples_per_segment: int = CONTROLLER_SAMPLES) -> np.ndarray:
+    """Return :func:`controller_motion`'s sample times (S (M - 1) + 1,), s: S a segment from its start, and the end."""
+    t = np.asarray(traj.times_s, dtype=float)
+    if len(t) < 2:
+        return t.copy()
+    u = np.arange(samples_per_segment) / samples_per_segment
+    return np.append((t[:-1, None] + np.diff(t)[:, None] * u).ravel(), t[-1])
+
+
 def controller_motion(traj: Trajectory, samples_per_segment: int = CONTROLLER_SAMPLES) -> tuple:
     """
     Sample the motion joint_trajectory_controller makes of a trajectory's points (:func:`sample_points`).
 
     At ``samples_per_segment`` (S) evenly spaced times of each segment, from its first point
-    (exact: the point itself), and at the last point: (positions, velocities, accelerations),
-    each (S (M - 1) + 1, dof), rad, rad/s, rad/s²; the trajectory's own point when M = 1.
+    (exact: the point itself), and at the last point (:func:`controller_times`): (positions,
+    velocities, accelerations), each (S (M - 1) + 1, dof), rad, rad/s, rad/s²; the trajectory's
+    own point when M = 1.
     """
     t = np.asarray(traj.times_s, dtype=float)
     if len(t) < 2:
         return traj.positions_rad.copy(), traj.velocities_rad_s.copy(), traj.accelerations_rad_s2.copy()
-    u = np.arange(samples_per_segment) / samples_per_segment
-    at = np.append((t[:-1, None] + np.diff(t)[:, None] * u).ravel(), t[-1])
-    return sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2, at)
+    return sample_points(t, traj.positions_rad, traj.velocities_rad_s, traj.accelerations_rad_s2,
+                         controller_times(traj, samples_per_segment))
 
 
 def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTROLLER_SAMPLES) -> tuple:
