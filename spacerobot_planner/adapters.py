@@ -641,10 +641,12 @@ def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
     """
     Return ``dense`` with each bounded joint held on its bound at its points exactly on it.
 
-    A path along a joint's bound (its samples snapped onto it) is timed on a spline through them whose
+    A path along a joint's bound (its samples snapped onto it) was timed on a spline through them whose
     slope there is small but not 0: the controller's quintic between two such points bulged past the
-    bound (by up to 0.0055° in a helper's audit, where it runs along the elbow's -180°).  At such a
-    point that joint's velocity is set to 0, and its acceleration too where it points past the bound
+    bound (by up to 0.0055° in a helper's audit, where it runs along the elbow's -180°).  The timing's
+    spline now has slope 0 there wherever it would pass the bound (``trajectory.time_parameterize``'s
+    ``lower_rad``, ``upper_rad``); here every such point holds it, whatever the spline: that joint's
+    velocity is set to 0, and its acceleration too where it points past the bound
     or where a neighbouring point lies on the same bound (along the bound; a path that touches it at
     one point and turns back keeps its turn's acceleration, which points inwards).  The first point
     keeps its state (a join's is the arm's).  The same object where no point lies on a bound.

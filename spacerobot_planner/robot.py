@@ -163,6 +163,12 @@ class PlanarArm:
     def planned_periodic(self) -> tuple:
         return tuple(bool(self.periodic[j]) for j in self.planned_joints)
 
+    @property
+    def planned_bounds_rad(self) -> tuple:
+        """(lower (dof,), upper (dof,)) rad: the planned joints' bounds, -inf and inf for a periodic joint."""
+        periodic = self._planned_periodic
+        return (np.where(periodic, -np.inf, self._planned_lower), np.where(periodic, np.inf, self._planned_upper))
+
     def full(self, q) -> np.ndarray:
         """Planned configuration(s) ``q`` (dof or N×dof) → full ones (n_joints or N×n_joints)."""
         q = np.asarray(q, dtype=float)

@@ -98,10 +98,12 @@ def _wheel_timed(scenario, path_rad, start_velocity_rad_s=None, start_path_speed
     robot, acs = scenario.robot, scenario.acs
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
     wheel = WheelModel(robot, scenario.masses, *acs.timed_wheel_limits)
+    lo, hi = robot.planned_bounds_rad
     return time_parameterize(path_rad, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_velocity_rad_s=start_velocity_rad_s,
                              start_path_speed=start_path_speed, start_tangent=start_tangent, wheel=wheel,
-                             lowered=scenario.joint_limits.lowered, brake_to_limits=brake_to_limits)
+                             lowered=scenario.joint_limits.lowered, brake_to_limits=brake_to_limits,
+                             lower_rad=lo, upper_rad=hi)
 
 
 def _report(scenario, path_rad, traj, motions=None) -> ReactionReport:
@@ -189,7 +191,8 @@ def timed_motion(scenario, path_rad, state_rad=None, reaction: bool | None = Non
                              motions=motions, brake_to_limits=brake_to_limits)
         return motion.trajectory, motion.reaction
     vmax, amax, vs, as_ = scenario_joint_limits(scenario)
+    lo, hi = robot.planned_bounds_rad
     return time_parameterize(path, vmax, amax, robot.planned_names, velocity_scaling=vs,
                              acceleration_scaling=as_, start_path_speed=start_path_speed,
                              start_tangent=start_tangent, lowered=scenario.joint_limits.lowered,
-                             brake_to_limits=brake_to_limits), None
+                             brake_to_limits=brake_to_limits, lower_rad=lo, upper_rad=hi), None

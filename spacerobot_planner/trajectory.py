@@ -18,6 +18,9 @@ Method (reachability analysis, Pham & Pham's TOPP-RA):
    ``grid_refinement`` (2) times finer than the samples; the trajectory keeps one point
    per sample, at exactly the given positions.  (4 times finer: the paper paths' durations
    0.02-0.2 % shorter, for twice the work of every pass; the limits hold at any refinement.)
+   Given the joints' bounds, the spline is kept within them: where it would pass one between
+   the samples, the samples on that bound become knots where the joint's q' is 0 (C1 there,
+   C2 elsewhere; ``_bounded_slopes``).
 2. On each grid segment ``[s_i, s_{i+1}]`` the path acceleration ``u_i = s̈`` is constant,
    so ``x = ṡ²`` is linear: ``x_{i+1} = x_i + 2 Δ_i u_i``.  Every constraint is written
    at *both* ends of the segment with the segment's ``u_i`` ("first-order
@@ -300,7 +303,7 @@ def not_a_knot_slopes(x, y):
             out[1, col] = s0 + c * dx[0]
             out[2, col] = s1 + c * dx[1]
         return out
-    return _spline_slopes(x, y, y[0], False)
+    return _spline_slopes(x, y, y[0], False, y[0], False)
 
 
 @njit(cache=True, nogil=True)
@@ -313,20 +316,29 @@ def clamped_start_slopes(x, y, start_slope):
     A path that must leave its start along a given direction (a replan joined to a moving arm:
     the arm's velocity over its path speed).
     """
-    return _spline_slopes(x, y, start_slope, True)
+    return _spline_slopes(x, y, start_slope, True, start_slope, False)
 
 
 @njit(cache=True, nogil=True)
-def _spline_slopes(x, y, start_slope, clamped):
+def _spline_slopes(x, y, start_slope, clamped, end_slope, clamped_end):
     """
-    Solve SciPy's ``CubicSpline`` system for the knot slopes (M ≥ 3, n): not-a-knot at the end.
+    Solve SciPy's ``CubicSpline`` system for the knot slopes (M, n): M ≥ 3 where an end is not-a-knot.
 
     At the start not-a-knot, or (``clamped``) the first slope is ``start_slope`` (n,), SciPy's
-    ``bc_type`` ``(1, start_slope)`` row.  LAPACK's ``gtsv`` elimination (tridiagonal, partial
-    pivoting), the matrix eliminated once for every column.
+    ``bc_type`` ``(1, start_slope)`` row; at the end not-a-knot, or (``clamped_end``) the last
+    slope is ``end_slope`` (n,).  M = 2: the slopes given at a clamped end, the parabola's at
+    the other.  LAPACK's ``gtsv`` elimination (tridiagonal, partial pivoting), the matrix
+    eliminated once for every column.
     """
     m, n = y.shape
     dx = x[1:] - x[:-1]
+    if m == 2:
+        out = np.empty((2, n))
+        for col in range(n):
+            sec = (y[1, col] - y[0, col]) / dx[0]
+            out[0, col] = start_slope[col] if clamped else 2.0 * sec - end_slope[col]
+            out[1, col] = end_slope[col] if clamped_end else 2.0 * sec - out[0, col]
+        return out
     d = np.empty(m)
     du = np.empty(m - 1)
     dl = np.empty(m - 1)
@@ -353,11 +365,17 @@ def _spline_slopes(x, y, start_slope, clamped):
         du[0] = w
         for col in range(n):
             b[0, col] = ((dx[0] + 2.0 * w) * dx[1] * sl[0, col] + dx[0] ** 2 * sl[1, col]) / w
-    w = x[m - 1] - x[m - 3]
-    d[m - 1] = dx[m - 3]
-    dl[m - 2] = w
-    for col in range(n):
-        b[m - 1, col] = (dx[m - 2] ** 2 * sl[m - 3, col] + (2.0 * w + dx[m - 2]) * dx[m - 3] * sl[m - 2, col]) / w
+    if clamped_end:
+        d[m - 1] = 1.0
+        dl[m - 2] = 0.0
+        for col in range(n):
+            b[m - 1, col] = end_slope[col]
+    else:
+        w = x[m - 1] - x[m - 3]
+        d[m - 1] = dx[m - 3]
+        dl[m - 2] = w
+        for col in range(n):
+            b[m - 1, col] = (dx[m - 2] ** 2 * sl[m - 3, col] + (2.0 * w + dx[m - 2]) * dx[m - 3] * sl[m - 2, col]) / w
     for i in range(m - 1):
         if abs(d[i]) >= abs(dl[i]):
             f = dl[i] / d[i]
@@ -402,6 +420,119 @@ def hermite_coefficients(x, y, slopes, k, c0, c1):
         t = (slopes[k, col] + slopes[k + 1, col] - 2.0 * sl) / h
         c0[col] = t / h
         c1[col] = (sl - slopes[k, col]) / h - t
+
+
+@njit(cache=True, nogil=True)
+def _cubic_leaves(y0, y1, m0, m1, h, lo, hi):
+    """Tell whether the cubic through y0, y1 with slopes m0, m1 over an interval of length h leaves [lo, hi] in it."""
+    sl = (y1 - y0) / h
+    t = (m0 + m1 - 2.0 * sl) / h
+    c0 = t / h
+    c1 = (sl - m0) / h - t
+    a, b = 3.0 * c0, 2.0 * c1          # the slope's roots: a z² + b z + m0 = 0
+    roots = np.empty(2)
+    k = 0
+    if a == 0.0:
+        if b != 0.0:
+            roots[0] = -m0 / b
+            k = 1
+    else:
+        disc = b * b - 4.0 * a * m0
+        if disc >= 0.0:
+            q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+            if q != 0.0:
+                roots[0] = q / a
+                roots[1] = m0 / q
+                k = 2
+            else:
+                roots[0] = 0.0
+                k = 1
+    for i in range(k):
+        z = roots[i]
+        if 0.0 < z < h:
+            y = ((c0 * z + c1) * z + m0) * z + y0
+            if y < lo or y > hi:
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _pieces_solved(x, y, slopes, start_slope, clamped, anchor, col):
+    """
+    Solve column ``col``'s slopes again piece by piece between its anchors (slope 0 there).
+
+    A piece's other ends keep the spline's own conditions: the start not-a-knot or clamped to
+    ``start_slope`` (``clamped``), the end not-a-knot.
+    """
+    m = y.shape[0]
+    zero, given = np.zeros(1), np.empty(1)
+    given[0] = start_slope[col]
+    a = 0
+    while a < m - 1:
+        b = a + 1
+        while b < m - 1 and not anchor[b, col]:
+            b += 1
+        cs = anchor[a, col] or (a == 0 and clamped)
+        piece = np.ascontiguousarray(y[a:b + 1, col:col + 1])
+        got = _spline_slopes(x[a:b + 1], piece, zero if anchor[a, col] else given, cs, zero, anchor[b, col])
+        for i in range(b - a + 1):
+            slopes[a + i, col] = got[i, 0]
+        a = b
+
+
+@njit(cache=True, nogil=True)
+def _bounded_slopes(x, y, slopes, start_slope, clamped, lo, hi):
+    """
+    Keep the cubic spline through (x (M,), y (M, n)) within the bounds lo, hi (n,): its knot slopes (M, n) in place.
+
+    Where a column's spline leaves its bounds between the knots (a path that touches a joint's
+    bound at a sample and turns back: the not-a-knot spline rings there and passes the bound),
+    its knots on a bound become anchors, with slope 0, and the spline is solved again piece by
+    piece between them (:func:`_pieces_solved`: C2 inside each piece, C1 at an anchor, where the
+    slope is 0); while a piece still leaves the bounds, the end of the offending interval nearer
+    the bound is anchored too (with every knot anchored, each interval lies between its ends).
+    The first knot is not anchored when ``clamped`` (its slope is the arm's).  Returns the
+    anchors (M, n) bool; a column that stays within is left as it is, bit for bit.
+    """
+    m, n = y.shape
+    anchor = np.zeros((m, n), np.bool_)
+    for col in range(n):
+        lo_c, hi_c = lo[col], hi[col]
+        if not (lo_c > -np.inf or hi_c < np.inf):
+            continue
+        first = True
+        while True:
+            bad = -1
+            for k in range(m - 1):
+                y0, y1, m0, m1, h = y[k, col], y[k + 1, col], slopes[k, col], slopes[k + 1, col], x[k + 1] - x[k]
+                # the cubic lies within h max(|m0 - sl|, |m1 - sl|) / 4 of its chord (sl the chord's slope)
+                sl = (y1 - y0) / h
+                off = 0.25 * h * max(abs(m0 - sl), abs(m1 - sl))
+                if min(y0, y1) - off >= lo_c and max(y0, y1) + off <= hi_c:
+                    continue
+                if _cubic_leaves(y0, y1, m0, m1, h, lo_c, hi_c):
+                    bad = k
+                    break
+            if bad < 0:
+                break
+            grew = False
+            if first:
+                first = False
+                for k in range(m):
+                    if (y[k, col] == lo_c or y[k, col] == hi_c) and not (k == 0 and clamped):
+                        anchor[k, col] = True
+                        grew = True
+            if not grew:
+                pick, near = -1, np.inf
+                for k in (bad, bad + 1):
+                    d = min(y[k, col] - lo_c, hi_c - y[k, col])
+                    if not anchor[k, col] and not (k == 0 and clamped) and d < near:
+                        pick, near = k, d
+                if pick < 0:
+                    break
+                anchor[pick, col] = True
+            _pieces_solved(x, y, slopes, start_slope, clamped, anchor, col)
+    return anchor
 
 
 @njit(**NO_REFCOUNT)
@@ -468,18 +599,31 @@ def _grid(ds, refine):
     return s_knots, s
 
 
-def _spline_on_grid(p, ds, refine, start_slope=None):
+def _spline_on_grid(p, ds, refine, start_slope=None, bounds=None):
     """
     Return the spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`.
 
     Not-a-knot; with ``start_slope`` (n,) its first derivative at the start is that (clamped).
+    With ``bounds`` (lo (n,), hi (n,)) the spline is kept within them (:func:`_bounded_slopes`);
+    at an anchor, where q' = 0 and q'' jumps, q'' is the larger of its two sides, so that a joint's
+    acceleration there (q'' ṡ²) is bounded for both.
     """
     s_knots, s = _grid(ds, refine)
     g, n = s.shape[0], p.shape[1]
     q, d1, d2, d3 = np.empty((g, n)), np.empty((g, n)), np.empty((g, n)), np.empty((g - 1, n))
     slopes = (not_a_knot_slopes(s_knots, p) if start_slope is None
               else clamped_start_slopes(s_knots, p, start_slope))
+    anchor = None
+    if bounds is not None:
+        anchor = _bounded_slopes(s_knots, p, slopes, p[0] if start_slope is None else start_slope,
+                                 start_slope is not None, bounds[0], bounds[1])
     _hermite_on_grid(s_knots, p, slopes, s, refine, q, d1, d2, d3, np.empty(n), np.empty(n))
+    if anchor is not None and anchor[1:-1].any():
+        for k, col in zip(*np.nonzero(anchor[1:-1])):
+            j = (k + 1) * refine
+            left = d2[j - 1, col] + d3[j - 1, col] * (s[j] - s[j - 1])
+            if abs(left) > abs(d2[j, col]):
+                d2[j, col] = left
     q[::refine] = p                     # the samples exactly
     return s, q, d1, d2, d3
 
@@ -511,7 +655,7 @@ def arc_lengths_rad(p) -> np.ndarray:
     return _running_sum(chord_lengths_rad(p))
 
 
-def _path_model(p, refine: int, start_slope=None):
+def _path_model(p, refine: int, start_slope=None, bounds=None):
     """
     Fit the cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
 
@@ -519,12 +663,14 @@ def _path_model(p, refine: int, start_slope=None):
     samples idx (M,), the spline's q, q', q'' at the grid points (G, n) (q[idx] == p
     exactly) and its q''' per grid segment (G-1, n) (constant on each spline piece).
     SciPy's not-a-knot ``CubicSpline``, by the kernels above from 3 samples on; with
-    ``start_slope`` (n,) float64, its derivative at the start clamped to it (from 3 samples on).
+    ``start_slope`` (n,) float64, its derivative at the start clamped to it (from 3 samples on);
+    with ``bounds`` (lo, hi), each (n,) float64 (±inf: unbounded), kept within them
+    (:func:`_spline_on_grid`; a straight segment between samples within them is).
     """
     idx = np.arange(len(p)) * refine
     ds = chord_lengths_rad(p)
     if len(p) >= 3:
-        s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine, start_slope)
+        s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine, start_slope, bounds)
         return s, idx, q, d1, d2, d3
     s_knots, s = _grid(ds, refine)          # a straight segment
     chord = (p[1] - p[0]) / ds[0]
@@ -560,27 +706,29 @@ def shared_path_models():
         _SHARED_MODELS.reset(token)
 
 
-def _modelled_path(path_rad, max_step_rad: float, refine: int, start_slope=None):
+def _modelled_path(path_rad, max_step_rad: float, refine: int, start_slope=None, bounds=None):
     """
     Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
 
     :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,);
-    ``start_slope``: the start's clamped derivative or None); within :func:`shared_path_models`,
-    made once per path and start (the arrays are only read).
+    ``start_slope``: the start's clamped derivative or None; ``bounds``: the joints' (lo, hi) or
+    None); within :func:`shared_path_models`, made once per path, start and bounds (the arrays
+    are only read).
     """
     path = np.ascontiguousarray(path_rad, dtype=float)
     shared = _SHARED_MODELS.get()
     key = None
     if shared is not None:
         key = (path.shape, path.tobytes(), float(max_step_rad), int(refine),
-               None if start_slope is None else start_slope.tobytes())
+               None if start_slope is None else start_slope.tobytes(),
+               None if bounds is None else (bounds[0].tobytes(), bounds[1].tobytes()))
         got = shared.get(key)
         if got is not None:
             return got[0].copy(), got[1]         # the positions go into a Trajectory: its own
     p = densify_path(path, max_step_rad)
     model = None
     if len(p) > 1:
-        s, _, qg, d1, d2, d3 = _path_model(p, refine, start_slope)
+        s, _, qg, d1, d2, d3 = _path_model(p, refine, start_slope, bounds)
         model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s))
     if key is not None:
         shared[key] = (p.copy(), model)          # not the positions returned (nor the caller's path)
@@ -1410,7 +1558,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                       start_path_speed: float | None = None, start_velocity_rad_s=None, start_tangent=None,
                       wheel=None, max_step_rad: float = np.radians(0.5),
                       grid_refinement: int = 2, start_speed_tolerance: float = 1e-3,
-                      lowered: tuple = (), brake_to_limits: bool = False) -> Trajectory:
+                      lowered: tuple = (), brake_to_limits: bool = False, lower_rad=None,
+                      upper_rad=None) -> Trajectory:
     """
     Time-optimal parameterisation of a joint path within joint (and wheel) limits.
 
@@ -1453,6 +1602,11 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
             no joint's speed over its limit rises above the largest such ratio before it (on the
             grid's bounds), and the stretches the chain lowered near the start stay lowered.
             Refused still where that braking cannot reach the limits on the path.
+        lower_rad, upper_rad: (n,) the joints' bounds, rad (±inf, or None for all: unbounded,
+            e.g. a periodic joint).  The samples lie within them; the spline through them is
+            kept within them too: where it would pass a bound between the samples (a path that
+            touches a bound at a sample and turns back), the samples on the bound hold that
+            joint at rest on the path (q' = 0) and the spline is C1 there (``_bounded_slopes``).
 
     Returns
     -------
@@ -1474,7 +1628,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
             raise ValueError("start_tangent: give it with start_path_speed, not start_velocity_rad_s")
         tangent = np.array(start_tangent, dtype=float).reshape(-1)
         check_start_tangent(tangent, path_rad)
-    p, model = _modelled_path(path_rad, float(max_step_rad), refine, tangent)
+    p, model = _modelled_path(path_rad, float(max_step_rad), refine, tangent,
+                              _joint_bounds(lower_rad, upper_rad, np.shape(path_rad)))
     n = p.shape[1]
     vmax = _check_limits("max_velocity", max_velocity_rad_s, n)
     amax = _check_limits("max_acceleration", max_acceleration_rad_s2, n)
@@ -1565,6 +1720,22 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         raise ValueError(_too_long(t, active))
     return Trajectory(names, t, p, vel, acc, vmax, amax, sd, active, ratio, h_w, tau_w,
                       None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
+
+
+def _joint_bounds(lower_rad, upper_rad, shape):
+    """Return :func:`time_parameterize`'s bounds as (lo, hi), each (n,) float64 (None: none given)."""
+    if (lower_rad is None and upper_rad is None) or len(shape) != 2:
+        return None                     # (a path of another shape is refused by densify_path)
+    n = shape[1]
+    lo = np.full(n, -np.inf) if lower_rad is None else np.ascontiguousarray(lower_rad, dtype=float).reshape(-1)
+    hi = np.full(n, np.inf) if upper_rad is None else np.ascontiguousarray(upper_rad, dtype=float).reshape(-1)
+    if lo.shape == hi.shape == (n,) and (lo < hi).all():
+        return lo, hi
+    for name, b in (("lower_rad", lo), ("upper_rad", hi)):
+        if b.shape != (n,) or np.isnan(b).any():
+            raise ValueError(f"{name}: expected {n} bounds (rad, ±inf where a joint has none), got {b.tolist()}")
+    raise ValueError(f"lower_rad, upper_rad: each lower bound must lie below its upper bound, got "
+                     f"{lo.tolist()} and {hi.tolist()}")
 
 
 def _too_long(times_s, active_limit) -> str:

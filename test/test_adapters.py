@@ -260,6 +260,52 @@ def test_an_uncertified_motion_past_a_joint_bound_is_said_to_pass_it_not_to_come
     assert "safety margin" not in text, (text, clearance)                  # ... the margin is not the cause
 
 
+def _touching_paths(sc, rng, count):
+    """Yield V paths of the paper 2-DOF arm, its elbow on its ±180° bound at one sample, clear of the target."""
+    from oracles import ref_clearance
+    robot = sc.robot
+    e, s = list(robot.planned_names).index("elbow"), list(robot.planned_names).index("shoulder")
+    while count:
+        depth = np.radians([rng.uniform(0.2, 2.0), rng.uniform(5.0, 30.0)])[rng.permutation(2)]   # one side shallow
+        travel = np.radians(rng.uniform(10.0, 40.0, 2))
+        side = int(rng.integers(2))                         # 0: the lower bound, 1: the upper
+        bound = (robot.planned_lower_rad, robot.planned_upper_rad)[side][e]
+        inward = 1.0 if side == 0 else -1.0
+        path = np.zeros((3, 2))
+        path[:, s] = np.radians(40.0) + np.concatenate([[0.0], np.cumsum(travel)])
+        path[:, e] = bound + inward * np.array([depth[0], 0.0, depth[1]])
+        path[1, e] = bound                                  # on the bound itself
+        rows = np.concatenate([np.linspace(path[0], path[1], 15), np.linspace(path[1], path[2], 15)])
+        if min(ref_clearance(robot, sc.scene, row) for row in rows) > sc.scene.safety_margin_m + 0.05:
+            count -= 1
+            yield path, e, bound, inward
+
+
+def test_paths_that_touch_the_elbows_bound_at_one_sample_are_published_within_it():
+    """
+    A path that touches the elbow's bound at one sample and turns back: the controller's motion stays within it.
+
+    The spline the time parameterisation fits through the samples rang at the corner and passed the
+    bound between the samples (a path with one side shallow: the elbow approaching the bound by 1°
+    while the shoulder turns 30°), so the controller's quintics passed it too (9 of these 24 paths
+    before, up to 9.0e-5 rad, all published uncertified; 71 of 200 of the family, up to 2.2e-4 rad;
+    2.8e-5 rad in a helper's audit of planned paths).  Oracle: SciPy's quintic through the published points
+    (``oracles.controller_interpolation``), 256 samples a segment, against the bound.
+    """
+    from oracles import controller_interpolation
+    from spacerobot_planner.config import load_scenario
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_2dof.yaml"))
+    rng = np.random.default_rng(20261207)
+    for path, e, bound, inward in _touching_paths(sc, rng, 24):
+        out = post_process(sc, path)
+        tr = out.trajectory
+        f = controller_interpolation(tr.times_s, tr.positions_rad, tr.velocities_rad_s, tr.accelerations_rad_s2)
+        ts = np.concatenate([np.linspace(a, b, 256, endpoint=False) for a, b in zip(tr.times_s[:-1], tr.times_s[1:])])
+        excess = float(np.max(inward * (bound - f(ts)[0][:, e])))
+        assert excess <= 1e-12, (np.degrees(path).round(3).tolist(), excess)
+        assert out.certified, np.degrees(path).round(3).tolist()
+
+
 def test_a_path_along_the_elbows_bound_is_published_without_passing_it():
     """
     A path that runs along the elbow's -180° bound: the controller's motion stays on it, and is certified.

@@ -169,6 +169,50 @@ def test_a_trajectory_longer_than_a_message_holds_is_refused_naming_its_limit():
     assert np.all(np.diff(traj.times_s) > 0.0)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_a_path_touching_a_joint_bound_is_timed_within_its_limits_and_at_rest_there(seed):
+    """
+    A path whose joint touches its bound at one sample and turns back, timed with the joints' bounds.
+
+    The spline through the samples is kept within the bound (C1 there: q' = 0, q'' jumps): the
+    limits still hold by the test's own finite differences and published values
+    (``oracles.check_trajectory``), the joint is at rest at that sample, the positions are the
+    samples as without the bounds, and a path that stays clear of its bounds is timed bit for bit
+    as without them.
+    """
+    rng = np.random.default_rng(40 + seed)
+    lo, hi = np.radians([-170.0, -180.0, -180.0]), np.radians([170.0, 180.0, 180.0])
+    depth = np.radians([rng.uniform(0.2, 2.0), rng.uniform(5.0, 30.0)])[rng.permutation(2)]
+    path = np.zeros((3, 3))
+    path[:, 0] = np.radians(10.0) + np.cumsum(np.radians(rng.uniform(10.0, 40.0, 3)))
+    path[:, 1] = lo[1] + np.array([depth[0], 0.0, depth[1]])
+    path[1, 1] = lo[1]
+    path[:, 2] = np.radians(rng.uniform(-20.0, 20.0, 3))
+    traj = time_parameterize(path, VMAX, AMAX, lower_rad=lo, upper_rad=hi)
+    check_trajectory(traj, path, VMAX, AMAX)
+    on = np.flatnonzero(traj.positions_rad[:, 1] == lo[1])
+    assert len(on) == 1 and traj.velocities_rad_s[on[0], 1] == 0.0
+    free = time_parameterize(path, VMAX, AMAX)
+    np.testing.assert_array_equal(traj.positions_rad, free.positions_rad)
+    assert free.velocities_rad_s[on[0], 1] != 0.0                      # the not-a-knot spline's slope there
+    clear = path + np.array([0.0, 0.1, 0.0])
+    a, b = time_parameterize(clear, VMAX, AMAX, lower_rad=lo, upper_rad=hi), time_parameterize(clear, VMAX, AMAX)
+    for x, y in ((a.times_s, b.times_s), (a.velocities_rad_s, b.velocities_rad_s),
+                 (a.accelerations_rad_s2, b.accelerations_rad_s2)):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_bad_joint_bounds_are_refused_naming_them():
+    path = np.zeros((2, 3))
+    path[1] = 0.5
+    with pytest.raises(ValueError, match="lower_rad: expected 3 bounds"):
+        time_parameterize(path, VMAX, AMAX, lower_rad=[-1.0, -1.0])
+    with pytest.raises(ValueError, match="each lower bound must lie below its upper bound"):
+        time_parameterize(path, VMAX, AMAX, lower_rad=[-1.0, 1.0, -1.0], upper_rad=[1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="upper_rad: expected 3 bounds"):
+        time_parameterize(path, VMAX, AMAX, upper_rad=[1.0, float("nan"), 1.0])
+
+
 def test_start_equals_goal_gives_one_point():
     traj = time_parameterize(np.zeros((5, 2)), VMAX[:2], AMAX[:2])
     assert len(traj) == 1 and traj.duration_s == 0.0

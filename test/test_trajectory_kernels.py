@@ -2,7 +2,7 @@
 Tests of trajectory.py's numba kernels against independent formulations.
 
 The spline on the reachability grid against SciPy's ``CubicSpline`` (not-a-knot, and with a clamped
-start); densifying and
+start or end; kept within the joints' bounds: SciPy's clamped pieces between the samples on a bound); densifying and
 the rounding margins against the array (NumPy) formulation they replaced, which they must
 reproduce bit for bit (the published trajectories do not change with the kernels); the backward
 pass redone from the grid points whose limits changed against the whole pass on the new limits;
@@ -14,8 +14,8 @@ import pytest
 from scipy.interpolate import CubicSpline
 
 from spacerobot_planner.trajectory import (_backward, _backward_from, _constraint_rows, _path_model, _rounding_margins,
-                                           _rows, arc_lengths_rad, chord_lengths_rad, clamped_start_slopes,
-                                           densify_path, lowering_factors)
+                                           _rows, _spline_slopes, arc_lengths_rad, chord_lengths_rad,
+                                           clamped_start_slopes, densify_path, lowering_factors)
 
 EPS = float(np.finfo(float).eps)
 SLACK = 1e-10
@@ -73,6 +73,75 @@ def test_a_clamped_start_is_scipys_spline_with_that_first_derivative(seed):
     np.testing.assert_allclose(d2, ref, rtol=0, atol=1e-7 * (np.max(np.abs(ref)) + 1.0))
     # the not-a-knot start differs: the clamp is not a no-op
     assert np.max(np.abs(_path_model(p, refine)[3][0] - slope)) > 1e-3
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_spline_clamped_at_its_end_is_scipys(seed):
+    """Slopes with the end clamped, the start clamped or not-a-knot, are SciPy's ``CubicSpline``'s (two knots too)."""
+    rng = np.random.default_rng(300 + seed)
+    m, n = (2 if seed < 2 else int(rng.integers(3, 30))), int(rng.integers(1, 4))
+    p = _random_path(rng, m, n)
+    x = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    start, end = rng.normal(0.0, 1.0, n), rng.normal(0.0, 1.0, n)
+    both = _spline_slopes(x, p, start, True, end, True)
+    ref = CubicSpline(x, p, axis=0, bc_type=((1, start), (1, end)))(x, 1)
+    np.testing.assert_allclose(both, ref, rtol=0, atol=1e-9 * (np.max(np.abs(ref)) + 1.0))
+    if m >= 3:
+        got = _spline_slopes(x, p, start, False, end, True)
+        ref = CubicSpline(x, p, axis=0, bc_type=("not-a-knot", (1, end)))(x, 1)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * (np.max(np.abs(ref)) + 1.0))
+    else:                                   # a parabola from the clamped end
+        got = _spline_slopes(x, p, start, True, end, False)
+        a = (p[1] - p[0] - start * x[1]) / x[1] ** 2
+        np.testing.assert_allclose(got[1], start + 2.0 * a * x[1], rtol=0, atol=1e-12)
+
+
+def _touching(rng, n):
+    """Return a densified V path whose column 0 touches its lower bound 0 at one sample (one side shallow), (M, n)."""
+    depth = np.array([rng.uniform(0.003, 0.03), rng.uniform(0.1, 0.5)])[rng.permutation(2)]
+    corners = np.zeros((3, n))
+    corners[:, 0] = [depth[0], 0.0, depth[1]]
+    corners[:, 1:] = np.cumsum(rng.uniform(0.2, 0.7, (3, n - 1)), axis=0)
+    return densify_path(corners, np.radians(0.5))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_spline_within_the_bounds_is_scipys_clamped_pieces_and_stays_within_them(seed):
+    """
+    A path touching a bound at one sample: its spline is SciPy's, clamped to slope 0 there, and stays within the bound.
+
+    Oracle: SciPy's ``CubicSpline`` of each piece between the samples on the bound (slope 0 there,
+    not-a-knot at the path's ends), evaluated 64 times per sample interval.  The not-a-knot spline
+    of the same path passes the bound (the test's premise); a path whose spline stays within its
+    bounds is modelled bit for bit as without them.
+    """
+    rng = np.random.default_rng(500 + seed)
+    n, refine = int(rng.integers(2, 4)), int(rng.integers(1, 4))
+    p = _touching(rng, n)
+    lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
+    lo[0] = 0.0
+    x = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    fine = np.concatenate([np.linspace(a, b, 64, endpoint=False) for a, b in zip(x[:-1], x[1:])])
+    assert CubicSpline(x, p[:, 0])(fine).min() < -1e-9                           # premise: it rang past the bound
+    s, idx, q, d1, d2, d3 = _path_model(p, refine, None, (lo, hi))
+    np.testing.assert_array_equal(q[idx], p)
+    k = int(np.flatnonzero(p[:, 0] == 0.0)[0])
+    assert d1[k * refine, 0] == 0.0                                             # at rest on the path there
+    pieces = [CubicSpline(x[:k + 1], p[:k + 1, 0], bc_type=("not-a-knot", (1, 0.0))),
+              CubicSpline(x[k:], p[k:, 0], bc_type=((1, 0.0), "not-a-knot"))]
+
+    def ref(v, nu=0):
+        return np.where(v <= x[k], pieces[0](v, nu), pieces[1](v, nu))
+    tol = 1e-9 * (np.max(np.abs(p)) + 1.0)
+    np.testing.assert_allclose(q[:, 0], ref(s), rtol=0, atol=tol)
+    np.testing.assert_allclose(d1[:, 0], np.where(s < x[k], pieces[0](s, 1), pieces[1](s, 1)), rtol=0, atol=1e-7)
+    assert ref(fine).min() >= -1e-12
+    plain = _path_model(p, refine)
+    for a, b in zip(plain[2:], (q, d1, d2, d3)):                                # the other columns as they were
+        np.testing.assert_array_equal(a[:, 1:], b[:, 1:])
+    inside = _path_model(p + np.array([0.05] + [0.0] * (n - 1)), refine, None, (lo, hi))
+    for a, b in zip(_path_model(p + np.array([0.05] + [0.0] * (n - 1)), refine), inside):
+        np.testing.assert_array_equal(a, b)
 
 
 def _densify_numpy(path, max_step):
