@@ -23,7 +23,7 @@ No ROS imports here: NumPy; the per-segment loops are numba kernels.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
@@ -430,6 +430,86 @@ def controller_motion(traj: Trajectory, samples_per_segment: int = CONTROLLER_SA
                          controller_times(traj, samples_per_segment))
 
 
+#: the controller's motion may pass a joint's bound by this much and count as within it (rounding), rad
+BOUND_SLACK_RAD = 1e-12
+
+
+#: power basis (in the normalised time) to Bernstein basis, degree 5: b_r = Σ_{i ≤ r} C(r, i) / C(5, i) c_i
+_TO_BERNSTEIN = np.array([[math.comb(r, i) / math.comb(5, i) if i <= r else 0.0 for i in range(6)] for r in range(6)])
+
+
+@njit(cache=True, nogil=True)
+def _hull_within(b, lo, hi, stack, w, left, right):
+    """
+    Tell whether the polynomial with Bernstein coefficients b (6,) on [0, 1] stays within [lo, hi] (± BOUND_SLACK_RAD).
+
+    The curve lies in its coefficients' hull and passes through the first and last: halved (de
+    Casteljau) until every piece's hull is within or a piece's end is out (``stack`` (64, 7)
+    scratch: a piece's coefficients and depth); a piece 40 halvings deep whose hull is still out by
+    more than the slack counts as out (``w``, ``left``, ``right`` (6,) scratch).
+    """
+    lo_s, hi_s = lo - BOUND_SLACK_RAD, hi + BOUND_SLACK_RAD
+    top = 0
+    stack[0, :6] = b
+    stack[0, 6] = 0.0
+    while top >= 0:
+        for i in range(6):
+            w[i] = stack[top, i]
+        depth = stack[top, 6]
+        top -= 1
+        low, high = w.min(), w.max()
+        if low >= lo_s and high <= hi_s:
+            continue
+        if w[0] < lo_s or w[0] > hi_s or w[5] < lo_s or w[5] > hi_s or depth >= 40.0 or top >= 61:
+            return False
+        # de Casteljau at 1/2: the left half's coefficients are the first of each level, the right's the last
+        for i in range(6):
+            left[i] = w[0]
+            right[5 - i] = w[5 - i]
+            for k in range(5 - i):
+                w[k] = 0.5 * (w[k] + w[k + 1])
+            # after level i, w[0..5-i-1] hold level i+1
+        for i in range(6):
+            stack[top + 1, i] = left[i]
+            stack[top + 2, i] = right[i]
+        stack[top + 1, 6] = stack[top + 2, 6] = depth + 1.0
+        top += 2
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _segments_within_bounds(t, q, v, a, lo, hi, out):
+    """
+    Set out[k] (M-1,) False where segment k's quintic passes a joint's bound (lo, hi (n,); ±inf: none), exactly.
+
+    The segment's polynomial (:func:`_segment_coefficients`, normalised time) in the Bernstein
+    basis, its hull tested by :func:`_hull_within`.
+    """
+    m, n = q.shape
+    c = np.zeros((6, n))
+    b, w, left, right = np.empty(6), np.empty(6), np.empty(6), np.empty(6)
+    stack = np.empty((64, 7))
+    to_b = _TO_BERNSTEIN
+    lo_s, hi_s = lo - BOUND_SLACK_RAD, hi + BOUND_SLACK_RAD
+    for k in range(m - 1):
+        _segment_coefficients(q, v, a, 3, k, t[k + 1] - t[k], c)
+        for j in range(n):
+            if lo[j] == -np.inf and hi[j] == np.inf:
+                continue
+            low, high = np.inf, -np.inf
+            for r in range(6):
+                acc = 0.0
+                for i in range(r + 1):
+                    acc += to_b[r, i] * c[i, j]
+                b[r] = acc
+                low, high = min(low, acc), max(high, acc)
+            if low >= lo_s[j] and high <= hi_s[j]:
+                continue                # the hull within: the curve is
+            if not _hull_within(b, lo[j], hi[j], stack, w, left, right):
+                out[k] = False
+                break
+
+
 def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTROLLER_SAMPLES) -> tuple:
     """
     Certify the arm's motion as the controller moves it through ``traj``'s points, on the exact geometry.
@@ -439,13 +519,30 @@ def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTR
     off its chord, up to about 2 mm towards an obstacle on the paper-family scenes).  One
     certified walk past the samples (``every_row=False``: eight a segment are far closer than
     the walk's steps; a paper 3-DOF replan's 900 samples take about 340 clearances instead of
-    900, 80 instead of 190 us), so the clearance reported is the least at the walk's own samples.  Returns
-    (``motion.PathCheck`` of that polyline, segment_ok bool (M - 1,): each segment's samples
-    passed).
+    900, 80 instead of 190 us), so the clearance reported is the least at the walk's own samples.  The
+    joints' bounds are checked on the quintics themselves, exactly (:func:`_segments_within_bounds`:
+    a quintic can pass a bound between the samples and be back within at the next).  Returns
+    (``motion.PathCheck`` of that polyline, its ``ok`` and ``interval_ok`` False too where a segment's
+    quintic passes a bound, segment_ok bool (M - 1,): each segment's samples passed, and its quintic
+    stays within the bounds).
     """
-    check = MotionValidator.of(motions).check(controller_motion(traj, samples_per_segment)[0], every_row=False)
-    seg_ok = np.asarray(check.interval_ok, dtype=bool).reshape(-1, samples_per_segment).all(axis=1) \
-        if len(traj.times_s) > 1 else np.zeros(0, bool)
+    validator = MotionValidator.of(motions)
+    check = validator.check(controller_motion(traj, samples_per_segment)[0], every_row=False)
+    if len(traj.times_s) < 2:
+        return check, np.zeros(0, bool)
+    seg_ok = np.asarray(check.interval_ok, dtype=bool).reshape(-1, samples_per_segment).all(axis=1)
+    periodic = np.asarray(validator.periodic, dtype=bool)
+    within = np.ones(len(traj.times_s) - 1, dtype=bool)
+    _segments_within_bounds(np.ascontiguousarray(traj.times_s, dtype=float),
+                            np.ascontiguousarray(traj.positions_rad, dtype=float),
+                            np.ascontiguousarray(traj.velocities_rad_s, dtype=float),
+                            np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float),
+                            np.where(periodic, -np.inf, validator.lower_rad),
+                            np.where(periodic, np.inf, validator.upper_rad), within)
+    if not within.all():
+        seg_ok &= within
+        interval_ok = np.asarray(check.interval_ok, dtype=bool) & np.repeat(within, samples_per_segment)
+        check = replace(check, ok=False, interval_ok=interval_ok)
     return check, seg_ok
 
 

@@ -6,6 +6,8 @@ test's own check), exact ends, time increases; durations against TOPP-RA (toppra
 factors; a moving start; resampling and its certification (oracles in test/oracles.py).
 """
 
+import os
+
 import numpy as np
 import pytest
 from hypothesis import example, given, settings, strategies as st
@@ -563,6 +565,51 @@ def test_the_certification_is_of_the_controllers_curve_not_the_chord(paper_scena
         assert oracle <= margin - 2e-3          # the case the chord's certification missed
     if bulge_deg < 0.0:
         assert oracle >= margin + 2e-3
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_certification_holds_the_controllers_quintics_within_the_joint_bounds_between_its_samples(seed):
+    """
+    Segments of the paper 2-DOF arm near the elbow's -180° bound, in a free posture: certified exactly when within it.
+
+    The controller's quintic between two points can dip past a bound between the check's samples
+    (8 a segment) and be back within at the next: certified before.  Oracle: SciPy's quintic
+    (``oracles.controller_interpolation``) at 4 096 samples a segment; the check's verdict must agree
+    wherever the oracle's excess is 1e-9 rad or more from 0, and the premise (segments that pass
+    the bound only between the samples) is counted.
+    """
+    from oracles import controller_interpolation
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.motion import MotionValidator
+    from spacerobot_planner.published import controller_check, controller_motion as samples_of
+    from spacerobot_planner.trajectory import Trajectory
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_2dof.yaml"))
+    robot, validator = sc.robot, MotionValidator.for_scene(sc.robot, sc.scene)
+    e = list(robot.planned_names).index("elbow")
+    lo = robot.planned_lower_rad[e]
+    rng = np.random.default_rng(70 + seed)
+    between = 0
+    for _ in range(60):
+        dur = rng.uniform(0.05, 0.5)
+        q = np.zeros((2, 2))
+        q[:, 1 - e] = np.radians([60.0, 61.0])
+        q[:, e] = lo + rng.uniform(0.0, 2e-5, 2) * (rng.random(2) < 0.7)
+        v, a = np.zeros((2, 2)), np.zeros((2, 2))
+        v[:, 1 - e] = np.radians(1.0) / dur
+        v[:, e] = rng.normal(0.0, 5e-4, 2)
+        a[:, e] = rng.normal(0.0, 2e-2, 2)
+        if _ % 2:                   # out from the bound and back early in the segment, before its second sample
+            q[0, e], v[0, e] = lo, -rng.uniform(1e-4, 1e-3)
+            a[0, e] = -v[0, e] * rng.uniform(24.0, 48.0) / dur
+        traj = Trajectory(tuple(robot.planned_names), np.array([0.0, dur]), q, v, a, np.ones(2), np.ones(2))
+        ts = np.linspace(0.0, dur, 4097)
+        excess = float(np.max(lo - controller_interpolation(traj.times_s, q, v, a)(ts)[0][:, e]))
+        check, seg_ok = controller_check(traj, validator)
+        if abs(excess) < 1e-9:
+            continue
+        assert check.ok == seg_ok[0] == (excess < 0.0), (excess, q[:, e] - lo, v[:, e], a[:, e], dur)
+        between += excess > 0.0 and bool(np.all(samples_of(traj)[0][:, e] >= lo))
+    assert between >= 10, between                               # the premise: passes between the samples
 
 
 def test_resampling_adds_points_back_where_the_chord_collides(paper_scenario, paper_path):
