@@ -627,14 +627,15 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
         stamp_ns, cont = paths.stamp_ns, paths.continuation
         dense = _in_the_arms_state(dense, paths)
     dense = _still_on_bounds(dense, scenario.robot)
+    keep = _bound_points(dense, scenario.robot)
     got = Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
                     stamp_ns, cont, not_before_ns, stamp_exact=exact)
     if reaction is not None and not reaction.ok:
         return got, chosen
     if not certify:
-        rs = resample(dense, None, time_step_s=time_step_s)
+        rs = resample(dense, None, time_step_s=time_step_s, keep=keep)
         return replace(got, trajectory=rs.trajectory, indices=rs.indices), chosen
-    return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s)), chosen
+    return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s, keep=keep)), chosen
 
 
 def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
@@ -653,13 +654,7 @@ def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
     """
     if len(dense.times_s) < 2:
         return dense
-    names = list(robot.planned_names)
-    cols = np.array([names.index(n) for n in dense.joint_names])
-    bounded = ~np.asarray(robot.planned_periodic, dtype=bool)[cols]
-    lo, hi = robot.planned_lower_rad[cols], robot.planned_upper_rad[cols]
-    q = dense.positions_rad
-    at_lo, at_hi = (q == lo) & bounded, (q == hi) & bounded
-    at_lo[0] = at_hi[0] = False
+    at_lo, at_hi = _on_bounds(dense, robot)
     if not (at_lo.any() or at_hi.any()):
         return dense
     vel, acc = dense.velocities_rad_s.copy(), dense.accelerations_rad_s2.copy()
@@ -668,6 +663,38 @@ def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
     vel[at_lo | at_hi] = 0.0
     acc[along_lo | along_hi | (at_lo & (acc < 0.0)) | (at_hi & (acc > 0.0))] = 0.0
     return replace(dense, velocities_rad_s=vel, accelerations_rad_s2=acc)
+
+
+def _on_bounds(dense: Trajectory, robot) -> tuple:
+    """Return (at_lo, at_hi) (M, n) bool: the points where a bounded joint lies exactly on its bound (not the first)."""
+    names = list(robot.planned_names)
+    cols = np.array([names.index(n) for n in dense.joint_names])
+    bounded = ~np.asarray(robot.planned_periodic, dtype=bool)[cols]
+    lo, hi = robot.planned_lower_rad[cols], robot.planned_upper_rad[cols]
+    q = dense.positions_rad
+    at_lo, at_hi = (q == lo) & bounded, (q == hi) & bounded
+    at_lo[0] = at_hi[0] = False
+    return at_lo, at_hi
+
+
+def _bound_points(dense: Trajectory, robot) -> np.ndarray:
+    """
+    Return the indices of the points the published trajectory keeps because a joint reaches its bound there.
+
+    Each point where a bounded joint touches its bound, and the first and last of a run along it
+    (within the run the controller holds the joint on the bound: :func:`_still_on_bounds`); the
+    resampling may drop them otherwise (0.1° of the path), and the quintic between the points left
+    then passes the bound (a helper's audit: up to 8e-7 rad; the certification, exact on the bounds,
+    would add points back round by round).
+    """
+    if len(dense.times_s) < 3:
+        return np.zeros(0, np.int64)
+    at_lo, at_hi = _on_bounds(dense, robot)
+    out = np.zeros(len(dense.times_s), dtype=bool)
+    for at in (at_lo, at_hi):
+        inner = at[1:-1] & at[:-2] & at[2:]            # inside a run: both neighbours on the same bound
+        out[1:-1] |= (at[1:-1] & ~inner).any(axis=1)
+    return np.flatnonzero(out)
 
 
 def _in_the_arms_state(dense: Trajectory, paths) -> Trajectory:

@@ -112,7 +112,7 @@ def _select(t, q, time_step_s, path_tolerance_rad):
 
 
 def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None,
-             path_tolerance_rad: float | None = np.radians(0.1), max_rounds: int = 30) -> Resampled:
+             path_tolerance_rad: float | None = np.radians(0.1), max_rounds: int = 30, keep=None) -> Resampled:
     """
     Fewer points, same guarantee: keep a subset of the trajectory's points.
 
@@ -133,6 +133,8 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
             planned in.
         time_step_s: largest time between kept points, s (> 0) or None.
         path_tolerance_rad: largest deviation from the dense path, rad (> 0) or None.
+        keep: indices of points kept whatever the criteria, or None (the chain's: where a joint
+            reaches its bound and turns, whose quintics between farther points would pass it).
 
     Returns
     -------
@@ -155,6 +157,8 @@ def resample(traj: Trajectory, checker=None, *, time_step_s: float | None = None
         idx = _select(np.ascontiguousarray(t, dtype=float), np.ascontiguousarray(q, dtype=float),
                       np.inf if time_step_s is None else float(time_step_s),
                       np.inf if path_tolerance_rad is None else float(path_tolerance_rad))
+    if keep is not None and len(keep):
+        idx = np.union1d(idx, np.asarray(keep, dtype=np.int64))
     check, rounds = None, 0
     if checker is not None:
         motions = MotionValidator.of(checker)

@@ -424,7 +424,11 @@ def hermite_coefficients(x, y, slopes, k, c0, c1):
 
 @njit(cache=True, nogil=True)
 def _cubic_leaves(y0, y1, m0, m1, h, lo, hi):
-    """Tell whether the cubic through y0, y1 with slopes m0, m1 over an interval of length h leaves [lo, hi] in it."""
+    """
+    Tell where the cubic through y0, y1 with slopes m0, m1 over an interval of length h leaves [lo, hi] in it.
+
+    Returns -1 (below lo), 1 (above hi) or 0 (within).
+    """
     sl = (y1 - y0) / h
     t = (m0 + m1 - 2.0 * sl) / h
     c0 = t / h
@@ -451,9 +455,11 @@ def _cubic_leaves(y0, y1, m0, m1, h, lo, hi):
         z = roots[i]
         if 0.0 < z < h:
             y = ((c0 * z + c1) * z + m0) * z + y0
-            if y < lo or y > hi:
-                return True
-    return False
+            if y < lo:
+                return -1
+            if y > hi:
+                return 1
+    return 0
 
 
 @njit(cache=True, nogil=True)
@@ -485,14 +491,17 @@ def _bounded_slopes(x, y, slopes, start_slope, clamped, lo, hi):
     """
     Keep the cubic spline through (x (M,), y (M, n)) within the bounds lo, hi (n,): its knot slopes (M, n) in place.
 
-    Where a column's spline leaves its bounds between the knots (a path that touches a joint's
-    bound at a sample and turns back: the not-a-knot spline rings there and passes the bound),
-    its knots on a bound become anchors, with slope 0, and the spline is solved again piece by
-    piece between them (:func:`_pieces_solved`: C2 inside each piece, C1 at an anchor, where the
-    slope is 0); while a piece still leaves the bounds, the end of the offending interval nearer
-    the bound is anchored too (with every knot anchored, each interval lies between its ends).
-    The first knot is not anchored when ``clamped`` (its slope is the arm's).  Returns the
-    anchors (M, n) bool; a column that stays within is left as it is, bit for bit.
+    Where a column's spline leaves a bound between two knots (a path that touches a joint's bound
+    at a sample and turns back: the not-a-knot spline rings there and passes the bound), the knots
+    on that bound next to it (the whole run of them, where the path runs along the bound) become
+    anchors, with slope 0, and the spline is solved again piece by piece between them
+    (:func:`_pieces_solved`: C2 inside each piece, C1 at an anchor, where the slope is 0); an
+    interval that still leaves a bound with no such knot has its end nearer the bound anchored.
+    The first and last knots are never anchored: the path starts and ends at rest there, and a
+    joint held at rest on the path as well would start as t⁴, which the controller's quintics do
+    not follow without passing the bound (a helper's audit: 2.9e-9 rad); with every other knot
+    anchored, each interval lies between its ends (the end pieces are parabolas, monotone).
+    Returns the anchors (M, n) bool; a column that stays within is left as it is, bit for bit.
     """
     m, n = y.shape
     anchor = np.zeros((m, n), np.bool_)
@@ -500,9 +509,8 @@ def _bounded_slopes(x, y, slopes, start_slope, clamped, lo, hi):
         lo_c, hi_c = lo[col], hi[col]
         if not (lo_c > -np.inf or hi_c < np.inf):
             continue
-        first = True
         while True:
-            bad = -1
+            bad, side = -1, 0
             for k in range(m - 1):
                 y0, y1, m0, m1, h = y[k, col], y[k + 1, col], slopes[k, col], slopes[k + 1, col], x[k + 1] - x[k]
                 # the cubic lies within h max(|m0 - sl|, |m1 - sl|) / 4 of its chord (sl the chord's slope)
@@ -510,23 +518,31 @@ def _bounded_slopes(x, y, slopes, start_slope, clamped, lo, hi):
                 off = 0.25 * h * max(abs(m0 - sl), abs(m1 - sl))
                 if min(y0, y1) - off >= lo_c and max(y0, y1) + off <= hi_c:
                     continue
-                if _cubic_leaves(y0, y1, m0, m1, h, lo_c, hi_c):
+                side = _cubic_leaves(y0, y1, m0, m1, h, lo_c, hi_c)
+                if side != 0:
                     bad = k
                     break
             if bad < 0:
                 break
+            bound = lo_c if side < 0 else hi_c
             grew = False
-            if first:
-                first = False
-                for k in range(m):
-                    if (y[k, col] == lo_c or y[k, col] == hi_c) and not (k == 0 and clamped):
+            for e in (bad, bad + 1):
+                if y[e, col] != bound:
+                    continue
+                i, j = e, e                 # the run of knots on that bound through e
+                while i > 0 and y[i - 1, col] == bound:
+                    i -= 1
+                while j < m - 1 and y[j + 1, col] == bound:
+                    j += 1
+                for k in range(max(i, 1), min(j, m - 2) + 1):
+                    if not anchor[k, col]:
                         anchor[k, col] = True
                         grew = True
             if not grew:
                 pick, near = -1, np.inf
                 for k in (bad, bad + 1):
                     d = min(y[k, col] - lo_c, hi_c - y[k, col])
-                    if not anchor[k, col] and not (k == 0 and clamped) and d < near:
+                    if 0 < k < m - 1 and not anchor[k, col] and d < near:
                         pick, near = k, d
                 if pick < 0:
                     break
