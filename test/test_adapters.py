@@ -306,6 +306,60 @@ def test_paths_that_touch_the_elbows_bound_at_one_sample_are_published_within_it
         assert out.certified, np.degrees(path).round(3).tolist()
 
 
+#: plans of a helper's audit whose published quintics passed the elbow's bound (start, goal rad; debris polygons, m)
+_AUDITED = [
+    ([0.6206051596657169, -0.9309960453718302, -np.pi], [-1.8568973375480478, 1.5472109965953402, np.pi], []),
+    ([1.4038058482168836, -2.0766362455735017, -3.0957013520059236],
+     [-2.5323015914154325, 0.9917158016116003, 3.1180578602374838], []),
+    ([1.9575845398501137, 1.2214404146062163, 3.1240436135664584],
+     [-0.1982480962106834, -1.8163662767130224, -3.1301408955741],
+     [[[4.18506790365893, 1.439098645532412], [4.416840053411597, 0.3856207197216852],
+       [4.601692444604066, 0.502415691533155], [4.6904483177013905, 0.613387515697535]]]),
+    ([-0.4952364349810252, 2.1115976400381324, np.pi], [-1.7551606341168855, 2.1480702958325555, -3.117269069664197],
+     [[[5.353536758877566, 1.7998093972619682], [5.095861309337421, 1.943175519657909],
+       [4.65453737921121, 1.6393101128131544]]]),
+    ([1.5599577624495495, -1.9298303126199137, 2.8416794482208796],
+     [-2.374749775244918, -2.250348356888216, 3.0529447826307137],
+     [[[-1.3111096758502798, 0.9447576755648737], [-1.7101718225107823, 0.9489938270605904],
+       [-1.9000933603290817, 0.5853225759431299], [-1.7333892639728876, 0.29618058057470276],
+       [-1.5378170762304635, 0.2288398441379597], [-1.3992685135967649, 0.24556037416493592]]]),
+]
+
+
+@pytest.mark.parametrize("case", range(len(_AUDITED)))
+def test_planned_paths_along_and_onto_the_elbows_bound_are_published_within_it(case):
+    """
+    Paper 3-DOF plans from a helper's audit, the elbow starting, running or ending on its ±180° bound: within it.
+
+    The published quintics had passed the bound: the resampling dropped the sample where the path
+    touches it or leaves a run along it (up to 8.0e-7 rad), or a start on the bound held at rest on
+    the path started as t⁴ (2.9e-9 rad), and were certified (8 samples a segment).  Oracle: SciPy's
+    quintic through the published points (``scipy.interpolate.BPoly``) and its exact extrema (the
+    roots of its derivative), against the bound.
+    """
+    from scipy.interpolate import BPoly, PPoly
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.planner import Planner
+    from spacerobot_planner.scene import Scene
+    start, goal, debris = _AUDITED[case]
+    base = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_3dof.yaml"))
+    sc = base.with_scene(Scene(target=base.scene.target, debris_m=tuple(np.array(p) for p in debris),
+                               safety_margin_m=base.scene.safety_margin_m))
+    res = Planner(sc).plan(np.array(start), np.array(goal))
+    assert res.ok, res.reason
+    out = post_process(sc, res.path_rad)
+    tr = out.trajectory
+    e = list(tr.joint_names).index("elbow")
+    lo, hi = sc.robot.planned_lower_rad[e], sc.robot.planned_upper_rad[e]
+    assert np.any(np.isin(np.asarray(res.path_rad)[:, e], [lo, hi]))                # premise: on the bound
+    bp = BPoly.from_derivatives(tr.times_s, np.stack([tr.positions_rad[:, e], tr.velocities_rad_s[:, e],
+                                                      tr.accelerations_rad_s2[:, e]], axis=1))
+    roots = PPoly.from_bernstein_basis(bp).derivative().roots(extrapolate=False)
+    y = bp(np.concatenate([tr.times_s, roots[np.isfinite(roots)]]))
+    assert max(lo - y.min(), y.max() - hi) <= 1e-12, (lo - y.min(), y.max() - hi)
+    assert out.certified
+
+
 def test_a_path_along_the_elbows_bound_is_published_without_passing_it():
     """
     A path that runs along the elbow's -180° bound: the controller's motion stays on it, and is certified.
