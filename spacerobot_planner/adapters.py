@@ -626,8 +626,9 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
         dense, reaction, chosen = timed_join(scenario, paths, motions, chosen)
         stamp_ns, cont = paths.stamp_ns, paths.continuation
         dense = _in_the_arms_state(dense, paths)
-    dense = _still_on_bounds(dense, scenario.robot)
-    keep = _bound_points(dense, scenario.robot)
+    on_bounds = _on_bounds(dense, scenario.robot)
+    dense = _still_on_bounds(dense, on_bounds)
+    keep = _bound_points(on_bounds)
     got = Processed(dense, dense, np.arange(len(dense)), False, float("nan"), reaction, None, None,
                     stamp_ns, cont, not_before_ns, stamp_exact=exact)
     if reaction is not None and not reaction.ok:
@@ -638,7 +639,7 @@ def _time_and_resample(scenario, path_rad, start_rad, join, now_ns, lead_s, moti
     return _finished(scenario, got, resample(dense, motions, time_step_s=time_step_s, keep=keep)), chosen
 
 
-def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
+def _still_on_bounds(dense: Trajectory, on_bounds) -> Trajectory:
     """
     Return ``dense`` with each bounded joint held on its bound at its points exactly on it.
 
@@ -650,11 +651,10 @@ def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
     velocity is set to 0, and its acceleration too where it points past the bound
     or where a neighbouring point lies on the same bound (along the bound; a path that touches it at
     one point and turns back keeps its turn's acceleration, which points inwards).  The first point
-    keeps its state (a join's is the arm's).  The same object where no point lies on a bound.
+    keeps its state (a join's is the arm's).  ``on_bounds``: :func:`_on_bounds` of ``dense``.  The
+    same object where no point lies on a bound.
     """
-    if len(dense.times_s) < 2:
-        return dense
-    at_lo, at_hi = _on_bounds(dense, robot)
+    at_lo, at_hi = on_bounds
     if not (at_lo.any() or at_hi.any()):
         return dense
     vel, acc = dense.velocities_rad_s.copy(), dense.accelerations_rad_s2.copy()
@@ -667,17 +667,18 @@ def _still_on_bounds(dense: Trajectory, robot) -> Trajectory:
 
 def _on_bounds(dense: Trajectory, robot) -> tuple:
     """Return (at_lo, at_hi) (M, n) bool: the points where a bounded joint lies exactly on its bound (not the first)."""
-    names = list(robot.planned_names)
-    cols = np.array([names.index(n) for n in dense.joint_names])
-    bounded = ~np.asarray(robot.planned_periodic, dtype=bool)[cols]
-    lo, hi = robot.planned_lower_rad[cols], robot.planned_upper_rad[cols]
+    lo, hi = robot.planned_bounds_rad              # ±inf for a periodic joint: no position equals them
+    names = robot.planned_names
+    if tuple(dense.joint_names) != names:
+        cols = [names.index(n) for n in dense.joint_names]
+        lo, hi = lo[cols], hi[cols]
     q = dense.positions_rad
-    at_lo, at_hi = (q == lo) & bounded, (q == hi) & bounded
+    at_lo, at_hi = q == lo, q == hi
     at_lo[0] = at_hi[0] = False
     return at_lo, at_hi
 
 
-def _bound_points(dense: Trajectory, robot) -> np.ndarray:
+def _bound_points(on_bounds) -> np.ndarray:
     """
     Return the indices of the points the published trajectory keeps because a joint reaches its bound there.
 
@@ -685,12 +686,12 @@ def _bound_points(dense: Trajectory, robot) -> np.ndarray:
     (within the run the controller holds the joint on the bound: :func:`_still_on_bounds`); the
     resampling may drop them otherwise (0.1° of the path), and the quintic between the points left
     then passes the bound (a helper's audit: up to 8e-7 rad; the certification, exact on the bounds,
-    would add points back round by round).
+    would add points back round by round).  ``on_bounds``: :func:`_on_bounds` of the dense points.
     """
-    if len(dense.times_s) < 3:
+    at_lo, at_hi = on_bounds
+    if len(at_lo) < 3 or not (at_lo.any() or at_hi.any()):
         return np.zeros(0, np.int64)
-    at_lo, at_hi = _on_bounds(dense, robot)
-    out = np.zeros(len(dense.times_s), dtype=bool)
+    out = np.zeros(len(at_lo), dtype=bool)
     for at in (at_lo, at_hi):
         inner = at[1:-1] & at[:-2] & at[2:]            # inside a run: both neighbours on the same bound
         out[1:-1] |= (at[1:-1] & ~inner).any(axis=1)

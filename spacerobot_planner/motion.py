@@ -481,6 +481,9 @@ class MotionValidator:
         if not (np.isfinite(self.step_rad) and self.step_rad > 0.0):
             raise ValueError(f"step_rad: must be a positive number, got {step_rad!r}")
         self._periodic_mask = np.array(self.periodic, dtype=bool)
+        #: (lower, upper) (dof,) rad with -inf and inf for a periodic joint (the controller check's quintics)
+        self.bounds_rad = (np.where(self._periodic_mask, -np.inf, self.lower_rad),
+                           np.where(self._periodic_mask, np.inf, self.upper_rad))
         self._with_step = {}          # the validators of other steps (with_step), made once
         self._kept = {}               # an interval's two rows (bytes) -> its certificate (check_kept)
         self._quick_step_rad = None   # the quick test's spacing on this scene (segment_test), made once

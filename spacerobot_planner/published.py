@@ -535,14 +535,11 @@ def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTR
     if len(traj.times_s) < 2:
         return check, np.zeros(0, bool)
     seg_ok = np.asarray(check.interval_ok, dtype=bool).reshape(-1, samples_per_segment).all(axis=1)
-    periodic = np.asarray(validator.periodic, dtype=bool)
     within = np.ones(len(traj.times_s) - 1, dtype=bool)
     _segments_within_bounds(np.ascontiguousarray(traj.times_s, dtype=float),
                             np.ascontiguousarray(traj.positions_rad, dtype=float),
                             np.ascontiguousarray(traj.velocities_rad_s, dtype=float),
-                            np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float),
-                            np.where(periodic, -np.inf, validator.lower_rad),
-                            np.where(periodic, np.inf, validator.upper_rad), within)
+                            np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float), *validator.bounds_rad, within)
     if not within.all():
         seg_ok &= within
         interval_ok = np.asarray(check.interval_ok, dtype=bool) & np.repeat(within, samples_per_segment)

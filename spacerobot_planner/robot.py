@@ -136,6 +136,11 @@ class PlanarArm:
         for attr, values, dtype in (("_planned_lower", lo, float), ("_planned_upper", hi, float),
                                     ("_planned_periodic", self.periodic, bool)):
             object.__setattr__(self, attr, np.array([values[j] for j in planned], dtype=dtype))
+        bounds = (np.where(self._planned_periodic, -np.inf, self._planned_lower),
+                  np.where(self._planned_periodic, np.inf, self._planned_upper))
+        for b in bounds:
+            b.setflags(write=False)
+        object.__setattr__(self, "_planned_bounds", bounds)
 
     # ------------------------------------------------------------------ joints
     @property
@@ -165,9 +170,8 @@ class PlanarArm:
 
     @property
     def planned_bounds_rad(self) -> tuple:
-        """(lower (dof,), upper (dof,)) rad: the planned joints' bounds, -inf and inf for a periodic joint."""
-        periodic = self._planned_periodic
-        return (np.where(periodic, -np.inf, self._planned_lower), np.where(periodic, np.inf, self._planned_upper))
+        """(lower (dof,), upper (dof,)) rad, read-only: the planned joints' bounds, ±inf for a periodic joint."""
+        return self._planned_bounds
 
     def full(self, q) -> np.ndarray:
         """Planned configuration(s) ``q`` (dof or N×dof) → full ones (n_joints or N×n_joints)."""
