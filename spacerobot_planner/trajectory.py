@@ -422,12 +422,17 @@ def hermite_coefficients(x, y, slopes, k, c0, c1):
         c1[col] = (sl - slopes[k, col]) / h - t
 
 
+#: a cubic of the bounded spline may pass a bound by this much (its extremum's rounding: a monotone
+#: piece that ends on the bound has its root a few ulp short of the end, one ulp past the bound), rad
+_SPLINE_SLACK_RAD = 1e-14
+
+
 @njit(cache=True, nogil=True)
 def _cubic_leaves(y0, y1, m0, m1, h, lo, hi):
     """
     Tell where the cubic through y0, y1 with slopes m0, m1 over an interval of length h leaves [lo, hi] in it.
 
-    Returns -1 (below lo), 1 (above hi) or 0 (within).
+    Returns -1 (below lo), 1 (above hi) or 0 (within, or past by at most ``_SPLINE_SLACK_RAD``).
     """
     sl = (y1 - y0) / h
     t = (m0 + m1 - 2.0 * sl) / h
@@ -455,9 +460,9 @@ def _cubic_leaves(y0, y1, m0, m1, h, lo, hi):
         z = roots[i]
         if 0.0 < z < h:
             y = ((c0 * z + c1) * z + m0) * z + y0
-            if y < lo:
+            if y < lo - _SPLINE_SLACK_RAD:
                 return -1
-            if y > hi:
+            if y > hi + _SPLINE_SLACK_RAD:
                 return 1
     return 0
 
@@ -500,8 +505,10 @@ def _bounded_slopes(x, y, slopes, start_slope, clamped, lo, hi):
     The first and last knots are never anchored: the path starts and ends at rest there, and a
     joint held at rest on the path as well would start as t⁴, which the controller's quintics do
     not follow without passing the bound (a helper's audit: 2.9e-9 rad); with every other knot
-    anchored, each interval lies between its ends (the end pieces are parabolas, monotone).
-    Returns the anchors (M, n) bool; a column that stays within is left as it is, bit for bit.
+    anchored, each interval lies between its ends (the end pieces are parabolas, monotone), but
+    for a first piece whose start is clamped to the arm's slope: an interval nothing more can mend
+    is left as it is and the scan goes on past it.  Returns the anchors (M, n) bool; a column that
+    stays within is left as it is, bit for bit.
     """
     m, n = y.shape
     anchor = np.zeros((m, n), np.bool_)
@@ -509,9 +516,12 @@ def _bounded_slopes(x, y, slopes, start_slope, clamped, lo, hi):
         lo_c, hi_c = lo[col], hi[col]
         if not (lo_c > -np.inf or hi_c < np.inf):
             continue
+        given_up = np.zeros(m - 1, np.bool_)
         while True:
             bad, side = -1, 0
             for k in range(m - 1):
+                if given_up[k]:
+                    continue
                 y0, y1, m0, m1, h = y[k, col], y[k + 1, col], slopes[k, col], slopes[k + 1, col], x[k + 1] - x[k]
                 # the cubic lies within h max(|m0 - sl|, |m1 - sl|) / 4 of its chord (sl the chord's slope)
                 sl = (y1 - y0) / h
@@ -545,7 +555,8 @@ def _bounded_slopes(x, y, slopes, start_slope, clamped, lo, hi):
                     if 0 < k < m - 1 and not anchor[k, col] and d < near:
                         pick, near = k, d
                 if pick < 0:
-                    break
+                    given_up[bad] = True
+                    continue
                 anchor[pick, col] = True
             _pieces_solved(x, y, slopes, start_slope, clamped, anchor, col)
     return anchor
@@ -617,12 +628,14 @@ def _grid(ds, refine):
 
 def _spline_on_grid(p, ds, refine, start_slope=None, bounds=None):
     """
-    Return the spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3) as :func:`_path_model`.
+    Return the spline through p (M ≥ 3) on the grid: (s, q, d1, d2, d3, other) as :func:`_path_model`.
 
     Not-a-knot; with ``start_slope`` (n,) its first derivative at the start is that (clamped).
     With ``bounds`` (lo (n,), hi (n,)) the spline is kept within them (:func:`_bounded_slopes`);
-    at an anchor, where q' = 0 and q'' jumps, q'' is the larger of its two sides, so that a joint's
-    acceleration there (q'' ṡ²) is bounded for both.
+    at an anchor, where q' = 0 and q'' jumps, d2 holds the larger of its two sides, so that a
+    joint's acceleration there (q'' ṡ²) is bounded for both, and ``other`` (G, n) the smaller
+    (``other`` is d2 elsewhere; None where nothing is anchored): the wheel's torque, which mixes
+    the joints, is bounded for both sides by :func:`_rows`.
     """
     s_knots, s = _grid(ds, refine)
     g, n = s.shape[0], p.shape[1]
@@ -634,14 +647,27 @@ def _spline_on_grid(p, ds, refine, start_slope=None, bounds=None):
         anchor = _bounded_slopes(s_knots, p, slopes, p[0] if start_slope is None else start_slope,
                                  start_slope is not None, bounds[0], bounds[1])
     _hermite_on_grid(s_knots, p, slopes, s, refine, q, d1, d2, d3, np.empty(n), np.empty(n))
+    other = None
     if anchor is not None and anchor[1:-1].any():
-        for k, col in zip(*np.nonzero(anchor[1:-1])):
-            j = (k + 1) * refine
-            left = d2[j - 1, col] + d3[j - 1, col] * (s[j] - s[j - 1])
-            if abs(left) > abs(d2[j, col]):
-                d2[j, col] = left
+        other = d2.copy()
+        ks, cols = np.nonzero(anchor[1:-1])
+        ks = ks + 1
+        # each side's q'' at the knot from its own cubic (SciPy's CubicHermiteSpline coefficients):
+        # the left interval's at its end (z = h), the right one's at its start (z = 0)
+        sides = []
+        for a, z_at_end in ((ks - 1, True), (ks, False)):
+            h = s_knots[a + 1] - s_knots[a]
+            sl = (p[a + 1, cols] - p[a, cols]) / h
+            m0, m1 = slopes[a, cols], slopes[a + 1, cols]
+            t = (m0 + m1 - 2.0 * sl) / h
+            c0, c1 = t / h, (sl - m0) / h - t
+            sides.append(6.0 * c0 * h + 2.0 * c1 if z_at_end else 2.0 * c1)
+        left, right = sides
+        big = np.abs(left) > np.abs(right)
+        d2[ks * refine, cols] = np.where(big, left, right)
+        other[ks * refine, cols] = np.where(big, right, left)
     q[::refine] = p                     # the samples exactly
-    return s, q, d1, d2, d3
+    return s, q, d1, d2, d3, other
 
 
 #: joints from which NumPy's row norms and sums (pairwise summation) are not plain left-to-right
@@ -671,7 +697,7 @@ def arc_lengths_rad(p) -> np.ndarray:
     return _running_sum(chord_lengths_rad(p))
 
 
-def _path_model(p, refine: int, start_slope=None, bounds=None):
+def _path_model(p, refine: int, start_slope=None, bounds=None, sides: bool = False):
     """
     Fit the cubic spline through the samples p (M, n) on a grid refined ``refine`` times.
 
@@ -681,13 +707,15 @@ def _path_model(p, refine: int, start_slope=None, bounds=None):
     SciPy's not-a-knot ``CubicSpline``, by the kernels above from 3 samples on; with
     ``start_slope`` (n,) float64, its derivative at the start clamped to it (from 3 samples on);
     with ``bounds`` (lo, hi), each (n,) float64 (±inf: unbounded), kept within them
-    (:func:`_spline_on_grid`; a straight segment between samples within them is).
+    (:func:`_spline_on_grid`; a straight segment between samples within them is).  ``sides``:
+    also return q'' on the other side of each anchor (:func:`_spline_on_grid`'s ``other``, None
+    where none) last.
     """
     idx = np.arange(len(p)) * refine
     ds = chord_lengths_rad(p)
     if len(p) >= 3:
-        s, q, d1, d2, d3 = _spline_on_grid(p, ds, refine, start_slope, bounds)
-        return s, idx, q, d1, d2, d3
+        s, q, d1, d2, d3, other = _spline_on_grid(p, ds, refine, start_slope, bounds)
+        return (s, idx, q, d1, d2, d3, other) if sides else (s, idx, q, d1, d2, d3)
     s_knots, s = _grid(ds, refine)          # a straight segment
     chord = (p[1] - p[0]) / ds[0]
     q = p[0] + s[:, None] * chord
@@ -695,7 +723,7 @@ def _path_model(p, refine: int, start_slope=None, bounds=None):
     d2 = np.zeros_like(q)
     d3 = np.zeros((len(s) - 1, p.shape[1]))
     q[idx] = p
-    return s, idx, q, d1, d2, d3
+    return (s, idx, q, d1, d2, d3, None) if sides else (s, idx, q, d1, d2, d3)
 
 
 #: the models :func:`shared_path_models` keeps: None outside it
@@ -724,7 +752,7 @@ def shared_path_models():
 
 def _modelled_path(path_rad, max_step_rad: float, refine: int, start_slope=None, bounds=None):
     """
-    Return (the densified path p (M, n), its model (q, d1, d2, d3, ds) or None when M = 1).
+    Return (the densified path p (M, n), its model (q, d1, d2, d3, ds, other) or None when M = 1).
 
     :func:`densify_path` and :func:`_path_model` (C-contiguous, ``ds`` the grid steps (G-1,);
     ``start_slope``: the start's clamped derivative or None; ``bounds``: the joints' (lo, hi) or
@@ -744,8 +772,8 @@ def _modelled_path(path_rad, max_step_rad: float, refine: int, start_slope=None,
     p = densify_path(path, max_step_rad)
     model = None
     if len(p) > 1:
-        s, _, qg, d1, d2, d3 = _path_model(p, refine, start_slope, bounds)
-        model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s))
+        s, _, qg, d1, d2, d3, other = _path_model(p, refine, start_slope, bounds, sides=True)
+        model = (qg, np.ascontiguousarray(d1), np.ascontiguousarray(d2), np.ascontiguousarray(d3), np.diff(s), other)
     if key is not None:
         shared[key] = (p.copy(), model)          # not the positions returned (nor the caller's path)
     return p, model
@@ -1023,7 +1051,7 @@ def check_start_tangent(tangent, path_rad) -> None:
                              f"{np.degrees(MAX_START_TANGENT_TURN_RAD):g}°)")
 
 
-def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: float = 1e-3) -> float:
+def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: float = 1e-3, bounds=None) -> float:
     """
     Return the path speed ṡ that reproduces a start joint velocity along the path.
 
@@ -1034,6 +1062,8 @@ def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: fl
         start_velocity_rad_s: (n,) joint velocity at the start.
         tolerance: largest allowed part of the velocity across the tangent, relative to
             its norm (plus 1e-9 rad/s).
+        bounds: the joints' (lo, hi) (n,) each, or None: the tangent of the spline kept within
+            them (:func:`time_parameterize`'s ``lower_rad``, ``upper_rad``).
 
     Raises
     ------
@@ -1050,7 +1080,7 @@ def start_path_speed_from_velocity(path_rad, start_velocity_rad_s, tolerance: fl
         return 0.0
     if len(p) < 2:
         raise ValueError("start_velocity_rad_s: the path has no length, the arm cannot keep moving")
-    _, _, _, d1, _, _ = _path_model(p, 1)
+    _, _, _, d1, _, _ = _path_model(p, 1, None, bounds)
     t0 = d1[0] / np.linalg.norm(d1[0])
     sd = float(v0 @ t0)
     across = float(np.linalg.norm(v0 - sd * t0))
@@ -1547,13 +1577,16 @@ def _zone_factors(bits, refine, pts, starts, fac, f):
     return hit
 
 
-def _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low):
+def _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low, gp_jump=None):
     """
     Return the passes' constraint rows (a_row, b_row, c_row, kappa, xv) with the wheel's and the lowering.
 
     xv (G,), c_row (G, n), kappa (G-1, n): :func:`_constraint_rows`' joint rows; d1, d2 (G, n) q', q'';
     g, gp (G,) the wheel's H·q' and its derivative along the path (None: no wheel); h_max, tau_max
-    its limits (inf: none); low (G, 4) or None: :func:`_lowered_factors`.
+    its limits (inf: none); low (G, 4) or None: :func:`_lowered_factors`.  ``gp_jump`` (G,) or None:
+    where gp jumps (an anchor of the bounded spline: gp is then the middle of its two sides, δ the
+    jump), the torque row |g u + gp x| + δ/2 x ≤ τ bounds both sides: written as x ≤ τ/δ and
+    |g u + gp x| ≤ τ - δ/2 x_max (so at least τ/2).
     """
     if low is not None:
         xv = xv * low[:, 0] ** 2
@@ -1564,6 +1597,10 @@ def _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low):
     with np.errstate(divide="ignore", invalid="ignore"):
         xv = np.minimum(xv, (h_at / np.abs(g)) ** 2)
     tau_at = np.full(len(g), tau_max) if low is None else tau_max * low[:, 3]
+    if gp_jump is not None and np.isfinite(tau_max):
+        with np.errstate(divide="ignore"):
+            xv = np.minimum(xv, tau_at / gp_jump)
+        tau_at = tau_at - 0.5 * gp_jump * np.where(gp_jump > 0.0, xv, 0.0)
     return (np.ascontiguousarray(np.hstack([d1, g[:, None]])), np.ascontiguousarray(np.hstack([d2, gp[:, None]])),
             np.ascontiguousarray(np.hstack([c_row, tau_at[:, None]])),
             np.ascontiguousarray(np.hstack([kappa, np.zeros((len(g) - 1, 1))])), xv)
@@ -1644,8 +1681,8 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
             raise ValueError("start_tangent: give it with start_path_speed, not start_velocity_rad_s")
         tangent = np.array(start_tangent, dtype=float).reshape(-1)
         check_start_tangent(tangent, path_rad)
-    p, model = _modelled_path(path_rad, float(max_step_rad), refine, tangent,
-                              _joint_bounds(lower_rad, upper_rad, np.shape(path_rad)))
+    bounds = _joint_bounds(lower_rad, upper_rad, np.shape(path_rad))
+    p, model = _modelled_path(path_rad, float(max_step_rad), refine, tangent, bounds)
     n = p.shape[1]
     vmax = _check_limits("max_velocity", max_velocity_rad_s, n)
     amax = _check_limits("max_acceleration", max_acceleration_rad_s2, n)
@@ -1657,7 +1694,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     if start_path_speed is not None and start_velocity_rad_s is not None:
         raise ValueError("start_path_speed: give either start_path_speed or start_velocity_rad_s, not both")
     if start_velocity_rad_s is not None:
-        sd0 = start_path_speed_from_velocity(p, start_velocity_rad_s)
+        sd0 = start_path_speed_from_velocity(p, start_velocity_rad_s, bounds=bounds)
     else:
         sd0 = 0.0 if start_path_speed is None else float(start_path_speed)
         if not (np.isfinite(sd0) and sd0 >= 0.0):
@@ -1674,7 +1711,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
                           zero.copy() if wheel is not None else None,
                           None if h_max == np.inf else h_max, None if tau_max == np.inf else tau_max)
 
-    qg, d1, d2, d3, ds = model
+    qg, d1, d2, d3, ds, other = model
     g_n = len(qg)
     # velocity type x = ṡ² ≤ xv, the acceleration rows' κ and limits: see _constraint_rows
     xv, kappa, c_row = _constraint_rows(d1, d3, ds, vmax, amax)
@@ -1682,7 +1719,11 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
     g = gp = None
     if wheel is not None:
         g, gp = wheel.path_terms(qg, d1, d2)
-    rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
+    gp_rows, gp_jump = gp, None
+    if g is not None and other is not None:       # q'' jumps at an anchor: both sides' torque bounded
+        gp_other = wheel.path_terms(qg, d1, other)[1]
+        gp_rows, gp_jump = 0.5 * (gp + gp_other), np.abs(gp - gp_other)
+    rows = _rows(xv, c_row, kappa, d1, d2, g, gp_rows, h_max, tau_max, low, gp_jump)
     k = _backward(*rows[:5], ds, 0.0)
     # a start above the velocity limits themselves (not lowered) brakes into them (brake_to_limits)
     braking = bool(brake_to_limits) and sd0 > np.sqrt(xv[0]) * (1.0 + start_speed_tolerance)
@@ -1696,7 +1737,7 @@ def time_parameterize(path_rad, max_velocity_rad_s, max_acceleration_rad_s2, joi
         low = low.copy()
         low[:free] = 1.0
         if raised.size:
-            rows = _rows(xv, c_row, kappa, d1, d2, g, gp, h_max, tau_max, low)
+            rows = _rows(xv, c_row, kappa, d1, d2, g, gp_rows, h_max, tau_max, low, gp_jump)
             _backward_from(k, *rows[:5], ds, 0.0, int(raised[-1]))
         free *= 2
     a_row, b_row, c_row, kappa, xv = rows

@@ -204,6 +204,104 @@ def test_a_path_touching_a_joint_bound_is_timed_within_its_limits_and_at_rest_th
         np.testing.assert_array_equal(x, y)
 
 
+def _left_right_path_acceleration(traj, k, x_knots):
+    """
+    Return s̈ on the grid segments before and after knot k (grid refinement 2), by the published times and speeds.
+
+    On each half of a sample interval s̈ is constant, so ṡ² is linear in s there and the half lasts
+    2 Δ / (ṡ_a + ṡ_b): the midpoint's ṡ is what makes the two halves add up to the interval's time
+    (a root the test finds by bisection); s̈ = (ṡ_b² - ṡ_a²) / (2 Δ).
+    """
+    from scipy.optimize import brentq
+    sd, t = traj.path_speed, traj.times_s
+
+    def mid(i):
+        half = 0.5 * (x_knots[i + 1] - x_knots[i])
+        f = lambda m: 2 * half / (sd[i] + m) + 2 * half / (m + sd[i + 1]) - (t[i + 1] - t[i])   # noqa: E731
+        return half, (brentq(f, 0.0, 1e3) if f(0.0) > 0.0 else 0.0)      # 0: the path stops there
+    half, m = mid(k - 1)
+    before = (sd[k] ** 2 - m ** 2) / (2 * half)
+    half, m = mid(k)
+    after = (m ** 2 - sd[k] ** 2) / (2 * half)
+    return before, after
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_wheel_torque_is_bounded_on_both_sides_of_a_sample_held_on_a_bound(seed):
+    """
+    A path of the paper 3-DOF arm touching the shoulder's bound, timed with a wheel torque limit: both sides within it.
+
+    The spline is C1 where it is held on the bound (q' = 0 there in that joint, q'' jumps); the
+    wheel's torque mixes the joints, so each side's q'' must be bounded, not only the larger (a
+    review: 2.9 × the limit just before such a sample).  Oracle: the spline's two sides from SciPy's
+    clamped pieces, s̈ on each side from the published times and path speeds, and the wheel's torque
+    by the test's own momentum sum (``oracles.wheel_load``).
+    """
+    from oracles import wheel_load
+    from scipy.interpolate import CubicSpline
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.spacecraft import WheelModel
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_3dof.yaml"))
+    robot = sc.robot
+    lo, hi = robot.planned_bounds_rad
+    b = int(np.flatnonzero(np.isfinite(lo))[0])
+    n = len(lo)
+    vmax, amax = np.full(n, 1.0), np.full(n, 2.0)
+    rng = np.random.default_rng(90 + seed)
+    checked = 0
+    while checked < 3:
+        depth = np.radians([rng.uniform(0.2, 2.0), rng.uniform(5.0, 30.0)])[rng.permutation(2)]
+        corners = np.radians(rng.uniform(-40.0, 40.0, (3, n)))
+        corners[:, b] = lo[b] + np.array([depth[0], 0.0, depth[1]])
+        p = densify_path(corners, np.radians(0.5))
+        k = int(np.flatnonzero(p[:, b] == lo[b])[0])
+        report = time_parameterize(p, vmax, amax, wheel=WheelModel(robot, sc.masses), lower_rad=lo, upper_rad=hi)
+        if report.velocities_rad_s[k, b] != 0.0 or not 2 <= k <= len(p) - 3:
+            continue                                    # not held on the bound: its spline did not pass it
+        tau = 0.5 * abs(float(report.wheel_torque_Nm[k])) + 1e-3
+        traj = time_parameterize(p, vmax, amax, wheel=WheelModel(robot, sc.masses, None, tau),
+                                 lower_rad=lo, upper_rad=hi)
+        x = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+        whole = CubicSpline(x, p, axis=0)
+        pieces = (CubicSpline(x[:k + 1], p[:k + 1, b], bc_type=("not-a-knot", (1, 0.0))),
+                  CubicSpline(x[k:], p[k:, b], bc_type=((1, 0.0), "not-a-knot")))
+        d1 = whole(x[k], 1)
+        d1[b] = 0.0
+        u_before, u_after = _left_right_path_acceleration(traj, k, x)
+        sd = traj.path_speed[k]
+        for piece, u in zip(pieces, (u_before, u_after)):
+            d2 = whole(x[k], 2)
+            d2[b] = piece(x[k], 2)
+            qdd = d1 * u + d2 * sd ** 2
+            torque = wheel_load(robot, sc.masses, robot.full(p[k])[None], robot.full(d1 * sd)[None] * 1.0,
+                                robot.full(qdd)[None] - robot.full(np.zeros(n))[None])[1][0]
+            assert abs(torque) <= tau * (1 + 1e-4), (abs(torque) / tau, seed)
+        checked += 1
+
+
+def test_a_start_velocity_is_kept_or_refused_on_a_path_held_on_a_bound_near_its_start():
+    """
+    A start velocity on a path whose spline is held on a bound near the start: published as given, or refused.
+
+    The bounded spline leaves its start along another tangent than the plain one (its first piece
+    solved again); the start speed is the velocity's projection on the tangent the trajectory
+    follows, so the published first velocity is the one given (a review: projected on the plain
+    tangent, it jumped from [0.0039, 0.0092] to [0, 0.0092] rad/s).  Here the first piece, a cubic
+    through the three samples up to the touch with slope 0 there, leaves the start along the second
+    joint alone: a velocity along the first chord (the test's own) is refused, one along the second
+    joint is published as given (``oracles.check_trajectory``).
+    """
+    corners = np.array([[0.004, 0.0], [0.0, 0.012], [0.2, 0.06]])     # joint 0 touches its bound 0 at a sample
+    path = densify_path(corners, np.radians(0.5))
+    lo, hi = np.array([0.0, -np.inf]), np.array([np.inf, np.inf])
+    chord = (corners[1] - corners[0]) / np.linalg.norm(corners[1] - corners[0])
+    with pytest.raises(ValueError, match="start_velocity_rad_s: .* off the path's start tangent"):
+        time_parameterize(path, np.ones(2), np.ones(2), start_velocity_rad_s=0.01 * chord, lower_rad=lo, upper_rad=hi)
+    v0 = np.array([0.0, 0.01])
+    traj = time_parameterize(path, np.ones(2), np.ones(2), start_velocity_rad_s=v0, lower_rad=lo, upper_rad=hi)
+    check_trajectory(traj, path, np.ones(2), np.ones(2), v0=v0)
+
+
 def test_bad_joint_bounds_are_refused_naming_them():
     path = np.zeros((2, 3))
     path[1] = 0.5

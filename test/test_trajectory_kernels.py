@@ -144,6 +144,45 @@ def test_the_spline_within_the_bounds_is_scipys_clamped_pieces_and_stays_within_
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_clamped_start_past_the_bound_leaves_the_rest_of_the_spline_within_it():
+    """
+    A start slope (the arm's) that points past a bound cannot be mended; a touch further on still is.
+
+    Oracle: SciPy's ``CubicHermiteSpline`` through the samples with the model's knot slopes, 64
+    samples an interval: within the bound after the first interval, and at rest at the touch.
+    """
+    from scipy.interpolate import CubicHermiteSpline
+    rng = np.random.default_rng(7)
+    p = _touching(rng, 2)
+    p = np.vstack([[0.002, p[0, 1] - 0.02], p])                  # a first sample near the bound ...
+    lo, hi = np.array([0.0, -np.inf]), np.array([np.inf, np.inf])
+    slope = np.array([-0.6, 0.8])                                # ... left towards it and past it
+    s, idx, q, d1, d2, d3 = _path_model(p, 2, slope, (lo, hi))
+    x = s[idx]
+    f = CubicHermiteSpline(x, p[:, 0], d1[idx, 0])
+    fine = np.concatenate([np.linspace(a, b, 64, endpoint=False) for a, b in zip(x[:-1], x[1:])])
+    assert f(fine[fine < x[1]]).min() < 0.0                      # premise: the first interval passes it
+    assert f(fine[fine >= x[1]]).min() >= -1e-14
+    k = int(np.flatnonzero(p[:, 0] == 0.0)[0])
+    assert d1[idx[k], 0] == 0.0
+
+
+def test_the_second_derivative_along_a_run_on_the_bound_is_0_at_any_refinement():
+    """A path along a bound (its spline passing it between the knots on it): q'' 0 at the run's knots, refine 1 or 2."""
+    rng = np.random.default_rng(8)
+    corners = np.array([[0.05, 0.0], [0.0, 0.3], [0.0, 0.6], [0.2, 1.0]])
+    p = densify_path(corners + np.array([0.0, rng.uniform(0.0, 0.1)]), np.radians(0.5))
+    lo, hi = np.array([0.0, -np.inf]), np.array([np.inf, np.inf])
+    run = np.flatnonzero(p[:, 0] == 0.0)
+    assert len(run) > 3
+    assert CubicSpline(np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]),
+                       p[:, 0])(np.linspace(0.0, 1.0, 4001)).min() < -1e-9         # premise
+    for refine in (1, 2):
+        s, idx, q, d1, d2, d3 = _path_model(p, refine, None, (lo, hi))
+        inner = idx[run[1:-1]]
+        assert np.all(d1[inner, 0] == 0.0) and np.all(d2[inner, 0] == 0.0), refine
+
+
 def _densify_numpy(path, max_step):
     """Densify as the array formulation did: keep rows more than 1e-12 from the last kept one, exact goal, subdivide."""
     p = np.asarray(path, dtype=float)
