@@ -47,7 +47,7 @@ import numpy as np
 
 from .motion import MotionValidator
 from .published import (Resampled, controller_check, controller_motion, controller_times, resample,
-                        segment_peaks, segment_wheel_peaks)
+                        sample_points, segment_peaks, segment_wheel_peaks)
 from .reaction import DriftedValidator
 from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, rests_at, timed_join
 from .settings import SessionSettings
@@ -648,11 +648,14 @@ def _still_on_bounds(dense: Trajectory, on_bounds) -> Trajectory:
     bound (by up to 0.0055° in a helper's audit, where it runs along the elbow's -180°).  The timing's
     spline now has slope 0 there wherever it would pass the bound (``trajectory.time_parameterize``'s
     ``lower_rad``, ``upper_rad``); here every such point holds it, whatever the spline: that joint's
-    velocity is set to 0, and its acceleration too where it points past the bound
-    or where a neighbouring point lies on the same bound (along the bound; a path that touches it at
-    one point and turns back keeps its turn's acceleration, which points inwards).  The first point
-    keeps its state (a join's is the arm's).  ``on_bounds``: :func:`_on_bounds` of ``dense``.  The
-    same object where no point lies on a bound.
+    velocity is set to 0, and its acceleration too where it points past the bound or where a
+    neighbouring point lies on the same bound (along the bound).  Where the path touches the bound at
+    one point, or leaves a run along it, the point's acceleration is then the least inward one that
+    keeps the controller's quintic to the next point off the bound within it (:func:`_least_inward`:
+    a long, slow segment next to it, where the speed changes fast, had its quintic pass the bound by
+    up to 7.3e-4 rad in a helper's audit of the servicer scenes; the published points keep both
+    neighbours, :func:`_bound_points`).  The first point keeps its state (a join's is the arm's).
+    ``on_bounds``: :func:`_on_bounds` of ``dense``.  The same object where no point lies on a bound.
     """
     at_lo, at_hi = on_bounds
     if not (at_lo.any() or at_hi.any()):
@@ -662,7 +665,41 @@ def _still_on_bounds(dense: Trajectory, on_bounds) -> Trajectory:
     along_hi = at_hi & (np.roll(at_hi, 1, axis=0) | np.roll(at_hi, -1, axis=0))
     vel[at_lo | at_hi] = 0.0
     acc[along_lo | along_hi | (at_lo & (acc < 0.0)) | (at_hi & (acc > 0.0))] = 0.0
+    t, q, m = dense.times_s, dense.positions_rad, len(dense.times_s)
+    for at, inward in ((at_lo, 1.0), (at_hi, -1.0)):
+        for k, c in zip(*np.nonzero(at)):
+            need = inward * acc[k, c]
+            for o in (k - 1, k + 1):
+                if 0 <= o < m and not at[o, c]:
+                    need = max(need, _least_inward(t, q[:, c], vel[:, c], acc[:, c], k, o, inward))
+            acc[k, c] = inward * need
     return replace(dense, velocities_rad_s=vel, accelerations_rad_s2=acc)
+
+
+#: samples of a segment's quintic for :func:`_least_inward`, and the margin on what they ask
+_LIFT_SAMPLES, _LIFT_MARGIN = 128, 1.05
+
+
+def _least_inward(t, q, v, a, k, o, inward: float) -> float:
+    """
+    Return the least inward acceleration at point k, on its joint's bound, that keeps the quintic to point o within it.
+
+    t (M,), q, v, a (M,) one joint's column; ``inward`` +1 at a lower bound, -1 at an upper.  The
+    quintic with k's acceleration A is Q + A·H (Q: with A = 0, ``published.sample_points``; H the
+    quintic Hermite basis of that end's acceleration, ≥ 0 on the segment: τ²/2 (1 - τ/T)³ from its
+    start, its mirror to its end), so one least A keeps it within at every sample
+    (:data:`_LIFT_SAMPLES`, the value raised by :data:`_LIFT_MARGIN`); 0 where it is within already.
+    """
+    i, j = min(k, o), max(k, o)
+    dur = t[j] - t[i]
+    acc = np.array([a[i], a[j]], dtype=float)
+    acc[0 if k == i else 1] = 0.0
+    tau = dur * np.arange(1, _LIFT_SAMPLES) / _LIFT_SAMPLES
+    quintic = sample_points(np.array([0.0, dur]), q[[i, j], None], v[[i, j], None], acc[:, None], tau)[0][:, 0]
+    u = tau / dur
+    basis = tau ** 2 / 2.0 * (1.0 - u) ** 3 if k == i else (dur - tau) ** 2 / 2.0 * u ** 3
+    need = float(np.max(inward * (q[k] - quintic) / basis))
+    return need * _LIFT_MARGIN if need > 0.0 else 0.0
 
 
 def _on_bounds(dense: Trajectory, robot) -> tuple:
@@ -683,7 +720,8 @@ def _bound_points(on_bounds) -> np.ndarray:
     Return the indices of the points the published trajectory keeps because a joint reaches its bound there.
 
     Each point where a bounded joint touches its bound, and the first and last of a run along it
-    (within the run the controller holds the joint on the bound: :func:`_still_on_bounds`); the
+    (within the run the controller holds the joint on the bound: :func:`_still_on_bounds`), and their
+    neighbours (the quintics :func:`_still_on_bounds` keeps within the bound are to them); the
     resampling may drop them otherwise (0.1° of the path), and the quintic between the points left
     then passes the bound (a helper's audit: up to 8e-7 rad; the certification, exact on the bounds,
     would add points back round by round).  ``on_bounds``: :func:`_on_bounds` of the dense points.
@@ -695,6 +733,9 @@ def _bound_points(on_bounds) -> np.ndarray:
     for at in (at_lo, at_hi):
         inner = at[1:-1] & at[:-2] & at[2:]            # inside a run: both neighbours on the same bound
         out[1:-1] |= (at[1:-1] & ~inner).any(axis=1)
+    kept = out.copy()
+    out[:-1] |= kept[1:]
+    out[1:] |= kept[:-1]
     return np.flatnonzero(out)
 
 
