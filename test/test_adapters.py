@@ -306,7 +306,8 @@ def test_paths_that_touch_the_elbows_bound_at_one_sample_are_published_within_it
         assert out.certified, np.degrees(path).round(3).tolist()
 
 
-#: plans of a helper's audit whose published quintics passed the elbow's bound (start, goal rad; debris polygons, m)
+#: plans of helpers' audits whose published quintics passed a joint's bound (start, goal rad; debris polygons, m;
+#: the scene's configuration): paper 3-DOF (elbow), then servicer 3-DOF (elbow, wheel-limited) and 4-joint (wrist)
 _AUDITED = [
     ([0.6206051596657169, -0.9309960453718302, -np.pi], [-1.8568973375480478, 1.5472109965953402, np.pi], []),
     ([1.4038058482168836, -2.0766362455735017, -3.0957013520059236],
@@ -323,40 +324,55 @@ _AUDITED = [
      [[[-1.3111096758502798, 0.9447576755648737], [-1.7101718225107823, 0.9489938270605904],
        [-1.9000933603290817, 0.5853225759431299], [-1.7333892639728876, 0.29618058057470276],
        [-1.5378170762304635, 0.2288398441379597], [-1.3992685135967649, 0.24556037416493592]]]),
+    ([-2.9253372212439235, 1.3555122122642436, 3.0927736167717885],
+     [2.3731648997812362, -2.080054976229631, 3.131884431232807],
+     [[[-1.4648480246550182, 2.4794231267565205], [-1.4874035695796934, 2.477819378382993],
+       [-1.4650630475864321, 2.265617448459524], [-1.371334691541324, 2.327978092323189]]], "servicer_3dof"),
+    ([1.195581987093612, 1.42823631804736, 3.091413624421937],
+     [-1.4323584625834744, -1.8131888134381584, 2.9501630376982453], [], "servicer_3dof"),
+    ([2.16427900774523, -0.926299728328039, -2.663297602504987, 2.579404266282889],
+     [1.0672376269341832, 2.222871517310402, -2.8593143483654746, 2.5837948103630115],
+     [[[-0.06652260689816808, 3.4348673808528485], [0.05941127811289576, 3.2480686851993235],
+       [-0.17773819840121424, 3.274434124947546], [0.016763404849532426, 2.8772593181615655],
+       [0.0325997845071998, 2.5372243314142002], [0.705975043308293, 2.937157752163229]]], "servicer_4joint"),
 ]
 
 
 @pytest.mark.parametrize("case", range(len(_AUDITED)))
-def test_planned_paths_along_and_onto_the_elbows_bound_are_published_within_it(case):
+def test_planned_paths_along_and_onto_a_joints_bound_are_published_within_it(case):
     """
-    Paper 3-DOF plans from a helper's audit, the elbow starting, running or ending on its ±180° bound: within it.
+    Plans from helpers' audits, a joint starting, running or ending on its bound: the published motion within it.
 
     The published quintics had passed the bound: the resampling dropped the sample where the path
     touches it or leaves a run along it (up to 8.0e-7 rad), or a start on the bound held at rest on
-    the path started as t⁴ (2.9e-9 rad), and were certified (8 samples a segment).  Oracle: SciPy's
-    quintic through the published points (``scipy.interpolate.BPoly``) and its exact extrema (the
-    roots of its derivative), against the bound.
+    the path started as t⁴ (2.9e-9 rad), and were certified (8 samples a segment); on the servicer
+    scenes (wheel-limited) the quintic of a long, slow segment next to a touch (up to 7.3e-4 rad).
+    Oracle: SciPy's quintic through the published points (``scipy.interpolate.BPoly``) and its exact
+    extrema (the roots of its derivative), against the bounds of every bounded joint.
     """
     from scipy.interpolate import BPoly, PPoly
     from spacerobot_planner.config import load_scenario
     from spacerobot_planner.planner import Planner
     from spacerobot_planner.scene import Scene
-    start, goal, debris = _AUDITED[case]
-    base = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_3dof.yaml"))
+    start, goal, debris, config = (_AUDITED[case] + ("paper_3dof",))[:4]
+    base = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", f"{config}.yaml"))
     sc = base.with_scene(Scene(target=base.scene.target, debris_m=tuple(np.array(p) for p in debris),
                                safety_margin_m=base.scene.safety_margin_m))
     res = Planner(sc).plan(np.array(start), np.array(goal))
     assert res.ok, res.reason
     out = post_process(sc, res.path_rad)
     tr = out.trajectory
-    e = list(tr.joint_names).index("elbow")
-    lo, hi = sc.robot.planned_lower_rad[e], sc.robot.planned_upper_rad[e]
-    assert np.any(np.isin(np.asarray(res.path_rad)[:, e], [lo, hi]))                # premise: on the bound
-    bp = BPoly.from_derivatives(tr.times_s, np.stack([tr.positions_rad[:, e], tr.velocities_rad_s[:, e],
-                                                      tr.accelerations_rad_s2[:, e]], axis=1))
-    roots = PPoly.from_bernstein_basis(bp).derivative().roots(extrapolate=False)
-    y = bp(np.concatenate([tr.times_s, roots[np.isfinite(roots)]]))
-    assert max(lo - y.min(), y.max() - hi) <= 1e-12, (lo - y.min(), y.max() - hi)
+    robot = sc.robot
+    on = 0
+    for e in np.flatnonzero(~np.asarray(robot.planned_periodic)):
+        lo, hi = robot.planned_lower_rad[e], robot.planned_upper_rad[e]
+        on += int(np.isin(np.asarray(res.path_rad)[:, e], [lo, hi]).sum())
+        bp = BPoly.from_derivatives(tr.times_s, np.stack([tr.positions_rad[:, e], tr.velocities_rad_s[:, e],
+                                                          tr.accelerations_rad_s2[:, e]], axis=1))
+        roots = PPoly.from_bernstein_basis(bp).derivative().roots(extrapolate=False)
+        y = bp(np.concatenate([tr.times_s, roots[np.isfinite(roots)]]))
+        assert max(lo - y.min(), y.max() - hi) <= 1e-12, (robot.planned_names[e], lo - y.min(), y.max() - hi)
+    assert on                                                                       # premise: on a bound
     assert out.certified
 
 
