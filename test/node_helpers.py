@@ -268,15 +268,29 @@ class Graph:
         controller_rule_violations).  "The current state" of a first point at time 0 is the
         mock arm's state just before the trajectory's stamp (its own motion, exact), without an
         arm the recorded joint_states interpolated at the stamp (at its arrival for a zero
-        stamp, or when the record does not reach the stamp).
+        stamp, or when the record does not reach the stamp).  A trajectory that a newer one on its
+        topic drops while it waits for its stamp (one that arrives before it and starts no later:
+        the mock arm's and joint_trajectory_controller's replacement) never starts: it is not
+        judged against the state at its stamp (a flood test's plan from the executing trajectory's
+        end, replaced 0.4 s later by a join that started before that end).
         """
         known = set(self.scenario.robot.joint_names)
         out = []
         with self.lock:
             got = list(self.checked)
+        at_arrival = self.arm is not None and self.arm.switch_at_arrival
+
+        def switch_s(msg, now):
+            stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            return now if at_arrival or not stamp_s else max(stamp_s, now)
+        dropped = {i for i, (topic, msg, now, _) in enumerate(got)
+                   if any(t2 == topic and now2 < switch_s(msg, now) and switch_s(m2, now2) <= switch_s(msg, now)
+                          for t2, m2, now2, _ in got[i + 1:])}
         for i, (topic, msg, now, state) in enumerate(got):
             current = None
-            if msg.points:
+            if msg.points and i in dropped:
+                current = list(msg.points[0].positions)          # never starts: no current state to meet
+            elif msg.points:
                 names, first = list(msg.joint_names), list(msg.points[0].positions)
                 stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
                 q = None
