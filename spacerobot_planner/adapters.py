@@ -936,13 +936,11 @@ def _past_bounds_text(scenario, traj: Trajectory) -> list:
     """
     robot = scenario.robot
     names = list(robot.planned_names)
-    lo, hi = np.asarray(robot.planned_lower_rad, dtype=float), np.asarray(robot.planned_upper_rad, dtype=float)
+    lo, hi = robot.planned_bounds_rad               # ±inf for a periodic joint: never passed
     q, t = controller_motion(traj, _BOUND_SAMPLES)[0], controller_times(traj, _BOUND_SAMPLES)
     out = []
     for c, name in enumerate(traj.joint_names):
         j = names.index(name)
-        if robot.planned_periodic[j]:
-            continue
         for bound, excess in ((lo[j], lo[j] - q[:, c]), (hi[j], q[:, c] - hi[j])):
             k = int(np.argmax(excess))
             if excess[k] > 0.0:
