@@ -46,8 +46,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .motion import MotionValidator
-from .published import (Resampled, controller_check, controller_motion, controller_times, resample,
-                        sample_points, segment_peaks, segment_wheel_peaks)
+from .published import (BOUND_SLACK_RAD, Resampled, controller_check, past_bounds, resample, sample_points,
+                        segment_peaks, segment_wheel_peaks)
 from .reaction import DriftedValidator
 from .replanning import START_LEAD_S, Executing, joined_paths, plan_start, rests_at, timed_join
 from .settings import SessionSettings
@@ -319,17 +319,19 @@ def warm_up(scenario) -> None:
     """
     Load the chain's kernels (numba's cache, else compiled) before a user's plan meets them: two chains.
 
-    One from rest along a straight path through the middle of the joint ranges, and one joined to
-    it while the arm moves (``replanning.plan_start`` with the session's defaults, the arm on the
-    trajectory; a new path from the join on to the first's end, a little off it): a joined replan's
-    own kernels (the start tangent's spline, the joins' turns) otherwise loaded in the middle of the
-    first joined replan (paper_3dof: 9.3 ms against 2.6 for the next, 3.2 after this warm-up).
+    One from rest along a straight path through the middle of the joint ranges (and a refusal's
+    text of the bounds on its trajectory), and one joined to it while the arm moves
+    (``replanning.plan_start`` with the session's defaults, the arm on the trajectory; a new path
+    from the join on to the first's end, a little off it): a joined replan's own kernels (the start
+    tangent's spline, the joins' turns) otherwise loaded in the middle of the first joined replan
+    (paper_3dof: 9.3 ms against 2.6 for the next, 3.2 after this warm-up).
     Raises ValueError when the scenario's limits refuse the first chain (every plan's chain would
     refuse too); the joined chain's own refusals are no matter here.
     """
     robot = scenario.robot
     lo, hi = robot.planned_lower_rad, robot.planned_upper_rad
     first = post_process(scenario, np.linspace(lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo), 8))
+    _past_bounds_text(scenario, first.trajectory)      # a refusal's kernel (published.past_bounds)
     dense = first.dense
     if len(dense) < 2:
         return
@@ -921,31 +923,25 @@ def uncertified_text(scenario, processed: Processed, motions) -> str:
     return "the controller's motion " + "; it ".join(said)
 
 
-#: samples per segment of the controller's motion for :func:`_past_bounds_text` (its peak between them:
-#: within about a hundredth of its excess)
-_BOUND_SAMPLES = 64
-
-
 def _past_bounds_text(scenario, traj: Trajectory) -> list:
     """
     Say where the controller's motion of ``traj`` passes a bounded joint's bound, joint by joint (texts; [] when none).
 
-    The quintics sampled :data:`_BOUND_SAMPLES` times a segment (``published.controller_motion``)
-    against the robot's planned bounds: e.g. "passes elbow's bound -180° by 0.0055° 8.09 s after
-    its start" (the points themselves lie within them: the path's samples do).
+    The quintics' exact peaks (``published.past_bounds``) against the robot's planned bounds, where
+    they pass them by more than the controller check's slack: e.g. "passes elbow's bound -180° by
+    0.0055° 8.09 s after its start" (the points themselves lie within them: the path's samples do).
     """
     robot = scenario.robot
     names = list(robot.planned_names)
     lo, hi = robot.planned_bounds_rad               # ±inf for a periodic joint: never passed
-    q, t = controller_motion(traj, _BOUND_SAMPLES)[0], controller_times(traj, _BOUND_SAMPLES)
+    cols = [names.index(name) for name in traj.joint_names]
+    excess, at, side = past_bounds(traj, lo[cols], hi[cols])
     out = []
     for c, name in enumerate(traj.joint_names):
-        j = names.index(name)
-        for bound, excess in ((lo[j], lo[j] - q[:, c]), (hi[j], q[:, c] - hi[j])):
-            k = int(np.argmax(excess))
-            if excess[k] > 0.0:
-                out.append(f"passes {name}'s bound {np.degrees(bound):g}° by {np.degrees(excess[k]):.2g}° "
-                           f"{t[k]:.2f} s after its start")
+        if excess[c] > BOUND_SLACK_RAD:
+            bound = hi[cols[c]] if side[c] > 0 else lo[cols[c]]
+            out.append(f"passes {name}'s bound {np.degrees(bound):g}° by {np.degrees(excess[c]):.2g}° "
+                       f"{at[c]:.2f} s after its start")
     return out
 
 

@@ -442,6 +442,17 @@ BOUND_SLACK_RAD = 1e-12
 _TO_BERNSTEIN = np.array([[math.comb(r, i) / math.comb(5, i) if i <= r else 0.0 for i in range(6)] for r in range(6)])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _halve(w, left, right):
+    """Split Bernstein coefficients w (6,) at 1/2 (de Casteljau): the halves' into left and right (w overwritten)."""
+    for i in range(6):
+        left[i] = w[0]
+        right[5 - i] = w[5 - i]
+        for k in range(5 - i):
+            w[k] = 0.5 * (w[k] + w[k + 1])
+        # after level i, w[0..5-i-1] hold level i+1
+
+
 @njit(cache=True, nogil=True)
 def _hull_within(b, lo, hi, stack, w, left, right):
     """
@@ -466,19 +477,74 @@ def _hull_within(b, lo, hi, stack, w, left, right):
             continue
         if w[0] < lo_s or w[0] > hi_s or w[5] < lo_s or w[5] > hi_s or depth >= 40.0 or top >= 61:
             return False
-        # de Casteljau at 1/2: the left half's coefficients are the first of each level, the right's the last
-        for i in range(6):
-            left[i] = w[0]
-            right[5 - i] = w[5 - i]
-            for k in range(5 - i):
-                w[k] = 0.5 * (w[k] + w[k + 1])
-            # after level i, w[0..5-i-1] hold level i+1
+        _halve(w, left, right)
         for i in range(6):
             stack[top + 1, i] = left[i]
             stack[top + 2, i] = right[i]
         stack[top + 1, 6] = stack[top + 2, 6] = depth + 1.0
         top += 2
     return True
+
+
+@njit(cache=True, nogil=True)
+def _hull_peak(b, sign, stack, w, left, right):
+    """
+    Return (the largest value of sign · p on [0, 1], where): p the polynomial of Bernstein coefficients b (6,).
+
+    Branch and bound on the coefficients' hull: a piece whose largest coefficient is no more than
+    the best end value found (plus 1e-15 of the coefficients' scale) is dropped, the others halved
+    (:func:`_halve`) down to 50 halvings; the value is an end value, so it lies within that of the
+    peak.  ``stack`` (128, 8) scratch: a piece's coefficients, depth and start; ``w``, ``left``,
+    ``right`` (6,) scratch.
+    """
+    scale = 0.0
+    for i in range(6):
+        scale = max(scale, abs(b[i]))
+    tol = 1e-15 * max(scale, 1e-300)
+    best, at = sign * b[0], 0.0
+    if sign * b[5] > best:
+        best, at = sign * b[5], 1.0
+    top = 0
+    for i in range(6):
+        stack[0, i] = sign * b[i]
+    stack[0, 6] = stack[0, 7] = 0.0
+    while top >= 0:
+        for i in range(6):
+            w[i] = stack[top, i]
+        depth, x0 = stack[top, 6], stack[top, 7]
+        top -= 1
+        if w.max() <= best + tol or depth >= 50.0:
+            continue
+        width = 0.5 ** (depth + 1.0)
+        _halve(w, left, right)
+        if left[5] > best:                  # the halves' common end
+            best, at = left[5], x0 + width
+        if top >= 125:
+            continue                        # (never at 50 halvings: one piece per depth waits)
+        for i in range(6):
+            stack[top + 1, i] = right[i]
+            stack[top + 2, i] = left[i]     # the left half first
+        stack[top + 1, 6] = stack[top + 2, 6] = depth + 1.0
+        stack[top + 1, 7], stack[top + 2, 7] = x0 + width, x0
+        top += 2
+    return best, at
+
+
+@njit(cache=True, nogil=True)
+def _bernstein(c, j, b):
+    """
+    Write column j of the power-basis polynomial c (6, n) into b (6,) in the Bernstein basis; return b's (min, max).
+
+    The normalised time of :func:`_segment_coefficients`; the curve lies within [min, max].
+    """
+    low, high = np.inf, -np.inf
+    for r in range(6):
+        acc = 0.0
+        for i in range(r + 1):
+            acc += _TO_BERNSTEIN[r, i] * c[i, j]
+        b[r] = acc
+        low, high = min(low, acc), max(high, acc)
+    return low, high
 
 
 @njit(cache=True, nogil=True)
@@ -493,25 +559,73 @@ def _segments_within_bounds(t, q, v, a, lo, hi, out):
     c = np.zeros((6, n))
     b, w, left, right = np.empty(6), np.empty(6), np.empty(6), np.empty(6)
     stack = np.empty((64, 7))
-    to_b = _TO_BERNSTEIN
     lo_s, hi_s = lo - BOUND_SLACK_RAD, hi + BOUND_SLACK_RAD
     for k in range(m - 1):
         _segment_coefficients(q, v, a, 3, k, t[k + 1] - t[k], c)
         for j in range(n):
             if lo[j] == -np.inf and hi[j] == np.inf:
                 continue
-            low, high = np.inf, -np.inf
-            for r in range(6):
-                acc = 0.0
-                for i in range(r + 1):
-                    acc += to_b[r, i] * c[i, j]
-                b[r] = acc
-                low, high = min(low, acc), max(high, acc)
+            low, high = _bernstein(c, j, b)
             if low >= lo_s[j] and high <= hi_s[j]:
                 continue                # the hull within: the curve is
             if not _hull_within(b, lo[j], hi[j], stack, w, left, right):
                 out[k] = False
                 break
+
+
+@njit(cache=True, nogil=True)
+def _segments_past_bounds(t, q, v, a, lo, hi, excess, at, side):
+    """
+    Fill excess (M-1, n): how far segment k's quintic passes joint j's bound (lo, hi (n,)), rad, exactly; at: when, s.
+
+    Where a segment's Bernstein hull stays within both bounds, excess is 0 and at its start;
+    else the larger of the peak past the upper bound and the dip past the lower one
+    (:func:`_hull_peak`, to about 1e-15 of the quintic's scale; ≤ 0: within), its time and side
+    (side int8 (M-1, n): 1 the upper bound, -1 the lower, 0 the hull within).
+    """
+    m, n = q.shape
+    c = np.zeros((6, n))
+    b, w, left, right = np.empty(6), np.empty(6), np.empty(6), np.empty(6)
+    stack = np.empty((128, 8))
+    for k in range(m - 1):
+        dur = t[k + 1] - t[k]
+        _segment_coefficients(q, v, a, 3, k, dur, c)
+        for j in range(n):
+            excess[k, j], at[k, j], side[k, j] = 0.0, t[k], 0
+            if lo[j] == -np.inf and hi[j] == np.inf:
+                continue
+            low, high = _bernstein(c, j, b)
+            if high > hi[j]:
+                top, x = _hull_peak(b, 1.0, stack, w, left, right)
+                excess[k, j], at[k, j], side[k, j] = top - hi[j], t[k] + x * dur, 1
+            if low < lo[j]:
+                top, x = _hull_peak(b, -1.0, stack, w, left, right)
+                if lo[j] + top > excess[k, j]:
+                    excess[k, j], at[k, j], side[k, j] = lo[j] + top, t[k] + x * dur, -1
+
+
+def past_bounds(traj: Trajectory, lo, hi) -> tuple:
+    """
+    Return how far the controller's motion of ``traj`` passes each joint's bounds, exactly: (excess, at, side).
+
+    Each (n,): the largest over the segments' quintics (:func:`_segments_past_bounds`) joint by
+    joint, rad, its time from the trajectory's start, s, and the bound's side (1 upper, -1 lower, 0
+    none); an excess ≤ 0 where a joint stays within (lo, hi (n,) rad, ±inf for none).  It names
+    what :func:`controller_check` refuses (an excess above :data:`BOUND_SLACK_RAD`).
+    """
+    t = np.ascontiguousarray(traj.times_s, dtype=float)
+    n = traj.positions_rad.shape[1]
+    if len(t) < 2:
+        return np.zeros(n), np.zeros(n), np.zeros(n, np.int8)
+    excess, at = np.empty((len(t) - 1, n)), np.empty((len(t) - 1, n))
+    side = np.empty((len(t) - 1, n), np.int8)
+    _segments_past_bounds(t, np.ascontiguousarray(traj.positions_rad, dtype=float),
+                          np.ascontiguousarray(traj.velocities_rad_s, dtype=float),
+                          np.ascontiguousarray(traj.accelerations_rad_s2, dtype=float),
+                          np.asarray(lo, dtype=float), np.asarray(hi, dtype=float), excess, at, side)
+    k = np.argmax(excess, axis=0)
+    cols = np.arange(n)
+    return excess[k, cols], at[k, cols] - t[0], side[k, cols]
 
 
 def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTROLLER_SAMPLES) -> tuple:

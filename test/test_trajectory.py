@@ -710,6 +710,66 @@ def test_the_certification_holds_the_controllers_quintics_within_the_joint_bound
     assert between >= 10, between                               # the premise: passes between the samples
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_how_far_the_controllers_quintics_pass_a_joints_bound_is_found_exactly(seed):
+    """
+    ``published.past_bounds`` and the refusal's text: the quintics' exact peaks past a bound, their time and side.
+
+    Trajectories of the paper 2-DOF arm's joints near the elbow's ±180° bounds (the shoulder
+    unbounded in the call: never named).  Oracle: SciPy's quintic through the points
+    (``scipy.interpolate.BPoly``) and its exact extrema (the roots of its derivative).  The chain's
+    text for a refused motion had found the excess by 64 samples a segment, and said nothing of a
+    bound passed only between them (the premise: such trajectories are counted).
+    """
+    from scipy.interpolate import BPoly, PPoly
+    from spacerobot_planner.adapters import _past_bounds_text
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.published import BOUND_SLACK_RAD, past_bounds
+    from spacerobot_planner.trajectory import Trajectory
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", "paper_2dof.yaml"))
+    names = tuple(sc.robot.planned_names)
+    e = names.index("elbow")
+    lo_e, hi_e = sc.robot.planned_lower_rad[e], sc.robot.planned_upper_rad[e]
+    lo, hi = np.full(2, -np.inf), np.full(2, np.inf)
+    lo[e], hi[e] = lo_e, hi_e
+    rng = np.random.default_rng(90 + seed)
+    between = 0
+    for case in range(80):
+        m = int(rng.integers(2, 7))
+        t = np.concatenate([[0.0], np.cumsum(rng.uniform(0.05, 2.0, m - 1))]) + rng.uniform(0.0, 5.0)
+        bound = hi_e if case % 2 else lo_e
+        inward = -1.0 if case % 2 else 1.0
+        q = np.empty((m, 2))
+        q[:, 1 - e] = np.radians(rng.uniform(-90.0, 90.0, m))
+        q[:, e] = bound + inward * rng.uniform(0.0, 1e-4, m) * (rng.random(m) < 0.7)
+        v = rng.normal(0.0, 1e-3, (m, 2))
+        a = rng.normal(0.0, 1e-2, (m, 2))
+        if case % 3 == 0:           # out from the bound and back early in the first segment, before 1/64 of it
+            q[0, e], v[0, e] = bound, -inward * rng.uniform(1e-4, 1e-3)
+            a[0, e] = inward * abs(v[0, e]) * rng.uniform(192.0, 384.0) / (t[1] - t[0])
+        traj = Trajectory(names, t, q, v, a, np.ones(2), np.ones(2))
+        excess, at, side = past_bounds(traj, lo, hi)
+        assert excess[1 - e] <= 0.0 and side[1 - e] == 0                  # unbounded: never past
+        bp = BPoly.from_derivatives(t, np.stack([q[:, e], v[:, e], a[:, e]], axis=1))
+        roots = PPoly.from_bernstein_basis(bp).derivative().roots(extrapolate=False)
+        ts = np.concatenate([t, roots[np.isfinite(roots)]])
+        y = bp(ts)
+        oracle = max(lo_e - y.min(), y.max() - hi_e)
+        scale = 1e-12 * max(1.0, np.abs(q[:, e]).max())
+        assert abs(excess[e] - oracle) <= scale or (oracle < 0.0 and excess[e] <= 0.0), (excess[e], oracle)
+        if oracle > 1e-9:
+            assert side[e] == (1 if case % 2 else -1)
+            assert 0.0 <= at[e] <= t[-1] - t[0]
+            assert abs(abs(bp(t[0] + at[e]) - bound) - oracle) <= 1e-9 * oracle + scale    # where it is
+            text = _past_bounds_text(sc, traj)
+            assert len(text) == 1 and f"elbow's bound {np.degrees(bound):g}°" in text[0], text
+            dense = np.linspace(t[0], t[-1], 64 * (m - 1) + 1)
+            between += bool(max(lo_e - bp(dense).min(), bp(dense).max() - hi_e) <= 0.0)
+        elif oracle < -BOUND_SLACK_RAD:
+            assert _past_bounds_text(sc, traj) == []
+    assert between >= 5, between                 # the premise: passed only between 64 samples a segment
+
+
 def test_resampling_adds_points_back_where_the_chord_collides(paper_scenario, paper_path):
     """
     A tolerance so loose that chords cut through the spacecraft body.
