@@ -530,7 +530,7 @@ def _hull_peak(b, sign, stack, w, left, right):
     return best, at
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _bernstein(c, j, b):
     """
     Write column j of the power-basis polynomial c (6, n) into b (6,) in the Bernstein basis; return b's (min, max).
