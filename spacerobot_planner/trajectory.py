@@ -154,6 +154,34 @@ class Trajectory:
                        wheel_momentum_Nms=pick(self.wheel_momentum_Nms),
                        wheel_torque_Nm=pick(self.wheel_torque_Nm))
 
+    def slowed(self, factor: float) -> "Trajectory":
+        """
+        Return this motion along the same path, ``factor`` (≥ 1) times as long: t → factor·t.
+
+        Every point keeps its position; velocities are divided by ``factor``, accelerations by
+        its square, as are the path speed, the wheel momentum (÷ factor) and torque (÷ factor²)
+        and each point's ``limit_ratio`` by its constraint's kind.  A quintic (or any polynomial)
+        through the points is then the one through the old points at t / factor, so the
+        controller's motion keeps its curve and its peaks fall by the same factors.  Raises
+        ValueError for a factor below 1 (or not finite).
+        """
+        k = float(factor)
+        if not (math.isfinite(k) and k >= 1.0):
+            raise ValueError(f"slowed: the factor must be a finite number >= 1, got {factor!r}")
+        ratio = self.limit_ratio
+        if ratio is not None and self.active_limit is not None:
+            second = np.array([str(a).startswith(("acceleration", "wheel_torque")) for a in self.active_limit])
+            ratio = np.where(second, ratio / (k * k), ratio / k)
+
+        def div(a, d):
+            return None if a is None else a / d
+
+        return replace(self, times_s=self.times_s * k, velocities_rad_s=self.velocities_rad_s / k,
+                       accelerations_rad_s2=self.accelerations_rad_s2 / (k * k),
+                       path_speed=div(self.path_speed, k), limit_ratio=ratio,
+                       wheel_momentum_Nms=div(self.wheel_momentum_Nms, k),
+                       wheel_torque_Nm=div(self.wheel_torque_Nm, k * k))
+
     def then(self, other: "Trajectory") -> "Trajectory":
         """
         Append ``other``, which starts where this trajectory ends at rest.

@@ -407,3 +407,89 @@ def test_a_path_along_the_elbows_bound_is_published_without_passing_it():
     q = f(ts)[0]
     assert float(np.max(lo - q[:, e])) <= 1e-12, np.degrees(np.max(lo - q[:, e]))
     assert out.certified
+
+
+def _controller_ratios(sc, tr):
+    """Return the largest velocity and acceleration of SciPy's quintics through ``tr``'s points over the limits."""
+    from oracles import controller_interpolation, quintic_acceleration_peaks
+    cols = [list(sc.robot.joint_names).index(n) for n in tr.joint_names]
+    amax = np.asarray(sc.joint_limits.max_acceleration_rad_s2)[cols]
+    vmax = np.asarray(sc.joint_limits.max_velocity_rad_s)[cols]
+    acc = quintic_acceleration_peaks(tr.times_s, tr.positions_rad, tr.velocities_rad_s, tr.accelerations_rad_s2)
+    f = controller_interpolation(tr.times_s, tr.positions_rad, tr.velocities_rad_s, tr.accelerations_rad_s2)
+    vel = np.max(np.abs(f(np.linspace(0.0, tr.times_s[-1], 20001))[1]), axis=0)
+    return float(np.max(vel / vmax)), float(np.max(acc / amax))
+
+
+@pytest.mark.parametrize("case", ["audited", "no_retiming_left"])
+def test_a_chain_from_rest_that_overshoots_after_its_last_re_timing_is_published_slowed_within_the_limits(
+        case, monkeypatch):
+    """
+    A chain from rest whose controller's motion still overshoots after its last re-timing: its points slowed.
+
+    A helper's audit (1 of 130 free-floating plans): after the last re-timing the controller's
+    quintics through the published points reached 1.0059 × the elbow's acceleration limit, and
+    the chain published them as they were, certified.  "audited": that plan; "no_retiming_left":
+    the paper 3-DOF plan with no re-timing allowed (its first round overshoots: the premise, with
+    the slowing taken out).  Oracle: SciPy's quintics through the published points, their exact
+    acceleration peaks (``oracles.quintic_acceleration_peaks``) and velocities at 20 001 times,
+    against the scenario's limits with the chain's tolerance; the published points are dense ones.
+    """
+    from spacerobot_planner import adapters
+    from spacerobot_planner.adapters import CONTROLLER_TOL
+    from spacerobot_planner.config import load_scenario
+    from spacerobot_planner.planner import Planner
+    name = "free_floating_capture" if case == "audited" else "paper_3dof"
+    sc = load_scenario(os.path.join(os.path.dirname(__file__), "..", "config", f"{name}.yaml"))
+    if case == "audited":
+        res = Planner(sc).plan(np.array([-0.33600434591624095, 1.8975952542528]))
+    else:
+        res = Planner(sc).plan(sc.start_rad, sc.goal_rad)
+        monkeypatch.setattr(adapters, "CONTROLLER_RETIMES", 1)
+        monkeypatch.setattr(adapters, "WHOLE_PATH_RETIMES", 0)
+        with monkeypatch.context() as m:
+            m.setattr(adapters, "_slowed", lambda scenario, got, *a: got)
+            before = _controller_ratios(sc, post_process(sc, res.path_rad).trajectory)
+        assert max(before) > 1.0 + 10 * CONTROLLER_TOL, before                        # the premise
+    assert res.ok, res.reason
+    out = post_process(sc, res.path_rad)
+    assert out.certified
+    tr = out.trajectory
+    vel, acc = _controller_ratios(sc, tr)
+    assert vel <= 1.0 + CONTROLLER_TOL and acc <= 1.0 + CONTROLLER_TOL, (vel, acc)
+    assert np.array_equal(tr.positions_rad, out.dense.positions_rad[out.indices])
+    assert np.array_equal(tr.times_s, out.dense.times_s[out.indices])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_slowed_trajectory_is_the_controllers_motion_at_a_slower_time(seed):
+    """
+    ``Trajectory.slowed(k)``: the quintics through its points are the old ones at t / k.
+
+    Oracle: SciPy's quintics (``oracles.controller_interpolation``) through both, at 500 times:
+    positions equal, velocities ÷ k, accelerations ÷ k²; a factor below 1 is refused.
+    """
+    from oracles import controller_interpolation
+    from spacerobot_planner.trajectory import Trajectory
+    rng = np.random.default_rng(seed)
+    m, n = 7, 3
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(0.1, 1.0, m - 1))])
+    q, v, a = rng.normal(size=(m, n)), rng.normal(size=(m, n)), rng.normal(size=(m, n))
+    tr = Trajectory(("a", "b", "c"), t, q, v, a, np.ones(n), np.ones(n), path_speed=rng.uniform(0, 1, m),
+                    active_limit=np.array(["velocity:a", "acceleration:b", "wheel_torque", "wheel_momentum",
+                                           "velocity:c", "acceleration:a", "velocity:b"]),
+                    limit_ratio=np.full(m, 0.9), wheel_momentum_Nms=rng.normal(size=m),
+                    wheel_torque_Nm=rng.normal(size=m))
+    k = rng.uniform(1.0, 3.0)
+    slow = tr.slowed(k)
+    ts = np.linspace(0.0, t[-1], 500)
+    old, new = controller_interpolation(t, q, v, a)(ts), controller_interpolation(
+        slow.times_s, slow.positions_rad, slow.velocities_rad_s, slow.accelerations_rad_s2)(k * ts)
+    np.testing.assert_allclose(new[0], old[0], atol=1e-12)
+    np.testing.assert_allclose(new[1], old[1] / k, atol=1e-12)
+    np.testing.assert_allclose(new[2], old[2] / k ** 2, atol=1e-11)
+    np.testing.assert_allclose(slow.wheel_torque_Nm, tr.wheel_torque_Nm / k ** 2)
+    np.testing.assert_allclose(slow.wheel_momentum_Nms, tr.wheel_momentum_Nms / k)
+    np.testing.assert_allclose(slow.limit_ratio, 0.9 / np.array([k, k * k, k * k, k, k, k * k, k]))
+    with pytest.raises(ValueError, match="factor"):
+        tr.slowed(0.99)
