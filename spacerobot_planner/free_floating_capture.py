@@ -831,9 +831,12 @@ def plan_capture(scenario, start_rad, goal_rad=None, *, masses: MassProperties |
                   f"joint, within the joint bounds; motions that loop to turn the spacecraft further are not)")
     else:
         skipped = n_candidates - n_checked
-        reason = (f"free floating: {n_candidates} arm motions turn the spacecraft by the needed attitude change "
-                  f"({what}), but none of the {n_checked} checked in the inertial frame stays clear of the safety "
-                  f"margin and grasps (best clearance {best_clear:.3f} m, margin {scene.safety_margin_m} m)"
+        motions = "1 arm motion turns" if n_candidates == 1 else f"{n_candidates} arm motions turn"
+        none = ("the one checked in the inertial frame does not stay clear of the safety margin and grasp"
+                if n_checked == 1 else f"none of the {n_checked} checked in the inertial frame stays clear of the "
+                "safety margin and grasps")
+        reason = (f"free floating: {motions} the spacecraft by the needed attitude change ({what}), but {none} "
+                  f"(best clearance {best_clear:.3f} m, margin {scene.safety_margin_m} m)"
                   + (f"; {skipped} not checked (beyond the {SEARCH['max_checks']} shortest of a family, or off "
                      f"the joint bounds or the attitude change once refined to the final path)" if skipped else ""))
     return FreeFloatingCapture(False, reason, np.zeros((0, robot.dof)), None, None, needed, achievable, None, None,

@@ -212,8 +212,11 @@ class PlanarArm:
                                  f"resolves {math.ulp(MAX_TURNS_RAD):.1g} rad there); report it wrapped, e.g. "
                                  f"into [-π, π)")
             if not self.periodic[j] and not (low - BOUND_TOL_RAD <= x <= high + BOUND_TOL_RAD):
-                raise ValueError(f"{name}: joint '{jn}' = {np.degrees(q[k]):.3f}° is outside its "
-                                 f"bounds [{np.degrees(lo[k]):.1f}°, {np.degrees(hi[k]):.1f}°]")
+                past_deg = math.degrees(max(low - x, x - high))
+                # the digits that tell it from the bound (165.0000001°, not 165.000°)
+                digits = min(12, max(3, 1 - math.floor(math.log10(past_deg))))
+                raise ValueError(f"{name}: joint '{jn}' = {np.degrees(q[k]):.{digits}f}° is outside its "
+                                 f"bounds [{np.degrees(lo[k]):.1f}°, {np.degrees(hi[k]):.1f}°] by {past_deg:.2g}°")
         q = wrap_rad(q, self._planned_periodic, lo)
         bounded = ~self._planned_periodic
         q[bounded] = np.clip(q[bounded], lo[bounded], hi[bounded])

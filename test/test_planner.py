@@ -346,7 +346,8 @@ def test_a_start_or_goal_a_rounding_past_a_bound_plans_from_the_bound(sc2, sc3, 
     assert_valid_path(res, sc3)
     assert res.path_rad[0, 2] == -bound and np.all(np.abs(res.path_rad[:, 2]) <= bound)
     res = Planner(sc3).plan(np.array([sc3.start_rad[0], sc3.start_rad[1], -bound - 1e-8]), sc3.goal_rad)
-    assert res.code == "invalid_input" and "'elbow' = -180.000° is outside its bounds" in res.reason, res.reason
+    assert res.code == "invalid_input" and "'elbow' = -180.00000057° is outside its bounds" in res.reason, res.reason
+    assert "by 5.7e-07°" in res.reason, res.reason                    # (the value shown is not the bound's)
 
 
 @pytest.mark.parametrize("turns", [1e17, -2e6])

@@ -106,7 +106,8 @@ def test_validate_q_takes_a_rounding_past_a_bound_as_the_bound(sc3):
     for past in (1e-10, 1e-9, 4.5e-16):
         assert sc3.robot.validate_q(np.array([0.1, 0.2, D(180.0) + past]))[2] == D(180.0)
         assert sc3.robot.validate_q(np.array([0.1, 0.2, -D(180.0) - past]))[2] == -D(180.0)
-    with pytest.raises(ValueError, match="'elbow' = 180.000° is outside"):
+    # the value shown to the digits that tell it from the bound, and by how much it is past
+    with pytest.raises(ValueError, match=r"'elbow' = 180\.00000057° is outside .* by 5\.7e-07°"):
         sc3.robot.validate_q(np.array([0.1, 0.2, D(180.0) + 1e-8]), "start")
 
 
