@@ -427,7 +427,8 @@ class PlanRun:
 
         Returns a ``smoothing.SmoothPath`` of it (clearance: the inertial check's); refused
         (``reaction_refused``) with the attitude change needed and what the arm's motions
-        achieve, or the inertial clearance; ``goal_unreachable`` for a chain it does not handle.
+        achieve, or the inertial clearance; ``goal_unreachable`` for a chain it does not handle
+        and for a grasp no capture posture reaches.
         """
         if self.cached_only:
             raise NotCached("free-floating capture")
@@ -451,7 +452,9 @@ class PlanRun:
         self.timings["verify"] += cap.verify_s
         self.stats.update(free_floating_candidates=cap.candidates, free_floating_checked=cap.checked)
         if not cap.ok:
-            raise Fail(Code.REACTION_REFUSED, cap.reason)
+            # no capture posture at all (the grasp out of the arm's reach, wherever the body drifts): the
+            # target's goal, as on a held spacecraft; else what the drift does to the capture
+            raise Fail(Code.GOAL_UNREACHABLE if not cap.needed_deg else Code.REACTION_REFUSED, cap.reason)
         self.goal = cap.goal_rad
         self.approach_error_deg = cap.approach_error_deg
         self.say(f"free-floating capture: attitude change {cap.response.attitude_change_deg:.2f}°, body "

@@ -486,3 +486,21 @@ def test_the_attitude_change_a_refusal_names_is_the_shortest_arc_holding_every_n
         assert hi - lo == pytest.approx(min(spans), abs=1e-9), (angles, lo, hi)
         assert -180.0 <= lo < 180.0
         assert all((x - lo) % 360.0 <= hi - lo + 1e-9 or (x - lo) % 360.0 > 360.0 - 1e-9 for x in a), (angles, lo, hi)
+
+
+def test_a_grasp_out_of_the_arms_reach_answers_goal_unreachable_as_on_a_held_spacecraft():
+    """
+    Free floating, the target 7.5 m from the body's centre: ``goal_unreachable`` (it had answered ``reaction_refused``).
+
+    Oracle: the test's own reach: the grasp point is farther from the body's centre than the
+    arm's links end to end (its first link from the centre, then the rest) plus a body drift of a
+    metre: no posture of the arm reaches it, wherever the body floats.
+    """
+    base = load_scenario(FF)
+    target = replace(base.scene.target, center_m=(-7.0, -2.6))
+    sc = base.with_scene(replace(base.scene, target=target))
+    grasp = np.asarray(target.grasp_point_m, dtype=float)
+    assert np.linalg.norm(grasp) > sum(base.robot.link_lengths_m) + 1.0        # the premise: out of reach
+    res = Planner(sc).plan(base.start_rad)
+    assert res.code == "goal_unreachable", (res.code, res.reason)
+    assert "out of the arm's reach" in res.reason
