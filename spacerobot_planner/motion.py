@@ -568,7 +568,9 @@ class MotionValidator:
         known), reused instead of evaluated again.  ``every_row=False``: one walk along the whole
         polyline, rows that a sample before them proves free passed over (for a dense polyline
         of samples of a curve, :func:`certify_segments`); an interval no sample falls in then has
-        clearance ``inf`` in ``interval_clearance_m``, and ``min_clearance_m`` is the smallest over the samples taken.
+        clearance ``inf`` in ``interval_clearance_m``, and ``min_clearance_m`` is the smallest over the samples taken
+        and the first and last rows (the walk may pass over the last: a controller's motion's goal, where a grasp's
+        clearance is least; a helper's audit found the servicer's reported up to 27 mm high on half its plans).
         """
         checker = self.checker
         step = self.step_rad if step_rad is None else float(step_rad)
@@ -589,6 +591,10 @@ class MotionValidator:
         ok, best, n, interval_ok, interval_clr = check_kernel(
             p, self.lower_rad, self.upper_rad, self._periodic_mask, *self.kernel_arrays, float(threshold),
             self.reach_m, step, float(min_step_rad), bool(certified), vertex_clr, every_row)
+        if not every_row:
+            ends = vertex_clr[[0, -1]]
+            ends = np.where(np.isnan(ends), checker.clearance_m(p[[0, -1]]), ends)
+            best = min(float(best), float(ends.min()))
         return PathCheck(bool(ok), interval_ok, float(best), int(n), interval_clr, vertex_clr)
 
     def check_kept(self, path_rad) -> PathCheck:

@@ -638,7 +638,7 @@ def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTR
     certified walk past the samples (``every_row=False``: eight a segment are far closer than
     the walk's steps; a paper 3-DOF replan's 900 samples take about 340 clearances instead of
     900, 80 instead of 190 us), so the clearance reported is the least at the walk's own samples
-    and at the first and last points.  The joints' bounds are checked on the quintics themselves,
+    and at the first and last (``MotionValidator.check``).  The joints' bounds are checked on the quintics themselves,
     exactly (:func:`_segments_within_bounds`: a quintic can pass a bound between the samples and be
     back within at the next).  Returns
     (``motion.PathCheck`` of that polyline, its ``ok`` and ``interval_ok`` False too where a segment's
@@ -649,11 +649,6 @@ def controller_check(traj: Trajectory, motions, samples_per_segment: int = CONTR
     check = validator.check(controller_motion(traj, samples_per_segment)[0], every_row=False)
     if len(traj.times_s) < 2:
         return check, np.zeros(0, bool)
-    # the walk's samples may pass over the last point, the goal (a grasp: most often the least clearance;
-    # a helper's audit: the servicer's reported 27 mm too high on half its plans), and the first
-    ends = float(np.min(validator.clearance_m(traj.positions_rad[[0, -1]])))
-    if ends < check.min_clearance_m:
-        check = replace(check, min_clearance_m=ends)
     seg_ok = np.asarray(check.interval_ok, dtype=bool).reshape(-1, samples_per_segment).all(axis=1)
     within = np.ones(len(traj.times_s) - 1, dtype=bool)
     _segments_within_bounds(np.ascontiguousarray(traj.times_s, dtype=float),
