@@ -454,39 +454,6 @@ def _halve(w, left, right):
 
 
 @njit(cache=True, nogil=True)
-def _hull_within(b, lo, hi, stack, w, left, right):
-    """
-    Tell whether the polynomial with Bernstein coefficients b (6,) on [0, 1] stays within [lo, hi] (± BOUND_SLACK_RAD).
-
-    The curve lies in its coefficients' hull and passes through the first and last: halved (de
-    Casteljau) until every piece's hull is within or a piece's end is out (``stack`` (64, 7)
-    scratch: a piece's coefficients and depth); a piece 40 halvings deep whose hull is still out by
-    more than the slack counts as out (``w``, ``left``, ``right`` (6,) scratch).
-    """
-    lo_s, hi_s = lo - BOUND_SLACK_RAD, hi + BOUND_SLACK_RAD
-    top = 0
-    stack[0, :6] = b
-    stack[0, 6] = 0.0
-    while top >= 0:
-        for i in range(6):
-            w[i] = stack[top, i]
-        depth = stack[top, 6]
-        top -= 1
-        low, high = w.min(), w.max()
-        if low >= lo_s and high <= hi_s:
-            continue
-        if w[0] < lo_s or w[0] > hi_s or w[5] < lo_s or w[5] > hi_s or depth >= 40.0 or top >= 61:
-            return False
-        _halve(w, left, right)
-        for i in range(6):
-            stack[top + 1, i] = left[i]
-            stack[top + 2, i] = right[i]
-        stack[top + 1, 6] = stack[top + 2, 6] = depth + 1.0
-        top += 2
-    return True
-
-
-@njit(cache=True, nogil=True)
 def _hull_peak(b, sign, stack, w, left, right):
     """
     Return (the largest value of sign · p on [0, 1], where): p the polynomial of Bernstein coefficients b (6,).
@@ -547,28 +514,48 @@ def _bernstein(c, j, b):
     return low, high
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _past_by(b, low, high, lo, hi, stack, w, left, right):
+    """
+    Return (how far the quintic of Bernstein coefficients b (6,) passes [lo, hi], where in [0, 1], side): exactly.
+
+    ``low``, ``high``: b's least and largest (the curve lies within them).  Where they are within
+    the bounds: (0, 0, 0); else the larger of the peak past hi and the dip past lo
+    (:func:`_hull_peak`, to about 1e-15 of the quintic's scale; ≤ 0: within) and its side (1 the upper
+    bound, -1 the lower).  The one rule of the controller check's bounds and of a refusal's text.
+    """
+    past, x, side = 0.0, 0.0, 0
+    if high > hi:
+        top, xt = _hull_peak(b, 1.0, stack, w, left, right)
+        past, x, side = top - hi, xt, 1
+    if low < lo:
+        top, xt = _hull_peak(b, -1.0, stack, w, left, right)
+        if side == 0 or lo + top > past:
+            past, x, side = lo + top, xt, -1
+    return past, x, side
+
+
 @njit(cache=True, nogil=True)
 def _segments_within_bounds(t, q, v, a, lo, hi, out):
     """
     Set out[k] (M-1,) False where segment k's quintic passes a joint's bound (lo, hi (n,); ±inf: none), exactly.
 
-    The segment's polynomial (:func:`_segment_coefficients`, normalised time) in the Bernstein
-    basis, its hull tested by :func:`_hull_within`.
+    By more than BOUND_SLACK_RAD (:func:`_past_by`: the segment's polynomial, normalised time, in the
+    Bernstein basis, its hull first: within it, the curve is).
     """
     m, n = q.shape
     c = np.zeros((6, n))
     b, w, left, right = np.empty(6), np.empty(6), np.empty(6), np.empty(6)
-    stack = np.empty((64, 7))
-    lo_s, hi_s = lo - BOUND_SLACK_RAD, hi + BOUND_SLACK_RAD
+    stack = np.empty((128, 8))
     for k in range(m - 1):
         _segment_coefficients(q, v, a, 3, k, t[k + 1] - t[k], c)
         for j in range(n):
             if lo[j] == -np.inf and hi[j] == np.inf:
                 continue
             low, high = _bernstein(c, j, b)
-            if low >= lo_s[j] and high <= hi_s[j]:
+            if low >= lo[j] - BOUND_SLACK_RAD and high <= hi[j] + BOUND_SLACK_RAD:
                 continue                # the hull within: the curve is
-            if not _hull_within(b, lo[j], hi[j], stack, w, left, right):
+            if _past_by(b, low, high, lo[j], hi[j], stack, w, left, right)[0] > BOUND_SLACK_RAD:
                 out[k] = False
                 break
 
@@ -578,10 +565,9 @@ def _segments_past_bounds(t, q, v, a, lo, hi, excess, at, side):
     """
     Fill excess (M-1, n): how far segment k's quintic passes joint j's bound (lo, hi (n,)), rad, exactly; at: when, s.
 
-    Where a segment's Bernstein hull stays within both bounds, excess is 0 and at its start;
-    else the larger of the peak past the upper bound and the dip past the lower one
-    (:func:`_hull_peak`, to about 1e-15 of the quintic's scale; ≤ 0: within), its time and side
-    (side int8 (M-1, n): 1 the upper bound, -1 the lower, 0 the hull within).
+    Each segment's :func:`_past_by` (0 at its start where its Bernstein hull stays within both
+    bounds), its time and side (side int8 (M-1, n): 1 the upper bound, -1 the lower, 0 the hull
+    within): the controller check's own rule (:func:`_segments_within_bounds`).
     """
     m, n = q.shape
     c = np.zeros((6, n))
@@ -595,13 +581,8 @@ def _segments_past_bounds(t, q, v, a, lo, hi, excess, at, side):
             if lo[j] == -np.inf and hi[j] == np.inf:
                 continue
             low, high = _bernstein(c, j, b)
-            if high > hi[j]:
-                top, x = _hull_peak(b, 1.0, stack, w, left, right)
-                excess[k, j], at[k, j], side[k, j] = top - hi[j], t[k] + x * dur, 1
-            if low < lo[j]:
-                top, x = _hull_peak(b, -1.0, stack, w, left, right)
-                if lo[j] + top > excess[k, j]:
-                    excess[k, j], at[k, j], side[k, j] = lo[j] + top, t[k] + x * dur, -1
+            past, x, sd = _past_by(b, low, high, lo[j], hi[j], stack, w, left, right)
+            excess[k, j], at[k, j], side[k, j] = past, t[k] + x * dur, sd
 
 
 def past_bounds(traj: Trajectory, lo, hi) -> tuple:
